@@ -1,0 +1,96 @@
+"""The one contract every input implements: a Source yields SampleBlocks and keeps counters.
+
+Serial, CAN, the simulated unit and MCAP replay are each one module implementing it, looked up
+by name in SOURCES and imported only when used (like python-can's interface registry).
+Subclasses implement `_read_block(timeout)`; `read` owns the timeout and the closed state.
+"""
+
+from __future__ import annotations
+
+import importlib
+from abc import ABC, abstractmethod
+from dataclasses import asdict, dataclass
+
+from .block import SampleBlock
+from .errors import ConfigError, DriverError
+
+
+@dataclass
+class Counters:
+    """Health counters every source keeps; they only ever grow."""
+
+    frames_accepted: int = 0
+    crc_failures: int = 0
+    bytes_skipped: int = 0
+    seq_gaps: int = 0           # number of gaps seen
+    samples_missed: int = 0     # samples lost inside those gaps
+    can_incomplete: int = 0     # CAN samples dropped because a frame never came
+    saturated_axes: int = 0
+    temp_invalid: int = 0
+    reconnects: int = 0
+    read_errors: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+class Source(ABC):
+    """A stream of SampleBlocks. `close()` may be called twice; usable as a context manager."""
+
+    n_probes: int
+    counters: Counters
+
+    def __init__(self, n_probes: int) -> None:
+        if not 1 <= n_probes <= 8:
+            raise ConfigError(f"n_probes: {n_probes!r} is not allowed (allowed: 1..8)")
+        self.n_probes = n_probes
+        self.counters = Counters()
+        self._closed = False
+
+    def read(self, timeout: float | None = 0.1) -> SampleBlock | None:
+        """The samples that arrived, or None if none came within `timeout` seconds.
+
+        Raises DriverError when the port or bus failed (the caller may reconnect with `reopen`)."""
+        if self._closed:
+            raise DriverError(f"{type(self).__name__}: read after close")
+        return self._read_block(timeout)
+
+    @abstractmethod
+    def _read_block(self, timeout: float | None) -> SampleBlock | None: ...
+
+    def reopen(self) -> None:
+        """Try to open the underlying port again after a DriverError; raise DriverError if it can't."""
+        raise DriverError(f"{type(self).__name__} cannot reconnect")
+
+    @property
+    def exhausted(self) -> bool:
+        """True for finite sources (files) once every sample has been read."""
+        return False
+
+    def close(self) -> None:
+        self._closed = True
+
+    def __enter__(self) -> "Source":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+#: source kind -> "module:factory"; the factory takes (config, **kwargs) and returns a Source
+SOURCES: dict[str, str] = {
+    "serial": "drivers.serial_source:open_source",
+    "can": "drivers.can_source:open_source",
+    "sim": "drivers.sim.source:open_source",
+    "replay": "drivers.mcap_source:open_source",
+}
+
+
+def open_source(kind: str, *args, **kwargs) -> Source:
+    """Open a source by kind name, importing its module only now."""
+    try:
+        target = SOURCES[kind]
+    except KeyError:
+        raise ConfigError(f"source.kind: {kind!r} is not allowed (allowed: {', '.join(map(repr, SOURCES))})") from None
+    module, _, factory = target.partition(":")
+    return getattr(importlib.import_module(module), factory)(*args, **kwargs)
