@@ -1,0 +1,258 @@
+"""The simulated acquisition unit: digitises the world (ADC counts, temperatures, flags, seq, clock)
+and turns it into ICD bytes and CAN frames, with faults injected on request and a record of them.
+
+Samples are addressed by index i from 0: world time i / rate_hz, seq = seq_start + i (wraps at 2^16),
+t_us = t_us_start + round(i 1e6 / rate_hz) (wraps at 2^32). Every random decision is drawn by sample
+index (world.ChunkedRandom), so any stretch of the run can be produced again, exactly.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock
+from ..icd import SATURATED_COUNTS, TEMP_LSB_C, encode_can, encode_serial, frame_length
+from .config import SimConfig
+from .world import (STREAM_CAN, STREAM_GARBAGE, STREAM_SERIAL, STREAM_TEMP_INVALID, ChunkedRandom, World,
+                    WorldSamples)
+
+INT32_MAX, INT32_MIN = SATURATED_COUNTS
+INT16_MIN, INT16_MAX = -32768, 32767
+
+
+@dataclass
+class UnitSamples:
+    """Samples [start, stop) as the unit digitised them (what goes on the wire), plus the world behind."""
+
+    index: np.ndarray          # (N,) int64 sample index
+    seq: np.ndarray            # (N,) int64 unwrapped counter (seq_start + index)
+    t_us: np.ndarray           # (N,) int64 unwrapped unit clock, us
+    counts: np.ndarray         # (N, P, 3) int32
+    temp_raw: np.ndarray       # (N, P) int16, 0.01 degC
+    flags: np.ndarray          # (N,) uint8
+    ref_total_nT: np.ndarray | None
+    lsb_nT: float
+    world: WorldSamples
+
+    def __len__(self) -> int:
+        return int(self.index.shape[0])
+
+    @property
+    def seq_raw(self) -> np.ndarray:
+        return (self.seq & 0xFFFF).astype(np.uint16)
+
+    @property
+    def t_us_raw(self) -> np.ndarray:
+        return (self.t_us & 0xFFFFFFFF).astype(np.uint32)
+
+    @property
+    def saturated(self) -> np.ndarray:
+        """(N, P, 3) bool: axes at the int32 rails."""
+        return (self.counts == INT32_MAX) | (self.counts == INT32_MIN)
+
+    @property
+    def field_nT(self) -> np.ndarray:
+        """(N, P, 3) counts x lsb_nT, the rails included (no NaN): what a lab CSV carries."""
+        return self.counts.astype(np.float64) * self.lsb_nT
+
+    @property
+    def temp_C(self) -> np.ndarray:
+        return self.temp_raw.astype(np.float64) * TEMP_LSB_C
+
+    def to_block(self) -> SampleBlock:
+        """The SampleBlock a decoder of these frames yields: NaN where saturated or temperature invalid,
+        t_s from the unit clock; ref_total (not on the wire) in extras when the reference is enabled."""
+        field = self.field_nT
+        field[self.saturated] = np.nan
+        temp = self.temp_C
+        temp[(self.flags & FLAG_TEMP_INVALID) != 0] = np.nan
+        extras = {} if self.ref_total_nT is None else {"ref_total": self.ref_total_nT.copy()}
+        return SampleBlock(t_s=self.t_us.astype(np.float64) * 1e-6, seq=self.seq.copy(), field_nT=field,
+                           temp_C=temp, flags=self.flags.copy(), extras=extras)
+
+
+class FaultRecord:
+    """Exactly what was done to the stream, by sample index; thread-safe (an emitter thread writes it).
+
+    kinds (sample indices): drop_frame, bitflip, drop_byte (serial frames corrupted or never sent),
+    garbage_after (frames followed by garbage bytes; no frame is lost by garbage), outage (samples
+    produced while the port was closed), no_reader (produced while no reader had the port open, thrown
+    away like a real unit's UART would); CAN: can_dropped holds (sample, probe, axis) rows."""
+
+    SERIAL_LOSSES = ("drop_frame", "bitflip", "drop_byte", "outage", "no_reader")
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._parts: dict[str, list[np.ndarray]] = {}
+        self.garbage_bytes = 0
+
+    def add(self, kind: str, values: np.ndarray) -> None:
+        values = np.asarray(values, dtype=np.int64)
+        if values.size:
+            with self._lock:
+                self._parts.setdefault(kind, []).append(values.copy())
+
+    def add_range(self, kind: str, start: int, stop: int) -> None:
+        if stop > start:
+            self.add(kind, np.arange(start, stop, dtype=np.int64))
+
+    def samples(self, kind: str) -> np.ndarray:
+        """Sorted unique sample indices of one kind (for can_dropped: the samples hit)."""
+        with self._lock:
+            parts = list(self._parts.get(kind, []))
+        if not parts:
+            return np.empty(0, np.int64)
+        joined = np.concatenate(parts)
+        if kind == "can_dropped":
+            joined = joined.reshape(-1, 3)[:, 0]
+        return np.unique(joined)
+
+    def can_dropped(self) -> np.ndarray:
+        """(M, 3) int64 rows (sample, probe, axis) of CAN frames never sent."""
+        with self._lock:
+            parts = list(self._parts.get("can_dropped", []))
+        return np.concatenate(parts).reshape(-1, 3) if parts else np.empty((0, 3), np.int64)
+
+    def serial_lost(self) -> np.ndarray:
+        """Samples a serial reader cannot get intact: corrupted, dropped, or sent while nobody listened."""
+        return np.unique(np.concatenate([self.samples(k) for k in self.SERIAL_LOSSES]))
+
+    def can_incomplete(self) -> np.ndarray:
+        """Samples a CAN reader cannot complete: a frame dropped, or the bus silent."""
+        return np.unique(np.concatenate([self.samples(k) for k in ("can_dropped", "outage", "no_reader")]))
+
+    def as_dict(self) -> dict[str, Any]:
+        """Counts per kind, for a summary or a log line."""
+        with self._lock:
+            kinds = list(self._parts)
+        out: dict[str, Any] = {k: int(self.samples(k).size) for k in kinds}
+        if "can_dropped" in kinds:
+            out["can_dropped_frames"] = int(self.can_dropped().shape[0])
+        out["garbage_bytes"] = self.garbage_bytes
+        return out
+
+
+class Unit:
+    """The acquisition unit in front of a World: digitisation, ICD encoding, faults."""
+
+    def __init__(self, config: SimConfig, world: World | None = None) -> None:
+        self.config = config
+        self.world = world if world is not None else World(config)
+        self.n_probes = config.n_probes
+        self.rate_hz = config.rate_hz
+        self.n_samples = config.n_samples
+        self.lsb_nT = config.lsb_nT
+        self.frame_length = frame_length(self.n_probes)
+        seed = config.seed
+        self._temp_invalid = ChunkedRandom(seed, STREAM_TEMP_INVALID, (), kind="uniform")
+        self._serial_u = ChunkedRandom(seed, STREAM_SERIAL, (8,), kind="uniform")
+        self._garbage = ChunkedRandom(seed, STREAM_GARBAGE, (config.faults.garbage_max_bytes,), kind="bytes")
+        self._can_u = ChunkedRandom(seed, STREAM_CAN, (3 * self.n_probes,), kind="uniform")
+
+    # -- time --------------------------------------------------------------------------------------
+    def index_at(self, t_s: float) -> int:
+        """First sample index at or after world time t_s."""
+        return max(0, math.ceil(t_s * self.rate_hz - 1e-9))
+
+    def outages(self) -> list[tuple[int, int]]:
+        """Sample ranges [a, b) during which the port is closed (faults.outage_at_s, outage_s)."""
+        f = self.config.faults
+        out = [(self.index_at(a), self.index_at(a + f.outage_s)) for a in f.outage_at_s]
+        if self.n_samples is not None:
+            out = [(a, min(b, self.n_samples)) for a, b in out if a < self.n_samples]
+        return [(a, b) for a, b in out if b > a]
+
+    # -- digitisation ------------------------------------------------------------------------------
+    def digitise(self, start: int, stop: int) -> UnitSamples:
+        """Samples [start, stop): counts = round(raw / lsb_nT), saturating at the int32 rails (flag
+        bit0) or beyond range_nT; temperatures in 0.01 degC; temperature-invalid flags on request."""
+        w = self.world.samples(start, stop)
+        raw = w.raw_nT
+        x = raw / self.lsb_nT
+        # a value that rounds onto a rail would read as saturated: count it as saturated
+        sat = (x > INT32_MAX - 0.5) | (x < INT32_MIN + 0.5)
+        if self.config.range_nT is not None:
+            sat |= np.abs(raw) > self.config.range_nT
+        counts = np.where(sat, np.where(x > 0, INT32_MAX, INT32_MIN), np.rint(np.where(sat, 0.0, x)))
+        counts = counts.astype(np.int32)
+        temp_raw = np.clip(np.rint(w.temp_C / TEMP_LSB_C), INT16_MIN, INT16_MAX).astype(np.int16)
+        flags = np.where(sat.any(axis=(1, 2)), FLAG_SATURATED, 0).astype(np.uint8)
+        f = self.config.faults
+        if f.temp_invalid_fraction > 0:
+            bad = self._temp_invalid.draw(start, stop) < f.temp_invalid_fraction
+            flags[bad] |= FLAG_TEMP_INVALID
+        index = np.arange(start, stop, dtype=np.int64)
+        t_us = self.config.t_us_start + np.rint(index * (1e6 / self.rate_hz)).astype(np.int64)
+        return UnitSamples(index=index, seq=self.config.seq_start + index, t_us=t_us, counts=counts,
+                           temp_raw=temp_raw, flags=flags, ref_total_nT=w.ref_total_nT, lsb_nT=self.lsb_nT,
+                           world=w)
+
+    # -- serial ------------------------------------------------------------------------------------
+    def serial_bytes(self, start: int, stop: int, *, faults: bool = True, record: FaultRecord | None = None,
+                     samples: UnitSamples | None = None) -> bytes:
+        """ICD serial frames of samples [start, stop), with the configured serial faults applied
+        (garbage, bit flips, dropped bytes, dropped frames) and written into `record`."""
+        s = samples if samples is not None else self.digitise(start, stop)
+        frames = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
+        f = self.config.faults
+        if not faults or not (f.garbage_fraction or f.bitflip_fraction or f.drop_byte_fraction
+                              or f.drop_frame_fraction):
+            return frames
+        k, fl = len(s), self.frame_length
+        a = np.frombuffer(frames, np.uint8).reshape(k, fl).copy()
+        u = self._serial_u.draw(start, stop)              # (K, 8): one row of decisions per frame
+        rows = np.arange(k)
+        drop = u[:, 0] < f.drop_frame_fraction
+        flip = (u[:, 1] < f.bitflip_fraction) & ~drop
+        lose = (u[:, 2] < f.drop_byte_fraction) & ~drop
+        garbage = u[:, 3] < f.garbage_fraction
+        flip_byte = np.minimum((u[:, 4] * fl).astype(np.int64), fl - 1)
+        flip_bit = np.minimum((u[:, 5] * 8).astype(np.int64), 7)
+        a[rows[flip], flip_byte[flip]] ^= (1 << flip_bit[flip]).astype(np.uint8)
+        keep = np.ones((k, fl), bool)
+        keep[drop] = False
+        lose_byte = np.minimum((u[:, 6] * fl).astype(np.int64), fl - 1)
+        keep[rows[lose], lose_byte[lose]] = False
+        gmax = f.garbage_max_bytes
+        glen = np.where(garbage, 1 + np.minimum((u[:, 7] * gmax).astype(np.int64), gmax - 1), 0)
+        gbytes = self._garbage.draw(start, stop)           # (K, gmax)
+        gkeep = np.arange(gmax)[None, :] < glen[:, None]
+        out = np.concatenate([a, gbytes], axis=1)[np.concatenate([keep, gkeep], axis=1)]
+        if record is not None:
+            idx = s.index
+            record.add("drop_frame", idx[drop])
+            record.add("bitflip", idx[flip])
+            record.add("drop_byte", idx[lose])
+            record.add("garbage_after", idx[garbage])
+            with record._lock:
+                record.garbage_bytes += int(glen.sum())
+        return out.tobytes()
+
+    # -- CAN ---------------------------------------------------------------------------------------
+    def can_frames(self, start: int, stop: int, *, faults: bool = True, record: FaultRecord | None = None,
+                   samples: UnitSamples | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """ICD CAN frames of samples [start, stop) in sending order (sample, probe, axis), less those
+        dropped on purpose (faults.can_drop_fraction, written into `record`).
+
+        Returns arbitration ids (M,), payloads (M, 8) uint8 and the sample index of each frame (M,)."""
+        s = samples if samples is not None else self.digitise(start, stop)
+        ids, payloads = encode_can(s.seq_raw, s.counts, s.temp_raw, self.config.can_base_id)
+        per = 3 * self.n_probes
+        sample_of = np.repeat(s.index, per)
+        p = self.config.faults.can_drop_fraction
+        if faults and p > 0:
+            dropped = (self._can_u.draw(start, stop) < p).reshape(-1)
+            if record is not None and dropped.any():
+                j = np.flatnonzero(dropped)
+                record.add("can_dropped", np.stack([sample_of[j], (j % per) // 3, j % 3], axis=1).reshape(-1))
+            keep = ~dropped
+            ids, payloads, sample_of = ids[keep], payloads[keep], sample_of[keep]
+        return ids, payloads, sample_of
+
+
+__all__ = ["Unit", "UnitSamples", "FaultRecord"]
