@@ -6,6 +6,7 @@ Pure byte<->integer work; scaling to physical units happens in the sources.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,13 +51,73 @@ def crc16_ccitt_false(data: bytes) -> int:
     return crc
 
 
+def _bswap16(x: np.ndarray | int) -> np.ndarray | int:
+    return ((x >> 8) | (x << 8)) & 0xFFFF
+
+
+def _word_table() -> np.ndarray:
+    """T16[x]: the CRC register x after 16 zero bits shifted through it, so that feeding a
+    big-endian 16-bit word w into register c gives T16[c ^ w] (two bytes per lookup)."""
+    x = np.arange(65536, dtype=np.uint32)
+    for _ in range(16):
+        x = np.where(x & 0x8000, ((x << 1) ^ 0x1021) & 0xFFFF, (x << 1) & 0xFFFF)
+    return x.astype(np.intp)
+
+
+CRC_TABLE_WORD = _word_table()
+# The parser reads words little-endian straight from the frame bytes. Keeping the register
+# byte-swapped, s = bswap(crc), the word step becomes s' = bswap(T16[bswap(s ^ w_le)]) = U[s ^ w_le]:
+# no per-word byte swap.
+_WORD_TABLE_SWAPPED = _bswap16(CRC_TABLE_WORD[_bswap16(np.arange(65536, dtype=np.intp))])
+_CRC_TABLE_INTP = CRC_TABLE.astype(np.intp)
+_CRC_BLOCK_ROWS = 4096      # rows per CRC pass: keeps the working set in cache
+
+
 def crc16_rows(columns: np.ndarray) -> np.ndarray:
     """CRC-16/CCITT-FALSE of K equal-length messages given column-major as a (L, K) uint8 array."""
-    crc = np.full(columns.shape[1], 0xFFFF, dtype=np.uint16)
-    for col in columns:
-        # crc = (crc << 8) ^ T[(crc >> 8) ^ byte], over all K messages at once
-        crc = (crc << np.uint16(8)) ^ CRC_TABLE[(crc >> np.uint16(8)).astype(np.uint8) ^ col]
-    return crc
+    columns = np.asarray(columns, dtype=np.uint8)
+    length, k = columns.shape
+    crc = np.full(k, 0xFFFF, dtype=np.intp)
+    start = length % 2
+    if start:
+        # an odd first byte: crc = (crc << 8) ^ T[(crc >> 8) ^ byte]
+        crc = ((crc << 8) & 0xFFFF) ^ _CRC_TABLE_INTP[(crc >> 8) ^ columns[0]]
+    for i in range(start, length, 2):
+        # two bytes at once: crc = T16[crc ^ (b0 << 8 | b1)]
+        word = (columns[i].astype(np.intp) << 8) | columns[i + 1]
+        np.bitwise_xor(crc, word, out=crc)
+        CRC_TABLE_WORD.take(crc, out=crc)
+    return crc.astype(np.uint16)
+
+
+@functools.lru_cache(maxsize=None)
+def _crc_after_header(n_probes: int) -> int:
+    """The CRC register after the two header bytes every valid frame shares (version, n)."""
+    return crc16_ccitt_false(bytes([VERSION, n_probes]))
+
+
+def _crc_frames(rows: np.ndarray, n_probes: int) -> np.ndarray:
+    """CRC of candidate frames whose version and n bytes are already known to be right.
+
+    rows: (K, W) uint8 with W even and W >= frame length, one frame per row from byte 0, so that
+    the little-endian words at even offsets are aligned. Returns (K,) intp.
+    """
+    fl = frame_length(n_probes)
+    n_words = (fl - 7) // 2                  # bytes 4 .. fl-4 as words; byte fl-3 (flags) alone
+    k = rows.shape[0]
+    swapped = np.empty(k, np.intp)
+    s0 = _bswap16(_crc_after_header(n_probes))
+    for start in range(0, k, _CRC_BLOCK_ROWS):
+        block = rows[start:start + _CRC_BLOCK_ROWS]
+        words = block[:, 4:4 + 2 * n_words].view("<u2")
+        s = np.full(block.shape[0], s0, np.intp)
+        for j in range(n_words):
+            np.bitwise_xor(s, words[:, j], out=s)      # s = U[s ^ w]
+            _WORD_TABLE_SWAPPED.take(s, out=s)
+        swapped[start:start + _CRC_BLOCK_ROWS] = s
+    crc = _bswap16(swapped)
+    # the flags byte: crc = (crc << 8) ^ T[(crc >> 8) ^ byte]
+    return ((crc << 8) & 0xFFFF) ^ _CRC_TABLE_INTP[(crc >> 8) ^ rows[:, fl - 3]]
 
 
 def frame_dtype(n_probes: int) -> np.dtype:
@@ -66,6 +127,14 @@ def frame_dtype(n_probes: int) -> np.dtype:
         ("counts", "<i4", (n_probes, 3)), ("temp", "<i2", (n_probes,)), ("flags", "u1"),
         ("crc", "<u2"),
     ])
+
+
+@functools.lru_cache(maxsize=None)
+def _padded_frame_dtype(n_probes: int) -> np.dtype:
+    """frame_dtype with one byte of padding, for the parser's even-width rows."""
+    base = frame_dtype(n_probes)
+    return np.dtype({"names": list(base.names), "formats": [base.fields[f][0] for f in base.names],
+                     "offsets": [base.fields[f][1] for f in base.names], "itemsize": base.itemsize + 1})
 
 
 @dataclass(frozen=True)
@@ -98,7 +167,7 @@ def encode_serial(seq: np.ndarray, t_us: np.ndarray, counts: np.ndarray, temp_ra
     rec["counts"] = counts
     rec["temp"] = temp_raw
     rec["flags"] = flags
-    raw = rec.view(np.uint8).reshape(k, -1)
+    raw = rec.view(np.uint8).reshape(k, frame_length(n))
     rec["crc"] = crc16_rows(np.ascontiguousarray(raw[:, 2:-2].T))
     return rec.tobytes()
 
@@ -124,32 +193,39 @@ def parse_serial(buf: bytes | bytearray | memoryview | np.ndarray, n_probes: int
     a = np.frombuffer(buf, dtype=np.uint8) if not isinstance(buf, np.ndarray) else buf
     size = a.shape[0]
     fl = frame_length(n_probes)
-    rec_dtype = frame_dtype(n_probes)
-    sync = np.flatnonzero((a[:-1] == 0xA5) & (a[1:] == 0x5A)) if size >= 2 else np.empty(0, np.int64)
-    complete = sync[sync + fl <= size]
+    if size >= 2:
+        starts = np.flatnonzero(a[:-1] == 0xA5)
+        sync = starts[a[starts + 1] == 0x5A]
+    else:
+        sync = np.empty(0, np.intp)
+    complete = sync[:np.searchsorted(sync, size - fl, side="right")]   # sync + fl <= size
     if complete.size:
-        rows = sliding_window_view(a, fl)[complete]                       # (K, fl) copy
-        header_ok = (rows[:, 2] == VERSION) & (rows[:, 3] == n_probes)
-        crc_got = rows[:, fl - 2].astype(np.uint16) | (rows[:, fl - 1].astype(np.uint16) << np.uint16(8))
-        crc_ok = crc16_rows(np.ascontiguousarray(rows[:, 2:fl - 2].T)) == crc_got
-        valid = header_ok & crc_ok
-        pos = complete[valid]
+        header_ok = (a[complete + 2] == VERSION) & (a[complete + 3] == n_probes)
+        cand = complete[header_ok]
+        # rows one byte wider than a frame (even width), so the CRC can read aligned words
+        padded = np.empty(size + 1, np.uint8)
+        padded[:size] = a
+        padded[size] = 0
+        rows = sliding_window_view(padded, fl + 1)[cand]                   # (K, fl + 1) copy
+        crc_got = rows[:, fl - 2].astype(np.intp) | (rows[:, fl - 1].astype(np.intp) << 8)
+        crc_ok = _crc_frames(rows, n_probes) == crc_got
+        if crc_ok.all():
+            pos = cand
+        else:
+            pos = cand[crc_ok]
+            rows = rows[crc_ok]
         if pos.size > 1 and np.any(np.diff(pos) < fl):
             pos, keep = _resolve_overlaps(pos, fl)
-            good_rows = rows[valid][keep]
-        else:
-            good_rows = rows[valid]
-        failed = complete[header_ok & ~crc_ok]
+            rows = rows[keep]
+        failed = cand[~crc_ok]
     else:
-        pos = np.empty(0, np.int64)
-        good_rows = np.empty((0, fl), np.uint8)
-        failed = np.empty(0, np.int64)
+        pos = np.empty(0, np.intp)
+        rows = np.empty((0, fl + 1), np.uint8)
+        failed = np.empty(0, np.intp)
     last_end = int(pos[-1]) + fl if pos.size else 0
 
-    if final:
-        consumed = size
-    else:
-        consumed = size
+    consumed = size
+    if not final:
         pending = sync[(sync + fl > size) & (sync >= last_end)]
         if pending.size:
             # a pending start must agree with whatever header bytes have arrived
@@ -169,7 +245,7 @@ def parse_serial(buf: bytes | bytearray | memoryview | np.ndarray, n_probes: int
         idx = np.searchsorted(pos, failed, side="right") - 1
         inside = (idx >= 0) & (failed < pos[np.maximum(idx, 0)] + fl)
         failed = failed[~inside]
-    rec = np.ascontiguousarray(good_rows).view(rec_dtype).reshape(-1)
+    rec = rows.view(_padded_frame_dtype(n_probes)).reshape(-1)
     frames = RawFrames(seq=rec["seq"].copy(), t_us=rec["t_us"].copy(), counts=rec["counts"].copy(),
                        temp_raw=rec["temp"].copy(), flags=rec["flags"].copy())
     return SerialParse(frames=frames, consumed=consumed, crc_failures=int(failed.size),
