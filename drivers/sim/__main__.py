@@ -1,0 +1,79 @@
+"""Run the simulated unit on a pty for another process: `python -m drivers.sim --config F --serial`.
+
+Prints the port path (a stable symlink, see drivers.sim.ports) on the first line of stdout, then
+streams until the run ends (duration_s), or until SIGINT/SIGTERM, and prints a one-line summary of
+what was sent and corrupted on stderr. --slcan speaks SLCAN instead (for python-can's slcan
+interface). Exit status 0, or 2 on a configuration error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+from typing import Sequence
+
+from ..config import read_toml
+from ..errors import ConfigError, FluxcalError
+from .config import GRADIOMETER, load_sim_config
+from .ports import PtyEmitter, SlcanEmitter
+from .unit import Unit
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m drivers.sim", description=__doc__.splitlines()[0],
+                                allow_abbrev=False)
+    p.add_argument("--config", metavar="FILE", help="TOML with a [sim] section (default: the built-in gradiometer)")
+    how = p.add_mutually_exclusive_group()
+    how.add_argument("--serial", action="store_true", help="ICD serial frames on a pty (the default)")
+    how.add_argument("--slcan", action="store_true", help="ICD CAN frames through an SLCAN adapter on a pty")
+    p.add_argument("--realtime", dest="realtime", action="store_true", default=None, help="pace by the wall clock")
+    p.add_argument("--fast", dest="realtime", action="store_false", help="as fast as the reader reads")
+    p.add_argument("--duration", type=float, metavar="S", help="override sim.duration_s (0: until stopped)")
+    p.add_argument("--link-dir", metavar="DIR", help="where the port symlink goes (default: a temporary dir)")
+    p.add_argument("--truth", metavar="FILE", help="also write the truth JSON here")
+    args = p.parse_args(argv)
+    try:
+        if args.config:
+            raw = read_toml(args.config)
+            if "sim" not in raw:
+                raise ConfigError(f"{args.config}: no [sim] section")
+            table = raw["sim"]
+        else:
+            table = GRADIOMETER
+        if args.duration is not None:
+            table = {**table, "duration_s": args.duration}
+        cfg = load_sim_config(table)
+    except ConfigError as e:
+        print(f"drivers.sim: {e}", file=sys.stderr)
+        return 2
+    unit = Unit(cfg)
+    if args.truth:
+        with open(args.truth, "w", encoding="utf-8") as f:
+            json.dump(unit.world.truth(), f, indent=1)
+    cls = SlcanEmitter if args.slcan else PtyEmitter
+    emitter = cls(unit, realtime=args.realtime, link_dir=args.link_dir, close_at_end=True)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    emitter.start()
+    print(emitter.path, flush=True)
+    try:
+        while not stop.is_set() and not emitter.done.wait(0.1):
+            pass
+        emitter.wait(0)
+    except KeyboardInterrupt:
+        pass
+    except FluxcalError as e:
+        print(f"drivers.sim: {e}", file=sys.stderr)
+        return 1
+    finally:
+        emitter.close()
+    print(f"drivers.sim: sent samples {emitter.start_index}..{emitter.next_index} of {cfg.n_probes} probes; "
+          f"faults {json.dumps(emitter.record.as_dict())}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

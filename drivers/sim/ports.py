@@ -1,0 +1,592 @@
+"""Emitters that put the simulated unit on a port, in a background thread, like the hardware would:
+
+- PtyEmitter: ICD serial bytes on a pseudo-terminal that pyserial opens like /dev/ttyUSB0;
+- CanEmitter: ICD CAN frames on a python-can bus (interface "virtual" links buses in one process);
+- SlcanEmitter: an SLCAN (Lawicel) USB-CAN adapter on a pty, for python-can's `slcan` interface,
+  so CAN crosses processes on machines without vcan.
+
+Every emitter streams samples [start_index, n_samples) of a Unit, paced by the wall clock
+(realtime) or as fast as the reader takes them, and stops by itself at the end of the run, on
+close(), or with the interpreter (daemon thread). Faults are the Unit's; the emitter adds outages
+(faults.outage_at_s / outage_s) and keeps the FaultRecord of everything it did.
+
+The pty and reconnection. A pty slave (/dev/pts/N) disappears when its master closes and cannot
+be opened again, so an emitter never hands out the slave path itself: `emitter.path` is a symlink
+in a private temporary directory that points at the current /dev/pts/N. An outage drains what the
+reader has not read yet, closes the master (the reader's next read fails: pyserial raises
+SerialException) and removes the symlink (reopening fails with FileNotFoundError, like an unplugged
+adapter); after outage_s it opens a new pty and points the symlink at it, so a reader configured with
+`emitter.path` reconnects by opening the same path again.
+
+Nobody listening. pyserial flushes the input queue when it opens a port, and a real unit's UART
+sends whether or not anyone listens. So while no reader has the slave open (POLLHUP on the master),
+a realtime emitter throws the samples away and records them as `no_reader`; a fast emitter waits for
+a reader, then `settle_s` more (so the reader's open-time flush cannot eat the first frames).
+SLCAN additionally forwards frames only between the host's 'O' (open) and 'C' (close) commands.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import select
+import shutil
+import struct
+import tempfile
+import termios
+import threading
+import time
+import tty
+from typing import Any
+
+import numpy as np
+
+from ..errors import DriverError
+from .unit import FaultRecord, Unit
+
+_HEX = np.frombuffer(b"0123456789ABCDEF", dtype=np.uint8)
+
+
+class Emitter:
+    """Base of the emitters: the pacing loop, outages, the thread. Subclasses provide the port."""
+
+    kind = "emitter"
+
+    def __init__(self, unit: Unit, *, realtime: bool | None = None, block_s: float = 0.02, start_index: int = 0,
+                 record: FaultRecord | None = None, settle_s: float = 0.05, drain_timeout_s: float = 5.0,
+                 close_grace_s: float = 0.25, close_at_end: bool = False) -> None:
+        self.unit = unit
+        self.realtime = unit.config.realtime if realtime is None else bool(realtime)
+        self.block_n = max(1, int(round(block_s * unit.rate_hz)))
+        self.start_index = start_index
+        self.record = record if record is not None else FaultRecord()
+        self.settle_s = settle_s
+        self.drain_timeout_s = drain_timeout_s
+        self.close_grace_s = close_grace_s
+        self.close_at_end = close_at_end
+        self.next_index = start_index        # first sample not yet handled
+        self.reconnects = 0                  # outages survived
+        self.error: BaseException | None = None
+        self.done = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._present_since: float | None = None
+
+    # -- port hooks (subclasses) ------------------------------------------------------------------------
+    def _open_port(self) -> None: ...
+
+    def _close_port(self) -> None: ...
+
+    def _reader_present(self) -> bool:
+        return True
+
+    def _service(self) -> None:
+        """Called often from the thread: answer the host (SLCAN commands)."""
+
+    def _send(self, start: int, stop: int) -> bool:
+        """Send samples [start, stop); False if the reader went away meanwhile."""
+        raise NotImplementedError
+
+    def _drain(self, timeout_s: float) -> None:
+        """Wait until the reader has taken what was sent (bounded)."""
+
+    # -- lifecycle ----------------------------------------------------------------------------------------
+    def start(self) -> "Emitter":
+        """Open the port and start streaming in a daemon thread; returns self."""
+        if self._thread is not None:
+            raise RuntimeError("emitter already started")
+        self._open_port()
+        self._thread = threading.Thread(target=self._run, name=f"fluxcal-sim-{self.kind}", daemon=True)
+        self._thread.start()
+        return self
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait until the run is over; True if it is. Raises the thread's error, if it had one."""
+        finished = self.done.wait(timeout)
+        if self.error is not None:
+            raise DriverError(f"simulated {self.kind} emitter failed: {self.error}") from self.error
+        return finished
+
+    def close(self) -> None:
+        """Stop the thread and close the port; safe to call twice."""
+        self._stop.set()
+        t = self._thread
+        if t is not None and t is not threading.current_thread():
+            t.join(timeout=5.0)
+        with self._lock:
+            self._close_port()
+
+    def __enter__(self) -> "Emitter":
+        return self.start() if self._thread is None else self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- the loop -----------------------------------------------------------------------------------------
+    def _sleep_until(self, deadline: float) -> bool:
+        """Serve the host until the monotonic deadline; False if stopped."""
+        while not self._stop.is_set():
+            self._service()
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return True
+            self._stop.wait(min(left, 0.005))
+        return False
+
+    def _reader_ready(self) -> bool:
+        """A reader has had the port for settle_s (its open-time flush is behind it)."""
+        if not self._reader_present():
+            self._present_since = None
+            return False
+        now = time.monotonic()
+        if self._present_since is None:
+            self._present_since = now
+        return now - self._present_since >= self.settle_s
+
+    def _await_reader(self) -> bool:
+        """Fast mode: wait until a reader is ready; False if stopped."""
+        while not self._stop.is_set():
+            self._service()
+            if self._reader_ready():
+                return True
+            self._stop.wait(0.005)
+        return False
+
+    #: keep answering the host after the last sample until close() (an adapter stays plugged in)
+    serve_after_end = False
+
+    def _run(self) -> None:
+        try:
+            self._loop()
+            if not self._stop.is_set():
+                self._drain(self.drain_timeout_s)
+                if self.close_at_end:
+                    self._sleep_until(time.monotonic() + self.close_grace_s)
+                    with self._lock:
+                        self._close_port()
+        except BaseException as e:            # reported through wait(); the thread must not die silently
+            self.error = e
+        finally:
+            self.done.set()
+        if self.serve_after_end and not self.close_at_end and self.error is None:
+            while not self._stop.is_set():
+                with self._lock:
+                    self._service()
+                self._stop.wait(0.005)
+
+    def _loop(self) -> None:
+        unit = self.unit
+        n = unit.n_samples
+        rate = unit.rate_hz
+        outages = [o for o in unit.outages() if o[1] > self.start_index]
+        i = self.start_index
+        t0 = time.monotonic() - i / rate          # wall clock of sample 0
+        while not self._stop.is_set() and (n is None or i < n):
+            if outages and outages[0][0] <= i:
+                a, b = outages.pop(0)
+                i = self._outage(max(a, i), b, t0)
+                continue
+            j = i + self.block_n
+            if n is not None:
+                j = min(j, n)
+            if outages:
+                j = min(j, outages[0][0])
+            if self.realtime:
+                if not self._sleep_until(t0 + j / rate):      # samples [i, j) exist once j / rate has passed
+                    break
+                if not self._reader_ready():
+                    self.record.add_range("no_reader", i, j)
+                    i = self.next_index = j
+                    continue
+            elif not self._reader_ready():
+                if not self._await_reader():
+                    break
+            self._service()
+            with self._lock:
+                complete = self._send(i, j)
+            if not complete:
+                self.record.add_range("no_reader", i, j)
+            i = self.next_index = j
+
+    def _outage(self, a: int, b: int, t0: float) -> int:
+        """The port closes for samples [a, b): drain, close, wait, reopen. Returns b."""
+        self._drain(min(self.drain_timeout_s, 2.0))
+        # a reader blocked in read(size, timeout) holds what it got until the call returns, and
+        # pyserial throws that away when the port fails: give the call time to return first
+        self._sleep_until(time.monotonic() + self.close_grace_s)
+        with self._lock:
+            self._close_port()
+        self.record.add_range("outage", a, b)
+        if self.realtime:
+            self._sleep_until(t0 + b / self.unit.rate_hz)
+        else:
+            self._sleep_until(time.monotonic() + self.unit.config.faults.outage_s)
+        if not self._stop.is_set():
+            with self._lock:
+                self._open_port()
+            self.reconnects += 1
+        self.next_index = b
+        return b
+
+
+# --- the pseudo-terminal ------------------------------------------------------------------------------------
+
+class _Pty:
+    """A pty whose slave is reached through a stable symlink (see the module docstring)."""
+
+    def __init__(self, link_dir: str | None, link_name: str) -> None:
+        self._own_dir = link_dir is None
+        self.dir = tempfile.mkdtemp(prefix="fluxcal-sim-") if link_dir is None else link_dir
+        self.path = os.path.join(self.dir, link_name)
+        self.master: int | None = None
+        self.pts_path: str | None = None
+
+    def open(self) -> None:
+        master, slave = os.openpty()
+        # raw on both sides: no echo, no CR/LF translation, no line buffering of binary frames; the
+        # settings live with the pty, so a reader that opens the slave later finds them
+        tty.setraw(master)
+        tty.setraw(slave)
+        self.pts_path = os.ttyname(slave)
+        os.close(slave)                    # only readers hold the slave: POLLHUP tells us when none does
+        os.set_blocking(master, False)
+        self.master = master
+        tmp = self.path + ".new"
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+        os.symlink(self.pts_path, tmp)
+        os.replace(tmp, self.path)         # atomic re-point: a reader never sees a half-made link
+
+    def close(self) -> None:
+        if os.path.lexists(self.path):
+            os.unlink(self.path)
+        if self.master is not None:
+            try:
+                os.close(self.master)
+            except OSError:
+                pass
+            self.master = None
+
+    def remove(self) -> None:
+        self.close()
+        if self._own_dir:
+            shutil.rmtree(self.dir, ignore_errors=True)
+
+    def reader_present(self) -> bool:
+        if self.master is None:
+            return False
+        p = select.poll()
+        p.register(self.master, select.POLLOUT | select.POLLHUP)
+        return not any(ev & select.POLLHUP for _, ev in p.poll(0))
+
+    def unread(self) -> int:
+        """Bytes written that the reader has not read yet (FIONREAD on the slave)."""
+        if self.master is None or self.pts_path is None:
+            return 0
+        try:
+            fd = os.open(self.pts_path, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
+        except OSError:
+            return 0
+        try:
+            return struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+        finally:
+            os.close(fd)
+
+    def read_available(self) -> bytes:
+        """What the reader wrote to us (commands), without blocking."""
+        if self.master is None:
+            return b""
+        try:
+            return os.read(self.master, 4096)
+        except BlockingIOError:
+            return b""
+        except OSError as e:
+            if e.errno == errno.EIO:       # no reader: nothing to read
+                return b""
+            raise
+
+    def write_all(self, data: bytes | memoryview, stop: threading.Event, service: Any = None) -> bool:
+        """Write everything, waiting while the reader's queue is full; False if the reader left or stop."""
+        view = memoryview(data)
+        while view.nbytes:
+            if stop.is_set() or self.master is None:
+                return False
+            if not self.reader_present():
+                return False
+            _, writable, _ = select.select([], [self.master], [], 0.02)
+            if service is not None:
+                service()
+            if not writable:
+                continue
+            try:
+                n = os.write(self.master, view[:65536])
+            except BlockingIOError:
+                continue
+            except OSError as e:
+                if e.errno == errno.EIO:
+                    return False
+                raise
+            view = view[n:]
+        return True
+
+    def drain(self, timeout_s: float, stop: threading.Event, service: Any = None) -> None:
+        """Wait until the reader's queue stays empty for 20 ms (bytes just written may still be on
+        their way into it), or the reader leaves, or timeout_s."""
+        deadline = time.monotonic() + timeout_s
+        empty_since: float | None = None
+        while time.monotonic() < deadline and not stop.is_set() and self.reader_present():
+            if service is not None:
+                service()
+            now = time.monotonic()
+            if self.unread() > 0:
+                empty_since = None
+            elif empty_since is None:
+                empty_since = now
+            elif now - empty_since >= 0.02:
+                return
+            stop.wait(0.002)
+
+
+class PtyEmitter(Emitter):
+    """The unit's serial output (ICD frames, with serial faults) on a pty; readers open `path`.
+
+    >>> from drivers.sim.config import load_sim_config
+    >>> from drivers.sim.unit import Unit
+    >>> em = PtyEmitter(Unit(load_sim_config({"duration_s": 0.1})))
+    >>> em.start().path.endswith("serial")
+    True
+    >>> em.close()
+    """
+
+    kind = "pty"
+
+    def __init__(self, unit: Unit, *, link_dir: str | None = None, link_name: str = "serial", **kwargs: Any) -> None:
+        super().__init__(unit, **kwargs)
+        self._pty = _Pty(link_dir, link_name)
+
+    @property
+    def path(self) -> str:
+        """The stable path readers open (a symlink to the current /dev/pts/N)."""
+        return self._pty.path
+
+    @property
+    def pts_path(self) -> str | None:
+        return self._pty.pts_path
+
+    def _open_port(self) -> None:
+        self._pty.open()
+
+    def _close_port(self) -> None:
+        self._pty.close()
+
+    def close(self) -> None:
+        super().close()
+        self._pty.remove()
+
+    def _reader_present(self) -> bool:
+        return self._pty.reader_present()
+
+    def _service(self) -> None:
+        self._pty.read_available()           # whatever a reader writes is ignored, never left to pile up
+
+    def _send(self, start: int, stop: int) -> bool:
+        data = self.unit.serial_bytes(start, stop, record=self.record)
+        return self._pty.write_all(data, self._stop)
+
+    def _drain(self, timeout_s: float) -> None:
+        self._pty.drain(timeout_s, self._stop)
+
+
+# --- CAN --------------------------------------------------------------------------------------------------
+
+class CanEmitter(Emitter):
+    """The unit's CAN frames (with can_drop_fraction faults) on a python-can bus.
+
+    Give `bus` to send on a bus of your own, or let the emitter open `interface`/`channel` (default the
+    in-process virtual bus "fluxcal-sim"). On a virtual bus a fast emitter waits until another bus has
+    joined the channel (frames sent before then reach nobody). An outage is the bus falling silent."""
+
+    kind = "can"
+
+    def __init__(self, unit: Unit, *, bus: Any = None, interface: str = "virtual", channel: str = "fluxcal-sim",
+                 **kwargs: Any) -> None:
+        super().__init__(unit, **kwargs)
+        self._given_bus = bus
+        self.interface = interface
+        self.channel = channel
+        self.bus: Any = bus
+        self.frames_sent = 0
+
+    def _open_port(self) -> None:
+        if self.bus is None:
+            import can
+
+            self.bus = can.Bus(interface=self.interface, channel=self.channel, receive_own_messages=False)
+
+    def _close_port(self) -> None:
+        # the bus stays up across an outage (the unit is silent, the bus is not gone)
+        pass
+
+    def close(self) -> None:
+        super().close()
+        if self.bus is not None and self._given_bus is None:
+            self.bus.shutdown()
+            self.bus = None
+
+    def _reader_present(self) -> bool:
+        if self.interface != "virtual" or self._given_bus is not None:
+            return True
+        try:
+            from can.interfaces import virtual
+
+            return len(virtual.channels.get(self.channel, [])) > 1
+        except (ImportError, AttributeError):
+            return True
+
+    def _send(self, start: int, stop: int) -> bool:
+        import can
+
+        ids, payloads, _ = self.unit.can_frames(start, stop, record=self.record)
+        bus, raw = self.bus, payloads.tobytes()
+        for m, arb in enumerate(ids.tolist()):      # python-can sends one message per call
+            if self._stop.is_set():
+                return False
+            bus.send(can.Message(arbitration_id=arb, data=raw[8 * m:8 * m + 8], is_extended_id=False))
+            self.frames_sent += 1
+        return True
+
+
+def slcan_lines(ids: np.ndarray, payloads: np.ndarray) -> bytes:
+    """Standard frames as SLCAN text, all at once: 't' + 3 hex id + '8' + 16 hex data + CR.
+
+    >>> slcan_lines(np.array([0x201]), np.arange(8, dtype=np.uint8)[None, :])
+    b't20180001020304050607\\r'
+    """
+    m = ids.shape[0]
+    out = np.empty((m, 22), dtype=np.uint8)
+    out[:, 0] = ord("t")
+    ids = np.asarray(ids, dtype=np.int64)
+    out[:, 1] = _HEX[(ids >> 8) & 0xF]
+    out[:, 2] = _HEX[(ids >> 4) & 0xF]
+    out[:, 3] = _HEX[ids & 0xF]
+    out[:, 4] = ord("8")
+    p = np.asarray(payloads, dtype=np.uint8)
+    out[:, 5:21:2] = _HEX[p >> 4]
+    out[:, 6:22:2] = _HEX[p & 0xF]
+    out[:, 21] = ord("\r")
+    return out.tobytes()
+
+
+class SlcanEmitter(Emitter):
+    """An SLCAN USB-CAN adapter on a pty, carrying the unit's CAN frames: open it with
+    `can.Bus(interface="slcan", channel=emitter.path, bitrate=1000000, sleep_after_open=0)`.
+
+    Answers the Lawicel commands python-can sends: S0-S8 / s (bit rate), O / L (open), C (close),
+    V (version), N (serial number), F (status), Z (timestamps), Y (data bit rate), frames from the
+    host (acknowledged 'z'/'Z', counted, not forwarded); '\\r' acknowledges, BEL refuses. Frames flow
+    only while the channel is open."""
+
+    kind = "slcan"
+    serve_after_end = True
+    VERSION = "V1013"
+    SERIAL = "NSIM1"
+
+    def __init__(self, unit: Unit, *, link_dir: str | None = None, link_name: str = "slcan", **kwargs: Any) -> None:
+        super().__init__(unit, **kwargs)
+        self._pty = _Pty(link_dir, link_name)
+        self._inbox = bytearray()
+        self.channel_open = False
+        self.bitrate_cmd: str | None = None
+        self.commands: list[str] = []       # every command received, for tests and logs
+        self.host_frames = 0
+
+    @property
+    def path(self) -> str:
+        return self._pty.path
+
+    @property
+    def pts_path(self) -> str | None:
+        return self._pty.pts_path
+
+    def _open_port(self) -> None:
+        self._pty.open()
+        self._inbox.clear()
+        self.channel_open = False           # a new adapter starts closed
+
+    def _close_port(self) -> None:
+        self._pty.close()
+        self.channel_open = False
+
+    def close(self) -> None:
+        super().close()
+        self._pty.remove()
+
+    def _reader_present(self) -> bool:
+        return self._pty.reader_present() and self.channel_open
+
+    def _reply(self, text: bytes) -> None:
+        if self._pty.master is not None:
+            try:
+                os.write(self._pty.master, text)
+            except OSError:
+                pass
+
+    def _service(self) -> None:
+        data = self._pty.read_available()
+        if not data:
+            return
+        self._inbox.extend(data)
+        while True:
+            cut = self._inbox.find(b"\r")
+            if cut < 0:
+                if len(self._inbox) > 1024:        # garbage without CR: drop it
+                    self._inbox.clear()
+                return
+            line = bytes(self._inbox[:cut]).decode("ascii", "replace")
+            del self._inbox[:cut + 1]
+            self._command(line)
+
+    def _command(self, line: str) -> None:
+        self.commands.append(line)
+        c = line[:1]
+        if line == "":
+            self._reply(b"\r")
+        elif (c == "S" and len(line) == 2 and line[1] in "0123456789") or (c == "s" and len(line) == 5):
+            self.bitrate_cmd = line          # nominal bit rate: standard code or BTR registers
+            self._reply(b"\r")
+        elif c in ("Y", "Z", "W", "M", "m"):  # data bit rate, timestamps, filters: accepted, no effect
+            self._reply(b"\r")
+        elif c in ("O", "L"):
+            self.channel_open = True
+            self._reply(b"\r")
+        elif c == "C":
+            self.channel_open = False
+            self._reply(b"\r")
+        elif c == "V":
+            self._reply(self.VERSION.encode() + b"\r")
+        elif c == "v":
+            self._reply(b"v" + self.VERSION[1:].encode() + b"\r")
+        elif c == "N":
+            self._reply(self.SERIAL.encode() + b"\r")
+        elif c == "F":
+            self._reply(b"F00\r")
+        elif c in ("t", "r"):
+            self.host_frames += 1
+            self._reply(b"z\r" if self.channel_open else b"\a")
+        elif c in ("T", "R"):
+            self.host_frames += 1
+            self._reply(b"Z\r" if self.channel_open else b"\a")
+        else:
+            self._reply(b"\a")
+
+    def _send(self, start: int, stop: int) -> bool:
+        ids, payloads, _ = self.unit.can_frames(start, stop, record=self.record)
+        return self._pty.write_all(slcan_lines(ids, payloads), self._stop, self._service)
+
+    def _drain(self, timeout_s: float) -> None:
+        self._pty.drain(timeout_s, self._stop, self._service)
+
+
+__all__ = ["Emitter", "PtyEmitter", "CanEmitter", "SlcanEmitter", "slcan_lines"]

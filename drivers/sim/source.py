@@ -1,0 +1,200 @@
+"""The simulated unit as a Source ("sim" in drivers.source.SOURCES).
+
+transport "direct" (the default): SampleBlocks straight from the world, in process, exactly what a
+decoder of the unit's frames would yield (NaN where saturated or temperature-invalid, t_s from the
+unit clock) plus extras["ref_total"] when the scalar reference is enabled. Wire faults do not apply
+(there is no wire); flagged samples do.
+
+transport "pty" / "can-virtual" / "slcan": the unit streams through an emitter (drivers.sim.ports)
+and the real serial or CAN source reads it, so the whole driver path runs; ref_total is not on the
+wire and is absent then.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import math
+import time
+from typing import Any
+
+from ..block import FLAG_TEMP_INVALID, SampleBlock
+from ..config import load_section
+from ..errors import ConfigError
+from ..source import Source
+from .config import SimConfig
+from .unit import Unit
+from .world import World
+
+TRANSPORTS = ("direct", "pty", "can-virtual", "slcan")
+
+
+class SimSource(Source):
+    """SampleBlocks from the simulated world, paced by the wall clock (realtime) or as fast as read.
+
+    >>> from drivers.sim.config import load_sim_config
+    >>> src = SimSource(load_sim_config({"duration_s": 1.0, "rate_hz": 100.0}), block_s=0.5)
+    >>> [len(src.read()), len(src.read()), src.read(), src.exhausted]
+    [50, 50, None, True]
+    """
+
+    def __init__(self, config: SimConfig, *, realtime: bool | None = None, block_s: float = 0.05,
+                 max_block_s: float = 1.0, start_index: int = 0) -> None:
+        super().__init__(config.n_probes)
+        self.config = config
+        self.unit = Unit(config)
+        self.world: World = self.unit.world
+        self.realtime = config.realtime if realtime is None else bool(realtime)
+        self.rate_hz = config.rate_hz
+        self.block_n = max(1, int(round(block_s * self.rate_hz)))
+        self.max_block_n = max(self.block_n, int(round(max_block_s * self.rate_hz)))
+        self.next_index = start_index
+        # the unit runs from the moment it is opened: sample i exists at t0 + i / rate_hz
+        self._t0 = time.monotonic() - start_index / self.rate_hz
+
+    @property
+    def exhausted(self) -> bool:
+        n = self.unit.n_samples
+        return n is not None and self.next_index >= n
+
+    def truth(self) -> dict[str, Any]:
+        return self.world.truth()
+
+    def _read_block(self, timeout: float | None) -> SampleBlock | None:
+        n = self.unit.n_samples
+        if self.exhausted:
+            return None
+        start = self.next_index
+        if self.realtime:
+            deadline = None if timeout is None else time.monotonic() + timeout
+            while True:
+                due = math.floor((time.monotonic() - self._t0) * self.rate_hz) + 1   # samples 0..due-1 exist
+                if due > start:
+                    break
+                wake = self._t0 + start / self.rate_hz
+                if deadline is not None:
+                    if time.monotonic() >= deadline:
+                        return None
+                    wake = min(wake, deadline)
+                time.sleep(max(0.0, wake - time.monotonic()))
+            stop = min(due, start + self.max_block_n)
+        else:
+            stop = start + self.block_n
+        if n is not None:
+            stop = min(stop, n)
+        s = self.unit.digitise(start, stop)
+        self.next_index = stop
+        c = self.counters
+        c.frames_accepted += len(s)
+        c.saturated_axes += int(s.saturated.sum())
+        c.temp_invalid += int(((s.flags & FLAG_TEMP_INVALID) != 0).sum())
+        return s.to_block()
+
+
+class EmitterSource(Source):
+    """A real driver source reading the simulated unit through an emitter it owns (pty, CAN, SLCAN)."""
+
+    def __init__(self, inner: Source, emitter: Any) -> None:
+        super().__init__(inner.n_probes)
+        self.inner = inner
+        self.emitter = emitter
+        self.counters = inner.counters           # one set of counters: the driver's
+
+    @property
+    def record(self) -> Any:
+        """The emitter's FaultRecord: what was corrupted on purpose."""
+        return self.emitter.record
+
+    @property
+    def exhausted(self) -> bool:
+        return self.emitter.done.is_set() and bool(getattr(self.inner, "exhausted", False))
+
+    def _read_block(self, timeout: float | None) -> SampleBlock | None:
+        return self.inner.read(timeout)
+
+    def reopen(self) -> None:
+        self.inner.reopen()
+
+    def truth(self) -> dict[str, Any]:
+        return self.emitter.unit.world.truth()
+
+    def close(self) -> None:
+        if not self._closed:
+            try:
+                self.inner.close()
+            finally:
+                self.emitter.close()
+        super().close()
+
+
+def _driver_config(target: str, values: dict[str, Any]) -> Any:
+    """Build the serial/CAN driver's own config dataclass from the keys it has (the rest are dropped)."""
+    module, _, cls_name = target.partition(":")
+    cls = getattr(importlib.import_module(module), cls_name)
+    names = {f.name for f in dataclasses.fields(cls)}
+    try:
+        return load_section(cls, {k: v for k, v in values.items() if k in names}, "source")
+    except ConfigError as e:
+        raise ConfigError(f"source.transport: cannot configure the driver behind the simulated unit: {e}") from None
+
+
+def open_source(config: Any, *, unit: Any = None, transport: str = "direct", realtime: bool | None = None,
+                block_s: float = 0.05, **kwargs: Any) -> Source:
+    """Open the simulated unit as a Source.
+
+    config: a SimConfig, or the whole service configuration (anything with a .sim SimConfig, and
+    optionally .unit and .source.transport). unit: the [unit] section (n_probes and lsb_nT are checked
+    against the simulation). transport: "direct", "pty", "can-virtual" or "slcan". Other keyword
+    arguments go to the emitter (e.g. link_dir, channel)."""
+    if not isinstance(config, SimConfig):
+        full = config
+        config = getattr(full, "sim", None)
+        if not isinstance(config, SimConfig):
+            raise ConfigError("sim: the configuration has no [sim] section for the simulated unit")
+        unit = unit if unit is not None else getattr(full, "unit", None)
+        src_cfg = getattr(full, "source", None)
+        if transport == "direct" and src_cfg is not None:
+            transport = getattr(src_cfg, "transport", transport)
+    if unit is not None:
+        n = getattr(unit, "n_probes", config.n_probes)
+        if n != config.n_probes:
+            raise ConfigError(f"sim.probes: {config.n_probes} simulated probes but unit.n_probes = {n}")
+        lsb = getattr(unit, "lsb_nT", config.lsb_nT)
+        if not math.isclose(lsb, config.lsb_nT, rel_tol=1e-12):
+            raise ConfigError(f"sim.lsb_nT: {config.lsb_nT!r} differs from unit.lsb_nT = {lsb!r}; "
+                              f"the simulated unit and the driver must scale counts alike")
+    if transport not in TRANSPORTS:
+        raise ConfigError(f"source.transport: {transport!r} is not allowed (allowed: {', '.join(map(repr, TRANSPORTS))})")
+    if transport == "direct":
+        return SimSource(config, realtime=realtime, block_s=block_s)
+
+    from .ports import CanEmitter, PtyEmitter, SlcanEmitter
+    from ..source import open_source as open_driver
+
+    u = Unit(config)
+    common = {"n_probes": config.n_probes, "lsb_nT": config.lsb_nT, "rate_hz": config.rate_hz,
+              "base_id": config.can_base_id}
+    if transport == "pty":
+        emitter = PtyEmitter(u, realtime=realtime, **kwargs).start()
+        values = {**common, "kind": "serial", "port": emitter.path, "baudrate": 921600}
+        target, kind = "drivers.serial_source:SerialConfig", "serial"
+    elif transport == "slcan":
+        emitter = SlcanEmitter(u, realtime=realtime, **kwargs).start()
+        values = {**common, "kind": "can", "interface": "slcan", "channel": emitter.path, "bitrate": 1000000}
+        target, kind = "drivers.can_source:CanConfig", "can"
+    else:
+        channel = kwargs.pop("channel", f"fluxcal-sim-{id(u):x}")
+        emitter = CanEmitter(u, realtime=realtime, interface="virtual", channel=channel, **kwargs)
+        values = {**common, "kind": "can", "interface": "virtual", "channel": channel, "bitrate": 1000000}
+        target, kind = "drivers.can_source:CanConfig", "can"
+    try:
+        inner = open_driver(kind, _driver_config(target, values))
+        if not emitter.done.is_set() and getattr(emitter, "_thread", None) is None:
+            emitter.start()               # the virtual bus: start once the reader's bus exists
+    except BaseException:
+        emitter.close()
+        raise
+    return EmitterSource(inner, emitter)
+
+
+__all__ = ["SimSource", "EmitterSource", "open_source", "TRANSPORTS"]
