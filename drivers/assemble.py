@@ -1,0 +1,322 @@
+"""From wire frames to SampleBlocks: the serial stream framer, the CAN sample assembler and the
+scaling to physical units, shared by the live sources (serial, CAN) and `fluxcal decode`.
+
+Pure numpy over whole batches (no per-sample Python loop) and no I/O: the sources read bytes or
+CAN frames, these classes turn them into samples and keep the health counters.
+
+    SerialFramer    bytes in arbitrary chunks -> RawFrames (keeps the unconsumed tail; counters)
+    FrameAssembler  RawFrames -> SampleBlock (unwraps seq and the unit clock, counts seq gaps)
+    CanAssembler    CAN frames (id, 8-byte payload) -> complete samples, in seq order, bounded memory
+    scale_samples   counts -> nT, raw temperature -> degC, saturation and invalid temperature -> NaN
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock, Unwrapper
+from .icd import (DEFAULT_CAN_BASE_ID, SATURATED_COUNTS, TEMP_LSB_C, RawFrames, decode_can,
+                  frame_length, parse_serial)
+from .source import Counters
+
+_SEQ_MODULUS = 1 << 16
+
+
+def scale_samples(seq: np.ndarray, t_s: np.ndarray, counts: np.ndarray, temp_raw: np.ndarray,
+                  flags: np.ndarray, *, lsb_nT: float, counters: Counters | None = None) -> SampleBlock:
+    """Scale integer samples to a SampleBlock.
+
+    field_nT = counts * lsb_nT, NaN where an axis is saturated (exactly int32 max or min);
+    temp_C = temp_raw * 0.01, NaN for a sample whose flags say the temperature is invalid.
+    Saturated axes and invalid-temperature samples are added to `counters`.
+    """
+    counts = np.asarray(counts)
+    saturated = (counts == SATURATED_COUNTS[0]) | (counts == SATURATED_COUNTS[1])
+    field_nT = counts * float(lsb_nT)                        # nT = counts x lsb_nT
+    field_nT[saturated] = np.nan
+    flags = np.asarray(flags, dtype=np.uint8)
+    temp_bad = (flags & FLAG_TEMP_INVALID) != 0
+    temp_C = np.asarray(temp_raw) * TEMP_LSB_C                # degC = raw x 0.01
+    temp_C[temp_bad] = np.nan
+    if counters is not None:
+        counters.saturated_axes += int(np.count_nonzero(saturated))
+        counters.temp_invalid += int(np.count_nonzero(temp_bad))
+    return SampleBlock(t_s=np.asarray(t_s, dtype=np.float64), seq=np.asarray(seq, dtype=np.int64),
+                       field_nT=field_nT, temp_C=temp_C, flags=flags)
+
+
+class SeqGapCounter:
+    """Counts gaps in an unwrapped sample counter across blocks: a step of d > 1 is one gap and
+    d - 1 missed samples. Steps of 0 or backwards (a duplicate, a unit restart) are not gaps."""
+
+    def __init__(self) -> None:
+        self.last: int | None = None
+
+    def update(self, seq: np.ndarray, counters: Counters) -> None:
+        if seq.size == 0:
+            return
+        steps = np.diff(seq, prepend=seq[0] if self.last is None else self.last)
+        gaps = steps > 1
+        counters.seq_gaps += int(np.count_nonzero(gaps))
+        counters.samples_missed += int((steps[gaps] - 1).sum())
+        self.last = int(seq[-1])
+
+
+class SerialFramer:
+    """Turns a serial byte stream, fed in chunks of any size, into RawFrames.
+
+    Keeps the unconsumed tail (at most one frame) between chunks and counts frames accepted,
+    CRC failures and bytes skipped, so that at any time
+    frames_accepted x frame_length + bytes_skipped + pending_bytes == bytes_fed.
+    """
+
+    def __init__(self, n_probes: int, counters: Counters | None = None) -> None:
+        self.n_probes = n_probes
+        self.frame_length = frame_length(n_probes)
+        self.counters = counters if counters is not None else Counters()
+        self.bytes_fed = 0
+        self._tail = b""
+
+    @property
+    def pending_bytes(self) -> int:
+        return len(self._tail)
+
+    def feed(self, data: bytes | bytearray | memoryview, final: bool = False) -> RawFrames:
+        """Parse the tail plus `data`; with `final`, the stream ends here and no tail is kept."""
+        self.bytes_fed += len(data)
+        buf = self._tail + bytes(data) if self._tail else bytes(data)
+        parsed = parse_serial(buf, self.n_probes, final=final)
+        self._tail = buf[parsed.consumed:]
+        c = self.counters
+        c.frames_accepted += len(parsed.frames)
+        c.crc_failures += parsed.crc_failures
+        c.bytes_skipped += parsed.bytes_skipped
+        return parsed.frames
+
+    def finish(self) -> RawFrames:
+        """End of stream: whatever is left can no longer complete a frame."""
+        return self.feed(b"", final=True)
+
+    def discard_tail(self) -> None:
+        """Forget a partial frame (the port was reopened: its rest will never come); count it skipped."""
+        self.counters.bytes_skipped += len(self._tail)
+        self._tail = b""
+
+
+class FrameAssembler:
+    """RawFrames from one unit -> SampleBlocks: seq (uint16) and the unit clock t_us (uint32 us)
+    unwrapped across blocks, t_s = t_us / 1e6, scaled with lsb_nT, gaps counted."""
+
+    def __init__(self, n_probes: int, lsb_nT: float, counters: Counters | None = None) -> None:
+        self.n_probes = n_probes
+        self.lsb_nT = float(lsb_nT)
+        self.counters = counters if counters is not None else Counters()
+        self._seq = Unwrapper(bits=16)
+        self._t_us = Unwrapper(bits=32)
+        self._gaps = SeqGapCounter()
+
+    def block(self, frames: RawFrames) -> SampleBlock:
+        if len(frames) == 0:
+            return SampleBlock.empty(self.n_probes)
+        seq = self._seq.unwrap(frames.seq)
+        # division, not x 1e-6: t_us / 1e6 is the double nearest the exact time, so printing
+        # it with 6 decimals gives back the unit's microseconds exactly
+        t_s = self._t_us.unwrap(frames.t_us) / 1e6
+        self._gaps.update(seq, self.counters)
+        return scale_samples(seq, t_s, frames.counts, frames.temp_raw, frames.flags,
+                             lsb_nT=self.lsb_nT, counters=self.counters)
+
+
+@dataclass(frozen=True)
+class CanSamples:
+    """Complete CAN samples in seq order, before scaling."""
+
+    seq: np.ndarray        # (K,) int64 unwrapped
+    counts: np.ndarray     # (K, n, 3) int32
+    temp_raw: np.ndarray   # (K, n) int16
+    rx_time_s: np.ndarray  # (K,) float64 earliest receive time of the sample's frames
+
+    def __len__(self) -> int:
+        return int(self.seq.shape[0])
+
+    @property
+    def flags(self) -> np.ndarray:
+        """CAN carries no flags byte: bit0 (saturated) is derived from the counts; the
+        temperature-invalid and clock bits cannot be known and stay 0."""
+        sat = (self.counts == SATURATED_COUNTS[0]) | (self.counts == SATURATED_COUNTS[1])
+        return np.where(sat.any(axis=(1, 2)), FLAG_SATURATED, 0).astype(np.uint8)
+
+    @staticmethod
+    def empty(n_probes: int) -> "CanSamples":
+        return CanSamples(seq=np.empty(0, np.int64), counts=np.empty((0, n_probes, 3), np.int32),
+                          temp_raw=np.empty((0, n_probes), np.int16), rx_time_s=np.empty(0))
+
+    @staticmethod
+    def concat(parts: "list[CanSamples]", n_probes: int) -> "CanSamples":
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return CanSamples.empty(n_probes)
+        return CanSamples(seq=np.concatenate([p.seq for p in parts]),
+                          counts=np.concatenate([p.counts for p in parts]),
+                          temp_raw=np.concatenate([p.temp_raw for p in parts]),
+                          rx_time_s=np.concatenate([p.rx_time_s for p in parts]))
+
+    def to_block(self, *, rate_hz: float, lsb_nT: float, counters: Counters | None = None) -> SampleBlock:
+        """Scale to a SampleBlock. CAN has no unit clock, so t_s = seq / rate_hz (seq unwrapped)."""
+        return scale_samples(self.seq, self.seq / float(rate_hz), self.counts, self.temp_raw, self.flags,
+                             lsb_nT=lsb_nT, counters=counters)
+
+
+class CanAssembler:
+    """Collects the 3n CAN frames of each sample (ICD: id = base + 4k + a, payload value, seq, temp)
+    and releases complete samples in seq order.
+
+    Frames of neighbouring samples may interleave and frames may be lost. An incomplete sample is
+    dropped and counted (can_incomplete) once seq has moved on by more than `window_samples`
+    beyond it, or once `window_s` has passed since its first frame: nothing is held forever and
+    at most window_samples + 1 samples (plus one batch) are held. Complete samples behind an
+    incomplete one wait for it so that output stays in seq order.
+
+    Frames with foreign or reserved ids are ignored (the bus is shared). A frame for a sample
+    already released is ignored (a late duplicate). seq is unwrapped frame by frame with the
+    signed step ((s - s_prev + 2^15) mod 2^16) - 2^15, so interleaving across a wrap is right. A jump
+    backwards by more than `restart_samples` is taken as the unit restarting its counter: what
+    is pending is settled and assembly starts again from there.
+    """
+
+    def __init__(self, n_probes: int, *, base_id: int = DEFAULT_CAN_BASE_ID, window_samples: int = 32,
+                 window_s: float = 0.5, counters: Counters | None = None) -> None:
+        self.n_probes = n_probes
+        self.base_id = base_id
+        self.window_samples = int(window_samples)
+        self.window_s = float(window_s)
+        self.restart_samples = max(4 * self.window_samples, 1024)
+        self.counters = counters if counters is not None else Counters()
+        self._last_raw: int | None = None
+        self._last_u = 0
+        self._max_seen: int | None = None
+        self._done_upto: int | None = None     # every sample <= this was released or dropped
+        self._clear_pending()
+
+    def _clear_pending(self) -> None:
+        n = self.n_probes
+        self._p_seq = np.empty(0, np.int64)
+        self._p_counts = np.zeros((0, n, 3), np.int32)
+        self._p_temp = np.zeros((0, n, 3), np.int16)
+        self._p_have = np.zeros((0, n, 3), bool)
+        self._p_first = np.empty(0)
+
+    @property
+    def pending_samples(self) -> int:
+        return int(self._p_seq.size)
+
+    def push(self, ids: np.ndarray, payloads: np.ndarray, rx_time_s: np.ndarray | float,
+             now_s: float | None = None) -> CanSamples:
+        """Add a batch of frames (ids (M,), payloads (M, 8) uint8, receive times) and return the
+        samples that are complete and due, in seq order. `now_s` (default: the latest receive
+        time) drives the time limit."""
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        payloads = np.asarray(payloads, dtype=np.uint8).reshape(-1, 8)
+        rx = np.broadcast_to(np.asarray(rx_time_s, dtype=np.float64), ids.shape)
+        if now_s is None:
+            now_s = float(rx.max()) if rx.size else -np.inf
+        probe, axis, value, seq, temp = decode_can(ids, payloads, self.n_probes, self.base_id)
+        mine = probe >= 0
+        probe, axis, value, seq, temp, rx = (x[mine] for x in (probe, axis, value, seq, temp, rx))
+        self.counters.frames_accepted += int(probe.size)
+        u = self._unwrap(seq)
+
+        out: list[CanSamples] = []
+        # a big step backwards is the unit restarting its counter: settle, then start afresh
+        start = 0
+        while start < u.size:
+            seg = slice(start, u.size)
+            ref = -np.inf if self._max_seen is None else self._max_seen
+            run_max = np.maximum.accumulate(np.maximum(u[seg], ref))
+            back = np.flatnonzero(u[seg] < run_max - self.restart_samples)
+            stop = start + int(back[0]) if back.size else u.size
+            seg = slice(start, stop)
+            self._merge(u[seg], probe[seg], axis[seg], value[seg], temp[seg], rx[seg])
+            if stop < u.size:
+                out.append(self._release(now_s, final=True))
+                self._max_seen = None
+                self._done_upto = None
+            start = stop
+        out.append(self._release(now_s, final=False))
+        return CanSamples.concat(out, self.n_probes)
+
+    def flush(self) -> CanSamples:
+        """End of input: release every complete sample, drop (and count) the incomplete ones."""
+        return self._release(np.inf, final=True)
+
+    def _unwrap(self, seq: np.ndarray) -> np.ndarray:
+        raw = seq.astype(np.int64)
+        if raw.size == 0:
+            return raw
+        prev = np.empty_like(raw)
+        prev[0] = raw[0] if self._last_raw is None else self._last_raw
+        prev[1:] = raw[:-1]
+        # signed step in (-2^15, 2^15]: d = ((s - s_prev + 2^15) mod 2^16) - 2^15
+        step = ((raw - prev + _SEQ_MODULUS // 2) % _SEQ_MODULUS) - _SEQ_MODULUS // 2
+        base = raw[0] if self._last_raw is None else self._last_u
+        u = base + np.cumsum(step)
+        self._last_raw = int(raw[-1])
+        self._last_u = int(u[-1])
+        return u
+
+    def _merge(self, u: np.ndarray, probe: np.ndarray, axis: np.ndarray, value: np.ndarray,
+               temp: np.ndarray, rx: np.ndarray) -> None:
+        if self._done_upto is not None:
+            late = u <= self._done_upto
+            if late.any():
+                keep = ~late
+                u, probe, axis, value, temp, rx = (x[keep] for x in (u, probe, axis, value, temp, rx))
+        if u.size == 0:
+            return
+        old = self._p_seq.size
+        seqs, inverse = np.unique(np.concatenate([self._p_seq, u]), return_inverse=True)
+        g, n = seqs.size, self.n_probes
+        counts = np.zeros((g, n, 3), np.int32)
+        temps = np.zeros((g, n, 3), np.int16)
+        have = np.zeros((g, n, 3), bool)
+        first = np.full(g, np.inf)
+        rows_old, rows_new = inverse[:old], inverse[old:]
+        counts[rows_old] = self._p_counts
+        temps[rows_old] = self._p_temp
+        have[rows_old] = self._p_have
+        first[rows_old] = self._p_first
+        counts[rows_new, probe, axis] = value
+        temps[rows_new, probe, axis] = temp
+        have[rows_new, probe, axis] = True
+        np.minimum.at(first, rows_new, rx)
+        self._p_seq, self._p_counts, self._p_temp, self._p_have, self._p_first = seqs, counts, temps, have, first
+        top = int(seqs[-1])
+        self._max_seen = top if self._max_seen is None else max(self._max_seen, top)
+
+    def _release(self, now_s: float, final: bool) -> CanSamples:
+        seqs = self._p_seq
+        if seqs.size == 0:
+            return CanSamples.empty(self.n_probes)
+        complete = self._p_have.all(axis=(1, 2))
+        if final:
+            expired = ~complete
+        else:
+            too_old = seqs < self._max_seen - self.window_samples
+            too_late = (now_s - self._p_first) > self.window_s
+            expired = ~complete & (too_old | too_late)
+        waiting = ~complete & ~expired
+        release_below = seqs[waiting][0] if waiting.any() else np.iinfo(np.int64).max
+        emit = complete & (seqs < release_below)
+        self.counters.can_incomplete += int(np.count_nonzero(expired))
+        settled = emit | expired
+        if settled.any():
+            top = int(seqs[settled].max())
+            self._done_upto = top if self._done_upto is None else max(self._done_upto, top)
+        out = CanSamples(seq=seqs[emit], counts=self._p_counts[emit],
+                         temp_raw=self._p_temp[emit][:, :, 0].copy(), rx_time_s=self._p_first[emit])
+        keep = ~settled
+        self._p_seq, self._p_counts, self._p_temp, self._p_have, self._p_first = (
+            x[keep] for x in (self._p_seq, self._p_counts, self._p_temp, self._p_have, self._p_first))
+        return out

@@ -1,0 +1,276 @@
+"""The CAN source: ICD CAN frames (one frame per probe axis per sample) from a python-can bus, and
+CAN log files (candump .log, .asc, .blf, .csv) assembled the same way for `fluxcal decode`.
+
+    [source]
+    kind = "can"
+    interface = "socketcan"      # any python-can interface: "virtual" (tests), "slcan" (USB-CAN on a tty)
+    channel = "can0"             # "vcan0", "/dev/ttyACM0" for slcan, any name for virtual
+    bitrate = 1000000
+    base_id = 0x200              # 512
+    n_probes = 2                 # must equal unit.n_probes
+    lsb_nT = 0.001
+    rate_hz = 500.0              # the unit's sample rate: CAN carries no unit clock, t_s = seq / rate_hz
+    window_samples = 32          # an incomplete sample is dropped once seq moved on by more than this
+    window_s = 0.5               # ... or once this long has passed since its first frame
+
+CAN carries no timestamp from the unit, only the uint16 seq; t_s is therefore the unwrapped seq
+divided by the configured rate_hz (sample instants on the unit's own clock, not the host's).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import can
+import numpy as np
+
+from .assemble import CanAssembler, CanSamples, SeqGapCounter
+from .block import SampleBlock
+from .config import spec
+from .errors import ConfigError, DataError, DriverError
+from .icd import DEFAULT_CAN_BASE_ID, DEFAULT_LSB_NT, MAX_PROBES
+from .source import Counters, Source
+
+MAX_STANDARD_ID = 0x7FF
+#: suffixes python-can's LogReader reads that keep everything an ICD frame needs
+CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".csv")
+
+
+@dataclass(kw_only=True)
+class CanConfig:
+    """The [source] table for kind = "can" (keyword-only: required keys need no order)."""
+
+    kind: str = spec("can", choices=("can",))
+    interface: str = spec("socketcan", doc="python-can interface name: socketcan, slcan, virtual, ...")
+    channel: str = spec(doc="can0, /dev/ttyACM0 (slcan), or a virtual channel name")
+    bitrate: int = spec(1_000_000, min=10_000, max=1_000_000)
+    base_id: int = spec(DEFAULT_CAN_BASE_ID, min=0, max=MAX_STANDARD_ID,
+                        doc="id of probe 1 x; probe k axis a is base_id + 4k + a")
+    n_probes: int = spec(min=1, max=MAX_PROBES, doc="must equal unit.n_probes")
+    lsb_nT: float = spec(DEFAULT_LSB_NT, min=1e-9, max=1e3, doc="nT per ADC count")
+    rate_hz: float = spec(min=0.001, max=100_000.0,
+                          doc="the unit's sample rate; CAN has no unit clock, so t_s = seq / rate_hz")
+    window_samples: int = spec(32, min=1, max=65536 // 8,
+                               doc="drop an incomplete sample once seq moved on by more than this")
+    window_s: float = spec(0.5, min=0.001, max=60.0, doc="drop an incomplete sample this long after its first frame")
+    max_batch: int = spec(4096, min=1, max=1 << 20, doc="most frames assembled per read")
+
+    def validate(self, path: str) -> None:
+        check_base_id(self.base_id, self.n_probes, f"{path}.base_id" if path else "base_id")
+
+
+def check_base_id(base_id: int, n_probes: int, key: str = "base_id") -> None:
+    """The unit's ids base .. base + 4n - 1 must fit the 11-bit standard id space."""
+    top = base_id + 4 * n_probes - 1
+    if base_id < 0 or top > MAX_STANDARD_ID:
+        raise ConfigError(f"{key}: {base_id:#x} is not allowed for {n_probes} probes (allowed: 0 .. "
+                          f"{MAX_STANDARD_ID - 4 * n_probes + 1:#x}, ids up to base + 4n - 1 must fit 11 bits)")
+
+
+def _frames_from_messages(msgs: list[can.Message], lo: int, hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """(ids, payloads (M, 8), timestamps) of the ICD-shaped frames; plus how many frames in the
+    unit's id range [lo, hi] were not ICD-shaped (remote, not 8 bytes, FD)."""
+    ids, data, stamps = [], [], []
+    malformed = 0
+    for m in msgs:
+        if m.is_error_frame or m.is_extended_id:
+            continue
+        if m.is_remote_frame or m.dlc != 8 or m.is_fd or len(m.data) != 8:
+            if lo <= m.arbitration_id <= hi:
+                malformed += 1
+            continue
+        ids.append(m.arbitration_id)
+        data.append(bytes(m.data))
+        stamps.append(m.timestamp)
+    payloads = np.frombuffer(b"".join(data), dtype=np.uint8).reshape(-1, 8)
+    return np.asarray(ids, dtype=np.int64), payloads, np.asarray(stamps, dtype=np.float64), malformed
+
+
+class CanSource(Source):
+    """SampleBlocks from ICD CAN frames on a python-can bus.
+
+    Each read drains what the bus holds (bounded receive: `bus.recv` with a timeout, then without
+    waiting, at most `max_batch` frames) and assembles the batch with numpy (drivers.assemble.
+    CanAssembler). Counters: frames_accepted (frames with the unit's ids), crc_failures (frames in
+    the unit's id range that are not ICD frames: remote, wrong length; the controller already
+    drops frames with a bad CRC), can_incomplete, seq_gaps, samples_missed, saturated_axes.
+    """
+
+    def __init__(self, *, interface: str, channel: str, n_probes: int, rate_hz: float,
+                 bitrate: int = 1_000_000, base_id: int = DEFAULT_CAN_BASE_ID, lsb_nT: float = DEFAULT_LSB_NT,
+                 window_samples: int = 32, window_s: float = 0.5, max_batch: int = 4096,
+                 bus_kwargs: dict | None = None) -> None:
+        super().__init__(n_probes)
+        check_base_id(base_id, n_probes, "source.base_id")
+        if not rate_hz > 0:
+            raise ConfigError(f"source.rate_hz: {rate_hz!r} is not allowed (allowed: > 0; CAN carries no unit "
+                              f"clock, so the sample rate sets t_s = seq / rate_hz)")
+        if not lsb_nT > 0:
+            raise ConfigError(f"source.lsb_nT: {lsb_nT!r} is not allowed (allowed: > 0)")
+        self.interface, self.channel, self.bitrate = interface, channel, int(bitrate)
+        self.base_id, self.rate_hz, self.lsb_nT = int(base_id), float(rate_hz), float(lsb_nT)
+        self.max_batch = int(max_batch)
+        self._bus_kwargs = dict(bus_kwargs or {})
+        self._assembler = CanAssembler(n_probes, base_id=self.base_id, window_samples=window_samples,
+                                       window_s=window_s, counters=self.counters)
+        self._gaps = SeqGapCounter()
+        self._id_range = (self.base_id, self.base_id + 4 * n_probes - 1)
+        self._bus: can.BusABC | None = None
+        self._open()
+
+    def _open(self) -> None:
+        try:
+            self._bus = can.Bus(interface=self.interface, channel=self.channel, bitrate=self.bitrate,
+                                **self._bus_kwargs)
+        except (can.CanError, OSError, ValueError, ImportError) as e:
+            self._bus = None
+            raise DriverError(f"CAN bus {self.interface}:{self.channel}: cannot open ({e}); check the interface "
+                              f"name, the channel and that the adapter is plugged in") from e
+
+    def _drop_bus(self) -> None:
+        bus, self._bus = self._bus, None
+        if bus is not None:
+            try:
+                bus.shutdown()
+            except (can.CanError, OSError, ValueError):
+                pass   # the adapter is already gone; shutting down is only tidying up
+
+    def _receive(self, wait_s: float | None) -> list[can.Message]:
+        bus = self._bus
+        if bus is None:
+            raise DriverError(f"CAN bus {self.interface}:{self.channel}: not open (a previous read failed); "
+                              f"call reopen()")
+        try:
+            first = bus.recv(timeout=wait_s)
+            if first is None:
+                return []
+            batch = [first]
+            while len(batch) < self.max_batch:
+                msg = bus.recv(timeout=0.0)
+                if msg is None:
+                    break
+                batch.append(msg)
+            return batch
+        except (can.CanError, OSError) as e:
+            self._drop_bus()
+            raise DriverError(f"CAN bus {self.interface}:{self.channel}: receive failed ({e}); the adapter was "
+                              f"probably disconnected, call reopen() once it is back") from e
+        except Exception as e:
+            # python-can interfaces raise what their transport raises (e.g. pyserial's
+            # SerialException for slcan on a vanished tty); any of them means the bus is gone
+            if type(e).__module__.split(".")[0] not in ("serial", "can"):
+                raise
+            self._drop_bus()
+            raise DriverError(f"CAN bus {self.interface}:{self.channel}: receive failed ({e}); call reopen() "
+                              f"once the adapter is back") from e
+
+    def _read_block(self, timeout: float | None) -> SampleBlock | None:
+        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
+        while True:
+            remaining = None if deadline is None else max(deadline - time.monotonic(), 0.0)
+            # wait in short steps when blocking, so incomplete samples still expire on a silent bus
+            wait = min(remaining, 0.1) if remaining is not None else 0.1
+            msgs = self._receive(wait)
+            now = time.monotonic()
+            ids, payloads, _, malformed = _frames_from_messages(msgs, *self._id_range)
+            self.counters.crc_failures += malformed
+            samples = self._assembler.push(ids, payloads, now, now_s=now)
+            if len(samples):
+                self._gaps.update(samples.seq, self.counters)
+                return samples.to_block(rate_hz=self.rate_hz, lsb_nT=self.lsb_nT, counters=self.counters)
+            if deadline is not None and time.monotonic() >= deadline:
+                return None
+
+    def reopen(self) -> None:
+        """Open the bus again. Pending partial samples stay: their frames may still come."""
+        if self._closed:
+            raise DriverError(f"CAN bus {self.interface}:{self.channel}: reopen after close")
+        self._drop_bus()
+        self._open()
+
+    def close(self) -> None:
+        self._drop_bus()
+        super().close()
+
+    def __repr__(self) -> str:
+        return f"CanSource({self.interface!r}, {self.channel!r}, n_probes={self.n_probes}, base_id={self.base_id:#x})"
+
+
+def open_source(config: CanConfig | None = None, **kwargs) -> CanSource:
+    """The "can" entry of drivers.source.SOURCES: from a CanConfig, keyword arguments
+    (interface, channel, n_probes, rate_hz, bitrate, base_id, lsb_nT, window_samples, window_s,
+    max_batch, bus_kwargs), or a config with keyword overrides."""
+    if config is None:
+        kwargs.pop("kind", None)
+        missing = [k for k in ("interface", "channel", "n_probes", "rate_hz") if k not in kwargs]
+        if missing:
+            raise ConfigError(f"source: a CAN source needs {', '.join(missing)}")
+        return CanSource(**kwargs)
+    names = ("interface", "channel", "n_probes", "rate_hz", "bitrate", "base_id", "lsb_nT", "window_samples",
+             "window_s", "max_batch")
+    values = {k: getattr(config, k) for k in names}
+    unknown = set(kwargs) - set(values) - {"bus_kwargs"}
+    if unknown:
+        raise ConfigError(f"source: unknown CAN option(s) {', '.join(sorted(unknown))} (allowed: {', '.join(names)})")
+    values.update(kwargs)
+    return CanSource(**values)
+
+
+def read_can_log(path: str | Path, n_probes: int, *, base_id: int = DEFAULT_CAN_BASE_ID,
+                 window_samples: int = 32, window_s: float = 0.5, counters: Counters | None = None,
+                 chunk_frames: int = 65536) -> tuple[CanSamples, Counters]:
+    """Assemble the samples in a CAN log (python-can's LogReader picks the format by suffix:
+    candump .log, .asc, .blf, .csv) exactly as the live source does, using the log's timestamps
+    for the time limit. Returns the complete samples (seq unwrapped) and the counters.
+
+    Raises DataError naming the file when it cannot be read."""
+    p = Path(path)
+    counters = counters if counters is not None else Counters()
+    check_base_id(base_id, n_probes, "--base-id")
+    suffix = p.suffix.lower()
+    if suffix not in CAN_LOG_SUFFIXES:
+        raise DataError(f"{p}: unknown CAN log format {p.suffix!r} (allowed: {', '.join(CAN_LOG_SUFFIXES)})")
+    assembler = CanAssembler(n_probes, base_id=base_id, window_samples=window_samples, window_s=window_s,
+                             counters=counters)
+    id_range = (base_id, base_id + 4 * n_probes - 1)
+    parts: list[CanSamples] = []
+    try:
+        reader = can.LogReader(p)
+    except FileNotFoundError:
+        raise DataError(f"{p}: CAN log not found") from None
+    except (OSError, ValueError) as e:
+        raise DataError(f"{p}: cannot read as a CAN log ({e})") from e
+    try:
+        with reader:
+            batch: list[can.Message] = []
+            for msg in reader:
+                batch.append(msg)
+                if len(batch) >= chunk_frames:
+                    parts.append(_push_log_batch(assembler, batch, id_range, counters))
+                    batch = []
+            parts.append(_push_log_batch(assembler, batch, id_range, counters))
+    except (ValueError, IndexError, KeyError, OSError, EOFError, can.CanError) as e:
+        raise DataError(f"{p}: not a readable {suffix} CAN log ({type(e).__name__}: {e})") from e
+    parts.append(assembler.flush())
+    return CanSamples.concat(parts, n_probes), counters
+
+
+def _push_log_batch(assembler: CanAssembler, batch: list[can.Message], id_range: tuple[int, int],
+                    counters: Counters) -> CanSamples:
+    ids, payloads, stamps, malformed = _frames_from_messages(batch, *id_range)
+    counters.crc_failures += malformed
+    return assembler.push(ids, payloads, stamps)
+
+
+def estimate_rate_hz(samples: CanSamples) -> float | None:
+    """The unit's sample rate from the receive timestamps of a CAN log: the slope of a straight
+    line through (seq, rx_time), rate = 1 / slope. None when the log cannot tell (fewer than two
+    samples, or timestamps that do not advance)."""
+    if len(samples) < 2 or np.ptp(samples.seq) == 0:
+        return None
+    slope, _ = np.polyfit(samples.seq - samples.seq[0], samples.rx_time_s - samples.rx_time_s[0], 1)
+    if not np.isfinite(slope) or slope <= 0:
+        return None
+    return float(1.0 / slope)

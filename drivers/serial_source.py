@@ -1,0 +1,150 @@
+"""The serial source: ICD frames from a serial port (RS-422 / USB-serial, a pty, any pyserial URL).
+
+    [source]
+    kind = "serial"
+    port = "/dev/ttyUSB0"        # or a pyserial URL: "socket://host:port", "rfc2217://...", "loop://"
+    baudrate = 921600
+    n_probes = 2                 # must equal unit.n_probes
+    lsb_nT = 0.001               # nT per ADC count
+    read_timeout_s = 0.02        # longest single wait on the port
+
+A pulled cable (or a closed pty) makes `read` raise DriverError; `reopen()` opens the same port
+again (a udev symlink that reappears works). The caller counts read_errors and reconnects.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import serial
+
+from .assemble import FrameAssembler, SerialFramer
+from .block import SampleBlock
+from .config import spec
+from .errors import ConfigError, DriverError
+from .icd import DEFAULT_LSB_NT, MAX_PROBES
+from .source import Source
+
+#: most bytes taken from the port per read call (about 11 s of data at 921600 baud)
+MAX_READ_BYTES = 1 << 20
+
+
+@dataclass(kw_only=True)
+class SerialConfig:
+    """The [source] table for kind = "serial" (keyword-only: required keys need no order)."""
+
+    kind: str = spec("serial", choices=("serial",))
+    port: str = spec(doc="device path (/dev/ttyUSB0, /dev/pts/N) or pyserial URL (socket://host:port)")
+    baudrate: int = spec(921600, min=1, max=100_000_000)
+    n_probes: int = spec(min=1, max=MAX_PROBES, doc="probes per frame; must equal unit.n_probes")
+    lsb_nT: float = spec(DEFAULT_LSB_NT, min=1e-9, max=1e3, doc="nT per ADC count")
+    read_timeout_s: float = spec(0.02, min=0.001, max=5.0, doc="longest single wait on the port, s")
+
+
+class SerialSource(Source):
+    """SampleBlocks from ICD serial frames on a port.
+
+    Reads what is available (waiting at most `read_timeout_s` at a time, never forever), keeps the
+    unconsumed tail of a frame for the next read, and counts frames accepted, CRC failures,
+    bytes skipped, seq gaps, saturated axes and invalid temperatures in `counters`.
+    """
+
+    def __init__(self, port: str, *, n_probes: int, baudrate: int = 921600, lsb_nT: float = DEFAULT_LSB_NT,
+                 read_timeout_s: float = 0.02) -> None:
+        super().__init__(n_probes)
+        if not read_timeout_s > 0:
+            # timeout=0 spins and None blocks forever (DEPENDENCIES.md)
+            raise ConfigError(f"source.read_timeout_s: {read_timeout_s!r} is not allowed (allowed: > 0)")
+        if not lsb_nT > 0:
+            raise ConfigError(f"source.lsb_nT: {lsb_nT!r} is not allowed (allowed: > 0)")
+        self.port = port
+        self.baudrate = int(baudrate)
+        self.lsb_nT = float(lsb_nT)
+        self.read_timeout_s = float(read_timeout_s)
+        self._framer = SerialFramer(n_probes, self.counters)
+        self._assembler = FrameAssembler(n_probes, self.lsb_nT, self.counters)
+        self._ser: serial.SerialBase | None = None
+        self._open()
+
+    def _open(self) -> None:
+        try:
+            self._ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=self.read_timeout_s)
+        except (serial.SerialException, OSError, ValueError) as e:
+            self._ser = None
+            raise DriverError(f"serial port {self.port}: cannot open ({e}); check the device path or URL, "
+                              f"that the adapter is plugged in and that no other program holds it") from e
+
+    def _fail(self, e: BaseException) -> DriverError:
+        self._drop_port()
+        return DriverError(f"serial port {self.port}: read failed ({e}); the cable or adapter was probably "
+                           f"disconnected, call reopen() once it is back")
+
+    def _drop_port(self) -> None:
+        ser, self._ser = self._ser, None
+        if ser is not None:
+            try:
+                ser.close()
+            except (serial.SerialException, OSError):
+                pass   # the port is already gone; closing it is only tidying up
+
+    def _pull(self, wait: bool) -> bytes:
+        """What the port has now; with `wait`, first wait up to read_timeout_s for a byte."""
+        ser = self._ser
+        if ser is None:
+            raise DriverError(f"serial port {self.port}: not open (a previous read failed); call reopen()")
+        try:
+            data = b""
+            if wait and ser.in_waiting == 0:
+                data = ser.read(1)           # returns after the first byte or read_timeout_s
+            waiting = ser.in_waiting
+            if waiting:
+                data += ser.read(min(waiting, MAX_READ_BYTES))
+            return data
+        except (serial.SerialException, OSError) as e:
+            raise self._fail(e) from e
+
+    def _read_block(self, timeout: float | None) -> SampleBlock | None:
+        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
+        while True:
+            remaining = None if deadline is None else deadline - time.monotonic()
+            data = self._pull(wait=remaining is None or remaining > 0)
+            if data:
+                frames = self._framer.feed(data)
+                if len(frames):
+                    return self._assembler.block(frames)
+            if deadline is not None and time.monotonic() >= deadline:
+                return None
+
+    def reopen(self) -> None:
+        """Open the same port again; a partial frame from before is dropped (counted as skipped).
+        Unwrapping continues, so samples lost meanwhile show up as a seq gap."""
+        if self._closed:
+            raise DriverError(f"serial port {self.port}: reopen after close")
+        self._drop_port()
+        self._framer.discard_tail()
+        self._open()
+
+    def close(self) -> None:
+        self._drop_port()
+        super().close()
+
+    def __repr__(self) -> str:
+        return f"SerialSource({self.port!r}, n_probes={self.n_probes}, baudrate={self.baudrate})"
+
+
+def open_source(config: SerialConfig | None = None, **kwargs) -> SerialSource:
+    """The "serial" entry of drivers.source.SOURCES: from a SerialConfig, keyword arguments
+    (port, baudrate, n_probes, lsb_nT, read_timeout_s), or a config with keyword overrides."""
+    if config is None:
+        if "port" not in kwargs or "n_probes" not in kwargs:
+            raise ConfigError("source: a serial source needs port and n_probes")
+        kwargs.pop("kind", None)
+        return SerialSource(kwargs.pop("port"), **kwargs)
+    values = {k: getattr(config, k) for k in ("port", "baudrate", "n_probes", "lsb_nT", "read_timeout_s")}
+    unknown = set(kwargs) - set(values)
+    if unknown:
+        raise ConfigError(f"source: unknown serial option(s) {', '.join(sorted(unknown))} "
+                          f"(allowed: {', '.join(values)})")
+    values.update(kwargs)
+    return SerialSource(values.pop("port"), **values)
