@@ -1,0 +1,107 @@
+"""Shared test fixtures: ICD samples whose every value is known, and a pseudo-terminal that pyserial
+opens like hardware while the test writes the unit's bytes on the other end."""
+
+from __future__ import annotations
+
+import os
+import threading
+import tty
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from drivers import icd
+
+
+@dataclass
+class IcdTruth:
+    """K samples of an n-probe unit; seq and t_us unwrapped (the wire carries them mod 2^16, 2^32)."""
+
+    seq: np.ndarray        # (K,) int64
+    t_us: np.ndarray       # (K,) int64
+    counts: np.ndarray     # (K, n, 3) int32
+    temp_raw: np.ndarray   # (K, n) int16
+    flags: np.ndarray      # (K,) uint8
+
+    def __len__(self) -> int:
+        return int(self.seq.size)
+
+    def serial_bytes(self) -> bytes:
+        return icd.encode_serial(self.seq, self.t_us, self.counts, self.temp_raw, self.flags)
+
+    def can_frames(self, base_id: int = icd.DEFAULT_CAN_BASE_ID) -> tuple[np.ndarray, np.ndarray]:
+        return icd.encode_can(self.seq, self.counts, self.temp_raw, base_id)
+
+    def take(self, keep: np.ndarray) -> "IcdTruth":
+        return IcdTruth(self.seq[keep], self.t_us[keep], self.counts[keep], self.temp_raw[keep], self.flags[keep])
+
+
+def make_truth(k: int, n: int, seed: int = 0, *, seq0: int = 65536 - 40, t0_us: int = 2**32 - 30_000,
+               dt_us: int = 1000) -> IcdTruth:
+    """Samples starting 40 before the seq wrap and 30 ms before the unit clock wraps."""
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(-2**31 + 1, 2**31 - 1, (k, n, 3), dtype=np.int64).astype(np.int32)
+    return IcdTruth(seq=seq0 + np.arange(k, dtype=np.int64), t_us=t0_us + dt_us * np.arange(k, dtype=np.int64),
+                    counts=counts, temp_raw=rng.integers(-4000, 8000, (k, n)).astype(np.int16),
+                    flags=np.zeros(k, np.uint8))
+
+
+@pytest.fixture
+def icd_truth():
+    """make_truth(k, n, seed, ...): samples with known values across the seq and clock wraps."""
+    return make_truth
+
+
+class PtyPort:
+    """A pty: `path` is the slave (what the driver opens), the test writes on the master."""
+
+    def __init__(self) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.master)
+        self.path = os.ttyname(self.slave)
+        self._threads: list[threading.Thread] = []
+
+    def write(self, data: bytes, chunk: int = 4096) -> threading.Thread:
+        """Write in the background (the pty buffer is small and the reader runs in the test)."""
+        def run() -> None:
+            for i in range(0, len(data), chunk):
+                try:
+                    os.write(self.master, data[i:i + chunk])
+                except OSError:
+                    return
+        t = threading.Thread(target=run, daemon=True)
+        t.start()
+        self._threads.append(t)
+        return t
+
+    def wait_written(self, timeout: float = 5.0) -> None:
+        for t in self._threads:
+            t.join(timeout)
+
+    def close_master(self) -> None:
+        """Pull the cable: the slave side's reads fail from now on."""
+        if self.master >= 0:
+            self.wait_written(1.0)
+            os.close(self.master)
+            self.master = -1
+
+    def close(self) -> None:
+        self.close_master()
+        if self.slave >= 0:
+            os.close(self.slave)
+            self.slave = -1
+
+
+@pytest.fixture
+def pty_port():
+    ports: list[PtyPort] = []
+
+    def make() -> PtyPort:
+        p = PtyPort()
+        ports.append(p)
+        return p
+
+    yield make
+    for p in ports:
+        p.close()
