@@ -341,3 +341,46 @@ def test_runner_serves_another_process(tmp_path):
     assert_frames_are(p.frames, u.digitise(0, 100))
     assert "sent samples 0..100" in proc.stderr.read()
     assert (tmp_path / "truth.json").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("transport", ["pty", "can-virtual", "slcan"])
+def test_transports_through_the_real_drivers(transport):
+    """The sim source over the wire: the serial/CAN driver yields exactly the world's samples, less those
+    the fault record says were corrupted or dropped on purpose."""
+    from drivers.block import SampleBlock
+
+    u = unit(duration_s=1.0, seq_start=65400,
+             faults={"bitflip_fraction": 0.02, "garbage_fraction": 0.02, "can_drop_fraction": 0.01})
+    src = open_source("sim", u.config, transport=transport)
+    blocks, idle_since = [], None
+    deadline = time.monotonic() + 20
+    try:
+        while time.monotonic() < deadline:
+            b = src.read(0.1)
+            if b is not None and len(b):
+                blocks.append(b)
+                idle_since = None
+            elif src.emitter.done.is_set():
+                idle_since = idle_since or time.monotonic()
+                if time.monotonic() - idle_since > 0.8:     # the CAN assembler gives up on a sample after 0.5 s
+                    break
+        rec = src.record
+        counters = src.counters.as_dict()
+    finally:
+        src.close()
+    got = SampleBlock.concat(blocks)
+    lost = rec.serial_lost() if transport == "pty" else rec.can_incomplete()
+    assert lost.size > 0
+    keep = np.setdiff1d(np.arange(u.n_samples), lost)
+    expect = u.digitise(0, u.n_samples).to_block()
+    np.testing.assert_array_equal(got.seq, expect.seq[keep])
+    np.testing.assert_array_equal(got.field_nT, expect.field_nT[keep])
+    np.testing.assert_array_equal(got.temp_C, expect.temp_C[keep])
+    if transport == "pty":
+        np.testing.assert_array_equal(got.t_s, expect.t_s[keep])          # the unit clock
+        assert counters["crc_failures"] >= 1
+    else:
+        np.testing.assert_allclose(got.t_s, got.seq / u.rate_hz)           # CAN carries no clock
+        assert counters["can_incomplete"] == lost.size
+    assert "ref_total" not in got.extras                                   # not on the wire

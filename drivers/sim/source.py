@@ -172,6 +172,7 @@ def open_source(config: Any, *, unit: Any = None, transport: str = "direct", rea
     from ..source import open_source as open_driver
 
     u = Unit(config)
+    driver_kwargs: dict[str, Any] = {}
     common = {"n_probes": config.n_probes, "lsb_nT": config.lsb_nT, "rate_hz": config.rate_hz,
               "base_id": config.can_base_id}
     if transport == "pty":
@@ -182,13 +183,15 @@ def open_source(config: Any, *, unit: Any = None, transport: str = "direct", rea
         emitter = SlcanEmitter(u, realtime=realtime, **kwargs).start()
         values = {**common, "kind": "can", "interface": "slcan", "channel": emitter.path, "bitrate": 1000000}
         target, kind = "drivers.can_source:CanConfig", "can"
+        # python-can waits 2 s after opening an SLCAN tty for a real adapter to boot; ours is ready
+        driver_kwargs["bus_kwargs"] = {"sleep_after_open": 0}
     else:
         channel = kwargs.pop("channel", f"fluxcal-sim-{id(u):x}")
         emitter = CanEmitter(u, realtime=realtime, interface="virtual", channel=channel, **kwargs)
         values = {**common, "kind": "can", "interface": "virtual", "channel": channel, "bitrate": 1000000}
         target, kind = "drivers.can_source:CanConfig", "can"
     try:
-        inner = open_driver(kind, _driver_config(target, values))
+        inner = open_driver(kind, _driver_config(target, values), **driver_kwargs)
         if not emitter.done.is_set() and getattr(emitter, "_thread", None) is None:
             emitter.start()               # the virtual bus: start once the reader's bus exists
     except BaseException:

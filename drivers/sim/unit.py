@@ -72,7 +72,7 @@ class UnitSamples:
         temp = self.temp_C
         temp[(self.flags & FLAG_TEMP_INVALID) != 0] = np.nan
         extras = {} if self.ref_total_nT is None else {"ref_total": self.ref_total_nT.copy()}
-        return SampleBlock(t_s=self.t_us.astype(np.float64) * 1e-6, seq=self.seq.copy(), field_nT=field,
+        return SampleBlock(t_s=self.t_us / 1e6, seq=self.seq.copy(), field_nT=field,
                            temp_C=temp, flags=self.flags.copy(), extras=extras)
 
 

@@ -106,7 +106,7 @@ def write_csv(path: Path, unit: Unit, unit_name: str, truth_file: str, progress:
         for start in range(0, n, BLOCK_SAMPLES):
             stop = min(n, start + BLOCK_SAMPLES)
             s = unit.digitise(start, stop)
-            cols = [s.t_us * 1e-6, s.field_nT.reshape(len(s), -1), s.temp_C]
+            cols = [s.t_us / 1e6, s.field_nT.reshape(len(s), -1), s.temp_C]
             if ref:
                 cols.append(s.ref_total_nT)
             cols += [s.seq, s.flags]
