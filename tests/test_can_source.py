@@ -1,0 +1,257 @@
+"""CAN: the sample assembler (interleaving, loss, bounded window, time limit, seq wrap, unit
+restart) with exact expectations, and CanSource over python-can's virtual bus and over SLCAN on
+a pty (python-can's slcan interface opens the pty slave; the test speaks SLCAN on the master)."""
+
+from __future__ import annotations
+
+import os
+import time
+import uuid
+
+import can
+import numpy as np
+import pytest
+
+from drivers import icd
+from drivers.assemble import CanAssembler, CanSamples
+from drivers.block import SampleBlock
+from drivers.can_source import CanConfig, CanSource, open_source
+from drivers.config import load_section
+from drivers.errors import ConfigError, DriverError
+from drivers.source import Counters
+from drivers.source import open_source as open_source_by_kind
+
+RATE_HZ = 500.0
+
+
+def feed(asm: CanAssembler, ids: np.ndarray, payloads: np.ndarray, batch_sizes: np.ndarray) -> CanSamples:
+    parts, i = [], 0
+    for size in batch_sizes:
+        parts.append(asm.push(ids[i:i + size], payloads[i:i + size], 0.0, now_s=0.0))
+        i += size
+        if i >= len(ids):
+            break
+    parts.append(asm.push(ids[i:], payloads[i:], 0.0, now_s=0.0))
+    parts.append(asm.flush())
+    return CanSamples.concat(parts, asm.n_probes)
+
+
+def assert_samples_are(got: CanSamples, truth) -> None:
+    assert np.array_equal(got.seq, truth.seq)
+    assert np.array_equal(got.counts, truth.counts)
+    assert np.array_equal(got.temp_raw, truth.temp_raw)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_interleaved_and_lossy_frames_give_exactly_the_complete_samples(icd_truth, seed):
+    rng = np.random.default_rng(seed)
+    n, window = int(rng.integers(1, 5)), 16
+    truth = icd_truth(600, n, seed=seed)              # crosses the seq wrap
+    ids, payloads = truth.can_frames()
+    per = 3 * n
+    sample_of = np.repeat(np.arange(len(truth)), per)
+    # neighbouring samples interleave: each frame moves by less than the window
+    order = np.argsort(sample_of + rng.uniform(0, window - 1, sample_of.size), kind="stable")
+    delivered = rng.random(sample_of.size) > 0.02
+    order = order[delivered[order]]
+    received = np.bincount(sample_of[delivered], minlength=len(truth))
+    counters = Counters()
+    asm = CanAssembler(n, window_samples=window, counters=counters)
+    got = feed(asm, ids[order], payloads[order], rng.integers(1, 200, 10_000))
+    complete = received == per
+    assert_samples_are(got, truth.take(complete))
+    assert counters.can_incomplete == np.count_nonzero((received > 0) & (received < per))
+    assert counters.frames_accepted == order.size
+    assert asm.pending_samples == 0
+
+
+def test_memory_stays_bounded_when_every_sample_is_incomplete(icd_truth):
+    n, window = 2, 8
+    truth = icd_truth(3000, n)
+    ids, payloads = truth.can_frames()
+    keep = np.ones(ids.size, bool)
+    keep[5::6] = False                                 # every sample loses its probe-2 z frame
+    ids, payloads = ids[keep], payloads[keep]
+    counters = Counters()
+    asm = CanAssembler(n, window_samples=window, counters=counters)
+    most = 0
+    for i in range(0, ids.size, 37):
+        assert len(asm.push(ids[i:i + 37], payloads[i:i + 37], 0.0, now_s=0.0)) == 0
+        most = max(most, asm.pending_samples)
+    assert most <= window + 1
+    asm.flush()
+    assert counters.can_incomplete == len(truth)
+
+
+def test_incomplete_sample_expires_after_the_time_limit(icd_truth):
+    truth = icd_truth(1, 1)
+    ids, payloads = truth.can_frames()
+    counters = Counters()
+    asm = CanAssembler(1, window_samples=1000, window_s=0.5, counters=counters)
+    assert len(asm.push(ids[:2], payloads[:2], 10.0)) == 0
+    assert len(asm.push(ids[:0], payloads[:0], 10.0, now_s=10.4)) == 0 and asm.pending_samples == 1
+    asm.push(ids[:0], payloads[:0], 10.0, now_s=10.6)
+    assert asm.pending_samples == 0 and counters.can_incomplete == 1
+    # its last frame, arriving after the sample was given up, is ignored
+    assert len(asm.push(ids[2:], payloads[2:], 10.7)) == 0 and asm.pending_samples == 0
+
+
+def test_complete_samples_wait_for_an_earlier_incomplete_one(icd_truth):
+    truth = icd_truth(3, 1)
+    ids, payloads = truth.can_frames()
+    asm = CanAssembler(1, window_samples=4)
+    order = [0, 1, 3, 4, 5, 6, 7, 8]                    # sample 0 lacks its z frame for now
+    assert len(asm.push(ids[order], payloads[order], 0.0)) == 0
+    got = asm.push(ids[[2]], payloads[[2]], 0.0)
+    assert_samples_are(got, truth)
+    # a late duplicate of a released sample changes nothing
+    assert len(asm.push(ids[:3], payloads[:3], 0.0)) == 0 and asm.pending_samples == 0
+
+
+def test_unit_restart_is_followed(icd_truth):
+    a = icd_truth(100, 1, seq0=30_000)
+    b = icd_truth(100, 1, seed=1, seq0=0)
+    ids = np.concatenate([a.can_frames()[0], b.can_frames()[0]])
+    payloads = np.concatenate([a.can_frames()[1], b.can_frames()[1]])
+    counters = Counters()
+    asm = CanAssembler(1, window_samples=8, counters=counters)
+    got = feed(asm, ids, payloads, np.full(100, 50))
+    assert got.seq.tolist() == list(range(30_000, 30_100)) + list(range(100))
+    assert np.array_equal(got.counts, np.concatenate([a.counts, b.counts]))
+    assert counters.can_incomplete == 0
+
+
+def test_saturated_flag_derived_from_counts(icd_truth):
+    truth = icd_truth(3, 2)
+    truth.counts[1, 1, 0] = -2147483648
+    ids, payloads = truth.can_frames()
+    counters = Counters()
+    got = CanAssembler(2, counters=counters).push(ids, payloads, 0.0)
+    got_all = CanSamples.concat([got], 2)
+    block = got_all.to_block(rate_hz=RATE_HZ, lsb_nT=0.001, counters=counters)
+    assert block.flags.tolist() == [0, 1, 0]
+    assert np.isnan(block.field_nT[1, 1, 0]) and counters.saturated_axes == 1
+
+
+# --- CanSource on python-can's virtual bus -------------------------------------------------------
+
+def send(bus: can.BusABC, ids: np.ndarray, payloads: np.ndarray) -> None:
+    for i, p in zip(ids.tolist(), payloads):
+        bus.send(can.Message(arbitration_id=i, data=p.tobytes(), is_extended_id=False))
+
+
+def read_samples(src: CanSource, k: int, timeout: float = 5.0) -> SampleBlock:
+    blocks, got, deadline = [], 0, time.monotonic() + timeout
+    while got < k and time.monotonic() < deadline:
+        b = src.read(timeout=0.2)
+        if b is not None:
+            blocks.append(b)
+            got += len(b)
+    return SampleBlock.concat(blocks) if blocks else SampleBlock.empty(src.n_probes)
+
+
+@pytest.fixture
+def virtual_channel():
+    return f"fluxcal-test-{uuid.uuid4().hex}"
+
+
+@pytest.mark.parametrize("n", [1, 2, 4])
+def test_virtual_bus_round_trip_across_the_seq_wrap(icd_truth, virtual_channel, n):
+    truth = icd_truth(400, n, seed=n)
+    ids, payloads = truth.can_frames(base_id=0x300)
+    with can.Bus(interface="virtual", channel=virtual_channel) as tx, \
+            CanSource(interface="virtual", channel=virtual_channel, n_probes=n, rate_hz=RATE_HZ,
+                      base_id=0x300, lsb_nT=0.002, max_batch=256) as src:
+        send(tx, ids, payloads)
+        b = read_samples(src, len(truth))
+        assert np.array_equal(b.seq, truth.seq)
+        assert np.array_equal(b.t_s, truth.seq / RATE_HZ)          # CAN: t from seq and the rate
+        assert np.array_equal(b.field_nT, truth.counts * 0.002)
+        assert np.array_equal(b.temp_C, truth.temp_raw * 0.01)
+        c = src.counters
+        assert (c.frames_accepted, c.can_incomplete, c.seq_gaps) == (ids.size, 0, 0)
+
+
+def test_virtual_bus_loss_foreign_and_malformed_frames(icd_truth, virtual_channel):
+    n = 2
+    truth = icd_truth(60, n)
+    ids, payloads = truth.can_frames()
+    drop = 20 * 6 + 4                                   # sample 20 loses one frame
+    keep = np.ones(ids.size, bool)
+    keep[drop] = False
+    keep[30 * 6:33 * 6] = False                         # samples 30..32 never come at all
+    with can.Bus(interface="virtual", channel=virtual_channel) as tx, \
+            CanSource(interface="virtual", channel=virtual_channel, n_probes=n, rate_hz=RATE_HZ,
+                      window_samples=4) as src:
+        tx.send(can.Message(arbitration_id=0x100, data=bytes(8), is_extended_id=False))      # someone else
+        tx.send(can.Message(arbitration_id=0x200, data=bytes(8), is_extended_id=True))       # 29-bit id
+        tx.send(can.Message(arbitration_id=0x201, data=bytes(4), is_extended_id=False))      # too short
+        tx.send(can.Message(arbitration_id=0x202, is_remote_frame=True, dlc=8, is_extended_id=False))
+        send(tx, ids[keep], payloads[keep])
+        b = read_samples(src, 56)
+        expect = np.ones(len(truth), bool)
+        expect[[20, 30, 31, 32]] = False
+        assert np.array_equal(b.seq, truth.seq[expect])
+        assert np.array_equal(b.field_nT, truth.counts[expect] * 0.001)
+        c = src.counters
+        assert (c.can_incomplete, c.crc_failures) == (1, 2)
+        assert (c.seq_gaps, c.samples_missed) == (2, 4)
+
+
+def test_incomplete_sample_expires_on_a_silent_bus(icd_truth, virtual_channel):
+    truth = icd_truth(2, 1)
+    ids, payloads = truth.can_frames()
+    with can.Bus(interface="virtual", channel=virtual_channel) as tx, \
+            CanSource(interface="virtual", channel=virtual_channel, n_probes=1, rate_hz=RATE_HZ,
+                      window_samples=100, window_s=0.05) as src:
+        send(tx, ids[:5], payloads[:5])                 # sample 0 complete, sample 1 lacks z
+        b = src.read(timeout=0.5)
+        assert b.seq.tolist() == [truth.seq[0]]
+        assert src.read(timeout=0.2) is None
+        assert src.counters.can_incomplete == 1
+
+
+def test_can_config_and_factories(virtual_channel):
+    table = {"kind": "can", "interface": "virtual", "channel": virtual_channel, "n_probes": 2, "rate_hz": 250.0}
+    cfg = load_section(CanConfig, table, "source")
+    assert (cfg.bitrate, cfg.base_id, cfg.window_samples) == (1_000_000, 0x200, 32)
+    with open_source_by_kind("can", cfg) as src:
+        assert isinstance(src, CanSource) and src.rate_hz == 250.0
+    with open_source(interface="virtual", channel=virtual_channel, n_probes=1, rate_hz=10.0) as src:
+        assert src.n_probes == 1
+    with pytest.raises(ConfigError, match="source.rate_hz: required key is missing"):
+        load_section(CanConfig, {k: v for k, v in table.items() if k != "rate_hz"}, "source")
+    with pytest.raises(ConfigError, match="source.base_id: 0x7f0 is not allowed for 8 probes"):
+        load_section(CanConfig, {**table, "n_probes": 8, "base_id": 0x7F0}, "source")
+    with pytest.raises(DriverError, match="cannot open"):
+        CanSource(interface="no-such-interface", channel="x", n_probes=1, rate_hz=1.0)
+
+
+# --- SLCAN over a pty: the cross-process path of a USB-CAN adapter ------------------------------
+
+def slcan_bytes(ids: np.ndarray, payloads: np.ndarray) -> bytes:
+    return b"".join(b"t%03X8%s\r" % (i, p.tobytes().hex().upper().encode()) for i, p in zip(ids.tolist(), payloads))
+
+
+def test_slcan_over_a_pty(icd_truth, pty_port):
+    n = 2
+    truth = icd_truth(80, n, seed=9)
+    ids, payloads = truth.can_frames()
+    port = pty_port()
+    src = CanSource(interface="slcan", channel=port.path, n_probes=n, rate_hz=RATE_HZ,
+                    bus_kwargs={"sleep_after_open": 0})
+    try:
+        setup = os.read(port.master, 100)                   # the adapter is told 1 Mbit/s, then opened
+        assert b"S8\r" in setup and setup.endswith(b"O\r")
+        port.write(slcan_bytes(ids, payloads), chunk=512)
+        b = read_samples(src, len(truth))
+        assert np.array_equal(b.seq, truth.seq) and np.array_equal(b.field_nT, truth.counts * 0.001)
+        assert np.array_equal(b.temp_C, truth.temp_raw * 0.01)
+        port.close_master()                                 # the adapter is unplugged
+        with pytest.raises(DriverError, match="receive failed"):
+            for _ in range(20):
+                src.read(timeout=0.1)
+        with pytest.raises(DriverError, match="cannot open"):
+            src.reopen()
+    finally:
+        src.close()
