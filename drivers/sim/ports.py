@@ -12,11 +12,13 @@ close(), or with the interpreter (daemon thread). Faults are the Unit's; the emi
 
 The pty and reconnection. A pty slave (/dev/pts/N) disappears when its master closes and cannot
 be opened again, so an emitter never hands out the slave path itself: `emitter.path` is a symlink
-in a private temporary directory that points at the current /dev/pts/N. An outage drains what the
-reader has not read yet, closes the master (the reader's next read fails: pyserial raises
-SerialException) and removes the symlink (reopening fails with FileNotFoundError, like an unplugged
-adapter); after outage_s it opens a new pty and points the symlink at it, so a reader configured with
-`emitter.path` reconnects by opening the same path again.
+in a private temporary directory that points at the current /dev/pts/N. An outage waits until the
+reader has read what was sent (and close_grace_s more: pyserial discards the bytes a blocked
+read(size) has collected when the port fails, so readers should read `in_waiting` bytes), closes the
+master (the reader's next read fails: pyserial raises SerialException), and removes the symlink
+(reopening fails with FileNotFoundError, like an unplugged adapter); after outage_s it opens a new pty
+and points the symlink at it, so a reader configured with `emitter.path` reconnects by opening the
+same path again. Samples of the outage are never sent and are recorded as `outage`.
 
 Nobody listening. pyserial flushes the input queue when it opens a port, and a real unit's UART
 sends whether or not anyone listens. So while no reader has the slave open (POLLHUP on the master),

@@ -99,18 +99,28 @@ class EmitterSource(Source):
         self.inner = inner
         self.emitter = emitter
         self.counters = inner.counters           # one set of counters: the driver's
+        self._quiet_since: float | None = None
 
     @property
     def record(self) -> Any:
         """The emitter's FaultRecord: what was corrupted on purpose."""
         return self.emitter.record
 
+    #: after the emitter's last sample, this long without data means the run is over (the CAN
+    #: assembler may hold samples up to its window_s behind an incomplete one)
+    QUIET_AFTER_END_S = 1.0
+
     @property
     def exhausted(self) -> bool:
-        return self.emitter.done.is_set() and bool(getattr(self.inner, "exhausted", False))
+        return self._quiet_since is not None and time.monotonic() - self._quiet_since >= self.QUIET_AFTER_END_S
 
     def _read_block(self, timeout: float | None) -> SampleBlock | None:
-        return self.inner.read(timeout)
+        block = self.inner.read(timeout)
+        if block is not None and len(block):
+            self._quiet_since = None
+        elif self.emitter.done.is_set() and self._quiet_since is None:
+            self._quiet_since = time.monotonic()
+        return block
 
     def reopen(self) -> None:
         self.inner.reopen()
