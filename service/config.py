@@ -74,7 +74,7 @@ class McapConfig:
     flush_s: float = spec(1.0, min=0.05, max=60.0)
 
 
-@dataclass
+@dataclass(kw_only=True)   # path has no default and follows kind's
 class ReplayConfig:
     kind: str = spec("replay", choices=("replay",))
     path: str = spec(doc="an MCAP file or a directory of rotated files")
