@@ -145,6 +145,29 @@ def _key_documented_above(text: str, key: str) -> bool:
     return sum(1 for ln in text.splitlines() if ln.strip().startswith(key) and "#" in ln) >= 1
 
 
+@pytest.mark.parametrize("name", ["sim-gradiometer.toml", "sim-cross.toml", "serial-example.toml",
+                                  "can-example.toml"])
+def test_example_config_sections_validate(name):
+    """Each section against the dataclass that reads it (the drivers' [source], the service's others)."""
+    from drivers.can_source import CanConfig
+    from drivers.config import load_section
+    from drivers.serial_source import SerialConfig
+    from service.config import CalibrationConfig, EstimatorConfig, McapConfig, ProbeConfig, SimSourceConfig, UnitConfig
+
+    raw = tomllib.loads((CONFIGS / name).read_text())
+    source_cls = {"sim": SimSourceConfig, "serial": SerialConfig, "can": CanConfig}[raw["source"]["kind"]]
+    source = load_section(source_cls, raw["source"], "source")
+    unit = load_section(UnitConfig, raw["unit"], "unit")
+    for sec, cls in (("estimator", EstimatorConfig), ("calibration", CalibrationConfig), ("mcap", McapConfig)):
+        load_section(cls, raw[sec], sec)
+    probes = [load_section(ProbeConfig, t, f"probes[{i}]") for i, t in enumerate(raw["probes"])]
+    assert len(probes) == unit.n_probes
+    assert getattr(source, "n_probes", unit.n_probes) == unit.n_probes
+    assert getattr(source, "lsb_nT", unit.lsb_nT) == unit.lsb_nT
+    if "sim" in raw:
+        assert load_sim_config(raw["sim"]).lsb_nT == unit.lsb_nT
+
+
 def test_example_configs_pass_the_service_loader():
     """The whole file, every section, as `fluxcal run` reads it."""
     from service.config import load_config
