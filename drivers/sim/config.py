@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import copy
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any
 
 from ..config import load_section, spec
@@ -268,7 +268,7 @@ GRADIOMETER: dict[str, Any] = {
     "seed": 2024,
     "rate_hz": 200.0,
     "duration_s": 60.0,
-    "realtime": False,
+    "realtime": True,
     "lsb_nT": 0.001,
     "field": {"total_nT": 52500.0, "inclination_deg": 52.8, "declination_deg": -3.6,
               "gradient_nT_m": [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]],

@@ -97,6 +97,10 @@ class FaultRecord:
             with self._lock:
                 self._parts.setdefault(kind, []).append(values.copy())
 
+    def add_garbage_bytes(self, n: int) -> None:
+        with self._lock:
+            self.garbage_bytes += n
+
     def add_range(self, kind: str, start: int, stop: int) -> None:
         if stop > start:
             self.add(kind, np.arange(start, stop, dtype=np.int64))
@@ -229,8 +233,7 @@ class Unit:
             record.add("bitflip", idx[flip])
             record.add("drop_byte", idx[lose])
             record.add("garbage_after", idx[garbage])
-            with record._lock:
-                record.garbage_bytes += int(glen.sum())
+            record.add_garbage_bytes(int(glen.sum()))
         return out.tobytes()
 
     # -- CAN ---------------------------------------------------------------------------------------
