@@ -25,6 +25,7 @@ blocks of any size gives the same samples.
 from __future__ import annotations
 
 import math
+import threading
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, ClassVar, Iterable
@@ -53,8 +54,13 @@ class ChunkedRandom:
             raise ValueError(f"kind: expected 'normal', 'uniform' or 'bytes', got {kind!r}")
         self.seed, self.stream, self.per_sample, self.kind = int(seed), int(stream), tuple(per_sample), kind
         self._cache: dict[int, np.ndarray] = {}
+        self._lock = threading.Lock()          # an emitter thread and its owner may both draw
 
     def _chunk(self, c: int) -> np.ndarray:
+        with self._lock:
+            return self._chunk_locked(c)
+
+    def _chunk_locked(self, c: int) -> np.ndarray:
         got = self._cache.get(c)
         if got is None:
             rng = np.random.default_rng([self.seed, self.stream, c])
