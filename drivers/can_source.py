@@ -265,12 +265,27 @@ def _push_log_batch(assembler: CanAssembler, batch: list[can.Message], id_range:
 
 
 def estimate_rate_hz(samples: CanSamples) -> float | None:
-    """The unit's sample rate from the receive timestamps of a CAN log: the slope of a straight
-    line through (seq, rx_time), rate = 1 / slope. None when the log cannot tell (fewer than two
-    samples, or timestamps that do not advance)."""
+    """The unit's sample rate from the receive timestamps of a CAN log.
+
+    Least-squares line through (seq, rx_time): rate = 1 / slope, rounded to a power of ten between
+    10 and 100 times its standard error (so the estimate's own error, a few sigma, rounds away), so
+    a 500 Hz unit logged with jittery host timestamps gives exactly 500 rather than 500.0013. None when the log cannot tell (fewer than two samples, or
+    timestamps that do not advance).
+    """
     if len(samples) < 2 or np.ptp(samples.seq) == 0:
         return None
-    slope, _ = np.polyfit(samples.seq - samples.seq[0], samples.rx_time_s - samples.rx_time_s[0], 1)
+    x = (samples.seq - samples.seq[0]).astype(np.float64)
+    y = samples.rx_time_s - samples.rx_time_s[0]
+    if len(samples) >= 4:
+        (slope, _), cov = np.polyfit(x, y, 1, cov=True)
+        sigma_slope = float(np.sqrt(max(cov[0, 0], 0.0)))
+    else:
+        slope, _ = np.polyfit(x, y, 1)
+        sigma_slope = 0.0
     if not np.isfinite(slope) or slope <= 0:
         return None
-    return float(1.0 / slope)
+    rate = 1.0 / slope
+    sigma_rate = sigma_slope / slope**2                    # d(1/s) = ds / s^2
+    decimals = 9 if sigma_rate <= 0 else int(np.clip(np.floor(-np.log10(10 * sigma_rate)), -6, 9))
+    rounded = round(rate, decimals)
+    return float(rounded) if rounded > 0 else float(rate)

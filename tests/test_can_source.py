@@ -255,3 +255,18 @@ def test_slcan_over_a_pty(icd_truth, pty_port):
             src.reopen()
     finally:
         src.close()
+
+
+def test_rate_estimate_from_log_timestamps():
+    from drivers.can_source import estimate_rate_hz
+
+    rng = np.random.default_rng(0)
+    seq = np.arange(1000, 3000)
+    for rate, jitter_s in [(487.3, 1e-6), (500.0, 2e-4), (1000.0, 0.0)]:
+        rx = 50.0 + seq / rate + rng.uniform(0, jitter_s, seq.size)
+        s = CanSamples(seq=seq, counts=np.zeros((seq.size, 1, 3), np.int32),
+                       temp_raw=np.zeros((seq.size, 1), np.int16), rx_time_s=rx)
+        assert estimate_rate_hz(s) == rate
+    one = CanSamples(seq=seq[:1], counts=np.zeros((1, 1, 3), np.int32), temp_raw=np.zeros((1, 1), np.int16),
+                     rx_time_s=np.zeros(1))
+    assert estimate_rate_hz(one) is None
