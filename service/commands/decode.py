@@ -12,12 +12,14 @@ written to a temporary file and renamed, so it is complete or absent. Counters g
 from __future__ import annotations
 
 import argparse
+import importlib
 import math
 import os
+import re
 import sys
 import tempfile
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Iterator
 
 import numpy as np
 
@@ -64,24 +66,12 @@ def main(args: argparse.Namespace) -> int:
     else:
         blocks, t_format = _serial_blocks(capture, n, args.lsb_nT, counters), "%.6f"
 
-    try:
-        writer = _CsvWriter(out, n, t_format) if suffix == ".csv" else _McapWriter(out, n)
-    except OSError as e:
-        raise ConfigError(f"--out: cannot write {out} ({e.strerror})") from None
-    try:
-        total = 0
-        for block in blocks:
-            writer.write(block)
-            total += block.n_samples
-        if total == 0:
-            raise DataError(_no_frames_message(capture, n, args, counters))
-        writer.commit()
-    except OSError as e:
-        writer.abort()
-        raise FluxcalError(f"writing {out} failed ({e}); nothing was written") from e
-    except BaseException:
-        writer.abort()
-        raise
+    counted = _Counted(blocks)
+    if suffix == ".csv":
+        _write_csv(out, n, t_format, counted, capture, args, counters)
+    else:
+        _write_mcap(out, n, counted, capture, args, counters)
+    total = counted.samples
     _say(f"{total} samples -> {out}")
     _say(_counters_line(counters, args.can))
     return 0
@@ -205,27 +195,61 @@ class _CsvWriter:
         self.out.abort()
 
 
-class _McapWriter:
-    """The raw stream as an MCAP recording, through the service's MCAP logger."""
+class _Counted:
+    """Passes blocks through and counts their samples."""
 
-    def __init__(self, path: Path, n: int) -> None:
-        try:
-            from service import mcap_sink
-        except ImportError:
-            mcap_sink = None
-        factory: Callable | None = getattr(mcap_sink, "open_raw_writer", None)
-        if factory is None:
-            raise FluxcalError("--out FILE.mcap is not available yet (the MCAP logger is not in this build); "
-                               "write a .csv instead")
-        self.out = _AtomicFile(path, "wb")
-        self.writer = factory(self.out.file, n_probes=n)
+    def __init__(self, blocks: Iterator[SampleBlock]) -> None:
+        self.blocks = blocks
+        self.samples = 0
 
-    def write(self, b: SampleBlock) -> None:
-        self.writer.write_raw(b)
+    def __iter__(self) -> Iterator[SampleBlock]:
+        for b in self.blocks:
+            self.samples += b.n_samples
+            yield b
 
-    def commit(self) -> None:
-        self.writer.finish()
-        self.out.commit()
 
-    def abort(self) -> None:
-        self.out.abort()
+def _write_csv(out: Path, n: int, t_format: str, blocks: _Counted, capture: Path, args: argparse.Namespace,
+               counters: Counters) -> None:
+    try:
+        writer = _CsvWriter(out, n, t_format)
+    except OSError as e:
+        raise ConfigError(f"--out: cannot write {out} ({e.strerror})") from None
+    try:
+        for block in blocks:
+            writer.write(block)
+        if blocks.samples == 0:
+            raise DataError(_no_frames_message(capture, n, args, counters))
+        writer.commit()
+    except OSError as e:
+        writer.abort()
+        raise FluxcalError(f"writing {out} failed ({e}); nothing was written") from e
+    except BaseException:
+        writer.abort()
+        raise
+
+
+def _write_mcap(out: Path, n: int, blocks: _Counted, capture: Path, args: argparse.Namespace,
+                counters: Counters) -> None:
+    """Through service.mcap_sink.write_recording(path, blocks, unit=, probe_names=), the MCAP logger's
+    whole-file entry point, into a temporary file renamed on success."""
+    try:
+        mcap_sink = importlib.import_module("service.mcap_sink")
+    except ModuleNotFoundError as e:
+        if e.name != "service.mcap_sink":
+            raise
+        mcap_sink = None
+    write_recording = getattr(mcap_sink, "write_recording", None)
+    if write_recording is None:
+        raise FluxcalError(f"{out}: MCAP output is not available yet in this build (service.mcap_sink."
+                           f"write_recording is missing); write a CSV instead: --out {out.with_suffix('.csv')}")
+    unit = re.sub(r"[^A-Za-z0-9_\-]", "_", capture.stem)[:64] or "unit1"
+    tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
+    try:
+        write_recording(tmp, blocks, unit=unit, probe_names=[f"s{k}" for k in range(1, n + 1)])
+        if blocks.samples == 0:
+            raise DataError(_no_frames_message(capture, n, args, counters))
+        os.replace(tmp, out)
+    except OSError as e:
+        raise FluxcalError(f"writing {out} failed ({e}); nothing was written") from e
+    finally:
+        tmp.unlink(missing_ok=True)
