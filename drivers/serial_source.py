@@ -96,13 +96,29 @@ class SerialSource(Source):
         try:
             data = b""
             if wait and ser.in_waiting == 0:
-                data = ser.read(1)           # returns after the first byte or read_timeout_s
-            waiting = ser.in_waiting
-            if waiting:
-                data += ser.read(min(waiting, MAX_READ_BYTES))
-            return data
+                # read(1): returns at the first byte or after read_timeout_s. Never a larger blocking
+                # read: pyserial drops what it has collected when the port fails mid-read.
+                data = ser.read(1)
+            return data + self._drain(ser)
         except (serial.SerialException, OSError) as e:
             raise self._fail(e) from e
+
+    @staticmethod
+    def _drain(ser: serial.SerialBase) -> bytes:
+        """Whatever the port holds now, without waiting."""
+        waiting = ser.in_waiting
+        if waiting == 0:
+            return b""
+        if waiting > 1:
+            return ser.read(min(waiting, MAX_READ_BYTES))
+        # in_waiting is only a readiness flag (0/1) on some URL handlers (socket://): read what is
+        # there with a zero timeout rather than byte by byte
+        saved = ser.timeout
+        ser.timeout = 0
+        try:
+            return ser.read(MAX_READ_BYTES)
+        finally:
+            ser.timeout = saved
 
     def _read_block(self, timeout: float | None) -> SampleBlock | None:
         deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)

@@ -5,6 +5,8 @@ streams counted, a pulled cable raising DriverError, and reconnecting through a 
 from __future__ import annotations
 
 import os
+import socket
+import threading
 import time
 
 import numpy as np
@@ -188,3 +190,36 @@ def test_config_and_factories(pty_port):
         load_section(SerialConfig, {"port": "x", "n_probes": 9}, "source")
     with pytest.raises(ConfigError, match="n_probes: 0 is not allowed"):
         SerialSource(port.path, n_probes=0)
+
+
+def test_socket_url_reads_in_bulk(icd_truth):
+    """socket:// (a serial device server) reports in_waiting only as 0/1: the source must still
+    take what has arrived at once, not two bytes per read."""
+    truth = icd_truth(2000, 4, seed=8)
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+
+    def serve() -> None:
+        conn, _ = server.accept()
+        with conn:
+            conn.recv(1)                          # the client is ready: pyserial drops bytes sent during open
+            conn.sendall(truth.serial_bytes())
+            time.sleep(0.5)
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    try:
+        with SerialSource(f"socket://127.0.0.1:{port}", n_probes=4) as src:
+            src._ser.write(b"!")
+            blocks, got = [], 0
+            deadline = time.monotonic() + 5
+            while got < len(truth) and time.monotonic() < deadline:
+                b = src.read(timeout=0.2)
+                if b is not None:
+                    blocks.append(b)
+                    got += len(b)
+            assert_block_is(SampleBlock.concat(blocks), truth)
+            assert len(blocks) < 200
+    finally:
+        t.join(2)
+        server.close()
