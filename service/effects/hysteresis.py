@@ -1,0 +1,119 @@
+"""Hysteresis: perming, the offset jumps a fluxgate core keeps after a strong field or a shock.
+
+    raw_corrected_a = raw_a - sum_j s_ja H(t - t_j)        H the unit step
+
+The step instants t_j are found in the current model's scalar residual of each probe: in windows
+of W samples before and after each instant the local offset change delta is estimated by least
+squares on the residual's sensitivity to an offset, g = n^T M (so a rotating probe shows its jump
+at every heading), and
+
+    chi2(t) = (delta_R - delta_L)^T [sigma^2 (G_L^-1 + G_R^-1)]^-1 (delta_R - delta_L),  G = sum g g^T
+
+must exceed `threshold` (chi-square with 3 degrees of freedom; the default is far beyond what noise
+reaches). Parameters: the jump per step and axis, in nT.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import AXES, EffectTerm, ProbeView
+
+
+def robust_noise(x: np.ndarray) -> float:
+    """White-noise sigma of a series from its second differences: 1.4826 MAD(d2) / sqrt(6).
+
+    >>> rng = np.random.default_rng(0)
+    >>> round(robust_noise(rng.standard_normal(100000) * 2.0), 1)
+    2.0
+    """
+    x = np.asarray(x, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    if x.size < 5:
+        return float("nan")
+    d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
+    # var(d2) = (1 + 4 + 1) sigma^2 for white noise
+    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
+
+
+def detect_steps(t_s: np.ndarray, residual: np.ndarray, gain: np.ndarray, *, window: int,
+                 threshold: float = 50.0, max_steps: int = 3) -> list[tuple[float, float]]:
+    """Offset steps in a scalar residual: [(t_step_s, chi2), ...], strongest first."""
+    ok = np.isfinite(residual) & np.all(np.isfinite(gain), axis=1)
+    idx = np.flatnonzero(ok)
+    n, w = idx.size, int(window)
+    if w < 10 or n < 4 * w:
+        return []
+    r, g, t = residual[idx], gain[idx], t_s[idx]
+    sigma = robust_noise(r)
+    if not np.isfinite(sigma) or sigma <= 0:
+        return []
+    s_gg = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(g[:, :, None] * g[:, None, :], axis=0)])
+    s_gr = np.concatenate([np.zeros((1, 3)), np.cumsum(g * r[:, None], axis=0)])
+    i = np.arange(w, n - w + 1)
+    g_left, g_right = s_gg[i] - s_gg[i - w], s_gg[i + w] - s_gg[i]
+    b_left, b_right = s_gr[i] - s_gr[i - w], s_gr[i + w] - s_gr[i]
+    eye = np.eye(3)
+    # a small ridge: a window of turns about one axis does not fix all three offset components
+    ridge = 1e-6 * np.trace(g_left + g_right, axis1=1, axis2=2)[:, None, None] * eye
+    d_left = np.linalg.solve(g_left + ridge, b_left[..., None])[..., 0]
+    d_right = np.linalg.solve(g_right + ridge, b_right[..., None])[..., 0]
+    jump = d_right - d_left
+    # covariance of the jump / sigma^2 = G_L^-1 + G_R^-1 (3x3 per instant)
+    cov = np.linalg.solve(g_left + ridge, np.broadcast_to(eye, g_left.shape)) + \
+        np.linalg.solve(g_right + ridge, np.broadcast_to(eye, g_right.shape))
+    chi2 = np.einsum("ni,ni->n", jump, np.linalg.solve(cov, jump[..., None])[..., 0]) / sigma ** 2
+    steps: list[tuple[float, float]] = []
+    chi2 = chi2.copy()
+    for _ in range(max_steps):                      # a few peaks, not a loop over samples
+        j = int(np.argmax(chi2))
+        if chi2[j] < threshold:
+            break
+        steps.append((float(t[i[j]]), float(chi2[j])))
+        chi2[max(0, j - w):j + w] = 0.0
+    return steps
+
+
+class Hysteresis(EffectTerm):
+    """Offset steps (nT per axis) at instants found in the residual."""
+
+    name = "hysteresis"
+    title = "Hysteresis"
+    physical = "perming: offset steps after a strong field or a shock"
+    separation = {
+        "drift": "record longer: a drift changes smoothly, a perming step jumps once",
+    }
+
+    def __init__(self, *, threshold: float = 50.0, max_steps: int = 3) -> None:
+        self.threshold = threshold
+        self.max_steps = max_steps
+
+    def settings(self) -> dict:
+        return {"threshold": self.threshold, "max_steps": self.max_steps}
+
+    def steps(self, view: ProbeView) -> list[float]:
+        """Step instants of probe view.k (found once per binding)."""
+        key = "hysteresis:steps"
+        if key not in view.cache:
+            if view.model_residual is None or view.model_gain is None:
+                view.cache[key] = []
+            else:
+                data = view.data
+                window = int(min(max(data.n_samples // 30, round(2.0 / data.dt_s), 50), data.n_samples // 5))
+                found = detect_steps(data.t_s, view.model_residual, view.model_gain, window=window,
+                                     threshold=self.threshold, max_steps=self.max_steps)
+                view.cache[key] = sorted(t for t, _ in found)
+        return view.cache[key]
+
+    def param_names(self, view: ProbeView) -> list[str]:
+        return [f"{view.name}.{a} step@{t:.2f}s nT" for t in self.steps(view) for a in AXES]
+
+    def columns(self, view: ProbeView) -> np.ndarray:
+        t = view.data.t_s
+        steps = self.steps(view)
+        cols = np.zeros((t.shape[0], 3, 3 * len(steps)))
+        for j, ts in enumerate(steps):
+            h = (t >= ts).astype(np.float64)
+            for a in range(3):
+                cols[:, a, 3 * j + a] = h
+        return cols

@@ -1,0 +1,45 @@
+"""Temperature: a probe's offset and scale factor follow its temperature.
+
+    raw = u (1 + 1e-6 kappa_a dT) + offset + beta_a dT,   dT = T - mean(T)
+    => raw_corrected_a = raw_a - beta_a dT - 1e-6 kappa_a dT (raw_a - offset_a)
+
+Parameters per probe and axis: beta in nT/degC (offset) and kappa in ppm/degC (scale). The
+reference temperature is the mean of the data; another reference only moves the linear part.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import AXES, EffectData, EffectTerm, ProbeView, axis_columns
+
+
+class Temperature(EffectTerm):
+    """Offset (nT/degC) and scale-factor (ppm/degC) temperature coefficients per probe and axis."""
+
+    name = "temperature"
+    title = "Temperature"
+    physical = "offset and scale factor change with probe temperature"
+    separation = {
+        "drift": "let the temperature go up and down (heat and cool) instead of a steady ramp: "
+                 "a drift follows time, a temperature coefficient follows temperature",
+    }
+
+    def why_unavailable(self, data: EffectData) -> str | None:
+        if not data.has_temperature():
+            return "the data have no probe temperature (s<k>_temp columns)"
+        t = data.temperature(0)
+        if float(np.ptp(t)) < 1e-6:
+            return "the probe temperature does not change in these data"
+        return None
+
+    def param_names(self, view: ProbeView) -> list[str]:
+        p = view.name
+        return [f"{p}.{a} nT/degC" for a in AXES] + [f"{p}.{a} ppm/degC" for a in AXES]
+
+    def columns(self, view: ProbeView) -> np.ndarray:
+        temp = view.data.temperature(view.k)
+        d_temp = (temp - np.mean(temp))[:, None]                       # (N, 1) degC
+        offset_cols = axis_columns(np.broadcast_to(d_temp, (temp.shape[0], 3)))   # beta: nT per degC
+        scale_cols = axis_columns(1e-6 * d_temp * view.centred_nT)     # kappa: 1e-6 dT (raw - o) per ppm/degC
+        return np.concatenate([offset_cols, scale_cols], axis=2)
