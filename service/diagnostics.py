@@ -31,7 +31,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from scipy import stats
 
-from drivers.errors import FluxcalError
+from drivers.errors import CalibrationRefused, FluxcalError
 
 from .effects import EFFECTS, Baseline, Model, make_model, make_term
 from .effects.base import AXES, EffectData, EffectTerm
@@ -386,7 +386,7 @@ def _band_excess(y: np.ndarray, dt: float, noise: float) -> tuple[float, str]:
 
 
 def where_it_fails(data: EffectData, fit: FitResult, noise_nT: np.ndarray, *, top: int = 30,
-                   min_strength: float = 0.01) -> list[dict[str, Any]]:
+                   min_strength: float = 0.05) -> list[dict[str, Any]]:
     """(channel, observable, strength) sorted strongest first; strength = explained variance fraction."""
     pr = fit.problem
     m = pr.M
@@ -474,7 +474,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     for t in model.effect_terms:
         why = t.why_unavailable(ed)
         if why:
-            raise FluxcalError(f"effect {t.name!r} cannot be fitted to these data: {why}")
+            raise CalibrationRefused(f"effect {t.name!r} cannot be fitted to these data: {why}")
 
     tell(0.05, f"fitting {model}")
     pr = Problem(ed, model, linear, reference, weights=weights, n_blocks=n_blocks)

@@ -4,7 +4,10 @@
     => raw_corrected_a = raw_a - sum_{b<c} x_{a,bc} (raw_b - o_b)(raw_c - o_c)
 
 Parameters per probe: for each axis a, three coefficients on the products xy, xz, yz, in 1/nT.
-Together with the squares of `nonlinearity` they make the full second-order transfer.
+Together with the squares of `nonlinearity` they make the full second-order transfer. In a scalar
+channel x_{x,yz}, x_{y,xz} and x_{z,xy} all multiply the monomial u_x u_y u_z, so only their sum
+shows; the differences of an array do not separate them either (probe 1's own coefficients trade
+against probe k's). Their standard errors say so.
 """
 
 from __future__ import annotations

@@ -1,9 +1,12 @@
 """Nonlinearity: per-axis transfer non-linearity of the probe.
 
-    raw_a - offset_a = u_a + q_a u_a^2 + c_a u_a^3
-    => raw_corrected_a = raw_a - q_a (raw_a - o_a)^2 - c_a (raw_a - o_a)^3      (first order in q, c)
+    r_a = raw_a - offset_a = u_a + q_a u_a^2 + c_a u_a^3           (forward, per axis)
+    raw_corrected_a = raw_a - (r_a - u_a(r_a))                     u solved exactly by Newton steps
 
-Parameters per probe and axis: the quadratic coefficient q in 1/nT and the cubic c in 1/nT^2.
+Parameters per probe and axis: the quadratic coefficient q in 1/nT and the cubic c in 1/nT^2. The
+inversion is exact (a first-order one, u = r - q r^2 - c r^3, would leave -2 q^2 u^3, which is
+10 % of a typical c), so the fitted q and c are the physical ones. Non-linear in (q, c): the fitter
+uses du/dq = -u^2 / D, du/dc = -u^3 / D, D = 1 + 2 q u + 3 c u^2.
 """
 
 from __future__ import annotations
@@ -13,12 +16,28 @@ import numpy as np
 from .base import AXES, EffectTerm, ProbeView, axis_columns
 
 
+def invert(r: np.ndarray, q: np.ndarray, c: np.ndarray, iterations: int = 4) -> np.ndarray:
+    """u with u + q u^2 + c u^3 = r, per axis (Newton from u = r; converges for |q r|, |c r^2| << 1).
+
+    >>> u = np.array([[50000.0, -30000.0, 1000.0]])
+    >>> q, c = np.array([1e-7, -2e-7, 0.0]), np.array([2e-13, 1e-13, -3e-13])
+    >>> bool(np.allclose(invert(u + q * u**2 + c * u**3, q, c), u, atol=1e-8))
+    True
+    """
+    u = r.copy()
+    for _ in range(iterations):
+        f = u + q * u ** 2 + c * u ** 3 - r
+        u = u - f / (1.0 + 2.0 * q * u + 3.0 * c * u ** 2)
+    return u
+
+
 class Nonlinearity(EffectTerm):
     """Quadratic (1/nT) and cubic (1/nT^2) transfer coefficients per probe and axis."""
 
     name = "nonlinearity"
     title = "Nonlinearity"
     physical = "per-axis transfer non-linearity"
+    linear = False
     separation = {
         "crossfield": "vary the field magnitude (a scalar reference in a changing field, or coils): "
                       "a per-axis non-linearity follows each axis' own reading, a cross-field error the others'",
@@ -28,6 +47,16 @@ class Nonlinearity(EffectTerm):
         p = view.name
         return [f"{p}.{a} quadratic 1/nT" for a in AXES] + [f"{p}.{a} cubic 1/nT2" for a in AXES]
 
-    def columns(self, view: ProbeView) -> np.ndarray:
-        u = view.centred_nT
-        return np.concatenate([axis_columns(u ** 2), axis_columns(u ** 3)], axis=2)
+    def _u(self, view: ProbeView, theta: np.ndarray) -> np.ndarray:
+        return invert(view.centred_nT, theta[:3], theta[3:])
+
+    def correction(self, view: ProbeView, theta: np.ndarray, v0: np.ndarray | None = None) -> np.ndarray:
+        if not np.any(theta):
+            return np.zeros((view.data.n_samples, 3))
+        return view.centred_nT - self._u(view, theta)                   # r - u(r)
+
+    def jacobian(self, view: ProbeView, theta: np.ndarray, v0: np.ndarray | None = None) -> np.ndarray:
+        u = self._u(view, theta) if np.any(theta) else view.centred_nT
+        d = 1.0 + 2.0 * theta[:3] * u + 3.0 * theta[3:] * u ** 2
+        # d(r - u)/dq = u^2 / D, d(r - u)/dc = u^3 / D
+        return np.concatenate([axis_columns(u ** 2 / d), axis_columns(u ** 3 / d)], axis=2)
