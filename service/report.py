@@ -179,7 +179,7 @@ def _table(d: Diagnosis) -> str:
             note = c.reason
         if c.testable:
             cells = [c.effect, f"{c.rms_nT:.3f}", f"{c.heldout_rms_nT:.3f}",
-                     f"{100 * c.gain:.1f}% &plusmn; {100 * c.gain_se:.1f}%", f"{c.p_value:.2g}", f"{c.bic_delta:.1f}",
+                     f"{100 * c.gain:.1f}% (t = {c.log_ratio / c.log_ratio_se if c.log_ratio_se > 0 else float('inf'):.1f})", f"{c.p_value:.2g}", f"{c.bic_delta:.1f}",
                      "<b>yes</b>" if c.significant else "no", html.escape(note)]
         else:
             cells = [c.effect, "-", "-", "-", "-", "-", "not testable", html.escape(note)]

@@ -198,12 +198,14 @@ def test_crossfield_against_a_private_forward_model():
     for a, axis in enumerate("xyz"):
         for j, pair in enumerate(("xy", "xz", "yz")):
             got = p[f"s2.{axis} cross {pair} 1/nT"]
-            assert abs(got.value - xcoef[a, j]) < 5 * got.stderr + 1e-11, (axis, pair, got)
             if axis not in pair:
                 # x.yz, y.xz and z.xy multiply the same monomial u_x u_y u_z in probe 1's scalar channel,
-                # and probe 1's trade against probe 2's through the difference: only combinations show
-                assert got.stderr > 1e-8
+                # and probe 1's trade against probe 2's through the difference: reported undetermined
+                assert got.stderr is None
             else:
+                # (a parameter that leans slightly on the undetermined combination takes a small bias from
+                # the minimum-norm choice there: allow 2 % of the coefficients' scale)
+                assert abs(got.value - xcoef[a, j]) < 5 * got.stderr + 5e-10, (axis, pair, got)
                 assert got.stderr < 1e-9                 # a tenth of the coefficients
     assert ch.total_rms_nT < 1.1 * 0.8 * np.sqrt(1.6)
 

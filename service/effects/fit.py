@@ -31,8 +31,13 @@ from drivers.errors import CalibrationRefused, DataError
 from .base import AXES, Baseline, EffectData, EffectTerm, Model, ProbeView
 from .hysteresis import robust_noise
 
-#: eigenvalues of the scaled normal matrix below this fraction of the largest are a null space
-RANK_TOL = 1e-10
+#: eigenvalues of the column-scaled normal matrix below this fraction of the largest are a null space: a
+#: direction in which the columns are collinear to R^2 > 1 - 1e-7. Measured: directions the data cannot
+#: determine (lag against an isotropic eddy, a gradient under a single-axis turn) sit at 1e-10..1e-8,
+#: lifted off zero by noise and by the curvature of |B|; weak but real ones (a lag's second-order
+#: signature at a fast turn) at 4e-7 and above. Kept in the fit, the former promise large gains that
+#: the linearisation cannot deliver.
+RANK_TOL = 1e-7
 #: a step is final when the actual RSS matches the linearised prediction so closely that the
 #: parameters are within this many standard errors of the minimum
 LINEARITY_SE = 0.1
@@ -242,8 +247,9 @@ class _Jac:
     sources: list[Any]
 
 
-def _solve(a: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """delta = -A^+ g on the column-scaled system, the diagonal of A^+, undetermined mask, rank."""
+def _solve(a: np.ndarray, g: np.ndarray, damping: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """delta = -(A + damping diag A)^+ g on the column-scaled system (Levenberg-Marquardt when damping > 0),
+    the diagonal of A^+, the undetermined mask and the rank."""
     p = a.shape[0]
     if p == 0:
         return np.zeros(0), np.zeros(0), np.zeros(0, bool), 0
@@ -255,7 +261,7 @@ def _solve(a: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     top = lam[-1] if lam[-1] > 0 else 1.0
     keep = lam > RANK_TOL * top
     vk = vec[:, keep]
-    delta = -(vk @ ((vk.T @ (g / d)) / lam[keep])) / d
+    delta = -(vk @ ((vk.T @ (g / d)) / (lam[keep] + damping))) / d
     cov_diag = (vk ** 2 / lam[keep]).sum(axis=1) / d ** 2
     null = (vec[:, ~keep] ** 2).sum(axis=1)
     undetermined = zero | (null > 0.01)
@@ -661,17 +667,22 @@ def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float =
                     g_b = g_b + np.einsum("bij,j->bi", a_b, delta)
             break
         it += 1
-        step = 1.0
-        for _ in range(6):                                    # step halving keeps every iteration downhill
-            trial = pr.update(st, step * delta)
+        damping = 0.0
+        for _ in range(10):
+            # Levenberg-Marquardt: a step that does not lower the RSS (a badly determined direction
+            # taken too far) is retried shorter and turned towards the gradient
+            if damping > 0:
+                delta, *_ = _solve(a_b.sum(0), g_b.sum(0), damping)
+            trial = pr.update(st, delta)
             ev_t = pr.evaluate(trial)
             rss_t = pr.weighted_rss(ev_t)
             if np.isfinite(rss_t) and rss_t <= rss * (1 + 1e-12) + 1e-12:
                 break
-            step *= 0.5
+            damping = 1e-6 if damping == 0 else damping * 10.0
         else:
             converged = True                                  # no descent left: at the minimum
             break
+        step = 1.0 if damping == 0 else 0.0
         predicted = rss + float(g_b.sum(0) @ delta)           # rss - g^T A^+ g of the linearised problem
         # the excess of the actual over the predicted RSS bounds how far the step is from the minimum:
         # excess = d^T A d for a parameter error d, i.e. sqrt(excess / s2) standard errors

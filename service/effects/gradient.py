@@ -7,8 +7,9 @@ A probe at r_k (platform frame) on a platform with attitude R (platform -> NED) 
 with G symmetric and traceless (a source-free field; 5 parameters in nT/m, NED, shared by all
 probes; G_zz = -G_xx - G_yy). The scalar reference sits at the platform origin. The term needs the
 attitude in the data (heel_deg/pitch_deg/azimuth_deg or q_w..q_z columns, e.g. from a turntable
-controller) and the probe positions (--config). Under turns about a single axis the gradient seen
-in one probe's scalar channel is a harmonic of the turn and looks like an offset.
+controller) and the probe positions (--config). Under turns about a single axis (z) the gradient seen
+in one probe's scalar channel is a first harmonic of the turn: G_xx and G_xy then act like offsets,
+G_xz and G_yz like the matrix's xz and yz entries, and G_yy does not show at all.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ class Gradient(EffectTerm):
     frame = "corrected"
     separation = {
         "baseline": "turn about a second axis (or tumble): under turns about one axis a site gradient looks "
-                    "like a probe offset",
+                    "like probe offsets and matrix terms",
         "offset": "turn about a second axis (or tumble): under turns about one axis a site gradient looks "
                   "like a probe offset",
     }
