@@ -273,3 +273,23 @@ def test_effect_data_drops_saturated_rows_and_reads_quaternions():
     assert np.allclose(d3.attitude(), data.attitude(), atol=1e-9)
     with pytest.raises(DataError, match="too few"):
         EffectData.from_block(block.slice(0, 10))
+
+
+def test_fit_with_effects_takes_and_returns_array_calibrations():
+    from service.calib.ellipsoid import fit_ellipsoid
+    from service.calib.model import ArrayCalibration
+
+    beta = [2.0, -1.0, 0.5]
+    data, truth, _ = sim([probe(temp_offset_nT_per_C=beta)], n=5000)
+    base = ArrayCalibration(method="ellipsoid", align=None,
+                            probes=[fit_ellipsoid(data.raw_nT[:, 0, :], data.ref_total_nT).calibration])
+    fit, ch = fit_with_effects(data, ["temperature"], base)
+    cal = fit.calibration
+    assert isinstance(cal, ArrayCalibration) and cal.method == "ellipsoid" and cal.effects == ["temperature"]
+    got = cal.effect_params["temperature"]["s1.x nT/degC"]
+    assert got["unit"] == "nT/degC" and got["value"] == pytest.approx(beta[0], abs=5 * got["se"] + 0.02)
+    # the linear part: matrix (raw - offset) has the true field's magnitude
+    corr = cal.apply(data.raw_nT)
+    assert np.median(np.abs(np.linalg.norm(corr[:, 0], axis=1) - data.ref_total_nT)) < 20.0
+    assert np.all(np.isfinite(cal.probes[0].offset_se_nT))
+    assert fit.as_dict()["effect_parameters"][0]["unit"] == "nT/degC"

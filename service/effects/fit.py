@@ -130,11 +130,13 @@ def initial_linear(data: EffectData, reference_nT: np.ndarray | float | None) ->
     for k in range(data.n_probes):
         raw = data.raw_nT[:, k, :]
         o = m = None
-        if fit_ellipsoid is not None and f_total is not None:
+        if fit_ellipsoid is not None and reference_nT is not None:
             try:
-                res = fit_ellipsoid(raw, f_total)
-                o = np.asarray(getattr(res, "offset_nT"), dtype=np.float64).reshape(3)
-                m = np.asarray(getattr(res, "matrix"), dtype=np.float64).reshape(3, 3)
+                # refuses planar data (a single-axis turn): then our own start, which GN refines
+                res = fit_ellipsoid(raw, reference_nT, name=data.probe_names[k])
+                cal = getattr(res, "calibration", res)
+                o = np.asarray(cal.offset_nT, dtype=np.float64).reshape(3)
+                m = np.asarray(cal.matrix, dtype=np.float64).reshape(3, 3)
             except Exception:                                  # noqa: BLE001 - fall back to our own start
                 o = m = None
         if o is None or not np.all(np.isfinite(m)):
@@ -559,8 +561,18 @@ class Parameter:
     stderr: float | None
     term: str
 
+    @property
+    def unit(self) -> str:
+        """The unit written at the end of the name ("s1.x nT/degC" -> "nT/degC"), or "" if none.
+
+        >>> Parameter("s1.eddy[xy] s", 0.0, None, "eddy").unit, Parameter("s1.platform induced[xy]", 0.0, None, "p").unit
+        ('s', '')
+        """
+        last = self.name.rsplit(" ", 1)[-1]
+        return last if (" " in self.name and (last == "s" or "nT" in last or "/" in last)) else ""
+
     def as_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "value": self.value, "stderr": self.stderr}
+        return {"name": self.name, "value": self.value, "stderr": self.stderr, "unit": self.unit}
 
 
 @dataclass
@@ -767,22 +779,30 @@ class EffectsFit:
     channel_rms_nT: dict[str, float]
     reference: str
     result: FitResult = field(repr=False)
+    base_method: str = "ellipsoid"
+    base_align: str | None = None
+    total_nT: float | None = None
 
     @property
     def calibration(self) -> Any:
-        """The linear part as service.calib.model.ArrayCalibration when that module exists, else
-        the LinearCalibration."""
-        lin = LinearCalibration(self.offset_nT.copy(), self.matrix.copy())
+        """A service.calib.model.ArrayCalibration: the linear part with offset standard errors, the
+        effect names and `effect_params` {effect: {name: {"value", "se", "unit"}}}, plus the fit's
+        RMS in `diagnostics`. (The plain LinearCalibration if the calibration core is missing.)"""
         try:
             from service.calib.model import ArrayCalibration, ProbeCalibration
         except Exception:                                     # noqa: BLE001 - optional collaborator
-            return lin
-        probes = [ProbeCalibration(name=n, offset_nT=self.offset_nT[k].copy(), matrix=self.matrix[k].copy())
+            return LinearCalibration(self.offset_nT.copy(), self.matrix.copy())
+        probes = [ProbeCalibration(n, self.offset_nT[k].copy(), self.matrix[k].copy(), self.offset_stderr_nT[k].copy())
                   for k, n in enumerate(self.probe_names)]
-        try:
-            return ArrayCalibration(probes=probes)
-        except TypeError:
-            return lin
+        effect_params: dict[str, Any] = {}
+        for p in self.parameters:
+            effect_params.setdefault(p.term, {})[p.name] = {"value": p.value, "se": p.stderr, "unit": p.unit}
+        data = self.result.problem.data
+        return ArrayCalibration(method=self.base_method, align=self.base_align, probes=probes, total_nT=self.total_nT,
+                                effects=list(self.effects), effect_params=effect_params,
+                                diagnostics={"rms_nT": self.rms_nT, "channel_rms_nT": dict(self.channel_rms_nT),
+                                             "reference": self.reference},
+                                span=(float(data.t_s[0]), float(data.t_s[-1]), int(data.n_samples)))
 
     def effect_parameters(self) -> dict[str, dict[str, float | None]]:
         """{"temperature": {"s1.x nT/degC": value, ...}, ...} and the same with standard errors."""
@@ -848,7 +868,11 @@ def fit_with_effects(data: Any, effects: Sequence[str] | Model, base_calibration
     weights = start_weights(ed, linear, reference)
     pr = Problem(ed, model, linear, reference, weights=weights, n_blocks=n_blocks)
     res = fit_problem(pr, pr.start_state(linear), progress=progress)
-    return effects_fit_from(res, kind), res.channels
+    out = effects_fit_from(res, kind)
+    out.base_method = getattr(base_calibration, "method", None) or "ellipsoid"
+    out.base_align = getattr(base_calibration, "align", None)
+    out.total_nT = ed.total_nT if kind != "ref_total" else float(np.median(reference))
+    return out, res.channels
 
 
 def start_weights(data: EffectData, linear: LinearCalibration, reference: np.ndarray) -> np.ndarray:
