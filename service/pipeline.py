@@ -1,0 +1,263 @@
+"""The one pipeline that live input, replay and `fit --method rls` share.
+
+    SampleBlock -> correct with the calibration in use -> differences, centre field, tensor
+               -> ring buffer -> online RLS ellipsoid per probe (unless frozen)
+               -> every check interval of *data* time: candidate = RLS estimate aligned over the
+                  ring buffer; it replaces the calibration in use only if it passes the gate.
+
+Everything depends on the blocks' contents and the commands applied between blocks, never on
+the wall clock, so replaying a recording (same blocks, same commands at the same seq) gives the
+same outputs bit for bit. No I/O here: the daemon and the commands feed it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from drivers.block import SampleBlock
+from drivers.errors import CalibrationRefused, DataError, FluxcalError
+from drivers.ringbuffer import RingBuffer
+
+from .calib import alignment, coverage as coverage_mod, tensor as tensor_mod
+from .calib.model import ArrayCalibration, ProbeCalibration
+from .calib.rls import RlsEllipsoid
+from .outputs import CorrectedBlock
+
+
+@dataclass
+class GateResult:
+    usable: bool
+    reasons: list[str]
+    coverage: float
+    condition: float
+    rms_nT: list[float]
+
+
+@dataclass
+class PipelineEvent:
+    """Something the sinks should record: calibration replaced, gate failed, command applied."""
+
+    kind: str                 # "calibration", "gate", "command"
+    seq: int                  # the first sample seq this applies from
+    t_s: float
+    detail: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Processed:
+    corrected: CorrectedBlock | None
+    error: dict[str, float]           # model-vs-measurement metric of this block, per channel, nT
+    events: list[PipelineEvent]
+
+
+class Pipeline:
+    """Stateful block processor. `process(block)` is the only hot path."""
+
+    def __init__(self, *, n_probes: int, probe_names: list[str], positions_m: np.ndarray | None,
+                 forgetting: float = 0.9995, total_nT: float | None = None, align: str = "rotation",
+                 min_samples: int = 2000, gate_coverage: float = 0.3, gate_condition: float = 1e3,
+                 gate_rms_nT: float = 20.0, check_every_s: float = 2.0, window_samples: int = 12000,
+                 initial: ArrayCalibration | None = None) -> None:
+        self.n_probes = n_probes
+        self.probe_names = list(probe_names)
+        self.positions_m = None if positions_m is None else np.asarray(positions_m, float)
+        self.total_nT = total_nT
+        self.align = align
+        self.forgetting = forgetting
+        self.min_samples = min_samples
+        self.gate_coverage = gate_coverage
+        self.gate_condition = gate_condition
+        self.gate_rms_nT = gate_rms_nT
+        self.check_every_s = check_every_s
+        self.ring = RingBuffer(capacity=window_samples, n_probes=n_probes)
+        self.frozen = False
+        self.calibration: ArrayCalibration | None = None
+        self.cal_id = 0
+        self.last_gate: GateResult | None = None
+        self._next_check_t: float | None = None
+        self._estimators = self._new_estimators()
+        if initial is not None:
+            self.set_calibration(initial)
+
+    # --- state ---------------------------------------------------------------------------
+
+    def _new_estimators(self) -> list[RlsEllipsoid]:
+        return [RlsEllipsoid(forgetting=self.forgetting) for _ in range(self.n_probes)]
+
+    def set_calibration(self, cal: ArrayCalibration) -> None:
+        if len(cal.probes) != self.n_probes:
+            raise DataError(f"calibration has {len(cal.probes)} probes, the unit has {self.n_probes}")
+        self.calibration = cal
+        self.cal_id += 1
+        m = np.stack([p.matrix for p in cal.probes])
+        o = np.stack([p.offset_nT for p in cal.probes])
+        self._matrices, self._offsets = m, o
+
+    def reset(self) -> None:
+        self._estimators = self._new_estimators()
+        self._next_check_t = None
+
+    def command(self, name: str, payload: Any, seq: int, t_s: float) -> PipelineEvent:
+        """Apply a runtime command between blocks; the event records where it took effect."""
+        if name == "freeze":
+            self.frozen = True
+        elif name == "unfreeze":
+            self.frozen = False
+        elif name == "reset":
+            self.reset()
+        elif name == "apply":
+            if not isinstance(payload, ArrayCalibration):
+                raise DataError("apply: expected a calibration")
+            self.set_calibration(payload)
+        else:
+            raise FluxcalError(f"unknown command {name!r} (allowed: freeze, unfreeze, reset, apply)")
+        return PipelineEvent("command", seq, t_s, {"name": name, "cal_id": self.cal_id})
+
+    # --- hot path --------------------------------------------------------------------------
+
+    def process(self, block: SampleBlock) -> Processed:
+        events: list[PipelineEvent] = []
+        corrected = self._correct(block)
+        error = self._error_metric(block, corrected)
+        self.ring.append(block)
+        if not self.frozen and block.n_samples:
+            self._update_estimators(block)
+            t_end = float(block.t_s[-1])
+            if self._next_check_t is None:
+                self._next_check_t = t_end + self.check_every_s
+            elif t_end >= self._next_check_t:
+                self._next_check_t = t_end + self.check_every_s
+                ev = self._check_candidate(int(block.seq[-1]) + 1, t_end)
+                if ev is not None:
+                    events.append(ev)
+        return Processed(corrected=corrected, error=error, events=events)
+
+    def _correct(self, block: SampleBlock) -> CorrectedBlock | None:
+        if self.calibration is None:
+            return None
+        # b_k = M_k (raw_k - o_k) for every sample and probe at once
+        c = np.einsum("pij,npj->npi", self._matrices, block.field_nT - self._offsets[None])
+        diff = c[:, 1:] - c[:, :1] if self.n_probes > 1 else None
+        center = c.mean(axis=1) if self.n_probes > 1 else None
+        tens = None
+        if self.positions_m is not None and self.n_probes >= 4:
+            tens = tensor_mod.tensor_from_positions(c, self.positions_m)
+        return CorrectedBlock(t_s=block.t_s, seq=block.seq, corrected_nT=c, diff_nT=diff, tensor_nT_m=tens,
+                              center_nT=center, cal_id=self.cal_id)
+
+    def _reference_total(self, block: SampleBlock) -> np.ndarray | float | None:
+        ref = block.extras.get("ref_total")
+        return ref if ref is not None else self.total_nT
+
+    def _update_estimators(self, block: SampleBlock) -> None:
+        ref = self._reference_total(block)
+        ok_rows = np.isfinite(block.field_nT).all(axis=2)                 # (N, P)
+        for k, est in enumerate(self._estimators):
+            rows = ok_rows[:, k]
+            if not rows.any():
+                continue
+            r = ref[rows] if isinstance(ref, np.ndarray) else ref
+            est.partial_fit(block.field_nT[rows, k], total_nT=r)
+
+    def _error_metric(self, block: SampleBlock, corrected: CorrectedBlock | None) -> dict[str, float]:
+        if corrected is None or block.n_samples == 0:
+            return {}
+        ref = self._reference_total(block)
+        out: dict[str, float] = {}
+        mag = np.linalg.norm(corrected.corrected_nT, axis=2)              # (N, P)
+        if ref is not None:
+            res = mag - (ref[:, None] if isinstance(ref, np.ndarray) else ref)
+            rms = np.sqrt(np.nanmean(res ** 2, axis=0))
+            for k, name in enumerate(self.probe_names):
+                out[f"{name}.scalar"] = float(rms[k])
+        if corrected.diff_nT is not None and self.positions_m is None:
+            d = np.sqrt(np.nanmean(corrected.diff_nT ** 2, axis=0))       # (P-1, 3)
+            for k in range(1, self.n_probes):
+                for a, ax in enumerate("xyz"):
+                    out[f"{self.probe_names[k]}-{self.probe_names[0]}.{ax}"] = float(d[k - 1, a])
+        return out
+
+    # --- the gate ----------------------------------------------------------------------------
+
+    def _check_candidate(self, seq: int, t_s: float) -> PipelineEvent | None:
+        cand = self.candidate()
+        if cand is None:
+            return None
+        gate = self.evaluate(cand)
+        self.last_gate = gate
+        if not gate.usable:
+            return PipelineEvent("gate", seq, t_s, {"usable": False, "reasons": gate.reasons})
+        first = self.calibration is None
+        self.set_calibration(cand)
+        return PipelineEvent("calibration", seq, t_s, {"cal_id": self.cal_id, "first_usable": first,
+                                                        "coverage": gate.coverage, "condition": gate.condition,
+                                                        "rms_nT": gate.rms_nT})
+
+    def candidate(self) -> ArrayCalibration | None:
+        """The online estimate, aligned over the ring buffer, or None if not yet determined."""
+        if any(est.n_samples_ < self.min_samples for est in self._estimators):
+            return None
+        try:
+            probes = [est.snapshot(name=name) for est, name in zip(self._estimators, self.probe_names)]
+        except (CalibrationRefused, FluxcalError):
+            return None
+        window = self.ring.view()
+        if self.n_probes > 1 and self.align != "none" and window.n_samples >= 3:
+            probes = alignment.align_probes(probes, window.field_nT, method=self.align)
+        return ArrayCalibration(method="rls", align=None if self.n_probes == 1 else self.align, probes=probes,
+                                total_nT=self.total_nT, effects=[], diagnostics={},
+                                span=(float(window.t_s[0]) if window.n_samples else 0.0,
+                                      float(window.t_s[-1]) if window.n_samples else 0.0,
+                                      int(self._estimators[0].n_samples_)))
+
+    def evaluate(self, cal: ArrayCalibration) -> GateResult:
+        """The quality gate: coverage, conditioning and residual over the ring buffer window."""
+        window = self.ring.view()
+        reasons: list[str] = []
+        covs, conds, rmss = [], [], []
+        ref = self._reference_total(window)
+        for k, (p, est) in enumerate(zip(cal.probes, self._estimators)):
+            raw = window.field_nT[:, k]
+            raw = raw[np.isfinite(raw).all(axis=1)]
+            cov = coverage_mod.coverage(raw)
+            covs.append(cov.fraction)
+            conds.append(float(est.condition_))
+            corr = p.apply(raw)
+            if ref is None:
+                mag = np.linalg.norm(corr, axis=1)
+                rms = float(np.std(mag))
+            else:
+                r = ref[np.isfinite(window.field_nT[:, k]).all(axis=1)] if isinstance(ref, np.ndarray) else ref
+                rms = float(np.sqrt(np.mean((np.linalg.norm(corr, axis=1) - r) ** 2)))
+            rmss.append(rms)
+            name = self.probe_names[k]
+            if cov.fraction < self.gate_coverage:
+                reasons.append(f"{name}: {cov.reason or 'coverage too small'}")
+            if not np.isfinite(conds[-1]) or conds[-1] > self.gate_condition:
+                reasons.append(f"{name}: ill-conditioned fit (condition {conds[-1]:.3g})")
+            if not np.isfinite(rms) or rms > self.gate_rms_nT:
+                reasons.append(f"{name}: residual {rms:.3g} nT above the gate {self.gate_rms_nT} nT")
+            if not (np.all(np.isfinite(p.matrix)) and np.all(np.isfinite(p.offset_nT))):
+                reasons.append(f"{name}: non-finite parameters")
+        return GateResult(usable=not reasons, reasons=reasons, coverage=float(min(covs)),
+                          condition=float(max(conds)), rms_nT=rmss)
+
+    def state(self) -> dict[str, Any]:
+        """The calibration state for publishing (JSON-ready)."""
+        cal = self.calibration
+        g = self.last_gate
+        return {
+            "cal_id": self.cal_id,
+            "usable": cal is not None,
+            "frozen": self.frozen,
+            "method": None if cal is None else cal.method,
+            "probes": [] if cal is None else [
+                {"name": p.name, "offset_nT": p.offset_nT.tolist(), "matrix": p.matrix.tolist(),
+                 "offset_se_nT": np.nan_to_num(p.offset_se_nT, nan=-1).tolist()} for p in cal.probes],
+            "gate": None if g is None else {"usable": g.usable, "reasons": g.reasons, "coverage": g.coverage,
+                                            "condition": g.condition, "rms_nT": g.rms_nT},
+            "samples_seen": int(min(est.n_samples_ for est in self._estimators)),
+        }
