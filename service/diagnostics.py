@@ -335,7 +335,8 @@ def observables(data: EffectData, fit: FitResult, rows: np.ndarray) -> dict[str,
         temps = [data.temperature(k)[full_rows] for k in range(data.n_probes)]
 
         def temp_basis(c: int) -> np.ndarray:
-            ks = [c] if c < pr.P else [1 + (c - pr.P) // 3, 0]
+            kind, k = pr.channel_probe(c)
+            ks = [k, 0] if kind == "diff" else [k]
             cols = []
             for k in ks:
                 cols += [temps[k], temps[k] ** 2]
@@ -350,14 +351,18 @@ def observables(data: EffectData, fit: FitResult, rows: np.ndarray) -> dict[str,
     out["angular rate"] = lambda c: np.column_stack([omega, omega ** 2, rate_dir])
     us = [fit.ev.nhat[k][rows] for k in range(pr.P)]
 
+    def probe_u(c: int) -> np.ndarray:
+        kind, k = pr.channel_probe(c)
+        return us[0] if kind == "diff" else us[k]
+
     def orient(c: int) -> np.ndarray:
-        u = us[c] if c < pr.P else us[0]
+        u = probe_u(c)
         return np.column_stack([u, u[:, 0] ** 2 - u[:, 2] ** 2, u[:, 1] ** 2 - u[:, 2] ** 2,
                                 u[:, 0] * u[:, 1], u[:, 0] * u[:, 2], u[:, 1] * u[:, 2]])
     out["orientation"] = orient
 
     def heading(c: int) -> np.ndarray:
-        u = us[c] if c < pr.P else us[0]
+        u = probe_u(c)
         psi = np.arctan2(u[:, 1], u[:, 0])
         return np.column_stack([f(k * psi) for k in (1, 2, 3) for f in (np.cos, np.sin)])
     out["heading"] = heading

@@ -47,11 +47,11 @@ def _observable_axis(d: Diagnosis, channel: str, observable: str) -> tuple[np.nd
     data = pr.data
     rows = pr.rows
     c = fit.channels.names.index(channel)
-    k = c if c < pr.P else 0
+    kind, kk = pr.channel_probe(c)
+    k = 0 if kind == "diff" else kk
     if observable == "time":
         return data.t_s[rows], "time (s)"
     if observable == "temperature" and data.has_temperature():
-        kk = c if c < pr.P else 1 + (c - pr.P) // 3
         return data.temperature(kk)[rows], f"temperature of {data.probe_names[kk]} (degC)"
     if observable == "angular rate":
         s1, r1 = data.smooth(0)[rows], data.rate(0)[rows]

@@ -284,7 +284,8 @@ def test_command_line_bad_input_exits_2(tmp_path, capsys):
     bad = tmp_path / "bad.json"
     bad.write_text('{"sensors": [1, 2')
     assert cli.main(["diagnose", str(csv), "--calibration", str(bad)]) == 2
-    assert "not valid JSON" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "bad.json" in err and "JSON" in err
     one = tmp_path / "one.csv"
     _write_csv(one, SampleBlock(t_s=block.t_s, seq=block.seq, field_nT=block.field_nT[:, :1], temp_C=block.temp_C[:, :1],
                                 flags=block.flags, extras=block.extras))
@@ -315,3 +316,21 @@ def test_progress_bar_only_on_a_terminal():
         bar.close()
     assert "[###############---------------]  50%" in tty.getvalue() and "trying eddy" in tty.getvalue()
     assert plain.getvalue() == ""
+
+
+@pytest.mark.slow
+def test_calibration_file_from_fit_is_read_with_its_effects(tmp_path, capsys):
+    from service.calib.calfile import save_calibration
+    from service.effects.fit import fit_with_effects
+
+    probes, block = _small()
+    data = data_of(block, probes)
+    fit, _ = fit_with_effects(data, ["temperature"])
+    save_calibration(fit.calibration, tmp_path / "cal.json")
+    csv = tmp_path / "lab.csv"
+    _write_csv(csv, block)
+    assert cli.main(["diagnose", str(csv), "--calibration", str(tmp_path / "cal.json"), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["effects"] == ["temperature"] and out["linear"] == "fixed"
+    assert out["rms_nT"] <= RMS_OVER_NOISE * out["noise_nT"]
+    assert any("held fixed" in n for n in out["notes"])

@@ -293,3 +293,17 @@ def test_fit_with_effects_takes_and_returns_array_calibrations():
     assert np.median(np.abs(np.linalg.norm(corr[:, 0], axis=1) - data.ref_total_nT)) < 20.0
     assert np.all(np.isfinite(cal.probes[0].offset_se_nT))
     assert fit.as_dict()["effect_parameters"][0]["unit"] == "nT/degC"
+
+
+def test_reference_vector_gives_vector_channels_and_probe_1_lag():
+    data, truth, s = sim([probe(lag_s=0.01)], n=5000, motion={"kind": "tumble", "rate_deg_s": 40.0,
+                                                              "tumble_period_s": 5.0})
+    ref = s.world.field_origin_nT + 0.05 * np.random.default_rng(1).standard_normal((data.n_samples, 3))
+    for a, c in enumerate(("ref_x", "ref_y", "ref_z")):
+        data.extras[c] = ref[:, a]
+    fit, ch = fit_with_effects(data, ["lag"])
+    assert ch.names == ["s1.scalar", "s1-ref.x", "s1-ref.y", "s1-ref.z"]
+    assert params(fit)["s1.lag s"].value == pytest.approx(0.01, abs=5e-5)
+    # with a vector reference the probe's rotation is determined: its matrix is the truth calibration
+    assert np.allclose(fit.matrix[0], truth["sensors"][0]["matrix"], atol=2e-4)
+    assert ch.total_rms_nT < 1.1 * 0.8

@@ -3,8 +3,9 @@
 Compares the model (a linear calibration plus the named effects) with the measurement, says where
 it fails and which catalogue effect is missing (service.diagnostics). With --json, one JSON object
 on stdout (CONTRACTS.md §3); otherwise a readable summary. A progress bar goes to stderr when it is
-a terminal. --calibration holds that linear calibration fixed (the model compared is exactly that
-file plus the effects); without it the linear part is refitted to DATA. --config gives the probe
+a terminal. --calibration holds that linear calibration fixed (the model compared is that file's linear part
+plus the effects: --effects, else those the file names, their parameters refitted); without it the
+linear part is refitted to DATA. --config gives the probe
 positions ([[probes]] position_m, or the [sim] probes) and the total field (estimator.total_nT).
 """
 
@@ -86,42 +87,39 @@ def config_geometry(path: str, n_probes: int) -> tuple[np.ndarray | None, float 
     return positions, total
 
 
-def load_calibration(path: str, n_probes: int) -> Any:
-    """A linear calibration file: the calibration core's format (service.calib.calfile) when it reads
-    it, else the JSON of `fluxcal fit --json` (sensors with offset_nT and matrix)."""
+def load_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:
+    """A calibration file: the calibration file of `fit --out` (service.calib.calfile), or the JSON of
+    `fit --json` (sensors with offset_nT and matrix). Returns the linear part and the effect names the
+    file carries."""
     from service.effects.fit import LinearCalibration
 
     p = Path(path)
     if not p.exists():
         raise DataError(f"{p}: no such calibration file")
+    first_error: DataError | None = None
     try:
-        from service.calib import calfile
-    except Exception:                                     # noqa: BLE001 - optional collaborator
-        calfile = None
-    if calfile is not None:
-        for name in ("load_calibration", "read_calibration", "load", "read"):
-            fn = getattr(calfile, name, None)
-            if callable(fn):
-                try:
-                    return LinearCalibration.from_any(fn(p), n_probes)
-                except DataError:
-                    raise
-                except Exception:                         # noqa: BLE001 - fall back to the JSON reader
-                    break
+        from service.calib.calfile import load_calibration as load_calfile
+    except ImportError:                                   # the calibration core is optional here
+        load_calfile = None
+    if load_calfile is not None:
+        try:
+            cal = load_calfile(p)
+            return LinearCalibration.from_any(cal, n_probes), list(getattr(cal, "effects", []) or [])
+        except DataError as e:
+            first_error = e                               # perhaps `fit --json` output: try that below
     try:
         obj = json.loads(p.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as e:
-        raise DataError(f"{p}: cannot read the calibration: {e}") from None
+        raise first_error or DataError(f"{p}: cannot read the calibration: {e}") from None
     except json.JSONDecodeError as e:
-        raise DataError(f"{p}: line {e.lineno}, column {e.colno}: not valid JSON ({e.msg})") from None
-    if isinstance(obj, dict) and "calibration" in obj and isinstance(obj["calibration"], dict):
-        obj = obj["calibration"]
+        raise first_error or DataError(f"{p}: line {e.lineno}, column {e.colno}: not valid JSON ({e.msg})") from None
     try:
-        return LinearCalibration.from_any(obj, n_probes)
-    except DataError as e:
+        effects = list(obj.get("effects") or []) if isinstance(obj, dict) else []
+        return LinearCalibration.from_any(obj, n_probes), effects
+    except (DataError, TypeError, ValueError) as e:
+        if first_error is not None:
+            raise first_error from None
         raise DataError(f"{p}: {e}") from None
-    except (TypeError, ValueError) as e:
-        raise DataError(f"{p}: calibration values are malformed: {e}") from None
 
 
 def main(args: argparse.Namespace) -> int:
@@ -139,12 +137,19 @@ def main(args: argparse.Namespace) -> int:
     names = getattr(lab, "probe_names", None)
     positions, total = (config_geometry(args.config, block.n_probes) if args.config else (None, None))
     data = EffectData.from_block(block, names, total_nT=total, positions_m=positions)
-    cal = load_calibration(args.calibration, data.n_probes) if args.calibration else None
+    cal, effects = None, list(args.effects)
+    if args.calibration:
+        cal, cal_effects = load_calibration(args.calibration, data.n_probes)
+        if not effects:
+            effects = [e for e in cal_effects if e in EFFECTS]      # the model the file describes
     bar = ProgressBar()
     try:
-        result = diagnose(data, effects=args.effects, calibration=cal, progress=bar)
+        result = diagnose(data, effects=effects, calibration=cal, progress=bar)
     finally:
         bar.close()
+    if args.calibration and effects:
+        result.notes.append(f"{args.calibration}: linear part held fixed; the parameters of "
+                            f"{', '.join(effects)} are refitted to these data")
     report_path = None
     if args.report:
         from service.report import write_report

@@ -35,7 +35,9 @@ AXES = ("x", "y", "z")
 ATTITUDE_EULER = ("heel_deg", "pitch_deg", "azimuth_deg")
 ATTITUDE_QUATERNION = ("q_w", "q_x", "q_y", "q_z")
 #: extra columns that are bookkeeping, not observables
-NOT_OBSERVABLES = frozenset({"ref_total", "seq", "flags", *ATTITUDE_EULER, *ATTITUDE_QUATERNION})
+#: extra columns of a reference vector: the field at the platform origin in the platform frame, nT
+REF_VECTOR = ("ref_x", "ref_y", "ref_z")
+NOT_OBSERVABLES = frozenset({"ref_total", "seq", "flags", *ATTITUDE_EULER, *ATTITUDE_QUATERNION, *REF_VECTOR})
 
 
 # --- the data every term looks at -------------------------------------------------------------------
@@ -206,6 +208,14 @@ class EffectData:
                 att = _quat_to_matrix(*(ex[c] for c in ATTITUDE_QUATERNION))
             self._cache[key] = att
         return self._cache[key]
+
+    @property
+    def ref_vector_nT(self) -> np.ndarray | None:
+        """(N, 3) the reference vector (extra columns ref_x, ref_y, ref_z: the field at the platform origin in
+        the platform frame, from a reference vector magnetometer), or None."""
+        if all(c in self.extras for c in REF_VECTOR):
+            return np.stack([self.extras[c] for c in REF_VECTOR], axis=1)
+        return None
 
     def observables(self) -> dict[str, np.ndarray]:
         """Extra columns that are observables (not bookkeeping such as seq, flags, attitude)."""

@@ -20,6 +20,7 @@ Standard errors come from the final normal matrix. Numerics only, no I/O.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
@@ -133,7 +134,9 @@ def initial_linear(data: EffectData, reference_nT: np.ndarray | float | None) ->
         if fit_ellipsoid is not None and reference_nT is not None:
             try:
                 # refuses planar data (a single-axis turn): then our own start, which GN refines
-                res = fit_ellipsoid(raw, reference_nT, name=data.probe_names[k])
+                with warnings.catch_warnings(), np.errstate(all="ignore"):
+                    warnings.simplefilter("ignore")
+                    res = fit_ellipsoid(raw, reference_nT, name=data.probe_names[k])
                 cal = getattr(res, "calibration", res)
                 o = np.asarray(cal.offset_nT, dtype=np.float64).reshape(3)
                 m = np.asarray(cal.matrix, dtype=np.float64).reshape(3, 3)
@@ -144,9 +147,11 @@ def initial_linear(data: EffectData, reference_nT: np.ndarray | float | None) ->
         offs.append(o)
         mats.append(m)
     cal = LinearCalibration(np.array(offs), np.array(mats))
-    if data.n_probes > 1:
-        v1 = (data.raw_nT[:, 0, :] - cal.offset_nT[0]) @ cal.matrix[0].T
-        for k in range(1, data.n_probes):
+    vref = data.ref_vector_nT
+    if data.n_probes > 1 or vref is not None:
+        # align to the reference vector when there is one, else to probe 1
+        v1 = vref if vref is not None else (data.raw_nT[:, 0, :] - cal.offset_nT[0]) @ cal.matrix[0].T
+        for k in range(0 if vref is not None else 1, data.n_probes):
             vk = (data.raw_nT[:, k, :] - cal.offset_nT[k]) @ cal.matrix[k].T
             design = np.column_stack([vk, np.ones(vk.shape[0])])
             # v1 = A vk + b: regression of probe k onto probe 1
@@ -215,15 +220,20 @@ class Channels:
         return {n: self.values[:, i] for i, n in enumerate(self.names)}
 
 
-def channel_names(probe_names: Sequence[str]) -> list[str]:
-    """['s1.scalar', ..., 's2-s1.x', 's2-s1.y', 's2-s1.z', ...].
+def channel_names(probe_names: Sequence[str], vector: bool = False) -> list[str]:
+    """['s1.scalar', ..., 's2-s1.x', 's2-s1.y', 's2-s1.z', ...] and, with a reference vector, 's1-ref.x', ...
 
     >>> channel_names(["s1", "s2"])
     ['s1.scalar', 's2.scalar', 's2-s1.x', 's2-s1.y', 's2-s1.z']
+    >>> channel_names(["s1"], vector=True)
+    ['s1.scalar', 's1-ref.x', 's1-ref.y', 's1-ref.z']
     """
     names = [f"{p}.scalar" for p in probe_names]
     for p in probe_names[1:]:
         names += [f"{p}-{probe_names[0]}.{a}" for a in AXES]
+    if vector:
+        for p in probe_names:
+            names += [f"{p}-ref.{a}" for a in AXES]
     return names
 
 
@@ -234,10 +244,14 @@ class _Eval:
     nhat: list[np.ndarray]         # rows (M, 3)
     scalar: np.ndarray             # (M, P)
     diff: np.ndarray               # (M, P-1, 3)
+    vec: np.ndarray | None = None  # (M, P, 3) corrected minus the reference vector
 
     def channel_matrix(self) -> np.ndarray:
         m = self.scalar.shape[0]
-        return np.concatenate([self.scalar, self.diff.reshape(m, -1)], axis=1)
+        parts = [self.scalar, self.diff.reshape(m, -1)]
+        if self.vec is not None:
+            parts.append(self.vec.reshape(m, -1))
+        return np.concatenate(parts, axis=1)
 
 
 @dataclass
@@ -292,8 +306,11 @@ class Problem:
                       for k in range(self.P)]
         edges = np.linspace(0, self.M, n_blocks + 1).round().astype(int)
         self.blocks = [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-        self.channel_names = channel_names(data.probe_names)
+        vref = data.ref_vector_nT
+        self.vref = None if vref is None else vref[self.rows]
+        self.channel_names = channel_names(data.probe_names, vector=self.vref is not None)
         self.C = len(self.channel_names)
+        self.vec0 = self.P + 3 * (self.P - 1)              # first vector-reference channel
         self.weights = np.ones(self.C) if weights is None else np.asarray(weights, dtype=np.float64)
         self.slots = self._layout()
         self.n_params = self.slots[-1].stop if self.slots else 0
@@ -305,7 +322,8 @@ class Problem:
             name = self.data.probe_names[k]
             if self.fit_linear:
                 slots.append(_Slot("offset", k, None, [f"{name}.offset {a} nT" for a in AXES]))
-                if k == 0:
+                if k == 0 and self.data.ref_vector_nT is None:
+                    # without a reference vector the common frame's rotation is free: symmetric X only
                     slots.append(_Slot("matrix", k, None, [f"{name}.matrix sym[{AXES[i]}{AXES[j]}]" for i, j in _SYM]))
                 else:
                     slots.append(_Slot("matrix", k, None, [f"{name}.matrix d[{a}{b}]" for a in AXES for b in AXES]))
@@ -371,7 +389,20 @@ class Problem:
         scalar = np.stack([np.linalg.norm(v, axis=1) - ref for v in vs], axis=1)
         diff = (np.stack([vs[k] - vs[0] for k in range(1, self.P)], axis=1) if self.P > 1
                 else np.zeros((self.M, 0, 3)))
-        return _Eval(v0s, vs, nhats, scalar, diff)
+        vec = None if self.vref is None else np.stack([v - self.vref for v in vs], axis=1)
+        return _Eval(v0s, vs, nhats, scalar, diff, vec)
+
+    def channel_probe(self, c: int) -> tuple[str, int]:
+        """What channel c is: ("scalar", k), ("diff", k) (probe k minus probe 1) or ("vec", k)."""
+        if c < self.P:
+            return "scalar", c
+        if c < self.vec0:
+            return "diff", 1 + (c - self.P) // 3
+        return "vec", (c - self.vec0) // 3
+
+    def _cols(self, kind: str, k: int) -> slice:
+        return slice(self.P + 3 * (k - 1), self.P + 3 * k) if kind == "diff" else slice(self.vec0 + 3 * k,
+                                                                                          self.vec0 + 3 * k + 3)
 
     # -- Jacobian ------------------------------------------------------------------------------------
     # The Jacobian is never held for all rows at once: `jacobian` gathers its full-length sources once
@@ -409,7 +440,7 @@ class Problem:
                 vb[s.k] = np.broadcast_to(-st.linear.matrix[s.k], (nb, 3, 3))           # dv/do = -M
             elif s.kind == "matrix":
                 v0 = ev.v0[s.k][rows]
-                if s.k == 0:                                                            # symmetric X
+                if s.size == 6:                                                         # symmetric X
                     cols = np.zeros((nb, 3, 6))
                     for c, (i, j) in enumerate(_SYM):
                         cols[:, i, c] += v0[:, j]
@@ -434,12 +465,16 @@ class Problem:
             out.append((s, vb, sb))
         return out
 
-    def _local(self, blk, nhat_k: np.ndarray | None, k: int, diff: bool) -> tuple[np.ndarray, np.ndarray] | None:
-        """Local Jacobian of probe k's scalar channel (m_b, m) or of its difference to probe 1, the three
-        components interleaved sample by sample (3 m_b, m); and the global parameter indices."""
+    def _local(self, blk, nhat_k: np.ndarray | None, k: int, kind: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """Local Jacobian of probe k's scalar channel (m_b, m), or of its difference to probe 1 ("diff") or
+        to the reference vector ("vec"), the three components interleaved sample by sample (3 m_b, m);
+        and the global parameter indices."""
         parts, idx = [], []
+        diff = kind != "scalar"
         for s, vb, sb in blk:
-            if diff:
+            if kind == "vec":
+                part = vb.get(k)
+            elif kind == "diff":
                 part = None
                 if k in vb:
                     part = vb[k]
@@ -472,15 +507,15 @@ class Problem:
             blk = self._block(jac, sl)
             r_blk = r_all[sl]
             for k in range(self.P):
-                for diff in (False, True):
-                    if diff and k == 0:
+                for kind in ("scalar", "diff", "vec"):
+                    if (kind == "diff" and k == 0) or (kind == "vec" and self.vref is None):
                         continue
-                    local = self._local(blk, None if diff else ev.nhat[k][sl], k, diff)
+                    local = self._local(blk, ev.nhat[k][sl] if kind == "scalar" else None, k, kind)
                     if local is None:
                         continue
                     jl, idx = local
-                    if diff:
-                        cols = slice(self.P + 3 * (k - 1), self.P + 3 * k)
+                    if kind != "scalar":
+                        cols = self._cols(kind, k)
                         w = np.tile(self.weights[cols], r_blk.shape[0])     # per row: its component's weight
                         rl = r_blk[:, cols].reshape(-1) * w
                         jl = jl * w[:, None]
@@ -521,6 +556,10 @@ class Problem:
             dk = dv[k] if dv[k] is not None else 0.0
             d0 = dv[0] if dv[0] is not None else 0.0
             out[:, self.P + 3 * (k - 1):self.P + 3 * k] = dk - d0
+        if self.vref is not None:
+            for k in range(self.P):
+                if dv[k] is not None:
+                    out[:, self._cols("vec", k)] = dv[k]
         return out
 
     # -- updates -------------------------------------------------------------------------------------
@@ -532,7 +571,7 @@ class Problem:
                 new.linear.offset_nT[s.k] += d
             elif s.kind == "matrix":
                 x = np.zeros((3, 3))
-                if s.k == 0:
+                if s.size == 6:
                     for c, (i, j) in enumerate(_SYM):
                         x[i, j] += d[c]
                         if i != j:

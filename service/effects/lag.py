@@ -8,8 +8,8 @@ nT at 100 Hz and 30 deg/s) (the shift moves the motion, never the noise, so a
 half-sample shift cannot pass for a gain by smoothing noise). Non-linear in tau: the fitter uses
 d/dtau = ds/dt (t - tau). Parameters: one time offset per probe after the first, in seconds,
 relative to probe 1. A time shift keeps |B| in a uniform field, so a lag shows only against
-another probe; probe 1's own lag against the acquisition clock cannot be seen without a vector
-reference.
+another probe; probe 1's own lag against the acquisition clock shows only against a vector
+reference (ref_x, ref_y, ref_z columns), and then every probe has one.
 """
 
 from __future__ import annotations
@@ -44,13 +44,15 @@ class Lag(EffectTerm):
     }
 
     def why_unavailable(self, data: EffectData) -> str | None:
-        if data.n_probes < 2:
+        if data.n_probes < 2 and data.ref_vector_nT is None:
             return ("a lag keeps |B| and shows only against another probe: it needs an array "
                     "(or a vector reference)")
         return None
 
     def param_names(self, view: ProbeView) -> list[str]:
-        return [] if view.k == 0 else [f"{view.name}.lag s"]
+        if view.k == 0 and view.data.ref_vector_nT is None:
+            return []
+        return [f"{view.name}.lag s"]
 
     def _spline(self, view: ProbeView) -> CubicHermiteSpline:
         key = "lag:spline"
