@@ -1,8 +1,10 @@
 """Online recursive least squares of the ellipsoid, in information form, updated a block at a time.
 
 Same quadric, scaling and right side as the batch fit (ellipsoid.py: uᵀA'u + b'ᵀu − γδ = 1), so
-the two agree; the δ column (reference field variation) is always present, held at zero by a tiny
-ridge while F does not vary. With a
+the two agree. The δ column (reference field variation) is used only when asked for
+(`varying_total=True`, e.g. a survey with a proton magnetometer over a changing field): with a
+nearly steady F it is nearly constant, and a constant column brings back the null direction the
+nine-term form avoids. With a
 forgetting factor λ per sample, a block of n samples updates
 
     Λ ← λⁿ Λ + Φᵀ W Φ,   η ← λⁿ η + Φᵀ W y,   W = diag(λ^(n−1−i)),
@@ -11,9 +13,11 @@ which equals n single-sample updates exactly (in exact arithmetic) at the cost o
 product. θ solves Λ θ = η (Cholesky, never an inverse). Effective memory ≈ 1 / (1 − λ) samples.
 
 No excitation (a platform at rest) makes Λ lose information in every direction but the one being
-seen; plain RLS then winds up. Here the solve is anchored to the last well-conditioned estimate
-θ_a with a small share of the information it had, Λ_a:  (Λ + μ Λ_a) θ = η + μ Λ_a θ_a, so a
-direction that is no longer observed keeps its last good value instead of drifting or going NaN.
+seen; plain RLS then winds up. Two guards:
+- forgetting follows motion: a block forgets λ^m with m = min(n, swept angle / `forget_deg`), so a
+  platform at rest forgets nothing and its samples only add information where they are;
+- the solve is anchored to the last well-conditioned estimate θ_a with a small share μ of the
+  information it had:  (Λ + μ Λ_a) θ = η + μ Λ_a θ_a, so no solve can go singular or NaN.
 """
 
 from __future__ import annotations
@@ -35,9 +39,13 @@ class RlsEllipsoid:
     max_condition: a solve is accepted as the new anchor only below this condition number.
     """
 
-    def __init__(self, *, forgetting: float = 0.9995, anchor: float = 1e-3, max_condition: float = 1e7,
-                 total_nT: float | None = None) -> None:
+    def __init__(self, *, forgetting: float = 0.9995, anchor: float = 1e-3, max_condition: float = 200.0,
+                 total_nT: float | None = None, varying_total: bool = False,
+                 forget_deg: float | None = 0.05) -> None:
         self.forgetting = forgetting
+        self.forget_deg = forget_deg
+        self.varying_total = varying_total
+        self.n_params = N_PARAMS if varying_total else N_GEOMETRY
         self.anchor = anchor
         self.max_condition = max_condition
         self.total_nT = total_nT
@@ -45,8 +53,8 @@ class RlsEllipsoid:
 
     def reset(self) -> None:
         self.scale_: float | None = None
-        self.info_ = np.zeros((N_PARAMS, N_PARAMS))
-        self.eta_ = np.zeros(N_PARAMS)
+        self.info_ = np.zeros((self.n_params, self.n_params))
+        self.eta_ = np.zeros(self.n_params)
         self.y2_ = 0.0                 # Σ w y², for the residual variance
         self.f2_ref_: float | None = None   # F₀², fixed at the first block
         self.weight_ = 0.0             # Σ w, the effective number of samples
@@ -56,6 +64,7 @@ class RlsEllipsoid:
         self._dirty = False
         self._anchor_theta: np.ndarray | None = None
         self._anchor_info: np.ndarray | None = None
+        self._last_dir: np.ndarray | None = None
 
     def fit(self, field_nT: np.ndarray, total_nT=None) -> "RlsEllipsoid":
         self.reset()
@@ -78,14 +87,17 @@ class RlsEllipsoid:
             self.scale_ = float(np.median(np.linalg.norm(raw, axis=1)))
             self.f2_ref_ = float(np.mean(f * f))
             # a ridge on γ (the δ column) of ~1e-9 of the information of one sample's geometry
-            self._ridge = np.zeros(N_PARAMS)
-            self._ridge[-1] = 1e-9
+            self._ridge = np.zeros(self.n_params)
+            if self.varying_total:
+                self._ridge[-1] = 1e-9
         s = self.scale_
-        phi = quadric_design(raw / s, (f * f - self.f2_ref_) / s ** 2)
+        phi = quadric_design(raw / s, (f * f - self.f2_ref_) / s ** 2 if self.varying_total else None)
         y = np.ones(n)
         lam = self.forgetting
-        decay = lam ** n
-        w = lam ** np.arange(n - 1, -1, -1, dtype=float) if lam < 1.0 else np.ones(n)
+        m = n if self.forget_deg is None else min(n, self._swept_deg(raw) / self.forget_deg)
+        decay = lam ** m
+        # within the block, sample i is m/n sample-steps older per step than the next
+        w = lam ** (np.arange(n - 1, -1, -1, dtype=float) * (m / n)) if lam < 1.0 else np.ones(n)
         pw = phi * w[:, None]
         # Λ ← λⁿ Λ + Φᵀ W Φ ;  η ← λⁿ η + Φᵀ W y
         self.info_ = decay * self.info_ + pw.T @ phi
@@ -95,6 +107,21 @@ class RlsEllipsoid:
         self.n_samples_ += n
         self._dirty = True             # solved lazily, when an estimate is asked for
         return self
+
+    def _swept_deg(self, raw: np.ndarray) -> float:
+        """Angle the field direction swept over this block (and since the last one), in degrees;
+        averaged over tenths of the block so noise at rest reads as nearly zero."""
+        k = max(1, raw.shape[0] // 10)
+        first = raw[:k].mean(axis=0)
+        last = raw[-k:].mean(axis=0)
+        prev = self._last_dir if self._last_dir is not None else first
+        self._last_dir = last
+
+        def angle(a: np.ndarray, b: np.ndarray) -> float:
+            c = a @ b / (np.linalg.norm(a) * np.linalg.norm(b))
+            return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+        return angle(prev, first) + angle(first, last)
 
     @property
     def theta_(self) -> np.ndarray | None:
@@ -157,11 +184,11 @@ class RlsEllipsoid:
             raise NotCalibratedError("RlsEllipsoid: no estimate yet")
         th = self.theta_
         rss = max(self.y2_ - 2 * th @ self.eta_ + th @ self.info_ @ th, 0.0)
-        dof = max(self.weight_ - N_PARAMS, 1.0)
+        dof = max(self.weight_ - self.n_params, 1.0)
         try:
-            inv = cho_solve(cho_factor(self.info_ + np.diag(self._ridge * max(self.weight_, 1.0))), np.eye(N_PARAMS))
+            inv = cho_solve(cho_factor(self.info_ + np.diag(self._ridge * max(self.weight_, 1.0))), np.eye(self.n_params))
         except np.linalg.LinAlgError:
-            return np.full((N_PARAMS, N_PARAMS), np.nan)
+            return np.full((self.n_params, self.n_params), np.nan)
         return rss / dof * inv
 
     @property
