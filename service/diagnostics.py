@@ -37,7 +37,8 @@ from drivers.errors import CalibrationRefused, FluxcalError
 from .effects import EFFECTS, Baseline, Model, make_model, make_term
 from .effects.base import AXES, EffectData, EffectTerm
 from .effects.fit import (RANK_TOL, FitResult, LinearCalibration, Parameter, Problem, _solve, as_effect_data,
-                          fit_problem, initial_linear, reference_total, start_weights)
+                          fit_model, fit_problem, initial_linear, reference_total, residual_hints,
+                          start_weights)
 
 P_SIGNIFICANT = 1e-3
 GAIN_SIGMAS = 2.0
@@ -443,21 +444,6 @@ def worst_segments(fit: FitResult, *, n_segments: int = 20, top: int = 3) -> lis
 
 # --- the diagnosis ----------------------------------------------------------------------------------------------
 
-def _hints(fit: FitResult) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Full-length scalar residual and offset sensitivity n^T M per probe (NaN off the fitted rows)."""
-    pr = fit.problem
-    n = pr.data.n_samples
-    res, gain = [], []
-    for k in range(pr.P):
-        r = np.full(n, np.nan)
-        r[pr.rows] = fit.channels.values[:, k]
-        g = np.full((n, 3), np.nan)
-        g[pr.rows] = fit.ev.nhat[k] @ fit.state.linear.matrix[k]
-        res.append(r)
-        gain.append(g)
-    return res, gain
-
-
 def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None, fix_linear: bool | None = None,
              candidates: Sequence[str] | None = None, total_nT: float | None = None,
              positions_m: np.ndarray | None = None, n_blocks: int = N_BLOCKS,
@@ -493,8 +479,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
             raise CalibrationRefused(f"effect {t.name!r} cannot be fitted to these data: {why}")
 
     tell(0.05, f"fitting {model}")
-    pr = Problem(ed, model, linear, reference, weights=weights, n_blocks=n_blocks)
-    cur = fit_problem(pr, pr.start_state(linear))
+    cur = fit_model(ed, model, linear, reference, weights, n_blocks=n_blocks)
     cur_ho = _heldout(cur)
     if not cur.converged:
         notes.append(f"the model fit stopped after {cur.iterations} iterations without converging")
@@ -502,11 +487,11 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     linear_refit = None
     if fixed:
         tell(0.1, "linear refit for comparison")
-        pr_l = Problem(ed, Model([Baseline()]) + model, linear, reference, weights=weights, n_blocks=n_blocks)
-        linear_refit = fit_problem(pr_l, pr_l.start_state(linear, cur.state)).rms_nT
+        linear_refit = fit_model(ed, Model([Baseline()]) + model, linear, reference, weights,
+                                 n_blocks=n_blocks).rms_nT
 
     names = list(candidates) if candidates is not None else [n for n in EFFECTS if n not in model]
-    hints = _hints(cur)
+    hints = residual_hints(cur)
     cands: list[Candidate] = []
     for i, name in enumerate(names):
         tell(0.15 + 0.7 * i / max(len(names), 1), f"trying {name}")

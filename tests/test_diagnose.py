@@ -334,3 +334,21 @@ def test_calibration_file_from_fit_is_read_with_its_effects(tmp_path, capsys):
     assert out["effects"] == ["temperature"] and out["linear"] == "fixed"
     assert out["rms_nT"] <= RMS_OVER_NOISE * out["noise_nT"]
     assert any("held fixed" in n for n in out["notes"])
+
+
+@pytest.mark.slow
+def test_perming_step_found_located_and_removed():
+    # the simulator has no perming: a private forward model adds an offset jump to probe 2 at 61.7 s
+    probes = [probe(0), probe(1)]
+    block = sim_block(probes, n=10000, rate=100.0, motion=TUMBLE, seed=21)
+    jump = np.array([6.0, -4.0, 3.0])
+    block.field_nT[block.t_s >= 61.7, 1, :] += jump
+    data = data_of(block, probes)
+    d = diagnose(data)
+    first = d.candidates[0]
+    assert first.effect == "hysteresis" and first.significant, summary_text(d)
+    step = {p.name: p.value for p in first.parameters if "@61.70s" in p.name}
+    assert [step[f"s2.{a} step@61.70s nT"] for a in "xyz"] == pytest.approx(jump, abs=0.15)
+    d2 = diagnose(data, effects=["hysteresis"])
+    assert d2.rms_nT <= RMS_OVER_NOISE * d2.noise_nT
+    assert not any(c.significant for c in d2.candidates), summary_text(d2)

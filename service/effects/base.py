@@ -308,6 +308,8 @@ class EffectTerm:
     physical: ClassVar[str] = ""
     frame: ClassVar[str] = "raw"           # "raw": subtracted before the matrix; "corrected": after
     linear: ClassVar[bool] = True
+    #: the term finds its regressors in the residual of the model without it (ProbeView.model_residual)
+    needs_residual: ClassVar[bool] = False
     #: other catalogue name -> what motion or data tells the two apart
     separation: ClassVar[dict[str, str]] = {}
 

@@ -905,13 +905,44 @@ def fit_with_effects(data: Any, effects: Sequence[str] | Model, base_calibration
         linear = LinearCalibration.from_any(base_calibration, ed.n_probes)
     reference, kind = reference_total(ed, linear)
     weights = start_weights(ed, linear, reference)
-    pr = Problem(ed, model, linear, reference, weights=weights, n_blocks=n_blocks)
-    res = fit_problem(pr, pr.start_state(linear), progress=progress)
+    res = fit_model(ed, model, linear, reference, weights, n_blocks=n_blocks, progress=progress)
     out = effects_fit_from(res, kind)
     out.base_method = getattr(base_calibration, "method", None) or "ellipsoid"
     out.base_align = getattr(base_calibration, "align", None)
     out.total_nT = ed.total_nT if kind != "ref_total" else float(np.median(reference))
     return out, res.channels
+
+
+def residual_hints(fit: FitResult) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Full-length scalar residual and offset sensitivity n^T M per probe (NaN off the fitted rows): what
+    terms with `needs_residual` look for their regressors in."""
+    pr = fit.problem
+    n = pr.data.n_samples
+    res, gain = [], []
+    for k in range(pr.P):
+        r = np.full(n, np.nan)
+        r[pr.rows] = fit.channels.values[:, k]
+        g = np.full((n, 3), np.nan)
+        g[pr.rows] = fit.ev.nhat[k] @ fit.state.linear.matrix[k]
+        res.append(r)
+        gain.append(g)
+    return res, gain
+
+
+def fit_model(data: EffectData, model: Model, linear: LinearCalibration, reference: np.ndarray,
+              weights: np.ndarray, *, n_blocks: int = 8, progress: Callable[[str], None] | None = None) -> FitResult:
+    """Fit a model from a linear start. Terms that find their regressors in a residual (perming steps)
+    get the residual of the model without them: two stages."""
+    hints = None
+    if any(t.needs_residual for t in model.effect_terms):
+        first = Model([t for t in model if not t.needs_residual])
+        pr0 = Problem(data, first, linear, reference, weights=weights, n_blocks=n_blocks)
+        fit0 = fit_problem(pr0, pr0.start_state(linear), progress=progress)
+        hints = residual_hints(fit0)
+        pr = Problem(data, model, fit0.state.linear, reference, weights=weights, n_blocks=n_blocks, hints=hints)
+        return fit_problem(pr, pr.start_state(fit0.state.linear, fit0.state), progress=progress)
+    pr = Problem(data, model, linear, reference, weights=weights, n_blocks=n_blocks)
+    return fit_problem(pr, pr.start_state(linear), progress=progress)
 
 
 def start_weights(data: EffectData, linear: LinearCalibration, reference: np.ndarray) -> np.ndarray:
