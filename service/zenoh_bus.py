@@ -1,0 +1,867 @@
+"""The Zenoh side of fluxcal: what the service publishes, answers and obeys, and the client that listens.
+
+Key expressions, all under ``fluxcal/<unit>/`` (docs/zenoh.md has the full table):
+
+    raw                binary SampleBlock      BLOCK  (never dropped)
+    corrected          binary CorrectedBlock   BLOCK  all probes, diff, centre and tensor included
+    corrected/<probe>  binary CorrectedBlock   BLOCK  one probe (P = 1), if ZenohConfig.per_probe
+    diff               binary series           BLOCK  probe k minus probe 1, (N, P-1, 3) nT
+    tensor             binary series           BLOCK  G[i, j] = dB_j/dx_i, (N, 3, 3) nT/m
+    calibration        JSON                    BLOCK  every calibration event and the state after it
+    health             JSON                    DROP   source counters and the bus's own counters, ~1 Hz
+    error              JSON                    DROP   model-vs-measurement rms_nT per channel, per block
+    alive              liveliness token               present while the service runs
+    state              queryable (JSON)               current calibration + health
+    cmd/<name>         queryables (JSON reply)        freeze, unfreeze, reset, apply, add-effect
+
+Threads: zenoh calls our queryable callbacks on its own threads. They never block and never call
+zenoh: they put the query in a bounded queue and return. The service's own thread drains that
+queue with `ServiceBus.pending_commands()`, applies each command between blocks and answers it
+with `Command.reply(...)`, which replies on the queryable's own concrete key. The client thus gets
+the service's real answer (not just an acknowledgement) or, if the service does not get to it
+within the client's timeout, a clear timeout. State queries are answered from the same thread,
+so the state callback needs no locking.
+
+Sessions opened here must be closed (`close()`, or `with`): a session left open with callbacks
+hangs the interpreter at exit (/work/shared/DEPENDENCIES.md).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import queue
+import re
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
+
+import numpy as np
+import zenoh
+
+from drivers.block import SampleBlock
+from drivers.config import spec
+from drivers.errors import ConfigError, DataError, FluxcalError
+
+from .outputs import CorrectedBlock
+
+__all__ = [
+    "BusClient", "BusError", "Command", "COMMANDS", "Keys", "Message", "Series", "ServiceBus",
+    "STREAMS", "ZenohConfig", "ZenohTlsConfig", "discover_units", "make_zenoh_config", "open_session",
+    "decode_series", "encode_series",
+]
+
+
+class BusError(FluxcalError):
+    """The Zenoh session cannot open, or the service does not answer a query or command."""
+
+
+# --------------------------------------------------------------------------------------------
+# Binary encodings of the block streams
+# --------------------------------------------------------------------------------------------
+
+try:
+    from .encoding import decode_corrected, decode_raw, encode_corrected, encode_raw
+    ENCODING_SOURCE = "service.encoding"
+except ModuleNotFoundError as _e:  # pragma: no cover - exercised only until service/encoding.py lands
+    if _e.name != "service.encoding":
+        raise
+    ENCODING_SOURCE = "service.zenoh_bus fallback"
+
+    # ---- FALLBACK, private to this module, replaced by service/encoding.py once it exists ----
+    # Little-endian, fixed header then whole arrays (numpy tobytes/frombuffer: no per-sample loop).
+    _RAW_HEAD = struct.Struct("<4sHHI")       # magic, n_probes, n_extras, n_samples
+    _COR_HEAD = struct.Struct("<4sBHIq")      # magic, presence bits, n_probes, n_samples, cal_id
+
+    def encode_raw(block: SampleBlock) -> bytes:
+        n, p = block.n_samples, block.n_probes
+        parts = [_RAW_HEAD.pack(b"FXr0", p, len(block.extras), n),
+                 np.ascontiguousarray(block.t_s, "<f8").tobytes(), np.ascontiguousarray(block.seq, "<i8").tobytes(),
+                 np.ascontiguousarray(block.field_nT, "<f8").tobytes(),
+                 np.ascontiguousarray(block.temp_C, "<f8").tobytes(), np.ascontiguousarray(block.flags, "u1").tobytes()]
+        for name, arr in block.extras.items():
+            b = name.encode()
+            parts += [struct.pack("<H", len(b)), b, np.ascontiguousarray(arr, "<f8").tobytes()]
+        return b"".join(parts)
+
+    def decode_raw(data: bytes) -> SampleBlock:
+        try:
+            magic, p, n_ext, n = _RAW_HEAD.unpack_from(data, 0)
+            if magic != b"FXr0":
+                raise ValueError(f"not a raw block (magic {magic!r})")
+            off = _RAW_HEAD.size
+            out = []
+            for dtype, shape in (("<f8", (n,)), ("<i8", (n,)), ("<f8", (n, p, 3)), ("<f8", (n, p)), ("u1", (n,))):
+                count = int(np.prod(shape))
+                a = np.frombuffer(data, dtype, count, off).reshape(shape)
+                off += a.nbytes
+                out.append(a.astype(a.dtype.newbyteorder("=")))
+            extras = {}
+            for _ in range(n_ext):
+                (ln,) = struct.unpack_from("<H", data, off)
+                name = bytes(data[off + 2: off + 2 + ln]).decode()
+                off += 2 + ln
+                extras[name] = np.frombuffer(data, "<f8", n, off).astype(float)
+                off += 8 * n
+            if off != len(data):
+                raise ValueError(f"{len(data) - off} trailing bytes")
+        except (struct.error, ValueError, UnicodeDecodeError) as e:
+            raise DataError(f"raw block: {e}") from None
+        return SampleBlock(t_s=out[0], seq=out[1], field_nT=out[2], temp_C=out[3], flags=out[4], extras=extras)
+
+    def encode_corrected(block: CorrectedBlock) -> bytes:
+        bits = (block.diff_nT is not None) | (block.tensor_nT_m is not None) << 1 | (block.center_nT is not None) << 2
+        parts = [_COR_HEAD.pack(b"FXc0", bits, block.n_probes, block.n_samples, int(block.cal_id)),
+                 np.ascontiguousarray(block.t_s, "<f8").tobytes(), np.ascontiguousarray(block.seq, "<i8").tobytes(),
+                 np.ascontiguousarray(block.corrected_nT, "<f8").tobytes()]
+        for a in (block.diff_nT, block.tensor_nT_m, block.center_nT):
+            if a is not None:
+                parts.append(np.ascontiguousarray(a, "<f8").tobytes())
+        return b"".join(parts)
+
+    def decode_corrected(data: bytes) -> CorrectedBlock:
+        try:
+            magic, bits, p, n, cal_id = _COR_HEAD.unpack_from(data, 0)
+            if magic != b"FXc0":
+                raise ValueError(f"not a corrected block (magic {magic!r})")
+            off = _COR_HEAD.size
+            shapes = [("<f8", (n,)), ("<i8", (n,)), ("<f8", (n, p, 3))]
+            shapes += [("<f8", s) if bits >> i & 1 else (None, None)
+                       for i, s in enumerate([(n, p - 1, 3), (n, 3, 3), (n, 3)])]
+            out: list[np.ndarray | None] = []
+            for dtype, shape in shapes:
+                if dtype is None:
+                    out.append(None)
+                    continue
+                a = np.frombuffer(data, dtype, int(np.prod(shape)), off).reshape(shape)
+                off += a.nbytes
+                out.append(a.astype(a.dtype.newbyteorder("=")))
+            if off != len(data):
+                raise ValueError(f"{len(data) - off} trailing bytes")
+        except (struct.error, ValueError) as e:
+            raise DataError(f"corrected block: {e}") from None
+        return CorrectedBlock(t_s=out[0], seq=out[1], corrected_nT=out[2], diff_nT=out[3], tensor_nT_m=out[4],
+                              center_nT=out[5], cal_id=int(cal_id))
+    # ---- end of FALLBACK -------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Series:
+    """A per-sample array stream (`diff`, `tensor`): values[i] belongs to sample seq[i] at t_s[i]."""
+
+    t_s: np.ndarray         # (N,) float64, unit time, s
+    seq: np.ndarray         # (N,) int64, unwrapped sample counter
+    values: np.ndarray      # (N, ...) float64: diff (N, P-1, 3) nT, tensor (N, 3, 3) nT/m
+    cal_id: int             # calibration that produced it
+
+
+_SERIES_HEAD = struct.Struct("<4sBIq")        # magic b"FXS1", ndim of one sample, n_samples, cal_id
+
+
+def encode_series(t_s: np.ndarray, seq: np.ndarray, values: np.ndarray, cal_id: int) -> bytes:
+    """`diff`/`tensor` payload: header, u32 dims of one sample, then t_s f8[N], seq i8[N], values f8[N, ...].
+
+    >>> s = decode_series(encode_series(np.array([0.5]), np.array([7]), np.ones((1, 3, 3)), 2))
+    >>> (s.values.shape, int(s.seq[0]), s.cal_id)
+    ((1, 3, 3), 7, 2)
+    """
+    values = np.ascontiguousarray(values, "<f8")
+    n = values.shape[0]
+    if np.shape(t_s) != (n,) or np.shape(seq) != (n,):
+        raise ValueError(f"series: expected t_s and seq of shape ({n},), got {np.shape(t_s)} and {np.shape(seq)}")
+    tail = values.shape[1:]
+    return b"".join([_SERIES_HEAD.pack(b"FXS1", len(tail), n, int(cal_id)),
+                     struct.pack(f"<{len(tail)}I", *tail),
+                     np.ascontiguousarray(t_s, "<f8").tobytes(), np.ascontiguousarray(seq, "<i8").tobytes(),
+                     values.tobytes()])
+
+
+def decode_series(data: bytes) -> Series:
+    """Inverse of `encode_series`; a malformed payload is a DataError."""
+    try:
+        magic, ndim, n, cal_id = _SERIES_HEAD.unpack_from(data, 0)
+        if magic != b"FXS1":
+            raise ValueError(f"not a series (magic {magic!r})")
+        off = _SERIES_HEAD.size
+        tail = struct.unpack_from(f"<{ndim}I", data, off)
+        off += 4 * ndim
+        t_s = np.frombuffer(data, "<f8", n, off).astype(float)
+        off += 8 * n
+        seq = np.frombuffer(data, "<i8", n, off).astype(np.int64)
+        off += 8 * n
+        count = n * int(np.prod(tail, dtype=np.int64))
+        values = np.frombuffer(data, "<f8", count, off).astype(float).reshape((n, *tail))
+        if off + 8 * count != len(data):
+            raise ValueError(f"{len(data) - off - 8 * count} trailing bytes")
+    except (struct.error, ValueError) as e:
+        raise DataError(f"series: {e}") from None
+    return Series(t_s=t_s, seq=seq, values=values, cal_id=int(cal_id))
+
+
+def _json_ready(obj: Any) -> Any:
+    """Plain JSON types; NaN and infinities become null (strict JSON readers reject NaN)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, (str, int, bool)) or obj is None:
+        return obj
+    if isinstance(obj, Mapping):
+        return {str(k): _json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_ready(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _json_ready(obj.tolist())
+    if isinstance(obj, np.generic):
+        return _json_ready(obj.item())
+    return str(obj)
+
+
+def _json_bytes(obj: Any) -> bytes:
+    return json.dumps(_json_ready(obj), allow_nan=False, separators=(",", ":")).encode()
+
+
+# --------------------------------------------------------------------------------------------
+# Configuration
+# --------------------------------------------------------------------------------------------
+
+DEFAULT_PORT = 7447
+DEFAULT_LISTEN = [f"tcp/127.0.0.1:{DEFAULT_PORT}"]
+_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "vsock", "serial")
+_HOST_PORT = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):(\d{1,5})$")
+_UNIT_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+_KEY_CHUNK = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
+
+
+def _check_endpoint(ep: str, key: str) -> None:
+    proto, sep, addr = ep.partition("/")
+    if not sep or proto not in _PROTOCOLS or not addr:
+        raise ConfigError(f"{key}: {ep!r} is not a Zenoh endpoint (allowed: <protocol>/<address>, protocol one of "
+                          f"{', '.join(_PROTOCOLS)}; e.g. 'tcp/127.0.0.1:{DEFAULT_PORT}')")
+    if proto in ("tcp", "udp", "tls", "quic"):
+        m = _HOST_PORT.match(addr.split("#", 1)[0].split("?", 1)[0])
+        if not m or int(m.group(2)) > 65535:
+            raise ConfigError(f"{key}: {ep!r} needs host:port with a port 0..65535 (e.g. 'tcp/127.0.0.1:{DEFAULT_PORT}')")
+
+
+@dataclass
+class ZenohTlsConfig:
+    """Placeholder for TLS links (a later issue): paths of the root CA, this node's certificate and key."""
+
+    root_ca: str | None = spec(None, doc="PEM file of the certificate authority")
+    cert: str | None = spec(None, doc="PEM certificate of this node")
+    key: str | None = spec(None, doc="PEM private key of this node")
+
+    def validate(self, path: str) -> None:
+        given = [k for k in ("root_ca", "cert", "key") if getattr(self, k) is not None]
+        if given:
+            # refusing beats silently running in clear text while the operator believes it is encrypted
+            raise ConfigError(f"{path}.{given[0]}: TLS is not supported by fluxcal yet; remove [{path}] and keep the "
+                              f"service on loopback, or put a zenohd router with TLS in front of it")
+
+
+@dataclass
+class ZenohConfig:
+    """The [zenoh] section. By default a peer that listens on loopback only, without multicast scouting."""
+
+    mode: str = spec("peer", choices=("peer", "client", "router"),
+                     doc="peer: listens and accepts dashboards; client: connects to a router; "
+                         "router: routes between clients (sites normally run zenohd instead)")
+    listen: list[str] = spec(list(DEFAULT_LISTEN), doc="endpoints to listen on (peer, router); a client listens on none")
+    connect: list[str] = spec([], doc="endpoints to connect to, e.g. a zenohd router 'tcp/10.0.0.5:7447'")
+    multicast_scouting: bool = spec(False, doc="discover peers by UDP multicast (off: explicit endpoints only)")
+    per_probe: bool = spec(True, doc="also publish corrected/<probe>, one probe per message")
+    express: bool = spec(False, doc="send each message at once instead of letting Zenoh batch (lower latency)")
+    tls: ZenohTlsConfig = spec(default_factory=ZenohTlsConfig)
+
+    def validate(self, path: str) -> None:
+        p = f"{path}." if path else ""
+        if self.mode == "client":
+            if self.listen == DEFAULT_LISTEN:
+                self.listen = []          # the default is the peer's; a client listens on nothing
+            elif self.listen:
+                raise ConfigError(f"{p}listen: {self.listen!r} is not allowed with mode 'client' (a client listens "
+                                  f"on nothing; use mode 'peer' to accept connections)")
+            if not self.connect:
+                raise ConfigError(f"{p}connect: a client needs at least one endpoint to connect to "
+                                  f"(e.g. ['tcp/127.0.0.1:{DEFAULT_PORT}'])")
+        for name in ("listen", "connect"):
+            for i, ep in enumerate(getattr(self, name)):
+                _check_endpoint(ep, f"{p}{name}[{i}]")
+        if self.mode != "client" and not self.listen and not self.connect:
+            raise ConfigError(f"{p}listen: nothing to listen on and nothing to connect to: no dashboard could "
+                              f"reach this service (e.g. listen = ['tcp/127.0.0.1:{DEFAULT_PORT}'])")
+        self.tls.validate(f"{p}tls")
+
+    @staticmethod
+    def client(*endpoints: str) -> "ZenohConfig":
+        """A client connected to `endpoints` (a service's listen endpoint or a router)."""
+        cfg = ZenohConfig(mode="client", listen=[], connect=list(endpoints))
+        cfg.validate("zenoh")
+        return cfg
+
+
+def make_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
+    """The zenoh.Config for a validated ZenohConfig: every key set explicitly, none left to zenoh's defaults
+    that would listen on all interfaces (a peer's default is tcp/[::]:0)."""
+    cfg.validate("zenoh")
+    c = zenoh.Config()
+    c.insert_json5("mode", json.dumps(cfg.mode))
+    c.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
+    c.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+    c.insert_json5("scouting/multicast/enabled", json.dumps(bool(cfg.multicast_scouting)))
+    return c
+
+
+def open_session(cfg: "ZenohConfig | zenoh.Config") -> zenoh.Session:
+    """Open a session; a failure (port taken, nothing to connect to) is a BusError naming the endpoints."""
+    zc = make_zenoh_config(cfg) if isinstance(cfg, ZenohConfig) else cfg
+    try:
+        return zenoh.open(zc)
+    except zenoh.ZError as e:
+        where = ""
+        if isinstance(cfg, ZenohConfig):
+            where = (f" (mode {cfg.mode}, listen {cfg.listen or '-'}, connect {cfg.connect or '-'})")
+        msg = str(e).split(" at /", 1)[0]        # drop the Rust source location
+        hint = ""
+        if "listener" in msg.lower() or "in use" in msg.lower():
+            hint = ": is another fluxcal already listening there? choose another port in [zenoh] listen"
+        elif "connect" in msg.lower():
+            hint = ": is the service (or router) running and listening there?"
+        raise BusError(f"zenoh session failed to open{where}: {msg}{hint}") from None
+
+
+# --------------------------------------------------------------------------------------------
+# Key expressions and streams
+# --------------------------------------------------------------------------------------------
+
+JSON = zenoh.Encoding.APPLICATION_JSON
+RAW_ENCODING = zenoh.Encoding.APPLICATION_OCTET_STREAM.with_schema("fluxcal.raw.v1")
+CORRECTED_ENCODING = zenoh.Encoding.APPLICATION_OCTET_STREAM.with_schema("fluxcal.corrected.v1")
+SERIES_ENCODING = zenoh.Encoding.APPLICATION_OCTET_STREAM.with_schema("fluxcal.series.v1")
+
+
+@dataclass(frozen=True)
+class StreamSpec:
+    """How one stream is encoded and what Zenoh may do with it under congestion."""
+
+    encoding: zenoh.Encoding
+    lossless: bool            # CongestionControl.BLOCK (True) or DROP
+    priority: zenoh.Priority
+    decode: Callable[[bytes], Any]
+
+
+def _decode_json(data: bytes) -> Any:
+    try:
+        return json.loads(data)
+    except (ValueError, UnicodeDecodeError) as e:
+        raise DataError(f"JSON payload: {e}") from None
+
+
+#: stream name -> spec. BLOCK for data that must not be lost, DROP for status that the next message replaces.
+#: Separate priorities also keep the DROP streams from queueing behind a blocked BLOCK stream.
+STREAMS: dict[str, StreamSpec] = {
+    "raw": StreamSpec(RAW_ENCODING, True, zenoh.Priority.DATA, decode_raw),
+    "corrected": StreamSpec(CORRECTED_ENCODING, True, zenoh.Priority.DATA, decode_corrected),
+    "diff": StreamSpec(SERIES_ENCODING, True, zenoh.Priority.DATA, decode_series),
+    "tensor": StreamSpec(SERIES_ENCODING, True, zenoh.Priority.DATA, decode_series),
+    "calibration": StreamSpec(JSON, True, zenoh.Priority.INTERACTIVE_LOW, _decode_json),
+    "health": StreamSpec(JSON, False, zenoh.Priority.DATA_LOW, _decode_json),
+    "error": StreamSpec(JSON, False, zenoh.Priority.DATA_LOW, _decode_json),
+}
+
+#: commands the service accepts under fluxcal/<unit>/cmd/<name>, and whether they need a payload
+COMMANDS: dict[str, str | None] = {
+    "freeze": None,                      # stop updating the online estimate; keep the calibration in use
+    "unfreeze": None,
+    "reset": None,                       # restart the online estimate from nothing
+    "apply": "calibration JSON text, or the path of a calibration file on the service's host",
+    "add-effect": "effect name, e.g. temperature",
+}
+
+
+class Keys:
+    """The key expressions of one unit.
+
+    >>> Keys("grad1").stream("corrected")
+    'fluxcal/grad1/corrected'
+    >>> Keys("grad1").cmd("freeze")
+    'fluxcal/grad1/cmd/freeze'
+    """
+
+    def __init__(self, unit: str) -> None:
+        if not _UNIT_NAME.match(unit or ""):
+            raise ConfigError(f"unit name {unit!r} is not allowed (allowed: 1-64 letters, digits, '_' or '-')")
+        self.unit = unit
+        self.root = f"fluxcal/{unit}"
+        self.alive = f"{self.root}/alive"
+        self.state = f"{self.root}/state"
+
+    def stream(self, name: str) -> str:
+        return f"{self.root}/{name}"
+
+    def probe(self, probe_name: str) -> str:
+        return f"{self.root}/corrected/{probe_name}"
+
+    def cmd(self, name: str) -> str:
+        return f"{self.root}/cmd/{name}"
+
+
+# --------------------------------------------------------------------------------------------
+# Service side
+# --------------------------------------------------------------------------------------------
+
+class Command:
+    """A command from the bus, applied by the service's own thread; `reply` answers the client once.
+
+    `payload` is the query's payload as text ("" when none).
+    """
+
+    def __init__(self, id: int, name: str, payload: str, key: str, query: zenoh.Query | None) -> None:
+        self.id = id
+        self.name = name
+        self.payload = payload
+        self.key = key
+        self.received_unix_s = time.time()
+        self._query = query
+        self._lock = threading.Lock()
+
+    @property
+    def answered(self) -> bool:
+        return self._query is None
+
+    def reply(self, result: Mapping[str, Any]) -> bool:
+        """Send {"id", "command", **result} as JSON on the command's own key; False if already answered or the
+        client has gone (its timeout passed)."""
+        with self._lock:
+            q, self._query = self._query, None
+        if q is None:
+            return False
+        try:
+            q.reply(self.key, _json_bytes({"id": self.id, "command": self.name, **result}), encoding=JSON)
+            return True
+        except zenoh.ZError:
+            return False
+        finally:
+            q.drop()                      # sends the final reply marker: the client stops waiting now
+
+    def __repr__(self) -> str:
+        return f"Command(id={self.id}, name={self.name!r}, payload={self.payload[:40]!r})"
+
+
+class ServiceBus:
+    """Publishes one unit's streams, holds its liveliness token, answers `state` and queues commands.
+
+    `zenoh_cfg` is a ZenohConfig or zenoh.Config (the bus opens and closes its own session) or an open
+    zenoh.Session (left open by `close()`). `state_fn()` returns the JSON-ready state for `state` queries;
+    it runs on the thread that calls `pending_commands()` (the service's), never on a zenoh thread.
+    """
+
+    def __init__(self, zenoh_cfg: "ZenohConfig | zenoh.Config | zenoh.Session", unit: str, *,
+                 state_fn: Callable[[], Mapping[str, Any]] | None = None,
+                 probe_names: Sequence[str] | None = None, per_probe: bool | None = None,
+                 express: bool | None = None, command_queue_size: int = 32) -> None:
+        self.keys = Keys(unit)
+        self.unit = unit
+        self.state_fn = state_fn
+        self.probe_names = list(probe_names) if probe_names is not None else None
+        for name in self.probe_names or []:
+            if not _KEY_CHUNK.match(name):
+                raise ConfigError(f"probe name {name!r} cannot be a key segment (allowed: letters, digits, '_', '-', '.')")
+        cfg_obj = zenoh_cfg if isinstance(zenoh_cfg, ZenohConfig) else None
+        self.per_probe = per_probe if per_probe is not None else (cfg_obj.per_probe if cfg_obj else True)
+        express = express if express is not None else (cfg_obj.express if cfg_obj else False)
+        self.stats: dict[str, int] = {"commands_received": 0, "commands_refused": 0, "state_queries": 0,
+                                      "publish_errors": 0}
+        self.stats.update({f"published_{name}": 0 for name in STREAMS})
+        self.stats["published_corrected_probe"] = 0
+        self._commands: queue.Queue[Command] = queue.Queue(maxsize=command_queue_size)
+        self._state_queries: queue.Queue[zenoh.Query] = queue.Queue(maxsize=16)
+        self._ids = itertools.count(1)
+        self._last_calibration: dict[str, Any] | None = None
+        self._last_health: dict[str, Any] | None = None
+        self._closed = False
+        self._close_lock = threading.Lock()
+        self._entities: list[Any] = []
+        self._probe_pubs: dict[str, zenoh.Publisher] = {}
+        if isinstance(zenoh_cfg, zenoh.Session):
+            self.session, self._own_session = zenoh_cfg, False
+        else:
+            self.session, self._own_session = open_session(zenoh_cfg), True
+        self._express = bool(express)
+        try:
+            self._pubs = {name: self._declare_pub(self.keys.stream(name), s) for name, s in STREAMS.items()}
+            self._entities.append(self.session.declare_queryable(self.keys.state, self._on_state_query))
+            for name in COMMANDS:
+                self._entities.append(self.session.declare_queryable(self.keys.cmd(name), self._command_callback(name)))
+            self._token = self.session.liveliness().declare_token(self.keys.alive)
+        except BaseException:
+            self.close()
+            raise
+
+    def _declare_pub(self, key: str, s: StreamSpec) -> zenoh.Publisher:
+        pub = self.session.declare_publisher(
+            key, encoding=s.encoding, priority=s.priority, express=self._express,
+            congestion_control=zenoh.CongestionControl.BLOCK if s.lossless else zenoh.CongestionControl.DROP)
+        self._entities.append(pub)
+        return pub
+
+    # --- zenoh callbacks: never block, never call zenoh --------------------------------------
+
+    def _on_state_query(self, query: zenoh.Query) -> None:
+        try:
+            self._state_queries.put_nowait(query)
+        except queue.Full:
+            query.reply_err(_json_bytes({"error": "busy: too many state queries pending"}), encoding=JSON)
+
+    def _command_callback(self, name: str) -> Callable[[zenoh.Query], None]:
+        key = self.keys.cmd(name)
+
+        def on_query(query: zenoh.Query) -> None:
+            self.stats["commands_received"] += 1
+            try:
+                payload = query.payload.to_bytes().decode("utf-8").strip() if query.payload is not None else ""
+            except UnicodeDecodeError:
+                return self._refuse(query, name, "payload is not UTF-8 text")
+            if COMMANDS[name] is not None and not payload:
+                return self._refuse(query, name, f"needs a payload: {COMMANDS[name]}")
+            if name == "add-effect" and not re.fullmatch(r"[a-z][a-z0-9_\-]{0,63}", payload):
+                return self._refuse(query, name, f"{payload!r} is not an effect name")
+            cmd = Command(next(self._ids), name, payload, key, query)
+            try:
+                self._commands.put_nowait(cmd)
+            except queue.Full:
+                self._refuse(query, name, f"busy: {self._commands.maxsize} commands pending; try again")
+
+        return on_query
+
+    def _refuse(self, query: zenoh.Query, name: str, why: str) -> None:
+        self.stats["commands_refused"] += 1
+        query.reply_err(_json_bytes({"command": name, "ok": False, "error": why}), encoding=JSON)
+
+    # --- the service's thread ------------------------------------------------------------------
+
+    def pending_commands(self) -> list[Command]:
+        """Commands received since the last call, oldest first; answers pending `state` queries on the way.
+
+        Call it from the service's loop between blocks; answer each command with `cmd.reply({...})`."""
+        self._answer_state_queries()
+        out = []
+        while True:
+            try:
+                out.append(self._commands.get_nowait())
+            except queue.Empty:
+                return out
+
+    def next_command(self, timeout: float | None = None) -> Command | None:
+        """Wait up to `timeout` s for one command (for a service thread that only serves commands)."""
+        self._answer_state_queries()
+        try:
+            return self._commands.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+    def state(self) -> dict[str, Any]:
+        """What a `state` query answers: state_fn() (or the last calibration and health published) + identity."""
+        if self.state_fn is not None:
+            st = dict(self.state_fn())
+        else:
+            st = dict((self._last_calibration or {}).get("state") or {"usable": False})
+            if self._last_health is not None:
+                st["health"] = self._last_health.get("counters")
+        st.setdefault("unit", self.unit)
+        if self.probe_names is not None:
+            st.setdefault("probe_names", self.probe_names)
+        st["bus"] = dict(self.stats)
+        st["time_unix_s"] = time.time()
+        return st
+
+    def _answer_state_queries(self) -> None:
+        while True:
+            try:
+                q = self._state_queries.get_nowait()
+            except queue.Empty:
+                return
+            self.stats["state_queries"] += 1
+            try:
+                try:
+                    payload = _json_bytes(self.state())
+                except Exception as e:  # a broken state callback must not stop the service
+                    q.reply_err(_json_bytes({"error": f"state unavailable: {type(e).__name__}: {e}"}), encoding=JSON)
+                    continue
+                q.reply(self.keys.state, payload, encoding=JSON)
+            except zenoh.ZError:
+                pass                          # the client's timeout passed
+            finally:
+                q.drop()
+
+    # --- publishing (the service's thread) -------------------------------------------------------
+
+    def _put(self, name: str, pub: zenoh.Publisher, payload: bytes) -> None:
+        if self._closed:
+            raise BusError(f"publish on {pub.key_expr} after the bus was closed")
+        try:
+            pub.put(payload)
+            self.stats[f"published_{name}"] += 1
+        except zenoh.ZError:
+            self.stats["publish_errors"] += 1
+
+    def publish_raw(self, block: SampleBlock) -> None:
+        if block.n_samples:
+            self._put("raw", self._pubs["raw"], encode_raw(block))
+
+    def publish_corrected(self, block: CorrectedBlock) -> None:
+        """`corrected` (everything), and `diff`, `tensor`, `corrected/<probe>` when they exist."""
+        if not block.n_samples:
+            return
+        self._put("corrected", self._pubs["corrected"], encode_corrected(block))
+        if block.diff_nT is not None:
+            self._put("diff", self._pubs["diff"], encode_series(block.t_s, block.seq, block.diff_nT, block.cal_id))
+        if block.tensor_nT_m is not None:
+            self._put("tensor", self._pubs["tensor"],
+                      encode_series(block.t_s, block.seq, block.tensor_nT_m, block.cal_id))
+        if self.per_probe:
+            names = self.probe_names or [f"s{k + 1}" for k in range(block.n_probes)]
+            if len(names) != block.n_probes:
+                raise DataError(f"corrected block has {block.n_probes} probes, the bus knows {len(names)}: {names}")
+            for k, name in enumerate(names):
+                pub = self._probe_pubs.get(name)
+                if pub is None:
+                    pub = self._probe_pubs[name] = self._declare_pub(self.keys.probe(name), STREAMS["corrected"])
+                one = CorrectedBlock(t_s=block.t_s, seq=block.seq, corrected_nT=block.corrected_nT[:, k:k + 1],
+                                     diff_nT=None, tensor_nT_m=None, center_nT=None, cal_id=block.cal_id)
+                self._put("corrected_probe", pub, encode_corrected(one))
+
+    def publish_calibration(self, record: Mapping[str, Any]) -> None:
+        """A calibration event (kind, seq, t_s, ..., "state": {...}) as JSON; kept for `state` queries."""
+        self._last_calibration = dict(record)
+        self._put("calibration", self._pubs["calibration"],
+                  _json_bytes({**record, "unit": self.unit, "time_unix_s": time.time()}))
+
+    def publish_health(self, counters: Mapping[str, Any]) -> None:
+        """{"counters": source counters, "bus": this bus's counters} as JSON; may be dropped under congestion."""
+        msg = {"unit": self.unit, "time_unix_s": time.time(), "counters": dict(counters), "bus": dict(self.stats)}
+        self._last_health = msg
+        self._put("health", self._pubs["health"], _json_bytes(msg))
+
+    def publish_error(self, rms_nT: Mapping[str, float], *, seq: int | None = None, t_s: float | None = None) -> None:
+        """The model-vs-measurement error metric of a block, {"rms_nT": {channel: nT}}; may be dropped."""
+        self._put("error", self._pubs["error"], _json_bytes({"unit": self.unit, "time_unix_s": time.time(),
+                                                            "seq": seq, "t_s": t_s, "rms_nT": dict(rms_nT)}))
+
+    # --- lifetime ---------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Answer what is pending, undeclare everything, close the session if the bus opened it. Idempotent."""
+        with self._close_lock:
+            if self._closed:
+                return
+            self._closed = True
+        for cmd in self.pending_commands():
+            cmd.reply({"ok": False, "error": "the service is stopping; the command was not applied"})
+        token = getattr(self, "_token", None)
+        for ent in [token, *self._probe_pubs.values(), *reversed(self._entities)]:
+            if ent is None:
+                continue
+            try:
+                ent.undeclare()
+            except zenoh.ZError:
+                pass
+        self._entities.clear()
+        self._probe_pubs.clear()
+        if self._own_session:
+            self.session.close()
+
+    def __enter__(self) -> "ServiceBus":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# --------------------------------------------------------------------------------------------
+# Client side: dashboards, recorders, tests
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Message:
+    """One decoded message: `value` is a SampleBlock (raw), CorrectedBlock (corrected, corrected/<probe>),
+    Series (diff, tensor) or dict (calibration, health, error)."""
+
+    stream: str
+    key: str
+    value: Any
+    received_s: float = field(default=0.0)     # time.monotonic() when the reader thread took it
+
+
+_STOP = object()
+
+
+class BusClient:
+    """Subscribes to a unit's streams and decodes them on its own threads; queries state; sends commands.
+
+    `lossless=True` (tests, recorders): a full receive queue holds zenoh back, which holds the publisher
+    back (BLOCK streams): nothing is lost, but a consumer that stops reading stalls the service.
+    `lossless=False` (dashboards): the oldest undelivered messages are dropped on this side instead and
+    the service never waits for us. `recv()` returns the messages in arrival order across streams.
+    """
+
+    def __init__(self, zenoh_cfg: "ZenohConfig | zenoh.Config | zenoh.Session", unit: str, *,
+                 streams: Iterable[str] | None = None, lossless: bool = True, capacity: int = 4096) -> None:
+        self.keys = Keys(unit)
+        self.unit = unit
+        self.lossless = lossless
+        names = list(STREAMS) if streams is None else list(streams)
+        for s in names:
+            base = s.split("/", 1)[0]
+            if base not in STREAMS or (s != base and (base != "corrected" or not _KEY_CHUNK.match(s[10:]))):
+                raise ConfigError(f"stream {s!r} is not allowed (allowed: {', '.join(STREAMS)}, corrected/<probe>)")
+        self.stats: dict[str, int] = {"decode_errors": 0, **{f"received_{s}": 0 for s in names}}
+        self.last_decode_error = ""
+        self._queue: queue.Queue[Message] = queue.Queue(maxsize=capacity)
+        self._closed = threading.Event()
+        self._subs: list[Any] = []
+        self._threads: list[threading.Thread] = []
+        if isinstance(zenoh_cfg, zenoh.Session):
+            self.session, self._own_session = zenoh_cfg, False
+        else:
+            self.session, self._own_session = open_session(zenoh_cfg), True
+        try:
+            for s in names:
+                handler = zenoh.handlers.FifoChannel(capacity) if lossless else zenoh.handlers.RingChannel(capacity)
+                sub = self.session.declare_subscriber(self.keys.stream(s), handler)
+                self._subs.append(sub)
+                # read the handler, not the subscriber: undeclare() needs the subscriber unborrowed
+                t = threading.Thread(target=self._reader, args=(s, sub.handler), daemon=True,
+                                     name=f"fluxcal-bus-{s}")
+                t.start()
+                self._threads.append(t)
+        except BaseException:
+            self.close()
+            raise
+
+    def _reader(self, stream: str, handler: Any) -> None:
+        decode = STREAMS[stream.split("/", 1)[0]].decode
+        stat = f"received_{stream}"
+        while not self._closed.is_set():
+            try:
+                sample = handler.recv()
+            except zenoh.ZError:            # channel closed: the subscriber was undeclared
+                return
+            try:
+                value = decode(sample.payload.to_bytes())
+            except (DataError, ValueError) as e:
+                self.stats["decode_errors"] += 1
+                self.last_decode_error = f"{sample.key_expr}: {e}"
+                continue
+            self.stats[stat] += 1
+            msg = Message(stream, str(sample.key_expr), value, time.monotonic())
+            while not self._closed.is_set():
+                try:
+                    self._queue.put(msg, timeout=0.1)
+                    break
+                except queue.Full:
+                    if not self.lossless:
+                        try:                   # drop the oldest: a dashboard wants the newest
+                            self._queue.get_nowait()
+                        except queue.Empty:
+                            pass
+
+    def recv(self, timeout: float | None = None) -> Message | None:
+        """The next message, or None after `timeout` seconds (None: wait until one comes or close)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self._closed.is_set():
+            wait = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
+            if wait <= 0:
+                return None
+            try:
+                return self._queue.get(timeout=wait)
+            except queue.Empty:
+                continue
+        return None
+
+    def drain(self) -> list[Message]:
+        """Every message waiting now, without blocking."""
+        out = []
+        while True:
+            try:
+                out.append(self._queue.get_nowait())
+            except queue.Empty:
+                return out
+
+    def __iter__(self) -> Iterator[Message]:
+        while True:
+            m = self.recv()
+            if m is None:
+                return
+            yield m
+
+    def _query(self, key: str, payload: str | None, timeout: float) -> Any:
+        kwargs: dict[str, Any] = {"timeout": float(timeout)}
+        if payload:
+            kwargs["payload"] = payload.encode()
+        replies = list(self.session.get(key, **kwargs))
+        for r in replies:
+            if r.ok is not None:
+                return _decode_json(r.ok.payload.to_bytes())
+        for r in replies:
+            err = r.err
+            if err is not None:
+                text = err.payload.to_bytes().decode("utf-8", "replace")
+                try:
+                    text = json.loads(text).get("error", text)
+                except (ValueError, AttributeError):
+                    pass
+                raise BusError(f"{key}: refused: {text}")
+        raise BusError(f"no answer from {key} within {timeout:g} s: is `fluxcal run` running for unit "
+                       f"{self.unit!r} and reachable from here?")
+
+    def query_state(self, timeout: float = 2.0) -> dict[str, Any]:
+        """The service's current calibration and health (JSON object)."""
+        return self._query(self.keys.state, None, timeout)
+
+    def command(self, name: str, payload: str = "", timeout: float = 5.0) -> dict[str, Any]:
+        """Send a command and wait for the service's answer {"id", "command", "ok", ...}.
+
+        Raises BusError when the service refuses it outright (busy, malformed) or does not answer in time."""
+        if name not in COMMANDS:
+            raise ConfigError(f"command {name!r} is not allowed (allowed: {', '.join(COMMANDS)})")
+        return self._query(self.keys.cmd(name), payload, timeout)
+
+    def alive(self, timeout: float = 1.0) -> bool:
+        """Whether the unit's liveliness token is present."""
+        return any(r.ok is not None for r in self.session.liveliness().get(self.keys.alive, timeout=timeout))
+
+    def close(self) -> None:
+        """Undeclare the subscribers (their reader threads end), close the session if we opened it. Idempotent."""
+        if self._closed.is_set():
+            return
+        self._closed.set()
+        for sub in self._subs:
+            try:
+                sub.undeclare()
+            except zenoh.ZError:
+                pass
+        for t in self._threads:
+            t.join(timeout=2.0)
+        self._subs.clear()
+        if self._own_session:
+            self.session.close()
+
+    def __enter__(self) -> "BusClient":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def discover_units(session: zenoh.Session, timeout: float = 1.0) -> list[str]:
+    """Names of the units whose liveliness token `fluxcal/<unit>/alive` is visible from `session`."""
+    units = set()
+    for r in session.liveliness().get("fluxcal/*/alive", timeout=timeout):
+        if r.ok is not None:
+            parts = str(r.ok.key_expr).split("/")
+            if len(parts) == 3:
+                units.add(parts[1])
+    return sorted(units)
