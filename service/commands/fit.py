@@ -79,7 +79,7 @@ def main(args: Namespace) -> int:
 
 def _fmt_pm(v: float, se: float, digits: int = 3) -> str:
     w = digits + 7
-    return f"{v:{w}.{digits}f} ± {se:.{digits}f}" if np.isfinite(se) else f"{v:{w}.{digits}f} ± {'n/a':>{digits + 2}}"
+    return f"{v:{w}.{digits}f} ± {se:.1e}" if np.isfinite(se) else f"{v:{w}.{digits}f} ±     n/a"
 
 
 def _summary(data, cal, channels, before, total_source, result) -> str:

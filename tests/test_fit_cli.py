@@ -1,0 +1,79 @@
+"""`fluxcal fit` end to end: simulate → fit → compare with the simulator's truth (CONTRACTS §2-3)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from service.calib.calfile import load_calibration
+from service.cli import main
+
+
+@pytest.fixture(scope="module")
+def gradiometer(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fit")
+    out = d / "grad.csv"
+    assert main(["simulate", "--config", "configs/sim-gradiometer.toml", "--out", str(out)]) == 0
+    return out, json.loads((d / "grad.truth.json").read_text())
+
+
+def _a(m):
+    m = np.asarray(m)
+    return m.T @ m
+
+
+@pytest.mark.parametrize("method", ["ellipsoid", "rls"])
+def test_fit_json_matches_truth(gradiometer, capsys, method):
+    path, truth = gradiometer
+    capsys.readouterr()
+    assert main(["fit", str(path), "--method", method, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out) == {"method", "align", "effects", "sensors", "differential_rms_nT", "rms_nT"}
+    assert out["method"] == method and out["effects"] == []
+    for got, want in zip(out["sensors"], truth["sensors"]):
+        assert got["name"] == want["name"]
+        assert np.allclose(got["offset_nT"], want["offset_nT"], atol=0.5)
+        # matrices agree up to the common frame's rotation: compare MᵀM
+        assert np.allclose(_a(got["matrix"]), _a(want["matrix"]), atol=1e-4)
+        assert got["scalar_rms_nT"] < 1.1 * np.mean(want["noise_nT"]) + 0.05
+    noise = np.hypot(np.mean(truth["sensors"][0]["noise_nT"]), np.mean(truth["sensors"][1]["noise_nT"]))
+    assert out["differential_rms_nT"] < 1.1 * noise
+
+
+def test_fit_writes_a_calibration_file_and_prints_a_summary(gradiometer, tmp_path, capsys):
+    path, truth = gradiometer
+    cal_path = tmp_path / "cal.json"
+    assert main(["fit", str(path), "--align", "rotation", "--out", str(cal_path)]) == 0
+    text = capsys.readouterr().out
+    assert "residual RMS" in text and "coverage" in text and str(cal_path) in text
+    cal = load_calibration(cal_path)
+    assert cal.method == "ellipsoid" and cal.align == "rotation" and cal.probe_names == ["s1", "s2"]
+    assert np.allclose(cal.probes[1].offset_nT, truth["sensors"][1]["offset_nT"], atol=0.5)
+
+
+def test_fit_refuses_a_single_axis_turn(tmp_path, capsys):
+    cfg = tmp_path / "turn.toml"
+    cfg.write_text('[unit]\nn_probes = 1\n[sim]\nduration_s = 15\n[sim.motion]\nkind = "turntable"\naxes = ["z"]\n'
+                   'rate_deg_s = 30.0\n[sim.reference]\nenabled = true\n[[sim.probes]]\noffset_nT = [100.0, 0.0, 0.0]\n')
+    out = tmp_path / "turn.csv"
+    assert main(["simulate", "--config", str(cfg), "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["fit", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "one plane" in err and "turn about the x or y axis" in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_fit_bad_csv_names_line_and_column(tmp_path, capsys):
+    p = tmp_path / "bad.csv"
+    p.write_text("# lab export\nt,s1_x,s1_y,s1_z\n0,1,2,3\n1,1,oops,3\n")
+    assert main(["fit", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert "line 4" in err and "'s1_y'" in err and "oops" in err
+
+
+def test_fit_missing_file(tmp_path, capsys):
+    assert main(["fit", str(tmp_path / "nope.csv")]) == 2
+    assert "no such file" in capsys.readouterr().err
