@@ -492,6 +492,8 @@ class ServiceBus:
         self._express = bool(express)
         try:
             self._pubs = {name: self._declare_pub(self.keys.stream(name), s) for name, s in STREAMS.items()}
+            for name in (self.probe_names or []) if self.per_probe else []:
+                self._probe_pubs[name] = self._declare_pub(self.keys.probe(name), STREAMS["corrected"])
             self._entities.append(self.session.declare_queryable(self.keys.state, self._on_state_query))
             for name in COMMANDS:
                 self._entities.append(self.session.declare_queryable(self.keys.cmd(name), self._command_callback(name)))
@@ -600,7 +602,7 @@ class ServiceBus:
 
     def _put(self, name: str, pub: zenoh.Publisher, payload: bytes) -> None:
         if self._closed:
-            raise BusError(f"publish on {pub.key_expr} after the bus was closed")
+            raise BusError(f"publish on {self.keys.root}/{name} after the bus was closed")
         try:
             pub.put(payload)
             self.stats[f"published_{name}"] += 1
@@ -649,6 +651,12 @@ class ServiceBus:
         """The model-vs-measurement error metric of a block, {"rms_nT": {channel: nT}}; may be dropped."""
         self._put("error", self._pubs["error"], _json_bytes({"unit": self.unit, "time_unix_s": time.time(),
                                                             "seq": seq, "t_s": t_s, "rms_nT": dict(rms_nT)}))
+
+    def has_subscribers(self, stream: str) -> bool:
+        """Whether any subscriber anywhere matches `stream` ("raw", ..., "corrected/<probe>"), e.g. to wait for
+        a dashboard before a burst."""
+        pub = self._probe_pubs.get(stream[10:]) if stream.startswith("corrected/") else self._pubs[stream]
+        return pub is not None and bool(pub.matching_status.matching)
 
     # --- lifetime ---------------------------------------------------------------------------------
 
@@ -717,7 +725,7 @@ class BusClient:
             base = s.split("/", 1)[0]
             if base not in STREAMS or (s != base and (base != "corrected" or not _KEY_CHUNK.match(s[10:]))):
                 raise ConfigError(f"stream {s!r} is not allowed (allowed: {', '.join(STREAMS)}, corrected/<probe>)")
-        self.stats: dict[str, int] = {"decode_errors": 0, **{f"received_{s}": 0 for s in names}}
+        self.stats: dict[str, int] = {"decode_errors": 0, "dropped": 0, **{f"received_{s}": 0 for s in names}}
         self.last_decode_error = ""
         self._queue: queue.Queue[Message] = queue.Queue(maxsize=capacity)
         self._closed = threading.Event()
@@ -759,12 +767,16 @@ class BusClient:
             msg = Message(stream, str(sample.key_expr), value, time.monotonic())
             while not self._closed.is_set():
                 try:
-                    self._queue.put(msg, timeout=0.1)
+                    if self.lossless:
+                        self._queue.put(msg, timeout=0.1)     # wait: zenoh holds the publisher back meanwhile
+                    else:
+                        self._queue.put_nowait(msg)
                     break
                 except queue.Full:
                     if not self.lossless:
                         try:                   # drop the oldest: a dashboard wants the newest
                             self._queue.get_nowait()
+                            self.stats["dropped"] += 1
                         except queue.Empty:
                             pass
 
@@ -809,6 +821,8 @@ class BusClient:
             err = r.err
             if err is not None:
                 text = err.payload.to_bytes().decode("utf-8", "replace")
+                if text == "Timeout":          # zenoh's own error reply when the query's timeout passes
+                    break
                 try:
                     text = json.loads(text).get("error", text)
                 except (ValueError, AttributeError):
