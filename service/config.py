@@ -86,6 +86,8 @@ class SimSourceConfig:
     transport: str = spec("direct", choices=("direct", "pty", "can-virtual", "slcan"),
                           doc="direct: in-process; pty: ICD bytes through a pseudo-terminal; "
                               "can-virtual / slcan: ICD CAN frames")
+    run_s: float = spec(0.0, min=0.0, doc="how long `fluxcal run` lets the simulated unit run; 0 = until stopped "
+                                          "(`fluxcal simulate` uses sim.duration_s)")
 
 
 _SOURCE_CONFIGS = {

@@ -77,6 +77,7 @@ class Pipeline:
         self.calibration: ArrayCalibration | None = None
         self.cal_id = 0
         self.last_gate: GateResult | None = None
+        self.next_seq = 0                 # seq of the first sample the next block will bring
         self._next_check_t: float | None = None
         self._estimators = self._new_estimators()
         if initial is not None:
@@ -120,6 +121,8 @@ class Pipeline:
 
     def process(self, block: SampleBlock) -> Processed:
         events: list[PipelineEvent] = []
+        if block.n_samples:
+            self.next_seq = int(block.seq[-1]) + 1
         corrected = self._correct(block)
         error = self._error_metric(block, corrected)
         self.ring.append(block)

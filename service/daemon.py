@@ -1,0 +1,214 @@
+"""The long-running service: source -> pipeline -> Zenoh and MCAP, with reconnects and clean stops.
+
+One thread does all the work (the MCAP writer is not thread-safe and the pipeline is stateful);
+Zenoh callbacks only enqueue commands, drained here between blocks. SIGINT/SIGTERM set the stop
+event; everything is flushed and closed in `finally`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from drivers.errors import DataError, DriverError, FluxcalError
+from drivers.source import Source, open_source
+
+from .calib.calfile import load_calibration, save_calibration
+from .config import FluxcalConfig
+from .pipeline import Pipeline, PipelineEvent
+
+log = logging.getLogger("fluxcal")
+
+
+def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:
+    est = cfg.estimator
+    positions = np.asarray(cfg.positions_m, float)
+    has_geometry = cfg.unit.n_probes > 1 and np.ptp(positions, axis=0).any()
+    rate = getattr(cfg.sim, "rate_hz", None) or getattr(cfg.source, "rate_hz", None) or 200.0
+    return Pipeline(n_probes=cfg.unit.n_probes, probe_names=cfg.probe_names,
+                    positions_m=positions if has_geometry else None, forgetting=est.forgetting,
+                    total_nT=est.total_nT, align=est.align, min_samples=est.min_samples,
+                    gate_coverage=est.gate_coverage, gate_condition=est.gate_condition,
+                    gate_rms_nT=est.gate_rms_nT, check_every_s=est.check_every_s,
+                    window_samples=int(est.window_s * rate), initial=initial)
+
+
+def open_configured_source(cfg: FluxcalConfig) -> Source:
+    kind = getattr(cfg.source, "kind", "sim")
+    if kind == "sim":
+        import dataclasses
+
+        sim = dataclasses.replace(cfg.sim, duration_s=cfg.source.run_s)
+        return open_source("sim", sim, unit=cfg.unit, transport=cfg.source.transport)
+    if kind == "replay":
+        return open_source("replay", path=cfg.source.path)
+    return open_source(kind, cfg.source)
+
+
+class Daemon:
+    """`fluxcal run`: wires a source, the pipeline, the Zenoh bus and the MCAP logger."""
+
+    def __init__(self, cfg: FluxcalConfig, *, stop: threading.Event | None = None,
+                 say: Callable[[str], None] | None = None) -> None:
+        self.cfg = cfg
+        self.stop = stop or threading.Event()
+        self.say = say or (lambda msg: print(f"fluxcal: {msg}", file=sys.stderr, flush=True))
+        self.cal_path = Path(cfg.calibration.file)
+
+    def _initial_calibration(self):
+        c = self.cfg.calibration
+        if c.initial:
+            cal = load_calibration(c.initial)
+            self.say(f"starting from calibration {c.initial}")
+            return cal
+        if self.cal_path.exists():
+            try:
+                cal = load_calibration(self.cal_path)
+                self.say(f"reloaded the persisted calibration {self.cal_path}")
+                return cal
+            except DataError as e:
+                self.say(f"ignoring the persisted calibration: {e}; learning online")
+        self.say("no calibration yet: learning online; corrected output starts once it passes the quality gate")
+        return None
+
+    def run(self) -> int:
+        from .zenoh_bus import ServiceBus
+
+        cfg = self.cfg
+        pipeline = build_pipeline(cfg, self._initial_calibration())
+        source = open_configured_source(cfg)
+        logger = None
+        bus = None
+        try:
+            bus = ServiceBus(cfg.zenoh, unit=cfg.unit.name, state_fn=lambda: self._state(pipeline, source, logger))
+            if cfg.mcap.enabled:
+                from .mcap_sink import McapLogger
+
+                logger = McapLogger(cfg.mcap.dir, unit=cfg.unit.name, rotate_mb=cfg.mcap.rotate_mb,
+                                    rotate_s=cfg.mcap.rotate_s, chunk_size=cfg.mcap.chunk_kb * 1024,
+                                    flush_interval_s=cfg.mcap.flush_s,
+                                    metadata={"unit": cfg.unit.name, "n_probes": str(cfg.unit.n_probes),
+                                              "lsb_nT": repr(cfg.unit.lsb_nT),
+                                              "probe_names": json.dumps(cfg.probe_names),
+                                              "positions_m": json.dumps(cfg.positions_m)})
+                self.say(f"recording to {cfg.mcap.dir}/")
+            self.say(f"publishing on zenoh under fluxcal/{cfg.unit.name}/ "
+                     f"(listen {', '.join(getattr(cfg.zenoh, 'listen', []) or ['-'])})")
+            self._loop(source, pipeline, bus, logger)
+        finally:
+            for closer in (source.close, getattr(logger, "close", None), getattr(bus, "close", None)):
+                if closer is not None:
+                    try:
+                        closer()
+                    except Exception as e:  # closing must never hide the first error
+                        self.say(f"while closing: {e}")
+            self.say("stopped")
+        return 0
+
+    def _state(self, pipeline: Pipeline, source: Source, logger) -> dict[str, Any]:
+        st = pipeline.state()
+        st["health"] = source.counters.as_dict()
+        if logger is not None:
+            st["recording"] = logger.status()
+        return st
+
+    def _loop(self, source: Source, pipeline: Pipeline, bus, logger) -> None:
+        backoff = 0.1
+        last_health = 0.0
+        announced = pipeline.calibration is not None
+        while not self.stop.is_set():
+            for cmd in bus.pending_commands():
+                self._apply_command(cmd, pipeline, bus, logger)
+            try:
+                block = source.read(timeout=0.05)
+                backoff = 0.1
+            except DriverError as e:
+                self.say(f"input lost: {e}; reconnecting in {backoff:.1f} s")
+                source.counters.read_errors += 1
+                if self.stop.wait(backoff):
+                    break
+                backoff = min(backoff * 2, 5.0)
+                try:
+                    source.reopen()
+                    source.counters.reconnects += 1
+                    self.say("input reconnected")
+                except DriverError:
+                    pass
+                continue
+            if block is None:
+                if source.exhausted:
+                    self.say("source exhausted")
+                    break
+            else:
+                out = pipeline.process(block)
+                if logger is not None:
+                    logger.write_raw(block)
+                    if out.corrected is not None:
+                        logger.write_corrected(out.corrected)
+                bus.publish_raw(block)
+                if out.corrected is not None:
+                    bus.publish_corrected(out.corrected)
+                if out.error:
+                    bus.publish_error(out.error)
+                for ev in out.events:
+                    self._on_event(ev, pipeline, bus, logger)
+                    if ev.kind == "calibration" and not announced:
+                        announced = True
+                        self.say("calibration usable: corrected output is being published")
+            now = time.monotonic()
+            if now - last_health >= 1.0:
+                last_health = now
+                health = source.counters.as_dict()
+                bus.publish_health(health)
+                if logger is not None:
+                    logger.write_health(health)
+
+    def _on_event(self, ev: PipelineEvent, pipeline: Pipeline, bus, logger) -> None:
+        state = pipeline.state()
+        record = {"kind": ev.kind, "seq": ev.seq, "t_s": ev.t_s, **ev.detail}
+        if logger is not None:
+            logger.write_calibration({**record, "state": state})
+        bus.publish_calibration({**record, "state": state})
+        if ev.kind == "calibration" and pipeline.calibration is not None:
+            try:
+                save_calibration(pipeline.calibration, self.cal_path)
+            except OSError as e:
+                self.say(f"could not persist the calibration to {self.cal_path}: {e}")
+        elif ev.kind == "gate":
+            log.info("gate: %s", "; ".join(ev.detail.get("reasons", [])))
+
+    def _apply_command(self, cmd, pipeline: Pipeline, bus, logger) -> None:
+        seq = pipeline.next_seq            # the command takes effect from the next block on
+        try:
+            payload = cmd.payload
+            if cmd.name == "apply":
+                payload = _calibration_from_payload(payload)
+            ev = pipeline.command(cmd.name, payload, seq=seq, t_s=float("nan"))
+            if cmd.name == "apply":
+                from .calib.calfile import calibration_to_dict
+
+                ev.detail["calibration"] = calibration_to_dict(payload)
+            if logger is not None:
+                logger.write_event({"kind": "command", "seq": seq, **ev.detail})
+            self._on_event(ev, pipeline, bus, logger)
+            cmd.reply({"ok": True, "cal_id": pipeline.cal_id})
+        except FluxcalError as e:
+            cmd.reply({"ok": False, "error": str(e)})
+
+
+def _calibration_from_payload(payload: Any):
+    from .calib.calfile import calibration_from_json
+
+    if isinstance(payload, (bytes, bytearray)):
+        payload = payload.decode("utf-8")
+    text = str(payload).strip()
+    if text.startswith("{"):
+        return calibration_from_json(text, origin="zenoh command")
+    return load_calibration(text)
