@@ -97,7 +97,13 @@ class Daemon:
                                     metadata={"unit": cfg.unit.name, "n_probes": str(cfg.unit.n_probes),
                                               "lsb_nT": repr(cfg.unit.lsb_nT),
                                               "probe_names": json.dumps(cfg.probe_names),
-                                              "positions_m": json.dumps(cfg.positions_m)})
+                                              "positions_m": json.dumps(cfg.positions_m),
+                                              "config": json.dumps(cfg.raw)})
+                from .calib.calfile import calibration_to_dict
+
+                # replay starts from the same calibration, so it reproduces this run bit for bit
+                logger.write_event({"kind": "initial", "seq": 0, "calibration":
+                                    None if pipeline.calibration is None else calibration_to_dict(pipeline.calibration)})
                 self.say(f"recording to {cfg.mcap.dir}/")
             self.say(f"publishing on zenoh under fluxcal/{cfg.unit.name}/ "
                      f"(listen {', '.join(getattr(cfg.zenoh, 'listen', []) or ['-'])})")
