@@ -36,8 +36,9 @@ def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:
                     positions_m=positions if has_geometry else None, forgetting=est.forgetting,
                     total_nT=est.total_nT, align=est.align, min_samples=est.min_samples,
                     gate_coverage=est.gate_coverage, gate_condition=est.gate_condition,
-                    gate_rms_nT=est.gate_rms_nT, check_every_s=est.check_every_s,
-                    window_samples=int(est.window_s * rate), initial=initial)
+                    gate_rms_nT=est.gate_rms_nT, check_every_samples=max(1, int(round(est.check_every_s * rate))),
+                    window_samples=int(est.window_s * rate), chunk_samples=max(1, min(100, int(rate // 2))),
+                    initial=initial)
 
 
 def open_configured_source(cfg: FluxcalConfig) -> Source:

@@ -93,10 +93,12 @@ def fit_rls(data: LabData, total: TotalField, *, forgetting: float = 1.0, align:
     rate = (n - 1) / (b.t_s[-1] - b.t_s[0]) if n > 1 and b.t_s[-1] > b.t_s[0] else 1.0
     pl = Pipeline(n_probes=b.n_probes, probe_names=data.probe_names, positions_m=positions_m,
                   forgetting=forgetting, total_nT=None if isinstance(total.values, np.ndarray) else total.values,
-                  align=align or "none", min_samples=min(200, n), window_samples=n, check_every_s=float("inf"))
+                  align=align or "none", min_samples=min(200, n), window_samples=n,
+                  check_every_samples=float("inf"))
     step = max(1, int(round(rate)))                  # one-second blocks, as the daemon sees them
     for i in range(0, n, step):
         pl.process(b.slice(i, i + step))
+    pl.flush_estimator()
     cand = pl.candidate()
     if cand is None:
         est = pl._estimators[0]

@@ -5,9 +5,11 @@
                -> every check interval of *data* time: candidate = RLS estimate aligned over the
                   ring buffer; it replaces the calibration in use only if it passes the gate.
 
-Everything depends on the blocks' contents and the commands applied between blocks, never on
-the wall clock, so replaying a recording (same blocks, same commands at the same seq) gives the
-same outputs bit for bit. No I/O here: the daemon and the commands feed it.
+Nothing depends on the wall clock or on how the input is cut into blocks: the estimator takes
+samples in fixed chunks (`chunk_samples`), the gate is checked every `check_every_samples`, and a
+new calibration applies from the sample after the check. So a replay that reads the recording in
+large blocks (and applies the recorded commands at their seq) gives the live run's corrected output
+bit for bit. No I/O here: the daemon and the commands feed it.
 """
 
 from __future__ import annotations
@@ -53,14 +55,29 @@ class Processed:
     events: list[PipelineEvent]
 
 
+def _join(pieces: list[CorrectedBlock]) -> CorrectedBlock | None:
+    """One CorrectedBlock from consecutive pieces (cal_id: the one in use at the block's end)."""
+    if not pieces:
+        return None
+    if len(pieces) == 1:
+        return pieces[0]
+
+    def cat(name: str):
+        arrays = [getattr(p, name) for p in pieces]
+        return None if any(a is None for a in arrays) else np.concatenate(arrays)
+
+    return CorrectedBlock(t_s=cat("t_s"), seq=cat("seq"), corrected_nT=cat("corrected_nT"), diff_nT=cat("diff_nT"),
+                          tensor_nT_m=cat("tensor_nT_m"), center_nT=cat("center_nT"), cal_id=pieces[-1].cal_id)
+
+
 class Pipeline:
     """Stateful block processor. `process(block)` is the only hot path."""
 
     def __init__(self, *, n_probes: int, probe_names: list[str], positions_m: np.ndarray | None,
                  forgetting: float = 0.9995, total_nT: float | None = None, align: str = "rotation",
                  min_samples: int = 2000, gate_coverage: float = 0.3, gate_condition: float = 1e3,
-                 gate_rms_nT: float = 20.0, check_every_s: float = 2.0, window_samples: int = 12000,
-                 initial: ArrayCalibration | None = None) -> None:
+                 gate_rms_nT: float = 20.0, check_every_samples: int = 400, window_samples: int = 12000,
+                 chunk_samples: int = 100, initial: ArrayCalibration | None = None) -> None:
         self.n_probes = n_probes
         self.probe_names = list(probe_names)
         self.positions_m = None if positions_m is None else np.asarray(positions_m, float)
@@ -71,14 +88,19 @@ class Pipeline:
         self.gate_coverage = gate_coverage
         self.gate_condition = gate_condition
         self.gate_rms_nT = gate_rms_nT
-        self.check_every_s = check_every_s
+        self.chunk = int(chunk_samples)
+        self.check_every_chunks = max(1, int(round(check_every_samples / self.chunk))) \
+            if np.isfinite(check_every_samples) else None
+        self._fill = 0                    # samples buffered towards the next chunk
+        self._chunks = 0                  # chunks fed since the last check
+        self._buf_field = np.empty((self.chunk, n_probes, 3))
+        self._buf_ref = np.empty(self.chunk)
         self.ring = RingBuffer(capacity=window_samples, n_probes=n_probes)
         self.frozen = False
         self.calibration: ArrayCalibration | None = None
         self.cal_id = 0
         self.last_gate: GateResult | None = None
         self.next_seq = 0                 # seq of the first sample the next block will bring
-        self._next_check_t: float | None = None
         self._estimators = self._new_estimators()
         if initial is not None:
             self.set_calibration(initial)
@@ -99,7 +121,8 @@ class Pipeline:
 
     def reset(self) -> None:
         self._estimators = self._new_estimators()
-        self._next_check_t = None
+        self._fill = 0
+        self._chunks = 0
 
     def command(self, name: str, payload: Any, seq: int, t_s: float) -> PipelineEvent:
         """Apply a runtime command between blocks; the event records where it took effect."""
@@ -121,22 +144,42 @@ class Pipeline:
 
     def process(self, block: SampleBlock) -> Processed:
         events: list[PipelineEvent] = []
-        if block.n_samples:
+        n = block.n_samples
+        if n:
             self.next_seq = int(block.seq[-1]) + 1
-        corrected = self._correct(block)
-        error = self._error_metric(block, corrected)
-        self.ring.append(block)
-        if not self.frozen and block.n_samples:
-            self._update_estimators(block)
-            t_end = float(block.t_s[-1])
-            if self._next_check_t is None:
-                self._next_check_t = t_end + self.check_every_s
-            elif t_end >= self._next_check_t:
-                self._next_check_t = t_end + self.check_every_s
-                ev = self._check_candidate(int(block.seq[-1]) + 1, t_end)
-                if ev is not None:
-                    events.append(ev)
+        pieces: list[CorrectedBlock] = []
+        start = 0
+        while start < n:
+            stop = min(n, start + self.chunk - self._fill)       # up to the next chunk boundary
+            seg = block.slice(start, stop)
+            c = self._correct(seg)
+            if c is not None:
+                pieces.append(c)
+            self.ring.append(seg)
+            if not self.frozen:
+                self._buf_field[self._fill:self._fill + stop - start] = seg.field_nT
+                ref = self._reference_total(seg)
+                self._buf_ref[self._fill:self._fill + stop - start] = ref if ref is not None else np.nan
+                self._fill += stop - start
+                if self._fill == self.chunk:
+                    self._fill = 0
+                    self._update_estimators(self._buf_field, self._buf_ref)
+                    self._chunks += 1
+                    if self.check_every_chunks and self._chunks >= self.check_every_chunks:
+                        self._chunks = 0
+                        ev = self._check_candidate(int(seg.seq[-1]) + 1, float(seg.t_s[-1]))
+                        if ev is not None:
+                            events.append(ev)
+            start = stop
+        corrected = _join(pieces)
+        error = self._error_metric(block.slice(n - corrected.n_samples, n), corrected) if corrected else {}
         return Processed(corrected=corrected, error=error, events=events)
+
+    def flush_estimator(self) -> None:
+        """Feed a partly filled chunk to the estimator (end of a batch; the service never needs it)."""
+        if self._fill and not self.frozen:
+            self._update_estimators(self._buf_field[:self._fill], self._buf_ref[:self._fill])
+        self._fill = 0
 
     def _correct(self, block: SampleBlock) -> CorrectedBlock | None:
         if self.calibration is None:
@@ -155,15 +198,15 @@ class Pipeline:
         ref = block.extras.get("ref_total")
         return ref if ref is not None else self.total_nT
 
-    def _update_estimators(self, block: SampleBlock) -> None:
-        ref = self._reference_total(block)
-        ok_rows = np.isfinite(block.field_nT).all(axis=2)                 # (N, P)
+    def _update_estimators(self, field_nT: np.ndarray, ref: np.ndarray) -> None:
+        ok_rows = np.isfinite(field_nT).all(axis=2)                       # (N, P)
+        have_ref = bool(np.isfinite(ref).all())
         for k, est in enumerate(self._estimators):
             rows = ok_rows[:, k]
             if not rows.any():
                 continue
-            r = ref[rows] if isinstance(ref, np.ndarray) else ref
-            est.partial_fit(block.field_nT[rows, k], total_nT=r)
+            r = ref[rows] if have_ref else self.total_nT
+            est.partial_fit(field_nT[rows, k], total_nT=r)
 
     def _error_metric(self, block: SampleBlock, corrected: CorrectedBlock | None) -> dict[str, float]:
         if corrected is None or block.n_samples == 0:
@@ -199,6 +242,17 @@ class Pipeline:
                                                         "coverage": gate.coverage, "condition": gate.condition,
                                                         "rms_nT": gate.rms_nT})
 
+    def _window(self, max_samples: int = 1500) -> SampleBlock:
+        """The ring buffer, thinned to at most `max_samples` evenly spaced samples: directions and
+        residuals change slowly, and the gate runs often."""
+        w = self.ring.view()
+        step = max(1, -(-w.n_samples // max_samples))
+        if step == 1:
+            return w
+        idx = np.arange(0, w.n_samples, step)
+        return SampleBlock(t_s=w.t_s[idx], seq=w.seq[idx], field_nT=w.field_nT[idx], temp_C=w.temp_C[idx],
+                           flags=w.flags[idx], extras={k: v[idx] for k, v in w.extras.items()})
+
     def candidate(self) -> ArrayCalibration | None:
         """The online estimate, aligned over the ring buffer, or None if not yet determined."""
         if any(est.n_samples_ < self.min_samples for est in self._estimators):
@@ -207,7 +261,7 @@ class Pipeline:
             probes = [est.snapshot(name=name) for est, name in zip(self._estimators, self.probe_names)]
         except (CalibrationRefused, FluxcalError):
             return None
-        window = self.ring.view()
+        window = self._window()
         if self.n_probes > 1 and self.align != "none" and window.n_samples >= 3:
             probes = alignment.align_probes(probes, window.field_nT, method=self.align)
         return ArrayCalibration(method="rls", align=None if self.n_probes == 1 else self.align, probes=probes,
@@ -218,7 +272,7 @@ class Pipeline:
 
     def evaluate(self, cal: ArrayCalibration) -> GateResult:
         """The quality gate: coverage, conditioning and residual over the ring buffer window."""
-        window = self.ring.view()
+        window = self._window()
         reasons: list[str] = []
         covs, conds, rmss = [], [], []
         ref = self._reference_total(window)
