@@ -38,7 +38,7 @@ from .effects import EFFECTS, Baseline, Model, make_model, make_term
 from .effects.base import AXES, EffectData, EffectTerm
 from .effects.fit import (RANK_TOL, FitResult, LinearCalibration, Parameter, Problem, _solve, as_effect_data,
                           fit_model, fit_problem, initial_linear, reference_total, residual_hints,
-                          start_weights)
+                          start_weights, warm_from, Warm)
 
 P_SIGNIFICANT = 1e-3
 GAIN_SIGMAS = 2.0
@@ -46,6 +46,7 @@ GAIN_TOLERANCE = 0.10
 COLLINEAR_R2 = 0.90
 ABSORBED = 0.01            # largest unexplained fraction of a candidate's regressors for "absorbed"
 N_BLOCKS = 8
+CANDIDATE_ITERATIONS = 4
 WHERE_MAX_ROWS = 20000
 
 Progress = Callable[[float, str], None]
@@ -233,8 +234,11 @@ def _unexplained(a: np.ndarray, cand: np.ndarray, by: np.ndarray) -> float:
 def _absorbed_by(cand: FitResult, term: str) -> list[str] | None:
     """The smallest part of the model that spans the candidate's regressors: ['offset'], ['baseline'],
     [an effect in the model], or None."""
-    pr = cand.problem
-    a = cand.a_blocks.sum(0)
+    return _absorbed_in(cand.problem, cand.a_blocks.sum(0), term)
+
+
+def _absorbed_in(pr: Problem, a: np.ndarray, term: str) -> list[str] | None:
+    """As _absorbed_by, from a normal matrix `a` of problem pr."""
     c_idx = _slot_indices(pr, lambda s: s.term is not None and s.term.name == term)
     if c_idx.size == 0:
         return None
@@ -529,7 +533,26 @@ def _try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: _Heldou
             untestable.reason = ("no perming step stands out of the noise in the residual" if name == "hysteresis"
                                  else "nothing to fit in these data")
             return untestable
-        fit = fit_problem(pr, pr.start_state(cur.state.linear, cur.state))
+        start = pr.start_state(cur.state.linear, cur.state)
+        warm = warm_from(cur, pr)
+        if warm is not None:
+            # the model's normal equations at this very point are known: assemble only the candidate's rows,
+            # and see first whether the model already spans them (then there is nothing to fit)
+            ev0 = pr.evaluate(start)
+            a_c, g_c = pr.assemble(pr.jacobian(start, ev0), ev0, only=~warm.known)
+            both = warm.known[:, None] & warm.known[None, :]
+            a_c[:, both] = warm.a_blocks[:, both]
+            g_c[:, warm.known] = warm.g_blocks[:, warm.known]
+            absorbed = _absorbed_in(pr, a_c.sum(0), name)
+            if absorbed:
+                same = Candidate(effect=name, rms_nT=cur.rms_nT, heldout_rms_nT=cur_ho.rms_nT,
+                                 indistinguishable_from=absorbed, separate_by=_separation(name, absorbed[0]),
+                                 reason=f"the model's {absorbed[0]} spans its regressors in these data")
+                return same
+            warm = Warm(a_c, g_c, np.ones(pr.n_params, bool))
+        # at most CANDIDATE_ITERATIONS: a fit stopped early overstates its RSS, so its gain is understated
+        # (conservative); in practice one or two steps converge and only flat directions creep on
+        fit = fit_problem(pr, start, warm=warm, max_iter=CANDIDATE_ITERATIONS)
     except (FluxcalError, np.linalg.LinAlgError, ValueError) as e:
         untestable.reason = f"fit failed: {e}"
         return untestable

@@ -42,6 +42,8 @@ RANK_TOL = 1e-7
 #: a step is final when the actual RSS matches the linearised prediction so closely that the
 #: parameters are within this many standard errors of the minimum
 LINEARITY_SE = 0.1
+#: an iteration lowering the weighted RSS by less than this many s^2 ends the fit (flat directions only)
+RSS_TOL = 0.01
 #: floor of the per-channel noise used as weight, nT (the ADC step of the unit)
 NOISE_FLOOR_NT = 1e-3
 
@@ -252,6 +254,16 @@ class _Eval:
         if self.vec is not None:
             parts.append(self.vec.reshape(m, -1))
         return np.concatenate(parts, axis=1)
+
+
+#: samples per chunk when building the Jacobian: keeps each temporary well under glibc's 32 MiB mmap
+#: threshold, so the allocator reuses memory instead of faulting fresh pages in every time
+CHUNK_SAMPLES = 4096
+
+
+def _chunks(block: slice) -> list[slice]:
+    """A time block cut into chunks of at most CHUNK_SAMPLES rows."""
+    return [slice(a, min(a + CHUNK_SAMPLES, block.stop)) for a in range(block.start, block.stop, CHUNK_SAMPLES)]
 
 
 @dataclass
@@ -494,8 +506,12 @@ class Problem:
             jl = jl.reshape(-1, jl.shape[-1])               # rows n*3 + a, sample by sample
         return jl, np.concatenate(idx)
 
-    def assemble(self, jac: "_Jac", ev: _Eval | None = None, residual: np.ndarray | None = None):
-        """Weighted normal equations per time block: A_b (K, p, p) and g_b = J_b^T W r_b (K, p)."""
+    def assemble(self, jac: "_Jac", ev: _Eval | None = None, residual: np.ndarray | None = None,
+                 only: np.ndarray | None = None):
+        """Weighted normal equations per time block: A_b (K, p, p) and g_b = J_b^T W r_b (K, p).
+
+        only (bool, p): compute just the rows and columns of these parameters (the rest stays zero), for
+        a candidate added to a model whose normal equations are already known."""
         ev = jac.ev if ev is None else ev
         p, nbk = self.n_params, len(self.blocks)
         r_all = ev.channel_matrix() if residual is None else residual
@@ -503,35 +519,47 @@ class Problem:
         g_b = np.zeros((nbk, p))
         if p == 0:
             return a_b, g_b
-        for b, sl in enumerate(self.blocks):
-            blk = self._block(jac, sl)
-            r_blk = r_all[sl]
-            for k in range(self.P):
-                for kind in ("scalar", "diff", "vec"):
-                    if (kind == "diff" and k == 0) or (kind == "vec" and self.vref is None):
-                        continue
-                    local = self._local(blk, ev.nhat[k][sl] if kind == "scalar" else None, k, kind)
-                    if local is None:
-                        continue
-                    jl, idx = local
-                    if kind != "scalar":
-                        cols = self._cols(kind, k)
-                        w = np.tile(self.weights[cols], r_blk.shape[0])     # per row: its component's weight
-                        rl = r_blk[:, cols].reshape(-1) * w
-                        jl = jl * w[:, None]
-                    else:
-                        w = self.weights[k]
-                        rl = r_blk[:, k] * w
-                        jl = jl * w
-                    a_b[b][np.ix_(idx, idx)] += jl.T @ jl
-                    g_b[b, idx] += jl.T @ rl
+        for b, block in enumerate(self.blocks):
+            for sl in _chunks(block):             # chunks: temporaries the allocator reuses
+                blk = self._block(jac, sl)
+                r_blk = r_all[sl]
+                for k in range(self.P):
+                    for kind in ("scalar", "diff", "vec"):
+                        if (kind == "diff" and k == 0) or (kind == "vec" and self.vref is None):
+                            continue
+                        local = self._local(blk, ev.nhat[k][sl] if kind == "scalar" else None, k, kind)
+                        if local is None:
+                            continue
+                        jl, idx = local
+                        if kind != "scalar":
+                            cols = self._cols(kind, k)
+                            w = np.tile(self.weights[cols], r_blk.shape[0])     # per row: its component's weight
+                            rl = r_blk[:, cols].reshape(-1) * w
+                            jl = jl * w[:, None]
+                        else:
+                            w = self.weights[k]
+                            rl = r_blk[:, k] * w
+                            jl = jl * w
+                        if only is None:
+                            a_b[b][np.ix_(idx, idx)] += jl.T @ jl
+                            g_b[b, idx] += jl.T @ rl
+                        else:
+                            sel = only[idx]
+                            if sel.any():
+                                jc = jl[:, sel]
+                                a_b[b][np.ix_(idx[sel], idx)] += jc.T @ jl      # rows of `only`, all columns
+                                g_b[b, idx[sel]] += jc.T @ rl
+        if only is not None:
+            a_b[:, :, only] = np.swapaxes(a_b[:, only, :], 1, 2)             # symmetric: columns = rows^T
         return a_b, g_b
 
     def apply(self, jac: "_Jac", ev: _Eval | None, delta: np.ndarray, sl: slice = slice(None)) -> np.ndarray:
         """J delta on the rows of block slice sl (or all rows), unweighted: (rows, C) change of every channel."""
         ev = jac.ev if ev is None else ev
         if sl == slice(None):
-            return np.concatenate([self.apply(jac, ev, delta, b) for b in self.blocks])
+            return np.concatenate([self.apply(jac, ev, delta, c) for b in self.blocks for c in _chunks(b)])
+        if sl.stop - sl.start > CHUNK_SAMPLES:
+            return np.concatenate([self.apply(jac, ev, delta, c) for c in _chunks(sl)])
         blk = self._block(jac, sl)
         dv: list[Any] = [None] * self.P
         ds = None
@@ -681,9 +709,41 @@ class FitResult:
         return sse_w, sse, cnt
 
 
+@dataclass
+class Warm:
+    """Normal equations already assembled at the start point for some parameters (a model's, when a
+    candidate is added to it): `known` marks them; only the others' rows are assembled."""
+
+    a_blocks: np.ndarray
+    g_blocks: np.ndarray
+    known: np.ndarray
+
+
+def warm_from(base: "FitResult", pr: Problem) -> Warm | None:
+    """The base fit's block normal equations placed into problem pr's layout (which must contain every
+    base parameter, under the same name, with the same rows, blocks and weights)."""
+    names = pr.param_names()
+    where = {n: i for i, n in enumerate(names)}
+    base_names = base.problem.param_names()
+    if (not all(n in where for n in base_names) or base.problem.M != pr.M
+            or len(base.problem.blocks) != len(pr.blocks) or not np.array_equal(base.problem.weights, pr.weights)):
+        return None
+    m = np.array([where[n] for n in base_names], dtype=int)
+    nb, p = len(pr.blocks), pr.n_params
+    a = np.zeros((nb, p, p))
+    g = np.zeros((nb, p))
+    if m.size:
+        a[:, m[:, None], m[None, :]] = base.a_blocks
+        g[:, m] = base.g_blocks
+    known = np.zeros(p, bool)
+    known[m] = True
+    return Warm(a, g, known)
+
+
 def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float = 0.01,
-                progress: Callable[[str], None] | None = None) -> FitResult:
-    """Gauss-Newton from `start` until every step is below tol_se standard errors."""
+                progress: Callable[[str], None] | None = None, warm: Warm | None = None) -> FitResult:
+    """Gauss-Newton from `start` until every step is below tol_se standard errors. With `warm`, the first
+    linearisation assembles only the rows of the parameters warm does not know."""
     st = start
     ev = pr.evaluate(st)
     rss = pr.weighted_rss(ev)
@@ -697,7 +757,13 @@ def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float =
     rank = 0
     while True:
         jac = pr.jacobian(st, ev)
-        a_b, g_b = pr.assemble(jac, ev)
+        if warm is not None and it == 0:
+            a_b, g_b = pr.assemble(jac, ev, only=~warm.known)
+            keep = warm.known
+            a_b[:, keep[:, None] & keep[None, :]] = warm.a_blocks[:, keep[:, None] & keep[None, :]]
+            g_b[:, keep] = warm.g_blocks[:, keep]
+        else:
+            a_b, g_b = pr.assemble(jac, ev)
         if pr.n_params == 0:
             converged = True
             break
@@ -738,8 +804,10 @@ def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float =
         # the excess of the actual over the predicted RSS bounds how far the step is from the minimum:
         # excess = d^T A d for a parameter error d, i.e. sqrt(excess / s2) standard errors
         linear_enough = step == 1.0 and abs(rss_t - predicted) <= LINEARITY_SE ** 2 * s2
+        # an iteration that lowers the RSS by less than RSS_TOL s^2 only creeps along flat directions
+        flat = rss - rss_t < RSS_TOL * s2
         st, ev, rss = trial, ev_t, rss_t
-        if linear_enough:
+        if linear_enough or flat:
             # the step did what the linearisation promised: a second linearisation would move the
             # parameters by a negligible amount, so keep this one and move the block gradients with it
             g_b = g_b + np.einsum("bij,j->bi", a_b, delta)

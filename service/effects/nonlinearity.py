@@ -16,8 +16,9 @@ import numpy as np
 from .base import AXES, EffectTerm, ProbeView, axis_columns
 
 
-def invert(r: np.ndarray, q: np.ndarray, c: np.ndarray, iterations: int = 4) -> np.ndarray:
-    """u with u + q u^2 + c u^3 = r, per axis (Newton from u = r; converges for |q r|, |c r^2| << 1).
+def invert(r: np.ndarray, q: np.ndarray, c: np.ndarray, iterations: int = 3) -> np.ndarray:
+    """u with u + q u^2 + c u^3 = r, per axis (Newton from u = r, quadratic convergence: with |q r| and
+    |c r^2| below 1e-2, three steps leave a relative error below 1e-12).
 
     >>> u = np.array([[50000.0, -30000.0, 1000.0]])
     >>> q, c = np.array([1e-7, -2e-7, 0.0]), np.array([2e-13, 1e-13, -3e-13])

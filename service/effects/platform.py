@@ -45,7 +45,8 @@ class Platform(EffectTerm):
         return cols
 
     def correction(self, view: ProbeView, theta: np.ndarray, v0: np.ndarray | None = None) -> np.ndarray:
-        return self._columns(view, v0) @ theta
+        v = view.corrected_nT if v0 is None else v0
+        return theta[:3] + v @ theta[3:].reshape(3, 3).T                  # p + A v0
 
     def jacobian(self, view: ProbeView, theta: np.ndarray, v0: np.ndarray | None = None) -> np.ndarray:
         return self._columns(view, v0)
