@@ -8,6 +8,7 @@ complete chunk and reports the cut tail instead of failing.
 from __future__ import annotations
 
 import json
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
@@ -60,7 +61,11 @@ def iter_records(path: str | Path, report: ReadReport | None = None) -> Iterator
         n = 0
         try:
             with f.open("rb") as fh:
-                if fh.read(8) != b"\x89MCAP0\r\n":
+                magic = fh.read(8)
+                if len(magic) < 8 and b"\x89MCAP0\r\n".startswith(magic):
+                    report.truncated.append(f"{f}: empty (its writer stopped before writing anything)")
+                    continue
+                if magic != b"\x89MCAP0\r\n":
                     raise RecordingError(f"{f}: not an MCAP file")
                 fh.seek(0)
                 try:
@@ -74,7 +79,7 @@ def iter_records(path: str | Path, report: ReadReport | None = None) -> Iterator
                                 yield McapRecord(ch.topic, ch.message_encoding, rec.data, rec.log_time)
                         elif isinstance(rec, Metadata) and rec.name == "fluxcal":
                             report.metadata.update(rec.metadata)
-                except (McapError, EOFError, ValueError, OSError) as e:
+                except (McapError, EOFError, ValueError, OSError, struct.error) as e:
                     # a killed writer leaves no footer and may cut a chunk: keep what was complete
                     report.truncated.append(f"{f}: {type(e).__name__}: {e}".strip())
         except OSError as e:

@@ -101,6 +101,7 @@ class McapLogger:
         return self.dir / f"{self.unit}-{stamp}-{self._seq:04d}.mcap"
 
     def _open(self) -> bool:
+        path = None
         try:
             self.dir.mkdir(parents=True, exist_ok=True)
             path = self._next_path()
@@ -127,6 +128,11 @@ class McapLogger:
             return True
         except OSError as e:
             self._fail(e)
+            if path is not None:
+                try:
+                    path.unlink()             # a file that never got its header is no recording
+                except OSError:
+                    pass
             return False
 
     def _fail(self, e: OSError) -> None:
