@@ -33,12 +33,19 @@ import zenoh  # noqa: E402
 from drivers.block import SampleBlock  # noqa: E402
 from service.outputs import CorrectedBlock  # noqa: E402
 from service.zenoh_bus import (  # noqa: E402
-    ENCODING_SOURCE, BusClient, ServiceBus, ZenohConfig, encode_corrected, encode_raw, open_session,
+    BusClient, ServiceBus, ZenohConfig, open_session,
 )
+from service.encoding import encode_corrected, encode_raw  # noqa: E402
 
 N_PROBES = 4
 UNIT = "bench"
 PLAIN_KEY = "bench/plain"
+
+
+def _zenoh_version() -> str:
+    from importlib.metadata import version
+
+    return version("eclipse-zenoh")
 
 
 def free_port() -> int:
@@ -205,7 +212,7 @@ def main() -> None:
 
     print(f"machine: {platform.platform()}, {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} CPUs, Python {platform.python_version()}, numpy {np.__version__}, "
-          f"eclipse-zenoh {getattr(zenoh, '__version__', '1.x')}; encoding from {ENCODING_SOURCE}")
+          f"eclipse-zenoh {_zenoh_version()}")
     print(f"two processes on loopback (tcp/127.0.0.1), {N_PROBES} probes, BLOCK congestion control, "
           f"latency = publish (encode included) -> recv() returns decoded in the other process\n")
     rng = np.random.default_rng(0)

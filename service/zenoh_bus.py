@@ -46,6 +46,7 @@ from drivers.block import SampleBlock
 from drivers.config import spec
 from drivers.errors import ConfigError, DataError, FluxcalError
 
+from .encoding import decode_corrected, decode_raw, encode_corrected, encode_raw
 from .outputs import CorrectedBlock
 
 __all__ = [
@@ -63,89 +64,7 @@ class BusError(FluxcalError):
 # Binary encodings of the block streams
 # --------------------------------------------------------------------------------------------
 
-try:
-    from .encoding import decode_corrected, decode_raw, encode_corrected, encode_raw
-    ENCODING_SOURCE = "service.encoding"
-except ModuleNotFoundError as _e:  # pragma: no cover - exercised only until service/encoding.py lands
-    if _e.name != "service.encoding":
-        raise
-    ENCODING_SOURCE = "service.zenoh_bus fallback"
-
-    # ---- FALLBACK, private to this module, replaced by service/encoding.py once it exists ----
-    # Little-endian, fixed header then whole arrays (numpy tobytes/frombuffer: no per-sample loop).
-    _RAW_HEAD = struct.Struct("<4sHHI")       # magic, n_probes, n_extras, n_samples
-    _COR_HEAD = struct.Struct("<4sBHIq")      # magic, presence bits, n_probes, n_samples, cal_id
-
-    def encode_raw(block: SampleBlock) -> bytes:
-        n, p = block.n_samples, block.n_probes
-        parts = [_RAW_HEAD.pack(b"FXr0", p, len(block.extras), n),
-                 np.ascontiguousarray(block.t_s, "<f8").tobytes(), np.ascontiguousarray(block.seq, "<i8").tobytes(),
-                 np.ascontiguousarray(block.field_nT, "<f8").tobytes(),
-                 np.ascontiguousarray(block.temp_C, "<f8").tobytes(), np.ascontiguousarray(block.flags, "u1").tobytes()]
-        for name, arr in block.extras.items():
-            b = name.encode()
-            parts += [struct.pack("<H", len(b)), b, np.ascontiguousarray(arr, "<f8").tobytes()]
-        return b"".join(parts)
-
-    def decode_raw(data: bytes) -> SampleBlock:
-        try:
-            magic, p, n_ext, n = _RAW_HEAD.unpack_from(data, 0)
-            if magic != b"FXr0":
-                raise ValueError(f"not a raw block (magic {magic!r})")
-            off = _RAW_HEAD.size
-            out = []
-            for dtype, shape in (("<f8", (n,)), ("<i8", (n,)), ("<f8", (n, p, 3)), ("<f8", (n, p)), ("u1", (n,))):
-                count = int(np.prod(shape))
-                a = np.frombuffer(data, dtype, count, off).reshape(shape)
-                off += a.nbytes
-                out.append(a.astype(a.dtype.newbyteorder("=")))
-            extras = {}
-            for _ in range(n_ext):
-                (ln,) = struct.unpack_from("<H", data, off)
-                name = bytes(data[off + 2: off + 2 + ln]).decode()
-                off += 2 + ln
-                extras[name] = np.frombuffer(data, "<f8", n, off).astype(float)
-                off += 8 * n
-            if off != len(data):
-                raise ValueError(f"{len(data) - off} trailing bytes")
-        except (struct.error, ValueError, UnicodeDecodeError) as e:
-            raise DataError(f"raw block: {e}") from None
-        return SampleBlock(t_s=out[0], seq=out[1], field_nT=out[2], temp_C=out[3], flags=out[4], extras=extras)
-
-    def encode_corrected(block: CorrectedBlock) -> bytes:
-        bits = (block.diff_nT is not None) | (block.tensor_nT_m is not None) << 1 | (block.center_nT is not None) << 2
-        parts = [_COR_HEAD.pack(b"FXc0", bits, block.n_probes, block.n_samples, int(block.cal_id)),
-                 np.ascontiguousarray(block.t_s, "<f8").tobytes(), np.ascontiguousarray(block.seq, "<i8").tobytes(),
-                 np.ascontiguousarray(block.corrected_nT, "<f8").tobytes()]
-        for a in (block.diff_nT, block.tensor_nT_m, block.center_nT):
-            if a is not None:
-                parts.append(np.ascontiguousarray(a, "<f8").tobytes())
-        return b"".join(parts)
-
-    def decode_corrected(data: bytes) -> CorrectedBlock:
-        try:
-            magic, bits, p, n, cal_id = _COR_HEAD.unpack_from(data, 0)
-            if magic != b"FXc0":
-                raise ValueError(f"not a corrected block (magic {magic!r})")
-            off = _COR_HEAD.size
-            shapes = [("<f8", (n,)), ("<i8", (n,)), ("<f8", (n, p, 3))]
-            shapes += [("<f8", s) if bits >> i & 1 else (None, None)
-                       for i, s in enumerate([(n, p - 1, 3), (n, 3, 3), (n, 3)])]
-            out: list[np.ndarray | None] = []
-            for dtype, shape in shapes:
-                if dtype is None:
-                    out.append(None)
-                    continue
-                a = np.frombuffer(data, dtype, int(np.prod(shape)), off).reshape(shape)
-                off += a.nbytes
-                out.append(a.astype(a.dtype.newbyteorder("=")))
-            if off != len(data):
-                raise ValueError(f"{len(data) - off} trailing bytes")
-        except (struct.error, ValueError) as e:
-            raise DataError(f"corrected block: {e}") from None
-        return CorrectedBlock(t_s=out[0], seq=out[1], corrected_nT=out[2], diff_nT=out[3], tensor_nT_m=out[4],
-                              center_nT=out[5], cal_id=int(cal_id))
-    # ---- end of FALLBACK -------------------------------------------------------------------
+# raw and corrected layouts: drivers/encoding.py and service/encoding.py (shared with the MCAP logger)
 
 
 @dataclass(frozen=True)
@@ -192,7 +111,7 @@ def decode_series(data: bytes) -> Series:
         off += 8 * n
         seq = np.frombuffer(data, "<i8", n, off).astype(np.int64)
         off += 8 * n
-        count = n * int(np.prod(tail, dtype=np.int64))
+        count = n * math.prod(tail)
         values = np.frombuffer(data, "<f8", count, off).astype(float).reshape((n, *tail))
         if off + 8 * count != len(data):
             raise ValueError(f"{len(data) - off - 8 * count} trailing bytes")
@@ -444,7 +363,10 @@ class Command:
         except zenoh.ZError:
             return False
         finally:
-            q.drop()                      # sends the final reply marker: the client stops waiting now
+            try:
+                q.drop()                  # sends the final reply marker: the client stops waiting now
+            except zenoh.ZError:
+                pass
 
     def __repr__(self) -> str:
         return f"Command(id={self.id}, name={self.name!r}, payload={self.payload[:40]!r})"
@@ -522,6 +444,8 @@ class ServiceBus:
 
         def on_query(query: zenoh.Query) -> None:
             self.stats["commands_received"] += 1
+            if self._closed:
+                return self._refuse(query, name, "the service is stopping")
             try:
                 payload = query.payload.to_bytes().decode("utf-8").strip() if query.payload is not None else ""
             except UnicodeDecodeError:

@@ -352,6 +352,7 @@ def run(endpoints: list[str], unit: str | None, seconds: float | None, out: Text
                 client = BusClient(session, dash.unit, streams=STREAMS, lossless=False, capacity=64)
                 alive_sub = session.liveliness().declare_subscriber(keys.alive, zenoh.handlers.RingChannel(16),
                                                                     history=True)
+                dash.alive = False                  # until the token's history says otherwise
             if client is not None:
                 if state_q is None and now >= next_state:
                     state_q, next_state = _StateQuery(session, Keys(dash.unit).state), now + STATE_EVERY_S
