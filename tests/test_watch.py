@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -20,9 +21,16 @@ from service.cli import main as cli_main
 from service.commands.watch import Dashboard, dashboard_endpoints
 from service.outputs import CorrectedBlock
 from service.zenoh_bus import Message, Series, ServiceBus, ZenohConfig
-from tests.test_zenoh_bus import free_port
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 S1 = np.array([1000.5, -2000.0, 3000.0])
 S2 = S1 + [1.0, 2.0, 3.0]
 TENSOR = np.arange(9.0).reshape(3, 3) / 4.0
