@@ -35,7 +35,7 @@ from scipy import stats
 from drivers.errors import CalibrationRefused, FluxcalError
 
 from .effects import EFFECTS, Baseline, Model, make_model, make_term
-from .effects.base import AXES, EffectData, EffectTerm
+from .effects.base import EffectData, EffectTerm
 from .effects.fit import (RANK_TOL, FitResult, LinearCalibration, Parameter, Problem, _solve, as_effect_data,
                           fit_model, fit_problem, initial_linear, reference_total, residual_hints,
                           start_weights, warm_from, Warm)
@@ -47,6 +47,7 @@ COLLINEAR_R2 = 0.90
 ABSORBED = 0.01            # largest unexplained fraction of a candidate's regressors for "absorbed"
 N_BLOCKS = 8
 CANDIDATE_ITERATIONS = 4
+PARAMETER_LINES = 18
 WHERE_MAX_ROWS = 20000
 
 Progress = Callable[[float, str], None]
@@ -629,6 +630,14 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
     lines.append("  channel              rms nT   noise nT")
     for n, r, s in zip(d.channel_names, d.channel_rms_nT, d.channel_noise_nT):
         lines.append(f"  {n:<18} {r:9.3f} {s:10.3f}")
+    if d.parameters:
+        lines.append("")
+        lines.append("  fitted effect parameters (value +- standard error):")
+        for p in d.parameters[:PARAMETER_LINES]:
+            se = "undetermined by these data" if p.stderr is None else f"+- {p.stderr:.4g}"
+            lines.append(f"    {p.name:<30} {p.value:12.5g} {se}")
+        if len(d.parameters) > PARAMETER_LINES:
+            lines.append(f"    ... {len(d.parameters) - PARAMETER_LINES} more in --json")
     lines.append("")
     lines.append("  where it fails (explained variance of the residual):")
     if not d.where:

@@ -16,7 +16,6 @@ import io
 import os
 import tempfile
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
