@@ -1,41 +1,250 @@
 """Alignment of probes to each other or to the platform (CONTRACTS `--align`).
 
-- regression (000 section 2.2, eq. 10-16): probe k's raw output mapped onto the calibrated
-  probe 1 by multivariate linear regression, B1 ≈ A_k r_k + c_k; this calibrates probe k and its
-  attitude relative to probe 1 in one step, minimising the Frobenius norm of the difference.
-- rotation (001 section 3, eq. 4-10): each calibrated probe rotated onto the platform frame.
-  `rotation_from_samples` is 001's own solve (lstsq of the x and y rows, angles by eq. 10, from
-  ≥ 3 samples); `align_probes(..., "rotation")` uses the constrained optimum (Kabsch/SVD) onto
-  the mean of the probes, iterated: the platform is the probes' mean frame.
+- regression (000 section 2.2, eq. 10-16): probe k's raw output X_k regressed onto the calibrated
+  probe-1 output X = A_1 (X_1 − E_1): minimising ‖X − (A_k X_k − B_k)‖_F² over N samples gives,
+  setting the derivatives in B_k and A_k to zero (eq. 15), the multivariate linear regression of
+  eq. 16, one row of A_k (and of B_k) per axis. It calibrates probe k and its attitude relative to
+  probe 1 in one step; E_k = A_k⁻¹ B_k. `align_regression`, `regression_calibration`.
+- rotation (001 section 3, eq. 3-10): each calibrated probe rotated onto the platform. The platform
+  output is B0 = the mean of the probes' raw outputs (eq. 3), itself calibrated with the TMI
+  method (`platform_calibration`); then per probe the x and y rows of T = Tα Tβ Tγ by least
+  squares from N ≥ 3 samples (eq. 8-9; one turn is enough: three samples 120° apart about z are
+  linearly independent) and heel α, pitch β, azimuth γ from them (eq. 10). `align_rotation`.
+- `align_probes(..., "rotation")`, used by the service's pipeline on long windows, takes the
+  constrained optimum instead (Kabsch/SVD onto the mean frame of the probes, iterated).
 - pca (004 section 3.2) lives in twostep.py.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from drivers.errors import CalibrationRefused
+from drivers.errors import CalibrationRefused, DataError
 
-from .model import ProbeCalibration
+from .model import ProbeCalibration, named, unit_column_split
+
+
+def _finite(a: np.ndarray, what: str, ndim: int = 2) -> np.ndarray:
+    x = np.asarray(a, float)
+    if x.ndim != ndim or x.shape[-1] != 3:
+        raise DataError(f"{what}: expected shape {'(N, 3)' if ndim == 2 else '(N, P, 3)'}, got {x.shape}")
+    bad = np.flatnonzero(~np.isfinite(x.reshape(x.shape[0], -1)).all(axis=1))
+    if bad.size:
+        raise DataError(f"{what}: rows {', '.join(map(str, bad[:10].tolist()))} hold NaN or inf; remove them")
+    return x
+
+
+# --- 000 section 2.2: regression onto probe 1 -------------------------------------------------------
 
 
 def align_regression(ref_nT: np.ndarray, raw_nT: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(A, c) minimising ‖B_ref − (A r + c)‖_F over samples (000 eq. 10-16)."""
-    ref = np.asarray(ref_nT, float)
-    raw = np.asarray(raw_nT, float)
+    """(A, c) minimising ‖B_ref − (A r + c)‖_F over samples (000 eq. 13-16).
+
+    ref_nT: the calibrated reference probe's output (N, 3); raw_nT: the other probe's raw output.
+    In the paper's symbols A = A_2 and c = −B_2 = −A_2 E_2. Needs the raw samples to span three
+    directions (eq. 15: X_2 of full row rank), i.e. turns about at least two axes."""
+    ref = _finite(ref_nT, "align_regression: ref_nT")
+    raw = _finite(raw_nT, "align_regression: raw_nT")
+    if ref.shape != raw.shape:
+        raise DataError(f"align_regression: ref_nT {ref.shape} and raw_nT {raw.shape} differ in shape")
     x = np.column_stack([raw, np.ones(raw.shape[0])])
-    coef, _, rank, _ = np.linalg.lstsq(x, ref, rcond=None)
-    if rank < 4:
+    # scale the columns so the rank test does not see nT² against 1
+    col = np.linalg.norm(x, axis=0)
+    col[col == 0] = 1.0
+    coef, _, rank, sv = np.linalg.lstsq(x / col, ref, rcond=None)
+    if rank < 4 or sv[-1] < 1e-9 * sv[0]:
         raise CalibrationRefused("regression alignment: the samples do not span three directions; "
                                  "rotate about at least two axes")
+    coef = coef / col[:, None]
     return coef[:3].T, coef[3]
 
 
 def regression_calibration(name: str, ref_nT: np.ndarray, raw_nT: np.ndarray) -> ProbeCalibration:
-    """Probe k as a ProbeCalibration in probe 1's frame: M = A, o = −A⁻¹ c."""
+    """Probe k as a ProbeCalibration in the reference probe's frame: M = A, o = −A⁻¹ c, with standard
+    errors from the regression and 000's named parameters (sensitivities, unit-column matrix)."""
     a, c = align_regression(ref_nT, raw_nT)
     offset = -np.linalg.solve(a, c)
-    return ProbeCalibration(name, offset, a, params={"align": {"value": "regression", "se": None, "unit": ""}})
+    raw = np.asarray(raw_nT, float)
+    ref = np.asarray(ref_nT, float)
+    n = raw.shape[0]
+    resid = ref - (raw @ a.T + c)
+    sigma2 = (resid ** 2).sum(axis=0) / max(n - 4, 1)         # per output axis
+    # cov of row i of [A | c] is σ_i² (XᵀX)⁻¹, X = [raw, 1]; rows independent
+    x = np.column_stack([raw, np.ones(n)])
+    xtx_inv = np.linalg.pinv(x.T @ x)
+    cov = np.kron(np.diag(sigma2), xtx_inv)                    # (12, 12), parameters row by row
+    m_se = np.sqrt(np.outer(sigma2, np.diag(xtx_inv)[:3]))
+    beta = np.column_stack([a, c]).ravel()
+
+    def offset_of(b: np.ndarray) -> np.ndarray:
+        bm = b.reshape(3, 4)
+        return -np.linalg.solve(bm[:, :3], bm[:, 3])          # E = −A⁻¹ c
+
+    jac = np.empty((3, 12))
+    for j in range(12):
+        h = 1e-6 * max(abs(beta[j]), 1e-3)
+        bj = beta.copy()
+        bj[j] += h
+        jac[:, j] = (offset_of(bj) - offset) / h
+    o_se = np.sqrt(np.maximum(np.diag(jac @ cov @ jac.T), 0))
+    _, k = unit_column_split(a)
+    params = {"align": named(None, None, "", method="regression (000 eq. 10-16)"),
+              "offset_nT": named(offset, o_se, "nT"),
+              "sensitivity": named(k, None, "", note="000 Table 2: A = N diag(k)^-1, N of unit columns"),
+              "residual_rms_nT": named(float(np.sqrt(np.mean(resid ** 2))), None, "nT",
+                                       note="per-axis difference to the reference probe after calibration")}
+    return ProbeCalibration(name, offset, a, o_se, m_se, params)
+
+
+# --- 001 section 3: rotation onto the platform ------------------------------------------------------
+
+
+def rotation_from_angles(alpha: float, beta: float, gamma: float) -> np.ndarray:
+    """T = Tα Tβ Tγ of 001 eq. 4-5 (heel about x, pitch about y, azimuth about z; radians):
+    platform = T · probe."""
+    ca, sa, cb, sb, cg, sg = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta), np.cos(gamma), np.sin(gamma)
+    ta = np.array([[1, 0, 0], [0, ca, sa], [0, -sa, ca]])
+    tb = np.array([[cb, 0, -sb], [0, 1, 0], [sb, 0, cb]])
+    tg = np.array([[cg, sg, 0], [-sg, cg, 0], [0, 0, 1]])
+    return ta @ tb @ tg
+
+
+def angles_from_rotation(r: np.ndarray) -> tuple[float, float, float]:
+    """Heel α, pitch β, azimuth γ (rad) of R = Tα Tβ Tγ (001 eq. 6, 10)."""
+    beta = -np.arcsin(np.clip(r[0, 2], -1, 1))
+    gamma = np.arctan2(r[0, 1], r[0, 0])
+    alpha = np.arctan2(r[1, 2], r[2, 2])
+    return float(alpha), float(beta), float(gamma)
+
+
+def rotation_from_samples(platform_nT: np.ndarray, probe_nT: np.ndarray) -> tuple[np.ndarray, tuple[float, float, float]]:
+    """001 eq. 8-10: V_x, V_y by least squares from N ≥ 3 samples, then α, β, γ and R = Tα Tβ Tγ.
+
+    β = −arcsin V_x3, γ = atan2(V_x2, V_x1) (the paper's arctan(V_x2/V_x1) loses the quadrant
+    beyond ±90°), α = arcsin(V_y3 / cos β)."""
+    m = np.asarray(probe_nT, float)
+    p = np.asarray(platform_nT, float)
+    if m.shape[0] < 3:
+        raise CalibrationRefused(f"rotation alignment needs at least 3 samples, got {m.shape[0]}")
+    sv = np.linalg.svd(m, compute_uv=False)
+    if sv[-1] < 1e-6 * sv[0]:
+        raise CalibrationRefused("rotation alignment: the samples do not span three directions (eq. 8 needs "
+                                 "rank 3); take samples at least ~30° apart on the turn")
+    # eq. 9: V = (MᵀM)⁻¹ Mᵀ B, as a least-squares solve
+    v = np.linalg.lstsq(m, p[:, :2], rcond=None)[0]
+    vx, vy = v[:, 0], v[:, 1]
+    beta = -np.arcsin(np.clip(vx[2], -1, 1))
+    gamma = np.arctan2(vx[1], vx[0])
+    alpha = np.arcsin(np.clip(vy[2] / np.cos(beta), -1, 1))
+    return rotation_from_angles(alpha, beta, gamma), (float(alpha), float(beta), float(gamma))
+
+
+def platform_output(raw_nT: np.ndarray) -> np.ndarray:
+    """B0 of 001 eq. 3: the mean of the probes' outputs, (N, P, 3) -> (N, 3)."""
+    return _finite(raw_nT, "platform_output: raw_nT", ndim=3).mean(axis=1)
+
+
+def platform_calibration(raw_nT: np.ndarray, total_nT, *, name: str = "platform") -> ProbeCalibration:
+    """001 section 2: B0 (eq. 3) treated as a virtual probe with its own offset, scale factors and
+    non-orthogonality, calibrated with the TMI method; its corrected output is the platform frame."""
+    from .tmi import fit_tmi
+
+    return fit_tmi(platform_output(raw_nT), total_nT, name=name)
+
+
+@dataclass
+class RotationAlignment:
+    """001 section 3 for P probes: platform = rotations[k] · corrected_k."""
+
+    rotations: np.ndarray        # (P, 3, 3)
+    angles_rad: np.ndarray       # (P, 3) heel α, pitch β, azimuth γ
+    angles_se_rad: np.ndarray    # (P, 3), NaN with exactly 3 samples (no residual to estimate noise)
+    reference_nT: np.ndarray     # (n, 3) the platform output used
+    samples: np.ndarray          # indices of the samples used
+
+    @property
+    def angles_deg(self) -> np.ndarray:
+        return np.degrees(self.angles_rad)
+
+    def apply(self, probes: list[ProbeCalibration]) -> list[ProbeCalibration]:
+        """Each probe's calibration expressed in the platform frame (M' = T M)."""
+        out = []
+        for p, r, a, s in zip(probes, self.rotations, self.angles_deg, np.degrees(self.angles_se_rad)):
+            out.append(p.rotated(r, misalign_deg=named(a, s, "deg", names=["heel", "pitch", "azimuth"],
+                                                       note="001 eq. 5: platform = Tα Tβ Tγ probe")))
+        return out
+
+
+def mean_frame_reference(corrected: list[np.ndarray]) -> np.ndarray:
+    """The platform output when only corrected probe outputs are known: every probe rotated onto
+    probe 1 (Kabsch), the mean orientation of the probes (the rotation closest to the mean of those
+    rotations), and the mean of the probes expressed in it."""
+    c0 = corrected[0]
+    rots = [kabsch(c0, c) for c in corrected]                # c0 ≈ R_k c_k
+    u, _, vt = np.linalg.svd(sum(rots))
+    mean_rot = u @ vt                                         # polar factor of Σ R_k
+    return np.mean([c @ (mean_rot.T @ r).T for c, r in zip(corrected, rots)], axis=0)
+
+
+def align_rotation(corrected: list[np.ndarray], reference_nT: np.ndarray | None = None, *,
+                   samples: np.ndarray | None = None) -> RotationAlignment:
+    """001 section 3: the rotation of each calibrated probe onto the platform, from N ≥ 3 samples.
+
+    corrected: per probe (N, 3), each in its own orthogonal frame (after fit_tmi / fit_ellipsoid).
+    reference_nT: the platform output (N, 3) — in 001 the calibrated B0,
+      `platform_calibration(raw, F).apply(platform_output(raw))`. None: the mean frame of the
+      probes (`mean_frame_reference`), for when the raw outputs are not at hand.
+    samples: which samples to use (e.g. three 120° apart on one turn); default all.
+    """
+    cs = [_finite(c, f"align_rotation: corrected[{k}]") for k, c in enumerate(corrected)]
+    n = cs[0].shape[0]
+    if any(c.shape != (n, 3) for c in cs):
+        raise DataError("align_rotation: every probe needs the same samples (N, 3)")
+    idx = np.arange(n) if samples is None else np.asarray(samples, dtype=int)
+    cs = [c[idx] for c in cs]
+    if reference_nT is None:
+        ref = mean_frame_reference(cs)
+    else:
+        ref = _finite(reference_nT, "align_rotation: reference_nT")[idx]
+    rots, angles, ses = [], [], []
+    for c in cs:
+        r, abg = rotation_from_samples(ref, c)
+        rots.append(r)
+        angles.append(abg)
+        ses.append(_angle_se(ref, c, abg))
+    return RotationAlignment(np.array(rots), np.array(angles), np.array(ses), ref, idx)
+
+
+def _angle_se(ref: np.ndarray, probe: np.ndarray, abg: tuple[float, float, float]) -> np.ndarray:
+    """Standard errors of (α, β, γ) from the residuals of eq. 8 (NaN with three samples)."""
+    n = probe.shape[0]
+    if n <= 3:
+        return np.full(3, np.nan)
+    alpha, beta, gamma = abg
+    r = rotation_from_angles(alpha, beta, gamma)
+    resid = ref - probe @ r.T
+    sigma2 = float((resid ** 2).sum() / (3 * n - 3))
+    # linearised: a small rotation ω of the probe frame changes T c by T (ω × c); its information
+    # is Σ ‖T [c]×‖² ~ Σ (|c|² I − c cᵀ); the angles are ω in the (heel, pitch, azimuth) axes
+    info = np.zeros((3, 3))
+    for c in probe:
+        cx = np.array([[0, -c[2], c[1]], [c[2], 0, -c[0]], [-c[1], c[0], 0]])
+        info += cx.T @ cx
+    # d(α, β, γ)/dω: numerically, through the angles of T exp([ω]×)
+    jac = np.empty((3, 3))
+    h = 1e-7
+    for i in range(3):
+        w = np.zeros(3)
+        w[i] = h
+        wx = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+        jac[:, i] = (np.array(angles_from_rotation(r @ (np.eye(3) + wx))) - np.array(abg)) / h
+    cov = jac @ (sigma2 * np.linalg.pinv(info)) @ jac.T
+    return np.sqrt(np.maximum(np.diag(cov), 0))
+
+
+# --- the service's alignment of long windows --------------------------------------------------------
 
 
 def kabsch(ref_nT: np.ndarray, vec_nT: np.ndarray) -> np.ndarray:
@@ -44,37 +253,6 @@ def kabsch(ref_nT: np.ndarray, vec_nT: np.ndarray) -> np.ndarray:
     u, _, vt = np.linalg.svd(h)
     d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
     return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-
-
-def angles_from_rotation(r: np.ndarray) -> tuple[float, float, float]:
-    """Heel α, pitch β, azimuth γ (rad) of R = Tα Tβ Tγ (001 eq. 5, 10)."""
-    beta = -np.arcsin(np.clip(r[0, 2], -1, 1))
-    gamma = np.arctan2(r[0, 1], r[0, 0])
-    alpha = np.arctan2(r[1, 2], r[2, 2])
-    return float(alpha), float(beta), float(gamma)
-
-
-def rotation_from_angles(alpha: float, beta: float, gamma: float) -> np.ndarray:
-    """Tα Tβ Tγ of 001 eq. 4-5."""
-    ca, sa, cb, sb, cg, sg = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta), np.cos(gamma), np.sin(gamma)
-    ta = np.array([[1, 0, 0], [0, ca, sa], [0, -sa, ca]])
-    tb = np.array([[cb, 0, -sb], [0, 1, 0], [sb, 0, cb]])
-    tg = np.array([[cg, sg, 0], [-sg, cg, 0], [0, 0, 1]])
-    return ta @ tb @ tg
-
-
-def rotation_from_samples(platform_nT: np.ndarray, probe_nT: np.ndarray) -> tuple[np.ndarray, tuple[float, float, float]]:
-    """001 eq. 8-10: V_x, V_y by least squares from N ≥ 3 samples, then α, β, γ and R = Tα Tβ Tγ."""
-    m = np.asarray(probe_nT, float)
-    p = np.asarray(platform_nT, float)
-    if m.shape[0] < 3:
-        raise CalibrationRefused(f"rotation alignment needs at least 3 samples, got {m.shape[0]}")
-    vx = np.linalg.lstsq(m, p[:, 0], rcond=None)[0]
-    vy = np.linalg.lstsq(m, p[:, 1], rcond=None)[0]
-    beta = -np.arcsin(np.clip(vx[2], -1, 1))
-    gamma = np.arctan2(vx[1], vx[0])
-    alpha = np.arcsin(np.clip(vy[2] / np.cos(beta), -1, 1))
-    return rotation_from_angles(alpha, beta, gamma), (float(alpha), float(beta), float(gamma))
 
 
 def align_probes(probes: list[ProbeCalibration], raw_nT: np.ndarray, method: str = "rotation",
@@ -106,6 +284,6 @@ def align_probes(probes: list[ProbeCalibration], raw_nT: np.ndarray, method: str
     for p, r in zip(probes, rots):
         rk = r_mean.T @ r
         a, b, g = angles_from_rotation(rk)
-        out.append(p.rotated(rk, misalign_deg={"value": np.degrees([a, b, g]).tolist(), "se": None,
-                                               "unit": "deg (heel, pitch, azimuth of 001 eq. 5)"}))
+        out.append(p.rotated(rk, misalign_deg=named(np.degrees([a, b, g]), None,
+                                                    "deg (heel, pitch, azimuth of 001 eq. 5)")))
     return out

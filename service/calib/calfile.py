@@ -46,6 +46,7 @@ def _jsonable(x: Any) -> Any:
 
 
 def calibration_to_dict(cal: ArrayCalibration) -> dict[str, Any]:
+    """The file's JSON object (non-finite numbers become null: "unknown")."""
     try:
         from importlib.metadata import version
 
@@ -65,6 +66,8 @@ def calibration_to_dict(cal: ArrayCalibration) -> dict[str, Any]:
 
 
 def save_calibration(cal: ArrayCalibration, path: str | Path) -> None:
+    """Write `cal` to `path` atomically: a temporary file in the same directory, fsync, rename; a
+    crash leaves the old file or the new one, never half of one."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(calibration_to_dict(cal), indent=1, allow_nan=False)
@@ -84,6 +87,8 @@ def save_calibration(cal: ArrayCalibration, path: str | Path) -> None:
 
 
 def load_calibration(path: str | Path) -> ArrayCalibration:
+    """Read a calibration file; DataError naming the file and the problem (missing, another format or
+    version, not JSON, a missing key, a wrong shape, a NaN)."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
@@ -122,30 +127,55 @@ def _nulls(v: Any) -> Any:
     return v
 
 
+def _total(v: Any, origin: str) -> float | None:
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+        raise DataError(f"{origin}: total_nT: expected a positive number or null, got {v!r}")
+    return float(v)
+
+
 def calibration_from_dict(d: Any, origin: str = "<calibration>") -> ArrayCalibration:
+    """The ArrayCalibration of a parsed calibration file; DataError naming `origin` and the problem."""
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise DataError(f"{origin}: not a fluxcal calibration file (expected \"format\": \"{FORMAT}\")")
     if d.get("version") != VERSION:
         raise DataError(f"{origin}: calibration file version {d.get('version')!r}; this fluxcal reads version "
                         f"{VERSION} — refit with `fluxcal fit` or use the fluxcal that wrote it")
     try:
+        if not isinstance(d["probes"], list) or not d["probes"]:
+            raise DataError(f"{origin}: damaged calibration file (\"probes\" must be a non-empty list)")
         probes = []
         for i, pd in enumerate(d["probes"]):
             key = f"probes[{i}]"
+            if not isinstance(pd, dict):
+                raise DataError(f"{origin}: damaged calibration file ({key} is not an object)")
+            params = pd.get("params") or {}
+            if not isinstance(params, dict):
+                raise DataError(f"{origin}: damaged calibration file ({key}.params is not an object)")
             probes.append(ProbeCalibration(
                 str(pd["name"]), _array(pd["offset_nT"], (3,), f"{key}.offset_nT", origin),
                 _array(pd["matrix"], (3, 3), f"{key}.matrix", origin),
                 _array(pd.get("offset_se_nT"), (3,), f"{key}.offset_se_nT", origin, True),
                 _array(pd.get("matrix_se"), (3, 3), f"{key}.matrix_se", origin, True),
-                dict(pd.get("params") or {})))
-        if not probes:
-            raise DataError(f"{origin}: no probes in the calibration")
+                dict(params)))
+        for i, pr in enumerate(probes):
+            if not np.linalg.cond(pr.matrix) < 1e12:
+                raise DataError(f"{origin}: probes[{i}].matrix is singular; the file is damaged")
+        names = [p.name for p in probes]
+        if len(set(names)) != len(names):
+            raise DataError(f"{origin}: damaged calibration file (probe names repeat: {names})")
+        align = d.get("align")
+        if align is not None and not isinstance(align, str):
+            raise DataError(f"{origin}: damaged calibration file (align must be a name or null)")
         span = d.get("span") or {}
-        return ArrayCalibration(method=str(d["method"]), align=d.get("align"), probes=probes,
-                                total_nT=d.get("total_nT"), effects=list(d.get("effects") or []),
+        return ArrayCalibration(method=str(d["method"]), align=align, probes=probes,
+                                total_nT=_total(d.get("total_nT"), origin), effects=list(d.get("effects") or []),
                                 effect_params=dict(d.get("effect_params") or {}),
                                 diagnostics=dict(d.get("diagnostics") or {}),
                                 span=(float(span.get("t0_s", 0.0)), float(span.get("t1_s", 0.0)),
                                       int(span.get("n_samples", 0))))
-    except (KeyError, TypeError) as e:
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        if isinstance(e, DataError):
+            raise
         raise DataError(f"{origin}: damaged calibration file (missing or malformed {e})") from None

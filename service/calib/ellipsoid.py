@@ -2,35 +2,58 @@
 
 A probe with offset o and matrix M sees raw samples r on the quadric
 
-    (r − o)ᵀ A (r − o) = F²,   A = Mᵀ M.
+    (r − o)ᵀ Q (r − o) = F²,   Q = Mᵀ M.
 
 In scaled coordinates u = r / s (every column of order one) this is linear in nine unknowns,
 
     uᵀ A' u + b'ᵀ u − γ δ = 1,   δ = (F² − F₀²) / s²,
 
-with A' = A / K, b' = −2 A' o, K = F₀²/s² − oᵀ A o / s². The tenth column (δ) enters only
-when the reference total field F varies enough to carry information. Fixing the right side to 1
-removes the exact null direction that the ten-term form with a constant right side has (with a
-steady field, Q(u) − F² is itself a solution of the homogeneous system). M is the upper-triangular
-Cholesky factor of A (001's triangular model), o = −A'⁻¹ b' / 2, and A = A' F₀² / (s² (1 + oᵀA'o)).
-F is the reference total field per sample (`ref_total`), a configured constant, or, when unknown,
-the mean raw magnitude: then the scale of M is a convention, not a measurement, and the result
-says so.
+with A' = Q s² / κ, b' = −2 A' o / s, κ = F₀² − oᵀ Q o. The tenth column (δ) enters only when the
+reference total field F varies enough to carry information. Fixing the right side to 1 removes the
+exact null direction of the ten-term form with a constant right side (000 eq. 6 keeps nine terms
+and the right side F², dropping oᵀQo; 001 eq. 15-16 keeps the constant column and the right side
+F², and then V = (0, …, 0, F²) fits any data exactly). o = −A'⁻¹ b' s / 2 and Q follows from the
+known F₀: κ (1 + oᵀA'o/s²) = F₀².
+
+Matrix convention: M is the upper-triangular Cholesky factor of Q (001's triangular model, eq. 12):
+only the rotation ambiguity of Q = MᵀM is fixed, by putting the corrected z axis along the
+sensor's z winding and the corrected y axis in its y-z plane; the alignment step rotates each probe
+into a common frame. `triangular_factor(q, "000")` gives 000's own factor (eq. 8) instead.
+
+Total field F: the reference per sample (`ref_total`), a configured constant, or — when unknown —
+the mean raw magnitude. Then the scale of M is a convention, not a measurement (a fluxgate
+ellipsoid alone cannot tell a 1 % larger field from 1 % larger sensitivities), and the result says
+so in its params ("total_nT_assumed").
+
+Refusals (CalibrationRefused) name what is missing and the motion that would fill it: fewer than
+ten samples, all samples in one plane (a single-axis turn: the ten-term design has rank 6 of 10
+there, a plane section does not fix an ellipsoid), a badly conditioned design, or a quadric that
+is not an ellipsoid. NaN/inf rows are a DataError naming the rows. No parameter is ever NaN.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
 from drivers.errors import CalibrationRefused, DataError
 
-from .coverage import check_excitation, coverage
-from .model import ProbeCalibration
+from .model import ProbeCalibration, named, triangular_params
 
 N_GEOMETRY = 9
 N_PARAMS = 10
+MIN_SAMPLES = 10
+#: out-of-plane spread / in-plane spread below which samples count as one plane (a single-axis turn)
+PLANARITY_MIN = 0.02
+#: condition number of the column-scaled design above which a fit is refused. Measured: offset
+#: standard errors ≈ 0.04 × condition × noise for 200 samples (a ±20° wobble about one axis: 5e3,
+#: SE 170 nT at 1 nT noise; three full turns or 10 well spread attitudes: 2-5)
+MAX_CONDITION = 1e3
+
+_AXES = {"+x": (1.0, 0, 0), "-x": (-1.0, 0, 0), "+y": (0, 1.0, 0), "-y": (0, -1.0, 0),
+         "+z": (0, 0, 1.0), "-z": (0, 0, -1.0)}
 
 
 def quadric_design(u: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
@@ -58,28 +81,42 @@ def quadric_to_calibration(theta: np.ndarray, scale: float, f2_ref: float) -> tu
     return o_u * scale, lower.T
 
 
+def quadric_matrix(theta: np.ndarray, scale: float, f2_ref: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """(Q, o in nT, κ in nT²) of the fitted quadric: |M(r − o)|² = F₀² with Q = MᵀM (dimensionless),
+    i.e. rᵀQr − 2oᵀQr + oᵀQo = F₀², which is the fitted (right side 1) form times κ = F₀² − oᵀQo.
+
+    Raises numpy.linalg.LinAlgError if the quadric is not an ellipsoid."""
+    offset, m = quadric_to_calibration(theta, scale, f2_ref)
+    q = m.T @ m
+    return q, offset, float(f2_ref - offset @ q @ offset)
+
+
 @dataclass
 class EllipsoidFit:
     """Result of a batch ellipsoid fit, with what a user needs to trust it."""
 
     calibration: ProbeCalibration
+    theta: np.ndarray            # fitted coefficients of the scaled quadric (nine, or ten with δ)
+    theta_cov: np.ndarray        # their covariance, σ² (ΦᵀΦ)⁻¹
+    scale: float                 # s, nT: u = r / s
+    condition: float             # of the column-scaled design
+    residual_rms_nT: float       # RMS of |M(r − o)| − F over the samples
+    total_known: bool            # False: F was assumed (mean raw magnitude), the scale of M is a convention
+    f2_ref: float = float("nan")     # F₀², nT²
+    n_samples: int = 0
+
+
+@dataclass(frozen=True)
+class QuadricSolution:
+    """The linear least-squares solution shared by `fit_ellipsoid` and `tmi.fit_tmi`."""
+
     theta: np.ndarray
     theta_cov: np.ndarray
     scale: float
+    f2_ref: float
     condition: float
-    residual_rms_nT: float
+    total_nT: np.ndarray         # F per sample, nT
     total_known: bool
-
-
-def _as_total(total_nT, n: int, raw: np.ndarray) -> tuple[np.ndarray, bool]:
-    if total_nT is None:
-        return np.full(n, float(np.mean(np.linalg.norm(raw, axis=1)))), False
-    t = np.asarray(total_nT, dtype=float)
-    if t.ndim == 0:
-        t = np.full(n, float(t))
-    if t.shape != (n,):
-        raise DataError(f"total_nT: expected a number or {n} values, got shape {t.shape}")
-    return t, True
 
 
 def finite_rows(field_nT: np.ndarray, what: str = "field_nT") -> np.ndarray:
@@ -95,20 +132,84 @@ def finite_rows(field_nT: np.ndarray, what: str = "field_nT") -> np.ndarray:
     return f
 
 
-def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
-                  max_condition: float = 1e7) -> EllipsoidFit:
-    """Fit offset and upper-triangular matrix to (N, 3) raw samples of one probe.
+def _as_total(total_nT, n: int, raw: np.ndarray) -> tuple[np.ndarray, bool]:
+    if total_nT is None:
+        return np.full(n, float(np.mean(np.linalg.norm(raw, axis=1)))), False
+    t = np.asarray(total_nT, dtype=float)
+    if t.ndim == 0:
+        t = np.full(n, float(t))
+    if t.shape != (n,):
+        raise DataError(f"total_nT: expected a number or {n} values, got shape {t.shape}")
+    bad = np.flatnonzero(~np.isfinite(t) | (t <= 0))
+    if bad.size:
+        raise DataError(f"total_nT: rows {', '.join(map(str, bad[:10].tolist()))} are not a positive finite "
+                        f"field; remove them before fitting")
+    return t, True
 
-    Refuses (CalibrationRefused) data that cannot determine an ellipsoid: too few samples, all in
-    one plane (a single-axis turn), or a badly conditioned design; the message names the missing
-    directions and the motion that would fill them.
-    """
-    raw = finite_rows(field_nT)
+
+# --- what motion is missing ------------------------------------------------------------------------
+
+
+def _planarity(raw: np.ndarray) -> tuple[float, np.ndarray]:
+    """sqrt(smallest / largest eigenvalue) of the sample covariance, and the plane's normal."""
+    w, v = np.linalg.eigh(np.cov(raw.T))
+    return (float(np.sqrt(max(w[0], 0.0) / w[2])) if w[2] > 0 else 0.0), v[:, 0]
+
+
+def missing_directions(raw: np.ndarray, cone_deg: float = 45.0) -> list[str]:
+    """Probe axes (±x, ±y, ±z) no sampled field direction came within `cone_deg` of.
+
+    Uses the raw vectors (offsets are small next to the Earth's field), i.e. where the field pointed
+    in the probe frame."""
+    u = raw / np.linalg.norm(raw, axis=1, keepdims=True)
+    c = np.cos(np.radians(cone_deg))
+    return [k for k, e in _AXES.items() if not np.any(u @ np.asarray(e) > c)]
+
+
+def turn_axes_for(missing: list[str]) -> list[str]:
+    """Axes to turn about so the field sweeps the missing directions: an axis sweeps the directions
+    perpendicular to it; the axes sweeping most of them, best first."""
+    score = {a: sum(1 for m in missing if m[1] != a) for a in "xyz"}
+    best = max(score.values()) if score else 0
+    return [a for a in "xyz" if score[a] == best and best > 0]
+
+
+def excitation_problem(raw: np.ndarray) -> str:
+    """Why these samples cannot fix an ellipsoid ("" if they can, as far as geometry goes)."""
+    plan, normal = _planarity(raw)
+    missing = missing_directions(raw)
+    if plan < PLANARITY_MIN:
+        axis = "xyz"[int(np.argmax(np.abs(normal)))]
+        others = [a for a in "xyz" if a != axis]
+        miss = f"; directions near {', '.join(missing)} not covered" if missing else ""
+        return (f"the samples lie (nearly) in one plane (a single-axis turn about {axis}; the ten-term ellipsoid design "
+                f"has rank 6 of 10 there, a plane section does not fix an ellipsoid){miss}: "
+                f"turn about the {others[0]} or {others[1]} axis too")
+    return ""
+
+
+def _coverage_hint(raw: np.ndarray) -> str:
+    missing = missing_directions(raw)
+    if not missing:
+        return "spread the samples over more attitudes (turn about at least two axes)"
+    return (f"directions near {', '.join(missing)} not covered: turn about the "
+            f"{' or '.join(turn_axes_for(missing))} axis")
+
+
+# --- the shared least-squares solve ----------------------------------------------------------------
+
+
+def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
+                  max_condition: float = MAX_CONDITION, min_samples: int = MIN_SAMPLES) -> QuadricSolution:
+    """Least squares of uᵀA'u + b'ᵀu (− γδ) = 1 over (N, 3) raw samples; refuses what it cannot fix."""
+    raw = finite_rows(field_nT, f"{name}: field_nT")
     n = raw.shape[0]
-    if n < N_PARAMS:
-        raise CalibrationRefused(f"{name}: {n} samples, an ellipsoid fit needs at least {N_PARAMS} "
-                                 f"in several rotation planes")
-    check_excitation(raw, name=name)
+    if n < min_samples:
+        raise CalibrationRefused(f"{name}: {n} samples; the fit needs at least {min_samples}, spread over "
+                                 f"turns about at least two axes")
+    problem = excitation_problem(raw)
+    if problem:
+        raise CalibrationRefused(f"{name}: {problem}")
     f, known = _as_total(total_nT, n, raw)
     scale = float(np.median(np.linalg.norm(raw, axis=1)))
     f2_ref = float(np.mean(f ** 2))
@@ -122,34 +223,36 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     u, sv, vt = np.linalg.svd(phin, full_matrices=False)
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
     if not np.isfinite(cond) or cond > max_condition:
-        cov = coverage(raw)
         raise CalibrationRefused(f"{name}: the samples do not determine an ellipsoid (condition number "
-                                 f"{cond:.3g}); {cov.reason or 'add rotations about other axes'}")
-    theta_n = vt.T @ ((u.T @ y) / sv)
-    theta = theta_n / col
+                                 f"{cond:.3g} > {max_condition:.3g}); {_coverage_hint(raw)}")
+    # θ = V Σ⁻¹ Uᵀ y (column-scaled), never an explicit inverse of ΦᵀΦ
+    theta = (vt.T @ ((u.T @ y) / sv)) / col
     resid = y - phi @ theta
     dof = max(n - phi.shape[1], 1)
     sigma2 = float(resid @ resid) / dof
     # cov(θ) = σ² (ΦᵀΦ)⁻¹, through the SVD of the column-scaled design
     vs = vt.T / sv
     theta_cov = sigma2 * (vs @ vs.T) / np.outer(col, col)
-    f2m = f2_ref
-    try:
-        offset, matrix = quadric_to_calibration(theta, scale, f2m)
-    except np.linalg.LinAlgError:
-        raise CalibrationRefused(f"{name}: the fitted quadric is not an ellipsoid; the data are not "
-                                 f"one probe rotating in a steady field") from None
-    o_se, m_se = _propagate(theta, theta_cov, scale, f2m)
-    corr = (raw - offset) @ matrix.T
-    rms = float(np.sqrt(np.mean((np.linalg.norm(corr, axis=1) - f) ** 2)))
-    params = {"offset_nT": {"value": offset.tolist(), "se": o_se.tolist(), "unit": "nT"}}
-    if not known:
-        params["total_nT_assumed"] = {"value": float(f[0]), "se": None, "unit": "nT",
-                                      "note": "total field unknown: the scale of the matrix is a convention"}
-    cal = ProbeCalibration(name, offset, matrix, o_se, m_se, params)
-    if not cal.is_finite():
-        raise CalibrationRefused(f"{name}: the fit produced non-finite parameters")
-    return EllipsoidFit(cal, theta, theta_cov, scale, cond, rms, known)
+    return QuadricSolution(theta, theta_cov, scale, f2_ref, cond, f, known)
+
+
+def jacobian_se(func: Callable[[np.ndarray], np.ndarray], theta: np.ndarray,
+                cov: np.ndarray) -> np.ndarray | None:
+    """Standard errors of func(θ) by a forward-difference Jacobian, steps of 1 % of each θ's own
+    standard error (None if func fails near θ, e.g. the quadric stops being an ellipsoid)."""
+    base = np.asarray(func(theta), float)
+    sd = np.sqrt(np.maximum(np.diag(cov), 0))
+    jac = np.empty((base.size, theta.size))
+    for i in range(theta.size):
+        h = sd[i] * 1e-2 if sd[i] > 0 else abs(theta[i]) * 1e-8 + 1e-12
+        t = theta.copy()
+        t[i] += h
+        try:
+            jac[:, i] = (np.asarray(func(t), float) - base) / h
+        except (np.linalg.LinAlgError, ValueError):
+            return None
+    c = jac @ cov @ jac.T
+    return np.sqrt(np.maximum(np.diag(c), 0))
 
 
 def _propagate(theta: np.ndarray, cov: np.ndarray, scale: float, f2m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -159,18 +262,82 @@ def _propagate(theta: np.ndarray, cov: np.ndarray, scale: float, f2m: float) -> 
         o, m = quadric_to_calibration(t, scale, f2m)
         return np.concatenate([o, m.ravel()])
 
-    base = flat(theta)
-    npar = theta.shape[0]
-    jac = np.empty((12, npar))
-    sd = np.sqrt(np.maximum(np.diag(cov), 0))
-    for i in range(npar):
-        h = sd[i] * 1e-2 if sd[i] > 0 else abs(theta[i]) * 1e-8 + 1e-12
-        t = theta.copy()
-        t[i] += h
-        try:
-            jac[:, i] = (flat(t) - base) / h
-        except np.linalg.LinAlgError:
-            return np.full(3, np.nan), np.full((3, 3), np.nan)
-    c = jac @ cov @ jac.T
-    se = np.sqrt(np.maximum(np.diag(c), 0))
+    se = jacobian_se(flat, theta, cov)
+    if se is None:
+        return np.full(3, np.nan), np.full((3, 3), np.nan)
     return se[:3], se[3:].reshape(3, 3)
+
+
+def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
+                  max_condition: float = MAX_CONDITION) -> EllipsoidFit:
+    """Fit offset and upper-triangular matrix to (N, 3) raw samples of one probe.
+
+    total_nT: the reference total field per sample (N,), a constant, or None (unknown: the mean raw
+    magnitude is assumed and the scale of the matrix is a convention).
+    Refuses (CalibrationRefused) data that cannot determine an ellipsoid: too few samples, all in
+    one plane (a single-axis turn), or a badly conditioned design; the message names the missing
+    directions and the motion that would fill them.
+    """
+    sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition)
+    raw = np.asarray(field_nT, float)
+    theta, cov, scale, f2m = sol.theta, sol.theta_cov, sol.scale, sol.f2_ref
+    try:
+        offset, matrix = quadric_to_calibration(theta, scale, f2m)
+    except np.linalg.LinAlgError:
+        raise CalibrationRefused(f"{name}: the fitted quadric is not an ellipsoid; the data are not "
+                                 f"one probe rotating in a steady field") from None
+    o_se, m_se = _propagate(theta, cov, scale, f2m)
+    corr = (raw - offset) @ matrix.T
+    rms = float(np.sqrt(np.mean((np.linalg.norm(corr, axis=1) - sol.total_nT) ** 2)))
+
+    def physical(t: np.ndarray) -> np.ndarray:
+        angles, c = triangular_params(quadric_to_calibration(t, scale, f2m)[1])
+        return np.concatenate([angles, c])
+
+    phys = physical(theta)
+    phys_se = jacobian_se(physical, theta, cov)
+    phys_se = np.full(6, np.nan) if phys_se is None else phys_se
+    params = {"offset_nT": named(offset, o_se, "nT"),
+              "nonorth_deg": named(phys[:3], phys_se[:3], "deg", names=["phi", "theta", "psi"],
+                                   note="001 eq. 11: x axis tilt out of the y-z plane (phi), in it (theta), "
+                                        "y axis tilt towards z (psi)"),
+              "scale": named(phys[3:], phys_se[3:], "", names=["c_x", "c_y", "c_z"]),
+              "residual_rms_nT": named(rms, None, "nT"),
+              "condition": named(sol.condition, None, ""),
+              "samples": named(raw.shape[0], None, "")}
+    if not sol.total_known:
+        params["total_nT_assumed"] = named(float(sol.total_nT[0]), None, "nT",
+                                           note="total field unknown: the mean raw magnitude was assumed, so the "
+                                                "scale of the matrix (and the scale factors) is a convention")
+        params["scale"]["note"] = "relative to the assumed total field"
+    cal = ProbeCalibration(name, offset, matrix, o_se, m_se, params)
+    if not cal.is_finite():
+        raise CalibrationRefused(f"{name}: the fit produced non-finite parameters")
+    return EllipsoidFit(cal, theta, cov, scale, sol.condition, rms, sol.total_known, f2m, raw.shape[0])
+
+
+# --- the factor conventions ------------------------------------------------------------------------
+
+
+def triangular_factor(q: np.ndarray, pattern: str = "upper") -> np.ndarray:
+    """A factor A of a positive definite Q (AᵀA = Q) with its rotation fixed by a zero pattern.
+
+    "upper": upper-triangular, positive diagonal (001's triangular model; what `fit_ellipsoid` gives).
+    "000":   [[a11, a12, 0], [0, a22, 0], [a31, a32, a33]] of 000 eq. 8:
+             a33 = √Q33, a32 = Q23/a33, a31 = Q13/a33, a11 = √(Q11 − a31²),
+             a12 = (Q12 − a31 a32)/a11 (the paper prints a31 on the left), a22 = √(Q22 − a12² − a32²).
+    Raises numpy.linalg.LinAlgError unless Q is positive definite.
+    """
+    q = np.asarray(q, float)
+    if pattern == "upper":
+        return np.linalg.cholesky(q).T
+    if pattern != "000":
+        raise ValueError(f"pattern: {pattern!r} is not allowed (allowed: 'upper', '000')")
+    np.linalg.cholesky(q)            # positive definite, or LinAlgError
+    a33 = np.sqrt(q[2, 2])
+    a32 = q[1, 2] / a33
+    a31 = q[0, 2] / a33
+    a11 = np.sqrt(q[0, 0] - a31 ** 2)
+    a12 = (q[0, 1] - a31 * a32) / a11
+    a22 = np.sqrt(q[1, 1] - a12 ** 2 - a32 ** 2)
+    return np.array([[a11, a12, 0.0], [0.0, a22, 0.0], [a31, a32, a33]])
