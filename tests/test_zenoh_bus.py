@@ -412,12 +412,16 @@ def test_a_bus_on_a_shared_session_leaves_the_session_open(stack):
 
 # --- the multi-host layout on loopback ------------------------------------------------------------
 
-def test_router_in_the_middle_relays_streams_state_and_commands(stack):
-    """unit (client) -> router <- dashboard (client): what a site does with zenohd, here a Python router."""
+@pytest.mark.parametrize("unit_mode", ["client", "peer"])
+def test_router_in_the_middle_relays_streams_state_and_commands(stack, unit_mode):
+    """unit (client or peer) -> router <- dashboard (client): what a site does with zenohd, here a Python router."""
     router_ep = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(load_section(ZenohConfig, {"mode": "router", "listen": [router_ep]}, "zenoh"))
     stack.callback(router.close)
-    unit_cfg = load_section(ZenohConfig, {"mode": "client", "connect": [router_ep]}, "zenoh")
+    unit_table = {"mode": unit_mode, "connect": [router_ep]}
+    if unit_mode == "peer":
+        unit_table["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
+    unit_cfg = load_section(ZenohConfig, unit_table, "zenoh")
     bus = stack.enter_context(ServiceBus(unit_cfg, "far1", state_fn=lambda: {"usable": True, "cal_id": 9}))
     daemon = FakeDaemon(bus, answer={"ok": True, "cal_id": 10})
     stack.callback(daemon.close)
