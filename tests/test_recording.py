@@ -215,3 +215,28 @@ def test_service_records_every_intact_frame_and_replay_equals_live(tmp_path):
     assert np.array_equal(got, want)
     assert len(rec.corrected_blocks) > 100
     assert main(["replay", str(tmp_path / "rec")]) == 0
+
+
+@pytest.mark.slow
+def test_service_reconnects_after_the_port_closes_and_counts_the_gap(tmp_path, capsys):
+    cfg_text = (open("configs/sim-gradiometer.toml").read()
+                .replace('run_s = 0 ', 'run_s = 8')
+                .replace('dir = "recordings/live"', f'dir = "{tmp_path / "rec"}"')
+                .replace('file = "state/grad1-cal.json"', f'file = "{tmp_path / "cal.json"}"')
+                .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]')
+                .replace('[sim.faults]', '[sim.faults]\noutage_at_s = [3.0]\noutage_s = 1.0'))
+    cfg_path = tmp_path / "c.toml"
+    cfg_path.write_text(cfg_text)
+    assert main(["run", "--config", str(cfg_path)]) == 0
+    err = capsys.readouterr().err
+    assert "input lost" in err and "input reconnected" in err
+    rec = read_recording(tmp_path / "rec")
+    seq = np.concatenate([b.seq for b in rec.raw_blocks])
+    gaps = np.diff(seq)
+    assert gaps.max() >= 150                                          # ~1 s at 200 Hz missing
+    assert seq[-1] >= 1500                                            # and the run went on after it
+    from drivers.mcap_source import iter_records
+
+    health = [json.loads(r.data) for r in iter_records(tmp_path / "rec") if r.topic.endswith("/health")]
+    last = health[-1]["counters"]
+    assert last["reconnects"] >= 1 and last["seq_gaps"] >= 1 and last["samples_missed"] >= 150
