@@ -26,8 +26,9 @@ ellipsoid alone cannot tell a 1 % larger field from 1 % larger sensitivities), a
 so in its params ("total_nT_assumed").
 
 Refusals (CalibrationRefused) name what is missing and the motion that would fill it: fewer than
-ten samples, all samples in one plane (a single-axis turn: the ten-term design has rank 6 of 10
-there, a plane section does not fix an ellipsoid), a badly conditioned design, or a quadric that
+ten samples, all samples in one plane (a single-axis turn: the ten-term design has rank 5 of 10
+there — the samples lie on one conic in one plane; at most 6 for any planar set — and a plane
+section does not fix an ellipsoid), a badly conditioned design, or a quadric that
 is not an ellipsoid. NaN/inf rows are a DataError naming the rows. No parameter is ever NaN.
 """
 
@@ -183,7 +184,8 @@ def excitation_problem(raw: np.ndarray) -> str:
         others = [a for a in "xyz" if a != axis]
         miss = f"; directions near {', '.join(missing)} not covered" if missing else ""
         return (f"the samples lie (nearly) in one plane (a single-axis turn about {axis}; the ten-term ellipsoid design "
-                f"has rank 6 of 10 there, a plane section does not fix an ellipsoid){miss}: "
+                f"has rank 5 of 10 there, the points of one turn lie on one conic: a plane section does not fix "
+                f"an ellipsoid){miss}: "
                 f"turn about the {others[0]} or {others[1]} axis too")
     return ""
 
@@ -200,8 +202,13 @@ def _coverage_hint(raw: np.ndarray) -> str:
 
 
 def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
-                  max_condition: float = MAX_CONDITION, min_samples: int = MIN_SAMPLES) -> QuadricSolution:
-    """Least squares of uᵀA'u + b'ᵀu (− γδ) = 1 over (N, 3) raw samples; refuses what it cannot fix."""
+                  max_condition: float = MAX_CONDITION, min_samples: int = MIN_SAMPLES,
+                  noise_nT: float | None = None) -> QuadricSolution:
+    """Least squares of uᵀA'u + b'ᵀu (− γδ) = 1 over (N, 3) raw samples; refuses what it cannot fix.
+
+    noise_nT: the noise of |b| if known (e.g. from a recording at rest); the covariance then uses it
+    instead of the residual variance, which is a poor estimate with few samples beyond the unknowns
+    (ten samples leave one degree of freedom)."""
     raw = finite_rows(field_nT, f"{name}: field_nT")
     n = raw.shape[0]
     if n < min_samples:
@@ -230,6 +237,13 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     resid = y - phi @ theta
     dof = max(n - phi.shape[1], 1)
     sigma2 = float(resid @ resid) / dof
+    if noise_nT is not None:
+        # |M(r − o)| = F + ε makes the equation's residual 2 F ε / κ, κ = F₀² − oᵀQo
+        try:
+            _, _, kappa = quadric_matrix(theta, scale, f2_ref)
+            sigma2 = float(np.mean((2.0 * f * float(noise_nT) / kappa) ** 2))
+        except np.linalg.LinAlgError:
+            pass                     # not an ellipsoid: the caller refuses it
     # cov(θ) = σ² (ΦᵀΦ)⁻¹, through the SVD of the column-scaled design
     vs = vt.T / sv
     theta_cov = sigma2 * (vs @ vs.T) / np.outer(col, col)
@@ -269,7 +283,7 @@ def _propagate(theta: np.ndarray, cov: np.ndarray, scale: float, f2m: float) -> 
 
 
 def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
-                  max_condition: float = MAX_CONDITION) -> EllipsoidFit:
+                  max_condition: float = MAX_CONDITION, noise_nT: float | None = None) -> EllipsoidFit:
     """Fit offset and upper-triangular matrix to (N, 3) raw samples of one probe.
 
     total_nT: the reference total field per sample (N,), a constant, or None (unknown: the mean raw
@@ -277,8 +291,9 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     Refuses (CalibrationRefused) data that cannot determine an ellipsoid: too few samples, all in
     one plane (a single-axis turn), or a badly conditioned design; the message names the missing
     directions and the motion that would fill them.
+    noise_nT: the noise of |b| if known; standard errors then use it (see `solve_quadric`).
     """
-    sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition)
+    sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT)
     raw = np.asarray(field_nT, float)
     theta, cov, scale, f2m = sol.theta, sol.theta_cov, sol.scale, sol.f2_ref
     try:

@@ -26,7 +26,8 @@ Two things in the paper do not hold as printed, and this module does what they i
   (sinθ cosφ sinψ − sinφ cosψ)/(cosθ cosφ cosψ) (model.triangular_matrix).
 
 Ten samples are the minimum, and they must not be coplanar: the first ten samples of one turn about
-z (as 001 section 5.1 uses) lie in a plane in every probe frame and the ten-column design has rank 6;
+z (as 001 section 5.1 uses) lie on one conic in one plane in every probe frame and the ten-column
+design has rank 5 (noise lifts the five null singular values only to ~1e-5 of the largest);
 such data are refused with the motion that would help.
 """
 
@@ -143,12 +144,16 @@ def _chain(theta: np.ndarray, scale: float, f2_ref: float) -> np.ndarray:
 
 
 def fit_tmi_full(field_nT: np.ndarray, total_nT, *, name: str = "s1",
-                 max_condition: float = MAX_CONDITION) -> TmiFit:
-    """001 section 4 on (N ≥ 10, 3) raw samples of one probe and the scalar reference F (N,) or F."""
+                 max_condition: float = MAX_CONDITION, noise_nT: float | None = None) -> TmiFit:
+    """001 section 4 on (N ≥ 10, 3) raw samples of one probe and the scalar reference F (N,) or F.
+
+    noise_nT: the noise of |b| if known; standard errors then use it rather than the residuals
+    (ten samples leave a single degree of freedom to estimate the noise from)."""
     if total_nT is None:
         raise CalibrationRefused(f"{name}: tmi needs a scalar reference of the total field "
                                  f"(a ref_total column or a configured total_nT)")
-    sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, min_samples=MIN_SAMPLES)
+    sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, min_samples=MIN_SAMPLES,
+                        noise_nT=noise_nT)
     raw = np.asarray(field_nT, float)
     try:
         out = _chain(sol.theta, sol.scale, sol.f2_ref)
@@ -176,7 +181,7 @@ def fit_tmi_full(field_nT: np.ndarray, total_nT, *, name: str = "s1",
 
 
 def fit_tmi(field_nT: np.ndarray, total_nT, *, name: str = "s1",
-            max_condition: float = MAX_CONDITION) -> ProbeCalibration:
+            max_condition: float = MAX_CONDITION, noise_nT: float | None = None) -> ProbeCalibration:
     """001 section 4: the probe's calibration in its own triangular frame, with named parameters
     nonorth_deg (φ, θ, ψ), scale (c_x, c_y, c_z), offset_nT (i_x, i_y, i_z) and their standard errors."""
-    return fit_tmi_full(field_nT, total_nT, name=name, max_condition=max_condition).calibration
+    return fit_tmi_full(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT).calibration
