@@ -37,7 +37,7 @@ def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:
                     total_nT=est.total_nT, align=est.align, min_samples=est.min_samples,
                     gate_coverage=est.gate_coverage, gate_condition=est.gate_condition,
                     gate_rms_nT=est.gate_rms_nT, check_every_samples=max(1, int(round(est.check_every_s * rate))),
-                    window_samples=int(est.window_s * rate), chunk_samples=max(1, min(100, int(rate // 2))),
+                    window_samples=int(est.window_s * rate), chunk_samples=max(1, int(rate // 4)),
                     initial=initial)
 
 
@@ -88,7 +88,8 @@ class Daemon:
         logger = None
         bus = None
         try:
-            bus = ServiceBus(cfg.zenoh, unit=cfg.unit.name, state_fn=lambda: self._state(pipeline, source, logger))
+            bus = ServiceBus(cfg.zenoh, unit=cfg.unit.name, probe_names=cfg.probe_names,
+                             state_fn=lambda: self._state(pipeline, source, logger))
             if cfg.mcap.enabled:
                 from .mcap_sink import McapLogger
 

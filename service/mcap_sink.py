@@ -11,7 +11,7 @@ Channels of one unit (topics):
     /fluxcal/<unit>/health       json (jsonschema)     source counters, about once a second
 
 log_time is the unit time of a block's first sample in ns; publish_time the wall clock. Files are
-chunked and zstd-compressed, flushed about once a second (a SIGKILL loses at most that), rotated by
+chunked and lz4-compressed (zstd on request), flushed about once a second (a SIGKILL loses at most that), rotated by
 size or age into `<unit>-<YYYYmmddTHHMMSS>-<NNNN>.mcap`, each starting with a "fluxcal" metadata
 record (unit, probes, configuration). Write errors (a full disk) are counted and reported, never
 raised: logging resumes in a new file once writing works again. One thread feeds a logger.
@@ -63,7 +63,7 @@ class McapLogger:
 
     def __init__(self, directory: str | Path, *, unit: str, rotate_mb: float = 256.0, rotate_s: float = 3600.0,
                  chunk_size: int = 1 << 20, flush_interval_s: float = 1.0, metadata: dict[str, str] | None = None,
-                 filename: str | None = None, compression: str = "zstd", opener=open) -> None:
+                 filename: str | None = None, compression: str = "lz4", opener=open) -> None:
         self.dir = Path(directory)
         self.unit = unit
         self.rotate_bytes = rotate_mb * 1e6

@@ -55,6 +55,12 @@ class Processed:
     events: list[PipelineEvent]
 
 
+def _apply(m: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """b[n, p, i] = Σ_j m[p, i, j] d[n, p, j], element by element: the same rounding whatever N is
+    (a BLAS product may sum differently for different block sizes, and replay must equal live)."""
+    return d[..., 0:1] * m[None, :, :, 0] + d[..., 1:2] * m[None, :, :, 1] + d[..., 2:3] * m[None, :, :, 2]
+
+
 def _join(pieces: list[CorrectedBlock]) -> CorrectedBlock | None:
     """One CorrectedBlock from consecutive pieces (cal_id: the one in use at the block's end)."""
     if not pieces:
@@ -185,7 +191,7 @@ class Pipeline:
         if self.calibration is None:
             return None
         # b_k = M_k (raw_k - o_k) for every sample and probe at once
-        c = np.einsum("pij,npj->npi", self._matrices, block.field_nT - self._offsets[None])
+        c = _apply(self._matrices, block.field_nT - self._offsets[None])
         diff = c[:, 1:] - c[:, :1] if self.n_probes > 1 else None
         center = c.mean(axis=1) if self.n_probes > 1 else None
         tens = None

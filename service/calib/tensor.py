@@ -57,7 +57,10 @@ def tensor_from_positions(corrected_nT: np.ndarray, positions_m: np.ndarray) -> 
                           "a tensor needs at least a planar array")
     db = corrected_nT - corrected_nT.mean(axis=1, keepdims=True)
     pinv = np.linalg.pinv(d)                                      # (3, P)
-    g = np.einsum("ip,npj->nij", pinv, db)                        # G = D⁺ ΔB
+    # G = D⁺ ΔB, summed probe by probe: the same rounding whatever the block length (replay = live)
+    g = pinv[None, :, 0, None] * db[:, None, 0, :]
+    for k in range(1, db.shape[1]):
+        g = g + pinv[None, :, k, None] * db[:, None, k, :]
     if rank == 3:
         return g
     normal = vt[2]

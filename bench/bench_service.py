@@ -1,0 +1,204 @@
+"""Benchmarks (not tests) of the service, printed with the machine they ran on.
+
+1. Replay throughput in probe-samples/s, including MCAP decode and write, of a 4-probe 1 kHz
+   recording cut into the 20-sample blocks a live unit delivers, against the bare numerics
+   (ICD parse + calibrate) of the same samples in the same run.
+2. Live latency from a frame written to the pty to its corrected Zenoh message received, p50 and
+   p99, and the service's CPU use, at 1 kHz with 4 probes.
+
+Run by hand:  .venv/bin/python bench/bench_service.py [--seconds 20]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import tty
+from pathlib import Path
+
+import numpy as np
+
+from drivers.block import SampleBlock
+from drivers.icd import encode_serial, parse_serial
+from drivers.sim.config import load_sim_config
+from drivers.sim.unit import Unit
+from service.calib.calfile import save_calibration
+from service.calib.model import ArrayCalibration, ProbeCalibration
+
+N_PROBES, RATE = 4, 1000.0
+PROBES = [{"name": f"s{k + 1}", "position_m": p, "offset_nT": [100.0 * k, -50.0, 30.0], "noise_nT": 0.5}
+          for k, p in enumerate([[0.2, 0, 0], [0, 0.2, 0], [-0.2, 0, 0], [0, -0.2, 0]])]
+
+
+def machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}"
+
+
+def config_text(tmp: Path, source: str, port: int, initial: Path) -> str:
+    lines = ['[unit]', 'name = "bench"', f'n_probes = {N_PROBES}', '']
+    for p in PROBES:
+        lines += ['[[probes]]', f'name = "{p["name"]}"', f'position_m = {p["position_m"]}', '']
+    lines += [source, '', '[sim]', f'rate_hz = {RATE}', '[sim.reference]', 'enabled = false', '']
+    for p in PROBES:
+        lines += ['[[sim.probes]]'] + [f'{k} = {json.dumps(v)}' for k, v in p.items()] + ['']
+    lines += ['[estimator]', 'total_nT = 52500.0', '[calibration]', f'file = "{tmp / "cal.json"}"',
+              f'initial = "{initial}"', '[zenoh]', f'listen = ["tcp/127.0.0.1:{port}"]',
+              '[mcap]', f'dir = "{tmp / "rec"}"', '']
+    return "\n".join(lines)
+
+
+def make_samples(seconds: float):
+    cfg = load_sim_config({"rate_hz": RATE, "duration_s": seconds, "probes": PROBES})
+    unit = Unit(cfg)
+    return cfg, unit, unit.digitise(0, cfg.n_samples)
+
+
+def bench_replay(tmp: Path, seconds: float) -> None:
+    from service.config import config_from_dict
+    import tomllib
+    from service.mcap_sink import McapLogger
+    from service.daemon import build_pipeline
+    from service.recording import read_recording
+
+    cfg, unit, s = make_samples(seconds)
+    block = s.to_block()
+    log = McapLogger(tmp / "rep", unit="bench", filename="in.mcap")
+    for i in range(0, block.n_samples, 20):
+        log.write_raw(block.slice(i, i + 20))
+    log.close()
+    initial = tmp / "identity.json"
+    save_calibration(ArrayCalibration("ellipsoid", None, [ProbeCalibration(p["name"], np.zeros(3), np.eye(3))
+                                                          for p in PROBES]), initial)
+    fcfg = config_from_dict(tomllib.loads(config_text(tmp, '[source]\nkind = "sim"', 7447, initial)))
+    # replay path: MCAP decode -> pipeline (estimator, gate, correction) -> MCAP write
+    t0 = time.perf_counter()
+    rec = read_recording(tmp / "rep" / "in.mcap")
+    pipe = build_pipeline(fcfg)
+    whole = SampleBlock.concat(rec.raw_blocks)
+    out = McapLogger(tmp / "rep", unit="bench", filename="out.mcap")
+    for i in range(0, whole.n_samples, 20000):
+        b = whole.slice(i, i + 20000)
+        r = pipe.process(b)
+        out.write_raw(b)
+        if r.corrected is not None:
+            out.write_corrected(r.corrected)
+    out.close()
+    t_replay = time.perf_counter() - t0
+    # bare numerics: parse the ICD bytes and apply a calibration, same samples
+    data = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
+    m = np.stack([np.eye(3)] * N_PROBES)
+    o = np.zeros((N_PROBES, 3))
+    t0 = time.perf_counter()
+    p = parse_serial(data, N_PROBES, final=True)
+    f = p.frames.counts * 0.001
+    np.einsum("pij,npj->npi", m, f - o[None])
+    t_bare = time.perf_counter() - t0
+    n = whole.n_samples * N_PROBES
+    print(f"replay (MCAP decode + pipeline + MCAP write), {whole.n_samples} samples x {N_PROBES} probes: "
+          f"{n / t_replay:,.0f} probe-samples/s")
+    print(f"bare parse + calibrate of the same samples:                         {n / t_bare:,.0f} probe-samples/s")
+    print(f"ratio replay / bare: {t_bare / t_replay:.3f}")
+
+
+def cpu_seconds(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as f:
+        parts = f.read().rsplit(")", 1)[1].split()
+    return (int(parts[11]) + int(parts[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def bench_live(tmp: Path, seconds: float) -> None:
+    from service.zenoh_bus import BusClient, ZenohConfig
+
+    cfg, unit, s = make_samples(seconds + 10)
+    master, slave = os.openpty()
+    tty.setraw(master)
+    port_path = os.ttyname(slave)
+    with socket.socket() as sk:
+        sk.bind(("127.0.0.1", 0))
+        port = sk.getsockname()[1]
+    initial = tmp / "identity.json"
+    save_calibration(ArrayCalibration("ellipsoid", None, [ProbeCalibration(p["name"], np.zeros(3), np.eye(3))
+                                                          for p in PROBES]), initial)
+    src = (f'[source]\nkind = "serial"\nport = "{port_path}"\nn_probes = {N_PROBES}\nread_timeout_s = 0.002')
+    cfg_path = tmp / "live.toml"
+    text = config_text(tmp, src, port, initial).replace("[sim]\n", "#").replace(f"rate_hz = {RATE}\n", "")
+    text = "\n".join(ln for ln in text.splitlines() if not ln.startswith(("[sim.", "[[sim.")) and
+                     not (ln.split(" = ")[0] in ("enabled", "name", "position_m", "offset_nT", "noise_nT")
+                          and "sim" in text[:0]))
+    cfg_path.write_text(config_text(tmp, src, port, initial).split("\n[sim]")[0] + "\n" +
+                        config_text(tmp, src, port, initial).split("[estimator]", 1)[1].join(["[estimator]", ""]))
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "run", "--config", str(cfg_path)],
+                            stderr=subprocess.PIPE, text=True)
+    time.sleep(3.0)
+    client = BusClient(ZenohConfig.client(f"tcp/127.0.0.1:{port}"), "bench", streams=["corrected"])
+    frames = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
+    fl = len(frames) // len(s.seq_raw)
+    sent_at = np.zeros(len(s.seq_raw))
+    lat = []
+    stop = threading.Event()
+
+    def receive():
+        while not stop.is_set():
+            msg = client.recv(timeout=0.2)
+            if msg is None:
+                continue
+            now = time.perf_counter()
+            seq = int(msg.value.seq[-1])
+            if seq < len(sent_at) and sent_at[seq] > 0:
+                lat.append(now - sent_at[seq])
+
+    th = threading.Thread(target=receive, daemon=True)
+    th.start()
+    n = int(seconds * RATE)
+    cpu0 = cpu_seconds(proc.pid)
+    t_start = time.perf_counter()
+    for i in range(n):
+        target = t_start + i / RATE
+        while time.perf_counter() < target:
+            time.sleep(0.0002)
+        os.write(master, frames[i * fl:(i + 1) * fl])
+        sent_at[i] = time.perf_counter()
+    wall = time.perf_counter() - t_start
+    cpu = cpu_seconds(proc.pid) - cpu0
+    time.sleep(1.0)
+    stop.set()
+    th.join()
+    client.close()
+    proc.send_signal(signal.SIGTERM)
+    proc.wait(20)
+    os.close(master)
+    a = np.array(lat[len(lat) // 10:]) * 1e3          # skip the first tenth (start-up)
+    print(f"live, {N_PROBES} probes at {RATE:.0f} Hz over a pty, {seconds:.0f} s: latency frame written -> "
+          f"corrected message received p50 {np.percentile(a, 50):.2f} ms, p99 {np.percentile(a, 99):.2f} ms "
+          f"({a.size} messages); service CPU {100 * cpu / wall:.1f} % of one core")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seconds", type=float, default=20.0)
+    args = ap.parse_args()
+    print("machine:", machine())
+    with tempfile.TemporaryDirectory() as d:
+        bench_replay(Path(d), 60.0)
+        bench_live(Path(d), args.seconds)
+
+
+if __name__ == "__main__":
+    main()
