@@ -23,6 +23,7 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused, DataError
 
+from .ellipsoid import PLANARITY_MIN, _planarity
 from .model import ProbeCalibration, named, unit_column_split
 
 
@@ -49,6 +50,17 @@ def align_regression(ref_nT: np.ndarray, raw_nT: np.ndarray) -> tuple[np.ndarray
     raw = _finite(raw_nT, "align_regression: raw_nT")
     if ref.shape != raw.shape:
         raise DataError(f"align_regression: ref_nT {ref.shape} and raw_nT {raw.shape} differ in shape")
+    if raw.shape[0] < 4:
+        raise CalibrationRefused(f"regression alignment: {raw.shape[0]} samples; it needs at least 4 spanning "
+                                 f"three directions (turns about at least two axes)")
+    plan, normal = _planarity(raw)
+    if plan < PLANARITY_MIN:
+        # one turn: [X_k, 1] has rank 3 (the plane's equation is a null combination), eq. 15 fails
+        axis = "xyz"[int(np.argmax(np.abs(normal)))]
+        others = [a for a in "xyz" if a != axis]
+        raise CalibrationRefused(f"regression alignment: the samples do not span three directions (they lie in "
+                                 f"one plane: a single-axis turn about {axis}); turn about the {others[0]} or "
+                                 f"{others[1]} axis too")
     x = np.column_stack([raw, np.ones(raw.shape[0])])
     # scale the columns so the rank test does not see nT² against 1
     col = np.linalg.norm(x, axis=0)
@@ -63,7 +75,11 @@ def align_regression(ref_nT: np.ndarray, raw_nT: np.ndarray) -> tuple[np.ndarray
 
 def regression_calibration(name: str, ref_nT: np.ndarray, raw_nT: np.ndarray) -> ProbeCalibration:
     """Probe k as a ProbeCalibration in the reference probe's frame: M = A, o = −A⁻¹ c, with standard
-    errors from the regression and 000's named parameters (sensitivities, unit-column matrix)."""
+    errors from the regression and 000's named parameters (sensitivities, unit-column matrix).
+
+    The standard errors are those of the regression given the reference: errors of the reference
+    probe's own calibration carry over one to one (an offset error δE_1 of probe 1 moves E_k by
+    about A_k⁻¹ A_1 δE_1) and are not included."""
     a, c = align_regression(ref_nT, raw_nT)
     offset = -np.linalg.solve(a, c)
     raw = np.asarray(raw_nT, float)
