@@ -17,6 +17,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from drivers.block import SampleBlock
 from drivers.errors import DataError, DriverError, FluxcalError
 from drivers.source import Source, open_source
 
@@ -62,6 +63,7 @@ class Daemon:
         self.stop = stop or threading.Event()
         self.say = say or (lambda msg: print(f"fluxcal: {msg}", file=sys.stderr, flush=True))
         self.cal_path = Path(cfg.calibration.file)
+        self._pending_error: DriverError | None = None
 
     def _initial_calibration(self):
         c = self.cfg.calibration
@@ -120,6 +122,27 @@ class Daemon:
             self.say("stopped")
         return 0
 
+    def _read_batch(self, source: Source):
+        """One block of about `unit.block_ms` of input: fewer, larger blocks cost less CPU per sample.
+        A port that fails mid-batch: the samples already read are processed first, the error comes next."""
+        if self._pending_error is not None:
+            e, self._pending_error = self._pending_error, None
+            raise e
+        first = source.read(timeout=0.05)
+        if first is None:
+            return None
+        parts = [first]
+        # let the rest of the block arrive in the port's buffer, then take it in one read and one parse
+        if self.stop.wait(self.cfg.unit.block_ms / 1000.0):
+            return first
+        try:
+            more = source.read(timeout=0.001)
+            if more is not None:
+                parts.append(more)
+        except DriverError as e:
+            self._pending_error = e
+        return parts[0] if len(parts) == 1 else SampleBlock.concat(parts)
+
     def _state(self, pipeline: Pipeline, source: Source, logger) -> dict[str, Any]:
         st = pipeline.state()
         st["health"] = source.counters.as_dict()
@@ -135,7 +158,7 @@ class Daemon:
             for cmd in bus.pending_commands():
                 self._apply_command(cmd, pipeline, bus, logger)
             try:
-                block = source.read(timeout=0.05)
+                block = self._read_batch(source)
                 backoff = 0.1
             except DriverError as e:
                 self.say(f"input lost: {e}; reconnecting in {backoff:.1f} s")
