@@ -162,7 +162,8 @@ def missing_directions(raw: np.ndarray, cone_deg: float = 45.0) -> list[str]:
 
     Uses the raw vectors (offsets are small next to the Earth's field), i.e. where the field pointed
     in the probe frame."""
-    u = raw / np.linalg.norm(raw, axis=1, keepdims=True)
+    norm = np.linalg.norm(raw, axis=1, keepdims=True)
+    u = raw / np.where(norm > 0, norm, 1.0)
     c = np.cos(np.radians(cone_deg))
     return [k for k, e in _AXES.items() if not np.any(u @ np.asarray(e) > c)]
 
