@@ -540,7 +540,8 @@ def _try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: _Heldou
             # the model's normal equations at this very point are known: assemble only the candidate's rows,
             # and see first whether the model already spans them (then there is nothing to fit)
             ev0 = pr.evaluate(start)
-            a_c, g_c = pr.assemble(pr.jacobian(start, ev0), ev0, only=~warm.known)
+            jac0 = pr.jacobian(start, ev0)
+            a_c, g_c = pr.assemble(jac0, ev0, only=~warm.known)
             both = warm.known[:, None] & warm.known[None, :]
             a_c[:, both] = warm.a_blocks[:, both]
             g_c[:, warm.known] = warm.g_blocks[:, warm.known]
@@ -553,7 +554,8 @@ def _try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: _Heldou
             warm = Warm(a_c, g_c, np.ones(pr.n_params, bool))
         # at most CANDIDATE_ITERATIONS: a fit stopped early overstates its RSS, so its gain is understated
         # (conservative); in practice one or two steps converge and only flat directions creep on
-        fit = fit_problem(pr, start, warm=warm, max_iter=CANDIDATE_ITERATIONS)
+        fit = (fit_problem(pr, start, warm=warm, max_iter=CANDIDATE_ITERATIONS, ev0=ev0, jac0=jac0)
+               if warm is not None else fit_problem(pr, start, max_iter=CANDIDATE_ITERATIONS))
     except (FluxcalError, np.linalg.LinAlgError, ValueError) as e:
         untestable.reason = f"fit failed: {e}"
         return untestable

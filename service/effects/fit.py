@@ -247,23 +247,30 @@ class _Eval:
     scalar: np.ndarray             # (M, P)
     diff: np.ndarray               # (M, P-1, 3)
     vec: np.ndarray | None = None  # (M, P, 3) corrected minus the reference vector
+    _matrix: np.ndarray | None = field(default=None, repr=False)
 
     def channel_matrix(self) -> np.ndarray:
-        m = self.scalar.shape[0]
-        parts = [self.scalar, self.diff.reshape(m, -1)]
-        if self.vec is not None:
-            parts.append(self.vec.reshape(m, -1))
-        return np.concatenate(parts, axis=1)
+        """(M, C) every residual channel (built once; treat as read-only)."""
+        if self._matrix is None:
+            m = self.scalar.shape[0]
+            parts = [self.scalar, self.diff.reshape(m, -1)]
+            if self.vec is not None:
+                parts.append(self.vec.reshape(m, -1))
+            self._matrix = np.concatenate(parts, axis=1)
+        return self._matrix
 
 
-#: samples per chunk when building the Jacobian: keeps each temporary well under glibc's 32 MiB mmap
-#: threshold, so the allocator reuses memory instead of faulting fresh pages in every time
+#: bytes of one chunk of Jacobian rows (3 rows per sample, 8 bytes per column): well under glibc's 32 MiB
+#: mmap threshold, so the allocator reuses memory instead of faulting fresh pages in every time, and
+#: large enough that per-chunk Python work stays small
+CHUNK_BYTES = 12 * 2 ** 20
 CHUNK_SAMPLES = 4096
 
 
-def _chunks(block: slice) -> list[slice]:
-    """A time block cut into chunks of at most CHUNK_SAMPLES rows."""
-    return [slice(a, min(a + CHUNK_SAMPLES, block.stop)) for a in range(block.start, block.stop, CHUNK_SAMPLES)]
+def _chunks(block: slice, n_params: int = 0) -> list[slice]:
+    """A time block cut into chunks of at most ~CHUNK_BYTES of Jacobian (CHUNK_SAMPLES if n_params is 0)."""
+    size = CHUNK_SAMPLES if n_params <= 0 else int(np.clip(CHUNK_BYTES // (24 * n_params), 1024, 65536))
+    return [slice(a, min(a + size, block.stop)) for a in range(block.start, block.stop, size)]
 
 
 @dataclass
@@ -477,34 +484,56 @@ class Problem:
             out.append((s, vb, sb))
         return out
 
-    def _local(self, blk, nhat_k: np.ndarray | None, k: int, kind: str) -> tuple[np.ndarray, np.ndarray] | None:
-        """Local Jacobian of probe k's scalar channel (m_b, m), or of its difference to probe 1 ("diff") or
-        to the reference vector ("vec"), the three components interleaved sample by sample (3 m_b, m);
-        and the global parameter indices."""
-        parts, idx = [], []
-        diff = kind != "scalar"
+    def _local(self, blk, nhat_k: np.ndarray | None, k: int, kind: str,
+               weight: np.ndarray | float = 1.0) -> tuple[np.ndarray, np.ndarray] | None:
+        """Weighted local Jacobian of probe k's scalar channel (m_b, m), or of its difference to probe 1
+        ("diff") or to the reference vector ("vec"), the three components interleaved sample by sample
+        (3 m_b, m); and the global parameter indices. Built in one preallocated array (every copy of a
+        chunk of Jacobian costs as much as the arithmetic)."""
+        use = []
         for s, vb, sb in blk:
             if kind == "vec":
-                part = vb.get(k)
+                on = k in vb
             elif kind == "diff":
-                part = None
-                if k in vb:
-                    part = vb[k]
-                if 0 in vb:
-                    part = -vb[0] if part is None else part - vb[0]
+                on = k in vb or 0 in vb
             else:
-                part = np.einsum("na,nam->nm", nhat_k, vb[k]) if k in vb else None
-                if sb is not None:
-                    part = sb if part is None else part + sb
-            if part is not None:
-                parts.append(part)
-                idx.append(np.arange(s.start, s.stop))
-        if not parts:
+                on = k in vb or sb is not None
+            if on:
+                use.append((s, vb, sb))
+        if not use:
             return None
-        jl = np.concatenate(parts, axis=-1)
-        if diff:
-            jl = jl.reshape(-1, jl.shape[-1])               # rows n*3 + a, sample by sample
-        return jl, np.concatenate(idx)
+        m = sum(s.size for s, _, _ in use)
+        nb = blk[0][1][next(iter(blk[0][1]))].shape[0] if blk[0][1] else blk[0][2].shape[0]
+        idx = np.concatenate([np.arange(s.start, s.stop) for s, _, _ in use])
+        if kind == "scalar":
+            jl = np.empty((nb, m))
+            c = 0
+            for s, vb, sb in use:
+                out = jl[:, c:c + s.size]
+                if k in vb:
+                    np.einsum("na,nam->nm", nhat_k, vb[k], out=out)
+                    if sb is not None:
+                        out += sb
+                else:
+                    out[...] = sb
+                c += s.size
+            jl *= weight
+            return jl, idx
+        jl = np.empty((nb, 3, m))
+        c = 0
+        for s, vb, sb in use:
+            out = jl[:, :, c:c + s.size]
+            if kind == "vec":
+                out[...] = vb[k]
+            elif k in vb and 0 in vb:
+                np.subtract(vb[k], vb[0], out=out)
+            elif k in vb:
+                out[...] = vb[k]
+            else:
+                np.negative(vb[0], out=out)
+            c += s.size
+        jl *= np.asarray(weight)[None, :, None]
+        return jl.reshape(nb * 3, m), idx                   # rows n*3 + a, sample by sample
 
     def assemble(self, jac: "_Jac", ev: _Eval | None = None, residual: np.ndarray | None = None,
                  only: np.ndarray | None = None):
@@ -520,26 +549,24 @@ class Problem:
         if p == 0:
             return a_b, g_b
         for b, block in enumerate(self.blocks):
-            for sl in _chunks(block):             # chunks: temporaries the allocator reuses
+            for sl in _chunks(block, p):          # chunks: temporaries the allocator reuses
                 blk = self._block(jac, sl)
                 r_blk = r_all[sl]
                 for k in range(self.P):
                     for kind in ("scalar", "diff", "vec"):
                         if (kind == "diff" and k == 0) or (kind == "vec" and self.vref is None):
                             continue
-                        local = self._local(blk, ev.nhat[k][sl] if kind == "scalar" else None, k, kind)
-                        if local is None:
-                            continue
-                        jl, idx = local
                         if kind != "scalar":
                             cols = self._cols(kind, k)
-                            w = np.tile(self.weights[cols], r_blk.shape[0])     # per row: its component's weight
-                            rl = r_blk[:, cols].reshape(-1) * w
-                            jl = jl * w[:, None]
+                            w = self.weights[cols]
+                            rl = (r_blk[:, cols] * w).reshape(-1)                # rows n*3 + a
                         else:
                             w = self.weights[k]
                             rl = r_blk[:, k] * w
-                            jl = jl * w
+                        local = self._local(blk, ev.nhat[k][sl] if kind == "scalar" else None, k, kind, w)
+                        if local is None:
+                            continue
+                        jl, idx = local
                         if only is None:
                             a_b[b][np.ix_(idx, idx)] += jl.T @ jl
                             g_b[b, idx] += jl.T @ rl
@@ -557,9 +584,11 @@ class Problem:
         """J delta on the rows of block slice sl (or all rows), unweighted: (rows, C) change of every channel."""
         ev = jac.ev if ev is None else ev
         if sl == slice(None):
-            return np.concatenate([self.apply(jac, ev, delta, c) for b in self.blocks for c in _chunks(b)])
-        if sl.stop - sl.start > CHUNK_SAMPLES:
-            return np.concatenate([self.apply(jac, ev, delta, c) for c in _chunks(sl)])
+            return np.concatenate([self.apply(jac, ev, delta, c) for b in self.blocks
+                                   for c in _chunks(b, self.n_params)])
+        chunks = _chunks(sl, self.n_params)
+        if len(chunks) > 1:
+            return np.concatenate([self.apply(jac, ev, delta, c) for c in chunks])
         blk = self._block(jac, sl)
         dv: list[Any] = [None] * self.P
         ds = None
@@ -614,7 +643,8 @@ class Problem:
         return new
 
     def weighted_rss(self, ev: _Eval) -> float:
-        return float(np.sum((ev.channel_matrix() * self.weights) ** 2))
+        r = ev.channel_matrix()
+        return float(np.einsum("nc,nc->c", r, r) @ self.weights ** 2)
 
 
 # --- the fit ------------------------------------------------------------------------------------------------
@@ -741,11 +771,13 @@ def warm_from(base: "FitResult", pr: Problem) -> Warm | None:
 
 
 def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float = 0.01,
-                progress: Callable[[str], None] | None = None, warm: Warm | None = None) -> FitResult:
+                progress: Callable[[str], None] | None = None, warm: Warm | None = None,
+                ev0: _Eval | None = None, jac0: "_Jac | None" = None) -> FitResult:
     """Gauss-Newton from `start` until every step is below tol_se standard errors. With `warm`, the first
-    linearisation assembles only the rows of the parameters warm does not know."""
+    linearisation assembles only the rows of the parameters warm does not know. ev0, jac0: the residuals
+    and Jacobian at `start` when the caller has them already."""
     st = start
-    ev = pr.evaluate(st)
+    ev = pr.evaluate(st) if ev0 is None else ev0
     rss = pr.weighted_rss(ev)
     n_rows = pr.M * pr.C
     converged = pr.n_params == 0
@@ -756,7 +788,7 @@ def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float =
     undet = np.zeros(pr.n_params, bool)
     rank = 0
     while True:
-        jac = pr.jacobian(st, ev)
+        jac = jac0 if (it == 0 and jac0 is not None) else pr.jacobian(st, ev)
         if warm is not None and it == 0:
             a_b, g_b = pr.assemble(jac, ev, only=~warm.known)
             keep = warm.known
