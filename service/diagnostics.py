@@ -599,8 +599,11 @@ def _mark_indistinguishable(cands: list[Candidate]) -> None:
 
 
 def _rank(cands: list[Candidate]) -> list[Candidate]:
-    """Significant first, then by held-out gain; among indistinguishable ones the simpler first."""
-    order = sorted(cands, key=lambda c: (not c.significant, not c.testable, -c.gain))
+    """Significant first, then by held-out gain (those the linear calibration spans last); among
+    indistinguishable ones the simpler first."""
+    absorbed = {"offset", "baseline"}
+    order = sorted(cands, key=lambda c: (not c.significant, not c.testable,
+                                         bool(absorbed & set(c.indistinguishable_from)), -c.gain))
     for _ in range(len(order)):
         moved = False
         for i in range(len(order) - 1):
