@@ -87,32 +87,38 @@ def bench_replay(tmp: Path, seconds: float) -> None:
     save_calibration(ArrayCalibration("ellipsoid", None, [ProbeCalibration(p["name"], np.zeros(3), np.eye(3))
                                                           for p in PROBES]), initial)
     fcfg = config_from_dict(tomllib.loads(config_text(tmp, '[source]\nkind = "sim"', 7447, initial)))
-    # replay path: MCAP decode -> pipeline (estimator, gate, correction) -> MCAP write
-    t0 = time.perf_counter()
-    rec = read_recording(tmp / "rep" / "in.mcap")
-    pipe = build_pipeline(fcfg)
-    whole = SampleBlock.concat(rec.raw_blocks)
-    out = McapLogger(tmp / "rep", unit="bench", filename="out.mcap")
-    for i in range(0, whole.n_samples, 20000):
-        b = whole.slice(i, i + 20000)
-        r = pipe.process(b)
-        out.write_raw(b)
-        if r.corrected is not None:
-            out.write_corrected(r.corrected)
-    out.close()
-    t_replay = time.perf_counter() - t0
+    # replay path: MCAP decode -> pipeline (estimator, gate, correction) -> MCAP write; best of 3
+    times = []
+    for rep in range(3):
+        t0 = time.perf_counter()
+        rec = read_recording(tmp / "rep" / "in.mcap")
+        pipe = build_pipeline(fcfg)
+        whole = SampleBlock.concat(rec.raw_blocks)
+        out = McapLogger(tmp / "rep", unit="bench", filename=f"out{rep}.mcap")
+        for i in range(0, whole.n_samples, 20000):
+            b = whole.slice(i, i + 20000)
+            r = pipe.process(b)
+            out.write_raw(b)
+            if r.corrected is not None:
+                out.write_corrected(r.corrected)
+        out.close()
+        times.append(time.perf_counter() - t0)
+    t_replay = min(times)
     # bare numerics: parse the ICD bytes and apply a calibration, same samples
     data = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
     m = np.stack([np.eye(3)] * N_PROBES)
     o = np.zeros((N_PROBES, 3))
-    t0 = time.perf_counter()
-    p = parse_serial(data, N_PROBES, final=True)
-    f = p.frames.counts * 0.001
-    np.einsum("pij,npj->npi", m, f - o[None])
-    t_bare = time.perf_counter() - t0
+    bare = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        p = parse_serial(data, N_PROBES, final=True)
+        f = p.frames.counts * 0.001
+        np.einsum("pij,npj->npi", m, f - o[None])
+        bare.append(time.perf_counter() - t0)
+    t_bare = min(bare)
     n = whole.n_samples * N_PROBES
     print(f"replay (MCAP decode + pipeline + MCAP write), {whole.n_samples} samples x {N_PROBES} probes: "
-          f"{n / t_replay:,.0f} probe-samples/s")
+          f"{n / t_replay:,.0f} probe-samples/s (best of 3; median {n / sorted(times)[1]:,.0f})")
     print(f"bare parse + calibrate of the same samples:                         {n / t_bare:,.0f} probe-samples/s")
     print(f"ratio replay / bare: {t_bare / t_replay:.3f}")
 

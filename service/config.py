@@ -31,7 +31,7 @@ class UnitConfig:
     name: str = spec("unit1", doc="key segment in fluxcal/<unit>/...: letters, digits, _ and -")
     n_probes: int = spec(2, min=1, max=8)
     lsb_nT: float = spec(0.001, min=1e-9, max=1e3, doc="nT per ADC count")
-    block_ms: float = spec(10.0, min=0.0, max=1000.0,
+    block_ms: float = spec(8.0, min=0.0, max=1000.0,
                            doc="input is gathered into blocks of about this long before it is processed, "
                                "recorded and published: latency against CPU")
 
@@ -57,7 +57,9 @@ class EstimatorConfig:
     gate_coverage: float = spec(0.3, min=0.0, max=1.0, doc="fraction of direction bins that must be seen")
     gate_condition: float = spec(1e3, min=1.0)
     gate_rms_nT: float = spec(20.0, min=0.0, doc="largest scalar residual RMS accepted")
-    check_every_s: float = spec(2.0, min=0.05, doc="how often the online estimate is checked against the gate")
+    update_every_s: float = spec(0.5, min=0.001, max=60.0,
+                                 doc="the estimator takes samples in chunks this long (of data time)")
+    check_every_s: float = spec(5.0, min=0.05, doc="how often the online estimate is checked against the gate")
     window_s: float = spec(60.0, min=1.0, doc="ring buffer length for alignment and the error metric")
 
 

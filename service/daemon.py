@@ -38,7 +38,7 @@ def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:
                     total_nT=est.total_nT, align=est.align, min_samples=est.min_samples,
                     gate_coverage=est.gate_coverage, gate_condition=est.gate_condition,
                     gate_rms_nT=est.gate_rms_nT, check_every_samples=max(1, int(round(est.check_every_s * rate))),
-                    window_samples=int(est.window_s * rate), chunk_samples=max(1, int(rate // 4)),
+                    window_samples=int(est.window_s * rate), chunk_samples=max(1, int(round(est.update_every_s * rate))),
                     initial=initial)
 
 

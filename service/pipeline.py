@@ -248,7 +248,7 @@ class Pipeline:
                                                         "coverage": gate.coverage, "condition": gate.condition,
                                                         "rms_nT": gate.rms_nT})
 
-    def _window(self, max_samples: int = 1500) -> SampleBlock:
+    def _window(self, max_samples: int = 600) -> SampleBlock:
         """The ring buffer, thinned to at most `max_samples` evenly spaced samples: directions and
         residuals change slowly, and the gate runs often."""
         w = self.ring.view()
