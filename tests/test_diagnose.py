@@ -352,3 +352,29 @@ def test_perming_step_found_located_and_removed():
     d2 = diagnose(data, effects=["hysteresis"])
     assert d2.rms_nT <= RMS_OVER_NOISE * d2.noise_nT
     assert not any(c.significant for c in d2.candidates), summary_text(d2)
+
+
+@pytest.mark.slow
+def test_config_gives_positions_so_the_gradient_is_tested(tmp_path, capsys):
+    g = [[25.0, 6.0, -8.0], [6.0, -15.0, 5.0], [-8.0, 5.0, -10.0]]
+    probes = [probe(k) for k in range(3)]
+    block = sim_block(probes, n=5000, rate=100.0, motion=TUMBLE, seed=2, attitude=True,
+                      field={"total_nT": F_TOTAL, "inclination_deg": 62.0, "gradient_nT_m": g})
+    cols = ["t"] + [f"s{k + 1}_{a}" for k in range(3) for a in "xyz"] + ["ref_total", "heel_deg", "pitch_deg",
+                                                                       "azimuth_deg"]
+    vals = np.column_stack([block.t_s, block.field_nT.reshape(block.n_samples, -1)]
+                           + [block.extras[c] for c in cols[10:]])
+    csv = tmp_path / "turn.csv"
+    np.savetxt(csv, vals, delimiter=",", header=",".join(cols), comments="", fmt="%.6f")
+    cfg = tmp_path / "array.toml"
+    cfg.write_text("[unit]\nn_probes = 3\n" + "".join(f"[[probes]]\nposition_m = {[float(x) for x in p['position_m']]}\n"
+                                                     for p in probes))
+    assert cli.main(["diagnose", str(csv), "--json"]) == 0            # no positions: not testable
+    grad = next(c for c in json.loads(capsys.readouterr().out)["candidates"] if c["effect"] == "gradient")
+    assert grad["testable"] is False and "positions" in grad["reason"]
+    assert cli.main(["diagnose", str(csv), "--config", str(cfg), "--json"]) == 0
+    first = json.loads(capsys.readouterr().out)["candidates"][0]
+    assert first["effect"] == "gradient" and first["significant"] is True
+    cfg.write_text("[unit]\nn_probes = 3\n[[probes]]\nposition_m = [0.1, 0.0, 0.0]\n")
+    assert cli.main(["diagnose", str(csv), "--config", str(cfg)]) == 2
+    assert "1 [[probes]] tables but unit.n_probes = 3" in capsys.readouterr().err
