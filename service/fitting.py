@@ -69,7 +69,7 @@ def fit_probe(method: str, raw: np.ndarray, total: TotalField, block: SampleBloc
 
         angle = np.radians(_column(block, ("angle_deg", "table_deg", "heading_deg"), "sinefit"))
         tv = None if total.values is None else float(np.mean(total.values))
-        return fit_sinefit(angle, raw, inclination_deg=inclination_deg, total_nT=tv, name=name)
+        return fit_sinefit(angle, raw, inclination_deg=inclination_deg, total_nT=tv, t_s=block.t_s, name=name)
     if method == "two-step":
         from .calib.twostep import fit_two_step
 
