@@ -263,3 +263,31 @@ def test_service_killed_mid_run_leaves_a_readable_recording(tmp_path):
     assert n >= 200 * 3
     seq = np.concatenate([b.seq for b in rec.raw_blocks])
     assert np.all(np.diff(seq) == 1)                                  # what is there is whole and in order
+
+
+@pytest.mark.slow
+def test_calibration_persists_and_is_reloaded_at_start(tmp_path, capsys):
+    cal = tmp_path / "state" / "cal.json"
+    base = (open("configs/sim-gradiometer.toml").read()
+            .replace('realtime = true', 'realtime = false')
+            .replace('transport = "pty"', 'transport = "direct"')
+            .replace('dir = "recordings/live"', f'dir = "{tmp_path / "rec"}"')
+            .replace('file = "state/grad1-cal.json"', f'file = "{cal}"')
+            .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]'))
+    first = tmp_path / "first.toml"
+    first.write_text(base.replace('run_s = 0 ', 'run_s = 30'))
+    assert main(["run", "--config", str(first)]) == 0
+    assert "learning online" in capsys.readouterr().err and cal.exists()
+    from service.calib.calfile import load_calibration
+
+    saved = load_calibration(cal)
+    second = tmp_path / "second.toml"
+    second.write_text(base.replace('run_s = 0 ', 'run_s = 2').replace(f'dir = "{tmp_path / "rec"}"',
+                                                                     f'dir = "{tmp_path / "rec2"}"'))
+    assert main(["run", "--config", str(second)]) == 0
+    assert "reloaded the persisted calibration" in capsys.readouterr().err
+    rec = read_recording(tmp_path / "rec2")
+    # corrected output from the very first block, with the saved calibration
+    assert rec.corrected_blocks and rec.corrected_blocks[0].seq[0] == rec.raw_blocks[0].seq[0]
+    raw = rec.raw_blocks[0].field_nT
+    assert np.allclose(rec.corrected_blocks[0].corrected_nT, saved.apply(raw))
