@@ -326,7 +326,7 @@ def test_calibration_file_from_fit_is_read_with_its_effects(tmp_path, capsys):
     probes, block = _small()
     data = data_of(block, probes)
     fit, _ = fit_with_effects(data, ["temperature"])
-    save_calibration(fit.calibration, tmp_path / "cal.json")
+    save_calibration(fit.calibration(), tmp_path / "cal.json")
     csv = tmp_path / "lab.csv"
     _write_csv(csv, block)
     assert cli.main(["diagnose", str(csv), "--calibration", str(tmp_path / "cal.json"), "--json"]) == 0

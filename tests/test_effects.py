@@ -284,7 +284,7 @@ def test_fit_with_effects_takes_and_returns_array_calibrations():
     base = ArrayCalibration(method="ellipsoid", align=None,
                             probes=[fit_ellipsoid(data.raw_nT[:, 0, :], data.ref_total_nT).calibration])
     fit, ch = fit_with_effects(data, ["temperature"], base)
-    cal = fit.calibration
+    cal = fit.calibration()
     assert isinstance(cal, ArrayCalibration) and cal.method == "ellipsoid" and cal.effects == ["temperature"]
     got = cal.effect_params["temperature"]["s1.x nT/degC"]
     assert got["unit"] == "nT/degC" and got["value"] == pytest.approx(beta[0], abs=5 * got["se"] + 0.02)

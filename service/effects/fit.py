@@ -922,7 +922,6 @@ class EffectsFit:
     base_align: str | None = None
     total_nT: float | None = None
 
-    @property
     def calibration(self) -> Any:
         """A service.calib.model.ArrayCalibration: the linear part with offset standard errors, the
         effect names and `effect_params` {effect: {name: {"value", "se", "unit"}}}, plus the fit's
