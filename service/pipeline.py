@@ -107,6 +107,7 @@ class Pipeline:
         self.cal_id = 0
         self.last_gate: GateResult | None = None
         self.next_seq = 0                 # seq of the first sample the next block will bring
+        self.refusal: str | None = None   # why the last check found no candidate
         self._estimators = self._new_estimators()
         if initial is not None:
             self.set_calibration(initial)
@@ -237,7 +238,9 @@ class Pipeline:
     def _check_candidate(self, seq: int, t_s: float) -> PipelineEvent | None:
         cand = self.candidate()
         if cand is None:
-            return None
+            if self.refusal is None:
+                return None                   # too few samples yet: nothing to say
+            return PipelineEvent("gate", seq, t_s, {"usable": False, "reasons": [self.refusal]})
         gate = self.evaluate(cand)
         self.last_gate = gate
         if not gate.usable:
@@ -260,12 +263,15 @@ class Pipeline:
                            flags=w.flags[idx], extras={k: v[idx] for k, v in w.extras.items()})
 
     def candidate(self) -> ArrayCalibration | None:
-        """The online estimate, aligned over the ring buffer, or None if not yet determined."""
+        """The online estimate, aligned over the ring buffer, or None if not yet determined (then
+        `refusal` says why, once there are enough samples to ask)."""
+        self.refusal = None
         if any(est.n_samples_ < self.min_samples for est in self._estimators):
             return None
         try:
             probes = [est.snapshot(name=name) for est, name in zip(self._estimators, self.probe_names)]
-        except (CalibrationRefused, FluxcalError):
+        except (CalibrationRefused, FluxcalError) as e:
+            self.refusal = str(e)
             return None
         window = self._window()
         if self.n_probes > 1 and self.align != "none" and window.n_samples >= 3:
