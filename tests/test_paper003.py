@@ -136,3 +136,23 @@ def test_method_entry_point_returns_a_probe_calibration():
     a, b, g = cal.value("nonorth_deg")
     assert abs(b - 32.5) < 0.35 and abs(a - 1.5) < 0.05 and abs(g - 1.7) < 0.05
     assert np.all(cal.offset_se_nT[:2] > 0) and np.all(np.isfinite(cal.matrix_se))
+
+
+def test_fluxcal_fit_sinefit_from_a_lab_csv(tmp_path, capsys):
+    # CONTRACTS §1-2: a lab CSV with the table angle in an 'angle_deg' column
+    import json
+
+    from service.cli import main
+
+    s = paper003(30, seed=0)
+    path = tmp_path / "turntable.csv"
+    rows = [f"{t:.1f},{x:.4f},{y:.4f},{z:.4f},{np.degrees(a):.4f}"
+            for t, (x, y, z), a in zip(s.t_s, s.raw_nT, s.theta_rad)]
+    path.write_text("# 003 simulation, 30 nT\nt,s1_x,s1_y,s1_z,angle_deg\n" + "\n".join(rows) + "\n")
+    capsys.readouterr()
+    assert main(["fit", str(path), "--method", "sinefit", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    m = np.array(out["sensors"][0]["matrix"])
+    direct = fit_sine_nonorthogonality(s.theta_rad, s.raw_nT).calibration.matrix
+    assert out["method"] == "sinefit" and np.allclose(m, direct, atol=1e-6)
+    assert out["sensors"][0]["scalar_rms_nT"] < 30.0

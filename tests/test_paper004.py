@@ -176,3 +176,24 @@ def test_align_pca_turns_two_probes_onto_the_platform_frame():
         assert "misalign_pca" in p.params
     diff = aligned[1].apply(field[:, 1]) - aligned[0].apply(field[:, 0])
     assert np.sqrt(np.mean(diff ** 2)) < 5.0                            # noise of two probes: 2.8 nT
+
+
+def test_fluxcal_fit_two_step_from_a_lab_csv(tmp_path, capsys):
+    # CONTRACTS §1-2: a lab CSV with a 'turn' column (0/1/2 = about x/y/z, -1 = not a turn);
+    # `fit` uses the three turns for both steps (36 points)
+    import json
+
+    from service.cli import main
+
+    s = paper004(0)
+    turn = np.full(len(s.raw_nT), -1)
+    turn[s.state == 10], turn[s.state == 9], turn[s.state == 0] = 0, 1, 2
+    path = tmp_path / "heading.csv"
+    rows = [f"{i},{x:.3f},{y:.3f},{z:.3f},{k}" for i, ((x, y, z), k) in enumerate(zip(s.raw_nT, turn))]
+    path.write_text("# 004 grid, simulated\nt,s1_x,s1_y,s1_z,turn\n" + "\n".join(rows) + "\n")
+    capsys.readouterr()
+    assert main(["fit", str(path), "--method", "two-step", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    sensor = out["sensors"][0]
+    e = heading_errors(s, np.array(sensor["matrix"]), np.array(sensor["offset_nT"]))
+    assert out["method"] == "two-step" and max_rms(e)[0] < 0.5, max_rms(e)
