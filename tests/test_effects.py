@@ -247,10 +247,15 @@ def test_perming_steps_found_at_their_instants_and_not_in_noise():
 
 
 def test_correct_applies_calibration_and_effects_to_other_data():
-    kw = {"temp_offset_nT_per_C": [3.0, -2.0, 1.0]}
+    kw = {"temp_offset_nT_per_C": [3.0, -2.0, 1.0], "drift_offset_nT_per_h": [200.0, 0.0, -100.0]}
     data, truth, _ = sim([probe(**kw)], n=6000, seed=5)
-    fit, _ = fit_with_effects(data, ["temperature"])
-    other, _, s2 = sim([probe(**kw)], n=3000, seed=9)
+    fit, _ = fit_with_effects(data, ["temperature", "drift"])
+    consts = {n: v for _, n, v, _ in fit.constants()}
+    assert consts["s1 reference temperature"] == pytest.approx(float(np.mean(data.temp_C)), abs=1e-9)
+    assert fit.calibration().effect_params["drift"]["s1 drift time origin"]["unit"] == "s"
+    # other data 8 degC warmer: the coefficients stay referenced to the fit's mean temperature
+    other, _, s2 = sim([probe(**kw)], n=3000, seed=9, temperature={"start_C": 28.0, "amplitude_C": 5.0,
+                                                                     "period_s": 20.0})
     corrected = fit.correct(other)
     # corrected is in probe 1's frame: compare magnitudes with the true field
     err = np.linalg.norm(corrected[:, 0, :], axis=1) - np.linalg.norm(s2.world.field_platform_nT[:, 0, :], axis=1)

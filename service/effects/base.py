@@ -255,6 +255,11 @@ def _quat_to_matrix(w: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray) 
         np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
 
 
+#: ProbeView.cache keys that hold a term's references (temperature, time origin, step instants): they
+#: travel with a fitted calibration to other data; every other cache entry belongs to one data set
+REF_PREFIX = "ref:"
+
+
 @dataclass
 class ProbeView:
     """What a term sees of probe k: the data, and the linear calibration it is fitted around.
@@ -324,6 +329,12 @@ class EffectTerm:
     def columns(self, view: ProbeView) -> np.ndarray:
         """(N, 3, m) regressors phi_j of a linear term for probe view.k."""
         raise NotImplementedError
+
+    def constants(self, view: ProbeView) -> dict[str, tuple[float, str]]:
+        """Fixed references the parameters are defined against (name -> (value, unit)), e.g. the
+        temperature the temperature coefficients are centred on; kept with the calibration, and reused
+        when it is applied to other data."""
+        return {}
 
     def cached_columns(self, view: ProbeView) -> np.ndarray:
         key = f"columns:{self.name}"

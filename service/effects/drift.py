@@ -17,15 +17,21 @@ from drivers.errors import ConfigError
 from .base import AXES, EffectData, EffectTerm, ProbeView, axis_columns
 
 
-def _basis(data: EffectData, degree: int) -> np.ndarray:
-    """(N, degree) centred powers of time in hours."""
+def _basis(data: EffectData, degree: int, t_mid_s: float | None = None,
+           means: list[float] | None = None) -> tuple[np.ndarray, float, list[float]]:
+    """(N, degree) centred powers of time in hours, the centre time and the means removed (the
+    references, so the same basis can be rebuilt on other data)."""
     t = data.t_s
-    h = (t - 0.5 * (t[0] + t[-1])) / 3600.0
+    t_mid = 0.5 * (t[0] + t[-1]) if t_mid_s is None else t_mid_s
+    h = (t - t_mid) / 3600.0
     cols = [h]
+    used = []
     for d in range(2, degree + 1):
         p = h ** d
-        cols.append(p - p.mean())
-    return np.stack(cols, axis=1)
+        m = float(p.mean()) if means is None else means[d - 2]
+        used.append(m)
+        cols.append(p - m)
+    return np.stack(cols, axis=1), float(t_mid), used
 
 
 _UNITS = {1: "nT/h", 2: "nT/h2", 3: "nT/h3"}
@@ -54,8 +60,15 @@ class Drift(EffectTerm):
     def param_names(self, view: ProbeView) -> list[str]:
         return [f"{view.name}.{a} drift {_UNITS[d]}" for d in range(1, self.degree + 1) for a in AXES]
 
+    def constants(self, view: ProbeView) -> dict[str, tuple[float, str]]:
+        self.columns(view)
+        return {f"{view.name} drift time origin": (view.cache["ref:drift_t_mid_s"], "s")}
+
     def columns(self, view: ProbeView) -> np.ndarray:
-        b = _basis(view.data, self.degree)
+        # the time origin and centring of the fitted data, kept in the view for other data
+        b, t_mid, means = _basis(view.data, self.degree, view.cache.get("ref:drift_t_mid_s"),
+                                 view.cache.get("ref:drift_means"))
+        view.cache["ref:drift_t_mid_s"], view.cache["ref:drift_means"] = t_mid, means
         return np.concatenate([axis_columns(np.repeat(b[:, d:d + 1], 3, axis=1)) for d in range(self.degree)],
                               axis=2)
 
@@ -67,4 +80,4 @@ class Drift(EffectTerm):
     def shared_scolumns(self, data: EffectData) -> np.ndarray | None:
         if data.ref_total_nT is not None:
             return None
-        return _basis(data, self.degree)
+        return _basis(data, self.degree)[0]

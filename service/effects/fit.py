@@ -29,7 +29,7 @@ import numpy as np
 from drivers.block import SampleBlock
 from drivers.errors import CalibrationRefused, DataError
 
-from .base import AXES, Baseline, EffectData, EffectTerm, Model, ProbeView
+from .base import AXES, REF_PREFIX, Baseline, EffectData, EffectTerm, Model, ProbeView
 from .hysteresis import robust_noise
 
 #: eigenvalues of the column-scaled normal matrix below this fraction of the largest are a null space: a
@@ -935,12 +935,25 @@ class EffectsFit:
         effect_params: dict[str, Any] = {}
         for p in self.parameters:
             effect_params.setdefault(p.term, {})[p.name] = {"value": p.value, "se": p.stderr, "unit": p.unit}
+        for term, name, value, unit in self.constants():
+            effect_params.setdefault(term, {})[name] = {"value": value, "se": None, "unit": unit,
+                                                        "note": "reference the parameters are defined against"}
         data = self.result.problem.data
         return ArrayCalibration(method=self.base_method, align=self.base_align, probes=probes, total_nT=self.total_nT,
                                 effects=list(self.effects), effect_params=effect_params,
                                 diagnostics={"rms_nT": self.rms_nT, "channel_rms_nT": dict(self.channel_rms_nT),
                                              "reference": self.reference},
                                 span=(float(data.t_s[0]), float(data.t_s[-1]), int(data.n_samples)))
+
+    def constants(self) -> list[tuple[str, str, float, str]]:
+        """(effect, name, value, unit) of the references the effect parameters are defined against."""
+        pr = self.result.problem
+        out = []
+        for t in pr.terms:
+            for view in pr.views:
+                for name, (value, unit) in t.constants(view).items():
+                    out.append((t.name, name, float(value), unit))
+        return out
 
     def effect_parameters(self) -> dict[str, dict[str, float | None]]:
         """{"temperature": {"s1.x nT/degC": value, ...}, ...} and the same with standard errors."""
@@ -956,7 +969,9 @@ class EffectsFit:
                    for k, n in enumerate(self.probe_names)]
         return {"effects": list(self.effects), "sensors": sensors, "rms_nT": self.rms_nT,
                 "reference": self.reference,
-                "effect_parameters": [p.as_dict() | {"effect": p.term} for p in self.parameters]}
+                "effect_parameters": [p.as_dict() | {"effect": p.term} for p in self.parameters],
+                "effect_constants": [{"effect": e, "name": n, "value": v, "unit": u}
+                                     for e, n, v, u in self.constants()]}
 
     def correct(self, data: Any) -> np.ndarray:
         """(N, P, 3) corrected field of other data with this calibration and its effects."""
@@ -965,8 +980,8 @@ class EffectsFit:
         pr = Problem(ed, Model(self.result.model.effect_terms), lin, np.zeros(ed.n_samples), n_blocks=1,
                      rows=np.arange(ed.n_samples))
         for old, new in zip(self.result.problem.views, pr.views):
-            # step instants and the like were found when fitting: keep them
-            new.cache.update({k: v for k, v in old.cache.items() if not k.startswith("columns:")})
+            # the references of the fit (temperature, time origin, step instants): keep them
+            new.cache.update({k: v for k, v in old.cache.items() if k.startswith(REF_PREFIX)})
         pr.slots = pr._layout()
         pr.n_params = pr.slots[-1].stop if pr.slots else 0
         st = pr.start_state(lin, self.result.state)

@@ -106,7 +106,7 @@ class Hysteresis(EffectTerm):
 
     def steps(self, view: ProbeView) -> list[float]:
         """Step instants of probe view.k (found once per binding)."""
-        key = "hysteresis:steps"
+        key = "ref:hysteresis_steps"
         if key not in view.cache:
             if view.model_residual is None or view.model_gain is None:
                 view.cache[key] = []

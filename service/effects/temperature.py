@@ -1,6 +1,6 @@
 """Temperature: a probe's offset and scale factor follow its temperature.
 
-    raw = u (1 + 1e-6 kappa_a dT) + offset + beta_a dT,   dT = T - mean(T)
+    raw = u (1 + 1e-6 kappa_a dT) + offset + beta_a dT,   dT = T - T_ref, T_ref = mean(T) of the fit
     => raw_corrected_a = raw_a - beta_a dT - 1e-6 kappa_a dT (raw_a - offset_a)
 
 Parameters per probe and axis: beta in nT/degC (offset) and kappa in ppm/degC (scale). The
@@ -37,9 +37,20 @@ class Temperature(EffectTerm):
         p = view.name
         return [f"{p}.{a} nT/degC" for a in AXES] + [f"{p}.{a} ppm/degC" for a in AXES]
 
+    def reference_C(self, view: ProbeView) -> float:
+        """The temperature the coefficients are centred on: the mean of the data fitted (kept in the
+        view, so applying the calibration to other data uses the same reference)."""
+        key = "ref:temperature_C"
+        if key not in view.cache:
+            view.cache[key] = float(np.mean(view.data.temperature(view.k)))
+        return view.cache[key]
+
+    def constants(self, view: ProbeView) -> dict[str, tuple[float, str]]:
+        return {f"{view.name} reference temperature": (self.reference_C(view), "degC")}
+
     def columns(self, view: ProbeView) -> np.ndarray:
         temp = view.data.temperature(view.k)
-        d_temp = (temp - np.mean(temp))[:, None]                       # (N, 1) degC
+        d_temp = (temp - self.reference_C(view))[:, None]              # (N, 1) degC
         offset_cols = axis_columns(np.broadcast_to(d_temp, (temp.shape[0], 3)))   # beta: nT per degC
         scale_cols = axis_columns(1e-6 * d_temp * view.centred_nT)     # kappa: 1e-6 dT (raw - o) per ppm/degC
         return np.concatenate([offset_cols, scale_cols], axis=2)
