@@ -57,8 +57,9 @@ class RlsEllipsoid:
     inputs (N, P, 3), fitted results with a leading probe axis).
 
     forgetting: λ per sample (1.0 = growing memory, equal to the batch fit); memory 1/(1 − λ) samples.
-    forget_deg: forget only as the field direction sweeps, one sample-step per this many degrees
-      (None: per sample, whatever the motion).
+    forget_deg: forget (and, with λ < 1, learn) only as the field direction sweeps, one sample-step
+      per this many degrees (None: per sample, whatever the motion). With λ = 1 every sample counts,
+      so the estimate stays the batch fit.
     anchor: f, the floor: the share of the last good information below which no direction may fall.
     max_condition: a solve becomes the new anchor only below this condition number (of the
       column-scaled design, as the batch fit reports it).
