@@ -102,8 +102,11 @@ def test_a_long_rest_neither_winds_up_nor_publishes_nan():
         info_before = np.linalg.eigvalsh(est.info_)[0]
         for i in range(0, rest.shape[0], 1000):
             est.partial_fit(rest[i:i + 1000], TOTAL_NT)
-            snap = est.snapshot()
-            assert snap.is_finite() and np.all(np.isfinite(snap.offset_se_nT))
+            assert np.all(np.isfinite(est.offset_)) and np.all(np.isfinite(est.matrix_))
+            if i % 20000 == 0:                         # the standard errors too, now and then
+                assert np.all(np.isfinite(est.snapshot().offset_se_nT))
+        snap = est.snapshot()
+        assert snap.is_finite() and np.all(np.isfinite(snap.offset_se_nT))
         # the last good estimate holds where the rest brings no information
         assert np.abs(snap.offset_nT - good.offset_nT).max() < 2.0, (forget_deg, snap.offset_nT - good.offset_nT)
         if forget_deg is not None:

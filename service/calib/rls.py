@@ -367,13 +367,21 @@ class RlsEllipsoid:
     def _all(self, attr: str) -> np.ndarray:
         return self._squeeze(np.stack([getattr(self.snapshot(probe=j), attr) for j in range(self._p)]))
 
+    def _linear_part(self, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """(offset_nT, matrix) of probe j without the standard errors (cheap)."""
+        self._solve_dirty()
+        if not self._has_theta[j]:
+            self.snapshot(probe=j)                    # raises CalibrationRefused saying why
+        return quadric_to_calibration(self._theta[j], float(self._scale[j]), float(self._f2_ref[j]))
+
     @property
     def offset_(self) -> np.ndarray:
-        return self._all("offset_nT")
+        """corrected = matrix_ (raw − offset_), nT; (3,) or (P, 3)."""
+        return self._squeeze(np.stack([self._linear_part(j)[0] for j in range(self._p)]))
 
     @property
     def matrix_(self) -> np.ndarray:
-        return self._all("matrix")
+        return self._squeeze(np.stack([self._linear_part(j)[1] for j in range(self._p)]))
 
     @property
     def offset_se_(self) -> np.ndarray:
