@@ -18,3 +18,20 @@ def test_sample_recording_replays_bit_for_bit(capsys):
 
     compared, identical = map(int, re.search(r"compared with the recording: (\d+), identical: (\d+)", out).groups())
     assert compared == identical >= 1000
+
+
+def test_guided_example_finds_the_hidden_effect_and_the_error_falls(capsys):
+    import json
+
+    path = "recordings/grad1-hidden-effect.mcap"
+    capsys.readouterr()
+    assert main(["diagnose", path, "--json"]) == 0
+    before = json.loads(capsys.readouterr().out)
+    top = before["candidates"][0]
+    assert top["effect"] == "temperature" and top["significant"]
+    assert not any(c["significant"] for c in before["candidates"][1:])
+    assert main(["diagnose", path, "--effects", "temperature", "--json"]) == 0
+    after = json.loads(capsys.readouterr().out)
+    assert before["rms_nT"] > 3 * before["noise_nT"]
+    assert after["rms_nT"] < 1.2 * after["noise_nT"]
+    assert not any(c["significant"] for c in after["candidates"])
