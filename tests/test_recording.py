@@ -213,7 +213,7 @@ def test_service_records_every_intact_frame_and_replay_equals_live(tmp_path):
     want = np.setdiff1d(np.arange(n), record.serial_lost())
     assert record.serial_lost().size > 50
     assert np.array_equal(got, want)
-    assert sum(c.n_samples for c in rec.corrected_blocks) > 4000          # calibrated within the first half
+    assert sum(c.n_samples for c in rec.corrected_blocks) > 3000          # usable within 25 s of the 40
     assert main(["replay", str(tmp_path / "rec")]) == 0
 
 
