@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -70,4 +72,22 @@ def decode_corrected(data: bytes) -> CorrectedBlock:
                           center_nT=out[5], cal_id=int(cal_id))
 
 
-__all__ = ["encode_raw", "decode_raw", "encode_corrected", "decode_corrected"]
+def json_ready(obj: Any) -> Any:
+    """Plain JSON types for the JSON streams (Zenoh and MCAP); NaN and infinities become null
+    (strict JSON readers reject NaN)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, (str, int, bool)) or obj is None:
+        return obj
+    if isinstance(obj, Mapping):
+        return {str(k): json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return json_ready(obj.tolist())
+    if isinstance(obj, np.generic):
+        return json_ready(obj.item())
+    return str(obj)
+
+
+__all__ = ["encode_raw", "decode_raw", "encode_corrected", "decode_corrected", "json_ready"]

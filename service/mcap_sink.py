@@ -32,7 +32,7 @@ from drivers.block import SampleBlock
 from drivers.encoding import encode_raw
 from drivers.mcap_source import RAW_ENCODING
 
-from .encoding import encode_corrected
+from .encoding import encode_corrected, json_ready
 from .outputs import CorrectedBlock
 
 CORRECTED_ENCODING = "fluxcal.corrected.v1"
@@ -42,20 +42,6 @@ _LAYOUT_COR = (b"fluxcal corrected block v1: see service/encoding.py (magic FXc0
                b"i64 cal_id; f64 t_s[N], i64 seq[N], f64 corrected_nT[N,P,3]; optional diff, tensor, centre)")
 _OBJECT_SCHEMA = json.dumps({"type": "object"}).encode()
 _RETRY_S = 5.0
-
-
-def _json_ready(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _json_ready(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_ready(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _json_ready(x.tolist())
-    if isinstance(x, (float, np.floating)):
-        return None if not math.isfinite(float(x)) else float(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
 
 
 class McapLogger:
@@ -206,13 +192,13 @@ class McapLogger:
         mean = np.nanmean(block.corrected_nT, axis=0) if block.n_samples else np.full((block.n_probes, 3), np.nan)
         vec = {f"s{k + 1}": {"x": v[0], "y": v[1], "z": v[2], "total": float(np.linalg.norm(v))}
                for k, v in enumerate(mean)}
-        self._write("vectors", json.dumps(_json_ready({"seq": int(block.seq[0]) if block.n_samples else None,
+        self._write("vectors", json.dumps(json_ready({"seq": int(block.seq[0]) if block.n_samples else None,
                                                        "cal_id": block.cal_id, **vec})).encode(), t)
 
     def _write_json(self, channel: str, record: dict[str, Any]) -> None:
         t = record.get("t_s")
         t_ns = int(t * 1e9) if isinstance(t, (int, float)) and math.isfinite(t) else self._last_log_ns
-        self._write(channel, json.dumps(_json_ready(record)).encode(), t_ns)
+        self._write(channel, json.dumps(json_ready(record)).encode(), t_ns)
 
     def write_calibration(self, record: dict[str, Any]) -> None:
         self._write_json("calibration", record)

@@ -46,7 +46,7 @@ from drivers.block import SampleBlock
 from drivers.config import spec
 from drivers.errors import ConfigError, DataError, FluxcalError
 
-from .encoding import decode_corrected, decode_raw, encode_corrected, encode_raw
+from .encoding import decode_corrected, decode_raw, encode_corrected, encode_raw, json_ready
 from .outputs import CorrectedBlock
 
 __all__ = [
@@ -120,25 +120,8 @@ def decode_series(data: bytes) -> Series:
     return Series(t_s=t_s, seq=seq, values=values, cal_id=int(cal_id))
 
 
-def _json_ready(obj: Any) -> Any:
-    """Plain JSON types; NaN and infinities become null (strict JSON readers reject NaN)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, (str, int, bool)) or obj is None:
-        return obj
-    if isinstance(obj, Mapping):
-        return {str(k): _json_ready(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_ready(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _json_ready(obj.tolist())
-    if isinstance(obj, np.generic):
-        return _json_ready(obj.item())
-    return str(obj)
-
-
 def _json_bytes(obj: Any) -> bytes:
-    return json.dumps(_json_ready(obj), allow_nan=False, separators=(",", ":")).encode()
+    return json.dumps(json_ready(obj), allow_nan=False, separators=(",", ":")).encode()
 
 
 # --------------------------------------------------------------------------------------------
