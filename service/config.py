@@ -159,6 +159,8 @@ def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
         if not isinstance(src, dict):
             raise ConfigError("source: expected a table")
         kind = src.get("kind", "sim")
+        if not isinstance(kind, str):
+            raise ConfigError(f"source.kind: {kind!r} is not allowed (allowed: 'sim', 'serial', 'can', 'replay')")
         if kind == "sim":
             source = load_section(SimSourceConfig, src, "source")
         elif kind == "replay":

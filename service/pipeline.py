@@ -61,6 +61,11 @@ def _apply(m: np.ndarray, d: np.ndarray) -> np.ndarray:
     return d[..., 0:1] * m[None, :, :, 0] + d[..., 1:2] * m[None, :, :, 1] + d[..., 2:3] * m[None, :, :, 2]
 
 
+def _rows(b: SampleBlock, keep: np.ndarray) -> SampleBlock:
+    return SampleBlock(t_s=b.t_s[keep], seq=b.seq[keep], field_nT=b.field_nT[keep], temp_C=b.temp_C[keep],
+                       flags=b.flags[keep], extras={k: v[keep] for k, v in b.extras.items()})
+
+
 def _join(pieces: list[CorrectedBlock]) -> CorrectedBlock | None:
     """One CorrectedBlock from consecutive pieces (cal_id: the one in use at the block's end)."""
     if not pieces:
@@ -108,6 +113,8 @@ class Pipeline:
         self.last_gate: GateResult | None = None
         self.next_seq = 0                 # seq of the first sample the next block will bring
         self.refusal: str | None = None   # why the last check found no candidate
+        self.effects: list[str] = []      # effect terms in the calibration in use (added at runtime)
+        self.effect_fit = None            # their fit (service.effects), applied in _correct
         self._estimators = self._new_estimators()
         if initial is not None:
             self.set_calibration(initial)
@@ -142,10 +149,45 @@ class Pipeline:
         elif name == "apply":
             if not isinstance(payload, ArrayCalibration):
                 raise DataError("apply: expected a calibration")
+            self.effects, self.effect_fit = [], None
             self.set_calibration(payload)
+        elif name == "add-effect":
+            self.add_effect(str(payload or "").strip())
         else:
-            raise FluxcalError(f"unknown command {name!r} (allowed: freeze, unfreeze, reset, apply)")
-        return PipelineEvent("command", seq, t_s, {"name": name, "cal_id": self.cal_id})
+            raise FluxcalError(f"unknown command {name!r} (allowed: freeze, unfreeze, reset, apply, add-effect)")
+        detail = {"name": name, "cal_id": self.cal_id}
+        if name == "add-effect":
+            detail["effect"] = str(payload or "").strip()
+        return PipelineEvent("command", seq, t_s, detail)
+
+    #: effects the running service can add: they act sample by sample, so correcting block by block
+    #: gives the same numbers however the input is cut (replay = live). Effects on dB/dt or time
+    #: shifts (eddy, lag) need samples across block edges: fit them offline (`fluxcal fit --effects`).
+    LIVE_EFFECTS = ("temperature", "drift", "nonlinearity")
+
+    def add_effect(self, name: str) -> None:
+        """Refit the calibration with one more effect over the ring buffer and correct with it from
+        now on. The online estimator keeps learning, but its linear-only candidates no longer replace
+        a calibration with effects (freeze/reset/apply still work)."""
+        from .effects.fit import fit_with_effects
+
+        if name not in self.LIVE_EFFECTS:
+            raise FluxcalError(f"add-effect: {name!r} cannot be added to the running service (allowed: "
+                               f"{', '.join(self.LIVE_EFFECTS)}); fit it offline with `fluxcal fit --effects {name}`")
+        if self.calibration is None:
+            raise FluxcalError("add-effect: no calibration in use yet; wait until it is usable")
+        names = [e for e in self.effects if e != name] + [name]
+        window = self.ring.view()
+        ok = np.isfinite(window.field_nT).all(axis=(1, 2))
+        data = window if ok.all() else window.slice(0, 0) if not ok.any() else _rows(window, ok)
+        if data.n_samples < 200:
+            raise FluxcalError(f"add-effect: only {data.n_samples} samples in the window; wait for more data")
+        ef, _ = fit_with_effects(data, names, self.calibration, total_nT=self.total_nT)
+        cal = ef.calibration()
+        cal.method, cal.align = self.calibration.method, self.calibration.align
+        self.effect_fit = ef
+        self.effects = names
+        self.set_calibration(cal)
 
     # --- hot path --------------------------------------------------------------------------
 
@@ -182,6 +224,20 @@ class Pipeline:
         error = self._error_metric(block.slice(n - corrected.n_samples, n), corrected) if corrected else {}
         return Processed(corrected=corrected, error=error, events=events)
 
+    def _correct_with_effects(self, block: SampleBlock) -> np.ndarray:
+        """Linear part and the (sample-by-sample) effects. The effects' evaluator wants at least 30
+        samples; a shorter piece is padded with copies of its last sample, which cannot change the
+        others since every live effect acts on each sample alone."""
+        n = block.n_samples
+        if n >= 30:
+            return self.effect_fit.correct(block)
+        idx = np.r_[np.arange(n), np.full(30 - n, n - 1)]
+        t = block.t_s[idx].copy()
+        t[n:] = t[n - 1] + 1e-6 * np.arange(1, 31 - n)
+        padded = SampleBlock(t_s=t, seq=block.seq[idx], field_nT=block.field_nT[idx], temp_C=block.temp_C[idx],
+                             flags=block.flags[idx], extras={k: v[idx] for k, v in block.extras.items()})
+        return self.effect_fit.correct(padded)[:n]
+
     def flush_estimator(self) -> None:
         """Feed a partly filled chunk to the estimator (end of a batch; the service never needs it)."""
         if self._fill and not self.frozen:
@@ -191,8 +247,11 @@ class Pipeline:
     def _correct(self, block: SampleBlock) -> CorrectedBlock | None:
         if self.calibration is None:
             return None
-        # b_k = M_k (raw_k - o_k) for every sample and probe at once
-        c = _apply(self._matrices, block.field_nT - self._offsets[None])
+        if self.effect_fit is not None and block.n_samples:
+            c = self._correct_with_effects(block)
+        else:
+            # b_k = M_k (raw_k - o_k) for every sample and probe at once
+            c = _apply(self._matrices, block.field_nT - self._offsets[None])
         diff = c[:, 1:] - c[:, :1] if self.n_probes > 1 else None
         center = c.mean(axis=1) if self.n_probes > 1 else None
         tens = None
@@ -243,6 +302,8 @@ class Pipeline:
             return PipelineEvent("gate", seq, t_s, {"usable": False, "reasons": [self.refusal]})
         gate = self.evaluate(cand)
         self.last_gate = gate
+        if self.effects:
+            return None                       # a linear-only candidate never replaces effects
         if not gate.usable:
             return PipelineEvent("gate", seq, t_s, {"usable": False, "reasons": gate.reasons})
         first = self.calibration is None
@@ -323,6 +384,7 @@ class Pipeline:
             "usable": cal is not None,
             "frozen": self.frozen,
             "method": None if cal is None else cal.method,
+            "effects": list(self.effects),
             "probes": [] if cal is None else [
                 {"name": p.name, "offset_nT": p.offset_nT.tolist(), "matrix": p.matrix.tolist(),
                  "offset_se_nT": np.nan_to_num(p.offset_se_nT, nan=-1).tolist()} for p in cal.probes],

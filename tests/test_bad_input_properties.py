@@ -14,7 +14,8 @@ from service.calib.calfile import calibration_from_json
 from service.config import config_from_dict
 from service.labdata import load_csv
 
-SETTINGS = settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+SETTINGS = settings(max_examples=int(__import__("os").environ.get("FLUXCAL_PROPERTY_EXAMPLES", "150")), deadline=None,
+                    derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 cell = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr), st.integers().map(str),
                  st.text(alphabet="0123456789.-eEnaif x,#\"", max_size=8))

@@ -82,7 +82,8 @@ def main(args: Namespace) -> int:
         for block in blocks:
             while ci < len(commands) and block.n_samples and commands[ci]["seq"] <= int(block.seq[0]):
                 c = commands[ci]
-                payload = calibration_from_dict(c["calibration"]) if c.get("name") == "apply" else None
+                payload = (calibration_from_dict(c["calibration"]) if c.get("name") == "apply"
+                           else c.get("effect"))
                 pipeline.command(c["name"], payload, seq=c["seq"], t_s=float("nan"))
                 ci += 1
             result = pipeline.process(block)
