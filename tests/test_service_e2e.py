@@ -124,3 +124,53 @@ def test_service_publishes_calibrated_outputs_matching_truth(tmp_path, transport
     rms = np.sqrt(np.mean(g ** 2, axis=0))
     assert rms.max() < 4 * np.sqrt(2) * NOISE_NT / 0.4, rms
     assert "calibration usable" in log
+
+
+def test_effect_added_over_zenoh_makes_the_published_error_fall(tmp_path):
+    port = free_port()
+    text = (open("configs/sim-gradiometer.toml").read()
+            .replace('transport = "pty"', 'transport = "direct"')
+            .replace('run_s = 0 ', 'run_s = 0 ')
+            .replace('dir = "recordings/live"', 'enabled = false')
+            .replace('file = "state/grad1-cal.json"', f'file = "{tmp_path / "cal.json"}"')
+            .replace('listen = ["tcp/127.0.0.1:7447"]', f'listen = ["tcp/127.0.0.1:{port}"]')
+            .replace('amplitude_C = 0.0 ', 'amplitude_C = 6.0 ')
+            .replace('# period_s = 600.0 ', 'period_s = 30.0 ')
+            .replace('# temp_offset_nT_per_C = [0.0, 0.0, 0.0]', 'temp_offset_nT_per_C = [3.0, -2.0, 1.5]', 1))
+    cfg = tmp_path / "fx.toml"
+    cfg.write_text(text)
+    proc = run_service(str(cfg))
+    client = None
+    try:
+        deadline = time.monotonic() + 30
+        while client is None:
+            try:
+                client = BusClient(ZenohConfig.client(f"tcp/127.0.0.1:{port}"), "grad1", streams=["error"])
+            except Exception:
+                if time.monotonic() > deadline or proc.poll() is not None:
+                    raise
+                time.sleep(0.2)
+
+        def mean_error(seconds: float) -> float:
+            vals, end = [], time.monotonic() + seconds
+            while time.monotonic() < end:
+                m = client.recv(timeout=0.5)
+                if m is not None and "s1.scalar" in m.value.get("rms_nT", {}):
+                    vals.append(m.value["rms_nT"]["s1.scalar"])
+            return float(np.sqrt(np.mean(np.square(vals)))) if vals else float("nan")
+
+        deadline = time.monotonic() + 60
+        while not np.isfinite(mean_error(1.0)):                      # wait for a usable calibration
+            assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(12.0)                                             # let the ring buffer fill
+        before = mean_error(6.0)
+        reply = client.command("add-effect", "temperature", timeout=30.0)
+        assert reply["ok"], reply
+        client.drain()
+        after = mean_error(6.0)
+    finally:
+        if client is not None:
+            client.close()
+        log = stop(proc)
+    assert before > 2.5 * 0.6, (before, log)                          # the hidden temperature effect
+    assert after < 1.3 * 0.6, (after, log)                           # down to the probe's 0.6 nT noise
