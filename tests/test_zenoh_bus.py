@@ -279,7 +279,7 @@ def test_malformed_payloads_are_counted_not_fatal(stack):
     cfg, ep = peer_cfg()
     bus = stack.enter_context(ServiceBus(cfg, "u1"))
     client = stack.enter_context(BusClient(ZenohConfig.client(ep), "u1", streams=["raw", "health"]))
-    wait_until(lambda: bus.has_subscribers("raw"), what="subscriber")
+    wait_until(lambda: bus.has_subscribers("raw") and bus.has_subscribers("health"), what="subscribers")
     bus.session.put("fluxcal/u1/raw", b"not a block")
     bus.session.put("fluxcal/u1/health", b"{not json")
     bus.publish_raw(make_block(3, 2))
