@@ -12,7 +12,6 @@ written to a temporary file and renamed, so it is complete or absent. Counters g
 from __future__ import annotations
 
 import argparse
-import importlib
 import math
 import os
 import re
@@ -232,16 +231,8 @@ def _write_mcap(out: Path, n: int, blocks: _Counted, capture: Path, args: argpar
                 counters: Counters) -> None:
     """Through service.mcap_sink.write_recording(path, blocks, unit=, probe_names=), the MCAP logger's
     whole-file entry point, into a temporary file renamed on success."""
-    try:
-        mcap_sink = importlib.import_module("service.mcap_sink")
-    except ModuleNotFoundError as e:
-        if e.name != "service.mcap_sink":
-            raise
-        mcap_sink = None
-    write_recording = getattr(mcap_sink, "write_recording", None)
-    if write_recording is None:
-        raise FluxcalError(f"{out}: MCAP output is not available yet in this build (service.mcap_sink."
-                           f"write_recording is missing); write a CSV instead: --out {out.with_suffix('.csv')}")
+    from service.mcap_sink import write_recording
+
     unit = re.sub(r"[^A-Za-z0-9_\-]", "_", capture.stem)[:64] or "unit1"
     tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
     try:

@@ -9,7 +9,6 @@ appear complete or not at all. Without --config the built-in gradiometer world i
 
 from __future__ import annotations
 
-import importlib
 import json
 import math
 import os
@@ -21,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from drivers.config import load_section, read_toml
-from drivers.errors import ConfigError, DataError, FluxcalError
+from drivers.errors import ConfigError, DataError
 from drivers.sim.config import GRADIOMETER, SimConfig, load_sim_config
 from drivers.sim.unit import Unit
 
@@ -124,17 +123,9 @@ def _tmp(path: Path) -> Path:
 
 def _mcap_writer(out: Path) -> Any:
     """service.mcap_sink.write_recording(path, blocks, unit=, probe_names=, truth=), or a clear error."""
-    try:
-        mcap_sink = importlib.import_module("service.mcap_sink")     # written by another part of the project
-    except ModuleNotFoundError as e:
-        if e.name != "service.mcap_sink":
-            raise
-        mcap_sink = None
-    writer = getattr(mcap_sink, "write_recording", None)
-    if writer is None:
-        raise FluxcalError(f"{out}: MCAP output is not available yet in this build (service.mcap_sink."
-                           f"write_recording is missing); write a CSV instead: --out {out.with_suffix('.csv')}")
-    return writer
+    from service.mcap_sink import write_recording
+
+    return write_recording
 
 
 def _write_mcap(writer: Any, path: Path, unit: Unit, unit_name: str, truth: dict[str, Any]) -> int:
