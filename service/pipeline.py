@@ -24,7 +24,7 @@ from drivers.errors import CalibrationRefused, DataError, FluxcalError
 from drivers.ringbuffer import RingBuffer
 
 from .calib import alignment, coverage as coverage_mod, tensor as tensor_mod
-from .calib.model import ArrayCalibration, ProbeCalibration
+from .calib.model import ArrayCalibration
 from .calib.rls import RlsEllipsoid
 from .outputs import CorrectedBlock
 
