@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from drivers.sim.config import load_sim_config
-from drivers.sim.world import World
 from service.calib.ellipsoid import fit_ellipsoid
 from service.calib.model import ArrayCalibration
 from service.pipeline import Pipeline
