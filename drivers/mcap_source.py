@@ -1,45 +1,82 @@
-"""Reading fluxcal MCAP recordings: the replay Source and a record iterator shared with `service.recording`.
+"""Reading fluxcal MCAP recordings: the "replay" Source, and the record reader shared with service.recording.
 
-A recording is one .mcap file or a directory of rotated files (read in name order). Files are
-streamed record by record, so a file whose writer was killed (no footer, a cut chunk) yields every
-complete chunk and reports the cut tail instead of failing.
+A recording is one .mcap file or a directory of rotated files, read in name order (the logger's
+names `<unit>-<YYYYmmddTHHMMSS>-<NNNN>.mcap` sort in time order). Files are read record by record
+from the start, never through the footer's index, so a file whose writer was killed (no footer, a
+chunk cut short) yields every complete chunk and the cut is reported in `ReadReport.truncated`
+instead of failing. What is reported and what is refused:
+
+    no footer, or a record cut short at the end     read; one line in report.truncated per file
+    a chunk whose CRC fails, an unreadable record   RecordingError (strict, the default), or skipped
+      inside the file                               and listed in report.damaged (strict=False)
+    not an MCAP file, missing path, no raw samples  RecordingError
+
+The replay Source yields the recorded raw SampleBlocks bit for bit, one per recorded message, and
+counts what the live source counted (samples, sequence gaps, saturated axes, invalid temperatures).
 """
 
 from __future__ import annotations
 
+import io
 import json
-import struct
+import logging
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
-from .block import SampleBlock
-from .encoding import decode_raw
-from .errors import RecordingError
+import numpy as np
+
+from .assemble import SeqGapCounter
+from .block import FLAG_TEMP_INVALID, SampleBlock
+from .encoding import RAW_ENCODING, decode_raw
+from .errors import DataError, RecordingError
 from .source import Source
 
-RAW_ENCODING = "fluxcal.raw.v1"
+log = logging.getLogger("fluxcal.replay")
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_RECORD_HEAD = 9                      # u8 opcode, u64 length
 
 
 @dataclass
 class McapRecord:
+    """One message of a recording, with its channel's topic and message encoding."""
+
     topic: str
     encoding: str
     data: bytes
     log_time_ns: int
+    publish_time_ns: int = 0
+    schema_name: str = ""
 
 
 @dataclass
 class ReadReport:
+    """What reading a recording found besides the messages: files, cut tails, damage, metadata."""
+
     files: list[str] = field(default_factory=list)
-    truncated: list[str] = field(default_factory=list)     # files whose tail was cut (writer killed)
-    metadata: dict[str, str] = field(default_factory=dict)
+    truncated: list[str] = field(default_factory=list)    # one line per file whose tail was cut (writer killed)
+    damaged: list[str] = field(default_factory=list)      # records skipped as corrupt (strict=False only)
+    messages: int = 0                                      # messages read
+    skipped_messages: int = 0                              # messages whose channel record was lost
+    truncated_bytes: int = 0                               # bytes at file ends that held no complete record
+    metadata: dict[str, str] = field(default_factory=dict)  # the "fluxcal" metadata record(s)
+    time: dict[str, str] = field(default_factory=dict)      # the "fluxcal.time" metadata record (log_time rule)
+
+    @property
+    def warnings(self) -> list[str]:
+        out = list(self.truncated) + list(self.damaged)
+        if self.skipped_messages:
+            out.append(f"{self.skipped_messages} message(s) skipped: their channel was declared in a lost chunk")
+        return out
 
 
 def recording_files(path: str | Path) -> list[Path]:
+    """The .mcap files of a recording: the file itself, or a directory's files in name order."""
     p = Path(path)
     if p.is_dir():
-        files = sorted(p.glob("*.mcap"))
+        files = sorted(f for f in p.glob("*.mcap") if f.is_file())
         if not files:
             raise RecordingError(f"{p}: no .mcap files in this directory")
         return files
@@ -48,86 +85,237 @@ def recording_files(path: str | Path) -> list[Path]:
     return [p]
 
 
-def iter_records(path: str | Path, report: ReadReport | None = None) -> Iterator[McapRecord]:
-    """Every message of the recording in file order; metadata records go into `report`."""
-    from mcap.exceptions import McapError
-    from mcap.records import Channel, Message, Metadata
-    from mcap.stream_reader import StreamReader
+def _all_zero(fh: io.BufferedReader) -> bool:
+    while chunk := fh.read(1 << 20):
+        if chunk.count(0) != len(chunk):
+            return False
+    return True
+
+
+def iter_file_records(path: str | Path, report: ReadReport | None = None, *, strict: bool = True) -> Iterator[Any]:
+    """The data-section records of one MCAP file in file order, chunks broken up: mcap.records
+    Header, Schema, Channel, Message, Metadata and Attachment objects. Stops at DataEnd or at the
+    end of a file without footer (noted in `report.truncated`)."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.opcode import Opcode
+    from mcap.records import Attachment, Channel, Chunk, Header, Message, Metadata, Schema
+    from mcap.stream_reader import breakup_chunk
+
+    readers = {Opcode.HEADER: Header.read, Opcode.SCHEMA: Schema.read, Opcode.CHANNEL: Channel.read,
+               Opcode.CHUNK: Chunk.read, Opcode.METADATA: Metadata.read, Opcode.ATTACHMENT: Attachment.read}
+    skipped = {Opcode.MESSAGE_INDEX, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT_INDEX, Opcode.METADATA_INDEX,
+               Opcode.STATISTICS, Opcode.SUMMARY_OFFSET, Opcode.FOOTER}
+    report = report if report is not None else ReadReport()
+    f = Path(path)
+
+    def damaged(what: str, pos: int) -> None:
+        msg = f"{f}: {what} at byte {pos}"
+        if strict:
+            raise RecordingError(f"{msg}: the recording is damaged (repair_recording salvages the rest)")
+        report.damaged.append(msg)
+
+    try:
+        fh = f.open("rb")
+    except OSError as e:
+        raise RecordingError(f"{f}: cannot read: {e.strerror or e}") from None
+    with fh:
+        size = os.fstat(fh.fileno()).st_size
+        magic = fh.read(8)
+        if magic != MCAP_MAGIC:
+            if MCAP_MAGIC.startswith(magic):
+                report.truncated.append(f"{f}: empty ({size} bytes): its writer stopped before writing anything")
+                report.truncated_bytes += size
+                return
+            raise RecordingError(f"{f}: not an MCAP file (starts with {magic[:8]!r})")
+        pos = 8
+        while True:
+            head = fh.read(_RECORD_HEAD)
+            if not head:
+                report.truncated.append(f"{f}: no footer: its writer was stopped (killed, power lost) or is still "
+                                        f"writing; every complete chunk was read")
+                return
+            opcode, length = head[0], int.from_bytes(head[1:], "little")
+            if len(head) < _RECORD_HEAD or pos + _RECORD_HEAD + length > size:
+                # the writer died while writing this record: what came before it is whole
+                try:
+                    name = Opcode(opcode).name.lower().replace("_", " ")
+                except ValueError:
+                    name = f"opcode {opcode:#04x}"
+                report.truncated.append(f"{f}: cut inside a {name} record at byte {pos} of {size}: its writer "
+                                        f"was stopped; the {size - pos} bytes of that record are lost, every "
+                                        f"complete chunk before it was read")
+                report.truncated_bytes += size - pos
+                return
+            if opcode == Opcode.DATA_END:
+                return
+            if opcode in skipped:
+                fh.seek(length, io.SEEK_CUR)
+            elif opcode in readers or opcode == Opcode.MESSAGE:
+                body = fh.read(length)
+                stream = ReadDataStream(io.BytesIO(body))
+                try:
+                    rec = Message.read(stream, length) if opcode == Opcode.MESSAGE else readers[opcode](stream)
+                    subs = breakup_chunk(rec, validate_crc=True) if isinstance(rec, Chunk) else [rec]
+                except Exception as e:
+                    # a CRC mismatch, a corrupt length or compressed stream inside the file's bounds; the
+                    # decompressors raise their own types (RuntimeError, zstandard.ZstdError), hence Exception
+                    damaged(f"unreadable {Opcode(opcode).name.lower()} record ({type(e).__name__}: {e})", pos)
+                    subs = []
+                yield from subs
+            elif opcode == 0 and _all_zero(fh):
+                # a filesystem that lost power may leave a zero-filled tail
+                report.truncated.append(f"{f}: ends in {size - pos} zero bytes (power lost while writing?); "
+                                        f"every complete chunk before them was read")
+                report.truncated_bytes += size - pos
+                return
+            else:
+                damaged(f"unknown record opcode {opcode:#04x}", pos)
+                fh.seek(length, io.SEEK_CUR)
+            pos += _RECORD_HEAD + length
+
+
+def iter_records(path: str | Path, report: ReadReport | None = None, *, strict: bool = True,
+                 topics: set[str] | None = None) -> Iterator[McapRecord]:
+    """Every message of the recording in file order (files in name order); the "fluxcal" and
+    "fluxcal.time" metadata records go into `report`."""
+    from mcap.records import Channel, Message, Metadata, Schema
 
     report = report if report is not None else ReadReport()
     for f in recording_files(path):
         report.files.append(str(f))
+        schemas: dict[int, str] = {}
         channels: dict[int, Channel] = {}
-        n = 0
+        for rec in iter_file_records(f, report, strict=strict):
+            if isinstance(rec, Message):
+                ch = channels.get(rec.channel_id)
+                if ch is None:
+                    report.skipped_messages += 1
+                elif topics is None or ch.topic in topics:
+                    report.messages += 1
+                    yield McapRecord(ch.topic, ch.message_encoding, rec.data, rec.log_time, rec.publish_time,
+                                     schemas.get(ch.schema_id, ""))
+            elif isinstance(rec, Channel):
+                channels[rec.id] = rec
+            elif isinstance(rec, Schema):
+                schemas[rec.id] = rec.name
+            elif isinstance(rec, Metadata):
+                if rec.name == "fluxcal":
+                    report.metadata.update(rec.metadata)
+                elif rec.name == "fluxcal.time":
+                    report.time.update(rec.metadata)
+
+
+def unit_of_topic(topic: str) -> str | None:
+    """"/fluxcal/<unit>/<stream>" -> unit, else None."""
+    parts = topic.split("/")
+    return parts[2] if len(parts) == 4 and parts[0] == "" and parts[1] == "fluxcal" else None
+
+
+def iter_raw_blocks(path: str | Path, report: ReadReport | None = None, *, unit: str | None = None,
+                    strict: bool = True) -> Iterator[SampleBlock]:
+    """The raw SampleBlocks of one unit, in recorded order. unit=None: the only unit recorded
+    (a recording that holds several units is refused: name one)."""
+    chosen = unit
+    for rec in iter_records(path, report, strict=strict):
+        if rec.encoding != RAW_ENCODING:
+            continue
+        u = unit_of_topic(rec.topic)
+        if chosen is None:
+            chosen = u
+        elif u != chosen:
+            if unit is not None:
+                continue
+            raise RecordingError(f"{path}: holds raw samples of several units ({chosen!r}, {u!r}): "
+                                 f"choose one with unit=")
         try:
-            with f.open("rb") as fh:
-                magic = fh.read(8)
-                if len(magic) < 8 and b"\x89MCAP0\r\n".startswith(magic):
-                    report.truncated.append(f"{f}: empty (its writer stopped before writing anything)")
-                    continue
-                if magic != b"\x89MCAP0\r\n":
-                    raise RecordingError(f"{f}: not an MCAP file")
-                fh.seek(0)
-                try:
-                    for rec in StreamReader(fh, skip_magic=False).records:
-                        if isinstance(rec, Channel):
-                            channels[rec.id] = rec
-                        elif isinstance(rec, Message):
-                            ch = channels.get(rec.channel_id)
-                            if ch is not None:
-                                n += 1
-                                yield McapRecord(ch.topic, ch.message_encoding, rec.data, rec.log_time)
-                        elif isinstance(rec, Metadata) and rec.name == "fluxcal":
-                            report.metadata.update(rec.metadata)
-                except (McapError, EOFError, ValueError, OSError, struct.error) as e:
-                    # a killed writer leaves no footer and may cut a chunk: keep what was complete
-                    report.truncated.append(f"{f}: {type(e).__name__}: {e}".strip())
-        except OSError as e:
-            raise RecordingError(f"{f}: cannot read: {e.strerror}") from None
-
-
-def iter_raw_blocks(path: str | Path, report: ReadReport | None = None) -> Iterator[SampleBlock]:
-    for rec in iter_records(path, report):
-        if rec.encoding == RAW_ENCODING:
             yield decode_raw(rec.data)
+        except DataError as e:
+            raise RecordingError(f"{path}: {rec.topic}: {e}") from None
 
 
 class McapSource(Source):
-    """Replays the raw channel of a recording as the same SampleBlocks it recorded."""
+    """Replays the raw channel of a recording (a file or a directory of rotated files) as the same
+    SampleBlocks it recorded, one per recorded message, as fast as they are read.
 
-    def __init__(self, path: str | Path) -> None:
-        self.report = ReadReport()
-        first = None
-        self._it = iter_raw_blocks(path, self.report)
-        for first in self._it:
-            break
-        if first is None:
-            raise RecordingError(f"{path}: no raw samples in this recording")
-        super().__init__(first.n_probes)
-        self._pending: SampleBlock | None = first
-        self._done = False
+    `exhausted` is True as soon as the last block has been returned. A killed writer's file is read
+    to its last complete chunk; `report.truncated` says so and a warning is logged once per file.
+    """
+
+    def __init__(self, path: str | Path, *, unit: str | None = None, strict: bool = True) -> None:
         self.path = str(path)
+        self.report = ReadReport()
+        self._it = iter_raw_blocks(path, self.report, unit=unit, strict=strict)
+        self._next: SampleBlock | None = next(self._it, None)
+        self._warned = 0
+        if self._next is None:
+            raise RecordingError(f"{path}: no raw samples in this recording"
+                                 + (f" ({'; '.join(self.report.warnings)})" if self.report.warnings else ""))
+        super().__init__(self._next.n_probes)
+        self._gaps = SeqGapCounter()
+        self._warn_new()
 
     @property
     def exhausted(self) -> bool:
-        return self._done
+        return self._next is None
+
+    @property
+    def metadata(self) -> dict[str, str]:
+        """The recording's "fluxcal" metadata record (unit, n_probes, lsb_nT, probe_names, config, ...)."""
+        return self.report.metadata
+
+    def _warn_new(self) -> None:
+        for w in self.report.warnings[self._warned:]:
+            log.warning("replay: %s", w)
+        self._warned = len(self.report.warnings)
 
     def _read_block(self, timeout: float | None) -> SampleBlock | None:
-        if self._pending is not None:
-            b, self._pending = self._pending, None
-        else:
-            b = next(self._it, None)
+        b = self._next
         if b is None:
-            self._done = True
             return None
-        self.counters.frames_accepted += b.n_samples
+        if b.n_probes != self.n_probes:
+            raise RecordingError(f"{self.path}: the number of probes changes from {self.n_probes} to {b.n_probes} "
+                                 f"at sample {int(b.seq[0]) if b.n_samples else '?'}: replay one part at a time")
+        self._next = next(self._it, None)          # look ahead, so `exhausted` is known with the last block
+        c = self.counters
+        c.frames_accepted += b.n_samples
+        c.saturated_axes += int(np.count_nonzero(np.isnan(b.field_nT)))
+        c.temp_invalid += int(np.count_nonzero(b.flags & FLAG_TEMP_INVALID))
+        self._gaps.update(b.seq, c)
+        self._warn_new()
         return b
 
+    def close(self) -> None:
+        if not self._closed:
+            self._it.close()                     # closes the file being read
+        super().close()
 
-def open_source(path: str | Path, **_: object) -> McapSource:
-    return McapSource(path)
+
+def open_source(config: Any = None, *, path: str | Path | None = None, unit: str | None = None,
+                strict: bool = True, **_: Any) -> McapSource:
+    """The "replay" entry of drivers.source.SOURCES: open_source("replay", path=REC, unit=None).
+
+    `config` may be the path itself or an object with a `.path` (the [source] section of kind
+    "replay"); `path=` wins. Other keyword arguments are accepted and ignored, so every source kind
+    can be opened with the same call."""
+    if path is None:
+        path = config if isinstance(config, (str, Path)) else getattr(config, "path", None)
+    if not path:
+        from .errors import ConfigError
+
+        raise ConfigError("source.path: a replay source needs the recording (an .mcap file or a directory)")
+    return McapSource(path, unit=unit, strict=strict)
 
 
-def metadata_json(report: ReadReport, key: str, default=None):
+def metadata_json(report: ReadReport, key: str, default: Any = None) -> Any:
+    """A JSON-valued key of the "fluxcal" metadata record (probe_names, positions_m, config), or default."""
     text = report.metadata.get(key)
-    return default if text is None else json.loads(text)
+    if text is None:
+        return default
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise RecordingError(f"metadata {key!r} is not JSON: {e}") from None
+
+
+__all__ = ["McapRecord", "McapSource", "ReadReport", "RAW_ENCODING", "iter_file_records", "iter_raw_blocks",
+           "iter_records", "metadata_json", "open_source", "recording_files", "unit_of_topic"]
