@@ -146,7 +146,9 @@ class _VectorMeans:
             return done
         rows = slice(None) if keep.all() else np.flatnonzero(keep)
         t, seq, c = block.t_s[rows], block.seq[rows], block.corrected_nT[rows]
-        bins = np.floor(t / self.period_s).astype(np.int64)
+        # interval k holds k·period <= t < (k+1)·period; the 1e-9 keeps a sample on a boundary (0.3 s
+        # is 2.9999999999999996 periods of 0.1 s in binary) in the interval it starts
+        bins = np.floor(t / self.period_s + 1e-9).astype(np.int64)
         starts = np.concatenate([[0], np.flatnonzero(np.diff(bins)) + 1])
         stops = np.append(starts[1:], len(t))
         probes = self._sums(c, starts)
@@ -204,7 +206,9 @@ class McapLogger:
     metadata record. probe_names: names in the vectors channel (default from metadata["probe_names"],
     else s1, s2, ...). vectors_period_s: averaging interval of the vectors channel (0 disables it).
     epoch_ns: log_time epoch (None: the wall clock at the first sample). fsync: also fsync every chunk
-    (survives power loss, costs a disk round trip per chunk). opener(path, mode) -> binary file:
+    (survives power loss, costs a disk round trip per chunk). retry_s: after a write error, try a new
+    file this much later (default 5 s). backlog_mb: at most this much of unwritten messages is kept
+    while files fail (the oldest are dropped, and counted, beyond it). opener(path, mode) -> binary file:
     for fault injection in tests. filename: directory + this fixed file name, as if path were the file.
     """
 
@@ -212,7 +216,7 @@ class McapLogger:
                  chunk_size: int = 1 << 20, compression: str = "lz4", flush_interval_s: float = 1.0,
                  metadata: dict[str, Any] | None = None, probe_names: Sequence[str] | None = None,
                  vectors_period_s: float = 0.1, epoch_ns: int | None = None, fsync: bool = False,
-                 retry_s: float | None = None, filename: str | None = None,
+                 retry_s: float | None = None, backlog_mb: float = 16.0, filename: str | None = None,
                  opener: Callable[[Path, str], Any] | None = None) -> None:
         if not isinstance(unit, str) or not _UNIT_NAME.fullmatch(unit):
             raise ConfigError(f"mcap logger: unit {unit!r} is not allowed (allowed: 1-64 letters, digits, '_' or '-')")
@@ -246,6 +250,7 @@ class McapLogger:
         self.epoch_ns = epoch_ns
         self.fsync = fsync
         self.retry_s = retry_s
+        self.backlog_bytes = max(backlog_mb * 1e6, 2.0 * self.chunk_size)
         self._opener = opener or _default_opener
         self._vectors = _VectorMeans(vectors_period_s) if vectors_period_s > 0 else None
 
@@ -272,6 +277,7 @@ class McapLogger:
         self._retry_at = 0.0
         self._last_log_ns: int | None = None
         self._file_index = 0
+        self._file_messages = 0            # messages flushed into the current file
         self._closed = False
         self._open()
 
@@ -326,6 +332,7 @@ class McapLogger:
                                        "file_index": str(self._file_index)})
             self._writer, self._fh = w, fh
             self._time_written = False
+            self._file_messages = 0
             if self.epoch_ns is not None and self._last_log_ns is not None:
                 self._write_time_record()
             self._good_offset = fh.pos
@@ -375,16 +382,31 @@ class McapLogger:
         except (OSError, AttributeError, ValueError) as te:
             self.last_error += f"; could not cut the file back to its last chunk ({te})"
         self.bytes_written = self._file_base + self._good_offset
-        self._file_base = self.bytes_written
         try:
             fh.close()
         except OSError:
             pass
+        if self._file_messages == 0 and self.files:
+            # a file with no message in it is no recording: remove it, its number is used again
+            try:
+                Path(self.files[-1]).unlink()
+                self.files.pop()
+                self._file_index -= 1
+                self.bytes_written -= self._good_offset
+            except OSError:
+                pass
+        self._file_base = self.bytes_written
+        # bounded memory while the disk stays full: the oldest unwritten messages go first
+        while self._pending and self._pending_bytes > self.backlog_bytes:
+            _, data, *_ = self._pending.pop(0)
+            self._pending_bytes -= len(data) + 40
+            self.dropped += 1
 
     def _chunk_done(self) -> None:
         """The pending messages are in the file now."""
         assert self._fh is not None
         self.messages_written += len(self._pending)
+        self._file_messages += len(self._pending)
         self._pending.clear()
         self._pending_bytes = 0
         self._good_offset = self._fh.pos
@@ -435,6 +457,7 @@ class McapLogger:
         log_ns = self._log_time(t_s)
         if t_s is not None and math.isfinite(t_s):
             self._last_log_ns = log_ns
+        self._rotate_if_due()
         if self._writer is None:
             if _monotonic() < self._retry_at or not self._open():
                 self.dropped += 1
@@ -448,30 +471,41 @@ class McapLogger:
             self._writer.add_message(self._channels[stream], log_time=log_ns, data=data, publish_time=pub_ns,
                                      sequence=seq)
             self._pending.append((stream, data, log_ns, pub_ns, seq))
-            self._pending_bytes += len(data) + 40
-            self.poll()
+            self._pending_bytes += len(data) + 40          # + the message record's header, about
+            self._flush_if_due()
         except OSError as e:
             self._fail(e)
 
+    def _flush_if_due(self) -> None:
+        if self._pending and (self._pending_bytes >= self.chunk_size
+                              or _monotonic() - self._last_flush >= self.flush_interval_s):
+            self._flush()
+
+    def _rotate_if_due(self) -> None:
+        """Before a message: a file holds what arrived in [opened, opened + rotate_s) and about rotate_mb."""
+        if self._writer is None or self._fh is None or self.single_file:
+            return
+        if (self._fh.pos + self._pending_bytes >= self.rotate_bytes
+                or _monotonic() - self._opened_at >= self.rotate_s):
+            self._finish()
+            if self._writer is None and not self._pending:     # finished cleanly (else: retried later)
+                self._open()
+
     def poll(self) -> None:
-        """End the chunk if it is full or `flush_interval_s` old, rotate if due. Writing calls it;
-        a caller whose input stalls calls it about once a second so the last data reaches the disk."""
+        """End the chunk if it is full or `flush_interval_s` old, rotate if due, retry a failed file.
+        Writing does this; a caller whose input stalls calls it about once a second so the last data
+        reaches the disk."""
+        if self._closed:
+            return
         if self._writer is None:
-            if self._pending and not self._closed and _monotonic() >= self._retry_at:
+            if self._pending and _monotonic() >= self._retry_at:
                 self._open()
             return
         try:
-            now = _monotonic()
-            if self._pending and (self._pending_bytes >= self.chunk_size
-                                  or now - self._last_flush >= self.flush_interval_s):
-                self._flush()
-            if not self.single_file and (self._fh.pos + self._pending_bytes >= self.rotate_bytes
-                                         or now - self._opened_at >= self.rotate_s):
-                self._finish()
-                if self._writer is None and self._fh is None and not self._pending:
-                    self._open()
+            self._flush_if_due()
         except OSError as e:
             self._fail(e)
+        self._rotate_if_due()
 
     def flush(self) -> None:
         """Write the unfinished chunk now (e.g. before a planned stop)."""
