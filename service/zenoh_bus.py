@@ -15,12 +15,16 @@ Key expressions, all under ``fluxcal/<unit>/`` (docs/zenoh.md has the full table
     cmd/<name>         queryables (JSON reply)        freeze, unfreeze, reset, apply, add-effect
 
 Threads: zenoh calls our queryable callbacks on its own threads. They never block and never call
-zenoh: they put the query in a bounded queue and return. The service's own thread drains that
-queue with `ServiceBus.pending_commands()`, applies each command between blocks and answers it
-with `Command.reply(...)`, which replies on the queryable's own concrete key. The client thus gets
-the service's real answer (not just an acknowledgement) or, if the service does not get to it
-within the client's timeout, a clear timeout. State queries are answered from the same thread,
-so the state callback needs no locking.
+zenoh (except to refuse a query at once): they put the query in a bounded queue and return. The
+service's own thread drains that queue with `ServiceBus.pending_commands()`, applies each command
+between blocks and answers it with `Command.reply(...)`, which replies on the queryable's own concrete
+key: the client gets the service's real answer, not just an acknowledgement. State queries are
+answered on the same thread, so the state callback needs no locking. When the service's thread is
+busy (a reconnect back-off of up to 5 s, a long refit), a small thread of the bus (never a zenoh
+callback) answers state queries after 0.25 s from the last state computed (`"stale": true`,
+`"state_age_s"`), and withdraws a command not taken within its wait (`?wait_s=` from the client,
+at most 5 s), answering {"ok": false, "error": "not applied: ..."}: a command is applied if and only
+if the client is told ok, so a retry never applies it twice.
 
 Sessions opened here must be closed (`close()`, or `with`): a session left open with callbacks
 hangs the interpreter at exit (/work/shared/DEPENDENCIES.md).
@@ -36,6 +40,7 @@ import re
 import struct
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
@@ -317,15 +322,18 @@ class Keys:
 class Command:
     """A command from the bus, applied by the service's own thread; `reply` answers the client once.
 
-    `payload` is the query's payload as text ("" when none).
+    `payload` is the query's payload as text ("" when none). `expires_at` (time.monotonic()) is when the
+    bus withdraws it unapplied if the service has not taken it by then (the client is told so).
     """
 
-    def __init__(self, id: int, name: str, payload: str, key: str, query: zenoh.Query | None) -> None:
+    def __init__(self, id: int, name: str, payload: str, key: str, query: zenoh.Query | None,
+                 expires_at: float = math.inf) -> None:
         self.id = id
         self.name = name
         self.payload = payload
         self.key = key
         self.received_unix_s = time.time()
+        self.expires_at = expires_at
         self._query = query
         self._lock = threading.Lock()
 
@@ -355,18 +363,31 @@ class Command:
         return f"Command(id={self.id}, name={self.name!r}, payload={self.payload[:40]!r})"
 
 
+#: a command waits at most this long for the service's thread (a client may ask for less with ?wait_s=)
+COMMAND_WAIT_S = 5.0
+#: a state query the service's thread has not answered within this long is answered from the last state
+STATE_GRACE_S = 0.25
+#: without queries, the service's thread refreshes the cached state this often (for those late answers)
+STATE_REFRESH_S = 1.0
+
+
 class ServiceBus:
     """Publishes one unit's streams, holds its liveliness token, answers `state` and queues commands.
 
     `zenoh_cfg` is a ZenohConfig or zenoh.Config (the bus opens and closes its own session) or an open
     zenoh.Session (left open by `close()`). `state_fn()` returns the JSON-ready state for `state` queries;
-    it runs on the thread that calls `pending_commands()` (the service's), never on a zenoh thread.
+    it runs on the thread that calls `pending_commands()` (the service's), never on a zenoh thread, so it
+    needs no locking. When that thread is busy (a reconnect back-off, a long refit), a small thread of
+    the bus answers state queries after STATE_GRACE_S from the state last computed, marked
+    `"stale": true` with its age, and withdraws commands not taken within their wait, answering
+    {"ok": false, "error": "... not applied ..."}: a command is applied exactly when the client is told so.
     """
 
     def __init__(self, zenoh_cfg: "ZenohConfig | zenoh.Config | zenoh.Session", unit: str, *,
                  state_fn: Callable[[], Mapping[str, Any]] | None = None,
                  probe_names: Sequence[str] | None = None, per_probe: bool | None = None,
-                 express: bool | None = None, command_queue_size: int = 32) -> None:
+                 express: bool | None = None, command_queue_size: int = 32,
+                 command_wait_s: float = COMMAND_WAIT_S, state_grace_s: float = STATE_GRACE_S) -> None:
         self.keys = Keys(unit)
         self.unit = unit
         self.state_fn = state_fn
@@ -377,17 +398,26 @@ class ServiceBus:
         cfg_obj = zenoh_cfg if isinstance(zenoh_cfg, ZenohConfig) else None
         self.per_probe = per_probe if per_probe is not None else (cfg_obj.per_probe if cfg_obj else True)
         express = express if express is not None else (cfg_obj.express if cfg_obj else False)
-        self.stats: dict[str, int] = {"commands_received": 0, "commands_refused": 0, "state_queries": 0,
-                                      "publish_errors": 0}
+        self.command_wait_s = float(command_wait_s)
+        self.state_grace_s = float(state_grace_s)
+        self.stats: dict[str, int] = {"commands_received": 0, "commands_refused": 0, "commands_expired": 0,
+                                      "state_queries": 0, "state_queries_stale": 0, "publish_errors": 0}
         self.stats.update({f"published_{name}": 0 for name in STREAMS})
         self.stats["published_corrected_probe"] = 0
-        self._commands: queue.Queue[Command] = queue.Queue(maxsize=command_queue_size)
-        self._state_queries: queue.Queue[zenoh.Query] = queue.Queue(maxsize=16)
+        # commands and state queries wait here for the service's thread; one lock, one condition
+        self._cond = threading.Condition()
+        self._commands: deque[Command] = deque()
+        self._command_queue_size = int(command_queue_size)
+        self._state_queries: deque[tuple[float, zenoh.Query]] = deque()
+        self._state_queue_size = 16
+        self._state_cache: tuple[float, dict[str, Any]] | None = None
         self._ids = itertools.count(1)
         self._last_calibration: dict[str, Any] | None = None
         self._last_health: dict[str, Any] | None = None
         self._closed = False
         self._close_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._watchdog: threading.Thread | None = None
         self._entities: list[Any] = []
         self._probe_pubs: dict[str, zenoh.Publisher] = {}
         if isinstance(zenoh_cfg, zenoh.Session):
@@ -399,6 +429,8 @@ class ServiceBus:
             self._pubs = {name: self._declare_pub(self.keys.stream(name), s) for name, s in STREAMS.items()}
             for name in (self.probe_names or []) if self.per_probe else []:
                 self._probe_pubs[name] = self._declare_pub(self.keys.probe(name), STREAMS["corrected"])
+            self._watchdog = threading.Thread(target=self._watch_late, daemon=True, name=f"fluxcal-bus-{unit}-late")
+            self._watchdog.start()
             self._entities.append(self.session.declare_queryable(self.keys.state, self._on_state_query))
             for name in COMMANDS:
                 self._entities.append(self.session.declare_queryable(self.keys.cmd(name), self._command_callback(name)))
@@ -414,13 +446,15 @@ class ServiceBus:
         self._entities.append(pub)
         return pub
 
-    # --- zenoh callbacks: never block, never call zenoh --------------------------------------
+    # --- zenoh callbacks: never block, never call zenoh except to refuse a query ------------------
 
     def _on_state_query(self, query: zenoh.Query) -> None:
-        try:
-            self._state_queries.put_nowait(query)
-        except queue.Full:
-            query.reply_err(_json_bytes({"error": "busy: too many state queries pending"}), encoding=JSON)
+        with self._cond:
+            if len(self._state_queries) < self._state_queue_size and not self._closed:
+                self._state_queries.append((time.monotonic(), query))
+                self._cond.notify_all()
+                return
+        query.reply_err(_json_bytes({"error": "busy: too many state queries pending"}), encoding=JSON)
 
     def _command_callback(self, name: str) -> Callable[[zenoh.Query], None]:
         key = self.keys.cmd(name)
@@ -437,17 +471,60 @@ class ServiceBus:
                 return self._refuse(query, name, f"needs a payload: {COMMANDS[name]}")
             if name == "add-effect" and not re.fullmatch(r"[a-z][a-z0-9_\-]{0,63}", payload):
                 return self._refuse(query, name, f"{payload!r} is not an effect name")
-            cmd = Command(next(self._ids), name, payload, key, query)
-            try:
-                self._commands.put_nowait(cmd)
-            except queue.Full:
-                self._refuse(query, name, f"busy: {self._commands.maxsize} commands pending; try again")
+            wait_s = self.command_wait_s
+            asked = query.parameters.get("wait_s")       # the client's own patience, less a margin
+            if asked is not None:
+                try:
+                    wait_s = min(wait_s, max(0.0, float(asked)))
+                except ValueError:
+                    return self._refuse(query, name, f"wait_s={asked!r} is not a number of seconds")
+            cmd = Command(next(self._ids), name, payload, key, query, expires_at=time.monotonic() + wait_s)
+            with self._cond:
+                if len(self._commands) < self._command_queue_size:
+                    self._commands.append(cmd)
+                    self._cond.notify_all()
+                    return
+            self._refuse(query, name, f"busy: {self._command_queue_size} commands pending; try again")
 
         return on_query
 
     def _refuse(self, query: zenoh.Query, name: str, why: str) -> None:
         self.stats["commands_refused"] += 1
         query.reply_err(_json_bytes({"command": name, "ok": False, "error": why}), encoding=JSON)
+
+    # --- the bus's own thread: late answers (never a zenoh callback) ----------------------------
+
+    def _watch_late(self) -> None:
+        while not self._stop.wait(0.02):
+            now = time.monotonic()
+            with self._cond:
+                late_q = [q for t, q in self._state_queries if now - t >= self.state_grace_s]
+                for _ in late_q:
+                    self._state_queries.popleft()         # oldest first: the late ones are at the front
+                expired = [c for c in self._commands if now >= c.expires_at]
+                for c in expired:
+                    self._commands.remove(c)
+            for q in late_q:
+                self.stats["state_queries_stale"] += 1
+                self._reply_state(q, self._stale_state(now))
+            for c in expired:
+                self.stats["commands_expired"] += 1
+                c.reply({"ok": False, "error": "not applied: the service was busy (reconnecting its input or "
+                                               "processing a block) and did not take the command in time; try again"})
+
+    def _stale_state(self, now: float) -> dict[str, Any]:
+        cache = self._state_cache
+        if cache is None:
+            st = self._published_state()
+            age = None
+        else:
+            st, age = dict(cache[1]), now - cache[0]
+        st.setdefault("unit", self.unit)
+        st["bus"] = dict(self.stats)
+        st["time_unix_s"] = time.time()
+        st["stale"] = True
+        st["state_age_s"] = age
+        return st
 
     # --- the service's thread ------------------------------------------------------------------
 
@@ -456,54 +533,66 @@ class ServiceBus:
 
         Call it from the service's loop between blocks; answer each command with `cmd.reply({...})`."""
         self._answer_state_queries()
-        out = []
-        while True:
-            try:
-                out.append(self._commands.get_nowait())
-            except queue.Empty:
-                return out
+        with self._cond:
+            out = list(self._commands)
+            self._commands.clear()
+        return out
 
     def next_command(self, timeout: float | None = None) -> Command | None:
         """Wait up to `timeout` s for one command (for a service thread that only serves commands)."""
         self._answer_state_queries()
-        try:
-            return self._commands.get(timeout=timeout)
-        except queue.Empty:
-            return None
+        with self._cond:
+            self._cond.wait_for(lambda: self._commands or self._closed, timeout)
+            return self._commands.popleft() if self._commands else None
+
+    def _published_state(self) -> dict[str, Any]:
+        st = dict((self._last_calibration or {}).get("state") or {"usable": False})
+        if self._last_health is not None:
+            st["health"] = self._last_health.get("counters")
+        return st
 
     def state(self) -> dict[str, Any]:
         """What a `state` query answers: state_fn() (or the last calibration and health published) + identity."""
-        if self.state_fn is not None:
-            st = dict(self.state_fn())
-        else:
-            st = dict((self._last_calibration or {}).get("state") or {"usable": False})
-            if self._last_health is not None:
-                st["health"] = self._last_health.get("counters")
+        st = dict(self.state_fn()) if self.state_fn is not None else self._published_state()
         st.setdefault("unit", self.unit)
         if self.probe_names is not None:
             st.setdefault("probe_names", self.probe_names)
         st["bus"] = dict(self.stats)
         st["time_unix_s"] = time.time()
+        st["stale"] = False
+        st["state_age_s"] = 0.0
         return st
 
-    def _answer_state_queries(self) -> None:
-        while True:
+    def _reply_state(self, q: zenoh.Query, st: dict[str, Any] | Exception) -> None:
+        try:
+            if isinstance(st, Exception):   # a broken state callback must not stop the service
+                q.reply_err(_json_bytes({"error": f"state unavailable: {type(st).__name__}: {st}"}), encoding=JSON)
+            else:
+                q.reply(self.keys.state, _json_bytes(st), encoding=JSON)
+        except zenoh.ZError:
+            pass                          # the client's timeout passed
+        finally:
             try:
-                q = self._state_queries.get_nowait()
-            except queue.Empty:
-                return
-            self.stats["state_queries"] += 1
-            try:
-                try:
-                    payload = _json_bytes(self.state())
-                except Exception as e:  # a broken state callback must not stop the service
-                    q.reply_err(_json_bytes({"error": f"state unavailable: {type(e).__name__}: {e}"}), encoding=JSON)
-                    continue
-                q.reply(self.keys.state, payload, encoding=JSON)
-            except zenoh.ZError:
-                pass                          # the client's timeout passed
-            finally:
                 q.drop()
+            except zenoh.ZError:
+                pass
+
+    def _answer_state_queries(self) -> None:
+        now = time.monotonic()
+        with self._cond:
+            queries = [q for _, q in self._state_queries]
+            self._state_queries.clear()
+        cache = self._state_cache
+        if not queries and cache is not None and now - cache[0] < STATE_REFRESH_S:
+            return
+        self.stats["state_queries"] += len(queries)
+        try:
+            st: dict[str, Any] | Exception = self.state()
+            self._state_cache = (now, st)
+        except Exception as e:  # noqa: BLE001 - reported to the client, never raised into the service loop
+            st = e
+        for q in queries:
+            self._reply_state(q, st)
 
     # --- publishing (the service's thread) -------------------------------------------------------
 
@@ -573,8 +662,17 @@ class ServiceBus:
             if self._closed:
                 return
             self._closed = True
-        for cmd in self.pending_commands():
+        self._stop.set()
+        if self._watchdog is not None and self._watchdog is not threading.current_thread():
+            self._watchdog.join(2.0)
+        with self._cond:
+            commands, self._commands = list(self._commands), deque()
+            states, self._state_queries = [q for _, q in self._state_queries], deque()
+            self._cond.notify_all()                  # a next_command() waiting returns None
+        for cmd in commands:
             cmd.reply({"ok": False, "error": "the service is stopping; the command was not applied"})
+        for q in states:                             # not state_fn(): the source may be closed already
+            self._reply_state(q, BusError("the service is stopping"))
         token = getattr(self, "_token", None)
         for ent in [token, *self._probe_pubs.values(), *reversed(self._entities)]:
             if ent is None:
@@ -716,11 +814,11 @@ class BusClient:
                 return
             yield m
 
-    def _query(self, key: str, payload: str | None, timeout: float) -> Any:
+    def _query(self, key: str, payload: str | None, timeout: float, parameters: str = "") -> Any:
         kwargs: dict[str, Any] = {"timeout": float(timeout)}
         if payload:
             kwargs["payload"] = payload.encode()
-        replies = list(self.session.get(key, **kwargs))
+        replies = list(self.session.get(f"{key}?{parameters}" if parameters else key, **kwargs))
         for r in replies:
             if r.ok is not None:
                 return _decode_json(r.ok.payload.to_bytes())
@@ -745,10 +843,14 @@ class BusClient:
     def command(self, name: str, payload: str = "", timeout: float = 5.0) -> dict[str, Any]:
         """Send a command and wait for the service's answer {"id", "command", "ok", ...}.
 
-        Raises BusError when the service refuses it outright (busy, malformed) or does not answer in time."""
+        {"ok": false, "error": ...} means it was not applied: the service refused it, or was too busy to take
+        it within `timeout` less a margin (the bus then withdraws it, so retrying never applies it twice).
+        Raises BusError when the bus refuses it outright (busy, malformed) or nothing answers in time."""
         if name not in COMMANDS:
             raise ConfigError(f"command {name!r} is not allowed (allowed: {', '.join(COMMANDS)})")
-        return self._query(self.keys.cmd(name), payload, timeout)
+        # the bus must give up before we do, or its "not applied" would arrive after we stopped listening
+        wait_s = max(0.0, timeout - max(0.1, min(0.5, 0.2 * timeout)))
+        return self._query(self.keys.cmd(name), payload, timeout, parameters=f"wait_s={wait_s:.3f}")
 
     def alive(self, timeout: float = 1.0) -> bool:
         """Whether the unit's liveliness token is present."""
