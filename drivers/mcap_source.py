@@ -13,6 +13,8 @@ instead of failing. What is reported and what is refused:
 
 The replay Source yields the recorded raw SampleBlocks bit for bit, one per recorded message, and
 counts what the live source counted (samples, sequence gaps, saturated axes, invalid temperatures).
+Its `events` (and `take_events(seq)`) give the recorded commands with the seq they applied from,
+so a replay re-applies them at the same samples.
 """
 
 from __future__ import annotations
@@ -244,6 +246,10 @@ class McapSource(Source):
     def __init__(self, path: str | Path, *, unit: str | None = None, strict: bool = True) -> None:
         self.path = str(path)
         self.report = ReadReport()
+        self._unit = unit
+        self._strict = strict
+        self._events: list[dict[str, Any]] | None = None
+        self._event_pos = 0
         self._it = iter_raw_blocks(path, self.report, unit=unit, strict=strict)
         self._next: SampleBlock | None = next(self._it, None)
         self._warned = 0
@@ -262,6 +268,44 @@ class McapSource(Source):
     def metadata(self) -> dict[str, str]:
         """The recording's "fluxcal" metadata record (unit, n_probes, lsb_nT, probe_names, config, ...)."""
         return self.report.metadata
+
+    @property
+    def events(self) -> list[dict[str, Any]]:
+        """Every message of the recording's events channel (`{"kind": "command" | "initial" | ..., "seq": S,
+        ...}`, S the first sample the event applies to), sorted by seq (stable: recorded order within one
+        seq). Read in a separate pass over the events channel the first time it is asked for, so a replay
+        can re-apply the recorded commands at the same samples as the live run did."""
+        if self._events is None:
+            events: list[dict[str, Any]] = []
+            side = ReadReport()
+            for rec in iter_records(self.path, side, strict=self._strict):
+                if rec.encoding != "json" or rec.topic.rsplit("/", 1)[-1] != "events":
+                    continue
+                if self._unit is not None and unit_of_topic(rec.topic) != self._unit:
+                    continue
+                try:
+                    obj = json.loads(rec.data)
+                except (UnicodeDecodeError, json.JSONDecodeError) as e:
+                    raise RecordingError(f"{self.path}: {rec.topic}: damaged event message: {e}") from None
+                if isinstance(obj, dict):
+                    events.append(obj)
+            seq_key = [e.get("seq") if isinstance(e.get("seq"), int) else -1 for e in events]
+            order = sorted(range(len(events)), key=seq_key.__getitem__)
+            self._events = [events[k] for k in order]
+        return self._events
+
+    def take_events(self, before_seq: int) -> list[dict[str, Any]]:
+        """The events not yet taken whose seq is <= `before_seq` (apply them before the sample with
+        that seq), in order; events without a seq count as seq -1 (they apply from the start)."""
+        events = self.events
+        out = []
+        while self._event_pos < len(events):
+            s = events[self._event_pos].get("seq")
+            if (s if isinstance(s, int) else -1) > before_seq:
+                break
+            out.append(events[self._event_pos])
+            self._event_pos += 1
+        return out
 
     def _warn_new(self) -> None:
         for w in self.report.warnings[self._warned:]:
