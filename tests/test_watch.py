@@ -208,6 +208,11 @@ def test_not_usable_yet_shows_the_gate_reasons_and_the_raw_vectors():
     assert "calibration: not usable yet" in text and "gate: s1: coverage 0.31 < 0.6" in text
     assert re.search(r"s1\s+\+10\.0\s+\+20\.0\s+\+30\.0", text)
     assert "cal=not-usable cov=0.31 | raw s1=[+10.0, +20.0, +30.0]" in dash.line()
+    dash.update_state({"stale": True, "state_age_s": 4.2})       # the service's thread is busy
+    assert "(state 4 s old: the service is busy, e.g. reconnecting its input)" in "\n".join(dash.frame_lines())
+    assert "cal=not-usable cov=0.31 state-age=4s |" in dash.line()
+    dash.update_state({"stale": False, "state_age_s": 0.0})
+    assert "state-age" not in dash.line() and "old:" not in "\n".join(dash.frame_lines())
 
 
 @pytest.mark.slow

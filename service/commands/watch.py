@@ -200,6 +200,9 @@ class Dashboard:
                       f"residual [{rms_txt}] nT"]
         if st.get("samples_seen") is not None:
             parts.append(f"{st['samples_seen']} samples seen")
+        if st.get("stale"):
+            age = st.get("state_age_s")
+            parts.append(f"(state {_num(age, '.0f')} s old: the service is busy, e.g. reconnecting its input)")
         text = "  ".join(parts)
         reasons = gate.get("reasons") if gate else None
         if reasons and not st.get("usable"):
@@ -268,7 +271,8 @@ class Dashboard:
         gate = st.get("gate") or {}
         parts = [f"{t:6.1f}s fluxcal/{self.unit}",
                  f"cal={'usable' if st.get('usable') else 'not-usable' if st else '?'}"
-                 + (f" cov={_num(gate.get('coverage'), '.2f')}" if gate else "")]
+                 + (f" cov={_num(gate.get('coverage'), '.2f')}" if gate else "")
+                 + (f" state-age={_num(st.get('state_age_s'), '.0f')}s" if st.get("stale") else "")]
         c = self.corrected
         if c is not None and c.n_samples:
             for name, v in zip(self._names(c.n_probes), c.corrected_nT[-1]):
