@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-import zenoh
 
 from drivers.block import SampleBlock
 from drivers.config import load_section
