@@ -172,7 +172,7 @@ class Daemon:
                     self.say("input reconnected")
                 except DriverError:
                     pass
-                continue
+                block = None                  # nothing to process; health still goes out below
             if block is None:
                 if source.exhausted:
                     self.say("source exhausted")
