@@ -121,78 +121,81 @@ class _CountingFile:
 
 
 class _VectorMeans:
-    """Means of the corrected vectors over intervals of `period_s` of unit time, vectorised per block:
-    per probe x, y, z (NaN-aware) and mean |B|, and the same of the array centre when the block has it.
-    An interval ends at the next multiple of `period_s`, or early when the calibration (cal_id) changes."""
+    """Means of the corrected vectors over intervals of `period_s` of unit time: per probe x, y, z
+    (NaN-aware) and mean |B|, and the same of the array centre when the blocks have it. Interval k
+    holds k·period <= t < (k+1)·period; it also ends early when the calibration (cal_id) changes.
+    Blocks inside one interval are only kept; the arithmetic runs once per interval (10 Hz)."""
 
     def __init__(self, period_s: float) -> None:
         self.period_s = period_s
-        self.acc: dict[str, Any] | None = None     # the interval being filled
+        self.parts: list[CorrectedBlock] = []      # the interval being filled
+        self.bin = 0
 
-    @staticmethod
-    def _sums(c: np.ndarray, starts: np.ndarray) -> list[np.ndarray]:
-        """Per segment: sum of finite x, y, z; their count; sum of finite |B|; its count."""
-        ok = np.isfinite(c)
-        norm = np.sqrt(np.einsum("npk,npk->np", c, c))          # |B| = sqrt(x^2 + y^2 + z^2), NaN if an axis is
-        nok = np.isfinite(norm)
-        return [np.add.reduceat(np.where(ok, c, 0.0), starts, axis=0), np.add.reduceat(ok, starts, axis=0),
-                np.add.reduceat(np.where(nok, norm, 0.0), starts, axis=0), np.add.reduceat(nok, starts, axis=0)]
+    def _bin(self, t: float) -> int:
+        # the 1e-9 keeps a sample on a boundary in the interval it starts (0.3 s is
+        # 2.9999999999999996 periods of 0.1 s in binary)
+        return math.floor(t / self.period_s + 1e-9)
 
     def add(self, block: CorrectedBlock) -> list[dict[str, Any]]:
         """Feed a block; returns the intervals it completed."""
         done: list[dict[str, Any]] = []
-        keep = np.isfinite(block.t_s)
-        if not keep.any():
+        t = block.t_s
+        if not np.isfinite(t).all():
+            keep = np.flatnonzero(np.isfinite(t))
+            block = _rows(block, keep)
+            t = block.t_s
+        if t.size == 0:
             return done
-        rows = slice(None) if keep.all() else np.flatnonzero(keep)
-        t, seq, c = block.t_s[rows], block.seq[rows], block.corrected_nT[rows]
-        # interval k holds k·period <= t < (k+1)·period; the 1e-9 keeps a sample on a boundary (0.3 s
-        # is 2.9999999999999996 periods of 0.1 s in binary) in the interval it starts
+        first, last = self._bin(float(t[0])), self._bin(float(t[-1]))
+        if self.parts:
+            prev = self.parts[-1]
+            if (first != self.bin or block.cal_id != prev.cal_id or block.n_probes != prev.n_probes
+                    or (block.center_nT is None) != (prev.center_nT is None)):
+                done.append(self._emit())
+        if first == last:
+            if not self.parts:
+                self.bin = first
+            self.parts.append(block)
+            return done
         bins = np.floor(t / self.period_s + 1e-9).astype(np.int64)
-        starts = np.concatenate([[0], np.flatnonzero(np.diff(bins)) + 1])
-        stops = np.append(starts[1:], len(t))
-        probes = self._sums(c, starts)
-        center = None if block.center_nT is None else self._sums(block.center_nT[rows][:, None, :], starts)
-        acc = self.acc
-        if acc is not None and (acc["bin"] != bins[0] or acc["cal_id"] != block.cal_id
-                                or acc["probes"][0].shape != probes[0].shape[1:]
-                                or (acc["center"] is None) != (center is None)):
-            done.append(self._emit(acc))
-            acc = None
-        for k in range(len(starts)):
-            seg_p = [a[k] for a in probes]
-            seg_c = None if center is None else [a[k] for a in center]
-            if k == 0 and acc is not None:             # continues the interval carried over from the last block
-                acc["probes"] = [x + y for x, y in zip(acc["probes"], seg_p)]
-                if seg_c is not None:
-                    acc["center"] = [x + y for x, y in zip(acc["center"], seg_c)]
-                acc["n"] += int(stops[0])
-                continue
-            if acc is not None:
-                done.append(self._emit(acc))
-            acc = {"bin": int(bins[starts[k]]), "t_s": float(t[starts[k]]), "seq": int(seq[starts[k]]),
-                   "n": int(stops[k] - starts[k]), "cal_id": int(block.cal_id), "probes": seg_p, "center": seg_c}
-        self.acc = acc
+        cuts = np.concatenate([[0], np.flatnonzero(np.diff(bins)) + 1, [t.size]])
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            if a > 0:
+                done.append(self._emit())
+            if not self.parts:
+                self.bin = int(bins[a])
+            self.parts.append(_rows(block, slice(a, b)))
         return done
 
     def flush(self) -> list[dict[str, Any]]:
-        out = [self._emit(self.acc)] if self.acc is not None else []
-        self.acc = None
-        return out
+        return [self._emit()] if self.parts else []
 
     @staticmethod
-    def _emit(acc: dict[str, Any]) -> dict[str, Any]:
-        """{"t_s", "seq", "n", "cal_id", "mean" (P, 3) nT, "total" (P,) nT, "center": (mean (3,), total) or None}."""
+    def _mean(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """NaN-aware mean over samples of (N, P, 3): (P, 3) of x, y, z and (P,) of |B|; NaN if none."""
+        ok = np.isfinite(c)
+        norm = np.sqrt(np.einsum("npk,npk->np", c, c))          # |B| = sqrt(x^2 + y^2 + z^2), NaN if an axis is
+        nok = np.isfinite(norm)
         with np.errstate(invalid="ignore", divide="ignore"):
-            s, n, ts, tn = acc["probes"]
-            out = {k: acc[k] for k in ("t_s", "seq", "n", "cal_id")}
-            out["mean"], out["total"] = s / n, ts / tn                # NaN where nothing was finite
-            if acc["center"] is not None:
-                cs, cn, cts, ctn = acc["center"]
-                out["center"] = ((cs / cn)[0], (cts / ctn)[0])
-            else:
-                out["center"] = None
-        return out
+            return (np.where(ok, c, 0.0).sum(axis=0) / ok.sum(axis=0),
+                    np.where(nok, norm, 0.0).sum(axis=0) / nok.sum(axis=0))
+
+    def _emit(self) -> dict[str, Any]:
+        """{"t_s", "seq", "n", "cal_id", "mean" (P, 3) nT, "total" (P,) nT, "center": (mean (3,), total) or None}."""
+        parts, self.parts = self.parts, []
+        c = parts[0].corrected_nT if len(parts) == 1 else np.concatenate([p.corrected_nT for p in parts])
+        mean, total = self._mean(c)
+        center = None
+        if parts[0].center_nT is not None:
+            cm, ct = self._mean(np.concatenate([p.center_nT for p in parts])[:, None, :])
+            center = (cm[0], ct[0])
+        return {"t_s": float(parts[0].t_s[0]), "seq": int(parts[0].seq[0]), "n": int(c.shape[0]),
+                "cal_id": int(parts[-1].cal_id), "mean": mean, "total": total, "center": center}
+
+
+def _rows(b: CorrectedBlock, rows: Any) -> CorrectedBlock:
+    return CorrectedBlock(b.t_s[rows], b.seq[rows], b.corrected_nT[rows], None, None,
+                          None if b.center_nT is None else b.center_nT[rows], b.cal_id)
 
 
 class McapLogger:
@@ -525,15 +528,17 @@ class McapLogger:
                 self._write_vectors(rec)
 
     def _write_vectors(self, iv: dict[str, Any]) -> None:
+        def num(x: float) -> float | None:              # strict JSON: NaN -> null
+            return x if math.isfinite(x) else None
+
         rec: dict[str, Any] = {k: iv[k] for k in ("t_s", "seq", "n", "cal_id")}
-        mean, total = iv["mean"], iv["total"]
-        for k in range(mean.shape[0]):
+        for k, (m, tot) in enumerate(zip(iv["mean"].tolist(), iv["total"].tolist())):
             name = self.probe_names[k] if k < len(self.probe_names) else f"s{k + 1}"
-            rec[name] = {"x": mean[k, 0], "y": mean[k, 1], "z": mean[k, 2], "total": total[k]}
+            rec[name] = {"x": num(m[0]), "y": num(m[1]), "z": num(m[2]), "total": num(tot)}
         if iv["center"] is not None:
-            m, tot = iv["center"]
-            rec["center"] = {"x": m[0], "y": m[1], "z": m[2], "total": tot}
-        self._write("vectors", encode_json(rec), iv["t_s"])
+            m, tot = iv["center"][0].tolist(), float(iv["center"][1])
+            rec["center"] = {"x": num(m[0]), "y": num(m[1]), "z": num(m[2]), "total": num(tot)}
+        self._write("vectors", json.dumps(rec, separators=(",", ":")).encode(), iv["t_s"])
 
     def _write_json(self, stream: str, record: dict[str, Any]) -> None:
         t = record.get("t_s")
