@@ -80,7 +80,8 @@ def test_channels_schemas_and_metadata_describe_the_file(tmp_path):
     assert enc == "fluxcal.corrected.v1" and schema.data.decode() == CORRECTED_LAYOUT
     enc, schema = topics["/fluxcal/grad1/vectors"]
     vec_schema = json.loads(schema.data)
-    assert enc == "json" and schema.encoding == "jsonschema" and {"fore", "aft", "center"} <= set(vec_schema["properties"])
+    assert enc == "json" and schema.encoding == "jsonschema"
+    assert {"fore", "aft", "center"} <= set(vec_schema["properties"])
     for s in ("calibration", "events", "health"):
         assert topics[f"/fluxcal/grad1/{s}"][1].encoding == "jsonschema"
     assert counts["/fluxcal/grad1/raw"] == 10 and counts["/fluxcal/grad1/vectors"] == 5     # 0.5 s at 10 Hz
