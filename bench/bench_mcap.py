@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _machine import cpu_model
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -41,14 +42,6 @@ from service.mcap_sink import McapLogger  # noqa: E402
 from service.outputs import CorrectedBlock  # noqa: E402
 
 
-def cpu_model() -> str:
-    name = platform.processor()
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            name = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), name)
-    except OSError:
-        pass
-    return name or platform.machine()
 
 
 def best_of(runs: int, fn) -> float:

@@ -18,7 +18,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import platform  # noqa: E402
 import time  # noqa: E402
 
-import numpy as np  # noqa: E402
+import numpy as np
+from _machine import cpu_model  # noqa: E402
 
 from drivers.sim.config import load_sim_config  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
@@ -51,15 +52,6 @@ def best_of(runs: int, fn) -> float:
     return best
 
 
-def cpu_model() -> str:
-    """platform.processor(), or the model name Linux reports when that is empty."""
-    name = platform.processor()
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            name = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), name)
-    except OSError:
-        pass
-    return name or platform.machine()
 
 
 def main() -> None:

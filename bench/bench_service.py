@@ -26,6 +26,7 @@ import tty
 from pathlib import Path
 
 import numpy as np
+from _machine import cpu_model
 
 from drivers.block import SampleBlock
 from drivers.icd import encode_serial, parse_serial
@@ -40,15 +41,7 @@ PROBES = [{"name": f"s{k + 1}", "position_m": p, "offset_nT": [100.0 * k, -50.0,
 
 
 def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}"
+    return f"{cpu_model()}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}"
 
 
 def config_text(tmp: Path, source: str, port: int, initial: Path) -> str:
@@ -144,12 +137,8 @@ def bench_live(tmp: Path, seconds: float) -> None:
                                                           for p in PROBES]), initial)
     src = (f'[source]\nkind = "serial"\nport = "{port_path}"\nn_probes = {N_PROBES}')
     cfg_path = tmp / "live.toml"
-    text = config_text(tmp, src, port, initial).replace("[sim]\n", "#").replace(f"rate_hz = {RATE}\n", "")
-    text = "\n".join(ln for ln in text.splitlines() if not ln.startswith(("[sim.", "[[sim.")) and
-                     not (ln.split(" = ")[0] in ("enabled", "name", "position_m", "offset_nT", "noise_nT")
-                          and "sim" in text[:0]))
-    cfg_path.write_text(config_text(tmp, src, port, initial).split("\n[sim]")[0] + "\n" +
-                        config_text(tmp, src, port, initial).split("[estimator]", 1)[1].join(["[estimator]", ""]))
+    full = config_text(tmp, src, port, initial)            # the serial unit is real here: no [sim] sections
+    cfg_path.write_text(full.split("\n[sim]")[0] + "\n[estimator]" + full.split("[estimator]", 1)[1])
     prof = os.environ.get("FLUXCAL_PROFILE")
     cmd = [sys.executable] + (["-m", "cProfile", "-o", prof] if prof else []) + ["-m", "service.cli", "run", "--config", str(cfg_path)]
     proc = subprocess.Popen(cmd,

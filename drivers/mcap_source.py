@@ -350,7 +350,7 @@ def open_source(config: Any = None, *, path: str | Path | None = None, unit: str
     return McapSource(path, unit=unit, strict=strict)
 
 
-def metadata_json(report: ReadReport, key: str, default: Any = None) -> Any:
+def metadata_json(report: ReadReport, key: str, default: Any = None, where: str = "") -> Any:
     """A JSON-valued key of the "fluxcal" metadata record (probe_names, positions_m, config), or default."""
     text = report.metadata.get(key)
     if text is None:
@@ -358,7 +358,7 @@ def metadata_json(report: ReadReport, key: str, default: Any = None) -> Any:
     try:
         return json.loads(text)
     except json.JSONDecodeError as e:
-        raise RecordingError(f"metadata {key!r} is not JSON: {e}") from None
+        raise RecordingError(f"{where + ': ' if where else ''}metadata {key!r} is not JSON: {e}") from None
 
 
 __all__ = ["McapRecord", "McapSource", "ReadReport", "RAW_ENCODING", "iter_file_records", "iter_raw_blocks",

@@ -13,7 +13,6 @@ bad files raise RecordingError with the file and what is wrong.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +23,7 @@ from mcap.decoder import DecoderFactory
 
 from drivers.block import SampleBlock
 from drivers.errors import DataError, RecordingError
-from drivers.mcap_source import ReadReport, iter_file_records, iter_records, recording_files, unit_of_topic
+from drivers.mcap_source import ReadReport, iter_file_records, metadata_json, iter_records, recording_files, unit_of_topic
 
 from .encoding import CORRECTED_ENCODING, RAW_ENCODING, decode_corrected, decode_json, decode_raw
 from .outputs import CorrectedBlock
@@ -85,14 +84,8 @@ class Recording:
         return self.raw_blocks[0].n_probes
 
     def _json(self, key: str) -> Any:
-        text = self.metadata.get(key)
-        if text is None:
-            return None
-        try:
-            return json.loads(text)
-        except json.JSONDecodeError as e:
-            raise RecordingError(f"{self.files[0] if self.files else 'recording'}: metadata {key!r} is not JSON: "
-                                 f"{e}") from None
+        report = ReadReport(metadata=self.metadata)
+        return metadata_json(report, key, where=self.files[0] if self.files else "recording")
 
     @property
     def probe_names(self) -> list[str]:
