@@ -76,6 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
     watch.add_argument("--connect", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     watch.add_argument("--unit", metavar="NAME")
     watch.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    watch.add_argument("--ca", metavar="CA.pem", help="TLS: the site's certificate authority")
+    watch.add_argument("--cert", metavar="CERT.pem", help="TLS: this dashboard's certificate")
+    watch.add_argument("--key", metavar="KEY.pem", help="TLS: this dashboard's private key")
     return p
 
 

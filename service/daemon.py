@@ -110,7 +110,12 @@ class Daemon:
                                     None if pipeline.calibration is None else calibration_to_dict(pipeline.calibration)})
                 self.say(f"recording to {cfg.mcap.dir}/")
             self.say(f"publishing on zenoh under fluxcal/{cfg.unit.name}/ "
-                     f"(listen {', '.join(getattr(cfg.zenoh, 'listen', []) or ['-'])})")
+                     f"(listen {', '.join(getattr(cfg.zenoh, 'listen', []) or ['-'])}"
+                     f"{', TLS' if cfg.zenoh.tls.enabled else ''}"
+                     f"{', access control' if cfg.zenoh.access.enabled else ''})")
+            for ep in cfg.zenoh.exposed():
+                self.say(f"warning: {ep} is reachable from other hosts in clear text and without access control: "
+                         f"anyone on that network can read the streams and send commands (docs/security.md)")
             self._loop(source, pipeline, bus, logger)
         finally:
             for closer in (source.close, getattr(logger, "close", None), getattr(bus, "close", None)):

@@ -167,7 +167,8 @@ def test_watch_takes_endpoint_and_unit_from_the_service_config():
 
     args = argparse.Namespace(config=str(REPO / "configs" / "sim-gradiometer.toml"), connect=None, unit=None,
                               seconds=None)
-    assert _resolve(args) == (["tcp/127.0.0.1:7447"], "grad1")
+    endpoints, unit, tls = _resolve(args)
+    assert (endpoints, unit, tls.enabled) == (["tcp/127.0.0.1:7447"], "grad1", False)
     assert dashboard_endpoints(ZenohConfig(listen=["tcp/127.0.0.1:0"], connect=["tcp/10.1.1.1:7447"])) == \
         ["tcp/10.1.1.1:7447"]                                  # a random port is unknowable: use the router
 

@@ -138,8 +138,10 @@ def test_config_defaults_bind_loopback_only_and_no_multicast():
     ({"mode": "client", "listen": ["tcp/127.0.0.1:1"], "connect": ["tcp/127.0.0.1:2"]},
      "zenoh.listen: ['tcp/127.0.0.1:1'] is not allowed with mode 'client'"),
     ({"listen": []}, "zenoh.listen: nothing to listen on and nothing to connect to"),
-    ({"tls": {"root_ca": "ca.pem"}}, "zenoh.tls.root_ca: TLS is not supported by fluxcal yet"),
-    ({"tls": {"certificate": "x"}}, "zenoh.tls.certificate: unknown key (allowed: root_ca, cert, key)"),
+    ({"tls": {"root_ca": "no-such-ca.pem"}}, "zenoh.tls.cert: required with TLS"),
+    ({"tls": {"certificate": "x"}}, "zenoh.tls.certificate: unknown key (allowed: root_ca, cert, key, mutual"),
+    ({"access": {"readers": ["dash"]}}, "zenoh.access: access control names peers by their client certificate"),
+    ({"access": {"commanders": [""]}}, "zenoh.access.commanders[0]: '' is not allowed"),
     ({"multicast_scouting": "yes"}, "zenoh.multicast_scouting: expected true or false, got 'yes'"),
 ])
 def test_config_errors_name_key_value_and_what_is_allowed(table, message):

@@ -28,7 +28,8 @@ import zenoh
 
 from drivers.errors import ConfigError
 
-from ..zenoh_bus import DEFAULT_PORT, BusClient, BusError, Keys, Message, ZenohConfig, discover_units, open_session
+from ..zenoh_bus import (DEFAULT_PORT, BusClient, BusError, Keys, Message, ZenohConfig, ZenohTlsConfig, discover_units,
+                         open_session)
 
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 TTY_PERIOD_S = 0.25            # redraw rate on a terminal (4 Hz)
@@ -54,14 +55,16 @@ def dashboard_endpoints(zcfg: ZenohConfig) -> list[str]:
     return eps or list(zcfg.connect)
 
 
-def _resolve(args: argparse.Namespace) -> tuple[list[str], str | None]:
+def _resolve(args: argparse.Namespace) -> tuple[list[str], str | None, ZenohTlsConfig]:
     endpoints: list[str] = []
     unit = getattr(args, "unit", None)
+    tls = ZenohTlsConfig()
     if getattr(args, "config", None):
         from ..config import load_config
 
         cfg = load_config(args.config)
         endpoints = dashboard_endpoints(cfg.zenoh)
+        tls = cfg.zenoh.tls
         unit = unit or cfg.unit.name
         if not endpoints and not args.connect:
             raise ConfigError(f"{args.config}: zenoh: the service neither listens on a fixed port nor connects to a "
@@ -70,8 +73,17 @@ def _resolve(args: argparse.Namespace) -> tuple[list[str], str | None]:
         endpoints = [args.connect]
     if not endpoints:
         endpoints = [DEFAULT_ENDPOINT]
+    given = {k: getattr(args, k, None) for k in ("ca", "cert", "key")}
+    if any(given.values()):
+        tls = ZenohTlsConfig(root_ca=given["ca"], cert=given["cert"], key=given["key"])
+        try:
+            tls.validate("tls")
+        except ConfigError as e:
+            key, _, why = str(e).partition(": ")
+            flag = {"tls.root_ca": "--ca", "tls.cert": "--cert", "tls.key": "--key"}.get(key, key)
+            raise ConfigError(f"{flag}: {why}") from None
     try:
-        ZenohConfig.client(*endpoints)                  # a typo in an endpoint is a usage error, not a retry loop
+        ZenohConfig.client(*endpoints, tls=tls)         # a typo in an endpoint is a usage error, not a retry loop
     except ConfigError as e:
         flag = "--connect" if getattr(args, "connect", None) else f"{args.config}: zenoh"
         raise ConfigError(f"{flag}: {str(e).split(': ', 1)[-1]}") from None
@@ -79,7 +91,7 @@ def _resolve(args: argparse.Namespace) -> tuple[list[str], str | None]:
         Keys(unit)
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise ConfigError(f"--seconds: {args.seconds!r} is not allowed (allowed: a positive number of seconds)")
-    return endpoints, unit
+    return endpoints, unit, tls
 
 
 def _vec(v: np.ndarray, width: int = 10) -> str:
@@ -319,7 +331,7 @@ class _StateQuery:
 
 
 def run(endpoints: list[str], unit: str | None, seconds: float | None, out: TextIO, *,
-        tty: bool | None = None) -> int:
+        tty: bool | None = None, tls: ZenohTlsConfig | None = None) -> int:
     """The dashboard loop; returns the exit status."""
     tty = out.isatty() if tty is None else tty
     period = TTY_PERIOD_S if tty else LINE_PERIOD_S
@@ -339,7 +351,7 @@ def run(endpoints: list[str], unit: str | None, seconds: float | None, out: Text
             now = time.monotonic()
             if session is None and now >= next_connect:
                 try:
-                    session = open_session(ZenohConfig.client(*endpoints))
+                    session = open_session(ZenohConfig.client(*endpoints, tls=tls))
                     dash.connected = True
                 except BusError:
                     next_connect = now + 1.0
@@ -405,8 +417,8 @@ def run(endpoints: list[str], unit: str | None, seconds: float | None, out: Text
 
 
 def main(args: argparse.Namespace) -> int:
-    endpoints, unit = _resolve(args)
-    status = run(endpoints, unit, args.seconds, sys.stdout)
+    endpoints, unit, tls = _resolve(args)
+    status = run(endpoints, unit, args.seconds, sys.stdout, tls=tls)
     if status:
         where = f"fluxcal/{unit}" if unit else "any fluxcal unit"
         print(f"fluxcal watch: nothing received from {where} via {', '.join(endpoints)} in {args.seconds:g} s",
