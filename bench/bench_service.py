@@ -44,8 +44,8 @@ def machine() -> str:
     return f"{cpu_model()}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}"
 
 
-def config_text(tmp: Path, source: str, port: int, initial: Path) -> str:
-    lines = ['[unit]', 'name = "bench"', f'n_probes = {N_PROBES}', '']
+def config_text(tmp: Path, source: str, port: int, initial: Path, block_ms: float | None = None) -> str:
+    lines = ['[unit]', 'name = "bench"', f'n_probes = {N_PROBES}'] + ([f'block_ms = {block_ms}'] if block_ms else []) + ['']
     for p in PROBES:
         lines += ['[[probes]]', f'name = "{p["name"]}"', f'position_m = {p["position_m"]}', '']
     lines += [source, '', '[sim]', f'rate_hz = {RATE}', '[sim.reference]', 'enabled = false', '']
@@ -122,7 +122,7 @@ def cpu_seconds(pid: int) -> float:
     return (int(parts[11]) + int(parts[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def bench_live(tmp: Path, seconds: float) -> None:
+def bench_live(tmp: Path, seconds: float, block_ms: float | None = None) -> None:
     from service.zenoh_bus import BusClient, ZenohConfig
 
     cfg, unit, s = make_samples(seconds + 10)
@@ -137,7 +137,7 @@ def bench_live(tmp: Path, seconds: float) -> None:
                                                           for p in PROBES]), initial)
     src = (f'[source]\nkind = "serial"\nport = "{port_path}"\nn_probes = {N_PROBES}')
     cfg_path = tmp / "live.toml"
-    full = config_text(tmp, src, port, initial)            # the serial unit is real here: no [sim] sections
+    full = config_text(tmp, src, port, initial, block_ms)            # the serial unit is real here: no [sim] sections
     cfg_path.write_text(full.split("\n[sim]")[0] + "\n[estimator]" + full.split("[estimator]", 1)[1])
     prof = os.environ.get("FLUXCAL_PROFILE")
     cmd = [sys.executable] + (["-m", "cProfile", "-o", prof] if prof else []) + ["-m", "service.cli", "run", "--config", str(cfg_path)]
@@ -184,7 +184,7 @@ def bench_live(tmp: Path, seconds: float) -> None:
     os.close(master)
     a = np.array(lat[len(lat) // 10:]) * 1e3          # skip the first tenth (start-up)
     b = np.array(lat_oldest[len(lat_oldest) // 10:]) * 1e3
-    print(f"live, {N_PROBES} probes at {RATE:.0f} Hz over a pty, {seconds:.0f} s: latency frame written -> "
+    print(f"live, {N_PROBES} probes at {RATE:.0f} Hz over a pty, block_ms {block_ms or 'default'}, {seconds:.0f} s: latency frame written -> "
           f"corrected message received p50 {np.percentile(a, 50):.2f} ms, p99 {np.percentile(a, 99):.2f} ms "
           f"({a.size} messages; newest frame of each block), oldest frame of each block p50 "
           f"{np.percentile(b, 50):.2f} ms, p99 {np.percentile(b, 99):.2f} ms; service CPU {100 * cpu / wall:.1f} % "
@@ -194,11 +194,14 @@ def bench_live(tmp: Path, seconds: float) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--live-only", action="store_true", help="skip the replay benchmark")
+    ap.add_argument("--block-ms", type=float, default=None, help="[unit] block_ms of the live service (default: its default)")
     args = ap.parse_args()
     print("machine:", machine())
     with tempfile.TemporaryDirectory() as d:
-        bench_replay(Path(d), 60.0)
-        bench_live(Path(d), args.seconds)
+        if not args.live_only:
+            bench_replay(Path(d), 60.0)
+        bench_live(Path(d), args.seconds, args.block_ms)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 SYNC = b"\xa5\x5a"
 VERSION = 1
@@ -206,7 +205,9 @@ def parse_serial(buf: bytes | bytearray | memoryview | np.ndarray, n_probes: int
         padded = np.empty(size + 1, np.uint8)
         padded[:size] = a
         padded[size] = 0
-        rows = sliding_window_view(padded, fl + 1)[cand]                   # (K, fl + 1) copy
+        # every window of fl + 1 bytes as a strided view (no copy, and cheaper to make than
+        # sliding_window_view for the small buffers of a live port), then the candidates' rows copied
+        rows = np.ndarray((size - fl + 1, fl + 1), np.uint8, padded, 0, (1, 1))[cand]
         crc_got = rows[:, fl - 2].astype(np.intp) | (rows[:, fl - 1].astype(np.intp) << 8)
         crc_ok = _crc_frames(rows, n_probes) == crc_got
         if crc_ok.all():

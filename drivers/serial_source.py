@@ -14,6 +14,7 @@ again (a udev symlink that reappears works). The caller counts read_errors and r
 
 from __future__ import annotations
 
+import select
 import time
 from dataclasses import dataclass
 
@@ -119,6 +120,21 @@ class SerialSource(Source):
             return ser.read(MAX_READ_BYTES)
         finally:
             ser.timeout = saved
+
+    def wait_readable(self, timeout: float) -> bool | None:
+        ser = self._ser
+        if ser is None:
+            raise DriverError(f"serial port {self.port}: not open (a previous read failed); call reopen()")
+        fileno = getattr(ser, "fileno", None)
+        if fileno is None:
+            return None                   # URL handlers (socket://, loop://): tell by reading
+        try:
+            if ser.in_waiting:
+                return True
+            # a port whose other end went away is readable too: the read that follows raises
+            return bool(select.select([fileno()], [], [], max(timeout, 0.0))[0])
+        except (serial.SerialException, OSError, ValueError) as e:
+            raise self._fail(e) from e
 
     def _read_block(self, timeout: float | None) -> SampleBlock | None:
         deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)

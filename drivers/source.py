@@ -58,6 +58,12 @@ class Source(ABC):
     @abstractmethod
     def _read_block(self, timeout: float | None) -> SampleBlock | None: ...
 
+    def wait_readable(self, timeout: float) -> bool | None:
+        """Wait up to `timeout` s for input without consuming it: True when some is there, False when
+        none came, None when this source can only tell by reading (then call `read`). A reader that
+        gathers a block of input first waits here, sleeps, and reads once: one parse per block."""
+        return None
+
     def reopen(self) -> None:
         """Try to open the underlying port again after a DriverError; raise DriverError if it can't."""
         raise DriverError(f"{type(self).__name__} cannot reconnect")

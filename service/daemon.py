@@ -133,6 +133,14 @@ class Daemon:
         if self._pending_error is not None:
             e, self._pending_error = self._pending_error, None
             raise e
+        ready = source.wait_readable(0.05)
+        if ready is not None:
+            if not ready:
+                return None
+            # input is there: let the rest of the block arrive in the port's buffer, then one read and one
+            # parse (when stopping, still read what is there: nothing that arrived is lost)
+            self.stop.wait(self.cfg.unit.block_ms / 1000.0)
+            return source.read(timeout=0.001)
         first = source.read(timeout=0.05)
         if first is None:
             return None

@@ -17,6 +17,8 @@ baseline, d apart in each pair) it reduces exactly to 001 eq. 2: row x = (B_1 �
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from drivers.errors import ConfigError
@@ -44,29 +46,37 @@ def cross_positions(baseline_m: float) -> np.ndarray:
     return np.array([[h, 0.0, 0.0], [0.0, h, 0.0], [-h, 0.0, 0.0], [0.0, -h, 0.0]])
 
 
-def tensor_from_positions(corrected_nT: np.ndarray, positions_m: np.ndarray) -> np.ndarray:
-    """(N, P, 3) corrected fields at probe positions (P, 3) -> (N, 3, 3) tensor G (least squares)."""
-    r = np.asarray(positions_m, float)
-    if r.ndim != 2 or r.shape[1] != 3 or r.shape[0] != corrected_nT.shape[1]:
-        raise ConfigError(f"probes.position_m: expected ({corrected_nT.shape[1]}, 3) positions in m, got {r.shape}")
+@functools.lru_cache(maxsize=64)
+def _geometry(shape: tuple[int, int], key: bytes) -> tuple[np.ndarray, bool]:
+    """D⁺ (3, P) about the centroid and whether the array is planar, for positions given as bytes
+    (computed once per geometry: the service calls the tensor block after block with the same one)."""
+    r = np.frombuffer(key, float).reshape(shape)
     d = r - r.mean(axis=0)
     u, sv, vt = np.linalg.svd(d, full_matrices=False)
     rank = int(np.sum(sv > 1e-9 * max(sv[0], 1e-300)))
     if rank < 2:
         raise ConfigError("probes.position_m: the probes lie on one line (or one point); "
                           "a tensor needs at least a planar array")
+    if rank == 2 and not np.isclose(abs(vt[2][2]), 1.0, atol=1e-9):
+        raise ConfigError("probes.position_m: a planar array must lie in the platform x-y plane")
+    pinv = np.linalg.pinv(d)
+    pinv.flags.writeable = False
+    return pinv, rank == 2
+
+
+def tensor_from_positions(corrected_nT: np.ndarray, positions_m: np.ndarray) -> np.ndarray:
+    """(N, P, 3) corrected fields at probe positions (P, 3) -> (N, 3, 3) tensor G (least squares)."""
+    r = np.ascontiguousarray(positions_m, float)
+    if r.ndim != 2 or r.shape[1] != 3 or r.shape[0] != corrected_nT.shape[1]:
+        raise ConfigError(f"probes.position_m: expected ({corrected_nT.shape[1]}, 3) positions in m, got {r.shape}")
+    pinv, planar = _geometry(r.shape, r.tobytes())                 # (3, P)
     db = corrected_nT - corrected_nT.mean(axis=1, keepdims=True)
-    pinv = np.linalg.pinv(d)                                      # (3, P)
     # G = D⁺ ΔB, summed probe by probe: the same rounding whatever the block length (replay = live)
     g = pinv[None, :, 0, None] * db[:, None, 0, :]
     for k in range(1, db.shape[1]):
         g = g + pinv[None, :, k, None] * db[:, None, k, :]
-    if rank == 3:
-        return g
-    normal = vt[2]
-    if not np.isclose(abs(normal[2]), 1.0, atol=1e-9):
-        raise ConfigError("probes.position_m: a planar array must lie in the platform x-y plane")
-    _complete_planar(g)
+    if planar:
+        _complete_planar(g)
     return g
 
 
