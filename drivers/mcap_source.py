@@ -105,8 +105,10 @@ def iter_file_records(path: str | Path, report: ReadReport | None = None, *, str
 
     readers = {Opcode.HEADER: Header.read, Opcode.SCHEMA: Schema.read, Opcode.CHANNEL: Channel.read,
                Opcode.CHUNK: Chunk.read, Opcode.METADATA: Metadata.read, Opcode.ATTACHMENT: Attachment.read}
-    skipped = {Opcode.MESSAGE_INDEX, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT_INDEX, Opcode.METADATA_INDEX,
-               Opcode.STATISTICS, Opcode.SUMMARY_OFFSET, Opcode.FOOTER}
+    # the summary section's records belong after Data End, where reading stops: met before it, they are
+    # damage (a chunk whose opcode byte was hit reads as one of them, and would vanish without a word)
+    summary_only = {Opcode.CHUNK_INDEX, Opcode.ATTACHMENT_INDEX, Opcode.METADATA_INDEX, Opcode.STATISTICS,
+                    Opcode.SUMMARY_OFFSET, Opcode.FOOTER}
     report = report if report is not None else ReadReport()
     f = Path(path)
 
@@ -149,8 +151,20 @@ def iter_file_records(path: str | Path, report: ReadReport | None = None, *, str
                 report.truncated_bytes += size - pos
                 return
             if opcode == Opcode.DATA_END:
-                return
-            if opcode in skipped:
+                if _data_end_in_place(fh, size, pos + _RECORD_HEAD + length):
+                    return
+                # a record header hit in the middle of the file: reading must not stop there in silence
+                damaged("data end record before the end of the data section", pos)
+                fh.seek(length, io.SEEK_CUR)
+            elif opcode == Opcode.MESSAGE_INDEX:
+                # skipped (the reader does not need the index), but only if it is one: u16 channel id,
+                # u32 byte length of its (u64, u64) entries, the entries
+                body = fh.read(length)
+                n_bytes = int.from_bytes(body[2:6], "little") if length >= 6 else -1
+                if n_bytes != length - 6 or n_bytes % 16:
+                    damaged("malformed message index record (a damaged record header?)", pos)
+            elif opcode in summary_only:
+                damaged(f"{Opcode(opcode).name.lower()} record inside the data section", pos)
                 fh.seek(length, io.SEEK_CUR)
             elif opcode in readers or opcode == Opcode.MESSAGE:
                 body = fh.read(length)
@@ -176,6 +190,25 @@ def iter_file_records(path: str | Path, report: ReadReport | None = None, *, str
             pos += _RECORD_HEAD + length
 
 
+def _data_end_in_place(fh: io.BufferedReader, size: int, end: int) -> bool:
+    """Whether a Data End record ending at byte `end` is where the file's footer says the data section ends
+    (the summary's start, or the footer itself without a summary). True when there is no footer to ask."""
+    footer_len = _RECORD_HEAD + 20                   # u64 summary start, u64 summary offset start, u32 crc
+    at = size - len(MCAP_MAGIC) - footer_len
+    if at < end:
+        return True
+    here = fh.tell()
+    try:
+        fh.seek(at)
+        tail = fh.read(footer_len + len(MCAP_MAGIC))
+    finally:
+        fh.seek(here)
+    if tail[0] != 0x02 or tail[-len(MCAP_MAGIC):] != MCAP_MAGIC:    # footer opcode, closing magic
+        return True
+    summary_start = int.from_bytes(tail[_RECORD_HEAD:_RECORD_HEAD + 8], "little")
+    return end == (summary_start or at)
+
+
 def iter_records(path: str | Path, report: ReadReport | None = None, *, strict: bool = True,
                  topics: set[str] | None = None) -> Iterator[McapRecord]:
     """Every message of the recording in file order (files in name order); the "fluxcal" and
@@ -190,6 +223,11 @@ def iter_records(path: str | Path, report: ReadReport | None = None, *, strict: 
         for rec in iter_file_records(f, report, strict=strict):
             if isinstance(rec, Message):
                 ch = channels.get(rec.channel_id)
+                if ch is None and strict:
+                    # channels come before their messages: in a file read whole, a message on an unknown
+                    # channel is damage (a record header hit), not a channel lost with a damaged chunk
+                    raise RecordingError(f"{f}: a message on channel {rec.channel_id}, which no channel record "
+                                         f"declared: the recording is damaged (repair_recording salvages the rest)")
                 if ch is None:
                     report.skipped_messages += 1
                 elif topics is None or ch.topic in topics:

@@ -64,6 +64,8 @@ class Daemon:
         self.say = say or (lambda msg: print(f"fluxcal: {msg}", file=sys.stderr, flush=True))
         self.cal_path = Path(cfg.calibration.file)
         self._pending_error: DriverError | None = None
+        self.processing_errors = 0            # blocks whose processing raised (their raw data are kept)
+        self._last_processing_say = -1e9
 
     def _initial_calibration(self):
         c = self.cfg.calibration
@@ -156,9 +158,26 @@ class Daemon:
             self._pending_error = e
         return parts[0] if len(parts) == 1 else SampleBlock.concat(parts)
 
+    def _process(self, pipeline: Pipeline, block: SampleBlock):
+        """pipeline.process, but an error in it (a bug meeting data nobody foresaw) costs that block's
+        corrected output, never the service: it is counted, said (at most every 10 s, with the first
+        sample's seq) and the next block is processed. Replay meets the same error at the same block."""
+        try:
+            return pipeline.process(block)
+        except Exception as e:          # noqa: BLE001 - a long-running service must outlive one bad block
+            self.processing_errors += 1
+            now = time.monotonic()
+            if now - self._last_processing_say >= 10.0:
+                self._last_processing_say = now
+                seq0 = int(block.seq[0]) if block.n_samples else -1
+                self.say(f"processing failed for the block from seq {seq0} ({block.n_samples} samples): "
+                         f"{type(e).__name__}: {e}; its raw samples are recorded, its corrected output is "
+                         f"lost; {self.processing_errors} such block(s) so far (health: processing_errors)")
+            return None
+
     def _state(self, pipeline: Pipeline, source: Source, logger) -> dict[str, Any]:
         st = pipeline.state()
-        st["health"] = source.counters.as_dict()
+        st["health"] = {**source.counters.as_dict(), "processing_errors": self.processing_errors}
         if logger is not None:
             st["recording"] = logger.status()
         return st
@@ -191,17 +210,18 @@ class Daemon:
                     self.say("source exhausted")
                     break
             else:
-                out = pipeline.process(block)
+                # the raw block is kept and published first: whatever happens to its processing, it is not lost
                 if logger is not None:
                     logger.write_raw(block)
-                    if out.corrected is not None:
-                        logger.write_corrected(out.corrected)
                 bus.publish_raw(block)
-                if out.corrected is not None:
+                out = self._process(pipeline, block)     # None: failed, counted and said there
+                if out is not None and out.corrected is not None:
+                    if logger is not None:
+                        logger.write_corrected(out.corrected)
                     bus.publish_corrected(out.corrected)
-                if out.error:
+                if out is not None and out.error:
                     bus.publish_error(out.error)
-                for ev in out.events:
+                for ev in out.events if out is not None else ():
                     self._on_event(ev, pipeline, bus, logger)
                     if ev.kind == "calibration" and not announced:
                         announced = True
@@ -209,7 +229,7 @@ class Daemon:
             now = time.monotonic()
             if now - last_health >= 1.0:
                 last_health = now
-                health = source.counters.as_dict()
+                health = {**source.counters.as_dict(), "processing_errors": self.processing_errors}
                 bus.publish_health(health)
                 if logger is not None:
                     logger.write_health(health)

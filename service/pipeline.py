@@ -14,6 +14,7 @@ bit for bit. No I/O here: the daemon and the commands feed it.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -115,6 +116,7 @@ class Pipeline:
         self.refusal: str | None = None   # why the last check found no candidate
         self.effects: list[str] = []      # effect terms in the calibration in use (added at runtime)
         self.effect_fit = None            # their fit (service.effects), applied in _correct
+        self._last_temp_C = np.full(n_probes, np.nan)   # each probe's latest valid temperature
         self._estimators = self._new_estimators()
         if initial is not None:
             self.set_calibration(initial)
@@ -204,6 +206,7 @@ class Pipeline:
             c = self._correct(seg)
             if c is not None:
                 pieces.append(c)
+            self._note_temperature(seg.temp_C)
             self.ring.append(seg)
             if not self.frozen:
                 self._buf_field[self._fill:self._fill + stop - start] = seg.field_nT
@@ -224,19 +227,55 @@ class Pipeline:
         error = self._error_metric(block.slice(n - corrected.n_samples, n), corrected) if corrected else {}
         return Processed(corrected=corrected, error=error, events=events)
 
+    def _note_temperature(self, temp_C: np.ndarray) -> None:
+        """Remember each probe's latest valid (finite) temperature."""
+        ok = np.isfinite(temp_C)
+        last = np.where(ok, np.arange(temp_C.shape[0])[:, None], -1).max(axis=0, initial=-1)
+        have = np.flatnonzero(last >= 0)
+        self._last_temp_C[have] = temp_C[last[have], have]
+
+    def _filled_temperature(self, temp_C: np.ndarray) -> np.ndarray:
+        """Invalid (NaN) temperatures replaced by the probe's latest valid one before them: causal, so
+        the same however the input is cut into blocks."""
+        ok = np.isfinite(temp_C)
+        if ok.all():
+            return temp_C
+        idx = np.maximum.accumulate(np.where(ok, np.arange(temp_C.shape[0])[:, None], -1), axis=0)
+        cols = np.arange(temp_C.shape[1])[None, :]
+        return np.where(idx >= 0, temp_C[np.maximum(idx, 0), cols], self._last_temp_C[None, :])
+
     def _correct_with_effects(self, block: SampleBlock) -> np.ndarray:
         """Linear part and the (sample-by-sample) effects. The effects' evaluator wants at least 30
         samples; a shorter piece is padded with copies of its last sample, which cannot change the
-        others since every live effect acts on each sample alone."""
+        others since every live effect acts on each sample alone. For the same reason a probe with a
+        saturated (NaN) axis is evaluated at a stand-in value and comes out NaN, as without effects
+        (the evaluator drops rows holding NaN); an invalid temperature is the probe's latest valid one."""
         n = block.n_samples
-        if n >= 30:
-            return self.effect_fit.correct(block)
-        idx = np.r_[np.arange(n), np.full(30 - n, n - 1)]
-        t = block.t_s[idx].copy()
-        t[n:] = t[n - 1] + 1e-6 * np.arange(1, 31 - n)
-        padded = SampleBlock(t_s=t, seq=block.seq[idx], field_nT=block.field_nT[idx], temp_C=block.temp_C[idx],
-                             flags=block.flags[idx], extras={k: v[idx] for k, v in block.extras.items()})
-        return self.effect_fit.correct(padded)[:n]
+        sat = ~np.isfinite(block.field_nT).all(axis=2)                   # (N, P)
+        field = np.where(sat[..., None], self._offsets[None], block.field_nT) if sat.any() else block.field_nT
+        extras = block.extras
+        ref = extras.get("ref_total")
+        if ref is not None and not np.isfinite(ref).all():
+            # a missing reference reading: it enters the fit's comparison, never the corrected vector, but
+            # the evaluator would drop its row; a stand-in keeps the row (and the layout of the fit's terms)
+            ok = np.isfinite(ref)
+            stand_in = float(np.median(ref[ok])) if ok.any() else float(self.total_nT or 0.0)
+            extras = {**extras, "ref_total": np.where(ok, ref, stand_in)}
+        block = SampleBlock(t_s=block.t_s, seq=block.seq, field_nT=field,
+                            temp_C=self._filled_temperature(block.temp_C), flags=block.flags, extras=extras)
+        with np.errstate(divide="ignore", invalid="ignore"):       # a stand-in may sit at the centre
+            if n >= 30:
+                c = self.effect_fit.correct(block)
+            else:
+                idx = np.r_[np.arange(n), np.full(30 - n, n - 1)]
+                t = block.t_s[idx].copy()
+                t[n:] = t[n - 1] + 1e-6 * np.arange(1, 31 - n)
+                padded = SampleBlock(t_s=t, seq=block.seq[idx], field_nT=block.field_nT[idx],
+                                     temp_C=block.temp_C[idx], flags=block.flags[idx],
+                                     extras={k: v[idx] for k, v in block.extras.items()})
+                c = self.effect_fit.correct(padded)[:n]
+        c[sat] = np.nan
+        return c
 
     def flush_estimator(self) -> None:
         """Feed a partly filled chunk to the estimator (end of a batch; the service never needs it)."""
@@ -282,11 +321,15 @@ class Pipeline:
         mag = np.linalg.norm(corrected.corrected_nT, axis=2)              # (N, P)
         if ref is not None:
             res = mag - (ref[:, None] if isinstance(ref, np.ndarray) else ref)
-            rms = np.sqrt(np.nanmean(res ** 2, axis=0))
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)     # a probe saturated all block long: NaN
+                rms = np.sqrt(np.nanmean(res ** 2, axis=0))
             for k, name in enumerate(self.probe_names):
                 out[f"{name}.scalar"] = float(rms[k])
         if corrected.diff_nT is not None and self.positions_m is None:
-            d = np.sqrt(np.nanmean(corrected.diff_nT ** 2, axis=0))       # (P-1, 3)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                d = np.sqrt(np.nanmean(corrected.diff_nT ** 2, axis=0))   # (P-1, 3)
             for k in range(1, self.n_probes):
                 for a, ax in enumerate("xyz"):
                     out[f"{self.probe_names[k]}-{self.probe_names[0]}.{ax}"] = float(d[k - 1, a])
