@@ -103,6 +103,17 @@ class RingBuffer:
         """Every sample held, oldest first."""
         return self.latest(None)
 
+    def take(self, idx: np.ndarray) -> SampleBlock:
+        """The samples at positions `idx` (0 = the oldest held), copied: only those rows, never the
+        whole buffer (the pipeline thins 60 s of samples to a few hundred every few seconds)."""
+        idx = np.asarray(idx, np.intp)
+        if idx.size and (idx.min() < 0 or idx.max() >= self._size):
+            raise IndexError(f"ring buffer positions must be in 0..{self._size - 1}")
+        rows = (self._head - self._size + idx) % self.capacity
+        t_s, seq, field_nT, temp_C, flags, *extras = [a[rows] for a in self._arrays()]
+        return SampleBlock(t_s=t_s, seq=seq, field_nT=field_nT, temp_C=temp_C, flags=flags,
+                           extras=dict(zip(self._extras or {}, extras)))
+
     def clear(self) -> None:
         """Forget the samples (the counts of appended and overwritten samples stay)."""
         self._head = 0

@@ -184,27 +184,36 @@ class Daemon:
 
     def _loop(self, source: Source, pipeline: Pipeline, bus, logger) -> None:
         backoff = 0.1
+        down_since: float | None = None       # monotonic time the input was lost, while it stays down
+        attempts = 0
         last_health = 0.0
         announced = pipeline.calibration is not None
         while not self.stop.is_set():
             for cmd in bus.pending_commands():
                 self._apply_command(cmd, pipeline, bus, logger)
-            try:
-                block = self._read_batch(source)
-                backoff = 0.1
-            except DriverError as e:
-                self.say(f"input lost: {e}; reconnecting in {backoff:.1f} s")
-                source.counters.read_errors += 1
+            block = None                      # nothing to process while the input is down; health still goes out
+            if down_since is None:
+                try:
+                    block = self._read_batch(source)
+                except DriverError as e:
+                    self.say(f"input lost: {e}; reconnecting (backoff from {backoff:.1f} s)")
+                    source.counters.read_errors += 1
+                    down_since, attempts = time.monotonic(), 0
+            if down_since is not None:
                 if self.stop.wait(backoff):
                     break
                 backoff = min(backoff * 2, 5.0)
+                attempts += 1
                 try:
                     source.reopen()
+                except DriverError as e:
+                    if attempts in (5, 20) or attempts % 100 == 0:
+                        self.say(f"input still down after {time.monotonic() - down_since:.0f} s and {attempts} "
+                                 f"attempts: {e}; retrying every {backoff:.0f} s")
+                else:
                     source.counters.reconnects += 1
-                    self.say("input reconnected")
-                except DriverError:
-                    pass
-                block = None                  # nothing to process; health still goes out below
+                    self.say(f"input reconnected after {time.monotonic() - down_since:.1f} s")
+                    down_since, backoff = None, 0.1
             if block is None:
                 if source.exhausted:
                     self.say("source exhausted")

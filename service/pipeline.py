@@ -358,13 +358,9 @@ class Pipeline:
     def _window(self, max_samples: int = 600) -> SampleBlock:
         """The ring buffer, thinned to at most `max_samples` evenly spaced samples: directions and
         residuals change slowly, and the gate runs often."""
-        w = self.ring.view()
-        step = max(1, -(-w.n_samples // max_samples))
-        if step == 1:
-            return w
-        idx = np.arange(0, w.n_samples, step)
-        return SampleBlock(t_s=w.t_s[idx], seq=w.seq[idx], field_nT=w.field_nT[idx], temp_C=w.temp_C[idx],
-                           flags=w.flags[idx], extras={k: v[idx] for k, v in w.extras.items()})
+        n = len(self.ring)
+        step = max(1, -(-n // max_samples))
+        return self.ring.take(np.arange(0, n, step))         # only the rows kept: no copy of the whole ring
 
     def candidate(self) -> ArrayCalibration | None:
         """The online estimate, aligned over the ring buffer, or None if not yet determined (then

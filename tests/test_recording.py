@@ -240,6 +240,9 @@ def test_service_reconnects_after_the_port_closes_and_counts_the_gap(tmp_path, c
     health = [json.loads(r.data) for r in iter_records(tmp_path / "rec") if r.topic.endswith("/health")]
     last = health[-1]["counters"]
     assert last["reconnects"] >= 1 and last["seq_gaps"] >= 1 and last["samples_missed"] >= 150
+    # one outage: one read error and one reconnect, however many attempts the back-off made meanwhile
+    assert last["read_errors"] == 1 and last["reconnects"] == 1, last
+    assert err.count("input lost") == 1 and err.count("input reconnected after") == 1, err
 
 
 @pytest.mark.slow

@@ -79,3 +79,22 @@ def test_wrong_probe_count_is_refused():
         rb.append(block(np.arange(3), n_probes=3))
     with pytest.raises(ValueError, match="capacity"):
         RingBuffer(capacity=0, n_probes=1)
+
+
+def test_take_picks_positions_oldest_first_across_the_wrap():
+    rb = RingBuffer(10, 2)
+    for k in range(3):
+        n = 7
+        seq = np.arange(k * n, (k + 1) * n)
+        rb.append(SampleBlock(t_s=seq / 10.0, seq=seq, field_nT=np.repeat(seq[:, None, None], 2, 1).repeat(3, 2) * 1.0,
+                              temp_C=np.zeros((n, 2)), flags=np.zeros(n, np.uint8), extras={"ref_total": seq * 2.0}))
+    whole = rb.view()                                   # seq 11..20, stored across the wrap
+    idx = np.array([0, 3, 4, 9])
+    got = rb.take(idx)
+    np.testing.assert_array_equal(got.seq, whole.seq[idx])
+    np.testing.assert_array_equal(got.seq, [11, 14, 15, 20])
+    np.testing.assert_array_equal(got.field_nT, whole.field_nT[idx])
+    np.testing.assert_array_equal(got.extras["ref_total"], [22.0, 28.0, 30.0, 40.0])
+    assert rb.take(np.array([], int)).n_samples == 0
+    with pytest.raises(IndexError):
+        rb.take(np.array([10]))
