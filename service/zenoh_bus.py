@@ -498,6 +498,8 @@ COMMAND_WAIT_S = 5.0
 STATE_GRACE_S = 0.25
 #: without queries, the service's thread refreshes the cached state this often (for those late answers)
 STATE_REFRESH_S = 1.0
+#: messages waiting for the bus's sender thread, at most (bytes); beyond it the oldest are dropped, counted
+SEND_BACKLOG_BYTES = 16 << 20
 
 
 class ServiceBus:
@@ -516,7 +518,8 @@ class ServiceBus:
                  state_fn: Callable[[], Mapping[str, Any]] | None = None,
                  probe_names: Sequence[str] | None = None, per_probe: bool | None = None,
                  express: bool | None = None, command_queue_size: int = 32,
-                 command_wait_s: float = COMMAND_WAIT_S, state_grace_s: float = STATE_GRACE_S) -> None:
+                 command_wait_s: float = COMMAND_WAIT_S, state_grace_s: float = STATE_GRACE_S,
+                 send_backlog_bytes: int = SEND_BACKLOG_BYTES) -> None:
         self.keys = Keys(unit)
         self.unit = unit
         self.state_fn = state_fn
@@ -533,6 +536,16 @@ class ServiceBus:
                                       "state_queries": 0, "state_queries_stale": 0, "publish_errors": 0}
         self.stats.update({f"published_{name}": 0 for name in STREAMS})
         self.stats["published_corrected_probe"] = 0
+        self.stats["send_dropped"] = 0
+        # what the service's thread publishes waits here for the sender thread, which alone calls put():
+        # a slow or frozen subscriber (Zenoh's BLOCK congestion control) then holds back the sender, never
+        # the service's reading, recording and processing
+        self._outbox: deque[tuple[str, zenoh.Publisher, bytes]] = deque()
+        self._outbox_bytes = 0
+        self._sending = False
+        self._out_cond = threading.Condition()
+        self._send_backlog_bytes = int(send_backlog_bytes)
+        self._sender: threading.Thread | None = None
         # commands and state queries wait here for the service's thread; one lock, one condition
         self._cond = threading.Condition()
         self._commands: deque[Command] = deque()
@@ -560,6 +573,8 @@ class ServiceBus:
                 self._probe_pubs[name] = self._declare_pub(self.keys.probe(name), STREAMS["corrected"])
             self._watchdog = threading.Thread(target=self._watch_late, daemon=True, name=f"fluxcal-bus-{unit}-late")
             self._watchdog.start()
+            self._sender = threading.Thread(target=self._send_loop, daemon=True, name=f"fluxcal-bus-{unit}-send")
+            self._sender.start()
             self._entities.append(self.session.declare_queryable(self.keys.state, self._on_state_query))
             for name in COMMANDS:
                 self._entities.append(self.session.declare_queryable(self.keys.cmd(name), self._command_callback(name)))
@@ -726,13 +741,50 @@ class ServiceBus:
     # --- publishing (the service's thread) -------------------------------------------------------
 
     def _put(self, name: str, pub: zenoh.Publisher, payload: bytes) -> None:
+        """Hand a message to the sender thread (counted as published_<name>). If the backlog is over its
+        bound (subscribers that cannot keep up), the oldest waiting messages are dropped and counted."""
         if self._closed:
             raise BusError(f"publish on {self.keys.root}/{name} after the bus was closed")
-        try:
-            pub.put(payload)
+        with self._out_cond:
+            self._outbox.append((name, pub, payload))
+            self._outbox_bytes += len(payload)
+            while self._outbox_bytes > self._send_backlog_bytes and len(self._outbox) > 1:
+                _, _, old = self._outbox.popleft()
+                self._outbox_bytes -= len(old)
+                self.stats["send_dropped"] += 1
             self.stats[f"published_{name}"] += 1
-        except zenoh.ZError:
-            self.stats["publish_errors"] += 1
+            self._out_cond.notify()
+
+    def _send_loop(self) -> None:
+        """The sender thread: put() every message in order; ends when closing and nothing waits."""
+        while True:
+            with self._out_cond:
+                while not self._outbox and not self._stop.is_set():
+                    self._out_cond.wait(0.5)
+                if not self._outbox:
+                    return
+                name, pub, payload = self._outbox.popleft()
+                self._outbox_bytes -= len(payload)
+                self._sending = True
+            try:
+                pub.put(payload)
+            except zenoh.ZError:
+                self.stats["publish_errors"] += 1
+            finally:
+                with self._out_cond:
+                    self._sending = False
+                    self._out_cond.notify_all()
+
+    def flush(self, timeout: float = 5.0) -> bool:
+        """Wait until every message handed to the bus has been put (True) or `timeout` passed (False)."""
+        deadline = time.monotonic() + timeout
+        with self._out_cond:
+            while self._outbox or self._sending:
+                left = deadline - time.monotonic()
+                if left <= 0 or self._sender is None or not self._sender.is_alive():
+                    return not (self._outbox or self._sending)
+                self._out_cond.wait(left)
+        return True
 
     def publish_raw(self, block: SampleBlock) -> None:
         if block.n_samples:
@@ -791,9 +843,16 @@ class ServiceBus:
             if self._closed:
                 return
             self._closed = True
+        self.flush(2.0)                              # what was published goes out first, if it can
         self._stop.set()
-        if self._watchdog is not None and self._watchdog is not threading.current_thread():
-            self._watchdog.join(2.0)
+        with self._out_cond:
+            self._out_cond.notify_all()
+        for t in (self._watchdog, self._sender):
+            if t is not None and t is not threading.current_thread():
+                t.join(2.0)
+        with self._out_cond:
+            self.stats["send_dropped"] += len(self._outbox)   # a subscriber frozen past the flush: not sent
+            self._outbox.clear()
         with self._cond:
             commands, self._commands = list(self._commands), deque()
             states, self._state_queries = [q for _, q in self._state_queries], deque()

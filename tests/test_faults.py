@@ -17,7 +17,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -43,6 +46,7 @@ from drivers.source import Counters
 from service.calib.model import ArrayCalibration, ProbeCalibration
 from service.mcap_sink import McapLogger
 from service.pipeline import Pipeline
+from service.encoding import encode_raw
 from service.recording import read_recording, repair_recording
 from service.zenoh_bus import BusClient, ServiceBus, ZenohConfig, open_session
 
@@ -567,7 +571,7 @@ def received_blocks(client: BusClient, k: int, loop: ServiceLoop, timeout: float
         if m is None:
             continue
         b = m.value
-        i = int(b.seq[0] - loop.truth.seq[0]) // ServiceLoop.BLOCK
+        i = int(b.seq[0] - loop.truth.seq[0]) // loop.BLOCK
         want = loop.block(i)
         for name in ("t_s", "seq", "field_nT", "temp_C", "flags"):
             np.testing.assert_array_equal(getattr(b, name), getattr(want, name), err_msg=name)
@@ -648,6 +652,65 @@ def test_zenoh_router_closed_and_reopened_on_the_same_port_relays_again(unit_mod
     assert loop.slowest_s < 1.0, loop.slowest_s
     print(f"router back ({unit_mode}): relaying again {back_s:.3f} s after it reopened; blocks {got1[0]}..{got1[-1]} "
           f"then {got2[0]}..{got2[-1]}; slowest publish {loop.slowest_s * 1e3:.1f} ms")
+
+
+_FROZEN_CLIENT = """
+import sys, time
+from service.zenoh_bus import BusClient, ZenohConfig
+with BusClient(ZenohConfig.client(sys.argv[1]), "grad1", streams=["raw"], lossless=True) as c:
+    print("ready", flush=True)
+    while True:
+        c.recv(timeout=0.1)
+"""
+
+
+def test_a_frozen_dashboard_never_holds_the_service_back():
+    # a dashboard process stopped dead (SIGSTOP: a hung laptop, a debugger) with a lossless subscription
+    # on the raw stream: its TCP window closes and nothing it is sent gets read. The service's publishing
+    # must go on at its pace, without errors, and a dashboard that connects afterwards hears it as usual
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    u = sim_unit(duration_s=2000.0, rate_hz=1000.0)                # 10,000 blocks: more than 20 s of publishing
+    with ExitStack() as stack:
+        bus = stack.enter_context(ServiceBus(ZenohConfig(listen=[ep]), "grad1", per_probe=False))
+        proc = subprocess.Popen([sys.executable, "-c", _FROZEN_CLIENT, ep], stdout=subprocess.PIPE, text=True,
+                                cwd=str(Path(__file__).resolve().parent.parent))
+        stack.callback(lambda: (proc.kill(), proc.wait(10)))
+        assert proc.stdout.readline().strip() == "ready"
+        loop = BigBlocks(bus, u)
+        stack.callback(loop.stop)
+        wait_until(lambda: bus.has_subscribers("raw"), what="the dashboard")
+        healthy_at, t0 = loop.sent, time.monotonic()
+        time.sleep(2.0)
+        healthy_rate = (loop.sent - healthy_at) / (time.monotonic() - t0)
+        os.kill(proc.pid, signal.SIGSTOP)
+        frozen_at, t0 = loop.sent, time.monotonic()
+        time.sleep(5.0)
+        sent_frozen, wall = loop.sent - frozen_at, time.monotonic() - t0
+        payload = len(encode_raw(loop.block(0)))
+        proc.kill()
+        proc.wait(10)
+        late = stack.enter_context(BusClient(ZenohConfig.client(ep), "grad1", streams=["raw"]))
+        wait_until(lambda: bus.has_subscribers("raw"), what="a new dashboard")
+        got = received_blocks(late, 30, loop)
+        loop.stop()
+    # at its pace: as many blocks a second as while the dashboard was reading (within the machine's noise)
+    assert sent_frozen / wall > 0.7 * healthy_rate, (sent_frozen / wall, healthy_rate)
+    assert sent_frozen * payload > 5e6                                   # megabytes the frozen one never read
+    assert loop.slowest_s < 0.5, loop.slowest_s
+    assert bus.stats["publish_errors"] == 0 and bus.stats["published_raw"] == loop.sent
+    assert np.all(np.diff(got) == 1)
+    # what the frozen reader held up beyond the bus's 16 MB backlog was dropped from the bus (never from the
+    # recording) and counted
+    assert bus.stats["send_dropped"] * payload <= sent_frozen * payload
+    print(f"frozen dashboard: {sent_frozen} blocks ({sent_frozen * payload / 1e6:.1f} MB) published in {wall:.1f} s "
+          f"while it was stopped ({sent_frozen / wall:.0f}/s; {healthy_rate:.0f}/s before); slowest publish "
+          f"{loop.slowest_s * 1e3:.1f} ms; {bus.stats['send_dropped']} blocks dropped from the bus's backlog")
+
+
+class BigBlocks(ServiceLoop):
+    """ServiceLoop with 200-sample blocks (about 10 kB each): a frozen reader's buffers fill in seconds."""
+
+    BLOCK = 200
 
 
 # --- 7. damaged MCAP recordings (hypothesis) -------------------------------------------------------------
