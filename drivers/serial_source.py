@@ -96,18 +96,23 @@ class SerialSource(Source):
             raise DriverError(f"serial port {self.port}: not open (a previous read failed); call reopen()")
         try:
             data = b""
-            if wait and ser.in_waiting == 0:
+            waiting = ser.in_waiting
+            if waiting == 0:
+                if not wait:
+                    return b""
                 # read(1): returns at the first byte or after read_timeout_s. Never a larger blocking
                 # read: pyserial drops what it has collected when the port fails mid-read.
                 data = ser.read(1)
-            return data + self._drain(ser)
+                if not data:
+                    return b""
+                waiting = ser.in_waiting
+            return data + self._drain(ser, waiting)
         except (serial.SerialException, OSError) as e:
             raise self._fail(e) from e
 
     @staticmethod
-    def _drain(ser: serial.SerialBase) -> bytes:
-        """Whatever the port holds now, without waiting."""
-        waiting = ser.in_waiting
+    def _drain(ser: serial.SerialBase, waiting: int) -> bytes:
+        """Whatever the port holds now (`waiting`, its in_waiting just read), without waiting."""
         if waiting == 0:
             return b""
         if waiting > 1:
@@ -129,8 +134,6 @@ class SerialSource(Source):
         if fileno is None:
             return None                   # URL handlers (socket://, loop://): tell by reading
         try:
-            if ser.in_waiting:
-                return True
             # a port whose other end went away is readable too: the read that follows raises
             return bool(select.select([fileno()], [], [], max(timeout, 0.0))[0])
         except (serial.SerialException, OSError, ValueError) as e:

@@ -31,7 +31,7 @@ class UnitConfig:
     name: str = spec("unit1", doc="key segment in fluxcal/<unit>/...: letters, digits, _ and -")
     n_probes: int = spec(2, min=1, max=8)
     lsb_nT: float = spec(0.001, min=1e-9, max=1e3, doc="nT per ADC count")
-    block_ms: float = spec(6.0, min=0.0, max=1000.0,
+    block_ms: float = spec(8.0, min=0.0, max=1000.0,
                            doc="input is gathered into blocks of about this long before it is processed, "
                                "recorded and published: latency against CPU")
 

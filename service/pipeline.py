@@ -14,7 +14,6 @@ bit for bit. No I/O here: the daemon and the commands feed it.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -80,6 +79,14 @@ def _join(pieces: list[CorrectedBlock]) -> CorrectedBlock | None:
 
     return CorrectedBlock(t_s=cat("t_s"), seq=cat("seq"), corrected_nT=cat("corrected_nT"), diff_nT=cat("diff_nT"),
                           tensor_nT_m=cat("tensor_nT_m"), center_nT=cat("center_nT"), cal_id=pieces[-1].cal_id)
+
+
+def _rms_over_rows(x: np.ndarray) -> np.ndarray:
+    """RMS over axis 0 ignoring NaN (a saturated axis); NaN where a column has no finite value. The same
+    arithmetic as np.nanmean, without its warning (and without a warnings context per block)."""
+    ok = np.isfinite(x)
+    n = ok.sum(axis=0)
+    return np.sqrt(np.sum(np.where(ok, x * x, 0.0), axis=0) / np.where(n > 0, n, np.nan))
 
 
 class Pipeline:
@@ -229,6 +236,9 @@ class Pipeline:
 
     def _note_temperature(self, temp_C: np.ndarray) -> None:
         """Remember each probe's latest valid (finite) temperature."""
+        if temp_C.shape[0] and np.isfinite(temp_C[-1]).all():
+            self._last_temp_C[:] = temp_C[-1]             # the usual case: the last sample's are all valid
+            return
         ok = np.isfinite(temp_C)
         last = np.where(ok, np.arange(temp_C.shape[0])[:, None], -1).max(axis=0, initial=-1)
         have = np.flatnonzero(last >= 0)
@@ -321,15 +331,11 @@ class Pipeline:
         mag = np.linalg.norm(corrected.corrected_nT, axis=2)              # (N, P)
         if ref is not None:
             res = mag - (ref[:, None] if isinstance(ref, np.ndarray) else ref)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)     # a probe saturated all block long: NaN
-                rms = np.sqrt(np.nanmean(res ** 2, axis=0))
+            rms = _rms_over_rows(res)
             for k, name in enumerate(self.probe_names):
                 out[f"{name}.scalar"] = float(rms[k])
         if corrected.diff_nT is not None and self.positions_m is None:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                d = np.sqrt(np.nanmean(corrected.diff_nT ** 2, axis=0))   # (P-1, 3)
+            d = _rms_over_rows(corrected.diff_nT)                          # (P-1, 3)
             for k in range(1, self.n_probes):
                 for a, ax in enumerate("xyz"):
                     out[f"{self.probe_names[k]}-{self.probe_names[0]}.{ax}"] = float(d[k - 1, a])

@@ -753,27 +753,29 @@ class ServiceBus:
                 self._outbox_bytes -= len(old)
                 self.stats["send_dropped"] += 1
             self.stats[f"published_{name}"] += 1
-            self._out_cond.notify()
+            if not self._sending:
+                self._out_cond.notify()      # wake the sender only when idle: one wake-up per block, not per message
 
     def _send_loop(self) -> None:
-        """The sender thread: put() every message in order; ends when closing and nothing waits."""
+        """The sender thread: put() every message in order, taking what waits in one go; ends when
+        closing and nothing waits."""
         while True:
             with self._out_cond:
                 while not self._outbox and not self._stop.is_set():
+                    self._sending = False
+                    self._out_cond.notify_all()           # flush() waits for this
                     self._out_cond.wait(0.5)
                 if not self._outbox:
+                    self._sending = False
+                    self._out_cond.notify_all()
                     return
+                self._sending = True
                 name, pub, payload = self._outbox.popleft()
                 self._outbox_bytes -= len(payload)
-                self._sending = True
             try:
                 pub.put(payload)
             except zenoh.ZError:
                 self.stats["publish_errors"] += 1
-            finally:
-                with self._out_cond:
-                    self._sending = False
-                    self._out_cond.notify_all()
 
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until every message handed to the bus has been put (True) or `timeout` passed (False)."""
