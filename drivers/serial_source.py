@@ -14,6 +14,7 @@ again (a udev symlink that reappears works). The caller counts read_errors and r
 
 from __future__ import annotations
 
+import os
 import select
 import time
 from dataclasses import dataclass
@@ -115,6 +116,16 @@ class SerialSource(Source):
         """Whatever the port holds now (`waiting`, its in_waiting just read), without waiting."""
         if waiting == 0:
             return b""
+        fd = getattr(ser, "fd", None)
+        if isinstance(fd, int) and fd >= 0:
+            # a native port: one read(2) of what is there. pyserial's read() loops, and when the port
+            # fails within the loop it throws away what it had collected; one system call either
+            # returns the bytes or fails having taken none, so nothing read is ever lost uncounted
+            data = os.read(fd, min(waiting, MAX_READ_BYTES))
+            if not data:                 # readable yet empty: the other end is gone (as pyserial says it)
+                raise serial.SerialException("device reports readiness to read but returned no data "
+                                             "(device disconnected or multiple access on port?)")
+            return data
         if waiting > 1:
             return ser.read(min(waiting, MAX_READ_BYTES))
         # in_waiting is only a readiness flag (0/1) on some URL handlers (socket://): read what is
