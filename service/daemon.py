@@ -18,7 +18,7 @@ from typing import Any, Callable
 import numpy as np
 
 from drivers.block import SampleBlock
-from drivers.errors import DataError, DriverError, FluxcalError
+from drivers.errors import ConfigError, DataError, DriverError, FluxcalError
 from drivers.source import Source, open_source
 
 from .calib.calfile import load_calibration, save_calibration
@@ -65,6 +65,8 @@ class Daemon:
         self.cal_path = Path(cfg.calibration.file)
         self._pending_error: DriverError | None = None
         self.processing_errors = 0            # blocks whose processing raised (their raw data are kept)
+        self._recording_errors_said = 0       # logger errors already said; at most one message a minute
+        self._recording_said_at = -1e9
         self._last_processing_say = -1e9
 
     def _initial_calibration(self):
@@ -110,6 +112,12 @@ class Daemon:
                 # replay starts from the same calibration, so it reproduces this run bit for bit
                 logger.write_event({"kind": "initial", "seq": 0, "calibration":
                                     None if pipeline.calibration is None else calibration_to_dict(pipeline.calibration)})
+                st = logger.status()
+                if st["current"] is None:
+                    # nothing could be opened: say so now, not after a day of data that went nowhere
+                    raise ConfigError(f"mcap.dir: {str(cfg.mcap.dir)!r}: cannot record there: {st['last_error']} "
+                                      f"(allowed: a directory this user can create and write into; or set "
+                                      f"[mcap] enabled = false to run without recording)")
                 self.say(f"recording to {cfg.mcap.dir}/")
             self.say(f"publishing on zenoh under fluxcal/{cfg.unit.name}/ "
                      f"(listen {', '.join(getattr(cfg.zenoh, 'listen', []) or ['-'])}"
@@ -157,6 +165,16 @@ class Daemon:
         except DriverError as e:
             self._pending_error = e
         return parts[0] if len(parts) == 1 else SampleBlock.concat(parts)
+
+    def _say_recording_trouble(self, logger) -> None:
+        """New recording errors (a full disk, a removed drive) are said, at most once a minute, with what
+        they cost so far; the logger itself keeps the data it can and retries (docs/recording.md)."""
+        st = logger.status()
+        now = time.monotonic()
+        if st["errors"] > self._recording_errors_said and now - self._recording_said_at >= 60.0:
+            self._recording_errors_said, self._recording_said_at = st["errors"], now
+            self.say(f"recording trouble: {st['last_error']}; {st['dropped']} message(s) dropped, {st['pending']} "
+                     f"waiting to be written; retrying (health: recording)")
 
     def _process(self, pipeline: Pipeline, block: SampleBlock):
         """pipeline.process, but an error in it (a bug meeting data nobody foresaw) costs that block's
@@ -242,6 +260,7 @@ class Daemon:
                 bus.publish_health(health)
                 if logger is not None:
                     logger.write_health(health)
+                    self._say_recording_trouble(logger)
 
     def _on_event(self, ev: PipelineEvent, pipeline: Pipeline, bus, logger) -> None:
         state = pipeline.state()

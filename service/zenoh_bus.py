@@ -357,7 +357,13 @@ def open_session(cfg: "ZenohConfig | zenoh.Config", unit: str | None = None) -> 
             where = (f" (mode {cfg.mode}, listen {cfg.listen or '-'}, connect {cfg.connect or '-'})")
         msg = str(e).split(" at /", 1)[0]        # drop the Rust source location
         hint = ""
-        if "listener" in msg.lower() or "in use" in msg.lower():
+        low = msg.lower()
+        tls_words = ("private key", "keys may not", "keymismatch", "certificate", "pem", "rustls")
+        if isinstance(cfg, ZenohConfig) and cfg.tls.enabled and any(w in low for w in tls_words):
+            hint = (": the TLS files were read but Zenoh refused them: does zenoh.tls.key belong to zenoh.tls.cert "
+                    "(not swapped, not from another certificate), and did zenoh.tls.root_ca sign it? "
+                    "(docs/security.md)")
+        elif "listener" in low or "in use" in low:
             hint = ": is another fluxcal already listening there? choose another port in [zenoh] listen"
         elif "connect" in msg.lower():
             hint = ": is the service (or router) running and listening there?"

@@ -329,3 +329,51 @@ def test_a_block_whose_processing_fails_is_counted_and_its_raw_data_kept(tmp_pat
     seqs = np.concatenate([b.seq for b in rec.raw_blocks])
     assert calls["bad_seq"] in seqs and np.array_equal(seqs, np.arange(seqs[0], seqs[0] + seqs.size))
     assert rec.health and rec.health[-1]["counters"]["processing_errors"] == 1
+
+
+def test_a_recording_directory_that_cannot_be_used_stops_the_start_with_the_key(tmp_path, capsys):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a directory")
+    cfg_text = (open("configs/sim-gradiometer.toml").read()
+                .replace('run_s = 0 ', 'run_s = 2')
+                .replace('dir = "recordings/live"', f'dir = "{blocker / "rec"}"')
+                .replace('file = "state/grad1-cal.json"', f'file = "{tmp_path / "cal.json"}"')
+                .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]'))
+    cfg_path = tmp_path / "c.toml"
+    cfg_path.write_text(cfg_text)
+    assert main(["run", "--config", str(cfg_path)]) == 2
+    err = capsys.readouterr().err
+    assert f"mcap.dir: '{blocker / 'rec'}': cannot record there:" in err and "[mcap] enabled = false" in err
+
+
+def test_recording_trouble_during_a_run_is_said(tmp_path, capsys, monkeypatch):
+    # the disk fills up a second into the run: the service says so (once a minute at most) and goes on
+    import service.mcap_sink as sink
+
+    cfg_text = (open("configs/sim-gradiometer.toml").read()
+                .replace('run_s = 0 ', 'run_s = 4')
+                .replace('dir = "recordings/live"', f'dir = "{tmp_path / "rec"}"')
+                .replace('file = "state/grad1-cal.json"', f'file = "{tmp_path / "cal.json"}"')
+                .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]'))
+    cfg_path = tmp_path / "c.toml"
+    cfg_path.write_text(cfg_text)
+    t_full = time.monotonic() + 1.5
+    real_open = sink._default_opener
+
+    class FillingDisk:
+        def __init__(self, path, mode):
+            self.f = real_open(path, mode)
+
+        def write(self, b):
+            if time.monotonic() > t_full:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return self.f.write(b)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+    monkeypatch.setattr(sink, "_default_opener", FillingDisk)
+    assert main(["run", "--config", str(cfg_path)]) == 0
+    err = capsys.readouterr().err
+    assert err.count("recording trouble: OSError: [Errno 28] No space left on device") == 1, err
+    assert "source exhausted" in err

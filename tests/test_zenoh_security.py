@@ -231,3 +231,15 @@ def test_secured_configuration_is_checked_at_start(tmp_path):
             load_section(ZenohConfig, table, "zenoh")
         assert message in str(e.value)
     assert "file not found" in str(pytest.raises(ConfigError, load_section, ZenohConfig, bad[1][0], "zenoh").value)
+
+
+def test_a_key_that_does_not_belong_to_its_certificate_is_named_as_such(tmp_path):
+    ca = Authority(tmp_path, "ca")
+    cert_a, key_a = ca.issue("a")
+    cert_b, key_b = ca.issue("b")
+    ep = f"tls/localhost:{free_port()}"
+    for cert, key in ((cert_a, key_b), (key_a, cert_a)):                 # another certificate's key; swapped
+        with pytest.raises(BusError) as e:
+            open_session(ZenohConfig(listen=[ep], tls=ZenohTlsConfig(root_ca=ca.pem, cert=cert, key=key)))
+        assert "does zenoh.tls.key belong to zenoh.tls.cert" in str(e.value)
+        assert "another fluxcal already listening" not in str(e.value)

@@ -77,6 +77,19 @@ def main(args: Namespace) -> int:
     return 0
 
 
+def _fmt_param(value, se) -> str:
+    """A parameter of any shape, with its standard error when there is one: 6 significant digits."""
+    def one(v):
+        return f"{v:.6g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v)
+
+    def seq(v):
+        return "[" + ", ".join(one(x) for x in v) + "]" if isinstance(v, (list, tuple)) else one(v)
+
+    if se is None or (isinstance(se, float) and not np.isfinite(se)):
+        return seq(value)
+    return f"{seq(value)} ± {seq(se)}"
+
+
 def _fmt_pm(v: float, se: float, digits: int = 3) -> str:
     w = digits + 7
     return f"{v:{w}.{digits}f} ± {se:.1e}" if np.isfinite(se) else f"{v:{w}.{digits}f} ±     n/a"
@@ -95,7 +108,7 @@ def _summary(data, cal, channels, before, total_source, result) -> str:
         for key, val in p.params.items():
             if key in ("offset_nT", "samples", "align") or not isinstance(val, dict):
                 continue
-            lines.append(f"  {key:10s} {val.get('value')} ± {val.get('se')} {val.get('unit', '')}")
+            lines.append(f"  {key:10s} {_fmt_param(val.get('value'), val.get('se'))} {val.get('unit', '')}".rstrip())
         cov = coverage(b.field_nT[:, k])
         lines.append(f"  coverage   {cov.fraction:.0%} of directions" + (f" — {cov.reason}" if cov.reason else ""))
         lines.append("  " + cov.text_map.replace("\n", "\n  "))
