@@ -35,3 +35,14 @@ def test_guided_example_finds_the_hidden_effect_and_the_error_falls(capsys):
     assert before["rms_nT"] > 3 * before["noise_nT"]
     assert after["rms_nT"] < 1.2 * after["noise_nT"]
     assert not any(c["significant"] for c in after["candidates"])
+
+
+def test_a_directory_of_several_runs_is_not_replayed_as_one(tmp_path, capsys):
+    import shutil
+
+    for stamp in ("20261101T100000", "20261102T100000"):
+        shutil.copy("recordings/grad1-sim-30s.mcap", tmp_path / f"grad1-{stamp}-0001.mcap")
+    assert main(["replay", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path}: holds 2 separate runs (grad1-20261101T100000-0001.mcap, grad1-20261102T100000-0001.mcap)" in err
+    assert main(["replay", str(tmp_path / "grad1-20261102T100000-0001.mcap")]) == 0     # one of them: fine

@@ -47,7 +47,21 @@ class Progress:
             print("\r\033[K", end="", file=sys.stderr, flush=True)
 
 
+def _check_one_run(path: Path) -> None:
+    """A directory may hold the rotated files of one run; several runs (each starts with a -0001 file)
+    cannot be replayed as one: the pipeline would carry one run's state into the next, and the live
+    output it is compared with was not made that way."""
+    if not path.is_dir():
+        return
+    starts = sorted(p.name for p in path.glob("*-0001.mcap"))
+    if len(starts) > 1:
+        shown = ", ".join(starts[:4]) + (", ..." if len(starts) > 4 else "")
+        raise RecordingError(f"{path}: holds {len(starts)} separate runs ({shown}); replay one run at a time: "
+                             f"its -0001 file, or a directory holding only that run's files")
+
+
 def main(args: Namespace) -> int:
+    _check_one_run(Path(args.recording))
     rec = read_recording(args.recording)
     if args.config:
         cfg = load_config(args.config)
