@@ -45,6 +45,21 @@ def corrected_of(b: SampleBlock, cal_id: int = 1) -> CorrectedBlock:
     return CorrectedBlock(b.t_s, b.seq, c, c[:, 1:] - c[:, :1], None, c.mean(axis=1), cal_id)
 
 
+def service_config(tmp_path, *, run_s: float, realtime: bool = True, mcap_dir=None) -> str:
+    """configs/sim-gradiometer.toml for a test run: its own recording directory, calibration file and a
+    free port; returns the path of the written file."""
+    text = (open("configs/sim-gradiometer.toml").read()
+            .replace('run_s = 0 ', f'run_s = {run_s:g} ')
+            .replace('dir = "recordings/live"', f'dir = "{mcap_dir or tmp_path / "rec"}"')
+            .replace('file = "state/grad1-cal.json"', f'file = "{tmp_path / "cal.json"}"')
+            .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]'))
+    if not realtime:
+        text = text.replace('realtime = true', 'realtime = false')
+    path = tmp_path / "c.toml"
+    path.write_text(text)
+    return str(path)
+
+
 def same(a: np.ndarray, b: np.ndarray) -> bool:
     return a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a.view(np.uint8), b.view(np.uint8))
 
@@ -301,14 +316,7 @@ def test_a_block_whose_processing_fails_is_counted_and_its_raw_data_kept(tmp_pat
     # counts it, keeps that block's raw samples and carries on with the next block.
     from service.pipeline import Pipeline
 
-    cfg_text = (open("configs/sim-gradiometer.toml").read()
-                .replace('realtime = true', 'realtime = false')
-                .replace('run_s = 0 ', 'run_s = 6')
-                .replace('dir = "recordings/live"', f'dir = "{tmp_path / "rec"}"')
-                .replace('file = "state/grad1-cal.json"', f'file = "{tmp_path / "cal.json"}"')
-                .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]'))
-    cfg_path = tmp_path / "c.toml"
-    cfg_path.write_text(cfg_text)
+    cfg_path = service_config(tmp_path, run_s=6, realtime=False)
     real = Pipeline.process
     calls = {"n": 0, "bad_seq": None}
 
@@ -320,7 +328,7 @@ def test_a_block_whose_processing_fails_is_counted_and_its_raw_data_kept(tmp_pat
         return real(self, block)
 
     monkeypatch.setattr(Pipeline, "process", flaky)
-    assert main(["run", "--config", str(cfg_path)]) == 0
+    assert main(["run", "--config", cfg_path]) == 0
     err = capsys.readouterr().err
     assert f"processing failed for the block from seq {calls['bad_seq']}" in err
     assert "ValueError: operands could not be broadcast together" in err and "1 such block(s)" in err
@@ -334,13 +342,7 @@ def test_a_block_whose_processing_fails_is_counted_and_its_raw_data_kept(tmp_pat
 def test_a_recording_directory_that_cannot_be_used_stops_the_start_with_the_key(tmp_path, capsys):
     blocker = tmp_path / "a-file"
     blocker.write_text("not a directory")
-    cfg_text = (open("configs/sim-gradiometer.toml").read()
-                .replace('run_s = 0 ', 'run_s = 2')
-                .replace('dir = "recordings/live"', f'dir = "{blocker / "rec"}"')
-                .replace('file = "state/grad1-cal.json"', f'file = "{tmp_path / "cal.json"}"')
-                .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]'))
-    cfg_path = tmp_path / "c.toml"
-    cfg_path.write_text(cfg_text)
+    cfg_path = service_config(tmp_path, run_s=2, mcap_dir=blocker / "rec")
     assert main(["run", "--config", str(cfg_path)]) == 2
     err = capsys.readouterr().err
     assert f"mcap.dir: '{blocker / 'rec'}': cannot record there:" in err and "[mcap] enabled = false" in err
@@ -350,13 +352,7 @@ def test_recording_trouble_during_a_run_is_said(tmp_path, capsys, monkeypatch):
     # the disk fills up a second into the run: the service says so (once a minute at most) and goes on
     import service.mcap_sink as sink
 
-    cfg_text = (open("configs/sim-gradiometer.toml").read()
-                .replace('run_s = 0 ', 'run_s = 4')
-                .replace('dir = "recordings/live"', f'dir = "{tmp_path / "rec"}"')
-                .replace('file = "state/grad1-cal.json"', f'file = "{tmp_path / "cal.json"}"')
-                .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]'))
-    cfg_path = tmp_path / "c.toml"
-    cfg_path.write_text(cfg_text)
+    cfg_path = service_config(tmp_path, run_s=4)
     t_full = time.monotonic() + 1.5
     real_open = sink._default_opener
 
