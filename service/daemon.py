@@ -54,6 +54,11 @@ def open_configured_source(cfg: FluxcalConfig) -> Source:
     return open_source(kind, cfg.source)
 
 
+def _say(msg: str) -> None:
+    """A line on stderr with the UTC time: a field log is read afterwards, next to the recording."""
+    print(f"fluxcal {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}: {msg}", file=sys.stderr, flush=True)
+
+
 class Daemon:
     """`fluxcal run`: wires a source, the pipeline, the Zenoh bus and the MCAP logger."""
 
@@ -61,7 +66,7 @@ class Daemon:
                  say: Callable[[str], None] | None = None) -> None:
         self.cfg = cfg
         self.stop = stop or threading.Event()
-        self.say = say or (lambda msg: print(f"fluxcal: {msg}", file=sys.stderr, flush=True))
+        self.say = say or _say
         self.cal_path = Path(cfg.calibration.file)
         self._pending_error: DriverError | None = None
         self.processing_errors = 0            # blocks whose processing raised (their raw data are kept)
@@ -127,6 +132,10 @@ class Daemon:
                 self.say(f"warning: {ep} is reachable from other hosts in clear text and without access control: "
                          f"anyone on that network can read the streams and send commands (docs/security.md)")
             self._loop(source, pipeline, bus, logger)
+            failed = False
+        except BaseException:
+            failed = True
+            raise
         finally:
             for closer in (source.close, getattr(logger, "close", None), getattr(bus, "close", None)):
                 if closer is not None:
@@ -134,7 +143,7 @@ class Daemon:
                         closer()
                     except Exception as e:  # closing must never hide the first error
                         self.say(f"while closing: {e}")
-            self.say("stopped")
+            self.say("stopped (the reason follows)" if failed else "stopped")
         return 0
 
     def _read_batch(self, source: Source):
