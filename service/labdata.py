@@ -163,7 +163,11 @@ def _locate_bad_value(p: Path, header: list[str], rows: list[str], lineno: np.nd
     for r, line in enumerate(rows):
         cells = line.split(",")
         if len(cells) != ncol:
-            raise DataError(f"{p}: line {lineno[r]}: {len(cells)} values, expected {ncol} (as in the header)")
+            other = next((d for d in (";", "\t") if line.count(d) >= ncol - 1), None)
+            hint = (f"; values must be separated by ',' and this line uses {other!r}: a spreadsheet exported "
+                    f"with another delimiter?" if other else "")
+            raise DataError(f"{p}: line {lineno[r]}: {len(cells)} values, expected {ncol} (as in the header)"
+                            f"{hint}")
         for c, cell in enumerate(cells):
             try:
                 v = float(cell)

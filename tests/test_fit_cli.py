@@ -74,6 +74,14 @@ def test_fit_bad_csv_names_line_and_column(tmp_path, capsys):
     assert "line 4" in err and "'s1_y'" in err and "oops" in err
 
 
+def test_fit_row_with_another_delimiter_says_so(tmp_path, capsys):
+    p = tmp_path / "semi.csv"
+    p.write_text("t,s1_x,s1_y,s1_z\n0,1,2,3\n1;1;2;3\n")
+    assert main(["fit", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert "line 3: 1 values, expected 4 (as in the header); values must be separated by ',' and this line uses ';'" in err
+
+
 def test_fit_missing_file(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "nope.csv")]) == 2
     assert "no such file" in capsys.readouterr().err
