@@ -61,7 +61,9 @@ def sim_unit(**sim) -> Unit:
                         {"position_m": [0.25, 0, 0], "offset_nT": [-175.0, 260.0, 390.0],
                          "scale": [0.975, 1.03, 0.99], "misalign_deg": [-2.0, 1.5, -1.0], "noise_nT": 0.5}]}
     table.update(sim)
-    return Unit(load_sim_config(table))
+    u = Unit(load_sim_config(table))
+    u.config_table = table                                # what it was made from, to vary one thing
+    return u
 
 
 def read_all(src, emitter, timeout_s: float = 20.0) -> list[SampleBlock]:
@@ -345,7 +347,13 @@ def corrected_of(outs: list) -> "tuple[np.ndarray, np.ndarray, np.ndarray | None
 # a block in which a probe is saturated throughout has no error figure for it: NaN (null on the bus)
 def test_saturated_axes_do_not_corrupt_the_estimator_and_come_out_as_nan():
     # |B| = 50,000 nT and a probe range of 47,000 nT: near an axis the unit saturates (bit0, rails)
-    u = sim_unit(duration_s=30.0, rate_hz=200.0, range_nT=47000.0, field={"total_nT": 50000.0})
+    # the probes also drift a little with temperature (±0.45 nT over the 3 degC swings, below what would
+    # bias the linear estimate checked here): the live effect added later has something to correct, as it
+    # must (add-effect refuses an effect the data do not show)
+    probes = [dict(p, temp_offset_nT_per_C=c) for p, c in zip(sim_unit().config_table["probes"],
+                                                              ([0.15, -0.12, 0.09], [-0.1, 0.14, 0.08]))]
+    u = sim_unit(duration_s=30.0, rate_hz=200.0, range_nT=47000.0, field={"total_nT": 50000.0}, probes=probes,
+                 temperature={"start_C": 21.0, "amplitude_C": 3.0, "period_s": 2.0, "reference_C": 21.0})
     n = u.n_samples
     s = u.digitise(0, n)
     counts, flags = s.counts.copy(), s.flags.copy()
@@ -379,8 +387,8 @@ def test_saturated_axes_do_not_corrupt_the_estimator_and_come_out_as_nan():
 
     # outputs: a probe with a saturated axis comes out NaN (all three axes: the matrix mixes them), the
     # other probe's output stays finite and right; differences are NaN where either probe saturated
-    outs += run_pipeline(pl, blocks[len(blocks) * 2 // 3:], add_effect=("nonlinearity", 0))
-    assert pl.effects == ["nonlinearity"]
+    outs += run_pipeline(pl, blocks[len(blocks) * 2 // 3:], add_effect=("temperature", 0))
+    assert pl.effects == ["temperature"]
     seq, corrected, diff = corrected_of(outs)
     rows = seq - u.config.seq_start
     np.testing.assert_array_equal(np.isnan(corrected).any(axis=2), sat[rows])
@@ -466,6 +474,30 @@ def test_invalid_temperatures_never_reach_the_temperature_effect():
     np.testing.assert_array_equal(corrected2, corrected)
     print(f"temperature invalid {int(invalid.sum())}/{n}; rms before {rms_before:.3f}, after: valid {rms_valid:.3f}, "
           f"flagged {rms_flagged:.3f} nT; fitted {({k: round(v[0], 3) for k, v in fitted.items()})}")
+
+
+def test_an_effect_the_data_do_not_show_is_not_added_live():
+    # adding drift to data without drift would fit noise and then extrapolate it block after block: the
+    # service refuses it and keeps correcting as before; an effect that is there is added
+    u = sim_unit(duration_s=30.0, rate_hz=200.0,
+                 temperature={"start_C": 20.0, "amplitude_C": 6.0, "period_s": 10.0, "reference_C": 20.0})
+    b = u.digitise(0, u.n_samples).to_block()
+    for effect in ("drift", "nonlinearity", "temperature"):
+        pl = pipeline_for(u, initial=truth_calibration(u))
+        pl.process(b.slice(0, 4000))
+        cal_id = pl.cal_id
+        with pytest.raises(FluxcalError, match=f"do not show {effect}: none of its 12 parameters is 3 standard errors"):
+            pl.command("add-effect", effect, seq=int(b.seq[4000]), t_s=float(b.t_s[4000]))
+        assert pl.effects == [] and pl.cal_id == cal_id
+        assert pl.process(b.slice(4000, 4100)).corrected.n_samples == 100
+    probes = [dict(p, temp_offset_nT_per_C=c) for p, c in zip(u.config_table["probes"], TEMP_COEFF)]
+    v = sim_unit(duration_s=30.0, rate_hz=200.0, probes=probes,
+                 temperature={"start_C": 20.0, "amplitude_C": 6.0, "period_s": 10.0, "reference_C": 20.0})
+    c = v.digitise(0, v.n_samples).to_block()
+    pl = pipeline_for(v, initial=truth_calibration(v))
+    pl.process(c.slice(0, 4000))
+    pl.command("add-effect", "temperature", seq=int(c.seq[4000]), t_s=float(c.t_s[4000]))
+    assert pl.effects == ["temperature"]
 
 
 def test_missing_reference_readings_do_not_stop_effect_correction():
