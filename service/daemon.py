@@ -251,17 +251,8 @@ class Daemon:
                     logger.write_raw(block)
                 bus.publish_raw(block)
                 out = self._process(pipeline, block)     # None: failed, counted and said there
-                if out is not None and out.corrected is not None:
-                    if logger is not None:
-                        logger.write_corrected(out.corrected)
-                    bus.publish_corrected(out.corrected)
-                if out is not None and out.error:
-                    bus.publish_error(out.error)
-                for ev in out.events if out is not None else ():
-                    self._on_event(ev, pipeline, bus, logger)
-                    if ev.kind == "calibration" and not announced:
-                        announced = True
-                        self.say("calibration usable: corrected output is being published")
+                if out is not None:
+                    announced = self._emit(out, pipeline, bus, logger, announced)
             now = time.monotonic()
             if now - last_health >= 1.0:
                 last_health = now
@@ -270,6 +261,21 @@ class Daemon:
                 if logger is not None:
                     logger.write_health(health)
                     self._say_recording_trouble(logger)
+
+    def _emit(self, out, pipeline: Pipeline, bus, logger, announced: bool) -> bool:
+        """Record and publish what processing a block gave; returns whether usability was announced."""
+        if out.corrected is not None:
+            if logger is not None:
+                logger.write_corrected(out.corrected)
+            bus.publish_corrected(out.corrected)
+        if out.error:
+            bus.publish_error(out.error)
+        for ev in out.events:
+            self._on_event(ev, pipeline, bus, logger)
+            if ev.kind == "calibration" and not announced:
+                announced = True
+                self.say("calibration usable: corrected output is being published")
+        return announced
 
     def _on_event(self, ev: PipelineEvent, pipeline: Pipeline, bus, logger) -> None:
         state = pipeline.state()

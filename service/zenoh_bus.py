@@ -42,6 +42,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
@@ -158,8 +159,6 @@ _LOOPBACK_HOST = re.compile(r"^(127\.\d+\.\d+\.\d+|localhost|\[::1\])$")
 
 def _check_pem(path: str, key: str, what: str) -> None:
     """A PEM file that exists and can be read: checked at start, not at the first connection."""
-    from pathlib import Path
-
     p = Path(path)
     try:
         head = p.read_bytes()[:1 << 20]

@@ -733,7 +733,7 @@ def test_a_frozen_dashboard_never_holds_the_service_back():
     assert np.all(np.diff(got) == 1)
     # what the frozen reader held up beyond the bus's 16 MB backlog was dropped from the bus (never from the
     # recording) and counted
-    assert bus.stats["send_dropped"] * payload <= sent_frozen * payload
+    assert bus.stats["send_dropped"] < sent_frozen / 2               # a bounded loss, not the whole stream
     print(f"frozen dashboard: {sent_frozen} blocks ({sent_frozen * payload / 1e6:.1f} MB) published in {wall:.1f} s "
           f"while it was stopped ({sent_frozen / wall:.0f}/s; {healthy_rate:.0f}/s before); slowest publish "
           f"{loop.slowest_s * 1e3:.1f} ms; {bus.stats['send_dropped']} blocks dropped from the bus's backlog")

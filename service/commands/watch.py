@@ -112,6 +112,7 @@ class Dashboard:
     def __init__(self, unit: str | None, endpoints: list[str], clock: Callable[[], float] = time.monotonic) -> None:
         self.unit = unit
         self.endpoints = endpoints
+        self.secure = any(ep.startswith(("tls/", "quic/")) for ep in endpoints)     # for the hints below
         self.clock = clock
         self.t_start = clock()
         self.connected = False
@@ -182,19 +183,17 @@ class Dashboard:
         """Why nothing is shown, or None when data flows."""
         where = ", ".join(self.endpoints)
         if not self.connected:
-            tls = any(ep.startswith(("tls/", "quic/")) for ep in self.endpoints)
             return (f"cannot reach {where} — is `fluxcal run` running and listening there? (retrying every second)"
                     + (" With TLS, also: is this certificate signed by the CA the service trusts, and does the "
-                       "service's certificate name the host?" if tls else ""))
+                       "service's certificate name the host?" if self.secure else ""))
         if self.unit is None:
             return f"no fluxcal unit visible via {where} yet — is `fluxcal run` running? (or give --unit)"
         now = self.clock()
         if self.last_msg_t is None:
-            tls = any(ep.startswith(("tls/", "quic/")) for ep in self.endpoints)
             return (f"no data from fluxcal/{self.unit} yet — is `fluxcal run` running and listening on "
                     f"{where}?" + (" (no such unit is alive there)" if self.alive is False else "")
                     + (" On a secured bus, also: is this certificate's name among the unit's [zenoh.access] "
-                       "readers?" if tls else ""))
+                       "readers?" if self.secure else ""))
         elif now - self.last_msg_t > STALE_S:
             gone = " — the service has stopped (its liveliness token is gone)" if self.alive is False else ""
             return f"no data from fluxcal/{self.unit} for {now - self.last_msg_t:.0f} s{gone}"
