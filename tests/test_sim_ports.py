@@ -316,7 +316,7 @@ def test_runner_serves_another_process(tmp_path):
     cfg.write_text('[sim]\nseed = 5\nrate_hz = 100.0\nduration_s = 1.0\n'
                    '[[sim.probes]]\nposition_m = [0.0, 0.0, 0.0]\nnoise_nT = 0.5\n')
     proc = subprocess.Popen([sys.executable, "-m", "drivers.sim", "--config", str(cfg), "--serial", "--fast",
-                             "--truth", str(tmp_path / "truth.json")], cwd=ROOT, stdout=subprocess.PIPE,
+                             "--truth", str(tmp_path / "truth.json"), "--record", str(tmp_path / "record.npz")], cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
         path = proc.stdout.readline().strip()
@@ -341,6 +341,28 @@ def test_runner_serves_another_process(tmp_path):
     assert_frames_are(p.frames, u.digitise(0, 100))
     assert "sent samples 0..100" in proc.stderr.read()
     assert (tmp_path / "truth.json").exists()
+    rec, meta = FaultRecord.load(str(tmp_path / "record.npz"))
+    assert meta == {"start_index": 0, "next_index": 100, "reconnects": 0, "n_probes": 1}
+    assert rec.serial_lost().size == 0 and rec.garbage_bytes == 0
+
+
+def test_fault_record_round_trips_through_a_file(tmp_path):
+    """What a simulator in another process did reaches its reader whole: every index of every kind."""
+    rec = FaultRecord()
+    rec.add("bitflip", np.array([7, 3]))
+    rec.add("bitflip", np.array([11]))
+    rec.add_range("outage", 100, 150)
+    rec.add("can_dropped", np.array([[5, 0, 2], [9, 1, 0]]).ravel())
+    rec.add_garbage_bytes(37)
+    path = str(tmp_path / "r.npz")
+    rec.save(path, next_index=400)
+    back, meta = FaultRecord.load(path)
+    assert meta == {"next_index": 400}
+    assert back.garbage_bytes == 37
+    assert back.samples("bitflip").tolist() == [3, 7, 11]
+    assert np.array_equal(back.samples("outage"), np.arange(100, 150))
+    assert back.can_dropped().tolist() == [[5, 0, 2], [9, 1, 0]]
+    assert back.as_dict() == rec.as_dict()
 
 
 @pytest.mark.slow

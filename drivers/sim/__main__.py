@@ -2,7 +2,8 @@
 
 Prints the port path (a stable symlink, see drivers.sim.ports) on the first line of stdout, then
 streams until the run ends (duration_s), or until SIGINT/SIGTERM, and prints a one-line summary of
-what was sent and corrupted on stderr. --slcan speaks SLCAN instead (for python-can's slcan
+what was sent and corrupted on stderr (--record FILE: the whole fault record, for a test or benchmark
+that checks every sample). --slcan speaks SLCAN instead (for python-can's slcan
 interface). Exit status 0, or 2 on a configuration error.
 """
 
@@ -34,6 +35,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--duration", type=float, metavar="S", help="override sim.duration_s (0: until stopped)")
     p.add_argument("--link-dir", metavar="DIR", help="where the port symlink goes (default: a temporary dir)")
     p.add_argument("--truth", metavar="FILE", help="also write the truth JSON here")
+    p.add_argument("--record", metavar="FILE", help="at the end, write the fault record (every sample index "
+                   "corrupted, dropped or not sent, and why) to this .npz file (FaultRecord.load reads it)")
     args = p.parse_args(argv)
     try:
         if args.config:
@@ -70,6 +73,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     finally:
         emitter.close()
+    if args.record:
+        emitter.record.save(args.record, start_index=emitter.start_index, next_index=emitter.next_index,
+                            reconnects=emitter.reconnects, n_probes=cfg.n_probes)
     print(f"drivers.sim: sent samples {emitter.start_index}..{emitter.next_index} of {cfg.n_probes} probes; "
           f"faults {json.dumps(emitter.record.as_dict())}", file=sys.stderr)
     return 0

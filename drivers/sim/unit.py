@@ -130,6 +130,30 @@ class FaultRecord:
         """Samples a CAN reader cannot complete: a frame dropped, or the bus silent."""
         return np.unique(np.concatenate([self.samples(k) for k in ("can_dropped", "outage", "no_reader")]))
 
+    def save(self, path: str, **meta: int) -> None:
+        """Write the whole record (every index of every kind, the garbage byte count) and integer `meta`
+        (e.g. the emitter's start and next index) to an .npz file: how a simulator run in another process
+        tells its reader exactly what it did. FaultRecord.load reads it back."""
+        with self._lock:
+            arrays = {f"kind_{k}": np.concatenate(ps) for k, ps in self._parts.items() if ps}
+            garbage = self.garbage_bytes
+        meta_arrays = {f"meta_{k}": np.int64(v) for k, v in meta.items()}
+        with open(path, "wb") as f:
+            np.savez(f, garbage_bytes=np.int64(garbage), **arrays, **meta_arrays)
+
+    @classmethod
+    def load(cls, path: str) -> tuple["FaultRecord", dict[str, int]]:
+        """The record FaultRecord.save wrote, and its meta."""
+        rec, meta = cls(), {}
+        with np.load(path, allow_pickle=False) as z:
+            for name in z.files:
+                if name.startswith("kind_"):
+                    rec.add(name[len("kind_"):], z[name])
+                elif name.startswith("meta_"):
+                    meta[name[len("meta_"):]] = int(z[name])
+            rec.garbage_bytes = int(z["garbage_bytes"])
+        return rec, meta
+
     def as_dict(self) -> dict[str, Any]:
         """Counts per kind, for a summary or a log line."""
         with self._lock:
