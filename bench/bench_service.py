@@ -135,7 +135,7 @@ def bench_live(tmp: Path, seconds: float, block_ms: float | None = None) -> None
     initial = tmp / "identity.json"
     save_calibration(ArrayCalibration("ellipsoid", None, [ProbeCalibration(p["name"], np.zeros(3), np.eye(3))
                                                           for p in PROBES]), initial)
-    src = (f'[source]\nkind = "serial"\nport = "{port_path}"\nn_probes = {N_PROBES}')
+    src = (f'[source]\nkind = "serial"\nport = "{port_path}"\nn_probes = {N_PROBES}\nrate_hz = {RATE}')
     cfg_path = tmp / "live.toml"
     full = config_text(tmp, src, port, initial, block_ms)            # the serial unit is real here: no [sim] sections
     cfg_path.write_text(full.split("\n[sim]")[0] + "\n[estimator]" + full.split("[estimator]", 1)[1])

@@ -99,25 +99,59 @@ def free_port() -> int:
         return sk.getsockname()[1]
 
 
-def service_config(tmp: Path, seconds: float, port: int, rotate_mb: float):
+def sim_table(seconds: float) -> dict:
+    """The [sim] section: the simulated unit, its motion and its faults."""
+    outages = [round(seconds * 0.35, 3), round(seconds * 0.7, 3)]
+    return {"seed": 7, "rate_hz": RATE, "realtime": False, "lsb_nT": 0.001,
+            "field": {"total_nT": TOTAL_NT, "inclination_deg": 57.0, "declination_deg": -5.0},
+            "motion": {"kind": "tumble", "rate_deg_s": 20.0, "tumble_period_s": 8.0},
+            "temperature": {"start_C": 22.0, "amplitude_C": 3.0, "period_s": 300.0, "reference_C": 20.0},
+            "faults": {**FAULTS, "outage_at_s": outages},
+            "probes": PROBES}
+
+
+def toml_text(section: str, table: dict) -> str:
+    """A nested dict of numbers, strings and lists as TOML (enough for the [sim] section)."""
+    def value(v) -> str:
+        return json.dumps(v)            # numbers, strings and flat lists read the same in TOML
+
+    def tables(prefix: str, t: dict) -> list[str]:
+        lines = [f"[{prefix}]"] + [f"{k} = {value(v)}" for k, v in t.items()
+                                   if not isinstance(v, dict) and not (isinstance(v, list) and v
+                                                                        and isinstance(v[0], dict))]
+        for k, v in t.items():
+            if isinstance(v, dict):
+                lines += tables(f"{prefix}.{k}", v)
+            elif isinstance(v, list) and v and isinstance(v[0], dict):
+                for item in v:
+                    lines += [f"[[{prefix}.{k}]]"] + [f"{ik} = {value(iv)}" for ik, iv in item.items()]
+        return lines
+
+    return "\n".join(tables(section, table)) + "\n"
+
+
+def service_config(tmp: Path, seconds: float, port: int, rotate_mb: float, serial_port: str | None = None):
+    """The service's configuration: with serial_port, it reads the simulated unit running in another
+    process (as beside hardware); without, the unit runs inside the service (source kind "sim")."""
     from service.config import config_from_dict
 
-    outages = [round(seconds * 0.35, 3), round(seconds * 0.7, 3)]
+    if serial_port is None:
+        source = {"kind": "sim", "transport": "pty", "run_s": seconds}
+    else:
+        source = {"kind": "serial", "port": serial_port, "baudrate": 921600, "n_probes": N_PROBES, "lsb_nT": 0.001,
+                  "rate_hz": RATE}
     raw = {
-        "unit": {"name": UNIT, "n_probes": N_PROBES, "lsb_nT": 0.001},
+        "unit": {"name": UNIT, "n_probes": N_PROBES, "lsb_nT": 0.001,
+                  "rate_hz": RATE},
         "probes": [{"name": p["name"], "position_m": p["position_m"]} for p in PROBES],
-        "source": {"kind": "sim", "transport": "pty", "run_s": seconds},
-        "sim": {"seed": 7, "rate_hz": RATE, "realtime": False, "lsb_nT": 0.001,
-                "field": {"total_nT": TOTAL_NT, "inclination_deg": 57.0, "declination_deg": -5.0},
-                "motion": {"kind": "tumble", "rate_deg_s": 20.0, "tumble_period_s": 8.0},
-                "temperature": {"start_C": 22.0, "amplitude_C": 3.0, "period_s": 300.0, "reference_C": 20.0},
-                "faults": {**FAULTS, "outage_at_s": outages},
-                "probes": PROBES},
+        "source": source,
         "estimator": {"total_nT": TOTAL_NT},
         "calibration": {"file": str(tmp / "state" / "soak-cal.json")},
         "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"]},
         "mcap": {"dir": str(tmp / "rec"), "rotate_mb": rotate_mb},
     }
+    if serial_port is None:
+        raw["sim"] = sim_table(seconds)
     return config_from_dict(raw, "<bench_soak>")
 
 
@@ -144,17 +178,58 @@ def cpu_s() -> float:
     return t.user + t.system
 
 
-def thread_cpu_s(native_id: int | None) -> float | None:
-    """CPU seconds of one thread of this process (utime + stime of /proc/self/task/<tid>/stat);
-    None once the thread has ended."""
-    if native_id is None:
+def stat_cpu_s(stat_path: str | None) -> float | None:
+    """CPU seconds (utime + stime) of a thread (/proc/self/task/<tid>/stat) or a process
+    (/proc/<pid>/stat); None once it has gone."""
+    if stat_path is None:
         return None
     try:
-        with open(f"/proc/self/task/{native_id}/stat", encoding="ascii") as f:
+        with open(stat_path, encoding="ascii") as f:
             parts = f.read().rsplit(")", 1)[1].split()
     except OSError:
         return None
     return (int(parts[11]) + int(parts[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class SimProcess:
+    """The simulated unit in its own process (python -m drivers.sim, as a test rig beside the service
+    would be): the service's process then holds only the service. At the end the runner writes its
+    whole fault record, which the checks need."""
+
+    def __init__(self, tmp: Path, seconds: float) -> None:
+        self.conf = tmp / "sim.toml"
+        self.conf.write_text(toml_text("sim", {**sim_table(seconds), "duration_s": seconds}), encoding="utf-8")
+        self.record_path = tmp / "sim-record.npz"
+        root = Path(__file__).resolve().parents[1]
+        self.proc = subprocess.Popen([sys.executable, "-m", "drivers.sim", "--config", str(self.conf), "--serial",
+                                      "--fast", "--link-dir", str(tmp), "--record", str(self.record_path)],
+                                     cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        ready, _, _ = select.select([self.proc.stdout], [], [], 30.0)
+        self.path = self.proc.stdout.readline().strip() if ready else ""
+        if not self.path:
+            self.proc.kill()
+            raise SystemExit(f"the simulated unit did not start: {self.proc.communicate()[1].strip()}")
+        self.stat_path = f"/proc/{self.proc.pid}/stat"
+        self.exit_code: int | None = None
+        self.cpu_s: float | None = None         # from the kernel's accounting once it has ended
+        self.stderr = ""
+        self.record = None
+        self.meta: dict = {}
+
+    def wait(self) -> None:
+        """Until the run is over (the runner drains the port, closes it and exits); then its record."""
+        _, status, ru = os.wait4(self.proc.pid, 0)
+        self.exit_code = self.proc.returncode = os.waitstatus_to_exitcode(status)
+        self.cpu_s = ru.ru_utime + ru.ru_stime
+        self.stderr = self.proc.stderr.read()
+        if self.record_path.exists():
+            from drivers.sim import FaultRecord
+
+            self.record, self.meta = FaultRecord.load(str(self.record_path))
+
+    def kill(self) -> None:
+        if self.proc.poll() is None and self.exit_code is None:
+            self.proc.kill()
 
 
 class Probe:
@@ -175,8 +250,9 @@ class Probe:
         self.pipeline = None
         self.logger = None
         self.bus = None
-        self.sim_tid: int | None = None
-        self.sim_cpu = 0.0            # the simulator thread's CPU seconds, last seen
+        self.sim_stat: str | None = None   # /proc stat of the simulator's thread, or of its process
+        self.sim_process: SimProcess | None = None
+        self.sim_cpu = 0.0            # the simulator's CPU seconds, last seen
         self.sim_cpu0 = 0.0
         self.snapshots: list | None = [] if tracemalloc.is_tracing() else None
         self.t0 = self.cpu0 = 0.0
@@ -187,7 +263,8 @@ class Probe:
     def attach(self, source, pipeline, bus, logger) -> None:
         self.source, self.pipeline, self.bus, self.logger = source, pipeline, bus, logger
         th = getattr(getattr(source, "emitter", None), "_thread", None)
-        self.sim_tid = getattr(th, "native_id", None)
+        if getattr(th, "native_id", None) is not None:
+            self.sim_stat = f"/proc/self/task/{th.native_id}/stat"
         inner = pipeline.process
 
         def process(block: SampleBlock):
@@ -231,14 +308,15 @@ class Probe:
         self._row((self.last_seq + 1) / RATE, final=True)
 
     def _sim_cpu(self) -> float:
-        """The simulator thread's CPU seconds since start (its last value once it has ended)."""
-        t = thread_cpu_s(self.sim_tid)
+        """The simulator's CPU seconds since start (its last value once it has ended)."""
+        sp = self.sim_process
+        t = sp.cpu_s if sp is not None and sp.cpu_s is not None else stat_cpu_s(self.sim_stat)
         if t is not None:
             self.sim_cpu = t
         return self.sim_cpu - self.sim_cpu0
 
     def _row(self, sim_s: float, final: bool = False) -> None:
-        lost, rec_kb = 0, 0.0
+        lost, rec_kb = None, 0.0          # the simulator's record: known along the way only in-process
         rec = getattr(self.source, "record", None)
         if rec is not None:
             lost = int(rec.serial_lost().size)
@@ -272,7 +350,7 @@ class Probe:
         else:
             cpu, scpu, rate = f"{'-':>9}", f"{'-':>12}", f"{'-':>10}"
         print(f"{r['sim_s']:7.1f} {r['wall_s']:7.1f} {r['rss_kb'] / 1024:7.1f} {vs:>8} {cpu} {scpu} {rate} "
-              f"{r['objs']:10d} {r['delivered']:9d} {r['lost']:6d} {r['files']:5d}" + ("  (end)" if final else ""),
+              f"{r['objs']:10d} {r['delivered']:9d} {'-' if r['lost'] is None else r['lost']:>6} {r['files']:5d}" + ("  (end)" if final else ""),
               flush=True)
 
     def warm_row(self) -> dict | None:
@@ -377,6 +455,22 @@ def make_daemon(cfg, probe: Probe, subscriber_endpoint: str | None, messages: li
     return SoakDaemon(cfg, say=say)
 
 
+def end_when_delivered(sim: SimProcess, probe: Probe, daemon) -> None:
+    """A serial port has no end of run: once the simulated unit has sent its last sample (it drains the
+    port, closes it and exits) and the service has taken in every sample sent intact (bounded wait),
+    the service is stopped, as an operator would."""
+    sim.wait()
+    if sim.record is not None:
+        lost = sim.record.serial_lost()
+        a, b = sim.meta["start_index"], sim.meta["next_index"]
+        expected = (b - a) - int(((lost >= a) & (lost < b)).sum())
+        deadline = time.monotonic() + 30.0
+        while probe.n_in < expected and time.monotonic() < deadline and not daemon.stop.is_set():
+            time.sleep(0.05)
+        time.sleep(0.2)
+    daemon.stop.set()
+
+
 def bare_pipeline(cfg, blocks: list[SampleBlock], runs: int = 2):
     """The pipeline alone (no source, MCAP or Zenoh) over the same blocks, best of `runs`: wall and
     CPU seconds, and its corrected output."""
@@ -435,6 +529,10 @@ def main() -> int:
     ap.add_argument("--minutes", type=float, default=10.0, help="simulated minutes (default 10)")
     ap.add_argument("--quick", action="store_true", help="one simulated minute (memory check not counted)")
     ap.add_argument("--no-subscriber", action="store_true", help="no Zenoh subscriber process")
+    ap.add_argument("--sim-in-process", action="store_true",
+                    help="run the simulated unit inside the service's process (source kind \"sim\", as `fluxcal "
+                         "run` on a sim config does) instead of in its own process; the memory figure then "
+                         "includes the simulator's")
     ap.add_argument("--tracemalloc", type=int, nargs="?", const=1, default=0, metavar="FRAMES",
                     help="diagnosis: trace Python and numpy allocations (FRAMES deep, default 1; several times "
                          "slower) and print where memory grew between warm-up and the end")
@@ -455,7 +553,8 @@ def main() -> int:
         tempfile.tempdir = d                  # the emitter's pty symlink directory goes in here too
         port = free_port()
         rotate_mb = max(4.0, round(seconds * 0.08))           # 4-5 files per run (about 0.35 MB per sim s)
-        cfg = service_config(tmp, seconds, port, rotate_mb)
+        sim_proc = None if args.sim_in_process else SimProcess(tmp, seconds)
+        cfg = service_config(tmp, seconds, port, rotate_mb, None if sim_proc is None else sim_proc.path)
         # warm-up: the estimator's ring buffer has filled, wrapped, and the gate has run twice over it
         est = cfg.estimator
         warmup_full = est.window_s + 2 * est.check_every_s
@@ -468,7 +567,7 @@ def main() -> int:
               f"full speed; faults per frame: garbage {FAULTS['garbage_fraction']}, bit flip "
               f"{FAULTS['bitflip_fraction']}, lost byte {FAULTS['drop_byte_fraction']}, dropped frame "
               f"{FAULTS['drop_frame_fraction']}; outages of {FAULTS['outage_s']:.0f} s at "
-              f"{', '.join(f'{a:g} s' for a in cfg.sim.faults.outage_at_s)}; MCAP rotated every {rotate_mb:g} MB; "
+              f"{', '.join(f'{a:g} s' for a in sim_table(seconds)['faults']['outage_at_s'])}; MCAP rotated every {rotate_mb:g} MB; "
               f"warm-up {warmup_s:.0f} s" + ("" if memory_counted else
                                              f" (the run is shorter than 3 x the {warmup_full:g} s warm-up of ring "
                                              f"buffer + 2 gate checks: the memory check is not counted)"))
@@ -476,6 +575,10 @@ def main() -> int:
         messages: list[str] = []
         endpoint = None if args.no_subscriber else f"tcp/127.0.0.1:{port}"
         daemon = make_daemon(cfg, probe, endpoint, messages)
+        if sim_proc is not None:
+            print(f"the simulated unit runs in its own process (pid {sim_proc.proc.pid}) on {sim_proc.path}")
+            probe.sim_stat, probe.sim_process = sim_proc.stat_path, sim_proc
+            threading.Thread(target=end_when_delivered, args=(sim_proc, probe, daemon), daemon=True).start()
         # bounded: a soak that takes longer than twice real time is stuck; it stops and its checks fail
         limit_s = 2 * seconds + 120
         watchdog = threading.Timer(limit_s, lambda: (print(f"watchdog: stopping the daemon after {limit_s:.0f} s",
@@ -488,13 +591,24 @@ def main() -> int:
             rc = daemon.run()
         finally:
             watchdog.cancel()
+            if sim_proc is not None:
+                sim_proc.kill()
         t_run = time.perf_counter() - t_run
         tempfile.tempdir = None
         source = probe.source
-        record = source.record
-        emitter = source.emitter
-        framer = source.inner._framer
         counters = source.counters.as_dict()
+        if sim_proc is None:
+            record, framer = source.record, source.inner._framer
+            emitted, reconnects, sim_ok = int(source.emitter.next_index), source.emitter.reconnects, True
+        else:
+            if sim_proc.exit_code is None:
+                sim_proc.wait()
+            if sim_proc.record is None:
+                raise SystemExit(f"the simulated unit left no fault record (exit {sim_proc.exit_code}): "
+                                 f"{sim_proc.stderr.strip()}")
+            record, framer = sim_proc.record, source._framer
+            emitted, reconnects = sim_proc.meta["next_index"], sim_proc.meta["reconnects"]
+            sim_ok = sim_proc.exit_code == 0
 
         # --- read the recording back; the bare pipeline over the same blocks ----------------------------
         from service.recording import read_recording
@@ -537,7 +651,8 @@ def main() -> int:
           f"Python objects {warm['objs']} -> {end['objs']}; VmRSS itself {raw_end:+.2f} % at the end, the record "
           f"{end['record_kb']:.0f} kB")
     print(f"CPU: {cpu_total / sim_total:.3f} s per simulated s in all ({cpu_total:.1f} s), of which the simulated "
-          f"unit's emitter thread {sim_cpu / sim_total:.3f} and the service (its thread, zenoh, MCAP) "
+          f"unit {sim_cpu / sim_total:.3f} ({'its emitter thread' if sim_proc is None else 'its own process'}) "
+          f"and the service (its thread, zenoh, MCAP) "
           f"{service_cpu / sim_total:.3f}; at {sim_total / t_run:.1f}x real time the daemon gathers about "
           f"{probe.n_in / max(probe.blocks, 1):.0f} samples per block (about {cfg.unit.block_ms * RATE / 1000:g} at real "
           f"time: block_ms {cfg.unit.block_ms:g})")
@@ -551,8 +666,9 @@ def main() -> int:
           f"{len(rec.truncated)}, warnings {len(rec.warnings)}; logger: {json.dumps({k: (daemon.logger_status or {}).get(k) for k in ('messages', 'messages_written', 'dropped', 'errors')})}")
     print(f"source counters: {json.dumps(counters)}")
     rec_kb = sum(a.nbytes + 112 for parts in record._parts.values() for a in parts) / 1024
-    print(f"fault record: {json.dumps(record.as_dict())}; emitter reconnects {emitter.reconnects}; the record "
-          f"itself holds {rec_kb:.0f} kB of the process's memory (it grows with every fault: simulator only)")
+    print(f"fault record: {json.dumps(record.as_dict())}; emitter reconnects {reconnects}; the record itself holds "
+          f"{rec_kb:.0f} kB" + (" of the process's memory (it grows with every fault: simulator only)"
+                                if sim_proc is None else " in the simulator's process"))
     if daemon.bus_stats:
         bs = daemon.bus_stats
         print(f"bus: published raw {bs.get('published_raw')}, corrected {bs.get('published_corrected')}, "
@@ -565,8 +681,7 @@ def main() -> int:
         print_growth(*probe.snapshots)
 
     # --- exact counts ---------------------------------------------------------------------------------------
-    emitted = int(emitter.next_index)
-    n_run = int(round(cfg.sim.rate_hz * seconds))
+    n_run = int(round(RATE * seconds))
     lost = record.serial_lost()
     expected = np.setdiff1d(np.arange(emitted, dtype=np.int64), lost)
     sub = daemon.sub_result
@@ -580,7 +695,7 @@ def main() -> int:
         print(f"received on Zenoh (raw)              {sub['raw'] if sub else 'no result'}")
     print(f"corrected samples                    pipeline {probe.n_corrected}, recording {n_rec_cor}"
           + (f", Zenoh {sub['corrected']}" if sub else ""))
-    check(results, rc == 0 and emitter.done.is_set() and emitted == n_run,
+    check(results, rc == 0 and sim_ok and emitted == n_run,
           f"the run completed and stopped by itself: {emitted} samples emitted of {n_run}")
     check(results, emitted == probe.n_in + lost.size,
           f"emitted {emitted} == delivered {probe.n_in} + lost {lost.size} ({probe.n_in + lost.size})")

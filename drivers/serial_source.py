@@ -42,6 +42,10 @@ class SerialConfig:
     n_probes: int = spec(min=1, max=MAX_PROBES, doc="probes per frame; must equal unit.n_probes")
     lsb_nT: float = spec(DEFAULT_LSB_NT, min=1e-9, max=1e3, doc="nT per ADC count")
     read_timeout_s: float = spec(0.02, min=0.001, max=5.0, doc="longest single wait on the port, s")
+    rate_hz: float | None = spec(None, min=0.001, max=100_000.0,
+                                 doc="the unit's sample rate, Hz: the service counts its durations (estimator "
+                                     "window_s, check_every_s, update_every_s) in samples at this rate; the "
+                                     "driver itself takes time from the unit clock in each frame")
 
 
 class SerialSource(Source):

@@ -83,6 +83,8 @@ class McapConfig:
 class ReplayConfig:
     kind: str = spec("replay", choices=("replay",))
     path: str = spec(doc="an MCAP file or a directory of rotated files")
+    rate_hz: float | None = spec(None, min=0.001, max=100_000.0,
+                                 doc="the recorded unit's sample rate, Hz (needed without a [sim] section)")
 
 
 @dataclass
@@ -121,6 +123,13 @@ class FluxcalConfig:
     @property
     def positions_m(self) -> list[list[float]]:
         return [p.position_m for p in self.probes]
+
+    @property
+    def rate_hz(self) -> float | None:
+        """The unit's sample rate, Hz: the simulated unit's, else source.rate_hz; None if neither is set.
+        The estimator's durations (window_s, check_every_s, update_every_s) are counted in samples at it."""
+        rate = getattr(self.source, "rate_hz", None) or getattr(self.sim, "rate_hz", None)
+        return float(rate) if rate else None
 
 
 _SECTIONS = ("unit", "probes", "source", "sim", "estimator", "calibration", "zenoh", "mcap")
@@ -174,6 +183,10 @@ def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
             if hasattr(source, attr) and getattr(source, attr) != unit.n_probes:
                 raise ConfigError(f"source.{attr}: {getattr(source, attr)!r} differs from unit.n_probes = {unit.n_probes}")
 
+        if kind in ("serial", "replay") and getattr(source, "rate_hz", None) is None and "sim" not in raw:
+            raise ConfigError(f"source.rate_hz: missing (allowed: the unit's sample rate in Hz, e.g. rate_hz = 200.0; "
+                              f"the estimator's window_s, check_every_s and update_every_s are counted in samples "
+                              f"at this rate)")
         sim = None
         if "sim" in raw or kind == "sim":
             from drivers.sim.config import load_sim_config
@@ -182,6 +195,10 @@ def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
             n_sim = len(sim.probes)
             if n_sim != unit.n_probes:
                 raise ConfigError(f"sim.probes: {n_sim} simulated probes but unit.n_probes = {unit.n_probes}")
+        src_rate = getattr(source, "rate_hz", None)
+        if sim is not None and src_rate is not None and abs(src_rate - sim.rate_hz) > 1e-9 * sim.rate_hz:
+            raise ConfigError(f"source.rate_hz: {src_rate!r} differs from sim.rate_hz = {sim.rate_hz!r} (allowed: "
+                              f"the same rate, or leave source.rate_hz out)")
         estimator = load_section(EstimatorConfig, raw.get("estimator", {}), "estimator")
         calibration = load_section(CalibrationConfig, raw.get("calibration", {}), "calibration")
         from .zenoh_bus import ZenohConfig

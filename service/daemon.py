@@ -32,7 +32,10 @@ def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:
     est = cfg.estimator
     positions = np.asarray(cfg.positions_m, float)
     has_geometry = cfg.unit.n_probes > 1 and np.ptp(positions, axis=0).any()
-    rate = getattr(cfg.sim, "rate_hz", None) or getattr(cfg.source, "rate_hz", None) or 200.0
+    rate = cfg.rate_hz
+    if rate is None:
+        raise ConfigError(f"{cfg.path}: source.rate_hz: missing (allowed: the unit's sample rate in Hz; the "
+                          f"estimator's durations are counted in samples at it)")
     return Pipeline(n_probes=cfg.unit.n_probes, probe_names=cfg.probe_names,
                     positions_m=positions if has_geometry else None, forgetting=est.forgetting,
                     total_nT=est.total_nT, align=est.align, min_samples=est.min_samples,
@@ -73,6 +76,8 @@ class Daemon:
         self._recording_errors_said = 0       # logger errors already said; at most one message a minute
         self._recording_said_at = -1e9
         self._last_processing_say = -1e9
+        self._rate_first: tuple[int, float] | None = None   # (seq, t_s) the sample-rate check starts from
+        self.rate_checked = False             # the unit clock has been compared with the configured rate
 
     def _initial_calibration(self):
         c = self.cfg.calibration
@@ -175,6 +180,29 @@ class Daemon:
             self._pending_error = e
         return parts[0] if len(parts) == 1 else SampleBlock.concat(parts)
 
+    #: unit-clock time over which the configured sample rate is checked, s; and the mismatch said
+    RATE_CHECK_S, RATE_TOLERANCE = 5.0, 0.02
+
+    def _check_rate(self, block: SampleBlock) -> None:
+        """Once, after RATE_CHECK_S of unit clock: the sample rate the frames show (samples counted by seq
+        over the unit clock's t_s) against the configured one, which sets how many samples the estimator's
+        durations span. A mismatch is said with the value to set; the service goes on (it is a setting)."""
+        if block.n_samples == 0:
+            return
+        seq, t = int(block.seq[-1]), float(block.t_s[-1])
+        if self._rate_first is None or seq <= self._rate_first[0] or t <= self._rate_first[1]:
+            self._rate_first = (int(block.seq[0]), float(block.t_s[0]))     # (re)start: first block, or a reset unit
+            return
+        dt = t - self._rate_first[1]
+        if dt < self.RATE_CHECK_S:
+            return
+        self.rate_checked = True
+        seen, configured = (seq - self._rate_first[0]) / dt, self.cfg.rate_hz
+        if configured and abs(seen / configured - 1.0) > self.RATE_TOLERANCE:
+            self.say(f"the unit's clock shows {seen:.4g} samples/s but the configured rate is {configured:g} Hz "
+                     f"(source.rate_hz, or sim.rate_hz): the estimator's window_s, check_every_s and update_every_s "
+                     f"span {seen / configured:.3g} x the seconds configured; set rate_hz = {seen:.4g}")
+
     def _say_recording_trouble(self, logger) -> None:
         """New recording errors (a full disk, a removed drive) are said, at most once a minute, with what
         they cost so far; the logger itself keeps the data it can and retries (docs/recording.md)."""
@@ -246,6 +274,8 @@ class Daemon:
                     self.say("source exhausted")
                     break
             else:
+                if not self.rate_checked:
+                    self._check_rate(block)
                 # the raw block is kept and published first: whatever happens to its processing, it is not lost
                 if logger is not None:
                     logger.write_raw(block)
