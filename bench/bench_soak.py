@@ -1,35 +1,41 @@
 """Soak benchmark (not a test) of the running service under injected faults ("field hardening").
 
 What is measured. The daemon of `fluxcal run` (service.daemon.Daemon: source -> pipeline -> MCAP
-logger and Zenoh bus, with its reconnects; only tapped, not changed) runs on the simulated unit: 4
-probes at 1 kHz, tumbling, ICD frames through a pseudo-terminal at full speed (sim transport "pty",
-not paced by the clock), so pyserial, the framer and the reconnect path are the real ones. The unit
-injects serial garbage, bit flips, lost bytes, dropped frames and two 2-s outages (the pty closes,
-disappears and comes back); the service learns its calibration online, records to MCAP (rotated
-4-5 times) and publishes on Zenoh (127.0.0.1, a free port) to a lossless subscriber in another
-process. Every 10 simulated seconds the process's RSS (VmRSS of /proc/self/status), its CPU time
-(os.times), the simulator thread's own CPU time (/proc/self/task) and the number of Python objects
-are sampled; the table shows them over time. The summary gives RSS after warm-up (the estimator's
-ring buffer filled and wrapped, and two gate checks over it: window_s + 2 check_every_s = 70 s), max
-and end with the growth in % (the issue asks for memory flat within 5 % after warm-up) and the
-least-squares trend; CPU seconds per simulated second, the service's apart from the simulated
-unit's (which shares the process, as in `fluxcal run` with a sim source); and throughput in
-probe-samples/s, and CPU per probe-sample, as ratios against the bare pipeline run over the same
-blocks in the same process. No absolute time is asserted. Faster than real time the daemon gathers
-~120 samples per block instead of the ~6 of unit.block_ms at real time, so its CPU per simulated
-second is lower than at real time (bench_service.py measures that), and its wall throughput is
-bounded by the gathering wait per block and the pty's 4-KiB buffer, not by CPU. The warm-up includes
-the first gate checks after the ring wraps (they used to copy the whole 60-s ring, ~8.7 MB, which glibc
-then kept resident; Pipeline._window now takes only the rows it thins to). At the end the counts are
-checked exactly: samples
-emitted == delivered intact + lost to the injected damage (the simulator's FaultRecord); delivered
-== through the pipeline == in the MCAP recording (read back with service.recording) == received on
-Zenoh, sample for sample; the source's frame, gap and skipped-byte counters against the record;
-and the recording replayed through a fresh pipeline gives the recorded output bit for bit. Each
-check prints PASS or FAIL; a FAIL makes the exit status 1. The memory check counts only in runs of
-at least 3 x the warm-up (not with --quick). --tracemalloc says where Python/numpy memory grew.
+logger and Zenoh bus, with its reconnects; only tapped, not changed) reads the simulated unit: 4
+probes at 1 kHz, tumbling, ICD frames through a pseudo-terminal at full speed (not paced by the
+clock), so pyserial, the framer and the reconnect path are the real ones. The unit runs in its own
+process (`python -m drivers.sim --serial --fast --record F`), as a unit beside the service would, and
+the service reads its pty as a serial source; so the service's process holds only the service.
+(--sim-in-process runs the unit inside the service instead, as `fluxcal run` on a sim config does:
+then its memory counts too, less its fault record, which grows with every fault it injects.) The
+unit injects serial garbage, bit flips, lost bytes, dropped frames and two 2-s outages (the pty
+closes, disappears and comes back); the service learns its calibration online, records to MCAP
+(rotated 4-5 times) and publishes on Zenoh (127.0.0.1, a free port) to a lossless subscriber in
+another process. Every 10 simulated seconds the service process's RSS (VmRSS of /proc/self/status),
+the CPU time of the service and of the unit (os.times; /proc/<pid>/stat, or the unit's thread in
+/proc/self/task) and the number of Python objects are sampled; the table shows them over time.
+The summary gives RSS after warm-up (the estimator's ring buffer filled and wrapped, and two gate
+checks over it: window_s + 2 check_every_s = 70 s), max and end with the growth in % (the issue asks
+for memory flat within 5 % after warm-up) and the least-squares trend; CPU seconds per simulated
+second, the service's apart from the unit's; and throughput in probe-samples/s, and CPU per
+probe-sample, as ratios against the bare pipeline run over the same blocks in the same process. No
+absolute time is asserted. Faster than real time the daemon gathers ~60-120 samples per block
+instead of the ~8 of unit.block_ms at real time, so its CPU per simulated second is lower than at
+real time (bench_service.py measures that), and its wall throughput is bounded by the gathering
+wait per block and the pty's 4-KiB buffer, not by CPU. The warm-up includes the first gate checks
+after the ring wraps (they used to copy the whole 60-s ring, ~8.7 MB, which glibc then kept
+resident; Pipeline._window now takes only the rows it thins to). A serial port has no end of run:
+once the unit has sent its last sample and closed its port, and the service's input has stayed
+still for 3 s, the service is stopped; only then is the unit's fault record read. The counts are
+checked exactly: samples emitted == delivered intact + lost to the injected damage (the unit's
+FaultRecord); delivered == through the pipeline == in the MCAP recording (read back with
+service.recording) == received on Zenoh, sample for sample; the source's frame, gap and
+skipped-byte counters against the record; and the recording replayed through a fresh pipeline
+gives the recorded output bit for bit. Each check prints PASS or FAIL; a FAIL makes the exit status
+1. The memory check counts only in runs of at least 3 x the warm-up (not with --quick).
+--tracemalloc says where Python/numpy memory grew.
 
-Run by hand:  .venv/bin/python bench/bench_soak.py [--minutes 10] [--quick] [--no-subscriber]
+Run by hand:  .venv/bin/python bench/bench_soak.py [--minutes 10] [--quick] [--no-subscriber] [--sim-in-process]
 """
 
 from __future__ import annotations
@@ -203,24 +209,60 @@ class SimProcess:
         root = Path(__file__).resolve().parents[1]
         self.proc = subprocess.Popen([sys.executable, "-m", "drivers.sim", "--config", str(self.conf), "--serial",
                                       "--fast", "--link-dir", str(tmp), "--record", str(self.record_path)],
-                                     cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        ready, _, _ = select.select([self.proc.stdout], [], [], 30.0)
-        self.path = self.proc.stdout.readline().strip() if ready else ""
-        if not self.path:
-            self.proc.kill()
-            raise SystemExit(f"the simulated unit did not start: {self.proc.communicate()[1].strip()}")
-        self.stat_path = f"/proc/{self.proc.pid}/stat"
+                                     cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                     preexec_fn=_end_with_parent)
         self.exit_code: int | None = None
         self.cpu_s: float | None = None         # from the kernel's accounting once it has ended
+        self.exited = threading.Event()
+        self._wait_lock = threading.Lock()      # one waiter reaps it (the end thread, or stop())
         self.stderr = ""
         self.record = None
         self.meta: dict = {}
+        ready, _, _ = select.select([self.proc.stdout], [], [], 30.0)
+        self.path = self.proc.stdout.readline().strip() if ready else ""
+        if not self.path:
+            self.stop()
+            raise SystemExit(f"the simulated unit did not start: {self.proc.stderr.read().strip()}")
+        self.stat_path = f"/proc/{self.proc.pid}/stat"
+
+    def _reaped(self, status: int, ru) -> None:
+        self.exit_code = self.proc.returncode = os.waitstatus_to_exitcode(status)
+        self.cpu_s = ru.ru_utime + ru.ru_stime
+        self.exited.set()
 
     def wait(self) -> None:
         """Until the run is over (the runner drains the port, closes it and exits)."""
-        _, status, ru = os.wait4(self.proc.pid, 0)
-        self.exit_code = self.proc.returncode = os.waitstatus_to_exitcode(status)
-        self.cpu_s = ru.ru_utime + ru.ru_stime
+        with self._wait_lock:
+            if self.exit_code is None:
+                _, status, ru = os.wait4(self.proc.pid, 0)
+                self._reaped(status, ru)
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """SIGTERM (the runner then writes its fault record and exits); SIGKILL if it has not ended
+        within timeout_s. Safe while another thread waits for it, and twice."""
+        if self.exited.is_set():
+            return
+        try:
+            os.kill(self.proc.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            return
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.exited.wait(0.1):
+                return
+            if self._wait_lock.acquire(blocking=False):      # nobody else is waiting: reap it here
+                try:
+                    if self.exit_code is None:
+                        pid, status, ru = os.wait4(self.proc.pid, os.WNOHANG)
+                        if pid:
+                            self._reaped(status, ru)
+                finally:
+                    self._wait_lock.release()
+        if not self.exited.is_set():
+            try:
+                os.kill(self.proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
 
     def load_record(self) -> None:
         """Its fault record, read after the service's last memory sample (reading it costs this
@@ -231,9 +273,13 @@ class SimProcess:
 
             self.record, self.meta = FaultRecord.load(str(self.record_path))
 
-    def kill(self) -> None:
-        if self.proc.poll() is None and self.exit_code is None:
-            self.proc.kill()
+
+def _end_with_parent() -> None:
+    """In the simulated unit's process, before it runs: SIGTERM when the benchmark's process ends, however
+    it ends (Linux prctl PR_SET_PDEATHSIG), so a killed benchmark leaves no unit waiting for a reader."""
+    import ctypes
+
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
 
 
 class Probe:
@@ -464,18 +510,18 @@ def make_daemon(cfg, probe: Probe, subscriber_endpoint: str | None, messages: li
 
 def end_when_delivered(sim: SimProcess, probe: Probe, daemon) -> None:
     """A serial port has no end of run: once the simulated unit has sent its last sample (it drains the
-    port, closes it and exits) and the service's count of samples has stayed still for a second (bounded
+    port, closes it and exits) and the service's count of samples has stayed still for 3 s (bounded
     wait), the service is stopped, as an operator would. The checks then say whether it had them all."""
     sim.wait()
     # everything sent is in the port or already read (the runner drained the port before it closed it):
-    # the service has it all once its count stays still for a second
+    # the service has it all once its count stays still (3 s: a slow block or a file rotation is shorter)
     deadline = time.monotonic() + 30.0
     seen, still_since = probe.n_in, time.monotonic()
     while time.monotonic() < deadline and not daemon.stop.is_set():
         time.sleep(0.05)
         if probe.n_in != seen:
             seen, still_since = probe.n_in, time.monotonic()
-        elif time.monotonic() - still_since >= 1.0:
+        elif time.monotonic() - still_since >= 3.0:
             break
     daemon.stop.set()
 
@@ -564,7 +610,7 @@ def main() -> int:
         rotate_mb = max(4.0, round(seconds * 0.08))           # 4-5 files per run (about 0.35 MB per sim s)
         sim_proc = None if args.sim_in_process else SimProcess(tmp, seconds)
         if sim_proc is not None:
-            atexit.register(sim_proc.kill)          # whatever stops this run stops the simulated unit too
+            atexit.register(sim_proc.stop)          # whatever stops this run stops the simulated unit too
         cfg = service_config(tmp, seconds, port, rotate_mb, None if sim_proc is None else sim_proc.path)
         # warm-up: the estimator's ring buffer has filled, wrapped, and the gate has run twice over it
         est = cfg.estimator
@@ -603,7 +649,7 @@ def main() -> int:
         finally:
             watchdog.cancel()
             if sim_proc is not None:
-                sim_proc.kill()
+                sim_proc.stop()           # it has ended by itself, unless the run was cut short
         t_run = time.perf_counter() - t_run
         tempfile.tempdir = None
         source = probe.source
@@ -656,12 +702,15 @@ def main() -> int:
     print(f"\ndaemon exit {rc} after {t_run:.1f} s wall for {sim_total:.0f} simulated s ({sim_total / t_run:.1f}x real "
           f"time), {len(messages)} service messages; load average at end: "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}")
-    print(f"memory (VmRSS less the simulator's fault record): {rows[0]['rss_kb'] / 1024:.1f} MB before the first "
+    what = ("VmRSS of the service's process (the simulated unit runs in another)" if sim_proc is not None
+            else "VmRSS less the simulator's fault record")
+    print(f"memory ({what}): {rows[0]['rss_kb'] / 1024:.1f} MB before the first "
           f"sample; after warm-up ({warm['sim_s']:.0f} s) {svc[id(warm)] / 1024:.1f} MB, max {svc[id(rmax)] / 1024:.1f} "
           f"MB (at {rmax['sim_s']:.0f} s), end {svc[id(end)] / 1024:.1f} MB: growth {growth_end:+.2f} % at the end, "
           f"{growth_max:+.2f} % at most; least-squares trend after warm-up {slope:+.0f} kB per simulated minute; "
-          f"Python objects {warm['objs']} -> {end['objs']}; VmRSS itself {raw_end:+.2f} % at the end, the record "
-          f"{end['record_kb']:.0f} kB")
+          f"Python objects {warm['objs']} -> {end['objs']}"
+          + ("" if sim_proc is not None else f"; VmRSS itself {raw_end:+.2f} % at the end, the record "
+                                             f"{end['record_kb']:.0f} kB"))
     print(f"CPU: {cpu_total / sim_total:.3f} s per simulated s in all ({cpu_total:.1f} s), of which the simulated "
           f"unit {sim_cpu / sim_total:.3f} ({'its emitter thread' if sim_proc is None else 'its own process'}) "
           f"and the service (its thread, zenoh, MCAP) "
@@ -708,7 +757,9 @@ def main() -> int:
     print(f"corrected samples                    pipeline {probe.n_corrected}, recording {n_rec_cor}"
           + (f", Zenoh {sub['corrected']}" if sub else ""))
     check(results, rc == 0 and sim_ok and emitted == n_run,
-          f"the run completed and stopped by itself: {emitted} samples emitted of {n_run}")
+          f"the run completed: {emitted} samples emitted of {n_run}, the service stopped "
+          + ("by itself at the end of the simulated run" if sim_proc is None
+             else "once the unit had closed its port and the input had stayed still 3 s"))
     check(results, emitted == probe.n_in + lost.size,
           f"emitted {emitted} == delivered {probe.n_in} + lost {lost.size} ({probe.n_in + lost.size})")
     check(results, probe.n_in == n_rec, f"delivered through the pipeline {probe.n_in} == in the recording {n_rec}")

@@ -7,6 +7,7 @@
     n_probes = 2                 # must equal unit.n_probes
     lsb_nT = 0.001               # nT per ADC count
     read_timeout_s = 0.02        # longest single wait on the port
+    rate_hz = 200.0              # the unit's sample rate (the service counts its durations in samples at it)
 
 A pulled cable (or a closed pty) makes `read` raise DriverError; `reopen()` opens the same port
 again (a udev symlink that reappears works). The caller counts read_errors and reconnects.
@@ -185,13 +186,17 @@ class SerialSource(Source):
 
 def open_source(config: SerialConfig | None = None, **kwargs) -> SerialSource:
     """The "serial" entry of drivers.source.SOURCES: from a SerialConfig, keyword arguments
-    (port, baudrate, n_probes, lsb_nT, read_timeout_s), or a config with keyword overrides."""
+    (port, baudrate, n_probes, lsb_nT, read_timeout_s), or a config with keyword overrides. A config's
+    rate_hz is the service's business (the driver takes time from the unit clock in each frame); as a
+    keyword it is accepted and not used."""
     if config is None:
         if "port" not in kwargs or "n_probes" not in kwargs:
             raise ConfigError("source: a serial source needs port and n_probes")
         kwargs.pop("kind", None)
+        kwargs.pop("rate_hz", None)
         return SerialSource(kwargs.pop("port"), **kwargs)
     values = {k: getattr(config, k) for k in ("port", "baudrate", "n_probes", "lsb_nT", "read_timeout_s")}
+    kwargs.pop("rate_hz", None)
     unknown = set(kwargs) - set(values)
     if unknown:
         raise ConfigError(f"source: unknown serial option(s) {', '.join(sorted(unknown))} "

@@ -126,7 +126,7 @@ class FluxcalConfig:
 
     @property
     def rate_hz(self) -> float | None:
-        """The unit's sample rate, Hz: the simulated unit's, else source.rate_hz; None if neither is set.
+        """The unit's sample rate, Hz: source.rate_hz, else the simulated unit's; None if neither is set.
         The estimator's durations (window_s, check_every_s, update_every_s) are counted in samples at it."""
         rate = getattr(self.source, "rate_hz", None) or getattr(self.sim, "rate_hz", None)
         return float(rate) if rate else None
@@ -183,10 +183,12 @@ def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
             if hasattr(source, attr) and getattr(source, attr) != unit.n_probes:
                 raise ConfigError(f"source.{attr}: {getattr(source, attr)!r} differs from unit.n_probes = {unit.n_probes}")
 
-        if kind in ("serial", "replay") and getattr(source, "rate_hz", None) is None and "sim" not in raw:
-            raise ConfigError(f"source.rate_hz: missing (allowed: the unit's sample rate in Hz, e.g. rate_hz = 200.0; "
-                              f"the estimator's window_s, check_every_s and update_every_s are counted in samples "
-                              f"at this rate)")
+        sim_raw = raw.get("sim")
+        if (kind in ("serial", "replay") and getattr(source, "rate_hz", None) is None
+                and not (isinstance(sim_raw, dict) and "rate_hz" in sim_raw)):
+            raise ConfigError("source.rate_hz: missing (allowed: the unit's sample rate in Hz, 0.001 to 100000; "
+                              "the estimator's window_s, check_every_s and update_every_s are counted in samples "
+                              "at this rate)")
         sim = None
         if "sim" in raw or kind == "sim":
             from drivers.sim.config import load_sim_config

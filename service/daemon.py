@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import sys
 import threading
 import time
@@ -76,8 +77,9 @@ class Daemon:
         self._recording_errors_said = 0       # logger errors already said; at most one message a minute
         self._recording_said_at = -1e9
         self._last_processing_say = -1e9
-        self._rate_first: tuple[int, float] | None = None   # (seq, t_s) the sample-rate check starts from
-        self.rate_checked = False             # the unit clock has been compared with the configured rate
+        self._rate_seen: tuple[int, float] = (0, 0.0)       # samples (by seq) and unit-clock seconds seen
+        # the unit clock is compared with the configured rate once (CAN has no unit clock: t_s = seq / rate)
+        self.rate_checked = getattr(cfg.source, "kind", "") == "can"
 
     def _initial_calibration(self):
         c = self.cfg.calibration
@@ -186,22 +188,27 @@ class Daemon:
     def _check_rate(self, block: SampleBlock) -> None:
         """Once, after RATE_CHECK_S of unit clock: the sample rate the frames show (samples counted by seq
         over the unit clock's t_s) against the configured one, which sets how many samples the estimator's
-        durations span. A mismatch is said with the value to set; the service goes on (it is a setting)."""
-        if block.n_samples == 0:
+        durations span. A mismatch is said with the value to set; the service goes on (it is a setting).
+        Only spans inside a block count: a gap between blocks (an outage, a restarted unit, a counter
+        that wrapped while the cable was out) can make seq and clock disagree, the unit's rate cannot."""
+        if block.n_samples < 2:
             return
-        seq, t = int(block.seq[-1]), float(block.t_s[-1])
-        if self._rate_first is None or seq <= self._rate_first[0] or t <= self._rate_first[1]:
-            self._rate_first = (int(block.seq[0]), float(block.t_s[0]))     # (re)start: first block, or a reset unit
+        dseq = int(block.seq[-1]) - int(block.seq[0])
+        dt = float(block.t_s[-1]) - float(block.t_s[0])
+        if not (math.isfinite(dt) and dt > 0 and dseq > 0):
             return
-        dt = t - self._rate_first[1]
-        if dt < self.RATE_CHECK_S:
+        n, span = self._rate_seen
+        n, span = n + dseq, span + dt
+        self._rate_seen = (n, span)
+        if span < self.RATE_CHECK_S:
             return
         self.rate_checked = True
-        seen, configured = (seq - self._rate_first[0]) / dt, self.cfg.rate_hz
+        seen, configured = n / span, self.cfg.rate_hz
         if configured and abs(seen / configured - 1.0) > self.RATE_TOLERANCE:
-            self.say(f"the unit's clock shows {seen:.4g} samples/s but the configured rate is {configured:g} Hz "
-                     f"(source.rate_hz, or sim.rate_hz): the estimator's window_s, check_every_s and update_every_s "
-                     f"span {seen / configured:.3g} x the seconds configured; set rate_hz = {seen:.4g}")
+            key = "source.rate_hz" if getattr(self.cfg.source, "rate_hz", None) else "sim.rate_hz"
+            self.say(f"the unit's clock shows {seen:.6g} samples/s but {key} = {configured:g}: the estimator's "
+                     f"window_s, check_every_s and update_every_s last {configured / seen:.3g} x the seconds "
+                     f"configured; set {key} = {seen:.6g}")
 
     def _say_recording_trouble(self, logger) -> None:
         """New recording errors (a full disk, a removed drive) are said, at most once a minute, with what

@@ -65,7 +65,7 @@ key = st.sampled_from(["name", "n_probes", "lsb_nT", "kind", "forgetting", "tota
 @given(st.dictionaries(section, st.dictionaries(key, toml_value, max_size=3), max_size=4))
 def test_config_loader_accepts_or_names_the_key(raw):
     raw.pop("sim", None)
-    raw.setdefault("source", {"kind": "replay", "path": "x.mcap"})
+    raw.setdefault("source", {"kind": "replay", "path": "x.mcap", "rate_hz": 200.0})
     try:
         config_from_dict(raw, "cfg.toml")
     except ConfigError as e:

@@ -9,6 +9,7 @@ index (world.ChunkedRandom), so any stretch of the run can be produced again, ex
 from __future__ import annotations
 
 import math
+import os
 import threading
 from dataclasses import dataclass
 from typing import Any
@@ -138,8 +139,10 @@ class FaultRecord:
             arrays = {f"kind_{k}": np.concatenate(ps) for k, ps in self._parts.items() if ps}
             garbage = self.garbage_bytes
         meta_arrays = {f"meta_{k}": np.int64(v) for k, v in meta.items()}
-        with open(path, "wb") as f:
+        tmp = f"{path}.tmp-{os.getpid()}"             # whole or absent: a killed writer leaves no half file
+        with open(tmp, "wb") as f:
             np.savez(f, garbage_bytes=np.int64(garbage), **arrays, **meta_arrays)
+        os.replace(tmp, path)
 
     @classmethod
     def load(cls, path: str) -> tuple["FaultRecord", dict[str, int]]:

@@ -60,6 +60,25 @@ def _check_one_run(path: Path) -> None:
                              f"its -0001 file, or a directory holding only that run's files")
 
 
+#: the rate a serial source was taken to run at before source.rate_hz existed (the live run used it)
+LEGACY_RATE_HZ = 200.0
+
+
+def _with_rate(raw: dict, recording: str) -> dict:
+    """A configuration stored before source.rate_hz existed (serial or replay source, no rate stated):
+    the live run counted its estimator durations at 200 Hz, so replay must too, to give the same output;
+    said, with how to replay at another rate."""
+    src, sim = raw.get("source"), raw.get("sim")
+    if (isinstance(src, dict) and src.get("kind") in ("serial", "replay") and "rate_hz" not in src
+            and not (isinstance(sim, dict) and "rate_hz" in sim)):
+        print(f"fluxcal replay: {recording}: its stored configuration names no source.rate_hz (it was recorded "
+              f"before the key existed, when a serial source was taken to run at {LEGACY_RATE_HZ:g} Hz): replaying "
+              f"at {LEGACY_RATE_HZ:g} Hz as the live run did; give --config with source.rate_hz for another rate",
+              file=sys.stderr)
+        raw = {**raw, "source": {**src, "rate_hz": LEGACY_RATE_HZ}}
+    return raw
+
+
 def main(args: Namespace) -> int:
     _check_one_run(Path(args.recording))
     rec = read_recording(args.recording)
@@ -69,7 +88,7 @@ def main(args: Namespace) -> int:
         text = rec.metadata.get("config")
         if not text:
             raise RecordingError(f"{args.recording}: no configuration stored in the recording; give --config")
-        cfg = config_from_dict(json.loads(text), f"{args.recording} (stored configuration)")
+        cfg = config_from_dict(_with_rate(json.loads(text), args.recording), f"{args.recording} (stored configuration)")
     initial = None
     commands = []
     for ev in rec.events:
