@@ -164,11 +164,9 @@ def service_config(tmp: Path, seconds: float, port: int, rotate_mb: float, seria
 # --- what is sampled -----------------------------------------------------------------------------------------
 
 def record_kb(record) -> float:
-    """kB the simulator's FaultRecord holds (one array per fault batch; it only grows): simulator memory
-    that a service beside real hardware does not have, taken out of the service's memory figure."""
-    with record._lock:
-        parts = [a for ps in record._parts.values() for a in ps]
-    return sum(a.nbytes + 112 for a in parts) / 1024
+    """kB the simulator's FaultRecord holds (one growing array per fault kind; it only grows): simulator
+    memory that a service beside real hardware does not have, taken out of the service's memory figure."""
+    return record.nbytes / 1024
 
 
 def rss_kb() -> int:
@@ -726,7 +724,7 @@ def main() -> int:
           f"corrected, {len(rec.calibration)} calibration events, {len(rec.health)} health; truncated "
           f"{len(rec.truncated)}, warnings {len(rec.warnings)}; logger: {json.dumps({k: (daemon.logger_status or {}).get(k) for k in ('messages', 'messages_written', 'dropped', 'errors')})}")
     print(f"source counters: {json.dumps(counters)}")
-    rec_kb = sum(a.nbytes + 112 for parts in record._parts.values() for a in parts) / 1024
+    rec_kb = record_kb(record)
     print(f"fault record: {json.dumps(record.as_dict())}; emitter reconnects {reconnects}; the record itself holds "
           f"{rec_kb:.0f} kB" + (" of the process's memory (it grows with every fault: simulator only)"
                                 if sim_proc is None else " in the simulator's process"))

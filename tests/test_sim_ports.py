@@ -365,6 +365,38 @@ def test_fault_record_round_trips_through_a_file(tmp_path):
     assert back.as_dict() == rec.as_dict()
 
 
+def test_fault_record_holds_indices_not_an_array_per_batch():
+    """A long run adds a few indices per block, thousands of times: the record keeps them in one growing
+    array per kind (~8 bytes an index, not a numpy array each), and a range that continues the last one
+    (no_reader block after block while nobody listens) stays one [start, stop) pair."""
+    u = unit(duration_s=60.0, faults={"garbage_fraction": 0.02, "bitflip_fraction": 0.01, "drop_byte_fraction": 0.01,
+                                      "drop_frame_fraction": 0.01, "can_drop_fraction": 0.002})
+    rec, block = FaultRecord(), 4
+    for a in range(0, u.n_samples, block):                     # 3000 blocks, as an emitter sends them
+        u.serial_bytes(a, a + block, record=rec)
+        u.can_frames(a, a + block, record=rec)
+    for a in range(20000, 40000, block):                       # 5000 blocks nobody read: one range
+        rec.add_range("no_reader", a, a + block)
+    rec.add_range("outage", 50000, 52000)
+    counts = rec.as_dict()
+    points = (sum(counts[k] for k in ("drop_frame", "bitflip", "drop_byte", "garbage_after"))
+              + 3 * counts["can_dropped_frames"])
+    assert points > 1000                                       # (duplicates within a kind cannot occur here)
+    assert len(rec._kinds) == 7
+    assert all(i.ranges.n == 0 for k, i in rec._kinds.items() if k not in ("no_reader", "outage"))
+    assert rec._kinds["no_reader"].ranges.n == 2 and rec._kinds["outage"].ranges.n == 2
+    assert rec._kinds["no_reader"].points.n == 0 and rec._kinds["outage"].points.n == 0
+    # 8 bytes an index, at most twice that in spare capacity, plus the small initial arrays
+    assert rec.nbytes <= 2 * 8 * points + 2 * 8 * 64 * len(rec._kinds)
+    # what it reports is unchanged: every index, the ranges spelled out
+    assert np.array_equal(rec.samples("no_reader"), np.arange(20000, 40000))
+    assert np.array_equal(rec.samples("outage"), np.arange(50000, 52000))
+    lost = np.concatenate([rec.samples(k) for k in ("drop_frame", "bitflip", "drop_byte")]
+                          + [np.arange(20000, 40000), np.arange(50000, 52000)])
+    assert np.array_equal(rec.serial_lost(), np.unique(lost))
+    assert counts["no_reader"] == 20000 and counts["outage"] == 2000
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("transport", ["pty", "can-virtual", "slcan"])
 def test_transports_through_the_real_drivers(transport):

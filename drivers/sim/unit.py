@@ -77,26 +77,83 @@ class UnitSamples:
                            temp_C=temp, flags=self.flags.copy(), extras=extras)
 
 
+class _Growing:
+    """int64 values appended in place to one array whose capacity doubles when full. A record of many
+    small additions then costs 8 bytes a value (up to twice that, the spare capacity), not a numpy
+    array of its own per addition (~170 bytes resident for one index)."""
+
+    __slots__ = ("buf", "n")
+
+    def __init__(self) -> None:
+        self.buf = np.empty(64, np.int64)
+        self.n = 0
+
+    def extend(self, values: np.ndarray) -> None:
+        k = values.size
+        if self.n + k > self.buf.size:
+            grown = np.empty(max(2 * self.buf.size, self.n + k), np.int64)
+            grown[:self.n] = self.buf[:self.n]
+            self.buf = grown
+        self.buf[self.n:self.n + k] = values
+        self.n += k
+
+    def view(self) -> np.ndarray:
+        return self.buf[:self.n]
+
+
+class _Indices:
+    """The sample indices of one kind: single indices (`points`), and ranges [start, stop) as pairs
+    (`ranges`), a range that continues the last one extending it (a reader away for an hour is one pair)."""
+
+    __slots__ = ("points", "ranges")
+
+    def __init__(self) -> None:
+        self.points, self.ranges = _Growing(), _Growing()
+
+    def add_range(self, start: int, stop: int) -> None:
+        r = self.ranges
+        if r.n and r.buf[r.n - 1] == start:
+            r.buf[r.n - 1] = stop
+        else:
+            r.extend(np.array([start, stop], np.int64))
+
+    def all(self) -> np.ndarray:
+        """Every index (a new array): the points in the order added, then the ranges spelled out."""
+        pairs = self.ranges.view().reshape(-1, 2)
+        start, length = pairs[:, 0], pairs[:, 1] - pairs[:, 0]
+        spelled = np.repeat(start - (np.cumsum(length) - length), length) + np.arange(length.sum(), dtype=np.int64)
+        return np.concatenate([self.points.view(), spelled])
+
+
 class FaultRecord:
     """Exactly what was done to the stream, by sample index; thread-safe (an emitter thread writes it).
 
     kinds (sample indices): drop_frame, bitflip, drop_byte (serial frames corrupted or never sent),
     garbage_after (frames followed by garbage bytes; no frame is lost by garbage), outage (samples
     produced while the port was closed), no_reader (produced while no reader had the port open, thrown
-    away like a real unit's UART would); CAN: can_dropped holds (sample, probe, axis) rows."""
+    away like a real unit's UART would); CAN: can_dropped holds (sample, probe, axis) rows.
+
+    It keeps every index on purpose, so it grows with every fault, but by the index only: one growing
+    array per kind (not an array per batch), and ranges (outage, no_reader) as [start, stop) pairs."""
 
     SERIAL_LOSSES = ("drop_frame", "bitflip", "drop_byte", "outage", "no_reader")
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._parts: dict[str, list[np.ndarray]] = {}
+        self._kinds: dict[str, _Indices] = {}
         self.garbage_bytes = 0
 
+    def _of(self, kind: str) -> _Indices:
+        got = self._kinds.get(kind)
+        if got is None:
+            got = self._kinds[kind] = _Indices()
+        return got
+
     def add(self, kind: str, values: np.ndarray) -> None:
-        values = np.asarray(values, dtype=np.int64)
+        values = np.asarray(values, dtype=np.int64).reshape(-1)
         if values.size:
             with self._lock:
-                self._parts.setdefault(kind, []).append(values.copy())
+                self._of(kind).points.extend(values)
 
     def add_garbage_bytes(self, n: int) -> None:
         with self._lock:
@@ -104,24 +161,33 @@ class FaultRecord:
 
     def add_range(self, kind: str, start: int, stop: int) -> None:
         if stop > start:
-            self.add(kind, np.arange(start, stop, dtype=np.int64))
+            with self._lock:
+                self._of(kind).add_range(int(start), int(stop))
+
+    def _all(self, kind: str) -> np.ndarray | None:
+        with self._lock:
+            got = self._kinds.get(kind)
+            return None if got is None else got.all()
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the arrays the record holds (spare capacity included)."""
+        with self._lock:
+            return sum(g.buf.nbytes for i in self._kinds.values() for g in (i.points, i.ranges))
 
     def samples(self, kind: str) -> np.ndarray:
         """Sorted unique sample indices of one kind (for can_dropped: the samples hit)."""
-        with self._lock:
-            parts = list(self._parts.get(kind, []))
-        if not parts:
+        joined = self._all(kind)
+        if joined is None:
             return np.empty(0, np.int64)
-        joined = np.concatenate(parts)
         if kind == "can_dropped":
             joined = joined.reshape(-1, 3)[:, 0]
         return np.unique(joined)
 
     def can_dropped(self) -> np.ndarray:
         """(M, 3) int64 rows (sample, probe, axis) of CAN frames never sent."""
-        with self._lock:
-            parts = list(self._parts.get("can_dropped", []))
-        return np.concatenate(parts).reshape(-1, 3) if parts else np.empty((0, 3), np.int64)
+        joined = self._all("can_dropped")
+        return joined.reshape(-1, 3) if joined is not None else np.empty((0, 3), np.int64)
 
     def serial_lost(self) -> np.ndarray:
         """Samples a serial reader cannot get intact: corrupted, dropped, or sent while nobody listened."""
@@ -136,7 +202,7 @@ class FaultRecord:
         (e.g. the emitter's start and next index) to an .npz file: how a simulator run in another process
         tells its reader exactly what it did. FaultRecord.load reads it back."""
         with self._lock:
-            arrays = {f"kind_{k}": np.concatenate(ps) for k, ps in self._parts.items() if ps}
+            arrays = {f"kind_{k}": i.all() for k, i in self._kinds.items()}
             garbage = self.garbage_bytes
         meta_arrays = {f"meta_{k}": np.int64(v) for k, v in meta.items()}
         tmp = f"{path}.tmp-{os.getpid()}"             # whole or absent: a killed writer leaves no half file
@@ -160,7 +226,7 @@ class FaultRecord:
     def as_dict(self) -> dict[str, Any]:
         """Counts per kind, for a summary or a log line."""
         with self._lock:
-            kinds = list(self._parts)
+            kinds = list(self._kinds)
         out: dict[str, Any] = {k: int(self.samples(k).size) for k in kinds}
         if "can_dropped" in kinds:
             out["can_dropped_frames"] = int(self.can_dropped().shape[0])
