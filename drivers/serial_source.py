@@ -189,14 +189,13 @@ def open_source(config: SerialConfig | None = None, **kwargs) -> SerialSource:
     (port, baudrate, n_probes, lsb_nT, read_timeout_s), or a config with keyword overrides. A config's
     rate_hz is the service's business (the driver takes time from the unit clock in each frame); as a
     keyword it is accepted and not used."""
+    kwargs.pop("rate_hz", None)
     if config is None:
         if "port" not in kwargs or "n_probes" not in kwargs:
             raise ConfigError("source: a serial source needs port and n_probes")
         kwargs.pop("kind", None)
-        kwargs.pop("rate_hz", None)
         return SerialSource(kwargs.pop("port"), **kwargs)
     values = {k: getattr(config, k) for k in ("port", "baudrate", "n_probes", "lsb_nT", "read_timeout_s")}
-    kwargs.pop("rate_hz", None)
     unknown = set(kwargs) - set(values)
     if unknown:
         raise ConfigError(f"source: unknown serial option(s) {', '.join(sorted(unknown))} "

@@ -134,6 +134,18 @@ class FluxcalConfig:
 
 _SECTIONS = ("unit", "probes", "source", "sim", "estimator", "calibration", "zenoh", "mcap")
 
+RATE_MISSING = ("source.rate_hz: missing (allowed: the unit's sample rate in Hz, 0.001 to 100000; the estimator's "
+                "window_s, check_every_s and update_every_s are counted in samples at this rate)")
+
+
+def rate_stated(raw: dict) -> bool:
+    """Whether a raw configuration states its unit's sample rate where its source kind needs it: serial
+    and replay sources in source.rate_hz or a [sim] rate_hz (CAN requires its own; sim has a default)."""
+    src, sim = raw.get("source"), raw.get("sim")
+    if not isinstance(src, dict) or src.get("kind") not in ("serial", "replay"):
+        return True
+    return "rate_hz" in src or (isinstance(sim, dict) and "rate_hz" in sim)
+
 
 def load_config(path: str | Path) -> FluxcalConfig:
     raw = read_toml(path)
@@ -183,12 +195,8 @@ def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
             if hasattr(source, attr) and getattr(source, attr) != unit.n_probes:
                 raise ConfigError(f"source.{attr}: {getattr(source, attr)!r} differs from unit.n_probes = {unit.n_probes}")
 
-        sim_raw = raw.get("sim")
-        if (kind in ("serial", "replay") and getattr(source, "rate_hz", None) is None
-                and not (isinstance(sim_raw, dict) and "rate_hz" in sim_raw)):
-            raise ConfigError("source.rate_hz: missing (allowed: the unit's sample rate in Hz, 0.001 to 100000; "
-                              "the estimator's window_s, check_every_s and update_every_s are counted in samples "
-                              "at this rate)")
+        if not rate_stated(raw):
+            raise ConfigError(RATE_MISSING)
         sim = None
         if "sim" in raw or kind == "sim":
             from drivers.sim.config import load_sim_config

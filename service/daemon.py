@@ -23,7 +23,7 @@ from drivers.errors import ConfigError, DataError, DriverError, FluxcalError
 from drivers.source import Source, open_source
 
 from .calib.calfile import load_calibration, save_calibration
-from .config import FluxcalConfig
+from .config import RATE_MISSING, FluxcalConfig
 from .pipeline import Pipeline, PipelineEvent
 
 log = logging.getLogger("fluxcal")
@@ -35,8 +35,7 @@ def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:
     has_geometry = cfg.unit.n_probes > 1 and np.ptp(positions, axis=0).any()
     rate = cfg.rate_hz
     if rate is None:
-        raise ConfigError(f"{cfg.path}: source.rate_hz: missing (allowed: the unit's sample rate in Hz; the "
-                          f"estimator's durations are counted in samples at it)")
+        raise ConfigError(f"{cfg.path}: {RATE_MISSING}")
     return Pipeline(n_probes=cfg.unit.n_probes, probe_names=cfg.probe_names,
                     positions_m=positions if has_geometry else None, forgetting=est.forgetting,
                     total_nT=est.total_nT, align=est.align, min_samples=est.min_samples,

@@ -364,7 +364,7 @@ def open_session(cfg: "ZenohConfig | zenoh.Config", unit: str | None = None) -> 
                     "(docs/security.md)")
         elif "listener" in low or "in use" in low:
             hint = ": is another fluxcal already listening there? choose another port in [zenoh] listen"
-        elif "connect" in msg.lower():
+        elif "connect" in low:
             hint = ": is the service (or router) running and listening there?"
             if isinstance(cfg, ZenohConfig) and cfg.tls.enabled:
                 hint += (" With TLS, also check the certificates: the other end's must be signed by this node's "

@@ -20,7 +20,7 @@ from drivers.block import SampleBlock
 
 from drivers.errors import RecordingError
 from service.calib.calfile import calibration_from_dict
-from service.config import config_from_dict, load_config
+from service.config import config_from_dict, load_config, rate_stated
 from service.daemon import build_pipeline
 from service.recording import read_recording
 
@@ -68,14 +68,12 @@ def _with_rate(raw: dict, recording: str) -> dict:
     """A configuration stored before source.rate_hz existed (serial or replay source, no rate stated):
     the live run counted its estimator durations at 200 Hz, so replay must too, to give the same output;
     said, with how to replay at another rate."""
-    src, sim = raw.get("source"), raw.get("sim")
-    if (isinstance(src, dict) and src.get("kind") in ("serial", "replay") and "rate_hz" not in src
-            and not (isinstance(sim, dict) and "rate_hz" in sim)):
+    if not rate_stated(raw):
         print(f"fluxcal replay: {recording}: its stored configuration names no source.rate_hz (it was recorded "
               f"before the key existed, when a serial source was taken to run at {LEGACY_RATE_HZ:g} Hz): replaying "
               f"at {LEGACY_RATE_HZ:g} Hz as the live run did; give --config with source.rate_hz for another rate",
               file=sys.stderr)
-        raw = {**raw, "source": {**src, "rate_hz": LEGACY_RATE_HZ}}
+        raw = {**raw, "source": {**raw["source"], "rate_hz": LEGACY_RATE_HZ}}
     return raw
 
 
