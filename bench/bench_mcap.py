@@ -37,9 +37,9 @@ from drivers.block import SampleBlock  # noqa: E402
 from drivers.mcap_source import McapSource  # noqa: E402
 from drivers.sim.config import load_sim_config  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
-from service.encoding import decode_raw, encode_raw  # noqa: E402
-from service.mcap_sink import McapLogger  # noqa: E402
-from service.outputs import CorrectedBlock  # noqa: E402
+from service.io.encoding import decode_raw, encode_raw  # noqa: E402
+from service.io.recordings.writer import McapLogger  # noqa: E402
+from service.numerics.outputs import CorrectedBlock  # noqa: E402
 
 
 

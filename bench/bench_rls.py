@@ -23,8 +23,8 @@ from _machine import cpu_model  # noqa: E402
 
 from drivers.sim.config import load_sim_config  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
-from service.calib.ellipsoid import quadric_design, quadric_to_calibration  # noqa: E402
-from service.calib.rls import RlsEllipsoid  # noqa: E402
+from service.numerics.calib.ellipsoid import quadric_design, quadric_to_calibration  # noqa: E402
+from service.numerics.calib.rls import RlsEllipsoid  # noqa: E402
 
 LAMBDA = 0.9995
 TOTAL_NT = 52500.0

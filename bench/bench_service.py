@@ -32,8 +32,8 @@ from drivers.block import SampleBlock
 from drivers.icd import encode_serial, parse_serial
 from drivers.sim.config import load_sim_config
 from drivers.sim.unit import Unit
-from service.calib.calfile import save_calibration
-from service.calib.model import ArrayCalibration, ProbeCalibration
+from service.io.calfile import save_calibration
+from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 
 N_PROBES, RATE = 4, 1000.0
 PROBES = [{"name": f"s{k + 1}", "position_m": p, "offset_nT": [100.0 * k, -50.0, 30.0], "noise_nT": 0.5}
@@ -64,11 +64,11 @@ def make_samples(seconds: float):
 
 
 def bench_replay(tmp: Path, seconds: float) -> None:
-    from service.config import config_from_dict
+    from service.wiring.config import config_from_dict
     import tomllib
-    from service.mcap_sink import McapLogger
-    from service.daemon import build_pipeline
-    from service.recording import read_recording
+    from service.io.recordings.writer import McapLogger
+    from service.wiring.daemon import build_pipeline
+    from service.io.recordings.reader import read_recording
 
     cfg, unit, s = make_samples(seconds)
     block = s.to_block()
@@ -123,7 +123,7 @@ def cpu_seconds(pid: int) -> float:
 
 
 def bench_live(tmp: Path, seconds: float, block_ms: float | None = None) -> None:
-    from service.zenoh_bus import BusClient, ZenohConfig
+    from service.io.bus import BusClient, ZenohConfig
 
     cfg, unit, s = make_samples(seconds + 10)
     master, slave = os.openpty()
@@ -140,7 +140,7 @@ def bench_live(tmp: Path, seconds: float, block_ms: float | None = None) -> None
     full = config_text(tmp, src, port, initial, block_ms)            # the serial unit is real here: no [sim] sections
     cfg_path.write_text(full.split("\n[sim]")[0] + "\n[estimator]" + full.split("[estimator]", 1)[1])
     prof = os.environ.get("FLUXCAL_PROFILE")
-    cmd = [sys.executable] + (["-m", "cProfile", "-o", prof] if prof else []) + ["-m", "service.cli", "run", "--config", str(cfg_path)]
+    cmd = [sys.executable] + (["-m", "cProfile", "-o", prof] if prof else []) + ["-m", "service.wiring.cli", "run", "--config", str(cfg_path)]
     proc = subprocess.Popen(cmd,
                             stderr=subprocess.PIPE, text=True)
     time.sleep(3.0)

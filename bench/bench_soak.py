@@ -1,6 +1,6 @@
 """Soak benchmark (not a test) of the running service under injected faults ("field hardening").
 
-What is measured. The daemon of `fluxcal run` (service.daemon.Daemon: source -> pipeline -> MCAP
+What is measured. The daemon of `fluxcal run` (service.wiring.daemon.Daemon: source -> pipeline -> MCAP
 logger and Zenoh bus, with its reconnects; only tapped, not changed) reads the simulated unit: 4
 probes at 1 kHz, tumbling, ICD frames through a pseudo-terminal at full speed (not paced by the
 clock), so pyserial, the framer and the reconnect path are the real ones. The unit runs in its own
@@ -29,7 +29,7 @@ once the unit has sent its last sample and closed its port, and the service's in
 still for 3 s, the service is stopped; only then is the unit's fault record read. The counts are
 checked exactly: samples emitted == delivered intact + lost to the injected damage (the unit's
 FaultRecord); delivered == through the pipeline == in the MCAP recording (read back with
-service.recording) == received on Zenoh, sample for sample; the source's frame, gap and
+service.io.recordings.reader) == received on Zenoh, sample for sample; the source's frame, gap and
 skipped-byte counters against the record; and the recording replayed through a fresh pipeline
 gives the recorded output bit for bit. Each check prints PASS or FAIL; a FAIL makes the exit status
 1. The memory check counts only in runs of at least 3 x the warm-up (not with --quick).
@@ -140,7 +140,7 @@ def toml_text(section: str, table: dict) -> str:
 def service_config(tmp: Path, seconds: float, port: int, rotate_mb: float, serial_port: str | None = None):
     """The service's configuration: with serial_port, it reads the simulated unit running in another
     process (as beside hardware); without, the unit runs inside the service (source kind "sim")."""
-    from service.config import config_from_dict
+    from service.wiring.config import config_from_dict
 
     if serial_port is None:
         source = {"kind": "sim", "transport": "pty", "run_s": seconds}
@@ -413,7 +413,7 @@ class Probe:
 def subscriber_main(endpoint: str) -> None:
     """Counts raw and corrected samples received until stdin closes and the stream has been quiet 1 s;
     prints them as one JSON line."""
-    from service.zenoh_bus import BusClient, ZenohConfig
+    from service.io.bus import BusClient, ZenohConfig
 
     client = BusClient(ZenohConfig.client(endpoint), UNIT, streams=["raw", "corrected"], lossless=True)
     counts = {"raw": 0, "raw_seq_sum": 0, "raw_msgs": 0, "corrected": 0, "corrected_seq_sum": 0}
@@ -467,7 +467,7 @@ class Subscriber:
 # --- the soak --------------------------------------------------------------------------------------------------
 
 def make_daemon(cfg, probe: Probe, subscriber_endpoint: str | None, messages: list[str]):
-    from service.daemon import Daemon
+    from service.wiring.daemon import Daemon
 
     class SoakDaemon(Daemon):
         """The daemon unchanged, plus taps on its parts (the loop is the daemon's own)."""
@@ -527,7 +527,7 @@ def end_when_delivered(sim: SimProcess, probe: Probe, daemon) -> None:
 def bare_pipeline(cfg, blocks: list[SampleBlock], runs: int = 2):
     """The pipeline alone (no source, MCAP or Zenoh) over the same blocks, best of `runs`: wall and
     CPU seconds, and its corrected output."""
-    from service.daemon import build_pipeline
+    from service.wiring.daemon import build_pipeline
 
     best, best_cpu, outs = float("inf"), float("inf"), []
     for _ in range(runs):
@@ -545,7 +545,7 @@ def bare_pipeline(cfg, blocks: list[SampleBlock], runs: int = 2):
 
 def same_output(a: list, b: list) -> bool:
     """Two lists of CorrectedBlocks hold the same samples, bit for bit (however they are cut)."""
-    from service.recording import concat_corrected
+    from service.io.recordings.reader import concat_corrected
 
     if not a or not b:
         return not a and not b
@@ -667,7 +667,7 @@ def main() -> int:
             sim_ok = sim_proc.exit_code == 0
 
         # --- read the recording back; the bare pipeline over the same blocks ----------------------------
-        from service.recording import read_recording
+        from service.io.recordings.reader import read_recording
 
         rec = read_recording(tmp / "rec")
         blocks = rec.raw_blocks

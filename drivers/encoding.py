@@ -47,7 +47,7 @@ _U16 = struct.Struct("<H")
 def layout_text(doc: str) -> str:
     """The layout part of a module docstring: from the line starting "Layout" to the "size =" line."""
     if not doc:                                   # python -OO strips docstrings
-        return "see fluxcal's drivers/encoding.py and service/encoding.py\n"
+        return "see fluxcal's drivers/encoding.py and service/io/encoding.py\n"
     lines = doc.splitlines()
     start = next(i for i, ln in enumerate(lines) if ln.startswith("Layout"))
     stop = next(i for i, ln in enumerate(lines) if ln.strip().startswith("size ="))

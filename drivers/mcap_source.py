@@ -1,4 +1,4 @@
-"""Reading fluxcal MCAP recordings: the "replay" Source, and the record reader shared with service.recording.
+"""Reading fluxcal MCAP recordings: the "replay" Source, and the record reader shared with service.io.recordings.reader.
 
 A recording is one .mcap file or a directory of rotated files, read in name order (the logger's
 names `<unit>-<YYYYmmddTHHMMSS>-<NNNN>.mcap` sort in time order). Files are read record by record

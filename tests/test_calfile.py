@@ -10,11 +10,11 @@ import pytest
 
 from drivers.errors import DataError
 from paper_sims import paper001
-from service.calib import calfile
-from service.calib.alignment import align_rotation
-from service.calib.calfile import FORMAT, VERSION, load_calibration, save_calibration
-from service.calib.model import ArrayCalibration, scalar_residual_summary
-from service.calib.tmi import fit_tmi
+from service.io import calfile
+from service.numerics.calib.alignment import align_rotation
+from service.io.calfile import FORMAT, VERSION, load_calibration, save_calibration
+from service.numerics.calib.model import ArrayCalibration, scalar_residual_summary
+from service.numerics.calib.tmi import fit_tmi
 
 
 @pytest.fixture(scope="module")

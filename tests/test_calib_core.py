@@ -11,13 +11,13 @@ import pytest
 from drivers.errors import CalibrationRefused, DataError
 from drivers.sim.config import load_sim_config
 from drivers.sim.world import World
-from service.calib.alignment import align_probes, angles_from_rotation, rotation_from_angles
-from service.calib.calfile import load_calibration, save_calibration
-from service.calib.coverage import coverage
-from service.calib.ellipsoid import fit_ellipsoid
-from service.calib.model import ArrayCalibration
-from service.calib.rls import RlsEllipsoid
-from service.calib.tensor import invariants, tensor_cross, tensor_from_positions
+from service.numerics.calib.alignment import align_probes, angles_from_rotation, rotation_from_angles
+from service.io.calfile import load_calibration, save_calibration
+from service.numerics.calib.coverage import coverage
+from service.numerics.calib.ellipsoid import fit_ellipsoid
+from service.numerics.calib.model import ArrayCalibration
+from service.numerics.calib.rls import RlsEllipsoid
+from service.numerics.calib.tensor import invariants, tensor_cross, tensor_from_positions
 
 PROBE = {"scale": [1.02, 0.98, 1.01], "nonorth_deg": [1.0, 2.0, -1.0], "misalign_deg": [2.0, 1.0, 3.0],
          "offset_nT": [200.0, -300.0, 100.0], "noise_nT": 1.0}

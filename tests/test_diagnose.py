@@ -14,11 +14,11 @@ import pytest
 
 from drivers.block import SampleBlock
 from drivers.sim import Unit, load_sim_config
-from service import cli
-from service.commands.diagnose import ProgressBar
-from service.diagnostics import diagnose, summary_text
-from service.effects import EFFECTS
-from service.effects.base import EffectData
+from service.wiring import cli
+from service.wiring.commands.diagnose import ProgressBar
+from service.numerics.diagnose import diagnose, summary_text
+from service.numerics.effects import EFFECTS
+from service.numerics.effects.base import EffectData
 
 F_TOTAL = 51500.0
 RMS_OVER_NOISE = 1.2            # "with it added, rms falls to within 20 % of the noise floor"
@@ -320,8 +320,8 @@ def test_progress_bar_only_on_a_terminal():
 
 @pytest.mark.slow
 def test_calibration_file_from_fit_is_read_with_its_effects(tmp_path, capsys):
-    from service.calib.calfile import save_calibration
-    from service.effects.fit import fit_with_effects
+    from service.io.calfile import save_calibration
+    from service.numerics.engine import fit_with_effects
 
     probes, block = _small()
     data = data_of(block, probes)

@@ -8,10 +8,10 @@ import pytest
 
 from drivers.errors import CalibrationRefused, ConfigError, DataError
 from drivers.sim import Unit, load_sim_config
-from service.effects import (EFFECTS, Baseline, Drift, Eddy, EffectData, Lag, Model, Temperature, make_model)
-from service.effects.fit import LinearCalibration, fit_with_effects
-from service.effects.gradient import gradient_basis
-from service.effects.hysteresis import detect_steps, robust_noise
+from service.numerics.effects import (EFFECTS, Baseline, Drift, Eddy, EffectData, Lag, Model, Temperature, make_model)
+from service.numerics.engine import LinearCalibration, fit_with_effects
+from service.numerics.effects.gradient import gradient_basis
+from service.numerics.effects.hysteresis import detect_steps, robust_noise
 
 F_TOTAL = 52000.0
 
@@ -281,8 +281,8 @@ def test_effect_data_drops_saturated_rows_and_reads_quaternions():
 
 
 def test_fit_with_effects_takes_and_returns_array_calibrations():
-    from service.calib.ellipsoid import fit_ellipsoid
-    from service.calib.model import ArrayCalibration
+    from service.numerics.calib.ellipsoid import fit_ellipsoid
+    from service.numerics.calib.model import ArrayCalibration
 
     beta = [2.0, -1.0, 0.5]
     data, truth, _ = sim([probe(temp_offset_nT_per_C=beta)], n=5000)

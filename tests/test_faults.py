@@ -43,12 +43,12 @@ from drivers.serial_source import SerialSource
 from drivers.sim import FaultRecord, Unit, load_sim_config
 from drivers.sim.ports import CanEmitter, PtyEmitter
 from drivers.source import Counters
-from service.calib.model import ArrayCalibration, ProbeCalibration
-from service.mcap_sink import McapLogger
-from service.pipeline import Pipeline
-from service.encoding import encode_raw
-from service.recording import read_recording, repair_recording
-from service.zenoh_bus import BusClient, ServiceBus, ZenohConfig, open_session
+from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from service.io.recordings.writer import McapLogger
+from service.wiring.pipeline import Pipeline
+from service.io.encoding import encode_raw
+from service.io.recordings.reader import read_recording, repair_recording
+from service.io.bus import BusClient, ServiceBus, ZenohConfig, open_session
 
 
 def sim_unit(**sim) -> Unit:
@@ -688,7 +688,7 @@ def test_zenoh_router_closed_and_reopened_on_the_same_port_relays_again(unit_mod
 
 _FROZEN_CLIENT = """
 import sys, time
-from service.zenoh_bus import BusClient, ZenohConfig
+from service.io.bus import BusClient, ZenohConfig
 with BusClient(ZenohConfig.client(sys.argv[1]), "grad1", streams=["raw"], lossless=True) as c:
     print("ready", flush=True)
     while True:

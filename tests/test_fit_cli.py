@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from service.calib.calfile import load_calibration
-from service.cli import main
+from service.io.calfile import load_calibration
+from service.wiring.cli import main
 
 
 @pytest.fixture(scope="module")

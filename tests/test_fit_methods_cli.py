@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 
-from service.cli import main
+from service.wiring.cli import main
 from sims_003_004 import P003_ALPHA_DEG, P003_BETA_DEG, P003_GAMMA_DEG, paper003, paper004
 
 

@@ -9,9 +9,9 @@ import pytest
 from drivers.errors import FluxcalError
 from drivers.sim.config import load_sim_config
 from drivers.sim.unit import Unit
-from service.calib.ellipsoid import fit_ellipsoid
-from service.calib.model import ArrayCalibration
-from service.pipeline import Pipeline
+from service.numerics.calib.ellipsoid import fit_ellipsoid
+from service.numerics.calib.model import ArrayCalibration
+from service.wiring.pipeline import Pipeline
 
 PROBE = {"offset_nT": [150.0, -80.0, 40.0], "noise_nT": 0.5, "temp_offset_nT_per_C": [3.0, -2.0, 1.5]}
 

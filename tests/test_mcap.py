@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-import service.mcap_sink as sink
+import service.io.recordings.writer as sink
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError, RecordingError
 from drivers.mcap_source import McapSource
 from drivers.source import open_source
-from service.mcap_sink import McapLogger, write_recording
-from service.recording import FluxcalDecoderFactory, read_recording, repair_recording
+from service.io.recordings.writer import McapLogger, write_recording
+from service.io.recordings.reader import FluxcalDecoderFactory, read_recording, repair_recording
 
 RATE_HZ = 1000.0
 

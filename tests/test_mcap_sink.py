@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-import service.mcap_sink as sink
+import service.io.recordings.writer as sink
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError, RecordingError
-from service.encoding import CORRECTED_LAYOUT, RAW_LAYOUT
-from service.mcap_sink import McapLogger
-from service.outputs import CorrectedBlock
-from service.recording import FluxcalDecoderFactory, read_recording
+from service.io.encoding import CORRECTED_LAYOUT, RAW_LAYOUT
+from service.io.recordings.writer import McapLogger
+from service.numerics.outputs import CorrectedBlock
+from service.io.recordings.reader import FluxcalDecoderFactory, read_recording
 
 RATE_HZ = 1000.0
 

@@ -21,8 +21,8 @@ from drivers.block import FLAG_TEMP_INVALID, SampleBlock
 from drivers.errors import ConfigError, DriverError, RecordingError
 from drivers.mcap_source import McapSource, iter_records
 from drivers.source import open_source
-from service.mcap_sink import McapLogger
-from service.recording import read_recording, repair_recording
+from service.io.recordings.writer import McapLogger
+from service.io.recordings.reader import read_recording, repair_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -182,7 +182,7 @@ WRITER = textwrap.dedent("""
     import numpy as np
     sys.path.insert(0, {root!r})
     from drivers.block import SampleBlock
-    from service.mcap_sink import McapLogger
+    from service.io.recordings.writer import McapLogger
     log = McapLogger({out!r}, unit="u", flush_interval_s=0.2, metadata={{"probe_names": ["a", "b"]}})
     rng = np.random.default_rng(5)
     for i in range(100000):

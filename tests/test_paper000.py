@@ -12,10 +12,10 @@ import pytest
 
 from drivers.errors import CalibrationRefused, DataError
 from paper_sims import P000_TABLE3_AFTER, P000_TABLE3_BEFORE, P000_TOTAL_PRINTED_NT, paper000
-from service.calib.alignment import align_probes, align_regression, regression_calibration
-from service.calib.ellipsoid import fit_ellipsoid, triangular_factor
-from service.calib.model import ArrayCalibration, unit_column_split
-from service.calib.tensor import differences
+from service.numerics.calib.alignment import align_probes, align_regression, regression_calibration
+from service.numerics.calib.ellipsoid import fit_ellipsoid, triangular_factor
+from service.numerics.calib.model import ArrayCalibration, unit_column_split
+from service.numerics.calib.tensor import differences
 
 
 def calibrate(sim):

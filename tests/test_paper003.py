@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from drivers.errors import CalibrationRefused
-from service.calib.sinefit import fit_sine_nonorthogonality, fit_sinefit
+from service.numerics.calib.sinefit import fit_sine_nonorthogonality, fit_sinefit
 from sims_003_004 import P003_CURVES, P003_TABLE1, paper003
 
 TRUTH = (1.5, 32.5, 1.7)
@@ -142,7 +142,7 @@ def test_fluxcal_fit_sinefit_from_a_lab_csv(tmp_path, capsys):
     # CONTRACTS §1-2: a lab CSV with the table angle in an 'angle_deg' column
     import json
 
-    from service.cli import main
+    from service.wiring.cli import main
 
     s = paper003(30, seed=0)
     path = tmp_path / "turntable.csv"

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from drivers.sim.config import load_sim_config
-from service.calib.ellipsoid import fit_ellipsoid
-from service.calib.model import ArrayCalibration
-from service.pipeline import Pipeline
+from service.numerics.calib.ellipsoid import fit_ellipsoid
+from service.numerics.calib.model import ArrayCalibration
+from service.wiring.pipeline import Pipeline
 from drivers.block import SampleBlock
 
 

@@ -9,8 +9,8 @@ import pytest
 
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError
-from service.config import config_from_dict
-from service.daemon import Daemon, build_pipeline
+from service.wiring.config import config_from_dict
+from service.wiring.daemon import Daemon, build_pipeline
 
 
 def serial_config(**source) -> dict:
@@ -124,9 +124,9 @@ def test_a_recording_from_before_the_rate_key_replays_as_its_live_run_did(tmp_pa
 
     from drivers.sim.config import load_sim_config
     from drivers.sim.source import SimSource
-    from service.cli import main
-    from service.mcap_sink import McapLogger
-    from service.recording import concat_corrected, read_recording
+    from service.wiring.cli import main
+    from service.io.recordings.writer import McapLogger
+    from service.io.recordings.reader import concat_corrected, read_recording
 
     src = SimSource(load_sim_config({"duration_s": 20.0, "rate_hz": 200.0, "motion": {"kind": "tumble", "rate_deg_s": 40.0},
                                      "probes": [{}, {"offset_nT": [30, 0, 0]}]}),

@@ -21,10 +21,10 @@ from drivers.mcap_source import McapSource
 from drivers.sim.config import load_sim_config
 from drivers.sim.source import SimSource
 from drivers.sim.unit import FaultRecord, Unit
-from service.cli import main
-from service.mcap_sink import McapLogger
-from service.outputs import CorrectedBlock
-from service.recording import read_recording, repair_recording
+from service.wiring.cli import main
+from service.io.recordings.writer import McapLogger
+from service.numerics.outputs import CorrectedBlock
+from service.io.recordings.reader import read_recording, repair_recording
 
 
 def sim_blocks(seconds: float = 5.0, probes: int = 2) -> list[SampleBlock]:
@@ -120,7 +120,7 @@ class FlakyDisk:
 
 
 def test_full_disk_is_counted_never_raised_and_logging_resumes(tmp_path, monkeypatch):
-    import service.mcap_sink as sink
+    import service.io.recordings.writer as sink
 
     monkeypatch.setattr(sink, "_RETRY_S", 0.0)
     blocks = sim_blocks(10.0)
@@ -169,7 +169,7 @@ WRITER = textwrap.dedent("""
     import sys, time
     sys.path.insert(0, {root!r})
     from tests.test_recording import sim_blocks
-    from service.mcap_sink import McapLogger
+    from service.io.recordings.writer import McapLogger
     blocks = sim_blocks(30.0)
     log = McapLogger({dir!r}, unit="u", flush_interval_s=0.05)
     for i, b in enumerate(blocks):
@@ -218,7 +218,7 @@ def test_service_records_every_intact_frame_and_replay_equals_live(tmp_path):
     rec = read_recording(tmp_path / "rec")
     got = np.concatenate([b.seq for b in rec.raw_blocks])
     # the truth: every sample of the run less those the unit corrupted on purpose
-    from service.config import load_config
+    from service.wiring.config import load_config
 
     cfg = load_config(cfg_path)
     unit = Unit(cfg.sim)
@@ -271,7 +271,7 @@ def test_service_killed_mid_run_leaves_a_readable_recording(tmp_path):
                 .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]'))
     cfg_path = tmp_path / "c.toml"
     cfg_path.write_text(cfg_text)                                     # real time, runs until stopped
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "run", "--config", str(cfg_path)],
+    proc = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "run", "--config", str(cfg_path)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         time.sleep(6.0)
@@ -299,7 +299,7 @@ def test_calibration_persists_and_is_reloaded_at_start(tmp_path, capsys):
     first.write_text(base.replace('run_s = 0 ', 'run_s = 30'))
     assert main(["run", "--config", str(first)]) == 0
     assert "learning online" in capsys.readouterr().err and cal.exists()
-    from service.calib.calfile import load_calibration
+    from service.io.calfile import load_calibration
 
     saved = load_calibration(cal)
     second = tmp_path / "second.toml"
@@ -317,7 +317,7 @@ def test_calibration_persists_and_is_reloaded_at_start(tmp_path, capsys):
 def test_a_block_whose_processing_fails_is_counted_and_its_raw_data_kept(tmp_path, capsys, monkeypatch):
     # a bug meeting data nobody foresaw: the third block's processing raises. The service says so once,
     # counts it, keeps that block's raw samples and carries on with the next block.
-    from service.pipeline import Pipeline
+    from service.wiring.pipeline import Pipeline
 
     cfg_path = service_config(tmp_path, run_s=6, realtime=False)
     real = Pipeline.process
@@ -353,7 +353,7 @@ def test_a_recording_directory_that_cannot_be_used_stops_the_start_with_the_key(
 
 def test_recording_trouble_during_a_run_is_said(tmp_path, capsys, monkeypatch):
     # the disk fills up a second into the run: the service says so (once a minute at most) and goes on
-    import service.mcap_sink as sink
+    import service.io.recordings.writer as sink
 
     cfg_path = service_config(tmp_path, run_s=4)
     t_full = time.monotonic() + 1.5

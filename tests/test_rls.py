@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from drivers.errors import CalibrationRefused, DataError
-from service.calib.ellipsoid import fit_ellipsoid
-from service.calib.rls import RlsEllipsoid
+from service.numerics.calib.ellipsoid import fit_ellipsoid
+from service.numerics.calib.rls import RlsEllipsoid
 
 TOTAL_NT = 50000.0
 M_TRUE = np.array([[1.02, 0.01, -0.005], [0.0, 0.98, 0.008], [0.0, 0.0, 1.01]])   # corrected = M (raw − o)

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from service.cli import main
-from service.recording import read_recording
+from service.wiring.cli import main
+from service.io.recordings.reader import read_recording
 
 
 def test_sample_recording_replays_bit_for_bit(capsys):

@@ -12,8 +12,8 @@ import pytest
 
 from drivers.sim import Unit, load_sim_config
 from drivers.sim.config import GRADIOMETER
-from service.cli import main as cli
-from service.labdata import load_csv
+from service.wiring.cli import main as cli
+from service.io.recordings.labdata import load_csv
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -103,7 +103,7 @@ def test_mcap_output(tmp_path, capsys):
     out = tmp_path / "grad.mcap"
     rc = cli(["simulate", "--out", str(out)])
     assert rc == 0 and out.exists() and (tmp_path / "grad.truth.json").exists()
-    from service.recording import read_recording
+    from service.io.recordings.reader import read_recording
 
     rec = read_recording(out)
     assert sum(b.n_samples for b in rec.raw_blocks) == 12000 and "ref_total" in rec.raw_blocks[0].extras
@@ -145,7 +145,7 @@ def test_example_config_sections_validate(name):
     from drivers.can_source import CanConfig
     from drivers.config import load_section
     from drivers.serial_source import SerialConfig
-    from service.config import CalibrationConfig, EstimatorConfig, McapConfig, ProbeConfig, SimSourceConfig, UnitConfig
+    from service.wiring.config import CalibrationConfig, EstimatorConfig, McapConfig, ProbeConfig, SimSourceConfig, UnitConfig
 
     raw = tomllib.loads((CONFIGS / name).read_text())
     source_cls = {"sim": SimSourceConfig, "serial": SerialConfig, "can": CanConfig}[raw["source"]["kind"]]
@@ -163,7 +163,7 @@ def test_example_config_sections_validate(name):
 
 def test_example_configs_pass_the_service_loader():
     """The whole file, every section, as `fluxcal run` reads it."""
-    from service.config import load_config
+    from service.wiring.config import load_config
 
     for name in ("sim-gradiometer.toml", "sim-cross.toml", "serial-example.toml", "can-example.toml"):
         cfg = load_config(CONFIGS / name)

@@ -8,9 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.errors import ConfigError
-from service.calib.tensor import (center_field, cross_positions, differences, invariants, measured_components,
+from service.numerics.calib.tensor import (center_field, cross_positions, differences, invariants, measured_components,
                                   tensor_from_cross, tensor_from_positions)
-from service.outputs import CorrectedBlock
+from service.numerics.outputs import CorrectedBlock
 
 
 def source_free_gradient(rng: np.random.Generator) -> np.ndarray:

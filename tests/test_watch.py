@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from drivers.block import SampleBlock
-from service.cli import main as cli_main
-from service.commands.watch import Dashboard, dashboard_endpoints
-from service.outputs import CorrectedBlock
-from service.zenoh_bus import Message, Series, ServiceBus, ZenohConfig
+from service.wiring.cli import main as cli_main
+from service.wiring.commands.watch import Dashboard, dashboard_endpoints
+from service.numerics.outputs import CorrectedBlock
+from service.io.bus import Message, Series, ServiceBus, ZenohConfig
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -162,7 +162,7 @@ def test_watch_usage_errors_exit_2_with_a_message(argv, message, capsys):
 
 
 def test_watch_takes_endpoint_and_unit_from_the_service_config():
-    from service.commands.watch import _resolve
+    from service.wiring.commands.watch import _resolve
     import argparse
 
     args = argparse.Namespace(config=str(REPO / "configs" / "sim-gradiometer.toml"), connect=None, unit=None,
@@ -220,7 +220,7 @@ def test_not_usable_yet_shows_the_gate_reasons_and_the_raw_vectors():
 def test_watch_process_stops_cleanly_on_sigterm(publisher):
     pub = publisher()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "watch", "--connect", pub.ep, "--unit", "u1"],
+    proc = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "watch", "--connect", pub.ep, "--unit", "u1"],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
         first = ""

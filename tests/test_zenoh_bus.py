@@ -17,8 +17,8 @@ import pytest
 from drivers.block import SampleBlock
 from drivers.config import load_section
 from drivers.errors import ConfigError, DataError
-from service.outputs import CorrectedBlock
-from service.zenoh_bus import (
+from service.numerics.outputs import CorrectedBlock
+from service.io.bus import (
     BusClient, BusError, Keys, ServiceBus, ZenohConfig, decode_series, discover_units, encode_series,
     make_zenoh_config, open_session,
 )
@@ -151,7 +151,7 @@ def test_config_errors_name_key_value_and_what_is_allowed(table, message):
 
 
 def test_service_config_reads_the_zenoh_section():
-    from service.config import config_from_dict
+    from service.wiring.config import config_from_dict
 
     cfg = config_from_dict({"zenoh": {"mode": "peer", "listen": ["tcp/127.0.0.1:7999"]}}, "x.toml")
     assert isinstance(cfg.zenoh, ZenohConfig) and cfg.zenoh.listen == ["tcp/127.0.0.1:7999"]

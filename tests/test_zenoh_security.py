@@ -25,8 +25,8 @@ from certs import Authority
 from drivers.block import SampleBlock
 from drivers.config import load_section
 from drivers.errors import ConfigError
-from service.cli import main as cli_main
-from service.zenoh_bus import (
+from service.wiring.cli import main as cli_main
+from service.io.bus import (
     BusClient, BusError, ServiceBus, ZenohAccessConfig, ZenohConfig, ZenohTlsConfig, discover_units,
     make_zenoh_config, open_session,
 )
@@ -123,7 +123,7 @@ def test_a_dashboard_reads_streams_and_state_but_cannot_command_or_inject(site):
     received(ops, lambda: s.bus.publish_raw(block(next(seq))))          # the operator's link is up
     with open_session(ZenohConfig.client(s.endpoint, tls=s.tls("dashboard"))) as rogue_pub:
         fake = block(999_000, value=-7.0)
-        from service.encoding import encode_raw
+        from service.io.encoding import encode_raw
         for _ in range(5):
             rogue_pub.put(f"fluxcal/{UNIT}/raw", encode_raw(fake))
         time.sleep(0.3)

@@ -1,0 +1,178 @@
+"""Lab data for `fit` and `diagnose`: the CSV of CONTRACTS.md §1, or an MCAP recording, as one SampleBlock.
+
+Bad input is a DataError naming the file, line and column; nothing is guessed.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from drivers.block import SampleBlock
+from drivers.errors import DataError
+
+_PROBE_COL = re.compile(r"^s([1-9][0-9]*)_(x|y|z|temp)$")
+
+
+@dataclass(frozen=True)
+class LabData:
+    """Samples plus what the file said about them."""
+
+    block: SampleBlock
+    probe_names: list[str]
+    path: str
+    comments: list[str] = field(default_factory=list)
+
+    @property
+    def ref_total(self) -> np.ndarray | None:
+        return self.block.extras.get("ref_total")
+
+
+def load_data(path: str | Path) -> LabData:
+    """Load a lab CSV or an MCAP recording written by fluxcal."""
+    p = Path(path)
+    if not p.exists():
+        raise DataError(f"{p}: no such file")
+    if p.is_dir():
+        raise DataError(f"{p}: is a directory, expected a .csv or .mcap file")
+    if p.suffix.lower() == ".mcap":
+        from .reader import read_recording  # only when an MCAP file is given
+
+        rec = read_recording(p)
+        names = list(rec.probe_names) if getattr(rec, "probe_names", None) else \
+            [f"s{k + 1}" for k in range(rec.raw.n_probes)]
+        return LabData(block=rec.raw, probe_names=names, path=str(p))
+    return load_csv(p)
+
+
+def load_csv(path: str | Path) -> LabData:
+    """Parse a lab CSV (CONTRACTS.md §1)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise DataError(f"{p}: not a text CSV file ({e.reason} at byte {e.start})") from None
+    except OSError as e:
+        raise DataError(f"{p}: cannot read: {e.strerror}") from None
+    lines = text.splitlines()
+    comments: list[str] = []
+    header_idx = None
+    for i, line in enumerate(lines):
+        s = line.strip()
+        if not s:
+            continue
+        if s.startswith("#"):
+            comments.append(s[1:].strip())
+            continue
+        header_idx = i
+        break
+    if header_idx is None:
+        raise DataError(f"{p}: no header line (expected e.g. 't,s1_x,s1_y,s1_z')")
+    header = [h.strip() for h in lines[header_idx].split(",")]
+    line_no = header_idx + 1  # 1-based line number of the header
+    _check_header(p, header, line_no)
+
+    body = [ln for ln in lines[header_idx + 1:]]
+    # keep the line numbers of non-empty rows for error messages
+    rows_idx = [j for j, ln in enumerate(body) if ln.strip()]
+    if not rows_idx:
+        raise DataError(f"{p}: header but no data rows")
+    if len(rows_idx) != len(body):
+        body_nonempty = [body[j] for j in rows_idx]
+    else:
+        body_nonempty = body
+    lineno = np.asarray(rows_idx) + header_idx + 2
+    ncol = len(header)
+    try:
+        values = np.loadtxt(io.StringIO("\n".join(body_nonempty)), delimiter=",", dtype=np.float64,
+                            ndmin=2, comments=None)
+        if values.shape[1] != ncol:
+            raise ValueError
+    except ValueError:
+        _locate_bad_value(p, header, body_nonempty, lineno)
+        raise DataError(f"{p}: could not parse the data rows") from None
+
+    bad = ~np.isfinite(values)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        rows = lineno[bad.any(axis=1)]
+        more = f" and {rows.size - 10} more" if rows.size > 10 else ""
+        raise DataError(f"{p}: line {lineno[r]}, column {header[c]!r}: {float(values[r, c])} is not a finite number; "
+                        f"non-finite values on line(s) {', '.join(map(str, rows[:10].tolist()))}{more}: "
+                        f"remove or fix those rows")
+    col = {h: i for i, h in enumerate(header)}
+    t = values[:, col["t"]]
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if back.size:
+        r = back[0] + 1
+        raise DataError(f"{p}: line {lineno[r]}, column 't': time {float(t[r])} does not increase "
+                        f"(previous {float(t[r - 1])}); t must be strictly increasing")
+
+    n_probes = max(int(_PROBE_COL.match(h).group(1)) for h in header if _PROBE_COL.match(h))
+    n = values.shape[0]
+    field_nT = np.empty((n, n_probes, 3))
+    temp_C = np.full((n, n_probes), np.nan)
+    for k in range(n_probes):
+        for a, axis in enumerate("xyz"):
+            field_nT[:, k, a] = values[:, col[f"s{k + 1}_{axis}"]]
+        tc = col.get(f"s{k + 1}_temp")
+        if tc is not None:
+            temp_C[:, k] = values[:, tc]
+    extras = {h: values[:, i].copy() for h, i in col.items() if h != "t" and not _PROBE_COL.match(h)}
+    seq = extras.pop("seq", None)
+    flags = extras.pop("flags", None)
+    block = SampleBlock(
+        t_s=t.copy(),
+        seq=seq.astype(np.int64) if seq is not None else np.arange(n, dtype=np.int64),
+        field_nT=field_nT, temp_C=temp_C,
+        flags=flags.astype(np.uint8) if flags is not None else np.zeros(n, np.uint8),
+        extras=extras,
+    )
+    return LabData(block=block, probe_names=[f"s{k + 1}" for k in range(n_probes)], path=str(p),
+                   comments=comments)
+
+
+def _check_header(p: Path, header: list[str], line_no: int) -> None:
+    seen: set[str] = set()
+    for h in header:
+        if not h:
+            raise DataError(f"{p}: line {line_no}: empty column name in the header")
+        if h in seen:
+            raise DataError(f"{p}: line {line_no}: column {h!r} appears twice")
+        seen.add(h)
+    if "t" not in seen:
+        raise DataError(f"{p}: line {line_no}: no 't' column (time in seconds) in the header")
+    probes = sorted({int(m.group(1)) for h in header if (m := _PROBE_COL.match(h))})
+    if not probes:
+        raise DataError(f"{p}: line {line_no}: no probe columns (expected s1_x, s1_y, s1_z, ...)")
+    for k in range(1, probes[-1] + 1):
+        for axis in "xyz":
+            if f"s{k}_{axis}" not in seen:
+                what = "probes must be numbered 1..N without gaps" if k not in probes else "missing axis"
+                raise DataError(f"{p}: line {line_no}: column 's{k}_{axis}' is missing ({what})")
+
+
+def _locate_bad_value(p: Path, header: list[str], rows: list[str], lineno: np.ndarray) -> None:
+    """Slow path, only after the fast parse failed: find the first bad cell and raise there."""
+    ncol = len(header)
+    for r, line in enumerate(rows):
+        cells = line.split(",")
+        if len(cells) != ncol:
+            other = next((d for d in (";", "\t") if line.count(d) >= ncol - 1), None)
+            hint = (f"; values must be separated by ',' and this line uses {other!r}: a spreadsheet exported "
+                    f"with another delimiter?" if other else "")
+            raise DataError(f"{p}: line {lineno[r]}: {len(cells)} values, expected {ncol} (as in the header)"
+                            f"{hint}")
+        for c, cell in enumerate(cells):
+            try:
+                v = float(cell)
+            except ValueError:
+                raise DataError(f"{p}: line {lineno[r]}, column {header[c]!r}: {cell.strip()!r} is not a number") \
+                    from None
+            if not math.isfinite(v):
+                raise DataError(f"{p}: line {lineno[r]}, column {header[c]!r}: {cell.strip()!r} is not a finite number")

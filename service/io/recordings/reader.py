@@ -1,0 +1,232 @@
+"""Whole recordings for `fit`, `diagnose` and `replay`: read one into memory, rebuild a killed file.
+
+    read_recording(path, unit=None) -> Recording   raw and corrected blocks, events, calibration
+                                                   events, health, the "fluxcal" metadata, warnings
+    repair_recording(src, dst) -> ReadReport       a killed writer's file (no footer, cut chunk) copied
+                                                   record for record into an indexed, finished file
+    FluxcalDecoderFactory                          for mcap's own readers: make_reader(f,
+                                                   decoder_factories=[FluxcalDecoderFactory()])
+
+Reading goes through drivers.mcap_source (streaming, tolerant of a cut tail, strict about damage);
+bad files raise RecordingError with the file and what is wrong.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.decoder import DecoderFactory
+
+from drivers.block import SampleBlock
+from drivers.errors import DataError, RecordingError
+from drivers.mcap_source import ReadReport, iter_file_records, metadata_json, iter_records, recording_files, unit_of_topic
+
+from service.io.encoding import CORRECTED_ENCODING, RAW_ENCODING, decode_corrected, decode_json, decode_raw
+from service.numerics.outputs import CorrectedBlock
+
+
+def concat_corrected(blocks: list[CorrectedBlock]) -> CorrectedBlock:
+    """One CorrectedBlock of many; an optional output is kept only if every block has it; cal_id is
+    the last block's (Recording.corrected_cal_id has it per sample)."""
+    if not blocks:
+        raise ValueError("concat_corrected: no blocks")
+
+    def cat(name: str) -> np.ndarray | None:
+        parts = [getattr(b, name) for b in blocks]
+        return None if any(p is None for p in parts) else np.concatenate(parts)
+
+    return CorrectedBlock(t_s=np.concatenate([b.t_s for b in blocks]), seq=np.concatenate([b.seq for b in blocks]),
+                          corrected_nT=np.concatenate([b.corrected_nT for b in blocks]), diff_nT=cat("diff_nT"),
+                          tensor_nT_m=cat("tensor_nT_m"), center_nT=cat("center_nT"), cal_id=blocks[-1].cal_id)
+
+
+@dataclass
+class Recording:
+    """A recording in memory: one unit's streams, in recorded order."""
+
+    raw_blocks: list[SampleBlock]
+    corrected_blocks: list[CorrectedBlock]
+    events: list[dict[str, Any]]
+    calibration: list[dict[str, Any]]
+    metadata: dict[str, str]
+    files: list[str] = field(default_factory=list)
+    truncated: list[str] = field(default_factory=list)       # files whose tail was cut (writer killed)
+    health: list[dict[str, Any]] = field(default_factory=list)
+    unit: str | None = None
+    report: ReadReport = field(default_factory=ReadReport)
+
+    @property
+    def raw(self) -> SampleBlock:
+        """Every raw sample in one block."""
+        return SampleBlock.concat(self.raw_blocks)
+
+    @property
+    def corrected(self) -> CorrectedBlock | None:
+        """Every corrected sample in one block (None if the recording has none)."""
+        return concat_corrected(self.corrected_blocks) if self.corrected_blocks else None
+
+    @property
+    def corrected_cal_id(self) -> np.ndarray:
+        """(N,) int64: the calibration that produced each corrected sample."""
+        return np.concatenate([np.full(b.n_samples, b.cal_id, np.int64) for b in self.corrected_blocks]
+                              or [np.empty(0, np.int64)])
+
+    @property
+    def warnings(self) -> list[str]:
+        return self.report.warnings
+
+    @property
+    def n_probes(self) -> int:
+        return self.raw_blocks[0].n_probes
+
+    def _json(self, key: str) -> Any:
+        report = ReadReport(metadata=self.metadata)
+        return metadata_json(report, key, where=self.files[0] if self.files else "recording")
+
+    @property
+    def probe_names(self) -> list[str]:
+        names = self._json("probe_names")
+        return [str(n) for n in names] if names else [f"s{k + 1}" for k in range(self.n_probes)]
+
+    @property
+    def lsb_nT(self) -> float | None:
+        """nT per ADC count of the unit, if the recording says."""
+        text = self.metadata.get("lsb_nT")
+        return float(text) if text else None
+
+    @property
+    def positions_m(self) -> list[list[float]] | None:
+        """Probe positions in the platform frame, m, if the recording says."""
+        return self._json("positions_m")
+
+
+def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = True) -> Recording:
+    """Read a recording (a file or a directory of rotated files) into memory.
+
+    unit=None: the only unit recorded (several -> RecordingError naming them). A killed writer's
+    file is read up to its last complete chunk (`truncated` says so). strict=False skips damaged
+    chunks (listed in report.damaged) instead of refusing the file."""
+    report = ReadReport()
+    raw: list[SampleBlock] = []
+    cor: list[CorrectedBlock] = []
+    events: list[dict[str, Any]] = []
+    cal: list[dict[str, Any]] = []
+    health: list[dict[str, Any]] = []
+    units: list[str] = []
+    chosen = unit
+    sinks: dict[str, Callable[[bytes], None]] = {
+        "events": lambda d: events.append(decode_json(d)), "calibration": lambda d: cal.append(decode_json(d)),
+        "health": lambda d: health.append(decode_json(d))}
+    for rec in iter_records(path, report, strict=strict):
+        u = unit_of_topic(rec.topic)
+        if u is None:
+            continue                                   # not a fluxcal stream: ignore
+        if chosen is None and rec.encoding == RAW_ENCODING:
+            chosen = u
+        if u not in units:
+            units.append(u)
+        if chosen is not None and u != chosen:
+            continue
+        stream = rec.topic.rsplit("/", 1)[1]
+        try:
+            if rec.encoding == RAW_ENCODING:
+                raw.append(decode_raw(rec.data))
+            elif rec.encoding == CORRECTED_ENCODING:
+                cor.append(decode_corrected(rec.data))
+            elif stream in sinks:
+                sinks[stream](rec.data)
+        except DataError as e:
+            raise RecordingError(f"{path}: {rec.topic}: damaged message: {e}") from None
+    if unit is None and len(units) > 1:
+        raise RecordingError(f"{path}: holds several units ({', '.join(units)}): choose one with unit=")
+    if not raw:
+        why = "; ".join(report.warnings)
+        raise RecordingError(f"{path}: no raw samples" + (f" of unit {unit!r}" if unit else "")
+                             + " in this recording" + (f" ({why})" if why else ""))
+    probes = {b.n_probes for b in raw}
+    if len(probes) > 1:
+        raise RecordingError(f"{path}: the number of probes changes within the recording ({sorted(probes)}): "
+                             f"read its files one at a time")
+    return Recording(raw, cor, events, cal, report.metadata, report.files, report.truncated, health, chosen, report)
+
+
+def repair_recording(src: str | Path, dst: str | Path, *, compression: str = "lz4") -> ReadReport:
+    """Copy every readable record of `src` (a killed writer's file, or a directory of them) into a
+    finished, indexed MCAP file `dst` (or directory `dst`, same file names): schemas, channels,
+    messages with their log_time, publish_time and sequence, metadata, attachments. Damaged chunks
+    are skipped and listed in the returned report (`damaged`); the cut tail in `truncated`."""
+    from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
+    from mcap.writer import Writer
+
+    from .writer import COMPRESSIONS
+
+    files = recording_files(src)
+    src_is_dir = Path(src).is_dir()
+    out_dir = Path(dst) if src_is_dir else Path(dst).parent
+    out_dir.mkdir(parents=True, exist_ok=True)
+    report = ReadReport()
+    for f in files:
+        target = out_dir / f.name if src_is_dir else Path(dst)
+        if target.resolve() == f.resolve():
+            raise RecordingError(f"{target}: repair_recording writes a new file; give another destination")
+        tmp = target.with_name(target.name + ".partial")
+        report.files.append(str(f))
+        try:
+            with open(tmp, "wb") as fh:
+                w = Writer(fh, compression=COMPRESSIONS[compression])
+                started = False
+                schema_ids: dict[int, int] = {0: 0}
+                channel_ids: dict[int, int] = {}
+                for rec in iter_file_records(f, report, strict=False):
+                    if isinstance(rec, Header):
+                        w.start(profile=rec.profile, library=rec.library)
+                        started = True
+                        continue
+                    if not started:
+                        w.start(profile="", library="fluxcal repair")
+                        started = True
+                    if isinstance(rec, Schema):
+                        if rec.id not in schema_ids:
+                            schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+                    elif isinstance(rec, Channel):
+                        if rec.id not in channel_ids and rec.schema_id in schema_ids:
+                            channel_ids[rec.id] = w.register_channel(rec.topic, rec.message_encoding,
+                                                                     schema_ids[rec.schema_id], rec.metadata)
+                    elif isinstance(rec, Message):
+                        ch = channel_ids.get(rec.channel_id)
+                        if ch is None:
+                            report.skipped_messages += 1
+                            continue
+                        w.add_message(ch, log_time=rec.log_time, data=rec.data, publish_time=rec.publish_time,
+                                      sequence=rec.sequence)
+                        report.messages += 1
+                    elif isinstance(rec, Metadata):
+                        w.add_metadata(rec.name, rec.metadata)
+                        if rec.name == "fluxcal":
+                            report.metadata.update(rec.metadata)
+                    elif isinstance(rec, Attachment):
+                        w.add_attachment(rec.create_time, rec.log_time, rec.name, rec.media_type, rec.data)
+                if not started:
+                    w.start(profile="", library="fluxcal repair")
+                w.finish()
+            tmp.replace(target)
+        except OSError as e:
+            tmp.unlink(missing_ok=True)
+            raise RecordingError(f"{target}: cannot write the repaired file: {e}") from None
+    return report
+
+
+class FluxcalDecoderFactory(DecoderFactory):
+    """Decodes fluxcal streams for mcap's readers: raw -> SampleBlock, corrected -> CorrectedBlock,
+    json -> dict. `make_reader(f, decoder_factories=[FluxcalDecoderFactory()]).iter_decoded_messages()`."""
+
+    def decoder_for(self, message_encoding: str, schema: Any) -> Callable[[bytes], Any] | None:
+        return {RAW_ENCODING: decode_raw, CORRECTED_ENCODING: decode_corrected,
+                "json": decode_json}.get(message_encoding)
+
+
+__all__ = ["FluxcalDecoderFactory", "Recording", "concat_corrected", "read_recording", "repair_recording"]

@@ -1,0 +1,609 @@
+"""MCAP logging of one unit's raw and corrected streams, calibration events, health and plot-ready vectors.
+
+Channels (topic, MCAP message encoding, schema):
+
+    /fluxcal/<unit>/raw          fluxcal.raw.v1        fluxcal.layout: the layout table (drivers/encoding.py)
+    /fluxcal/<unit>/corrected    fluxcal.corrected.v1  fluxcal.layout: the layout table (service/io/encoding.py)
+    /fluxcal/<unit>/vectors      json                  jsonschema: per probe mean corrected x, y, z and mean |B|
+                                                       over 0.1 s of unit time (10 Hz), and the array centre,
+                                                       for Foxglove's plot panel (`.s1.total`, `.center.x`)
+    /fluxcal/<unit>/calibration  json                  jsonschema: calibration replaced, quality-gate refusals
+    /fluxcal/<unit>/events       json                  jsonschema: commands applied (with the seq they apply from)
+    /fluxcal/<unit>/health       json                  jsonschema: source counters and this logger's status
+
+Each file starts with a "fluxcal" metadata record (unit, stream encodings, file_index and what the
+caller passes: n_probes, lsb_nT, probe_names, positions_m, config) and, once the first sample time
+is known, a "fluxcal.time" record stating the time base:
+
+    log_time     = epoch_ns + round(t_s * 1e9), t_s the unit time of the message's first sample;
+                   epoch_ns = wall clock at the first timed message minus its t_s (or `epoch_ns=` given,
+                   0 for plain unit time). Unit-clock spacing, wall-clock placement: Foxglove shows a
+                   real date, and the exact t_s is in every binary payload anyway.
+    publish_time = wall clock when written, ns since 1970.
+    sequence     = per-channel message counter of this logger (a gap means a message was dropped).
+
+Files are chunked and compressed (lz4 by default, zstd or none on request; the mcap package
+requires both lz4 and zstandard, so they are installed with it). A chunk is written when it holds
+`chunk_size` bytes or `flush_interval_s` (1 s) has passed since the last one, whichever is first, so
+a killed process loses at most the last second: the next write or `poll()` after the interval
+flushes. Files rotate by size (`rotate_mb`) or age (`rotate_s`) into
+
+    <dir>/<unit>-<YYYYmmddTHHMMSS, UTC at opening>-<NNNN>.mcap      (NNNN = 0001, 0002, ... per logger)
+
+which sort by name in time order; given a file path instead of a directory, the logger writes
+that one file (no rotation; after a write error it resumes in <stem>_0002.mcap, ...).
+
+Write errors (a full disk: OSError ENOSPC; a pulled USB stick) are never raised: each is counted,
+the last one is kept in `status()`, the broken file is cut back to its last complete chunk (it
+reads like a killed writer's file), and the messages of the unfinished chunk are kept and written
+first into the next file, which is tried every `retry_s` (5 s). Messages that arrive while no file
+can be opened are dropped and counted. Nothing is lost silently.
+
+Not thread-safe (neither is mcap's Writer): one thread feeds a logger.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import math
+import os
+import re
+import time
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.writer import CompressionType, Writer
+
+from drivers.block import SampleBlock
+from drivers.errors import ConfigError
+
+from service.io.encoding import (CALIBRATION_SCHEMA, CORRECTED_ENCODING, CORRECTED_LAYOUT, EVENT_SCHEMA, HEALTH_SCHEMA,
+                       RAW_ENCODING, RAW_LAYOUT, encode_corrected, encode_json, encode_raw, health_record,
+                       vectors_schema)
+from service.numerics.outputs import CorrectedBlock
+
+#: schema encoding of the binary layouts: the schema data is the layout table as UTF-8 text
+LAYOUT_SCHEMA_ENCODING = "fluxcal.layout"
+STREAMS = ("raw", "corrected", "vectors", "calibration", "events", "health")
+COMPRESSIONS = {"lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD, "none": CompressionType.NONE}
+_UNIT_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
+_RETRY_S = 5.0
+_NO_AUTO_CHUNK = 1 << 62              # the logger ends chunks itself (it must know what reached the disk)
+_monotonic = time.monotonic           # tests replace these two to move time
+_wall_ns = time.time_ns
+
+
+def _default_opener(path: Path, mode: str):
+    return open(path, mode, buffering=0)
+
+
+class _CountingFile:
+    """The output file as the mcap Writer sees it: every byte is written (a raw file may take fewer
+    bytes than offered just before the disk fills), bytes are counted, and the position is known
+    without a system call. Not an io.RawIOBase, so the Writer adds no buffer of its own."""
+
+    def __init__(self, f: Any) -> None:
+        self.f = f
+        self.pos = 0
+
+    def write(self, data: bytes) -> int:
+        view = memoryview(data).cast("B")
+        total = len(view)
+        while view:
+            n = self.f.write(view)
+            n = len(view) if n is None else n      # buffered wrappers return None or the full length
+            if n <= 0:
+                raise OSError(errno.EIO, "the file took no bytes")
+            self.pos += n
+            view = view[n:]
+        return total
+
+    def tell(self) -> int:
+        return self.pos
+
+    def flush(self) -> None:
+        flush = getattr(self.f, "flush", None)
+        if flush is not None:
+            flush()
+
+    def truncate(self, size: int) -> None:
+        self.f.truncate(size)
+        self.pos = size
+
+    def fileno(self) -> int:
+        return self.f.fileno()
+
+    def close(self) -> None:
+        self.f.close()
+
+
+class _VectorMeans:
+    """Means of the corrected vectors over intervals of `period_s` of unit time: per probe x, y, z
+    (NaN-aware) and mean |B|, and the same of the array centre when the blocks have it. Interval k
+    holds k·period <= t < (k+1)·period; it also ends early when the calibration (cal_id) changes.
+    Blocks inside one interval are only kept; the arithmetic runs once per interval (10 Hz)."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        self.parts: list[CorrectedBlock] = []      # the interval being filled
+        self.bin = 0
+
+    def _bin(self, t: float) -> int:
+        # the 1e-9 keeps a sample on a boundary in the interval it starts (0.3 s is
+        # 2.9999999999999996 periods of 0.1 s in binary)
+        return math.floor(t / self.period_s + 1e-9)
+
+    def add(self, block: CorrectedBlock) -> list[dict[str, Any]]:
+        """Feed a block; returns the intervals it completed."""
+        done: list[dict[str, Any]] = []
+        t = block.t_s
+        if not np.isfinite(t).all():
+            keep = np.flatnonzero(np.isfinite(t))
+            block = _rows(block, keep)
+            t = block.t_s
+        if t.size == 0:
+            return done
+        first, last = self._bin(float(t[0])), self._bin(float(t[-1]))
+        if self.parts:
+            prev = self.parts[-1]
+            if (first != self.bin or block.cal_id != prev.cal_id or block.n_probes != prev.n_probes
+                    or (block.center_nT is None) != (prev.center_nT is None)):
+                done.append(self._emit())
+        if first == last:
+            if not self.parts:
+                self.bin = first
+            self.parts.append(block)
+            return done
+        bins = np.floor(t / self.period_s + 1e-9).astype(np.int64)
+        cuts = np.concatenate([[0], np.flatnonzero(np.diff(bins)) + 1, [t.size]])
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            if a > 0:
+                done.append(self._emit())
+            if not self.parts:
+                self.bin = int(bins[a])
+            self.parts.append(_rows(block, slice(a, b)))
+        return done
+
+    def flush(self) -> list[dict[str, Any]]:
+        return [self._emit()] if self.parts else []
+
+    @staticmethod
+    def _mean(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """NaN-aware mean over samples of (N, P, 3): (P, 3) of x, y, z and (P,) of |B|; NaN if none."""
+        ok = np.isfinite(c)
+        norm = np.sqrt(np.einsum("npk,npk->np", c, c))          # |B| = sqrt(x^2 + y^2 + z^2), NaN if an axis is
+        nok = np.isfinite(norm)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return (np.where(ok, c, 0.0).sum(axis=0) / ok.sum(axis=0),
+                    np.where(nok, norm, 0.0).sum(axis=0) / nok.sum(axis=0))
+
+    def _emit(self) -> dict[str, Any]:
+        """{"t_s", "seq", "n", "cal_id", "mean" (P, 3) nT, "total" (P,) nT, "center": (mean (3,), total) or None}."""
+        parts, self.parts = self.parts, []
+        c = parts[0].corrected_nT if len(parts) == 1 else np.concatenate([p.corrected_nT for p in parts])
+        mean, total = self._mean(c)
+        center = None
+        if parts[0].center_nT is not None:
+            cm, ct = self._mean(np.concatenate([p.center_nT for p in parts])[:, None, :])
+            center = (cm[0], ct[0])
+        return {"t_s": float(parts[0].t_s[0]), "seq": int(parts[0].seq[0]), "n": int(c.shape[0]),
+                "cal_id": int(parts[-1].cal_id), "mean": mean, "total": total, "center": center}
+
+
+def _rows(b: CorrectedBlock, rows: Any) -> CorrectedBlock:
+    return CorrectedBlock(b.t_s[rows], b.seq[rows], b.corrected_nT[rows], None, None,
+                          None if b.center_nT is None else b.center_nT[rows], b.cal_id)
+
+
+class McapLogger:
+    """Writes one unit's streams into chunked, compressed, rotating MCAP files (see the module docstring).
+
+    path: a directory (rotating files) or a file path ending in .mcap (that one file).
+    unit: the unit name in the topics and file names (letters, digits, _ and -).
+    rotate_mb, rotate_s: start a new file after this many MB or seconds (directory mode).
+    chunk_size: bytes of messages per chunk before compression; flush_interval_s: at most this
+    long between chunks. compression: "lz4", "zstd" or "none". metadata: strings for the "fluxcal"
+    metadata record. probe_names: names in the vectors channel (default from metadata["probe_names"],
+    else s1, s2, ...). vectors_period_s: averaging interval of the vectors channel (0 disables it).
+    epoch_ns: log_time epoch (None: the wall clock at the first sample). fsync: also fsync every chunk
+    (survives power loss, costs a disk round trip per chunk). retry_s: after a write error, try a new
+    file this much later (default 5 s). backlog_mb: at most this much of unwritten messages is kept
+    while files fail (the oldest are dropped, and counted, beyond it). opener(path, mode) -> binary file:
+    for fault injection in tests. filename: directory + this fixed file name, as if path were the file.
+    """
+
+    def __init__(self, path: str | Path, *, unit: str, rotate_mb: float = 256.0, rotate_s: float = 3600.0,
+                 chunk_size: int = 1 << 20, compression: str = "lz4", flush_interval_s: float = 1.0,
+                 metadata: dict[str, Any] | None = None, probe_names: Sequence[str] | None = None,
+                 vectors_period_s: float = 0.1, epoch_ns: int | None = None, fsync: bool = False,
+                 retry_s: float | None = None, backlog_mb: float = 16.0, filename: str | None = None,
+                 opener: Callable[[Path, str], Any] | None = None) -> None:
+        if not isinstance(unit, str) or not _UNIT_NAME.fullmatch(unit):
+            raise ConfigError(f"mcap logger: unit {unit!r} is not allowed (allowed: 1-64 letters, digits, '_' or '-')")
+        if compression not in COMPRESSIONS:
+            raise ConfigError(f"mcap.compression: {compression!r} is not allowed (allowed: {', '.join(COMPRESSIONS)})")
+        for key, value in (("rotate_mb", rotate_mb), ("rotate_s", rotate_s), ("chunk_size", chunk_size)):
+            if not (isinstance(value, (int, float)) and value > 0):
+                raise ConfigError(f"mcap.{key}: {value!r} is not allowed (allowed: a number > 0)")
+        if not (isinstance(flush_interval_s, (int, float)) and flush_interval_s >= 0):
+            raise ConfigError(f"mcap.flush_interval_s: {flush_interval_s!r} is not allowed "
+                              f"(allowed: a number >= 0; 0 ends a chunk after every message)")
+        p = Path(path)
+        if filename is not None:
+            p = p / filename
+        self.single_file = filename is not None or (p.suffix == ".mcap" and not p.is_dir())
+        self.dir = p.parent if self.single_file else p
+        self.path = p if self.single_file else None
+        self.unit = unit
+        self.rotate_bytes = rotate_mb * 1e6
+        self.rotate_s = rotate_s
+        self.chunk_size = int(chunk_size)
+        self.compression = compression
+        self.flush_interval_s = flush_interval_s
+        self.metadata = {str(k): v if isinstance(v, str) else json.dumps(v) for k, v in (metadata or {}).items()}
+        if probe_names is None and "probe_names" in self.metadata:
+            try:
+                probe_names = [str(n) for n in json.loads(self.metadata["probe_names"])]
+            except (json.JSONDecodeError, TypeError):
+                probe_names = None
+        self.probe_names = list(probe_names or [])
+        self.epoch_ns = epoch_ns
+        self.fsync = fsync
+        self.retry_s = retry_s
+        self.backlog_bytes = max(backlog_mb * 1e6, 2.0 * self.chunk_size)
+        self._opener = opener or _default_opener
+        self._vectors = _VectorMeans(vectors_period_s) if vectors_period_s > 0 else None
+
+        self.files: list[str] = []         # every file this logger opened, in order
+        self.messages = 0                  # messages handed to the logger
+        self.messages_written = 0          # messages in chunks that reached the file
+        self.bytes_written = 0             # bytes that reached files (all files)
+        self.dropped = 0                   # messages that could not be written
+        self.errors = 0                    # write errors (each failed attempt)
+        self.last_error = ""
+        self.last_error_wall_s: float | None = None
+
+        self._writer: Writer | None = None
+        self._fh: _CountingFile | None = None
+        self._channels: dict[str, int] = {}
+        self._sequence = dict.fromkeys(STREAMS, 0)
+        self._pending: list[tuple[str, bytes, int, int, int]] = []   # the unflushed chunk: rewritten after a failure
+        self._pending_bytes = 0
+        self._good_offset = 0              # the current file up to here holds complete records only
+        self._file_base = 0                # bytes_written before the current file
+        self._time_written = False
+        self._opened_at = 0.0
+        self._last_flush = 0.0
+        self._retry_at = 0.0
+        self._last_log_ns: int | None = None
+        self._file_index = 0
+        self._file_messages = 0            # messages flushed into the current file
+        self._closed = False
+        self._open()
+
+    # --- files ------------------------------------------------------------------------------------
+
+    def _candidate(self) -> tuple[Path, str]:
+        self._file_index += 1
+        if self.single_file:
+            assert self.path is not None
+            if self._file_index == 1:
+                return self.path, "wb"
+            return self.path.with_name(f"{self.path.stem}_{self._file_index:04d}{self.path.suffix}"), "xb"
+        stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime(_wall_ns() / 1e9))
+        return self.dir / f"{self.unit}-{stamp}-{self._file_index:04d}.mcap", "xb"
+
+    def _open(self) -> bool:
+        """Open the next file and write its header; False (and counted) if that failed."""
+        raw = path = None
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            for _ in range(100):                         # never overwrite a file of another run
+                path, mode = self._candidate()
+                try:
+                    raw = self._opener(path, mode)
+                    break
+                except FileExistsError:
+                    continue
+            else:
+                raise OSError(errno.EEXIST, f"no free file name like {path}")
+            fh = _CountingFile(raw)
+            w = Writer(fh, chunk_size=_NO_AUTO_CHUNK, compression=COMPRESSIONS[self.compression])
+            w.start(profile="", library="fluxcal")
+            layout = w.register_schema(RAW_ENCODING, LAYOUT_SCHEMA_ENCODING, RAW_LAYOUT.encode())
+            cor = w.register_schema(CORRECTED_ENCODING, LAYOUT_SCHEMA_ENCODING, CORRECTED_LAYOUT.encode())
+
+            def js(name: str, schema: dict[str, Any]) -> int:
+                return w.register_schema(name, "jsonschema", json.dumps(schema).encode())
+
+            t = f"/fluxcal/{self.unit}"
+            self._channels = {
+                "raw": w.register_channel(f"{t}/raw", RAW_ENCODING, layout),
+                "corrected": w.register_channel(f"{t}/corrected", CORRECTED_ENCODING, cor),
+                "vectors": w.register_channel(f"{t}/vectors", "json",
+                                              js("fluxcal.vectors", vectors_schema(self.probe_names))),
+                "calibration": w.register_channel(f"{t}/calibration", "json",
+                                                  js("fluxcal.calibration", CALIBRATION_SCHEMA)),
+                "events": w.register_channel(f"{t}/events", "json", js("fluxcal.event", EVENT_SCHEMA)),
+                "health": w.register_channel(f"{t}/health", "json", js("fluxcal.health", HEALTH_SCHEMA)),
+            }
+            w.add_metadata("fluxcal", {"unit": self.unit, "raw_encoding": RAW_ENCODING,
+                                       "corrected_encoding": CORRECTED_ENCODING, **self.metadata,
+                                       "file_index": str(self._file_index)})
+            self._writer, self._fh = w, fh
+            self._time_written = False
+            self._file_messages = 0
+            if self.epoch_ns is not None and self._last_log_ns is not None:
+                self._write_time_record()
+            self._good_offset = fh.pos
+            # the unfinished chunk of a file that failed comes first
+            for stream, data, log_ns, pub_ns, seq in self._pending:
+                w.add_message(self._channels[stream], log_time=log_ns, data=data, publish_time=pub_ns, sequence=seq)
+        except OSError as e:
+            self._writer = None
+            if raw is not None:
+                try:
+                    raw.close()
+                    if path is not None:
+                        path.unlink()           # a file that never got its header is no recording
+                except OSError:
+                    pass
+            self._fh = None
+            self._error(e)
+            return False
+        self.files.append(str(path))
+        self._opened_at = _monotonic()
+        self._last_flush = self._opened_at
+        return True
+
+    def _write_time_record(self) -> None:
+        assert self._writer is not None
+        self._writer.add_metadata("fluxcal.time", {
+            "epoch_ns": str(self.epoch_ns),
+            "log_time": "epoch_ns + round(t_s * 1e9), t_s the unit time (s) of the message's first sample",
+            "publish_time": "wall clock when written, ns since 1970-01-01 UTC"})
+        self._time_written = True
+
+    def _error(self, e: OSError) -> None:
+        self.errors += 1
+        self.last_error = f"{type(e).__name__}: {e}"
+        self.last_error_wall_s = _wall_ns() / 1e9
+        self._retry_at = _monotonic() + (_RETRY_S if self.retry_s is None else self.retry_s)
+
+    def _fail(self, e: OSError) -> None:
+        """A write failed: cut the file back to its last complete chunk and close it; keep the pending
+        messages for the next file."""
+        self._error(e)
+        fh, self._fh, self._writer = self._fh, None, None
+        if fh is None:
+            return
+        try:
+            fh.truncate(self._good_offset)      # needs no space: the file now reads like a killed writer's
+        except (OSError, AttributeError, ValueError) as te:
+            self.last_error += f"; could not cut the file back to its last chunk ({te})"
+        self.bytes_written = self._file_base + self._good_offset
+        try:
+            fh.close()
+        except OSError:
+            pass
+        if self._file_messages == 0 and self.files:
+            # a file with no message in it is no recording: remove it, its number is used again
+            try:
+                Path(self.files[-1]).unlink()
+                self.files.pop()
+                self._file_index -= 1
+                self.bytes_written -= self._good_offset
+            except OSError:
+                pass
+        self._file_base = self.bytes_written
+        # bounded memory while the disk stays full: the oldest unwritten messages go first
+        while self._pending and self._pending_bytes > self.backlog_bytes:
+            _, data, *_ = self._pending.pop(0)
+            self._pending_bytes -= len(data) + 40
+            self.dropped += 1
+
+    def _chunk_done(self) -> None:
+        """The pending messages are in the file now."""
+        assert self._fh is not None
+        self.messages_written += len(self._pending)
+        self._file_messages += len(self._pending)
+        self._pending.clear()
+        self._pending_bytes = 0
+        self._good_offset = self._fh.pos
+        self.bytes_written = self._file_base + self._fh.pos
+        self._last_flush = _monotonic()
+
+    def _flush(self) -> None:
+        assert self._writer is not None and self._fh is not None
+        self._writer.flush()                  # ends the chunk and flushes the stream (mcap >= 1.6)
+        if self.fsync:
+            os.fsync(self._fh.fileno())
+        self._chunk_done()
+
+    def _finish(self) -> None:
+        """Footer and index; then the file is complete."""
+        if self._writer is None or self._fh is None:
+            return
+        try:
+            self._writer.finish()
+            if self.fsync:
+                os.fsync(self._fh.fileno())
+            self._chunk_done()
+            self._file_base = self.bytes_written
+            self._fh.close()
+        except OSError as e:
+            self._fail(e)
+            return
+        self._writer = None
+        self._fh = None
+
+    # --- writing ----------------------------------------------------------------------------------
+
+    def _log_time(self, t_s: float | None) -> int:
+        if t_s is None or not math.isfinite(t_s):
+            if self._last_log_ns is not None:
+                return self._last_log_ns
+            return _wall_ns()
+        if self.epoch_ns is None:
+            self.epoch_ns = _wall_ns() - round(t_s * 1e9)
+        return max(self.epoch_ns + round(t_s * 1e9), 0)
+
+    def _write(self, stream: str, data: bytes, t_s: float | None) -> None:
+        self.messages += 1
+        if self._closed:
+            self.dropped += 1
+            self.last_error = "write after close"
+            return
+        log_ns = self._log_time(t_s)
+        if t_s is not None and math.isfinite(t_s):
+            self._last_log_ns = log_ns
+        self._rotate_if_due()
+        if self._writer is None:
+            if _monotonic() < self._retry_at or not self._open():
+                self.dropped += 1
+                return
+        assert self._writer is not None
+        seq = self._sequence[stream] = (self._sequence[stream] + 1) & 0xFFFFFFFF
+        pub_ns = _wall_ns()
+        try:
+            if not self._time_written and self.epoch_ns is not None:
+                self._write_time_record()
+            self._writer.add_message(self._channels[stream], log_time=log_ns, data=data, publish_time=pub_ns,
+                                     sequence=seq)
+            self._pending.append((stream, data, log_ns, pub_ns, seq))
+            self._pending_bytes += len(data) + 40          # + the message record's header, about
+            self._flush_if_due()
+        except OSError as e:
+            self._fail(e)
+
+    def _flush_if_due(self) -> None:
+        if self._pending and (self._pending_bytes >= self.chunk_size
+                              or _monotonic() - self._last_flush >= self.flush_interval_s):
+            self._flush()
+
+    def _rotate_if_due(self) -> None:
+        """Before a message: a file holds what arrived in [opened, opened + rotate_s) and about rotate_mb."""
+        if self._writer is None or self._fh is None or self.single_file:
+            return
+        if (self._fh.pos + self._pending_bytes >= self.rotate_bytes
+                or _monotonic() - self._opened_at >= self.rotate_s):
+            self._finish()
+            if self._writer is None and not self._pending:     # finished cleanly (else: retried later)
+                self._open()
+
+    def poll(self) -> None:
+        """End the chunk if it is full or `flush_interval_s` old, rotate if due, retry a failed file.
+        Writing does this; a caller whose input stalls calls it about once a second so the last data
+        reaches the disk."""
+        if self._closed:
+            return
+        if self._writer is None:
+            if self._pending and _monotonic() >= self._retry_at:
+                self._open()
+            return
+        try:
+            self._flush_if_due()
+        except OSError as e:
+            self._fail(e)
+        self._rotate_if_due()
+
+    def flush(self) -> None:
+        """Write the unfinished chunk now (e.g. before a planned stop)."""
+        if self._writer is not None and self._pending:
+            try:
+                self._flush()
+            except OSError as e:
+                self._fail(e)
+
+    def write_raw(self, block: SampleBlock) -> None:
+        self._write("raw", encode_raw(block), float(block.t_s[0]) if block.n_samples else None)
+
+    def write_corrected(self, block: CorrectedBlock) -> None:
+        self._write("corrected", encode_corrected(block), float(block.t_s[0]) if block.n_samples else None)
+        if self._vectors is not None and block.n_samples:
+            for rec in self._vectors.add(block):
+                self._write_vectors(rec)
+
+    def _write_vectors(self, iv: dict[str, Any]) -> None:
+        def num(x: float) -> float | None:              # strict JSON: NaN -> null
+            return x if math.isfinite(x) else None
+
+        rec: dict[str, Any] = {k: iv[k] for k in ("t_s", "seq", "n", "cal_id")}
+        for k, (m, tot) in enumerate(zip(iv["mean"].tolist(), iv["total"].tolist())):
+            name = self.probe_names[k] if k < len(self.probe_names) else f"s{k + 1}"
+            rec[name] = {"x": num(m[0]), "y": num(m[1]), "z": num(m[2]), "total": num(tot)}
+        if iv["center"] is not None:
+            m, tot = iv["center"][0].tolist(), float(iv["center"][1])
+            rec["center"] = {"x": num(m[0]), "y": num(m[1]), "z": num(m[2]), "total": num(tot)}
+        self._write("vectors", json.dumps(rec, separators=(",", ":")).encode(), iv["t_s"])
+
+    def _write_json(self, stream: str, record: dict[str, Any]) -> None:
+        t = record.get("t_s")
+        self._write(stream, encode_json(record), float(t) if isinstance(t, (int, float)) else None)
+
+    def write_calibration(self, record: dict[str, Any]) -> None:
+        """A calibration event: {"kind": ..., "seq": ..., "t_s": ..., "state": {...}, ...}."""
+        self._write_json("calibration", record)
+
+    def write_event(self, record: dict[str, Any]) -> None:
+        """A command or other event, with the seq it applies from: {"kind": "command", "seq": ..., ...}."""
+        self._write_json("events", record)
+
+    def write_health(self, counters: dict[str, Any]) -> None:
+        """The source's counters and this logger's status; call it about once a second."""
+        self._write("health", encode_json(health_record(counters, self.status())), None)
+
+    def status(self) -> dict[str, Any]:
+        """What has been written and what went wrong, for the health stream and the state query."""
+        return {"files": len(self.files), "current": self.files[-1] if self._writer is not None else None,
+                "messages": self.messages, "messages_written": self.messages_written,
+                "pending": len(self._pending), "bytes_written": self.bytes_written, "dropped": self.dropped,
+                "errors": self.errors, "last_error": self.last_error, "last_error_wall_s": self.last_error_wall_s,
+                "compression": self.compression}
+
+    def close(self) -> None:
+        """Write the last vectors interval, the last chunk and the footer. Safe to call twice."""
+        if self._closed:
+            return
+        if self._vectors is not None:
+            for rec in self._vectors.flush():
+                self._write_vectors(rec)
+        self._finish()
+        if self._pending:                     # the last file failed: one more try for its last chunk
+            if self._writer is None and self._open():
+                self._finish()
+            if self._pending:
+                self.dropped += len(self._pending)
+                self._pending.clear()
+        self._closed = True
+
+    def __enter__(self) -> "McapLogger":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def write_recording(path: str | Path, blocks: Iterable[SampleBlock], *, unit: str, probe_names: list[str],
+                    truth: dict | None = None, metadata: dict[str, Any] | None = None) -> None:
+    """One MCAP file of raw blocks (for `simulate` and `decode`), with probe names and the truth.
+    Written to `<path>.partial` and renamed at the end: a failed write leaves no half file; OSError."""
+    p = Path(path)
+    meta: dict[str, Any] = {"probe_names": json.dumps(probe_names), **(metadata or {})}
+    if truth is not None:
+        meta["truth"] = json.dumps(truth)
+    tmp = p.with_name(p.name + ".partial")
+    log = McapLogger(p.parent, filename=tmp.name, unit=unit, metadata=meta, flush_interval_s=1e9)
+    try:
+        for b in blocks:
+            log.write_raw(b)
+    finally:
+        log.close()
+    if log.errors:
+        for f in log.files:
+            Path(f).unlink(missing_ok=True)
+        raise OSError(f"{p}: could not write the recording: {log.last_error}")
+    tmp.replace(p)

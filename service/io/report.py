@@ -1,0 +1,250 @@
+"""The HTML report of `fluxcal diagnose --report DIR`: one self-contained page with PNG plots.
+
+DIR/index.html embeds every plot (base64 PNG) so the page alone can be mailed or archived; the PNG
+files are written beside it too. matplotlib is optional for fluxcal and imported only here, only
+when a report is asked for; without it `write_report` raises a FluxcalError that says how to install it.
+
+Plots: the residual against its strongest observables before and after the best candidate effect,
+the error per channel before and after, the residual over time, and the candidate table.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from drivers.errors import FluxcalError
+
+from service.numerics.diagnose import Diagnosis
+
+MAX_POINTS = 6000
+
+
+def _pyplot():
+    try:
+        import matplotlib
+    except ImportError:
+        raise FluxcalError("the HTML report needs matplotlib, which is not installed: "
+                           "pip install matplotlib (or the project's [plots] extra), "
+                           "or run diagnose without --report") from None
+    matplotlib.use("Agg")                       # files only, never a window
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _observable_axis(d: Diagnosis, channel: str, observable: str) -> tuple[np.ndarray, str] | None:
+    """A one-dimensional axis to plot a residual against: the observable itself or its main direction."""
+    fit = d.fit
+    pr = fit.problem
+    data = pr.data
+    rows = pr.rows
+    c = fit.channels.names.index(channel)
+    kind, kk = pr.channel_probe(c)
+    k = 0 if kind == "diff" else kk
+    if observable == "time":
+        return data.t_s[rows], "time (s)"
+    if observable == "temperature" and data.has_temperature():
+        return data.temperature(kk)[rows], f"temperature of {data.probe_names[kk]} (degC)"
+    if observable == "angular rate":
+        s1, r1 = data.smooth(0)[rows], data.rate(0)[rows]
+        omega = np.linalg.norm(np.cross(s1, r1), axis=1) / np.sum(s1 ** 2, axis=1)
+        return np.degrees(omega), "angular rate (deg/s)"
+    if observable in ("orientation", "heading"):
+        u = fit.ev.nhat[k]
+        return np.degrees(np.arctan2(u[:, 1], u[:, 0])), f"field heading in {data.probe_names[k]}'s frame (deg)"
+    if observable == "field magnitude" and data.ref_total_nT is not None:
+        return data.ref_total_nT[rows], "reference total field (nT)"
+    if observable in data.extras:
+        return data.extras[observable][rows], observable
+    return None
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=96, bbox_inches="tight")
+    return buf.getvalue()
+
+
+def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
+    """(file name, caption, PNG bytes) of every plot."""
+    plt = _pyplot()
+    figs: list[tuple[str, str, bytes]] = []
+    best = d.best
+    after = best.fit if best is not None else None
+    names = d.channel_names
+    before_vals = d.fit.channels.values
+    after_vals = after.channels.values if after is not None else None
+
+    # residual against the strongest observables
+    seen: set[tuple[str, str]] = set()
+    picks = []
+    for w in d.where:
+        key = (w["channel"], w["observable"])
+        if w["observable"] == "frequency" or key in seen:
+            continue
+        seen.add(key)
+        picks.append(w)
+        if len(picks) == 3:
+            break
+    m = before_vals.shape[0]
+    sel = np.arange(0, m, max(1, m // MAX_POINTS))
+    for i, w in enumerate(picks):
+        axis = _observable_axis(d, w["channel"], w["observable"])
+        if axis is None:
+            continue
+        x, label = axis
+        c = names.index(w["channel"])
+        fig, ax = plt.subplots(figsize=(7.5, 3.6))
+        ax.plot(x[sel], before_vals[sel, c], ".", ms=2, alpha=0.5, label=f"before: {d.model}")
+        if after_vals is not None:
+            ax.plot(x[sel], after_vals[sel, c], ".", ms=2, alpha=0.5, label=f"after: + {best.effect}")
+        ax.set_xlabel(label)
+        ax.set_ylabel(f"{w['channel']} residual (nT)")
+        ax.set_title(f"{w['channel']} against {w['observable']} (explains {100 * w['strength']:.0f}% of the residual)")
+        ax.legend(loc="best", markerscale=5, fontsize=8)
+        ax.grid(alpha=0.3)
+        figs.append((f"where_{i + 1}.png", f"Residual of {w['channel']} against {w['observable']}, "
+                     f"before and after adding the best candidate", _png(fig)))
+        plt.close(fig)
+
+    # error per channel before / after
+    fig, ax = plt.subplots(figsize=(7.5, 3.4))
+    xs = np.arange(len(names))
+    wbar = 0.28
+    ax.bar(xs - wbar, d.channel_rms_nT, wbar, label="before")
+    if after is not None:
+        ax.bar(xs, after.channels.rms_nT, wbar, label=f"after + {best.effect}")
+    ax.bar(xs + wbar, d.channel_noise_nT, wbar, label="noise floor", color="0.6")
+    ax.set_xticks(xs, names, rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel("RMS (nT)")
+    ax.set_yscale("log")
+    from matplotlib.ticker import ScalarFormatter
+
+    ax.yaxis.set_major_formatter(ScalarFormatter())
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, axis="y")
+    figs.append(("channels.png", "Error per channel before and after, against the noise floor", _png(fig)))
+    plt.close(fig)
+
+    # residual over time
+    t = d.fit.channels.t_s
+    fig, ax = plt.subplots(figsize=(7.5, 3.4))
+    ax.plot(t[sel], np.sqrt(np.mean(before_vals[sel] ** 2, axis=1)), lw=0.6, label="before")
+    if after_vals is not None:
+        ax.plot(t[sel], np.sqrt(np.mean(after_vals[sel] ** 2, axis=1)), lw=0.6, label=f"after + {best.effect}")
+    for s in d.worst_segments:
+        ax.axvspan(s["t_start_s"], s["t_end_s"], color="red", alpha=0.08)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("RMS over channels (nT)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    figs.append(("time.png", "Residual over time (worst segments shaded)", _png(fig)))
+    plt.close(fig)
+
+    # candidates: held-out RMS
+    testable = [c for c in d.candidates if c.testable]
+    if testable:
+        fig, ax = plt.subplots(figsize=(7.5, 3.2))
+        ys = np.arange(len(testable))
+        ax.barh(ys, [c.heldout_rms_nT for c in testable],
+                color=["tab:green" if c.significant else "tab:gray" for c in testable])
+        ax.axvline(d.heldout_rms_nT, color="k", lw=1, label="model now (held-out)")
+        ax.axvline(d.noise_nT, color="tab:red", lw=1, ls="--", label="noise floor")
+        ax.set_yticks(ys, [c.effect for c in testable])
+        ax.invert_yaxis()
+        ax.set_xlabel("held-out RMS with the effect added (nT)")
+        ax.legend(fontsize=8)
+        figs.append(("candidates.png", "Held-out RMS of each candidate (green: significant)", _png(fig)))
+        plt.close(fig)
+    return figs
+
+
+def _table(d: Diagnosis) -> str:
+    head = ("<tr><th>effect</th><th>RMS if added (nT)</th><th>held-out RMS (nT)</th><th>held-out gain</th>"
+            "<th>p-value</th><th>&Delta;BIC</th><th>significant</th><th>note</th></tr>")
+    rows = []
+    for c in d.candidates:
+        note = ""
+        if c.indistinguishable_from:
+            note = f"indistinguishable from {', '.join(c.indistinguishable_from)}: {c.separate_by}"
+        elif c.reason:
+            note = c.reason
+        if c.testable:
+            cells = [c.effect, f"{c.rms_nT:.3f}", f"{c.heldout_rms_nT:.3f}",
+                     f"{100 * c.gain:.1f}% (t = {c.log_ratio / c.log_ratio_se if c.log_ratio_se > 0 else float('inf'):.1f})", f"{c.p_value:.2g}", f"{c.bic_delta:.1f}",
+                     "<b>yes</b>" if c.significant else "no", html.escape(note)]
+        else:
+            cells = [c.effect, "-", "-", "-", "-", "-", "not testable", html.escape(note)]
+        rows.append("<tr>" + "".join(f"<td>{x}</td>" for x in cells) + "</tr>")
+    return "<table>" + head + "".join(rows) + "</table>"
+
+
+def render_html(d: Diagnosis, figs: list[tuple[str, str, bytes]], title: str) -> str:
+    ch_rows = "".join(f"<tr><td>{html.escape(n)}</td><td>{r:.3f}</td><td>{s:.3f}</td></tr>"
+                      for n, r, s in zip(d.channel_names, d.channel_rms_nT, d.channel_noise_nT))
+    where_rows = "".join(
+        f"<tr><td>{html.escape(w['channel'])}</td><td>{html.escape(w['observable'])}"
+        f"{' (' + html.escape(w['band']) + ')' if w.get('band') else ''}</td><td>{w['strength']:.2f}</td></tr>"
+        for w in d.where[:12])
+    imgs = "".join(
+        f'<figure><img alt="{html.escape(cap)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
+        f"<figcaption>{html.escape(cap)}</figcaption></figure>" for _, cap, png in figs)
+    best = d.best
+    verdict = (f"Most likely missing: <b>{html.escape(best.effect)}</b> (RMS {d.rms_nT:.3f} &rarr; "
+               f"{best.rms_nT:.3f} nT)." if best else "No missing effect is significant.")
+    notes = "".join(f"<li>{html.escape(n)}</li>" for n in d.notes)
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
+<style>
+body {{ font-family: sans-serif; max-width: 60em; margin: 2em auto; color: #222; }}
+table {{ border-collapse: collapse; margin: 1em 0; font-size: 0.9em; }}
+td, th {{ border: 1px solid #bbb; padding: 0.2em 0.6em; text-align: left; }}
+figure {{ margin: 1.5em 0; }} img {{ max-width: 100%; }} figcaption {{ font-size: 0.85em; color: #555; }}
+</style></head><body>
+<h1>{html.escape(title)}</h1>
+<p>Model: <b>{html.escape(d.model)}</b> (linear part {d.linear}; total field from {d.reference});
+{d.n_samples} samples over {d.duration_s:.1f} s.</p>
+<p>Residual RMS <b>{d.rms_nT:.3f} nT</b> against a noise floor of {d.noise_nT:.3f} nT;
+held-out {d.heldout_rms_nT:.3f} nT. {verdict}</p>
+<h2>Candidate effects</h2>
+<p>Each effect is fitted in addition to the model and judged on {len(d.fit.problem.blocks)} contiguous time
+blocks, each predicted by the fit to the others.</p>
+{_table(d)}
+<h2>Channels</h2>
+<table><tr><th>channel</th><th>RMS (nT)</th><th>noise (nT)</th></tr>{ch_rows}</table>
+<h2>Where the model fails</h2>
+<table><tr><th>channel</th><th>observable</th><th>explained variance</th></tr>{where_rows}</table>
+<h2>Plots</h2>
+{imgs}
+{'<h2>Notes</h2><ul>' + notes + '</ul>' if notes else ''}
+</body></html>
+"""
+
+
+def write_report(d: Diagnosis, out_dir: str | Path, title: str = "fluxcal diagnose") -> Path:
+    """Write DIR/index.html and the PNG plots; the page appears complete or not at all."""
+    out = Path(out_dir)
+    figs = _figures(d)                                     # fails before anything is written if no matplotlib
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for name, _, png in figs:
+            (out / name).write_bytes(png)
+        page = render_html(d, figs, title)
+        fd, tmp = tempfile.mkstemp(dir=out, prefix=".index-", suffix=".html")
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(page)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, out / "index.html")
+    except OSError as e:
+        raise FluxcalError(f"{out}: cannot write the report: {e.strerror or e}") from None
+    return out / "index.html"
+
+
+__all__ = ["write_report", "render_html"]

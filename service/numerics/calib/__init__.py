@@ -1,0 +1,26 @@
+"""Calibration numerics: pure numpy/scipy, no I/O.
+
+model (ProbeCalibration, ArrayCalibration, the 001 triangular and 000 unit-column parameterisations),
+ellipsoid (000, 004 step 1), tmi (001 section 4), sinefit (003), twostep (004), rls (the online
+estimator), alignment (000 regression, 001 rotation), tensor (001), coverage (what users need to
+trust a fit). The calibration file is read and written in service.io.calfile.
+"""
+
+from .alignment import (RotationAlignment, align_probes, align_regression, align_rotation, platform_calibration,
+                        platform_output, regression_calibration, rotation_from_angles, rotation_from_samples)
+from .ellipsoid import EllipsoidFit, fit_ellipsoid, triangular_factor
+from .model import (ArrayCalibration, ProbeCalibration, triangular_matrix, triangular_params,
+                    unit_column_split)
+from .tensor import (center_field, cross_positions, differences, invariants, measured_components,
+                     tensor_from_cross, tensor_from_positions)
+from .tmi import TmiFit, fit_tmi, fit_tmi_full
+
+__all__ = [
+    "ArrayCalibration", "ProbeCalibration", "triangular_matrix", "triangular_params", "unit_column_split",
+    "EllipsoidFit", "fit_ellipsoid", "triangular_factor",
+    "TmiFit", "fit_tmi", "fit_tmi_full",
+    "RotationAlignment", "align_probes", "align_regression", "align_rotation", "platform_calibration",
+    "platform_output", "regression_calibration", "rotation_from_angles", "rotation_from_samples",
+    "center_field", "cross_positions", "differences", "invariants", "measured_components",
+    "tensor_from_cross", "tensor_from_positions",
+]

@@ -1,0 +1,246 @@
+"""`fluxcal decode CAPTURE --probes N [--can] [--lsb-nT X] [--base-id ID] --out FILE.csv|FILE.mcap`:
+turn a raw serial capture (ICD frames, possibly starting mid-frame, with noise) or a CAN log
+(python-can formats by suffix) into data, with the same parsing and assembly as the live sources.
+
+CSV columns: t, s1_x .. sN_z (nT), s1_temp .. sN_temp (degC), seq, flags. For serial captures t is
+the unit clock (t_us unwrapped) in seconds with 6 decimals, i.e. exact microseconds; CAN carries no
+unit clock, so there t = seq / rate with the rate estimated from the log's timestamps. Saturated
+axes and invalid temperatures are written as nan (the flags column says why). The output is
+written to a temporary file and renamed, so it is complete or absent. Counters go to stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import re
+import sys
+import tempfile
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from drivers.assemble import FrameAssembler, SerialFramer
+from drivers.block import SampleBlock
+from drivers.errors import ConfigError, DataError, FluxcalError
+from drivers.icd import MAX_PROBES, frame_length, parse_serial
+from drivers.source import Counters
+
+CHUNK_BYTES = 4 << 20          # serial captures are read in 4 MiB pieces: any size fits in memory
+PROGRESS_BYTES = 64 << 20      # captures larger than this report progress
+
+
+def _say(msg: str) -> None:
+    print(f"fluxcal decode: {msg}", file=sys.stderr, flush=True)
+
+
+def main(args: argparse.Namespace) -> int:
+    n = args.probes
+    if not 1 <= n <= MAX_PROBES:
+        raise ConfigError(f"--probes: {n} is not allowed (allowed: 1..{MAX_PROBES}, the unit's number of probes)")
+    if not (math.isfinite(args.lsb_nT) and args.lsb_nT > 0):
+        raise ConfigError(f"--lsb-nT: {args.lsb_nT!r} is not allowed (allowed: a positive number of nT per count)")
+    capture = Path(args.capture)
+    out = Path(args.out)
+    suffix = out.suffix.lower()
+    if suffix not in (".csv", ".mcap"):
+        raise ConfigError(f"--out: {out} must end in .csv or .mcap")
+    if not capture.exists():
+        raise DataError(f"{capture}: capture file not found")
+    if not capture.is_file():
+        raise DataError(f"{capture}: not a file")
+    if out.exists() and out.resolve() == capture.resolve():
+        raise ConfigError(f"--out: {out} is the capture itself; choose another output file")
+    if not out.parent.resolve().is_dir():
+        raise ConfigError(f"--out: directory {out.parent} does not exist")
+
+    counters = Counters()
+    if args.can:
+        from drivers.can_source import check_base_id
+
+        check_base_id(args.base_id, n, "--base-id")
+        blocks, t_format = _can_blocks(capture, n, args.base_id, args.lsb_nT, counters), "%.9f"
+    else:
+        blocks, t_format = _serial_blocks(capture, n, args.lsb_nT, counters), "%.6f"
+
+    counted = _Counted(blocks)
+    if suffix == ".csv":
+        _write_csv(out, n, t_format, counted, capture, args, counters)
+    else:
+        _write_mcap(out, n, counted, capture, args, counters)
+    total = counted.samples
+    _say(f"{total} samples -> {out}")
+    _say(_counters_line(counters, args.can))
+    return 0
+
+
+def _counters_line(c: Counters, can_log: bool) -> str:
+    parts = [f"frames accepted {c.frames_accepted}"]
+    if can_log:
+        parts.append(f"malformed frames {c.crc_failures}")
+    else:
+        parts += [f"CRC failures {c.crc_failures}", f"bytes skipped {c.bytes_skipped}"]
+    parts.append(f"sequence gaps {c.seq_gaps} ({c.samples_missed} samples missed)")
+    if can_log:
+        parts.append(f"incomplete CAN samples {c.can_incomplete}")
+    parts += [f"saturated axes {c.saturated_axes}", f"invalid temperatures {c.temp_invalid}"]
+    return "counters: " + ", ".join(parts)
+
+
+def _serial_blocks(capture: Path, n: int, lsb_nT: float, counters: Counters) -> Iterator[SampleBlock]:
+    framer = SerialFramer(n, counters)
+    assembler = FrameAssembler(n, lsb_nT, counters)
+    size = capture.stat().st_size
+    next_report = PROGRESS_BYTES
+    try:
+        f = capture.open("rb")
+    except OSError as e:
+        raise DataError(f"{capture}: cannot read ({e.strerror})") from None
+    with f:
+        while True:
+            chunk = f.read(CHUNK_BYTES)
+            frames = framer.feed(chunk) if chunk else framer.finish()
+            if len(frames):
+                yield assembler.block(frames)
+            if not chunk:
+                return
+            if size > PROGRESS_BYTES and framer.bytes_fed >= next_report:
+                _say(f"{100 * framer.bytes_fed / size:.0f} % of {size / 2**20:.0f} MiB")
+                next_report += PROGRESS_BYTES
+
+
+def _can_blocks(capture: Path, n: int, base_id: int, lsb_nT: float, counters: Counters) -> Iterator[SampleBlock]:
+    from drivers.assemble import SeqGapCounter
+    from drivers.can_source import estimate_rate_hz, read_can_log
+
+    samples, _ = read_can_log(capture, n, base_id=base_id, counters=counters)
+    if len(samples) == 0:
+        return
+    rate = estimate_rate_hz(samples)
+    if rate is None:
+        _say("CAN carries no unit clock and the log's timestamps do not give the rate: t is the sample counter")
+        rate = 1.0
+    else:
+        _say(f"CAN carries no unit clock: t = seq / {rate:.6g} Hz, the rate estimated from the log's timestamps")
+    SeqGapCounter().update(samples.seq, counters)
+    yield samples.to_block(rate_hz=rate, lsb_nT=lsb_nT, counters=counters)
+
+
+def _no_frames_message(capture: Path, n: int, args: argparse.Namespace, c: Counters) -> str:
+    if args.can:
+        lo, hi = args.base_id, args.base_id + 4 * n - 1
+        if c.frames_accepted == 0:
+            return (f"{capture}: no CAN frame with the ids of a {n}-probe unit ({lo:#x}..{hi:#x}); check --probes, "
+                    f"--base-id and that the file is a CAN log")
+        return (f"{capture}: {c.frames_accepted} frames but no complete sample ({c.can_incomplete} incomplete); "
+                f"check --probes: a {n}-probe sample needs {3 * n} frames")
+    size = capture.stat().st_size
+    if size == 0:
+        return f"{capture}: the capture is empty"
+    hint = ""
+    with capture.open("rb") as f:
+        head = f.read(CHUNK_BYTES)
+    others = [m for m in range(1, MAX_PROBES + 1) if m != n and len(parse_serial(head, m, final=True).frames)]
+    if others:
+        hint = f"; it holds {others[0]}-probe frames: use --probes {others[0]}"
+    return (f"{capture}: no intact {n}-probe ICD frame ({frame_length(n)} bytes, sync a5 5a) in {size} bytes"
+            f" ({c.crc_failures} failed their CRC){hint or '; check --probes, and use --can for a CAN log'}")
+
+
+class _AtomicFile:
+    """A temporary file beside the target, renamed onto it on commit and removed on abort."""
+
+    def __init__(self, path: Path, mode: str) -> None:
+        self.path = path
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+        self.tmp = Path(tmp)
+        self.file = os.fdopen(fd, mode)
+
+    def commit(self) -> None:
+        self.file.flush()
+        os.fsync(self.file.fileno())
+        self.file.close()
+        os.replace(self.tmp, self.path)
+
+    def abort(self) -> None:
+        if not self.file.closed:
+            self.file.close()
+        self.tmp.unlink(missing_ok=True)
+
+
+class _CsvWriter:
+    """CONTRACTS.md section 1 columns plus seq and flags, rows written block by block."""
+
+    def __init__(self, path: Path, n: int, t_format: str) -> None:
+        self.n = n
+        header = ["t"] + [f"s{k}_{a}" for k in range(1, n + 1) for a in "xyz"]
+        header += [f"s{k}_temp" for k in range(1, n + 1)] + ["seq", "flags"]
+        # nT with 12 significant digits: counts x lsb_nT come back to the count for any lsb_nT;
+        # temperatures are whole hundredths of a degree
+        self.fmt = ",".join([t_format] + ["%.12g"] * (3 * n) + ["%.2f"] * n + ["%d", "%d"])
+        self.out = _AtomicFile(path, "w")
+        self.out.file.write(",".join(header) + "\n")
+
+    def write(self, b: SampleBlock) -> None:
+        table = np.column_stack([b.t_s, b.field_nT.reshape(len(b), -1), b.temp_C, b.seq, b.flags])
+        np.savetxt(self.out.file, table, fmt=self.fmt)
+
+    def commit(self) -> None:
+        self.out.commit()
+
+    def abort(self) -> None:
+        self.out.abort()
+
+
+class _Counted:
+    """Passes blocks through and counts their samples."""
+
+    def __init__(self, blocks: Iterator[SampleBlock]) -> None:
+        self.blocks = blocks
+        self.samples = 0
+
+    def __iter__(self) -> Iterator[SampleBlock]:
+        for b in self.blocks:
+            self.samples += b.n_samples
+            yield b
+
+
+def _write_csv(out: Path, n: int, t_format: str, blocks: _Counted, capture: Path, args: argparse.Namespace,
+               counters: Counters) -> None:
+    try:
+        writer = _CsvWriter(out, n, t_format)
+    except OSError as e:
+        raise ConfigError(f"--out: cannot write {out} ({e.strerror})") from None
+    try:
+        for block in blocks:
+            writer.write(block)
+        if blocks.samples == 0:
+            raise DataError(_no_frames_message(capture, n, args, counters))
+        writer.commit()
+    except OSError as e:
+        writer.abort()
+        raise FluxcalError(f"writing {out} failed ({e}); nothing was written") from e
+    except BaseException:
+        writer.abort()
+        raise
+
+
+def _write_mcap(out: Path, n: int, blocks: _Counted, capture: Path, args: argparse.Namespace,
+                counters: Counters) -> None:
+    """Through service.io.recordings.writer.write_recording(path, blocks, unit=, probe_names=), the MCAP logger's
+    whole-file entry point, into a temporary file renamed on success."""
+    from service.io.recordings.writer import write_recording
+
+    unit = re.sub(r"[^A-Za-z0-9_\-]", "_", capture.stem)[:64] or "unit1"
+    tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
+    try:
+        write_recording(tmp, blocks, unit=unit, probe_names=[f"s{k}" for k in range(1, n + 1)])
+        if blocks.samples == 0:
+            raise DataError(_no_frames_message(capture, n, args, counters))
+        os.replace(tmp, out)
+    except OSError as e:
+        raise FluxcalError(f"writing {out} failed ({e}); nothing was written") from e
+    finally:
+        tmp.unlink(missing_ok=True)

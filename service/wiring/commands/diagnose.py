@@ -1,0 +1,168 @@
+"""`fluxcal diagnose DATA [--config FILE] [--calibration CAL.json] [--effects E,..] [--report DIR] [--json]`.
+
+Compares the model (a linear calibration plus the named effects) with the measurement, says where
+it fails and which catalogue effect is missing (service.numerics.diagnose). With --json, one JSON object
+on stdout (CONTRACTS.md §3); otherwise a readable summary. A progress bar goes to stderr when it is
+a terminal. --calibration holds that linear calibration fixed (the model compared is that file's linear part
+plus the effects: --effects, else those the file names, their parameters refitted); without it the
+linear part is refitted to DATA. --config gives the probe
+positions ([[probes]] position_m, or the [sim] probes) and the total field (estimator.total_nT).
+"""
+
+from __future__ import annotations
+
+import os
+
+# The fits multiply many small matrices: on a machine whose cores are busy, OpenBLAS worker threads spin
+# for them and double the CPU time (measured: 41 s against 20 s for bench/bench_diagnose.py). One thread
+# unless the user says otherwise; this only takes effect when numpy is not loaded yet (the CLI).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from drivers.config import load_section, read_toml  # noqa: E402
+from drivers.errors import ConfigError, DataError  # noqa: E402
+
+BAR_WIDTH = 30
+
+
+class ProgressBar:
+    """A one-line progress bar on stderr, drawn only when stderr is a terminal."""
+
+    def __init__(self, stream: Any = None) -> None:
+        self.stream = stream if stream is not None else sys.stderr
+        self.enabled = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.start = time.monotonic()
+
+    def __call__(self, frac: float, msg: str) -> None:
+        if not self.enabled:
+            return
+        n = int(round(BAR_WIDTH * min(max(frac, 0.0), 1.0)))
+        bar = "#" * n + "-" * (BAR_WIDTH - n)
+        self.stream.write(f"\r[{bar}] {100 * frac:3.0f}% {time.monotonic() - self.start:5.1f} s  {msg:<28}")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            self.stream.write("\r" + " " * (BAR_WIDTH + 48) + "\r")
+            self.stream.flush()
+
+
+def config_geometry(path: str, n_probes: int) -> tuple[np.ndarray | None, float | None]:
+    """Probe positions (P, 3) and the total field from a configuration file. The sections diagnose uses
+    are validated strictly ([unit], [[probes]], [estimator], [sim]); the others need not describe a
+    runnable source, but unknown section names are still errors."""
+    from service.wiring.config import _SECTIONS, EstimatorConfig, ProbeConfig, UnitConfig
+
+    raw = read_toml(path)
+    try:
+        for key in raw:
+            if key not in _SECTIONS:
+                raise ConfigError(f"{key}: unknown section (allowed: {', '.join(_SECTIONS)})")
+        unit = load_section(UnitConfig, raw.get("unit", {}), "unit")
+        total = load_section(EstimatorConfig, raw.get("estimator", {}), "estimator").total_nT
+        tables = raw.get("probes", [])
+        if not isinstance(tables, list):
+            raise ConfigError("probes: expected an array of tables [[probes]]")
+        probes = [load_section(ProbeConfig, t, f"probes[{i}]") for i, t in enumerate(tables)]
+        positions = None
+        if probes:
+            if "unit" in raw and len(probes) != unit.n_probes:
+                raise ConfigError(f"probes: {len(probes)} [[probes]] tables but unit.n_probes = {unit.n_probes}")
+            positions = np.array([p.position_m for p in probes], dtype=np.float64)
+        elif "sim" in raw:
+            from drivers.sim.config import load_sim_config
+
+            positions = np.array([p.position_m for p in load_sim_config(raw["sim"]).probes], dtype=np.float64)
+        if positions is not None and positions.shape[0] != n_probes:
+            raise ConfigError(f"probes: {positions.shape[0]} probe positions but the data have {n_probes} probes")
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
+    return positions, total
+
+
+def load_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:
+    """A calibration file: the calibration file of `fit --out` (service.io.calfile), or the JSON of
+    `fit --json` (sensors with offset_nT and matrix). Returns the linear part and the effect names the
+    file carries."""
+    from service.numerics.engine import LinearCalibration
+
+    p = Path(path)
+    if not p.exists():
+        raise DataError(f"{p}: no such calibration file")
+    first_error: DataError | None = None
+    try:
+        from service.io.calfile import load_calibration as load_calfile
+    except ImportError:                                   # the calibration core is optional here
+        load_calfile = None
+    if load_calfile is not None:
+        try:
+            cal = load_calfile(p)
+            return LinearCalibration.from_any(cal, n_probes), list(getattr(cal, "effects", []) or [])
+        except DataError as e:
+            first_error = e                               # perhaps `fit --json` output: try that below
+    try:
+        obj = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as e:
+        raise first_error or DataError(f"{p}: cannot read the calibration: {e}") from None
+    except json.JSONDecodeError as e:
+        raise first_error or DataError(f"{p}: line {e.lineno}, column {e.colno}: not valid JSON ({e.msg})") from None
+    try:
+        effects = list(obj.get("effects") or []) if isinstance(obj, dict) else []
+        return LinearCalibration.from_any(obj, n_probes), effects
+    except (DataError, TypeError, ValueError) as e:
+        if first_error is not None:
+            raise first_error from None
+        raise DataError(f"{p}: {e}") from None
+
+
+def main(args: argparse.Namespace) -> int:
+    from service.numerics.diagnose import diagnose, summary_text
+    from service.numerics.effects import EFFECTS
+    from service.numerics.effects.base import EffectData
+    from service.io.recordings.labdata import load_data
+
+    unknown = [e for e in args.effects if e not in EFFECTS]
+    if unknown:
+        raise ConfigError(f"--effects: {', '.join(map(repr, unknown))} not an effect "
+                          f"(allowed: {', '.join(EFFECTS)})")
+    lab = load_data(args.data)
+    block = getattr(lab, "block", lab)
+    names = getattr(lab, "probe_names", None)
+    positions, total = (config_geometry(args.config, block.n_probes) if args.config else (None, None))
+    data = EffectData.from_block(block, names, total_nT=total, positions_m=positions)
+    cal, effects = None, list(args.effects)
+    if args.calibration:
+        cal, cal_effects = load_calibration(args.calibration, data.n_probes)
+        if not effects:
+            effects = [e for e in cal_effects if e in EFFECTS]      # the model the file describes
+    bar = ProgressBar()
+    try:
+        result = diagnose(data, effects=effects, calibration=cal, progress=bar)
+    finally:
+        bar.close()
+    if args.calibration and effects:
+        result.notes.append(f"{args.calibration}: linear part held fixed; the parameters of "
+                            f"{', '.join(effects)} are refitted to these data")
+    report_path = None
+    if args.report:
+        from service.io.report import write_report
+
+        report_path = write_report(result, args.report, title=f"fluxcal diagnose {Path(args.data).name}")
+    if args.json:
+        json.dump(result.as_dict(), sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print(summary_text(result, args.data))
+        if report_path is not None:
+            print(f"  report: {report_path}")
+    if report_path is not None and args.json:
+        print(f"fluxcal diagnose: report written to {report_path}", file=sys.stderr)
+    return 0

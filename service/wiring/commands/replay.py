@@ -1,0 +1,167 @@
+"""`fluxcal replay REC.mcap [--config FILE] [--out OUT.mcap]`: a recording through the same pipeline.
+
+The raw blocks are replayed exactly as they were recorded, and every command the live service
+applied is applied again before the same sample, so the corrected output equals the live run's bit
+for bit (given the same configuration: by default the one stored in the recording). Reports how
+many corrected blocks were compared and whether they were identical.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from argparse import Namespace
+from pathlib import Path
+
+import numpy as np
+
+from drivers.block import SampleBlock
+
+from drivers.errors import RecordingError
+from service.io.calfile import calibration_from_dict
+from service.wiring.config import config_from_dict, load_config, rate_stated
+from service.wiring.daemon import build_pipeline
+from service.io.recordings.reader import read_recording
+
+
+class Progress:
+    """A progress bar on a terminal, nothing otherwise."""
+
+    def __init__(self, total: int, label: str) -> None:
+        self.total, self.label = max(total, 1), label
+        self.tty = sys.stderr.isatty()
+        self.last = 0.0
+
+    def update(self, done: int) -> None:
+        now = time.monotonic()
+        if not self.tty or now - self.last < 0.1:
+            return
+        self.last = now
+        frac = min(done / self.total, 1.0)
+        bar = "#" * int(30 * frac)
+        print(f"\r{self.label} [{bar:<30}] {frac:6.1%}", end="", file=sys.stderr, flush=True)
+
+    def done(self) -> None:
+        if self.tty:
+            print("\r\033[K", end="", file=sys.stderr, flush=True)
+
+
+def _check_one_run(path: Path) -> None:
+    """A directory may hold the rotated files of one run; several runs (each starts with a -0001 file)
+    cannot be replayed as one: the pipeline would carry one run's state into the next, and the live
+    output it is compared with was not made that way."""
+    if not path.is_dir():
+        return
+    starts = sorted(p.name for p in path.glob("*-0001.mcap"))
+    if len(starts) > 1:
+        shown = ", ".join(starts[:4]) + (", ..." if len(starts) > 4 else "")
+        raise RecordingError(f"{path}: holds {len(starts)} separate runs ({shown}); replay one run at a time: "
+                             f"its -0001 file, or a directory holding only that run's files")
+
+
+#: the rate a serial source was taken to run at before source.rate_hz existed (the live run used it)
+LEGACY_RATE_HZ = 200.0
+
+
+def _with_rate(raw: dict, recording: str) -> dict:
+    """A configuration stored before source.rate_hz existed (serial or replay source, no rate stated):
+    the live run counted its estimator durations at 200 Hz, so replay must too, to give the same output;
+    said, with how to replay at another rate."""
+    if not rate_stated(raw):
+        print(f"fluxcal replay: {recording}: its stored configuration names no source.rate_hz (it was recorded "
+              f"before the key existed, when a serial source was taken to run at {LEGACY_RATE_HZ:g} Hz): replaying "
+              f"at {LEGACY_RATE_HZ:g} Hz as the live run did; give --config with source.rate_hz for another rate",
+              file=sys.stderr)
+        raw = {**raw, "source": {**raw["source"], "rate_hz": LEGACY_RATE_HZ}}
+    return raw
+
+
+def main(args: Namespace) -> int:
+    _check_one_run(Path(args.recording))
+    rec = read_recording(args.recording)
+    if args.config:
+        cfg = load_config(args.config)
+    else:
+        text = rec.metadata.get("config")
+        if not text:
+            raise RecordingError(f"{args.recording}: no configuration stored in the recording; give --config")
+        cfg = config_from_dict(_with_rate(json.loads(text), args.recording), f"{args.recording} (stored configuration)")
+    initial = None
+    commands = []
+    for ev in rec.events:
+        if ev.get("kind") == "initial" and ev.get("calibration"):
+            initial = calibration_from_dict(ev["calibration"], "recorded initial calibration")
+        elif ev.get("kind") == "command":
+            commands.append(ev)
+    commands.sort(key=lambda e: e["seq"])
+    pipeline = build_pipeline(cfg, initial)
+    logger = None
+    if args.out:
+        from service.io.recordings.writer import McapLogger
+
+        out = Path(args.out)
+        logger = McapLogger(out.parent, unit=cfg.unit.name, filename=out.name, rotate_mb=1e9, rotate_s=1e12,
+                            metadata=dict(rec.metadata))
+    blocks = _coalesce(rec.raw_blocks, [c["seq"] for c in commands])
+    progress = Progress(sum(b.n_samples for b in blocks), "replay")
+    samples = 0
+    ci = 0
+    out_seq, out_vals = [], []
+    t0 = time.perf_counter()
+    try:
+        for block in blocks:
+            while ci < len(commands) and block.n_samples and commands[ci]["seq"] <= int(block.seq[0]):
+                c = commands[ci]
+                payload = (calibration_from_dict(c["calibration"]) if c.get("name") == "apply"
+                           else c.get("effect"))
+                pipeline.command(c["name"], payload, seq=c["seq"], t_s=float("nan"))
+                ci += 1
+            result = pipeline.process(block)
+            samples += block.n_samples
+            if logger is not None:
+                logger.write_raw(block)
+                if result.corrected is not None:
+                    logger.write_corrected(result.corrected)
+            if result.corrected is not None:
+                out_seq.append(result.corrected.seq)
+                out_vals.append(result.corrected.corrected_nT)
+            progress.update(samples)
+    finally:
+        progress.done()
+        if logger is not None:
+            logger.close()
+    compared, identical = _compare(rec.corrected_blocks, out_seq, out_vals)
+    dt = time.perf_counter() - t0
+    p = cfg.unit.n_probes
+    print(f"replayed {samples} samples of {p} probe(s) in {dt:.2f} s ({samples * p / max(dt, 1e-9):,.0f} "
+          f"probe-samples/s); corrected samples compared with the recording: {compared}, identical: {identical}"
+          + (f"; written to {args.out}" if args.out else ""))
+    if compared and identical != compared:
+        print(f"fluxcal replay: {compared - identical} corrected sample(s) differ from the live run", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _coalesce(blocks, cut_seqs, max_samples: int = 20000):
+    """Large blocks for speed (the pipeline's output does not depend on blocking), cut where a
+    recorded command applies so it lands before the same sample as live."""
+    cuts = sorted(set(int(s) for s in cut_seqs))
+    whole = SampleBlock.concat(blocks)
+    edges = np.searchsorted(whole.seq, cuts)
+    bounds = sorted(set([0, whole.n_samples, *edges.tolist(), *range(0, whole.n_samples, max_samples)]))
+    return [whole.slice(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def _compare(live_blocks, seqs, values) -> tuple[int, int]:
+    """Samples of the live corrected stream compared with the replay's, matched by seq."""
+    if not live_blocks or not seqs:
+        return 0, 0
+    live_seq = np.concatenate([c.seq for c in live_blocks])
+    live_val = np.concatenate([c.corrected_nT for c in live_blocks])
+    seq = np.concatenate(seqs)
+    val = np.concatenate(values)
+    common, il, ir = np.intersect1d(live_seq, seq, return_indices=True)
+    a, b = live_val[il], val[ir]
+    same = np.all((a == b) | (np.isnan(a) & np.isnan(b)), axis=(1, 2))
+    return int(common.size), int(same.sum())

@@ -1,0 +1,186 @@
+"""`fluxcal simulate [--config FILE] --out FILE.csv|FILE.mcap`: write simulated unit data and its truth.
+
+The CSV is the lab format of CONTRACTS.md section 1 (comments first, then t, s<k>_x/y/z, s<k>_temp,
+ref_total, seq, flags); the truth JSON beside it (FILE.truth.json) holds every parameter of the world,
+each probe's calibration matrix and offset included (drivers.sim.world.World.truth). Both files
+appear complete or not at all. Without --config the built-in gradiometer world is used
+(configs/sim-gradiometer.toml).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.config import load_section, read_toml
+from drivers.errors import ConfigError, DataError
+from drivers.sim.config import GRADIOMETER, SimConfig, load_sim_config
+from drivers.sim.unit import Unit
+
+BLOCK_SAMPLES = 100_000       # samples formatted per write: bounded memory for long runs
+DEFAULT_UNIT_NAME = "grad1"
+
+
+def truth_path(out: Path) -> Path:
+    """FILE.csv -> FILE.truth.json."""
+    return out.with_name(out.stem + ".truth.json")
+
+
+def load_simulation(path: str | None) -> tuple[SimConfig, str]:
+    """The [sim] world and the unit name of a configuration file (validated as the service does), or the
+    built-in gradiometer."""
+    if path is None:
+        return load_sim_config(GRADIOMETER), DEFAULT_UNIT_NAME
+    raw = read_toml(path)
+    if "sim" not in raw:
+        raise ConfigError(f"{path}: no [sim] section: `fluxcal simulate` needs the simulated world "
+                          f"(see configs/sim-gradiometer.toml)")
+    try:
+        from service.wiring.config import config_from_dict
+
+        cfg = config_from_dict(raw, str(path))             # every section, as `fluxcal run` checks it
+        sim, unit = cfg.sim, cfg.unit
+    except ModuleNotFoundError as e:
+        if not (e.name or "").startswith("service."):
+            raise
+        # a part of the service that validates another section is not installed: check ours
+        from service.wiring.config import UnitConfig
+
+        try:
+            unit = load_section(UnitConfig, raw.get("unit", {}), "unit")
+            sim = load_sim_config(raw["sim"])
+        except ConfigError as err:
+            raise ConfigError(f"{path}: {err}") from None
+        if sim.n_probes != unit.n_probes:
+            raise ConfigError(f"{path}: sim.probes: {sim.n_probes} simulated probes but unit.n_probes = "
+                              f"{unit.n_probes}")
+    if not math.isclose(unit.lsb_nT, sim.lsb_nT, rel_tol=1e-12):
+        raise ConfigError(f"{path}: sim.lsb_nT: {sim.lsb_nT!r} differs from unit.lsb_nT = {unit.lsb_nT!r}")
+    return sim, unit.name
+
+
+def _decimals(step: float) -> int:
+    """Decimals that print multiples of `step` exactly (0.001 -> 3)."""
+    return max(0, min(12, math.ceil(-math.log10(step) - 1e-9)))
+
+
+def write_csv(path: Path, unit: Unit, unit_name: str, truth_file: str, progress: Any = None) -> int:
+    """Write the run as a lab CSV to `path` (the caller renames it into place). Returns samples."""
+    cfg = unit.config
+    n = unit.n_samples
+    assert n is not None
+    p = cfg.n_probes
+    names = [f"s{k + 1}" for k in range(p)]
+    header = ["t"] + [f"{s}_{a}" for s in names for a in "xyz"] + [f"{s}_temp" for s in names]
+    ref = cfg.reference.enabled
+    if ref:
+        header.append("ref_total")
+    header += ["seq", "flags"]
+    dec = _decimals(cfg.lsb_nT)
+    fmt = ["%.6f"] + [f"%.{dec}f"] * (3 * p) + ["%.2f"] * p + ([f"%.{max(dec, 4)}f"] if ref else []) + ["%d", "%d"]
+    f = cfg.field
+    probes_text = ", ".join(f"{pr.name} at {pr.position_m} m" for pr in cfg.probes)
+    comments = [
+        f"fluxcal simulate: simulated unit {unit_name!r}, {p} probe(s), {cfg.rate_hz:g} Hz, {cfg.duration_s:g} s, "
+        f"seed {cfg.seed}",
+        f"truth: {truth_file} (every parameter; per-probe matrix and offset_nT: matrix (raw - offset) = B_platform)",
+        f"field: {f.total_nT:g} nT, inclination {f.inclination_deg:g} deg, declination {f.declination_deg:g} deg "
+        f"(NED); motion: {cfg.motion.kind}; effects: {', '.join(unit.world.active_effects) or 'none'}",
+        f"probes (platform frame): {probes_text}",
+        f"columns: t s (unit clock), s<k>_x/y/z nT (counts x lsb_nT {cfg.lsb_nT:g}), s<k>_temp degC"
+        + (", ref_total nT (scalar reference at the platform origin)" if ref else "")
+        + ", seq (sample counter, unwrapped), flags (ICD: bit0 saturated, bit1 temperature invalid)",
+    ]
+    with open(path, "w", encoding="utf-8", newline="\n") as fh:
+        for c in comments:
+            fh.write(f"# {c}\n")
+        fh.write(",".join(header) + "\n")
+        for start in range(0, n, BLOCK_SAMPLES):
+            stop = min(n, start + BLOCK_SAMPLES)
+            s = unit.digitise(start, stop)
+            cols = [s.t_us / 1e6, s.field_nT.reshape(len(s), -1), s.temp_C]
+            if ref:
+                cols.append(s.ref_total_nT)
+            cols += [s.seq, s.flags]
+            table = np.column_stack([np.asarray(c, dtype=np.float64).reshape(len(s), -1) for c in cols])
+            np.savetxt(fh, table, fmt=fmt, delimiter=",")
+            if progress is not None:
+                progress(stop, n)
+    return n
+
+
+def _tmp(path: Path) -> Path:
+    # same suffix, so writers that look at it still see .csv / .mcap / .json
+    return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+
+
+def _mcap_writer(out: Path) -> Any:
+    """service.io.recordings.writer.write_recording(path, blocks, unit=, probe_names=, truth=), or a clear error."""
+    from service.io.recordings.writer import write_recording
+
+    return write_recording
+
+
+def _write_mcap(writer: Any, path: Path, unit: Unit, unit_name: str, truth: dict[str, Any]) -> int:
+    n = unit.n_samples
+    assert n is not None
+    blocks = (unit.digitise(a, min(n, a + BLOCK_SAMPLES)).to_block() for a in range(0, n, BLOCK_SAMPLES))
+    writer(path, blocks, unit=unit_name, probe_names=[p.name for p in unit.config.probes], truth=truth)
+    return n
+
+
+def main(args: Any) -> int:
+    out = Path(args.out)
+    suffix = out.suffix.lower()
+    if suffix not in (".csv", ".mcap"):
+        raise DataError(f"{out}: unknown output type {out.suffix!r}; use FILE.csv or FILE.mcap")
+    if not out.parent.exists():
+        raise DataError(f"{out}: directory {out.parent} does not exist")
+    sim, unit_name = load_simulation(args.config)
+    mcap_writer = _mcap_writer(out) if suffix == ".mcap" else None
+    if sim.n_samples is None:
+        raise ConfigError(f"{args.config or 'built-in'}: sim.duration_s: 0 means 'until stopped', which cannot be "
+                          f"written to a file; give a duration in seconds")
+    unit = Unit(sim)
+    tpath = truth_path(out)
+    truth = unit.world.truth()
+    truth.update({"unit": unit_name, "data_file": out.name, "probe_names": [p.name for p in sim.probes]})
+
+    started = time.monotonic()
+    last = [started]
+
+    def progress(done: int, total: int) -> None:
+        now = time.monotonic()
+        if now - last[0] > 2.0 and done < total:
+            last[0] = now
+            print(f"fluxcal simulate: {100 * done / total:.0f}% ({done} of {total} samples)", file=sys.stderr,
+                  flush=True)
+
+    # both files are written beside their targets under temporary names and renamed at the end:
+    # an interrupted or failed run leaves neither half-written
+    tmp_data, tmp_truth = _tmp(out), _tmp(tpath)
+    try:
+        with open(tmp_truth, "w", encoding="utf-8") as fh:
+            json.dump(truth, fh, indent=1)
+            fh.write("\n")
+        if suffix == ".csv":
+            n = write_csv(tmp_data, unit, unit_name, tpath.name, progress)
+        else:
+            n = _write_mcap(mcap_writer, tmp_data, unit, unit_name, truth)
+        os.replace(tmp_data, out)
+        os.replace(tmp_truth, tpath)
+    finally:
+        tmp_data.unlink(missing_ok=True)
+        tmp_truth.unlink(missing_ok=True)
+    effects = ", ".join(unit.world.active_effects) or "none"
+    print(f"fluxcal simulate: {n} samples of {sim.n_probes} probe(s) ({n / sim.rate_hz:g} s at {sim.rate_hz:g} Hz, "
+          f"unit {unit_name!r}, motion {sim.motion.kind}, effects: {effects}) -> {out}; truth -> {tpath}",
+          file=sys.stderr)
+    return 0

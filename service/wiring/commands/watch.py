@@ -1,0 +1,431 @@
+"""`fluxcal watch [--config F | --connect ENDPOINT] [--unit NAME] [--seconds S]`: a terminal dashboard.
+
+Connects to a running `fluxcal run` as a Zenoh client (directly to its listen endpoint, or to the
+router it is connected to) and shows, refreshed 4 times a second: the corrected vector and |B| of
+every probe, the gradiometer differences, the tensor, the model-vs-measurement error metric, the
+health counters, and the calibration state (usable?, coverage, quality). On a terminal it redraws
+in place with plain ANSI codes; when stdout is not a terminal (a log, a pipe, a test) it prints one
+line per second instead. It says so when nothing arrives, and waits for the service to come up.
+
+The dashboard subscribes lossily (service.io.bus.BusClient(lossless=False)): it shows the newest
+data and never holds the service back. Exit status: 0 after Ctrl-C / SIGTERM or after --seconds
+with data received; 1 if --seconds passed without any data.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+import time
+from collections import deque
+from typing import Any, Callable, TextIO
+
+import numpy as np
+import zenoh
+
+from drivers.errors import ConfigError
+
+from service.io.bus import (DEFAULT_PORT, BusClient, BusError, Keys, Message, ZenohConfig, ZenohTlsConfig, discover_units,
+                         open_session)
+
+DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
+TTY_PERIOD_S = 0.25            # redraw rate on a terminal (4 Hz)
+LINE_PERIOD_S = 1.0            # one line per second otherwise
+STALE_S = 3.0                  # no message for this long: say that nothing arrives
+STATE_EVERY_S = 2.0            # how often the calibration state is queried
+STREAMS = ("raw", "corrected", "diff", "tensor", "calibration", "health", "error")
+
+
+def dashboard_endpoints(zcfg: ZenohConfig) -> list[str]:
+    """Where a dashboard on this host reaches a service configured with `zcfg`: its listen endpoints (a
+    wildcard address becomes loopback), else the router it connects to.
+
+    >>> dashboard_endpoints(ZenohConfig(listen=["tcp/0.0.0.0:7447", "tcp/[::]:7448"]))
+    ['tcp/127.0.0.1:7447', 'tcp/[::1]:7448']
+    """
+    eps = []
+    for ep in zcfg.listen:
+        ep = re.sub(r"^(\w+)/0\.0\.0\.0:", r"\1/127.0.0.1:", ep)
+        ep = re.sub(r"^(\w+)/\[::\]:", r"\1/[::1]:", ep)
+        if not re.search(r":0(?:$|[#?])", ep):          # port 0: chosen at start, unknown from here
+            eps.append(ep)
+    return eps or list(zcfg.connect)
+
+
+def _resolve(args: argparse.Namespace) -> tuple[list[str], str | None, ZenohTlsConfig]:
+    endpoints: list[str] = []
+    unit = getattr(args, "unit", None)
+    tls = ZenohTlsConfig()
+    if getattr(args, "config", None):
+        from service.wiring.config import load_config
+
+        cfg = load_config(args.config)
+        endpoints = dashboard_endpoints(cfg.zenoh)
+        tls = cfg.zenoh.tls
+        unit = unit or cfg.unit.name
+        if not endpoints and not args.connect:
+            raise ConfigError(f"{args.config}: zenoh: the service neither listens on a fixed port nor connects to a "
+                              f"router; give --connect ENDPOINT")
+    if getattr(args, "connect", None):
+        endpoints = [args.connect]
+    if not endpoints:
+        endpoints = [DEFAULT_ENDPOINT]
+    given = {k: getattr(args, k, None) for k in ("ca", "cert", "key")}
+    if any(given.values()):
+        tls = ZenohTlsConfig(root_ca=given["ca"], cert=given["cert"], key=given["key"])
+        try:
+            tls.validate("tls")
+        except ConfigError as e:
+            key, _, why = str(e).partition(": ")
+            flag = {"tls.root_ca": "--ca", "tls.cert": "--cert", "tls.key": "--key"}.get(key, key)
+            raise ConfigError(f"{flag}: {why}") from None
+    try:
+        ZenohConfig.client(*endpoints, tls=tls)         # a typo in an endpoint is a usage error, not a retry loop
+    except ConfigError as e:
+        flag = "--connect" if getattr(args, "connect", None) else f"{args.config}: zenoh"
+        raise ConfigError(f"{flag}: {str(e).split(': ', 1)[-1]}") from None
+    if unit is not None:
+        Keys(unit)
+    if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
+        raise ConfigError(f"--seconds: {args.seconds!r} is not allowed (allowed: a positive number of seconds)")
+    return endpoints, unit, tls
+
+
+def _vec(v: np.ndarray, width: int = 10) -> str:
+    return " ".join(f"{x:+{width}.1f}" if np.isfinite(x) else f"{'nan':>{width}}" for x in v)
+
+
+def _vec_short(v: np.ndarray) -> str:
+    return "[" + ", ".join(f"{x:+.1f}" for x in v) + "]"
+
+
+def _num(x: Any, fmt: str = ".3g") -> str:
+    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, fmt)
+
+
+class Dashboard:
+    """What the dashboard knows (updated from messages) and how it draws it; no I/O here."""
+
+    def __init__(self, unit: str | None, endpoints: list[str], clock: Callable[[], float] = time.monotonic) -> None:
+        self.unit = unit
+        self.endpoints = endpoints
+        self.secure = any(ep.startswith(("tls/", "quic/")) for ep in endpoints)     # for the hints below
+        self.clock = clock
+        self.t_start = clock()
+        self.connected = False
+        self.alive: bool | None = None
+        self.last_msg_t: float | None = None
+        self.n_messages = 0
+        self.raw = None
+        self.corrected = None
+        self.diff = None
+        self.tensor = None
+        self.error: dict[str, Any] | None = None
+        self.health: dict[str, Any] | None = None
+        self.state: dict[str, Any] | None = None
+        self.probe_names: list[str] | None = None
+        self._rates: dict[str, deque] = {"raw": deque(), "corrected": deque()}
+
+    # --- updates -------------------------------------------------------------------------------
+
+    def update(self, msg: Message) -> None:
+        now = self.clock()
+        self.last_msg_t = now
+        self.n_messages += 1
+        v = msg.value
+        if msg.stream in self._rates:
+            q = self._rates[msg.stream]
+            q.append((now, v.n_samples))
+            while q and q[0][0] < now - 2.0:
+                q.popleft()
+        if msg.stream == "raw":
+            self.raw = v
+        elif msg.stream == "corrected":
+            self.corrected = v
+        elif msg.stream == "diff":
+            self.diff = v
+        elif msg.stream == "tensor":
+            self.tensor = v
+        elif msg.stream == "error":
+            self.error = v
+        elif msg.stream == "health":
+            self.health = v
+        elif msg.stream == "calibration" and isinstance(v.get("state"), dict):
+            self.update_state(v["state"])
+
+    def update_state(self, st: dict[str, Any]) -> None:
+        self.state = {**(self.state or {}), **st}
+        names = st.get("probe_names") or [p.get("name") for p in st.get("probes") or [] if isinstance(p, dict)]
+        if names and all(isinstance(n, str) for n in names):
+            self.probe_names = list(names)
+
+    def rate_hz(self, stream: str) -> float:
+        q = self._rates[stream]
+        now = self.clock()
+        while q and q[0][0] < now - 2.0:
+            q.popleft()
+        if not q:
+            return 0.0
+        span = max(now - q[0][0], 1.0)
+        return sum(n for _, n in q) / span
+
+    # --- text ----------------------------------------------------------------------------------
+
+    def _names(self, n: int) -> list[str]:
+        if self.probe_names and len(self.probe_names) == n:
+            return self.probe_names
+        return [f"s{k + 1}" for k in range(n)]
+
+    def waiting_message(self) -> str | None:
+        """Why nothing is shown, or None when data flows."""
+        where = ", ".join(self.endpoints)
+        if not self.connected:
+            return (f"cannot reach {where} — is `fluxcal run` running and listening there? (retrying every second)"
+                    + (" With TLS, also: is this certificate signed by the CA the service trusts, and does the "
+                       "service's certificate name the host?" if self.secure else ""))
+        if self.unit is None:
+            return f"no fluxcal unit visible via {where} yet — is `fluxcal run` running? (or give --unit)"
+        now = self.clock()
+        if self.last_msg_t is None:
+            return (f"no data from fluxcal/{self.unit} yet — is `fluxcal run` running and listening on "
+                    f"{where}?" + (" (no such unit is alive there)" if self.alive is False else "")
+                    + (" On a secured bus, also: is this certificate's name among the unit's [zenoh.access] "
+                       "readers?" if self.secure else ""))
+        elif now - self.last_msg_t > STALE_S:
+            gone = " — the service has stopped (its liveliness token is gone)" if self.alive is False else ""
+            return f"no data from fluxcal/{self.unit} for {now - self.last_msg_t:.0f} s{gone}"
+        return None
+
+    def calibration_summary(self) -> str:
+        st = self.state
+        if not st:
+            return "calibration: unknown (no state yet)"
+        gate = st.get("gate") or {}
+        usable = "USABLE" if st.get("usable") else "not usable yet"
+        parts = [f"calibration: {usable}", f"cal_id {st.get('cal_id', '-')}"]
+        if st.get("method"):
+            parts.append(f"method {st['method']}")
+        if st.get("frozen"):
+            parts.append("FROZEN")
+        if gate:
+            rms = gate.get("rms_nT")
+            rms_txt = ", ".join(_num(r, ".2f") for r in rms) if isinstance(rms, list) else _num(rms, ".2f")
+            parts += [f"coverage {_num(gate.get('coverage'), '.2f')}", f"condition {_num(gate.get('condition'))}",
+                      f"residual [{rms_txt}] nT"]
+        if st.get("samples_seen") is not None:
+            parts.append(f"{st['samples_seen']} samples seen")
+        if st.get("stale"):
+            age = st.get("state_age_s")
+            parts.append(f"(state {_num(age, '.0f')} s old: the service is busy, e.g. reconnecting its input)")
+        text = "  ".join(parts)
+        reasons = gate.get("reasons") if gate else None
+        if reasons and not st.get("usable"):
+            text += "\n  gate: " + "; ".join(map(str, reasons))
+        return text
+
+    def frame_lines(self) -> list[str]:
+        """The full-screen view (terminal mode)."""
+        head = (f"fluxcal watch — fluxcal/{self.unit or '?'} via {', '.join(self.endpoints)} — "
+                f"{time.strftime('%H:%M:%S')}")
+        lines = [head]
+        waiting = self.waiting_message()
+        if waiting:
+            lines.append(f"\x1b[33m{waiting}\x1b[0m")
+        lines.append(f"receiving: raw {self.rate_hz('raw'):.0f} samples/s, corrected {self.rate_hz('corrected'):.0f} "
+                     f"samples/s, {self.n_messages} messages")
+        lines.append(self.calibration_summary())
+        lines.append("")
+        c = self.corrected
+        if c is not None and c.n_samples:
+            lines.append(f"{'corrected':<12}{'Bx nT':>11}{'By nT':>11}{'Bz nT':>11}{'|B| nT':>12}   cal_id {c.cal_id}")
+            for name, v in zip(self._names(c.n_probes), c.corrected_nT[-1]):
+                lines.append(f"{name:<12}{_vec(v)} {float(np.linalg.norm(v)):11.1f}")
+            if c.center_nT is not None:
+                lines.append(f"{'centre':<12}{_vec(c.center_nT[-1])} {float(np.linalg.norm(c.center_nT[-1])):11.1f}")
+        elif self.raw is not None and self.raw.n_samples:
+            lines.append(f"{'raw (uncal.)':<12}{'x nT':>11}{'y nT':>11}{'z nT':>11}{'|B| nT':>12}")
+            for name, v in zip(self._names(self.raw.n_probes), self.raw.field_nT[-1]):
+                lines.append(f"{name:<12}{_vec(v)} {float(np.linalg.norm(v)):11.1f}")
+        if self.diff is not None and self.diff.values.size:
+            names = self._names(self.diff.values.shape[1] + 1)
+            lines.append("")
+            for k, d in enumerate(self.diff.values[-1]):
+                lines.append(f"{names[k + 1] + '-' + names[0]:<12}{_vec(d)} {float(np.linalg.norm(d)):11.2f}  nT")
+        if self.tensor is not None and self.tensor.values.size:
+            g = self.tensor.values[-1]
+            lines.append("")
+            lines.append("tensor G[i,j] = dB_j/dx_i, nT/m   trace %+.2f" % float(np.trace(g)))
+            for i, ax in enumerate("xyz"):
+                lines.append(f"  d/d{ax}      " + " ".join(f"{x:+10.2f}" for x in g[i]))
+        if self.error:
+            rms = self.error.get("rms_nT") or {}
+            lines.append("")
+            lines.append("error, rms nT: " + "  ".join(f"{k} {_num(v, '.3f')}" for k, v in rms.items()))
+        if self.health:
+            counters = self.health.get("counters") or {}
+            txt = "  ".join(f"\x1b[31m{k} {v}\x1b[0m" if v and k not in ("frames_accepted",) else f"{k} {v}"
+                            for k, v in counters.items() if isinstance(v, (int, float)))
+            lines.append("")
+            lines.append("health: " + txt)
+        lines.append("")
+        lines.append("Ctrl-C to quit")
+        return lines
+
+    def render_tty(self) -> str:
+        # home, then every line cleared to its end, then clear below: no flicker, no curses
+        return "\x1b[H" + "".join(f"{ln}\x1b[K\n" for ln in "\n".join(self.frame_lines()).split("\n")) + "\x1b[J"
+
+    def line(self) -> str:
+        """One line (non-terminal mode)."""
+        t = self.clock() - self.t_start
+        waiting = self.waiting_message()
+        if waiting:
+            return f"{t:6.1f}s {waiting}"
+        st = self.state or {}
+        gate = st.get("gate") or {}
+        parts = [f"{t:6.1f}s fluxcal/{self.unit}",
+                 f"cal={'usable' if st.get('usable') else 'not-usable' if st else '?'}"
+                 + (f" cov={_num(gate.get('coverage'), '.2f')}" if gate else "")
+                 + (f" state-age={_num(st.get('state_age_s'), '.0f')}s" if st.get("stale") else "")]
+        c = self.corrected
+        if c is not None and c.n_samples:
+            for name, v in zip(self._names(c.n_probes), c.corrected_nT[-1]):
+                parts.append(f"{name}={_vec_short(v)} |B|={float(np.linalg.norm(v)):.1f}")
+        elif self.raw is not None and self.raw.n_samples:
+            for name, v in zip(self._names(self.raw.n_probes), self.raw.field_nT[-1]):
+                parts.append(f"raw {name}={_vec_short(v)}")
+        if self.diff is not None and self.diff.values.size:
+            names = self._names(self.diff.values.shape[1] + 1)
+            for k, d in enumerate(self.diff.values[-1]):
+                parts.append(f"{names[k + 1]}-{names[0]}={_vec_short(d)}")
+        if self.tensor is not None and self.tensor.values.size:
+            g = self.tensor.values[-1]
+            parts.append("G=[" + ", ".join(f"{x:+.2f}" for x in g.ravel()) + "] nT/m")
+        if self.error:
+            parts.append("err " + " ".join(f"{k}={_num(v, '.3f')}" for k, v in (self.error.get("rms_nT") or {}).items()))
+        if self.health:
+            counters = self.health.get("counters") or {}
+            parts.append(" ".join(f"{k}={v}" for k, v in counters.items() if isinstance(v, (int, float)) and
+                                  (v or k == "frames_accepted")))
+        return " | ".join(p for p in parts if p)
+
+
+class _StateQuery:
+    """A `state` query in flight, polled without blocking the redraw loop."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self.handler = session.get(key, timeout=1.5)
+
+    def poll(self) -> tuple[bool, dict | None]:
+        """(finished, state or None)."""
+        try:
+            reply = self.handler.try_recv()
+        except zenoh.ZError:
+            return True, None
+        if reply is None:
+            return False, None
+        if reply.ok is not None:
+            try:
+                return True, json.loads(reply.ok.payload.to_bytes())
+            except ValueError:
+                return True, None
+        return True, None
+
+
+def run(endpoints: list[str], unit: str | None, seconds: float | None, out: TextIO, *,
+        tty: bool | None = None, tls: ZenohTlsConfig | None = None) -> int:
+    """The dashboard loop; returns the exit status."""
+    tty = out.isatty() if tty is None else tty
+    period = TTY_PERIOD_S if tty else LINE_PERIOD_S
+    start = time.monotonic()
+    deadline = None if seconds is None else start + seconds
+    dash = Dashboard(unit, endpoints)
+    session = client = alive_sub = None
+    state_q: _StateQuery | None = None
+    next_state = 0.0
+    next_connect = 0.0
+    next_discover = 0.0
+    next_frame = start + (0.5 if not tty else 0.0)
+    if tty:
+        out.write("\x1b[?25l\x1b[2J")              # hide the cursor, clear once
+    try:
+        while deadline is None or time.monotonic() < deadline:
+            now = time.monotonic()
+            if session is None and now >= next_connect:
+                try:
+                    session = open_session(ZenohConfig.client(*endpoints, tls=tls))
+                    dash.connected = True
+                except BusError:
+                    next_connect = now + 1.0
+            if session is not None and dash.unit is None and now >= next_discover:
+                units = discover_units(session, timeout=0.3)
+                next_discover = now + 1.0
+                if len(units) == 1:
+                    dash.unit = units[0]
+                elif len(units) > 1:
+                    raise ConfigError(f"several units are running via {', '.join(endpoints)}: {', '.join(units)}; "
+                                      f"choose one with --unit")
+            if session is not None and dash.unit is not None and client is None:
+                keys = Keys(dash.unit)
+                client = BusClient(session, dash.unit, streams=STREAMS, lossless=False, capacity=64)
+                alive_sub = session.liveliness().declare_subscriber(keys.alive, zenoh.handlers.RingChannel(16),
+                                                                    history=True)
+                dash.alive = False                  # until the token's history says otherwise
+            if client is not None:
+                if state_q is None and now >= next_state:
+                    state_q, next_state = _StateQuery(session, Keys(dash.unit).state), now + STATE_EVERY_S
+                if state_q is not None:
+                    done, st = state_q.poll()
+                    if st is not None:
+                        dash.update_state(st)
+                    if done:
+                        state_q = None
+                while True:
+                    try:
+                        s = alive_sub.try_recv()
+                    except zenoh.ZError:
+                        break
+                    if s is None:
+                        break
+                    dash.alive = s.kind == zenoh.SampleKind.PUT
+                for msg in client.drain():
+                    dash.update(msg)
+            now = time.monotonic()
+            if now >= next_frame:
+                out.write(dash.render_tty() if tty else dash.line() + "\n")
+                out.flush()
+                next_frame = now + period
+            wait = min(next_frame, deadline if deadline is not None else next_frame) - time.monotonic()
+            if client is not None:
+                msg = client.recv(timeout=max(0.0, min(wait, 0.05)))
+                if msg is not None:
+                    dash.update(msg)
+            else:
+                time.sleep(max(0.0, min(wait, 0.05)))
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if tty:
+            out.write("\x1b[?25h\n")
+            out.flush()
+        for closer in (getattr(alive_sub, "undeclare", None), getattr(client, "close", None),
+                       getattr(session, "close", None)):
+            if closer is not None:
+                try:
+                    closer()
+                except (zenoh.ZError, KeyboardInterrupt):
+                    pass
+    return 0 if dash.n_messages or seconds is None else 1
+
+
+def main(args: argparse.Namespace) -> int:
+    endpoints, unit, tls = _resolve(args)
+    status = run(endpoints, unit, args.seconds, sys.stdout, tls=tls)
+    if status:
+        where = f"fluxcal/{unit}" if unit else "any fluxcal unit"
+        print(f"fluxcal watch: nothing received from {where} via {', '.join(endpoints)} in {args.seconds:g} s",
+              file=sys.stderr)
+    return status

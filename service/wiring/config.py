@@ -1,0 +1,221 @@
+"""The service's TOML configuration: every section validated at start, strictly.
+
+    [unit]        name, n_probes, lsb_nT
+    [[probes]]    name, position_m (platform frame; needed for tensor components)
+    [source]      kind = "sim" | "serial" | "can" | "replay", then that kind's keys
+    [sim]         the simulated unit's world (drivers.sim.config)
+    [estimator]   the online estimator and its quality gate
+    [calibration] where the calibration persists, and an optional one to start from
+    [zenoh]       session mode and endpoints (service.io.bus.ZenohConfig)
+    [mcap]        recording directory, rotation, chunking
+
+An error names the key, the value and what is allowed (drivers.config).
+"""
+
+from __future__ import annotations
+
+import importlib
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from drivers.config import load_section, read_toml, spec
+from drivers.errors import ConfigError
+
+_UNIT_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+
+
+@dataclass
+class UnitConfig:
+    name: str = spec("unit1", doc="key segment in fluxcal/<unit>/...: letters, digits, _ and -")
+    n_probes: int = spec(2, min=1, max=8)
+    lsb_nT: float = spec(0.001, min=1e-9, max=1e3, doc="nT per ADC count")
+    block_ms: float = spec(8.0, min=0.0, max=1000.0,
+                           doc="input is gathered into blocks of about this long before it is processed, "
+                               "recorded and published: latency against CPU")
+
+    def validate(self, path: str) -> None:
+        if not _UNIT_NAME.match(self.name):
+            raise ConfigError(f"{path}.name: {self.name!r} is not allowed (allowed: 1-64 letters, digits, '_' or '-')")
+
+
+@dataclass
+class ProbeConfig:
+    name: str = spec("")
+    position_m: list[float] = spec([0.0, 0.0, 0.0], length=3, min=-100.0, max=100.0)
+
+
+@dataclass
+class EstimatorConfig:
+    method: str = spec("rls", choices=("rls",))
+    forgetting: float = spec(0.9995, min=0.9, max=1.0, doc="RLS forgetting factor per sample")
+    total_nT: float | None = spec(None, min=1000.0, max=200000.0,
+                                  doc="ambient total field; omit to use ref_total from the source or estimate it")
+    align: str = spec("rotation", choices=("rotation", "regression", "none"))
+    min_samples: int = spec(2000, min=20)
+    gate_coverage: float = spec(0.3, min=0.0, max=1.0, doc="fraction of direction bins that must be seen")
+    gate_condition: float = spec(1e3, min=1.0)
+    gate_rms_nT: float = spec(20.0, min=0.0, doc="largest scalar residual RMS accepted")
+    update_every_s: float = spec(0.5, min=0.001, max=60.0,
+                                 doc="the estimator takes samples in chunks this long (of data time)")
+    check_every_s: float = spec(5.0, min=0.05, doc="how often the online estimate is checked against the gate")
+    window_s: float = spec(60.0, min=1.0, doc="ring buffer length for alignment and the error metric")
+
+
+@dataclass
+class CalibrationConfig:
+    file: str = spec("state/calibration.json", doc="where the calibration in use persists")
+    initial: str | None = spec(None, doc="start from this calibration file instead of learning from scratch")
+
+
+@dataclass
+class McapConfig:
+    enabled: bool = spec(True)
+    dir: str = spec("recordings/live")
+    rotate_mb: float = spec(256.0, min=0.01)
+    rotate_s: float = spec(3600.0, min=1.0)
+    chunk_kb: int = spec(1024, min=4, max=65536)
+    flush_s: float = spec(1.0, min=0.05, max=60.0)
+
+
+@dataclass(kw_only=True)   # path has no default and follows kind's
+class ReplayConfig:
+    kind: str = spec("replay", choices=("replay",))
+    path: str = spec(doc="an MCAP file or a directory of rotated files")
+    rate_hz: float | None = spec(None, min=0.001, max=100_000.0,
+                                 doc="the recorded unit's sample rate, Hz (needed without a [sim] section)")
+
+
+@dataclass
+class SimSourceConfig:
+    kind: str = spec("sim", choices=("sim",))
+    transport: str = spec("direct", choices=("direct", "pty", "can-virtual", "slcan"),
+                          doc="direct: in-process; pty: ICD bytes through a pseudo-terminal; "
+                              "can-virtual / slcan: ICD CAN frames")
+    run_s: float = spec(0.0, min=0.0, doc="how long `fluxcal run` lets the simulated unit run; 0 = until stopped "
+                                          "(`fluxcal simulate` uses sim.duration_s)")
+
+
+_SOURCE_CONFIGS = {
+    "serial": "drivers.serial_source:SerialConfig",
+    "can": "drivers.can_source:CanConfig",
+}
+
+
+@dataclass
+class FluxcalConfig:
+    unit: UnitConfig
+    probes: list[ProbeConfig]
+    source: Any
+    sim: Any
+    estimator: EstimatorConfig
+    calibration: CalibrationConfig
+    zenoh: Any
+    mcap: McapConfig
+    path: str = ""
+    raw: dict = field(default_factory=dict)
+
+    @property
+    def probe_names(self) -> list[str]:
+        return [p.name for p in self.probes]
+
+    @property
+    def positions_m(self) -> list[list[float]]:
+        return [p.position_m for p in self.probes]
+
+    @property
+    def rate_hz(self) -> float | None:
+        """The unit's sample rate, Hz: source.rate_hz, else the simulated unit's; None if neither is set.
+        The estimator's durations (window_s, check_every_s, update_every_s) are counted in samples at it."""
+        rate = getattr(self.source, "rate_hz", None) or getattr(self.sim, "rate_hz", None)
+        return float(rate) if rate else None
+
+
+_SECTIONS = ("unit", "probes", "source", "sim", "estimator", "calibration", "zenoh", "mcap")
+
+RATE_MISSING = ("source.rate_hz: missing (allowed: the unit's sample rate in Hz, 0.001 to 100000; the estimator's "
+                "window_s, check_every_s and update_every_s are counted in samples at this rate)")
+
+
+def rate_stated(raw: dict) -> bool:
+    """Whether a raw configuration states its unit's sample rate where its source kind needs it: serial
+    and replay sources in source.rate_hz or a [sim] rate_hz (CAN requires its own; sim has a default)."""
+    src, sim = raw.get("source"), raw.get("sim")
+    if not isinstance(src, dict) or src.get("kind") not in ("serial", "replay"):
+        return True
+    return "rate_hz" in src or (isinstance(sim, dict) and "rate_hz" in sim)
+
+
+def load_config(path: str | Path) -> FluxcalConfig:
+    raw = read_toml(path)
+    return config_from_dict(raw, str(path))
+
+
+def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
+    def err(msg: str) -> ConfigError:
+        return ConfigError(f"{path}: {msg}")
+
+    for key in raw:
+        if key not in _SECTIONS:
+            raise err(f"{key}: unknown section (allowed: {', '.join(_SECTIONS)})")
+    try:
+        unit = load_section(UnitConfig, raw.get("unit", {}), "unit")
+        probes_raw = raw.get("probes", [])
+        if not isinstance(probes_raw, list):
+            raise ConfigError("probes: expected an array of tables [[probes]]")
+        probes = [load_section(ProbeConfig, t, f"probes[{i}]") for i, t in enumerate(probes_raw)]
+        if probes and len(probes) != unit.n_probes:
+            raise ConfigError(f"probes: {len(probes)} [[probes]] tables but unit.n_probes = {unit.n_probes}")
+        if not probes:
+            probes = [ProbeConfig(name=f"s{k + 1}") for k in range(unit.n_probes)]
+        for k, pr in enumerate(probes):
+            if not pr.name:
+                pr.name = f"s{k + 1}"
+        names = [p.name for p in probes]
+        if len(set(names)) != len(names):
+            raise ConfigError(f"probes: names must differ, got {names}")
+
+        src = raw.get("source", {"kind": "sim"})
+        if not isinstance(src, dict):
+            raise ConfigError("source: expected a table")
+        kind = src.get("kind", "sim")
+        if not isinstance(kind, str):
+            raise ConfigError(f"source.kind: {kind!r} is not allowed (allowed: 'sim', 'serial', 'can', 'replay')")
+        if kind == "sim":
+            source = load_section(SimSourceConfig, src, "source")
+        elif kind == "replay":
+            source = load_section(ReplayConfig, src, "source")
+        elif kind in _SOURCE_CONFIGS:
+            module, _, cls = _SOURCE_CONFIGS[kind].partition(":")
+            source = load_section(getattr(importlib.import_module(module), cls), src, "source")
+        else:
+            raise ConfigError(f"source.kind: {kind!r} is not allowed (allowed: 'sim', 'serial', 'can', 'replay')")
+        for attr in ("n_probes",):
+            if hasattr(source, attr) and getattr(source, attr) != unit.n_probes:
+                raise ConfigError(f"source.{attr}: {getattr(source, attr)!r} differs from unit.n_probes = {unit.n_probes}")
+
+        if not rate_stated(raw):
+            raise ConfigError(RATE_MISSING)
+        sim = None
+        if "sim" in raw or kind == "sim":
+            from drivers.sim.config import load_sim_config
+
+            sim = load_sim_config(raw.get("sim", {}))
+            n_sim = len(sim.probes)
+            if n_sim != unit.n_probes:
+                raise ConfigError(f"sim.probes: {n_sim} simulated probes but unit.n_probes = {unit.n_probes}")
+        src_rate = getattr(source, "rate_hz", None)
+        if sim is not None and src_rate is not None and abs(src_rate - sim.rate_hz) > 1e-9 * sim.rate_hz:
+            raise ConfigError(f"source.rate_hz: {src_rate!r} differs from sim.rate_hz = {sim.rate_hz!r} (allowed: "
+                              f"the same rate, or leave source.rate_hz out)")
+        estimator = load_section(EstimatorConfig, raw.get("estimator", {}), "estimator")
+        calibration = load_section(CalibrationConfig, raw.get("calibration", {}), "calibration")
+        from service.io.bus import ZenohConfig
+
+        zenoh_cfg = load_section(ZenohConfig, raw.get("zenoh", {}), "zenoh")
+        mcap = load_section(McapConfig, raw.get("mcap", {}), "mcap")
+    except ConfigError as e:
+        raise err(str(e)) from None
+    return FluxcalConfig(unit=unit, probes=probes, source=source, sim=sim, estimator=estimator,
+                         calibration=calibration, zenoh=zenoh_cfg, mcap=mcap, path=path, raw=raw)

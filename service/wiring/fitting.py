@@ -1,0 +1,199 @@
+"""Batch calibration of lab data with any method of CONTRACTS §2 (`fluxcal fit` and `diagnose`).
+
+One function per step: the total field to fit against, per-probe fits by method, alignment to a
+common frame, and the residual channels the contracts define. `rls` runs the service's own
+Pipeline over the data in time order, so `fit --method rls` is exactly what the daemon would learn.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from drivers.block import SampleBlock
+from drivers.errors import CalibrationRefused, DataError
+
+from service.numerics.calib.alignment import align_probes
+from service.numerics.calib.ellipsoid import fit_ellipsoid
+from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from service.io.recordings.labdata import LabData
+
+METHODS = ("ellipsoid", "tmi", "sinefit", "two-step", "rls")
+ALIGNS = ("regression", "rotation", "pca")
+
+
+@dataclass
+class TotalField:
+    values: np.ndarray | float | None     # per sample, constant, or None (estimated)
+    source: str                           # "ref_total", "config", "estimated"
+
+    def per_sample(self, n: int, fallback: np.ndarray | None = None) -> np.ndarray:
+        if isinstance(self.values, np.ndarray):
+            return self.values
+        if self.values is not None:
+            return np.full(n, float(self.values))
+        return np.full(n, float(np.mean(fallback))) if fallback is not None else np.full(n, np.nan)
+
+
+def total_field(data: LabData, configured_nT: float | None) -> TotalField:
+    ref = data.ref_total
+    if ref is not None:
+        return TotalField(ref, "ref_total")
+    if configured_nT is not None:
+        return TotalField(float(configured_nT), "config")
+    return TotalField(None, "estimated")
+
+
+def _column(block: SampleBlock, names: tuple[str, ...], what: str) -> np.ndarray:
+    for n in names:
+        if n in block.extras:
+            return block.extras[n]
+    raise CalibrationRefused(f"{what}: the data need a column named {' or '.join(map(repr, names))}")
+
+
+def fit_probe(method: str, raw: np.ndarray, total: TotalField, block: SampleBlock, name: str,
+              inclination_deg: float | None = None) -> ProbeCalibration:
+    """One probe's calibration in its own orthogonal frame."""
+    if method == "ellipsoid":
+        return fit_ellipsoid(raw, total.values, name=name).calibration
+    if method == "tmi":
+        from service.numerics.calib.tmi import fit_tmi
+
+        if total.values is None:
+            raise CalibrationRefused("tmi needs a scalar reference: a ref_total column or [estimator] total_nT")
+        return fit_tmi(raw, total.values, name=name)
+    if method == "sinefit":
+        from service.numerics.calib.sinefit import fit_sinefit
+
+        angle = np.radians(_column(block, ("angle_deg", "table_deg", "heading_deg"), "sinefit"))
+        tv = None if total.values is None else float(np.mean(total.values))
+        return fit_sinefit(angle, raw, inclination_deg=inclination_deg, total_nT=tv, t_s=block.t_s, name=name)
+    if method == "two-step":
+        from service.numerics.calib.twostep import fit_two_step
+
+        turn = _column(block, ("turn", "turn_axis"), "two-step")
+        turns = [raw[turn == k] for k in (0, 1, 2)]
+        if any(t.shape[0] < 10 for t in turns):
+            raise CalibrationRefused("two-step needs three single-axis turns marked in a 'turn' column "
+                                     "(0 = about x, 1 = about y, 2 = about z), each with at least 10 samples")
+        tv = None if total.values is None else float(np.mean(total.values))
+        return fit_two_step(turns, total_nT=tv, name=name)
+    raise DataError(f"method {method!r} is not allowed (allowed: {', '.join(METHODS)})")
+
+
+def fit_rls(data: LabData, total: TotalField, *, forgetting: float = 1.0, align: str | None = "rotation",
+            positions_m: np.ndarray | None = None) -> ArrayCalibration:
+    """The service's pipeline over the data in time order; its last online estimate."""
+    from .pipeline import Pipeline
+
+    b = data.block
+    n = b.n_samples
+    rate = (n - 1) / (b.t_s[-1] - b.t_s[0]) if n > 1 and b.t_s[-1] > b.t_s[0] else 1.0
+    pl = Pipeline(n_probes=b.n_probes, probe_names=data.probe_names, positions_m=positions_m,
+                  forgetting=forgetting, total_nT=None if isinstance(total.values, np.ndarray) else total.values,
+                  align=align or "none", min_samples=min(200, n), window_samples=n,
+                  check_every_samples=float("inf"))
+    step = max(1, int(round(rate)))                  # one-second blocks, as the daemon sees them
+    for i in range(0, n, step):
+        pl.process(b.slice(i, i + step))
+    pl.flush_estimator()
+    cand = pl.candidate()
+    if cand is None:
+        est = pl._estimators[0]
+        raise CalibrationRefused(f"rls: the online estimate is not determined by these data ({n} samples, "
+                                 f"condition {est.condition_:.3g}); rotate about several axes")
+    return cand
+
+
+def fit_array(data: LabData, *, method: str = "ellipsoid", align: str | None = None,
+              configured_total_nT: float | None = None, positions_m: np.ndarray | None = None,
+              inclination_deg: float | None = None,
+              progress: Callable[[str], None] | None = None) -> tuple[ArrayCalibration, TotalField]:
+    """Every probe fitted by `method`, then aligned (arrays: regression by default)."""
+    b = data.block
+    _refuse_non_finite(data)
+    total = total_field(data, configured_total_nT)
+    p = b.n_probes
+    if align is None and p > 1:
+        align = "regression"
+    if p == 1:
+        align = None
+    if method == "rls":
+        cal = fit_rls(data, total, align=align if align in ("rotation", "regression") else "rotation",
+                      positions_m=positions_m)
+        cal.total_nT = None if isinstance(total.values, np.ndarray) or total.values is None else float(total.values)
+        return cal, total
+    probes = []
+    for k in range(p):
+        if progress:
+            progress(f"fitting {data.probe_names[k]} ({method})")
+        if align == "regression" and k > 0:
+            probes.append(None)                     # filled by the regression onto probe 1 below
+            continue
+        probes.append(fit_probe(method, b.field_nT[:, k], total, b, data.probe_names[k], inclination_deg))
+    if align == "regression":
+        probes = align_probes([probes[0]] * p, b.field_nT, method="regression")
+        for k, pr in enumerate(probes):
+            pr.name = data.probe_names[k]
+    elif align == "rotation":
+        probes = align_probes(probes, b.field_nT, method="rotation")
+    elif align == "pca":
+        from service.numerics.calib.twostep import align_pca
+
+        turn = _column(b, ("turn", "turn_axis"), "align pca")
+        probes = align_pca(probes, b.field_nT, turn)
+    cal = ArrayCalibration(method=method, align=align, probes=probes,
+                           total_nT=None if not isinstance(total.values, float) else total.values,
+                           span=(float(b.t_s[0]), float(b.t_s[-1]), b.n_samples))
+    return cal, total
+
+
+def _refuse_non_finite(data: LabData) -> None:
+    bad = ~np.isfinite(data.block.field_nT).all(axis=(1, 2))
+    if bad.any():
+        rows = np.flatnonzero(bad)
+        raise DataError(f"{data.path}: {rows.size} sample(s) hold NaN or inf (first at index "
+                        f"{rows[0]}, t = {data.block.t_s[rows[0]]} s): saturated or invalid; remove them")
+
+
+def residual_channels(data: LabData, cal: ArrayCalibration, total: TotalField) -> dict[str, np.ndarray]:
+    """CONTRACTS §3 channels: s<k>.scalar = |corrected| − F, and for arrays s<k>-s1.<axis>."""
+    b = data.block
+    corr = cal.apply(b.field_nT)
+    mag = np.linalg.norm(corr, axis=2)
+    f = total.per_sample(b.n_samples, fallback=mag)
+    out = {}
+    for k, name in enumerate(data.probe_names):
+        out[f"{name}.scalar"] = mag[:, k] - f
+    for k in range(1, b.n_probes):
+        for a, ax in enumerate("xyz"):
+            out[f"{data.probe_names[k]}-{data.probe_names[0]}.{ax}"] = corr[:, k, a] - corr[:, 0, a]
+    return out
+
+
+def uncalibrated_channels(data: LabData, total: TotalField) -> dict[str, np.ndarray]:
+    """The same channels with no calibration at all (raw nT), for 'before'."""
+    p = data.block.n_probes
+    ident = ArrayCalibration("none", None, [ProbeCalibration(n, np.zeros(3), np.eye(3)) for n in data.probe_names])
+    del p
+    return residual_channels(data, ident, total)
+
+
+def rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else float("nan")
+
+
+def contract_json(cal: ArrayCalibration, channels: dict[str, np.ndarray], probe_names: list[str]) -> dict[str, Any]:
+    """`fluxcal fit --json` exactly as CONTRACTS §3."""
+    diff = [v for k, v in channels.items() if not k.endswith(".scalar")]
+    return {
+        "method": cal.method,
+        "align": cal.align,
+        "effects": list(cal.effects),
+        "sensors": [{"name": p.name, "offset_nT": p.offset_nT.tolist(), "matrix": p.matrix.tolist(),
+                     "scalar_rms_nT": rms(channels[f"{p.name}.scalar"])} for p in cal.probes],
+        "differential_rms_nT": rms(np.concatenate(diff)) if diff else None,
+        "rms_nT": rms(np.concatenate(list(channels.values()))),
+    }
