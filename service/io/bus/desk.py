@@ -1,0 +1,214 @@
+"""Commands and state queries of the service's side of the bus: zenoh's callbacks only queue them, the
+service's thread answers them between blocks, and a small thread of the bus answers what waits too long."""
+
+from __future__ import annotations
+
+import itertools
+import re
+import threading
+import time
+from collections import deque
+from typing import Any, Callable, Mapping, Sequence
+
+import zenoh
+
+from .keys import COMMANDS, JSON, Command, Keys, _json_bytes
+from .settings import BusError
+
+#: how long a command waits for the service's thread before it is withdrawn (the client may ask for less)
+COMMAND_WAIT_S = 5.0
+#: a state query not answered by the service's thread within this long is answered from the last state
+STATE_GRACE_S = 0.25
+#: the state is recomputed at most this often when no query asks for it
+STATE_REFRESH_S = 1.0
+
+
+class Desk:
+    """The queues between zenoh's callback threads and the service's thread (see server.ServiceBus).
+
+    `state_fn()` returns the JSON-ready state; `published_state()` what the bus last published, for when
+    there is no state_fn or the service's thread is busy. Counters go into the bus's `stats`."""
+
+    def __init__(self, keys: Keys, stats: dict[str, int], *, state_fn: Callable[[], Mapping[str, Any]] | None,
+                 published_state: Callable[[], dict[str, Any]], probe_names: Sequence[str] | None,
+                 command_queue_size: int, command_wait_s: float, state_grace_s: float) -> None:
+        self.keys, self.unit, self.stats = keys, keys.unit, stats
+        self.state_fn = state_fn
+        self.probe_names = probe_names
+        self._published_state = published_state
+        self.command_wait_s = float(command_wait_s)
+        self.state_grace_s = float(state_grace_s)
+        # commands and state queries wait here for the service's thread; one lock, one condition
+        self._cond = threading.Condition()
+        self._commands: deque[Command] = deque()
+        self._command_queue_size = int(command_queue_size)
+        self._state_queries: deque[tuple[float, zenoh.Query]] = deque()
+        self._state_queue_size = 16
+        self._state_cache: tuple[float, dict[str, Any]] | None = None
+        self._ids = itertools.count(1)
+        self._closed = False
+        self._stop = threading.Event()
+        self._watchdog = threading.Thread(target=self._watch_late, daemon=True, name=f"fluxcal-bus-{self.unit}-late")
+        self._watchdog.start()
+
+    # --- zenoh callbacks: never block, never call zenoh except to refuse a query ------------------
+
+    def on_state_query(self, query: zenoh.Query) -> None:
+        with self._cond:
+            if len(self._state_queries) < self._state_queue_size and not self._closed:
+                self._state_queries.append((time.monotonic(), query))
+                self._cond.notify_all()
+                return
+        query.reply_err(_json_bytes({"error": "busy: too many state queries pending"}), encoding=JSON)
+
+    def command_callback(self, name: str) -> Callable[[zenoh.Query], None]:
+        key = self.keys.cmd(name)
+
+        def on_query(query: zenoh.Query) -> None:
+            self.stats["commands_received"] += 1
+            if self._closed:
+                return self._refuse(query, name, "the service is stopping")
+            try:
+                payload = query.payload.to_bytes().decode("utf-8").strip() if query.payload is not None else ""
+            except UnicodeDecodeError:
+                return self._refuse(query, name, "payload is not UTF-8 text")
+            if COMMANDS[name] is not None and not payload:
+                return self._refuse(query, name, f"needs a payload: {COMMANDS[name]}")
+            if name == "add-effect" and not re.fullmatch(r"[a-z][a-z0-9_\-]{0,63}", payload):
+                return self._refuse(query, name, f"{payload!r} is not an effect name")
+            wait_s = self.command_wait_s
+            asked = query.parameters.get("wait_s")       # the client's own patience, less a margin
+            if asked is not None:
+                try:
+                    wait_s = min(wait_s, max(0.0, float(asked)))
+                except ValueError:
+                    return self._refuse(query, name, f"wait_s={asked!r} is not a number of seconds")
+            cmd = Command(next(self._ids), name, payload, key, query, expires_at=time.monotonic() + wait_s)
+            with self._cond:
+                if len(self._commands) < self._command_queue_size:
+                    self._commands.append(cmd)
+                    self._cond.notify_all()
+                    return
+            self._refuse(query, name, f"busy: {self._command_queue_size} commands pending; try again")
+
+        return on_query
+
+    def _refuse(self, query: zenoh.Query, name: str, why: str) -> None:
+        self.stats["commands_refused"] += 1
+        query.reply_err(_json_bytes({"command": name, "ok": False, "error": why}), encoding=JSON)
+
+    # --- the bus's own thread: late answers (never a zenoh callback) ----------------------------
+
+    def _watch_late(self) -> None:
+        while not self._stop.wait(0.02):
+            now = time.monotonic()
+            with self._cond:
+                late_q = [q for t, q in self._state_queries if now - t >= self.state_grace_s]
+                for _ in late_q:
+                    self._state_queries.popleft()         # oldest first: the late ones are at the front
+                expired = [c for c in self._commands if now >= c.expires_at]
+                for c in expired:
+                    self._commands.remove(c)
+            for q in late_q:
+                self.stats["state_queries_stale"] += 1
+                self.reply_state(q, self._stale_state(now))
+            for c in expired:
+                self.stats["commands_expired"] += 1
+                c.reply({"ok": False, "error": "not applied: the service was busy (reconnecting its input or "
+                                               "processing a block) and did not take the command in time; try again"})
+
+    def _stale_state(self, now: float) -> dict[str, Any]:
+        cache = self._state_cache
+        if cache is None:
+            st = self._published_state()
+            age = None
+        else:
+            st, age = dict(cache[1]), now - cache[0]
+        st.setdefault("unit", self.unit)
+        st["bus"] = dict(self.stats)
+        st["time_unix_s"] = time.time()
+        st["stale"] = True
+        st["state_age_s"] = age
+        return st
+
+    # --- the service's thread ------------------------------------------------------------------
+
+    def pending_commands(self) -> list[Command]:
+        """Commands received since the last call, oldest first; answers pending `state` queries on the way.
+
+        Call it from the service's loop between blocks; answer each command with `cmd.reply({...})`."""
+        self.answer_state_queries()
+        with self._cond:
+            out = list(self._commands)
+            self._commands.clear()
+        return out
+
+    def next_command(self, timeout: float | None = None) -> Command | None:
+        """Wait up to `timeout` s for one command (for a service thread that only serves commands)."""
+        self.answer_state_queries()
+        with self._cond:
+            self._cond.wait_for(lambda: self._commands or self._closed, timeout)
+            return self._commands.popleft() if self._commands else None
+
+    def state(self) -> dict[str, Any]:
+        """What a `state` query answers: state_fn() (or the last calibration and health published) + identity."""
+        st = dict(self.state_fn()) if self.state_fn is not None else self._published_state()
+        st.setdefault("unit", self.unit)
+        if self.probe_names is not None:
+            st.setdefault("probe_names", self.probe_names)
+        st["bus"] = dict(self.stats)
+        st["time_unix_s"] = time.time()
+        st["stale"] = False
+        st["state_age_s"] = 0.0
+        return st
+
+    def reply_state(self, q: zenoh.Query, st: dict[str, Any] | Exception) -> None:
+        try:
+            if isinstance(st, Exception):   # a broken state callback must not stop the service
+                q.reply_err(_json_bytes({"error": f"state unavailable: {type(st).__name__}: {st}"}), encoding=JSON)
+            else:
+                q.reply(self.keys.state, _json_bytes(st), encoding=JSON)
+        except zenoh.ZError:
+            pass                          # the client's timeout passed
+        finally:
+            try:
+                q.drop()
+            except zenoh.ZError:
+                pass
+
+    def answer_state_queries(self) -> None:
+        now = time.monotonic()
+        with self._cond:
+            queries = [q for _, q in self._state_queries]
+            self._state_queries.clear()
+        cache = self._state_cache
+        if not queries and cache is not None and now - cache[0] < STATE_REFRESH_S:
+            return
+        self.stats["state_queries"] += len(queries)
+        try:
+            st: dict[str, Any] | Exception = self.state()
+            self._state_cache = (now, st)
+        except Exception as e:  # noqa: BLE001 - reported to the client, never raised into the service loop
+            st = e
+        for q in queries:
+            self.reply_state(q, st)
+
+    def refuse_new(self) -> None:
+        """From now on commands and state queries are refused: the service is stopping."""
+        with self._cond:
+            self._closed = True
+
+    def close(self, why: str) -> None:
+        """Refuse what still waits (a waiting next_command() returns None) and end the bus's thread."""
+        with self._cond:
+            self._closed = True
+            commands, self._commands = list(self._commands), deque()
+            states, self._state_queries = [q for _, q in self._state_queries], deque()
+            self._cond.notify_all()
+        self._stop.set()
+        if self._watchdog is not threading.current_thread():
+            self._watchdog.join(2.0)
+        for cmd in commands:
+            cmd.reply({"ok": False, "error": "the service is stopping; the command was not applied"})
+        for q in states:                             # not state_fn(): the source may be closed already
+            self.reply_state(q, BusError(why))

@@ -1,0 +1,83 @@
+"""The bus's sender thread: the only caller of `put()`, so a slow or frozen subscriber (Zenoh's BLOCK
+congestion control) holds back the sender, never the service's reading, recording and processing."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+
+import zenoh
+
+
+class Sender:
+    """An outbox of (stream name, publisher, payload) in order, bounded in bytes, and the thread that
+    empties it. Beyond the bound the oldest waiting messages are dropped and counted (stats
+    "send_dropped"); every message handed over counts as "published_<name>"."""
+
+    def __init__(self, stats: dict[str, int], backlog_bytes: int, thread_name: str) -> None:
+        self.stats = stats
+        self._outbox: deque[tuple[str, zenoh.Publisher, bytes]] = deque()
+        self._outbox_bytes = 0
+        self._sending = False
+        self._cond = threading.Condition()
+        self._backlog_bytes = int(backlog_bytes)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._send_loop, daemon=True, name=thread_name)
+        self._thread.start()
+
+    def put(self, name: str, pub: zenoh.Publisher, payload: bytes) -> None:
+        """Hand a message to the sender thread (counted as published_<name>). If the backlog is over its
+        bound (subscribers that cannot keep up), the oldest waiting messages are dropped and counted."""
+        with self._cond:
+            self._outbox.append((name, pub, payload))
+            self._outbox_bytes += len(payload)
+            while self._outbox_bytes > self._backlog_bytes and len(self._outbox) > 1:
+                _, _, old = self._outbox.popleft()
+                self._outbox_bytes -= len(old)
+                self.stats["send_dropped"] += 1
+            self.stats[f"published_{name}"] += 1
+            if not self._sending:
+                self._cond.notify()      # wake the sender only when idle: one wake-up per block, not per message
+
+    def _send_loop(self) -> None:
+        """put() every message in order, taking what waits in one go; ends when stopping and nothing waits."""
+        while True:
+            with self._cond:
+                while not self._outbox and not self._stop.is_set():
+                    self._sending = False
+                    self._cond.notify_all()           # flush() waits for this
+                    self._cond.wait(0.5)
+                if not self._outbox:
+                    self._sending = False
+                    self._cond.notify_all()
+                    return
+                self._sending = True
+                name, pub, payload = self._outbox.popleft()
+                self._outbox_bytes -= len(payload)
+            try:
+                pub.put(payload)
+            except zenoh.ZError:
+                self.stats["publish_errors"] += 1
+
+    def flush(self, timeout: float = 5.0) -> bool:
+        """Wait until every message handed over has been put (True) or `timeout` passed (False)."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self._outbox or self._sending:
+                left = deadline - time.monotonic()
+                if left <= 0 or not self._thread.is_alive():
+                    return not (self._outbox or self._sending)
+                self._cond.wait(left)
+        return True
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """End the thread; what still waits then (a subscriber frozen past the flush) is counted as dropped."""
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout)
+        with self._cond:
+            self.stats["send_dropped"] += len(self._outbox)
+            self._outbox.clear()
