@@ -36,9 +36,9 @@ from drivers.errors import CalibrationRefused, FluxcalError
 
 from service.numerics.effects import EFFECTS, Baseline, Model, make_model, make_term
 from service.numerics.effects.base import EffectData, EffectTerm
-from service.numerics.engine.fit import (RANK_TOL, FitResult, LinearCalibration, Parameter, Problem, _solve, as_effect_data,
-                          fit_model, fit_problem, initial_linear, reference_total, residual_hints,
-                          start_weights, warm_from, Warm)
+from service.numerics.engine import (RANK_TOL, FitResult, LinearCalibration, Parameter, Problem, Warm, as_effect_data,
+                                      fit_model, fit_problem, initial_linear, reference_total, residual_hints,
+                                      solve_normal, start_weights, warm_from)
 
 P_SIGNIFICANT = 1e-3
 GAIN_SIGMAS = 2.0
@@ -273,11 +273,11 @@ def _explained_by(target: Candidate, other: Candidate) -> float:
     energy = float(np.sum((f * pr_o.weights) ** 2))
     if energy <= 0:
         return 1.0
-    d_all, *_ = _solve(a, g)
+    d_all, *_ = solve_normal(a, g)
     e_all = float(-g @ d_all)
     m_idx = _slot_indices(pr_o, lambda s: s.term is None or s.term.name != other.effect)
     if m_idx.size:
-        d_m, *_ = _solve(a[np.ix_(m_idx, m_idx)], g[m_idx])
+        d_m, *_ = solve_normal(a[np.ix_(m_idx, m_idx)], g[m_idx])
         e_m = float(-g[m_idx] @ d_m)
     else:
         e_m = 0.0

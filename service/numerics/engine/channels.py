@@ -1,0 +1,71 @@
+"""The residual channels (CONTRACTS §3) and their one naming: s<k>.scalar, s<k>-s1.<axis>, s<k>-ref.<axis>.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from service.numerics.effects.base import AXES
+
+
+@dataclass
+class Channels:
+    """Residual channels of a model on the fitted rows: names, values (rows, C) in nT, time."""
+
+    names: list[str]
+    values: np.ndarray
+    t_s: np.ndarray
+    rows: np.ndarray
+
+    @property
+    def rms_nT(self) -> np.ndarray:
+        return np.sqrt(np.mean(self.values ** 2, axis=0))
+
+    @property
+    def total_rms_nT(self) -> float:
+        """RMS over all channels (CONTRACTS §3 rms_nT)."""
+        return float(np.sqrt(np.mean(self.values ** 2)))
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        return {n: self.values[:, i] for i, n in enumerate(self.names)}
+
+
+def channel_names(probe_names: Sequence[str], vector: bool = False) -> list[str]:
+    """['s1.scalar', ..., 's2-s1.x', 's2-s1.y', 's2-s1.z', ...] and, with a reference vector, 's1-ref.x', ...
+
+    >>> channel_names(["s1", "s2"])
+    ['s1.scalar', 's2.scalar', 's2-s1.x', 's2-s1.y', 's2-s1.z']
+    >>> channel_names(["s1"], vector=True)
+    ['s1.scalar', 's1-ref.x', 's1-ref.y', 's1-ref.z']
+    """
+    names = [f"{p}.scalar" for p in probe_names]
+    for p in probe_names[1:]:
+        names += [f"{p}-{probe_names[0]}.{a}" for a in AXES]
+    if vector:
+        for p in probe_names:
+            names += [f"{p}-ref.{a}" for a in AXES]
+    return names
+
+
+@dataclass
+class _Eval:
+    v0: list[np.ndarray]           # full length (N, 3) per probe, before corrected-frame corrections
+    v: list[np.ndarray]            # rows (M, 3)
+    nhat: list[np.ndarray]         # rows (M, 3)
+    scalar: np.ndarray             # (M, P)
+    diff: np.ndarray               # (M, P-1, 3)
+    vec: np.ndarray | None = None  # (M, P, 3) corrected minus the reference vector
+    _matrix: np.ndarray | None = field(default=None, repr=False)
+
+    def channel_matrix(self) -> np.ndarray:
+        """(M, C) every residual channel (built once; treat as read-only)."""
+        if self._matrix is None:
+            m = self.scalar.shape[0]
+            parts = [self.scalar, self.diff.reshape(m, -1)]
+            if self.vec is not None:
+                parts.append(self.vec.reshape(m, -1))
+            self._matrix = np.concatenate(parts, axis=1)
+        return self._matrix

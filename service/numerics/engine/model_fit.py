@@ -1,0 +1,191 @@
+"""A calibration with effect terms, fitted: `fit_with_effects`, the engine's public entry.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from drivers.errors import CalibrationRefused
+from service.numerics.effects.base import REF_PREFIX, Baseline, EffectData, Model
+
+from .channels import Channels
+from .linear import LinearCalibration
+from .problem import Problem, as_effect_data, reference_total
+from .solve import FitResult, Parameter, fit_problem
+from .start import initial_linear, start_weights
+from .state import layout_slots
+
+
+@dataclass
+class EffectsFit:
+    """A calibration with effect terms: the linear part (CONTRACTS §3: corrected = matrix (raw - offset)
+    before any effect term) plus every effect parameter with its standard error."""
+
+    probe_names: list[str]
+    effects: list[str]
+    offset_nT: np.ndarray               # (P, 3)
+    matrix: np.ndarray                  # (P, 3, 3)
+    parameters: list[Parameter]
+    offset_stderr_nT: np.ndarray        # (P, 3), NaN where undetermined
+    rms_nT: float
+    channel_rms_nT: dict[str, float]
+    reference: str
+    result: FitResult = field(repr=False)
+    base_method: str = "ellipsoid"
+    base_align: str | None = None
+    total_nT: float | None = None
+
+    def calibration(self) -> Any:
+        """A service.numerics.calib.model.ArrayCalibration: the linear part with offset standard errors, the
+        effect names and `effect_params` {effect: {name: {"value", "se", "unit"}}}, plus the fit's
+        RMS in `diagnostics`. (The plain LinearCalibration if the calibration core is missing.)"""
+        try:
+            from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+        except Exception:                                     # noqa: BLE001 - optional collaborator
+            return LinearCalibration(self.offset_nT.copy(), self.matrix.copy())
+        probes = [ProbeCalibration(n, self.offset_nT[k].copy(), self.matrix[k].copy(), self.offset_stderr_nT[k].copy())
+                  for k, n in enumerate(self.probe_names)]
+        effect_params: dict[str, Any] = {}
+        for p in self.parameters:
+            effect_params.setdefault(p.term, {})[p.name] = {"value": p.value, "se": p.stderr, "unit": p.unit}
+        for term, name, value, unit in self.constants():
+            effect_params.setdefault(term, {})[name] = {"value": value, "se": None, "unit": unit,
+                                                        "note": "reference the parameters are defined against"}
+        data = self.result.problem.data
+        return ArrayCalibration(method=self.base_method, align=self.base_align, probes=probes, total_nT=self.total_nT,
+                                effects=list(self.effects), effect_params=effect_params,
+                                diagnostics={"rms_nT": self.rms_nT, "channel_rms_nT": dict(self.channel_rms_nT),
+                                             "reference": self.reference},
+                                span=(float(data.t_s[0]), float(data.t_s[-1]), int(data.n_samples)))
+
+    def constants(self) -> list[tuple[str, str, float, str]]:
+        """(effect, name, value, unit) of the references the effect parameters are defined against."""
+        pr = self.result.problem
+        out = []
+        for t in pr.terms:
+            for view in pr.views:
+                for name, (value, unit) in t.constants(view).items():
+                    out.append((t.name, name, float(value), unit))
+        return out
+
+    def effect_parameters(self) -> dict[str, dict[str, float | None]]:
+        """{"temperature": {"s1.x nT/degC": value, ...}, ...} and the same with standard errors."""
+        out: dict[str, dict[str, float | None]] = {}
+        for p in self.parameters:
+            out.setdefault(p.term, {})[p.name] = p.value
+        return out
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready: the sensors in CONTRACTS §3 form plus `effect_parameters` with errors."""
+        sensors = [{"name": n, "offset_nT": self.offset_nT[k].tolist(), "matrix": self.matrix[k].tolist(),
+                    "scalar_rms_nT": self.channel_rms_nT.get(f"{n}.scalar")}
+                   for k, n in enumerate(self.probe_names)]
+        return {"effects": list(self.effects), "sensors": sensors, "rms_nT": self.rms_nT,
+                "reference": self.reference,
+                "effect_parameters": [p.as_dict() | {"effect": p.term} for p in self.parameters],
+                "effect_constants": [{"effect": e, "name": n, "value": v, "unit": u}
+                                     for e, n, v, u in self.constants()]}
+
+    def correct(self, data: Any) -> np.ndarray:
+        """(N, P, 3) corrected field of other data with this calibration and its effects."""
+        ed = as_effect_data(data, probe_names=self.probe_names)
+        lin = LinearCalibration(self.offset_nT, self.matrix)
+        pr = Problem(ed, Model(self.result.model.effect_terms), lin, np.zeros(ed.n_samples), n_blocks=1,
+                     rows=np.arange(ed.n_samples))
+        for old, new in zip(self.result.problem.views, pr.views):
+            # the references of the fit (temperature, time origin, step instants): keep them
+            new.cache.update({k: v for k, v in old.cache.items() if k.startswith(REF_PREFIX)})
+        pr.slots = layout_slots(pr.data, pr.terms, pr.views, pr.fit_linear)
+        pr.n_params = pr.slots[-1].stop if pr.slots else 0
+        st = pr.start_state(lin, self.result.state)
+        ev = pr.evaluate(st)
+        return np.stack(ev.v, axis=1)
+
+
+def fit_with_effects(data: Any, effects: Sequence[str] | Model, base_calibration: Any = None, *,
+                     total_nT: float | None = None, positions_m: np.ndarray | None = None,
+                     fix_linear: bool = False, n_blocks: int = 8,
+                     progress: Callable[[str], None] | None = None) -> tuple[EffectsFit, Channels]:
+    """Fit the linear calibration (unless fix_linear) and the named effects; return the calibration with
+    effect parameters and standard errors, and the residual channels.
+
+    data: EffectData, LabData or SampleBlock. effects: catalogue names or a Model. base_calibration: the
+    starting linear calibration (ArrayCalibration, LinearCalibration, `fit --json` dict) or None to start
+    from an ellipsoid per probe aligned to probe 1."""
+    from service.numerics.effects import make_model
+
+    ed = as_effect_data(data, total_nT=total_nT, positions_m=positions_m)
+    if isinstance(effects, Model):
+        model = effects if (effects.has_baseline or fix_linear) else Model([Baseline()]) + effects
+        if fix_linear:
+            model = model.without_baseline()
+    else:
+        model = make_model(list(effects), baseline=not fix_linear)
+    for t in model.effect_terms:
+        why = t.why_unavailable(ed)
+        if why:
+            raise CalibrationRefused(f"effect {t.name!r} cannot be fitted to these data: {why}")
+    if base_calibration is None:
+        ref0 = ed.ref_total_nT if ed.ref_total_nT is not None else ed.total_nT
+        linear = initial_linear(ed, ref0)
+    else:
+        linear = LinearCalibration.from_any(base_calibration, ed.n_probes)
+    reference, kind = reference_total(ed, linear)
+    weights = start_weights(ed, linear, reference)
+    res = fit_model(ed, model, linear, reference, weights, n_blocks=n_blocks, progress=progress)
+    out = effects_fit_from(res, kind)
+    out.base_method = getattr(base_calibration, "method", None) or "ellipsoid"
+    out.base_align = getattr(base_calibration, "align", None)
+    out.total_nT = ed.total_nT if kind != "ref_total" else float(np.median(reference))
+    return out, res.channels
+
+
+def residual_hints(fit: FitResult) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Full-length scalar residual and offset sensitivity n^T M per probe (NaN off the fitted rows): what
+    terms with `needs_residual` look for their regressors in."""
+    pr = fit.problem
+    n = pr.data.n_samples
+    res, gain = [], []
+    for k in range(pr.P):
+        r = np.full(n, np.nan)
+        r[pr.rows] = fit.channels.values[:, k]
+        g = np.full((n, 3), np.nan)
+        g[pr.rows] = fit.ev.nhat[k] @ fit.state.linear.matrix[k]
+        res.append(r)
+        gain.append(g)
+    return res, gain
+
+
+def fit_model(data: EffectData, model: Model, linear: LinearCalibration, reference: np.ndarray,
+              weights: np.ndarray, *, n_blocks: int = 8, progress: Callable[[str], None] | None = None) -> FitResult:
+    """Fit a model from a linear start. Terms that find their regressors in a residual (perming steps)
+    get the residual of the model without them: two stages."""
+    hints = None
+    if any(t.needs_residual for t in model.effect_terms):
+        first = Model([t for t in model if not t.needs_residual])
+        pr0 = Problem(data, first, linear, reference, weights=weights, n_blocks=n_blocks)
+        fit0 = fit_problem(pr0, pr0.start_state(linear), progress=progress)
+        hints = residual_hints(fit0)
+        pr = Problem(data, model, fit0.state.linear, reference, weights=weights, n_blocks=n_blocks, hints=hints)
+        return fit_problem(pr, pr.start_state(fit0.state.linear, fit0.state), progress=progress)
+    pr = Problem(data, model, linear, reference, weights=weights, n_blocks=n_blocks)
+    return fit_problem(pr, pr.start_state(linear), progress=progress)
+
+
+def effects_fit_from(res: FitResult, reference_kind: str) -> EffectsFit:
+    pr = res.problem
+    off_se = np.full((pr.P, 3), np.nan)
+    for s in pr.slots:
+        if s.kind == "offset":
+            se = res.stderr[s.start:s.stop].copy()
+            se[res.undetermined[s.start:s.stop]] = np.nan
+            off_se[s.k] = se
+    rms = res.channels.rms_nT
+    return EffectsFit(probe_names=list(pr.data.probe_names), effects=pr.model.effects,
+                      offset_nT=res.state.linear.offset_nT.copy(), matrix=res.state.linear.matrix.copy(),
+                      parameters=res.parameters(), offset_stderr_nT=off_se, rms_nT=res.rms_nT,
+                      channel_rms_nT={n: float(rms[i]) for i, n in enumerate(res.channels.names)},
+                      reference=reference_kind, result=res)

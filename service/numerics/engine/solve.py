@@ -1,0 +1,272 @@
+"""The Gauss-Newton solve: steps on the column-scaled normal equations, standard errors, warm starts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from service.numerics.effects.base import Model
+
+from .channels import Channels, _Eval
+from .jacobian import _Jac
+from .problem import Problem
+from .state import State
+
+#: eigenvalues of the column-scaled normal matrix below this fraction of the largest are a null space: a
+#: direction in which the columns are collinear to R^2 > 1 - 1e-7. Measured: directions the data cannot
+#: determine (lag against an isotropic eddy, a gradient under a single-axis turn) sit at 1e-10..1e-8,
+#: lifted off zero by noise and by the curvature of |B|; weak but real ones (a lag's second-order
+#: signature at a fast turn) at 4e-7 and above. Kept in the fit, the former promise large gains that
+#: the linearisation cannot deliver.
+RANK_TOL = 1e-7
+
+
+#: a step is final when the actual RSS matches the linearised prediction so closely that the
+#: parameters are within this many standard errors of the minimum
+LINEARITY_SE = 0.1
+
+
+#: an iteration lowering the weighted RSS by less than this many s^2 ends the fit (flat directions only)
+RSS_TOL = 0.01
+
+
+def solve_normal(a: np.ndarray, g: np.ndarray, damping: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """delta = -(A + damping diag A)^+ g on the column-scaled system (Levenberg-Marquardt when damping > 0),
+    the diagonal of A^+, the undetermined mask and the rank."""
+    p = a.shape[0]
+    if p == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0, bool), 0
+    d = np.sqrt(np.clip(np.diag(a), 0.0, None))
+    zero = d <= 0
+    d[zero] = 1.0
+    a_s = a / np.outer(d, d)
+    lam, vec = np.linalg.eigh(a_s)
+    top = lam[-1] if lam[-1] > 0 else 1.0
+    keep = lam > RANK_TOL * top
+    vk = vec[:, keep]
+    delta = -(vk @ ((vk.T @ (g / d)) / (lam[keep] + damping))) / d
+    cov_diag = (vk ** 2 / lam[keep]).sum(axis=1) / d ** 2
+    null = (vec[:, ~keep] ** 2).sum(axis=1)
+    undetermined = zero | (null > 0.01)
+    return delta, cov_diag, undetermined, int(keep.sum())
+
+
+@dataclass
+class Parameter:
+    """One fitted parameter in physical units; stderr None when the data do not determine it."""
+
+    name: str
+    value: float
+    stderr: float | None
+    term: str
+
+    @property
+    def unit(self) -> str:
+        """The unit written at the end of the name ("s1.x nT/degC" -> "nT/degC"), or "" if none.
+
+        >>> Parameter("s1.eddy[xy] s", 0.0, None, "eddy").unit, Parameter("s1.platform induced[xy]", 0.0, None, "p").unit
+        ('s', '')
+        """
+        last = self.name.rsplit(" ", 1)[-1]
+        return last if (" " in self.name and (last == "s" or "nT" in last or "/" in last)) else ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "value": self.value, "stderr": self.stderr, "unit": self.unit}
+
+
+@dataclass
+class FitResult:
+    """A fitted model: its state, parameters with standard errors, residual channels and what the
+    held-out (blocked) evaluation needs."""
+
+    problem: Problem
+    state: State
+    channels: Channels
+    values: np.ndarray
+    stderr: np.ndarray
+    undetermined: np.ndarray
+    rank: int
+    rss_w: float
+    iterations: int
+    converged: bool
+    a_blocks: np.ndarray
+    g_blocks: np.ndarray
+    jac: Any = field(repr=False, default=None)
+    ev: Any = field(repr=False, default=None)
+
+    @property
+    def model(self) -> Model:
+        return self.problem.model
+
+    @property
+    def n_rows(self) -> int:
+        return int(self.channels.values.size)
+
+    @property
+    def rms_nT(self) -> float:
+        return self.channels.total_rms_nT
+
+    def parameters(self, *, effects_only: bool = True) -> list[Parameter]:
+        out = []
+        for s in self.problem.slots:
+            if effects_only and s.kind in ("offset", "matrix"):
+                continue
+            if s.kind == "matrix":
+                continue                       # perturbations are zero at convergence; see state.linear
+            for j, name in enumerate(s.names):
+                i = s.start + j
+                val = self.values[i]
+                se = None if self.undetermined[i] else float(self.stderr[i])
+                out.append(Parameter(name, float(val), se, s.term.name if s.term is not None else "baseline"))
+        return out
+
+    def heldout(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per block: weighted SSE, unweighted SSE (nT^2) and row count of the held-out residual,
+        each block predicted by the fit to the other blocks (one Gauss-Newton step from the full fit,
+        exact for the linearised problem)."""
+        pr = self.problem
+        a_all, g_all = self.a_blocks.sum(0), self.g_blocks.sum(0)
+        r = self.channels.values
+        w = pr.weights
+        nb = len(pr.blocks)
+        sse_w, sse, cnt = np.zeros(nb), np.zeros(nb), np.zeros(nb)
+        for b, sl in enumerate(pr.blocks):
+            rb = r[sl]
+            if pr.n_params:
+                delta, *_ = solve_normal(a_all - self.a_blocks[b], g_all - self.g_blocks[b])
+                rb = rb + pr.apply(self.jac, self.ev, delta, sl)
+            sse_w[b] = float(np.sum((rb * w) ** 2))
+            sse[b] = float(np.sum(rb ** 2))
+            cnt[b] = rb.size
+        return sse_w, sse, cnt
+
+
+@dataclass
+class Warm:
+    """Normal equations already assembled at the start point for some parameters (a model's, when a
+    candidate is added to it): `known` marks them; only the others' rows are assembled."""
+
+    a_blocks: np.ndarray
+    g_blocks: np.ndarray
+    known: np.ndarray
+
+
+def warm_from(base: "FitResult", pr: Problem) -> Warm | None:
+    """The base fit's block normal equations placed into problem pr's layout (which must contain every
+    base parameter, under the same name, with the same rows, blocks and weights)."""
+    names = pr.param_names()
+    where = {n: i for i, n in enumerate(names)}
+    base_names = base.problem.param_names()
+    if (not all(n in where for n in base_names) or base.problem.M != pr.M
+            or len(base.problem.blocks) != len(pr.blocks) or not np.array_equal(base.problem.weights, pr.weights)):
+        return None
+    m = np.array([where[n] for n in base_names], dtype=int)
+    nb, p = len(pr.blocks), pr.n_params
+    a = np.zeros((nb, p, p))
+    g = np.zeros((nb, p))
+    if m.size:
+        a[:, m[:, None], m[None, :]] = base.a_blocks
+        g[:, m] = base.g_blocks
+    known = np.zeros(p, bool)
+    known[m] = True
+    return Warm(a, g, known)
+
+
+def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float = 0.01,
+                progress: Callable[[str], None] | None = None, warm: Warm | None = None,
+                ev0: _Eval | None = None, jac0: "_Jac | None" = None) -> FitResult:
+    """Gauss-Newton from `start` until every step is below tol_se standard errors. With `warm`, the first
+    linearisation assembles only the rows of the parameters warm does not know. ev0, jac0: the residuals
+    and Jacobian at `start` when the caller has them already."""
+    st = start
+    ev = pr.evaluate(st) if ev0 is None else ev0
+    rss = pr.weighted_rss(ev)
+    n_rows = pr.M * pr.C
+    converged = pr.n_params == 0
+    it = 0
+    jac = a_b = g_b = None
+    delta = np.zeros(pr.n_params)
+    cov = np.zeros(pr.n_params)
+    undet = np.zeros(pr.n_params, bool)
+    rank = 0
+    while True:
+        jac = jac0 if (it == 0 and jac0 is not None) else pr.jacobian(st, ev)
+        if warm is not None and it == 0:
+            a_b, g_b = pr.assemble(jac, ev, only=~warm.known)
+            keep = warm.known
+            a_b[:, keep[:, None] & keep[None, :]] = warm.a_blocks[:, keep[:, None] & keep[None, :]]
+            g_b[:, keep] = warm.g_blocks[:, keep]
+        else:
+            a_b, g_b = pr.assemble(jac, ev)
+        if pr.n_params == 0:
+            converged = True
+            break
+        delta, cov, undet, rank = solve_normal(a_b.sum(0), g_b.sum(0))
+        s2 = max(rss / max(n_rows - rank, 1), 1e-300)
+        se = np.sqrt(np.clip(cov * s2, 0, None))
+        small = not np.any(np.abs(delta)[~undet] > tol_se * se[~undet])
+        if small or it >= max_iter:
+            converged = small
+            if small and np.any(delta):
+                # the last step is tiny: take it without re-linearising, and move the block gradients
+                # with it (g_b + A_b delta), so the held-out solves start from the final point
+                trial = pr.update(st, delta)
+                ev_t = pr.evaluate(trial)
+                rss_t = pr.weighted_rss(ev_t)
+                if np.isfinite(rss_t) and rss_t <= rss * (1 + 1e-9):
+                    st, ev, rss = trial, ev_t, rss_t
+                    g_b = g_b + np.einsum("bij,j->bi", a_b, delta)
+            break
+        it += 1
+        damping = 0.0
+        for _ in range(10):
+            # Levenberg-Marquardt: a step that does not lower the RSS (a badly determined direction
+            # taken too far) is retried shorter and turned towards the gradient
+            if damping > 0:
+                delta, *_ = solve_normal(a_b.sum(0), g_b.sum(0), damping)
+            trial = pr.update(st, delta)
+            ev_t = pr.evaluate(trial)
+            rss_t = pr.weighted_rss(ev_t)
+            if np.isfinite(rss_t) and rss_t <= rss * (1 + 1e-12) + 1e-12:
+                break
+            damping = 1e-6 if damping == 0 else damping * 10.0
+        else:
+            converged = True                                  # no descent left: at the minimum
+            break
+        step = 1.0 if damping == 0 else 0.0
+        predicted = rss + float(g_b.sum(0) @ delta)           # rss - g^T A^+ g of the linearised problem
+        # the excess of the actual over the predicted RSS bounds how far the step is from the minimum:
+        # excess = d^T A d for a parameter error d, i.e. sqrt(excess / s2) standard errors
+        linear_enough = step == 1.0 and abs(rss_t - predicted) <= LINEARITY_SE ** 2 * s2
+        # an iteration that lowers the RSS by less than RSS_TOL s^2 only creeps along flat directions
+        flat = rss - rss_t < RSS_TOL * s2
+        st, ev, rss = trial, ev_t, rss_t
+        if linear_enough or flat:
+            # the step did what the linearisation promised: a second linearisation would move the
+            # parameters by a negligible amount, so keep this one and move the block gradients with it
+            g_b = g_b + np.einsum("bij,j->bi", a_b, delta)
+            converged = True
+            break
+        if progress is not None:
+            progress(f"iteration {it}")
+    s2 = rss / max(n_rows - rank, 1)
+    values = _flatten(pr, st)
+    chans = Channels(pr.channel_names, ev.channel_matrix(), pr.data.t_s[pr.rows], pr.rows)
+    return FitResult(problem=pr, state=st, channels=chans, values=values,
+                     stderr=np.sqrt(np.clip(cov * s2, 0, None)), undetermined=undet, rank=rank, rss_w=rss,
+                     iterations=it, converged=converged, a_blocks=a_b, g_blocks=g_b, jac=jac, ev=ev)
+
+
+def _flatten(pr: Problem, st: State) -> np.ndarray:
+    out = np.zeros(pr.n_params)
+    for s in pr.slots:
+        if s.kind == "offset":
+            out[s.start:s.stop] = st.linear.offset_nT[s.k]
+        elif s.kind == "term":
+            out[s.start:s.stop] = st.theta[s.term.name][s.k]
+        elif s.kind == "shared":
+            out[s.start:s.stop] = st.shared[s.term.name]
+    return out
