@@ -1,7 +1,14 @@
 """Model against measurement: residual channels, where the model fails, and which effect is missing.
 
-One pass: candidates (what could be missing), fits (each candidate on held-out time blocks), verdict
-(what is significant, what is left). Numerics only.
+One pass (diagnostics.diagnose): the model as it stands; the candidates, each fitted beside it and
+judged on held-out time blocks (fits.py); the verdict over them (verdict.py); where the model fails
+(where.py). result.py holds what it finds, text.py says it on a terminal. Numerics only.
 """
 
-from .diagnostics import Diagnosis, diagnose, summary_text  # noqa: F401
+from .diagnostics import diagnose
+from .result import GAIN_SIGMAS, P_SIGNIFICANT, Candidate, Diagnosis
+from .text import summary_text
+from .where import where_it_fails, worst_segments
+
+__all__ = ["Candidate", "Diagnosis", "GAIN_SIGMAS", "P_SIGNIFICANT", "diagnose", "summary_text", "where_it_fails",
+           "worst_segments"]

@@ -1,0 +1,196 @@
+"""Each candidate effect fitted beside the model and judged on held-out time blocks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+from scipy import stats
+
+from drivers.errors import FluxcalError
+from service.numerics.effects import EFFECTS, Model, make_term
+from service.numerics.effects.base import EffectData, EffectTerm
+from service.numerics.engine import (
+    RANK_TOL,
+    FitResult,
+    Problem,
+    Warm,
+    fit_problem,
+    warm_from,
+)
+
+from .result import ABSORBED, CANDIDATE_ITERATIONS, GAIN_SIGMAS, P_SIGNIFICANT, Candidate
+
+
+@dataclass
+class Heldout:
+    sse_w: np.ndarray
+    sse: np.ndarray
+    n: np.ndarray
+
+    @property
+    def rms_nT(self) -> float:
+        return float(np.sqrt(self.sse.sum() / self.n.sum()))
+
+    @property
+    def mse_w(self) -> np.ndarray:
+        return self.sse_w / self.n
+
+
+def heldout(fit: FitResult) -> Heldout:
+    return Heldout(*fit.heldout())
+
+
+def _compare(base: FitResult, base_ho: Heldout, cand: FitResult, cand_ho: Heldout) -> dict[str, Any]:
+    """Held-out gain, its per-block log ratio (paired by block), F-test and BIC of cand against base.
+
+    The held-out test uses lr_b = ln(MSE_base,b / MSE_cand,b): scale-free, so one block whose error
+    is large (an end block predicted by extrapolation) does not swamp the spread of the others."""
+    gain = 1.0 - float(cand_ho.sse_w.sum() / base_ho.sse_w.sum()) if base_ho.sse_w.sum() > 0 else 0.0
+    lr_b = np.log(np.maximum(base_ho.mse_w, 1e-300) / np.maximum(cand_ho.mse_w, 1e-300))
+    k = lr_b.size
+    lr = float(lr_b.mean())
+    lr_se = float(lr_b.std(ddof=1) / np.sqrt(k)) if k > 1 else float("inf")
+    n = base.n_rows
+    dp = max(cand.rank - base.rank, 1)
+    rss0, rss1 = base.rss_w, cand.rss_w
+    dof = max(n - cand.rank, 1)
+    if rss1 > 0 and rss0 > rss1:
+        f = ((rss0 - rss1) / dp) / (rss1 / dof)
+        p = float(stats.f.sf(f, dp, dof))
+    else:
+        p = 1.0
+    bic0 = n * np.log(rss0 / n) + base.rank * np.log(n)
+    bic1 = n * np.log(max(rss1, 1e-300) / n) + cand.rank * np.log(n)
+    return {"gain": gain, "lr": lr, "lr_se": lr_se, "lr_b": lr_b, "p": p, "bic": float(bic1 - bic0),
+            "dp": cand.rank - base.rank}
+
+
+def _slot_indices(pr: Problem, pred: Callable[[Any], bool]) -> np.ndarray:
+    idx = [np.arange(s.start, s.stop) for s in pr.slots if pred(s)]
+    return np.concatenate(idx) if idx else np.zeros(0, int)
+
+
+def _unexplained(a: np.ndarray, cand: np.ndarray, by: np.ndarray) -> float:
+    """Largest fraction of a candidate column's weighted energy outside the span of columns `by`."""
+    diag = np.diag(a)
+    if cand.size:
+        # a column these motions hardly excite (1e-4 of the term's strongest, e.g. G_yy under a turn
+        # about z) has nothing to explain
+        cand = cand[diag[cand] > 1e-4 * max(float(diag[cand].max()), 1e-300)]
+    if cand.size == 0:
+        return 0.0
+    d = np.sqrt(np.clip(diag, 1e-300, None))
+    a_s = a / np.outer(d, d)
+    acc = a_s[np.ix_(cand, cand)]
+    if by.size == 0:
+        return 1.0
+    abb, abc = a_s[np.ix_(by, by)], a_s[np.ix_(by, cand)]
+    lam, vec = np.linalg.eigh(abb)
+    keep = lam > RANK_TOL * max(lam[-1], 1e-300)
+    proj = vec[:, keep].T @ abc
+    explained = np.einsum("ij,ij->j", proj, proj / lam[keep][:, None])   # diag(A_cb A_bb^+ A_bc)
+    frac = 1.0 - explained / np.clip(np.diag(acc), 1e-300, None)
+    return float(np.max(frac))
+
+
+def _absorbed_by(cand: FitResult, term: str) -> list[str] | None:
+    """The smallest part of the model that spans the candidate's regressors: ['offset'], ['baseline'],
+    [an effect in the model], or None."""
+    return _absorbed_in(cand.problem, cand.a_blocks.sum(0), term)
+
+
+def _absorbed_in(pr: Problem, a: np.ndarray, term: str) -> list[str] | None:
+    """As _absorbed_by, from a normal matrix `a` of problem pr."""
+    c_idx = _slot_indices(pr, lambda s: s.term is not None and s.term.name == term)
+    if c_idx.size == 0:
+        return None
+    tests: list[tuple[list[str], np.ndarray]] = []
+    if pr.fit_linear:
+        tests.append((["offset"], _slot_indices(pr, lambda s: s.kind == "offset")))
+        tests.append((["baseline"], _slot_indices(pr, lambda s: s.kind in ("offset", "matrix"))))
+    for t in pr.terms:
+        if t.name == term:
+            continue
+        tests.append(([t.name], _slot_indices(
+            pr, lambda s, _n=t.name: s.kind in ("offset", "matrix") or (s.term is not None and s.term.name == _n))))
+    for names, idx in tests:
+        if idx.size and _unexplained(a, c_idx, idx) < ABSORBED:
+            return names
+    return None
+
+
+def _separation(a: str, b: str) -> str:
+    ta = EFFECTS.get(a)
+    tb = EFFECTS.get(b)
+    for t, other in ((ta, b), (tb, a)):
+        if t is not None and other in t.separation:
+            return t.separation[other]
+    return (f"vary what each depends on independently ({_depends(a)} against {_depends(b)}), "
+            f"or record more of the motion that excites them")
+
+
+def _depends(name: str) -> str:
+    return {"temperature": "temperature", "eddy": "rotation rate", "lag": "rotation rate",
+            "nonlinearity": "field per axis", "drift": "time", "gradient": "attitude and position",
+            "crossfield": "field across each axis", "hysteresis": "field history", "platform": "attitude",
+            "offset": "attitude", "baseline": "attitude"}.get(name, name)
+
+
+def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout, name: str,
+                   reference: np.ndarray, weights: np.ndarray, hints, n_blocks: int) -> Candidate:
+    untestable = Candidate(effect=name, rms_nT=cur.rms_nT, heldout_rms_nT=cur_ho.rms_nT, testable=False)
+    term: EffectTerm = make_term(name)
+    why = term.why_unavailable(ed)
+    if why:
+        untestable.reason = why
+        return untestable
+    try:
+        pr = Problem(ed, model + term, cur.state.linear, reference, weights=weights, n_blocks=n_blocks,
+                     hints=hints)
+        if pr.term_size(name) == 0:
+            untestable.reason = ("no perming step stands out of the noise in the residual" if name == "hysteresis"
+                                 else "nothing to fit in these data")
+            return untestable
+        start = pr.start_state(cur.state.linear, cur.state)
+        warm = warm_from(cur, pr)
+        if warm is not None:
+            # the model's normal equations at this very point are known: assemble only the candidate's rows,
+            # and see first whether the model already spans them (then there is nothing to fit)
+            ev0 = pr.evaluate(start)
+            jac0 = pr.jacobian(start, ev0)
+            a_c, g_c = pr.assemble(jac0, ev0, only=~warm.known)
+            both = warm.known[:, None] & warm.known[None, :]
+            a_c[:, both] = warm.a_blocks[:, both]
+            g_c[:, warm.known] = warm.g_blocks[:, warm.known]
+            absorbed = _absorbed_in(pr, a_c.sum(0), name)
+            if absorbed:
+                same = Candidate(effect=name, rms_nT=cur.rms_nT, heldout_rms_nT=cur_ho.rms_nT,
+                                 indistinguishable_from=absorbed, separate_by=_separation(name, absorbed[0]),
+                                 reason=f"the model's {absorbed[0]} spans its regressors in these data")
+                return same
+            warm = Warm(a_c, g_c, np.ones(pr.n_params, bool))
+        # at most CANDIDATE_ITERATIONS: a fit stopped early overstates its RSS, so its gain is understated
+        # (conservative); in practice one or two steps converge and only flat directions creep on
+        fit = (fit_problem(pr, start, warm=warm, max_iter=CANDIDATE_ITERATIONS, ev0=ev0, jac0=jac0)
+               if warm is not None else fit_problem(pr, start, max_iter=CANDIDATE_ITERATIONS))
+    except (FluxcalError, np.linalg.LinAlgError, ValueError) as e:
+        untestable.reason = f"fit failed: {e}"
+        return untestable
+    ho = heldout(fit)
+    cmp = _compare(cur, cur_ho, fit, ho)
+    c = Candidate(effect=name, rms_nT=fit.rms_nT, heldout_rms_nT=ho.rms_nT, gain=cmp["gain"],
+                  log_ratio=cmp["lr"], log_ratio_se=cmp["lr_se"], p_value=cmp["p"], bic_delta=cmp["bic"],
+                  n_params=int(cmp["dp"]), parameters=[p for p in fit.parameters() if p.term == name],
+                  block_log_ratio=cmp["lr_b"], fit=fit)
+    c.significant = bool(c.p_value < P_SIGNIFICANT and c.gain > 0 and c.log_ratio > GAIN_SIGMAS * c.log_ratio_se
+                         and c.n_params > 0)
+    absorbed = _absorbed_by(fit, name)
+    if absorbed:
+        c.indistinguishable_from = absorbed
+        c.separate_by = _separation(name, absorbed[0])
+        c.significant = False
+        c.reason = f"the model's {absorbed[0]} spans its regressors in these data"
+    return c

@@ -1,0 +1,140 @@
+"""What a diagnosis finds, as data: each candidate effect and the diagnosis as a whole, JSON-ready.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from service.numerics.engine import (
+    FitResult,
+    Parameter,
+)
+
+P_SIGNIFICANT = 1e-3
+
+
+GAIN_SIGMAS = 2.0
+
+
+GAIN_TOLERANCE = 0.10
+
+
+COLLINEAR_R2 = 0.90
+
+
+ABSORBED = 0.01            # largest unexplained fraction of a candidate's regressors for "absorbed"
+
+
+N_BLOCKS = 8
+
+
+CANDIDATE_ITERATIONS = 4
+
+
+Progress = Callable[[float, str], None]
+
+
+@dataclass
+class Candidate:
+    """One catalogue effect tried on top of the model."""
+
+    effect: str
+    rms_nT: float                         # in-sample RMS over all channels with the effect added
+    heldout_rms_nT: float                 # RMS of the blocks each predicted by the others
+    significant: bool = False
+    testable: bool = True
+    reason: str | None = None             # why not testable, or a note
+    gain: float = 0.0                     # held-out gain, fraction of the model's held-out weighted MSE
+    log_ratio: float = 0.0                # mean over blocks of ln(MSE without / MSE with), held out
+    log_ratio_se: float = 0.0             # its standard error from the block-to-block spread
+    p_value: float = 1.0                  # nested-model F-test on all the data
+    bic_delta: float = 0.0                # BIC with - BIC without (negative favours the effect)
+    n_params: int = 0                     # parameters the data determine
+    indistinguishable_from: list[str] = field(default_factory=list)
+    separate_by: str | None = None
+    parameters: list[Parameter] = field(default_factory=list)
+    block_log_ratio: np.ndarray | None = field(default=None, repr=False)
+    fit: FitResult | None = field(default=None, repr=False)
+
+    def as_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"effect": self.effect, "rms_nT": _num(self.rms_nT), "significant": self.significant,
+                             "heldout_rms_nT": _num(self.heldout_rms_nT), "heldout_gain": _num(self.gain),
+                             "heldout_log_ratio": _num(self.log_ratio),
+                             "heldout_log_ratio_se": _num(self.log_ratio_se), "p_value": _num(self.p_value),
+                             "bic_delta": _num(self.bic_delta), "n_params": self.n_params,
+                             "testable": self.testable}
+        if self.indistinguishable_from:
+            d["indistinguishable_from"] = list(self.indistinguishable_from)
+        if self.separate_by:
+            d["separate_by"] = self.separate_by
+        if self.reason:
+            d["reason"] = self.reason
+        if self.parameters:
+            d["parameters"] = [{"name": p.name, "value": _num(p.value), "stderr": _num(p.stderr)}
+                               for p in self.parameters]
+        return d
+
+
+@dataclass
+class Diagnosis:
+    """Everything `fluxcal diagnose` reports; `as_dict()` is the CONTRACTS §3 JSON."""
+
+    effects: list[str]
+    model: str
+    linear: str                           # "refit" or "fixed"
+    reference: str                        # "ref_total", "config" or "estimated"
+    rms_nT: float
+    noise_nT: float
+    channel_names: list[str]
+    channel_rms_nT: np.ndarray
+    channel_noise_nT: np.ndarray
+    where: list[dict[str, Any]]
+    candidates: list[Candidate]
+    worst_segments: list[dict[str, Any]]
+    n_samples: int
+    duration_s: float
+    heldout_rms_nT: float
+    notes: list[str]
+    fit: FitResult = field(repr=False)
+    linear_refit_rms_nT: float | None = None
+    parameters: list[Parameter] = field(default_factory=list)
+
+    @property
+    def best(self) -> Candidate | None:
+        """The first significant candidate, if any."""
+        return next((c for c in self.candidates if c.significant), None)
+
+    def as_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {
+            "effects": list(self.effects),
+            "rms_nT": _num(self.rms_nT),
+            "noise_nT": _num(self.noise_nT),
+            "channels": [{"name": n, "rms_nT": _num(r), "noise_nT": _num(s)}
+                         for n, r, s in zip(self.channel_names, self.channel_rms_nT, self.channel_noise_nT)],
+            "where": [{k: _num(v) if isinstance(v, float) else v for k, v in w.items()} for w in self.where],
+            "candidates": [c.as_dict() for c in self.candidates],
+            "worst_segments": self.worst_segments,
+            "model": self.model,
+            "linear": self.linear,
+            "reference": self.reference,
+            "n_samples": self.n_samples,
+            "duration_s": _num(self.duration_s),
+            "heldout_rms_nT": _num(self.heldout_rms_nT),
+            "parameters": [{"name": p.name, "value": _num(p.value), "stderr": _num(p.stderr)}
+                           for p in self.parameters],
+            "notes": list(self.notes),
+        }
+        if self.linear_refit_rms_nT is not None:
+            d["linear_refit_rms_nT"] = _num(self.linear_refit_rms_nT)
+        return d
+
+
+def _num(x: Any) -> Any:
+    """JSON-safe float (None for NaN/inf)."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if np.isfinite(x) else None

@@ -1,0 +1,80 @@
+"""A diagnosis as text for the terminal.
+"""
+
+from __future__ import annotations
+
+from .result import Diagnosis
+
+PARAMETER_LINES = 18
+
+
+def summary_text(d: Diagnosis, data_name: str = "") -> str:
+    """A readable summary of a Diagnosis for the terminal."""
+    lines = []
+    head = f"fluxcal diagnose {data_name}".rstrip()
+    lines.append(head)
+    lines.append(f"  model: {d.model}   (linear part {d.linear}; total field from {d.reference})")
+    lines.append(f"  {d.n_samples} samples over {d.duration_s:.1f} s")
+    ratio = d.rms_nT / d.noise_nT if d.noise_nT > 0 else float("inf")
+    lines.append(f"  residual RMS {d.rms_nT:.3f} nT against a noise floor of {d.noise_nT:.3f} nT "
+                 f"({ratio:.2f} x noise); held-out {d.heldout_rms_nT:.3f} nT")
+    if d.linear_refit_rms_nT is not None:
+        lines.append(f"  refitting the linear part would give {d.linear_refit_rms_nT:.3f} nT")
+    lines.append("")
+    lines.append("  channel              rms nT   noise nT")
+    for n, r, s in zip(d.channel_names, d.channel_rms_nT, d.channel_noise_nT):
+        lines.append(f"  {n:<18} {r:9.3f} {s:10.3f}")
+    if d.parameters:
+        lines.append("")
+        lines.append("  fitted effect parameters (value +- standard error):")
+        for p in d.parameters[:PARAMETER_LINES]:
+            se = "undetermined by these data" if p.stderr is None else f"+- {p.stderr:.4g}"
+            lines.append(f"    {p.name:<30} {p.value:12.5g} {se}")
+        if len(d.parameters) > PARAMETER_LINES:
+            lines.append(f"    ... {len(d.parameters) - PARAMETER_LINES} more in --json")
+    lines.append("")
+    lines.append("  where it fails (explained variance of the residual):")
+    if not d.where:
+        lines.append("    no observable explains the residual")
+    for w in d.where[:8]:
+        band = f" ({w['band']})" if w.get("band") else ""
+        lines.append(f"    {w['channel']:<18} {w['observable'] + band:<28} {w['strength']:.2f}")
+    if d.worst_segments:
+        seg = ", ".join(f"{s['t_start_s']:.1f}-{s['t_end_s']:.1f} s ({s['rms_nT']:.2f} nT)"
+                        for s in d.worst_segments)
+        lines.append(f"  worst segments: {seg}")
+    lines.append("")
+    lines.append("  candidate effects (blocked held-out test):")
+    lines.append("    effect         rms if added  held-out   gain     p-value   dBIC       verdict")
+    for c in d.candidates:
+        if not c.testable:
+            lines.append(f"    {c.effect:<14} {'-':>12}  {'-':>8}   {'-':>6}   {'-':>8}  {'-':>9}   not testable: {c.reason}")
+            continue
+        verdict = "SIGNIFICANT" if c.significant else "no"
+        lines.append(f"    {c.effect:<14} {c.rms_nT:10.3f} nT {c.heldout_rms_nT:8.3f}   {100 * c.gain:5.1f}%  "
+                     f"{c.p_value:9.2g}  {c.bic_delta:9.1f}   {verdict}")
+    told: set[frozenset] = set()
+    for c in d.candidates:
+        for other in c.indistinguishable_from:
+            key = frozenset((c.effect, other))
+            if key in told:
+                continue
+            told.add(key)
+            if other in ("offset", "baseline") or other in d.effects:
+                what = "the probe offsets" if other == "offset" else (
+                    "the linear calibration" if other == "baseline" else f"the {other} term already in the model")
+                lines.append(f"  {c.effect} cannot be told apart from {what} with these data: {c.separate_by}.")
+            else:
+                lines.append(f"  {c.effect} and {other} are indistinguishable with these data (equal held-out gain, "
+                             f"collinear regressors): {c.separate_by}.")
+    best = d.best
+    lines.append("")
+    if best is None:
+        lines.append("  no missing effect is significant: the model explains the data down to the noise"
+                     if ratio < 1.2 else "  no catalogue effect explains the rest of the residual significantly")
+    else:
+        lines.append(f"  most likely missing: {best.effect} (RMS {d.rms_nT:.3f} -> {best.rms_nT:.3f} nT); "
+                     f"try: --effects {','.join(d.effects + [best.effect])}")
+    for n in d.notes:
+        lines.append(f"  note: {n}")
+    return "\n".join(lines)

@@ -1,0 +1,159 @@
+"""Where the model fails: what the residual follows (time, temperature, rate, attitude, frequency, extra
+columns) and the worst time segments.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from service.numerics.effects.base import EffectData
+from service.numerics.engine import (
+    FitResult,
+)
+
+WHERE_MAX_ROWS = 20000
+
+
+def _legendre(x: np.ndarray, deg: int) -> np.ndarray:
+    lo, hi = float(np.min(x)), float(np.max(x))
+    z = np.zeros_like(x) if hi <= lo else 2.0 * (x - lo) / (hi - lo) - 1.0
+    return np.polynomial.legendre.legvander(z, deg)[:, 1:]
+
+
+def _r2(y: np.ndarray, cols: np.ndarray) -> float:
+    """Adjusted R^2 of y on [1, cols], clipped to [0, 1]."""
+    n = y.size
+    x = np.column_stack([np.ones(n), cols])
+    ok = np.all(np.isfinite(x), axis=1) & np.isfinite(y)
+    x, yy = x[ok], y[ok]
+    n, q = yy.size, x.shape[1] - 1
+    if n <= q + 2:
+        return 0.0
+    sd = x.std(0)
+    sd[0] = 1.0
+    sd[sd == 0] = 1.0
+    beta, *_ = np.linalg.lstsq(x / sd, yy, rcond=None)
+    resid = yy - (x / sd) @ beta
+    sst = float(np.sum((yy - yy.mean()) ** 2))
+    if sst <= 0:
+        return 0.0
+    r2 = 1.0 - (float(resid @ resid) / (n - q - 1)) / (sst / (n - 1))
+    return float(np.clip(r2, 0.0, 1.0))
+
+
+def observables(data: EffectData, fit: FitResult, rows: np.ndarray) -> dict[str, Any]:
+    """Observable bases at the given rows (indices into the full data): name -> per-channel function."""
+    pr = fit.problem
+    full_rows = pr.rows[rows]
+    t = data.t_s[full_rows]
+    out: dict[str, Any] = {"time": lambda c: _legendre(t, 4)}
+    if data.has_temperature() and float(np.ptp(data.temperature(0))) > 1e-6:
+        temps = [data.temperature(k)[full_rows] for k in range(data.n_probes)]
+
+        def temp_basis(c: int) -> np.ndarray:
+            kind, k = pr.channel_probe(c)
+            ks = [k, 0] if kind == "diff" else [k]
+            cols = []
+            for k in ks:
+                cols += [temps[k], temps[k] ** 2]
+            return np.column_stack(cols)
+        out["temperature"] = temp_basis
+    # angular rate from probe 1: omega_perp = |b x db/dt| / |b|^2 (rad/s); and the rate's direction
+    s1 = data.smooth(0)[full_rows]
+    r1 = data.rate(0)[full_rows]
+    b2 = np.sum(s1 ** 2, axis=1)
+    omega = np.linalg.norm(np.cross(s1, r1), axis=1) / b2
+    rate_dir = r1 / np.sqrt(b2)[:, None]
+    out["angular rate"] = lambda c: np.column_stack([omega, omega ** 2, rate_dir])
+    us = [fit.ev.nhat[k][rows] for k in range(pr.P)]
+
+    def probe_u(c: int) -> np.ndarray:
+        kind, k = pr.channel_probe(c)
+        return us[0] if kind == "diff" else us[k]
+
+    def orient(c: int) -> np.ndarray:
+        u = probe_u(c)
+        return np.column_stack([u, u[:, 0] ** 2 - u[:, 2] ** 2, u[:, 1] ** 2 - u[:, 2] ** 2,
+                                u[:, 0] * u[:, 1], u[:, 0] * u[:, 2], u[:, 1] * u[:, 2]])
+    out["orientation"] = orient
+
+    def heading(c: int) -> np.ndarray:
+        u = probe_u(c)
+        psi = np.arctan2(u[:, 1], u[:, 0])
+        return np.column_stack([f(k * psi) for k in (1, 2, 3) for f in (np.cos, np.sin)])
+    out["heading"] = heading
+    if data.ref_total_nT is not None and float(np.ptp(data.ref_total_nT)) > 1.0:
+        f = data.ref_total_nT[full_rows]
+        out["field magnitude"] = lambda c: np.column_stack([f, f ** 2])
+    for name, vals in data.observables().items():
+        v = vals[full_rows]
+        if float(np.ptp(v)) > 0:
+            out[name] = lambda c, _v=v: np.column_stack([_v, _v ** 2])
+    return out
+
+
+def _band_excess(y: np.ndarray, dt: float, noise: float) -> tuple[float, str]:
+    """Strongest frequency band of a residual above its white-noise floor: (fraction of variance, band)."""
+    n = y.size
+    if n < 64:
+        return 0.0, ""
+    y = y - y.mean()
+    spec = np.abs(np.fft.rfft(y)) ** 2 / n                  # periodogram, E = variance for white noise
+    freq = np.fft.rfftfreq(n, dt)
+    total = float(np.sum(y ** 2) / n)
+    if total <= 0:
+        return 0.0, ""
+    edges = np.geomspace(freq[1], freq[-1] * 1.0001, 13)
+    best, band = 0.0, ""
+    for a, b in zip(edges[:-1], edges[1:]):                  # 12 bands
+        m = (freq >= a) & (freq < b)
+        if not m.any():
+            continue
+        # share of the mean square: (2/n) sum spec; white noise of variance s^2 has E[spec] = s^2
+        excess = (2.0 / n) * (float(spec[m].sum()) - noise ** 2 * int(m.sum()))
+        frac = excess / total
+        if frac > best:
+            best, band = frac, f"{a:.3g}-{b:.3g} Hz"
+    return float(np.clip(best, 0.0, 1.0)), band
+
+
+def where_it_fails(data: EffectData, fit: FitResult, noise_nT: np.ndarray, *, top: int = 30,
+                   min_strength: float = 0.05) -> list[dict[str, Any]]:
+    """(channel, observable, strength) sorted strongest first; strength = explained variance fraction."""
+    pr = fit.problem
+    m = pr.M
+    stride = max(1, m // WHERE_MAX_ROWS)
+    rows = np.arange(0, m, stride)
+    obs = observables(data, fit, rows)
+    vals = fit.channels.values
+    out = []
+    for c, name in enumerate(fit.channels.names):
+        y = vals[rows, c]
+        for oname, basis in obs.items():
+            s = _r2(y, basis(c))
+            if s >= min_strength:
+                out.append({"channel": name, "observable": oname, "strength": s})
+        s, band = _band_excess(vals[:, c], data.dt_s, float(noise_nT[c]))
+        if s >= min_strength:
+            out.append({"channel": name, "observable": "frequency", "strength": s, "band": band})
+    out.sort(key=lambda d: -d["strength"])
+    return out[:top]
+
+
+def worst_segments(fit: FitResult, *, n_segments: int = 20, top: int = 3) -> list[dict[str, Any]]:
+    """The time segments with the largest RMS over all channels."""
+    vals, t = fit.channels.values, fit.channels.t_s
+    edges = np.linspace(0, vals.shape[0], n_segments + 1).round().astype(int)
+    segs = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        if b <= a:
+            continue
+        per = np.sqrt(np.mean(vals[a:b] ** 2, axis=0))
+        c = int(np.argmax(per))
+        segs.append({"t_start_s": float(t[a]), "t_end_s": float(t[b - 1]),
+                     "rms_nT": float(np.sqrt(np.mean(vals[a:b] ** 2))),
+                     "worst_channel": fit.channels.names[c], "worst_channel_rms_nT": float(per[c])})
+    segs.sort(key=lambda d: -d["rms_nT"])
+    return segs[:top]
