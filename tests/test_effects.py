@@ -8,10 +8,11 @@ import pytest
 
 from drivers.errors import CalibrationRefused, ConfigError, DataError
 from drivers.sim import Unit, load_sim_config
-from service.numerics.effects import (EFFECTS, Baseline, Drift, Eddy, EffectData, Lag, Model, Temperature, make_model)
-from service.numerics.engine import LinearCalibration, fit_with_effects
+from service.numerics.effects import EFFECTS, Baseline, Drift, Eddy, EffectData, Lag, Model, Temperature, make_model
 from service.numerics.effects.gradient import gradient_basis
-from service.numerics.effects.hysteresis import detect_steps, robust_noise
+from service.numerics.effects.hysteresis import detect_steps
+from service.numerics.engine import LinearCalibration, fit_with_effects
+from service.numerics.noise import robust_noise
 
 F_TOTAL = 52000.0
 

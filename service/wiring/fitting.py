@@ -18,6 +18,7 @@ from drivers.errors import CalibrationRefused, DataError
 from service.numerics.calib.alignment import align_probes
 from service.numerics.calib.ellipsoid import fit_ellipsoid
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from service.numerics.engine.channels import channel_names
 from service.io.recordings.labdata import LabData
 
 METHODS = ("ellipsoid", "tmi", "sinefit", "two-step", "rls")
@@ -164,13 +165,10 @@ def residual_channels(data: LabData, cal: ArrayCalibration, total: TotalField) -
     corr = cal.apply(b.field_nT)
     mag = np.linalg.norm(corr, axis=2)
     f = total.per_sample(b.n_samples, fallback=mag)
-    out = {}
-    for k, name in enumerate(data.probe_names):
-        out[f"{name}.scalar"] = mag[:, k] - f
-    for k in range(1, b.n_probes):
-        for a, ax in enumerate("xyz"):
-            out[f"{data.probe_names[k]}-{data.probe_names[0]}.{ax}"] = corr[:, k, a] - corr[:, 0, a]
-    return out
+    names = channel_names(data.probe_names)
+    values = [mag[:, k] - f for k in range(b.n_probes)]
+    values += [corr[:, k, a] - corr[:, 0, a] for k in range(1, b.n_probes) for a in range(3)]
+    return dict(zip(names, values))
 
 
 def uncalibrated_channels(data: LabData, total: TotalField) -> dict[str, np.ndarray]:

@@ -26,6 +26,7 @@ from drivers.ringbuffer import RingBuffer
 from service.numerics.calib import alignment, coverage as coverage_mod, tensor as tensor_mod
 from service.numerics.calib.model import ArrayCalibration
 from service.numerics.calib.rls import RlsEllipsoid
+from service.numerics.engine.channels import channel_names
 from service.numerics.outputs import CorrectedBlock
 
 
@@ -336,17 +337,14 @@ class Pipeline:
             return {}
         ref = self._reference_total(block)
         out: dict[str, float] = {}
+        names = channel_names(self.probe_names)                           # scalars, then differences
         mag = np.linalg.norm(corrected.corrected_nT, axis=2)              # (N, P)
         if ref is not None:
             res = mag - (ref[:, None] if isinstance(ref, np.ndarray) else ref)
-            rms = _rms_over_rows(res)
-            for k, name in enumerate(self.probe_names):
-                out[f"{name}.scalar"] = float(rms[k])
+            out.update(zip(names[:self.n_probes], map(float, _rms_over_rows(res))))
         if corrected.diff_nT is not None and self.positions_m is None:
             d = _rms_over_rows(corrected.diff_nT)                          # (P-1, 3)
-            for k in range(1, self.n_probes):
-                for a, ax in enumerate("xyz"):
-                    out[f"{self.probe_names[k]}-{self.probe_names[0]}.{ax}"] = float(d[k - 1, a])
+            out.update(zip(names[self.n_probes:], map(float, d.reshape(-1))))
         return out
 
     # --- the gate ----------------------------------------------------------------------------

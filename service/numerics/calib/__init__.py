@@ -6,13 +6,28 @@ estimator), alignment (000 regression, 001 rotation), tensor (001), coverage (wh
 trust a fit). The calibration file is read and written in service.io.calfile.
 """
 
-from .alignment import (RotationAlignment, align_probes, align_regression, align_rotation, platform_calibration,
-                        platform_output, regression_calibration, rotation_from_angles, rotation_from_samples)
+from .alignment import (
+                        RotationAlignment,
+                        align_probes,
+                        align_regression,
+                        align_rotation,
+                        platform_calibration,
+                        platform_output,
+                        regression_calibration,
+                        rotation_from_angles,
+                        rotation_from_samples,
+)
 from .ellipsoid import EllipsoidFit, fit_ellipsoid, triangular_factor
-from .model import (ArrayCalibration, ProbeCalibration, triangular_matrix, triangular_params,
-                    unit_column_split)
-from .tensor import (center_field, cross_positions, differences, invariants, measured_components,
-                     tensor_from_cross, tensor_from_positions)
+from .model import ArrayCalibration, ProbeCalibration, triangular_matrix, triangular_params, unit_column_split
+from .tensor import (
+                        center_field,
+                        cross_positions,
+                        differences,
+                        invariants,
+                        measured_components,
+                        tensor_from_cross,
+                        tensor_from_positions,
+)
 from .tmi import TmiFit, fit_tmi, fit_tmi_full
 
 __all__ = [

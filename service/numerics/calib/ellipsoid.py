@@ -66,6 +66,37 @@ def quadric_design(u: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray
     return np.column_stack(cols)
 
 
+def normalise(raw: np.ndarray) -> tuple[np.ndarray, float]:
+    """(c, s): the samples' mean and their median distance from it, so that u = (r − c) / s is of order
+    one whatever the origin and unit of r."""
+    center = raw.mean(axis=0)
+    return center, float(np.median(np.linalg.norm(raw - center, axis=1))) or 1.0
+
+
+def algebraic_ellipsoid(raw: np.ndarray, total_nT: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A starting offset and symmetric matrix, never a refusal: the least-squares quadric uᵀQu + bᵀu = 1
+    through the centred, scaled samples (`normalise`, `quadric_design`), o = −Q⁻¹b/2, M = √(Q / (1 + oᵀQo));
+    where that is no ellipsoid (one turn, too few directions) the samples' mean and a unit shape. M is
+    scaled so the median |M(r − o)| is total_nT (or the median |r − o|). The fit engine refines it."""
+    center, scale = normalise(raw)
+    sol, *_ = np.linalg.lstsq(quadric_design((raw - center) / scale), np.ones(raw.shape[0]), rcond=None)
+    q = np.array([[sol[0], sol[3], sol[4]], [sol[3], sol[1], sol[5]], [sol[4], sol[5], sol[2]]])
+    ok = bool(np.all(np.linalg.eigvalsh(q) > 0))
+    if ok:
+        o = -0.5 * np.linalg.solve(q, sol[6:9])
+        q = q / (1.0 + o @ q @ o)
+        w, v = np.linalg.eigh(q)
+        ok = bool(np.all(w > 0))
+    if ok:
+        m = (v * np.sqrt(w)) @ v.T
+    else:
+        o, m = np.zeros(3), np.eye(3)
+    offset = center + scale * o
+    mags = np.linalg.norm((raw - offset) @ m.T, axis=1)
+    target = total_nT if total_nT is not None else float(np.median(np.linalg.norm(raw - offset, axis=1)))
+    return offset, m * (target / float(np.median(mags)))
+
+
 def quadric_to_calibration(theta: np.ndarray, scale: float, f2_ref: float) -> tuple[np.ndarray, np.ndarray]:
     """(offset_nT, upper-triangular matrix) from the fitted coefficients (nine or ten).
 

@@ -17,23 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from service.numerics.noise import robust_noise
+
 from .base import AXES, EffectTerm, ProbeView
-
-
-def robust_noise(x: np.ndarray) -> float:
-    """White-noise sigma of a series from its second differences: 1.4826 MAD(d2) / sqrt(6).
-
-    >>> rng = np.random.default_rng(0)
-    >>> round(robust_noise(rng.standard_normal(100000) * 2.0), 1)
-    2.0
-    """
-    x = np.asarray(x, dtype=np.float64)
-    x = x[np.isfinite(x)]
-    if x.size < 5:
-        return float("nan")
-    d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
-    # var(d2) = (1 + 4 + 1) sigma^2 for white noise
-    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
 
 
 def detect_steps(t_s: np.ndarray, residual: np.ndarray, gain: np.ndarray, *, window: int,

@@ -6,10 +6,12 @@ errors, warm starts), starting values (start.py), and the public entry, `fit_wit
 (model_fit.py). The diagnosis (service.numerics.diagnose) uses the names exported here.
 """
 
+from service.numerics.noise import channel_noise
+
 from .channels import Channels, channel_names
 from .linear import LinearCalibration
 from .model_fit import EffectsFit, fit_model, fit_with_effects, residual_hints
-from .problem import Problem, as_effect_data, channel_noise, reference_total
+from .problem import Problem, as_effect_data, reference_total
 from .solve import RANK_TOL, FitResult, Parameter, Warm, fit_problem, solve_normal, warm_from
 from .start import initial_linear, start_weights
 

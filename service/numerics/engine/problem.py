@@ -27,7 +27,6 @@ import numpy as np
 from drivers.block import SampleBlock
 from drivers.errors import CalibrationRefused, DataError
 from service.numerics.effects.base import EffectData, Model, ProbeView
-from service.numerics.effects.hysteresis import robust_noise
 
 from .channels import _Eval, channel_names
 from .jacobian import _chunks, _Jac, block_jacobian, local_jacobian
@@ -246,11 +245,6 @@ def reference_total(data: EffectData, linear: LinearCalibration | None = None) -
         raise CalibrationRefused("no total field: give ref_total in the data, a total in --config, or a start")
     v = (data.raw_nT[:, 0, :] - linear.offset_nT[0]) @ linear.matrix[0].T
     return np.full(data.n_samples, float(np.median(np.linalg.norm(v, axis=1)))), "estimated"
-
-
-def channel_noise(values: np.ndarray) -> np.ndarray:
-    """Noise floor per channel (columns of values): std of second differences / sqrt(6), robust."""
-    return np.array([robust_noise(values[:, c]) for c in range(values.shape[1])])
 
 
 def as_effect_data(data: Any, *, total_nT: float | None = None, positions_m: np.ndarray | None = None,

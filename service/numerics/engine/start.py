@@ -7,42 +7,15 @@ import warnings
 
 import numpy as np
 
+from service.numerics.calib.ellipsoid import algebraic_ellipsoid
 from service.numerics.effects.base import EffectData, Model
+from service.numerics.noise import channel_noise
 
 from .linear import LinearCalibration
-from .problem import Problem, channel_noise
+from .problem import Problem
 
 #: floor of the per-channel noise used as weight, nT (the ADC step of the unit)
 NOISE_FLOOR_NT = 1e-3
-
-
-def _algebraic_ellipsoid(raw: np.ndarray, total_nT: float | None) -> tuple[np.ndarray, np.ndarray]:
-    """Offset and symmetric matrix from a least-squares quadric through the points (a start only).
-
-    x^T Q x + b^T x = 1 (scaled coordinates); o = -Q^-1 b / 2; M = F sqrtm(Q / (1 + o^T Q o))."""
-    scale = float(np.median(np.linalg.norm(raw - raw.mean(0), axis=1))) or 1.0
-    c = raw.mean(0)
-    x = (raw - c) / scale
-    design = np.column_stack([x[:, 0] ** 2, x[:, 1] ** 2, x[:, 2] ** 2, 2 * x[:, 0] * x[:, 1],
-                              2 * x[:, 0] * x[:, 2], 2 * x[:, 1] * x[:, 2], x])
-    sol, *_ = np.linalg.lstsq(design, np.ones(x.shape[0]), rcond=None)
-    q = np.array([[sol[0], sol[3], sol[4]], [sol[3], sol[1], sol[5]], [sol[4], sol[5], sol[2]]])
-    ok = bool(np.all(np.linalg.eigvalsh(q) > 0))
-    if ok:
-        o = -0.5 * np.linalg.solve(q, sol[6:9])
-        q = q / (1.0 + o @ q @ o)
-        w, v = np.linalg.eigh(q)
-        ok = bool(np.all(w > 0))
-    if not ok:
-        # turns about one axis (or too few directions): a plain centre and unit shape as the start
-        o = np.zeros(3)
-        m = np.eye(3)
-    else:
-        m = (v * np.sqrt(w)) @ v.T
-    offset = c + scale * o
-    mags = np.linalg.norm((raw - offset) @ m.T, axis=1)
-    target = total_nT if total_nT is not None else float(np.median(np.linalg.norm(raw - offset, axis=1)))
-    return offset, m * (target / float(np.median(mags)))
 
 
 def initial_linear(data: EffectData, reference_nT: np.ndarray | float | None) -> LinearCalibration:
@@ -69,7 +42,7 @@ def initial_linear(data: EffectData, reference_nT: np.ndarray | float | None) ->
             except Exception:                                  # noqa: BLE001 - fall back to our own start
                 o = m = None
         if o is None or not np.all(np.isfinite(m)):
-            o, m = _algebraic_ellipsoid(raw, f_total)
+            o, m = algebraic_ellipsoid(raw, f_total)
         offs.append(o)
         mats.append(m)
     cal = LinearCalibration(np.array(offs), np.array(mats))
