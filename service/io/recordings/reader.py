@@ -23,8 +23,14 @@ from mcap.decoder import DecoderFactory
 
 from drivers.block import SampleBlock
 from drivers.errors import DataError, RecordingError
-from drivers.mcap_source import ReadReport, iter_file_records, metadata_json, iter_records, recording_files, unit_of_topic
-
+from drivers.mcap_source import (
+    ReadReport,
+    iter_file_records,
+    iter_records,
+    metadata_json,
+    recording_files,
+    unit_of_topic,
+)
 from service.io.encoding import CORRECTED_ENCODING, RAW_ENCODING, decode_corrected, decode_json, decode_raw
 from service.numerics.outputs import CorrectedBlock
 

@@ -44,34 +44,30 @@ Not thread-safe (neither is mcap's Writer): one thread feeds a logger.
 
 from __future__ import annotations
 
-import errno
 import json
 import math
-import os
 import re
 import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from mcap.writer import CompressionType, Writer
-
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError
-
-from service.io.encoding import (CALIBRATION_SCHEMA, CORRECTED_ENCODING, CORRECTED_LAYOUT, EVENT_SCHEMA, HEALTH_SCHEMA,
-                       RAW_ENCODING, RAW_LAYOUT, encode_corrected, encode_json, encode_raw, health_record,
-                       vectors_schema)
+from service.io.encoding import (
+    encode_corrected,
+    encode_json,
+    encode_raw,
+    health_record,
+)
+from service.numerics.decimate import VectorMeans
 from service.numerics.outputs import CorrectedBlock
 
-#: schema encoding of the binary layouts: the schema data is the layout table as UTF-8 text
-LAYOUT_SCHEMA_ENCODING = "fluxcal.layout"
+from .files import COMPRESSIONS, McapFiles
+
 STREAMS = ("raw", "corrected", "vectors", "calibration", "events", "health")
-COMPRESSIONS = {"lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD, "none": CompressionType.NONE}
 _UNIT_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
 _RETRY_S = 5.0
-_NO_AUTO_CHUNK = 1 << 62              # the logger ends chunks itself (it must know what reached the disk)
 _monotonic = time.monotonic           # tests replace these two to move time
 _wall_ns = time.time_ns
 
@@ -80,125 +76,205 @@ def _default_opener(path: Path, mode: str):
     return open(path, mode, buffering=0)
 
 
-class _CountingFile:
-    """The output file as the mcap Writer sees it: every byte is written (a raw file may take fewer
-    bytes than offered just before the disk fills), bytes are counted, and the position is known
-    without a system call. Not an io.RawIOBase, so the Writer adds no buffer of its own."""
+class ChunkedLog:
+    """Messages of named streams into a series of chunked, compressed MCAP files (files.McapFiles): a
+    chunk ends when full or `flush_interval_s` old, files rotate by size and age, a failed file is cut
+    back to its last chunk and the unfinished one rewritten into the next file after `retry_s`, with at
+    most `backlog_bytes` kept meanwhile. Everything is counted. McapLogger is fluxcal's streams on it."""
 
-    def __init__(self, f: Any) -> None:
-        self.f = f
-        self.pos = 0
+    def __init__(self, files: McapFiles, *, single_file: bool, rotate_bytes: float, rotate_s: float, chunk_size: int,
+                 flush_interval_s: float, epoch_ns: int | None, retry_s: float | None, backlog_bytes: float) -> None:
+        self._files = files
+        self.single_file = single_file
+        self.rotate_bytes = rotate_bytes
+        self.rotate_s = rotate_s
+        self.chunk_size = chunk_size
+        self.flush_interval_s = flush_interval_s
+        self.epoch_ns = epoch_ns
+        self.retry_s = retry_s
+        self.backlog_bytes = backlog_bytes
+        self.messages = 0                  # messages handed to the logger
+        self.messages_written = 0          # messages in chunks that reached the file
+        self.dropped = 0                   # messages that could not be written
+        self.errors = 0                    # write errors (each failed attempt)
+        self.last_error = ""
+        self.last_error_wall_s: float | None = None
 
-    def write(self, data: bytes) -> int:
-        view = memoryview(data).cast("B")
-        total = len(view)
-        while view:
-            n = self.f.write(view)
-            n = len(view) if n is None else n      # buffered wrappers return None or the full length
-            if n <= 0:
-                raise OSError(errno.EIO, "the file took no bytes")
-            self.pos += n
-            view = view[n:]
-        return total
+        self._sequence = dict.fromkeys(STREAMS, 0)
+        self._pending: list[tuple[str, bytes, int, int, int]] = []   # the unflushed chunk: rewritten after a failure
+        self._pending_bytes = 0
+        self._opened_at = 0.0
+        self._last_flush = 0.0
+        self._retry_at = 0.0
+        self._last_log_ns: int | None = None
+        self._closed = False
+        self._open()
 
-    def tell(self) -> int:
-        return self.pos
+    # --- files (service.io.recordings.files) --------------------------------------------------------
+
+    @property
+    def files(self) -> list[str]:
+        """Every file this logger opened, in order."""
+        return self._files.files
+
+    @property
+    def bytes_written(self) -> int:
+        """Bytes that reached files (all files)."""
+        return self._files.bytes_written
+
+    def _open(self) -> bool:
+        """Open the next file and write its header; False (and counted) if that failed."""
+        try:
+            self._files.open(_wall_ns(), self._pending,
+                             self.epoch_ns if self.epoch_ns is not None and self._last_log_ns is not None else None)
+        except OSError as e:
+            self._error(e)
+            return False
+        self._opened_at = _monotonic()
+        self._last_flush = self._opened_at
+        return True
+
+    def _error(self, e: OSError) -> None:
+        self.errors += 1
+        self.last_error = f"{type(e).__name__}: {e}"
+        self.last_error_wall_s = _wall_ns() / 1e9
+        self._retry_at = _monotonic() + (_RETRY_S if self.retry_s is None else self.retry_s)
+
+    def _fail(self, e: OSError) -> None:
+        """A write failed: cut the file back to its last complete chunk and close it; keep the pending
+        messages for the next file."""
+        self._error(e)
+        self.last_error += self._files.fail()
+        # bounded memory while the disk stays full: the oldest unwritten messages go first
+        while self._pending and self._pending_bytes > self.backlog_bytes:
+            _, data, *_ = self._pending.pop(0)
+            self._pending_bytes -= len(data) + 40
+            self.dropped += 1
+
+    def _chunk_done(self) -> None:
+        """The pending messages are in the file now."""
+        self._files.chunk_done(len(self._pending))
+        self.messages_written += len(self._pending)
+        self._pending.clear()
+        self._pending_bytes = 0
+        self._last_flush = _monotonic()
+
+    def _flush(self) -> None:
+        self._files.flush()
+        self._chunk_done()
+
+    def _finish(self) -> None:
+        """Footer and index; then the file is complete."""
+        if self._files.writer is None or self._files.fh is None:
+            return
+        try:
+            self._files.finish()
+            self._chunk_done()
+            self._files.close_finished()
+        except OSError as e:
+            self._fail(e)
+
+    # --- writing ----------------------------------------------------------------------------------
+
+    def _log_time(self, t_s: float | None) -> int:
+        if t_s is None or not math.isfinite(t_s):
+            if self._last_log_ns is not None:
+                return self._last_log_ns
+            return _wall_ns()
+        if self.epoch_ns is None:
+            self.epoch_ns = _wall_ns() - round(t_s * 1e9)
+        return max(self.epoch_ns + round(t_s * 1e9), 0)
+
+    def _write(self, stream: str, data: bytes, t_s: float | None) -> None:
+        self.messages += 1
+        if self._closed:
+            self.dropped += 1
+            self.last_error = "write after close"
+            return
+        log_ns = self._log_time(t_s)
+        if t_s is not None and math.isfinite(t_s):
+            self._last_log_ns = log_ns
+        self._rotate_if_due()
+        files = self._files
+        if files.writer is None:
+            if _monotonic() < self._retry_at or not self._open():
+                self.dropped += 1
+                return
+        assert files.writer is not None
+        seq = self._sequence[stream] = (self._sequence[stream] + 1) & 0xFFFFFFFF
+        pub_ns = _wall_ns()
+        try:
+            if not files.time_written and self.epoch_ns is not None:
+                files.write_time_record(self.epoch_ns)
+            files.writer.add_message(files.channels[stream], log_time=log_ns, data=data, publish_time=pub_ns,
+                                     sequence=seq)
+            self._pending.append((stream, data, log_ns, pub_ns, seq))
+            self._pending_bytes += len(data) + 40          # + the message record's header, about
+            self._flush_if_due()
+        except OSError as e:
+            self._fail(e)
+
+    def _flush_if_due(self) -> None:
+        if self._pending and (self._pending_bytes >= self.chunk_size
+                              or _monotonic() - self._last_flush >= self.flush_interval_s):
+            self._flush()
+
+    def _rotate_if_due(self) -> None:
+        """Before a message: a file holds what arrived in [opened, opened + rotate_s) and about rotate_mb."""
+        fh = self._files.fh
+        if self._files.writer is None or fh is None or self.single_file:
+            return
+        if (fh.pos + self._pending_bytes >= self.rotate_bytes
+                or _monotonic() - self._opened_at >= self.rotate_s):
+            self._finish()
+            if self._files.writer is None and not self._pending:     # finished cleanly (else: retried later)
+                self._open()
+
+    def poll(self) -> None:
+        """End the chunk if it is full or `flush_interval_s` old, rotate if due, retry a failed file.
+        Writing does this; a caller whose input stalls calls it about once a second so the last data
+        reaches the disk."""
+        if self._closed:
+            return
+        if self._files.writer is None:
+            if self._pending and _monotonic() >= self._retry_at:
+                self._open()
+            return
+        try:
+            self._flush_if_due()
+        except OSError as e:
+            self._fail(e)
+        self._rotate_if_due()
 
     def flush(self) -> None:
-        flush = getattr(self.f, "flush", None)
-        if flush is not None:
-            flush()
+        """Write the unfinished chunk now (e.g. before a planned stop)."""
+        if self._files.writer is not None and self._pending:
+            try:
+                self._flush()
+            except OSError as e:
+                self._fail(e)
 
-    def truncate(self, size: int) -> None:
-        self.f.truncate(size)
-        self.pos = size
+    def status(self) -> dict[str, Any]:
+        """What has been written and what went wrong, for the health stream and the state query."""
+        return {"files": len(self.files), "current": self.files[-1] if self._files.writer is not None else None,
+                "messages": self.messages, "messages_written": self.messages_written,
+                "pending": len(self._pending), "bytes_written": self.bytes_written, "dropped": self.dropped,
+                "errors": self.errors, "last_error": self.last_error, "last_error_wall_s": self.last_error_wall_s,
+                "compression": self._files.compression}
 
-    def fileno(self) -> int:
-        return self.f.fileno()
-
-    def close(self) -> None:
-        self.f.close()
-
-
-class _VectorMeans:
-    """Means of the corrected vectors over intervals of `period_s` of unit time: per probe x, y, z
-    (NaN-aware) and mean |B|, and the same of the array centre when the blocks have it. Interval k
-    holds k·period <= t < (k+1)·period; it also ends early when the calibration (cal_id) changes.
-    Blocks inside one interval are only kept; the arithmetic runs once per interval (10 Hz)."""
-
-    def __init__(self, period_s: float) -> None:
-        self.period_s = period_s
-        self.parts: list[CorrectedBlock] = []      # the interval being filled
-        self.bin = 0
-
-    def _bin(self, t: float) -> int:
-        # the 1e-9 keeps a sample on a boundary in the interval it starts (0.3 s is
-        # 2.9999999999999996 periods of 0.1 s in binary)
-        return math.floor(t / self.period_s + 1e-9)
-
-    def add(self, block: CorrectedBlock) -> list[dict[str, Any]]:
-        """Feed a block; returns the intervals it completed."""
-        done: list[dict[str, Any]] = []
-        t = block.t_s
-        if not np.isfinite(t).all():
-            keep = np.flatnonzero(np.isfinite(t))
-            block = _rows(block, keep)
-            t = block.t_s
-        if t.size == 0:
-            return done
-        first, last = self._bin(float(t[0])), self._bin(float(t[-1]))
-        if self.parts:
-            prev = self.parts[-1]
-            if (first != self.bin or block.cal_id != prev.cal_id or block.n_probes != prev.n_probes
-                    or (block.center_nT is None) != (prev.center_nT is None)):
-                done.append(self._emit())
-        if first == last:
-            if not self.parts:
-                self.bin = first
-            self.parts.append(block)
-            return done
-        bins = np.floor(t / self.period_s + 1e-9).astype(np.int64)
-        cuts = np.concatenate([[0], np.flatnonzero(np.diff(bins)) + 1, [t.size]])
-        for a, b in zip(cuts[:-1], cuts[1:]):
-            if a > 0:
-                done.append(self._emit())
-            if not self.parts:
-                self.bin = int(bins[a])
-            self.parts.append(_rows(block, slice(a, b)))
-        return done
-
-    def flush(self) -> list[dict[str, Any]]:
-        return [self._emit()] if self.parts else []
-
-    @staticmethod
-    def _mean(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """NaN-aware mean over samples of (N, P, 3): (P, 3) of x, y, z and (P,) of |B|; NaN if none."""
-        ok = np.isfinite(c)
-        norm = np.sqrt(np.einsum("npk,npk->np", c, c))          # |B| = sqrt(x^2 + y^2 + z^2), NaN if an axis is
-        nok = np.isfinite(norm)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return (np.where(ok, c, 0.0).sum(axis=0) / ok.sum(axis=0),
-                    np.where(nok, norm, 0.0).sum(axis=0) / nok.sum(axis=0))
-
-    def _emit(self) -> dict[str, Any]:
-        """{"t_s", "seq", "n", "cal_id", "mean" (P, 3) nT, "total" (P,) nT, "center": (mean (3,), total) or None}."""
-        parts, self.parts = self.parts, []
-        c = parts[0].corrected_nT if len(parts) == 1 else np.concatenate([p.corrected_nT for p in parts])
-        mean, total = self._mean(c)
-        center = None
-        if parts[0].center_nT is not None:
-            cm, ct = self._mean(np.concatenate([p.center_nT for p in parts])[:, None, :])
-            center = (cm[0], ct[0])
-        return {"t_s": float(parts[0].t_s[0]), "seq": int(parts[0].seq[0]), "n": int(c.shape[0]),
-                "cal_id": int(parts[-1].cal_id), "mean": mean, "total": total, "center": center}
+    def _close_files(self) -> None:
+        """The last chunk and the footer; what cannot be written then is counted as dropped."""
+        self._finish()
+        if self._pending:                     # the last file failed: one more try for its last chunk
+            if self._files.writer is None and self._open():
+                self._finish()
+            if self._pending:
+                self.dropped += len(self._pending)
+                self._pending.clear()
+        self._closed = True
 
 
-def _rows(b: CorrectedBlock, rows: Any) -> CorrectedBlock:
-    return CorrectedBlock(b.t_s[rows], b.seq[rows], b.corrected_nT[rows], None, None,
-                          None if b.center_nT is None else b.center_nT[rows], b.cal_id)
-
-
-class McapLogger:
+class McapLogger(ChunkedLog):
     """Writes one unit's streams into chunked, compressed, rotating MCAP files (see the module docstring).
 
     path: a directory (rotating files) or a file path ending in .mcap (that one file).
@@ -238,11 +314,7 @@ class McapLogger:
         self.dir = p.parent if self.single_file else p
         self.path = p if self.single_file else None
         self.unit = unit
-        self.rotate_bytes = rotate_mb * 1e6
-        self.rotate_s = rotate_s
-        self.chunk_size = int(chunk_size)
         self.compression = compression
-        self.flush_interval_s = flush_interval_s
         self.metadata = {str(k): v if isinstance(v, str) else json.dumps(v) for k, v in (metadata or {}).items()}
         if probe_names is None and "probe_names" in self.metadata:
             try:
@@ -250,273 +322,13 @@ class McapLogger:
             except (json.JSONDecodeError, TypeError):
                 probe_names = None
         self.probe_names = list(probe_names or [])
-        self.epoch_ns = epoch_ns
         self.fsync = fsync
-        self.retry_s = retry_s
-        self.backlog_bytes = max(backlog_mb * 1e6, 2.0 * self.chunk_size)
-        self._opener = opener or _default_opener
-        self._vectors = _VectorMeans(vectors_period_s) if vectors_period_s > 0 else None
-
-        self.files: list[str] = []         # every file this logger opened, in order
-        self.messages = 0                  # messages handed to the logger
-        self.messages_written = 0          # messages in chunks that reached the file
-        self.bytes_written = 0             # bytes that reached files (all files)
-        self.dropped = 0                   # messages that could not be written
-        self.errors = 0                    # write errors (each failed attempt)
-        self.last_error = ""
-        self.last_error_wall_s: float | None = None
-
-        self._writer: Writer | None = None
-        self._fh: _CountingFile | None = None
-        self._channels: dict[str, int] = {}
-        self._sequence = dict.fromkeys(STREAMS, 0)
-        self._pending: list[tuple[str, bytes, int, int, int]] = []   # the unflushed chunk: rewritten after a failure
-        self._pending_bytes = 0
-        self._good_offset = 0              # the current file up to here holds complete records only
-        self._file_base = 0                # bytes_written before the current file
-        self._time_written = False
-        self._opened_at = 0.0
-        self._last_flush = 0.0
-        self._retry_at = 0.0
-        self._last_log_ns: int | None = None
-        self._file_index = 0
-        self._file_messages = 0            # messages flushed into the current file
-        self._closed = False
-        self._open()
-
-    # --- files ------------------------------------------------------------------------------------
-
-    def _candidate(self) -> tuple[Path, str]:
-        self._file_index += 1
-        if self.single_file:
-            assert self.path is not None
-            if self._file_index == 1:
-                return self.path, "wb"
-            return self.path.with_name(f"{self.path.stem}_{self._file_index:04d}{self.path.suffix}"), "xb"
-        stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime(_wall_ns() / 1e9))
-        return self.dir / f"{self.unit}-{stamp}-{self._file_index:04d}.mcap", "xb"
-
-    def _open(self) -> bool:
-        """Open the next file and write its header; False (and counted) if that failed."""
-        raw = path = None
-        try:
-            self.dir.mkdir(parents=True, exist_ok=True)
-            for _ in range(100):                         # never overwrite a file of another run
-                path, mode = self._candidate()
-                try:
-                    raw = self._opener(path, mode)
-                    break
-                except FileExistsError:
-                    continue
-            else:
-                raise OSError(errno.EEXIST, f"no free file name like {path}")
-            fh = _CountingFile(raw)
-            w = Writer(fh, chunk_size=_NO_AUTO_CHUNK, compression=COMPRESSIONS[self.compression])
-            w.start(profile="", library="fluxcal")
-            layout = w.register_schema(RAW_ENCODING, LAYOUT_SCHEMA_ENCODING, RAW_LAYOUT.encode())
-            cor = w.register_schema(CORRECTED_ENCODING, LAYOUT_SCHEMA_ENCODING, CORRECTED_LAYOUT.encode())
-
-            def js(name: str, schema: dict[str, Any]) -> int:
-                return w.register_schema(name, "jsonschema", json.dumps(schema).encode())
-
-            t = f"/fluxcal/{self.unit}"
-            self._channels = {
-                "raw": w.register_channel(f"{t}/raw", RAW_ENCODING, layout),
-                "corrected": w.register_channel(f"{t}/corrected", CORRECTED_ENCODING, cor),
-                "vectors": w.register_channel(f"{t}/vectors", "json",
-                                              js("fluxcal.vectors", vectors_schema(self.probe_names))),
-                "calibration": w.register_channel(f"{t}/calibration", "json",
-                                                  js("fluxcal.calibration", CALIBRATION_SCHEMA)),
-                "events": w.register_channel(f"{t}/events", "json", js("fluxcal.event", EVENT_SCHEMA)),
-                "health": w.register_channel(f"{t}/health", "json", js("fluxcal.health", HEALTH_SCHEMA)),
-            }
-            w.add_metadata("fluxcal", {"unit": self.unit, "raw_encoding": RAW_ENCODING,
-                                       "corrected_encoding": CORRECTED_ENCODING, **self.metadata,
-                                       "file_index": str(self._file_index)})
-            self._writer, self._fh = w, fh
-            self._time_written = False
-            self._file_messages = 0
-            if self.epoch_ns is not None and self._last_log_ns is not None:
-                self._write_time_record()
-            self._good_offset = fh.pos
-            # the unfinished chunk of a file that failed comes first
-            for stream, data, log_ns, pub_ns, seq in self._pending:
-                w.add_message(self._channels[stream], log_time=log_ns, data=data, publish_time=pub_ns, sequence=seq)
-        except OSError as e:
-            self._writer = None
-            if raw is not None:
-                try:
-                    raw.close()
-                    if path is not None:
-                        path.unlink()           # a file that never got its header is no recording
-                except OSError:
-                    pass
-            self._fh = None
-            self._error(e)
-            return False
-        self.files.append(str(path))
-        self._opened_at = _monotonic()
-        self._last_flush = self._opened_at
-        return True
-
-    def _write_time_record(self) -> None:
-        assert self._writer is not None
-        self._writer.add_metadata("fluxcal.time", {
-            "epoch_ns": str(self.epoch_ns),
-            "log_time": "epoch_ns + round(t_s * 1e9), t_s the unit time (s) of the message's first sample",
-            "publish_time": "wall clock when written, ns since 1970-01-01 UTC"})
-        self._time_written = True
-
-    def _error(self, e: OSError) -> None:
-        self.errors += 1
-        self.last_error = f"{type(e).__name__}: {e}"
-        self.last_error_wall_s = _wall_ns() / 1e9
-        self._retry_at = _monotonic() + (_RETRY_S if self.retry_s is None else self.retry_s)
-
-    def _fail(self, e: OSError) -> None:
-        """A write failed: cut the file back to its last complete chunk and close it; keep the pending
-        messages for the next file."""
-        self._error(e)
-        fh, self._fh, self._writer = self._fh, None, None
-        if fh is None:
-            return
-        try:
-            fh.truncate(self._good_offset)      # needs no space: the file now reads like a killed writer's
-        except (OSError, AttributeError, ValueError) as te:
-            self.last_error += f"; could not cut the file back to its last chunk ({te})"
-        self.bytes_written = self._file_base + self._good_offset
-        try:
-            fh.close()
-        except OSError:
-            pass
-        if self._file_messages == 0 and self.files:
-            # a file with no message in it is no recording: remove it, its number is used again
-            try:
-                Path(self.files[-1]).unlink()
-                self.files.pop()
-                self._file_index -= 1
-                self.bytes_written -= self._good_offset
-            except OSError:
-                pass
-        self._file_base = self.bytes_written
-        # bounded memory while the disk stays full: the oldest unwritten messages go first
-        while self._pending and self._pending_bytes > self.backlog_bytes:
-            _, data, *_ = self._pending.pop(0)
-            self._pending_bytes -= len(data) + 40
-            self.dropped += 1
-
-    def _chunk_done(self) -> None:
-        """The pending messages are in the file now."""
-        assert self._fh is not None
-        self.messages_written += len(self._pending)
-        self._file_messages += len(self._pending)
-        self._pending.clear()
-        self._pending_bytes = 0
-        self._good_offset = self._fh.pos
-        self.bytes_written = self._file_base + self._fh.pos
-        self._last_flush = _monotonic()
-
-    def _flush(self) -> None:
-        assert self._writer is not None and self._fh is not None
-        self._writer.flush()                  # ends the chunk and flushes the stream (mcap >= 1.6)
-        if self.fsync:
-            os.fsync(self._fh.fileno())
-        self._chunk_done()
-
-    def _finish(self) -> None:
-        """Footer and index; then the file is complete."""
-        if self._writer is None or self._fh is None:
-            return
-        try:
-            self._writer.finish()
-            if self.fsync:
-                os.fsync(self._fh.fileno())
-            self._chunk_done()
-            self._file_base = self.bytes_written
-            self._fh.close()
-        except OSError as e:
-            self._fail(e)
-            return
-        self._writer = None
-        self._fh = None
-
-    # --- writing ----------------------------------------------------------------------------------
-
-    def _log_time(self, t_s: float | None) -> int:
-        if t_s is None or not math.isfinite(t_s):
-            if self._last_log_ns is not None:
-                return self._last_log_ns
-            return _wall_ns()
-        if self.epoch_ns is None:
-            self.epoch_ns = _wall_ns() - round(t_s * 1e9)
-        return max(self.epoch_ns + round(t_s * 1e9), 0)
-
-    def _write(self, stream: str, data: bytes, t_s: float | None) -> None:
-        self.messages += 1
-        if self._closed:
-            self.dropped += 1
-            self.last_error = "write after close"
-            return
-        log_ns = self._log_time(t_s)
-        if t_s is not None and math.isfinite(t_s):
-            self._last_log_ns = log_ns
-        self._rotate_if_due()
-        if self._writer is None:
-            if _monotonic() < self._retry_at or not self._open():
-                self.dropped += 1
-                return
-        assert self._writer is not None
-        seq = self._sequence[stream] = (self._sequence[stream] + 1) & 0xFFFFFFFF
-        pub_ns = _wall_ns()
-        try:
-            if not self._time_written and self.epoch_ns is not None:
-                self._write_time_record()
-            self._writer.add_message(self._channels[stream], log_time=log_ns, data=data, publish_time=pub_ns,
-                                     sequence=seq)
-            self._pending.append((stream, data, log_ns, pub_ns, seq))
-            self._pending_bytes += len(data) + 40          # + the message record's header, about
-            self._flush_if_due()
-        except OSError as e:
-            self._fail(e)
-
-    def _flush_if_due(self) -> None:
-        if self._pending and (self._pending_bytes >= self.chunk_size
-                              or _monotonic() - self._last_flush >= self.flush_interval_s):
-            self._flush()
-
-    def _rotate_if_due(self) -> None:
-        """Before a message: a file holds what arrived in [opened, opened + rotate_s) and about rotate_mb."""
-        if self._writer is None or self._fh is None or self.single_file:
-            return
-        if (self._fh.pos + self._pending_bytes >= self.rotate_bytes
-                or _monotonic() - self._opened_at >= self.rotate_s):
-            self._finish()
-            if self._writer is None and not self._pending:     # finished cleanly (else: retried later)
-                self._open()
-
-    def poll(self) -> None:
-        """End the chunk if it is full or `flush_interval_s` old, rotate if due, retry a failed file.
-        Writing does this; a caller whose input stalls calls it about once a second so the last data
-        reaches the disk."""
-        if self._closed:
-            return
-        if self._writer is None:
-            if self._pending and _monotonic() >= self._retry_at:
-                self._open()
-            return
-        try:
-            self._flush_if_due()
-        except OSError as e:
-            self._fail(e)
-        self._rotate_if_due()
-
-    def flush(self) -> None:
-        """Write the unfinished chunk now (e.g. before a planned stop)."""
-        if self._writer is not None and self._pending:
-            try:
-                self._flush()
-            except OSError as e:
-                self._fail(e)
+        self._vectors = VectorMeans(vectors_period_s) if vectors_period_s > 0 else None
+        files = McapFiles(self.dir, self.path, unit=unit, compression=compression, probe_names=self.probe_names,
+                          metadata=self.metadata, fsync=fsync, opener=opener or _default_opener)
+        super().__init__(files, single_file=self.single_file, rotate_bytes=rotate_mb * 1e6, rotate_s=rotate_s,
+                         chunk_size=int(chunk_size), flush_interval_s=flush_interval_s, epoch_ns=epoch_ns,
+                         retry_s=retry_s, backlog_bytes=max(backlog_mb * 1e6, 2.0 * int(chunk_size)))
 
     def write_raw(self, block: SampleBlock) -> None:
         self._write("raw", encode_raw(block), float(block.t_s[0]) if block.n_samples else None)
@@ -556,14 +368,6 @@ class McapLogger:
         """The source's counters and this logger's status; call it about once a second."""
         self._write("health", encode_json(health_record(counters, self.status())), None)
 
-    def status(self) -> dict[str, Any]:
-        """What has been written and what went wrong, for the health stream and the state query."""
-        return {"files": len(self.files), "current": self.files[-1] if self._writer is not None else None,
-                "messages": self.messages, "messages_written": self.messages_written,
-                "pending": len(self._pending), "bytes_written": self.bytes_written, "dropped": self.dropped,
-                "errors": self.errors, "last_error": self.last_error, "last_error_wall_s": self.last_error_wall_s,
-                "compression": self.compression}
-
     def close(self) -> None:
         """Write the last vectors interval, the last chunk and the footer. Safe to call twice."""
         if self._closed:
@@ -571,14 +375,7 @@ class McapLogger:
         if self._vectors is not None:
             for rec in self._vectors.flush():
                 self._write_vectors(rec)
-        self._finish()
-        if self._pending:                     # the last file failed: one more try for its last chunk
-            if self._writer is None and self._open():
-                self._finish()
-            if self._pending:
-                self.dropped += len(self._pending)
-                self._pending.clear()
-        self._closed = True
+        self._close_files()
 
     def __enter__(self) -> "McapLogger":
         return self
