@@ -58,12 +58,12 @@ _AXES = {"+x": (1.0, 0, 0), "-x": (-1.0, 0, 0), "+y": (0, 1.0, 0), "-y": (0, -1.
 
 
 def quadric_design(u: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
-    """Rows [x², y², z², 2xy, 2xz, 2yz, x, y, z] (and −δ when given) of scaled samples u (N, 3)."""
-    x, y, z = u[:, 0], u[:, 1], u[:, 2]
+    """Rows [x², y², z², 2xy, 2xz, 2yz, x, y, z] (and −δ when given) of scaled samples u (…, 3): (…, 9 or 10)."""
+    x, y, z = u[..., 0], u[..., 1], u[..., 2]
     cols = [x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, x, y, z]
     if delta is not None:
         cols.append(-delta)
-    return np.column_stack(cols)
+    return np.stack(cols, axis=-1)
 
 
 def normalise(raw: np.ndarray) -> tuple[np.ndarray, float]:
