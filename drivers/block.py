@@ -78,11 +78,13 @@ class SampleBlock:
         )
 
     def slice(self, start: int, stop: int) -> "SampleBlock":
-        return SampleBlock(
-            t_s=self.t_s[start:stop], seq=self.seq[start:stop], field_nT=self.field_nT[start:stop],
-            temp_C=self.temp_C[start:stop], flags=self.flags[start:stop],
-            extras={k: v[start:stop] for k, v in self.extras.items()},
-        )
+        return self.rows(slice(start, stop))
+
+    def rows(self, keep: "slice | np.ndarray") -> "SampleBlock":
+        """The samples `keep` selects (a slice, indices or a boolean mask), every column alike."""
+        return SampleBlock(t_s=self.t_s[keep], seq=self.seq[keep], field_nT=self.field_nT[keep],
+                           temp_C=self.temp_C[keep], flags=self.flags[keep],
+                           extras={k: v[keep] for k, v in self.extras.items()})
 
 
 class Unwrapper:

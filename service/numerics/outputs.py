@@ -38,3 +38,20 @@ class CorrectedBlock:
     @property
     def n_probes(self) -> int:
         return int(self.corrected_nT.shape[1])
+
+
+def products(t_s: np.ndarray, seq: np.ndarray, corrected_nT: np.ndarray, positions_m: np.ndarray | None,
+             cal_id: int) -> CorrectedBlock:
+    """Everything the pipeline derives from corrected vectors (N, P, 3): each probe minus probe 1, the
+    array centre, and with four or more positioned probes the gradient tensor."""
+    c = corrected_nT
+    n_probes = c.shape[1]
+    diff = c[:, 1:] - c[:, :1] if n_probes > 1 else None
+    center = c.mean(axis=1) if n_probes > 1 else None
+    tens = None
+    if positions_m is not None and n_probes >= 4:
+        from .calib.tensor import tensor_from_positions
+
+        tens = tensor_from_positions(c, positions_m)
+    return CorrectedBlock(t_s=t_s, seq=seq, corrected_nT=c, diff_nT=diff, tensor_nT_m=tens, center_nT=center,
+                          cal_id=cal_id)

@@ -21,8 +21,8 @@ import numpy as np
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError, DataError, DriverError, FluxcalError
 from drivers.source import Source, open_source
-
 from service.io.calfile import load_calibration, save_calibration
+
 from .config import RATE_MISSING, FluxcalConfig
 from .pipeline import Pipeline, PipelineEvent
 

@@ -124,10 +124,10 @@ def load_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:
 
 
 def main(args: argparse.Namespace) -> int:
+    from service.io.recordings.labdata import load_data
     from service.numerics.diagnose import diagnose, summary_text
     from service.numerics.effects import EFFECTS
     from service.numerics.effects.base import EffectData
-    from service.io.recordings.labdata import load_data
 
     unknown = [e for e in args.effects if e not in EFFECTS]
     if unknown:

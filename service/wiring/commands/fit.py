@@ -9,9 +9,9 @@ from argparse import Namespace
 import numpy as np
 
 from service.io.calfile import save_calibration
+from service.io.recordings.labdata import load_data
 from service.numerics.calib.coverage import coverage
 from service.wiring.fitting import contract_json, fit_array, residual_channels, rms, uncalibrated_channels
-from service.io.recordings.labdata import load_data
 
 
 def _say(msg: str) -> None:

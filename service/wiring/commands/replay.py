@@ -17,12 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from drivers.block import SampleBlock
-
 from drivers.errors import RecordingError
 from service.io.calfile import calibration_from_dict
+from service.io.recordings.reader import read_recording
 from service.wiring.config import config_from_dict, load_config, rate_stated
 from service.wiring.daemon import build_pipeline
-from service.io.recordings.reader import read_recording
 
 
 class Progress:

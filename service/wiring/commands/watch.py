@@ -27,9 +27,17 @@ import numpy as np
 import zenoh
 
 from drivers.errors import ConfigError
-
-from service.io.bus import (DEFAULT_PORT, BusClient, BusError, Keys, Message, ZenohConfig, ZenohTlsConfig, discover_units,
-                         open_session)
+from service.io.bus import (
+    DEFAULT_PORT,
+    BusClient,
+    BusError,
+    Keys,
+    Message,
+    ZenohConfig,
+    ZenohTlsConfig,
+    discover_units,
+    open_session,
+)
 
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 TTY_PERIOD_S = 0.25            # redraw rate on a terminal (4 Hz)

@@ -1,0 +1,103 @@
+"""The quality gate of the online calibration: the candidate (the online estimate aligned over the ring
+buffer) and whether it may replace the calibration in use (coverage, conditioning, residual)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from drivers.block import SampleBlock
+from drivers.errors import CalibrationRefused, FluxcalError
+from drivers.ringbuffer import RingBuffer
+from service.numerics.calib import alignment
+from service.numerics.calib import coverage as coverage_mod
+from service.numerics.calib.model import ArrayCalibration
+from service.numerics.calib.rls import RlsEllipsoid
+
+
+@dataclass
+class GateResult:
+    usable: bool
+    reasons: list[str]
+    coverage: float
+    condition: float
+    rms_nT: list[float]
+
+
+class Gate:
+    """Settings and verdicts of the gate (EstimatorConfig's gate_* keys)."""
+
+    def __init__(self, *, probe_names: Sequence[str], align: str, min_samples: int, coverage: float,
+                 condition: float, rms_nT: float, total_nT: float | None) -> None:
+        self.probe_names = list(probe_names)
+        self.align, self.min_samples, self.total_nT = align, min_samples, total_nT
+        self.coverage, self.condition, self.rms_nT = coverage, condition, rms_nT
+        self.refusal: str | None = None   # why the last check found no candidate
+
+    @staticmethod
+    def window(ring: RingBuffer, max_samples: int = 600) -> SampleBlock:
+        """The ring buffer, thinned to at most `max_samples` evenly spaced samples: directions and
+        residuals change slowly, and the gate runs often."""
+        n = len(ring)
+        step = max(1, -(-n // max_samples))
+        return ring.take(np.arange(0, n, step))         # only the rows kept: no copy of the whole ring
+
+    def candidate(self, estimators: Sequence[RlsEllipsoid], ring: RingBuffer) -> ArrayCalibration | None:
+        """The online estimate, aligned over the ring buffer, or None if not yet determined (then
+        `refusal` says why, once there are enough samples to ask)."""
+        self.refusal = None
+        if any(est.n_samples_ < self.min_samples for est in estimators):
+            return None
+        try:
+            probes = [est.snapshot(name=name) for est, name in zip(estimators, self.probe_names)]
+        except (CalibrationRefused, FluxcalError) as e:
+            self.refusal = str(e)
+            return None
+        window = self.window(ring)
+        if len(estimators) > 1 and self.align != "none" and window.n_samples >= 3:
+            probes = alignment.align_probes(probes, window.field_nT, method=self.align)
+        return ArrayCalibration(method="rls", align=None if len(estimators) == 1 else self.align, probes=probes,
+                                total_nT=self.total_nT, effects=[], diagnostics={},
+                                span=(float(window.t_s[0]) if window.n_samples else 0.0,
+                                      float(window.t_s[-1]) if window.n_samples else 0.0,
+                                      int(estimators[0].n_samples_)))
+
+    def evaluate(self, cal: ArrayCalibration, estimators: Sequence[RlsEllipsoid], ring: RingBuffer) -> GateResult:
+        """The quality gate: coverage, conditioning and residual over the ring buffer window."""
+        window = self.window(ring)
+        reasons: list[str] = []
+        covs, conds, rmss = [], [], []
+        ref = reference_total(window, self.total_nT)
+        for k, (p, est) in enumerate(zip(cal.probes, estimators)):
+            raw = window.field_nT[:, k]
+            raw = raw[np.isfinite(raw).all(axis=1)]
+            cov = coverage_mod.coverage(raw)
+            covs.append(cov.fraction)
+            conds.append(float(est.condition_))
+            corr = p.apply(raw)
+            if ref is None:
+                mag = np.linalg.norm(corr, axis=1)
+                rms = float(np.std(mag))
+            else:
+                r = ref[np.isfinite(window.field_nT[:, k]).all(axis=1)] if isinstance(ref, np.ndarray) else ref
+                rms = float(np.sqrt(np.mean((np.linalg.norm(corr, axis=1) - r) ** 2)))
+            rmss.append(rms)
+            name = self.probe_names[k]
+            if cov.fraction < self.coverage:
+                reasons.append(f"{name}: {cov.reason or 'coverage too small'}")
+            if not np.isfinite(conds[-1]) or conds[-1] > self.condition:
+                reasons.append(f"{name}: ill-conditioned fit (condition {conds[-1]:.3g})")
+            if not np.isfinite(rms) or rms > self.rms_nT:
+                reasons.append(f"{name}: residual {rms:.3g} nT above the gate {self.rms_nT} nT")
+            if not (np.all(np.isfinite(p.matrix)) and np.all(np.isfinite(p.offset_nT))):
+                reasons.append(f"{name}: non-finite parameters")
+        return GateResult(usable=not reasons, reasons=reasons, coverage=float(min(covs)),
+                          condition=float(max(conds)), rms_nT=rmss)
+
+
+def reference_total(block: SampleBlock, total_nT: float | None) -> np.ndarray | float | None:
+    """The total field the scalar residual is taken against: the block's ref_total, else the configured one."""
+    ref = block.extras.get("ref_total")
+    return ref if ref is not None else total_nT
