@@ -7,9 +7,7 @@ event; everything is flushed and closed in `finally`.
 
 from __future__ import annotations
 
-import json
 import logging
-import math
 import sys
 import threading
 import time
@@ -19,12 +17,14 @@ from typing import Any, Callable
 import numpy as np
 
 from drivers.block import SampleBlock
-from drivers.errors import ConfigError, DataError, DriverError, FluxcalError
+from drivers.errors import ConfigError, DriverError, FluxcalError
 from drivers.source import Source, open_source
 from service.io.calfile import load_calibration, save_calibration
 
 from .config import RATE_MISSING, FluxcalConfig
+from .input import BatchReader, RateCheck
 from .pipeline import Pipeline, PipelineEvent
+from .sinks import initial_calibration, open_logger, say_bus
 
 log = logging.getLogger("fluxcal")
 
@@ -71,72 +71,26 @@ class Daemon:
         self.stop = stop or threading.Event()
         self.say = say or _say
         self.cal_path = Path(cfg.calibration.file)
-        self._pending_error: DriverError | None = None
+        self._reader = BatchReader(cfg.unit.block_ms, self.stop)
         self.processing_errors = 0            # blocks whose processing raised (their raw data are kept)
         self._recording_errors_said = 0       # logger errors already said; at most one message a minute
         self._recording_said_at = -1e9
         self._last_processing_say = -1e9
-        self._rate_seen: tuple[int, float] = (0, 0.0)       # samples (by seq) and unit-clock seconds seen
-        # the unit clock is compared with the configured rate once (CAN has no unit clock: t_s = seq / rate)
-        self.rate_checked = getattr(cfg.source, "kind", "") == "can"
-
-    def _initial_calibration(self):
-        c = self.cfg.calibration
-        if c.initial:
-            cal = load_calibration(c.initial)
-            self.say(f"starting from calibration {c.initial}")
-            return cal
-        if self.cal_path.exists():
-            try:
-                cal = load_calibration(self.cal_path)
-                self.say(f"reloaded the persisted calibration {self.cal_path}")
-                return cal
-            except DataError as e:
-                self.say(f"ignoring the persisted calibration: {e}; learning online")
-        self.say("no calibration yet: learning online; corrected output starts once it passes the quality gate")
-        return None
+        self._rate = RateCheck(cfg, self.say)
 
     def run(self) -> int:
         from service.io.bus import ServiceBus
 
         cfg = self.cfg
-        pipeline = build_pipeline(cfg, self._initial_calibration())
+        pipeline = build_pipeline(cfg, initial_calibration(cfg, self.say))
         source = open_configured_source(cfg)
         logger = None
         bus = None
         try:
             bus = ServiceBus(cfg.zenoh, unit=cfg.unit.name, probe_names=cfg.probe_names,
                              state_fn=lambda: self._state(pipeline, source, logger))
-            if cfg.mcap.enabled:
-                from service.io.recordings.writer import McapLogger
-
-                logger = McapLogger(cfg.mcap.dir, unit=cfg.unit.name, rotate_mb=cfg.mcap.rotate_mb,
-                                    rotate_s=cfg.mcap.rotate_s, chunk_size=cfg.mcap.chunk_kb * 1024,
-                                    flush_interval_s=cfg.mcap.flush_s,
-                                    metadata={"unit": cfg.unit.name, "n_probes": str(cfg.unit.n_probes),
-                                              "lsb_nT": repr(cfg.unit.lsb_nT),
-                                              "probe_names": json.dumps(cfg.probe_names),
-                                              "positions_m": json.dumps(cfg.positions_m),
-                                              "config": json.dumps(cfg.raw)})
-                from service.io.calfile import calibration_to_dict
-
-                # replay starts from the same calibration, so it reproduces this run bit for bit
-                logger.write_event({"kind": "initial", "seq": 0, "calibration":
-                                    None if pipeline.calibration is None else calibration_to_dict(pipeline.calibration)})
-                st = logger.status()
-                if st["current"] is None:
-                    # nothing could be opened: say so now, not after a day of data that went nowhere
-                    raise ConfigError(f"mcap.dir: {str(cfg.mcap.dir)!r}: cannot record there: {st['last_error']} "
-                                      f"(allowed: a directory this user can create and write into; or set "
-                                      f"[mcap] enabled = false to run without recording)")
-                self.say(f"recording to {cfg.mcap.dir}/")
-            self.say(f"publishing on zenoh under fluxcal/{cfg.unit.name}/ "
-                     f"(listen {', '.join(getattr(cfg.zenoh, 'listen', []) or ['-'])}"
-                     f"{', TLS' if cfg.zenoh.tls.enabled else ''}"
-                     f"{', access control' if cfg.zenoh.access.enabled else ''})")
-            for ep in cfg.zenoh.exposed():
-                self.say(f"warning: {ep} is reachable from other hosts in clear text and without access control: "
-                         f"anyone on that network can read the streams and send commands (docs/security.md)")
+            logger = open_logger(cfg, pipeline.calibration, self.say)
+            say_bus(cfg, self.say)
             self._loop(source, pipeline, bus, logger)
             failed = False
         except BaseException:
@@ -152,62 +106,13 @@ class Daemon:
             self.say("stopped (the reason follows)" if failed else "stopped")
         return 0
 
-    def _read_batch(self, source: Source):
-        """One block of about `unit.block_ms` of input: fewer, larger blocks cost less CPU per sample.
-        A port that fails mid-batch: the samples already read are processed first, the error comes next."""
-        if self._pending_error is not None:
-            e, self._pending_error = self._pending_error, None
-            raise e
-        ready = source.wait_readable(0.05)
-        if ready is not None:
-            if not ready:
-                return None
-            # input is there: let the rest of the block arrive in the port's buffer, then one read and one
-            # parse (when stopping, still read what is there: nothing that arrived is lost)
-            self.stop.wait(self.cfg.unit.block_ms / 1000.0)
-            return source.read(timeout=0.001)
-        first = source.read(timeout=0.05)
-        if first is None:
-            return None
-        parts = [first]
-        # let the rest of the block arrive in the port's buffer, then take it in one read and one parse
-        if self.stop.wait(self.cfg.unit.block_ms / 1000.0):
-            return first
-        try:
-            more = source.read(timeout=0.001)
-            if more is not None:
-                parts.append(more)
-        except DriverError as e:
-            self._pending_error = e
-        return parts[0] if len(parts) == 1 else SampleBlock.concat(parts)
-
-    #: unit-clock time over which the configured sample rate is checked, s; and the mismatch said
-    RATE_CHECK_S, RATE_TOLERANCE = 5.0, 0.02
-
     def _check_rate(self, block: SampleBlock) -> None:
-        """Once, after RATE_CHECK_S of unit clock: the sample rate the frames show (samples counted by seq
-        over the unit clock's t_s) against the configured one, which sets how many samples the estimator's
-        durations span. A mismatch is said with the value to set; the service goes on (it is a setting).
-        Only spans inside a block count: a gap between blocks (an outage, a restarted unit, a counter
-        that wrapped while the cable was out) can make seq and clock disagree, the unit's rate cannot."""
-        if block.n_samples < 2:
-            return
-        dseq = int(block.seq[-1]) - int(block.seq[0])
-        dt = float(block.t_s[-1]) - float(block.t_s[0])
-        if not (math.isfinite(dt) and dt > 0 and dseq > 0):
-            return
-        n, span = self._rate_seen
-        n, span = n + dseq, span + dt
-        self._rate_seen = (n, span)
-        if span < self.RATE_CHECK_S:
-            return
-        self.rate_checked = True
-        seen, configured = n / span, self.cfg.rate_hz
-        if configured and abs(seen / configured - 1.0) > self.RATE_TOLERANCE:
-            key = "source.rate_hz" if getattr(self.cfg.source, "rate_hz", None) else "sim.rate_hz"
-            self.say(f"the unit's clock shows {seen:.6g} samples/s but {key} = {configured:g}: the estimator's "
-                     f"window_s, check_every_s and update_every_s last {configured / seen:.3g} x the seconds "
-                     f"configured; set {key} = {seen:.6g}")
+        self._rate.check(block)
+
+    @property
+    def rate_checked(self) -> bool:
+        """Whether the unit clock has been compared with the configured rate (input.RateCheck)."""
+        return self._rate.checked
 
     def _say_recording_trouble(self, logger) -> None:
         """New recording errors (a full disk, a removed drive) are said, at most once a minute, with what
@@ -255,7 +160,7 @@ class Daemon:
             block = None                      # nothing to process while the input is down; health still goes out
             if down_since is None:
                 try:
-                    block = self._read_batch(source)
+                    block = self._reader.read(source)
                 except DriverError as e:
                     self.say(f"input lost: {e}; reconnecting (backoff from {backoff:.1f} s)")
                     source.counters.read_errors += 1

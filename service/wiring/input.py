@@ -1,0 +1,91 @@
+"""The service's input side: blocks of about `unit.block_ms` read from a source, and the sample rate the
+unit's clock shows against the configured one."""
+
+from __future__ import annotations
+
+import math
+import threading
+from typing import Callable
+
+from drivers.block import SampleBlock
+from drivers.errors import DriverError
+from drivers.source import Source
+
+from .config import FluxcalConfig
+
+
+class BatchReader:
+    """Reads a source in blocks of about `block_ms`: fewer, larger blocks cost less CPU per sample."""
+
+    def __init__(self, block_ms: float, stop: threading.Event) -> None:
+        self.block_ms, self.stop = block_ms, stop
+        self._pending_error: DriverError | None = None
+
+    def read(self, source: Source):
+        """One block (None if nothing came). A port that fails mid-batch: the samples already read are
+        returned first, the error comes at the next call."""
+        if self._pending_error is not None:
+            e, self._pending_error = self._pending_error, None
+            raise e
+        ready = source.wait_readable(0.05)
+        if ready is not None:
+            if not ready:
+                return None
+            # input is there: let the rest of the block arrive in the port's buffer, then one read and one
+            # parse (when stopping, still read what is there: nothing that arrived is lost)
+            self.stop.wait(self.block_ms / 1000.0)
+            return source.read(timeout=0.001)
+        first = source.read(timeout=0.05)
+        if first is None:
+            return None
+        parts = [first]
+        # let the rest of the block arrive in the port's buffer, then take it in one read and one parse
+        if self.stop.wait(self.block_ms / 1000.0):
+            return first
+        try:
+            more = source.read(timeout=0.001)
+            if more is not None:
+                parts.append(more)
+        except DriverError as e:
+            self._pending_error = e
+        return parts[0] if len(parts) == 1 else SampleBlock.concat(parts)
+
+
+
+class RateCheck:
+    """Once, after RATE_CHECK_S of unit clock: the sample rate the frames show (samples counted by seq
+    over the unit clock's t_s) against the configured one, which sets how many samples the estimator's
+    durations span. A mismatch is said with the value to set; the service goes on (it is a setting).
+    Only spans inside a block count: a gap between blocks (an outage, a restarted unit, a counter that
+    wrapped while the cable was out) can make seq and clock disagree, the unit's rate cannot."""
+
+    #: unit-clock time over which the configured sample rate is checked, s; and the mismatch said
+    RATE_CHECK_S, RATE_TOLERANCE = 5.0, 0.02
+
+    def __init__(self, cfg: FluxcalConfig, say: Callable[[str], None]) -> None:
+        self.cfg, self.say = cfg, say
+        self._seen: tuple[int, float] = (0, 0.0)       # samples (by seq) and unit-clock seconds seen
+        # the unit clock is compared with the configured rate once (CAN has no unit clock: t_s = seq / rate)
+        self.checked = getattr(cfg.source, "kind", "") == "can"
+
+    def check(self, block: SampleBlock) -> None:
+
+        if block.n_samples < 2:
+            return
+        dseq = int(block.seq[-1]) - int(block.seq[0])
+        dt = float(block.t_s[-1]) - float(block.t_s[0])
+        if not (math.isfinite(dt) and dt > 0 and dseq > 0):
+            return
+        n, span = self._seen
+        n, span = n + dseq, span + dt
+        self._seen = (n, span)
+        if span < self.RATE_CHECK_S:
+            return
+        self.checked = True
+        seen, configured = n / span, self.cfg.rate_hz
+        if configured and abs(seen / configured - 1.0) > self.RATE_TOLERANCE:
+            key = "source.rate_hz" if getattr(self.cfg.source, "rate_hz", None) else "sim.rate_hz"
+            self.say(f"the unit's clock shows {seen:.6g} samples/s but {key} = {configured:g}: the estimator's "
+                     f"window_s, check_every_s and update_every_s last {configured / seen:.3g} x the seconds "
+                     f"configured; set {key} = {seen:.6g}")
+

@@ -1,0 +1,71 @@
+"""What the service opens from its configuration besides the source: the calibration it starts from, the
+MCAP logger, and what is said about the bus."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Callable
+
+from drivers.errors import ConfigError, DataError
+from service.io.calfile import calibration_to_dict, load_calibration
+from service.io.recordings.writer import McapLogger
+
+from .config import FluxcalConfig
+
+
+def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None]) -> Any:
+    """calibration.initial if given, else the persisted calibration.file if it reads, else None (learn online)."""
+    c = cfg.calibration
+    if c.initial:
+        cal = load_calibration(c.initial)
+        say(f"starting from calibration {c.initial}")
+        return cal
+    path = Path(c.file)
+    if path.exists():
+        try:
+            cal = load_calibration(path)
+            say(f"reloaded the persisted calibration {path}")
+            return cal
+        except DataError as e:
+            say(f"ignoring the persisted calibration: {e}; learning online")
+    say("no calibration yet: learning online; corrected output starts once it passes the quality gate")
+    return None
+
+
+def open_logger(cfg: FluxcalConfig, calibration: Any, say: Callable[[str], None]) -> McapLogger | None:
+    """The MCAP logger of [mcap] (None when disabled), with the calibration the run starts from as its first
+    event; ConfigError naming mcap.dir when nothing can be recorded there."""
+    if not cfg.mcap.enabled:
+        return None
+    logger = McapLogger(cfg.mcap.dir, unit=cfg.unit.name, rotate_mb=cfg.mcap.rotate_mb,
+                        rotate_s=cfg.mcap.rotate_s, chunk_size=cfg.mcap.chunk_kb * 1024,
+                        flush_interval_s=cfg.mcap.flush_s,
+                        metadata={"unit": cfg.unit.name, "n_probes": str(cfg.unit.n_probes),
+                                  "lsb_nT": repr(cfg.unit.lsb_nT),
+                                  "probe_names": json.dumps(cfg.probe_names),
+                                  "positions_m": json.dumps(cfg.positions_m),
+                                  "config": json.dumps(cfg.raw)})
+    # replay starts from the same calibration, so it reproduces this run bit for bit
+    logger.write_event({"kind": "initial", "seq": 0, "calibration":
+                        None if calibration is None else calibration_to_dict(calibration)})
+    st = logger.status()
+    if st["current"] is None:
+        logger.close()
+        # nothing could be opened: say so now, not after a day of data that went nowhere
+        raise ConfigError(f"mcap.dir: {str(cfg.mcap.dir)!r}: cannot record there: {st['last_error']} "
+                          f"(allowed: a directory this user can create and write into; or set "
+                          f"[mcap] enabled = false to run without recording)")
+    say(f"recording to {cfg.mcap.dir}/")
+    return logger
+
+
+def say_bus(cfg: FluxcalConfig, say: Callable[[str], None]) -> None:
+    """Where the service publishes, and a warning for every endpoint other hosts reach in clear text."""
+    say(f"publishing on zenoh under fluxcal/{cfg.unit.name}/ "
+        f"(listen {', '.join(getattr(cfg.zenoh, 'listen', []) or ['-'])}"
+        f"{', TLS' if cfg.zenoh.tls.enabled else ''}"
+        f"{', access control' if cfg.zenoh.access.enabled else ''})")
+    for ep in cfg.zenoh.exposed():
+        say(f"warning: {ep} is reachable from other hosts in clear text and without access control: "
+            f"anyone on that network can read the streams and send commands (docs/security.md)")
