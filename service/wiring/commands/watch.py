@@ -139,6 +139,9 @@ class Dashboard:
 
     # --- updates -------------------------------------------------------------------------------
 
+    #: streams whose newest message is kept as the attribute of the same name
+    LATEST = ("raw", "corrected", "diff", "tensor", "error", "health")
+
     def update(self, msg: Message) -> None:
         now = self.clock()
         self.last_msg_t = now
@@ -149,18 +152,8 @@ class Dashboard:
             q.append((now, v.n_samples))
             while q and q[0][0] < now - 2.0:
                 q.popleft()
-        if msg.stream == "raw":
-            self.raw = v
-        elif msg.stream == "corrected":
-            self.corrected = v
-        elif msg.stream == "diff":
-            self.diff = v
-        elif msg.stream == "tensor":
-            self.tensor = v
-        elif msg.stream == "error":
-            self.error = v
-        elif msg.stream == "health":
-            self.health = v
+        if msg.stream in self.LATEST:
+            setattr(self, msg.stream, v)                  # the newest of each stream is what is shown
         elif msg.stream == "calibration" and isinstance(v.get("state"), dict):
             self.update_state(v["state"])
 
