@@ -41,14 +41,15 @@ from drivers.config import load_section
 from drivers.errors import FluxcalError, RecordingError
 from drivers.serial_source import SerialSource
 from drivers.sim import FaultRecord, Unit, load_sim_config
-from drivers.sim.ports import CanEmitter, PtyEmitter
+from drivers.sim.can_ports import CanEmitter
+from drivers.sim.ports import PtyEmitter
 from drivers.source import Counters
-from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
-from service.io.recordings.writer import McapLogger
-from service.wiring.pipeline import Pipeline
+from service.io.bus import BusClient, ServiceBus, ZenohConfig, open_session
 from service.io.encoding import encode_raw
 from service.io.recordings.reader import read_recording, repair_recording
-from service.io.bus import BusClient, ServiceBus, ZenohConfig, open_session
+from service.io.recordings.writer import McapLogger
+from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from service.wiring.pipeline import Pipeline
 
 
 def sim_unit(**sim) -> Unit:

@@ -16,7 +16,8 @@ import serial
 from drivers.errors import ConfigError
 from drivers.icd import decode_can, frame_length, parse_serial
 from drivers.sim import FaultRecord, Unit, load_sim_config
-from drivers.sim.ports import CanEmitter, PtyEmitter, SlcanEmitter, slcan_lines
+from drivers.sim.can_ports import CanEmitter, SlcanEmitter, slcan_lines
+from drivers.sim.ports import PtyEmitter
 from drivers.sim.source import SimSource
 from drivers.source import open_source
 

@@ -18,8 +18,9 @@ from typing import Sequence
 
 from ..config import read_toml
 from ..errors import ConfigError, FluxcalError
+from .can_ports import SlcanEmitter
 from .config import GRADIOMETER, load_sim_config
-from .ports import PtyEmitter, SlcanEmitter
+from .ports import PtyEmitter
 from .unit import Unit
 
 

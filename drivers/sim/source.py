@@ -178,8 +178,9 @@ def open_source(config: Any, *, unit: Any = None, transport: str = "direct", rea
     if transport == "direct":
         return SimSource(config, realtime=realtime, block_s=block_s)
 
-    from .ports import CanEmitter, PtyEmitter, SlcanEmitter
     from ..source import open_source as open_driver
+    from .can_ports import CanEmitter, SlcanEmitter
+    from .ports import PtyEmitter
 
     u = Unit(config)
     driver_kwargs: dict[str, Any] = {}

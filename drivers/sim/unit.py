@@ -19,8 +19,8 @@ import numpy as np
 from ..block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock
 from ..icd import SATURATED_COUNTS, TEMP_LSB_C, encode_can, encode_serial, frame_length
 from .config import SimConfig
-from .world import (STREAM_CAN, STREAM_GARBAGE, STREAM_SERIAL, STREAM_TEMP_INVALID, ChunkedRandom, World,
-                    WorldSamples)
+from .streams import STREAM_CAN, STREAM_GARBAGE, STREAM_SERIAL, STREAM_TEMP_INVALID, ChunkedRandom
+from .world import World, WorldSamples
 
 INT32_MAX, INT32_MIN = SATURATED_COUNTS
 INT16_MIN, INT16_MAX = -32768, 32767
