@@ -1,8 +1,10 @@
-"""What the benchmarks print about the machine they ran on (shared by the bench scripts)."""
+"""What the bench scripts share: the machine they ran on, and the best of several timed runs."""
 
 from __future__ import annotations
 
 import platform
+import time
+from typing import Callable
 
 
 def cpu_model() -> str:
@@ -14,3 +16,13 @@ def cpu_model() -> str:
     except OSError:
         pass
     return name or platform.machine()
+
+
+def best_of(runs: int, fn: Callable[[], object]) -> float:
+    """The shortest of `runs` timed calls of fn, s: the least disturbed by whatever else the machine does."""
+    best = float("inf")
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best

@@ -42,17 +42,6 @@ from service.io.recordings.writer import McapLogger  # noqa: E402
 from service.numerics.outputs import CorrectedBlock  # noqa: E402
 
 
-
-
-def best_of(runs: int, fn) -> float:
-    best = float("inf")
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
-
-
 def make_blocks(seconds: float, block: int, n_probes: int = 4, rate_hz: float = 1000.0) -> list[SampleBlock]:
     probes = [{"offset_nT": [100.0 * k, -50.0, 30.0], "noise_nT": 0.5} for k in range(n_probes)]
     cfg = load_sim_config({"duration_s": seconds, "rate_hz": rate_hz, "probes": probes})

@@ -16,10 +16,9 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import platform  # noqa: E402
-import time  # noqa: E402
 
 import numpy as np
-from _machine import cpu_model  # noqa: E402
+from _machine import best_of, cpu_model  # noqa: E402
 
 from drivers.sim.config import load_sim_config  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
@@ -43,13 +42,6 @@ def textbook_rls(raw: np.ndarray, scale: float, lam: float) -> np.ndarray:
     return theta
 
 
-def best_of(runs: int, fn) -> float:
-    best = float("inf")
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 

@@ -7,6 +7,7 @@ Every source (serial, CAN, simulated unit, MCAP replay, CSV) yields these; every
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -16,8 +17,22 @@ FLAG_TEMP_INVALID = 0x02
 FLAG_CLOCK_RESYNC = 0x04
 
 
+class Timed:
+    """Samples in time: `t_s` (N,) and an (N, P, ...) array per sample and probe, named by PROBE_ARRAY."""
+
+    PROBE_ARRAY: ClassVar[str]
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.t_s.shape[0])
+
+    @property
+    def n_probes(self) -> int:
+        return int(getattr(self, self.PROBE_ARRAY).shape[1])
+
+
 @dataclass(frozen=True)
-class SampleBlock:
+class SampleBlock(Timed):
     """N samples of P three-axis probes, already scaled to physical units.
 
     t_s       (N,)      float64  unit time in seconds, unwrapped (monotonic across clock wraps)
@@ -26,6 +41,8 @@ class SampleBlock:
     temp_C    (N, P)    float64  probe temperatures in degC, NaN where invalid
     flags     (N,)      uint8    ICD flags
     """
+
+    PROBE_ARRAY = "field_nT"
 
     t_s: np.ndarray
     seq: np.ndarray
@@ -44,13 +61,6 @@ class SampleBlock:
         if self.seq.shape != (n,) or self.flags.shape != (n,):
             raise ValueError(f"seq/flags: expected shape ({n},), got {self.seq.shape}/{self.flags.shape}")
 
-    @property
-    def n_samples(self) -> int:
-        return int(self.t_s.shape[0])
-
-    @property
-    def n_probes(self) -> int:
-        return int(self.field_nT.shape[1])
 
     def __len__(self) -> int:
         return self.n_samples

@@ -31,7 +31,7 @@ from .block import SampleBlock
 from .config import spec
 from .errors import ConfigError, DataError, DriverError
 from .icd import DEFAULT_CAN_BASE_ID, DEFAULT_LSB_NT, MAX_PROBES
-from .source import Counters, Source
+from .source import Counters, PortSource
 
 MAX_STANDARD_ID = 0x7FF
 #: suffixes python-can's LogReader reads that keep everything an ICD frame needs
@@ -88,7 +88,7 @@ def _frames_from_messages(msgs: list[can.Message], lo: int, hi: int) -> tuple[np
     return np.asarray(ids, dtype=np.int64), payloads, np.asarray(stamps, dtype=np.float64), malformed
 
 
-class CanSource(Source):
+class CanSource(PortSource):
     """SampleBlocks from ICD CAN frames on a python-can bus.
 
     Each read drains what the bus holds (bounded receive: `bus.recv` with a timeout, then without
@@ -110,6 +110,7 @@ class CanSource(Source):
         if not lsb_nT > 0:
             raise ConfigError(f"source.lsb_nT: {lsb_nT!r} is not allowed (allowed: > 0)")
         self.interface, self.channel, self.bitrate = interface, channel, int(bitrate)
+        self.port_label = f"CAN bus {interface}:{channel}"   # reopen() keeps partial samples: their frames may still come
         self.base_id, self.rate_hz, self.lsb_nT = int(base_id), float(rate_hz), float(lsb_nT)
         self.max_batch = int(max_batch)
         self._bus_kwargs = dict(bus_kwargs or {})
@@ -129,7 +130,7 @@ class CanSource(Source):
             raise DriverError(f"CAN bus {self.interface}:{self.channel}: cannot open ({e}); check the interface "
                               f"name, the channel and that the adapter is plugged in") from e
 
-    def _drop_bus(self) -> None:
+    def _drop(self) -> None:
         bus, self._bus = self._bus, None
         if bus is not None:
             try:
@@ -155,7 +156,7 @@ class CanSource(Source):
             return batch
         except (can.CanError, OSError) as e:
             # OSError covers pyserial's SerialException, which serial-based interfaces may let through
-            self._drop_bus()
+            self._drop()
             raise DriverError(f"CAN bus {self.interface}:{self.channel}: receive failed ({e}); the adapter was "
                               f"probably disconnected, call reopen() once it is back") from e
 
@@ -175,17 +176,6 @@ class CanSource(Source):
                 return samples.to_block(rate_hz=self.rate_hz, lsb_nT=self.lsb_nT, counters=self.counters)
             if deadline is not None and time.monotonic() >= deadline:
                 return None
-
-    def reopen(self) -> None:
-        """Open the bus again. Pending partial samples stay: their frames may still come."""
-        if self._closed:
-            raise DriverError(f"CAN bus {self.interface}:{self.channel}: reopen after close")
-        self._drop_bus()
-        self._open()
-
-    def close(self) -> None:
-        self._drop_bus()
-        super().close()
 
     def __repr__(self) -> str:
         return f"CanSource({self.interface!r}, {self.channel!r}, n_probes={self.n_probes}, base_id={self.base_id:#x})"

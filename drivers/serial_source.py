@@ -27,7 +27,7 @@ from .block import SampleBlock
 from .config import spec
 from .errors import ConfigError, DriverError
 from .icd import DEFAULT_LSB_NT, MAX_PROBES
-from .source import Source
+from .source import PortSource
 
 #: most bytes taken from the port per read call (about 11 s of data at 921600 baud)
 MAX_READ_BYTES = 1 << 20
@@ -49,7 +49,7 @@ class SerialConfig:
                                      "driver itself takes time from the unit clock in each frame")
 
 
-class SerialSource(Source):
+class SerialSource(PortSource):
     """SampleBlocks from ICD serial frames on a port.
 
     Reads what is available (waiting at most `read_timeout_s` at a time, never forever), keeps the
@@ -66,6 +66,7 @@ class SerialSource(Source):
         if not lsb_nT > 0:
             raise ConfigError(f"source.lsb_nT: {lsb_nT!r} is not allowed (allowed: > 0)")
         self.port = port
+        self.port_label = f"serial port {port}"
         self.baudrate = int(baudrate)
         self.lsb_nT = float(lsb_nT)
         self.read_timeout_s = float(read_timeout_s)
@@ -83,11 +84,11 @@ class SerialSource(Source):
                               f"that the adapter is plugged in and that no other program holds it") from e
 
     def _fail(self, e: BaseException) -> DriverError:
-        self._drop_port()
+        self._drop()
         return DriverError(f"serial port {self.port}: read failed ({e}); the cable or adapter was probably "
                            f"disconnected, call reopen() once it is back")
 
-    def _drop_port(self) -> None:
+    def _drop(self) -> None:
         ser, self._ser = self._ser, None
         if ser is not None:
             try:
@@ -167,18 +168,10 @@ class SerialSource(Source):
             if deadline is not None and time.monotonic() >= deadline:
                 return None
 
-    def reopen(self) -> None:
-        """Open the same port again; a partial frame from before is dropped (counted as skipped).
-        Unwrapping continues, so samples lost meanwhile show up as a seq gap."""
-        if self._closed:
-            raise DriverError(f"serial port {self.port}: reopen after close")
-        self._drop_port()
+    def _before_reopen(self) -> None:
+        """A partial frame from before is dropped (counted as skipped). Unwrapping continues, so samples
+        lost meanwhile show up as a seq gap."""
         self._framer.discard_tail()
-        self._open()
-
-    def close(self) -> None:
-        self._drop_port()
-        super().close()
 
     def __repr__(self) -> str:
         return f"SerialSource({self.port!r}, n_probes={self.n_probes}, baudrate={self.baudrate})"

@@ -83,6 +83,33 @@ class Source(ABC):
         self.close()
 
 
+class PortSource(Source):
+    """A source on a port that fails and comes back (serial, CAN): subclasses `_open()` and `_drop()` the
+    port, and name it in `port_label` for messages."""
+
+    port_label = "port"
+
+    @abstractmethod
+    def _open(self) -> None: ...
+
+    @abstractmethod
+    def _drop(self) -> None: ...
+
+    def _before_reopen(self) -> None:
+        """What a reconnect forgets besides the port (nothing by default)."""
+
+    def reopen(self) -> None:
+        if self._closed:
+            raise DriverError(f"{self.port_label}: reopen after close")
+        self._drop()
+        self._before_reopen()
+        self._open()
+
+    def close(self) -> None:
+        self._drop()
+        super().close()
+
+
 #: source kind -> "module:factory"; the factory takes (config, **kwargs) and returns a Source
 SOURCES: dict[str, str] = {
     "serial": "drivers.serial_source:open_source",

@@ -14,18 +14,10 @@ import pytest
 from drivers import icd
 
 
-@dataclass
-class IcdTruth:
-    """K samples of an n-probe unit; seq and t_us unwrapped (the wire carries them mod 2^16, 2^32)."""
-
-    seq: np.ndarray        # (K,) int64
-    t_us: np.ndarray       # (K,) int64
-    counts: np.ndarray     # (K, n, 3) int32
-    temp_raw: np.ndarray   # (K, n) int16
-    flags: np.ndarray      # (K,) uint8
-
-    def __len__(self) -> int:
-        return int(self.seq.size)
+@dataclass(frozen=True)
+class IcdTruth(icd.RawFrames):
+    """K samples of an n-probe unit, the fields of icd.RawFrames but seq and t_us unwrapped (int64; the
+    wire carries them mod 2^16, 2^32)."""
 
     def serial_bytes(self) -> bytes:
         return icd.encode_serial(self.seq, self.t_us, self.counts, self.temp_raw, self.flags)

@@ -5,16 +5,14 @@ a pty (python-can's slcan interface opens the pty slave; the test speaks SLCAN o
 from __future__ import annotations
 
 import os
-import time
 import uuid
 
 import can
 import numpy as np
 import pytest
+from helpers import read_samples
 
-from drivers import icd
 from drivers.assemble import CanAssembler, CanSamples
-from drivers.block import SampleBlock
 from drivers.can_source import CanConfig, CanSource, open_source
 from drivers.config import load_section
 from drivers.errors import ConfigError, DriverError
@@ -140,14 +138,6 @@ def send(bus: can.BusABC, ids: np.ndarray, payloads: np.ndarray) -> None:
         bus.send(can.Message(arbitration_id=i, data=p.tobytes(), is_extended_id=False))
 
 
-def read_samples(src: CanSource, k: int, timeout: float = 5.0) -> SampleBlock:
-    blocks, got, deadline = [], 0, time.monotonic() + timeout
-    while got < k and time.monotonic() < deadline:
-        b = src.read(timeout=0.2)
-        if b is not None:
-            blocks.append(b)
-            got += len(b)
-    return SampleBlock.concat(blocks) if blocks else SampleBlock.empty(src.n_probes)
 
 
 @pytest.fixture

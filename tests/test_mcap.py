@@ -10,6 +10,7 @@ import json
 
 import numpy as np
 import pytest
+from helpers import drain
 from mcap.reader import make_reader
 
 import service.io.recordings.writer as sink
@@ -17,8 +18,8 @@ from drivers.block import SampleBlock
 from drivers.errors import ConfigError, RecordingError
 from drivers.mcap_source import McapSource
 from drivers.source import open_source
-from service.io.recordings.writer import McapLogger, write_recording
 from service.io.recordings.reader import FluxcalDecoderFactory, read_recording, repair_recording
+from service.io.recordings.writer import McapLogger, write_recording
 
 RATE_HZ = 1000.0
 
@@ -46,13 +47,6 @@ def same_block(a: SampleBlock, b: SampleBlock) -> bool:
             and all(eq(a.extras[k], b.extras[k]) for k in a.extras))
 
 
-def drain(src) -> list[SampleBlock]:
-    out = []
-    while not src.exhausted:
-        b = src.read(0.1)
-        if b is not None:
-            out.append(b)
-    return out
 
 
 def test_replay_source_from_the_registry_yields_the_same_blocks_and_the_commands(tmp_path):

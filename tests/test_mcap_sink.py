@@ -11,15 +11,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import write_raw
 from mcap.reader import make_reader
 
 import service.io.recordings.writer as sink
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError, RecordingError
 from service.io.encoding import CORRECTED_LAYOUT, RAW_LAYOUT
+from service.io.recordings.reader import FluxcalDecoderFactory, read_recording
 from service.io.recordings.writer import McapLogger
 from service.numerics.outputs import CorrectedBlock
-from service.io.recordings.reader import FluxcalDecoderFactory, read_recording
 
 RATE_HZ = 1000.0
 
@@ -179,10 +180,7 @@ def test_a_new_calibration_starts_a_new_vectors_interval(tmp_path):
 
 def test_rotation_by_size_gives_numbered_files_that_replay_in_order(tmp_path):
     bs = blocks(120)
-    log = McapLogger(tmp_path, unit="u", rotate_mb=0.1, chunk_size=32_768)
-    for b in bs:
-        log.write_raw(b)
-    log.close()
+    log = write_raw(tmp_path, bs, rotate_mb=0.1, chunk_size=32_768)
     assert len(log.files) >= 4
     assert [int(Path(f).stem[-4:]) for f in log.files] == list(range(1, len(log.files) + 1))
     assert sorted(log.files) == log.files                           # name order is time order

@@ -15,14 +15,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import assert_refused
 from mcap.reader import make_reader
 
 from drivers.block import FLAG_TEMP_INVALID, SampleBlock
 from drivers.errors import ConfigError, DriverError, RecordingError
 from drivers.mcap_source import McapSource, iter_records
 from drivers.source import open_source
-from service.io.recordings.writer import McapLogger
 from service.io.recordings.reader import read_recording, repair_recording
+from service.io.recordings.writer import McapLogger
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -116,10 +117,8 @@ def test_several_units_in_one_directory_need_a_unit(tmp_path):
 
 def test_foreign_missing_and_empty_files_are_refused_clearly(tmp_path):
     (tmp_path / "x.mcap").write_bytes(b"PK\x03\x04 a zip file, not a recording")
-    with pytest.raises(RecordingError, match="not an MCAP file"):
-        McapSource(tmp_path / "x.mcap")
-    with pytest.raises(RecordingError, match="no such recording"):
-        read_recording(tmp_path / "nope.mcap")
+    assert_refused(McapSource, tmp_path / "x.mcap", "not an MCAP file")
+    assert_refused(read_recording, tmp_path / "nope.mcap", "no such recording")
     (tmp_path / "empty").mkdir()
     with pytest.raises(RecordingError, match="no .mcap files"):
         McapSource(tmp_path / "empty")

@@ -14,29 +14,23 @@ import time
 
 import numpy as np
 import pytest
+from helpers import assert_refused, drain, write_raw
 
 from drivers.block import SampleBlock
-from drivers.errors import RecordingError
 from drivers.mcap_source import McapSource
 from drivers.sim.config import load_sim_config
 from drivers.sim.source import SimSource
 from drivers.sim.unit import FaultRecord, Unit
-from service.wiring.cli import main
+from service.io.recordings.reader import read_recording, repair_recording
 from service.io.recordings.writer import McapLogger
 from service.numerics.outputs import CorrectedBlock
-from service.io.recordings.reader import read_recording, repair_recording
+from service.wiring.cli import main
 
 
 def sim_blocks(seconds: float = 5.0, probes: int = 2) -> list[SampleBlock]:
     cfg = load_sim_config({"duration_s": seconds, "reference": {"enabled": True},
                            "probes": [{"offset_nT": [10.0 * k, 0, 0]} for k in range(probes)]})
-    src = SimSource(cfg, realtime=False)
-    out = []
-    while not src.exhausted:
-        b = src.read(0.1)
-        if b is not None:
-            out.append(b)
-    return out
+    return drain(SimSource(cfg, realtime=False))
 
 
 def corrected_of(b: SampleBlock, cal_id: int = 1) -> CorrectedBlock:
@@ -88,10 +82,7 @@ def test_round_trip_bit_for_bit(tmp_path):
 
 def test_rotation_by_size_replays_in_order_without_loss(tmp_path):
     blocks = sim_blocks(20.0)
-    log = McapLogger(tmp_path, unit="u", rotate_mb=0.05, chunk_size=16_384)
-    for b in blocks:
-        log.write_raw(b)
-    log.close()
+    log = write_raw(tmp_path, blocks, rotate_mb=0.05, chunk_size=16_384)
     assert len(log.files) >= 3
     src = McapSource(tmp_path)
     seqs = []
@@ -144,10 +135,8 @@ def test_full_disk_is_counted_never_raised_and_logging_resumes(tmp_path, monkeyp
 
 def test_damaged_and_foreign_files_are_refused_clearly(tmp_path):
     (tmp_path / "x.mcap").write_bytes(b"hello, this is not an MCAP file")
-    with pytest.raises(RecordingError, match="not an MCAP file"):
-        read_recording(tmp_path / "x.mcap")
-    with pytest.raises(RecordingError, match="no such recording"):
-        read_recording(tmp_path / "missing.mcap")
+    assert_refused(read_recording, tmp_path / "x.mcap", "not an MCAP file")
+    assert_refused(read_recording, tmp_path / "missing.mcap", "no such recording")
     blocks = sim_blocks()
     log = McapLogger(tmp_path / "ok", unit="u", flush_interval_s=0.0)
     for b in blocks:
@@ -167,7 +156,7 @@ def test_damaged_and_foreign_files_are_refused_clearly(tmp_path):
 
 WRITER = textwrap.dedent("""
     import sys, time
-    sys.path.insert(0, {root!r})
+    sys.path[:0] = [{root!r}, {root!r} + "/tests"]
     from tests.test_recording import sim_blocks
     from service.io.recordings.writer import McapLogger
     blocks = sim_blocks(30.0)

@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 import pytest
+from helpers import read_samples
 
 from drivers import icd
 from drivers.block import FLAG_TEMP_INVALID, SampleBlock
@@ -22,14 +23,6 @@ from drivers.source import open_source as open_source_by_kind
 LSB_NT = 0.001
 
 
-def read_samples(src: SerialSource, k: int, timeout: float = 5.0) -> SampleBlock:
-    blocks, got, deadline = [], 0, time.monotonic() + timeout
-    while got < k and time.monotonic() < deadline:
-        b = src.read(timeout=0.2)
-        if b is not None:
-            blocks.append(b)
-            got += len(b)
-    return SampleBlock.concat(blocks) if blocks else SampleBlock.empty(src.n_probes)
 
 
 def assert_block_is(block: SampleBlock, truth, lsb_nT: float = LSB_NT) -> None:

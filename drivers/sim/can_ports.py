@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from .ports import Emitter, _Pty
+from .ports import Emitter, PtyEmitter
 from .unit import Unit
 
 _HEX = np.frombuffer(b"0123456789ABCDEF", dtype=np.uint8)
@@ -93,7 +93,7 @@ def slcan_lines(ids: np.ndarray, payloads: np.ndarray) -> bytes:
     return out.tobytes()
 
 
-class SlcanEmitter(Emitter):
+class SlcanEmitter(PtyEmitter):
     """An SLCAN USB-CAN adapter on a pty, carrying the unit's CAN frames: open it with
     `can.Bus(interface="slcan", channel=emitter.path, bitrate=1000000, sleep_after_open=0)`.
 
@@ -108,34 +108,21 @@ class SlcanEmitter(Emitter):
     SERIAL = "NSIM1"
 
     def __init__(self, unit: Unit, *, link_dir: str | None = None, link_name: str = "slcan", **kwargs: Any) -> None:
-        super().__init__(unit, **kwargs)
-        self._pty = _Pty(link_dir, link_name)
+        super().__init__(unit, link_dir=link_dir, link_name=link_name, **kwargs)
         self._inbox = bytearray()
         self.channel_open = False
         self.bitrate_cmd: str | None = None
         self.commands: list[str] = []       # every command received, for tests and logs
         self.host_frames = 0
 
-    @property
-    def path(self) -> str:
-        return self._pty.path
-
-    @property
-    def pts_path(self) -> str | None:
-        return self._pty.pts_path
-
     def _open_port(self) -> None:
-        self._pty.open()
+        super()._open_port()
         self._inbox.clear()
         self.channel_open = False           # a new adapter starts closed
 
     def _close_port(self) -> None:
-        self._pty.close()
+        super()._close_port()
         self.channel_open = False
-
-    def close(self) -> None:
-        super().close()
-        self._pty.remove()
 
     def _reader_present(self) -> bool:
         return self._pty.reader_present() and self.channel_open

@@ -9,9 +9,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drivers.block import Timed
+
 
 @dataclass(frozen=True)
-class CorrectedBlock:
+class CorrectedBlock(Timed):
     """Outputs for N samples of P probes, all in the common (platform) frame.
 
     t_s           (N,)         float64  unit time, s (same as the raw block)
@@ -23,6 +25,8 @@ class CorrectedBlock:
     cal_id        int                   which calibration produced it (increments when one is replaced)
     """
 
+    PROBE_ARRAY = "corrected_nT"
+
     t_s: np.ndarray
     seq: np.ndarray
     corrected_nT: np.ndarray
@@ -31,13 +35,6 @@ class CorrectedBlock:
     center_nT: np.ndarray | None
     cal_id: int
 
-    @property
-    def n_samples(self) -> int:
-        return int(self.t_s.shape[0])
-
-    @property
-    def n_probes(self) -> int:
-        return int(self.corrected_nT.shape[1])
 
 
 def products(t_s: np.ndarray, seq: np.ndarray, corrected_nT: np.ndarray, positions_m: np.ndarray | None,

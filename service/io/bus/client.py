@@ -16,11 +16,7 @@ import zenoh
 from drivers.errors import ConfigError, DataError
 
 from .keys import _KEY_CHUNK, COMMANDS, STREAMS, Keys, _decode_json
-from .settings import (
-    BusError,
-    ZenohConfig,
-    open_session,
-)
+from .settings import BusError, SessionHolder, ZenohConfig
 
 
 @dataclass(frozen=True)
@@ -37,7 +33,7 @@ class Message:
 _STOP = object()
 
 
-class BusClient:
+class BusClient(SessionHolder):
     """Subscribes to a unit's streams and decodes them on its own threads; queries state; sends commands.
 
     `lossless=True` (tests, recorders): a full receive queue holds zenoh back, which holds the publisher
@@ -62,10 +58,7 @@ class BusClient:
         self._closed = threading.Event()
         self._subs: list[Any] = []
         self._threads: list[threading.Thread] = []
-        if isinstance(zenoh_cfg, zenoh.Session):
-            self.session, self._own_session = zenoh_cfg, False
-        else:
-            self.session, self._own_session = open_session(zenoh_cfg), True
+        self._hold(zenoh_cfg)
         try:
             for s in names:
                 handler = zenoh.handlers.FifoChannel(capacity) if lossless else zenoh.handlers.RingChannel(capacity)
@@ -196,14 +189,8 @@ class BusClient:
         for t in self._threads:
             t.join(timeout=2.0)
         self._subs.clear()
-        if self._own_session:
-            self.session.close()
+        self._release()
 
-    def __enter__(self) -> "BusClient":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def discover_units(session: zenoh.Session, timeout: float = 1.0) -> list[str]:

@@ -46,13 +46,13 @@ from service.numerics.outputs import CorrectedBlock
 from .desk import COMMAND_WAIT_S, STATE_GRACE_S, Desk
 from .keys import _KEY_CHUNK, COMMANDS, STREAMS, Command, Keys, StreamSpec, _json_bytes, encode_series
 from .sender import Sender
-from .settings import BusError, ZenohConfig, open_session
+from .settings import BusError, SessionHolder, ZenohConfig
 
 #: messages waiting for the bus's sender thread, at most (bytes); beyond it the oldest are dropped, counted
 SEND_BACKLOG_BYTES = 16 << 20
 
 
-class ServiceBus:
+class ServiceBus(SessionHolder):
     """Publishes one unit's streams, holds its liveliness token, answers `state` and queues commands.
 
     `zenoh_cfg` is a ZenohConfig or zenoh.Config (the bus opens and closes its own session) or an open
@@ -92,10 +92,7 @@ class ServiceBus:
         self._close_lock = threading.Lock()
         self._entities: list[Any] = []
         self._probe_pubs: dict[str, zenoh.Publisher] = {}
-        if isinstance(zenoh_cfg, zenoh.Session):
-            self.session, self._own_session = zenoh_cfg, False
-        else:
-            self.session, self._own_session = open_session(zenoh_cfg, self.keys.unit), True
+        self._hold(zenoh_cfg, self.keys.unit)
         self._express = bool(express)
         try:
             self._pubs = {name: self._declare_pub(self.keys.stream(name), s) for name, s in STREAMS.items()}
@@ -229,11 +226,4 @@ class ServiceBus:
                 pass
         self._entities.clear()
         self._probe_pubs.clear()
-        if self._own_session:
-            self.session.close()
-
-    def __enter__(self) -> "ServiceBus":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+        self._release()

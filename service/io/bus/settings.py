@@ -266,3 +266,30 @@ def open_session(cfg: "ZenohConfig | zenoh.Config", unit: str | None = None) -> 
                          "root_ca and name the host in the endpoint, and with mutual TLS this node's must be "
                          "signed by the CA the other end trusts")
         raise BusError(f"zenoh session failed to open{where}: {msg}{hint}") from None
+
+
+class SessionHolder:
+    """Holds a zenoh session: one it opened from a configuration (closed with it) or one it was given
+    (left open); a context manager that calls `close()`."""
+
+    session: zenoh.Session
+    _own_session: bool
+
+    def _hold(self, zenoh_cfg: "ZenohConfig | zenoh.Config | zenoh.Session", unit: str | None = None) -> None:
+        if isinstance(zenoh_cfg, zenoh.Session):
+            self.session, self._own_session = zenoh_cfg, False
+        else:
+            self.session, self._own_session = open_session(zenoh_cfg, unit), True
+
+    def _release(self) -> None:
+        if self._own_session:
+            self.session.close()
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -84,15 +84,10 @@ class ChunkedLog:
 
     def __init__(self, files: McapFiles, *, single_file: bool, rotate_bytes: float, rotate_s: float, chunk_size: int,
                  flush_interval_s: float, epoch_ns: int | None, retry_s: float | None, backlog_bytes: float) -> None:
-        self._files = files
-        self.single_file = single_file
-        self.rotate_bytes = rotate_bytes
-        self.rotate_s = rotate_s
-        self.chunk_size = chunk_size
-        self.flush_interval_s = flush_interval_s
-        self.epoch_ns = epoch_ns
-        self.retry_s = retry_s
-        self.backlog_bytes = backlog_bytes
+        self._files, self.single_file = files, single_file
+        self.rotate_bytes, self.rotate_s = rotate_bytes, rotate_s           # a file's size and age, at most
+        self.chunk_size, self.flush_interval_s = chunk_size, flush_interval_s   # a chunk's, likewise
+        self.epoch_ns, self.retry_s, self.backlog_bytes = epoch_ns, retry_s, backlog_bytes
         self.messages = 0                  # messages handed to the logger
         self.messages_written = 0          # messages in chunks that reached the file
         self.dropped = 0                   # messages that could not be written

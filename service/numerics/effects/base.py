@@ -26,7 +26,7 @@ from typing import Any, ClassVar, Iterable, Sequence
 import numpy as np
 from scipy.signal import savgol_filter
 
-from drivers.block import SampleBlock
+from drivers.block import SampleBlock, Timed
 from drivers.errors import ConfigError, DataError
 
 AXES = ("x", "y", "z")
@@ -43,7 +43,7 @@ NOT_OBSERVABLES = frozenset({"ref_total", "seq", "flags", *ATTITUDE_EULER, *ATTI
 # --- the data every term looks at -------------------------------------------------------------------
 
 @dataclass
-class EffectData:
+class EffectData(Timed):
     """N samples of P probes prepared for effect fitting: raw field, time, temperature, references.
 
     t_s           (N,)      s, strictly increasing
@@ -55,6 +55,8 @@ class EffectData:
     extras        dict of (N,) arrays: other observables (attitude columns among them)
     smooth_window_s         Savitzky-Golay window for smoothing and dB/dt
     """
+
+    PROBE_ARRAY = "raw_nT"
 
     t_s: np.ndarray
     raw_nT: np.ndarray
@@ -106,13 +108,6 @@ class EffectData:
                    smooth_window_s=smooth_window_s, dropped_rows=int(np.count_nonzero(~good)))
 
     # -- shapes --------------------------------------------------------------------------------------
-    @property
-    def n_samples(self) -> int:
-        return int(self.t_s.shape[0])
-
-    @property
-    def n_probes(self) -> int:
-        return int(self.raw_nT.shape[1])
 
     @property
     def duration_s(self) -> float:
