@@ -38,6 +38,9 @@ def build_parser() -> argparse.ArgumentParser:
                      choices=["ellipsoid", "tmi", "sinefit", "two-step", "rls"])
     fit.add_argument("--align", default=None, metavar="A", choices=["regression", "rotation", "pca"])
     fit.add_argument("--effects", type=_effects, default=[], metavar="E,..")
+    fit.add_argument("--site", metavar="LAT,LON,ALT_M[,DATE]",
+                     help="the site: its total field from the World Magnetic Model, for methods that need a known "
+                          "total field when no ref_total was logged")
     fit.add_argument("--out", metavar="CAL.json")
     fit.add_argument("--json", action="store_true")
 
@@ -47,6 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
     dia.add_argument("--config", metavar="FILE")
     dia.add_argument("--calibration", metavar="CAL.json")
     dia.add_argument("--effects", type=_effects, default=[], metavar="E,..")
+    dia.add_argument("--site", metavar="LAT,LON,ALT_M[,DATE]",
+                     help="the site: its total field from the World Magnetic Model (when no ref_total was logged)")
     dia.add_argument("--report", metavar="DIR")
     dia.add_argument("--json", action="store_true")
 

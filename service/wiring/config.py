@@ -22,6 +22,7 @@ from typing import Any
 
 from drivers.config import load_section, read_toml, spec
 from drivers.errors import ConfigError
+from service.numerics.calib.site import site_from_text
 
 _UNIT_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 
@@ -52,6 +53,8 @@ class EstimatorConfig:
     forgetting: float = spec(0.9995, min=0.9, max=1.0, doc="RLS forgetting factor per sample")
     total_nT: float | None = spec(None, min=1000.0, max=200000.0,
                                   doc="ambient total field; omit to use ref_total from the source or estimate it")
+    site: str | None = spec(None, doc="LAT,LON,ALT_M[,DATE]: the total field from the World Magnetic Model at the "
+                                      "site, for a unit without a scalar magnetometer (instead of total_nT)")
     align: str = spec("rotation", choices=("rotation", "regression", "none"))
     min_samples: int = spec(2000, min=20)
     gate_coverage: float = spec(0.3, min=0.0, max=1.0, doc="fraction of direction bins that must be seen")
@@ -61,6 +64,13 @@ class EstimatorConfig:
                                  doc="the estimator takes samples in chunks this long (of data time)")
     check_every_s: float = spec(5.0, min=0.05, doc="how often the online estimate is checked against the gate")
     window_s: float = spec(60.0, min=1.0, doc="ring buffer length for alignment and the error metric")
+
+    def validate(self, path: str) -> None:
+        if self.site is None:
+            return
+        if self.total_nT is not None:
+            raise ConfigError(f"{path}.site: {self.site!r} is not allowed beside {path}.total_nT (allowed: one of them)")
+        self.total_nT = site_from_text(self.site, f"{path}.site").total_nT
 
 
 @dataclass

@@ -137,6 +137,10 @@ def main(args: argparse.Namespace) -> int:
     block = getattr(lab, "block", lab)
     names = getattr(lab, "probe_names", None)
     positions, total = (config_geometry(args.config, block.n_probes) if args.config else (None, None))
+    if getattr(args, "site", None):
+        from service.numerics.calib.site import site_from_text
+
+        total = site_from_text(args.site).total_nT
     data = EffectData.from_block(block, names, total_nT=total, positions_m=positions)
     cal, effects = None, list(args.effects)
     if args.calibration:

@@ -1,0 +1,107 @@
+"""The main geomagnetic field at a site from the World Magnetic Model (WMM2025, through pygeomag): the
+known total field that `tmi` needs, and that fixes the scale of an ellipsoid, without a scalar
+magnetometer at the site.
+
+The model describes the core field only: crustal anomalies (tens to hundreds of nT, more near
+ore bodies or buildings) and the day's variation (tens of nT) are not in it, so a site figure is a
+reference at the 0.1-1 % level, not a substitute for a scalar magnetometer at the nT level.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+from dataclasses import asdict, dataclass
+
+from drivers.errors import ConfigError
+
+#: the altitudes the model is specified for, m (WMM: -1 km to 850 km)
+ALTITUDE_RANGE_M = (-1000.0, 850_000.0)
+SITE_FORMAT = "LAT,LON,ALT_M[,DATE] (degrees north, degrees east, metres above the WGS84 ellipsoid, " \
+              "DATE as YYYY-MM-DD or a decimal year; today if left out)"
+
+
+@dataclass(frozen=True)
+class SiteField:
+    """The model's field at one place and time (north, east, down components, nT)."""
+
+    latitude_deg: float
+    longitude_deg: float
+    altitude_m: float
+    year: float                  # decimal year
+    total_nT: float
+    inclination_deg: float       # positive down
+    declination_deg: float       # positive east of true north
+    north_nT: float
+    east_nT: float
+    down_nT: float
+    model: str
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def summary(self) -> str:
+        return (f"{self.model} at {self.latitude_deg:.4f}°N {self.longitude_deg:.4f}°E, {self.altitude_m:.0f} m, "
+                f"{self.year:.2f}: F = {self.total_nT:.1f} nT, inclination {self.inclination_deg:.2f}°, "
+                f"declination {self.declination_deg:.2f}°")
+
+
+def decimal_year(when: _dt.date | _dt.datetime) -> float:
+    start = _dt.date(when.year, 1, 1)
+    days = (_dt.date(when.year + 1, 1, 1) - start).days
+    day = (when.date() if isinstance(when, _dt.datetime) else when) - start
+    return when.year + day.days / days
+
+
+def parse_site(text: str, key: str = "--site") -> tuple[float, float, float, float | None]:
+    """(lat, lon, alt_m, year or None) from "LAT,LON,ALT_M[,DATE]"; ConfigError naming the key otherwise."""
+    parts = [p.strip() for p in str(text).split(",")]
+
+    def bad(why: str) -> ConfigError:
+        return ConfigError(f"{key}: {text!r} is not allowed ({why}; allowed: {SITE_FORMAT})")
+
+    if len(parts) not in (3, 4):
+        raise bad(f"{len(parts)} fields")
+    try:
+        lat, lon, alt = (float(p) for p in parts[:3])
+    except ValueError:
+        raise bad("latitude, longitude and altitude must be numbers") from None
+    if not -90.0 <= lat <= 90.0:
+        raise bad("latitude outside -90..90")
+    if not -180.0 <= lon <= 360.0:
+        raise bad("longitude outside -180..360")
+    if not ALTITUDE_RANGE_M[0] <= alt <= ALTITUDE_RANGE_M[1]:
+        raise bad("altitude outside the model's -1000..850000 m")
+    year = None
+    if len(parts) == 4:
+        try:
+            year = decimal_year(_dt.date.fromisoformat(parts[3]))
+        except ValueError:
+            try:
+                year = float(parts[3])
+            except ValueError:
+                raise bad("DATE is neither YYYY-MM-DD nor a decimal year") from None
+    return lat, lon, alt, year
+
+
+def site_field(latitude_deg: float, longitude_deg: float, altitude_m: float, year: float | None = None,
+               *, key: str = "--site") -> SiteField:
+    """The WMM field at the site (year: decimal year, today when None). ConfigError outside the model's
+    five-year life, or when pygeomag is missing."""
+    try:
+        from pygeomag import GeoMag
+    except ImportError:                  # a declared dependency: only a broken install gets here
+        raise ConfigError(f"{key}: the site field needs the package pygeomag (pip install pygeomag)") from None
+    if year is None:
+        year = decimal_year(_dt.date.today())
+    model = GeoMag()
+    try:
+        r = model.calculate(glat=latitude_deg, glon=longitude_deg, alt=altitude_m / 1000.0, time=year)
+    except ValueError as e:
+        raise ConfigError(f"{key}: {year:.2f} is not allowed ({e}; allowed: the model's life, "
+                          f"{model.life_span[0]:.0f} to {model.life_span[1]:.0f})") from None
+    return SiteField(latitude_deg, longitude_deg, altitude_m, float(year), float(r.f), float(r.i), float(r.d),
+                     float(r.x), float(r.y), float(r.z), str(model.model))
+
+
+def site_from_text(text: str, key: str = "--site") -> SiteField:
+    return site_field(*parse_site(text, key), key=key)
