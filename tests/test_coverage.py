@@ -47,7 +47,9 @@ def single_turn(axis: str, dip_deg: float = 60.0, n: int = 360) -> np.ndarray:
 def test_a_single_axis_turn_is_refused_naming_the_missing_directions_and_the_turn(axis, others):
     raw = single_turn(axis)
     cov = coverage(raw)
-    assert not cov.usable and cov.planarity < 0.02 and cov.condition > 1e4
+    # centred and scaled, the design no longer shows a single turn through its condition number (the one
+    # out-of-plane column is noise, scaled up like any other): the planarity does, and the standard errors
+    assert not cov.usable and cov.planarity < 0.02
     a, b = sorted(others)
     assert f"single-axis turn about {axis}" in cov.reason and f"turn about the {a} or {b} axis" in cov.reason
     # the field stayed 30° from +axis: the opposite hemisphere and the equator are missing
@@ -78,8 +80,9 @@ def test_the_condition_number_grows_as_the_coverage_shrinks():
         conditions.append(cov.condition)
     assert all(np.diff(fractions) <= 0) and fractions[0] == 1.0 and fractions[-1] < 0.2
     assert all(np.diff(conditions) > 0), conditions
-    assert conditions[0] < 2.0 and conditions[-1] > 1e3
-    # measured: 1.6 (sphere), 2.5, 18 (hemisphere), 150, 1.05e3 (refused), 8.6e3: the batch fit's own number
+    assert conditions[0] < 2.0 and conditions[-1] > 20 * conditions[0]
+    # measured with the design centred and scaled (the fit no longer depends on where the origin is):
+    # 1.6 (sphere), 2.0, 4.0 (hemisphere), 8.2, 18, 42: the batch fit's own number
     raw = raw_from_directions(cap(3000, [0.3, -0.2, 1.0], 60.0))
     assert abs(coverage(raw).condition - fit_ellipsoid(raw, TOTAL_NT).condition) < 1e-9 * coverage(raw).condition
 

@@ -30,8 +30,16 @@ def test_fit_json_matches_truth(gradiometer, capsys, method):
     capsys.readouterr()
     assert main(["fit", str(path), "--method", method, "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert set(out) == {"method", "align", "effects", "sensors", "differential_rms_nT", "rms_nT"}
+    assert set(out) == {"method", "align", "effects", "sensors", "differential_rms_nT", "rms_nT", "warnings"}
     assert out["method"] == method and out["effects"] == []
+    # what the text shows, in the JSON too (docs/contracts.md): standard errors, order, coverage
+    for s in out["sensors"]:
+        assert len(s["offset_se_nT"]) == 3 and all(0 < se < 0.5 for se in s["offset_se_nT"])
+        # a minute of tumbling saw 12 of the 26 direction bins about each fitted offset: usable, and said
+        assert s["model_order"] == "full" and s["coverage"]["usable"] and s["coverage"]["fraction"] > 0.4
+        assert s["params"]["offset_nT"]["unit"] == "nT"
+        assert all(f"{s['name']}: only" in w or "standard error exceeds" in w for w in out["warnings"]
+                   if w.startswith(s["name"] + ":"))
     for got, want in zip(out["sensors"], truth["sensors"]):
         assert got["name"] == want["name"]
         assert np.allclose(got["offset_nT"], want["offset_nT"], atol=0.5)

@@ -24,7 +24,6 @@ from typing import Any
 import numpy as np
 
 from drivers.errors import DataError
-
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 
 FORMAT = "fluxcal.calibration"
@@ -60,7 +59,8 @@ def calibration_to_dict(cal: ArrayCalibration) -> dict[str, Any]:
         "effects": list(cal.effects), "effect_params": cal.effect_params,
         "span": {"t0_s": cal.span[0], "t1_s": cal.span[1], "n_samples": cal.span[2]},
         "probes": [{"name": p.name, "offset_nT": p.offset_nT, "matrix": p.matrix, "offset_se_nT": p.offset_se_nT,
-                    "matrix_se": p.matrix_se, "params": p.params} for p in cal.probes],
+                    "matrix_se": p.matrix_se, "params": p.params, "model_order": p.model_order,
+                    "warnings": list(p.warnings)} for p in cal.probes],
         "diagnostics": cal.diagnostics,
     })
 
@@ -158,7 +158,8 @@ def calibration_from_dict(d: Any, origin: str = "<calibration>") -> ArrayCalibra
                 _array(pd["matrix"], (3, 3), f"{key}.matrix", origin),
                 _array(pd.get("offset_se_nT"), (3,), f"{key}.offset_se_nT", origin, True),
                 _array(pd.get("matrix_se"), (3, 3), f"{key}.matrix_se", origin, True),
-                dict(params)))
+                dict(params), str(pd.get("model_order") or "full"),
+                [str(w) for w in pd.get("warnings") or []]))
         for i, pr in enumerate(probes):
             if not np.linalg.cond(pr.matrix) < 1e12:
                 raise DataError(f"{origin}: probes[{i}].matrix is singular; the file is damaged")

@@ -40,7 +40,6 @@ import numpy as np
 
 from drivers.encoding import RAW_ENCODING, RAW_LAYOUT, check_magic, decode_raw, encode_raw, layout_text
 from drivers.errors import DataError
-
 from service.numerics.outputs import CorrectedBlock
 
 CORRECTED_KIND = b"FXc"

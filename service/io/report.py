@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 
 from drivers.errors import FluxcalError
-
 from service.numerics.diagnose import Diagnosis
 
 MAX_POINTS = 6000

@@ -182,15 +182,44 @@ def rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else float("nan")
 
 
-def contract_json(cal: ArrayCalibration, channels: dict[str, np.ndarray], probe_names: list[str]) -> dict[str, Any]:
-    """`fluxcal fit --json` exactly as CONTRACTS §3."""
+def contract_json(cal: ArrayCalibration, channels: dict[str, np.ndarray], probe_names: list[str],
+                  coverages: list[Any] | None = None, warnings: list[str] | None = None) -> dict[str, Any]:
+    """`fluxcal fit --json`: CONTRACTS §3, and what the text shows besides (docs/contracts.md): standard
+    errors, named parameters, the model order, the coverage about each fitted offset, and warnings."""
     diff = [v for k, v in channels.items() if not k.endswith(".scalar")]
+    sensors = []
+    for k, p in enumerate(cal.probes):
+        entry = {"name": p.name, "offset_nT": p.offset_nT.tolist(), "matrix": p.matrix.tolist(),
+                 "scalar_rms_nT": rms(channels[f"{p.name}.scalar"]),
+                 "offset_se_nT": _finite_or_none(p.offset_se_nT), "matrix_se": _finite_or_none(p.matrix_se),
+                 "model_order": p.model_order, "params": _finite_or_none(p.params)}
+        if coverages is not None:
+            c = coverages[k]
+            entry["coverage"] = {"fraction": c.fraction, "missing": [
+                {"direction": r.label, "bins": r.bins, "turn_about": r.axes} for r in c.regions],
+                "advice": c.advice(), "usable": c.usable}
+        sensors.append(entry)
     return {
         "method": cal.method,
         "align": cal.align,
         "effects": list(cal.effects),
-        "sensors": [{"name": p.name, "offset_nT": p.offset_nT.tolist(), "matrix": p.matrix.tolist(),
-                     "scalar_rms_nT": rms(channels[f"{p.name}.scalar"])} for p in cal.probes],
+        "sensors": sensors,
         "differential_rms_nT": rms(np.concatenate(diff)) if diff else None,
         "rms_nT": rms(np.concatenate(list(channels.values()))),
+        "warnings": list(warnings or []),
     }
+
+
+def _finite_or_none(x: Any) -> Any:
+    """Plain JSON: arrays as lists, NaN and inf as null (JSON has neither)."""
+    if isinstance(x, dict):
+        return {k: _finite_or_none(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite_or_none(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _finite_or_none(x.tolist())
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x

@@ -73,7 +73,10 @@ class Gate:
         for k, (p, est) in enumerate(zip(cal.probes, estimators)):
             raw = window.field_nT[:, k]
             raw = raw[np.isfinite(raw).all(axis=1)]
-            cov = coverage_mod.coverage(raw)
+            # the directions seen about the candidate's own centre, judged as the batch fit judges them
+            # (enough samples, not one plane, conditioned, the share of directions): map, gate and advice agree
+            cov = coverage_mod.coverage(raw, centre_nT=p.offset_nT, min_fraction=self.coverage,
+                                        max_condition=self.condition)
             covs.append(cov.fraction)
             conds.append(float(est.condition_))
             corr = p.apply(raw)
@@ -85,8 +88,8 @@ class Gate:
                 rms = float(np.sqrt(np.mean((np.linalg.norm(corr, axis=1) - r) ** 2)))
             rmss.append(rms)
             name = self.probe_names[k]
-            if cov.fraction < self.coverage:
-                reasons.append(f"{name}: {cov.reason or 'coverage too small'}")
+            if not cov.usable:
+                reasons.append(f"{name}: {cov.reason}")
             if not np.isfinite(conds[-1]) or conds[-1] > self.condition:
                 reasons.append(f"{name}: ill-conditioned fit (condition {conds[-1]:.3g})")
             if not np.isfinite(rms) or rms > self.rms_nT:

@@ -29,7 +29,7 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused
 
-from .ellipsoid import MAX_CONDITION, MIN_SAMPLES, PLANARITY_MIN, quadric_design
+from .ellipsoid import MAX_CONDITION, MIN_SAMPLES, PLANARITY_MIN, normalise, quadric_design
 
 _DIRS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)],
                  dtype=float)
@@ -113,8 +113,8 @@ def design_condition(field_nT: np.ndarray) -> float:
     f = np.asarray(field_nT, float)
     if f.shape[0] < 9:
         return float("inf")
-    s = float(np.median(np.linalg.norm(f, axis=1))) or 1.0
-    phi = quadric_design(f / s)
+    center, s = normalise(f)
+    phi = quadric_design((f - center) / s)
     norms = np.linalg.norm(phi, axis=0)
     if np.any(norms == 0):
         return float("inf")

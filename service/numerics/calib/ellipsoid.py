@@ -4,16 +4,20 @@ A probe with offset o and matrix M sees raw samples r on the quadric
 
     (r − o)ᵀ Q (r − o) = F²,   Q = Mᵀ M.
 
-In scaled coordinates u = r / s (every column of order one) this is linear in nine unknowns,
+In centred, scaled coordinates u = (r − c) / s (c the samples' mean, s their median distance from
+it, so every column is of order one) this is linear in nine unknowns,
 
     uᵀ A' u + b'ᵀ u − γ δ = 1,   δ = (F² − F₀²) / s²,
 
-with A' = Q s² / κ, b' = −2 A' o / s, κ = F₀² − oᵀ Q o. The tenth column (δ) enters only when the
+with A' = Q s² / κ, b' = −2 A' (o − c) / s, κ = F₀² − (o − c)ᵀ Q (o − c). Centring makes the fit
+independent of where the origin is: a sensor whose hard-iron offset is several times the field puts
+the origin outside its ellipsoid, where the uncentred form's constant changes sign (κ < 0) and its
+conditioning collapses. Either sign of the fitted quadric is accepted (A' and κ flip together). The tenth column (δ) enters only when the
 reference total field F varies enough to carry information. Fixing the right side to 1 removes the
 exact null direction of the ten-term form with a constant right side (000 eq. 6 keeps nine terms
 and the right side F², dropping oᵀQo; 001 eq. 15-16 keeps the constant column and the right side
 F², and then V = (0, …, 0, F²) fits any data exactly). o = −A'⁻¹ b' s / 2 and Q follows from the
-known F₀: κ (1 + oᵀA'o/s²) = F₀².
+known F₀: κ (1 + uₒᵀA'uₒ) = F₀², uₒ = (o − c)/s.
 
 Matrix convention: M is the upper-triangular Cholesky factor of Q (001's triangular model, eq. 12):
 only the rotation ambiguity of Q = MᵀM is fixed, by putting the corrected z axis along the
@@ -21,7 +25,7 @@ sensor's z winding and the corrected y axis in its y-z plane; the alignment step
 into a common frame. `triangular_factor(q, "000")` gives 000's own factor (eq. 8) instead.
 
 Total field F: the reference per sample (`ref_total`), a configured constant, or — when unknown —
-the mean raw magnitude. Then the scale of M is a convention, not a measurement (a fluxgate
+the field that gives M unit determinant (unit_volume_total). Then the scale of M is a convention, not a measurement (a fluxgate
 ellipsoid alone cannot tell a 1 % larger field from 1 % larger sensitivities), and the result says
 so in its params ("total_nT_assumed").
 
@@ -34,7 +38,7 @@ is not an ellipsoid. NaN/inf rows are a DataError naming the rows. No parameter 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -42,6 +46,7 @@ import numpy as np
 from drivers.errors import CalibrationRefused, DataError
 
 from .model import ProbeCalibration, named, triangular_params
+from .order import EXPANSIONS, FIXED, ORDERS, OrderChoice, choose_order, expand, order_warnings, undetermined
 
 N_GEOMETRY = 9
 N_PARAMS = 10
@@ -64,13 +69,6 @@ def quadric_design(u: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray
     if delta is not None:
         cols.append(-delta)
     return np.stack(cols, axis=-1)
-
-
-def normalise(raw: np.ndarray) -> tuple[np.ndarray, float]:
-    """(c, s): the samples' mean and their median distance from it, so that u = (r − c) / s is of order
-    one whatever the origin and unit of r."""
-    center = raw.mean(axis=0)
-    return center, float(np.median(np.linalg.norm(raw - center, axis=1))) or 1.0
 
 
 def algebraic_ellipsoid(raw: np.ndarray, total_nT: float | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -97,30 +95,51 @@ def algebraic_ellipsoid(raw: np.ndarray, total_nT: float | None = None) -> tuple
     return offset, m * (target / float(np.median(mags)))
 
 
-def quadric_to_calibration(theta: np.ndarray, scale: float, f2_ref: float) -> tuple[np.ndarray, np.ndarray]:
-    """(offset_nT, upper-triangular matrix) from the fitted coefficients (nine or ten).
+def normalise(raw: np.ndarray) -> tuple[np.ndarray, float]:
+    """(c, s): the samples' mean and their median distance from it, so that u = (r − c) / s is of order
+    one whatever the origin and unit of r (the fit's answer then moves with r and nothing else)."""
+    center = raw.mean(axis=0)
+    return center, float(np.median(np.linalg.norm(raw - center, axis=1))) or 1.0
+
+
+def quadric_to_calibration(theta: np.ndarray, scale: float, f2_ref: float,
+                           center: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(offset_nT, upper-triangular matrix) from the fitted coefficients (nine or ten) of the quadric
+    in u = (r − center) / scale (center 0 when not given).
 
     Raises numpy.linalg.LinAlgError if the quadric is not an ellipsoid."""
     a = np.array([[theta[0], theta[3], theta[4]],
                   [theta[3], theta[1], theta[5]],
                   [theta[4], theta[5], theta[2]]])
     o_u = -0.5 * np.linalg.solve(a, theta[6:9])
-    # (u − o)ᵀ A' (u − o) = 1 + oᵀ A' o at F = F₀: rescale so the right side is F₀² / s²
+    # (u − o)ᵀ A' (u − o) = 1 + oᵀ A' o at F = F₀: rescale so the right side is F₀² / s². An origin
+    # outside the ellipsoid makes both A' and 1 + oᵀA'o negative: k A' is the same quadric either way
     k = (f2_ref / scale ** 2) / (1.0 + o_u @ a @ o_u)
-    if not np.isfinite(k) or k <= 0:
+    if not np.isfinite(k) or k == 0:
         raise np.linalg.LinAlgError("not an ellipsoid")
     lower = np.linalg.cholesky(a * k)       # raises LinAlgError unless positive definite
-    return o_u * scale, lower.T
+    offset = o_u * scale if center is None else np.asarray(center, float) + o_u * scale
+    return offset, lower.T
 
 
-def quadric_matrix(theta: np.ndarray, scale: float, f2_ref: float) -> tuple[np.ndarray, np.ndarray, float]:
+def unit_volume_total(theta: np.ndarray, scale: float, center: np.ndarray | None = None) -> float:
+    """The total field, nT, that gives the fitted quadric a matrix of determinant 1: the calibrated sphere
+    has the volume of the raw ellipsoid. The convention when the field is unknown; it depends on the
+    ellipsoid alone, not on where the samples lie on it (a mean magnitude would) nor on the origin."""
+    return float(np.linalg.det(quadric_to_calibration(theta, scale, 1.0, center)[1]) ** (-1.0 / 3.0))
+
+
+def quadric_matrix(theta: np.ndarray, scale: float, f2_ref: float,
+                   center: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """(Q, o in nT, κ in nT²) of the fitted quadric: |M(r − o)|² = F₀² with Q = MᵀM (dimensionless),
-    i.e. rᵀQr − 2oᵀQr + oᵀQo = F₀², which is the fitted (right side 1) form times κ = F₀² − oᵀQo.
+    i.e. in d = r − c: dᵀQd − 2(o − c)ᵀQd + (o − c)ᵀQ(o − c) = F₀², which is the fitted (right side 1)
+    form times κ = F₀² − (o − c)ᵀQ(o − c).
 
     Raises numpy.linalg.LinAlgError if the quadric is not an ellipsoid."""
-    offset, m = quadric_to_calibration(theta, scale, f2_ref)
+    offset, m = quadric_to_calibration(theta, scale, f2_ref, center)
     q = m.T @ m
-    return q, offset, float(f2_ref - offset @ q @ offset)
+    oc = offset if center is None else offset - np.asarray(center, float)
+    return q, offset, float(f2_ref - oc @ q @ oc)
 
 
 @dataclass
@@ -130,12 +149,16 @@ class EllipsoidFit:
     calibration: ProbeCalibration
     theta: np.ndarray            # fitted coefficients of the scaled quadric (nine, or ten with δ)
     theta_cov: np.ndarray        # their covariance, σ² (ΦᵀΦ)⁻¹
-    scale: float                 # s, nT: u = r / s
+    scale: float                 # s, nT: u = (r − center) / s
     condition: float             # of the column-scaled design
     residual_rms_nT: float       # RMS of |M(r − o)| − F over the samples
-    total_known: bool            # False: F was assumed (mean raw magnitude), the scale of M is a convention
+    total_known: bool            # False: F was assumed (det M = 1), M's scale is a convention
     f2_ref: float = float("nan")     # F₀², nT²
     n_samples: int = 0
+    center: np.ndarray = field(default_factory=lambda: np.zeros(3))   # c, nT: u = (r − c) / s
+    order: str = "full"          # the model order fitted (order.ORDERS)
+    choice: OrderChoice | None = None    # the held-out comparison that chose it, if one did
+    warnings: list[str] = field(default_factory=list)   # terms held fixed, parameters not determined
 
 
 @dataclass(frozen=True)
@@ -149,6 +172,9 @@ class QuadricSolution:
     condition: float
     total_nT: np.ndarray         # F per sample, nT
     total_known: bool
+    center: np.ndarray           # c, nT: the samples' mean; u = (r − c) / scale
+    order: str = "full"          # model order (order.ORDERS): the terms fitted; θ is always the nine (ten)
+    choice: OrderChoice | None = None    # how the order was chosen, when it was
 
 
 def finite_rows(field_nT: np.ndarray, what: str = "field_nT") -> np.ndarray:
@@ -191,8 +217,8 @@ def _planarity(raw: np.ndarray) -> tuple[float, np.ndarray]:
 def missing_directions(raw: np.ndarray, cone_deg: float = 45.0) -> list[str]:
     """Probe axes (±x, ±y, ±z) no sampled field direction came within `cone_deg` of.
 
-    Uses the raw vectors (offsets are small next to the Earth's field), i.e. where the field pointed
-    in the probe frame."""
+    `raw` is taken about the centre it is given relative to (the caller subtracts the fitted offset,
+    or the samples' mean before a fit): where the field pointed in the probe frame."""
     norm = np.linalg.norm(raw, axis=1, keepdims=True)
     u = raw / np.where(norm > 0, norm, 1.0)
     c = np.cos(np.radians(cone_deg))
@@ -210,7 +236,7 @@ def turn_axes_for(missing: list[str]) -> list[str]:
 def excitation_problem(raw: np.ndarray) -> str:
     """Why these samples cannot fix an ellipsoid ("" if they can, as far as geometry goes)."""
     plan, normal = _planarity(raw)
-    missing = missing_directions(raw)
+    missing = missing_directions(raw - raw.mean(axis=0))
     if plan < PLANARITY_MIN:
         axis = "xyz"[int(np.argmax(np.abs(normal)))]
         others = [a for a in "xyz" if a != axis]
@@ -222,8 +248,9 @@ def excitation_problem(raw: np.ndarray) -> str:
     return ""
 
 
-def _coverage_hint(raw: np.ndarray) -> str:
-    missing = missing_directions(raw)
+def _coverage_hint(raw: np.ndarray, centre: np.ndarray | None = None) -> str:
+    """Which directions about the centre (the fitted offset, else the samples' mean) were not seen."""
+    missing = missing_directions(raw - (raw.mean(axis=0) if centre is None else np.asarray(centre, float)))
     if not missing:
         return "spread the samples over more attitudes (turn about at least two axes)"
     return (f"directions near {', '.join(missing)} not covered: turn about the "
@@ -235,9 +262,11 @@ def _coverage_hint(raw: np.ndarray) -> str:
 
 def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
                   max_condition: float = MAX_CONDITION, min_samples: int = MIN_SAMPLES,
-                  noise_nT: float | None = None) -> QuadricSolution:
+                  noise_nT: float | None = None, order: str = "full") -> QuadricSolution:
     """Least squares of uᵀA'u + b'ᵀu (− γδ) = 1 over (N, 3) raw samples; refuses what it cannot fix.
 
+    order: "full" (nine terms), a reduced order of `order.ORDERS`, or "auto" (the held-out blocks
+    choose, order.choose_order; "full" when there are too few samples to compare).
     noise_nT: the noise of |b| if known (e.g. from a recording at rest); the covariance then uses it
     instead of the residual variance, which is a poor estimate with few samples beyond the unknowns
     (ten samples leave one degree of freedom)."""
@@ -250,36 +279,68 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     if problem:
         raise CalibrationRefused(f"{name}: {problem}")
     f, known = _as_total(total_nT, n, raw)
-    scale = float(np.median(np.linalg.norm(raw, axis=1)))
+    center, scale = normalise(raw)
     f2_ref = float(np.mean(f ** 2))
     delta = (f ** 2 - f2_ref) / scale ** 2
     # the δ column only when F varies by more than ~1 nT rms: otherwise it carries no information
     use_delta = known and float(np.std(f)) > 1.0
-    phi = quadric_design(raw / scale, delta if use_delta else None)
+    phi9 = quadric_design((raw - center) / scale)
+    cond9 = _condition(phi9)
+    if not np.isfinite(cond9) or cond9 > max_condition:
+        raise CalibrationRefused(f"{name}: the samples do not determine an ellipsoid (condition number "
+                                 f"{cond9:.3g} > {max_condition:.3g}); {_coverage_hint(raw)}")
+    choice = None
+    if order == "auto":
+        choice = choose_order(phi9, raw, f, known,
+                              lambda t, f2: quadric_to_calibration(t, scale, f2, center))
+        order = choice.order if choice is not None else "full"
+    phi = phi9 if order == "full" else phi9 @ EXPANSIONS[order]
+    if use_delta:
+        phi = np.column_stack([phi, -delta])
     y = np.ones(n)
     col = np.linalg.norm(phi, axis=0)
     phin = phi / col
     u, sv, vt = np.linalg.svd(phin, full_matrices=False)
-    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
-    if not np.isfinite(cond) or cond > max_condition:
-        raise CalibrationRefused(f"{name}: the samples do not determine an ellipsoid (condition number "
-                                 f"{cond:.3g} > {max_condition:.3g}); {_coverage_hint(raw)}")
     # θ = V Σ⁻¹ Uᵀ y (column-scaled), never an explicit inverse of ΦᵀΦ
     theta = (vt.T @ ((u.T @ y) / sv)) / col
+    if not known:
+        # θ does not depend on F, only the scale of M does: the convention for an unknown field
+        try:
+            f = np.full(n, unit_volume_total(_nine(theta, order, use_delta), scale, center))
+            f2_ref = float(f[0] ** 2)
+        except np.linalg.LinAlgError:
+            pass                     # not an ellipsoid: the caller refuses it
     resid = y - phi @ theta
     dof = max(n - phi.shape[1], 1)
     sigma2 = float(resid @ resid) / dof
     if noise_nT is not None:
         # |M(r − o)| = F + ε makes the equation's residual 2 F ε / κ, κ = F₀² − oᵀQo
         try:
-            _, _, kappa = quadric_matrix(theta, scale, f2_ref)
+            _, _, kappa = quadric_matrix(_nine(theta, order, use_delta), scale, f2_ref, center)
             sigma2 = float(np.mean((2.0 * f * float(noise_nT) / kappa) ** 2))
         except np.linalg.LinAlgError:
             pass                     # not an ellipsoid: the caller refuses it
     # cov(θ) = σ² (ΦᵀΦ)⁻¹, through the SVD of the column-scaled design
     vs = vt.T / sv
     theta_cov = sigma2 * (vs @ vs.T) / np.outer(col, col)
-    return QuadricSolution(theta, theta_cov, scale, f2_ref, cond, f, known)
+    if order != "full":
+        theta, theta_cov = expand(theta, theta_cov, order, extra=int(use_delta))
+    return QuadricSolution(theta, theta_cov, scale, f2_ref, cond9, f, known, center, order, choice)
+
+
+def _nine(theta: np.ndarray, order: str, use_delta: bool) -> np.ndarray:
+    """The nine geometric terms of a fit of any order (the δ coefficient dropped)."""
+    geo = theta[:-1] if use_delta else theta
+    return geo if order == "full" else EXPANSIONS[order] @ geo
+
+
+def _condition(phi: np.ndarray) -> float:
+    """Condition number of the column-scaled design (inf when a column is empty or the rank short)."""
+    col = np.linalg.norm(phi, axis=0)
+    if phi.shape[0] < phi.shape[1] or np.any(col == 0):
+        return float("inf")
+    sv = np.linalg.svd(phi / col, compute_uv=False)
+    return float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
 
 
 def jacobian_se(func: Callable[[np.ndarray], np.ndarray], theta: np.ndarray,
@@ -301,11 +362,12 @@ def jacobian_se(func: Callable[[np.ndarray], np.ndarray], theta: np.ndarray,
     return np.sqrt(np.maximum(np.diag(c), 0))
 
 
-def _propagate(theta: np.ndarray, cov: np.ndarray, scale: float, f2m: float) -> tuple[np.ndarray, np.ndarray]:
+def _propagate(theta: np.ndarray, cov: np.ndarray, scale: float, f2m: float,
+               center: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Standard errors of offset and matrix by a numerical Jacobian of θ -> (o, M)."""
 
     def flat(t: np.ndarray) -> np.ndarray:
-        o, m = quadric_to_calibration(t, scale, f2m)
+        o, m = quadric_to_calibration(t, scale, f2m, center)
         return np.concatenate([o, m.ravel()])
 
     se = jacobian_se(flat, theta, cov)
@@ -315,30 +377,58 @@ def _propagate(theta: np.ndarray, cov: np.ndarray, scale: float, f2m: float) -> 
 
 
 def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
-                  max_condition: float = MAX_CONDITION, noise_nT: float | None = None) -> EllipsoidFit:
+                  max_condition: float = MAX_CONDITION, noise_nT: float | None = None,
+                  order: str = "auto") -> EllipsoidFit:
     """Fit offset and upper-triangular matrix to (N, 3) raw samples of one probe.
 
     total_nT: the reference total field per sample (N,), a constant, or None (unknown: the mean raw
-    magnitude is assumed and the scale of the matrix is a convention).
-    Refuses (CalibrationRefused) data that cannot determine an ellipsoid: too few samples, all in
-    one plane (a single-axis turn), or a badly conditioned design; the message names the missing
-    directions and the motion that would fill them.
+    field of unit_volume_total is assumed and the scale of the matrix is a convention).
+    order: "auto" fits only what the samples determine (order.py: the held-out blocks choose, then
+    an order whose offsets or scales the standard errors do not determine gives way to the next
+    smaller one); "full", "axes" or "sphere" fit that order. What an order holds fixed, and any
+    parameter whose standard error exceeds its size, is said in `warnings`.
+    Refuses (CalibrationRefused) data that cannot determine even the offsets: too few samples, all in
+    one plane (a single-axis turn), a badly conditioned design, or offsets whose standard errors are
+    a tenth of the field; the message names the missing directions and the motion that would fill them.
     noise_nT: the noise of |b| if known; standard errors then use it (see `solve_quadric`).
     """
-    sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT)
+    if order != "auto" and order not in ORDERS:
+        raise ValueError(f"order: {order!r} is not allowed (allowed: auto, {', '.join(ORDERS)})")
     raw = np.asarray(field_nT, float)
-    theta, cov, scale, f2m = sol.theta, sol.theta_cov, sol.scale, sol.f2_ref
+    sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT, order=order)
+    fit, missing = _fit_result(sol, raw, name)
+    choice = sol.choice
+    while order == "auto" and missing and sol.order != ORDERS[-1]:
+        sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT,
+                            order=ORDERS[ORDERS.index(sol.order) + 1])
+        fit, missing = _fit_result(sol, raw, name)
+    if any(m.startswith("offset") for m in missing):
+        se = ", ".join(f"{v:.3g}" for v in fit.calibration.offset_se_nT)
+        raise CalibrationRefused(f"{name}: the samples do not determine even the offsets (standard errors {se} nT "
+                                 f"against a field of {float(np.sqrt(fit.f2_ref)):.6g} nT); "
+                                 f"{_coverage_hint(raw, fit.calibration.offset_nT)}")
+    fit.order = sol.order
+    fit.choice = choice
+    fit.warnings = order_warnings(fit.calibration, fit.order, missing, choice)
+    fit.calibration.model_order = sol.order
+    fit.calibration.warnings = list(fit.warnings)
+    return fit
+
+
+def _fit_result(sol: QuadricSolution, raw: np.ndarray, name: str) -> tuple[EllipsoidFit, list[str]]:
+    """The calibration, its named parameters and standard errors, and what they leave undetermined."""
+    theta, cov, scale, f2m, center = sol.theta, sol.theta_cov, sol.scale, sol.f2_ref, sol.center
     try:
-        offset, matrix = quadric_to_calibration(theta, scale, f2m)
+        offset, matrix = quadric_to_calibration(theta, scale, f2m, center)
     except np.linalg.LinAlgError:
         raise CalibrationRefused(f"{name}: the fitted quadric is not an ellipsoid; the data are not "
                                  f"one probe rotating in a steady field") from None
-    o_se, m_se = _propagate(theta, cov, scale, f2m)
+    o_se, m_se = _propagate(theta, cov, scale, f2m, center)
     corr = (raw - offset) @ matrix.T
     rms = float(np.sqrt(np.mean((np.linalg.norm(corr, axis=1) - sol.total_nT) ** 2)))
 
     def physical(t: np.ndarray) -> np.ndarray:
-        angles, c = triangular_params(quadric_to_calibration(t, scale, f2m)[1])
+        angles, c = triangular_params(quadric_to_calibration(t, scale, f2m, center)[1])
         return np.concatenate([angles, c])
 
     phys = physical(theta)
@@ -352,15 +442,19 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
               "residual_rms_nT": named(rms, None, "nT"),
               "condition": named(sol.condition, None, ""),
               "samples": named(raw.shape[0], None, "")}
+    if "nonorth_deg" in FIXED[sol.order]:
+        params["nonorth_deg"].update(se=None, note="not determined by these samples: fixed at 0")
     if not sol.total_known:
         params["total_nT_assumed"] = named(float(sol.total_nT[0]), None, "nT",
-                                           note="total field unknown: the mean raw magnitude was assumed, so the "
-                                                "scale of the matrix (and the scale factors) is a convention")
+                                           note="total field unknown: the field that gives the matrix determinant 1 "
+                                                "(the calibrated sphere has the raw ellipsoid's volume) was assumed, "
+                                                "so the scale of the matrix (and the scale factors) is a convention")
         params["scale"]["note"] = "relative to the assumed total field"
     cal = ProbeCalibration(name, offset, matrix, o_se, m_se, params)
     if not cal.is_finite():
         raise CalibrationRefused(f"{name}: the fit produced non-finite parameters")
-    return EllipsoidFit(cal, theta, cov, scale, sol.condition, rms, sol.total_known, f2m, raw.shape[0])
+    fit = EllipsoidFit(cal, theta, cov, scale, sol.condition, rms, sol.total_known, f2m, raw.shape[0], center)
+    return fit, undetermined(offset, o_se, phys[3:], phys_se[3:], float(np.sqrt(f2m)))
 
 
 # --- the factor conventions ------------------------------------------------------------------------

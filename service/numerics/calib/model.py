@@ -62,6 +62,10 @@ class ProbeCalibration:
     offset_se_nT: np.ndarray = field(default_factory=_nan3)
     matrix_se: np.ndarray = field(default_factory=_nan33)
     params: dict[str, Any] = field(default_factory=dict)
+    #: the terms fitted (calib.order: "full", "axes", "sphere"); fewer when the data determine fewer
+    model_order: str = "full"
+    #: what a user must know before trusting it: terms held fixed, parameters not determined
+    warnings: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.offset_nT = np.asarray(self.offset_nT, dtype=float).reshape(3)
@@ -78,7 +82,8 @@ class ProbeCalibration:
         to first order by rotating |se|, an approximation that ignores the rotation's own error)."""
         r = np.asarray(rotation, float)
         return ProbeCalibration(self.name, self.offset_nT.copy(), r @ self.matrix, self.offset_se_nT.copy(),
-                                np.sqrt((r ** 2) @ (self.matrix_se ** 2)), {**self.params, **params})
+                                np.sqrt((r ** 2) @ (self.matrix_se ** 2)), {**self.params, **params},
+                                self.model_order, list(self.warnings))
 
     def is_finite(self) -> bool:
         return bool(np.all(np.isfinite(self.matrix)) and np.all(np.isfinite(self.offset_nT)))

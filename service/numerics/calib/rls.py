@@ -117,7 +117,7 @@ class RlsEllipsoid:
         by the probes (one scalar reference) or (N, P). Rows holding NaN get zero weight."""
         raw = self._as_block(field_nT)
         if raw.shape[0]:
-            self._est.dirty |= self._acc.add(raw, total_nT)   # solved lazily, when an estimate is asked for
+            self._est.dirty |= self._acc.add(raw, total_nT, self._est.anchor_centres_nT())   # solved lazily
         return self
 
     # --- solve ------------------------------------------------------------------------------
@@ -154,7 +154,19 @@ class RlsEllipsoid:
         return self._acc.scale.copy()
 
     @property
+    def origin_(self):
+        """c, nT: the accumulator's origin (the first samples' mean); info_ and eta_ are about it."""
+        return self._squeeze(self._acc.origin.copy())
+
+    @property
+    def center_(self) -> np.ndarray:
+        """The point theta_ is taken about, nT (the weighted mean of the samples in memory at the solve)."""
+        self._est.solve_dirty()
+        return self._squeeze(np.stack([self._est.center_nT(j) for j in range(self._p)]))
+
+    @property
     def theta_(self) -> np.ndarray | None:
+        """θ of u = (r − center_) / scale_: uᵀA'u + b'ᵀu (− γδ) = 1."""
         self._est.solve_dirty()
         if self.n_probes is None:
             return self._est.theta[0].copy() if self._est.has_theta[0] else None
@@ -181,7 +193,8 @@ class RlsEllipsoid:
         self._est.solve_dirty()
         if not self._est.has_theta[j]:
             self.snapshot(probe=j)                    # raises CalibrationRefused saying why
-        return quadric_to_calibration(self._est.theta[j], float(self._acc.scale[j]), float(self._acc.f2_ref[j]))
+        return quadric_to_calibration(self._est.theta[j], float(self._acc.scale[j]), self._est.f2(j),
+                                      self._est.center_nT(j))
 
     @property
     def offset_(self) -> np.ndarray:
@@ -210,7 +223,7 @@ class RlsEllipsoid:
             raise CalibrationRefused(f"{name}: the online estimate is not determined yet ({int(self._acc.n[j])} samples, "
                                      f"condition {self._est.condition[j]:.3g}); keep rotating about several axes")
         return probe_calibration(name, self._est.theta[j], self._est.theta_cov(j), float(self._acc.scale[j]),
-                                 float(self._acc.f2_ref[j]), {
+                                 self._est.f2(j), self._est.center_nT(j), {
                                      "samples": named(int(self._acc.n[j]), None, ""),
                                      "memory_samples": named(float(self._acc.weight[j]), None, "",
                                                              note="effective number of samples in memory "
@@ -224,12 +237,12 @@ class RlsEllipsoid:
 
 
 def probe_calibration(name: str, theta: np.ndarray, cov: np.ndarray, scale: float, f2_ref: float,
-                      params: dict) -> ProbeCalibration:
-    """The calibration of an online estimate θ with standard errors propagated from cov(θ)."""
-    offset, matrix = quadric_to_calibration(theta, scale, f2_ref)
+                      center_nT: np.ndarray, params: dict) -> ProbeCalibration:
+    """The calibration of an online estimate θ (about center_nT) with standard errors propagated from cov(θ)."""
+    offset, matrix = quadric_to_calibration(theta, scale, f2_ref, center_nT)
 
     def flat(t: np.ndarray) -> np.ndarray:
-        o, mm = quadric_to_calibration(t, scale, f2_ref)
+        o, mm = quadric_to_calibration(t, scale, f2_ref, center_nT)
         return np.concatenate([o, mm.ravel()])
 
     se = jacobian_se(flat, theta, cov) if np.all(np.isfinite(cov)) else None

@@ -10,13 +10,13 @@ from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
 from drivers.errors import DataError
 
-from .ellipsoid import N_GEOMETRY, quadric_design, quadric_to_calibration
+from .ellipsoid import N_GEOMETRY, normalise, quadric_design, quadric_to_calibration, unit_volume_total
 
 
 class Information:
-    """What the online estimator knows, per probe: Λ, η, Σ w y², Σ w, the samples taken, the scale s
-    (u = r / s) and F₀² fixed by the first samples, the total field assumed when none is given, and
-    the last field direction (for the swept angle). See RlsEllipsoid for the settings."""
+    """What the online estimator knows, per probe: Λ, η, Σ w y², Σ w, the samples taken, the origin c and
+    scale s (u = (r − c) / s) and F₀² fixed by the first samples, the total field assumed when none is
+    given, and the last field direction (for the swept angle). See RlsEllipsoid for the settings."""
 
     def __init__(self, n_probes: int, n_params: int, *, forgetting: float, forget_deg: float | None,
                  varying_total: bool, total_nT: float | None) -> None:
@@ -28,9 +28,11 @@ class Information:
         self.y2 = np.zeros(p)                     # Σ w y², for the residual variance
         self.weight = np.zeros(p)                 # Σ w, the effective number of samples
         self.n = np.zeros(p, dtype=np.int64)
-        self.scale = np.full(p, np.nan)           # s, nT: u = r / s, fixed by the first samples
+        self.origin = np.full((p, 3), np.nan)     # c, nT: the first samples' mean
+        self.scale = np.full(p, np.nan)           # s, nT: u = (r − c) / s, fixed by the first samples
         self.f2_ref = np.full(p, np.nan)          # F₀², nT²
         self.assumed_total = np.full(p, np.nan)   # total field assumed when none is given
+        self.total_known = np.ones(p, bool)       # False once a block came without a total field
         self.last_dir = np.full((p, 3), np.nan)
 
     def totals(self, total_nT, raw: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -38,7 +40,9 @@ class Information:
         n, p = raw.shape[:2]
         t = total_nT if total_nT is not None else self.total_nT
         if t is None:
-            # unknown total field: each probe's first mean raw magnitude fixes the (conventional) scale
+            # unknown total field: each probe's first mean raw magnitude is F₀ for δ (unused without a
+            # reference); the estimate's scale is set afterwards by unit_volume_total (Estimates.f2)
+            self.total_known[:] = False
             fresh = np.isnan(self.assumed_total) & ok.any(axis=0)
             if fresh.any():
                 mag = np.linalg.norm(np.where(ok[..., None], raw, 0.0), axis=2)
@@ -53,9 +57,10 @@ class Information:
             return t
         raise DataError(f"total_nT: expected a number, {n} values or ({n}, {p}), got shape {t.shape}")
 
-    def add(self, raw: np.ndarray, total_nT) -> bool:
-        """Take a block (N, P, 3) of raw samples; total_nT as RlsEllipsoid.partial_fit. Returns, per probe,
-        whether it saw a sample (its estimate needs solving again)."""
+    def add(self, raw: np.ndarray, total_nT, centre_nT: np.ndarray | None = None) -> bool:
+        """Take a block (N, P, 3) of raw samples; total_nT as RlsEllipsoid.partial_fit. Field directions
+        (for the swept angle) are taken about centre_nT (P, 3), the last good estimate's centre (NaN rows:
+        the origin). Returns, per probe, whether it saw a sample (its estimate needs solving again)."""
         n = raw.shape[0]
         ok = np.isfinite(raw).all(axis=2)
         f = self.totals(total_nT, raw, ok)
@@ -69,14 +74,15 @@ class Information:
         live = ~np.isnan(self.scale)                 # probes that have seen a sample
         s = np.where(live, self.scale, 1.0)
         # probe-major (P, N, ·) so every probe's Φᵀ W Φ is one contiguous BLAS product
-        u = raw.transpose(1, 0, 2) / s[:, None, None]
+        c = np.where(live[:, None], self.origin, 0.0)
+        u = (raw.transpose(1, 0, 2) - c[:, None, :]) / s[:, None, None]
         delta = None
         if self.varying_total:
             delta = (f.T * f.T - np.where(live, self.f2_ref, 0.0)[:, None]) / (s * s)[:, None]
         phi = quadric_design(u, delta)                       # (P, N, k)
         lam = self.forgetting
         m = np.full(raw.shape[1], float(n)) if self.forget_deg is None else \
-            np.minimum(n, self.swept_deg(raw, ok, all_ok) / self.forget_deg)
+            np.minimum(n, self.swept_deg(self._about(raw, ok, centre_nT), ok, all_ok) / self.forget_deg)
         decay = lam ** m                              # λ^m per probe
         # sample i of n is (n − 1 − i) m/n sample-steps old at the block's end: W = diag(λ^((n−1−i) m/n))
         if lam < 1.0:
@@ -102,12 +108,20 @@ class Information:
 
 
     def first_samples(self, raw: np.ndarray, f: np.ndarray, ok: np.ndarray) -> None:
-        """Fix s (median raw magnitude) and F₀² (mean F²) of probes seeing their first samples."""
+        """Fix c and s (ellipsoid.normalise of the first samples) and F₀² (mean F²) of probes seeing their
+        first samples. Any c will do: the solve re-centres on the samples in memory (Estimates)."""
         fresh = np.isnan(self.scale) & ok.any(axis=0)
         for j in np.flatnonzero(fresh):
             rows = ok[:, j]
-            self.scale[j] = float(np.median(np.linalg.norm(raw[rows, j], axis=1)))
+            self.origin[j], self.scale[j] = normalise(raw[rows, j])
             self.f2_ref[j] = float(np.mean(f[rows, j] ** 2))
+
+    def _about(self, raw: np.ndarray, ok: np.ndarray, centre_nT: np.ndarray | None) -> np.ndarray:
+        """The samples about the centre (zero where not ok): directions of the field, not of r, whatever
+        the origin (about zero a hard-iron offset larger than the field would hide the turns)."""
+        c = self.origin if centre_nT is None else np.where(np.isnan(centre_nT), self.origin, centre_nT)
+        c = np.where(np.isnan(c), 0.0, c)
+        return np.where(ok[..., None], raw - c[None], 0.0)
 
     def swept_deg(self, raw: np.ndarray, ok: np.ndarray, all_ok: bool) -> np.ndarray:
         """Path angle (deg) the field direction swept in each probe's frame over this block (and since
@@ -132,37 +146,86 @@ class Information:
         ang = np.arctan2(np.sqrt(cx * cx + cy * cy + cz * cz), (a * b).sum(axis=-1))
         return np.degrees(np.where(np.isnan(ang), 0.0, ang)).sum(axis=0)
 
-    def ridged(self, j: int, ridge: np.ndarray) -> np.ndarray:
-        """Λ of probe j with the ridge on γ (scaled by the samples in memory)."""
-        return self.info[j] + np.diag(ridge * max(self.weight[j], 1.0))
+    def mean(self, j: int) -> np.ndarray:
+        """The weighted mean of probe j's samples in memory, u units (η's x, y, z entries over Σ w)."""
+        return self.eta[j][6:9] / self.weight[j] if self.weight[j] > 0 else np.zeros(3)
 
-    def rss(self, j: int, theta: np.ndarray) -> float:
-        """Weighted residual sum of squares at θ: Σw y² − 2θᵀη + θᵀΛθ."""
-        return max(self.y2[j] - 2 * theta @ self.eta[j] + theta @ self.info[j] @ theta, 0.0)
+    def centred(self, j: int, m: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """Λ, η and Σ w y² of probe j about the point m (u units).
+
+        With ψ = [φ, 1] the information is G = Σ w ψψᵀ = [[Λ, η], [ηᵀ, Σw y²]] (y = 1), and a move of
+        the origin is linear in ψ: ψ(u − m) = T(−m) ψ(u), so G' = T G Tᵀ exactly. The solve then fixes
+        the right side 1 about a point inside the ellipsoid (Estimates.centre), as the batch fit does
+        about the samples' mean; about the first samples' mean (near the surface when they saw one
+        direction) or about zero (outside the ellipsoid when the hard-iron offset exceeds the field) it
+        would not be."""
+        k = self.info.shape[-1]
+        g = np.empty((k + 1, k + 1))
+        g[:k, :k], g[:k, k], g[k, :k], g[k, k] = self.info[j], self.eta[j], self.eta[j], self.y2[j]
+        t = translation(-m, k)
+        gc = t @ g @ t.T
+        return gc[:k, :k], gc[:k, k], float(gc[k, k])
+
+
+def translation(m: np.ndarray, k: int) -> np.ndarray:
+    """T (k+1, k+1) with ψ(v + m) = T ψ(v), ψ = [x², y², z², 2xy, 2xz, 2yz, x, y, z, (−δ), 1] (k = 9 or 10)."""
+    t = np.eye(k + 1)
+    for i in range(3):                        # (v + m)² = v² + 2 m v + m²;  v + m
+        t[i, 6 + i], t[i, k], t[6 + i, k] = 2 * m[i], m[i] * m[i], m[i]
+    for row, (a, b) in zip((3, 4, 5), ((0, 1), (0, 2), (1, 2))):
+        t[row, 6 + a], t[row, 6 + b], t[row, k] = 2 * m[b], 2 * m[a], 2 * m[a] * m[b]
+    return t
 
 
 class Anchor:
-    """The last well-conditioned estimate of each probe, θ_a, and its information Λ_a = L Lᵀ: no direction's
-    information may fall below a share of Λ_a (rls.py's module docstring)."""
+    """The last well-conditioned estimate of each probe and the information behind it, kept in the
+    accumulator's coordinates (homogeneous: the quadric h, G = Σ w ψψᵀ) and moved to the centre of each
+    solve: no direction's information may fall below a share of the anchor's (rls.py's module docstring)."""
 
     def __init__(self, n_probes: int, n_params: int) -> None:
-        self.theta = np.full((n_probes, n_params), np.nan)
-        self.chol = np.zeros((n_probes, n_params, n_params))   # L: Λa = L Lᵀ
+        k = n_params
+        self.h = np.full((n_probes, k + 1), np.nan)          # [θ, −1] moved to the accumulator's origin
+        self.g = np.zeros((n_probes, k + 1, k + 1))
         self.has = np.zeros(n_probes, bool)
 
-    def set(self, j: int, theta: np.ndarray, info: np.ndarray) -> None:
-        self.theta[j] = theta
-        try:
-            self.chol[j] = np.linalg.cholesky(info)
-            self.has[j] = True
-        except np.linalg.LinAlgError:
-            pass                                  # keep the previous anchor
+    def set(self, j: int, theta: np.ndarray, m: np.ndarray, g_centred: np.ndarray) -> None:
+        """θ and its information (k+1 square, about m) become the anchor."""
+        k = theta.size
+        t = translation(-m, k)                   # ψ(u − m) = T ψ(u): h_u = Tᵀ h_m, G_u = T⁻¹ G_m T⁻ᵀ
+        self.h[j] = t.T @ np.append(theta, -1.0)
+        back = translation(m, k)
+        self.g[j] = back @ g_centred @ back.T
+        self.has[j] = True
 
-    def floor(self, j: int, info: np.ndarray, share: float) -> np.ndarray | None:
-        """Π = L V diag(max(0, f − g)) Vᵀ Lᵀ for the information `info`, None without an anchor or a deficit."""
+    def inside(self, j: int, m: np.ndarray) -> tuple[np.ndarray, float] | None:
+        """The anchor ellipsoid's centre (u units) and the relative radius of m in it ((m − o)ᵀA(m − o)
+        over its value on the surface: 0 at the centre, 1 on the surface); None without an anchor."""
         if not self.has[j]:
             return None
-        lo = self.chol[j]
+        h = self.h[j]
+        a = np.array([[h[0], h[3], h[4]], [h[3], h[1], h[5]], [h[4], h[5], h[2]]])
+        try:
+            o = -0.5 * np.linalg.solve(a, h[6:9])
+        except np.linalg.LinAlgError:
+            return None
+        surface = o @ a @ o - h[-1]
+        return (o, float((m - o) @ a @ (m - o) / surface)) if surface != 0 else None
+
+    def floor(self, j: int, info: np.ndarray, m: np.ndarray, share: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """(Π, θ_a) about m for the information `info` (about m), None without an anchor or a deficit:
+        Π = L V diag(max(0, f − g)) Vᵀ Lᵀ with Λ_a = L Lᵀ."""
+        if not self.has[j]:
+            return None
+        k = info.shape[0]
+        t = translation(-m, k)
+        ga = t @ self.g[j] @ t.T
+        h = translation(m, k).T @ self.h[j]
+        if not abs(h[k]) > 0:
+            return None
+        try:
+            lo = np.linalg.cholesky(ga[:k, :k])
+        except np.linalg.LinAlgError:
+            return None
         # C = L⁻¹ Λ L⁻ᵀ by two triangular solves
         c = solve_triangular(lo, solve_triangular(lo, info, lower=True).T, lower=True)
         g, v = np.linalg.eigh(0.5 * (c + c.T))
@@ -170,7 +233,7 @@ class Anchor:
         if not deficit.any():
             return None
         lv = lo @ v
-        return (lv * deficit) @ lv.T
+        return (lv * deficit) @ lv.T, h[:k] / -h[k]
 
 
 class Estimates:
@@ -186,22 +249,39 @@ class Estimates:
         self.theta = np.full((p, k), np.nan)
         self.has_theta = np.zeros(p, bool)
         self.condition = np.full(p, np.inf)
+        self.center = np.zeros((p, 3))            # m, u units: the centre θ is taken about (Information.centred)
         self.anchor = Anchor(p, k)
         self.dirty = np.zeros(p, bool)
 
+    #: the weighted mean of memory is the centre of the solve while it lies this deep inside the last good
+    #: ellipsoid (relative radius²); nearer its surface (a long rest, one turn) the ellipsoid's own centre
+    INSIDE = 0.25
+
+    def centre(self, j: int) -> np.ndarray:
+        """Where the solve fixes its right side 1 (u units): the weighted mean of the samples in memory,
+        which makes the estimate without forgetting exactly the batch fit (taken about the samples' mean);
+        the last good estimate's centre when that mean lies near its surface (memory of one direction)."""
+        m = self.acc.mean(j)
+        inside = self.anchor.inside(j, m)
+        if inside is not None and not 0.0 <= inside[1] < self.INSIDE:
+            return inside[0]
+        return m
+
     def solve(self, j: int) -> None:
         self.dirty[j] = False
-        info = self.acc.info[j]
+        m = self.centre(j)
+        info, eta, y2 = self.acc.centred(j, m)
         g = info[:N_GEOMETRY, :N_GEOMETRY]            # the geometry block decides conditioning
         d = np.sqrt(np.maximum(np.diag(g), 1e-300))
         ev = np.linalg.eigvalsh(g / np.outer(d, d))
         cond = float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
         self.condition[j] = float(np.sqrt(cond))    # of Φ column-scaled, like the batch fit
-        lhs = self.acc.ridged(j, self.ridge)
-        rhs = self.acc.eta[j]
-        prior = self.anchor.floor(j, lhs, self.share)
-        if prior is not None:
-            lhs, rhs = lhs + prior, rhs + prior @ self.anchor.theta[j]      # (Λ + Π) θ = η + Π θa
+        lhs = info + np.diag(self.ridge * max(self.acc.weight[j], 1.0))
+        rhs = eta
+        floor = self.anchor.floor(j, lhs, m, self.share)
+        if floor is not None:
+            prior, theta_a = floor
+            lhs, rhs = lhs + prior, rhs + prior @ theta_a                    # (Λ + Π) θ = η + Π θa
         elif self.condition[j] > self.max_condition:
             return
         try:
@@ -214,26 +294,56 @@ class Estimates:
             quadric_to_calibration(theta, self.acc.scale[j], self.acc.f2_ref[j])
         except np.linalg.LinAlgError:
             return                                    # not an ellipsoid (yet): keep the last estimate
-        self.theta[j], self.has_theta[j] = theta, True
+        self.theta[j], self.has_theta[j], self.center[j] = theta, True, m
         if self.condition[j] <= self.max_condition:
-            self.anchor.set(j, theta, self.acc.ridged(j, self.ridge))
+            k = theta.size
+            gc = np.empty((k + 1, k + 1))
+            gc[:k, :k], gc[:k, k], gc[k, :k], gc[k, k] = (info + np.diag(self.ridge * max(self.acc.weight[j], 1.0)),
+                                                          eta, eta, y2)
+            self.anchor.set(j, theta, m, gc)
 
     def solve_dirty(self) -> None:
         for j in np.flatnonzero(self.dirty):
             self.solve(int(j))
 
+    def f2(self, j: int) -> float:
+        """F₀² of probe j's estimate: the given field's, or for an unknown field the one that gives the
+        matrix determinant 1 (ellipsoid.unit_volume_total), as the batch fit assumes."""
+        if self.acc.total_known[j]:
+            return float(self.acc.f2_ref[j])
+        return unit_volume_total(self.theta[j], float(self.acc.scale[j]), self.center_nT(j)) ** 2
+
+    def anchor_centres_nT(self) -> np.ndarray:
+        """(P, 3) the last good estimate's centre per probe, nT (NaN without one): where field directions
+        are taken about."""
+        out = np.full((self.theta.shape[0], 3), np.nan)
+        for j in np.flatnonzero(self.anchor.has):
+            inside = self.anchor.inside(j, np.zeros(3))
+            if inside is not None:
+                out[j] = self.acc.origin[j] + inside[0] * self.acc.scale[j]
+        return out
+
+    def center_nT(self, j: int) -> np.ndarray:
+        """The point the estimate θ of probe j is taken about, nT: u = (r − this) / s."""
+        return self.acc.origin[j] + self.center[j] * self.acc.scale[j]
+
     def theta_cov(self, j: int) -> np.ndarray:
-        """cov(θ) = σ² (Λ + Π)⁻¹ with σ² = weighted RSS / (Σw − k), RSS = Σw y² − 2θᵀη + θᵀΛθ: the
-        information that actually holds the estimate (Π = 0 while the data determine it)."""
-        rss = self.acc.rss(j, self.theta[j])
-        dof = max(self.acc.weight[j] - self.acc.info.shape[-1], 1.0)
-        lhs = self.acc.ridged(j, self.ridge)
-        prior = self.anchor.floor(j, lhs, self.share)
-        if prior is not None:
-            lhs = lhs + prior
+        """cov(θ) = σ² (Λ + Π)⁻¹ with σ² = weighted RSS / (Σw − k), RSS = Σw y² − 2θᵀη + θᵀΛθ (about the
+        centre of the solve): the information that actually holds the estimate (Π = 0 while the data
+        determine it)."""
+        k = self.acc.info.shape[-1]
+        th = self.theta[j]
+        m = self.center[j]
+        info, eta, y2 = self.acc.centred(j, m)
+        rss = max(y2 - 2 * th @ eta + th @ info @ th, 0.0)
+        dof = max(self.acc.weight[j] - k, 1.0)
+        lhs = info + np.diag(self.ridge * max(self.acc.weight[j], 1.0))
+        floor = self.anchor.floor(j, lhs, m, self.share)
+        if floor is not None:
+            lhs = lhs + floor[0]
         try:
             # Λ⁻¹ is what the covariance is; through the Cholesky factor
-            inv = cho_solve(cho_factor(lhs), np.eye(self.acc.info.shape[-1]))
+            inv = cho_solve(cho_factor(lhs), np.eye(k))
         except np.linalg.LinAlgError:
-            return np.full((self.acc.info.shape[-1], self.acc.info.shape[-1]), np.nan)
+            return np.full((k, k), np.nan)
         return rss / dof * inv

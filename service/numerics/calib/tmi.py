@@ -39,7 +39,7 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused
 
-from .ellipsoid import MAX_CONDITION, MIN_SAMPLES, jacobian_se, solve_quadric
+from .ellipsoid import MAX_CONDITION, MIN_SAMPLES, jacobian_se, quadric_matrix, solve_quadric
 from .model import ProbeCalibration, named, triangular_params
 
 #: names of the ten coefficients of eq. 15, in order
@@ -71,21 +71,16 @@ def v_design(field_nT: np.ndarray) -> np.ndarray:
     return np.column_stack([x, y, z, x * x, y * y, z * z, x * y, x * z, y * z, np.ones_like(x)])
 
 
-def v_from_quadric(theta: np.ndarray, scale: float, f2_ref: float) -> np.ndarray:
-    """The eq. 15 vector V (nT units) of the fitted scaled quadric uᵀA'u + b'ᵀu = 1, u = B/s.
+def v_from_quadric(theta: np.ndarray, scale: float, f2_ref: float, center: np.ndarray | None = None) -> np.ndarray:
+    """The eq. 15 vector V (nT units) of the fitted quadric uᵀA'u + b'ᵀu = 1, u = (B − c)/s.
 
-    Multiplying by κ = F₀² − R7 turns it into |B_c|² = F₀²: V_quad = κ A'/s², V_lin = κ b'/s,
-    and κ follows from the centre o = −(A'/s²)⁻¹ (b'/s)/2 as κ (1 + oᵀ (A'/s²) o) = F₀².
+    In raw coordinates the quadric is |M(B − o)|² = F₀²: BᵀQB − 2(Qo)ᵀB + oᵀQo = F₀², so
+    V_quad = Q (cross terms doubled), V_lin = −2 Q o and V_const = oᵀQo (the paper's R7).
     """
-    a = np.array([[theta[0], theta[3], theta[4]],
-                  [theta[3], theta[1], theta[5]],
-                  [theta[4], theta[5], theta[2]]]) / scale ** 2
-    b = np.asarray(theta[6:9]) / scale
-    o = -0.5 * np.linalg.solve(a, b)
-    kappa = f2_ref / (1.0 + o @ a @ o)
-    q, lin = kappa * a, kappa * b
+    q, o, _ = quadric_matrix(theta, scale, f2_ref, center)
+    lin = -2.0 * q @ o
     return np.array([lin[0], lin[1], lin[2], q[0, 0], q[1, 1], q[2, 2],
-                     2 * q[0, 1], 2 * q[0, 2], 2 * q[1, 2], f2_ref - kappa])
+                     2 * q[0, 1], 2 * q[0, 2], 2 * q[1, 2], float(o @ q @ o)])
 
 
 def transformation_ii_inverse(v: np.ndarray) -> dict[str, float]:
@@ -135,9 +130,9 @@ def v_from_parameters(matrix: np.ndarray, offset_nT: np.ndarray) -> np.ndarray:
                      r1 * kg ** 2 + r3 * kn ** 2 + r5, 2 * r1 * km, 2 * r1 * kg, 2 * (r1 * km * kg + r3 * kn), r7])
 
 
-def _chain(theta: np.ndarray, scale: float, f2_ref: float) -> np.ndarray:
+def _chain(theta: np.ndarray, scale: float, f2_ref: float, center: np.ndarray) -> np.ndarray:
     """θ -> [φ, θ, ψ (deg), c_x, c_y, c_z, i_x, i_y, i_z, M (9), V (10)]: the paper's whole route."""
-    v = v_from_quadric(theta, scale, f2_ref)
+    v = v_from_quadric(theta, scale, f2_ref, center)
     mat, offset = transformation_i_inverse(transformation_ii_inverse(v))
     angles, c = triangular_params(mat)
     return np.concatenate([angles, c, offset, mat.ravel(), v])
@@ -156,11 +151,11 @@ def fit_tmi_full(field_nT: np.ndarray, total_nT, *, name: str = "s1",
                         noise_nT=noise_nT)
     raw = np.asarray(field_nT, float)
     try:
-        out = _chain(sol.theta, sol.scale, sol.f2_ref)
+        out = _chain(sol.theta, sol.scale, sol.f2_ref, sol.center)
     except (np.linalg.LinAlgError, ValueError):
         raise CalibrationRefused(f"{name}: the fitted quadric is not an ellipsoid; the data are not one probe "
                                  f"rotating in a steady field") from None
-    se = jacobian_se(lambda t: _chain(t, sol.scale, sol.f2_ref), sol.theta, sol.theta_cov)
+    se = jacobian_se(lambda t: _chain(t, sol.scale, sol.f2_ref, sol.center), sol.theta, sol.theta_cov)
     se = np.full(out.size, np.nan) if se is None else se
     angles, c, offset, mat, v = out[:3], out[3:6], out[6:9], out[9:18].reshape(3, 3), out[18:]
     corr = (raw - offset) @ mat.T

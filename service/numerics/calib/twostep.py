@@ -105,7 +105,7 @@ def orthogonality_correction(v: np.ndarray, contribution: np.ndarray) -> tuple[n
 def pca_axes(turns_c: Sequence[np.ndarray], turns_raw: Sequence[np.ndarray], *, sign_correction: bool = True,
              orth_correction: bool = True) -> PcaAxes:
     """V̂ from three turns (about body x, y, z) of data in the equivalent frame (eq. 17) and the same
-    turns' raw output (for the sign correction)."""
+    turns' raw output less the fitted offset (for the sign correction)."""
     if len(turns_c) != 3 or len(turns_raw) != 3:
         raise ValueError(f"expected three turns (about x, y, z), got {len(turns_c)}")
     v_pca = np.empty((3, 3))
@@ -174,7 +174,9 @@ def fit_two_step_full(rotations: Sequence[np.ndarray], *, extra_nT: np.ndarray |
     b = ell.offset_nT
     equiv = (u / d).T                                 # D̂⁻¹ Ûᵀ
     turns_c = [(t - b) @ equiv.T for t in turns]      # ĥ_c = D̂⁻¹ Ûᵀ (h_s − b̂)  (eq. 15)
-    pca = pca_axes(turns_c, turns, sign_correction=sign_correction, orth_correction=orth_correction)
+    # the sign test reads each turn's axial component about the fitted offset: about the origin a hard-iron
+    # offset larger than the field would decide it
+    pca = pca_axes(turns_c, [t - b for t in turns], sign_correction=sign_correction, orth_correction=orth_correction)
     # ĥ_b = V̂⁻¹ ĥ_c  (eq. 4): a solve, V̂ need not be orthogonal without the correction
     matrix = np.linalg.solve(pca.v, equiv)
     # the ellipsoid's offset errors carry over; the matrix's, turned into the body frame, to first order

@@ -5,12 +5,14 @@ from __future__ import annotations
 import json
 import sys
 from argparse import Namespace
+from typing import Any
 
 import numpy as np
 
 from service.io.calfile import save_calibration
 from service.io.recordings.labdata import load_data
 from service.numerics.calib.coverage import coverage
+from service.numerics.calib.site import site_from_text
 from service.wiring.fitting import contract_json, fit_array, residual_channels, rms, uncalibrated_channels
 
 
@@ -42,16 +44,27 @@ def positions(cfg, n_probes: int):
     return pos if np.ptp(pos, axis=0).any() else None
 
 
+def site_total(args: Namespace, configured: float | None) -> tuple[float | None, Any]:
+    """The total field: --site (the World Magnetic Model there) over the configuration's."""
+    if not getattr(args, "site", None):
+        return configured, None
+    site = site_from_text(args.site)
+    return site.total_nT, site
+
+
 def main(args: Namespace) -> int:
     data = load_data(args.data)
     cfg = load_optional_config(args.config)
-    cal, total = fit_array(data, method=args.method, align=args.align, configured_total_nT=configured_total(cfg),
+    known_total, site = site_total(args, configured_total(cfg))
+    cal, total = fit_array(data, method=args.method, align=args.align, configured_total_nT=known_total,
                            positions_m=positions(cfg, data.block.n_probes), progress=_say)
+    if site is not None:
+        total.source = f"the site ({site.model})"
     if args.effects:
         from service.numerics.engine import fit_with_effects
 
         _say(f"fitting effects {', '.join(args.effects)}")
-        ef, _ = fit_with_effects(data, args.effects, cal, total_nT=configured_total(cfg),
+        ef, _ = fit_with_effects(data, args.effects, cal, total_nT=known_total,
                                  positions_m=positions(cfg, data.block.n_probes))
         method, align = cal.method, cal.align
         cal = ef.calibration()
@@ -65,13 +78,20 @@ def main(args: Namespace) -> int:
     cal.diagnostics.update({"rms_before_nT": {k: rms(v) for k, v in before.items()},
                             "rms_after_nT": {k: rms(v) for k, v in channels.items()},
                             "total_field": total.source})
+    coverages = [coverage(data.block.field_nT[:, k], centre_nT=p.offset_nT) for k, p in enumerate(cal.probes)]
+    warnings = calibration_warnings(cal, coverages)
+    cal.diagnostics["warnings"] = warnings
     if args.out:
         save_calibration(cal, args.out)
-    result = contract_json(cal, channels, data.probe_names)
+    result = contract_json(cal, channels, data.probe_names, coverages, warnings)
+    if site is not None:
+        result["site"] = site.as_dict()
     if args.json:
         print(json.dumps(result))
         return 0
-    print(_summary(data, cal, channels, before, total.source, result))
+    if site is not None:
+        print(f"site field: {site.summary()}")
+    print(_summary(data, cal, channels, before, total.source, result, coverages))
     if args.out:
         print(f"calibration written to {args.out}")
     return 0
@@ -95,7 +115,15 @@ def _fmt_pm(v: float, se: float, digits: int = 3) -> str:
     return f"{v:{w}.{digits}f} ± {se:.1e}" if np.isfinite(se) else f"{v:{w}.{digits}f} ±     n/a"
 
 
-def _summary(data, cal, channels, before, total_source, result) -> str:
+def calibration_warnings(cal, coverages) -> list[str]:
+    """Everything the fit itself flagged, and the directions about each fitted centre not seen."""
+    out = [w for p in cal.probes for w in p.warnings]
+    out += [f"{p.name}: only {c.fraction:.0%} of the field directions about the fitted offset were seen; {c.advice()}"
+            for p, c in zip(cal.probes, coverages) if c.regions]
+    return out
+
+
+def _summary(data, cal, channels, before, total_source, result, coverages) -> str:
     b = data.block
     lines = [f"{data.path}: {b.n_samples} samples, {b.n_probes} probe(s), {b.t_s[-1] - b.t_s[0]:.1f} s; "
              f"method {cal.method}, align {cal.align or '-'}, effects {', '.join(cal.effects) or '-'}; "
@@ -109,8 +137,11 @@ def _summary(data, cal, channels, before, total_source, result) -> str:
             if key in ("offset_nT", "samples", "align") or not isinstance(val, dict):
                 continue
             lines.append(f"  {key:10s} {_fmt_param(val.get('value'), val.get('se'))} {val.get('unit', '')}".rstrip())
-        cov = coverage(b.field_nT[:, k])
-        lines.append(f"  coverage   {cov.fraction:.0%} of directions" + (f" — {cov.reason}" if cov.reason else ""))
+        cov = coverages[k]
+        if p.model_order != "full":
+            lines.append(f"  model      {p.model_order} (fewer terms: the data do not determine the rest)")
+        lines.append(f"  coverage   {cov.fraction:.0%} of directions about the fitted offset" +
+                     (f" — {cov.reason}" if cov.reason else ""))
         lines.append("  " + cov.text_map.replace("\n", "\n  "))
     if cal.effect_params:
         lines.append("\neffect parameters")
@@ -123,4 +154,7 @@ def _summary(data, cal, channels, before, total_source, result) -> str:
     for name in channels:
         lines.append(f"  {name:20s} {rms(before[name]):12.2f} {rms(channels[name]):11.3f}")
     lines.append(f"  {'all':20s} {rms(np.concatenate(list(before.values()))):12.2f} {result['rms_nT']:11.3f}")
+    if result["warnings"]:
+        lines.append("\nwarnings")
+        lines += [f"  {w}" for w in result["warnings"]]
     return "\n".join(lines)

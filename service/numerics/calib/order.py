@@ -1,0 +1,157 @@
+"""Model order of the ellipsoid fit: fit only what the samples determine, and say what they do not.
+
+Partial coverage (a hand-turned board that never pointed one way, a vehicle that only turns in the
+horizontal) determines the offsets long before it separates three scales and three
+non-orthogonality angles. The best hobby calibrators then fit fewer terms; so does this module:
+
+    full    nine quadric terms: offsets, three scales, three non-orthogonality angles
+    axes    six: offsets and three scales along the sensor axes (angles fixed at zero)
+    sphere  four: offsets and one scale (scale ratios fixed at one, angles at zero)
+
+each a linear restriction θ₉ = T θ_k of the nine-term quadric (ellipsoid.quadric_design). The
+order is chosen on held-out time blocks: each order is fitted on four of five contiguous blocks
+and scored by the RMS of |M(r − o)| − F on the fifth; the lowest order within HELDOUT_TOLERANCE
+of the best wins (held-out rows of a hand-turned recording are attitudes the fit has not seen, so
+an order that merely follows the noise of the training attitudes loses there). With too few
+samples for five blocks the standard errors decide instead.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+#: held-out RMS within this fraction of the best: the lower order is as good (a gain must be worth having)
+HELDOUT_TOLERANCE = 0.02
+#: contiguous time blocks of the held-out comparison
+N_BLOCKS = 5
+#: samples per fitted term below which the held-out comparison is not made (the standard errors decide)
+MIN_ROWS_PER_TERM = 10
+#: an offset whose standard error exceeds this fraction of the field is not determined
+OFFSET_SE_MAX_FRACTION = 0.1
+#: a scale whose relative standard error exceeds this is not determined
+SCALE_SE_MAX = 0.1
+
+
+def _expansion(order: str) -> np.ndarray:
+    """T (9, k): θ₉ = T θ_k."""
+    eye = np.eye(9)
+    if order == "full":
+        return eye
+    if order == "axes":
+        return eye[:, [0, 1, 2, 6, 7, 8]]
+    if order == "sphere":
+        return np.column_stack([eye[:, 0] + eye[:, 1] + eye[:, 2], eye[:, 6], eye[:, 7], eye[:, 8]])
+    raise ValueError(f"order: {order!r} is not allowed (allowed: {', '.join(ORDERS)})")
+
+
+#: from the most terms to the fewest
+ORDERS = ("full", "axes", "sphere")
+EXPANSIONS = {o: _expansion(o) for o in ORDERS}
+#: what an order holds fixed, and why a user would care
+FIXED = {
+    "full": [],
+    "axes": ["nonorth_deg"],
+    "sphere": ["nonorth_deg", "scale ratios"],
+}
+
+
+@dataclass(frozen=True)
+class OrderChoice:
+    """Which order the held-out blocks (or the standard errors) chose, and the figures behind it."""
+
+    order: str
+    heldout_rms_nT: dict[str, float]   # per order tried; empty when the standard errors decided
+    by: str                            # "held-out blocks" or "standard errors"
+
+
+def expand(theta_k: np.ndarray, cov_k: np.ndarray, order: str, extra: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """θ₉ (and the covariance) of a reduced fit; `extra` trailing columns (the δ column) pass through."""
+    t = EXPANSIONS[order]
+    if extra:
+        t = np.block([[t, np.zeros((9, extra))], [np.zeros((extra, t.shape[1])), np.eye(extra)]])
+    return t @ theta_k, t @ cov_k @ t.T
+
+
+def heldout_rms(phi9: np.ndarray, raw: np.ndarray, total: np.ndarray, known: bool, order: str,
+                calibrate) -> float:
+    """RMS of |M(r − o)| − F on each block, fitted on the other blocks (phi9: the nine-term design of
+    the centred, scaled samples; calibrate(θ₉, f2_ref) -> (offset, matrix), raising LinAlgError when
+    the quadric is not an ellipsoid)."""
+    n = raw.shape[0]
+    phi = phi9 @ EXPANSIONS[order]
+    edges = np.linspace(0, n, N_BLOCKS + 1).astype(int)
+    # per-block normal equations: each fold is a sum of four, one small solve
+    grams = [phi[a:b].T @ phi[a:b] for a, b in zip(edges[:-1], edges[1:])]
+    rhs = [phi[a:b].sum(axis=0) for a, b in zip(edges[:-1], edges[1:])]
+    g_all, r_all = sum(grams), sum(rhs)
+    sq = 0.0
+    for i, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
+        g, r = g_all - grams[i], r_all - rhs[i]
+        col = np.sqrt(np.maximum(np.diag(g), 1e-300))
+        try:
+            theta = np.linalg.solve(g / np.outer(col, col), r / col) / col
+            train = np.r_[0:a, b:n]
+            f2 = float(np.mean(total[train] ** 2)) if known else 1.0
+            offset, matrix = calibrate(EXPANSIONS[order] @ theta, f2)
+            if not known:
+                # the unknown field's convention: the mean magnitude about the centre, on the training rows
+                f_train = float(np.mean(np.linalg.norm(raw[train] - offset, axis=1)))
+                matrix = matrix * f_train
+                held = np.full(b - a, f_train)
+            else:
+                held = total[a:b]
+        except np.linalg.LinAlgError:
+            return float("inf")
+        resid = np.linalg.norm((raw[a:b] - offset) @ matrix.T, axis=1) - held
+        sq += float(resid @ resid)
+    return float(np.sqrt(sq / n))
+
+
+def choose_order(phi9: np.ndarray, raw: np.ndarray, total: np.ndarray, known: bool, calibrate) -> OrderChoice | None:
+    """The order the held-out blocks choose, or None when there are too few samples to compare."""
+    n = raw.shape[0]
+    if n < N_BLOCKS * MIN_ROWS_PER_TERM * 9 // (N_BLOCKS - 1):
+        return None
+    scores = {o: heldout_rms(phi9, raw, total, known, o, calibrate) for o in ORDERS}
+    best = min(scores.values())
+    if not np.isfinite(best):
+        return OrderChoice("full", scores, "held-out blocks")
+    for o in reversed(ORDERS):                    # fewest terms first
+        if scores[o] <= best * (1.0 + HELDOUT_TOLERANCE):
+            return OrderChoice(o, scores, "held-out blocks")
+    return OrderChoice("full", scores, "held-out blocks")
+
+
+def undetermined(offset: np.ndarray, offset_se: np.ndarray, scale: np.ndarray, scale_se: np.ndarray,
+                 field_nT: float) -> list[str]:
+    """Names of the parameters whose standard errors say the samples did not determine them."""
+    out = [f"offset_nT.{a}" for a, s in zip("xyz", offset_se) if not np.isfinite(s) or s > OFFSET_SE_MAX_FRACTION * field_nT]
+    out += [f"scale.c_{a}" for a, c, s in zip("xyz", scale, scale_se)
+            if not np.isfinite(s) or s > SCALE_SE_MAX * abs(c)]
+    return out
+
+
+def order_warnings(cal: Any, order: str, missing: list[str], choice: OrderChoice | None) -> list[str]:
+    """What a user must know before trusting the fit: terms held fixed, parameters not determined."""
+    name, p = cal.name, cal.params
+    out = []
+    if order != "full":
+        why = ("the held-out blocks do not gain from more terms (RMS " +
+               ", ".join(f"{k} {v:.4g} nT" for k, v in choice.heldout_rms_nT.items()) + ")"
+               if choice is not None and choice.order == order else
+               "the standard errors of a larger order exceed its parameters")
+        out.append(f"{name}: fitted the {order} model; {' and '.join(FIXED[order])} not determined by "
+                   f"these samples ({why}): held fixed")
+    out += [f"{name}: {m} not determined by these samples (standard error too large)" for m in missing]
+    for key in ("offset_nT", "scale", "nonorth_deg"):
+        v, se = np.atleast_1d(p[key]["value"]), p[key]["se"]
+        if se is None:
+            continue
+        labels = p[key].get("names") or list("xyz")
+        for lab, vi, si in zip(labels, v, np.atleast_1d(se)):
+            if np.isfinite(si) and si > abs(vi):
+                out.append(f"{name}: {key}.{lab} = {vi:.4g} ± {si:.2g}: its standard error exceeds its size")
+    return out
