@@ -18,7 +18,7 @@ from service.io.recordings.labdata import LabData
 from service.numerics.calib.alignment import align_probes
 from service.numerics.calib.ellipsoid import fit_ellipsoid
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
-from service.numerics.engine.channels import channel_names
+from service.numerics.channels import channel_names
 
 METHODS = ("ellipsoid", "tmi", "sinefit", "two-step", "rls")
 ALIGNS = ("regression", "rotation", "pca")

@@ -24,7 +24,7 @@ from drivers.errors import DataError, FluxcalError
 from drivers.ringbuffer import RingBuffer
 from service.numerics.calib.model import ArrayCalibration
 from service.numerics.calib.rls import RlsEllipsoid
-from service.numerics.engine.channels import block_error_rms
+from service.numerics.channels import block_error_rms
 from service.numerics.outputs import CorrectedBlock, products
 
 from .gate import Gate, GateResult, reference_total

@@ -75,34 +75,39 @@ def expand(theta_k: np.ndarray, cov_k: np.ndarray, order: str, extra: int = 0) -
     return t @ theta_k, t @ cov_k @ t.T
 
 
-def heldout_rms(phi9: np.ndarray, raw: np.ndarray, total: np.ndarray, known: bool, order: str,
-                calibrate) -> float:
-    """RMS of |M(r − o)| − F on each block, fitted on the other blocks (phi9: the nine-term design of
-    the centred, scaled samples; calibrate(θ₉, f2_ref) -> (offset, matrix), raising LinAlgError when
-    the quadric is not an ellipsoid)."""
-    n = raw.shape[0]
-    phi = phi9 @ EXPANSIONS[order]
-    edges = np.linspace(0, n, N_BLOCKS + 1).astype(int)
-    # per-block normal equations: each fold is a sum of four, one small solve
-    grams = [phi[a:b].T @ phi[a:b] for a, b in zip(edges[:-1], edges[1:])]
-    rhs = [phi[a:b].sum(axis=0) for a, b in zip(edges[:-1], edges[1:])]
+def block_normals(phi9: np.ndarray, n_blocks: int = N_BLOCKS) -> tuple[np.ndarray, list, list]:
+    """Edges of the contiguous time blocks, and per block ΦᵀΦ and Φᵀ1 of the nine-term design."""
+    edges = np.linspace(0, phi9.shape[0], n_blocks + 1).astype(int)
+    grams = [phi9[a:b].T @ phi9[a:b] for a, b in zip(edges[:-1], edges[1:])]
+    rhs = [phi9[a:b].sum(axis=0) for a, b in zip(edges[:-1], edges[1:])]
+    return edges, grams, rhs
+
+
+def heldout_rms(normals: tuple[np.ndarray, list, list], raw: np.ndarray, total: np.ndarray, known: bool,
+                order: str, calibrate) -> float:
+    """RMS of |M(r − o)| − F on each block, fitted on the other blocks (normals: `block_normals` of the
+    nine-term design of the centred, scaled samples; calibrate(θ₉, f2_ref) -> (offset, matrix), raising
+    LinAlgError when the quadric is not an ellipsoid). An unknown F is the fold's unit_volume_total."""
+    edges, grams9, rhs9 = normals
+    t = EXPANSIONS[order]
+    grams = [t.T @ g @ t for g in grams9]
+    rhs = [t.T @ r for r in rhs9]
     g_all, r_all = sum(grams), sum(rhs)
+    n = raw.shape[0]
+    f2_sum = float(np.sum(total ** 2)) if known else 0.0
     sq = 0.0
     for i, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
         g, r = g_all - grams[i], r_all - rhs[i]
         col = np.sqrt(np.maximum(np.diag(g), 1e-300))
         try:
-            theta = np.linalg.solve(g / np.outer(col, col), r / col) / col
-            train = np.r_[0:a, b:n]
-            f2 = float(np.mean(total[train] ** 2)) if known else 1.0
-            offset, matrix = calibrate(EXPANSIONS[order] @ theta, f2)
+            theta = t @ (np.linalg.solve(g / np.outer(col, col), r / col) / col)
+            # the training rows' mean F², or the unit-volume convention of an unknown field
+            f2 = (f2_sum - float(np.sum(total[a:b] ** 2))) / (n - (b - a)) if known else 1.0
+            offset, matrix = calibrate(theta, f2)
+            held = total[a:b]
             if not known:
-                # the unknown field's convention: the mean magnitude about the centre, on the training rows
-                f_train = float(np.mean(np.linalg.norm(raw[train] - offset, axis=1)))
-                matrix = matrix * f_train
-                held = np.full(b - a, f_train)
-            else:
-                held = total[a:b]
+                f = float(np.linalg.det(matrix) ** (-1.0 / 3.0))
+                matrix, held = matrix * f, np.full(b - a, f)
         except np.linalg.LinAlgError:
             return float("inf")
         resid = np.linalg.norm((raw[a:b] - offset) @ matrix.T, axis=1) - held
@@ -115,7 +120,8 @@ def choose_order(phi9: np.ndarray, raw: np.ndarray, total: np.ndarray, known: bo
     n = raw.shape[0]
     if n < N_BLOCKS * MIN_ROWS_PER_TERM * 9 // (N_BLOCKS - 1):
         return None
-    scores = {o: heldout_rms(phi9, raw, total, known, o, calibrate) for o in ORDERS}
+    normals = block_normals(phi9)
+    scores = {o: heldout_rms(normals, raw, total, known, o, calibrate) for o in ORDERS}
     best = min(scores.values())
     if not np.isfinite(best):
         return OrderChoice("full", scores, "held-out blocks")

@@ -29,7 +29,7 @@ from scipy.signal import savgol_filter
 from drivers.block import SampleBlock, Timed
 from drivers.errors import ConfigError, DataError
 
-AXES = ("x", "y", "z")
+from service.numerics.channels import AXES  # noqa: F401 - the effect terms take the axes from here
 
 #: extra columns that carry the platform attitude, R = Rz(azimuth) Ry(pitch) Rx(heel), platform -> NED
 ATTITUDE_EULER = ("heel_deg", "pitch_deg", "azimuth_deg")

@@ -6,9 +6,10 @@ errors, warm starts), starting values (start.py), and the public entry, `fit_wit
 (model_fit.py). The diagnosis (service.numerics.diagnose) uses the names exported here.
 """
 
+from service.numerics.channels import channel_names
 from service.numerics.noise import channel_noise
 
-from .channels import Channels, channel_names
+from .channels import Channels
 from .linear import LinearCalibration
 from .model_fit import EffectsFit, fit_model, fit_with_effects, residual_hints
 from .problem import Problem, as_effect_data, reference_total
