@@ -30,7 +30,8 @@ TOTAL_NT = 52500.0
 
 
 def textbook_rls(raw: np.ndarray, scale: float, lam: float) -> np.ndarray:
-    """Per-sample covariance-form RLS of the same nine-term quadric (u = r / s, right side 1)."""
+    """Per-sample covariance-form RLS of the same nine-term quadric (u = r / s, r about the block RLS's origin,
+    right side 1)."""
     phi_all = quadric_design(raw / scale)
     theta = np.zeros(9)
     p = np.eye(9) * 1e6
@@ -85,18 +86,20 @@ def main() -> None:
         assert np.allclose(multi.offset_, np.stack([e.offset_ for e in singles]), atol=1e-6)
 
     m = 20000
-    scale = float(np.median(np.linalg.norm(raw[:m, 0], axis=1)))
+    # the block RLS accumulates about its first samples' mean (origin_) in units of scale_: the textbook
+    # runs in the same coordinates, so the two must hold the same information
+    ref = RlsEllipsoid(forgetting=LAMBDA, total_nT=TOTAL_NT, forget_deg=None).fit(raw[:m, 0])
+    origin, scale = ref.origin_, ref.scale_
     theta_tb = None
 
     def run_textbook() -> None:
         nonlocal theta_tb
-        theta_tb = textbook_rls(raw[:m, 0], scale, LAMBDA)
+        theta_tb = textbook_rls(raw[:m, 0] - origin, scale, LAMBDA)
 
     base = m / best_of(2, run_textbook)
-    # same estimate on the same samples (textbook starts from P = 1e6 I, a negligible prior)
-    ref = RlsEllipsoid(forgetting=LAMBDA, total_nT=TOTAL_NT, forget_deg=None).fit(raw[:m, 0])
-    o_tb = quadric_to_calibration(theta_tb, scale, TOTAL_NT ** 2)[0]
-    o_ref = quadric_to_calibration(ref.theta_, ref.scale_, TOTAL_NT ** 2)[0]
+    # the same least squares on the same samples (textbook starts from P = 1e6 I, a negligible prior)
+    o_tb = quadric_to_calibration(theta_tb, scale, TOTAL_NT ** 2, origin)[0]
+    o_ref = quadric_to_calibration(np.linalg.solve(ref.info_, ref.eta_), scale, TOTAL_NT ** 2, origin)[0]
     print(f"textbook per-sample RLS ({m} samples, 1 probe): {base:12,.0f} probe-samples/s   "
           f"(offset agrees with the block RLS within {np.abs(o_tb - o_ref).max():.2g} nT)")
     for (kind, block), speed in results.items():

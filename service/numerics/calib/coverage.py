@@ -29,7 +29,7 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused
 
-from .ellipsoid import MAX_CONDITION, MIN_SAMPLES, PLANARITY_MIN, normalise, quadric_design
+from .ellipsoid import MAX_CONDITION, MIN_SAMPLES, PLANARITY_MIN, gram_condition, normalise, quadric_design
 
 _DIRS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)],
                  dtype=float)
@@ -47,6 +47,8 @@ _AXIS_NAMES = ("x", "y", "z")
 _NEIGHBOUR_COS = np.cos(np.radians(61.0))
 #: default share of bins that must be seen
 MIN_FRACTION = 0.3
+#: samples a coverage looks at, at most (evenly spaced beyond): the map of 26 bins needs no more
+MAX_SAMPLES = 5000
 
 
 @dataclass(frozen=True)
@@ -107,22 +109,15 @@ def _planarity(field_nT: np.ndarray) -> tuple[float, np.ndarray]:
     return (float(np.sqrt(max(w[0], 0.0) / w[2])) if w[2] > 0 else 0.0), v[:, 0]
 
 
-def design_condition(field_nT: np.ndarray) -> float:
-    """Condition number of the column-scaled nine-term ellipsoid design (large = poorly determined);
-    the same number `fit_ellipsoid` reports and refuses above MAX_CONDITION."""
+def samples_condition(field_nT: np.ndarray) -> float:
+    """Condition number of the column-scaled nine-term ellipsoid design of these samples (large = poorly
+    determined); the same number `fit_ellipsoid` reports and refuses above MAX_CONDITION."""
     f = np.asarray(field_nT, float)
     if f.shape[0] < 9:
         return float("inf")
     center, s = normalise(f)
     phi = quadric_design((f - center) / s)
-    # through the 9 x 9 Gram matrix, not an SVD of the N x 9 design: the same number to ~1e-12 relative
-    # below the refusal limit (the squared condition stays far from double precision), at a tenth of the cost
-    gram = phi.T @ phi
-    norms = np.sqrt(np.diag(gram))
-    if np.any(norms == 0):
-        return float("inf")
-    ev = np.linalg.eigvalsh(gram / np.outer(norms, norms))
-    return float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
+    return gram_condition(phi.T @ phi) if f.shape[0] >= phi.shape[1] else float("inf")
 
 
 def turn_axes(direction: np.ndarray, seen_dirs: np.ndarray, tol: float = 0.3, most: int = 2) -> list[str]:
@@ -165,12 +160,16 @@ def _regions(missing: np.ndarray, seen_dirs: np.ndarray) -> list[MissingRegion]:
 
 
 def coverage(field_nT: np.ndarray, *, centre_nT: np.ndarray | None = None, min_count: int | None = None,
-             min_fraction: float = MIN_FRACTION, max_condition: float = MAX_CONDITION) -> Coverage:
-    """Coverage of the field directions in (N, 3) probe samples (rows with NaN are ignored)."""
+             min_fraction: float = MIN_FRACTION, max_condition: float = MAX_CONDITION,
+             max_samples: int = MAX_SAMPLES) -> Coverage:
+    """Coverage of the field directions in (N, 3) probe samples (rows with NaN are ignored); beyond
+    `max_samples`, of evenly spaced ones (directions change slowly next to the sample rate)."""
     f = np.asarray(field_nT, float)
     if f.ndim != 2 or f.shape[1] != 3:
         raise ValueError(f"field_nT: expected shape (N, 3), got {f.shape}")
     f = f[np.isfinite(f).all(axis=1)]
+    if f.shape[0] > max_samples:
+        f = f[::-(-f.shape[0] // max_samples)]
     n = f.shape[0]
     if n == 0:
         counts = np.zeros(26, int)
@@ -184,7 +183,7 @@ def coverage(field_nT: np.ndarray, *, centre_nT: np.ndarray | None = None, min_c
     seen_dirs = BIN_CENTRES[seen]
     regions = _regions(~seen, seen_dirs)
     planarity, normal = _planarity(f) if n > 3 else (0.0, np.array([0.0, 0.0, 1.0]))
-    cond = design_condition(f)
+    cond = samples_condition(f)
     fraction = float(seen.mean())
     cov = Coverage(fraction, counts, BIN_CENTRES[~seen].copy(), regions, cond, planarity, True, "",
                    _cube_map(counts, need), _sky_map(dirs), n, need)

@@ -46,7 +46,17 @@ import numpy as np
 from drivers.errors import CalibrationRefused, DataError
 
 from .model import ProbeCalibration, named, triangular_params
-from .order import EXPANSIONS, FIXED, ORDERS, OrderChoice, choose_order, expand, order_warnings, undetermined
+from .order import (
+    EXPANSIONS,
+    FIXED,
+    ORDERS,
+    OrderChoice,
+    block_normals,
+    choose_order,
+    expand,
+    order_warnings,
+    undetermined,
+)
 
 N_GEOMETRY = 9
 N_PARAMS = 10
@@ -285,24 +295,30 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     # the δ column only when F varies by more than ~1 nT rms: otherwise it carries no information
     use_delta = known and float(np.std(f)) > 1.0
     phi9 = quadric_design((raw - center) / scale)
-    cond9 = _condition(phi9)
+    # one pass over the samples: the normal equations per time block (their sum is the whole design's);
+    # everything after works on 9 x 9 matrices
+    normals = block_normals(phi9)
+    g9, r9 = sum(normals[1]), sum(normals[2])
+    cond9 = gram_condition(g9)
     if not np.isfinite(cond9) or cond9 > max_condition:
         raise CalibrationRefused(f"{name}: the samples do not determine an ellipsoid (condition number "
                                  f"{cond9:.3g} > {max_condition:.3g}); {_coverage_hint(raw)}")
     choice = None
     if order == "auto":
-        choice = choose_order(phi9, raw, f, known,
+        choice = choose_order(normals, raw, f, known,
                               lambda t, f2: quadric_to_calibration(t, scale, f2, center))
         order = choice.order if choice is not None else "full"
-    phi = phi9 if order == "full" else phi9 @ EXPANSIONS[order]
+    t = EXPANSIONS[order]
+    g, r = t.T @ g9 @ t, t.T @ r9
     if use_delta:
-        phi = np.column_stack([phi, -delta])
-    y = np.ones(n)
-    col = np.linalg.norm(phi, axis=0)
-    phin = phi / col
-    u, sv, vt = np.linalg.svd(phin, full_matrices=False)
-    # θ = V Σ⁻¹ Uᵀ y (column-scaled), never an explicit inverse of ΦᵀΦ
-    theta = (vt.T @ ((u.T @ y) / sv)) / col
+        # the δ column: −δ against the geometric columns, itself, and the right side 1
+        gd = t.T @ (phi9.T @ -delta)
+        g = np.block([[g, gd[:, None]], [gd[None, :], np.array([[delta @ delta]])]])
+        r = np.append(r, -delta.sum())
+    # θ = (ΦᵀΦ)⁻¹ Φᵀ1 through the eigenvectors of the column-scaled normal matrix, never an explicit inverse
+    col = np.sqrt(np.diag(g))
+    lam, vec = np.linalg.eigh(g / np.outer(col, col))
+    theta = (vec @ ((vec.T @ (r / col)) / lam)) / col
     if not known:
         # θ does not depend on F, only the scale of M does: the convention for an unknown field
         try:
@@ -310,9 +326,9 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
             f2_ref = float(f[0] ** 2)
         except np.linalg.LinAlgError:
             pass                     # not an ellipsoid: the caller refuses it
-    resid = y - phi @ theta
-    dof = max(n - phi.shape[1], 1)
-    sigma2 = float(resid @ resid) / dof
+    # the residual sum of squares from the normal equations: |1 − Φθ|² = n − 2θᵀΦᵀ1 + θᵀΦᵀΦθ
+    dof = max(n - g.shape[0], 1)
+    sigma2 = max(float(n - 2.0 * theta @ r + theta @ g @ theta), 0.0) / dof
     if noise_nT is not None:
         # |M(r − o)| = F + ε makes the equation's residual 2 F ε / κ, κ = F₀² − oᵀQo
         try:
@@ -320,8 +336,8 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
             sigma2 = float(np.mean((2.0 * f * float(noise_nT) / kappa) ** 2))
         except np.linalg.LinAlgError:
             pass                     # not an ellipsoid: the caller refuses it
-    # cov(θ) = σ² (ΦᵀΦ)⁻¹, through the SVD of the column-scaled design
-    vs = vt.T / sv
+    # cov(θ) = σ² (ΦᵀΦ)⁻¹, through the same eigenvectors
+    vs = vec / np.sqrt(lam)
     theta_cov = sigma2 * (vs @ vs.T) / np.outer(col, col)
     if order != "full":
         theta, theta_cov = expand(theta, theta_cov, order, extra=int(use_delta))
@@ -334,13 +350,15 @@ def _nine(theta: np.ndarray, order: str, use_delta: bool) -> np.ndarray:
     return geo if order == "full" else EXPANSIONS[order] @ geo
 
 
-def _condition(phi: np.ndarray) -> float:
-    """Condition number of the column-scaled design (inf when a column is empty or the rank short)."""
-    col = np.linalg.norm(phi, axis=0)
-    if phi.shape[0] < phi.shape[1] or np.any(col == 0):
+def gram_condition(gram: np.ndarray) -> float:
+    """Condition number of a design after column scaling, from its normal matrix ΦᵀΦ (inf when a column
+    is empty or the rank short): the same number as an SVD of the design, to ~1e-12 relative below the
+    refusal limit (the squared condition stays far from double precision), at a fraction of the cost."""
+    norms = np.sqrt(np.diag(gram))
+    if np.any(norms == 0):
         return float("inf")
-    sv = np.linalg.svd(phi / col, compute_uv=False)
-    return float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    ev = np.linalg.eigvalsh(gram / np.outer(norms, norms))
+    return float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
 
 
 def jacobian_se(func: Callable[[np.ndarray], np.ndarray], theta: np.ndarray,

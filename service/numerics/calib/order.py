@@ -115,12 +115,12 @@ def heldout_rms(normals: tuple[np.ndarray, list, list], raw: np.ndarray, total: 
     return float(np.sqrt(sq / n))
 
 
-def choose_order(phi9: np.ndarray, raw: np.ndarray, total: np.ndarray, known: bool, calibrate) -> OrderChoice | None:
+def choose_order(normals: tuple[np.ndarray, list, list], raw: np.ndarray, total: np.ndarray, known: bool,
+                 calibrate) -> OrderChoice | None:
     """The order the held-out blocks choose, or None when there are too few samples to compare."""
     n = raw.shape[0]
     if n < N_BLOCKS * MIN_ROWS_PER_TERM * 9 // (N_BLOCKS - 1):
         return None
-    normals = block_normals(phi9)
     scores = {o: heldout_rms(normals, raw, total, known, o, calibrate) for o in ORDERS}
     best = min(scores.values())
     if not np.isfinite(best):

@@ -117,7 +117,7 @@ class RlsEllipsoid:
         by the probes (one scalar reference) or (N, P). Rows holding NaN get zero weight."""
         raw = self._as_block(field_nT)
         if raw.shape[0]:
-            self._est.dirty |= self._acc.add(raw, total_nT, self._est.anchor_centres_nT())   # solved lazily
+            self._est.dirty |= self._acc.add(raw, total_nT)   # solved lazily, when an estimate is asked for
         return self
 
     # --- solve ------------------------------------------------------------------------------

@@ -28,12 +28,14 @@ class Information:
         self.y2 = np.zeros(p)                     # Σ w y², for the residual variance
         self.weight = np.zeros(p)                 # Σ w, the effective number of samples
         self.n = np.zeros(p, dtype=np.int64)
-        self.origin = np.full((p, 3), np.nan)     # c, nT: the first samples' mean
+        self.origin = np.zeros((p, 3))            # c, nT: the first samples' mean (0 until they come)
         self.scale = np.full(p, np.nan)           # s, nT: u = (r − c) / s, fixed by the first samples
         self.f2_ref = np.full(p, np.nan)          # F₀², nT²
         self.assumed_total = np.full(p, np.nan)   # total field assumed when none is given
         self.total_known = np.ones(p, bool)       # False once a block came without a total field
         self.last_dir = np.full((p, 3), np.nan)
+        # where field directions are taken about, nT: the origin, then the last good estimate's centre
+        self.direction_centre = np.zeros((p, 3))
 
     def totals(self, total_nT, raw: np.ndarray, ok: np.ndarray) -> np.ndarray:
         """F per sample and probe, (N, P)."""
@@ -57,10 +59,10 @@ class Information:
             return t
         raise DataError(f"total_nT: expected a number, {n} values or ({n}, {p}), got shape {t.shape}")
 
-    def add(self, raw: np.ndarray, total_nT, centre_nT: np.ndarray | None = None) -> bool:
+    def add(self, raw: np.ndarray, total_nT) -> bool:
         """Take a block (N, P, 3) of raw samples; total_nT as RlsEllipsoid.partial_fit. Field directions
-        (for the swept angle) are taken about centre_nT (P, 3), the last good estimate's centre (NaN rows:
-        the origin). Returns, per probe, whether it saw a sample (its estimate needs solving again)."""
+        (for the swept angle) are taken about `direction_centre`. Returns, per probe, whether it saw a
+        sample (its estimate needs solving again)."""
         n = raw.shape[0]
         ok = np.isfinite(raw).all(axis=2)
         f = self.totals(total_nT, raw, ok)
@@ -74,15 +76,15 @@ class Information:
         live = ~np.isnan(self.scale)                 # probes that have seen a sample
         s = np.where(live, self.scale, 1.0)
         # probe-major (P, N, ·) so every probe's Φᵀ W Φ is one contiguous BLAS product
-        c = np.where(live[:, None], self.origin, 0.0)
-        u = (raw.transpose(1, 0, 2) - c[:, None, :]) / s[:, None, None]
+        u = raw.transpose(1, 0, 2) - self.origin[:, None, :]
+        u /= s[:, None, None]
         delta = None
         if self.varying_total:
             delta = (f.T * f.T - np.where(live, self.f2_ref, 0.0)[:, None]) / (s * s)[:, None]
         phi = quadric_design(u, delta)                       # (P, N, k)
         lam = self.forgetting
         m = np.full(raw.shape[1], float(n)) if self.forget_deg is None else \
-            np.minimum(n, self.swept_deg(self._about(raw, ok, centre_nT), ok, all_ok) / self.forget_deg)
+            np.minimum(n, self.swept_deg(raw, ok, all_ok, self.direction_centre) / self.forget_deg)
         decay = lam ** m                              # λ^m per probe
         # sample i of n is (n − 1 − i) m/n sample-steps old at the block's end: W = diag(λ^((n−1−i) m/n))
         if lam < 1.0:
@@ -92,9 +94,9 @@ class Information:
         if lam < 1.0 and self.forget_deg is not None:
             # learning follows motion too: a block that barely moved counts as m samples, not n, so
             # a long rest neither forgets nor piles weight on one direction (Λ stays balanced)
-            w = w * (m / n)[:, None]
+            w *= (m / n)[:, None]
         if not all_ok:
-            w = w * ok.T
+            w *= ok.T
         pw = phi * w[..., None]
         pwt = pw.transpose(0, 2, 1)
         # Λ ← λ^m Λ + Φᵀ W Φ ;  η ← λ^m η + Φᵀ W y   (y = 1), every probe in one batched product
@@ -114,26 +116,24 @@ class Information:
         for j in np.flatnonzero(fresh):
             rows = ok[:, j]
             self.origin[j], self.scale[j] = normalise(raw[rows, j])
+            self.direction_centre[j] = self.origin[j]
             self.f2_ref[j] = float(np.mean(f[rows, j] ** 2))
 
-    def _about(self, raw: np.ndarray, ok: np.ndarray, centre_nT: np.ndarray | None) -> np.ndarray:
-        """The samples about the centre (zero where not ok): directions of the field, not of r, whatever
-        the origin (about zero a hard-iron offset larger than the field would hide the turns)."""
-        c = self.origin if centre_nT is None else np.where(np.isnan(centre_nT), self.origin, centre_nT)
-        c = np.where(np.isnan(c), 0.0, c)
-        return np.where(ok[..., None], raw - c[None], 0.0)
-
-    def swept_deg(self, raw: np.ndarray, ok: np.ndarray, all_ok: bool) -> np.ndarray:
+    def swept_deg(self, raw: np.ndarray, ok: np.ndarray, all_ok: bool, centre: np.ndarray) -> np.ndarray:
         """Path angle (deg) the field direction swept in each probe's frame over this block (and since
-        the last one): the directions of ten consecutive segment means, so noise at rest reads ~zero
-        and a full revolution within a block still counts."""
+        the last one): the directions about `centre` (P, 3) of ten consecutive segment means, so noise at
+        rest reads ~zero and a full revolution within a block still counts. About the centre, not zero:
+        a hard-iron offset larger than the field would hide the turns."""
         n = raw.shape[0]
         nseg = min(10, n)
         k = n // nseg
         seg = raw[:nseg * k].reshape(nseg, k, *raw.shape[1:]).sum(axis=1)       # (S, P, 3); NaN rows are 0
-        if not all_ok:
-            seen = ok[:nseg * k].reshape(nseg, k, -1).any(axis=1)
-            seg = np.where(seen[..., None], seg, np.nan)
+        if all_ok:
+            seg -= k * centre[None]                                             # Σ (r − c) = Σ r − k c
+        else:
+            counts = ok[:nseg * k].reshape(nseg, k, -1).sum(axis=1)             # (S, P) rows taken
+            seg -= counts[..., None] * centre[None]
+            seg = np.where(counts[..., None] > 0, seg, np.nan)
         first = seg[0]
         prev = np.where(np.isnan(self.last_dir), first, self.last_dir)
         self.last_dir = np.where(np.isnan(seg[-1]), self.last_dir, seg[-1])
@@ -296,11 +296,18 @@ class Estimates:
             return                                    # not an ellipsoid (yet): keep the last estimate
         self.theta[j], self.has_theta[j], self.center[j] = theta, True, m
         if self.condition[j] <= self.max_condition:
+            self.acc.direction_centre[j] = self.acc.origin[j] + self._quadric_centre(theta, m) * self.acc.scale[j]
             k = theta.size
             gc = np.empty((k + 1, k + 1))
             gc[:k, :k], gc[:k, k], gc[k, :k], gc[k, k] = (info + np.diag(self.ridge * max(self.acc.weight[j], 1.0)),
                                                           eta, eta, y2)
             self.anchor.set(j, theta, m, gc)
+
+    @staticmethod
+    def _quadric_centre(theta: np.ndarray, m: np.ndarray) -> np.ndarray:
+        """The centre of the quadric θ (about m), in the accumulator's u units."""
+        a = np.array([[theta[0], theta[3], theta[4]], [theta[3], theta[1], theta[5]], [theta[4], theta[5], theta[2]]])
+        return m - 0.5 * np.linalg.solve(a, theta[6:9])
 
     def solve_dirty(self) -> None:
         for j in np.flatnonzero(self.dirty):
@@ -312,16 +319,6 @@ class Estimates:
         if self.acc.total_known[j]:
             return float(self.acc.f2_ref[j])
         return unit_volume_total(self.theta[j], float(self.acc.scale[j]), self.center_nT(j)) ** 2
-
-    def anchor_centres_nT(self) -> np.ndarray:
-        """(P, 3) the last good estimate's centre per probe, nT (NaN without one): where field directions
-        are taken about."""
-        out = np.full((self.theta.shape[0], 3), np.nan)
-        for j in np.flatnonzero(self.anchor.has):
-            inside = self.anchor.inside(j, np.zeros(3))
-            if inside is not None:
-                out[j] = self.acc.origin[j] + inside[0] * self.acc.scale[j]
-        return out
 
     def center_nT(self, j: int) -> np.ndarray:
         """The point the estimate θ of probe j is taken about, nT: u = (r − this) / s."""
