@@ -23,7 +23,7 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused, DataError
 
-from .ellipsoid import PLANARITY_MIN, _planarity
+from .excitation import PLANARITY_MIN, planarity
 from .model import ProbeCalibration, named, unit_column_split
 
 
@@ -53,7 +53,7 @@ def align_regression(ref_nT: np.ndarray, raw_nT: np.ndarray) -> tuple[np.ndarray
     if raw.shape[0] < 4:
         raise CalibrationRefused(f"regression alignment: {raw.shape[0]} samples; it needs at least 4 spanning "
                                  f"three directions (turns about at least two axes)")
-    plan, normal = _planarity(raw)
+    plan, normal = planarity(raw)
     if plan < PLANARITY_MIN:
         # one turn: [X_k, 1] has rank 3 (the plane's equation is a null combination), eq. 15 fails
         axis = "xyz"[int(np.argmax(np.abs(normal)))]

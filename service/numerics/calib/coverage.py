@@ -29,7 +29,8 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused
 
-from .ellipsoid import MAX_CONDITION, MIN_SAMPLES, PLANARITY_MIN, gram_condition, normalise, quadric_design
+from .ellipsoid import MAX_CONDITION, MIN_SAMPLES, gram_condition, normalise, quadric_design
+from .excitation import PLANARITY_MIN, planarity
 
 _DIRS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)],
                  dtype=float)
@@ -101,12 +102,6 @@ def _unit_directions(field_nT: np.ndarray, centre_nT: np.ndarray | None) -> np.n
     d = f - (0.0 if centre_nT is None else np.asarray(centre_nT, float))
     n = np.linalg.norm(d, axis=1, keepdims=True)
     return d / np.where(n > 0, n, 1.0)
-
-
-def _planarity(field_nT: np.ndarray) -> tuple[float, np.ndarray]:
-    """sqrt(smallest / largest eigenvalue) of the sample covariance, and the plane's normal."""
-    w, v = np.linalg.eigh(np.cov(np.asarray(field_nT, float).T))
-    return (float(np.sqrt(max(w[0], 0.0) / w[2])) if w[2] > 0 else 0.0), v[:, 0]
 
 
 def samples_condition(field_nT: np.ndarray) -> float:
@@ -182,16 +177,16 @@ def coverage(field_nT: np.ndarray, *, centre_nT: np.ndarray | None = None, min_c
     seen = counts >= need
     seen_dirs = BIN_CENTRES[seen]
     regions = _regions(~seen, seen_dirs)
-    planarity, normal = _planarity(f) if n > 3 else (0.0, np.array([0.0, 0.0, 1.0]))
+    flatness, normal = planarity(f) if n > 3 else (0.0, np.array([0.0, 0.0, 1.0]))
     cond = samples_condition(f)
     fraction = float(seen.mean())
-    cov = Coverage(fraction, counts, BIN_CENTRES[~seen].copy(), regions, cond, planarity, True, "",
+    cov = Coverage(fraction, counts, BIN_CENTRES[~seen].copy(), regions, cond, flatness, True, "",
                    _cube_map(counts, need), _sky_map(dirs), n, need)
     advice = cov.advice()
     problem = ""
     if n < MIN_SAMPLES:
         problem = f"{n} samples; a fit needs at least {MIN_SAMPLES} spread over turns about at least two axes"
-    elif planarity < PLANARITY_MIN:
+    elif flatness < PLANARITY_MIN:
         axis = _AXIS_NAMES[int(np.argmax(np.abs(normal)))]
         others = [a for a in _AXIS_NAMES if a != axis]
         problem = (f"the samples lie in one plane (a single-axis turn about {axis}): a plane section does not fix "
@@ -225,7 +220,7 @@ def check_excitation(field_nT: np.ndarray, *, name: str = "s1") -> None:
     f = np.asarray(field_nT, float)
     if f.shape[0] <= 3:
         return
-    if _planarity(f)[0] < PLANARITY_MIN:
+    if planarity(f)[0] < PLANARITY_MIN:
         raise CalibrationRefused(f"{name}: {coverage(f).reason}")
 
 

@@ -45,6 +45,7 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused, DataError
 
+from .excitation import PLANARITY_MIN, coverage_hint, excitation_problem  # noqa: F401 - PLANARITY_MIN re-exported
 from .model import ProbeCalibration, named, triangular_params
 from .order import (
     EXPANSIONS,
@@ -61,15 +62,11 @@ from .order import (
 N_GEOMETRY = 9
 N_PARAMS = 10
 MIN_SAMPLES = 10
-#: out-of-plane spread / in-plane spread below which samples count as one plane (a single-axis turn)
-PLANARITY_MIN = 0.02
 #: condition number of the column-scaled design above which a fit is refused. Measured: offset
 #: standard errors ≈ 0.04 × condition × noise for 200 samples (a ±20° wobble about one axis: 5e3,
 #: SE 170 nT at 1 nT noise; three full turns or 10 well spread attitudes: 2-5)
 MAX_CONDITION = 1e3
 
-_AXES = {"+x": (1.0, 0, 0), "-x": (-1.0, 0, 0), "+y": (0, 1.0, 0), "-y": (0, -1.0, 0),
-         "+z": (0, 0, 1.0), "-z": (0, 0, -1.0)}
 
 
 def quadric_design(u: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
@@ -215,58 +212,6 @@ def _as_total(total_nT, n: int, raw: np.ndarray) -> tuple[np.ndarray, bool]:
     return t, True
 
 
-# --- what motion is missing ------------------------------------------------------------------------
-
-
-def _planarity(raw: np.ndarray) -> tuple[float, np.ndarray]:
-    """sqrt(smallest / largest eigenvalue) of the sample covariance, and the plane's normal."""
-    w, v = np.linalg.eigh(np.cov(raw.T))
-    return (float(np.sqrt(max(w[0], 0.0) / w[2])) if w[2] > 0 else 0.0), v[:, 0]
-
-
-def missing_directions(raw: np.ndarray, cone_deg: float = 45.0) -> list[str]:
-    """Probe axes (±x, ±y, ±z) no sampled field direction came within `cone_deg` of.
-
-    `raw` is taken about the centre it is given relative to (the caller subtracts the fitted offset,
-    or the samples' mean before a fit): where the field pointed in the probe frame."""
-    norm = np.linalg.norm(raw, axis=1, keepdims=True)
-    u = raw / np.where(norm > 0, norm, 1.0)
-    c = np.cos(np.radians(cone_deg))
-    return [k for k, e in _AXES.items() if not np.any(u @ np.asarray(e) > c)]
-
-
-def turn_axes_for(missing: list[str]) -> list[str]:
-    """Axes to turn about so the field sweeps the missing directions: an axis sweeps the directions
-    perpendicular to it; the axes sweeping most of them, best first."""
-    score = {a: sum(1 for m in missing if m[1] != a) for a in "xyz"}
-    best = max(score.values()) if score else 0
-    return [a for a in "xyz" if score[a] == best and best > 0]
-
-
-def excitation_problem(raw: np.ndarray) -> str:
-    """Why these samples cannot fix an ellipsoid ("" if they can, as far as geometry goes)."""
-    plan, normal = _planarity(raw)
-    missing = missing_directions(raw - raw.mean(axis=0))
-    if plan < PLANARITY_MIN:
-        axis = "xyz"[int(np.argmax(np.abs(normal)))]
-        others = [a for a in "xyz" if a != axis]
-        miss = f"; directions near {', '.join(missing)} not covered" if missing else ""
-        return (f"the samples lie (nearly) in one plane (a single-axis turn about {axis}; the ten-term ellipsoid design "
-                f"has rank 5 of 10 there, the points of one turn lie on one conic: a plane section does not fix "
-                f"an ellipsoid){miss}: "
-                f"turn about the {others[0]} or {others[1]} axis too")
-    return ""
-
-
-def _coverage_hint(raw: np.ndarray, centre: np.ndarray | None = None) -> str:
-    """Which directions about the centre (the fitted offset, else the samples' mean) were not seen."""
-    missing = missing_directions(raw - (raw.mean(axis=0) if centre is None else np.asarray(centre, float)))
-    if not missing:
-        return "spread the samples over more attitudes (turn about at least two axes)"
-    return (f"directions near {', '.join(missing)} not covered: turn about the "
-            f"{' or '.join(turn_axes_for(missing))} axis")
-
-
 # --- the shared least-squares solve ----------------------------------------------------------------
 
 
@@ -302,7 +247,7 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     cond9 = gram_condition(g9)
     if not np.isfinite(cond9) or cond9 > max_condition:
         raise CalibrationRefused(f"{name}: the samples do not determine an ellipsoid (condition number "
-                                 f"{cond9:.3g} > {max_condition:.3g}); {_coverage_hint(raw)}")
+                                 f"{cond9:.3g} > {max_condition:.3g}); {coverage_hint(raw)}")
     choice = None
     if order == "auto":
         choice = choose_order(normals, raw, f, known,
@@ -424,7 +369,7 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
         se = ", ".join(f"{v:.3g}" for v in fit.calibration.offset_se_nT)
         raise CalibrationRefused(f"{name}: the samples do not determine even the offsets (standard errors {se} nT "
                                  f"against a field of {float(np.sqrt(fit.f2_ref)):.6g} nT); "
-                                 f"{_coverage_hint(raw, fit.calibration.offset_nT)}")
+                                 f"{coverage_hint(raw, fit.calibration.offset_nT)}")
     fit.order = sol.order
     fit.choice = choice
     fit.warnings = order_warnings(fit.calibration, fit.order, missing, choice)
