@@ -271,9 +271,13 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
             f2_ref = float(f[0] ** 2)
         except np.linalg.LinAlgError:
             pass                     # not an ellipsoid: the caller refuses it
-    # the residual sum of squares from the normal equations: |1 − Φθ|² = n − 2θᵀΦᵀ1 + θᵀΦᵀΦθ
+    # the residuals themselves (one product): from the normal equations, n − 2θᵀΦᵀ1 + θᵀΦᵀΦθ, a residual
+    # variance of (2 × noise / F)² would be lost in the rounding of n
+    resid = 1.0 - phi9 @ (t @ theta[:t.shape[1]])
+    if use_delta:
+        resid += delta * theta[-1]
     dof = max(n - g.shape[0], 1)
-    sigma2 = max(float(n - 2.0 * theta @ r + theta @ g @ theta), 0.0) / dof
+    sigma2 = float(resid @ resid) / dof
     if noise_nT is not None:
         # |M(r − o)| = F + ε makes the equation's residual 2 F ε / κ, κ = F₀² − oᵀQo
         try:
