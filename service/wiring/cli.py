@@ -26,61 +26,105 @@ def _int_auto(text: str) -> int:
     return int(text, 0)
 
 
+METHODS = ("ellipsoid", "tmi", "sinefit", "two-step", "rls")
+ALIGNS = ("regression", "rotation", "pca")
+#: the catalogue of effects (service.numerics.effects.EFFECTS), named here so --help needs no numerics import
+EFFECT_NAMES = "temperature, eddy, lag, nonlinearity, drift, gradient, crossfield, hysteresis, platform"
+SITE = "LAT,LON,ALT_M[,DATE]"
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("fluxcal")
+    except Exception:                     # noqa: BLE001 - not installed: running from a checkout
+        return "unknown (not installed)"
+
+
+def _command(sub, name: str, summary: str, examples: str) -> argparse.ArgumentParser:
+    return sub.add_parser(name, help=summary, description=summary[0].upper() + summary[1:] + ".",
+                          epilog="examples:\n" + examples, formatter_class=argparse.RawDescriptionHelpFormatter,
+                          allow_abbrev=False)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="fluxcal", description="Calibration service for fluxgate gradiometers "
-                                "and magnetic gradient-tensor arrays.", allow_abbrev=False)
+                                "and magnetic gradient-tensor arrays. `fluxcal COMMAND --help` shows each "
+                                "command's options, defaults and an example.", allow_abbrev=False)
+    p.add_argument("--version", action="version", version=f"fluxcal {_version()}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    data_help = "a lab CSV (t, s1_x, s1_y, s1_z, ... in nT; docs/contracts.md) or an MCAP recording of fluxcal"
+    config_help = "a fluxcal TOML configuration (configs/ has examples): probe positions, total field, site"
+    effects_help = f"effect terms, comma-separated (allowed: {EFFECT_NAMES}); default: none"
+    site_help = (f"the site as {SITE} (degrees north, degrees east, metres above the ellipsoid; DATE as "
+                 f"YYYY-MM-DD, default today): the total field from the World Magnetic Model, when no ref_total "
+                 f"was logged")
 
-    fit = sub.add_parser("fit", help="fit a calibration to lab data (CSV or MCAP)", allow_abbrev=False)
-    fit.add_argument("data", metavar="DATA")
-    fit.add_argument("--config", metavar="FILE")
-    fit.add_argument("--method", default="ellipsoid", metavar="M",
-                     choices=["ellipsoid", "tmi", "sinefit", "two-step", "rls"])
-    fit.add_argument("--align", default=None, metavar="A", choices=["regression", "rotation", "pca"])
-    fit.add_argument("--effects", type=_effects, default=[], metavar="E,..")
-    fit.add_argument("--site", metavar="LAT,LON,ALT_M[,DATE]",
-                     help="the site: its total field from the World Magnetic Model, for methods that need a known "
-                          "total field when no ref_total was logged")
-    fit.add_argument("--out", metavar="CAL.json")
-    fit.add_argument("--json", action="store_true")
+    fit = _command(sub, "fit", "fit a calibration to lab data (CSV or MCAP)",
+                   "  fluxcal fit grad.csv --out cal.json\n  fluxcal fit board.csv --site 46.52,6.63,400 --json\n"
+                   "  fluxcal fit grad.csv --effects temperature,drift")
+    fit.add_argument("data", metavar="DATA", help=data_help)
+    fit.add_argument("--config", metavar="FILE", help=config_help)
+    fit.add_argument("--method", default="ellipsoid", metavar="M", choices=METHODS,
+                     help=f"calibration method (allowed: {', '.join(METHODS)}; default: %(default)s)")
+    fit.add_argument("--align", default=None, metavar="A", choices=ALIGNS,
+                     help=f"how the probes of an array are brought to one frame (allowed: {', '.join(ALIGNS)}; "
+                          f"default: regression for arrays)")
+    fit.add_argument("--effects", type=_effects, default=[], metavar="E,..", help=effects_help)
+    fit.add_argument("--site", metavar=SITE, help=site_help)
+    fit.add_argument("--out", metavar="CAL.json", help="write the calibration file here (default: none)")
+    fit.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
 
-    dia = sub.add_parser("diagnose", help="compare model and measurement; find the missing effect",
-                         allow_abbrev=False)
-    dia.add_argument("data", metavar="DATA")
-    dia.add_argument("--config", metavar="FILE")
-    dia.add_argument("--calibration", metavar="CAL.json")
-    dia.add_argument("--effects", type=_effects, default=[], metavar="E,..")
-    dia.add_argument("--site", metavar="LAT,LON,ALT_M[,DATE]",
-                     help="the site: its total field from the World Magnetic Model (when no ref_total was logged)")
-    dia.add_argument("--report", metavar="DIR")
-    dia.add_argument("--json", action="store_true")
+    dia = _command(sub, "diagnose", "compare model and measurement; find the missing effect",
+                   "  fluxcal diagnose recordings/grad1-hidden-effect.mcap\n"
+                   "  fluxcal diagnose rec.mcap --effects temperature --report report/")
+    dia.add_argument("data", metavar="DATA", help=data_help)
+    dia.add_argument("--config", metavar="FILE", help=config_help)
+    dia.add_argument("--calibration", metavar="CAL.json",
+                     help="hold this calibration fixed (a file of `fit --out`, or `fit --json`); default: refit")
+    dia.add_argument("--effects", type=_effects, default=[], metavar="E,..",
+                     help=f"the effects already in the model (allowed: {EFFECT_NAMES}); default: none")
+    dia.add_argument("--site", metavar=SITE, help=site_help)
+    dia.add_argument("--report", metavar="DIR", help="also write an HTML report with plots here (needs matplotlib)")
+    dia.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
 
-    run = sub.add_parser("run", help="run the service: source -> calibration -> Zenoh and MCAP",
-                         allow_abbrev=False)
-    run.add_argument("--config", required=True, metavar="FILE")
+    run = _command(sub, "run", "run the service: source -> calibration -> Zenoh and MCAP",
+                   "  fluxcal run --config configs/sim-gradiometer.toml")
+    run.add_argument("--config", required=True, metavar="FILE", help="the service's TOML configuration (required)")
 
-    rep = sub.add_parser("replay", help="run a recording through the same pipeline", allow_abbrev=False)
-    rep.add_argument("recording", metavar="REC.mcap")
-    rep.add_argument("--config", metavar="FILE")
-    rep.add_argument("--out", metavar="OUT.mcap")
+    rep = _command(sub, "replay", "run a recording through the same pipeline and compare with its output",
+                   "  fluxcal replay recordings/grad1-sim-30s.mcap\n  fluxcal replay rec.mcap --out again.mcap")
+    rep.add_argument("recording", metavar="REC.mcap", help="an MCAP file, or a directory of one run's rotated files")
+    rep.add_argument("--config", metavar="FILE",
+                     help="replay with this configuration (default: the one stored in the recording)")
+    rep.add_argument("--out", metavar="OUT.mcap", help="also record the replay here (default: none)")
 
-    sim = sub.add_parser("simulate", help="write simulated unit data", allow_abbrev=False)
-    sim.add_argument("--config", metavar="FILE")
-    sim.add_argument("--out", required=True, metavar="FILE.mcap|FILE.csv")
+    sim = _command(sub, "simulate", "write simulated unit data",
+                   "  fluxcal simulate --config configs/sim-gradiometer.toml --out grad.csv")
+    sim.add_argument("--config", metavar="FILE", help="the [sim] section to simulate (default: a built-in gradiometer)")
+    sim.add_argument("--out", required=True, metavar="FILE.mcap|FILE.csv",
+                     help="where to write; a .truth.json with every simulated parameter goes beside it")
 
-    dec = sub.add_parser("decode", help="turn a serial capture or CAN log into data", allow_abbrev=False)
-    dec.add_argument("capture", metavar="CAPTURE")
-    dec.add_argument("--probes", type=int, required=True, metavar="N")
-    dec.add_argument("--can", action="store_true")
-    dec.add_argument("--lsb-nT", dest="lsb_nT", type=float, default=0.001, metavar="X")
-    dec.add_argument("--base-id", dest="base_id", type=_int_auto, default=0x200, metavar="ID")
-    dec.add_argument("--out", required=True, metavar="FILE.csv|FILE.mcap")
+    dec = _command(sub, "decode", "turn a serial capture or CAN log into data",
+                   "  fluxcal decode capture.bin --probes 2 --out data.csv\n"
+                   "  fluxcal decode bus.log --can --probes 4 --base-id 0x200 --out data.mcap")
+    dec.add_argument("capture", metavar="CAPTURE", help="raw serial bytes, or a CAN log (.log, .asc, .blf) with --can")
+    dec.add_argument("--probes", type=int, required=True, metavar="N", help="probes in each frame (1..8; required)")
+    dec.add_argument("--can", action="store_true", help="the capture is a CAN log (default: serial bytes)")
+    dec.add_argument("--lsb-nT", dest="lsb_nT", type=float, default=0.001, metavar="X",
+                     help="nT per ADC count (default: %(default)s)")
+    dec.add_argument("--base-id", dest="base_id", type=_int_auto, default=0x200, metavar="ID",
+                     help="first CAN identifier of the unit (default: 0x200)")
+    dec.add_argument("--out", required=True, metavar="FILE.csv|FILE.mcap", help="where to write the data")
 
-    watch = sub.add_parser("watch", help="terminal dashboard of a running service", allow_abbrev=False)
-    watch.add_argument("--config", metavar="FILE")
-    watch.add_argument("--connect", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
-    watch.add_argument("--unit", metavar="NAME")
-    watch.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    watch = _command(sub, "watch", "terminal dashboard of a running service",
+                     "  fluxcal watch --connect tcp/127.0.0.1:7447\n  fluxcal watch --config configs/sim-gradiometer.toml")
+    watch.add_argument("--config", metavar="FILE", help="take the endpoints, unit and TLS from this configuration")
+    watch.add_argument("--connect", metavar="ENDPOINT", help="the service's endpoint, e.g. tcp/127.0.0.1:7447 "
+                                                            "(default: tcp/127.0.0.1:7447)")
+    watch.add_argument("--unit", metavar="NAME", help="the unit to watch (default: the first one found)")
+    watch.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")
     watch.add_argument("--ca", metavar="CA.pem", help="TLS: the site's certificate authority")
     watch.add_argument("--cert", metavar="CERT.pem", help="TLS: this dashboard's certificate")
     watch.add_argument("--key", metavar="KEY.pem", help="TLS: this dashboard's private key")

@@ -1,0 +1,47 @@
+"""The command line teaches itself: every option says what it does, its default and what is allowed,
+every command shows an example, and `--version` answers."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from service.numerics.effects import EFFECTS
+from service.wiring import cli
+from service.wiring.fitting import ALIGNS, METHODS
+
+
+def _subparsers() -> dict[str, argparse.ArgumentParser]:
+    parser = cli.build_parser()
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(action.choices)
+
+
+@pytest.mark.parametrize("name", sorted(_subparsers()))
+def test_every_option_says_what_it_does_and_every_command_has_an_example(name):
+    sub = _subparsers()[name]
+    for action in sub._actions:
+        if isinstance(action, argparse._HelpAction):
+            continue
+        assert action.help and action.help != argparse.SUPPRESS, (name, action.dest)
+        takes_value = action.nargs != 0 and action.option_strings
+        if takes_value and not action.required and action.default not in (None, [], False):
+            # an option with a default says it
+            assert "default" in action.help, (name, action.dest)
+        if action.choices:
+            assert "allowed" in action.help and all(str(c) in action.help for c in action.choices), (name, action.dest)
+    assert sub.epilog.startswith("examples:") and f"fluxcal {name}" in sub.epilog
+
+
+def test_the_help_names_what_the_code_allows():
+    assert [e.strip() for e in cli.EFFECT_NAMES.split(",")] == list(EFFECTS)
+    assert cli.METHODS == tuple(METHODS) and cli.ALIGNS == tuple(ALIGNS)
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--version"])
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("fluxcal ") and out.split()[1][0].isdigit()
