@@ -100,6 +100,12 @@ def build_parser() -> argparse.ArgumentParser:
                      help="replay with this configuration (default: the one stored in the recording)")
     rep.add_argument("--out", metavar="OUT.mcap", help="also record the replay here (default: none)")
 
+    fix = _command(sub, "repair", "copy a recording cut by a killed writer (or damaged) into a finished one",
+                   "  fluxcal repair recordings/live/grad1-20261124T101500-0003.mcap fixed.mcap\n"
+                   "  fluxcal repair recordings/live/ fixed/")
+    fix.add_argument("recording", metavar="REC", help="an MCAP file, or a directory of them")
+    fix.add_argument("out", metavar="OUT", help="the finished copy (a file, or a directory for a directory)")
+
     sim = _command(sub, "simulate", "write simulated unit data",
                    "  fluxcal simulate --config configs/sim-gradiometer.toml --out grad.csv")
     sim.add_argument("--config", metavar="FILE", help="the [sim] section to simulate (default: a built-in gradiometer)")

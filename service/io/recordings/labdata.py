@@ -27,6 +27,8 @@ class LabData:
     probe_names: list[str]
     path: str
     comments: list[str] = field(default_factory=list)
+    #: what reading lost or skipped (a recording cut by a killed writer, damaged records): said on stderr
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def ref_total(self) -> np.ndarray | None:
@@ -46,7 +48,7 @@ def load_data(path: str | Path) -> LabData:
         rec = read_recording(p)
         names = list(rec.probe_names) if getattr(rec, "probe_names", None) else \
             [f"s{k + 1}" for k in range(rec.raw.n_probes)]
-        return LabData(block=rec.raw, probe_names=names, path=str(p))
+        return LabData(block=rec.raw, probe_names=names, path=str(p), warnings=rec.report.warnings)
     return load_csv(p)
 
 

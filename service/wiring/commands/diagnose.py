@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import os
 
+from service.wiring.commands.notes import say_read_warnings
+
 # The fits multiply many small matrices: on a machine whose cores are busy, OpenBLAS worker threads spin
 # for them and double the CPU time (measured: 41 s against 20 s for bench/bench_diagnose.py). One thread
 # unless the user says otherwise; this only takes effect when numpy is not loaded yet (the CLI).
@@ -134,6 +136,7 @@ def main(args: argparse.Namespace) -> int:
         raise ConfigError(f"--effects: {', '.join(map(repr, unknown))} not an effect "
                           f"(allowed: {', '.join(EFFECTS)})")
     lab = load_data(args.data)
+    say_read_warnings("diagnose", args.data, getattr(lab, "warnings", []))
     block = getattr(lab, "block", lab)
     names = getattr(lab, "probe_names", None)
     positions, total = (config_geometry(args.config, block.n_probes) if args.config else (None, None))

@@ -13,6 +13,7 @@ from service.io.calfile import save_calibration
 from service.io.recordings.labdata import load_data
 from service.numerics.calib.coverage import coverage
 from service.numerics.calib.site import site_from_text
+from service.wiring.commands.notes import say_read_warnings
 from service.wiring.fitting import contract_json, fit_array, residual_channels, rms, uncalibrated_channels
 
 
@@ -54,6 +55,7 @@ def site_total(args: Namespace, configured: float | None) -> tuple[float | None,
 
 def main(args: Namespace) -> int:
     data = load_data(args.data)
+    say_read_warnings("fit", args.data, data.warnings)
     cfg = load_optional_config(args.config)
     known_total, site = site_total(args, configured_total(cfg))
     cal, total = fit_array(data, method=args.method, align=args.align, configured_total_nT=known_total,

@@ -20,6 +20,7 @@ from drivers.block import SampleBlock
 from drivers.errors import RecordingError
 from service.io.calfile import calibration_from_dict
 from service.io.recordings.reader import read_recording
+from service.wiring.commands.notes import say_read_warnings
 from service.wiring.config import config_from_dict, load_config, rate_stated
 from service.wiring.daemon import build_pipeline
 
@@ -79,6 +80,7 @@ def _with_rate(raw: dict, recording: str) -> dict:
 def main(args: Namespace) -> int:
     _check_one_run(Path(args.recording))
     rec = read_recording(args.recording)
+    say_read_warnings("replay", args.recording, rec.report.warnings)
     if args.config:
         cfg = load_config(args.config)
     else:
