@@ -378,3 +378,18 @@ def test_config_gives_positions_so_the_gradient_is_tested(tmp_path, capsys):
     cfg.write_text("[unit]\nn_probes = 3\n[[probes]]\nposition_m = [0.1, 0.0, 0.0]\n")
     assert cli.main(["diagnose", str(csv), "--config", str(cfg)]) == 2
     assert "1 [[probes]] tables but unit.n_probes = 3" in capsys.readouterr().err
+
+
+def test_without_matplotlib_the_report_is_refused_but_the_diagnosis_is_shown(tmp_path, capsys, monkeypatch):
+    """The install of the README has no matplotlib: `--report` must not cost the diagnosis itself."""
+    import sys
+
+    probes, block = _small()
+    csv = tmp_path / "lab.csv"
+    _write_csv(csv, block)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)            # import matplotlib -> ImportError
+    assert cli.main(["diagnose", str(csv), "--report", str(tmp_path / "rep")]) == 1
+    out, err = capsys.readouterr()
+    assert "residual RMS" in out and "temperature" in out              # the text diagnosis, whole
+    assert "needs matplotlib" in err and "pip install" in err
+    assert not (tmp_path / "rep" / "index.html").exists()

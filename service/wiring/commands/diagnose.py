@@ -158,18 +158,19 @@ def main(args: argparse.Namespace) -> int:
     if args.calibration and effects:
         result.notes.append(f"{args.calibration}: linear part held fixed; the parameters of "
                             f"{', '.join(effects)} are refitted to these data")
-    report_path = None
-    if args.report:
-        from service.io.report import write_report
-
-        report_path = write_report(result, args.report, title=f"fluxcal diagnose {Path(args.data).name}")
+    # the diagnosis first: a report that cannot be written (matplotlib missing, a full disk) must not cost it
     if args.json:
         json.dump(result.as_dict(), sys.stdout)
         sys.stdout.write("\n")
     else:
         print(summary_text(result, args.data))
-        if report_path is not None:
+    sys.stdout.flush()
+    if args.report:
+        from service.io.report import write_report
+
+        report_path = write_report(result, args.report, title=f"fluxcal diagnose {Path(args.data).name}")
+        if args.json:
+            print(f"fluxcal diagnose: report written to {report_path}", file=sys.stderr)
+        else:
             print(f"  report: {report_path}")
-    if report_path is not None and args.json:
-        print(f"fluxcal diagnose: report written to {report_path}", file=sys.stderr)
     return 0
