@@ -44,8 +44,8 @@ def service_config(tmp_path, *, run_s: float, realtime: bool = True, mcap_dir=No
     free port; returns the path of the written file."""
     text = (open("configs/sim-gradiometer.toml").read()
             .replace('run_s = 0 ', f'run_s = {run_s:g} ')
-            .replace('dir = "recordings/live"', f'dir = "{mcap_dir or tmp_path / "rec"}"')
-            .replace('file = "state/grad1-cal.json"', f'file = "{tmp_path / "cal.json"}"')
+            .replace('dir = "../recordings/live"', f'dir = "{mcap_dir or tmp_path / "rec"}"')
+            .replace('file = "../state/grad1-sim-cal.json"', f'file = "{tmp_path / "cal.json"}"')
             .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]'))
     if not realtime:
         text = text.replace('realtime = true', 'realtime = false')
@@ -197,8 +197,8 @@ def test_service_records_every_intact_frame_and_replay_equals_live(tmp_path):
     cfg_text = (open("configs/sim-gradiometer.toml").read()
                 .replace('realtime = true', 'realtime = false')
                 .replace('run_s = 0 ', 'run_s = 40')
-                .replace('dir = "recordings/live"', f'dir = "{tmp_path / "rec"}"')
-                .replace('file = "state/grad1-cal.json"', f'file = "{tmp_path / "cal.json"}"')
+                .replace('dir = "../recordings/live"', f'dir = "{tmp_path / "rec"}"')
+                .replace('file = "../state/grad1-sim-cal.json"', f'file = "{tmp_path / "cal.json"}"')
                 .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]')
                 .replace('[sim.faults]', '[sim.faults]\n' + "\n".join(f"{k} = {v}" for k, v in faults.items())))
     cfg_path = tmp_path / "c.toml"
@@ -227,8 +227,8 @@ def test_service_reconnects_each_time_the_port_closes_and_counts_each_gap(tmp_pa
     reconnect and one gap in the recording; the run goes on after the last."""
     cfg_text = (open("configs/sim-gradiometer.toml").read()
                 .replace('run_s = 0 ', 'run_s = 9')
-                .replace('dir = "recordings/live"', f'dir = "{tmp_path / "rec"}"')
-                .replace('file = "state/grad1-cal.json"', f'file = "{tmp_path / "cal.json"}"')
+                .replace('dir = "../recordings/live"', f'dir = "{tmp_path / "rec"}"')
+                .replace('file = "../state/grad1-sim-cal.json"', f'file = "{tmp_path / "cal.json"}"')
                 .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]')
                 .replace('[sim.faults]', '[sim.faults]\noutage_at_s = [2.0, 4.0, 6.0]\noutage_s = 0.5'))
     cfg_path = tmp_path / "c.toml"
@@ -255,8 +255,8 @@ def test_service_reconnects_each_time_the_port_closes_and_counts_each_gap(tmp_pa
 @pytest.mark.slow
 def test_service_killed_mid_run_leaves_a_readable_recording(tmp_path):
     cfg_text = (open("configs/sim-gradiometer.toml").read()
-                .replace('dir = "recordings/live"', f'dir = "{tmp_path / "rec"}"')
-                .replace('file = "state/grad1-cal.json"', f'file = "{tmp_path / "cal.json"}"')
+                .replace('dir = "../recordings/live"', f'dir = "{tmp_path / "rec"}"')
+                .replace('file = "../state/grad1-sim-cal.json"', f'file = "{tmp_path / "cal.json"}"')
                 .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]'))
     cfg_path = tmp_path / "c.toml"
     cfg_path.write_text(cfg_text)                                     # real time, runs until stopped
@@ -281,8 +281,8 @@ def test_calibration_persists_and_is_reloaded_at_start(tmp_path, capsys):
     base = (open("configs/sim-gradiometer.toml").read()
             .replace('realtime = true', 'realtime = false')
             .replace('transport = "pty"', 'transport = "direct"')
-            .replace('dir = "recordings/live"', f'dir = "{tmp_path / "rec"}"')
-            .replace('file = "state/grad1-cal.json"', f'file = "{cal}"')
+            .replace('dir = "../recordings/live"', f'dir = "{tmp_path / "rec"}"')
+            .replace('file = "../state/grad1-sim-cal.json"', f'file = "{cal}"')
             .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]'))
     first = tmp_path / "first.toml"
     first.write_text(base.replace('run_s = 0 ', 'run_s = 30'))

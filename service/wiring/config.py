@@ -15,6 +15,7 @@ An error names the key, the value and what is allowed (drivers.config).
 from __future__ import annotations
 
 import importlib
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -75,8 +76,10 @@ class EstimatorConfig:
 
 @dataclass
 class CalibrationConfig:
-    file: str = spec("state/calibration.json", doc="where the calibration in use persists")
-    initial: str | None = spec(None, doc="start from this calibration file instead of learning from scratch")
+    file: str = spec("", doc="where the calibration in use persists (relative paths: to the configuration's "
+                             "directory); default state/<unit>-<source kind>-cal.json")
+    initial: str | None = spec(None, doc="start from this calibration file instead of learning from scratch (even "
+                                         "one learned on another unit or source: you say so by naming it)")
 
 
 @dataclass
@@ -158,8 +161,22 @@ def rate_stated(raw: dict) -> bool:
 
 
 def load_config(path: str | Path) -> FluxcalConfig:
+    """The configuration of a TOML file; its relative paths (calibration.file, calibration.initial, mcap.dir,
+    a replay source's path) are taken relative to the file's directory, not the working directory."""
     raw = read_toml(path)
-    return config_from_dict(raw, str(path))
+    cfg = config_from_dict(raw, str(path))
+    base = Path(path).resolve().parent
+
+    def here(p: str) -> str:
+        return os.path.normpath(base / p)          # absolute paths stay as they are
+
+    cfg.calibration.file = here(cfg.calibration.file)
+    if cfg.calibration.initial:
+        cfg.calibration.initial = here(cfg.calibration.initial)
+    cfg.mcap.dir = here(cfg.mcap.dir)
+    if getattr(cfg.source, "kind", "") == "replay":
+        cfg.source.path = here(cfg.source.path)
+    return cfg
 
 
 def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
@@ -221,6 +238,9 @@ def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
                               f"the same rate, or leave source.rate_hz out)")
         estimator = load_section(EstimatorConfig, raw.get("estimator", {}), "estimator")
         calibration = load_section(CalibrationConfig, raw.get("calibration", {}), "calibration")
+        if not calibration.file:
+            # one file per unit and source kind: a calibration learned on the simulator never meets hardware
+            calibration.file = f"state/{unit.name}-{kind}-cal.json"
         from service.io.bus import ZenohConfig
 
         zenoh_cfg = load_section(ZenohConfig, raw.get("zenoh", {}), "zenoh")

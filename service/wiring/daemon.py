@@ -24,7 +24,7 @@ from service.io.calfile import load_calibration, save_calibration
 from .config import RATE_MISSING, FluxcalConfig
 from .input import BatchReader, RateCheck
 from .pipeline import Pipeline, PipelineEvent
-from .sinks import initial_calibration, open_logger, say_bus
+from .sinks import initial_calibration, learned_on, open_logger, say_bus
 
 log = logging.getLogger("fluxcal")
 
@@ -226,6 +226,7 @@ class Daemon:
         bus.publish_calibration({**record, "state": state})
         if ev.kind == "calibration" and pipeline.calibration is not None:
             try:
+                pipeline.calibration.diagnostics["learned_on"] = learned_on(self.cfg)
                 save_calibration(pipeline.calibration, self.cal_path)
             except OSError as e:
                 self.say(f"could not persist the calibration to {self.cal_path}: {e}")

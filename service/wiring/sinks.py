@@ -14,21 +14,37 @@ from service.io.recordings.writer import McapLogger
 from .config import FluxcalConfig
 
 
+def learned_on(cfg: FluxcalConfig) -> dict[str, str]:
+    """What a calibration learned by this service is recorded as learned on: the unit and its source kind."""
+    return {"unit": cfg.unit.name, "source": str(getattr(cfg.source, "kind", "sim"))}
+
+
 def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None]) -> Any:
-    """calibration.initial if given, else the persisted calibration.file if it reads, else None (learn online)."""
+    """calibration.initial if given (whatever it was learned on: naming it says so), else the persisted
+    calibration.file if it reads and was learned on this unit and source kind, else None (learn online)."""
     c = cfg.calibration
     if c.initial:
         cal = load_calibration(c.initial)
-        say(f"starting from calibration {c.initial}")
+        origin = cal.diagnostics.get("learned_on")
+        foreign = f" (learned on unit {origin.get('unit')}, source {origin.get('source')})" \
+            if isinstance(origin, dict) and origin != learned_on(cfg) else ""
+        say(f"starting from calibration {c.initial}{foreign}")
         return cal
     path = Path(c.file)
     if path.exists():
         try:
             cal = load_calibration(path)
-            say(f"reloaded the persisted calibration {path}")
-            return cal
         except DataError as e:
             say(f"ignoring the persisted calibration: {e}; learning online")
+        else:
+            origin = cal.diagnostics.get("learned_on")
+            if isinstance(origin, dict) and origin != learned_on(cfg):
+                say(f"ignoring the persisted calibration {path}: it was learned on unit {origin.get('unit')} from a "
+                    f"{origin.get('source')} source, this is unit {cfg.unit.name} on {learned_on(cfg)['source']}; "
+                    f"learning online (to start from it anyway: calibration.initial = \"{path}\")")
+            else:
+                say(f"reloaded the persisted calibration {path}")
+                return cal
     say("no calibration yet: learning online; corrected output starts once it passes the quality gate")
     return None
 

@@ -1,0 +1,69 @@
+"""State and recordings per unit and source kind, found relative to the configuration, and a calibration
+learned on one unit or source never silently applied to another."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from service.io.calfile import load_calibration, save_calibration
+from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from service.wiring.config import load_config
+from service.wiring.sinks import initial_calibration, learned_on
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_examples_keep_their_calibrations_apart_and_beside_the_repository():
+    files = {}
+    for name in ("sim-gradiometer", "serial-example", "can-example", "sim-cross"):
+        cfg = load_config(ROOT / "configs" / f"{name}.toml")
+        files[name] = Path(cfg.calibration.file)
+        assert files[name].parent == ROOT / "state"                   # relative to configs/, not the cwd
+        assert Path(cfg.mcap.dir) == ROOT / "recordings" / "live"
+        assert f"{cfg.unit.name}-{learned_on(cfg)['source']}" in files[name].name
+    assert len(set(files.values())) == len(files)
+
+
+def test_relative_paths_follow_the_configuration_not_the_working_directory(tmp_path, monkeypatch):
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "unit.toml").write_text('[unit]\nname = "north"\nn_probes = 2\n[mcap]\ndir = "rec"\n'
+                                    '[calibration]\ninitial = "cal/start.json"\n')
+    monkeypatch.chdir(tmp_path)
+    cfg = load_config("site/unit.toml")
+    assert Path(cfg.mcap.dir) == site / "rec" and Path(cfg.calibration.initial) == site / "cal" / "start.json"
+    # no file named: one per unit and source kind, beside the configuration
+    assert Path(cfg.calibration.file) == site / "state" / "north-sim-cal.json"
+
+
+def _cal(tmp_path, origin) -> Path:
+    cal = ArrayCalibration("rls", None, [ProbeCalibration("s1", np.zeros(3), np.eye(3))],
+                           diagnostics={"learned_on": origin})
+    path = tmp_path / "state" / "cal.json"
+    path.parent.mkdir(exist_ok=True)
+    save_calibration(cal, path)
+    return path
+
+
+def test_a_calibration_learned_on_the_simulator_is_not_applied_to_hardware(tmp_path):
+    (tmp_path / "serial.toml").write_text('[unit]\nname = "grad1"\nn_probes = 1\n[source]\nkind = "serial"\n'
+                                          'port = "/dev/null"\nn_probes = 1\nrate_hz = 200.0\n[calibration]\n'
+                                          'file = "state/cal.json"\n')
+    cfg = load_config(tmp_path / "serial.toml")
+    path = _cal(tmp_path, {"unit": "grad1", "source": "sim"})
+    said: list[str] = []
+    assert initial_calibration(cfg, said.append) is None
+    assert "learned on unit grad1 from a sim source" in said[0] and "calibration.initial" in said[0]
+    # the user says so by naming it: then it is used, and what it was learned on is said
+    cfg.calibration.initial = str(path)
+    said.clear()
+    assert initial_calibration(cfg, said.append) is not None
+    assert "learned on unit grad1, source sim" in said[0]
+    # learned here: reloaded
+    _cal(tmp_path, {"unit": "grad1", "source": "serial"})
+    cfg.calibration.initial = None
+    said.clear()
+    assert initial_calibration(cfg, said.append) is not None and "reloaded" in said[0]
+    assert load_calibration(path).diagnostics["learned_on"] == {"unit": "grad1", "source": "serial"}
