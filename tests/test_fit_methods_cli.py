@@ -45,3 +45,25 @@ def test_two_step_without_turn_marks_is_refused(tmp_path, capsys):
     np.savetxt(csv, np.column_stack([np.arange(100), d]), delimiter=",", header="t,s1_x,s1_y,s1_z", comments="")
     assert main(["fit", str(csv), "--method", "two-step"]) == 2
     assert "'turn'" in capsys.readouterr().err
+
+
+def test_two_step_fits_its_ellipsoid_to_every_row_and_gives_no_turn_advice(tmp_path, capsys):
+    """004 step 1 uses all samples: rows marked with no turn (here tilted sweeps, turn = -1) count too; the
+    summary does not advise turning about another axis, the turns being the design."""
+    p = paper004(seed=1)
+    turns = p.turns()
+    rng = np.random.default_rng(2)
+    sweeps = turns[0][rng.choice(len(turns[0]), 200)] + rng.normal(scale=2.0, size=(200, 3))
+    raw = np.concatenate(turns + [sweeps])
+    turn = np.concatenate([np.full(len(t), k) for k, t in enumerate(turns)] + [np.full(200, -1)])
+    csv = tmp_path / "turns.csv"
+    np.savetxt(csv, np.column_stack([np.arange(len(raw)), raw, turn]), delimiter=",",
+               header="t,s1_x,s1_y,s1_z,turn", comments="")
+    capsys.readouterr()
+    assert main(["fit", str(csv), "--method", "two-step", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["sensors"][0]["params"]["samples"]["value"] == len(raw)
+    assert not any("turn about" in w for w in out["warnings"])
+    assert main(["fit", str(csv), "--method", "two-step"]) == 0
+    text = capsys.readouterr().out
+    assert "by design" in text and "turn about the" not in text

@@ -79,7 +79,9 @@ def fit_probe(method: str, raw: np.ndarray, total: TotalField, block: SampleBloc
             raise CalibrationRefused("two-step needs three single-axis turns marked in a 'turn' column "
                                      "(0 = about x, 1 = about y, 2 = about z), each with at least 10 samples")
         tv = None if total.values is None else float(np.mean(total.values))
-        return fit_two_step(turns, total_nT=tv, name=name)
+        # 004 fits step 1's ellipsoid to every sample, the turns' and the rest (tilted sweeps, transitions)
+        rest = raw[~np.isin(turn, (0, 1, 2))]
+        return fit_two_step(turns, extra_nT=rest if rest.shape[0] else None, total_nT=tv, name=name)
     raise DataError(f"method {method!r} is not allowed (allowed: {', '.join(METHODS)})")
 
 

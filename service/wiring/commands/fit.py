@@ -120,6 +120,8 @@ def _fmt_pm(v: float, se: float, digits: int = 3) -> str:
 def calibration_warnings(cal, coverages) -> list[str]:
     """Everything the fit itself flagged, and the directions about each fitted centre not seen."""
     out = [w for p in cal.probes for w in p.warnings]
+    if cal.method in ("sinefit", "two-step"):
+        return out                        # turns about chosen axes by design: no other turn is missing
     out += [f"{p.name}: only {c.fraction:.0%} of the field directions about the fitted offset were seen; {c.advice()}"
             for p, c in zip(cal.probes, coverages) if c.regions]
     return out
@@ -142,8 +144,9 @@ def _summary(data, cal, channels, before, total_source, result, coverages) -> st
         cov = coverages[k]
         if p.model_order != "full":
             lines.append(f"  model      {p.model_order} (fewer terms: the data do not determine the rest)")
+        by_design = cal.method in ("sinefit", "two-step")
         lines.append(f"  coverage   {cov.fraction:.0%} of directions about the fitted offset" +
-                     (f" — {cov.reason}" if cov.reason else ""))
+                     (" (turns about chosen axes, by design)" if by_design else f" — {cov.reason}" if cov.reason else ""))
         lines.append("  " + cov.text_map.replace("\n", "\n  "))
     if cal.effect_params:
         lines.append("\neffect parameters")
