@@ -124,6 +124,21 @@ def build_parser() -> argparse.ArgumentParser:
                      help="first CAN identifier of the unit (default: 0x200)")
     dec.add_argument("--out", required=True, metavar="FILE.csv|FILE.mcap", help="where to write the data")
 
+    cmd = _command(sub, "command", "send the running service a command, or ask its state",
+                   "  fluxcal command state --connect tcp/127.0.0.1:7447\n  fluxcal command freeze --unit grad1\n"
+                   "  fluxcal command add-effect temperature\n  fluxcal command apply cal.json")
+    cmd.add_argument("verb", metavar="VERB", help="state, freeze, unfreeze, reset, apply (payload: a calibration "
+                                                 "file), add-effect (payload: the effect's name)")
+    cmd.add_argument("payload", metavar="PAYLOAD", nargs="?", default=None,
+                     help="what the command needs (apply: a calibration file; add-effect: an effect name)")
+    cmd.add_argument("--config", metavar="FILE", help="take the endpoints, unit and TLS from this configuration")
+    cmd.add_argument("--connect", metavar="ENDPOINT", help="the service's endpoint (default: tcp/127.0.0.1:7447)")
+    cmd.add_argument("--unit", metavar="NAME", help="the unit (default: the first one found)")
+    cmd.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the answer (default: %(default)s)")
+    cmd.add_argument("--ca", metavar="CA.pem", help="TLS: the site's certificate authority")
+    cmd.add_argument("--cert", metavar="CERT.pem", help="TLS: this client's certificate")
+    cmd.add_argument("--key", metavar="KEY.pem", help="TLS: this client's private key")
+
     watch = _command(sub, "watch", "terminal dashboard of a running service",
                      "  fluxcal watch --connect tcp/127.0.0.1:7447\n  fluxcal watch --config configs/sim-gradiometer.toml")
     watch.add_argument("--config", metavar="FILE", help="take the endpoints, unit and TLS from this configuration")

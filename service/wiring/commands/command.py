@@ -1,0 +1,47 @@
+"""`fluxcal command VERB [PAYLOAD]`: the running service's commands (and its state) from a shell, no Python.
+
+VERB is `state` or one of the service's commands (freeze, unfreeze, reset, apply, add-effect). The
+answer is printed as JSON; a command the service refused exits 1 with its reason on stderr.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from argparse import Namespace
+from pathlib import Path
+
+from drivers.errors import ConfigError, FluxcalError
+
+from service.io.bus import COMMANDS, BusClient, ZenohConfig, discover_units, open_session
+from service.wiring.commands.watch import _resolve
+
+VERBS = ("state", *COMMANDS)
+
+
+def main(args: Namespace) -> int:
+    if args.verb not in VERBS:
+        raise ConfigError(f"VERB: {args.verb!r} is not allowed (allowed: {', '.join(VERBS)})")
+    if args.verb != "state" and COMMANDS[args.verb] is not None and not args.payload:
+        raise ConfigError(f"{args.verb}: needs a payload: {COMMANDS[args.verb]}")
+    args.seconds = None
+    endpoints, unit, tls = _resolve(args)
+    payload = args.payload or ""
+    if args.verb == "apply" and Path(payload).is_file():
+        payload = Path(payload).read_text()            # the service may run on another host: send the file itself
+    with open_session(ZenohConfig.client(*endpoints, tls=tls)) as session:
+        if unit is None:
+            units = discover_units(session, timeout=min(2.0, args.timeout))
+            if not units:
+                raise FluxcalError(f"no running unit answers at {', '.join(endpoints)}: is `fluxcal run` running "
+                                   f"there? (give --connect or --config)")
+            unit = sorted(units)[0]
+        with BusClient(session, unit, streams=[]) as client:
+            answer = (client.query_state(timeout=args.timeout) if args.verb == "state"
+                      else client.command(args.verb, payload, timeout=args.timeout))
+    print(json.dumps(answer))
+    if args.verb != "state" and not answer.get("ok", False):
+        print(f"fluxcal command: {args.verb} not applied by unit {unit}: {answer.get('error', 'no reason given')}",
+              file=sys.stderr)
+        return 1
+    return 0
