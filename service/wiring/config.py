@@ -36,6 +36,7 @@ class UnitConfig:
     block_ms: float = spec(8.0, min=0.0, max=1000.0,
                            doc="input is gathered into blocks of about this long before it is processed, "
                                "recorded and published: latency against CPU")
+    status_s: float = spec(10.0, min=0.1, max=3600.0, doc="`fluxcal run` says a status line on stderr this often")
 
     def validate(self, path: str) -> None:
         if not _UNIT_NAME.match(self.name):

@@ -7,7 +7,6 @@ event; everything is flushed and closed in `finally`.
 
 from __future__ import annotations
 
-import logging
 import sys
 import threading
 import time
@@ -25,8 +24,8 @@ from .config import RATE_MISSING, FluxcalConfig
 from .input import BatchReader, RateCheck
 from .pipeline import Pipeline, PipelineEvent
 from .sinks import initial_calibration, learned_on, open_logger, say_bus
+from .status import StatusLog
 
-log = logging.getLogger("fluxcal")
 
 
 def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:
@@ -77,6 +76,7 @@ class Daemon:
         self._recording_said_at = -1e9
         self._last_processing_say = -1e9
         self._rate = RateCheck(cfg, self.say)
+        self._status = StatusLog(self.say, cfg.unit.status_s)
 
     def run(self) -> int:
         from service.io.bus import ServiceBus
@@ -193,6 +193,7 @@ class Daemon:
                 bus.publish_raw(block)
                 out = self._process(pipeline, block)     # None: failed, counted and said there
                 if out is not None:
+                    self._status.block(block.n_samples, out.error)
                     announced = self._emit(out, pipeline, bus, logger, announced)
             now = time.monotonic()
             if now - last_health >= 1.0:
@@ -202,6 +203,7 @@ class Daemon:
                 if logger is not None:
                     logger.write_health(health)
                     self._say_recording_trouble(logger)
+                self._status.tick(pipeline.state())
 
     def _emit(self, out, pipeline: Pipeline, bus, logger, announced: bool) -> bool:
         """Record and publish what processing a block gave; returns whether usability was announced."""
@@ -230,8 +232,8 @@ class Daemon:
                 save_calibration(pipeline.calibration, self.cal_path)
             except OSError as e:
                 self.say(f"could not persist the calibration to {self.cal_path}: {e}")
-        elif ev.kind == "gate":
-            log.info("gate: %s", "; ".join(ev.detail.get("reasons", [])))
+        if ev.kind in ("gate", "calibration"):
+            self._status.gate(ev.kind == "calibration" or bool(ev.detail.get("usable")), ev.detail.get("reasons", []))
 
     def _apply_command(self, cmd, pipeline: Pipeline, bus, logger) -> None:
         seq = pipeline.next_seq            # the command takes effect from the next block on
@@ -247,9 +249,11 @@ class Daemon:
             if logger is not None:
                 logger.write_event({"kind": "command", "seq": seq, **ev.detail})
             self._on_event(ev, pipeline, bus, logger)
-            cmd.reply({"ok": True, "cal_id": pipeline.cal_id})
+            answer = {"ok": True, "cal_id": pipeline.cal_id}
         except FluxcalError as e:
-            cmd.reply({"ok": False, "error": str(e)})
+            answer = {"ok": False, "error": str(e)}
+        cmd.reply(answer)
+        self._status.command(cmd.name, cmd.payload, answer)
 
 
 def _calibration_from_payload(payload: Any):

@@ -12,7 +12,6 @@ from argparse import Namespace
 from pathlib import Path
 
 from drivers.errors import ConfigError, FluxcalError
-
 from service.io.bus import COMMANDS, BusClient, ZenohConfig, discover_units, open_session
 from service.wiring.commands.watch import _resolve
 

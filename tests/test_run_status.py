@@ -1,0 +1,43 @@
+"""`fluxcal run` says what it does: a status line at an interval, the quality gate's reasons when they
+change, and every command it received with its answer (before, these reached only Zenoh and MCAP)."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from test_watch import free_port
+
+from service.io.bus import BusClient, ZenohConfig
+from service.wiring.config import load_config
+from service.wiring.daemon import Daemon
+
+
+def test_run_says_status_gate_reasons_and_commands(tmp_path):
+    port = free_port()
+    text = (open("configs/sim-gradiometer.toml").read()
+            .replace("run_s = 0 ", "run_s = 8 ")
+            .replace('dir = "../recordings/live"', 'enabled = false')
+            .replace('file = "../state/grad1-sim-cal.json"', f'file = "{tmp_path / "cal.json"}"')
+            .replace('listen = ["tcp/127.0.0.1:7447"]', f'listen = ["tcp/127.0.0.1:{port}"]')
+            .replace("block_ms = 8 ", "block_ms = 8\nstatus_s = 1.0 ")
+            .replace("min_samples = 2000 ", "min_samples = 200 ")        # a gate verdict within the first second
+            .replace("check_every_s = 5.0 ", "check_every_s = 0.5 "))
+    (tmp_path / "c.toml").write_text(text)
+    said: list[str] = []
+    daemon = Daemon(load_config(tmp_path / "c.toml"), say=said.append)
+    thread = threading.Thread(target=daemon.run, daemon=True)
+    thread.start()
+    try:
+        time.sleep(4.0)
+        with BusClient(ZenohConfig.client(f"tcp/127.0.0.1:{port}"), "grad1", streams=[]) as client:
+            assert client.command("freeze", timeout=5.0)["ok"]
+            assert not client.command("add-effect", "eddy", timeout=5.0)["ok"]
+    finally:
+        thread.join(20.0)
+    status = [m for m in said if m.startswith("status: ")]
+    assert len(status) >= 3 and all("samples/s" in m and ("learning" in m or "in use" in m) for m in status)
+    gate = [m for m in said if m.startswith("quality gate: ")]
+    assert gate and len(gate) <= 3                      # said when the reasons change, not at every check
+    assert any(m.startswith("command freeze: applied") for m in said)
+    assert any(m.startswith("command add-effect eddy: refused: add-effect: 'eddy'") for m in said)
