@@ -20,7 +20,7 @@ def test_run_says_status_gate_reasons_and_commands(tmp_path):
             .replace('dir = "../recordings/live"', 'enabled = false')
             .replace('file = "../state/grad1-sim-cal.json"', f'file = "{tmp_path / "cal.json"}"')
             .replace('listen = ["tcp/127.0.0.1:7447"]', f'listen = ["tcp/127.0.0.1:{port}"]')
-            .replace("block_ms = 8 ", "block_ms = 8\nstatus_s = 1.0 ")
+            .replace("status_s = 10 ", "status_s = 1.0 ")
             .replace("min_samples = 2000 ", "min_samples = 200 ")        # a gate verdict within the first second
             .replace("check_every_s = 5.0 ", "check_every_s = 0.5 "))
     (tmp_path / "c.toml").write_text(text)
