@@ -33,3 +33,38 @@ def test_the_readme_and_docs_point_into_the_repository_not_beside_it():
     csv = (ROOT / "docs" / "csv.md").read_text()
     assert "s1_x" in csv and "ref_total" in csv and "_temp" in csv
     assert np.all([k in (ROOT / "docs" / "contracts.md").read_text() for k in ("warnings", "coverage", "candidates")])
+
+
+def test_the_zenoh_snippet_runs_against_a_service_that_started_from_a_saved_calibration(capsys):
+    """docs/zenoh.md's Python snippet, run as written against a bus whose state has no gate verdict yet
+    (a service that reloaded its calibration): it must not raise."""
+    import threading
+
+    from test_watch import free_port
+
+    from service.io.bus import ServiceBus, ZenohConfig
+
+    text = (ROOT / "docs" / "zenoh.md").read_text()
+    snippet = re.search(r"\n((?: {4}.*\n)+)", text[text.index("From Python:"):]).group(1)
+    port = free_port()
+    snippet = "\n".join(line[4:] for line in snippet.splitlines()).replace("7447", str(port))
+    state = {"usable": True, "cal_id": 1, "gate": None}
+    bus = ServiceBus(ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"]), "grad1", state_fn=lambda: state)
+    stop = threading.Event()
+
+    def serve() -> None:
+        while not stop.is_set():
+            cmd = bus.next_command(timeout=0.05)
+            if cmd is not None:
+                cmd.reply({"ok": True})
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    try:
+        exec(compile(snippet, "docs/zenoh.md", "exec"), {})
+    finally:
+        stop.set()
+        t.join(2.0)
+        bus.close()
+    out = capsys.readouterr().out
+    assert "'ok': True" in out and "no gate verdict yet" in out
