@@ -176,6 +176,14 @@ class TurntableMotion(Motion):
     def describe(self) -> dict[str, Any]:
         return {"period_s": self.period_s, "move_s": self.move_s}
 
+    def table(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What a turntable controller logs: the table angle (deg, 0 at the start of each turn) and which
+        body axis it turns about (0 x, 1 y, 2 z; -1 in the dwell before a turn)."""
+        seg, u = self._local(t_s)
+        angle, _ = self._angle_rate(u)
+        axis = np.array([_AXIS_INDEX[a] for a in self.axes])[seg]
+        return np.degrees(angle), np.where(u > 0, axis, -1)
+
 
 class TumbleMotion(Motion):
     """Smooth random tumbling: z-y-x Euler angles that each advance at a random steady rate plus a

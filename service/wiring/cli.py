@@ -107,10 +107,14 @@ def build_parser() -> argparse.ArgumentParser:
     fix.add_argument("out", metavar="OUT", help="the finished copy (a file, or a directory for a directory)")
 
     sim = _command(sub, "simulate", "write simulated unit data",
-                   "  fluxcal simulate --config configs/sim-gradiometer.toml --out grad.csv")
+                   "  fluxcal simulate --config configs/sim-gradiometer.toml --out grad.csv\n"
+                   "  fluxcal simulate --out capture.bin      # then: fluxcal decode capture.bin --probes 2 --out d.csv\n"
+                   "  fluxcal simulate --out bus.log          # then: fluxcal decode bus.log --can --probes 2 --out d.csv")
     sim.add_argument("--config", metavar="FILE", help="the [sim] section to simulate (default: a built-in gradiometer)")
-    sim.add_argument("--out", required=True, metavar="FILE.mcap|FILE.csv",
-                     help="where to write; a .truth.json with every simulated parameter goes beside it")
+    sim.add_argument("--out", required=True, metavar="FILE.csv|FILE.mcap|FILE.bin|FILE.log",
+                     help="where to write (allowed: .csv lab data, with angle_deg and turn for a turntable; .mcap a "
+                          "recording; .bin the unit's serial bytes; .log a candump log of its CAN frames); a "
+                          ".truth.json with every simulated parameter goes beside it")
 
     dec = _command(sub, "decode", "turn a serial capture or CAN log into data",
                    "  fluxcal decode capture.bin --probes 2 --out data.csv\n"

@@ -79,12 +79,17 @@ def write_csv(path: Path, unit: Unit, unit_name: str, truth_file: str, progress:
     p = cfg.n_probes
     names = [f"s{k + 1}" for k in range(p)]
     header = ["t"] + [f"{s}_{a}" for s in names for a in "xyz"] + [f"{s}_temp" for s in names]
+    # a turntable run carries what its controller logs: the angle (for sinefit) and the turn (for two-step)
+    table = getattr(unit.world.motion, "table", None)
     ref = cfg.reference.enabled
     if ref:
         header.append("ref_total")
     header += ["seq", "flags"]
     dec = _decimals(cfg.lsb_nT)
     fmt = ["%.6f"] + [f"%.{dec}f"] * (3 * p) + ["%.2f"] * p + ([f"%.{max(dec, 4)}f"] if ref else []) + ["%d", "%d"]
+    if table is not None:
+        header += ["angle_deg", "turn"]
+        fmt += ["%.6f", "%d"]
     f = cfg.field
     probes_text = ", ".join(f"{pr.name} at {pr.position_m} m" for pr in cfg.probes)
     comments = [
@@ -96,7 +101,8 @@ def write_csv(path: Path, unit: Unit, unit_name: str, truth_file: str, progress:
         f"probes (platform frame): {probes_text}",
         f"columns: t s (unit clock), s<k>_x/y/z nT (counts x lsb_nT {cfg.lsb_nT:g}), s<k>_temp degC"
         + (", ref_total nT (scalar reference at the platform origin)" if ref else "")
-        + ", seq (sample counter, unwrapped), flags (ICD: bit0 saturated, bit1 temperature invalid)",
+        + ", seq (sample counter, unwrapped), flags (ICD: bit0 saturated, bit1 temperature invalid)"
+        + (", angle_deg (turntable angle), turn (0/1/2: about body x/y/z, -1: dwell)" if table is not None else ""),
     ]
     with open(path, "w", encoding="utf-8", newline="\n") as fh:
         for c in comments:
@@ -109,11 +115,49 @@ def write_csv(path: Path, unit: Unit, unit_name: str, truth_file: str, progress:
             if ref:
                 cols.append(s.ref_total_nT)
             cols += [s.seq, s.flags]
-            table = np.column_stack([np.asarray(c, dtype=np.float64).reshape(len(s), -1) for c in cols])
-            np.savetxt(fh, table, fmt=fmt, delimiter=",")
+            if table is not None:
+                cols += list(table(np.arange(start, stop) / cfg.rate_hz))
+            rows = np.column_stack([np.asarray(c, dtype=np.float64).reshape(len(s), -1) for c in cols])
+            np.savetxt(fh, rows, fmt=fmt, delimiter=",")
             if progress is not None:
                 progress(stop, n)
     return n
+
+
+def write_serial_capture(path: Path, unit: Unit, progress: Any = None) -> int:
+    """The run as the bytes the unit sends on its serial port (ICD frames, the configured faults
+    included): what `fluxcal decode CAPTURE --probes N` reads."""
+    n = unit.n_samples
+    assert n is not None
+    with open(path, "wb") as fh:
+        for start in range(0, n, BLOCK_SAMPLES):
+            stop = min(n, start + BLOCK_SAMPLES)
+            fh.write(unit.serial_bytes(start, stop))
+            if progress is not None:
+                progress(stop, n)
+    return n
+
+
+def write_can_log(path: Path, unit: Unit, progress: Any = None) -> int:
+    """The run as a candump log of the unit's CAN frames (`(time) can0 ID#DATA`, times from the sample
+    instants): what `fluxcal decode LOG --can --probes N` reads, and python-can's logger writes."""
+    n = unit.n_samples
+    assert n is not None
+    rate = unit.config.rate_hz
+    with open(path, "w", encoding="ascii", newline="\n") as fh:
+        for start in range(0, n, BLOCK_SAMPLES):
+            stop = min(n, start + BLOCK_SAMPLES)
+            ids, payloads, sample_of = unit.can_frames(start, stop)
+            t = 1.7e9 + sample_of / rate                   # an epoch-like time base, as candump writes
+            fh.writelines(f"({ts:.6f}) can0 {cid:03X}#{data.tobytes().hex().upper()}\n"
+                          for ts, cid, data in zip(t.tolist(), ids.tolist(), payloads))
+            if progress is not None:
+                progress(stop, n)
+    return n
+
+
+#: output suffix -> what is written
+WRITERS = (".csv", ".mcap", ".bin", ".log")
 
 
 def _tmp(path: Path) -> Path:
@@ -139,8 +183,9 @@ def _write_mcap(writer: Any, path: Path, unit: Unit, unit_name: str, truth: dict
 def main(args: Any) -> int:
     out = Path(args.out)
     suffix = out.suffix.lower()
-    if suffix not in (".csv", ".mcap"):
-        raise DataError(f"{out}: unknown output type {out.suffix!r}; use FILE.csv or FILE.mcap")
+    if suffix not in WRITERS:
+        raise DataError(f"{out}: unknown output type {out.suffix!r} (allowed: {', '.join('FILE' + s for s in WRITERS)}: "
+                        f"lab CSV, MCAP recording, the unit's serial bytes, a candump log of its CAN frames)")
     if not out.parent.exists():
         raise DataError(f"{out}: directory {out.parent} does not exist")
     sim, unit_name = load_simulation(args.config)
@@ -172,8 +217,12 @@ def main(args: Any) -> int:
             fh.write("\n")
         if suffix == ".csv":
             n = write_csv(tmp_data, unit, unit_name, tpath.name, progress)
-        else:
+        elif suffix == ".mcap":
             n = _write_mcap(mcap_writer, tmp_data, unit, unit_name, truth)
+        elif suffix == ".bin":
+            n = write_serial_capture(tmp_data, unit, progress)
+        else:
+            n = write_can_log(tmp_data, unit, progress)
         os.replace(tmp_data, out)
         os.replace(tmp_truth, tpath)
     finally:
