@@ -4,44 +4,26 @@ loopback, against a bus that answers as the service does."""
 from __future__ import annotations
 
 import json
-import threading
 
 from test_watch import free_port
+from test_zenoh_bus import FakeDaemon
 
 from service.io.bus import ServiceBus, ZenohConfig
 from service.wiring.cli import main
 
 
-class Service:
-    """Answers commands as the daemon does: freeze is applied, add-effect of an unknown effect refused."""
-
-    def __init__(self) -> None:
-        self.ep = f"tcp/127.0.0.1:{free_port()}"
-        self.applied: list[tuple[str, str]] = []
-        self.bus = ServiceBus(ZenohConfig(listen=[self.ep]), "grad9", state_fn=lambda: {"usable": True, "cal_id": 3})
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self.run, daemon=True)
-        self.thread.start()
-
-    def run(self) -> None:
-        while not self.stop.is_set():
-            cmd = self.bus.next_command(timeout=0.05)
-            if cmd is None:
-                continue
-            if cmd.name == "add-effect" and cmd.payload != "temperature":
-                cmd.reply({"ok": False, "error": f"add-effect: {cmd.payload!r} cannot be added"})
-            else:
-                self.applied.append((cmd.name, cmd.payload))
-                cmd.reply({"ok": True, "cal_id": 4})
-
-    def close(self) -> None:
-        self.stop.set()
-        self.thread.join(2.0)
-        self.bus.close()
+def _as_the_daemon_does(cmd) -> dict:
+    """freeze and apply are applied; add-effect of an effect the running service cannot add is refused."""
+    if cmd.name == "add-effect" and cmd.payload != "temperature":
+        return {"ok": False, "error": f"add-effect: {cmd.payload!r} cannot be added"}
+    return {"ok": True, "cal_id": 4}
 
 
 def test_state_and_commands_round_trip_and_a_refusal_exits_1(capsys, tmp_path):
-    svc = Service()
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    bus = ServiceBus(ZenohConfig(listen=[ep]), "grad9", state_fn=lambda: {"usable": True, "cal_id": 3})
+    svc = FakeDaemon(bus, decide=_as_the_daemon_does)
+    svc.ep = ep
     try:
         assert main(["command", "state", "--connect", svc.ep]) == 0     # the unit is found by itself
         st = json.loads(capsys.readouterr().out)
@@ -54,9 +36,11 @@ def test_state_and_commands_round_trip_and_a_refusal_exits_1(capsys, tmp_path):
         cal = tmp_path / "cal.json"
         cal.write_text('{"format": "fluxcal-calibration"}')
         assert main(["command", "apply", str(cal), "--connect", svc.ep]) == 0
-        assert svc.applied == [("freeze", ""), ("apply", '{"format": "fluxcal-calibration"}')]
+        applied = [(name, payload) for _, name, payload, _ in svc.seen if name != "add-effect"]
+        assert applied == [("freeze", ""), ("apply", '{"format": "fluxcal-calibration"}')]
     finally:
         svc.close()
+        bus.close()
 
 
 def test_a_wrong_verb_or_a_missing_payload_is_a_usage_error(capsys):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import threading
 import time
 
+from test_recording import service_config
 from test_watch import free_port
 
 from service.io.bus import BusClient, ZenohConfig
@@ -15,11 +16,9 @@ from service.wiring.daemon import Daemon
 
 def test_run_says_status_gate_reasons_and_commands(tmp_path):
     port = free_port()
-    text = (open("configs/sim-gradiometer.toml").read()
-            .replace("run_s = 0 ", "run_s = 8 ")
-            .replace('dir = "../recordings/live"', 'enabled = false')
-            .replace('file = "../state/grad1-sim-cal.json"', f'file = "{tmp_path / "cal.json"}"')
-            .replace('listen = ["tcp/127.0.0.1:7447"]', f'listen = ["tcp/127.0.0.1:{port}"]')
+    path = service_config(tmp_path, run_s=8)              # the example, with its own files
+    text = (open(path).read()
+            .replace('listen = ["tcp/127.0.0.1:0"]', f'listen = ["tcp/127.0.0.1:{port}"]')
             .replace("status_s = 10 ", "status_s = 1.0 ")
             .replace("min_samples = 2000 ", "min_samples = 200 ")        # a gate verdict within the first second
             .replace("check_every_s = 5.0 ", "check_every_s = 0.5 "))

@@ -87,7 +87,7 @@ def test_bad_config_key_exits_2_naming_the_key(tmp_path, capsys):
 
 def test_usage_errors_exit_2(tmp_path, capsys):
     assert cli(["simulate", "--out", str(tmp_path / "x.txt")]) == 2
-    assert "use FILE.csv or FILE.mcap" in capsys.readouterr().err
+    assert "(allowed: FILE.csv, FILE.mcap, FILE.bin, FILE.log" in capsys.readouterr().err
     assert cli(["simulate", "--out", str(tmp_path / "missing" / "x.csv")]) == 2
     assert "does not exist" in capsys.readouterr().err
     cfg = tmp_path / "forever.toml"

@@ -88,8 +88,9 @@ def collect(client: BusClient, n: int, timeout: float = 10.0) -> list:
 class FakeDaemon:
     """The service's thread: drains commands, answers them, serves state queries on the way."""
 
-    def __init__(self, bus: ServiceBus, answer: dict | None = None) -> None:
-        self.bus, self.answer = bus, answer or {"ok": True}
+    def __init__(self, bus: ServiceBus, answer: dict | None = None, decide=None) -> None:
+        # decide(cmd) -> the answer for that command, when it is not always the same
+        self.bus, self.answer, self.decide = bus, answer or {"ok": True}, decide
         self.seen: list[tuple[int, str, str, str]] = []
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self.run, daemon=True)
@@ -100,7 +101,7 @@ class FakeDaemon:
             cmd = self.bus.next_command(timeout=0.02)
             if cmd is not None:
                 self.seen.append((cmd.id, cmd.name, cmd.payload, threading.current_thread().name))
-                cmd.reply({**self.answer, "applied": cmd.name})
+                cmd.reply(self.decide(cmd) if self.decide else {**self.answer, "applied": cmd.name})
 
     def close(self) -> None:
         self.stop.set()
