@@ -393,3 +393,25 @@ def test_without_matplotlib_the_report_is_refused_but_the_diagnosis_is_shown(tmp
     assert "residual RMS" in out and "temperature" in out              # the text diagnosis, whole
     assert "needs matplotlib" in err and "pip install" in err
     assert not (tmp_path / "rep" / "index.html").exists()
+
+
+def test_table_says_which_figure_decides_and_why_each_no():
+    # a p-value of 0 and a large negative dBIC beside "no" must say which figure refused it (issue 16)
+    from dataclasses import replace
+
+    from service.numerics.diagnose import GAIN_SIGMAS, Candidate, verdict_word
+    probes = [probe(0), probe(1)]
+    d = diagnose(data_of(sim_block(probes, n=2000, rate=100.0, motion=TUMBLE, seed=11), probes),
+                 candidates=["drift", "temperature"])
+    worse = Candidate("drift", rms_nT=1.0, heldout_rms_nT=1.2, gain=-0.05, log_ratio=-0.04, log_ratio_se=0.01,
+                      p_value=0.0, bic_delta=-850.0, n_params=6)
+    small = Candidate("temperature", rms_nT=1.0, heldout_rms_nT=1.0, gain=0.01, log_ratio=0.01, log_ratio_se=0.02,
+                      p_value=0.0, bic_delta=-120.0, n_params=6)
+    text = summary_text(replace(d, candidates=[worse, small]))
+    assert "the held-out columns decide" in text and "p-value and dBIC assume white noise" in text
+    assert f"{GAIN_SIGMAS:g} standard errors" in text
+    row = {ln.split()[0]: ln for ln in text.splitlines() if ln.strip().startswith(("drift ", "temperature "))}
+    assert "-850.0" in row["drift"] and row["drift"].endswith("no: held-out error rises")
+    assert row["temperature"].endswith(f"no: held-out gain < {GAIN_SIGMAS:g} SE")
+    assert verdict_word(replace(small, log_ratio=0.1, p_value=0.5)) == "no: p >= 0.001"
+    assert verdict_word(replace(small, significant=True)) == "SIGNIFICANT"

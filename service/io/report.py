@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.errors import FluxcalError
-from service.numerics.diagnose import Diagnosis
+from service.numerics.diagnose import DECIDES, Diagnosis, verdict_word
 
 MAX_POINTS = 6000
 
@@ -167,7 +167,7 @@ def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
 
 def _table(d: Diagnosis) -> str:
     head = ("<tr><th>effect</th><th>RMS if added (nT)</th><th>held-out RMS (nT)</th><th>held-out gain</th>"
-            "<th>p-value</th><th>&Delta;BIC</th><th>significant</th><th>note</th></tr>")
+            "<th>p-value</th><th>&Delta;BIC</th><th>verdict</th><th>note</th></tr>")
     rows = []
     for c in d.candidates:
         note = ""
@@ -178,11 +178,11 @@ def _table(d: Diagnosis) -> str:
         if c.testable:
             cells = [c.effect, f"{c.rms_nT:.3f}", f"{c.heldout_rms_nT:.3f}",
                      f"{100 * c.gain:.1f}% (t = {c.log_ratio / c.log_ratio_se if c.log_ratio_se > 0 else float('inf'):.1f})", f"{c.p_value:.2g}", f"{c.bic_delta:.1f}",
-                     "<b>yes</b>" if c.significant else "no", html.escape(note)]
+                     "<b>SIGNIFICANT</b>" if c.significant else html.escape(verdict_word(c)), html.escape(note)]
         else:
             cells = [c.effect, "-", "-", "-", "-", "-", "not testable", html.escape(note)]
         rows.append("<tr>" + "".join(f"<td>{x}</td>" for x in cells) + "</tr>")
-    return "<table>" + head + "".join(rows) + "</table>"
+    return ("<p>" + html.escape(" ".join(DECIDES.split())) + "</p><table>" + head + "".join(rows) + "</table>")
 
 
 def render_html(d: Diagnosis, figs: list[tuple[str, str, bytes]], title: str) -> str:

@@ -3,9 +3,29 @@
 
 from __future__ import annotations
 
-from .result import Diagnosis
+from .result import GAIN_SIGMAS, P_SIGNIFICANT, Candidate, Diagnosis
 
 PARAMETER_LINES = 18
+
+
+DECIDES = (f"    the held-out columns decide: SIGNIFICANT needs a positive held-out gain, at least {GAIN_SIGMAS:g} "
+           f"standard errors\n    (block to block) above zero, and p < {P_SIGNIFICANT:g}; p-value and dBIC assume "
+           f"white noise and alone decide nothing")
+
+
+def verdict_word(c: Candidate) -> str:
+    """The verdict column: SIGNIFICANT, or "no" with the figure that refused it."""
+    if c.significant:
+        return "SIGNIFICANT"
+    if c.reason and c.reason.startswith("the model's") and c.indistinguishable_from:
+        return f"no: the model's {c.indistinguishable_from[0]} spans it"
+    if c.n_params <= 0:
+        return "no: nothing determined"
+    if c.gain <= 0:
+        return "no: held-out error rises"
+    if c.log_ratio <= GAIN_SIGMAS * c.log_ratio_se:
+        return f"no: held-out gain < {GAIN_SIGMAS:g} SE"
+    return f"no: p >= {P_SIGNIFICANT:g}"
 
 
 def summary_text(d: Diagnosis, data_name: str = "") -> str:
@@ -45,12 +65,13 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
         lines.append(f"  worst segments: {seg}")
     lines.append("")
     lines.append("  candidate effects (blocked held-out test):")
+    lines.append(DECIDES)
     lines.append("    effect         rms if added  held-out   gain     p-value   dBIC       verdict")
     for c in d.candidates:
         if not c.testable:
             lines.append(f"    {c.effect:<14} {'-':>12}  {'-':>8}   {'-':>6}   {'-':>8}  {'-':>9}   not testable: {c.reason}")
             continue
-        verdict = "SIGNIFICANT" if c.significant else "no"
+        verdict = verdict_word(c)
         lines.append(f"    {c.effect:<14} {c.rms_nT:10.3f} nT {c.heldout_rms_nT:8.3f}   {100 * c.gain:5.1f}%  "
                      f"{c.p_value:9.2g}  {c.bic_delta:9.1f}   {verdict}")
     told: set[frozenset] = set()
