@@ -5,7 +5,6 @@ would separate them; the command line, JSON contract and HTML report."""
 
 from __future__ import annotations
 
-import io
 import json
 import sys
 
@@ -15,7 +14,6 @@ import pytest
 from drivers.block import SampleBlock
 from drivers.sim import Unit, load_sim_config
 from service.wiring import cli
-from service.wiring.commands.diagnose import ProgressBar
 from service.numerics.diagnose import diagnose, summary_text
 from service.numerics.effects import EFFECTS
 from service.numerics.effects.base import EffectData
@@ -302,20 +300,6 @@ def test_report_without_matplotlib_says_how_to_get_it(tmp_path, monkeypatch, cap
     err = capsys.readouterr().err
     assert "needs matplotlib" in err and "pip install matplotlib" in err
     assert not (tmp_path / "rep" / "index.html").exists()
-
-
-def test_progress_bar_only_on_a_terminal():
-    class Tty(io.StringIO):
-        def isatty(self):
-            return True
-
-    tty, plain = Tty(), io.StringIO()
-    for stream in (tty, plain):
-        bar = ProgressBar(stream)
-        bar(0.5, "trying eddy")
-        bar.close()
-    assert "[###############---------------]  50%" in tty.getvalue() and "trying eddy" in tty.getvalue()
-    assert plain.getvalue() == ""
 
 
 @pytest.mark.slow

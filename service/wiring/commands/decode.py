@@ -27,9 +27,9 @@ from drivers.block import SampleBlock
 from drivers.errors import ConfigError, DataError, FluxcalError
 from drivers.icd import MAX_PROBES, frame_length, parse_serial
 from drivers.source import Counters
+from service.wiring.progress import Progress
 
 CHUNK_BYTES = 4 << 20          # serial captures are read in 4 MiB pieces: any size fits in memory
-PROGRESS_BYTES = 64 << 20      # captures larger than this report progress
 
 
 def _say(msg: str) -> None:
@@ -92,13 +92,12 @@ def _counters_line(c: Counters, can_log: bool) -> str:
 def _serial_blocks(capture: Path, n: int, lsb_nT: float, counters: Counters) -> Iterator[SampleBlock]:
     framer = SerialFramer(n, counters)
     assembler = FrameAssembler(n, lsb_nT, counters)
-    size = capture.stat().st_size
-    next_report = PROGRESS_BYTES
+    progress = Progress(capture.stat().st_size, "decode", unit="B")
     try:
         f = capture.open("rb")
     except OSError as e:
         raise DataError(f"{capture}: cannot read ({e.strerror})") from None
-    with f:
+    with f, progress:
         while True:
             chunk = f.read(CHUNK_BYTES)
             frames = framer.feed(chunk) if chunk else framer.finish()
@@ -106,9 +105,7 @@ def _serial_blocks(capture: Path, n: int, lsb_nT: float, counters: Counters) -> 
                 yield assembler.block(frames)
             if not chunk:
                 return
-            if size > PROGRESS_BYTES and framer.bytes_fed >= next_report:
-                _say(f"{100 * framer.bytes_fed / size:.0f} % of {size / 2**20:.0f} MiB")
-                next_report += PROGRESS_BYTES
+            progress.to(framer.bytes_fed)
 
 
 def _can_blocks(capture: Path, n: int, base_id: int, lsb_nT: float, counters: Counters) -> Iterator[SampleBlock]:

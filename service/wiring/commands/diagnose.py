@@ -23,7 +23,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
-import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -31,31 +30,7 @@ import numpy as np  # noqa: E402
 
 from drivers.config import load_section, read_toml  # noqa: E402
 from drivers.errors import ConfigError, DataError  # noqa: E402
-
-BAR_WIDTH = 30
-
-
-class ProgressBar:
-    """A one-line progress bar on stderr, drawn only when stderr is a terminal."""
-
-    def __init__(self, stream: Any = None) -> None:
-        self.stream = stream if stream is not None else sys.stderr
-        self.enabled = bool(getattr(self.stream, "isatty", lambda: False)())
-        self.start = time.monotonic()
-
-    def __call__(self, frac: float, msg: str) -> None:
-        if not self.enabled:
-            return
-        n = int(round(BAR_WIDTH * min(max(frac, 0.0), 1.0)))
-        bar = "#" * n + "-" * (BAR_WIDTH - n)
-        self.stream.write(f"\r[{bar}] {100 * frac:3.0f}% {time.monotonic() - self.start:5.1f} s  {msg:<28}")
-        self.stream.flush()
-
-    def close(self) -> None:
-        if self.enabled:
-            self.stream.write("\r" + " " * (BAR_WIDTH + 48) + "\r")
-            self.stream.flush()
-
+from service.wiring.progress import Progress  # noqa: E402
 
 def config_geometry(path: str, n_probes: int) -> tuple[np.ndarray | None, float | None]:
     """Probe positions (P, 3) and the total field from a configuration file. The sections diagnose uses
@@ -150,7 +125,7 @@ def main(args: argparse.Namespace) -> int:
         cal, cal_effects = load_calibration(args.calibration, data.n_probes)
         if not effects:
             effects = [e for e in cal_effects if e in EFFECTS]      # the model the file describes
-    bar = ProgressBar()
+    bar = Progress(1.0, "diagnose", fraction=True)
     try:
         result = diagnose(data, effects=effects, calibration=cal, progress=bar)
     finally:

@@ -23,28 +23,7 @@ from service.io.recordings.reader import read_recording
 from service.wiring.commands.notes import say_read_warnings
 from service.wiring.config import config_from_dict, load_config, rate_stated
 from service.wiring.daemon import build_pipeline
-
-
-class Progress:
-    """A progress bar on a terminal, nothing otherwise."""
-
-    def __init__(self, total: int, label: str) -> None:
-        self.total, self.label = max(total, 1), label
-        self.tty = sys.stderr.isatty()
-        self.last = 0.0
-
-    def update(self, done: int) -> None:
-        now = time.monotonic()
-        if not self.tty or now - self.last < 0.1:
-            return
-        self.last = now
-        frac = min(done / self.total, 1.0)
-        bar = "#" * int(30 * frac)
-        print(f"\r{self.label} [{bar:<30}] {frac:6.1%}", end="", file=sys.stderr, flush=True)
-
-    def done(self) -> None:
-        if self.tty:
-            print("\r\033[K", end="", file=sys.stderr, flush=True)
+from service.wiring.progress import Progress
 
 
 def _check_one_run(path: Path) -> None:
@@ -127,9 +106,9 @@ def main(args: Namespace) -> int:
             if result.corrected is not None:
                 out_seq.append(result.corrected.seq)
                 out_vals.append(result.corrected.corrected_nT)
-            progress.update(samples)
+            progress.to(samples)
     finally:
-        progress.done()
+        progress.close()
         if logger is not None:
             logger.close()
     compared, identical = _compare(rec.corrected_blocks, out_seq, out_vals)

@@ -13,7 +13,6 @@ import json
 import math
 import os
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +22,7 @@ from drivers.config import load_section, read_toml
 from drivers.errors import ConfigError, DataError
 from drivers.sim.config import GRADIOMETER, SimConfig, load_sim_config
 from drivers.sim.unit import Unit
+from service.wiring.progress import Progress
 
 BLOCK_SAMPLES = 100_000       # samples formatted per write: bounded memory for long runs
 DEFAULT_UNIT_NAME = "grad1"
@@ -120,7 +120,7 @@ def write_csv(path: Path, unit: Unit, unit_name: str, truth_file: str, progress:
             rows = np.column_stack([np.asarray(c, dtype=np.float64).reshape(len(s), -1) for c in cols])
             np.savetxt(fh, rows, fmt=fmt, delimiter=",")
             if progress is not None:
-                progress(stop, n)
+                progress(stop)
     return n
 
 
@@ -134,7 +134,7 @@ def write_serial_capture(path: Path, unit: Unit, progress: Any = None) -> int:
             stop = min(n, start + BLOCK_SAMPLES)
             fh.write(unit.serial_bytes(start, stop))
             if progress is not None:
-                progress(stop, n)
+                progress(stop)
     return n
 
 
@@ -152,7 +152,7 @@ def write_can_log(path: Path, unit: Unit, progress: Any = None) -> int:
             fh.writelines(f"({ts:.6f}) can0 {cid:03X}#{data.tobytes().hex().upper()}\n"
                           for ts, cid, data in zip(t.tolist(), ids.tolist(), payloads))
             if progress is not None:
-                progress(stop, n)
+                progress(stop)
     return n
 
 
@@ -172,11 +172,18 @@ def _mcap_writer(out: Path) -> Any:
     return write_recording
 
 
-def _write_mcap(writer: Any, path: Path, unit: Unit, unit_name: str, truth: dict[str, Any]) -> int:
+def _write_mcap(writer: Any, path: Path, unit: Unit, unit_name: str, truth: dict[str, Any],
+                progress: Any = None) -> int:
     n = unit.n_samples
     assert n is not None
-    blocks = (unit.digitise(a, min(n, a + BLOCK_SAMPLES)).to_block() for a in range(0, n, BLOCK_SAMPLES))
-    writer(path, blocks, unit=unit_name, probe_names=[p.name for p in unit.config.probes], truth=truth)
+
+    def blocks() -> Any:
+        for a in range(0, n, BLOCK_SAMPLES):
+            yield unit.digitise(a, min(n, a + BLOCK_SAMPLES)).to_block()
+            if progress is not None:
+                progress(min(n, a + BLOCK_SAMPLES))
+
+    writer(path, blocks(), unit=unit_name, probe_names=[p.name for p in unit.config.probes], truth=truth)
     return n
 
 
@@ -198,16 +205,8 @@ def main(args: Any) -> int:
     truth = unit.world.truth()
     truth.update({"unit": unit_name, "data_file": out.name, "probe_names": [p.name for p in sim.probes]})
 
-    started = time.monotonic()
-    last = [started]
-
-    def progress(done: int, total: int) -> None:
-        now = time.monotonic()
-        if now - last[0] > 2.0 and done < total:
-            last[0] = now
-            print(f"fluxcal simulate: {100 * done / total:.0f}% ({done} of {total} samples)", file=sys.stderr,
-                  flush=True)
-
+    bar = Progress(sim.n_samples, "simulate")
+    progress = bar.to
     # both files are written beside their targets under temporary names and renamed at the end:
     # an interrupted or failed run leaves neither half-written
     tmp_data, tmp_truth = _tmp(out), _tmp(tpath)
@@ -218,7 +217,7 @@ def main(args: Any) -> int:
         if suffix == ".csv":
             n = write_csv(tmp_data, unit, unit_name, tpath.name, progress)
         elif suffix == ".mcap":
-            n = _write_mcap(mcap_writer, tmp_data, unit, unit_name, truth)
+            n = _write_mcap(mcap_writer, tmp_data, unit, unit_name, truth, progress)
         elif suffix == ".bin":
             n = write_serial_capture(tmp_data, unit, progress)
         else:
@@ -226,6 +225,7 @@ def main(args: Any) -> int:
         os.replace(tmp_data, out)
         os.replace(tmp_truth, tpath)
     finally:
+        bar.close()
         tmp_data.unlink(missing_ok=True)
         tmp_truth.unlink(missing_ok=True)
     effects = ", ".join(unit.world.active_effects) or "none"
