@@ -61,8 +61,16 @@ class FieldConfig:
     gradient_nT_m: list[list[float]] = spec(default_factory=_zeros33,
                                             doc="uniform site gradient G[i][j] = dB_j/dx_i, NED, nT/m")
     drift_nT_per_h: list[float] = spec(default_factory=_zeros3, length=3, doc="slow ambient change per NED axis")
+    variation_nT: float = spec(0.0, min=0.0, max=1.0e5,
+                               doc="ambient variation (geomagnetic activity, nearby traffic): RMS per NED axis of a "
+                                   "random field change common to all probes, 1/f spectrum between the two periods")
+    variation_min_period_s: float = spec(60.0, min=1e-3, max=1.0e7, doc="shortest period of the ambient variation")
+    variation_max_period_s: float = spec(14400.0, min=1e-3, max=1.0e8, doc="longest period of the ambient variation")
 
     def validate(self, path: str) -> None:
+        if self.variation_max_period_s <= self.variation_min_period_s:
+            raise ConfigError(f"{path}.variation_max_period_s: {self.variation_max_period_s!r} is not allowed "
+                              f"(allowed: longer than variation_min_period_s = {self.variation_min_period_s!r})")
         _check_3x3(self.gradient_nT_m, f"{path}.gradient_nT_m")
         g = self.gradient_nT_m
         scale = max(1.0, max(abs(v) for row in g for v in row))
@@ -168,6 +176,9 @@ class ProbeSimConfig:
     offset_nT: list[float] = spec(default_factory=_zeros3, length=3, min=-1.0e6, max=1.0e6)
     noise_nT: list[float] | float = spec(0.0, length=3, min=0.0, max=1.0e5,
                                          doc="Gaussian noise per axis, 1 sigma; one number or three")
+    pink_nT_rtHz: list[float] | float = spec(0.0, length=3, min=0.0, max=1.0e5,
+                                             doc="1/f noise per axis: its density at 1 Hz, nT/sqrt(Hz), from 0.1 mHz "
+                                                 "to the Nyquist frequency (fluxgates: 0.005-0.1); one number or three")
     temp_offset_C: float = spec(0.0, min=-100.0, max=100.0, doc="this probe's temperature minus the profile")
     temp_offset_nT_per_C: list[float] = spec(default_factory=_zeros3, length=3, min=-1.0e4, max=1.0e4,
                                              doc="temperature effect: offset change per degC")
@@ -187,6 +198,8 @@ class ProbeSimConfig:
         _check_3x3(self.eddy_s, f"{path}.eddy_s")
         if not isinstance(self.noise_nT, list):
             self.noise_nT = [float(self.noise_nT)] * 3
+        if not isinstance(self.pink_nT_rtHz, list):
+            self.pink_nT_rtHz = [float(self.pink_nT_rtHz)] * 3
 
 
 def _default_probes() -> list[ProbeSimConfig]:

@@ -56,26 +56,51 @@ from .physics import (
     OffsetDriftEffect,
     TemperatureEffect,
 )
-from .streams import STREAM_NOISE, STREAM_REF, ChunkedRandom
+from .streams import STREAM_AMBIENT, STREAM_NOISE, STREAM_PINK, STREAM_REF, ChunkedRandom, OneOverF, PinkNoise
+
+#: 1/f probe noise from this frequency up to the Nyquist frequency, Hz
+PINK_F_LO_HZ = 1e-4
 
 
 @dataclass(frozen=True)
 class AmbientField:
-    """B_earth(t, r) = B0 + drift_nT_per_h t / 3600 + G^T r, NED, r from the platform origin in m."""
+    """B_earth(t, r) = B0 + drift_nT_per_h t / 3600 + v(t) + G^T r, NED, r from the platform origin in m;
+    v(t) the ambient variation (1/f, common to all probes), or none."""
 
     vector_nT: np.ndarray          # (3,) B0
     gradient_nT_m: np.ndarray      # (3, 3) G[i, j] = dB_j/dx_i
     drift_nT_per_h: np.ndarray     # (3,)
+    variation: OneOverF | None = None
 
     @staticmethod
-    def from_config(cfg: FieldConfig) -> "AmbientField":
+    def from_config(cfg: FieldConfig, seed: int = 0) -> "AmbientField":
+        variation = None
+        if cfg.variation_nT > 0:
+            f_lo, f_hi = 1.0 / cfg.variation_max_period_s, 1.0 / cfg.variation_min_period_s
+            density = cfg.variation_nT / np.sqrt(np.log(f_hi / f_lo))        # so that the RMS is variation_nT
+            variation = OneOverF(seed, STREAM_AMBIENT, np.full(3, density), f_lo, f_hi)
         return AmbientField(vector_nT=geomagnetic_field_nT(cfg.total_nT, cfg.inclination_deg, cfg.declination_deg),
                             gradient_nT_m=np.array(cfg.gradient_nT_m, dtype=np.float64),
-                            drift_nT_per_h=np.array(cfg.drift_nT_per_h, dtype=np.float64))
+                            drift_nT_per_h=np.array(cfg.drift_nT_per_h, dtype=np.float64), variation=variation)
 
     def at_origin(self, t_s: np.ndarray) -> np.ndarray:
-        """(..., 3) B0 + drift t."""
-        return self.vector_nT + self.drift_nT_per_h * (np.asarray(t_s)[..., None] / 3600.0)
+        """(..., 3) B0 + drift t + v(t)."""
+        b = self.vector_nT + self.drift_nT_per_h * (np.asarray(t_s)[..., None] / 3600.0)
+        return b if self.variation is None else b + self._variation(t_s, False)
+
+    def rate_at(self, t_s: np.ndarray) -> np.ndarray:
+        """(..., 3) dB/dt at the origin, nT/s."""
+        r = np.broadcast_to(self.rate_nT_s, (*np.shape(t_s), 3))
+        return r if self.variation is None else r + self._variation(t_s, True)
+
+    def _variation(self, t_s: np.ndarray, derivative: bool) -> np.ndarray:
+        """v(t) or dv/dt; instants (N, P) that are the same for every probe (no lag) are evaluated once."""
+        assert self.variation is not None
+        t = np.asarray(t_s, dtype=np.float64)
+        if t.ndim == 2 and t.shape[1] > 1 and np.array_equal(t, np.broadcast_to(t[:, :1], t.shape)):
+            one = self.variation.at(t[:, 0], derivative)
+            return np.broadcast_to(one[:, None, :], (*t.shape, 3))
+        return self.variation.at(t, derivative)
 
     def at(self, t_s: np.ndarray, r_earth_m: np.ndarray) -> np.ndarray:
         """(..., 3) at earth-frame offsets r (..., 3) from the origin: B0 + drift t + G^T r."""
@@ -183,7 +208,7 @@ class World:
         self.n_probes = config.n_probes
         self.n_samples = config.n_samples
         self.motion = make_motion(config.motion, config.seed)
-        self.field = AmbientField.from_config(config.field)
+        self.field = AmbientField.from_config(config.field, config.seed)
         self.probes = ProbeArray.from_config(config.probes)
         self.temperature = TemperatureProfile(config.temperature)
         self.effects: list[Effect] = [cls.from_config(config) for cls in EFFECTS]
@@ -192,6 +217,9 @@ class World:
         self._to_sensor = np.swapaxes(self.probes.misalign, 1, 2)                      # T^T
         self._noise = ChunkedRandom(config.seed, STREAM_NOISE, (self.n_probes, 3))
         self._ref_noise = ChunkedRandom(config.seed, STREAM_REF, ())
+        pink = np.array([p.pink_nT_rtHz for p in config.probes], dtype=np.float64).reshape(self.n_probes, 3)
+        self._pink = (PinkNoise(config.seed, STREAM_PINK, pink, PINK_F_LO_HZ, 0.5 * self.rate_hz, self.rate_hz)
+                      if np.any(pink > 0) else None)
 
     # -- what is on ----------------------------------------------------------------------------------
     @property
@@ -202,6 +230,8 @@ class World:
             names.append("drift")
         if np.any(self.field.gradient_nT_m):
             names.append("gradient")
+        if self.field.variation is not None:
+            names.append("ambient")
         return names
 
     def effect(self, name: str) -> Effect:
@@ -224,6 +254,8 @@ class World:
         out.index = np.arange(start, stop, dtype=np.int64)
         if noise:
             out.noise_nT = self._noise.draw(start, stop) * self.probes.noise_nT
+            if self._pink is not None:
+                out.noise_nT += self._pink.draw(start, stop)
             if out.ref_total_nT is not None:
                 out.ref_total_nT = out.ref_total_nT + self.config.reference.noise_nT * self._ref_noise.draw(start, stop)
         return out
@@ -253,7 +285,7 @@ class World:
         # d/dt R^T b = -ω x (R^T b) + R^T (db/dt + G^T R (ω x r_k))
         grad_term = np.einsum("ji,npj->npi", self.field.gradient_nT_m,
                               np.einsum("npij,npj->npi", r, np.cross(w, pos)))
-        db_platform = -np.cross(w, b_platform) + np.einsum("npji,npj->npi", r, self.field.rate_nT_s + grad_term)
+        db_platform = -np.cross(w, b_platform) + np.einsum("npji,npj->npi", r, self.field.rate_at(t_np) + grad_term)
 
         b_sensor = np.einsum("pij,npj->npi", self._to_sensor, b_platform)   # B_s = T^T B_p
         db_sensor = np.einsum("pij,npj->npi", self._to_sensor, db_platform)
@@ -307,6 +339,7 @@ class World:
                 "matrix": matrix[k].tolist(),
                 "forward_matrix": forward[k].tolist(),
                 "noise_nT": pr.noise_nT[k].tolist(),
+                "pink_nT_rtHz": list(cfg.probes[k].pink_nT_rtHz),
                 "temp_offset_C": float(pr.temp_offset_C[k]),
                 "effects": {e.name: e.params(k) for e in self.effects},
             })
@@ -346,6 +379,8 @@ class World:
                 "vector_nT": self.field.vector_nT.tolist(),
                 "gradient_nT_m": self.field.gradient_nT_m.tolist(),
                 "drift_nT_per_h": self.field.drift_nT_per_h.tolist(),
+                "variation_nT": cfg.field.variation_nT,
+                "variation_periods_s": [cfg.field.variation_min_period_s, cfg.field.variation_max_period_s],
             },
             "reference": {"enabled": cfg.reference.enabled, "noise_nT": cfg.reference.noise_nT,
                           "position_m": [0.0, 0.0, 0.0]},
