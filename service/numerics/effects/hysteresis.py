@@ -10,7 +10,12 @@ at every heading), and
     chi2(t) = (delta_R - delta_L)^T [sigma^2 (G_L^-1 + G_R^-1)]^-1 (delta_R - delta_L),  G = sum g g^T
 
 must exceed `threshold` (chi-square with 3 degrees of freedom; the default is far beyond what noise
-reaches). Parameters: the jump per step and axis, in nT.
+reaches). sigma^2 / W is the variance of a window mean only for white noise: a residual that wanders
+(1/f noise, a smooth offset change that no term follows) makes the difference of two window means
+vary far more, and every wander would pass for a step. So chi2 is first divided by its own typical
+size along the record, median(chi2) / median(chi-square_3) when that exceeds 1: a step must stand out
+of the wander of this very residual, not only of its white noise. Parameters: the jump per step and
+axis, in nT.
 """
 
 from __future__ import annotations
@@ -20,6 +25,9 @@ import numpy as np
 from service.numerics.noise import robust_noise
 
 from .base import AXES, EffectTerm, ProbeView
+
+
+CHI2_3_MEDIAN = 2.366         # median of a chi-square with 3 degrees of freedom
 
 
 def detect_steps(t_s: np.ndarray, residual: np.ndarray, gain: np.ndarray, *, window: int,
@@ -49,6 +57,9 @@ def detect_steps(t_s: np.ndarray, residual: np.ndarray, gain: np.ndarray, *, win
     cov = np.linalg.solve(g_left + ridge, np.broadcast_to(eye, g_left.shape)) + \
         np.linalg.solve(g_right + ridge, np.broadcast_to(eye, g_right.shape))
     chi2 = np.einsum("ni,ni->n", jump, np.linalg.solve(cov, jump[..., None])[..., 0]) / sigma ** 2
+    # the residual's wander: how much larger chi2 typically is than white noise makes it (a few steps
+    # move the median of thousands of window positions little)
+    chi2 = chi2 / max(1.0, float(np.median(chi2)) / CHI2_3_MEDIAN)
     steps: list[tuple[float, float]] = []
     chi2 = chi2.copy()
     for _ in range(max_steps):                      # a few peaks, not a loop over samples
