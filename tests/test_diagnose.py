@@ -396,6 +396,8 @@ def test_table_says_which_figure_decides_and_why_each_no():
     assert f"{GAIN_SIGMAS:g} standard errors" in text
     row = {ln.split()[0]: ln for ln in text.splitlines() if ln.strip().startswith(("drift ", "temperature "))}
     assert "-850.0" in row["drift"] and row["drift"].endswith("no: held-out error rises")
-    assert row["temperature"].endswith(f"no: held-out gain < {GAIN_SIGMAS:g} SE")
-    assert verdict_word(replace(small, log_ratio=0.1, p_value=0.5)) == "no: p >= 0.001"
+    assert row["temperature"].endswith("no: gain < 2 %")            # "significant" is a gain worth having
+    assert verdict_word(replace(small, gain=0.05, log_ratio=0.05, log_ratio_se=0.03)) == (
+        f"no: held-out gain < {GAIN_SIGMAS:g} SE")
+    assert verdict_word(replace(small, gain=0.05, log_ratio=0.1, p_value=0.5)) == "no: p >= 0.001"
     assert verdict_word(replace(small, significant=True)) == "SIGNIFICANT"

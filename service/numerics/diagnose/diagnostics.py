@@ -44,6 +44,7 @@ from service.numerics.engine import (
 
 from .fits import heldout, try_candidate
 from .result import N_BLOCKS, Candidate, Diagnosis, Progress
+from .signature import FLOOR_FACTOR, signature, verdict
 from .verdict import mark_indistinguishable, rank
 from .where import where_it_fails, worst_segments
 
@@ -112,10 +113,21 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     tell(0.92, "where it fails")
     noise = 1.0 / weights
     where = where_it_fails(ed, cur, noise)
+
+    # 5. the verdict in kinds, and what is left described (signature.py)
+    noise_nT = float(np.sqrt(np.mean(noise ** 2)))
+    best = next((c for c in cands if c.significant and c.fit is not None), None)
+    if best is None:
+        left = signature(cur, noise, where)
+    elif best.rms_nT > FLOOR_FACTOR * noise_nT:
+        left = signature(best.fit, noise, where_it_fails(ed, best.fit, noise))
+    else:
+        left = {}
+    told = verdict(cur.rms_nT, noise_nT, best, left, ed.ref_total_nT is not None)
     tell(1.0, "done")
     ch_rms = cur.channels.rms_nT
     return Diagnosis(effects=model.effects, model=str(model), linear="fixed" if fixed else "refit",
-                     reference=ref_kind, rms_nT=cur.rms_nT, noise_nT=float(np.sqrt(np.mean(noise ** 2))),
+                     reference=ref_kind, rms_nT=cur.rms_nT, noise_nT=noise_nT, verdict=told,
                      channel_names=list(cur.channels.names), channel_rms_nT=ch_rms, channel_noise_nT=noise,
                      where=where, candidates=cands, worst_segments=worst_segments(cur), n_samples=ed.n_samples,
                      duration_s=ed.duration_s, heldout_rms_nT=cur_ho.rms_nT, notes=notes, fit=cur,

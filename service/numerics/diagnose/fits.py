@@ -21,7 +21,7 @@ from service.numerics.engine import (
     warm_from,
 )
 
-from .result import ABSORBED, CANDIDATE_ITERATIONS, GAIN_SIGMAS, P_SIGNIFICANT, Candidate
+from .result import ABSORBED, CANDIDATE_ITERATIONS, GAIN_SIGMAS, MIN_GAIN, P_SIGNIFICANT, Candidate
 
 
 @dataclass
@@ -185,7 +185,7 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
                   log_ratio=cmp["lr"], log_ratio_se=cmp["lr_se"], p_value=cmp["p"], bic_delta=cmp["bic"],
                   n_params=int(cmp["dp"]), parameters=[p for p in fit.parameters() if p.term == name],
                   block_log_ratio=cmp["lr_b"], fit=fit)
-    c.significant = bool(c.p_value < P_SIGNIFICANT and c.gain > 0 and c.log_ratio > GAIN_SIGMAS * c.log_ratio_se
+    c.significant = bool(c.p_value < P_SIGNIFICANT and c.gain >= MIN_GAIN and c.log_ratio > GAIN_SIGMAS * c.log_ratio_se
                          and c.n_params > 0)
     absorbed = _absorbed_by(fit, name)
     if absorbed:

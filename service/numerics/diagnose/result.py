@@ -22,6 +22,9 @@ GAIN_SIGMAS = 2.0
 GAIN_TOLERANCE = 0.10
 
 
+MIN_GAIN = 0.02            # "significant" is a gain worth having: the held-out MSE falls by at least 2 %
+
+
 COLLINEAR_R2 = 0.90
 
 
@@ -101,6 +104,7 @@ class Diagnosis:
     fit: FitResult = field(repr=False)
     linear_refit_rms_nT: float | None = None
     parameters: list[Parameter] = field(default_factory=list)
+    verdict: dict[str, Any] | None = None
 
     @property
     def best(self) -> Candidate | None:
@@ -126,6 +130,7 @@ class Diagnosis:
             "parameters": [{"name": p.name, "value": _num(p.value), "stderr": _num(p.stderr)}
                            for p in self.parameters],
             "notes": list(self.notes),
+            "verdict": _plain(self.verdict),
         }
         if self.linear_refit_rms_nT is not None:
             d["linear_refit_rms_nT"] = _num(self.linear_refit_rms_nT)
@@ -138,3 +143,14 @@ def _num(x: Any) -> Any:
         return None
     x = float(x)
     return x if np.isfinite(x) else None
+
+
+def _plain(x: Any) -> Any:
+    """Floats made JSON-safe (NaN/inf -> None) through dicts and lists."""
+    if isinstance(x, dict):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_plain(v) for v in x]
+    if isinstance(x, float):
+        return _num(x)
+    return x

@@ -3,14 +3,14 @@
 
 from __future__ import annotations
 
-from .result import GAIN_SIGMAS, P_SIGNIFICANT, Candidate, Diagnosis
+from .result import GAIN_SIGMAS, MIN_GAIN, P_SIGNIFICANT, Candidate, Diagnosis
 
 PARAMETER_LINES = 18
 
 
-DECIDES = (f"    the held-out columns decide: SIGNIFICANT needs a positive held-out gain, at least {GAIN_SIGMAS:g} "
-           f"standard errors\n    (block to block) above zero, and p < {P_SIGNIFICANT:g}; p-value and dBIC assume "
-           f"white noise and alone decide nothing")
+DECIDES = (f"    the held-out columns decide: SIGNIFICANT needs a held-out gain of at least {100 * MIN_GAIN:g} %, "
+           f"{GAIN_SIGMAS:g} standard errors\n    (block to block) above zero, and p < {P_SIGNIFICANT:g}; p-value and "
+           f"dBIC assume white noise and alone decide nothing")
 
 
 def verdict_word(c: Candidate) -> str:
@@ -23,6 +23,8 @@ def verdict_word(c: Candidate) -> str:
         return "no: nothing determined"
     if c.gain <= 0:
         return "no: held-out error rises"
+    if c.gain < MIN_GAIN:
+        return f"no: gain < {100 * MIN_GAIN:g} %"
     if c.log_ratio <= GAIN_SIGMAS * c.log_ratio_se:
         return f"no: held-out gain < {GAIN_SIGMAS:g} SE"
     return f"no: p >= {P_SIGNIFICANT:g}"
@@ -88,14 +90,34 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
             else:
                 lines.append(f"  {c.effect} and {other} are indistinguishable with these data (equal held-out gain, "
                              f"collinear regressors): {c.separate_by}.")
-    best = d.best
     lines.append("")
-    if best is None:
-        lines.append("  no missing effect is significant: the model explains the data down to the noise"
-                     if ratio < 1.2 else "  no catalogue effect explains the rest of the residual significantly")
-    else:
-        lines.append(f"  most likely missing: {best.effect} (RMS {d.rms_nT:.3f} -> {best.rms_nT:.3f} nT); "
-                     f"try: --effects {','.join(d.effects + [best.effect])}")
+    lines += verdict_lines(d)
     for n in d.notes:
         lines.append(f"  note: {n}")
     return "\n".join(lines)
+
+
+def verdict_lines(d: Diagnosis) -> list[str]:
+    """The verdict: at the floor, explained by X, partly explained by X, or unexplained, with what is left."""
+    v = d.verdict
+    best = d.best
+    if v is None:                                   # a Diagnosis made by hand, without a verdict
+        return ["  no missing effect is significant" if best is None else f"  most likely missing: {best.effect}"]
+    try_it = "" if best is None else f"; try: --effects {','.join(d.effects + [best.effect])}"
+    if v["kind"] == "at the floor":
+        return ["  no missing effect is significant: the model explains the data down to the noise"]
+    if v["kind"] == "explained":
+        return [f"  explained by {best.effect}: adding it brings the residual from {d.rms_nT:.3f} to "
+                f"{best.rms_nT:.3f} nT, the noise floor is {d.noise_nT:.3f} nT{try_it}"]
+    if v["kind"] == "partly explained":
+        head = (f"  partly explained by {best.effect}: adding it brings the residual from {d.rms_nT:.3f} to "
+                f"{best.rms_nT:.3f} nT against a {d.noise_nT:.3f} nT floor{try_it}")
+    else:
+        head = (f"  unexplained: no catalogue effect explains the rest of the residual significantly "
+                f"({d.rms_nT:.3f} nT against a {d.noise_nT:.3f} nT floor)")
+    out = [head]
+    if v.get("left"):
+        out.append(f"  what is left: {v['left']}")
+    if v.get("advice"):
+        out.append(f"  what would explain it: {v['advice']}")
+    return out

@@ -1,0 +1,179 @@
+"""What is left: the signature of a residual, and the verdict over the candidates in three kinds.
+
+The signature says what a residual looks like without naming an effect:
+
+- shared: how much of the scalar channels' excess over their noise floor is common to all probes (the
+  mean covariance of pairs of probes against the mean excess variance). A field change at the site
+  (the ambient field varying, traffic) is common to every probe; a probe's own flicker noise, offset
+  drift or perming is not;
+- differences: whether the difference channels rise above their floor (an effect that differs between
+  probes shows there; a uniform field change cancels);
+- time scale: the period above which half of the excess power lies, and the slope of the spectrum
+  (about -1 for flicker noise, -2 or steeper for a smooth variation);
+- follows: the observables that explain most of it (from where_it_fails).
+
+The verdict: "at the floor" (nothing above the noise worth explaining), "explained by X" (adding X brings
+the residual within FLOOR_FACTOR of the floor), "partly explained by X" (X is significant, something is
+left, described), or "unexplained" (no candidate is significant; what is left is described, with what
+would explain it).
+
+Numerics only.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from scipy.signal import welch
+
+from service.numerics.engine import FitResult
+
+FLOOR_FACTOR = 1.3          # a residual within this factor of the noise floor is "at the floor"
+SHARED = 0.6                # share of the excess common to all probes above which it is called common
+OWN = 0.25                  # ... below which each probe's own
+FOLLOWS = 0.15              # explained variance above which a residual is said to follow an observable
+
+
+def _scalar_and_diff(fit: FitResult) -> tuple[list[int], list[int]]:
+    pr = fit.problem
+    kinds = [pr.channel_probe(c)[0] for c in range(len(fit.channels.names))]
+    return ([c for c, k in enumerate(kinds) if k == "scalar"], [c for c, k in enumerate(kinds) if k != "scalar"])
+
+
+def _shared(values: np.ndarray, noise: np.ndarray) -> float | None:
+    """Share of the scalar excess variance common to all probes: mean pair covariance / mean excess."""
+    p = values.shape[1]
+    if p < 2:
+        return None
+    r = values - values.mean(0)
+    cov = r.T @ r / max(r.shape[0] - 1, 1)
+    excess = float(np.mean(np.diag(cov) - noise ** 2))
+    if excess <= 0:
+        return None
+    pairs = cov[np.triu_indices(p, 1)]
+    return float(np.clip(np.mean(pairs) / excess, 0.0, 1.0))
+
+
+def _time_scale(t_s: np.ndarray, y: np.ndarray, noise: float) -> tuple[float | None, float | None]:
+    """(period in s above which half of the excess power lies, spectral slope) of a residual, from a
+    Welch spectrum on its median sample interval (gaps are closed up: fine for a description)."""
+    n = y.size
+    if n < 256:
+        return None, None
+    dt = float(np.median(np.diff(t_s)))
+    nper = int(2 ** np.floor(np.log2(n / 4)))
+    f, p = welch(y - y.mean(), fs=1.0 / dt, nperseg=nper)
+    f, p = f[1:], p[1:]
+    white = 2.0 * noise ** 2 * dt                         # one-sided density of the white floor
+    excess = np.clip(p - white, 0.0, None)
+    if excess.sum() <= 0:
+        return None, None
+    cum = np.cumsum(excess) / excess.sum()
+    f_half = float(f[np.searchsorted(cum, 0.5)])
+    # slope where the excess stands clearly above the floor
+    band = p > 3.0 * white
+    slope = None
+    if np.count_nonzero(band) >= 4 and np.ptp(np.log(f[band])) > np.log(4.0):
+        slope = float(np.polyfit(np.log(f[band]), np.log(p[band]), 1)[0])
+    return 1.0 / f_half, slope
+
+
+def signature(fit: FitResult, noise: np.ndarray, where: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """The signature of fit's residual (see the module doc), JSON-ready."""
+    vals = fit.channels.values
+    sc, df = _scalar_and_diff(fit)
+    rms = np.sqrt(np.mean(vals ** 2, axis=0))
+    out: dict[str, Any] = {}
+    if sc:
+        out["scalar_rms_nT"] = float(np.sqrt(np.mean(rms[sc] ** 2)))
+        out["scalar_noise_nT"] = float(np.sqrt(np.mean(noise[sc] ** 2)))
+        out["shared_fraction"] = _shared(vals[:, sc], noise[sc])
+    if df:
+        out["difference_rms_nT"] = float(np.sqrt(np.mean(rms[df] ** 2)))
+        out["difference_noise_nT"] = float(np.sqrt(np.mean(noise[df] ** 2)))
+    # the time scale: of the probes' common part when it dominates, else of the channel furthest above its floor
+    if sc and (out.get("shared_fraction") or 0.0) >= SHARED:
+        y, nz = vals[:, sc].mean(1), float(np.sqrt(np.mean(noise[sc] ** 2) / len(sc)))
+    else:
+        c = int(np.argmax(rms / noise))
+        y, nz = vals[:, c], float(noise[c])
+    out["half_power_period_s"], out["spectral_slope"] = _time_scale(fit.channels.t_s, y, nz)
+    seen: dict[str, dict[str, Any]] = {}
+    for w in where or []:                      # strongest first; one entry per observable
+        if w["strength"] >= FOLLOWS and w["observable"] not in seen:
+            seen[w["observable"]] = {"observable": w["observable"], "channel": w["channel"], "strength": w["strength"]}
+    out["follows"] = list(seen.values())[:3]
+    return out
+
+
+def _period_text(s: float) -> str:
+    return f"{s / 60:.0f} min" if s >= 120 else f"{s:.0f} s" if s >= 2 else f"{s * 1000:.0f} ms"
+
+
+def describe(sig: dict[str, Any], has_reference: bool) -> tuple[str, str]:
+    """(what is left, what would explain it), one sentence each, from a signature."""
+    parts, advice = [], ""
+    shared = sig.get("shared_fraction")
+    diff_up = ("difference_rms_nT" in sig
+               and sig["difference_rms_nT"] > FLOOR_FACTOR * sig["difference_noise_nT"])
+    scalar_up = ("scalar_rms_nT" in sig and sig["scalar_rms_nT"] > FLOOR_FACTOR * sig["scalar_noise_nT"])
+    if scalar_up:
+        parts.append(f"{sig['scalar_rms_nT']:.2f} nT against a {sig['scalar_noise_nT']:.2f} nT floor in the scalar "
+                     f"channels")
+    if diff_up:
+        parts.append(f"{sig['difference_rms_nT']:.2f} nT against {sig['difference_noise_nT']:.2f} nT in the "
+                     f"differences")
+    elif "difference_rms_nT" in sig:
+        parts.append("the differences between probes are at their floor")
+    if shared is not None and scalar_up:
+        if shared >= SHARED:
+            parts.append(f"common to all probes ({100 * shared:.0f} % of the excess is shared)")
+        elif shared <= OWN:
+            parts.append(f"each probe's own ({100 * shared:.0f} % shared)")
+        else:
+            parts.append(f"partly common to the probes ({100 * shared:.0f} % shared)")
+    period, slope = sig.get("half_power_period_s"), sig.get("spectral_slope")
+    if period is not None:
+        slow = f"half of its excess power at periods over {_period_text(period)}"
+        if slope is not None:
+            slow += f", spectrum ~ f^{slope:.1f}"
+        parts.append(slow)
+    follows = sig.get("follows") or []
+    if follows:
+        parts.append("it follows " + ", ".join(f"{f['observable']} ({100 * f['strength']:.0f} %)" for f in follows))
+    # what would explain it
+    if shared is not None and shared >= SHARED and not diff_up:
+        advice = ("a field change at the site, common to all probes: " +
+                  ("the scalar reference does not follow it; check its timing and position" if has_reference else
+                   "log a reference magnetometer (a ref_total column) so the total field follows it, or model "
+                   "the ambient field in time"))
+    elif shared is not None and shared <= OWN and slope is not None and -1.6 <= slope <= -0.5 and not (
+            follows and follows[0]["strength"] >= 2 * FOLLOWS):
+        advice = ("each probe's own slow noise (flicker, spectrum about 1/f): not a missing effect; it limits "
+                  "slow terms (drift, temperature) and sets the real floor")
+    elif follows:
+        advice = (f"a term in {follows[0]['observable']} (or a lagged or rate version of it) is missing from the "
+                  f"catalogue's forms")
+    else:
+        advice = "nothing the data carry explains it; log what might (temperatures, currents, a reference)"
+    return "; ".join(parts), advice
+
+
+def verdict(rms_nT: float, noise_nT: float, best: Any, left: dict[str, Any], has_reference: bool) -> dict[str, Any]:
+    """The verdict in three kinds (plus "at the floor"), JSON-ready; `left` the signature of what the best
+    candidate (or the model, without one) leaves."""
+    if best is None and rms_nT <= FLOOR_FACTOR * noise_nT:
+        return {"kind": "at the floor", "effect": None, "rms_nT": rms_nT, "floor_nT": noise_nT,
+                "left": None, "advice": None}
+    after = best.rms_nT if best is not None else rms_nT
+    if best is not None and after <= FLOOR_FACTOR * noise_nT:
+        kind = "explained"
+    elif best is not None:
+        kind = "partly explained"
+    else:
+        kind = "unexplained"
+    what, advice = describe(left, has_reference)
+    return {"kind": kind, "effect": None if best is None else best.effect, "rms_nT": after, "floor_nT": noise_nT,
+            "left": None if kind == "explained" else what, "advice": None if kind == "explained" else advice,
+            "signature": left}
