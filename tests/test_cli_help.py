@@ -45,3 +45,17 @@ def test_version(capsys):
     assert e.value.code == 0
     out = capsys.readouterr().out
     assert out.startswith("fluxcal ") and out.split()[1][0].isdigit()
+
+
+def test_the_help_answers_what_a_new_user_had_to_guess():
+    # from a trial of the whole workflow with --help alone (the closing note of issue 16)
+    subs = _subparsers()
+    top = cli.build_parser().format_help()
+    assert "configs/ of the fluxcal repository" in top and "relative to its own" in top and "Exit status" in top
+    run = " ".join(subs["run"].format_help().split())
+    assert "relative to the configuration file" in run and "Ctrl-C" in run and "reloaded at start" in run
+    assert "delete that file to learn afresh" in run and "status_s" in run
+    sim = " ".join(subs["simulate"].format_help().split()).replace("_ ", "_")
+    assert all(k in sim for k in ("temp_offset_nT_per_C", "pink_nT_rtHz", "variation_nT", "configs/sim-gradiometer"))
+    cmd = " ".join(subs["command"].format_help().split())
+    assert "temperature, drift or nonlinearity" in cmd and "exits with 1" in cmd

@@ -65,5 +65,10 @@ def test_effects_that_need_neighbouring_samples_are_refused_live():
     cal = fit_ellipsoid(first.field_nT[:, 0], first.extras["ref_total"]).calibration
     pl = Pipeline(n_probes=1, probe_names=["s1"], positions_m=None, initial=ArrayCalibration("e", None, [cal]))
     pl.process(first)
-    with pytest.raises(FluxcalError, match="cannot be added to the running service"):
+    with pytest.raises(FluxcalError, match="cannot be added to the running service") as e:
         pl.command("add-effect", "eddy", seq=4000, t_s=20.0)
+    assert "fluxcal fit --effects eddy" in str(e.value)
+    # a name that is no effect at all is not sent to `fit --effects`, which would refuse it too
+    with pytest.raises(FluxcalError, match="not an effect at all") as e:
+        pl.command("add-effect", "bogus", seq=4000, t_s=20.0)
+    assert "fit --effects" not in str(e.value)

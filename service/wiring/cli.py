@@ -8,6 +8,7 @@ stderr that says what to do.
 from __future__ import annotations
 
 import argparse
+import textwrap
 import importlib
 import signal
 import sys
@@ -49,9 +50,14 @@ def _command(sub, name: str, summary: str, examples: str) -> argparse.ArgumentPa
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="fluxcal", description="Calibration service for fluxgate gradiometers "
-                                "and magnetic gradient-tensor arrays. `fluxcal COMMAND --help` shows each "
-                                "command's options, defaults and an example.", allow_abbrev=False)
+    p = argparse.ArgumentParser(
+        prog="fluxcal", description="Calibration service for fluxgate gradiometers and magnetic gradient-tensor "
+        "arrays. `fluxcal COMMAND --help` shows each command's options, defaults and examples.",
+        epilog="The example configurations are in configs/ of the fluxcal repository: copy one beside your data and "
+               "edit it (paths in a configuration are relative to its own file). A workflow: simulate -> fit -> "
+               "diagnose -> fit --effects ... -> run -> watch / command -> replay; decode turns captures into "
+               "data, repair finishes a cut recording. Exit status: 0 success, 2 bad input or usage, 1 any other "
+               "failure (a command the service refused, replayed output that differs).", allow_abbrev=False)
     p.add_argument("--version", action="version", version=f"fluxcal {_version()}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     data_help = "a lab CSV (t, s1_x, s1_y, s1_z, ... in nT; docs/contracts.md) or an MCAP recording of fluxcal"
@@ -90,7 +96,17 @@ def build_parser() -> argparse.ArgumentParser:
     dia.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
 
     run = _command(sub, "run", "run the service: source -> calibration -> Zenoh and MCAP",
-                   "  fluxcal run --config configs/sim-gradiometer.toml")
+                   "  fluxcal run --config configs/sim-gradiometer.toml   # saves to state/, records to "
+                   "recordings/live/\n"
+                   "                                                      # (its paths are ../state, ../recordings: "
+                   "relative to configs/)")
+    run.description = textwrap.fill(run.description + (
+        " Paths in the configuration ([calibration] file, [mcap] dir) are relative to the configuration file."
+        " It runs until Ctrl-C or SIGTERM (a clean stop: files finished and closed), or for [source] run_s"
+        " seconds on the simulated unit. A calibration saved by an earlier run of the same unit and source kind is"
+        " reloaded at start (its path is said); delete that file to learn afresh (`fluxcal command reset` makes a"
+        " running service forget what it learned). Status lines, gate reasons and commands go to stderr every"
+        " [unit] status_s seconds; recordings to [mcap] dir."), 100)
     run.add_argument("--config", required=True, metavar="FILE", help="the service's TOML configuration (required)")
 
     rep = _command(sub, "replay", "run a recording through the same pipeline and compare with its output",
@@ -110,7 +126,13 @@ def build_parser() -> argparse.ArgumentParser:
                    "  fluxcal simulate --config configs/sim-gradiometer.toml --out grad.csv\n"
                    "  fluxcal simulate --out capture.bin      # then: fluxcal decode capture.bin --probes 2 --out d.csv\n"
                    "  fluxcal simulate --out bus.log          # then: fluxcal decode bus.log --can --probes 2 --out d.csv")
-    sim.add_argument("--config", metavar="FILE", help="the [sim] section to simulate (default: a built-in gradiometer)")
+    sim.add_argument("--config", metavar="FILE",
+                     help="the [sim] section to simulate (default: a built-in gradiometer). Hide an effect by giving "
+                          "its keys: [[sim.probes]] temp_offset_nT_per_C, eddy_s, lag_s, nonlin_quadratic_per_nT, "
+                          "drift_offset_nT_per_h, pink_nT_rtHz (1/f noise); [sim.field] gradient_nT_m, "
+                          "variation_nT (ambient change); [sim.temperature] ramp_C_per_h, amplitude_C; [sim.motion] "
+                          "kind (turntable, tumble, grid, static). configs/sim-gradiometer.toml lists them all with "
+                          "units. A .mcap output carries the attitude; a CSV does not")
     sim.add_argument("--out", required=True, metavar="FILE.csv|FILE.mcap|FILE.bin|FILE.log",
                      help="where to write (allowed: .csv lab data, with angle_deg and turn for a turntable; .mcap a "
                           "recording; .bin the unit's serial bytes; .log a candump log of its CAN frames); a "
@@ -131,8 +153,10 @@ def build_parser() -> argparse.ArgumentParser:
     cmd = _command(sub, "command", "send the running service a command, or ask its state",
                    "  fluxcal command state --connect tcp/127.0.0.1:7447\n  fluxcal command freeze --unit grad1\n"
                    "  fluxcal command add-effect temperature\n  fluxcal command apply cal.json")
-    cmd.add_argument("verb", metavar="VERB", help="state, freeze, unfreeze, reset, apply (payload: a calibration "
-                                                 "file), add-effect (payload: the effect's name)")
+    cmd.add_argument("verb", metavar="VERB", help="state, freeze, unfreeze, reset (forget what was learned), apply "
+                                                 "(payload: a calibration file), add-effect (payload: temperature, "
+                                                 "drift or nonlinearity, the effects a running service takes). A "
+                                                 "refused command exits with 1 and says why")
     cmd.add_argument("payload", metavar="PAYLOAD", nargs="?", default=None,
                      help="what the command needs (apply: a calibration file; add-effect: an effect name)")
     cmd.add_argument("--config", metavar="FILE", help="take the endpoints, unit and TLS from this configuration")

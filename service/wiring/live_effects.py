@@ -33,8 +33,12 @@ class LiveEffects:
         from service.numerics.engine import fit_with_effects
 
         if name not in self.NAMES:
+            from service.numerics.effects import EFFECTS
+
+            offline = (f"; fit it offline with `fluxcal fit --effects {name}`" if name in EFFECTS else
+                       f"; {name!r} is not an effect at all (the catalogue: {', '.join(EFFECTS)})")
             raise FluxcalError(f"add-effect: {name!r} cannot be added to the running service (allowed: "
-                               f"{', '.join(self.NAMES)}); fit it offline with `fluxcal fit --effects {name}`")
+                               f"{', '.join(self.NAMES)}){offline}")
         if calibration is None:
             raise FluxcalError("add-effect: no calibration in use yet; wait until it is usable")
         names = [e for e in self.names if e != name] + [name]

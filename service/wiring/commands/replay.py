@@ -68,10 +68,12 @@ def main(args: Namespace) -> int:
             raise RecordingError(f"{args.recording}: no configuration stored in the recording; give --config")
         cfg = config_from_dict(_with_rate(json.loads(text), args.recording), f"{args.recording} (stored configuration)")
     initial = None
+    initial_event = {"kind": "initial", "seq": 0, "calibration": None}
     commands = []
     for ev in rec.events:
         if ev.get("kind") == "initial" and ev.get("calibration"):
             initial = calibration_from_dict(ev["calibration"], "recorded initial calibration")
+            initial_event = ev
         elif ev.get("kind") == "command":
             commands.append(ev)
     commands.sort(key=lambda e: e["seq"])
@@ -83,6 +85,8 @@ def main(args: Namespace) -> int:
         out = Path(args.out)
         logger = McapLogger(out.parent, unit=cfg.unit.name, filename=out.name, rotate_mb=1e9, rotate_s=1e12,
                             metadata=dict(rec.metadata))
+        # what a replay of this copy needs: the calibration it started from and the commands, where they acted
+        logger.write_event(initial_event)
     blocks = _coalesce(rec.raw_blocks, [c["seq"] for c in commands])
     progress = Progress(sum(b.n_samples for b in blocks), "replay")
     samples = 0
@@ -96,6 +100,8 @@ def main(args: Namespace) -> int:
                 payload = (calibration_from_dict(c["calibration"]) if c.get("name") == "apply"
                            else c.get("effect"))
                 pipeline.command(c["name"], payload, seq=c["seq"], t_s=float("nan"))
+                if logger is not None:
+                    logger.write_event(c)
                 ci += 1
             result = pipeline.process(block)
             samples += block.n_samples
@@ -120,6 +126,15 @@ def main(args: Namespace) -> int:
     if compared and identical != compared:
         print(f"fluxcal replay: {compared - identical} corrected sample(s) differ from the live run", file=sys.stderr)
         return 1
+    if not compared:
+        live = sum(c.n_samples for c in rec.corrected_blocks)
+        replayed = sum(int(s.size) for s in out_seq)
+        if live:
+            print(f"fluxcal replay: the live run has {live} corrected sample(s), the replay {replayed} at the same "
+                  f"samples: they differ", file=sys.stderr)
+            return 1
+        print("fluxcal replay: nothing to compare: the recording holds no corrected samples (its calibration was "
+              f"not usable while it ran); the replay gave {replayed}", file=sys.stderr)
     return 0
 
 
