@@ -59,3 +59,11 @@ def test_the_help_answers_what_a_new_user_had_to_guess():
     assert all(k in sim for k in ("temp_offset_nT_per_C", "pink_nT_rtHz", "variation_nT", "configs/sim-gradiometer"))
     cmd = " ".join(subs["command"].format_help().split())
     assert "temperature, drift or nonlinearity" in cmd and "exits with 1" in cmd
+    rep = " ".join(subs["replay"].format_help().split())
+    assert "exit 0 when every one is identical" in rep and "1 when any differs" in rep
+    fit = " ".join(subs["fit"].format_help().split())
+    assert "ref_total" in fit and "s<k>_temp" in fit and "heel_deg" in fit and "estimated" in fit
+    dec = " ".join(subs["decode"].format_help().split())
+    assert "no unit clock" in dec and "--site" in dec
+    watch = " ".join(subs["watch"].format_help().split())
+    assert "cal=" in watch and "cov=" in watch and "not on a terminal" in watch

@@ -43,8 +43,10 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
-def _command(sub, name: str, summary: str, examples: str) -> argparse.ArgumentParser:
-    return sub.add_parser(name, help=summary, description=summary[0].upper() + summary[1:] + ".",
+def _command(sub, name: str, summary: str, examples: str, more: str = "") -> argparse.ArgumentParser:
+    text = summary[0].upper() + summary[1:] + "." + (" " + more.strip() if more else "")
+    short = summary.split(": ")[0] if len(summary) > 70 else summary
+    return sub.add_parser(name, help=short, description=textwrap.fill(text, 100),
                           epilog="examples:\n" + examples, formatter_class=argparse.RawDescriptionHelpFormatter,
                           allow_abbrev=False)
 
@@ -60,7 +62,11 @@ def build_parser() -> argparse.ArgumentParser:
                "failure (a command the service refused, replayed output that differs).", allow_abbrev=False)
     p.add_argument("--version", action="version", version=f"fluxcal {_version()}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    data_help = "a lab CSV (t, s1_x, s1_y, s1_z, ... in nT; docs/contracts.md) or an MCAP recording of fluxcal"
+    data_help = ("a lab CSV or an MCAP recording of fluxcal. CSV columns: t (s), s1_x, s1_y, s1_z, s2_x, ... (nT); "
+                 "optional: s<k>_temp (degC, for temperature), ref_total (nT, a scalar reference: without it and "
+                 "without --site or the config's total field, the total field is estimated and an overall scale "
+                 "cannot be seen), heel_deg, pitch_deg, azimuth_deg (attitude, for gradient), any other column "
+                 "(diagnose tests what the residual follows); docs/csv.md")
     config_help = "a fluxcal TOML configuration (configs/ has examples): probe positions, total field, site"
     effects_help = f"effect terms, comma-separated (allowed: {EFFECT_NAMES}); default: none"
     site_help = (f"the site as {SITE} (degrees north, degrees east, metres above the ellipsoid; DATE as "
@@ -99,23 +105,26 @@ def build_parser() -> argparse.ArgumentParser:
                    "  fluxcal run --config configs/sim-gradiometer.toml   # saves to state/, records to "
                    "recordings/live/\n"
                    "                                                      # (its paths are ../state, ../recordings: "
-                   "relative to configs/)")
-    run.description = textwrap.fill(run.description + (
-        " Paths in the configuration ([calibration] file, [mcap] dir) are relative to the configuration file."
+                   "relative to configs/)",
+                   more=(" Paths in the configuration ([calibration] file, [mcap] dir) are relative to the configuration file."
         " It runs until Ctrl-C or SIGTERM (a clean stop: files finished and closed), or for [source] run_s"
         " seconds on the simulated unit. A calibration saved by an earlier run of the same unit and source kind is"
         " reloaded at start (its path is said); delete that file to learn afresh (`fluxcal command reset` makes a"
         " running service forget what it learned). Status lines, gate reasons and commands go to stderr every"
-        " [unit] status_s seconds; recordings to [mcap] dir."), 100)
+        " [unit] status_s seconds; recordings to [mcap] dir."))
+
     run.add_argument("--config", required=True, metavar="FILE", help="the service's TOML configuration (required)")
 
     rep = _command(sub, "replay", "run a recording through the same pipeline and compare with its output",
-                   "  fluxcal replay recordings/grad1-sim-30s.mcap\n  fluxcal replay rec.mcap --out again.mcap")
+                   "  fluxcal replay recordings/grad1-sim-30s.mcap\n  fluxcal replay rec.mcap --out again.mcap",
+                   more=(" It compares the replay's corrected output with the recording's, sample by sample: exit 0 "
+                        "when every one is identical (or there was none to compare, which it says), 1 when any "
+                        "differs."))
     rep.add_argument("recording", metavar="REC.mcap", help="an MCAP file, or a directory of one run's rotated files")
     rep.add_argument("--config", metavar="FILE",
                      help="replay with this configuration (default: the one stored in the recording)")
-    rep.add_argument("--out", metavar="OUT.mcap", help="also record the replay here (default: none)")
-
+    rep.add_argument("--out", metavar="OUT.mcap", help="also record the replay here, with the initial calibration and "
+                                                      "the commands, so it replays again (default: none)")
     fix = _command(sub, "repair", "copy a recording cut by a killed writer (or damaged) into a finished one",
                    "  fluxcal repair recordings/live/grad1-20261124T101500-0003.mcap fixed.mcap\n"
                    "  fluxcal repair recordings/live/ fixed/")
@@ -138,12 +147,15 @@ def build_parser() -> argparse.ArgumentParser:
                           "recording; .bin the unit's serial bytes; .log a candump log of its CAN frames); a "
                           ".truth.json with every simulated parameter goes beside it")
 
-    dec = _command(sub, "decode", "turn a serial capture or CAN log into data",
+    dec = _command(sub, "decode", "turn a serial capture or CAN log into data (CSV or MCAP) for fit and diagnose",
                    "  fluxcal decode capture.bin --probes 2 --out data.csv\n"
                    "  fluxcal decode bus.log --can --probes 4 --base-id 0x200 --out data.mcap")
     dec.add_argument("capture", metavar="CAPTURE", help="raw serial bytes, or a CAN log (.log, .asc, .blf) with --can")
     dec.add_argument("--probes", type=int, required=True, metavar="N", help="probes in each frame (1..8; required)")
-    dec.add_argument("--can", action="store_true", help="the capture is a CAN log (default: serial bytes)")
+    dec.add_argument("--can", action="store_true",
+                     help="the capture is a CAN log (default: serial bytes). CAN frames carry no unit clock: t is "
+                          "the sample counter over the rate estimated from the log's timestamps. Neither carries a "
+                          "total field: give fit and diagnose --site or a config's total field")
     dec.add_argument("--lsb-nT", dest="lsb_nT", type=float, default=0.001, metavar="X",
                      help="nT per ADC count (default: %(default)s)")
     dec.add_argument("--base-id", dest="base_id", type=_int_auto, default=0x200, metavar="ID",
@@ -167,7 +179,9 @@ def build_parser() -> argparse.ArgumentParser:
     cmd.add_argument("--cert", metavar="CERT.pem", help="TLS: this client's certificate")
     cmd.add_argument("--key", metavar="KEY.pem", help="TLS: this client's private key")
 
-    watch = _command(sub, "watch", "terminal dashboard of a running service",
+    watch = _command(sub, "watch", "terminal dashboard of a running service: each probe's field and |B|, the error "
+                     "against the noise, cal= the quality gate (usable or not; `fluxcal command state` says why), "
+                     "cov= the share of field directions seen; one line a second when not on a terminal",
                      "  fluxcal watch --connect tcp/127.0.0.1:7447\n  fluxcal watch --config configs/sim-gradiometer.toml")
     watch.add_argument("--config", metavar="FILE", help="take the endpoints, unit and TLS from this configuration")
     watch.add_argument("--connect", metavar="ENDPOINT", help="the service's endpoint, e.g. tcp/127.0.0.1:7447 "
