@@ -336,6 +336,10 @@ def test_perming_step_found_located_and_removed():
     d2 = diagnose(data, effects=["hysteresis"])
     assert d2.rms_nT <= RMS_OVER_NOISE * d2.noise_nT
     assert not any(c.significant for c in d2.candidates), summary_text(d2)
+    # every candidate is fitted beside the model's own steps (issue 14): no negative parameter counts, and
+    # held-out gains near zero, not -300 to -650 % from a model that had lost its steps
+    tried = [c for c in d2.candidates if c.testable and not c.indistinguishable_from]
+    assert tried and all(c.n_params > 0 and c.gain > -0.05 for c in tried), summary_text(d2)
 
 
 @pytest.mark.slow

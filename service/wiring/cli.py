@@ -68,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
                  "cannot be seen), heel_deg, pitch_deg, azimuth_deg (attitude, for gradient), any other column "
                  "(diagnose tests what the residual follows); docs/csv.md")
     config_help = "a fluxcal TOML configuration (configs/ has examples): probe positions, total field, site"
-    effects_help = f"effect terms, comma-separated (allowed: {EFFECT_NAMES}); default: none"
+    own = "or FILE.py:ClassName / package.module:ClassName for an effect of your own, docs/effects.md"
+    effects_help = f"effect terms, comma-separated (allowed: {EFFECT_NAMES}; {own}); default: none"
     site_help = (f"the site as {SITE} (degrees north, degrees east, metres above the ellipsoid; DATE as "
                  f"YYYY-MM-DD, default today): the total field from the World Magnetic Model, when no ref_total "
                  f"was logged")
@@ -96,7 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     dia.add_argument("--calibration", metavar="CAL.json",
                      help="hold this calibration fixed (a file of `fit --out`, or `fit --json`); default: refit")
     dia.add_argument("--effects", type=_effects, default=[], metavar="E,..",
-                     help=f"the effects already in the model (allowed: {EFFECT_NAMES}); default: none")
+                     help=f"the effects already in the model (allowed: {EFFECT_NAMES}; {own}); default: none. "
+                          f"Effects installed in the entry-point group fluxcal.effects are tried as candidates too")
     dia.add_argument("--site", metavar=SITE, help=site_help)
     dia.add_argument("--report", metavar="DIR", help="also write an HTML report with plots here (needs matplotlib)")
     dia.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")

@@ -209,6 +209,9 @@ def contract_json(cal: ArrayCalibration, channels: dict[str, np.ndarray], probe_
         "differential_rms_nT": rms(np.concatenate(diff)) if diff else None,
         "rms_nT": rms(np.concatenate(list(channels.values()))),
         "warnings": list(warnings or []),
+        # the effect terms' parameters, as the text lists them: {effect: {name: {"value", "se", "unit"}}}
+        "effect_params": _finite_or_none({eff: {name: dict(v) for name, v in ps.items()}
+                                          for eff, ps in (cal.effect_params or {}).items()}),
     }
 
 

@@ -31,7 +31,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from drivers.errors import CalibrationRefused
-from service.numerics.effects import EFFECTS, Baseline, Model, make_model
+from service.numerics.effects import Baseline, Model, known_effects, make_model
 from service.numerics.engine import (
     LinearCalibration,
     as_effect_data,
@@ -97,7 +97,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
                                  n_blocks=n_blocks).rms_nT
 
     # 2. the candidates: each effect not in the model, fitted beside it and judged on held-out blocks (fits.py)
-    names = list(candidates) if candidates is not None else [n for n in EFFECTS if n not in model]
+    names = list(candidates) if candidates is not None else [n for n in known_effects() if n not in model]
     hints = residual_hints(cur)
     cands: list[Candidate] = []
     for i, name in enumerate(names):

@@ -10,7 +10,7 @@ import numpy as np
 from scipy import stats
 
 from drivers.errors import FluxcalError
-from service.numerics.effects import EFFECTS, Model, make_term
+from service.numerics.effects import Model, known_effects, make_term
 from service.numerics.effects.base import EffectData, EffectTerm
 from service.numerics.engine import (
     RANK_TOL,
@@ -123,8 +123,8 @@ def _absorbed_in(pr: Problem, a: np.ndarray, term: str) -> list[str] | None:
 
 
 def _separation(a: str, b: str) -> str:
-    ta = EFFECTS.get(a)
-    tb = EFFECTS.get(b)
+    known = known_effects()
+    ta, tb = known.get(a), known.get(b)
     for t, other in ((ta, b), (tb, a)):
         if t is not None and other in t.separation:
             return t.separation[other]
@@ -148,8 +148,11 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
         untestable.reason = why
         return untestable
     try:
+        # the model's terms keep the references they were fitted with (perming step instants, temperature
+        # and time origins): a candidate is tried beside the model as it is, not beside a model whose steps
+        # are looked for again in a residual they were already taken from
         pr = Problem(ed, model + term, cur.state.linear, reference, weights=weights, n_blocks=n_blocks,
-                     hints=hints)
+                     hints=hints, refs=[v.cache for v in cur.problem.views])
         if pr.term_size(name) == 0:
             untestable.reason = ("no perming step stands out of the noise in the residual" if name == "hysteresis"
                                  else "nothing to fit in these data")

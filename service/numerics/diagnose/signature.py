@@ -55,12 +55,17 @@ def _shared(values: np.ndarray, noise: np.ndarray) -> float | None:
     return float(np.clip(np.mean(pairs) / excess, 0.0, 1.0))
 
 
-def _time_scale(t_s: np.ndarray, y: np.ndarray, noise: float) -> tuple[float | None, float | None]:
-    """(period in s above which half of the excess power lies, spectral slope) of a residual, from a
-    Welch spectrum on its median sample interval (gaps are closed up: fine for a description)."""
+LINE_SHARE = 0.5            # a spectral line: this share of the excess power within LINE_BINS bins of its peak
+LINE_BINS = 2
+
+
+def _time_scale(t_s: np.ndarray, y: np.ndarray, noise: float) -> tuple[float | None, float | None, float | None]:
+    """(period in s above which half of the excess power lies, spectral slope, frequency of a spectral line
+    or None) of a residual, from a Welch spectrum on its median sample interval (gaps are closed up: fine
+    for a description)."""
     n = y.size
     if n < 256:
-        return None, None
+        return None, None, None
     dt = float(np.median(np.diff(t_s)))
     nper = int(2 ** np.floor(np.log2(n / 4)))
     f, p = welch(y - y.mean(), fs=1.0 / dt, nperseg=nper)
@@ -68,7 +73,14 @@ def _time_scale(t_s: np.ndarray, y: np.ndarray, noise: float) -> tuple[float | N
     white = 2.0 * noise ** 2 * dt                         # one-sided density of the white floor
     excess = np.clip(p - white, 0.0, None)
     if excess.sum() <= 0:
-        return None, None
+        return None, None, None
+    peak = int(np.argmax(excess))
+    near = excess[max(0, peak - LINE_BINS):peak + LINE_BINS + 1].sum()
+    line = None
+    if near >= LINE_SHARE * excess.sum() and peak > LINE_BINS:
+        # the peak's frequency to a fraction of a bin: the power-weighted mean over its bins
+        sl = slice(peak - LINE_BINS, peak + LINE_BINS + 1)
+        line = float(np.sum(f[sl] * excess[sl]) / np.sum(excess[sl]))
     cum = np.cumsum(excess) / excess.sum()
     f_half = float(f[np.searchsorted(cum, 0.5)])
     # slope where the excess stands clearly above the floor
@@ -76,7 +88,7 @@ def _time_scale(t_s: np.ndarray, y: np.ndarray, noise: float) -> tuple[float | N
     slope = None
     if np.count_nonzero(band) >= 4 and np.ptp(np.log(f[band])) > np.log(4.0):
         slope = float(np.polyfit(np.log(f[band]), np.log(p[band]), 1)[0])
-    return 1.0 / f_half, slope
+    return 1.0 / f_half, (None if line is not None else slope), line
 
 
 def signature(fit: FitResult, noise: np.ndarray, where: list[dict[str, Any]] | None = None) -> dict[str, Any]:
@@ -98,11 +110,18 @@ def signature(fit: FitResult, noise: np.ndarray, where: list[dict[str, Any]] | N
     else:
         c = int(np.argmax(rms / noise))
         y, nz = vals[:, c], float(noise[c])
-    out["half_power_period_s"], out["spectral_slope"] = _time_scale(fit.channels.t_s, y, nz)
+    out["half_power_period_s"], out["spectral_slope"], out["line_hz"] = _time_scale(fit.channels.t_s, y, nz)
+    if sc and len(sc) > 1:
+        # which probes carry it: each probe's share of the summed scalar excess
+        excess = np.clip(rms[sc] ** 2 - noise[sc] ** 2, 0.0, None)
+        if excess.sum() > 0:
+            names = [fit.channels.names[c].split(".")[0] for c in sc]
+            out["probe_share"] = {nm: float(e / excess.sum()) for nm, e in zip(names, excess)}
     seen: dict[str, dict[str, Any]] = {}
     for w in where or []:                      # strongest first; one entry per observable
         if w["strength"] >= FOLLOWS and w["observable"] not in seen:
-            seen[w["observable"]] = {"observable": w["observable"], "channel": w["channel"], "strength": w["strength"]}
+            seen[w["observable"]] = {"observable": w["observable"], "channel": w["channel"], "strength": w["strength"],
+                                     **({"band": w["band"]} if w.get("band") else {})}
     out["follows"] = list(seen.values())[:3]
     return out
 
@@ -130,20 +149,35 @@ def describe(sig: dict[str, Any], has_reference: bool) -> tuple[str, str]:
         if shared >= SHARED:
             parts.append(f"common to all probes ({100 * shared:.0f} % of the excess is shared)")
         elif shared <= OWN:
-            parts.append(f"each probe's own ({100 * shared:.0f} % shared)")
+            share = sig.get("probe_share") or {}
+            top = [nm for nm, v in sorted(share.items(), key=lambda kv: -kv[1]) if v >= 0.2]
+            if share and len(top) < len(share):
+                parts.append(f"{' and '.join(top)}'s own ({100 * shared:.0f} % shared; {', '.join(top)} "
+                             f"{'carries' if len(top) == 1 else 'carry'} "
+                             f"{100 * sum(share[t] for t in top):.0f} % of the excess)")
+            else:
+                parts.append(f"each probe's own ({100 * shared:.0f} % shared)")
         else:
             parts.append(f"partly common to the probes ({100 * shared:.0f} % shared)")
-    period, slope = sig.get("half_power_period_s"), sig.get("spectral_slope")
-    if period is not None:
+    period, slope, line = sig.get("half_power_period_s"), sig.get("spectral_slope"), sig.get("line_hz")
+    if line is not None:
+        parts.append(f"a spectral line at {line:.2f} Hz holds most of it")
+    elif period is not None:
         slow = f"half of its excess power at periods over {_period_text(period)}"
         if slope is not None:
             slow += f", spectrum ~ f^{slope:.1f}"
         parts.append(slow)
     follows = sig.get("follows") or []
     if follows:
-        parts.append("it follows " + ", ".join(f"{f['observable']} ({100 * f['strength']:.0f} %)" for f in follows))
+        parts.append("it follows " + ", ".join(
+            f"{f['observable']}{' ' + f['band'] if f.get('band') else ''} in {f['channel']} ({100 * f['strength']:.0f} %)"
+            for f in follows))
     # what would explain it
-    if shared is not None and shared >= SHARED and not diff_up:
+    if line is not None:
+        advice = (f"something periodic at {line:.2f} Hz (a motor, pump or fan near the probe, a rotating part, an "
+                  f"aliased mains harmonic): nothing in the catalogue is periodic; log its phase or speed, or add an "
+                  f"effect of your own with a sine and a cosine at that frequency (docs/effects.md)")
+    elif shared is not None and shared >= SHARED and not diff_up:
         advice = ("a field change at the site, common to all probes: " +
                   ("the scalar reference does not follow it; check its timing and position" if has_reference else
                    "log a reference magnetometer (a ref_total column) so the total field follows it, or model "

@@ -10,7 +10,10 @@
     hysteresis    perming: offset steps after a strong field or shock        nT per step and axis
     platform      Tolles-Lawson permanent and induced platform fields        nT, 3x3 per probe
 
-Adding an effect is adding one module with one EffectTerm subclass and a line in EFFECTS.
+Adding an effect to the catalogue is adding one module with one EffectTerm subclass and a line in
+EFFECTS. A user adds one without editing the package: `register_effect(cls)` (what `--effects
+file.py:ClassName` and the `fluxcal.effects` entry-point group do, docs/effects.md); `known_effects()`
+is the catalogue and the registered ones together.
 
 >>> str(make_model(["temperature", "eddy"]))
 'Baseline + Temperature + Eddy'
@@ -18,7 +21,7 @@ Adding an effect is adding one module with one EffectTerm subclass and a line in
 Traceback (most recent call last):
 ...
 drivers.errors.ConfigError: --effects: 'temprature' is not an effect (allowed: temperature, eddy, lag, \
-nonlinearity, drift, gradient, crossfield, hysteresis, platform)
+nonlinearity, drift, gradient, crossfield, hysteresis, platform; or file.py:ClassName for one of your own)
 """
 
 from __future__ import annotations
@@ -45,11 +48,47 @@ EFFECTS: dict[str, type[EffectTerm]] = {
 }
 
 
+#: effects registered by the user (name -> class), beside the catalogue
+_REGISTERED: dict[str, type[EffectTerm]] = {}
+
+_NAME_CHARS = set("abcdefghijklmnopqrstuvwxyz0123456789_-")
+
+
+def known_effects() -> dict[str, type[EffectTerm]]:
+    """The catalogue, then the effects the user registered, in that order."""
+    return {**EFFECTS, **_REGISTERED}
+
+
+def register_effect(cls: object, origin: str = "") -> str:
+    """Add a user's effect class (an EffectTerm subclass with a `name`) beside the catalogue; returns its name.
+    ConfigError says what is wrong with it (origin: where it came from, for the message)."""
+    where = f"{origin}: " if origin else ""
+    if not (isinstance(cls, type) and issubclass(cls, EffectTerm)) or cls in (EffectTerm, Baseline):
+        raise ConfigError(f"--effects: {where}{cls!r} is not an effect (allowed: a subclass of "
+                          f"service.numerics.effects.EffectTerm; docs/effects.md)")
+    name = getattr(cls, "name", "")
+    if not name or not set(name) <= _NAME_CHARS or not name[0].isalpha():
+        raise ConfigError(f"--effects: {where}{cls.__name__}.name = {name!r} is not allowed (allowed: a lower-case "
+                          f"name of letters, digits, _ and -, starting with a letter)")
+    taken = known_effects().get(name)
+    if taken is not None and taken is not cls:
+        raise ConfigError(f"--effects: {where}{cls.__name__}.name = {name!r} is taken by "
+                          f"{taken.__module__}.{taken.__name__} (allowed: a name not in {', '.join(known_effects())})")
+    linear = cls.columns is not EffectTerm.columns
+    nonlinear = cls.correction is not EffectTerm.correction and cls.jacobian is not EffectTerm.jacobian
+    if not (linear or nonlinear or cls.shared_names is not EffectTerm.shared_names):
+        raise ConfigError(f"--effects: {where}{cls.__name__} defines neither columns() (a linear term) nor "
+                          f"correction() and jacobian() (a non-linear one); docs/effects.md")
+    _REGISTERED[name] = cls
+    return name
+
+
 def make_term(name: str) -> EffectTerm:
-    """One term by catalogue name; ConfigError names the allowed ones."""
-    cls = EFFECTS.get(name)
+    """One term by name (catalogue or registered); ConfigError names the allowed ones."""
+    cls = known_effects().get(name)
     if cls is None:
-        raise ConfigError(f"--effects: {name!r} is not an effect (allowed: {', '.join(EFFECTS)})")
+        raise ConfigError(f"--effects: {name!r} is not an effect (allowed: {', '.join(known_effects())}; or "
+                          f"file.py:ClassName for one of your own)")
     return cls()
 
 
@@ -59,6 +98,6 @@ def make_model(names: Iterable[str], *, baseline: bool = True) -> Model:
     return Model(([Baseline()] if baseline else []) + terms)
 
 
-__all__ = ["EFFECTS", "make_term", "make_model", "Baseline", "EffectData", "EffectTerm", "Model", "ProbeView",
+__all__ = ["EFFECTS", "known_effects", "register_effect", "make_term", "make_model", "Baseline", "EffectData", "EffectTerm", "Model", "ProbeView",
            "Temperature", "Eddy", "Lag", "Nonlinearity", "Drift", "Gradient", "Crossfield", "Hysteresis",
            "Platform"]

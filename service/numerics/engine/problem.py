@@ -27,7 +27,7 @@ import numpy as np
 from drivers.block import SampleBlock
 from drivers.errors import CalibrationRefused, DataError
 from service.numerics.channels import channel_names
-from service.numerics.effects.base import EffectData, Model, ProbeView
+from service.numerics.effects.base import REF_PREFIX, EffectData, Model, ProbeView
 
 from .channels import _Eval
 from .jacobian import _chunks, _Jac, block_jacobian, local_jacobian
@@ -41,7 +41,7 @@ class Problem:
     def __init__(self, data: EffectData, model: Model, bind: LinearCalibration, reference_nT: np.ndarray, *,
                  weights: np.ndarray | None = None, n_blocks: int = 8,
                  hints: tuple[list[np.ndarray], list[np.ndarray]] | None = None,
-                 rows: np.ndarray | None = None) -> None:
+                 rows: np.ndarray | None = None, refs: list[dict] | None = None) -> None:
         self.data = data
         self.model = model
         self.fit_linear = model.has_baseline
@@ -55,6 +55,9 @@ class Problem:
         self.views = [ProbeView(data, k, bind.offset_nT[k].copy(), bind.matrix[k].copy(),
                                 None if hints is None else hints[0][k], None if hints is None else hints[1][k])
                       for k in range(self.P)]
+        for view, ref in zip(self.views, refs or []):
+            # references the terms were fitted with elsewhere (step instants, origins): kept, not found again
+            view.cache.update({key: v for key, v in ref.items() if key.startswith(REF_PREFIX)})
         edges = np.linspace(0, self.M, n_blocks + 1).round().astype(int)
         self.blocks = [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
         vref = data.ref_vector_nT

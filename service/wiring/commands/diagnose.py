@@ -103,13 +103,17 @@ def load_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:
 def main(args: argparse.Namespace) -> int:
     from service.io.recordings.labdata import load_data
     from service.numerics.diagnose import diagnose, summary_text
-    from service.numerics.effects import EFFECTS
+    from service.numerics.effects import known_effects
     from service.numerics.effects.base import EffectData
+    from service.wiring.user_effects import load_installed_effects, resolve_effects
 
-    unknown = [e for e in args.effects if e not in EFFECTS]
+    load_installed_effects()
+    args.effects = resolve_effects(args.effects)
+    known = known_effects()
+    unknown = [e for e in args.effects if e not in known]
     if unknown:
         raise ConfigError(f"--effects: {', '.join(map(repr, unknown))} not an effect "
-                          f"(allowed: {', '.join(EFFECTS)})")
+                          f"(allowed: {', '.join(known)}; or file.py:ClassName for one of your own)")
     lab = load_data(args.data)
     say_read_warnings("diagnose", args.data, getattr(lab, "warnings", []))
     block = getattr(lab, "block", lab)
@@ -124,7 +128,12 @@ def main(args: argparse.Namespace) -> int:
     if args.calibration:
         cal, cal_effects = load_calibration(args.calibration, data.n_probes)
         if not effects:
-            effects = [e for e in cal_effects if e in EFFECTS]      # the model the file describes
+            missing = [e for e in cal_effects if e not in known]
+            if missing:
+                raise ConfigError(f"{args.calibration}: names the effect(s) {', '.join(map(repr, missing))}, which are "
+                                  f"neither in the catalogue nor installed: give them with --effects "
+                                  f"file.py:ClassName")
+            effects = list(cal_effects)                             # the model the file describes
     bar = Progress(1.0, "diagnose", fraction=True)
     try:
         result = diagnose(data, effects=effects, calibration=cal, progress=bar)

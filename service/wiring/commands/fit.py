@@ -54,6 +54,10 @@ def site_total(args: Namespace, configured: float | None) -> tuple[float | None,
 
 
 def main(args: Namespace) -> int:
+    from service.wiring.user_effects import load_installed_effects, resolve_effects
+
+    load_installed_effects()
+    args.effects = resolve_effects(args.effects)
     data = load_data(args.data)
     say_read_warnings("fit", args.data, data.warnings)
     cfg = load_optional_config(args.config)
