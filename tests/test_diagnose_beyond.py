@@ -92,3 +92,34 @@ def test_hidden_temperature_under_one_over_f_noise_is_explained_and_then_nothing
     # the coefficient is recovered: s1.x 2.0 nT/degC within 5 %
     p = next(p for p in d2.parameters if p.name == "s1.x nT/degC")
     assert np.isclose(p.value, 2.0, rtol=0.05)
+
+
+def thermal_world(seed: int, tau_s: float, pink: float = 0.0):
+    probes = [probe(0, temp_offset_nT_per_C=[2.5, -1.8, 1.0], temp_lag_s=tau_s), probe(1, temp_lag_s=tau_s),
+              probe(2, temp_lag_s=tau_s)]
+    for p in probes:
+        p["pink_nT_rtHz"] = pink
+    cfg = load_sim_config({
+        "seed": seed, "rate_hz": 10.0, "duration_s": 1200.0,
+        "field": {"total_nT": F_TOTAL, "inclination_deg": 62.0, "declination_deg": -5.0},
+        "reference": {"enabled": True, "noise_nT": 0.05}, "motion": TUMBLE,
+        "temperature": {"start_C": 21.0, "ramp_C_per_h": 6.0, "amplitude_C": 3.0, "period_s": 300.0},
+        "probes": probes})
+    return data_of(Unit(cfg).digitise(0, cfg.n_samples).to_block(), probes)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed, tau_s, pink", [(1, 90.0, 0.0), (2, 150.0, 0.0), (3, 60.0, 0.1)])
+def test_temperature_through_a_thermal_lag_is_explained_by_thermal_with_its_time_constant(seed, tau_s, pink):
+    # the core follows the logged temperature with a time constant of a minute or two
+    data = thermal_world(seed, tau_s, pink)
+    d = diagnose(data)
+    text = summary_text(d)
+    assert d.candidates[0].effect == "thermal" and d.candidates[0].significant, text
+    assert d.verdict["kind"] == "explained" and d.verdict["effect"] == "thermal", text
+    d2 = diagnose(data, effects=["thermal"])
+    assert d2.rms_nT <= 1.3 * d2.noise_nT, summary_text(d2)
+    assert not any(c.significant for c in d2.candidates), summary_text(d2)
+    p = {q.name: q for q in d2.parameters}
+    assert abs(p["s1.thermal lag s"].value - tau_s) < 0.1 * tau_s
+    assert np.isclose(p["s1.x nT/degC"].value, 2.5, rtol=0.05) and np.isclose(p["s1.y nT/degC"].value, -1.8, rtol=0.05)

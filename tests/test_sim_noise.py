@@ -69,3 +69,32 @@ def test_ambient_variation_is_common_to_all_probes_with_its_rms(seed):
     # structure on minutes: little power at periods shorter than 60 s
     f, p = welch(v[:, 0], fs=5.0, nperseg=4096)
     assert p[f > 1 / 30.0].sum() < 1e-3 * p.sum()
+
+
+def test_thermal_lag_core_temperature_solves_its_equation():
+    from drivers.sim.config import TemperatureConfig
+    from drivers.sim.world import TemperatureProfile
+
+    prof = TemperatureProfile(TemperatureConfig(start_C=20.0, ramp_C_per_h=30.0, amplitude_C=4.0, period_s=500.0))
+    t = np.arange(0.0, 3000.0, 0.05)
+    temp, core = prof.at(t), np.empty_like(t)
+    core[0] = temp[0]
+    a = np.exp(-0.05 / 90.0)
+    for i in range(1, t.size):            # dT_c/dt = (T - T_c) / tau, stepped exactly for a linear T
+        core[i] = a * core[i - 1] + (1 - a) * 0.5 * (temp[i] + temp[i - 1])
+    assert np.max(np.abs(core - prof.core(t, 90.0))) < 1e-5
+    assert np.array_equal(prof.core(t, 0.0), temp)
+
+
+def test_thermal_lag_acts_on_the_effect_not_on_the_logged_temperature():
+    cfg = {"seed": 1, "rate_hz": 5.0, "duration_s": 600.0, "motion": {"kind": "static"},
+           "temperature": {"start_C": 20.0, "amplitude_C": 3.0, "period_s": 200.0},
+           "probes": [{"temp_offset_nT_per_C": [2.0, 0.0, 0.0], "temp_lag_s": 60.0}]}
+    lagged = Unit(load_sim_config(cfg)).world.samples(0, 3000, noise=False)
+    cfg["probes"][0]["temp_lag_s"] = 0.0
+    plain = Unit(load_sim_config(cfg)).world.samples(0, 3000, noise=False)
+    assert np.array_equal(lagged.temp_C, plain.temp_C)                       # the log is the probe's
+    x_lag, x = lagged.output_nT[:, 0, 0], plain.output_nT[:, 0, 0]
+    # the lagged response: the same swing, later and smaller (first order: 1 / sqrt(1 + (w tau)^2))
+    w = 2 * np.pi / 200.0
+    assert np.isclose(np.ptp(x_lag[1500:]) / np.ptp(x[1500:]), 1 / np.sqrt(1 + (w * 60) ** 2), rtol=0.03)

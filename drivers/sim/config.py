@@ -180,6 +180,9 @@ class ProbeSimConfig:
                                              doc="1/f noise per axis: its density at 1 Hz, nT/sqrt(Hz), from 0.1 mHz "
                                                  "to the Nyquist frequency (fluxgates: 0.005-0.1); one number or three")
     temp_offset_C: float = spec(0.0, min=-100.0, max=100.0, doc="this probe's temperature minus the profile")
+    temp_lag_s: float = spec(0.0, min=0.0, max=1.0e5,
+                             doc="thermal lag: the core follows this probe's temperature with this time constant, s "
+                                 "(the temperature effect acts on the core's; the logged one is the probe's)")
     temp_offset_nT_per_C: list[float] = spec(default_factory=_zeros3, length=3, min=-1.0e4, max=1.0e4,
                                              doc="temperature effect: offset change per degC")
     temp_scale_ppm_per_C: list[float] = spec(default_factory=_zeros3, length=3, min=-1.0e5, max=1.0e5,

@@ -122,6 +122,22 @@ class TemperatureProfile:
         t = np.asarray(t_s, dtype=np.float64)
         return c.start_C + c.ramp_C_per_h * t / 3600.0 + c.amplitude_C * np.sin(2.0 * math.pi * t / c.period_s)
 
+    def core(self, t_s: np.ndarray, tau_s: np.ndarray) -> np.ndarray:
+        """T_c(t): the temperature of a core that follows T with time constant tau (dT_c/dt = (T - T_c) / tau,
+        T_c(0) = T(0)), exactly: the steady response to the ramp and the sinusoid plus the transient."""
+        c = self.cfg
+        t = np.asarray(t_s, dtype=np.float64)
+        tau = np.broadcast_to(np.asarray(tau_s, dtype=np.float64), t.shape)
+        w = 2.0 * math.pi / c.period_s
+        r = c.ramp_C_per_h / 3600.0
+
+        def steady(tt: np.ndarray) -> np.ndarray:
+            return (c.start_C + r * (tt - tau) + c.amplitude_C / np.sqrt(1.0 + (w * tau) ** 2)
+                    * np.sin(w * tt - np.arctan(w * tau)))
+
+        lagged = steady(t) + (self.at(0.0) - steady(np.zeros_like(t))) * np.exp(-t / np.where(tau > 0, tau, 1.0))
+        return np.where(tau > 0, lagged, self.at(t))
+
 
 @dataclass(frozen=True)
 class ProbeArray:
@@ -217,6 +233,7 @@ class World:
         self._to_sensor = np.swapaxes(self.probes.misalign, 1, 2)                      # T^T
         self._noise = ChunkedRandom(config.seed, STREAM_NOISE, (self.n_probes, 3))
         self._ref_noise = ChunkedRandom(config.seed, STREAM_REF, ())
+        self._temp_lag_s = np.array([p.temp_lag_s for p in config.probes], dtype=np.float64)
         pink = np.array([p.pink_nT_rtHz for p in config.probes], dtype=np.float64).reshape(self.n_probes, 3)
         self._pink = (PinkNoise(config.seed, STREAM_PINK, pink, PINK_F_LO_HZ, 0.5 * self.rate_hz, self.rate_hz)
                       if np.any(pink > 0) else None)
@@ -232,6 +249,8 @@ class World:
             names.append("gradient")
         if self.field.variation is not None:
             names.append("ambient")
+        if np.any(self._temp_lag_s) and "temperature" in names:
+            names.append("thermal")
         return names
 
     def effect(self, name: str) -> Effect:
@@ -290,7 +309,10 @@ class World:
         b_sensor = np.einsum("pij,npj->npi", self._to_sensor, b_platform)   # B_s = T^T B_p
         db_sensor = np.einsum("pij,npj->npi", self._to_sensor, db_platform)
         temp = self.temperature.at(t_np) + self.probes.temp_offset_C
-        ctx = EffectContext(t_s=t_np, temp_C=temp, dsensor_dt_nT_s=db_sensor)
+        # the effects act on the core's temperature, which lags the probe's (logged) one by temp_lag_s
+        core = (temp if not np.any(self._temp_lag_s) else
+                self.temperature.core(t_np, self._temp_lag_s) + self.probes.temp_offset_C)
+        ctx = EffectContext(t_s=t_np, temp_C=core, dsensor_dt_nT_s=db_sensor)
 
         b_eff = b_sensor
         for e in on:
@@ -341,6 +363,7 @@ class World:
                 "noise_nT": pr.noise_nT[k].tolist(),
                 "pink_nT_rtHz": list(cfg.probes[k].pink_nT_rtHz),
                 "temp_offset_C": float(pr.temp_offset_C[k]),
+                "temp_lag_s": float(self._temp_lag_s[k]),
                 "effects": {e.name: e.params(k) for e in self.effects},
             })
         motion = {**_plain(cfg.motion.__dict__), **self.motion.describe(), "rms_rate_deg_s": self.rms_rate_deg_s()}

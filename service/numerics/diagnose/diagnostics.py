@@ -45,7 +45,7 @@ from service.numerics.engine import (
 from .fits import heldout, try_candidate
 from .result import N_BLOCKS, Candidate, Diagnosis, Progress
 from .signature import FLOOR_FACTOR, signature, verdict
-from .verdict import mark_indistinguishable, rank
+from .verdict import demote_nested, mark_indistinguishable, rank
 from .where import where_it_fails, worst_segments
 
 
@@ -107,6 +107,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     # 3. the verdict: which are indistinguishable, and their order (verdict.py)
     tell(0.87, "comparing candidates")
     mark_indistinguishable(cands)
+    demote_nested(cands)
     cands = rank(cands)
 
     # 4. where the model fails: what the residual follows (where.py)

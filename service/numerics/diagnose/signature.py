@@ -187,11 +187,36 @@ def describe(sig: dict[str, Any], has_reference: bool) -> tuple[str, str]:
         advice = ("each probe's own slow noise (flicker, spectrum about 1/f): not a missing effect; it limits "
                   "slow terms (drift, temperature) and sets the real floor")
     elif follows:
-        advice = (f"a term in {follows[0]['observable']} (or a lagged or rate version of it) is missing from the "
-                  f"catalogue's forms")
+        advice = _follows_advice(follows[0])
     else:
         advice = "nothing the data carry explains it; log what might (temperatures, currents, a reference)"
     return "; ".join(parts), advice
+
+
+#: what a residual that follows an observable suggests, when no catalogue term took it
+_ADVICE = {
+    "time": "a change in time that no term follows (drift's polynomial does not): whether the field or the sensor "
+            "changed cannot be told without a second probe or a reference magnetometer; log one, or the "
+            "sensor's temperature",
+    "temperature": "a temperature dependence that the temperature and thermal terms do not take (a higher power, "
+                   "or a delay beyond theirs); log the temperature nearer the core",
+    "angular rate": "a dependence on the rotation rate that eddy and lag do not take (a filter in the sensor's "
+                    "electronics, a time base that drifts)",
+    "orientation": "a dependence on orientation that the linear calibration, nonlinearity and crossfield do not take "
+                   "(a soft-iron part moving with the sensor, a field of the platform)",
+    "heading": "a dependence on heading: a field of the platform or the site that turns with it (platform, "
+               "gradient with the attitude logged)",
+    "field magnitude": "a dependence on the field's size (a non-linear response the nonlinearity term does not take)",
+}
+
+
+def _follows_advice(top: dict[str, Any]) -> str:
+    obs = top["observable"]
+    if obs == "frequency":
+        return (f"a narrow-band disturbance at {top.get('band', 'one band')} (something turning, vibrating or "
+                f"switching at that rate near the probe): log it, or add an effect of your own (docs/effects.md)")
+    return _ADVICE.get(obs, f"a coupling of {obs} (a column of the data) that no catalogue term takes: an effect of "
+                            f"your own on that column (docs/effects.md)")
 
 
 def verdict(rms_nT: float, noise_nT: float, best: Any, left: dict[str, Any], has_reference: bool) -> dict[str, Any]:

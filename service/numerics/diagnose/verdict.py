@@ -10,7 +10,9 @@ from service.numerics.engine import (
 )
 
 from .fits import _separation, _slot_indices
-from .result import COLLINEAR_R2, GAIN_SIGMAS, GAIN_TOLERANCE, Candidate
+from service.numerics.effects import known_effects
+
+from .result import COLLINEAR_R2, GAIN_SIGMAS, GAIN_TOLERANCE, MIN_GAIN, Candidate
 
 
 def _explained_by(target: Candidate, other: Candidate) -> float:
@@ -60,6 +62,27 @@ def mark_indistinguishable(cands: list[Candidate]) -> None:
                 if y.effect not in x.indistinguishable_from:
                     x.indistinguishable_from.append(y.effect)
                     x.separate_by = _separation(x.effect, y.effect)
+
+
+def demote_nested(cands: list[Candidate]) -> None:
+    """A candidate that contains another (thermal holds temperature at tau = 0) is significant only where it
+    beats the one it contains on the held-out blocks, by the same rule as a candidate beats the model: the
+    extra parameters must earn their keep."""
+    by = {c.effect: c for c in cands}
+    for c in cands:
+        cls = known_effects().get(c.effect)
+        for inner in getattr(cls, "nests", ()):
+            b = by.get(inner)
+            if not (c.significant and b is not None and b.significant and b.block_log_ratio is not None
+                    and c.block_log_ratio is not None):
+                continue
+            diff = c.block_log_ratio - b.block_log_ratio            # ln(MSE with b / MSE with c) per block
+            se = float(diff.std(ddof=1) / np.sqrt(diff.size)) if diff.size > 1 else float("inf")
+            gain = 1.0 - (c.heldout_rms_nT / b.heldout_rms_nT) ** 2 if b.heldout_rms_nT > 0 else 0.0
+            if not (gain >= MIN_GAIN and float(diff.mean()) > GAIN_SIGMAS * se):
+                c.significant = False
+                c.reason = (f"no better than {inner}, which it contains, on the held-out blocks "
+                            f"({c.heldout_rms_nT:.3f} against {b.heldout_rms_nT:.3f} nT)")
 
 
 def rank(cands: list[Candidate]) -> list[Candidate]:

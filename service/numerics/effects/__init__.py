@@ -1,6 +1,7 @@
 """The catalogue of physical effect terms (CONTRACTS.md §2 `--effects`), one module per effect.
 
     temperature   offset and scale factor change with probe temperature      nT/degC, ppm/degC per axis
+    thermal       the same, on a core temperature lagging the logged one     nT/degC, ppm/degC per axis, s
     eddy          fields induced by changing flux                            3x3 matrix on dB/dt, s
     lag           a probe sampled at another instant than probe 1            time offset, s
     nonlinearity  per-axis transfer non-linearity                            1/nT, 1/nT^2 per axis
@@ -20,8 +21,8 @@ is the catalogue and the registered ones together.
 >>> make_model(["temprature"])
 Traceback (most recent call last):
 ...
-drivers.errors.ConfigError: --effects: 'temprature' is not an effect (allowed: temperature, eddy, lag, \
-nonlinearity, drift, gradient, crossfield, hysteresis, platform; or file.py:ClassName for one of your own)
+drivers.errors.ConfigError: --effects: 'temprature' is not an effect (allowed: temperature, thermal, eddy, \
+lag, nonlinearity, drift, gradient, crossfield, hysteresis, platform; or file.py:ClassName for one of your own)
 """
 
 from __future__ import annotations
@@ -40,11 +41,12 @@ from .lag import Lag
 from .nonlinearity import Nonlinearity
 from .platform import Platform
 from .temperature import Temperature
+from .thermal import ThermalLag
 
 #: catalogue name -> term class, in the order candidates are listed
 EFFECTS: dict[str, type[EffectTerm]] = {
-    cls.name: cls for cls in (Temperature, Eddy, Lag, Nonlinearity, Drift, Gradient, Crossfield, Hysteresis,
-                              Platform)
+    cls.name: cls for cls in (Temperature, ThermalLag, Eddy, Lag, Nonlinearity, Drift, Gradient, Crossfield,
+                              Hysteresis, Platform)
 }
 
 
@@ -99,5 +101,5 @@ def make_model(names: Iterable[str], *, baseline: bool = True) -> Model:
 
 
 __all__ = ["EFFECTS", "known_effects", "register_effect", "make_term", "make_model", "Baseline", "EffectData", "EffectTerm", "Model", "ProbeView",
-           "Temperature", "Eddy", "Lag", "Nonlinearity", "Drift", "Gradient", "Crossfield", "Hysteresis",
+           "Temperature", "ThermalLag", "Eddy", "Lag", "Nonlinearity", "Drift", "Gradient", "Crossfield", "Hysteresis",
            "Platform"]

@@ -129,15 +129,23 @@ class EffectData(Timed):
         """Samples at each end (and around gaps) where derivatives and time shifts are unreliable."""
         return self.window_samples
 
+    @property
+    def gap_s(self) -> float:
+        """An interval longer than this is a gap: 1.5 times the typical interval, where the typical one is the
+        median for a steady time base and the 95th percentile for a bursty one (a hobby board sending bursts
+        of samples 2 ms apart with 20-60 ms between bursts: those pauses are its rhythm, not gaps)."""
+        d = np.diff(self.t_s)
+        return 1.5 * max(float(np.median(d)), float(np.percentile(d, 95)))
+
     def valid_rows(self) -> np.ndarray:
-        """Rows used for fitting: away from the ends and from gaps in time (> 1.5 median intervals)."""
+        """Rows used for fitting: away from the ends and from gaps in time (gap_s)."""
         key = "valid"
         if key not in self._cache:
             n, e = self.n_samples, self.edge_samples
             ok = np.ones(n, bool)
             ok[:e] = False
             ok[n - e:] = False
-            gaps = np.flatnonzero(np.diff(self.t_s) > 1.5 * self.dt_s)
+            gaps = np.flatnonzero(np.diff(self.t_s) > self.gap_s)
             for g in gaps:                                   # a loop over gaps, not samples
                 ok[max(0, g - e + 1):g + e + 1] = False
             self._cache[key] = np.flatnonzero(ok)
@@ -324,6 +332,11 @@ class EffectTerm:
     def columns(self, view: ProbeView) -> np.ndarray:
         """(N, 3, m) regressors phi_j of a linear term for probe view.k."""
         raise NotImplementedError
+
+    def start_values(self, view: ProbeView) -> np.ndarray:
+        """Where the fit starts probe view.k's parameters: zero (a non-linear term may start elsewhere, e.g. a
+        time constant that zero would make undetermined)."""
+        return np.zeros(len(self.param_names(view)))
 
     def constants(self, view: ProbeView) -> dict[str, tuple[float, str]]:
         """Fixed references the parameters are defined against (name -> (value, unit)), e.g. the

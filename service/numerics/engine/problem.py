@@ -35,6 +35,17 @@ from .linear import LinearCalibration
 from .state import State, layout_slots, start_state, update_state
 
 
+def make_views(data: EffectData, bind: LinearCalibration, hints: Any, refs: list[dict] | None) -> list[ProbeView]:
+    """What each term sees of each probe; `refs`: references the terms were fitted with elsewhere (step
+    instants, origins), kept rather than found again."""
+    views = [ProbeView(data, k, bind.offset_nT[k].copy(), bind.matrix[k].copy(),
+                       None if hints is None else hints[0][k], None if hints is None else hints[1][k])
+             for k in range(data.n_probes)]
+    for view, ref in zip(views, refs or []):
+        view.cache.update({key: v for key, v in ref.items() if key.startswith(REF_PREFIX)})
+    return views
+
+
 class Problem:
     """Data, model and weights: residual channels, Jacobian and block normal equations."""
 
@@ -52,12 +63,7 @@ class Problem:
         if self.M < 20:
             raise DataError(f"only {self.M} samples left away from the ends and gaps: too few to fit")
         self.reference = np.broadcast_to(np.asarray(reference_nT, dtype=np.float64), (data.n_samples,))[self.rows]
-        self.views = [ProbeView(data, k, bind.offset_nT[k].copy(), bind.matrix[k].copy(),
-                                None if hints is None else hints[0][k], None if hints is None else hints[1][k])
-                      for k in range(self.P)]
-        for view, ref in zip(self.views, refs or []):
-            # references the terms were fitted with elsewhere (step instants, origins): kept, not found again
-            view.cache.update({key: v for key, v in ref.items() if key.startswith(REF_PREFIX)})
+        self.views = make_views(data, bind, hints, refs)
         edges = np.linspace(0, self.M, n_blocks + 1).round().astype(int)
         self.blocks = [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
         vref = data.ref_vector_nT

@@ -244,7 +244,10 @@ def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float =
         # an iteration that lowers the RSS by less than RSS_TOL s^2 only creeps along flat directions
         flat = rss - rss_t < RSS_TOL * s2
         st, ev, rss = trial, ev_t, rss_t
-        if linear_enough or flat:
+        # a non-linear parameter undetermined at the start (a time constant whose coefficient starts at zero)
+        # can only be seen from the new point: linearise once more there before calling it converged
+        revisit = it == 1 and bool(np.any(undet)) and any(not t.linear for t in pr.terms)
+        if (linear_enough or flat) and not revisit:
             # the step did what the linearisation promised: a second linearisation would move the
             # parameters by a negligible amount, so keep this one and move the block gradients with it
             g_b = g_b + np.einsum("bij,j->bi", a_b, delta)

@@ -78,7 +78,7 @@ def layout_slots(data: EffectData, terms: Sequence[EffectTerm], views: Sequence[
 def start_state(data: EffectData, terms: Sequence[EffectTerm], views: Sequence[ProbeView], linear: LinearCalibration,
                 previous: State | None = None) -> State:
     """Effect parameters at zero (or as `previous` has them, where the shapes agree) beside `linear`."""
-    theta = {t.name: [np.zeros(len(t.param_names(v))) for v in views] for t in terms}
+    theta = {t.name: [np.asarray(t.start_values(v), dtype=np.float64).copy() for v in views] for t in terms}
     shared = {t.name: np.zeros(len(t.shared_names(data))) for t in terms}
     if previous is not None:
         for name, vals in previous.theta.items():
