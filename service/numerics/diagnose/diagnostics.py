@@ -125,6 +125,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     else:
         left = {}
     told = verdict(cur.rms_nT, noise_nT, best, left, ed.ref_total_nT is not None)
+    notes += _coloured_noise_notes(cur, noise, model.effects, ed.duration_s)
     tell(1.0, "done")
     ch_rms = cur.channels.rms_nT
     return Diagnosis(effects=model.effects, model=str(model), linear="fixed" if fixed else "refit",
@@ -134,3 +135,18 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
                      duration_s=ed.duration_s, heldout_rms_nT=cur_ho.rms_nT, notes=notes, fit=cur,
                      linear_refit_rms_nT=linear_refit, parameters=cur.parameters())
 
+
+
+def _coloured_noise_notes(cur: Any, noise: np.ndarray, effects: Sequence[str], duration_s: float) -> list[str]:
+    """What a coloured residual means for the standard errors (block jackknife, engine/solve.py): they hold
+    for terms that change within the record, but a drift cannot be told from the noise's own wander at
+    periods as long as the record, which no estimate from the record alone can see."""
+    slope = signature(cur, noise).get("spectral_slope")
+    if slope is None or slope > -0.5:
+        return []
+    out = [f"the residual is coloured (spectrum ~ f^{slope:.1f}): standard errors come from the block jackknife "
+           f"over time blocks, not from white-noise formulas"]
+    if "drift" in effects:
+        out.append(f"drift: a wander of the noise at periods as long as the record ({duration_s:.0f} s) cannot be "
+                   f"told from a drift; take the drift rates' standard errors as lower bounds")
+    return out

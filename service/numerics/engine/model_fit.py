@@ -180,7 +180,7 @@ def effects_fit_from(res: FitResult, reference_kind: str) -> EffectsFit:
     off_se = np.full((pr.P, 3), np.nan)
     for s in pr.slots:
         if s.kind == "offset":
-            se = res.stderr[s.start:s.stop].copy()
+            se = res.robust_stderr[s.start:s.stop].copy()
             se[res.undetermined[s.start:s.stop]] = np.nan
             off_se[s.k] = se
     rms = res.channels.rms_nT

@@ -96,6 +96,7 @@ class FitResult:
     g_blocks: np.ndarray
     jac: Any = field(repr=False, default=None)
     ev: Any = field(repr=False, default=None)
+    _deltas: Any = field(repr=False, default=None, compare=False)
 
     @property
     def model(self) -> Model:
@@ -109,8 +110,48 @@ class FitResult:
     def rms_nT(self) -> float:
         return self.channels.total_rms_nT
 
+    def block_deltas(self) -> np.ndarray:
+        """(K, p) the parameters fitted without each time block, less the full fit's (one Gauss-Newton step
+        from the full fit, exact for the linearised problem): the held-out predictions and the block
+        jackknife share them."""
+        if self._deltas is None and self.values.size == 0:
+            self._deltas = np.zeros((len(self.a_blocks), 0))
+        if self._deltas is None:
+            a_all, g_all = self.a_blocks.sum(0), self.g_blocks.sum(0)
+            self._deltas = np.array([solve_normal(a_all - a_b, g_all - g_b)[0]
+                                     for a_b, g_b in zip(self.a_blocks, self.g_blocks)]).reshape(-1, self.values.size)
+        return self._deltas
+
+    @property
+    def robust_stderr(self) -> np.ndarray:
+        """Standard errors that hold on coloured noise. Noise correlated in time (1/f, a wander no term
+        follows) moves whole blocks together, which the white-noise figure (normal equations and residual
+        variance) does not see; the delete-a-block jackknife over the K contiguous time blocks,
+        sqrt((K - 1) / K sum_b (d_b - mean d)^2), does. With K = 8 one jackknife figure is itself uncertain
+        (about 50 %), so per term (the offsets, the matrices, each effect) the white-noise errors are scaled
+        by the median over its parameters of jackknife / white when that exceeds 1: white noise keeps its
+        white-noise errors, 1/f noise gets the jackknife's (temperature coefficients were understated
+        9-fold under 1/f noise; now within 0.9, tests/test_stderr.py)."""
+        d = self.block_deltas()
+        k = d.shape[0]
+        if k < 3 or d.shape[1] == 0:
+            return self.stderr
+        jack = np.sqrt((k - 1) / k * np.sum((d - d.mean(0)) ** 2, axis=0))
+        out = self.stderr.copy()
+        groups: dict[str, list[int]] = {}
+        for sl in self.problem.slots:
+            key = sl.kind if sl.term is None else sl.term.name
+            groups.setdefault(key, []).extend(range(sl.start, sl.stop))
+        for idx in groups.values():
+            i = np.array([j for j in idx if not self.undetermined[j] and self.stderr[j] > 0], dtype=int)
+            if i.size:
+                ratio = float(np.median(jack[i] / self.stderr[i]))
+                out[idx] = self.stderr[idx] * max(1.0, ratio)
+        return out
+
     def parameters(self, *, effects_only: bool = True) -> list[Parameter]:
         out = []
+        robust = self.robust_stderr
         for s in self.problem.slots:
             if effects_only and s.kind in ("offset", "matrix"):
                 continue
@@ -119,7 +160,7 @@ class FitResult:
             for j, name in enumerate(s.names):
                 i = s.start + j
                 val = self.values[i]
-                se = None if self.undetermined[i] else float(self.stderr[i])
+                se = None if self.undetermined[i] else float(robust[i])
                 out.append(Parameter(name, float(val), se, s.term.name if s.term is not None else "baseline"))
         return out
 
@@ -128,16 +169,15 @@ class FitResult:
         each block predicted by the fit to the other blocks (one Gauss-Newton step from the full fit,
         exact for the linearised problem)."""
         pr = self.problem
-        a_all, g_all = self.a_blocks.sum(0), self.g_blocks.sum(0)
         r = self.channels.values
         w = pr.weights
         nb = len(pr.blocks)
         sse_w, sse, cnt = np.zeros(nb), np.zeros(nb), np.zeros(nb)
+        deltas = self.block_deltas() if pr.n_params else None
         for b, sl in enumerate(pr.blocks):
             rb = r[sl]
-            if pr.n_params:
-                delta, *_ = solve_normal(a_all - self.a_blocks[b], g_all - self.g_blocks[b])
-                rb = rb + pr.apply(self.jac, self.ev, delta, sl)
+            if deltas is not None:
+                rb = rb + pr.apply(self.jac, self.ev, deltas[b], sl)
             sse_w[b] = float(np.sum((rb * w) ** 2))
             sse[b] = float(np.sum(rb ** 2))
             cnt[b] = rb.size
