@@ -123,3 +123,30 @@ def test_temperature_through_a_thermal_lag_is_explained_by_thermal_with_its_time
     p = {q.name: q for q in d2.parameters}
     assert abs(p["s1.thermal lag s"].value - tau_s) < 0.1 * tau_s
     assert np.isclose(p["s1.x nT/degC"].value, 2.5, rtol=0.05) and np.isclose(p["s1.y nT/degC"].value, -1.8, rtol=0.05)
+
+
+def heater_world(seed: int, coupled: bool):
+    from test_diagnose import sim_block
+
+    probes = [probe(0), probe(1), probe(2)]
+    block = sim_block(probes, n=12000, rate=20.0, motion=TUMBLE, seed=seed)
+    t = block.t_s - block.t_s[0]
+    on = 1.5 * ((t // 40) % 2)                       # a heater switched 0 / 1.5 A every 40 s
+    block.extras["heater_A"] = on + 0.05 * np.random.default_rng(seed).standard_normal(t.size)
+    if coupled:
+        block.field_nT[:, 1, :] += on[:, None] * np.array([3.0, -2.0, 1.0])
+    return data_of(block, probes)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_logged_current_coupled_into_a_probe_is_found_by_column_and_a_decoy_is_not(seed):
+    d = diagnose(heater_world(seed, coupled=True))
+    text = summary_text(d)
+    assert d.candidates[0].effect == "column" and d.verdict == {**d.verdict, "kind": "explained", "effect": "column"}
+    d2 = diagnose(heater_world(seed, coupled=True), effects=["column"])
+    assert d2.rms_nT <= 1.3 * d2.noise_nT and not any(c.significant for c in d2.candidates), summary_text(d2)
+    p = {q.name: q.value for q in d2.parameters}
+    assert [p[f"s2.{a} nT per heater_A"] for a in "xyz"] == pytest.approx([3.0, -2.0, 1.0], abs=0.1), text
+    control = diagnose(heater_world(seed + 10, coupled=False))
+    assert not any(c.significant for c in control.candidates), summary_text(control)

@@ -30,7 +30,8 @@ def _int_auto(text: str) -> int:
 METHODS = ("ellipsoid", "tmi", "sinefit", "two-step", "rls")
 ALIGNS = ("regression", "rotation", "pca")
 #: the catalogue of effects (service.numerics.effects.EFFECTS), named here so --help needs no numerics import
-EFFECT_NAMES = "temperature, thermal, eddy, lag, nonlinearity, drift, gradient, crossfield, hysteresis, platform"
+EFFECT_NAMES = ("temperature, thermal, eddy, lag, nonlinearity, drift, gradient, crossfield, hysteresis, platform, "
+                "column")
 SITE = "LAT,LON,ALT_M[,DATE]"
 
 

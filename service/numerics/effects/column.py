@@ -1,0 +1,63 @@
+"""Column: the field of something the recording logs, coupled into each probe axis.
+
+    raw_corrected_a = raw_a - sum_c (alpha_ca x_c + rho_ca dx_c/dt)
+
+x_c: every auxiliary column of the data that is an observable and changes (extra CSV columns, MCAP
+channels: a heater or motor current, a battery voltage, a reference magnetometer's components), each
+centred on its mean. alpha in nT per unit of the column and rho in nT per (unit/s) per probe and axis:
+a current beside a probe adds a field fixed in the probe's frame, and switching it induces one that
+follows its rate. Columns with gaps (NaN) are interpolated in time.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import AXES, EffectData, EffectTerm, ProbeView, axis_columns
+
+
+def usable_columns(data: EffectData) -> dict[str, np.ndarray]:
+    """Observable extra columns that change, gaps filled by interpolation, centred on their means."""
+    out = {}
+    for name, v in data.observables().items():
+        v = np.asarray(v, dtype=np.float64)
+        ok = np.isfinite(v)
+        if ok.sum() < 2:
+            continue
+        if not ok.all():
+            v = np.interp(data.t_s, data.t_s[ok], v[ok])
+        if float(np.ptp(v)) <= 1e-12 * max(1.0, float(np.max(np.abs(v)))):
+            continue
+        out[name] = v - v.mean()
+    return out
+
+
+class Column(EffectTerm):
+    """Per probe and axis: nT per unit of each logged column, and nT per unit/s of its rate."""
+
+    name = "column"
+    title = "Column"
+    physical = "the field of something the recording logs (a current, a voltage, a reference), per axis"
+
+    def why_unavailable(self, data: EffectData) -> str | None:
+        if not usable_columns(data):
+            return ("the data carry no auxiliary column that changes (extra CSV columns, MCAP channels: log the "
+                    "heater or motor currents, a reference magnetometer)")
+        return None
+
+    def _cols(self, view: ProbeView) -> dict[str, np.ndarray]:
+        key = "column:values"
+        if key not in view.cache:
+            view.cache[key] = usable_columns(view.data)
+        return view.cache[key]
+
+    def param_names(self, view: ProbeView) -> list[str]:
+        return [f"{view.name}.{a} nT per {c}{rate}" for c in self._cols(view) for rate in ("", "/s") for a in AXES]
+
+    def columns(self, view: ProbeView) -> np.ndarray:
+        t = view.data.t_s
+        parts = []
+        for v in self._cols(view).values():
+            for x in (v, np.gradient(v, t)):
+                parts.append(axis_columns(np.repeat(x[:, None], 3, axis=1)))
+        return np.concatenate(parts, axis=2)
