@@ -31,7 +31,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from drivers.errors import CalibrationRefused
-from service.numerics.effects import Baseline, Model, known_effects, make_model
+from service.numerics.effects import Baseline, Model, known_effects, make_model, make_term
 from service.numerics.engine import (
     LinearCalibration,
     as_effect_data,
@@ -109,6 +109,8 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     mark_indistinguishable(cands)
     demote_nested(cands)
     cands = rank(cands)
+    _beyond_the_best(ed, model, cands, reference, weights, n_blocks, tell)
+    cands = rank(cands)
 
     # 4. where the model fails: what the residual follows (where.py)
     tell(0.92, "where it fails")
@@ -150,3 +152,26 @@ def _coloured_noise_notes(cur: Any, noise: np.ndarray, effects: Sequence[str], d
         out.append(f"drift: a wander of the noise at periods as long as the record ({duration_s:.0f} s) cannot be "
                    f"told from a drift; take the drift rates' standard errors as lower bounds")
     return out
+
+
+def _beyond_the_best(ed: Any, model: Model, cands: list[Candidate], reference: np.ndarray, weights: np.ndarray,
+                     n_blocks: int, tell: Any) -> None:
+    """A strong missing effect leaks into the others: each is fitted beside the model without it, and soaks
+    up a part of it. So every other significant candidate is tried again beside the model and the best
+    one, and stays significant only for what it adds beyond it (two effects at once keep both)."""
+    best = next((c for c in cands if c.significant and c.fit is not None), None)
+    if best is None:
+        return
+    others = [c for c in cands if c is not best and c.significant and best.effect not in c.indistinguishable_from]
+    if not others:
+        return
+    with_best = model + make_term(best.effect)
+    ho = heldout(best.fit)
+    hints = residual_hints(best.fit)
+    for c in others:
+        tell(0.86, f"trying {c.effect} beside {best.effect}")
+        again = try_candidate(ed, with_best, best.fit, ho, c.effect, reference, weights, hints, n_blocks)
+        if not again.significant:
+            c.significant = False
+            c.reason = (f"nothing beyond {best.effect}: beside it, {c.effect}'s held-out gain is "
+                        f"{100 * again.gain:.1f} %")
