@@ -272,6 +272,9 @@ def test_command_line_json_text_and_report(tmp_path, capsys):
     page = (tmp_path / "rep" / "index.html").read_text()
     assert page.count("data:image/png;base64,") >= 3 and "Candidate effects" in page
     assert (tmp_path / "rep" / "channels.png").stat().st_size > 1000
+    # the verdict and the residual's spectrum, where its signature comes from (issue 14)
+    assert "<h2>Verdict</h2>" in page and "the model explains the data down to the noise" in page
+    assert (tmp_path / "rep" / "spectrum.png").stat().st_size > 1000
 
 
 def test_command_line_bad_input_exits_2(tmp_path, capsys):

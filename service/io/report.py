@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.errors import FluxcalError
-from service.numerics.diagnose import DECIDES, Diagnosis, verdict_word
+from service.numerics.diagnose import DECIDES, Diagnosis, verdict_lines, verdict_word
 
 MAX_POINTS = 6000
 
@@ -71,6 +71,32 @@ def _png(fig) -> bytes:
     return buf.getvalue()
 
 
+def _spectrum_figure(plt, d: Diagnosis) -> tuple[str, str, bytes] | None:
+    """The spectrum of each channel's residual against its white noise floor: a line, a 1/f rise or a slow
+    wander shows where the verdict's signature came from."""
+    from scipy.signal import welch
+
+    ch = d.fit.channels
+    if ch.values.shape[0] < 256:
+        return None
+    dt = float(np.median(np.diff(ch.t_s)))
+    nper = int(2 ** np.floor(np.log2(ch.values.shape[0] / 4)))
+    fig, ax = plt.subplots(figsize=(7.5, 3.6))
+    for c, name in enumerate(ch.names[:6]):
+        f, p = welch(ch.values[:, c] - ch.values[:, c].mean(), fs=1.0 / dt, nperseg=nper)
+        line, = ax.loglog(f[1:], np.sqrt(p[1:]), lw=0.8, label=name)
+        ax.axhline(np.sqrt(2.0 * d.channel_noise_nT[c] ** 2 * dt), color=line.get_color(), ls=":", lw=0.8)
+    sig = (d.verdict or {}).get("signature") or {}
+    if sig.get("line_hz"):
+        ax.axvline(sig["line_hz"], color="k", ls="--", lw=0.8, label=f"line at {sig['line_hz']:.2f} Hz")
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel("residual (nT/√Hz)")
+    ax.legend(fontsize=7, ncol=2)
+    png = _png(fig)
+    plt.close(fig)
+    return ("spectrum.png", "Spectrum of the residual of each channel (dotted: its white noise floor)", png)
+
+
 def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
     """(file name, caption, PNG bytes) of every plot."""
     plt = _pyplot()
@@ -80,6 +106,10 @@ def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
     names = d.channel_names
     before_vals = d.fit.channels.values
     after_vals = after.channels.values if after is not None else None
+
+    spectrum = _spectrum_figure(plt, d)
+    if spectrum is not None:
+        figs.append(spectrum)
 
     # residual against the strongest observables
     seen: set[tuple[str, str]] = set()
@@ -195,9 +225,7 @@ def render_html(d: Diagnosis, figs: list[tuple[str, str, bytes]], title: str) ->
     imgs = "".join(
         f'<figure><img alt="{html.escape(cap)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
         f"<figcaption>{html.escape(cap)}</figcaption></figure>" for _, cap, png in figs)
-    best = d.best
-    verdict = (f"Most likely missing: <b>{html.escape(best.effect)}</b> (RMS {d.rms_nT:.3f} &rarr; "
-               f"{best.rms_nT:.3f} nT)." if best else "No missing effect is significant.")
+    verdict = "<br>".join(html.escape(line.strip()) for line in verdict_lines(d))
     notes = "".join(f"<li>{html.escape(n)}</li>" for n in d.notes)
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
@@ -211,7 +239,9 @@ figure {{ margin: 1.5em 0; }} img {{ max-width: 100%; }} figcaption {{ font-size
 <p>Model: <b>{html.escape(d.model)}</b> (linear part {d.linear}; total field from {d.reference});
 {d.n_samples} samples over {d.duration_s:.1f} s.</p>
 <p>Residual RMS <b>{d.rms_nT:.3f} nT</b> against a noise floor of {d.noise_nT:.3f} nT;
-held-out {d.heldout_rms_nT:.3f} nT. {verdict}</p>
+held-out {d.heldout_rms_nT:.3f} nT.</p>
+<h2>Verdict</h2>
+<p>{verdict}</p>
 <h2>Candidate effects</h2>
 <p>Each effect is fitted in addition to the model and judged on {len(d.fit.problem.blocks)} contiguous time
 blocks, each predicted by the fit to the others.</p>

@@ -7,8 +7,8 @@ judged on held-out time blocks (fits.py); the verdict over them (verdict.py); wh
 
 from .diagnostics import diagnose
 from .result import GAIN_SIGMAS, P_SIGNIFICANT, Candidate, Diagnosis
-from .text import DECIDES, summary_text, verdict_word
+from .text import DECIDES, summary_text, verdict_lines, verdict_word
 from .where import where_it_fails, worst_segments
 
 __all__ = ["DECIDES", "Candidate", "Diagnosis", "GAIN_SIGMAS", "P_SIGNIFICANT", "diagnose", "summary_text", "where_it_fails",
-           "verdict_word", "worst_segments"]
+           "verdict_lines", "verdict_word", "worst_segments"]
