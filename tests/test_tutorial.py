@@ -72,3 +72,58 @@ def test_the_tutorial_runs_as_written(tmp_path, monkeypatch, capsys, clean_regis
     _REGISTERED.pop("pump", None)
     assert main(["diagnose", "recordings/grad3-pump.mcap", "--calibration", str(out)]) == 2
     assert "give them with --effects file.py:ClassName" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_the_running_service_takes_the_pump_from_its_plugins(tmp_path, clean_registry):
+    """Section 4: a configuration naming the plugin, the pipeline of `fluxcal run` (build_pipeline), the
+    recording fed block by block, `add-effect pump` once the calibration is usable: s2's error falls to its
+    noise."""
+    from service.io.recordings.reader import read_recording
+    from service.wiring.config import load_config
+    from service.wiring.daemon import build_pipeline
+
+    cfg_path = tmp_path / "pump.toml"
+    cfg_path.write_text(f"""
+[unit]
+name = "grad3"
+n_probes = 3
+[source]
+kind = "replay"
+path = "{ROOT / 'recordings' / 'grad3-pump.mcap'}"
+rate_hz = 25.0
+[estimator]
+window_s = 40.0
+check_every_s = 2.0
+min_samples = 500
+[effects]
+plugins = ["{ROOT / 'docs' / 'examples' / 'pump.py'}:Pump"]
+""")
+    cfg = load_config(cfg_path)
+    block = read_recording(ROOT / "recordings" / "grad3-pump.mcap").raw_blocks[0]
+
+    def run(size: int):  # noqa: ANN202
+        pl = build_pipeline(cfg)
+        errors, out, i, added = [], [], 0, None
+        while i < block.n_samples:
+            if added is None and pl.calibration is not None and i >= 2000:
+                pl.command("add-effect", "pump", seq=int(block.seq[i]), t_s=float(block.t_s[i]))
+                added = i
+            piece = block.slice(i, min(i + size, block.n_samples))
+            res = pl.process(piece)
+            errors.append((i, res.error.get("s2.scalar", np.nan), piece.n_samples))
+            if res.corrected is not None:
+                out.append(res.corrected.corrected_nT)
+            i += piece.n_samples
+        return added, errors, np.concatenate(out)
+
+    added, errors, _ = run(25)
+    assert added is not None, "the calibration never became usable"
+
+    def rms(a, b):
+        e = [(x, n) for i, x, n in errors if a <= i < b and np.isfinite(x)]
+        return float(np.sqrt(sum(x * x * n for x, n in e) / sum(n for _, n in e)))
+
+    before, after = rms(added - 500, added), rms(added + 100, block.n_samples)
+    print(f"s2.scalar error: {before:.2f} nT before add-effect pump, {after:.2f} nT after")
+    assert before > 1.3 and after < 0.8, (before, after)

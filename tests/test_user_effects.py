@@ -146,3 +146,29 @@ def test_fit_with_a_file_effect_finds_its_step(tmp_path, capsys):
     s1 = np.array([bump[f"s1.bump {a} nT"]["value"] for a in "xyz"])
     assert abs(np.linalg.norm(s1) - 3.0) < 0.15 and bump["s1.bump x nT"]["se"] < 0.1
     assert np.linalg.norm([bump[f"s2.bump {a} nT"]["value"] for a in "xyz"]) < 0.2
+
+
+def test_the_service_loads_the_plugins_its_configuration_names(tmp_path):
+    from service.wiring.config import load_config
+    from service.wiring.daemon import build_pipeline
+    from service.wiring.live_effects import LiveEffects
+
+    (tmp_path / "fx").mkdir()
+    (tmp_path / "fx" / "mine.py").write_text(GOOD.replace('name = "bump"', 'name = "bump"\n    per_sample = True'))
+    cfg_dir = tmp_path / "cfg"
+    cfg_dir.mkdir()
+    text = ('[unit]\nn_probes = 1\n[source]\nkind = "replay"\npath = "x.mcap"\nrate_hz = 10.0\n'
+            '[effects]\nplugins = ["../fx/mine.py:Bump"]\n')
+    (cfg_dir / "c.toml").write_text(text)
+    cfg = load_config(cfg_dir / "c.toml")
+    assert cfg.effects.plugins == [f"{tmp_path / 'fx' / 'mine.py'}:Bump"]       # relative to the config
+    assert "bump" not in LiveEffects.allowed()
+    build_pipeline(cfg)
+    assert "bump" in LiveEffects.allowed() and "temperature" in LiveEffects.allowed()
+    assert "eddy" not in LiveEffects.allowed()
+    (cfg_dir / "bad.toml").write_text(text.replace("../fx/mine.py", "../fx/nope.py"))
+    with pytest.raises(ConfigError, match="effects.plugins: .*no such file"):
+        build_pipeline(load_config(cfg_dir / "bad.toml"))
+    (cfg_dir / "typo.toml").write_text(text.replace("plugins", "plugin"))
+    with pytest.raises(ConfigError, match="plugin"):
+        load_config(cfg_dir / "typo.toml")

@@ -20,6 +20,7 @@ class Pump(EffectTerm):
     title = "Pump"
     physical = "a field turning at the pump's frequency"
     frame = "corrected"              # the pump sits on the platform: its field adds to the corrected vector
+    per_sample = True                # each sample's correction needs that sample alone: the service can take it
 
     HZ = 1.5                         # the pump's rated speed, turns per second
 
@@ -27,7 +28,7 @@ class Pump(EffectTerm):
         return [f"{view.name}.pump {part} {axis} nT" for part in ("cos", "sin") for axis in "xyz"]
 
     def columns(self, view):
-        w = 2 * np.pi * self.HZ * (view.data.t_s - view.data.t_s[0])
+        w = 2 * np.pi * self.HZ * view.data.t_s       # the unit's clock: the same phase in every window
         cols = np.zeros((w.size, 3, 6))
         for axis in range(3):
             cols[:, axis, axis] = np.cos(w)

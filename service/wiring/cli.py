@@ -170,7 +170,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "  fluxcal command add-effect temperature\n  fluxcal command apply cal.json")
     cmd.add_argument("verb", metavar="VERB", help="state, freeze, unfreeze, reset (forget what was learned), apply "
                                                  "(payload: a calibration file), add-effect (payload: temperature, "
-                                                 "drift or nonlinearity, the effects a running service takes). A "
+                                                 "drift or nonlinearity, the effects a running service takes, or one "
+                                                 "of your own from the configuration's [effects] plugins). A "
                                                  "refused command exits with 1 and says why")
     cmd.add_argument("payload", metavar="PAYLOAD", nargs="?", default=None,
                      help="what the command needs (apply: a calibration file; add-effect: an effect name)")

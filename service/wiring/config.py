@@ -84,6 +84,14 @@ class CalibrationConfig:
 
 
 @dataclass
+class EffectsConfig:
+    plugins: list[str] = spec(default_factory=list,
+                              doc="effects of your own the service loads at start, as FILE.py:ClassName (relative "
+                                  "paths: to the configuration's directory) or package.module:ClassName; those that "
+                                  "act on each sample alone (per_sample) can then be added with add-effect")
+
+
+@dataclass
 class McapConfig:
     enabled: bool = spec(True)
     dir: str = spec("recordings/live")
@@ -127,6 +135,7 @@ class FluxcalConfig:
     calibration: CalibrationConfig
     zenoh: Any
     mcap: McapConfig
+    effects: EffectsConfig = field(default_factory=EffectsConfig)
     path: str = ""
     raw: dict = field(default_factory=dict)
 
@@ -146,7 +155,7 @@ class FluxcalConfig:
         return float(rate) if rate else None
 
 
-_SECTIONS = ("unit", "probes", "source", "sim", "estimator", "calibration", "zenoh", "mcap")
+_SECTIONS = ("unit", "probes", "source", "sim", "estimator", "calibration", "zenoh", "mcap", "effects")
 
 RATE_MISSING = ("source.rate_hz: missing (allowed: the unit's sample rate in Hz, 0.001 to 100000; the estimator's "
                 "window_s, check_every_s and update_every_s are counted in samples at this rate)")
@@ -177,6 +186,8 @@ def load_config(path: str | Path) -> FluxcalConfig:
     cfg.mcap.dir = here(cfg.mcap.dir)
     if getattr(cfg.source, "kind", "") == "replay":
         cfg.source.path = here(cfg.source.path)
+    cfg.effects.plugins = [here(p.rpartition(":")[0]) + ":" + p.rpartition(":")[2] if p.rpartition(":")[0].endswith(".py")
+                           else p for p in cfg.effects.plugins]
     return cfg
 
 
@@ -246,7 +257,8 @@ def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
 
         zenoh_cfg = load_section(ZenohConfig, raw.get("zenoh", {}), "zenoh")
         mcap = load_section(McapConfig, raw.get("mcap", {}), "mcap")
+        effects = load_section(EffectsConfig, raw.get("effects", {}), "effects")
     except ConfigError as e:
         raise err(str(e)) from None
     return FluxcalConfig(unit=unit, probes=probes, source=source, sim=sim, estimator=estimator,
-                         calibration=calibration, zenoh=zenoh_cfg, mcap=mcap, path=path, raw=raw)
+                         calibration=calibration, zenoh=zenoh_cfg, mcap=mcap, effects=effects, path=path, raw=raw)

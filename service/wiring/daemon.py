@@ -29,6 +29,14 @@ from .status import StatusLog
 
 
 def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:
+    from service.wiring.user_effects import load_installed_effects, resolve_effects
+
+    # effects of your own, registered before anything (a recorded add-effect, a calibration) names them
+    load_installed_effects()
+    try:
+        resolve_effects(list(cfg.effects.plugins))
+    except ConfigError as e:
+        raise ConfigError(f"{cfg.path}: effects.plugins: {str(e).removeprefix('--effects: ')}") from None
     est = cfg.estimator
     positions = np.asarray(cfg.positions_m, float)
     has_geometry = cfg.unit.n_probes > 1 and np.ptp(positions, axis=0).any()

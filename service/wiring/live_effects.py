@@ -13,10 +13,15 @@ from service.numerics.calib.model import ArrayCalibration
 class LiveEffects:
     """The effect terms in the calibration in use, their fit, and each probe's latest valid temperature."""
 
-    #: effects the running service can add: they act sample by sample, so correcting block by block
-    #: gives the same numbers however the input is cut (replay = live). Effects on dB/dt or time
-    #: shifts (eddy, lag) need samples across block edges: fit them offline (`fluxcal fit --effects`).
-    NAMES = ("temperature", "drift", "nonlinearity")
+    @staticmethod
+    def allowed() -> list[str]:
+        """The effects the running service can add (EffectTerm.per_sample: temperature, drift, nonlinearity, and
+        effects of your own loaded at start from [effects] plugins that say so): they act sample by sample, so
+        correcting block by block gives the same numbers however the input is cut (replay = live). Effects on
+        dB/dt or time shifts (eddy, lag) need samples across block edges: fit them offline."""
+        from service.numerics.effects import known_effects
+
+        return [n for n, cls in known_effects().items() if getattr(cls, "per_sample", False)]
 
     def __init__(self, n_probes: int, total_nT: float | None) -> None:
         self.total_nT = total_nT
@@ -32,13 +37,15 @@ class LiveEffects:
         from now on. FluxcalError when it cannot be added, or the window's data do not show it."""
         from service.numerics.engine import fit_with_effects
 
-        if name not in self.NAMES:
-            from service.numerics.effects import EFFECTS
+        allowed = self.allowed()
+        if name not in allowed:
+            from service.numerics.effects import known_effects
 
-            offline = (f"; fit it offline with `fluxcal fit --effects {name}`" if name in EFFECTS else
-                       f"; {name!r} is not an effect at all (the catalogue: {', '.join(EFFECTS)})")
+            offline = (f"; fit it offline with `fluxcal fit --effects {name}`" if name in known_effects() else
+                       f"; {name!r} is not an effect at all (the catalogue: {', '.join(known_effects())}; effects "
+                       f"of your own are loaded at start from the configuration's [effects] plugins)")
             raise FluxcalError(f"add-effect: {name!r} cannot be added to the running service (allowed: "
-                               f"{', '.join(self.NAMES)}){offline}")
+                               f"{', '.join(allowed)}){offline}")
         if calibration is None:
             raise FluxcalError("add-effect: no calibration in use yet; wait until it is usable")
         names = [e for e in self.names if e != name] + [name]

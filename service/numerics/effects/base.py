@@ -318,6 +318,10 @@ class EffectTerm:
     linear: ClassVar[bool] = True
     #: the term finds its regressors in the residual of the model without it (ProbeView.model_residual)
     needs_residual: ClassVar[bool] = False
+    #: each sample's correction depends on that sample alone (and on references kept with the calibration):
+    #: the running service can add it, and correcting block by block gives the same numbers however the input
+    #: is cut (no derivatives, smoothing or time shifts across samples)
+    per_sample: ClassVar[bool] = False
     #: other catalogue name -> what motion or data tells the two apart
     separation: ClassVar[dict[str, str]] = {}
 

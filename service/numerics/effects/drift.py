@@ -41,6 +41,7 @@ class Drift(EffectTerm):
     """Offset drift per probe and axis, plus ambient drift without a scalar reference."""
 
     name = "drift"
+    per_sample = True
     title = "Drift"
     physical = "slow change of the ambient field or of the offsets over time"
     separation = {

@@ -36,6 +36,7 @@ class Nonlinearity(EffectTerm):
     """Quadratic (1/nT) and cubic (1/nT^2) transfer coefficients per probe and axis."""
 
     name = "nonlinearity"
+    per_sample = True
     title = "Nonlinearity"
     physical = "per-axis transfer non-linearity"
     linear = False

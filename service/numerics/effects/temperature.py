@@ -18,6 +18,7 @@ class Temperature(EffectTerm):
     """Offset (nT/degC) and scale-factor (ppm/degC) temperature coefficients per probe and axis."""
 
     name = "temperature"
+    per_sample = True
     title = "Temperature"
     physical = "offset and scale factor change with probe temperature"
     separation = {
