@@ -51,11 +51,16 @@ class ChunkedRandom:
     def draw(self, start: int, stop: int) -> np.ndarray:
         if stop <= start:
             return np.empty((0, *self.per_sample), dtype=np.uint8 if self.kind == "bytes" else np.float64)
-        c0, c1 = start // self.CHUNK, (stop - 1) // self.CHUNK
-        parts = [self._chunk(c) for c in range(c0, c1 + 1)]   # one numpy call per 4096 samples
-        joined = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        base = c0 * self.CHUNK
-        return joined[start - base:stop - base].copy()
+        return join_chunks(self._chunk, start, stop)             # one numpy call per 4096 samples
+
+
+def join_chunks(chunk, start: int, stop: int) -> np.ndarray:
+    """Samples [start, stop) from chunk(c), which returns samples [c CHUNK, (c + 1) CHUNK)."""
+    c0, c1 = start // ChunkedRandom.CHUNK, (stop - 1) // ChunkedRandom.CHUNK
+    parts = [chunk(c) for c in range(c0, c1 + 1)]
+    joined = parts[0] if len(parts) == 1 else np.concatenate(parts)
+    base = c0 * ChunkedRandom.CHUNK
+    return joined[start - base:stop - base].copy()
 
 
 class OneOverF:
@@ -158,9 +163,5 @@ class PinkNoise:
     def draw(self, start: int, stop: int) -> np.ndarray:
         if stop <= start:
             return np.empty((0, *self.density.shape))
-        c0, c1 = start // ChunkedRandom.CHUNK, (stop - 1) // ChunkedRandom.CHUNK
         with self._lock:
-            parts = [self._chunk(c) for c in range(c0, c1 + 1)]
-        joined = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        base = c0 * ChunkedRandom.CHUNK
-        return joined[start - base:stop - base].copy()
+            return join_chunks(self._chunk, start, stop)

@@ -172,8 +172,11 @@ def describe(sig: dict[str, Any], has_reference: bool) -> tuple[str, str]:
         parts.append("it follows " + ", ".join(
             f"{f['observable']}{' ' + f['band'] if f.get('band') else ''} in {f['channel']} ({100 * f['strength']:.0f} %)"
             for f in follows))
-    # what would explain it
-    if line is not None:
+    # what would explain it: a strong tie to something the data carry first, then a line, a shared or own wander
+    strong = follows and follows[0]["observable"] != "frequency" and follows[0]["strength"] >= 0.5
+    if strong:
+        advice = _follows_advice(follows[0])
+    elif line is not None:
         advice = (f"something periodic at {line:.2f} Hz (a motor, pump or fan near the probe, a rotating part, an "
                   f"aliased mains harmonic): nothing in the catalogue is periodic; log its phase or speed, or add an "
                   f"effect of your own with a sine and a cosine at that frequency (docs/effects.md)")
@@ -200,6 +203,9 @@ _ADVICE = {
             "sensor's temperature",
     "temperature": "a temperature dependence that the temperature and thermal terms do not take (a higher power, "
                    "or a delay beyond theirs); log the temperature nearer the core",
+    "temperature rate": "a dependence on how fast the temperature changes: a core that lags its logged temperature "
+                        "(try thermal) or a thermal gradient across the sensor",
+    "temperature, delayed": "the temperature with a delay: a core that lags its logged temperature (try thermal)",
     "angular rate": "a dependence on the rotation rate that eddy and lag do not take (a filter in the sensor's "
                     "electronics, a time base that drifts)",
     "orientation": "a dependence on orientation that the linear calibration, nonlinearity and crossfield do not take "

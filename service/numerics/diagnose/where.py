@@ -9,11 +9,13 @@ from typing import Any
 import numpy as np
 
 from service.numerics.effects.base import EffectData
+from service.numerics.effects.thermal import low_pass
 from service.numerics.engine import (
     FitResult,
 )
 
 WHERE_MAX_ROWS = 20000
+LAGS_S = (60.0, 300.0)      # delayed temperatures tried: first-order lags of a minute and of five
 
 
 def _legendre(x: np.ndarray, deg: int) -> np.ndarray:
@@ -60,6 +62,18 @@ def observables(data: EffectData, fit: FitResult, rows: np.ndarray) -> dict[str,
                 cols += [temps[k], temps[k] ** 2]
             return np.column_stack(cols)
         out["temperature"] = temp_basis
+        # its rate and delayed versions: a core that lags its logged temperature follows these better
+        full_t = [data.temperature(k) for k in range(data.n_probes)]
+        rates = [np.gradient(low_pass(data.t_s, v, 10.0), data.t_s)[full_rows] for v in full_t]
+        lagged = [np.column_stack([low_pass(data.t_s, v, tau)[full_rows] for tau in LAGS_S]) for v in full_t]
+
+        def of_probes(per_probe: list[np.ndarray]) -> Any:
+            def basis(c: int) -> np.ndarray:
+                kind, k = pr.channel_probe(c)
+                return np.column_stack([per_probe[j] for j in ([k, 0] if kind == "diff" else [k])])
+            return basis
+        out["temperature rate"] = of_probes(rates)
+        out["temperature, delayed"] = of_probes(lagged)
     # angular rate from probe 1: omega_perp = |b x db/dt| / |b|^2 (rad/s); and the rate's direction
     s1 = data.smooth(0)[full_rows]
     r1 = data.rate(0)[full_rows]

@@ -14,6 +14,23 @@ import numpy as np
 from .base import AXES, EffectData, EffectTerm, ProbeView, axis_columns
 
 
+def why_no_temperature(data: EffectData) -> str | None:
+    """Why these data cannot show a temperature effect, or None."""
+    if not data.has_temperature():
+        return "the data have no probe temperature (s<k>_temp columns)"
+    if float(np.ptp(data.temperature(0))) < 1e-6:
+        return "the probe temperature does not change in these data"
+    return None
+
+
+def reference_temperature(view: ProbeView, key: str) -> float:
+    """The temperature coefficients are centred on: the mean of the data fitted, kept in the view under `key`
+    (a `ref:` key), so applying the calibration to other data uses the same reference."""
+    if key not in view.cache:
+        view.cache[key] = float(np.mean(view.data.temperature(view.k)))
+    return view.cache[key]
+
+
 class Temperature(EffectTerm):
     """Offset (nT/degC) and scale-factor (ppm/degC) temperature coefficients per probe and axis."""
 
@@ -27,24 +44,14 @@ class Temperature(EffectTerm):
     }
 
     def why_unavailable(self, data: EffectData) -> str | None:
-        if not data.has_temperature():
-            return "the data have no probe temperature (s<k>_temp columns)"
-        t = data.temperature(0)
-        if float(np.ptp(t)) < 1e-6:
-            return "the probe temperature does not change in these data"
-        return None
+        return why_no_temperature(data)
 
     def param_names(self, view: ProbeView) -> list[str]:
         p = view.name
         return [f"{p}.{a} nT/degC" for a in AXES] + [f"{p}.{a} ppm/degC" for a in AXES]
 
     def reference_C(self, view: ProbeView) -> float:
-        """The temperature the coefficients are centred on: the mean of the data fitted (kept in the
-        view, so applying the calibration to other data uses the same reference)."""
-        key = "ref:temperature_C"
-        if key not in view.cache:
-            view.cache[key] = float(np.mean(view.data.temperature(view.k)))
-        return view.cache[key]
+        return reference_temperature(view, "ref:temperature_C")
 
     def constants(self, view: ProbeView) -> dict[str, tuple[float, str]]:
         return {f"{view.name} reference temperature": (self.reference_C(view), "degC")}

@@ -19,6 +19,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from .base import AXES, EffectData, EffectTerm, ProbeView, axis_columns
+from .temperature import reference_temperature, why_no_temperature
 
 TAU_START_S = 60.0
 TAU_GRID_S = (0.0, 10.0, 30.0, 60.0, 120.0, 240.0, 600.0)
@@ -57,11 +58,7 @@ class ThermalLag(EffectTerm):
     }
 
     def why_unavailable(self, data: EffectData) -> str | None:
-        if not data.has_temperature():
-            return "the data have no probe temperature (s<k>_temp columns)"
-        if float(np.ptp(data.temperature(0))) < 1e-6:
-            return "the probe temperature does not change in these data"
-        return None
+        return why_no_temperature(data)
 
     def param_names(self, view: ProbeView) -> list[str]:
         p = view.name
@@ -89,10 +86,7 @@ class ThermalLag(EffectTerm):
         return view.cache[key]
 
     def reference_C(self, view: ProbeView) -> float:
-        key = "ref:thermal_C"
-        if key not in view.cache:
-            view.cache[key] = float(np.mean(view.data.temperature(view.k)))
-        return view.cache[key]
+        return reference_temperature(view, "ref:thermal_C")
 
     def constants(self, view: ProbeView) -> dict[str, tuple[float, str]]:
         return {f"{view.name} reference temperature": (self.reference_C(view), "degC")}
