@@ -31,7 +31,7 @@ METHODS = ("ellipsoid", "tmi", "sinefit", "two-step", "rls")
 ALIGNS = ("regression", "rotation", "pca")
 #: the catalogue of effects (service.numerics.effects.EFFECTS), named here so --help needs no numerics import
 EFFECT_NAMES = ("temperature, thermal, eddy, lag, nonlinearity, drift, gradient, crossfield, hysteresis, platform, "
-                "column")
+                "column, ambient")
 SITE = "LAT,LON,ALT_M[,DATE]"
 
 

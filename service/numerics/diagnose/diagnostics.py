@@ -44,7 +44,7 @@ from service.numerics.engine import (
 
 from .fits import heldout, try_candidate
 from .result import N_BLOCKS, Candidate, Diagnosis, Progress
-from .signature import FLOOR_FACTOR, signature, verdict
+from .signature import FLOOR_FACTOR, SHARED, signature, verdict
 from .verdict import demote_nested, mark_indistinguishable, rank
 from .where import where_it_fails, worst_segments
 
@@ -108,6 +108,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     tell(0.87, "comparing candidates")
     mark_indistinguishable(cands)
     demote_nested(cands)
+    _demote_without_common_mode(cands, signature(cur, 1.0 / weights).get("shared_fraction"))
     cands = rank(cands)
     _beyond_the_best(ed, model, cands, reference, weights, n_blocks, tell)
     cands = rank(cands)
@@ -175,3 +176,13 @@ def _beyond_the_best(ed: Any, model: Model, cands: list[Candidate], reference: n
             c.significant = False
             c.reason = (f"nothing beyond {best.effect}: beside it, {c.effect}'s held-out gain is "
                         f"{100 * again.gain:.1f} %")
+
+
+def _demote_without_common_mode(cands: list[Candidate], shared: float | None) -> None:
+    """A term for a change common to all probes (ambient) counts only where the residual is mostly shared."""
+    for c in cands:
+        cls = known_effects().get(c.effect)
+        if c.significant and getattr(cls, "needs_common_mode", False) and (shared is None or shared < SHARED):
+            c.significant = False
+            c.reason = (f"no change common to the probes: {0 if shared is None else 100 * shared:.0f} % of the "
+                        f"residual's excess is shared (a change of the site's field would be common to all)")

@@ -135,7 +135,7 @@ def _separation(a: str, b: str) -> str:
 def _depends(name: str) -> str:
     return {"temperature": "temperature", "thermal": "temperature, delayed", "eddy": "rotation rate", "lag": "rotation rate",
             "nonlinearity": "field per axis", "drift": "time", "gradient": "attitude and position",
-            "crossfield": "field across each axis", "hysteresis": "field history", "platform": "attitude", "column": "a logged column",
+            "crossfield": "field across each axis", "hysteresis": "field history", "platform": "attitude", "column": "a logged column", "ambient": "the other probes",
             "offset": "attitude", "baseline": "attitude"}.get(name, name)
 
 

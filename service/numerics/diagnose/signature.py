@@ -183,8 +183,8 @@ def describe(sig: dict[str, Any], has_reference: bool) -> tuple[str, str]:
     elif shared is not None and shared >= SHARED and not diff_up:
         advice = ("a field change at the site, common to all probes: " +
                   ("the scalar reference does not follow it; check its timing and position" if has_reference else
-                   "log a reference magnetometer (a ref_total column) so the total field follows it, or model "
-                   "the ambient field in time"))
+                   "log a reference magnetometer (a ref_total column) so the total field follows it, or let the "
+                   "other probes measure it (--effects ambient)"))
     elif shared is not None and shared <= OWN and slope is not None and -1.6 <= slope <= -0.5 and not (
             follows and follows[0]["strength"] >= 2 * FOLLOWS):
         advice = ("each probe's own slow noise (flicker, spectrum about 1/f): not a missing effect; it limits "

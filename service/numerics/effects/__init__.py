@@ -11,6 +11,7 @@
     hysteresis    perming: offset steps after a strong field or shock        nT per step and axis
     platform      Tolles-Lawson permanent and induced platform fields        nT, 3x3 per probe
     column        the field of a logged quantity (current, voltage, ...)    nT per unit, per unit/s, per axis
+    ambient       the site's field changing, measured by the other probes    gain per probe
 
 Adding an effect to the catalogue is adding one module with one EffectTerm subclass and a line in
 EFFECTS. A user adds one without editing the package: `register_effect(cls)` (what `--effects
@@ -23,8 +24,8 @@ is the catalogue and the registered ones together.
 Traceback (most recent call last):
 ...
 drivers.errors.ConfigError: --effects: 'temprature' is not an effect (allowed: temperature, thermal, eddy, \
-lag, nonlinearity, drift, gradient, crossfield, hysteresis, platform, column; or file.py:ClassName for one of \
-your own)
+lag, nonlinearity, drift, gradient, crossfield, hysteresis, platform, column, ambient; or file.py:ClassName for \
+one of your own)
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from typing import Iterable
 from drivers.errors import ConfigError
 
 from .base import Baseline, EffectData, EffectTerm, Model, ProbeView
+from .ambient import Ambient
 from .column import Column
 from .crossfield import Crossfield
 from .drift import Drift
@@ -49,7 +51,7 @@ from .thermal import ThermalLag
 #: catalogue name -> term class, in the order candidates are listed
 EFFECTS: dict[str, type[EffectTerm]] = {
     cls.name: cls for cls in (Temperature, ThermalLag, Eddy, Lag, Nonlinearity, Drift, Gradient, Crossfield,
-                              Hysteresis, Platform, Column)
+                              Hysteresis, Platform, Column, Ambient)
 }
 
 
@@ -105,4 +107,4 @@ def make_model(names: Iterable[str], *, baseline: bool = True) -> Model:
 
 __all__ = ["EFFECTS", "known_effects", "register_effect", "make_term", "make_model", "Baseline", "EffectData", "EffectTerm", "Model", "ProbeView",
            "Temperature", "ThermalLag", "Eddy", "Lag", "Nonlinearity", "Drift", "Gradient", "Crossfield", "Hysteresis",
-           "Platform", "Column"]
+           "Platform", "Column", "Ambient"]

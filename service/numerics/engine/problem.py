@@ -43,6 +43,9 @@ def make_views(data: EffectData, bind: LinearCalibration, hints: Any, refs: list
              for k in range(data.n_probes)]
     for view, ref in zip(views, refs or []):
         view.cache.update({key: v for key, v in ref.items() if key.startswith(REF_PREFIX)})
+    if hints is not None:
+        for view in views:                       # every probe's residual, for terms that compare probes
+            view.cache["residuals:all"] = hints[0]
     return views
 
 
