@@ -169,3 +169,30 @@ def test_a_logged_current_coupled_into_a_probe_is_found_by_column_and_a_decoy_is
     assert [p[f"s2.{a} nT per heater_A"] for a in "xyz"] == pytest.approx([3.0, -2.0, 1.0], abs=0.1), text
     control = diagnose(heater_world(seed + 10, coupled=False))
     assert not any(c.significant for c in control.candidates), summary_text(control)
+
+
+def test_a_tie_of_any_shape_to_a_logged_column_is_measured():
+    # the correlation ratio catches what a polynomial misses: an oscillation in the column's value
+    from service.numerics.diagnose.where import _eta2, _r2
+
+    rng = np.random.default_rng(5)
+    x = rng.uniform(0, 1, 4000)
+    y = np.cos(6 * np.pi * x) + 0.3 * rng.standard_normal(x.size)
+    assert _r2(y, np.column_stack([x, x ** 2])) < 0.2 and _eta2(y, x) > 0.6     # at most 0.85 with this noise
+    assert _eta2(rng.standard_normal(x.size), x) < 0.01                       # no tie: nothing, after adjustment
+
+
+@pytest.mark.slow
+def test_where_it_fails_names_a_column_tied_in_no_polynomial_way():
+    from test_diagnose import sim_block
+
+    probes = [probe(0), probe(1)]
+    block = sim_block(probes, n=8000, rate=50.0, motion=TUMBLE, seed=3)
+    t = block.t_s - block.t_s[0]
+    valve = 0.5 + 0.5 * np.sin(2 * np.pi * t / 37.0)            # a valve cycling slowly, position 0..1
+    block.extras["valve"] = valve
+    block.field_nT[:, 1, 0] += 3.0 * np.cos(6 * np.pi * valve)
+    d = diagnose(data_of(block, probes), candidates=["column"])
+    top = d.where[0]
+    assert top["observable"] == "valve" and top["strength"] > 0.5, d.where[:4]
+    assert "valve" in d.verdict["left"]

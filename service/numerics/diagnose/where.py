@@ -45,6 +45,30 @@ def _r2(y: np.ndarray, cols: np.ndarray) -> float:
     return float(np.clip(r2, 0.0, 1.0))
 
 
+ETA_BINS = 16
+
+
+def _eta2(y: np.ndarray, x: np.ndarray, bins: int = ETA_BINS) -> float:
+    """The correlation ratio of y on x (the variance of y explained by the mean of y in each of `bins`
+    quantile bins of x), adjusted for the bins' degrees of freedom: a tie of any shape, a threshold or an
+    oscillation that a polynomial in x misses."""
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    n = y.size
+    if n <= 2 * bins:
+        return 0.0
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, bins + 1)[1:-1]))
+    idx = np.searchsorted(edges, x, side="right")
+    k = int(idx.max()) + 1
+    counts = np.bincount(idx, minlength=k)
+    means = np.bincount(idx, weights=y, minlength=k) / np.maximum(counts, 1)
+    sst = float(np.sum((y - y.mean()) ** 2))
+    if sst <= 0 or k < 2:
+        return 0.0
+    eta2 = float(np.sum(counts * (means - y.mean()) ** 2)) / sst
+    return float(np.clip(1.0 - (1.0 - eta2) * (n - 1) / (n - k), 0.0, 1.0))
+
+
 def observables(data: EffectData, fit: FitResult, rows: np.ndarray) -> dict[str, Any]:
     """Observable bases at the given rows (indices into the full data): name -> per-channel function."""
     pr = fit.problem
@@ -105,6 +129,7 @@ def observables(data: EffectData, fit: FitResult, rows: np.ndarray) -> dict[str,
         v = vals[full_rows]
         if float(np.ptp(v)) > 0:
             out[name] = lambda c, _v=v: np.column_stack([_v, _v ** 2])
+            out[name].scalar = v                     # one column: its tie of any shape is measured too
     return out
 
 
@@ -135,7 +160,8 @@ def _band_excess(y: np.ndarray, dt: float, noise: float) -> tuple[float, str]:
 
 def where_it_fails(data: EffectData, fit: FitResult, noise_nT: np.ndarray, *, top: int = 30,
                    min_strength: float = 0.05) -> list[dict[str, Any]]:
-    """(channel, observable, strength) sorted strongest first; strength = explained variance fraction."""
+    """(channel, observable, strength) sorted strongest first; strength = explained variance fraction (adjusted
+    R^2 of a small basis in the observable; for a logged column also its correlation ratio, whichever is larger)."""
     pr = fit.problem
     m = pr.M
     stride = max(1, m // WHERE_MAX_ROWS)
@@ -147,6 +173,9 @@ def where_it_fails(data: EffectData, fit: FitResult, noise_nT: np.ndarray, *, to
         y = vals[rows, c]
         for oname, basis in obs.items():
             s = _r2(y, basis(c))
+            x = getattr(basis, "scalar", None)
+            if x is not None:
+                s = max(s, _eta2(y, x))
             if s >= min_strength:
                 out.append({"channel": name, "observable": oname, "strength": s})
         s, band = _band_excess(vals[:, c], data.dt_s, float(noise_nT[c]))
