@@ -162,7 +162,8 @@ def heater_world(seed: int, coupled: bool):
 def test_a_logged_current_coupled_into_a_probe_is_found_by_column_and_a_decoy_is_not(seed):
     d = diagnose(heater_world(seed, coupled=True))
     text = summary_text(d)
-    assert d.candidates[0].effect == "column" and d.verdict == {**d.verdict, "kind": "explained", "effect": "column"}
+    assert d.candidates[0].effect == "column", text
+    assert d.verdict["kind"] == "explained" and d.verdict["effect"] == "column", text
     d2 = diagnose(heater_world(seed, coupled=True), effects=["column"])
     assert d2.rms_nT <= 1.3 * d2.noise_nT and not any(c.significant for c in d2.candidates), summary_text(d2)
     p = {q.name: q.value for q in d2.parameters}

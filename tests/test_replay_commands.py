@@ -18,8 +18,8 @@ from service.wiring.daemon import build_pipeline
 SAMPLE = Path(__file__).resolve().parents[1] / "recordings" / "grad1-sim-30s.mcap"
 
 
-def _live_run_with_a_command(path: Path) -> int:
-    """What the daemon records, with a freeze 2000 samples in and a reset at 4000: returns the commands."""
+def _live_run_with_a_command(path: Path) -> None:
+    """What the daemon records, with a freeze 2000 samples in and an unfreeze at 4000."""
     src = read_recording(SAMPLE)
     cfg = config_from_dict(json.loads(src.metadata["config"]), "sample")
     initial = None
@@ -52,7 +52,6 @@ def _live_run_with_a_command(path: Path) -> int:
             log.write_corrected(r.corrected)
         done += block.n_samples
     log.close()
-    return 2
 
 
 def test_a_replays_copy_replays_identically_with_the_commands_in_it(tmp_path, capsys):

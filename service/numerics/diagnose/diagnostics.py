@@ -104,31 +104,33 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
         tell(0.15 + 0.7 * i / max(len(names), 1), f"trying {name}")
         cands.append(try_candidate(ed, model, cur, cur_ho, name, reference, weights, hints, n_blocks))
 
-    # 3. the verdict: which are indistinguishable, and their order (verdict.py)
-    tell(0.87, "comparing candidates")
+    # 3. where the model fails: what the residual follows (where.py), and the signature of that residual
+    tell(0.87, "where it fails")
+    noise = 1.0 / weights
+    noise_nT = float(np.sqrt(np.mean(noise ** 2)))
+    where = where_it_fails(ed, cur, noise)
+    sig_cur = signature(cur, noise, where)
+
+    # 4. the verdict over the candidates: which are indistinguishable, which keep their gain beside the
+    # others, and their order (verdict.py)
+    tell(0.9, "comparing candidates")
     mark_indistinguishable(cands)
     demote_nested(cands)
-    _demote_without_common_mode(cands, signature(cur, 1.0 / weights).get("shared_fraction"))
+    _demote_without_common_mode(cands, sig_cur.get("shared_fraction"))
     cands = rank(cands)
     _beyond_the_best(ed, model, cands, reference, weights, n_blocks, tell)
     cands = rank(cands)
 
-    # 4. where the model fails: what the residual follows (where.py)
-    tell(0.92, "where it fails")
-    noise = 1.0 / weights
-    where = where_it_fails(ed, cur, noise)
-
     # 5. the verdict in kinds, and what is left described (signature.py)
-    noise_nT = float(np.sqrt(np.mean(noise ** 2)))
     best = next((c for c in cands if c.significant and c.fit is not None), None)
     if best is None:
-        left = signature(cur, noise, where)
+        left = sig_cur
     elif best.rms_nT > FLOOR_FACTOR * noise_nT:
         left = signature(best.fit, noise, where_it_fails(ed, best.fit, noise))
     else:
         left = {}
     told = verdict(cur.rms_nT, noise_nT, best, left, ed.ref_total_nT is not None)
-    notes += _coloured_noise_notes(cur, noise, model.effects, ed.duration_s)
+    notes += _coloured_noise_notes(sig_cur.get("spectral_slope"), model.effects, ed.duration_s)
     tell(1.0, "done")
     ch_rms = cur.channels.rms_nT
     return Diagnosis(effects=model.effects, model=str(model), linear="fixed" if fixed else "refit",
@@ -139,12 +141,10 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
                      linear_refit_rms_nT=linear_refit, parameters=cur.parameters())
 
 
-
-def _coloured_noise_notes(cur: Any, noise: np.ndarray, effects: Sequence[str], duration_s: float) -> list[str]:
-    """What a coloured residual means for the standard errors (block jackknife, engine/solve.py): they hold
-    for terms that change within the record, but a drift cannot be told from the noise's own wander at
-    periods as long as the record, which no estimate from the record alone can see."""
-    slope = signature(cur, noise).get("spectral_slope")
+def _coloured_noise_notes(slope: float | None, effects: Sequence[str], duration_s: float) -> list[str]:
+    """What a coloured residual (its spectral slope) means for the standard errors (block jackknife,
+    engine/solve.py): they hold for terms that change within the record, but a drift cannot be told from
+    the noise's own wander at periods as long as the record, which no estimate from the record alone sees."""
     if slope is None or slope > -0.5:
         return []
     out = [f"the residual is coloured (spectrum ~ f^{slope:.1f}): standard errors come from the block jackknife "
@@ -170,10 +170,11 @@ def _beyond_the_best(ed: Any, model: Model, cands: list[Candidate], reference: n
     ho = heldout(best.fit)
     hints = residual_hints(best.fit)
     for c in others:
-        tell(0.86, f"trying {c.effect} beside {best.effect}")
+        tell(0.95, f"trying {c.effect} beside {best.effect}")
         again = try_candidate(ed, with_best, best.fit, ho, c.effect, reference, weights, hints, n_blocks)
         if not again.significant:
             c.significant = False
+            c.refusal = f"nothing beyond {best.effect}"
             c.reason = (f"nothing beyond {best.effect}: beside it, {c.effect}'s held-out gain is "
                         f"{100 * again.gain:.1f} %")
 
@@ -184,5 +185,6 @@ def _demote_without_common_mode(cands: list[Candidate], shared: float | None) ->
         cls = known_effects().get(c.effect)
         if c.significant and getattr(cls, "needs_common_mode", False) and (shared is None or shared < SHARED):
             c.significant = False
+            c.refusal = "not common to the probes"
             c.reason = (f"no change common to the probes: {0 if shared is None else 100 * shared:.0f} % of the "
                         f"residual's excess is shared (a change of the site's field would be common to all)")

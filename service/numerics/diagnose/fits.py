@@ -172,7 +172,8 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
             if absorbed:
                 same = Candidate(effect=name, rms_nT=cur.rms_nT, heldout_rms_nT=cur_ho.rms_nT,
                                  indistinguishable_from=absorbed, separate_by=_separation(name, absorbed[0]),
-                                 reason=f"the model's {absorbed[0]} spans its regressors in these data")
+                                 reason=f"the model's {absorbed[0]} spans its regressors in these data",
+                                 refusal=f"the model's {absorbed[0]} spans it")
                 return same
             warm = Warm(a_c, g_c, np.ones(pr.n_params, bool))
         # at most CANDIDATE_ITERATIONS: a fit stopped early overstates its RSS, so its gain is understated
@@ -196,4 +197,5 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
         c.separate_by = _separation(name, absorbed[0])
         c.significant = False
         c.reason = f"the model's {absorbed[0]} spans its regressors in these data"
+        c.refusal = f"the model's {absorbed[0]} spans it"
     return c

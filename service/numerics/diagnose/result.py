@@ -50,6 +50,7 @@ class Candidate:
     significant: bool = False
     testable: bool = True
     reason: str | None = None             # why not testable, or a note
+    refusal: str | None = None            # the verdict column's few words when a later check refused it
     gain: float = 0.0                     # held-out gain, fraction of the model's held-out weighted MSE
     log_ratio: float = 0.0                # mean over blocks of ln(MSE without / MSE with), held out
     log_ratio_se: float = 0.0             # its standard error from the block-to-block spread

@@ -17,14 +17,8 @@ def verdict_word(c: Candidate) -> str:
     """The verdict column: SIGNIFICANT, or "no" with the figure that refused it."""
     if c.significant:
         return "SIGNIFICANT"
-    if c.reason and c.reason.startswith("the model's") and c.indistinguishable_from:
-        return f"no: the model's {c.indistinguishable_from[0]} spans it"
-    if c.reason and c.reason.startswith("no change common"):
-        return "no: not common to the probes"
-    if c.reason and c.reason.startswith("nothing beyond"):
-        return f"no: nothing beyond {c.reason.split()[2].rstrip(':')}"
-    if c.reason and c.reason.startswith("no better than"):
-        return f"no: not better than {c.reason.split()[3].rstrip(',')}"
+    if c.refusal:
+        return f"no: {c.refusal}"
     if c.n_params <= 0:
         return "no: nothing determined"
     if c.gain <= 0:

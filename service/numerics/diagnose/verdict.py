@@ -81,6 +81,7 @@ def demote_nested(cands: list[Candidate]) -> None:
             gain = 1.0 - (c.heldout_rms_nT / b.heldout_rms_nT) ** 2 if b.heldout_rms_nT > 0 else 0.0
             if not (gain >= MIN_GAIN and float(diff.mean()) > GAIN_SIGMAS * se):
                 c.significant = False
+                c.refusal = f"not better than {inner}"
                 c.reason = (f"no better than {inner}, which it contains, on the held-out blocks "
                             f"({c.heldout_rms_nT:.3f} against {b.heldout_rms_nT:.3f} nT)")
 

@@ -31,6 +31,15 @@ def reference_temperature(view: ProbeView, key: str) -> float:
     return view.cache[key]
 
 
+def temperature_columns(d_temp: np.ndarray, centred_nT: np.ndarray) -> np.ndarray:
+    """(N, 3, 6) regressors of the offset (beta, nT/degC) and scale (kappa, ppm/degC) coefficients per axis for
+    a temperature difference d_temp (N,) and the linear transfer output u = raw - offset (N, 3)."""
+    d = d_temp[:, None]
+    offset_cols = axis_columns(np.broadcast_to(d, centred_nT.shape))     # beta: nT per degC
+    scale_cols = axis_columns(1e-6 * d * centred_nT)                     # kappa: 1e-6 dT (raw - o) per ppm/degC
+    return np.concatenate([offset_cols, scale_cols], axis=2)
+
+
 class Temperature(EffectTerm):
     """Offset (nT/degC) and scale-factor (ppm/degC) temperature coefficients per probe and axis."""
 
@@ -57,8 +66,4 @@ class Temperature(EffectTerm):
         return {f"{view.name} reference temperature": (self.reference_C(view), "degC")}
 
     def columns(self, view: ProbeView) -> np.ndarray:
-        temp = view.data.temperature(view.k)
-        d_temp = (temp - self.reference_C(view))[:, None]              # (N, 1) degC
-        offset_cols = axis_columns(np.broadcast_to(d_temp, (temp.shape[0], 3)))   # beta: nT per degC
-        scale_cols = axis_columns(1e-6 * d_temp * view.centred_nT)     # kappa: 1e-6 dT (raw - o) per ppm/degC
-        return np.concatenate([offset_cols, scale_cols], axis=2)
+        return temperature_columns(view.data.temperature(view.k) - self.reference_C(view), view.centred_nT)

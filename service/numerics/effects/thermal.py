@@ -18,8 +18,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import lfilter
 
-from .base import AXES, EffectData, EffectTerm, ProbeView, axis_columns
-from .temperature import reference_temperature, why_no_temperature
+from .base import AXES, EffectData, EffectTerm, ProbeView
+from .temperature import reference_temperature, temperature_columns, why_no_temperature
 
 TAU_START_S = 60.0
 TAU_GRID_S = (0.0, 10.0, 30.0, 60.0, 120.0, 240.0, 600.0)
@@ -103,12 +103,8 @@ class ThermalLag(EffectTerm):
 
     def _parts(self, view: ProbeView, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 3, 6) columns of beta and kappa at theta's tau, and (N, 3) their d/d dT_c."""
-        d_core = self._core(view, theta[6])[:, None]
         u = view.centred_nT
-        cols = np.concatenate([axis_columns(np.broadcast_to(d_core, u.shape)), axis_columns(1e-6 * d_core * u)],
-                              axis=2)
-        per_degree = theta[:3] + 1e-6 * theta[3:6] * u
-        return cols, per_degree
+        return temperature_columns(self._core(view, theta[6]), u), theta[:3] + 1e-6 * theta[3:6] * u
 
     def correction(self, view: ProbeView, theta: np.ndarray, v0: np.ndarray | None = None) -> np.ndarray:
         cols, _ = self._parts(view, theta)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any, Callable
 
 import numpy as np
@@ -122,7 +123,7 @@ class FitResult:
                                      for a_b, g_b in zip(self.a_blocks, self.g_blocks)]).reshape(-1, self.values.size)
         return self._deltas
 
-    @property
+    @cached_property
     def robust_stderr(self) -> np.ndarray:
         """Standard errors that hold on coloured noise. Noise correlated in time (1/f, a wander no term
         follows) moves whole blocks together, which the white-noise figure (normal equations and residual
