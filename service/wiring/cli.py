@@ -195,7 +195,41 @@ def build_parser() -> argparse.ArgumentParser:
     watch.add_argument("--ca", metavar="CA.pem", help="TLS: the site's certificate authority")
     watch.add_argument("--cert", metavar="CERT.pem", help="TLS: this dashboard's certificate")
     watch.add_argument("--key", metavar="KEY.pem", help="TLS: this dashboard's private key")
+
+    dash = _command(sub, "dashboard", "web dashboard of running units: live plots with history, coverage, "
+                    "calibration, health, diagnosis and commands, served on this host",
+                    "  fluxcal dashboard --config configs/sim-gradiometer.toml --open\n"
+                    "  fluxcal dashboard --connect tcp/10.0.0.5:7447 --unit grad1 --unit grad2 --listen 0.0.0.0:8090",
+                    more=(" It subscribes over Zenoh like `watch` (lossily: it never holds a unit back) and serves a page"
+                          " at --listen; the plot code comes from the package, no internet needed. Ctrl-C stops it."))
+    _client_options(dash, "dashboard")
+    dash.add_argument("--listen", default="127.0.0.1:8090", metavar="HOST:PORT",
+                      help="where the page is served (default: %(default)s, this host only; port 0: a free one, said "
+                           "at start)")
+    dash.add_argument("--open", action="store_true", help="open the page in this host's web browser")
+
+    fox = _command(sub, "foxglove", "live bridge for the Foxglove app: a running unit's products on a Foxglove "
+                   "WebSocket server",
+                   "  fluxcal foxglove --config configs/sim-gradiometer.toml   # then in Foxglove: Open connection, "
+                   "ws://127.0.0.1:8765",
+                   more=" It subscribes over Zenoh like `watch` and never holds the unit back. Ctrl-C stops it.")
+    _client_options(fox, "bridge")
+    fox.add_argument("--listen", default="127.0.0.1:8765", metavar="HOST:PORT",
+                     help="the Foxglove WebSocket server's address (default: %(default)s; port 0: a free one)")
     return p
+
+
+def _client_options(p: argparse.ArgumentParser, who: str) -> None:
+    """--config/--connect/--unit/--seconds and TLS, as for `watch`; --unit may be given several times."""
+    p.add_argument("--config", metavar="FILE", help="take the endpoints, unit and TLS from this configuration")
+    p.add_argument("--connect", metavar="ENDPOINT", help="the units' endpoint or router, e.g. tcp/127.0.0.1:7447 "
+                                                        "(default: tcp/127.0.0.1:7447)")
+    p.add_argument("--unit", metavar="NAME", action="append",
+                   help="a unit to show; repeat for several (default: every unit found)")
+    p.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")
+    p.add_argument("--ca", metavar="CA.pem", help="TLS: the site's certificate authority")
+    p.add_argument("--cert", metavar="CERT.pem", help=f"TLS: this {who}'s certificate")
+    p.add_argument("--key", metavar="KEY.pem", help=f"TLS: this {who}'s private key")
 
 
 def _sigterm_to_keyboard_interrupt(signum: int, frame: object) -> None:

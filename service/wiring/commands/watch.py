@@ -102,6 +102,16 @@ def _resolve(args: argparse.Namespace) -> tuple[list[str], str | None, ZenohTlsC
     return endpoints, unit, tls
 
 
+def resolve_units(args: argparse.Namespace) -> tuple[list[str], list[str] | None, ZenohTlsConfig]:
+    """As `_resolve`, for commands whose --unit may be repeated (dashboard, foxglove): the units named, the
+    configuration's unit, or None (every unit found)."""
+    named = list(args.unit or [])
+    endpoints, unit, tls = _resolve(argparse.Namespace(**{**vars(args), "unit": named[0] if named else None}))
+    for u in named:
+        Keys(u)
+    return endpoints, named or ([unit] if unit else None), tls
+
+
 def _vec(v: np.ndarray, width: int = 10) -> str:
     return " ".join(f"{x:+{width}.1f}" if np.isfinite(x) else f"{'nan':>{width}}" for x in v)
 
