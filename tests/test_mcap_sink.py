@@ -73,8 +73,8 @@ def test_channels_schemas_and_metadata_describe_the_file(tmp_path):
         topics = {c.topic: (c.message_encoding, summary.schemas[c.schema_id]) for c in summary.channels.values()}
         counts = {summary.channels[k].topic: v for k, v in summary.statistics.channel_message_counts.items()}
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
-    assert set(topics) == {f"/fluxcal/grad1/{s}" for s in ("raw", "corrected", "vectors", "calibration", "events",
-                                                           "health")}
+    assert set(topics) == {f"/fluxcal/grad1/{s}" for s in ("raw", "corrected", "vectors", "diff", "tensor", "error",
+                                                           "params", "calibration", "events", "health")}
     enc, schema = topics["/fluxcal/grad1/raw"]
     assert enc == "fluxcal.raw.v1" and schema.encoding == "fluxcal.layout" and schema.data.decode() == RAW_LAYOUT
     enc, schema = topics["/fluxcal/grad1/corrected"]
@@ -83,9 +83,12 @@ def test_channels_schemas_and_metadata_describe_the_file(tmp_path):
     vec_schema = json.loads(schema.data)
     assert enc == "json" and schema.encoding == "jsonschema"
     assert {"fore", "aft", "center"} <= set(vec_schema["properties"])
-    for s in ("calibration", "events", "health"):
+    assert {"aft"} <= set(json.loads(topics["/fluxcal/grad1/diff"][1].data)["properties"])
+    for s in ("diff", "tensor", "error", "params", "calibration", "events", "health"):
         assert topics[f"/fluxcal/grad1/{s}"][1].encoding == "jsonschema"
     assert counts["/fluxcal/grad1/raw"] == 10 and counts["/fluxcal/grad1/vectors"] == 5     # 0.5 s at 10 Hz
+    assert counts["/fluxcal/grad1/diff"] == 5 and counts["/fluxcal/grad1/params"] == 1
+    assert "/fluxcal/grad1/tensor" not in counts                                          # two probes: no tensor
     assert meta["fluxcal"]["unit"] == "grad1" and meta["fluxcal"]["lsb_nT"] == "0.001"
     assert meta["fluxcal"]["raw_encoding"] == "fluxcal.raw.v1" and meta["fluxcal"]["file_index"] == "1"
     assert "epoch_ns + round(t_s * 1e9)" in meta["fluxcal.time"]["log_time"]

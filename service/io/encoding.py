@@ -33,7 +33,7 @@ from __future__ import annotations
 import json
 import math
 import struct
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -149,8 +149,6 @@ def calibration_record(kind: str, *, seq: int | None, t_s: float | None = None,
 
 
 _NUM = {"type": ["number", "null"]}
-_VEC = {"type": "object", "properties": {"x": _NUM, "y": _NUM, "z": _NUM, "total": _NUM},
-        "description": "mean corrected field in nT over the interval; total = mean of |B| per sample"}
 
 #: JSON schema of the calibration channel (also the events channel: same shape, other kinds)
 CALIBRATION_SCHEMA: dict[str, Any] = {
@@ -169,16 +167,6 @@ HEALTH_SCHEMA: dict[str, Any] = {
                    "recording": {"type": "object", "description": "McapLogger.status()"}}}
 
 
-def vectors_schema(probe_names: Sequence[str]) -> dict[str, Any]:
-    """JSON schema of the decimated vectors channel for these probe names (Foxglove offers the paths)."""
-    return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "fluxcal vectors", "type": "object",
-            "properties": {"t_s": {**_NUM, "description": "unit time of the interval's first sample, s"},
-                           "seq": {"type": "integer"}, "n": {"type": "integer", "description": "samples averaged"},
-                           "cal_id": {"type": "integer"}, "center": _VEC,
-                           **{name: _VEC for name in probe_names}},
-            "additionalProperties": _VEC}
-
-
 __all__ = ["RAW_ENCODING", "RAW_LAYOUT", "CORRECTED_ENCODING", "CORRECTED_LAYOUT", "encode_raw", "decode_raw",
            "encode_corrected", "decode_corrected", "json_ready", "encode_json", "decode_json", "health_record",
-           "calibration_record", "CALIBRATION_SCHEMA", "EVENT_SCHEMA", "HEALTH_SCHEMA", "vectors_schema"]
+           "calibration_record", "CALIBRATION_SCHEMA", "EVENT_SCHEMA", "HEALTH_SCHEMA"]

@@ -1,8 +1,11 @@
-"""Decimation of the corrected streams for dashboards and recordings: interval means of the vectors."""
+"""Decimation of the corrected streams for dashboards and recordings: interval means of the vectors, the
+gradiometer differences and the tensor (VectorMeans), and interval RMS of the per-block error metric
+(RmsMeans)."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -12,7 +15,8 @@ from .outputs import CorrectedBlock
 
 class VectorMeans:
     """Means of the corrected vectors over intervals of `period_s` of unit time: per probe x, y, z
-    (NaN-aware) and mean |B|, and the same of the array centre when the blocks have it. Interval k
+    (NaN-aware) and mean |B|, and the same of the array centre, of the differences (probe k minus
+    probe 1, with mean |d|) and of the tensor (with the trace of the mean) when the blocks have them. Interval k
     holds k·period <= t < (k+1)·period; it also ends early when the calibration (cal_id) changes.
     Blocks inside one interval are only kept; the arithmetic runs once per interval (10 Hz)."""
 
@@ -40,7 +44,7 @@ class VectorMeans:
         if self.parts:
             prev = self.parts[-1]
             if (first != self.bin or block.cal_id != prev.cal_id or block.n_probes != prev.n_probes
-                    or (block.center_nT is None) != (prev.center_nT is None)):
+                    or any((getattr(block, k) is None) != (getattr(prev, k) is None) for k in _OPTIONAL)):
                 done.append(self._emit())
         if first == last:
             if not self.parts:
@@ -71,19 +75,75 @@ class VectorMeans:
                     np.where(nok, norm, 0.0).sum(axis=0) / nok.sum(axis=0))
 
     def _emit(self) -> dict[str, Any]:
-        """{"t_s", "seq", "n", "cal_id", "mean" (P, 3) nT, "total" (P,) nT, "center": (mean (3,), total) or None}."""
+        """{"t_s", "seq", "n", "cal_id", "mean" (P, 3) nT, "total" (P,) nT, "center": (mean (3,), total) or None,
+        "diff": (mean (P-1, 3), mean |d| (P-1,)) nT or None, "tensor": (mean (3, 3), its trace) nT/m or None}."""
         parts, self.parts = self.parts, []
-        c = parts[0].corrected_nT if len(parts) == 1 else np.concatenate([p.corrected_nT for p in parts])
+
+        def joined(name: str) -> np.ndarray:
+            arrays = [getattr(p, name) for p in parts]
+            return arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
+
+        c = joined("corrected_nT")
         mean, total = self._mean(c)
-        center = None
+        center = diff = tensor = None
         if parts[0].center_nT is not None:
-            cm, ct = self._mean(np.concatenate([p.center_nT for p in parts])[:, None, :])
+            cm, ct = self._mean(joined("center_nT")[:, None, :])
             center = (cm[0], ct[0])
+        if parts[0].diff_nT is not None:
+            diff = self._mean(joined("diff_nT"))
+        if parts[0].tensor_nT_m is not None:
+            g, _ = self._mean(joined("tensor_nT_m"))                 # rows of G as if probes: (3, 3)
+            tensor = (g, float(np.trace(g)))                         # trace = div B, ~0 in a source-free field
         return {"t_s": float(parts[0].t_s[0]), "seq": int(parts[0].seq[0]), "n": int(c.shape[0]),
-                "cal_id": int(parts[-1].cal_id), "mean": mean, "total": total, "center": center}
+                "cal_id": int(parts[-1].cal_id), "mean": mean, "total": total, "center": center,
+                "diff": diff, "tensor": tensor}
+
+
+_OPTIONAL = ("center_nT", "diff_nT", "tensor_nT_m")
 
 
 def block_rows(b: CorrectedBlock, rows: Any) -> CorrectedBlock:
-    """The rows `rows` of a corrected block (probes, centre and calibration id kept; differences and tensor dropped)."""
-    return CorrectedBlock(b.t_s[rows], b.seq[rows], b.corrected_nT[rows], None, None,
-                          None if b.center_nT is None else b.center_nT[rows], b.cal_id)
+    """The rows `rows` of a corrected block (every array and the calibration id kept)."""
+    def pick(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else a[rows]
+
+    return CorrectedBlock(b.t_s[rows], b.seq[rows], b.corrected_nT[rows], pick(b.diff_nT), pick(b.tensor_nT_m),
+                          pick(b.center_nT), b.cal_id)
+
+
+class RmsMeans:
+    """The per-block error metric ({channel: rms nT} over n samples) combined over intervals of `period_s` of
+    unit time: an interval holds the blocks that start in it, and a channel's figure is the RMS over all their
+    samples, sqrt(sum n_i rms_i^2 / sum n_i). A channel missing in a block counts over the blocks that have it."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        self.bin: int | None = None
+        self.head: tuple[float, int | None] = (0.0, None)        # t_s, seq of the interval's first block
+        self.n = 0
+        self.sums: dict[str, list[float]] = {}                   # channel -> [sum n rms^2, sum n]
+
+    def add(self, rms_nT: Mapping[str, float | None], *, t_s: float, seq: int | None, n: int) -> list[dict[str, Any]]:
+        """Feed one block's metric; returns the interval it completed, if any."""
+        if not math.isfinite(t_s) or n <= 0:
+            return []
+        b = math.floor(t_s / self.period_s + 1e-9)
+        done = self.flush() if self.bin is not None and b != self.bin else []
+        if self.bin is None:
+            self.bin, self.head = b, (t_s, seq)
+        self.n += n
+        for ch, r in rms_nT.items():
+            if r is not None and math.isfinite(r):
+                acc = self.sums.setdefault(ch, [0.0, 0.0])
+                acc[0] += n * r * r
+                acc[1] += n
+        return done
+
+    def flush(self) -> list[dict[str, Any]]:
+        """{"t_s", "seq", "n", "rms_nT": {channel: nT}} of the interval being filled, if any."""
+        if self.bin is None:
+            return []
+        rec = {"t_s": self.head[0], "seq": self.head[1], "n": self.n,
+               "rms_nT": {ch: math.sqrt(s / w) for ch, (s, w) in self.sums.items()}}
+        self.bin, self.n, self.sums = None, 0, {}
+        return [rec]

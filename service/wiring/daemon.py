@@ -219,8 +219,11 @@ class Daemon:
             if logger is not None:
                 logger.write_corrected(out.corrected)
             bus.publish_corrected(out.corrected)
-        if out.error:
-            bus.publish_error(out.error)
+        if out.error and out.corrected is not None:
+            head = {"seq": int(out.corrected.seq[0]), "t_s": float(out.corrected.t_s[0]), "n": out.corrected.n_samples}
+            if logger is not None:
+                logger.write_error(out.error, **head)
+            bus.publish_error(out.error, **head)
         for ev in out.events:
             self._on_event(ev, pipeline, bus, logger)
             if ev.kind == "calibration" and not announced:

@@ -263,7 +263,8 @@ class Pipeline:
             "effects": list(self.effects),
             "probes": [] if cal is None else [
                 {"name": p.name, "offset_nT": p.offset_nT.tolist(), "matrix": p.matrix.tolist(),
-                 "offset_se_nT": np.nan_to_num(p.offset_se_nT, nan=-1).tolist()} for p in cal.probes],
+                 "offset_se_nT": np.nan_to_num(p.offset_se_nT, nan=-1).tolist(),
+                 "matrix_se": p.matrix_se.tolist(), "params": p.params} for p in cal.probes],
             "gate": None if g is None else {"usable": g.usable, "reasons": g.reasons, "coverage": g.coverage,
                                             "condition": g.condition, "rms_nT": g.rms_nT},
             "samples_seen": int(min(est.n_samples_ for est in self._estimators)),

@@ -190,10 +190,13 @@ class ServiceBus(SessionHolder):
         self._last_health = msg
         self._put("health", self._pubs["health"], _json_bytes(msg))
 
-    def publish_error(self, rms_nT: Mapping[str, float], *, seq: int | None = None, t_s: float | None = None) -> None:
-        """The model-vs-measurement error metric of a block, {"rms_nT": {channel: nT}}; may be dropped."""
+    def publish_error(self, rms_nT: Mapping[str, float], *, seq: int | None = None, t_s: float | None = None,
+                      n: int | None = None) -> None:
+        """The model-vs-measurement error metric of a block of n samples from seq (unit time t_s),
+        {"rms_nT": {channel: nT}}; may be dropped."""
         self._put("error", self._pubs["error"], _json_bytes({"unit": self.unit, "time_unix_s": time.time(),
-                                                            "seq": seq, "t_s": t_s, "rms_nT": dict(rms_nT)}))
+                                                            "seq": seq, "t_s": t_s, "n": n,
+                                                            "rms_nT": dict(rms_nT)}))
 
     def has_subscribers(self, stream: str) -> bool:
         """Whether any subscriber anywhere matches `stream` ("raw", ..., "corrected/<probe>"), e.g. to wait for

@@ -13,16 +13,8 @@ from typing import Any, Callable, Sequence
 
 from mcap.writer import CompressionType, Writer
 
-from service.io.encoding import (
-    CALIBRATION_SCHEMA,
-    CORRECTED_ENCODING,
-    CORRECTED_LAYOUT,
-    EVENT_SCHEMA,
-    HEALTH_SCHEMA,
-    RAW_ENCODING,
-    RAW_LAYOUT,
-    vectors_schema,
-)
+from service.io.encoding import CORRECTED_ENCODING, CORRECTED_LAYOUT, RAW_ENCODING, RAW_LAYOUT
+from service.io.foxglove_schemas import json_channels
 
 #: schema encoding of the binary layouts: the schema data is the layout table as UTF-8 text
 LAYOUT_SCHEMA_ENCODING = "fluxcal.layout"
@@ -147,20 +139,14 @@ class McapFiles:
         layout = w.register_schema(RAW_ENCODING, LAYOUT_SCHEMA_ENCODING, RAW_LAYOUT.encode())
         cor = w.register_schema(CORRECTED_ENCODING, LAYOUT_SCHEMA_ENCODING, CORRECTED_LAYOUT.encode())
 
-        def js(name: str, schema: dict[str, Any]) -> int:
-            return w.register_schema(name, "jsonschema", json.dumps(schema).encode())
-
         t = f"/fluxcal/{self.unit}"
         channels = {
             "raw": w.register_channel(f"{t}/raw", RAW_ENCODING, layout),
             "corrected": w.register_channel(f"{t}/corrected", CORRECTED_ENCODING, cor),
-            "vectors": w.register_channel(f"{t}/vectors", "json",
-                                          js("fluxcal.vectors", vectors_schema(self.probe_names))),
-            "calibration": w.register_channel(f"{t}/calibration", "json",
-                                              js("fluxcal.calibration", CALIBRATION_SCHEMA)),
-            "events": w.register_channel(f"{t}/events", "json", js("fluxcal.event", EVENT_SCHEMA)),
-            "health": w.register_channel(f"{t}/health", "json", js("fluxcal.health", HEALTH_SCHEMA)),
         }
+        for stream, (name, schema) in json_channels(self.probe_names).items():     # the ones Foxglove decodes
+            channels[stream] = w.register_channel(f"{t}/{stream}", "json",
+                                                  w.register_schema(name, "jsonschema", json.dumps(schema).encode()))
         w.add_metadata("fluxcal", {"unit": self.unit, "raw_encoding": RAW_ENCODING,
                                    "corrected_encoding": CORRECTED_ENCODING, **self.metadata,
                                    "file_index": str(self._file_index)})

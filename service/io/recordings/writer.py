@@ -7,9 +7,20 @@ Channels (topic, MCAP message encoding, schema):
     /fluxcal/<unit>/vectors      json                  jsonschema: per probe mean corrected x, y, z and mean |B|
                                                        over 0.1 s of unit time (10 Hz), and the array centre,
                                                        for Foxglove's plot panel (`.s1.total`, `.center.x`)
+    /fluxcal/<unit>/diff         json                  jsonschema: 10 Hz means of the gradiometer differences,
+                                                       per probe k (minus probe 1): x, y, z, magnitude, nT
+    /fluxcal/<unit>/tensor       json                  jsonschema: 10 Hz means of the gradient tensor, dBx_dx ...
+                                                       dBz_dz and trace, nT/m
+    /fluxcal/<unit>/error        json                  jsonschema: 10 Hz RMS of the error metric per channel, nT
+    /fluxcal/<unit>/params       json                  jsonschema: on every calibration record: parameters with
+                                                       standard errors, the gate's coverage, condition, residual
     /fluxcal/<unit>/calibration  json                  jsonschema: calibration replaced, quality-gate refusals
     /fluxcal/<unit>/events       json                  jsonschema: commands applied (with the seq they apply from)
     /fluxcal/<unit>/health       json                  jsonschema: source counters and this logger's status
+
+The JSON channels Foxglove plots (vectors, diff, tensor, error, params) are built by
+service.io.foxglove_schemas, which the live bridge (`fluxcal foxglove`) uses too; the binary channels stay
+the replay's exact record.
 
 Each file starts with a "fluxcal" metadata record (unit, stream encodings, file_index and what the
 caller passes: n_probes, lsb_nT, probe_names, positions_m, config) and, once the first sample time
@@ -60,12 +71,12 @@ from service.io.encoding import (
     encode_raw,
     health_record,
 )
-from service.numerics.decimate import VectorMeans
+from service.io.foxglove_schemas import Products, message_bytes
 from service.numerics.outputs import CorrectedBlock
 
 from .files import COMPRESSIONS, McapFiles
 
-STREAMS = ("raw", "corrected", "vectors", "calibration", "events", "health")
+STREAMS = ("raw", "corrected", "vectors", "diff", "tensor", "error", "params", "calibration", "events", "health")
 _UNIT_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
 _RETRY_S = 5.0
 _monotonic = time.monotonic           # tests replace these two to move time
@@ -277,8 +288,9 @@ class McapLogger(ChunkedLog):
     rotate_mb, rotate_s: start a new file after this many MB or seconds (directory mode).
     chunk_size: bytes of messages per chunk before compression; flush_interval_s: at most this
     long between chunks. compression: "lz4", "zstd" or "none". metadata: strings for the "fluxcal"
-    metadata record. probe_names: names in the vectors channel (default from metadata["probe_names"],
-    else s1, s2, ...). vectors_period_s: averaging interval of the vectors channel (0 disables it).
+    metadata record. probe_names: names in the vectors and diff channels (default from metadata["probe_names"],
+    else s1, s2, ...). vectors_period_s: averaging interval of the vectors, diff, tensor and error channels
+    (0 disables them).
     epoch_ns: log_time epoch (None: the wall clock at the first sample). fsync: also fsync every chunk
     (survives power loss, costs a disk round trip per chunk). retry_s: after a write error, try a new
     file this much later (default 5 s). backlog_mb: at most this much of unwritten messages is kept
@@ -318,7 +330,7 @@ class McapLogger(ChunkedLog):
                 probe_names = None
         self.probe_names = list(probe_names or [])
         self.fsync = fsync
-        self._vectors = VectorMeans(vectors_period_s) if vectors_period_s > 0 else None
+        self._products = Products(self.probe_names, vectors_period_s) if vectors_period_s > 0 else None
         files = McapFiles(self.dir, self.path, unit=unit, compression=compression, probe_names=self.probe_names,
                           metadata=self.metadata, fsync=fsync, opener=opener or _default_opener)
         super().__init__(files, single_file=self.single_file, rotate_bytes=rotate_mb * 1e6, rotate_s=rotate_s,
@@ -330,30 +342,29 @@ class McapLogger(ChunkedLog):
 
     def write_corrected(self, block: CorrectedBlock) -> None:
         self._write("corrected", encode_corrected(block), float(block.t_s[0]) if block.n_samples else None)
-        if self._vectors is not None and block.n_samples:
-            for rec in self._vectors.add(block):
-                self._write_vectors(rec)
+        if self._products is not None:
+            self._write_products(self._products.corrected(block))
 
-    def _write_vectors(self, iv: dict[str, Any]) -> None:
-        def num(x: float) -> float | None:              # strict JSON: NaN -> null
-            return x if math.isfinite(x) else None
+    def write_error(self, rms_nT: dict[str, float], *, seq: int | None, t_s: float, n: int) -> None:
+        """The error metric of one block of n samples (the bus's `error` stream); recorded as 10 Hz RMS."""
+        if self._products is not None:
+            self._write_products(self._products.error(rms_nT, t_s=t_s, seq=seq, n=n))
 
-        rec: dict[str, Any] = {k: iv[k] for k in ("t_s", "seq", "n", "cal_id")}
-        for k, (m, tot) in enumerate(zip(iv["mean"].tolist(), iv["total"].tolist())):
-            name = self.probe_names[k] if k < len(self.probe_names) else f"s{k + 1}"
-            rec[name] = {"x": num(m[0]), "y": num(m[1]), "z": num(m[2]), "total": num(tot)}
-        if iv["center"] is not None:
-            m, tot = iv["center"][0].tolist(), float(iv["center"][1])
-            rec["center"] = {"x": num(m[0]), "y": num(m[1]), "z": num(m[2]), "total": num(tot)}
-        self._write("vectors", json.dumps(rec, separators=(",", ":")).encode(), iv["t_s"])
+    def _write_products(self, messages: list[tuple[str, dict[str, Any]]]) -> None:
+        for stream, msg in messages:
+            t = msg.get("t_s")
+            self._write(stream, message_bytes(msg), float(t) if isinstance(t, (int, float)) else None)
 
     def _write_json(self, stream: str, record: dict[str, Any]) -> None:
         t = record.get("t_s")
         self._write(stream, encode_json(record), float(t) if isinstance(t, (int, float)) else None)
 
     def write_calibration(self, record: dict[str, Any]) -> None:
-        """A calibration event: {"kind": ..., "seq": ..., "t_s": ..., "state": {...}, ...}."""
+        """A calibration event: {"kind": ..., "seq": ..., "t_s": ..., "state": {...}, ...}; with a state, also its
+        parameters, standard errors and gate figures as plain numbers (params)."""
         self._write_json("calibration", record)
+        if self._products is not None and isinstance(record.get("state"), dict):
+            self._write_products(Products.calibration(record))
 
     def write_event(self, record: dict[str, Any]) -> None:
         """A command or other event, with the seq it applies from: {"kind": "command", "seq": ..., ...}."""
@@ -364,12 +375,11 @@ class McapLogger(ChunkedLog):
         self._write("health", encode_json(health_record(counters, self.status())), None)
 
     def close(self) -> None:
-        """Write the last vectors interval, the last chunk and the footer. Safe to call twice."""
+        """Write the last 10 Hz intervals, the last chunk and the footer. Safe to call twice."""
         if self._closed:
             return
-        if self._vectors is not None:
-            for rec in self._vectors.flush():
-                self._write_vectors(rec)
+        if self._products is not None:
+            self._write_products(self._products.flush())
         self._close_files()
 
     def __enter__(self) -> "McapLogger":
