@@ -89,6 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--site", metavar=SITE, help=site_help)
     fit.add_argument("--out", metavar="CAL.json", help="write the calibration file here (default: none)")
     fit.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
+    fit.add_argument("--report", metavar="DIR", help="also write an HTML report of the calibration here (plots: matplotlib)")
 
     dia = _command(sub, "diagnose", "compare model and measurement; find the missing effect",
                    "  fluxcal diagnose recordings/grad1-hidden-effect.mcap\n"
@@ -207,6 +208,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="where the page is served (default: %(default)s, this host only; port 0: a free one, said "
                            "at start)")
     dash.add_argument("--open", action="store_true", help="open the page in this host's web browser")
+    dash.add_argument("--read-only", dest="read_only", action="store_true",
+                      help="show, but send no commands (for a page served beyond this host)")
 
     fox = _command(sub, "foxglove", "live bridge for the Foxglove app: a running unit's products on a Foxglove "
                    "WebSocket server",

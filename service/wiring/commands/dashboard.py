@@ -1,0 +1,60 @@
+"""`fluxcal dashboard`: the web dashboard of running units (service.wiring.dashboard)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import re
+import sys
+import time
+
+from drivers.errors import ConfigError
+from service.wiring.commands.watch import resolve_units
+
+
+def parse_listen(text: str, flag: str = "--listen") -> tuple[str, int]:
+    """'HOST:PORT' -> (host, port).
+
+    >>> parse_listen("127.0.0.1:8090")
+    ('127.0.0.1', 8090)
+    """
+    m = re.fullmatch(r"\[?([A-Za-z0-9_.:\-]+?)\]?:(\d{1,5})", text or "")
+    if not m or int(m.group(2)) > 65535:
+        raise ConfigError(f"{flag}: {text!r} is not allowed (allowed: HOST:PORT, e.g. 127.0.0.1:8090; port 0 takes "
+                          f"a free one)")
+    return m.group(1), int(m.group(2))
+
+
+def main(args: argparse.Namespace) -> int:
+    from service.wiring.dashboard import DashboardServer, Hub
+
+    endpoints, units, tls = resolve_units(args)
+    host, port = parse_listen(args.listen)
+    if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
+        raise ConfigError(f"--seconds: {args.seconds!r} is not allowed (allowed: a positive number of seconds)")
+    hub = Hub(endpoints, units, tls).start()
+    try:
+        server = DashboardServer(hub, host, port, read_only=args.read_only)
+    except OSError as e:
+        hub.close()
+        raise ConfigError(f"--listen: cannot serve on {args.listen}: {e.strerror or e}") from None
+    server.start()
+    print(f"fluxcal dashboard: {server.url} (units: {', '.join(units) if units else 'every unit found'} via "
+          f"{', '.join(endpoints)}){'; read-only' if args.read_only else ''}", file=sys.stderr, flush=True)
+    if host not in ("127.0.0.1", "localhost", "::1") and not args.read_only:
+        print("fluxcal dashboard: anyone who reaches this address can send the units commands; use --read-only "
+              "or a loopback address behind an authenticating proxy", file=sys.stderr, flush=True)
+    if args.open:
+        import webbrowser
+
+        webbrowser.open(server.url)
+    try:
+        deadline = None if args.seconds is None else time.monotonic() + args.seconds
+        while deadline is None or time.monotonic() < deadline:
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
+        hub.close()
+    return 0

@@ -1,0 +1,169 @@
+"""What a dashboard keeps of a unit's streams: interval means at 10 Hz of unit time in bounded rings,
+noise floors, and the recent raw samples a diagnosis needs. Everything here is updated block by block
+(numpy over the block, a Python step per 0.1-s interval at most), never sample by sample.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from drivers.block import SampleBlock
+from service.numerics.noise import robust_noise
+from service.numerics.outputs import CorrectedBlock
+
+#: interval of the plotted means, s of unit time
+PERIOD_S = 0.1
+#: intervals kept per series: 10 minutes at 10 Hz
+HISTORY = 6000
+
+
+class BinMeans:
+    """Means of (N, K) values over intervals of `period_s` of unit time (NaN-aware per column). An interval
+    is emitted when a later one starts; a jump back in time starts a new interval too."""
+
+    def __init__(self, period_s: float = PERIOD_S) -> None:
+        self.period_s = period_s
+        self.bin: int | None = None
+        self.sum: np.ndarray | None = None
+        self.count: np.ndarray | None = None
+
+    def add(self, t_s: np.ndarray, values: np.ndarray) -> list[tuple[float, np.ndarray]]:
+        """Feed samples; returns the completed intervals as (start time s, means (K,))."""
+        keep = np.isfinite(t_s)
+        t, v = t_s[keep], values[keep]
+        if t.size == 0:
+            return []
+        if self.sum is not None and self.sum.shape != v.shape[1:]:
+            self.bin = self.sum = self.count = None                 # the layout changed: start afresh
+        ok = np.isfinite(v)
+        bins = np.floor(t / self.period_s + 1e-9).astype(np.int64)
+        starts = np.concatenate([[0], np.flatnonzero(np.diff(bins)) + 1])
+        sums = np.add.reduceat(np.where(ok, v, 0.0), starts, axis=0)
+        counts = np.add.reduceat(ok.astype(np.int64), starts, axis=0)
+        ids = bins[starts]
+        out = []
+        if self.bin is not None:
+            if ids[0] == self.bin:
+                sums[0] += self.sum
+                counts[0] += self.count
+            else:
+                out.append(self._row(self.bin, self.sum, self.count))
+        out += [self._row(int(ids[i]), sums[i], counts[i]) for i in range(len(ids) - 1)]
+        self.bin, self.sum, self.count = int(ids[-1]), sums[-1], counts[-1]
+        return out
+
+    def _row(self, b: int, s: np.ndarray, c: np.ndarray) -> tuple[float, np.ndarray]:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return b * self.period_s, s / np.where(c > 0, c, np.nan)
+
+
+class Ring:
+    """The newest `size` rows of a table of named columns, each row numbered (a client asks for the rows
+    after the last number it has)."""
+
+    def __init__(self, columns: list[str], size: int = HISTORY) -> None:
+        self.columns = columns
+        self.rows: deque[tuple[int, float, np.ndarray]] = deque(maxlen=size)
+        self.next_id = 1
+
+    def append(self, t_s: float, values: np.ndarray) -> None:
+        self.rows.append((self.next_id, t_s, values))
+        self.next_id += 1
+
+    def since(self, row_id: int, most: int = HISTORY) -> dict[str, Any]:
+        """{"columns", "id" (the newest row's number), "t": [...], "v": [[row], ...]} of the rows after `row_id`."""
+        rows = [r for r in self.rows if r[0] > row_id] if row_id else list(self.rows)
+        rows = rows[-most:]
+        return {"columns": self.columns, "id": self.next_id - 1, "t": [round(r[1], 4) for r in rows],
+                "v": [[None if not math.isfinite(x) else round(float(x), 4) for x in r[2]] for r in rows]}
+
+
+def corrected_columns(probe_names: list[str], block: CorrectedBlock) -> list[str]:
+    """Column names of a corrected block's means: <probe>.x/.y/.z/.total, centre.*, <pk>-<p1>.*, G.<ij>."""
+    cols = [f"{p}.{a}" for p in probe_names for a in ("x", "y", "z", "total")]
+    if block.center_nT is not None:
+        cols += [f"centre.{a}" for a in ("x", "y", "z", "total")]
+    if block.diff_nT is not None:
+        cols += [f"{p}-{probe_names[0]}.{a}" for p in probe_names[1:] for a in ("x", "y", "z", "total")]
+    if block.tensor_nT_m is not None:
+        cols += [f"G.{i}{j}" for i in "xyz" for j in "xyz"] + ["G.trace"]
+    return cols
+
+
+def _with_norm(v: np.ndarray) -> np.ndarray:
+    """(N, M, 3) -> (N, M*4): x, y, z, |v| per M."""
+    return np.concatenate([v, np.sqrt(np.einsum("nmk,nmk->nm", v, v))[..., None]], axis=2).reshape(v.shape[0], -1)
+
+
+def corrected_values(block: CorrectedBlock) -> np.ndarray:
+    """(N, K) values in the order of `corrected_columns`."""
+    parts = [_with_norm(block.corrected_nT)]
+    if block.center_nT is not None:
+        parts.append(_with_norm(block.center_nT[:, None, :]))
+    if block.diff_nT is not None:
+        parts.append(_with_norm(block.diff_nT))
+    if block.tensor_nT_m is not None:
+        g = block.tensor_nT_m.reshape(block.n_samples, 9)
+        parts += [g, np.trace(block.tensor_nT_m, axis1=1, axis2=2)[:, None]]
+    return np.concatenate(parts, axis=1)
+
+
+@dataclass
+class Floors:
+    """Noise floor of each error channel, from the newest `window` samples of the corrected stream: the
+    robust white-noise sigma (service.numerics.noise) of each probe's |B| and of each difference axis."""
+
+    window: int = 2048
+    recent: deque = field(default_factory=deque)
+    n_recent: int = 0
+    names: list[str] = field(default_factory=list)
+
+    def add(self, block: CorrectedBlock, probe_names: list[str]) -> None:
+        mag = np.linalg.norm(block.corrected_nT, axis=2)
+        cols = [mag]
+        names = [f"{p}.scalar" for p in probe_names]
+        if block.diff_nT is not None:
+            cols.append(block.diff_nT.reshape(block.n_samples, -1))
+            names += [f"{p}-{probe_names[0]}.{a}" for p in probe_names[1:] for a in "xyz"]
+        self.names = names
+        self.recent.append(np.concatenate(cols, axis=1))
+        self.n_recent += block.n_samples
+        while self.recent and self.n_recent - self.recent[0].shape[0] >= self.window:
+            self.n_recent -= self.recent.popleft().shape[0]
+
+    def floors(self) -> dict[str, float]:
+        if not self.recent or self.n_recent < 16:
+            return {}
+        x = np.concatenate(list(self.recent))
+        if x.shape[1] != len(self.names):
+            return {}
+        return {n: robust_noise(x[:, k]) for k, n in enumerate(self.names)}
+
+
+class RawKeep:
+    """The newest raw samples, at most `max_samples` and `max_s` seconds, for a diagnosis on request."""
+
+    def __init__(self, max_samples: int = 120_000, max_s: float = 300.0) -> None:
+        self.max_samples = max_samples
+        self.max_s = max_s
+        self.blocks: deque[SampleBlock] = deque()
+        self.n = 0
+
+    def add(self, block: SampleBlock) -> None:
+        if self.blocks and (block.n_probes != self.blocks[-1].n_probes
+                            or set(block.extras) != set(self.blocks[-1].extras)):
+            self.blocks.clear()
+            self.n = 0
+        self.blocks.append(block)
+        self.n += block.n_samples
+        while len(self.blocks) > 1 and (self.n - self.blocks[0].n_samples >= self.max_samples
+                                        or block.t_s[-1] - self.blocks[1].t_s[0] >= self.max_s):
+            self.n -= self.blocks.popleft().n_samples
+
+    def block(self) -> SampleBlock | None:
+        return SampleBlock.concat(list(self.blocks)) if self.blocks else None

@@ -1,0 +1,212 @@
+"""The dashboard's Zenoh side: one client session, one lossy subscription per unit (it never holds a unit
+back), liveliness, state queries every 2 s, commands on request, and a diagnosis of the kept raw samples
+on request (in the dashboard's process, never the unit's). One thread feeds the views; readers take
+`lock`.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from drivers.errors import ConfigError, FluxcalError
+from service.io.bus import BusClient, BusError, Keys, ZenohConfig, ZenohTlsConfig, discover_units, open_session
+
+from .view import UnitView
+
+#: what the dashboard subscribes to: `corrected` carries the differences, centre and tensor too
+STREAMS = ("raw", "corrected", "calibration", "health", "error")
+STATE_EVERY_S = 2.0
+DISCOVER_EVERY_S = 2.0
+
+
+class Hub:
+    """Connects, follows the named units (or every unit it discovers) and keeps a UnitView of each."""
+
+    def __init__(self, endpoints: list[str], units: list[str] | None, tls: ZenohTlsConfig | None = None) -> None:
+        self.endpoints = endpoints
+        self.named = list(units) if units else None
+        self.tls = tls
+        self.lock = threading.Lock()
+        self.views: dict[str, UnitView] = {u: UnitView(u) for u in (self.named or [])}
+        self.connected = False
+        self.connect_error = ""
+        self.session: zenoh.Session | None = None
+        self._clients: dict[str, BusClient] = {}
+        self._alive_sub: Any = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="fluxcal-dashboard-hub", daemon=True)
+        self._state_q: dict[str, Any] = {}
+        self._next_state: dict[str, float] = {}
+
+    def start(self) -> Hub:
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        for c in self._clients.values():
+            c.close()
+        for closer in (getattr(self._alive_sub, "undeclare", None), getattr(self.session, "close", None)):
+            if closer is not None:
+                try:
+                    closer()
+                except zenoh.ZError:
+                    pass
+
+    # --- the loop ---------------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        next_connect = next_discover = 0.0
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if self.session is None and now >= next_connect:
+                try:
+                    self.session = open_session(ZenohConfig.client(*self.endpoints, tls=self.tls))
+                    self._alive_sub = self.session.liveliness().declare_subscriber(
+                        "fluxcal/*/alive", zenoh.handlers.RingChannel(256), history=True)
+                    self.connected, self.connect_error = True, ""
+                except BusError as e:
+                    self.connect_error = str(e)
+                    next_connect = now + 1.0
+            if self.session is not None:
+                if self.named is None and now >= next_discover:
+                    next_discover = now + DISCOVER_EVERY_S
+                    for u in discover_units(self.session, timeout=0.3):
+                        with self.lock:
+                            self.views.setdefault(u, UnitView(u))
+                for u in list(self.views):
+                    if u not in self._clients:
+                        self._clients[u] = BusClient(self.session, u, streams=STREAMS, lossless=False, capacity=256)
+                self._liveliness()
+                self._poll_states(now)
+                self._drain()
+            self._stop.wait(0.05)
+
+    def _liveliness(self) -> None:
+        while True:
+            try:
+                s = self._alive_sub.try_recv()
+            except zenoh.ZError:
+                return
+            if s is None:
+                return
+            parts = str(s.key_expr).split("/")
+            if len(parts) == 3 and parts[1] in self.views:
+                with self.lock:
+                    self.views[parts[1]].alive = s.kind == zenoh.SampleKind.PUT
+
+    def _poll_states(self, now: float) -> None:
+        for u in self.views:
+            q = self._state_q.get(u)
+            if q is None and now >= self._next_state.get(u, 0.0):
+                self._state_q[u] = self.session.get(Keys(u).state, timeout=1.5)
+                self._next_state[u] = now + STATE_EVERY_S
+                continue
+            if q is None:
+                continue
+            try:
+                reply = q.try_recv()
+            except zenoh.ZError:
+                self._state_q[u] = None
+                continue
+            if reply is None:
+                continue
+            self._state_q[u] = None
+            if reply.ok is not None:
+                try:
+                    st = json.loads(reply.ok.payload.to_bytes())
+                except ValueError:
+                    continue
+                with self.lock:
+                    self.views[u].update_state(st)
+
+    def _drain(self) -> None:
+        for u, c in self._clients.items():
+            msgs = c.drain()
+            if msgs:
+                with self.lock:
+                    view = self.views[u]
+                    for m in msgs:
+                        view.update(m)
+
+    # --- what the page asks for -------------------------------------------------------------------
+
+    def units(self) -> dict[str, Any]:
+        with self.lock:
+            units = [{"unit": u, "status": v.status()[0], "status_text": v.status()[1]} for u, v in self.views.items()]
+        where = ", ".join(self.endpoints)
+        message = ("" if self.connected else f"cannot reach {where}: is `fluxcal run` running and listening there? "
+                   f"(retrying every second) {self.connect_error}".strip())
+        if self.connected and not units:
+            message = f"no fluxcal unit visible via {where} yet: is `fluxcal run` running?"
+        return {"connected": self.connected, "endpoints": self.endpoints, "units": units, "message": message}
+
+    def view(self, unit: str, since: dict[str, int]) -> dict[str, Any]:
+        with self.lock:
+            v = self.views.get(unit)
+            if v is None:
+                raise KeyError(unit)
+            return v.view(since)
+
+    def command(self, unit: str, name: str, payload: str = "", timeout: float = 5.0) -> dict[str, Any]:
+        """Send a command; its answer (or why there is none) is returned and kept in the unit's log."""
+        if unit not in self.views:
+            raise KeyError(unit)
+        client = self._clients.get(unit)
+        sent = time.time()
+        try:
+            if client is None:
+                raise BusError(f"not connected to {', '.join(self.endpoints)}")
+            answer = client.command(name, payload, timeout=timeout)
+        except (BusError, ConfigError) as e:
+            answer = {"ok": False, "error": str(e)}
+        entry = {"time_unix_s": sent, "command": name, "payload": payload[:200], **answer,
+                 "round_trip_s": round(time.time() - sent, 4)}
+        with self.lock:
+            self.views[unit].commands.append(entry)
+        self._next_state[unit] = 0.0                       # show the command's effect at once
+        return entry
+
+    def diagnose(self, unit: str) -> dict[str, Any]:
+        """Start a diagnosis of the unit's kept raw samples on a thread of this process; returns at once."""
+        with self.lock:
+            view = self.views[unit]
+            if view.diagnosis.get("status") == "running":
+                return view.diagnosis
+            block = view.raw_keep.block()
+            names = list(view.probe_names) or None
+            effects = list(view.state.get("effects") or [])
+            view.diagnosis = {"status": "running", "started_unix_s": time.time(), "fraction": 0.0}
+        threading.Thread(target=self._diagnose, args=(unit, block, names, effects), daemon=True,
+                         name=f"fluxcal-dashboard-diagnose-{unit}").start()
+        return {"status": "running"}
+
+    def _diagnose(self, unit: str, block: Any, names: list[str] | None, effects: list[str]) -> None:
+        from service.numerics.diagnose import diagnose, summary_text
+        from service.numerics.effects.base import EffectData
+
+        view = self.views[unit]
+        try:
+            if block is None or block.n_samples < 200:
+                raise FluxcalError(f"only {0 if block is None else block.n_samples} raw samples kept so far: "
+                                   f"wait for more data")
+            data = EffectData.from_block(block, names)
+
+            def progress(fraction: float, *_: Any) -> None:
+                view.diagnosis = {**view.diagnosis, "fraction": float(fraction)}
+
+            result = diagnose(data, effects=effects, progress=progress)
+            out = result.as_dict()
+            view.diagnosis = {"status": "done", "finished_unix_s": time.time(), "n_samples": int(block.n_samples),
+                              "duration_s": float(block.t_s[-1] - block.t_s[0]), "effects": effects,
+                              "verdict": out.get("verdict"), "candidates": out.get("candidates"),
+                              "text": summary_text(result, f"fluxcal/{unit}, last {block.n_samples} samples")}
+        except (FluxcalError, ValueError, np.linalg.LinAlgError) as e:
+            view.diagnosis = {"status": "failed", "error": str(e)}

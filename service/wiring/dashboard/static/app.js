@@ -1,0 +1,256 @@
+// fluxcal dashboard page: polls /api/units and /api/view, keeps ten minutes of history, draws it.
+"use strict";
+
+const WINDOW_S = 600, KEEP = 6000, VIEW_EVERY_MS = 500, UNITS_EVERY_MS = 2000;
+const $ = (id) => document.getElementById(id);
+const { Chart, drawSphere, COLORS } = window.fluxplot;
+const charts = {
+  total: new Chart($("chart-total"), { title: "|B| per probe", unit: "nT" }),
+  vectors: new Chart($("chart-vectors"), { title: "components", unit: "nT" }),
+  diff: new Chart($("chart-diff"), { title: "differences probe k - probe 1", unit: "nT" }),
+  tensor: new Chart($("chart-tensor"), { title: "gradient tensor G[i,j] = dBj/dxi", unit: "nT/m" }),
+  error: new Chart($("chart-error"), { title: "model-vs-measurement error", unit: "nT RMS", log: true }),
+  offsets: new Chart($("chart-offsets"), { title: "offsets by calibration (x: s since this page's first)", unit: "nT" }),
+};
+let unit = null, hist = null, updates = 0, readOnly = false, units = null;
+
+function newHist() { return { series: null, raw: null, error: null }; }
+
+// merge rows {columns, id, t, v} into a columnar history {columns, id, t: [], cols: [[]...]}
+function merge(h, rows) {
+  if (!rows) { return h; }
+  if (!h || h.columns.join() !== rows.columns.join() || rows.id < h.id) {
+    h = { columns: rows.columns, id: 0, t: [], cols: rows.columns.slice(1).map(() => []) };
+  }
+  rows.t.forEach((t, i) => { h.t.push(t); rows.v[i].forEach((x, k) => h.cols[k].push(x)); });
+  if (h.t.length > KEEP) { const cut = h.t.length - KEEP; h.t.splice(0, cut); h.cols.forEach(c => c.splice(0, cut)); }
+  h.id = rows.id;
+  return h;
+}
+
+function col(h, name) { const k = h ? h.columns.indexOf(name) : -1; return k > 0 ? h.cols[k - 1] : null; }
+function last(a) { for (let i = a.length - 1; i >= 0; i--) { if (a[i] !== null) { return a[i]; } } return null; }
+function num(x, d) { return x === null || x === undefined ? "–" : Number(x).toFixed(d === undefined ? 2 : d); }
+function esc(s) { return String(s).replace(/[&<>"]/g, c => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c])); }
+
+async function getJSON(url, init) {
+  const r = await fetch(url, init);
+  const body = await r.json();
+  if (!r.ok && !("ok" in body)) { throw new Error(body.error || r.statusText); }
+  return body;
+}
+
+async function pollUnits() {
+  try {
+    const u = await getJSON("/api/units");
+    units = u;
+    readOnly = u.read_only;
+    const nav = $("units");
+    nav.innerHTML = "";
+    for (const x of u.units) {
+      const b = document.createElement("button");
+      b.innerHTML = `<span class="dot ${x.status}"></span>${esc(x.unit)}`;
+      b.title = x.status_text; b.dataset.unit = x.unit;
+      if (x.unit === unit) { b.classList.add("selected"); }
+      b.onclick = () => { unit = x.unit; hist = newHist(); pollUnits(); };
+      nav.appendChild(b);
+    }
+    if (!unit && u.units.length) { unit = u.units[0].unit; hist = newHist(); }
+    if (u.message && (!unit || !u.connected)) { banner(u.connected ? "waiting" : "unreachable", u.message); }
+    document.querySelectorAll("button[data-cmd]").forEach(b => { b.disabled = readOnly; });
+  } catch (e) {
+    banner("unreachable", "the dashboard server does not answer: " + e.message);
+  }
+}
+
+function banner(state, text) { const b = $("banner"); b.dataset.state = state; b.textContent = text; }
+
+async function pollView() {
+  if (!unit) { return; }
+  try {
+    const q = new URLSearchParams({ unit, series: hist.series ? hist.series.id : 0, raw: hist.raw ? hist.raw.id : 0,
+                                    error: hist.error ? hist.error.id : 0 });
+    const v = await getJSON("/api/view?" + q);
+    hist.series = merge(hist.series, v.series);
+    hist.raw = merge(hist.raw, v.raw);
+    hist.error = merge(hist.error, v.error);
+    const reachable = !units || units.connected;
+    banner(reachable ? v.status : "unreachable", reachable ? v.status_text : units.message);
+    render(v);
+    updates += 1;
+    document.body.dataset.updates = updates;
+    document.body.dataset.status = reachable ? v.status : "unreachable";
+  } catch (e) {
+    banner("unreachable", "the dashboard server does not answer: " + e.message);
+  }
+}
+
+function probeNames(v) {
+  const h = hist.series || hist.raw;
+  if (!h) { return v.probe_names || []; }
+  const names = [];
+  for (const c of h.columns) { const m = /^([^.-]+)\.x$/.exec(c); if (m && m[1] !== "centre") { names.push(m[1]); } }
+  return names;
+}
+
+function render(v) {
+  $("clock").textContent = new Date().toLocaleTimeString();
+  const names = probeNames(v);
+  const h = hist.series && hist.series.t.length ? hist.series : null;
+  const src = h || hist.raw;
+  $("field-note").textContent = h ? "(corrected, 0.1-s means)" : hist.raw ? "(raw: no usable calibration yet)" : "";
+  let rows = "<tr><th>probe</th><th>Bx</th><th>By</th><th>Bz</th><th>|B|</th></tr>";
+  for (const p of names.concat(h && col(h, "centre.x") ? ["centre"] : [])) {
+    const xyz = ["x", "y", "z"].map(a => last(col(src, `${p}.${a}`) || []));
+    const tot = h ? last(col(h, `${p}.total`) || []) : Math.hypot(...xyz.map(x => x || 0));
+    rows += `<tr><th>${esc(p)}</th>${xyz.map(x => `<td>${num(x, 1)}</td>`).join("")}` +
+            `<td data-col="${esc(p)}.total">${num(tot, 1)}</td></tr>`;
+  }
+  $("latest").innerHTML = rows;
+  if (src) {
+    const series = h ? names.map(p => ({ name: p, values: col(h, `${p}.total`) })) : [];
+    if (h && col(h, "centre.total")) { series.push({ name: "centre", values: col(h, "centre.total") }); }
+    charts.total.draw(src.t, series, { window_s: WINDOW_S });
+    const p0 = names[0];
+    charts.vectors.title = `components of ${p0 || "?"}` + (h ? "" : " (raw)");
+    charts.vectors.draw(src.t, ["x", "y", "z"].map(a => ({ name: `${p0}.${a}`, values: col(src, `${p0}.${a}`) || [] })),
+                        { window_s: WINDOW_S });
+  }
+  if (h) {
+    const diffs = h.columns.filter(c => /-.*\.total$/.test(c));
+    charts.diff.draw(h.t, diffs.map(c => ({ name: "|" + c.replace(".total", "") + "|", values: col(h, c) }))
+      .concat(diffs.length ? ["x", "y", "z"].map(a => { const c = diffs[0].replace("total", a); return { name: c, values: col(h, c) }; }) : []),
+      { window_s: WINDOW_S });
+    const g = h.columns.filter(c => c.startsWith("G."));
+    charts.tensor.draw(h.t, g.map(c => ({ name: c.slice(2), values: col(h, c) })),
+                       { window_s: WINDOW_S, empty: "no tensor: it needs at least four probes, not all in one plane" });
+    $("tensor").innerHTML = g.length ? "<tr><th></th><th>Bx</th><th>By</th><th>Bz</th></tr>" + ["x", "y", "z"].map(i =>
+      `<tr><th>d/d${i}</th>${["x", "y", "z"].map(j => `<td>${num(last(col(h, `G.${i}${j}`)), 2)}</td>`).join("")}</tr>`).join("")
+      + `<tr><th>trace</th><td colspan="3">${num(last(col(h, "G.trace")), 3)} nT/m</td></tr>` : "";
+  }
+  renderError(v);
+  renderCoverage(v.coverage);
+  renderCalibration(v);
+  renderCommands(v);
+  renderDiagnosis(v.diagnosis, v.raw_kept);
+  renderHealth(v);
+}
+
+function renderError(v) {
+  const e = hist.error;
+  if (!e || !e.t.length) { return; }
+  const chans = e.columns.slice(1);
+  const floors = v.floors || {};
+  charts.error.draw(e.t, chans.map((c, k) => ({ name: c, values: col(e, c), color: COLORS[k % COLORS.length] })),
+    { window_s: WINDOW_S, floor: chans.map((c, k) => ({ name: c, value: floors[c], color: COLORS[k % COLORS.length] })) });
+  let rows = "<tr><th>channel</th><th>error nT</th><th>floor nT</th><th>ratio</th></tr>";
+  for (const c of chans) {
+    const x = last(col(e, c)), f = floors[c], r = x !== null && f ? x / f : null;
+    rows += `<tr><th>${esc(c)}</th><td>${num(x, 3)}</td><td>${num(f, 3)}</td>` +
+            `<td class="${r !== null && r > 1.5 ? "bad" : "good"}">${num(r, 2)}</td></tr>`;
+  }
+  $("error-table").innerHTML = rows;
+}
+
+function renderCoverage(cov) {
+  const div = $("coverage");
+  if (!cov) { div.textContent = "no field directions yet"; return; }
+  $("coverage-note").textContent = `(${cov.frame}; ${cov.n_directions} directions)`;
+  if (div.children.length !== cov.probes.length) {
+    div.innerHTML = cov.probes.map((p, k) => `<div><b>${esc(p.name)}</b> <span id="cov-text-${k}"></span>` +
+                                              `<canvas class="sphere" id="cov-${k}"></canvas></div>`).join("");
+  }
+  cov.probes.forEach((p, k) => {
+    drawSphere($(`cov-${k}`), cov, p);
+    $(`cov-text-${k}`).innerHTML = `${num(100 * p.fraction, 0)} % of directions seen` +
+      (p.missing.length ? ` <span class="bad">missing ${esc(p.missing.join(", "))}</span>: ${esc(p.advice)}` : "");
+  });
+}
+
+function renderCalibration(v) {
+  const st = v.state || {};
+  const probes = st.probes || [];
+  let html = `<p>${st.usable ? '<span class="good">usable</span>' : '<span class="bad">not usable yet</span>'}` +
+    ` · cal_id <span id="cal-id">${esc(st.cal_id ?? "–")}</span> · ${esc(st.method || "")}` +
+    (st.frozen ? ' · <b id="frozen">FROZEN</b>' : "") + ` · effects: ${esc((st.effects || []).join(", ") || "none")}` +
+    ` · ${esc(st.samples_seen ?? "–")} samples seen</p>`;
+  if (probes.length) {
+    html += "<table class='numbers'><tr><th>probe</th><th>offset x</th><th>offset y</th><th>offset z</th>" +
+            "<th>scale x</th><th>scale y</th><th>scale z</th></tr>";
+    for (const p of probes) {
+      const off = p.offset_nT || [], se = p.offset_se_nT || [], m = p.matrix || [[], [], []];
+      html += `<tr><th>${esc(p.name)}</th>` + [0, 1, 2].map(i => `<td>${num(off[i], 1)} ± ${se[i] >= 0 ? num(se[i], 2) : "?"}</td>`).join("")
+        + [0, 1, 2].map(i => `<td>${num(m[i] && m[i][i], 5)}</td>`).join("") + "</tr>";
+    }
+    html += "</table><p class='muted'>offsets in nT ± standard error (? : not determined); scale: the matrix diagonal</p>";
+  }
+  $("calibration").innerHTML = html;
+  const gate = st.gate;
+  $("gate").innerHTML = gate ? `<p>quality gate: ${gate.usable ? '<span class="good">passed</span>' : '<span class="bad">refused</span>'}` +
+    ` · coverage ${num(gate.coverage, 2)} · condition ${num(gate.condition, 1)}</p>` +
+    (gate.reasons && gate.reasons.length ? "<ul id='gate-reasons'>" + gate.reasons.map(r => `<li>${esc(r)}</li>`).join("") + "</ul>" : "")
+    : "<p class='muted'>no quality-gate verdict yet</p>";
+  const ch = v.cal_history || [];
+  if (ch.length) {
+    const t0 = ch[0].time_unix_s, t = ch.map(c => c.time_unix_s - t0), series = [];
+    (ch[ch.length - 1].offset_nT || []).forEach((_, k) => ["x", "y", "z"].forEach((a, i) =>
+      series.push({ name: `${probes[k] ? probes[k].name : "s" + (k + 1)}.${a}`, values: ch.map(c => (c.offset_nT[k] || [])[i] ?? null) })));
+    charts.offsets.draw(t, series, {});
+  }
+}
+
+function renderCommands(v) {
+  $("command-log").innerHTML = (v.commands || []).slice().reverse().map(c =>
+    `<li class="${c.ok ? "good" : "bad"}" data-command="${esc(c.command)}" data-ok="${c.ok}">` +
+    `${new Date(c.time_unix_s * 1000).toLocaleTimeString()} ${esc(c.command)} ${esc(c.payload || "")}: ` +
+    `${c.ok ? "ok" : "refused: " + esc(c.error || "")} (${num(1000 * c.round_trip_s, 0)} ms)</li>`).join("");
+}
+
+function renderDiagnosis(d, kept) {
+  $("kept").textContent = kept ? `${kept.samples} raw samples kept` : "";
+  const div = $("diagnosis");
+  div.dataset.status = d.status;
+  if (d.status === "running") { div.textContent = `running… ${num(100 * (d.fraction || 0), 0)} %`; return; }
+  if (d.status === "failed") { div.innerHTML = `<p class="bad">${esc(d.error)}</p>`; return; }
+  if (d.status !== "done") { div.textContent = ""; return; }
+  const rows = (d.candidates || []).map(c => `<tr><th>${esc(c.effect)}</th><td>${num(100 * (c.heldout_gain ?? NaN), 1)} %</td>` +
+    `<td>${c.significant ? '<b class="good">yes</b>' : "no"}</td><td class="muted">${esc(c.reason || "")}</td></tr>`).join("");
+  const verdict = d.verdict || {};
+  const what = verdict.effect ? ` by ${verdict.effect}` : "";
+  div.innerHTML = `<p id="verdict"><b>${esc((verdict.kind || "") + what)}</b>: residual ${num(verdict.rms_nT, 3)} nT ` +
+    `against a floor of ${num(verdict.floor_nT, 3)} nT. ${esc(verdict.left || "")} ${esc(verdict.advice || "")}</p>` +
+    `<table class="numbers"><tr><th>effect</th><th>held-out gain</th><th>significant</th><th></th></tr>${rows}</table>` +
+    `<details><summary>full text (${d.n_samples} samples, ${num(d.duration_s, 0)} s)</summary><pre>${esc(d.text)}</pre></details>`;
+}
+
+function renderHealth(v) {
+  const counters = (v.health && v.health.counters) || {};
+  const bus = (v.health && v.health.bus) || {};
+  const good = (k) => k === "frames_accepted" || k.startsWith("published_") || k.startsWith("received");
+  $("health").innerHTML = "<tr><th>counter</th><th>value</th></tr>" + Object.entries(counters).concat(
+    Object.entries(bus).filter(([k]) => /errors|dropped|refused|expired/.test(k))).map(([k, x]) =>
+    `<tr><th>${esc(k)}</th><td class="${x && !good(k) ? "bad" : ""}">${esc(x)}</td></tr>`).join("");
+  $("events").innerHTML = (v.events || []).slice().reverse().map(e => `<li>${esc(e.kind)} at seq ${esc(e.seq ?? "–")}` +
+    (e.reasons && e.reasons.length ? ": " + esc(e.reasons.join("; ")) : "") + (e.command ? " " + esc(e.command) : "") + "</li>").join("");
+}
+
+async function sendCommand(name) {
+  const payload = name === "add-effect" ? $("effect-name").value : name === "apply" ? $("apply-payload").value : "";
+  const li = document.createElement("li");
+  li.textContent = `${name}: sending…`;
+  $("command-log").prepend(li);
+  await getJSON("/api/command", { method: "POST", headers: { "Content-Type": "application/json" },
+                                  body: JSON.stringify({ unit, command: name, payload }) }).catch(e => ({ ok: false, error: e.message }));
+  pollView();
+}
+
+document.querySelectorAll("button[data-cmd]").forEach(b => { b.onclick = () => sendCommand(b.dataset.cmd); });
+$("diagnose").onclick = async () => {
+  await getJSON("/api/diagnose", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ unit }) })
+    .catch(e => { $("diagnosis").textContent = e.message; });
+  pollView();
+};
+hist = newHist();
+pollUnits();
+setInterval(pollUnits, UNITS_EVERY_MS);
+setInterval(pollView, VIEW_EVERY_MS);

@@ -1,0 +1,182 @@
+"""What the web dashboard knows of one unit, updated from bus messages and state replies, and served to
+the page as JSON. No I/O here: the hub feeds it, the HTTP server reads it (under the hub's lock).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from service.io.bus import Message
+from service.numerics.calib.coverage import BIN_CENTRES, BIN_LABELS, coverage
+
+from .history import HISTORY, BinMeans, Floors, RawKeep, Ring, corrected_columns, corrected_values
+
+#: a unit that sent nothing for this long is shown as silent
+STALE_S = 3.0
+#: field directions kept for the coverage sphere (10 Hz means: ten minutes)
+COVERAGE_POINTS = 6000
+#: directions of the trail drawn on the sphere
+TRAIL = 200
+
+
+def _finite(x: Any) -> Any:
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    return x
+
+
+class UnitView:
+    """One unit: decimated history of its products, coverage, calibration and its history, health, the
+    gate's reasons, the commands sent from this dashboard, the last diagnosis."""
+
+    def __init__(self, unit: str, clock: Callable[[], float] = time.monotonic) -> None:
+        self.unit = unit
+        self.clock = clock
+        self.alive: bool | None = None
+        self.last_msg_t: float | None = None
+        self.n_messages = 0
+        self.probe_names: list[str] = []
+        self.means = BinMeans()
+        self.raw_means = BinMeans()
+        self.series: Ring | None = None
+        self.raw_series: Ring | None = None
+        self.error = Ring(["t_s"], HISTORY)
+        self.error_names: list[str] = []
+        self.floors = Floors()
+        self.raw_keep = RawKeep()
+        self.directions: deque[np.ndarray] = deque(maxlen=COVERAGE_POINTS)   # (P, 3) raw means
+        self.state: dict[str, Any] = {}
+        self.cal_history: list[dict[str, Any]] = []
+        self.events: deque[dict[str, Any]] = deque(maxlen=50)
+        self.commands: deque[dict[str, Any]] = deque(maxlen=50)
+        self.health: dict[str, Any] = {}
+        self.diagnosis: dict[str, Any] = {"status": "none"}
+        self._coverage: dict[str, Any] | None = None
+        self._coverage_t = -math.inf
+
+    # --- updates ------------------------------------------------------------------------------
+
+    def _names(self, n: int) -> list[str]:
+        return self.probe_names if len(self.probe_names) == n else [f"s{k + 1}" for k in range(n)]
+
+    def update(self, msg: Message) -> None:
+        self.last_msg_t = self.clock()
+        self.n_messages += 1
+        v = msg.value
+        if msg.stream == "corrected":
+            self._corrected(v)
+        elif msg.stream == "raw":
+            self._raw(v)
+        elif msg.stream == "error":
+            rms = v.get("rms_nT") or {}
+            if list(rms) != self.error_names:
+                self.error_names = list(rms)
+                self.error = Ring(["t_s", *self.error_names], HISTORY)
+            t = v.get("t_s")
+            if not isinstance(t, (int, float)) and self.means.bin is not None:     # a service that sends none
+                t = self.means.bin * self.means.period_s
+            vals = [float(x) if isinstance(x, (int, float)) else math.nan for x in rms.values()]
+            self.error.append(float(t) if isinstance(t, (int, float)) else math.nan, np.array(vals))
+        elif msg.stream == "health":
+            self.health = v
+        elif msg.stream == "calibration":
+            ev = {k: v.get(k) for k in ("kind", "seq", "t_s", "time_unix_s", "reasons", "command", "ok", "error",
+                                        "cal_id") if k in v}
+            self.events.append(ev)
+            if isinstance(v.get("state"), dict):
+                self.update_state(v["state"])
+
+    def _corrected(self, block: Any) -> None:
+        names = self._names(block.n_probes)
+        values = corrected_values(block)
+        if self.series is None or len(self.series.columns) != values.shape[1] + 1:
+            self.series = Ring(["t_s", *corrected_columns(names, block)])
+        for t, row in self.means.add(block.t_s, values):
+            self.series.append(t, row)
+        self.floors.add(block, names)
+
+    def _raw(self, block: Any) -> None:
+        self.raw_keep.add(block)
+        f = block.field_nT.reshape(block.n_samples, -1)
+        if self.raw_series is None or len(self.raw_series.columns) != f.shape[1] + 1:
+            names = self._names(block.n_probes)
+            self.raw_series = Ring(["t_s", *[f"{p}.{a}" for p in names for a in "xyz"]])
+            self.directions.clear()
+        for t, row in self.raw_means.add(block.t_s, f):
+            self.raw_series.append(t, row)
+            self.directions.append(row.reshape(-1, 3))
+
+    def update_state(self, st: dict[str, Any]) -> None:
+        prev = self.state.get("cal_id")
+        self.state = {**self.state, **st}
+        names = st.get("probe_names") or [p.get("name") for p in st.get("probes") or [] if isinstance(p, dict)]
+        if names and all(isinstance(n, str) for n in names):
+            self.probe_names = list(names)
+        if isinstance(st.get("health"), dict) and not self.health:
+            self.health = {"counters": st["health"]}
+        if st.get("probes") and st.get("cal_id") != prev:
+            self.cal_history.append({"time_unix_s": time.time(), "cal_id": st.get("cal_id"),
+                                     "offset_nT": [p.get("offset_nT") for p in st["probes"]],
+                                     "offset_se_nT": [p.get("offset_se_nT") for p in st["probes"]]})
+            del self.cal_history[:-200]
+
+    # --- what the page reads --------------------------------------------------------------------
+
+    def status(self) -> tuple[str, str]:
+        """(kind, sentence): live, silent (alive, no data), stopped (token gone), waiting (never heard)."""
+        now = self.clock()
+        if self.last_msg_t is not None and now - self.last_msg_t <= STALE_S:
+            return "live", f"receiving from fluxcal/{self.unit}"
+        if self.alive is False:
+            return ("stopped", f"fluxcal/{self.unit} is not running (no liveliness token)"
+                    + ("" if self.last_msg_t is None else f"; last data {now - self.last_msg_t:.0f} s ago"))
+        if self.last_msg_t is None:
+            return "waiting", f"no data from fluxcal/{self.unit} yet"
+        return "silent", f"no data from fluxcal/{self.unit} for {now - self.last_msg_t:.0f} s"
+
+    def coverage_view(self, every_s: float = 2.0) -> dict[str, Any] | None:
+        """Per probe: the 26 direction bins' counts, the share seen, what is missing and which turn fills it;
+        directions of the raw 10 Hz means about the calibration's offsets (zero before one is usable)."""
+        now = self.clock()
+        if now - self._coverage_t < every_s or not self.directions:
+            return self._coverage
+        self._coverage_t = now
+        d = np.array(self.directions)                                          # (M, P, 3)
+        offsets = [p.get("offset_nT") for p in self.state.get("probes") or []]
+        probes = []
+        for k, name in enumerate(self._names(d.shape[1])):
+            off = np.asarray(offsets[k], float) if k < len(offsets) and offsets[k] is not None else None
+            cov = coverage(d[:, k, :], centre_nT=off)
+            u = d[-TRAIL:, k, :] - (0.0 if off is None else off)
+            u = u / np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
+            probes.append({"name": name, "fraction": cov.fraction, "counts": cov.counts.tolist(),
+                           "min_count": cov.min_count, "missing": cov.missing, "advice": cov.advice(),
+                           "usable": cov.usable, "reason": cov.reason, "trail": np.round(u, 3).tolist()})
+        self._coverage = {"bins": np.round(BIN_CENTRES, 4).tolist(), "labels": BIN_LABELS,
+                          "frame": "probe frame, raw field about the calibration's offsets",
+                          "n_directions": int(d.shape[0]), "probes": probes}
+        return self._coverage
+
+    def view(self, since: dict[str, int]) -> dict[str, Any]:
+        """The JSON the page polls: rows of each history after the numbers it already has, and the rest whole."""
+        kind, sentence = self.status()
+        series = self.series.since(since.get("series", 0)) if self.series else None
+        raw = self.raw_series.since(since.get("raw", 0)) if self.raw_series else None
+        return _finite({
+            "unit": self.unit, "status": kind, "status_text": sentence, "n_messages": self.n_messages,
+            "probe_names": self.probe_names, "series": series, "raw": raw,
+            "error": self.error.since(since.get("error", 0)), "floors": self.floors.floors(),
+            "coverage": self.coverage_view(), "state": self.state, "cal_history": self.cal_history,
+            "events": list(self.events), "commands": list(self.commands), "health": self.health,
+            "diagnosis": self.diagnosis, "raw_kept": {"samples": self.raw_keep.n},
+        })

@@ -1,0 +1,131 @@
+"""The web dashboard without a browser: its interval means and noise floors against numpy truth, and its
+JSON API against a service stand-in that publishes known vectors (tests/test_watch.py's Publisher)."""
+
+from __future__ import annotations
+
+import json
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+
+from service.numerics.outputs import CorrectedBlock
+from service.wiring.dashboard import DashboardServer, Hub
+from service.wiring.dashboard.history import BinMeans, Floors, Ring
+from tests.test_watch import S1, S2, TENSOR, publisher  # noqa: F401 - the fixture
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_interval_means_equal_numpy_means_whatever_the_block_sizes(seed):
+    rng = np.random.default_rng(seed)
+    n = 3000
+    t = np.arange(n) / 173.0 + 5.0
+    v = rng.normal(size=(n, 4)) * [1, 10, 100, 1000]
+    v[rng.random(v.shape) < 0.02] = np.nan                      # saturated axes
+    cuts = np.sort(rng.choice(np.arange(1, n), size=60, replace=False))
+    bm = BinMeans(0.1)
+    rows = []
+    for a, b in zip(np.r_[0, cuts], np.r_[cuts, n]):
+        rows += bm.add(t[a:b], v[a:b])
+    bins = np.floor(t / 0.1 + 1e-9).astype(int)
+    done = np.unique(bins)[:-1]                                 # the last interval is still open
+    assert len(rows) == len(done)
+    for (t0, mean), b in zip(rows, done):
+        assert t0 == pytest.approx(b * 0.1)
+        np.testing.assert_allclose(mean, np.nanmean(v[bins == b], axis=0), rtol=1e-12)
+
+
+def test_ring_returns_only_the_rows_after_the_number_given():
+    r = Ring(["t_s", "a"], size=5)
+    for k in range(8):
+        r.append(k * 0.1, np.array([k]))
+    full = r.since(0)
+    assert full["id"] == 8 and [row[0] for row in full["v"]] == [3, 4, 5, 6, 7]     # the newest 5
+    assert [row[0] for row in r.since(6)["v"]] == [6, 7]
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_noise_floors_recover_the_probe_noise(seed):
+    rng = np.random.default_rng(seed)
+    sigma = np.array([0.7, 1.3])
+    f = Floors(window=4096)
+    for i in range(100):
+        n = 41
+        t = (i * n + np.arange(n)) / 200.0
+        slow = 52000.0 + 30.0 * np.sin(0.3 * t)                 # a field that moves: the floor must ignore it
+        c = np.zeros((n, 2, 3))
+        c[:, :, 0] = slow[:, None] + rng.normal(size=(n, 2)) * sigma
+        f.add(CorrectedBlock(t, np.arange(n), c, c[:, 1:] - c[:, :1], None, None, 1), ["s1", "s2"])
+    fl = f.floors()
+    assert fl["s1.scalar"] == pytest.approx(0.7, rel=0.06)
+    assert fl["s2.scalar"] == pytest.approx(1.3, rel=0.06)
+    assert fl["s2-s1.x"] == pytest.approx(np.hypot(0.7, 1.3), rel=0.06)
+
+
+def _get(url: str):
+    with urllib.request.urlopen(url, timeout=5) as r:
+        return json.loads(r.read())
+
+
+def _post(url: str, body: dict):
+    req = urllib.request.Request(url, data=json.dumps(body).encode(), headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(req, timeout=10) as r:
+            return r.status, json.loads(r.read())
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read())
+
+
+def test_api_serves_the_units_values_history_and_refuses_bad_requests(publisher):  # noqa: F811
+    pub = publisher()
+    hub = Hub([pub.ep], None).start()
+    server = DashboardServer(hub, "127.0.0.1", 0).start()
+    try:
+        deadline = time.monotonic() + 15
+        view = None
+        while time.monotonic() < deadline:
+            units = _get(server.url + "api/units")
+            if units["units"]:
+                view = _get(server.url + "api/view?unit=u1")
+                if view["series"] and len(view["series"]["t"]) >= 5 and view["state"]:
+                    break
+            time.sleep(0.2)
+        assert units["connected"] and [u["unit"] for u in units["units"]] == ["u1"]
+        s = view["series"]
+        cols = s["columns"]
+        last = dict(zip(cols[1:], s["v"][-1]))
+        np.testing.assert_allclose([last["s1.x"], last["s1.y"], last["s1.z"]], S1, atol=1e-3)
+        assert last["s2.total"] == pytest.approx(np.linalg.norm(S2), abs=1e-3)
+        np.testing.assert_allclose([last[f"G.{i}{j}"] for i in "xyz" for j in "xyz"], TENSOR.ravel(), atol=1e-3)
+        assert np.diff(s["t"]) == pytest.approx(0.1)
+        assert view["state"]["cal_id"] == 2 and view["status"] == "live"
+        assert view["health"]["counters"]["crc_failures"] == 3
+        # incremental: asking after the newest row gives nothing old
+        again = _get(server.url + f"api/view?unit=u1&series={s['id']}")
+        assert all(t > s["t"][-1] for t in again["series"]["t"])
+        # the page and its plot code come from the package
+        with urllib.request.urlopen(server.url, timeout=5) as r:
+            assert b"/static/plot.js" in r.read()
+        with urllib.request.urlopen(server.url + "static/plot.js", timeout=5) as r:
+            assert b"drawSphere" in r.read()
+        code, body = _post(server.url + "api/command", {"unit": "u1", "command": "self-destruct"})
+        assert code == 400 and "not allowed" in body["error"]
+        code, body = _post(server.url + "api/command", {"unit": "nobody", "command": "freeze"})
+        assert code == 404 and "not followed" in body["error"]
+    finally:
+        server.stop()
+        hub.close()
+
+
+def test_read_only_dashboard_sends_no_commands(publisher):  # noqa: F811
+    pub = publisher()
+    hub = Hub([pub.ep], ["u1"]).start()
+    server = DashboardServer(hub, "127.0.0.1", 0, read_only=True).start()
+    try:
+        code, body = _post(server.url + "api/command", {"unit": "u1", "command": "freeze"})
+        assert code == 403 and "read-only" in body["error"]
+        assert _get(server.url + "api/units")["read_only"] is True
+    finally:
+        server.stop()
+        hub.close()
