@@ -151,8 +151,10 @@ def main(args: argparse.Namespace) -> int:
     sys.stdout.flush()
     if args.report:
         from service.io.report import write_report
+        from service.wiring.calib_report import section_from_diagnosis
 
-        report_path = write_report(result, args.report, title=f"fluxcal diagnose {Path(args.data).name}")
+        report_path = write_report(result, args.report, title=f"fluxcal diagnose {Path(args.data).name}",
+                                   calibration=section_from_diagnosis(result))
         if args.json:
             print(f"fluxcal diagnose: report written to {report_path}", file=sys.stderr)
         else:

@@ -76,7 +76,9 @@ def main(args: Namespace) -> int:
         cal = ef.calibration()
         cal.method, cal.align = method, align
         channels = {name: values for name, values in ef.result.channels.as_dict().items()}
+        rows = ef.result.problem.rows                       # the channels cover the fitted rows only
     else:
+        rows = None
         channels = residual_channels(data, cal, total)
     if sys.stderr.isatty():
         print("\r\033[K", end="", file=sys.stderr)
@@ -94,13 +96,36 @@ def main(args: Namespace) -> int:
         result["site"] = site.as_dict()
     if args.json:
         print(json.dumps(result))
-        return 0
-    if site is not None:
-        print(f"site field: {site.summary()}")
-    print(_summary(data, cal, channels, before, total.source, result, coverages))
-    if args.out:
-        print(f"calibration written to {args.out}")
+    else:
+        if site is not None:
+            print(f"site field: {site.summary()}")
+        print(_summary(data, cal, channels, before, total.source, result, coverages))
+        if args.out:
+            print(f"calibration written to {args.out}")
+    if getattr(args, "report", None):
+        sys.stdout.flush()                  # the calibration first: a report that cannot be written must not cost it
+        _write_report(args, data, cal, channels, coverages, warnings, total.source, rows)
     return 0
+
+
+def _write_report(args: Namespace, data, cal, channels, coverages, warnings, total_source, rows) -> None:
+    from pathlib import Path
+
+    from service.io.report import write_calibration_report
+    from service.wiring.calib_report import section_from_fit
+
+    section = section_from_fit(data, cal, channels, coverages, warnings, total_source, rows)
+    b = data.block
+    summary = (f"{data.path}: {b.n_samples} samples, {b.n_probes} probe(s), {b.t_s[-1] - b.t_s[0]:.1f} s; "
+               f"residual RMS {rms(np.concatenate(list(channels.values()))):.3f} nT over every channel.")
+    path, note = write_calibration_report(section, args.report, title=f"fluxcal fit {Path(args.data).name}",
+                                          summary=summary)
+    if note:
+        print(f"fluxcal fit: {note}", file=sys.stderr)
+    if args.json:
+        print(f"fluxcal fit: report written to {path}", file=sys.stderr)
+    else:
+        print(f"report: {path}")
 
 
 def _fmt_param(value, se) -> str:

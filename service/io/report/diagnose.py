@@ -5,37 +5,24 @@ files are written beside it too. matplotlib is optional for fluxcal and imported
 when a report is asked for; without it `write_report` raises a FluxcalError that says how to install it.
 
 Plots: the residual against its strongest observables before and after the best candidate effect,
-the error per channel before and after, the residual over time, and the candidate table.
+the error per channel before and after, the residual over time, the candidate table, and the
+calibration section (report/calibration.py) when one is given.
 """
 
 from __future__ import annotations
 
-import base64
 import html
-import io
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from drivers.errors import FluxcalError
+from service.numerics.calib.sky import CalibrationSection
 from service.numerics.diagnose import DECIDES, Diagnosis, verdict_lines, verdict_word
 
+from .calibration import section_figures, section_html
+from .page import CSS, images, png, pyplot, write_page
+
 MAX_POINTS = 6000
-
-
-def _pyplot():
-    try:
-        import matplotlib
-    except ImportError:
-        raise FluxcalError("the HTML report needs matplotlib, which is not installed: "
-                           "pip install matplotlib (or the project's [plots] extra), "
-                           "or run diagnose without --report") from None
-    matplotlib.use("Agg")                       # files only, never a window
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _observable_axis(d: Diagnosis, channel: str, observable: str) -> tuple[np.ndarray, str] | None:
@@ -65,12 +52,6 @@ def _observable_axis(d: Diagnosis, channel: str, observable: str) -> tuple[np.nd
     return None
 
 
-def _png(fig) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=96, bbox_inches="tight")
-    return buf.getvalue()
-
-
 def _spectrum_figure(plt, d: Diagnosis) -> tuple[str, str, bytes] | None:
     """The spectrum of each channel's residual against its white noise floor: a line, a 1/f rise or a slow
     wander shows where the verdict's signature came from."""
@@ -92,14 +73,14 @@ def _spectrum_figure(plt, d: Diagnosis) -> tuple[str, str, bytes] | None:
     ax.set_xlabel("frequency (Hz)")
     ax.set_ylabel("residual (nT/√Hz)")
     ax.legend(fontsize=7, ncol=2)
-    png = _png(fig)
+    data = png(fig)
     plt.close(fig)
-    return ("spectrum.png", "Spectrum of the residual of each channel (dotted: its white noise floor)", png)
+    return ("spectrum.png", "Spectrum of the residual of each channel (dotted: its white noise floor)", data)
 
 
 def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
     """(file name, caption, PNG bytes) of every plot."""
-    plt = _pyplot()
+    plt = pyplot()
     figs: list[tuple[str, str, bytes]] = []
     best = d.best
     after = best.fit if best is not None else None
@@ -140,7 +121,7 @@ def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
         ax.legend(loc="best", markerscale=5, fontsize=8)
         ax.grid(alpha=0.3)
         figs.append((f"where_{i + 1}.png", f"Residual of {w['channel']} against {w['observable']}, "
-                     f"before and after adding the best candidate", _png(fig)))
+                     f"before and after adding the best candidate", png(fig)))
         plt.close(fig)
 
     # error per channel before / after
@@ -159,7 +140,7 @@ def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
     ax.yaxis.set_major_formatter(ScalarFormatter())
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, axis="y")
-    figs.append(("channels.png", "Error per channel before and after, against the noise floor", _png(fig)))
+    figs.append(("channels.png", "Error per channel before and after, against the noise floor", png(fig)))
     plt.close(fig)
 
     # residual over time
@@ -174,7 +155,7 @@ def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
     ax.set_ylabel("RMS over channels (nT)")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    figs.append(("time.png", "Residual over time (worst segments shaded)", _png(fig)))
+    figs.append(("time.png", "Residual over time (worst segments shaded)", png(fig)))
     plt.close(fig)
 
     # candidates: held-out RMS
@@ -190,7 +171,7 @@ def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
         ax.invert_yaxis()
         ax.set_xlabel("held-out RMS with the effect added (nT)")
         ax.legend(fontsize=8)
-        figs.append(("candidates.png", "Held-out RMS of each candidate (green: significant)", _png(fig)))
+        figs.append(("candidates.png", "Held-out RMS of each candidate (green: significant)", png(fig)))
         plt.close(fig)
     return figs
 
@@ -215,25 +196,21 @@ def _table(d: Diagnosis) -> str:
     return ("<p>" + html.escape(" ".join(DECIDES.split())) + "</p><table>" + head + "".join(rows) + "</table>")
 
 
-def render_html(d: Diagnosis, figs: list[tuple[str, str, bytes]], title: str) -> str:
+def render_html(d: Diagnosis, figs: list[tuple[str, str, bytes]], title: str,
+                calibration: CalibrationSection | None = None, calibration_figs: list | None = None) -> str:
     ch_rows = "".join(f"<tr><td>{html.escape(n)}</td><td>{r:.3f}</td><td>{s:.3f}</td></tr>"
                       for n, r, s in zip(d.channel_names, d.channel_rms_nT, d.channel_noise_nT))
     where_rows = "".join(
         f"<tr><td>{html.escape(w['channel'])}</td><td>{html.escape(w['observable'])}"
         f"{' (' + html.escape(w['band']) + ')' if w.get('band') else ''}</td><td>{w['strength']:.2f}</td></tr>"
         for w in d.where[:12])
-    imgs = "".join(
-        f'<figure><img alt="{html.escape(cap)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
-        f"<figcaption>{html.escape(cap)}</figcaption></figure>" for _, cap, png in figs)
     verdict = "<br>".join(html.escape(line.strip()) for line in verdict_lines(d))
     notes = "".join(f"<li>{html.escape(n)}</li>" for n in d.notes)
+    cal = section_html(calibration, calibration_figs or []) if calibration is not None else ""
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
 <style>
-body {{ font-family: sans-serif; max-width: 60em; margin: 2em auto; color: #222; }}
-table {{ border-collapse: collapse; margin: 1em 0; font-size: 0.9em; }}
-td, th {{ border: 1px solid #bbb; padding: 0.2em 0.6em; text-align: left; }}
-figure {{ margin: 1.5em 0; }} img {{ max-width: 100%; }} figcaption {{ font-size: 0.85em; color: #555; }}
+{CSS}
 </style></head><body>
 <h1>{html.escape(title)}</h1>
 <p>Model: <b>{html.escape(d.model)}</b> (linear part {d.linear}; total field from {d.reference});
@@ -251,29 +228,20 @@ blocks, each predicted by the fit to the others.</p>
 <h2>Where the model fails</h2>
 <table><tr><th>channel</th><th>observable</th><th>explained variance</th></tr>{where_rows}</table>
 <h2>Plots</h2>
-{imgs}
+{images(figs)}
+{cal}
 {'<h2>Notes</h2><ul>' + notes + '</ul>' if notes else ''}
 </body></html>
 """
 
 
-def write_report(d: Diagnosis, out_dir: str | Path, title: str = "fluxcal diagnose") -> Path:
-    """Write DIR/index.html and the PNG plots; the page appears complete or not at all."""
-    out = Path(out_dir)
+def write_report(d: Diagnosis, out_dir: str | Path, title: str = "fluxcal diagnose",
+                 calibration: CalibrationSection | None = None) -> Path:
+    """Write DIR/index.html and the PNG plots, with the calibration section when one is given; the page
+    appears complete or not at all."""
     figs = _figures(d)                                     # fails before anything is written if no matplotlib
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        for name, _, png in figs:
-            (out / name).write_bytes(png)
-        page = render_html(d, figs, title)
-        fd, tmp = tempfile.mkstemp(dir=out, prefix=".index-", suffix=".html")
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(page)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, out / "index.html")
-    except OSError as e:
-        raise FluxcalError(f"{out}: cannot write the report: {e.strerror or e}") from None
-    return out / "index.html"
+    cal_figs = section_figures(pyplot(), calibration) if calibration is not None else []
+    return write_page(out_dir, render_html(d, figs, title, calibration, cal_figs), figs + cal_figs)
 
 
 __all__ = ["write_report", "render_html"]
