@@ -118,6 +118,9 @@ def build_parser() -> argparse.ArgumentParser:
         " [unit] status_s seconds; recordings to [mcap] dir."))
 
     run.add_argument("--config", required=True, metavar="FILE", help="the service's TOML configuration (required)")
+    run.add_argument("--dashboard", nargs="?", const="127.0.0.1:8090", default=None, metavar="HOST:PORT",
+                     help="also serve the web dashboard (`fluxcal dashboard`, a process of its own) at HOST:PORT "
+                          "(default: 127.0.0.1:8090) and open it in this host's browser if it has one")
 
     rep = _command(sub, "replay", "run a recording through the same pipeline and compare with its output",
                    "  fluxcal replay recordings/grad1-sim-30s.mcap\n  fluxcal replay rec.mcap --out again.mcap",

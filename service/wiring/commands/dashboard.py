@@ -25,6 +25,19 @@ def parse_listen(text: str, flag: str = "--listen") -> tuple[str, int]:
     return m.group(1), int(m.group(2))
 
 
+def _open(url: str) -> None:
+    """Open the page in this host's browser; on a host without a display (a terminal browser would take the
+    terminal) say where it is instead."""
+    import os
+    import webbrowser
+
+    graphical = sys.platform in ("darwin", "win32") or os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    if not (graphical and webbrowser.open(url)):
+        print(f"fluxcal dashboard: no browser to open here; open {url} in a browser on this host (or forward the "
+              f"port: ssh -L {url.rsplit(':', 1)[1].strip('/')}:127.0.0.1:{url.rsplit(':', 1)[1].strip('/')} HOST)",
+              file=sys.stderr, flush=True)
+
+
 def main(args: argparse.Namespace) -> int:
     from service.wiring.dashboard import DashboardServer, Hub
 
@@ -45,9 +58,7 @@ def main(args: argparse.Namespace) -> int:
         print("fluxcal dashboard: anyone who reaches this address can send the units commands; use --read-only "
               "or a loopback address behind an authenticating proxy", file=sys.stderr, flush=True)
     if args.open:
-        import webbrowser
-
-        webbrowser.open(server.url)
+        _open(server.url)
     try:
         deadline = None if args.seconds is None else time.monotonic() + args.seconds
         while deadline is None or time.monotonic() < deadline:
@@ -55,6 +66,10 @@ def main(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         pass
     finally:
+        import signal
+
+        for sig in (signal.SIGINT, signal.SIGTERM):     # a second signal must not cut the closing short
+            signal.signal(sig, signal.SIG_IGN)
         server.stop()
         hub.close()
     return 0

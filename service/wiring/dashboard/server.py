@@ -69,6 +69,8 @@ class _Handler(BaseHTTPRequestHandler):
                     self._json({"error": f"no such file: {name}"}, 404)
                 else:
                     self._send(200, body, _TYPES.get(name[name.rfind("."):], "application/octet-stream"))
+            elif url.path == "/favicon.ico":
+                self._send(204, b"", "image/x-icon")
             elif url.path == "/api/units":
                 self._json({**hub.units(), "read_only": self.server.read_only})
             elif url.path == "/api/view":
