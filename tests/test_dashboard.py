@@ -129,3 +129,55 @@ def test_read_only_dashboard_sends_no_commands(publisher):  # noqa: F811
     finally:
         server.stop()
         hub.close()
+
+
+def test_several_units_through_a_router_each_with_its_own_values():
+    """unit u1, unit u2 (clients) -> router <- dashboard (client): the site layout with zenohd."""
+    import threading
+
+    from drivers.config import load_section
+    from service.io.bus import ServiceBus, ZenohConfig, open_session
+    from tests.test_watch import corrected_block, free_port
+
+    router_ep = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(load_section(ZenohConfig, {"mode": "router", "listen": [router_ep]}, "zenoh"))
+    buses = {u: ServiceBus(load_section(ZenohConfig, {"mode": "client", "connect": [router_ep]}, "zenoh"), u,
+                           state_fn=lambda u=u: {"usable": True, "cal_id": int(u[1:])}, probe_names=["s1", "s2"])
+             for u in ("u1", "u2")}
+    stop = threading.Event()
+
+    def publish():
+        i = 0
+        while not stop.wait(0.05):
+            for k, bus in enumerate(buses.values()):
+                bus.pending_commands()
+                cb = corrected_block(i)
+                bus.publish_corrected(CorrectedBlock(cb.t_s, cb.seq, cb.corrected_nT * (k + 1), None, None, None, 2))
+            i += 1
+
+    th = threading.Thread(target=publish, daemon=True)
+    th.start()
+    hub = Hub([router_ep], None).start()
+    server = DashboardServer(hub, "127.0.0.1", 0).start()
+    try:
+        deadline = time.monotonic() + 20
+        views = {}
+        while time.monotonic() < deadline and len(views) < 2:
+            for u in [x["unit"] for x in _get(server.url + "api/units")["units"]]:
+                v = _get(server.url + f"api/view?unit={u}")
+                if v["series"] and v["series"]["t"] and v["state"]:
+                    views[u] = v
+            time.sleep(0.2)
+        assert sorted(views) == ["u1", "u2"]
+        for k, u in enumerate(("u1", "u2")):
+            last = dict(zip(views[u]["series"]["columns"][1:], views[u]["series"]["v"][-1]))
+            np.testing.assert_allclose([last["s1.x"], last["s1.y"], last["s1.z"]], np.asarray(S1) * (k + 1), atol=1e-3)
+            assert views[u]["state"]["cal_id"] == k + 1
+    finally:
+        stop.set()
+        th.join(2)
+        server.stop()
+        hub.close()
+        for bus in buses.values():
+            bus.close()
+        router.close()

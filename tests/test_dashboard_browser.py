@@ -128,6 +128,12 @@ def test_page_updates_shows_the_calibration_round_trips_commands_and_sees_the_un
         page.click("button[data-cmd='add-effect']")
         _wait(page, "document.querySelector('#command-log li[data-command=\"add-effect\"][data-ok=false]') !== null",
               15, "a bad add-effect did not come back refused")
+        # a diagnosis of the raw samples the dashboard kept, in its own process: a verdict and the candidates
+        page.click("#diagnose")
+        _wait(page, "document.getElementById('diagnosis').dataset.status === 'done'", 90, "the diagnosis did not finish")
+        verdict = page.eval_on_selector("#verdict", "p => p.textContent")
+        assert re.match(r"(at the floor|explained|partly explained|unexplained)", verdict), verdict
+        assert page.eval_on_selector_all("#diagnosis table tr", "rows => rows.length") >= 4     # head + candidates
         page.screenshot(path=str(tmp_path / "dashboard.png"), full_page=True)
         assert not errors, errors
         # the unit stops: the page says so

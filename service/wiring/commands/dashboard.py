@@ -4,25 +4,11 @@ from __future__ import annotations
 
 import argparse
 import math
-import re
 import sys
 import time
 
 from drivers.errors import ConfigError
-from service.wiring.commands.watch import resolve_units
-
-
-def parse_listen(text: str, flag: str = "--listen") -> tuple[str, int]:
-    """'HOST:PORT' -> (host, port).
-
-    >>> parse_listen("127.0.0.1:8090")
-    ('127.0.0.1', 8090)
-    """
-    m = re.fullmatch(r"\[?([A-Za-z0-9_.:\-]+?)\]?:(\d{1,5})", text or "")
-    if not m or int(m.group(2)) > 65535:
-        raise ConfigError(f"{flag}: {text!r} is not allowed (allowed: HOST:PORT, e.g. 127.0.0.1:8090; port 0 takes "
-                          f"a free one)")
-    return m.group(1), int(m.group(2))
+from service.wiring.commands.watch import parse_listen, resolve_units
 
 
 def _open(url: str) -> None:

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import sys
 import time
 from collections import Counter
@@ -30,7 +29,7 @@ from drivers.errors import ConfigError
 from service.io.bus import BusClient, BusError, Message, ZenohConfig, ZenohTlsConfig, discover_units, open_session
 from service.io.foxglove_schemas import PRODUCT_STREAMS, Products, error_message, json_channels, message_bytes
 
-from .watch import resolve_units
+from .watch import parse_listen, resolve_units
 
 #: Zenoh streams the bridge subscribes to, and the Foxglove channels it serves
 SUBSCRIBED = ("corrected", "error", "calibration", "health")
@@ -38,20 +37,6 @@ SERVED = (*PRODUCT_STREAMS, "calibration", "health")
 RETRY_S = 1.0                 # reconnect / rediscover period
 REPORT_S = 30.0               # a status line this often while it runs
 _wall_ns = time.time_ns
-
-
-def parse_listen(text: str) -> tuple[str, int]:
-    """--listen HOST:PORT (IPv6 in brackets); ConfigError naming the option.
-
-    >>> parse_listen("127.0.0.1:0"), parse_listen("[::1]:8765")
-    (('127.0.0.1', 0), ('::1', 8765))
-    """
-    m = re.fullmatch(r"\[([0-9A-Fa-f:.]+)\]:(\d{1,5})|([^:\[\]]+):(\d{1,5})", text or "")
-    port = int(m.group(2) or m.group(4)) if m else -1
-    if not m or port > 65535:
-        raise ConfigError(f"--listen: {text!r} is not allowed (allowed: HOST:PORT, e.g. 127.0.0.1:8765; port 0: "
-                          f"a free one)")
-    return m.group(1) or m.group(3), port
 
 
 class UnitFeed:

@@ -15,7 +15,7 @@ from service.wiring.daemon import Daemon
 
 def start_dashboard(config: str, listen: str) -> subprocess.Popen:
     """`fluxcal dashboard --config CONFIG --listen LISTEN --open` as a child process; it says its address."""
-    from service.wiring.commands.dashboard import parse_listen
+    from service.wiring.commands.watch import parse_listen
 
     parse_listen(listen, "--dashboard")
     return subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "dashboard", "--config", config,

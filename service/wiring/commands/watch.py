@@ -112,6 +112,20 @@ def resolve_units(args: argparse.Namespace) -> tuple[list[str], list[str] | None
     return endpoints, named or ([unit] if unit else None), tls
 
 
+def parse_listen(text: str, flag: str = "--listen") -> tuple[str, int]:
+    """A server address HOST:PORT (IPv6 in brackets) for --listen; ConfigError naming the option.
+
+    >>> parse_listen("127.0.0.1:0"), parse_listen("[::1]:8765")
+    (('127.0.0.1', 0), ('::1', 8765))
+    """
+    m = re.fullmatch(r"\[([0-9A-Fa-f:.]+)\]:(\d{1,5})|([^:\[\]]+):(\d{1,5})", text or "")
+    port = int(m.group(2) or m.group(4)) if m else -1
+    if not m or port > 65535:
+        raise ConfigError(f"{flag}: {text!r} is not allowed (allowed: HOST:PORT, e.g. 127.0.0.1:8090; port 0: "
+                          f"a free one)")
+    return m.group(1) or m.group(3), port
+
+
 def _vec(v: np.ndarray, width: int = 10) -> str:
     return " ".join(f"{x:+{width}.1f}" if np.isfinite(x) else f"{'nan':>{width}}" for x in v)
 
