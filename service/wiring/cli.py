@@ -78,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     fit = _command(sub, "fit", "fit a calibration to lab data (CSV or MCAP)",
                    "  fluxcal fit grad.csv --out cal.json\n  fluxcal fit board.csv --site 46.52,6.63,400 --json\n"
                    "  fluxcal fit grad.csv --effects temperature,drift")
-    fit.add_argument("data", metavar="DATA", help=data_help)
+    fit.add_argument("data", metavar="DATA", nargs="+", help=data_help + FLEET_HELP)
     fit.add_argument("--config", metavar="FILE", help=config_help)
     fit.add_argument("--method", default="ellipsoid", metavar="M", choices=METHODS,
                      help=f"calibration method (allowed: {', '.join(METHODS)}; default: %(default)s)")
@@ -89,12 +89,13 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--site", metavar=SITE, help=site_help)
     fit.add_argument("--out", metavar="CAL.json", help="write the calibration file here (default: none)")
     fit.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
+    _fleet_options(fit)
     fit.add_argument("--report", metavar="DIR", help="also write an HTML report of the calibration here (plots: matplotlib)")
 
     dia = _command(sub, "diagnose", "compare model and measurement; find the missing effect",
                    "  fluxcal diagnose recordings/grad1-hidden-effect.mcap\n"
                    "  fluxcal diagnose rec.mcap --effects temperature --report report/")
-    dia.add_argument("data", metavar="DATA", help=data_help)
+    dia.add_argument("data", metavar="DATA", nargs="+", help=data_help + FLEET_HELP)
     dia.add_argument("--config", metavar="FILE", help=config_help)
     dia.add_argument("--calibration", metavar="CAL.json",
                      help="hold this calibration fixed (a file of `fit --out`, or `fit --json`); default: refit")
@@ -104,6 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     dia.add_argument("--site", metavar=SITE, help=site_help)
     dia.add_argument("--report", metavar="DIR", help="also write an HTML report with plots here (needs matplotlib)")
     dia.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
+    _fleet_options(dia)
 
     run = _command(sub, "run", "run the service: source -> calibration -> Zenoh and MCAP",
                    "  fluxcal run --config configs/sim-gradiometer.toml   # saves to state/, records to "
@@ -127,11 +129,13 @@ def build_parser() -> argparse.ArgumentParser:
                    more=(" It compares the replay's corrected output with the recording's, sample by sample: exit 0 "
                         "when every one is identical (or there was none to compare, which it says), 1 when any "
                         "differs."))
-    rep.add_argument("recording", metavar="REC.mcap", help="an MCAP file, or a directory of one run's rotated files")
+    rep.add_argument("recording", metavar="REC.mcap", nargs="+",
+                     help="an MCAP file, or a directory of one run's rotated files" + FLEET_HELP)
     rep.add_argument("--config", metavar="FILE",
                      help="replay with this configuration (default: the one stored in the recording)")
     rep.add_argument("--out", metavar="OUT.mcap", help="also record the replay here, with the initial calibration and "
                                                       "the commands, so it replays again (default: none)")
+    _fleet_options(rep)
     fix = _command(sub, "repair", "copy a recording cut by a killed writer (or damaged) into a finished one",
                    "  fluxcal repair recordings/live/grad1-20261124T101500-0003.mcap fixed.mcap\n"
                    "  fluxcal repair recordings/live/ fixed/")
@@ -225,6 +229,18 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+FLEET_HELP = ("; several (paths, folders, glob patterns such as 'survey/*.mcap') run on all cores, one summary table "
+              "(--json: JSON) of each recording's result or failure, --out and --report then name folders")
+
+
+def _fleet_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="several recordings: processes to run them on (default: one per core)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="several recordings: run them on this Dask distributed cluster instead, e.g. "
+                        "tcp://10.0.0.9:8786 (its workers need fluxcal installed)")
+
+
 def _client_options(p: argparse.ArgumentParser, who: str) -> None:
     """--config/--connect/--unit/--seconds and TLS, as for `watch`; --unit may be given several times."""
     p.add_argument("--config", metavar="FILE", help="take the endpoints, unit and TLS from this configuration")
@@ -238,15 +254,27 @@ def _client_options(p: argparse.ArgumentParser, who: str) -> None:
     p.add_argument("--key", metavar="KEY.pem", help=f"TLS: this {who}'s private key")
 
 
+#: commands that take several recordings
+FLEET_COMMANDS = ("fit", "diagnose", "replay")
+
+
 def _sigterm_to_keyboard_interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, *, install_signals: bool = True) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
-    signal.signal(signal.SIGTERM, _sigterm_to_keyboard_interrupt)
-    module = importlib.import_module(f"service.wiring.commands.{args.command.replace('-', '_')}")
+    if install_signals:
+        signal.signal(signal.SIGTERM, _sigterm_to_keyboard_interrupt)
     try:
+        if args.command in FLEET_COMMANDS:
+            from service.wiring.fleet_cli import dispatch
+
+            fleet = dispatch(args, argv)
+            if fleet is not None:
+                return fleet
+        module = importlib.import_module(f"service.wiring.commands.{args.command.replace('-', '_')}")
         return int(module.main(args) or 0)
     except (ConfigError, DataError, CalibrationRefused) as e:
         print(f"fluxcal {args.command}: {e}", file=sys.stderr)

@@ -1,0 +1,73 @@
+"""How `fit`, `diagnose` and `replay` tell one recording from several, and hand several to service.wiring.fleet."""
+
+from __future__ import annotations
+
+import argparse
+import glob
+from pathlib import Path
+
+from drivers.errors import ConfigError
+
+from .fleet import _runs_in, run_fleet
+
+#: options the fleet handles itself (the value of each is taken out of the per-recording command line)
+_OWN_WITH_VALUE = ("--jobs", "--scheduler", "--out", "--report")
+_OWN_FLAGS = ("--json",)
+
+
+def _is_fleet(inputs: list[str]) -> bool:
+    if len(inputs) > 1 or glob.has_magic(inputs[0]):
+        return True
+    p = Path(inputs[0])
+    return p.is_dir() and len(_runs_in(p)) > 1                 # a folder of several recordings
+
+
+def shared_options(argv: list[str], command: str, inputs: list[str]) -> list[str]:
+    """The command line without the command, the recordings and the fleet's own options: what every recording's
+    command shares."""
+    rest = list(argv)
+    rest.remove(command)
+    for item in inputs:
+        rest.remove(item)
+    out: list[str] = []
+    skip = False
+    for tok in rest:
+        if skip:
+            skip = False
+            continue
+        name = tok.split("=", 1)[0]
+        if name in _OWN_WITH_VALUE:
+            skip = "=" not in tok
+            continue
+        if tok in _OWN_FLAGS:
+            continue
+        out.append(tok)
+    return out
+
+
+def dispatch(args: argparse.Namespace, argv: list[str]) -> int | None:
+    """None after putting the one recording back in `args` (the command runs as always); else the exit status
+    of the fleet run."""
+    key = "recording" if args.command == "replay" else "data"
+    inputs = list(getattr(args, key))
+    if not _is_fleet(inputs):
+        if args.jobs is not None or args.scheduler:
+            raise ConfigError("--jobs/--scheduler: for several recordings; one was given")
+        setattr(args, key, inputs[0])
+        return None
+    if args.jobs is not None and args.jobs < 1:
+        raise ConfigError(f"--jobs: {args.jobs} is not allowed (allowed: 1 or more)")
+    outputs = {flag: getattr(args, flag[2:]) for flag in ("--out", "--report") if getattr(args, flag[2:], None)}
+    for flag, folder in outputs.items():
+        if Path(folder).suffix in (".json", ".mcap") or (Path(folder).exists() and not Path(folder).is_dir()):
+            raise ConfigError(f"{flag}: {folder!r} is not allowed with several recordings (allowed: a folder, "
+                              f"which gets one file per recording)")
+    from .progress import Progress
+
+    bar = Progress(1.0, f"{args.command} of several recordings", fraction=True)
+    try:
+        return run_fleet(args.command, inputs, shared_options(argv, args.command, inputs), outputs,
+                         workers=args.jobs, scheduler=args.scheduler, as_json=getattr(args, "json", False),
+                         progress=lambda n, total: bar(n / max(total, 1), f"{n}/{total} recordings"))
+    finally:
+        bar.close()

@@ -1,0 +1,79 @@
+"""The summary of a fleet run: one row per recording (what it gave, or why it failed), as text or JSON."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def _num(x: Any, fmt: str = ".3f") -> str:
+    return "-" if not isinstance(x, (int, float)) or isinstance(x, bool) else format(x, fmt)
+
+
+def _why(r: dict[str, Any]) -> str:
+    """The last meaningful line a failed recording printed."""
+    lines = [ln.strip() for ln in (r.get("stderr") or "").splitlines() + (r.get("stdout") or "").splitlines()
+             if ln.strip() and not ln.startswith(("Traceback", "  File"))]
+    return lines[-1] if lines else f"exit status {r['status']}"
+
+
+def figures(command: str, r: dict[str, Any]) -> dict[str, Any]:
+    """The few numbers of one recording's result that the table shows (and the JSON names)."""
+    res = r.get("result") or {}
+    if command == "fit" and res:
+        sensors = res.get("sensors") or []
+        cov = [s["coverage"]["fraction"] for s in sensors if isinstance(s.get("coverage"), dict)]
+        return {"probes": len(sensors), "rms_nT": res.get("rms_nT"),
+                "worst_scalar_rms_nT": max((s.get("scalar_rms_nT") or 0.0 for s in sensors), default=None),
+                "min_coverage": min(cov) if cov else None, "warnings": len(res.get("warnings") or [])}
+    if command == "diagnose" and res:
+        v = res.get("verdict") or {}
+        return {"verdict": v.get("kind"), "effect": v.get("effect"), "rms_nT": v.get("rms_nT"),
+                "floor_nT": v.get("floor_nT"),
+                "significant": [c["effect"] for c in res.get("candidates") or [] if c.get("significant")]}
+    if command == "replay":
+        text = r.get("stdout") or ""
+        last = [ln for ln in text.splitlines() if ln.strip()]
+        return {"said": last[-1] if last else ""}
+    return {}
+
+
+def summary_json(command: str, results: list[dict[str, Any]], wall_s: float, where: str) -> dict[str, Any]:
+    return {"command": command, "ran_on": where, "wall_s": round(wall_s, 3), "recordings": len(results),
+            "failed": sum(not r["ok"] for r in results),
+            "results": [{"recording": r["recording"], "ok": r["ok"], "status": r["status"], "seconds": r["seconds"],
+                         "peak_rss_mb": r.get("peak_rss_mb"),
+                         **({"error": _why(r)} if not r["ok"] else {}), **figures(command, r),
+                         **({"result": r["result"]} if r.get("result") is not None else {})} for r in results]}
+
+
+def summary_table(command: str, results: list[dict[str, Any]], wall_s: float, where: str) -> str:
+    width = max([len("recording")] + [len(r["recording"]) for r in results])
+    lines = []
+    if command == "fit":
+        head = f"{'rms nT':>9} {'worst probe':>11} {'coverage':>8} {'warnings':>8}"
+    elif command == "diagnose":
+        head = f"{'verdict':<28} {'rms nT':>8} {'floor nT':>8}  significant"
+    else:
+        head = "replay"
+    lines.append(f"{'recording':<{width}}  {'ok':<6} {'s':>7}  {head}")
+    for r in results:
+        f = figures(command, r)
+        ok = "ok" if r["ok"] else "FAILED"
+        row = f"{r['recording']:<{width}}  {ok:<6} {_num(r['seconds'], '.1f'):>7}  "
+        if not r["ok"] and not (command == "replay" and r["status"] == 1 and f.get("said")):
+            row += _why(r)
+        elif command == "fit":
+            row += (f"{_num(f.get('rms_nT')):>9} {_num(f.get('worst_scalar_rms_nT')):>11} "
+                    f"{_num(f.get('min_coverage'), '.0%'):>8} {f.get('warnings', 0):>8}")
+        elif command == "diagnose":
+            verdict = (f.get("verdict") or "-") + (f" by {f['effect']}" if f.get("effect") else "")
+            row += (f"{verdict:<28} {_num(f.get('rms_nT')):>8} {_num(f.get('floor_nT')):>8}  "
+                    f"{', '.join(f.get('significant') or []) or '-'}")
+        else:
+            row += f.get("said", "")
+        lines.append(row)
+    failed = sum(not r["ok"] for r in results)
+    busy = sum(r["seconds"] or 0.0 for r in results)
+    lines.append(f"{len(results)} recording(s), {failed} failed; {wall_s:.1f} s on {where} "
+                 f"({busy:.1f} s of work: {busy / wall_s if wall_s > 0 else 0:.2f}x one at a time)")
+    return "\n".join(lines)

@@ -1,0 +1,128 @@
+"""Fleets: fit, diagnose and replay over several recordings on a process pool or a Dask cluster, one summary,
+failures isolated (a malformed file, a worker that dies)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+
+from drivers.errors import ConfigError
+from service.wiring import cli
+from service.wiring.fleet import expand_inputs, run_pool
+from service.wiring.fleet_cli import shared_options
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def simulate(tmp: Path, seed: int, seconds: float = 20.0) -> Path:
+    text = (REPO / "configs" / "sim-gradiometer.toml").read_text()
+    text = re.sub(r"(?m)^seed = \d+", f"seed = {seed}", text)
+    text = re.sub(r"(?m)^duration_s = [\d.]+", f"duration_s = {seconds}", text)
+    cfg = tmp / f"sim{seed}.toml"
+    cfg.write_text(text)
+    out = tmp / f"grad-{seed}.csv"
+    assert cli.main(["simulate", "--config", str(cfg), "--out", str(out)], install_signals=False) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def fleet_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fleet")
+    for seed in (11, 12, 13):
+        simulate(d, seed)
+    (d / "broken.csv").write_text("t,s1_x,s1_y\n0,1,2\n1,oops\n")
+    return d
+
+
+def test_folders_globs_and_runs_of_rotated_files_expand_to_recordings(tmp_path):
+    for name in ("a.csv", "u-20261101T000000-0001.mcap", "u-20261101T001000-0002.mcap",
+                 "u-20261102T000000-0001.mcap", "notes.txt", "single.mcap"):
+        (tmp_path / name).write_bytes(b"x")
+    links = tmp_path / "links"
+    got = expand_inputs([str(tmp_path)], links)
+    assert got[0] == str(tmp_path / "a.csv")             # in name order
+    assert got[1] == str(tmp_path / "single.mcap")
+    run = Path(got[2])                                   # two rotated files of one run: a folder of links
+    assert run.parent == links and sorted(f.name for f in run.iterdir()) == [
+        "u-20261101T000000-0001.mcap", "u-20261101T001000-0002.mcap"]
+    assert got[3] == str(tmp_path / "u-20261102T000000-0001.mcap") and len(got) == 4
+    assert expand_inputs([str(tmp_path / "*.csv"), str(tmp_path / "a.csv")], links) == [str(tmp_path / "a.csv")]
+    with pytest.raises(ConfigError, match="matches no file"):
+        expand_inputs([str(tmp_path / "*.nothing")], links)
+
+
+def test_shared_options_drop_the_recordings_and_the_fleets_own_options():
+    argv = ["fit", "a.csv", "--jobs", "2", "b.csv", "--effects", "drift", "--out=cals", "--json", "--site", "1,2,3"]
+    assert shared_options(argv, "fit", ["a.csv", "b.csv"]) == ["--effects", "drift", "--site", "1,2,3"]
+
+
+def test_fit_of_several_recordings_equals_each_alone_and_isolates_a_malformed_one(fleet_dir, tmp_path, capsys):
+    status = cli.main(["fit", str(fleet_dir / "*.csv"), "--jobs", "2", "--json", "--out", str(tmp_path / "cals")],
+                      install_signals=False)
+    summary = json.loads(capsys.readouterr().out)
+    assert status == 1 and summary["recordings"] == 4 and summary["failed"] == 1
+    by_name = {Path(r["recording"]).name: r for r in summary["results"]}
+    assert not by_name["broken.csv"]["ok"] and "broken.csv" in by_name["broken.csv"]["error"]
+    for seed in (11, 12, 13):
+        r = by_name[f"grad-{seed}.csv"]
+        assert r["ok"] and r["rms_nT"] < 2.0
+        assert cli.main(["fit", str(fleet_dir / f"grad-{seed}.csv"), "--json"], install_signals=False) == 0
+        alone = json.loads(capsys.readouterr().out)
+        assert r["result"]["sensors"] == alone["sensors"]            # the same numbers, bit for bit
+        assert (tmp_path / "cals" / f"grad-{seed}.cal.json").exists()
+    assert not (tmp_path / "cals" / "broken.cal.json").exists()
+    # the table says the same
+    status = cli.main(["fit", str(fleet_dir), "--jobs", "2"], install_signals=False)
+    table = capsys.readouterr().out
+    assert status == 1 and re.search(r"broken\.csv\s+FAILED", table) and "4 recording(s), 1 failed" in table
+    assert len(re.findall(r"grad-1\d\.csv\s+ok", table)) == 3
+
+
+def die_or_answer(argv: list[str]) -> dict:
+    """A stand-in job for run_pool: a worker that dies without a word on 'die', an answer otherwise."""
+    if argv[1] == "die":
+        os._exit(9)
+    return {"recording": argv[1], "status": 0, "ok": True, "result": None, "stdout": "", "stderr": "", "seconds": 0.0}
+
+
+def test_a_worker_that_dies_fails_only_its_own_recording():
+    got = []
+    jobs = [["fit", name] for name in ("a", "b", "die", "c", "d")]
+    run_pool(jobs, 2, got.append, fn=die_or_answer)
+    by = {r["recording"]: r for r in got}
+    assert sorted(by) == ["a", "b", "c", "d", "die"]
+    assert not by["die"]["ok"] and "died" in by["die"]["stderr"]
+    assert all(by[k]["ok"] for k in "abcd")
+
+
+def test_replay_of_several_recordings(tmp_path, capsys):
+    shutil.copy(REPO / "recordings" / "grad1-sim-30s.mcap", tmp_path / "a.mcap")
+    shutil.copy(REPO / "recordings" / "grad1-sim-30s.mcap", tmp_path / "b.mcap")
+    shutil.copy(REPO / "recordings" / "grad3-pump.mcap", tmp_path / "pump.mcap")     # lab data: no stored config
+    status = cli.main(["replay", str(tmp_path / "*.mcap"), "--jobs", "2"], install_signals=False)
+    out = capsys.readouterr().out
+    assert status == 1, out
+    assert len(re.findall(r"[ab]\.mcap\s+ok .* compared with the recording: 2000, identical: 2000", out)) == 2, out
+    assert re.search(r"pump\.mcap\s+FAILED .*no configuration stored in the recording; give --config", out)
+    assert "3 recording(s), 1 failed" in out
+
+
+@pytest.mark.slow
+def test_the_same_runs_go_to_a_dask_cluster(fleet_dir, capsys):
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None, silence_logs=40) as cluster:
+        files = [str(fleet_dir / f"grad-{s}.csv") for s in (11, 12)] + [str(fleet_dir / "broken.csv")]
+        status = cli.main(["fit", *files, "--scheduler", cluster.scheduler_address, "--json"], install_signals=False)
+    summary = json.loads(capsys.readouterr().out)
+    assert status == 1 and summary["ran_on"].startswith("tcp://127.0.0.1")
+    by_name = {Path(r["recording"]).name: r for r in summary["results"]}
+    assert not by_name["broken.csv"]["ok"]
+    for seed in (11, 12):
+        assert cli.main(["fit", str(fleet_dir / f"grad-{seed}.csv"), "--json"], install_signals=False) == 0
+        assert by_name[f"grad-{seed}.csv"]["result"]["sensors"] == json.loads(capsys.readouterr().out)["sensors"]
