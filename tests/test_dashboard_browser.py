@@ -8,6 +8,7 @@ under CI (the CI environment variable set) a missing browser fails them.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -123,6 +124,14 @@ def test_page_updates_shows_the_calibration_round_trips_commands_and_sees_the_un
         _wait(page, "document.querySelector('#command-log li[data-command=unfreeze][data-ok=true]') !== null", 15,
               "unfreeze did not come back ok")
         _wait(page, "document.querySelector('#frozen') === null", 10, "FROZEN stayed after unfreeze")
+        # save the calibration in use, apply it back: the unit takes it (a new cal_id)
+        saved = page.evaluate("fetch(document.getElementById('save-calibration').href).then(r => r.text())")
+        cal = json.loads(saved)
+        assert cal["format"] and [p["name"] for p in cal["probes"]] == ["s1", "s2", "s3", "s4"]
+        page.fill("#apply-payload", saved)
+        page.click("button[data-cmd=apply]")
+        _wait(page, "document.querySelector('#command-log li[data-command=apply][data-ok=true]') !== null", 15,
+              "apply of the saved calibration did not come back ok")
         # a refused command comes back refused, with the unit's reason
         page.fill("#effect-name", "no-such-effect")
         page.click("button[data-cmd='add-effect']")

@@ -174,6 +174,33 @@ class Hub:
         self._next_state[unit] = 0.0                       # show the command's effect at once
         return entry
 
+    def calibration_file(self, unit: str) -> dict[str, Any]:
+        """The calibration the unit uses now, as a calibration file (service.io.calfile) that `apply` takes back;
+        FluxcalError when there is none yet, or when its effects' parameters are not in the state."""
+        from service.io.calfile import calibration_to_dict
+        from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+
+        with self.lock:
+            st = dict(self.views[unit].state)
+        if not st.get("usable") or not st.get("probes"):
+            raise FluxcalError(f"fluxcal/{unit} has no usable calibration yet")
+        if st.get("effects"):
+            raise FluxcalError(f"fluxcal/{unit} corrects effects too ({', '.join(st['effects'])}), whose parameters its "
+                               f"state does not carry: take the service's own calibration file ([calibration] file)")
+
+        def se(x: Any, shape: tuple[int, ...]) -> np.ndarray:
+            """A standard error from the state: null or -1 (the state's "not determined") -> NaN."""
+            a = np.full(shape, np.nan) if x is None else np.array(x, dtype=float).reshape(shape)
+            return np.where(a < 0, np.nan, a)
+
+        probes = [ProbeCalibration(str(p["name"]), np.asarray(p["offset_nT"], float), np.asarray(p["matrix"], float),
+                                   se(p.get("offset_se_nT"), (3,)), se(p.get("matrix_se"), (3, 3)))
+                  for p in st["probes"]]
+        cal = ArrayCalibration(str(st.get("method") or "rls"), None, probes,
+                               diagnostics={"saved_from": f"fluxcal/{unit} by fluxcal dashboard, cal_id "
+                                                          f"{st.get('cal_id')}"})
+        return calibration_to_dict(cal)
+
     def diagnose(self, unit: str) -> dict[str, Any]:
         """Start a diagnosis of the unit's kept raw samples on a thread of this process; returns at once."""
         with self.lock:

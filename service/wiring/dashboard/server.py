@@ -4,6 +4,7 @@ internet), and a small JSON API the page polls. A page polls; a closed tab sends
     GET  /                      the page
     GET  /static/<file>         its scripts and style
     GET  /api/units             {"connected", "endpoints", "units": [{"unit", "status", "status_text"}], "message"}
+    GET  /api/calibration?unit=U  the calibration in use as a calibration file, which `apply` takes back
     GET  /api/view?unit=U&series=N&raw=N&error=N
                                 one unit's view (service.wiring.dashboard.view.UnitView.view): the history
                                 rows after the numbers given, and the rest whole
@@ -20,6 +21,7 @@ from importlib import resources
 from typing import Any
 from urllib.parse import parse_qs, urlparse
 
+from drivers.errors import FluxcalError
 from service.io.bus import COMMANDS
 
 from .hub import Hub
@@ -73,6 +75,20 @@ class _Handler(BaseHTTPRequestHandler):
                 self._send(204, b"", "image/x-icon")
             elif url.path == "/api/units":
                 self._json({**hub.units(), "read_only": self.server.read_only})
+            elif url.path == "/api/calibration":
+                unit = q.get("unit", "")
+                try:
+                    cal = hub.calibration_file(unit)
+                except FluxcalError as e:
+                    self._json({"error": str(e)}, 409)
+                    return
+                body = json.dumps(cal, indent=1).encode()
+                self.send_response(200)
+                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Disposition", f'attachment; filename="{unit}-calibration.json"')
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
             elif url.path == "/api/view":
                 since = {k: int(q.get(k, 0) or 0) for k in ("series", "raw", "error")}
                 self._json(hub.view(q.get("unit", ""), since))

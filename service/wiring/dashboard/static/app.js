@@ -200,6 +200,7 @@ function renderCalibration(v) {
 }
 
 function renderCommands(v) {
+  $("save-calibration").href = "/api/calibration?unit=" + encodeURIComponent(unit);
   $("command-log").innerHTML = (v.commands || []).slice().reverse().map(c =>
     `<li class="${c.ok ? "good" : "bad"}" data-command="${esc(c.command)}" data-ok="${c.ok}">` +
     `${new Date(c.time_unix_s * 1000).toLocaleTimeString()} ${esc(c.command)} ${esc(c.payload || "")}: ` +
