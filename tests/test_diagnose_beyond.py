@@ -197,3 +197,20 @@ def test_where_it_fails_names_a_column_tied_in_no_polynomial_way():
     top = d.where[0]
     assert top["observable"] == "valve" and top["strength"] > 0.5, d.where[:4]
     assert "valve" in d.verdict["left"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [3, 4])
+def test_where_it_fails_names_temperature_tied_in_no_polynomial_way(seed):
+    # a coupling that turns over twice across the temperature range: T and T^2 miss it, the correlation ratio not
+    from test_diagnose import sim_block
+
+    probes = [probe(0), probe(1)]
+    block = sim_block(probes, n=8000, rate=50.0, motion=TUMBLE, seed=seed)
+    t = block.t_s - block.t_s[0]
+    temp = 20.0 + 5.0 * np.sin(2 * np.pi * t / 53.0)
+    block.temp_C[:] = temp[:, None]
+    block.field_nT[:, 1, 0] += 3.0 * np.cos(4 * np.pi * (temp - 15.0) / 10.0)
+    d = diagnose(data_of(block, probes), candidates=["temperature"])
+    top = d.where[0]
+    assert top["observable"] == "temperature" and top["channel"].startswith("s2") and top["strength"] > 0.5, d.where[:4]

@@ -173,7 +173,8 @@ def describe(sig: dict[str, Any], has_reference: bool) -> tuple[str, str]:
             f"{f['observable']}{' ' + f['band'] if f.get('band') else ''} in {f['channel']} ({100 * f['strength']:.0f} %)"
             for f in follows))
     # what would explain it: a strong tie to something the data carry first, then a line, a shared or own wander
-    strong = follows and follows[0]["observable"] != "frequency" and follows[0]["strength"] >= 0.5
+    # (time is no cause: any slow change follows it; whether the change is shared decides first)
+    strong = follows and follows[0]["observable"] not in ("frequency", "time") and follows[0]["strength"] >= 0.5
     if strong:
         advice = _follows_advice(follows[0])
     elif line is not None:

@@ -74,7 +74,7 @@ def observables(data: EffectData, fit: FitResult, rows: np.ndarray) -> dict[str,
     pr = fit.problem
     full_rows = pr.rows[rows]
     t = data.t_s[full_rows]
-    out: dict[str, Any] = {"time": lambda c: _legendre(t, 4)}
+    out: dict[str, Any] = {"time": _with_scalar(lambda c: _legendre(t, 4), t)}
     if data.has_temperature() and float(np.ptp(data.temperature(0))) > 1e-6:
         temps = [data.temperature(k)[full_rows] for k in range(data.n_probes)]
 
@@ -85,7 +85,7 @@ def observables(data: EffectData, fit: FitResult, rows: np.ndarray) -> dict[str,
             for k in ks:
                 cols += [temps[k], temps[k] ** 2]
             return np.column_stack(cols)
-        out["temperature"] = temp_basis
+        out["temperature"] = _with_scalar(temp_basis, lambda c: temps[pr.channel_probe(c)[1]])
         # its rate and delayed versions: a core that lags its logged temperature follows these better
         full_t = [data.temperature(k) for k in range(data.n_probes)]
         rates = [np.gradient(low_pass(data.t_s, v, 10.0), data.t_s)[full_rows] for v in full_t]
@@ -104,7 +104,7 @@ def observables(data: EffectData, fit: FitResult, rows: np.ndarray) -> dict[str,
     b2 = np.sum(s1 ** 2, axis=1)
     omega = np.linalg.norm(np.cross(s1, r1), axis=1) / b2
     rate_dir = r1 / np.sqrt(b2)[:, None]
-    out["angular rate"] = lambda c: np.column_stack([omega, omega ** 2, rate_dir])
+    out["angular rate"] = _with_scalar(lambda c: np.column_stack([omega, omega ** 2, rate_dir]), omega)
     us = [fit.ev.nhat[k][rows] for k in range(pr.P)]
 
     def probe_u(c: int) -> np.ndarray:
@@ -121,16 +121,22 @@ def observables(data: EffectData, fit: FitResult, rows: np.ndarray) -> dict[str,
         u = probe_u(c)
         psi = np.arctan2(u[:, 1], u[:, 0])
         return np.column_stack([f(k * psi) for k in (1, 2, 3) for f in (np.cos, np.sin)])
-    out["heading"] = heading
+    out["heading"] = _with_scalar(heading, lambda c: np.arctan2(probe_u(c)[:, 1], probe_u(c)[:, 0]))
     if data.ref_total_nT is not None and float(np.ptp(data.ref_total_nT)) > 1.0:
         f = data.ref_total_nT[full_rows]
-        out["field magnitude"] = lambda c: np.column_stack([f, f ** 2])
+        out["field magnitude"] = _with_scalar(lambda c: np.column_stack([f, f ** 2]), f)
     for name, vals in data.observables().items():
         v = vals[full_rows]
         if float(np.ptp(v)) > 0:
-            out[name] = lambda c, _v=v: np.column_stack([_v, _v ** 2])
-            out[name].scalar = v                     # one column: its tie of any shape is measured too
+            out[name] = _with_scalar(lambda c, _v=v: np.column_stack([_v, _v ** 2]), v)
     return out
+
+
+def _with_scalar(basis: Any, scalar: Any) -> Any:
+    """A basis that also names its observable as one column per channel (an array, or channel -> array), whose
+    tie of any shape (thresholds, steps, oscillations a small polynomial misses) is measured too."""
+    basis.scalar = scalar if callable(scalar) else (lambda c, _x=scalar: _x)
+    return basis
 
 
 def _band_excess(y: np.ndarray, dt: float, noise: float) -> tuple[float, str]:
@@ -161,7 +167,8 @@ def _band_excess(y: np.ndarray, dt: float, noise: float) -> tuple[float, str]:
 def where_it_fails(data: EffectData, fit: FitResult, noise_nT: np.ndarray, *, top: int = 30,
                    min_strength: float = 0.05) -> list[dict[str, Any]]:
     """(channel, observable, strength) sorted strongest first; strength = explained variance fraction (adjusted
-    R^2 of a small basis in the observable; for a logged column also its correlation ratio, whichever is larger)."""
+    R^2 of a small basis in the observable, or its correlation ratio over quantile bins of the observable as one
+    column, whichever is larger: time, temperature, angular rate, heading, field magnitude, logged columns)."""
     pr = fit.problem
     m = pr.M
     stride = max(1, m // WHERE_MAX_ROWS)
@@ -175,7 +182,7 @@ def where_it_fails(data: EffectData, fit: FitResult, noise_nT: np.ndarray, *, to
             s = _r2(y, basis(c))
             x = getattr(basis, "scalar", None)
             if x is not None:
-                s = max(s, _eta2(y, x))
+                s = max(s, _eta2(y, x(c)))
             if s >= min_strength:
                 out.append({"channel": name, "observable": oname, "strength": s})
         s, band = _band_excess(vals[:, c], data.dt_s, float(noise_nT[c]))
