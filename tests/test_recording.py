@@ -11,6 +11,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -365,3 +366,18 @@ def test_recording_trouble_during_a_run_is_said(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert err.count("recording trouble: OSError: [Errno 28] No space left on device") == 1, err
     assert "source exhausted" in err
+
+
+def test_read_samples_gives_read_recordings_samples_in_one_pass_of_memory():
+    """fit and diagnose read only the raw samples, into arrays of their final size: the same numbers."""
+    from service.io.recordings.reader import read_recording, read_samples
+
+    for name in ("grad1-sim-30s.mcap", "grad1-hidden-effect.mcap", "grad3-pump.mcap"):
+        path = Path(__file__).resolve().parents[1] / "recordings" / name
+        a, b = read_recording(path).raw, read_samples(path).raw
+        assert len(read_recording(path).raw_blocks) > 1 or name != "grad1-sim-30s.mcap"
+        for f in ("t_s", "seq", "field_nT", "temp_C", "flags"):
+            assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=f != "seq" and f != "flags"), (name, f)
+        assert sorted(a.extras) == sorted(b.extras)
+        for k in a.extras:
+            assert np.array_equal(a.extras[k], b.extras[k], equal_nan=True), (name, k)

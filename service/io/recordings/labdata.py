@@ -43,9 +43,9 @@ def load_data(path: str | Path) -> LabData:
     if p.is_dir():
         raise DataError(f"{p}: is a directory, expected a .csv or .mcap file")
     if p.suffix.lower() == ".mcap":
-        from .reader import read_recording  # only when an MCAP file is given
+        from .reader import read_samples  # only when an MCAP file is given
 
-        rec = read_recording(p)
+        rec = read_samples(p)
         names = list(rec.probe_names) if getattr(rec, "probe_names", None) else \
             [f"s{k + 1}" for k in range(rec.raw.n_probes)]
         return LabData(block=rec.raw, probe_names=names, path=str(p), warnings=rec.report.warnings)

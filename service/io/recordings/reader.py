@@ -67,8 +67,8 @@ class Recording:
 
     @property
     def raw(self) -> SampleBlock:
-        """Every raw sample in one block."""
-        return SampleBlock.concat(self.raw_blocks)
+        """Every raw sample in one block (the block itself when there is one: no copy)."""
+        return self.raw_blocks[0] if len(self.raw_blocks) == 1 else SampleBlock.concat(self.raw_blocks)
 
     @property
     def corrected(self) -> CorrectedBlock | None:
@@ -110,6 +110,73 @@ class Recording:
         return self._json("positions_m")
 
 
+def read_samples(path: str | Path, *, unit: str | None = None, strict: bool = True) -> Recording:
+    """Only the raw samples of a recording, in one block, for fit and diagnose: read in two passes (count,
+    then decode into arrays of the final size), so the samples are held once, never as a list of blocks and
+    their concatenation too (half the peak memory of read_recording(...).raw). Extras kept: those in every
+    block. The same checks and messages as read_recording."""
+    report = ReadReport()
+    chosen, units, n, probes, extras = unit, [], 0, set(), None
+    for rec in _chosen_raw(path, report, strict, unit, units):
+        b = _decode(path, rec)
+        chosen = unit_of_topic(rec.topic)
+        n += b.n_samples
+        probes.add(b.n_probes)
+        extras = set(b.extras) if extras is None else extras & set(b.extras)
+    _check_read(path, unit, units, n > 0, probes, report)
+    p = probes.pop()
+    t, seq = np.empty(n), np.empty(n, np.int64)
+    fld, temp, flags = np.empty((n, p, 3)), np.empty((n, p)), np.empty(n, np.uint8)
+    ext = {k: np.empty(n) for k in sorted(extras or ())}
+    at = 0
+    for rec in _chosen_raw(path, ReadReport(), strict, chosen, []):
+        b = _decode(path, rec)
+        sl = slice(at, at + b.n_samples)
+        t[sl], seq[sl], fld[sl], temp[sl], flags[sl] = b.t_s, b.seq, b.field_nT, b.temp_C, b.flags
+        for k, v in ext.items():
+            v[sl] = b.extras[k]
+        at += b.n_samples
+    if at != n:
+        raise RecordingError(f"{path}: changed while it was read ({n} samples, then {at})")
+    block = SampleBlock(t_s=t, seq=seq, field_nT=fld, temp_C=temp, flags=flags, extras=ext)
+    return Recording([block], [], [], [], report.metadata, report.files, report.truncated, [], chosen, report)
+
+
+def _chosen_raw(path: str | Path, report: ReadReport, strict: bool, unit: str | None, units: list[str]):
+    """The raw records of `unit` (None: of the first unit with raw samples); every unit seen goes into `units`."""
+    chosen = unit
+    for rec in iter_records(path, report, strict=strict):
+        u = unit_of_topic(rec.topic)
+        if u is None:
+            continue
+        if u not in units:
+            units.append(u)
+        if chosen is None and rec.encoding == RAW_ENCODING:
+            chosen = u
+        if rec.encoding == RAW_ENCODING and u == chosen:
+            yield rec
+
+
+def _decode(path: str | Path, rec: Any) -> SampleBlock:
+    try:
+        return decode_raw(rec.data)
+    except DataError as e:
+        raise RecordingError(f"{path}: {rec.topic}: damaged message: {e}") from None
+
+
+def _check_read(path: str | Path, unit: str | None, units: list[str], any_raw: bool, probes: set[int],
+                report: ReadReport) -> None:
+    if unit is None and len(units) > 1:
+        raise RecordingError(f"{path}: holds several units ({', '.join(units)}): choose one with unit=")
+    if not any_raw:
+        why = "; ".join(report.warnings)
+        raise RecordingError(f"{path}: no raw samples" + (f" of unit {unit!r}" if unit else "")
+                             + " in this recording" + (f" ({why})" if why else ""))
+    if len(probes) > 1:
+        raise RecordingError(f"{path}: the number of probes changes within the recording ({sorted(probes)}): "
+                             f"read its files one at a time")
+
+
 def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = True) -> Recording:
     """Read a recording (a file or a directory of rotated files) into memory.
 
@@ -147,16 +214,7 @@ def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = 
                 sinks[stream](rec.data)
         except DataError as e:
             raise RecordingError(f"{path}: {rec.topic}: damaged message: {e}") from None
-    if unit is None and len(units) > 1:
-        raise RecordingError(f"{path}: holds several units ({', '.join(units)}): choose one with unit=")
-    if not raw:
-        why = "; ".join(report.warnings)
-        raise RecordingError(f"{path}: no raw samples" + (f" of unit {unit!r}" if unit else "")
-                             + " in this recording" + (f" ({why})" if why else ""))
-    probes = {b.n_probes for b in raw}
-    if len(probes) > 1:
-        raise RecordingError(f"{path}: the number of probes changes within the recording ({sorted(probes)}): "
-                             f"read its files one at a time")
+    _check_read(path, unit, units, bool(raw), {b.n_probes for b in raw}, report)
     return Recording(raw, cor, events, cal, report.metadata, report.files, report.truncated, health, chosen, report)
 
 
