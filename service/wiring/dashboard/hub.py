@@ -175,31 +175,10 @@ class Hub:
         return entry
 
     def calibration_file(self, unit: str) -> dict[str, Any]:
-        """The calibration the unit uses now, as a calibration file (service.io.calfile) that `apply` takes back;
-        FluxcalError when there is none yet, or when its effects' parameters are not in the state."""
-        from service.io.calfile import calibration_to_dict
-        from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
-
+        """The calibration the unit uses now, as a calibration file that `apply` takes back (calibration_file)."""
         with self.lock:
             st = dict(self.views[unit].state)
-        if not st.get("usable") or not st.get("probes"):
-            raise FluxcalError(f"fluxcal/{unit} has no usable calibration yet")
-        if st.get("effects"):
-            raise FluxcalError(f"fluxcal/{unit} corrects effects too ({', '.join(st['effects'])}), whose parameters its "
-                               f"state does not carry: take the service's own calibration file ([calibration] file)")
-
-        def se(x: Any, shape: tuple[int, ...]) -> np.ndarray:
-            """A standard error from the state: null or -1 (the state's "not determined") -> NaN."""
-            a = np.full(shape, np.nan) if x is None else np.array(x, dtype=float).reshape(shape)
-            return np.where(a < 0, np.nan, a)
-
-        probes = [ProbeCalibration(str(p["name"]), np.asarray(p["offset_nT"], float), np.asarray(p["matrix"], float),
-                                   se(p.get("offset_se_nT"), (3,)), se(p.get("matrix_se"), (3, 3)))
-                  for p in st["probes"]]
-        cal = ArrayCalibration(str(st.get("method") or "rls"), None, probes,
-                               diagnostics={"saved_from": f"fluxcal/{unit} by fluxcal dashboard, cal_id "
-                                                          f"{st.get('cal_id')}"})
-        return calibration_to_dict(cal)
+        return calibration_file(unit, st)
 
     def diagnose(self, unit: str) -> dict[str, Any]:
         """Start a diagnosis of the unit's kept raw samples on a thread of this process; returns at once."""
@@ -211,29 +190,55 @@ class Hub:
             names = list(view.probe_names) or None
             effects = list(view.state.get("effects") or [])
             view.diagnosis = {"status": "running", "started_unix_s": time.time(), "fraction": 0.0}
-        threading.Thread(target=self._diagnose, args=(unit, block, names, effects), daemon=True,
+        threading.Thread(target=run_diagnosis, args=(view, unit, block, names, effects), daemon=True,
                          name=f"fluxcal-dashboard-diagnose-{unit}").start()
         return {"status": "running"}
 
-    def _diagnose(self, unit: str, block: Any, names: list[str] | None, effects: list[str]) -> None:
-        from service.numerics.diagnose import diagnose, summary_text
-        from service.numerics.effects.base import EffectData
 
-        view = self.views[unit]
-        try:
-            if block is None or block.n_samples < 200:
-                raise FluxcalError(f"only {0 if block is None else block.n_samples} raw samples kept so far: "
-                                   f"wait for more data")
-            data = EffectData.from_block(block, names)
+def run_diagnosis(view: UnitView, unit: str, block: Any, names: list[str] | None, effects: list[str]) -> None:
+    """A diagnosis of the kept raw samples (service.numerics.diagnose), its result or failure put in the view."""
+    from service.numerics.diagnose import diagnose, summary_text
+    from service.numerics.effects.base import EffectData
 
-            def progress(fraction: float, *_: Any) -> None:
-                view.diagnosis = {**view.diagnosis, "fraction": float(fraction)}
+    try:
+        if block is None or block.n_samples < 200:
+            raise FluxcalError(f"only {0 if block is None else block.n_samples} raw samples kept so far: "
+                               f"wait for more data")
+        data = EffectData.from_block(block, names)
 
-            result = diagnose(data, effects=effects, progress=progress)
-            out = result.as_dict()
-            view.diagnosis = {"status": "done", "finished_unix_s": time.time(), "n_samples": int(block.n_samples),
-                              "duration_s": float(block.t_s[-1] - block.t_s[0]), "effects": effects,
-                              "verdict": out.get("verdict"), "candidates": out.get("candidates"),
-                              "text": summary_text(result, f"fluxcal/{unit}, last {block.n_samples} samples")}
-        except (FluxcalError, ValueError, np.linalg.LinAlgError) as e:
-            view.diagnosis = {"status": "failed", "error": str(e)}
+        def progress(fraction: float, *_: Any) -> None:
+            view.diagnosis = {**view.diagnosis, "fraction": float(fraction)}
+
+        result = diagnose(data, effects=effects, progress=progress)
+        out = result.as_dict()
+        view.diagnosis = {"status": "done", "finished_unix_s": time.time(), "n_samples": int(block.n_samples),
+                          "duration_s": float(block.t_s[-1] - block.t_s[0]), "effects": effects,
+                          "verdict": out.get("verdict"), "candidates": out.get("candidates"),
+                          "text": summary_text(result, f"fluxcal/{unit}, last {block.n_samples} samples")}
+    except (FluxcalError, ValueError, np.linalg.LinAlgError) as e:
+        view.diagnosis = {"status": "failed", "error": str(e)}
+
+
+def calibration_file(unit: str, st: dict[str, Any]) -> dict[str, Any]:
+    """A unit's state as a calibration file (service.io.calfile); FluxcalError when it has no usable calibration
+    yet, or corrects effects whose parameters the state does not carry."""
+    from service.io.calfile import calibration_to_dict
+    from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+
+    if not st.get("usable") or not st.get("probes"):
+        raise FluxcalError(f"fluxcal/{unit} has no usable calibration yet")
+    if st.get("effects"):
+        raise FluxcalError(f"fluxcal/{unit} corrects effects too ({', '.join(st['effects'])}), whose parameters its "
+                           f"state does not carry: take the service's own calibration file ([calibration] file)")
+
+    def se(x: Any, shape: tuple[int, ...]) -> np.ndarray:
+        """A standard error from the state: null or -1 (the state's "not determined") -> NaN."""
+        a = np.full(shape, np.nan) if x is None else np.array(x, dtype=float).reshape(shape)
+        return np.where(a < 0, np.nan, a)
+
+    probes = [ProbeCalibration(str(p["name"]), np.asarray(p["offset_nT"], float), np.asarray(p["matrix"], float),
+                               se(p.get("offset_se_nT"), (3,)), se(p.get("matrix_se"), (3, 3)))
+              for p in st["probes"]]
+    cal = ArrayCalibration(str(st.get("method") or "rls"), None, probes,
+                           diagnostics={"saved_from": f"fluxcal/{unit} by fluxcal dashboard, cal_id {st.get('cal_id')}"})
+    return calibration_to_dict(cal)
