@@ -244,3 +244,60 @@ def test_a_key_that_does_not_belong_to_its_certificate_is_named_as_such(tmp_path
             open_session(ZenohConfig(listen=[ep], tls=ZenohTlsConfig(root_ca=ca.pem, cert=cert, key=key)))
         assert "does zenoh.tls.key belong to zenoh.tls.cert" in str(e.value)
         assert "another fluxcal already listening" not in str(e.value)
+
+
+def test_the_web_dashboard_obeys_tls_and_access_control(site):
+    """A reader's certificate: the page gets the data and the state, and a command comes back refused; an
+    operator's certificate: the command is applied; a name not granted: nothing at all."""
+    import json
+    import urllib.request
+
+    from service.wiring.dashboard import DashboardServer, Hub
+
+    s, stack = site
+    stop = threading.Event()
+
+    def publisher() -> None:
+        k = 0
+        while not stop.is_set():
+            s.bus.publish_raw(block(k))
+            k += 10
+            time.sleep(0.05)
+
+    t = threading.Thread(target=publisher, daemon=True)
+    t.start()
+    stack.callback(lambda: (stop.set(), t.join(2.0)))
+
+    def dashboard(name: str):
+        hub = Hub([s.endpoint], [UNIT], s.tls(name)).start()
+        server = DashboardServer(hub, "127.0.0.1", 0).start()
+        stack.callback(lambda: (server.stop(), hub.close()))
+        return server.url
+
+    def view(url: str, until, timeout: float = 10.0) -> dict:
+        deadline = time.monotonic() + timeout
+        while True:
+            with urllib.request.urlopen(url + f"api/view?unit={UNIT}", timeout=5) as r:
+                v = json.loads(r.read())
+            if until(v) or time.monotonic() > deadline:
+                return v
+            time.sleep(0.2)
+
+    def command(url: str, name: str) -> dict:
+        req = urllib.request.Request(url + "api/command", data=json.dumps({"unit": UNIT, "command": name}).encode(),
+                                     headers={"Content-Type": "application/json"})
+        with urllib.request.urlopen(req, timeout=10) as r:
+            return json.loads(r.read())
+
+    reader = dashboard("dashboard")
+    v = view(reader, lambda v: v["raw"] and v["raw"]["t"] and v["state"])
+    assert v["status"] == "live" and v["state"]["cal_id"] == 3 and v["raw"]["t"]
+    answer = command(reader, "freeze")
+    assert answer["ok"] is False and "not connected" not in answer["error"] and s.applied == [], answer
+    ops = dashboard("ops")
+    view(ops, lambda v: v["status"] == "live")
+    answer = command(ops, "freeze")
+    assert answer["ok"] is True and s.applied == ["freeze"], answer
+    intruder = dashboard("intruder")
+    v = view(intruder, lambda v: False, timeout=3.0)
+    assert v["raw"] is None and not v["state"] and v["status"] != "live"
