@@ -160,28 +160,44 @@ def _refuse_non_finite(data: LabData) -> None:
                         f"{rows[0]}, t = {data.block.t_s[rows[0]]} s): saturated or invalid; remove them")
 
 
+def iter_residual_channels(data: LabData, cal: ArrayCalibration, total: TotalField):
+    """(name, values) of each CONTRACTS §3 channel in turn: s<k>.scalar = |corrected| − F, and for arrays
+    s<k>-s1.<axis>; one probe's corrected samples at a time besides probe 1's (hours of data)."""
+    b = data.block
+    names = iter(channel_names(data.probe_names))
+    first = cal.probes[0].apply(b.field_nT[:, 0])                  # (N, 3), probe 1
+    f = None
+    for k in range(b.n_probes):
+        corr = first if k == 0 else cal.probes[k].apply(b.field_nT[:, k])
+        mag = np.linalg.norm(corr, axis=1)
+        if f is None:
+            f = total.per_sample(b.n_samples, fallback=mag)
+        yield next(names), mag - f
+    for k in range(1, b.n_probes):
+        corr = cal.probes[k].apply(b.field_nT[:, k])
+        for a in range(3):
+            yield next(names), corr[:, a] - first[:, a]
+
+
 def residual_channels(data: LabData, cal: ArrayCalibration, total: TotalField) -> dict[str, np.ndarray]:
     """CONTRACTS §3 channels: s<k>.scalar = |corrected| − F, and for arrays s<k>-s1.<axis>."""
-    b = data.block
-    corr = cal.apply(b.field_nT)
-    mag = np.linalg.norm(corr, axis=2)
-    f = total.per_sample(b.n_samples, fallback=mag)
-    names = channel_names(data.probe_names)
-    values = [mag[:, k] - f for k in range(b.n_probes)]
-    values += [corr[:, k, a] - corr[:, 0, a] for k in range(1, b.n_probes) for a in range(3)]
-    return dict(zip(names, values))
+    return dict(iter_residual_channels(data, cal, total))
 
 
-def uncalibrated_channels(data: LabData, total: TotalField) -> dict[str, np.ndarray]:
-    """The same channels with no calibration at all (raw nT), for 'before'."""
-    p = data.block.n_probes
+def uncalibrated_rms(data: LabData, total: TotalField) -> dict[str, float]:
+    """RMS of the same channels with no calibration at all (raw nT), for 'before'; no channel is kept."""
     ident = ArrayCalibration("none", None, [ProbeCalibration(n, np.zeros(3), np.eye(3)) for n in data.probe_names])
-    del p
-    return residual_channels(data, ident, total)
+    return {name: rms(v) for name, v in iter_residual_channels(data, ident, total)}
 
 
 def rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else float("nan")
+
+
+def rms_all(arrays: list[np.ndarray]) -> float:
+    """RMS over every value of several arrays, without joining them."""
+    n = sum(np.size(a) for a in arrays)
+    return float(np.sqrt(sum(float(np.dot(np.ravel(a), np.ravel(a))) for a in arrays) / n)) if n else float("nan")
 
 
 def contract_json(cal: ArrayCalibration, channels: dict[str, np.ndarray], probe_names: list[str],
@@ -206,8 +222,8 @@ def contract_json(cal: ArrayCalibration, channels: dict[str, np.ndarray], probe_
         "align": cal.align,
         "effects": list(cal.effects),
         "sensors": sensors,
-        "differential_rms_nT": rms(np.concatenate(diff)) if diff else None,
-        "rms_nT": rms(np.concatenate(list(channels.values()))),
+        "differential_rms_nT": rms_all(diff) if diff else None,
+        "rms_nT": rms_all(list(channels.values())),
         "warnings": list(warnings or []),
         # the effect terms' parameters, as the text lists them: {effect: {name: {"value", "se", "unit"}}}
         "effect_params": _finite_or_none({eff: {name: dict(v) for name, v in ps.items()}

@@ -279,7 +279,8 @@ def align_probes(probes: list[ProbeCalibration], raw_nT: np.ndarray, method: str
     """
     raw = np.asarray(raw_nT, float)
     ok = np.isfinite(raw).all(axis=(1, 2))
-    raw = raw[ok]
+    if not ok.all():
+        raw = raw[ok]                                 # a copy only when some sample must go (hours of data)
     if raw.shape[0] < 3:
         raise CalibrationRefused("alignment needs at least 3 samples seen by every probe")
     if method == "regression":

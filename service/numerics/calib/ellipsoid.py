@@ -239,10 +239,13 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     delta = (f ** 2 - f2_ref) / scale ** 2
     # the δ column only when F varies by more than ~1 nT rms: otherwise it carries no information
     use_delta = known and float(np.std(f)) > 1.0
-    phi9 = quadric_design((raw - center) / scale)
+    def design(a: int, b: int) -> np.ndarray:
+        return quadric_design((raw[a:b] - center) / scale)
+
     # one pass over the samples: the normal equations per time block (their sum is the whole design's);
-    # everything after works on 9 x 9 matrices
-    normals = block_normals(phi9)
+    # everything after works on 9 x 9 matrices, and no more than one block's design is held at a time
+    normals = block_normals(design, n)
+    edges = normals[0]
     g9, r9 = sum(normals[1]), sum(normals[2])
     cond9 = gram_condition(g9)
     if not np.isfinite(cond9) or cond9 > max_condition:
@@ -257,7 +260,7 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     g, r = t.T @ g9 @ t, t.T @ r9
     if use_delta:
         # the δ column: −δ against the geometric columns, itself, and the right side 1
-        gd = t.T @ (phi9.T @ -delta)
+        gd = t.T @ sum(design(a, b).T @ -delta[a:b] for a, b in zip(edges[:-1], edges[1:]))
         g = np.block([[g, gd[:, None]], [gd[None, :], np.array([[delta @ delta]])]])
         r = np.append(r, -delta.sum())
     # θ = (ΦᵀΦ)⁻¹ Φᵀ1 through the eigenvectors of the column-scaled normal matrix, never an explicit inverse
@@ -273,11 +276,14 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
             pass                     # not an ellipsoid: the caller refuses it
     # the residuals themselves (one product): from the normal equations, n − 2θᵀΦᵀ1 + θᵀΦᵀΦθ, a residual
     # variance of (2 × noise / F)² would be lost in the rounding of n
-    resid = 1.0 - phi9 @ (t @ theta[:t.shape[1]])
-    if use_delta:
-        resid += delta * theta[-1]
+    sq = 0.0
+    for a, b in zip(edges[:-1], edges[1:]):
+        resid = 1.0 - design(a, b) @ (t @ theta[:t.shape[1]])
+        if use_delta:
+            resid += delta[a:b] * theta[-1]
+        sq += float(resid @ resid)
     dof = max(n - g.shape[0], 1)
-    sigma2 = float(resid @ resid) / dof
+    sigma2 = sq / dof
     if noise_nT is not None:
         # |M(r − o)| = F + ε makes the equation's residual 2 F ε / κ, κ = F₀² − oᵀQo
         try:

@@ -75,11 +75,20 @@ def expand(theta_k: np.ndarray, cov_k: np.ndarray, order: str, extra: int = 0) -
     return t @ theta_k, t @ cov_k @ t.T
 
 
-def block_normals(phi9: np.ndarray, n_blocks: int = N_BLOCKS) -> tuple[np.ndarray, list, list]:
-    """Edges of the contiguous time blocks, and per block ΦᵀΦ and Φᵀ1 of the nine-term design."""
-    edges = np.linspace(0, phi9.shape[0], n_blocks + 1).astype(int)
-    grams = [phi9[a:b].T @ phi9[a:b] for a, b in zip(edges[:-1], edges[1:])]
-    rhs = [phi9[a:b].sum(axis=0) for a, b in zip(edges[:-1], edges[1:])]
+def block_edges(n: int, n_blocks: int = N_BLOCKS) -> np.ndarray:
+    """Edges of the contiguous time blocks of n samples."""
+    return np.linspace(0, n, n_blocks + 1).astype(int)
+
+
+def block_normals(design, n: int, n_blocks: int = N_BLOCKS) -> tuple[np.ndarray, list, list]:
+    """Edges of the contiguous time blocks, and per block ΦᵀΦ and Φᵀ1 of the nine-term design; `design(a, b)`
+    gives the design of samples a..b, so only one block's design is ever held (hours of data)."""
+    edges = block_edges(n, n_blocks)
+    grams, rhs = [], []
+    for a, b in zip(edges[:-1], edges[1:]):
+        phi = design(a, b)
+        grams.append(phi.T @ phi)
+        rhs.append(phi.sum(axis=0))
     return edges, grams, rhs
 
 

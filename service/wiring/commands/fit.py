@@ -14,7 +14,7 @@ from service.io.recordings.labdata import load_data
 from service.numerics.calib.coverage import coverage
 from service.numerics.calib.site import site_from_text
 from service.wiring.commands.notes import say_read_warnings
-from service.wiring.fitting import contract_json, fit_array, residual_channels, rms, uncalibrated_channels
+from service.wiring.fitting import contract_json, fit_array, residual_channels, rms, rms_all, uncalibrated_rms
 
 
 def _say(msg: str) -> None:
@@ -82,8 +82,8 @@ def main(args: Namespace) -> int:
         channels = residual_channels(data, cal, total)
     if sys.stderr.isatty():
         print("\r\033[K", end="", file=sys.stderr)
-    before = uncalibrated_channels(data, total)
-    cal.diagnostics.update({"rms_before_nT": {k: rms(v) for k, v in before.items()},
+    before = uncalibrated_rms(data, total)
+    cal.diagnostics.update({"rms_before_nT": dict(before),
                             "rms_after_nT": {k: rms(v) for k, v in channels.items()},
                             "total_field": total.source})
     coverages = [coverage(data.block.field_nT[:, k], centre_nT=p.offset_nT) for k, p in enumerate(cal.probes)]
@@ -117,7 +117,7 @@ def _write_report(args: Namespace, data, cal, channels, coverages, warnings, tot
     section = section_from_fit(data, cal, channels, coverages, warnings, total_source, rows)
     b = data.block
     summary = (f"{data.path}: {b.n_samples} samples, {b.n_probes} probe(s), {b.t_s[-1] - b.t_s[0]:.1f} s; "
-               f"residual RMS {rms(np.concatenate(list(channels.values()))):.3f} nT over every channel.")
+               f"residual RMS {rms_all(list(channels.values())):.3f} nT over every channel.")
     path, note = write_calibration_report(section, args.report, title=f"fluxcal fit {Path(args.data).name}",
                                           summary=summary)
     if note:
@@ -186,8 +186,10 @@ def _summary(data, cal, channels, before, total_source, result, coverages) -> st
                              else f"  {eff:12s} {name:28s} {v['value']:.6g} (undetermined) {v.get('unit', '')}")
     lines.append("\nresidual RMS, nT          before       after")
     for name in channels:
-        lines.append(f"  {name:20s} {rms(before[name]):12.2f} {rms(channels[name]):11.3f}")
-    lines.append(f"  {'all':20s} {rms(np.concatenate(list(before.values()))):12.2f} {result['rms_nT']:11.3f}")
+        lines.append(f"  {name:20s} {before[name]:12.2f} {rms(channels[name]):11.3f}")
+    # every channel has one value per sample: the RMS of them all is the root of the mean square of the RMSs
+    lines.append(f"  {'all':20s} {float(np.sqrt(np.mean(np.square(list(before.values()))))):12.2f} "
+                 f"{result['rms_nT']:11.3f}")
     if result["warnings"]:
         lines.append("\nwarnings")
         lines += [f"  {w}" for w in result["warnings"]]
