@@ -100,6 +100,22 @@ def received(client: BusClient, publish, timeout: float = 3.0) -> list:
     return out
 
 
+def publish_raw_blocks(s: "Site", stack: ExitStack) -> None:
+    """The secured service publishes a raw block every 50 ms until the test ends."""
+    stop = threading.Event()
+
+    def publisher() -> None:
+        k = 0
+        while not stop.is_set():
+            s.bus.publish_raw(block(k))
+            k += 10
+            time.sleep(0.05)
+
+    t = threading.Thread(target=publisher, daemon=True)
+    t.start()
+    stack.callback(lambda: (stop.set(), t.join(2.0)))
+
+
 @pytest.fixture
 def site(tmp_path):
     with ExitStack() as stack:
@@ -176,18 +192,7 @@ def test_no_certificate_another_ca_or_clear_text_cannot_connect(site):
 
 def test_watch_connects_with_a_dashboard_certificate(site, capsys):
     s, stack = site
-    stop = threading.Event()
-
-    def publisher() -> None:
-        k = 0
-        while not stop.is_set():
-            s.bus.publish_raw(block(k))
-            k += 10
-            time.sleep(0.05)
-
-    t = threading.Thread(target=publisher, daemon=True)
-    t.start()
-    stack.callback(lambda: (stop.set(), t.join(2.0)))
+    publish_raw_blocks(s, stack)
     cert, key = s.certs["dashboard"]
     assert cli_main(["watch", "--connect", s.endpoint, "--unit", UNIT, "--seconds", "2.5",
                      "--ca", s.ca, "--cert", cert, "--key", key]) == 0
@@ -255,18 +260,7 @@ def test_the_web_dashboard_obeys_tls_and_access_control(site):
     from service.wiring.dashboard import DashboardServer, Hub
 
     s, stack = site
-    stop = threading.Event()
-
-    def publisher() -> None:
-        k = 0
-        while not stop.is_set():
-            s.bus.publish_raw(block(k))
-            k += 10
-            time.sleep(0.05)
-
-    t = threading.Thread(target=publisher, daemon=True)
-    t.start()
-    stack.callback(lambda: (stop.set(), t.join(2.0)))
+    publish_raw_blocks(s, stack)
 
     def dashboard(name: str):
         hub = Hub([s.endpoint], [UNIT], s.tls(name)).start()
