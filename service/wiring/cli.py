@@ -90,7 +90,8 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--out", metavar="CAL.json", help="write the calibration file here (default: none)")
     fit.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
     _fleet_options(fit)
-    fit.add_argument("--report", metavar="DIR", help="also write an HTML report of the calibration here (plots: matplotlib)")
+    fit.add_argument("--report", metavar="DIR",
+                     help="also write an HTML report of the calibration here (plots: matplotlib)")
 
     dia = _command(sub, "diagnose", "compare model and measurement; find the missing effect",
                    "  fluxcal diagnose recordings/grad1-hidden-effect.mcap\n"
@@ -103,7 +104,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help=f"the effects already in the model (allowed: {EFFECT_NAMES}; {own}); default: none. "
                           f"Effects installed in the entry-point group fluxcal.effects are tried as candidates too")
     dia.add_argument("--site", metavar=SITE, help=site_help)
-    dia.add_argument("--report", metavar="DIR", help="also write an HTML report with plots here (needs matplotlib)")
+    dia.add_argument("--report", metavar="DIR",
+                     help="also write an HTML report here (plots: matplotlib; without it the page has the text and "
+                          "tables)")
     dia.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
     _fleet_options(dia)
 

@@ -20,7 +20,7 @@ from service.numerics.calib.sky import CalibrationSection
 from service.numerics.diagnose import DECIDES, Diagnosis, verdict_lines, verdict_word
 
 from .calibration import section_figures, section_html
-from .page import CSS, images, png, pyplot, write_page
+from .page import CSS, NO_MATPLOTLIB, has_matplotlib, images, png, pyplot, write_page
 
 MAX_POINTS = 6000
 
@@ -197,7 +197,8 @@ def _table(d: Diagnosis) -> str:
 
 
 def render_html(d: Diagnosis, figs: list[tuple[str, str, bytes]], title: str,
-                calibration: CalibrationSection | None = None, calibration_figs: list | None = None) -> str:
+                calibration: CalibrationSection | None = None, calibration_figs: list | None = None,
+                note: str = "") -> str:
     ch_rows = "".join(f"<tr><td>{html.escape(n)}</td><td>{r:.3f}</td><td>{s:.3f}</td></tr>"
                       for n, r, s in zip(d.channel_names, d.channel_rms_nT, d.channel_noise_nT))
     where_rows = "".join(
@@ -206,7 +207,7 @@ def render_html(d: Diagnosis, figs: list[tuple[str, str, bytes]], title: str,
         for w in d.where[:12])
     verdict = "<br>".join(html.escape(line.strip()) for line in verdict_lines(d))
     notes = "".join(f"<li>{html.escape(n)}</li>" for n in d.notes)
-    cal = section_html(calibration, calibration_figs or []) if calibration is not None else ""
+    cal = section_html(calibration, calibration_figs or [], note) if calibration is not None else ""
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
 <style>
@@ -228,7 +229,7 @@ blocks, each predicted by the fit to the others.</p>
 <h2>Where the model fails</h2>
 <table><tr><th>channel</th><th>observable</th><th>explained variance</th></tr>{where_rows}</table>
 <h2>Plots</h2>
-{images(figs)}
+{images(figs) if figs else f"<p>{html.escape(note)}</p>"}
 {cal}
 {'<h2>Notes</h2><ul>' + notes + '</ul>' if notes else ''}
 </body></html>
@@ -238,10 +239,15 @@ blocks, each predicted by the fit to the others.</p>
 def write_report(d: Diagnosis, out_dir: str | Path, title: str = "fluxcal diagnose",
                  calibration: CalibrationSection | None = None) -> Path:
     """Write DIR/index.html and the PNG plots, with the calibration section when one is given; the page
-    appears complete or not at all."""
-    figs = _figures(d)                                     # fails before anything is written if no matplotlib
-    cal_figs = section_figures(pyplot(), calibration) if calibration is not None else []
-    return write_page(out_dir, render_html(d, figs, title, calibration, cal_figs), figs + cal_figs)
+    appears complete or not at all. Without matplotlib the page has the text and tables and says that the
+    plots need it (`NO_MATPLOTLIB`)."""
+    note = ""
+    if has_matplotlib():
+        figs = _figures(d)
+        cal_figs = section_figures(pyplot(), calibration) if calibration is not None else []
+    else:
+        figs, cal_figs, note = [], [], f"No plots: {NO_MATPLOTLIB}."
+    return write_page(out_dir, render_html(d, figs, title, calibration, cal_figs, note), figs + cal_figs)
 
 
 __all__ = ["write_report", "render_html"]

@@ -153,8 +153,12 @@ def main(args: argparse.Namespace) -> int:
         from service.io.report import write_report
         from service.wiring.calib_report import section_from_diagnosis
 
+        from service.io.report.page import NO_MATPLOTLIB, has_matplotlib
+
         report_path = write_report(result, args.report, title=f"fluxcal diagnose {Path(args.data).name}",
                                    calibration=section_from_diagnosis(result))
+        if not has_matplotlib():
+            print(f"fluxcal diagnose: report without plots: {NO_MATPLOTLIB}", file=sys.stderr)
         if args.json:
             print(f"fluxcal diagnose: report written to {report_path}", file=sys.stderr)
         else:
