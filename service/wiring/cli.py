@@ -211,8 +211,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "calibration, health, diagnosis and commands, served on this host",
                     "  fluxcal dashboard --config configs/sim-gradiometer.toml --open\n"
                     "  fluxcal dashboard --connect tcp/10.0.0.5:7447 --unit grad1 --unit grad2 --listen 0.0.0.0:8090",
-                    more=(" It subscribes over Zenoh like `watch` (lossily: it never holds a unit back) and serves a page"
-                          " at --listen; the plot code comes from the package, no internet needed. Ctrl-C stops it."))
+                    more=(" It subscribes over Zenoh like `watch` (lossily: it never holds a unit back) and serves a"
+                          " page at --listen; the plot code comes from the package, no internet needed. Ctrl-C stops"
+                          " it."))
     _client_options(dash, "dashboard")
     dash.add_argument("--listen", default="127.0.0.1:8090", metavar="HOST:PORT",
                       help="where the page is served (default: %(default)s, this host only; port 0: a free one, said "
