@@ -12,28 +12,37 @@ import pytest
 
 from service.numerics.outputs import CorrectedBlock
 from service.wiring.dashboard import DashboardServer, Hub
-from service.wiring.dashboard.history import BinMeans, Floors, Ring
+from service.wiring.dashboard.history import Floors, Ring
 from tests.test_watch import S1, S2, TENSOR, publisher  # noqa: F401 - the fixture
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_interval_means_equal_numpy_means_whatever_the_block_sizes(seed):
+    from service.io.bus import Message
+    from service.wiring.dashboard.view import UnitView
+
     rng = np.random.default_rng(seed)
-    n = 3000
+    n, p = 3000, 2
     t = np.arange(n) / 173.0 + 5.0
-    v = rng.normal(size=(n, 4)) * [1, 10, 100, 1000]
-    v[rng.random(v.shape) < 0.02] = np.nan                      # saturated axes
+    c = rng.normal(size=(n, p, 3)) * [1, 10, 100] + 5.0e4
+    c[rng.random(c.shape) < 0.02] = np.nan                      # saturated axes
     cuts = np.sort(rng.choice(np.arange(1, n), size=60, replace=False))
-    bm = BinMeans(0.1)
-    rows = []
+    view = UnitView("u1")
     for a, b in zip(np.r_[0, cuts], np.r_[cuts, n]):
-        rows += bm.add(t[a:b], v[a:b])
+        view.update(Message("corrected", "fluxcal/u1/corrected",
+                            CorrectedBlock(t[a:b], np.arange(a, b), c[a:b], c[a:b, 1:] - c[a:b, :1], None, None, 1)))
+    s = view.series.since(0)
     bins = np.floor(t / 0.1 + 1e-9).astype(int)
     done = np.unique(bins)[:-1]                                 # the last interval is still open
-    assert len(rows) == len(done)
-    for (t0, mean), b in zip(rows, done):
+    assert len(s["v"]) == len(done)
+    cols = s["columns"][1:]
+    for row, t0, b in zip(s["v"], s["t"], done):
+        sel = bins == b
         assert t0 == pytest.approx(b * 0.1)
-        np.testing.assert_allclose(mean, np.nanmean(v[bins == b], axis=0), rtol=1e-12)
+        got = dict(zip(cols, row))
+        np.testing.assert_allclose([got[f"s2.{a}"] for a in "xyz"], np.nanmean(c[sel, 1], axis=0), rtol=1e-9)
+        np.testing.assert_allclose([got[f"s2-s1.{a}"] for a in "xyz"],
+                                   np.nanmean(c[sel, 1] - c[sel, 0], axis=0), rtol=1e-6, atol=1e-3)
 
 
 def test_ring_returns_only_the_rows_after_the_number_given():

@@ -1,5 +1,6 @@
-"""What a dashboard keeps of a unit's streams: interval means at 10 Hz of unit time in bounded rings,
-noise floors, and the recent raw samples a diagnosis needs. Everything here is updated block by block
+"""What a dashboard keeps of a unit's streams: the interval means at 10 Hz of unit time that the recorder
+writes too (service.numerics.decimate) in bounded rings, noise floors, and the recent raw samples a
+diagnosis needs. Everything here is updated block by block
 (numpy over the block, a Python step per 0.1-s interval at most), never sample by sample.
 """
 
@@ -20,46 +21,6 @@ from service.numerics.outputs import CorrectedBlock
 PERIOD_S = 0.1
 #: intervals kept per series: 10 minutes at 10 Hz
 HISTORY = 6000
-
-
-class BinMeans:
-    """Means of (N, K) values over intervals of `period_s` of unit time (NaN-aware per column). An interval
-    is emitted when a later one starts; a jump back in time starts a new interval too."""
-
-    def __init__(self, period_s: float = PERIOD_S) -> None:
-        self.period_s = period_s
-        self.bin: int | None = None
-        self.sum: np.ndarray | None = None
-        self.count: np.ndarray | None = None
-
-    def add(self, t_s: np.ndarray, values: np.ndarray) -> list[tuple[float, np.ndarray]]:
-        """Feed samples; returns the completed intervals as (start time s, means (K,))."""
-        keep = np.isfinite(t_s)
-        t, v = t_s[keep], values[keep]
-        if t.size == 0:
-            return []
-        if self.sum is not None and self.sum.shape != v.shape[1:]:
-            self.bin = self.sum = self.count = None                 # the layout changed: start afresh
-        ok = np.isfinite(v)
-        bins = np.floor(t / self.period_s + 1e-9).astype(np.int64)
-        starts = np.concatenate([[0], np.flatnonzero(np.diff(bins)) + 1])
-        sums = np.add.reduceat(np.where(ok, v, 0.0), starts, axis=0)
-        counts = np.add.reduceat(ok.astype(np.int64), starts, axis=0)
-        ids = bins[starts]
-        out = []
-        if self.bin is not None:
-            if ids[0] == self.bin:
-                sums[0] += self.sum
-                counts[0] += self.count
-            else:
-                out.append(self._row(self.bin, self.sum, self.count))
-        out += [self._row(int(ids[i]), sums[i], counts[i]) for i in range(len(ids) - 1)]
-        self.bin, self.sum, self.count = int(ids[-1]), sums[-1], counts[-1]
-        return out
-
-    def _row(self, b: int, s: np.ndarray, c: np.ndarray) -> tuple[float, np.ndarray]:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return b * self.period_s, s / np.where(c > 0, c, np.nan)
 
 
 class Ring:
@@ -83,34 +44,29 @@ class Ring:
                 "v": [[None if not math.isfinite(x) else round(float(x), 4) for x in r[2]] for r in rows]}
 
 
-def corrected_columns(probe_names: list[str], block: CorrectedBlock) -> list[str]:
-    """Column names of a corrected block's means: <probe>.x/.y/.z/.total, centre.*, <pk>-<p1>.*, G.<ij>."""
+def corrected_columns(probe_names: list[str], rec: dict[str, Any]) -> list[str]:
+    """Column names of one interval of service.numerics.decimate.VectorMeans: <probe>.x/.y/.z/.total,
+    centre.*, <pk>-<p1>.*, G.<ij> and G.trace."""
     cols = [f"{p}.{a}" for p in probe_names for a in ("x", "y", "z", "total")]
-    if block.center_nT is not None:
+    if rec["center"] is not None:
         cols += [f"centre.{a}" for a in ("x", "y", "z", "total")]
-    if block.diff_nT is not None:
+    if rec["diff"] is not None:
         cols += [f"{p}-{probe_names[0]}.{a}" for p in probe_names[1:] for a in ("x", "y", "z", "total")]
-    if block.tensor_nT_m is not None:
+    if rec["tensor"] is not None:
         cols += [f"G.{i}{j}" for i in "xyz" for j in "xyz"] + ["G.trace"]
     return cols
 
 
-def _with_norm(v: np.ndarray) -> np.ndarray:
-    """(N, M, 3) -> (N, M*4): x, y, z, |v| per M."""
-    return np.concatenate([v, np.sqrt(np.einsum("nmk,nmk->nm", v, v))[..., None]], axis=2).reshape(v.shape[0], -1)
-
-
-def corrected_values(block: CorrectedBlock) -> np.ndarray:
-    """(N, K) values in the order of `corrected_columns`."""
-    parts = [_with_norm(block.corrected_nT)]
-    if block.center_nT is not None:
-        parts.append(_with_norm(block.center_nT[:, None, :]))
-    if block.diff_nT is not None:
-        parts.append(_with_norm(block.diff_nT))
-    if block.tensor_nT_m is not None:
-        g = block.tensor_nT_m.reshape(block.n_samples, 9)
-        parts += [g, np.trace(block.tensor_nT_m, axis1=1, axis2=2)[:, None]]
-    return np.concatenate(parts, axis=1)
+def corrected_row(rec: dict[str, Any]) -> np.ndarray:
+    """One interval of VectorMeans as a row in the order of `corrected_columns`."""
+    parts = [np.column_stack([rec["mean"], rec["total"]]).ravel()]
+    if rec["center"] is not None:
+        parts.append(np.append(rec["center"][0], rec["center"][1]))
+    if rec["diff"] is not None:
+        parts.append(np.column_stack([rec["diff"][0], rec["diff"][1]]).ravel())
+    if rec["tensor"] is not None:
+        parts.append(np.append(np.ravel(rec["tensor"][0]), rec["tensor"][1]))
+    return np.concatenate(parts)
 
 
 @dataclass

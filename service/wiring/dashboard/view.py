@@ -14,8 +14,10 @@ import numpy as np
 
 from service.io.bus import Message
 from service.numerics.calib.coverage import BIN_CENTRES, BIN_LABELS, coverage
+from service.numerics.decimate import RmsMeans, VectorMeans
+from service.numerics.outputs import CorrectedBlock
 
-from .history import HISTORY, BinMeans, Floors, RawKeep, Ring, corrected_columns, corrected_values
+from .history import HISTORY, PERIOD_S, Floors, RawKeep, Ring, corrected_columns, corrected_row
 
 #: a unit that sent nothing for this long is shown as silent
 STALE_S = 3.0
@@ -23,6 +25,11 @@ STALE_S = 3.0
 COVERAGE_POINTS = 6000
 #: directions of the trail drawn on the sphere
 TRAIL = 200
+
+
+def _interval_start(t_s: float) -> float:
+    """The start of the 0.1-s interval of unit time that holds t_s: where the page plots its mean."""
+    return math.floor(t_s / PERIOD_S + 1e-9) * PERIOD_S
 
 
 def _finite(x: Any) -> Any:
@@ -46,8 +53,9 @@ class UnitView:
         self.last_msg_t: float | None = None
         self.n_messages = 0
         self.probe_names: list[str] = []
-        self.means = BinMeans()
-        self.raw_means = BinMeans()
+        self.means = VectorMeans(PERIOD_S)
+        self.raw_means = VectorMeans(PERIOD_S)
+        self.error_means = RmsMeans(PERIOD_S)
         self.series: Ring | None = None
         self.raw_series: Ring | None = None
         self.error = Ring(["t_s"], HISTORY)
@@ -78,15 +86,16 @@ class UnitView:
         elif msg.stream == "raw":
             self._raw(v)
         elif msg.stream == "error":
-            rms = v.get("rms_nT") or {}
-            if list(rms) != self.error_names:
-                self.error_names = list(rms)
-                self.error = Ring(["t_s", *self.error_names], HISTORY)
-            t = v.get("t_s")
-            if not isinstance(t, (int, float)) and self.means.bin is not None:     # a service that sends none
-                t = self.means.bin * self.means.period_s
-            vals = [float(x) if isinstance(x, (int, float)) else math.nan for x in rms.values()]
-            self.error.append(float(t) if isinstance(t, (int, float)) else math.nan, np.array(vals))
+            t, n = v.get("t_s"), v.get("n")
+            if not isinstance(t, (int, float)):              # a service that sends none: the newest interval's
+                t = self.means.bin * PERIOD_S
+            for rec in self.error_means.add(v.get("rms_nT") or {}, t_s=float(t), seq=v.get("seq"),
+                                            n=int(n) if isinstance(n, int) else 1):
+                rms = rec["rms_nT"]
+                if list(rms) != self.error_names:
+                    self.error_names = list(rms)
+                    self.error = Ring(["t_s", *self.error_names], HISTORY)
+                self.error.append(_interval_start(rec["t_s"]), np.array([rms[c] for c in self.error_names]))
         elif msg.stream == "health":
             self.health = v
         elif msg.stream == "calibration":
@@ -98,23 +107,24 @@ class UnitView:
 
     def _corrected(self, block: Any) -> None:
         names = self._names(block.n_probes)
-        values = corrected_values(block)
-        if self.series is None or len(self.series.columns) != values.shape[1] + 1:
-            self.series = Ring(["t_s", *corrected_columns(names, block)])
-        for t, row in self.means.add(block.t_s, values):
-            self.series.append(t, row)
+        for rec in self.means.add(block):
+            row = corrected_row(rec)
+            if self.series is None or len(self.series.columns) != row.size + 1:
+                self.series = Ring(["t_s", *corrected_columns(names, rec)])
+            self.series.append(_interval_start(rec["t_s"]), row)
         self.floors.add(block, names)
 
     def _raw(self, block: Any) -> None:
         self.raw_keep.add(block)
-        f = block.field_nT.reshape(block.n_samples, -1)
-        if self.raw_series is None or len(self.raw_series.columns) != f.shape[1] + 1:
-            names = self._names(block.n_probes)
-            self.raw_series = Ring(["t_s", *[f"{p}.{a}" for p in names for a in "xyz"]])
-            self.directions.clear()
-        for t, row in self.raw_means.add(block.t_s, f):
-            self.raw_series.append(t, row)
-            self.directions.append(row.reshape(-1, 3))
+        # the raw vectors through the same interval means (as a block of "corrected" vectors, calibration 0)
+        as_vectors = CorrectedBlock(block.t_s, block.seq, block.field_nT, None, None, None, 0)
+        for rec in self.raw_means.add(as_vectors):
+            if self.raw_series is None or len(self.raw_series.columns) != rec["mean"].size + 1:
+                names = self._names(rec["mean"].shape[0])
+                self.raw_series = Ring(["t_s", *[f"{p}.{a}" for p in names for a in "xyz"]])
+                self.directions.clear()
+            self.raw_series.append(_interval_start(rec["t_s"]), rec["mean"].ravel())
+            self.directions.append(rec["mean"])
 
     def update_state(self, st: dict[str, Any]) -> None:
         prev = self.state.get("cal_id")
