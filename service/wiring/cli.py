@@ -23,6 +23,16 @@ def _effects(text: str) -> list[str]:
     return [e.strip() for e in text.split(",") if e.strip()]
 
 
+def _max_samples(text: str) -> int:
+    try:
+        n = int(text.replace("_", "").replace(",", ""))
+    except ValueError:
+        n = -1
+    if n < 0 or (0 < n < 1000):
+        raise argparse.ArgumentTypeError(f"{text!r}: a whole number of samples, at least 1000 (0: all samples)")
+    return n
+
+
 def _int_auto(text: str) -> int:
     return int(text, 0)
 
@@ -107,6 +117,10 @@ def build_parser() -> argparse.ArgumentParser:
     dia.add_argument("--report", metavar="DIR",
                      help="also write an HTML report here (plots: matplotlib; without it the page has the text and "
                           "tables)")
+    dia.add_argument("--max-samples", type=_max_samples, default=None, metavar="N",
+                     help="diagnose at most N samples: a longer recording is thinned to every k-th sample, and "
+                          "the output says so (default: 500,000 probe-samples, e.g. 125,000 samples of 4 probes, "
+                          "about 1.5 GB; 0: all)")
     dia.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
     _fleet_options(dia)
 

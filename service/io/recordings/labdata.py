@@ -8,7 +8,7 @@ from __future__ import annotations
 import io
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,14 +29,21 @@ class LabData:
     comments: list[str] = field(default_factory=list)
     #: what reading lost or skipped (a recording cut by a killed writer, damaged records): said on stderr
     warnings: list[str] = field(default_factory=list)
+    #: load_data(max_probe_samples=...): every k-th sample of the file kept (1: all), of n_read in the file
+    every: int = 1
+    n_read: int | None = None
 
     @property
     def ref_total(self) -> np.ndarray | None:
         return self.block.extras.get("ref_total")
 
 
-def load_data(path: str | Path) -> LabData:
-    """Load a lab CSV or an MCAP recording written by fluxcal."""
+def load_data(path: str | Path, *, max_samples: int | None = None, max_probe_samples: int | None = None) -> LabData:
+    """Load a lab CSV or an MCAP recording written by fluxcal.
+
+    max_samples, max_probe_samples: keep every k-th sample, k the smallest that brings the samples (and
+    samples x probes) within them (an MCAP's other samples are never held; a CSV's are parsed, then let go).
+    LabData.every says k."""
     p = Path(path)
     if not p.exists():
         raise DataError(f"{p}: no such file")
@@ -45,11 +52,36 @@ def load_data(path: str | Path) -> LabData:
     if p.suffix.lower() == ".mcap":
         from .reader import read_samples  # only when an MCAP file is given
 
-        rec = read_samples(p)
+        rec = read_samples(p, max_samples=max_samples, max_probe_samples=max_probe_samples)
         names = list(rec.probe_names) if getattr(rec, "probe_names", None) else \
             [f"s{k + 1}" for k in range(rec.raw.n_probes)]
-        return LabData(block=rec.raw, probe_names=names, path=str(p), warnings=rec.report.warnings)
-    return load_csv(p)
+        return LabData(block=rec.raw, probe_names=names, path=str(p), warnings=rec.report.warnings,
+                       every=rec.every, n_read=rec.n_read)
+    lab = load_csv(p)
+    n, probes = lab.block.n_samples, lab.block.n_probes
+    every = keep_every(n, probes, max_samples, max_probe_samples)
+    if every == 1:
+        return replace(lab, n_read=n)
+    return replace(lab, block=_every(lab.block, every), every=every, n_read=n)
+
+
+def keep_every(n: int, probes: int, max_samples: int | None, max_probe_samples: int | None) -> int:
+    """The smallest k for which every k-th of n samples of `probes` probes stays within both limits (None or
+    0: no limit)."""
+    k = 1
+    if max_samples:
+        k = max(k, -(-n // int(max_samples)))
+    if max_probe_samples:
+        k = max(k, -(-n * probes // int(max_probe_samples)))
+    return k
+
+
+def _every(b: SampleBlock, every: int) -> SampleBlock:
+    """Rows 0, every, 2 every, ... copied (the whole block can then go)."""
+    def keep(a: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(a[::every])
+    return SampleBlock(t_s=keep(b.t_s), seq=keep(b.seq), field_nT=keep(b.field_nT), temp_C=keep(b.temp_C),
+                       flags=keep(b.flags), extras={k: keep(v) for k, v in b.extras.items()})
 
 
 def load_csv(path: str | Path) -> LabData:

@@ -32,6 +32,7 @@ from drivers.mcap_source import (
     unit_of_topic,
 )
 from service.io.encoding import CORRECTED_ENCODING, RAW_ENCODING, decode_corrected, decode_json, decode_raw
+from service.io.recordings.labdata import keep_every
 from service.numerics.outputs import CorrectedBlock
 
 
@@ -64,6 +65,8 @@ class Recording:
     health: list[dict[str, Any]] = field(default_factory=list)
     unit: str | None = None
     report: ReadReport = field(default_factory=ReadReport)
+    every: int = 1                 # read_samples(max_probe_samples=...): every k-th sample kept
+    n_read: int | None = None      # the samples in the recording (before keeping every k-th)
 
     @property
     def raw(self) -> SampleBlock:
@@ -110,11 +113,16 @@ class Recording:
         return self._json("positions_m")
 
 
-def read_samples(path: str | Path, *, unit: str | None = None, strict: bool = True) -> Recording:
+def read_samples(path: str | Path, *, unit: str | None = None, strict: bool = True,
+                 max_samples: int | None = None, max_probe_samples: int | None = None) -> Recording:
     """Only the raw samples of a recording, in one block, for fit and diagnose: read in two passes (count,
     then decode into arrays of the final size), so the samples are held once, never as a list of blocks and
     their concatenation too (half the peak memory of read_recording(...).raw). Extras kept: those in every
-    block. The same checks and messages as read_recording."""
+    block. The same checks and messages as read_recording.
+
+    max_samples, max_probe_samples: keep only every k-th sample, k the smallest that brings the samples (and
+    samples x probes) within them, counted over the whole recording, so the rest is never held;
+    Recording.every says k (1: all kept)."""
     report = ReadReport()
     chosen, units, n, probes, extras = unit, [], 0, set(), None
     for rec in _chosen_raw(path, report, strict, unit, units):
@@ -125,21 +133,30 @@ def read_samples(path: str | Path, *, unit: str | None = None, strict: bool = Tr
         extras = set(b.extras) if extras is None else extras & set(b.extras)
     _check_read(path, unit, units, n > 0, probes, report)
     p = probes.pop()
-    t, seq = np.empty(n), np.empty(n, np.int64)
-    fld, temp, flags = np.empty((n, p, 3)), np.empty((n, p)), np.empty(n, np.uint8)
-    ext = {k: np.empty(n) for k in sorted(extras or ())}
-    at = 0
+    every = keep_every(n, p, max_samples, max_probe_samples)
+    m = -(-n // every)                                       # rows 0, every, 2 every, ... of the recording
+    t, seq = np.empty(m), np.empty(m, np.int64)
+    fld, temp, flags = np.empty((m, p, 3)), np.empty((m, p)), np.empty(m, np.uint8)
+    ext = {k: np.empty(m) for k in sorted(extras or ())}
+    at = kept = 0
     for rec in _chosen_raw(path, ReadReport(), strict, chosen, []):
         b = _decode(path, rec)
-        sl = slice(at, at + b.n_samples)
-        t[sl], seq[sl], fld[sl], temp[sl], flags[sl] = b.t_s, b.seq, b.field_nT, b.temp_C, b.flags
+        rows = slice((-at) % every, None, every)     # the rows whose index in the recording divides by k
+        k_b = len(range(b.n_samples)[rows])
+        sl = slice(kept, kept + k_b)
+        if kept + k_b > m:
+            raise RecordingError(f"{path}: changed while it was read ({n} samples, then more)")
+        t[sl], seq[sl], fld[sl], temp[sl] = b.t_s[rows], b.seq[rows], b.field_nT[rows], b.temp_C[rows]
+        flags[sl] = b.flags[rows]
         for k, v in ext.items():
-            v[sl] = b.extras[k]
+            v[sl] = b.extras[k][rows]
         at += b.n_samples
+        kept += k_b
     if at != n:
         raise RecordingError(f"{path}: changed while it was read ({n} samples, then {at})")
     block = SampleBlock(t_s=t, seq=seq, field_nT=fld, temp_C=temp, flags=flags, extras=ext)
-    return Recording([block], [], [], [], report.metadata, report.files, report.truncated, [], chosen, report)
+    return Recording([block], [], [], [], report.metadata, report.files, report.truncated, [], chosen, report,
+                     every=every, n_read=n)
 
 
 def _chosen_raw(path: str | Path, report: ReadReport, strict: bool, unit: str | None, units: list[str]):

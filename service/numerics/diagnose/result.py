@@ -106,6 +106,8 @@ class Diagnosis:
     linear_refit_rms_nT: float | None = None
     parameters: list[Parameter] = field(default_factory=list)
     verdict: dict[str, Any] | None = None
+    #: set when the samples diagnosed are every k-th of a longer recording: {"every", "n_used", "n_read", ...}
+    thinned: dict[str, Any] | None = None
 
     @property
     def best(self) -> Candidate | None:
@@ -135,6 +137,8 @@ class Diagnosis:
         }
         if self.linear_refit_rms_nT is not None:
             d["linear_refit_rms_nT"] = _num(self.linear_refit_rms_nT)
+        if self.thinned is not None:
+            d["thinned"] = _plain(self.thinned)
         return d
 
 

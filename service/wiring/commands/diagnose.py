@@ -20,6 +20,11 @@ from service.wiring.commands.notes import say_read_warnings
 # unless the user says otherwise; this only takes effect when numpy is not loaded yet (the CLI).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+#: the probe-samples diagnosed by default: a longer recording is thinned to every k-th sample. Each candidate
+#: is a nonlinear fit over all the samples it is given, about 3 kB per probe-sample at its peak (measured:
+#: bench/bench_hours.py); this keeps the peak near 1.5 GB for a recording of any length.
+DIAGNOSE_PROBE_SAMPLES = 500_000
+
 import argparse  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
@@ -114,7 +119,9 @@ def main(args: argparse.Namespace) -> int:
     if unknown:
         raise ConfigError(f"--effects: {', '.join(map(repr, unknown))} not an effect "
                           f"(allowed: {', '.join(known)}; or file.py:ClassName for one of your own)")
-    lab = load_data(args.data)
+    limit = getattr(args, "max_samples", None)
+    lab = load_data(args.data, **({"max_probe_samples": DIAGNOSE_PROBE_SAMPLES} if limit is None
+                                  else {"max_samples": limit}))
     say_read_warnings("diagnose", args.data, getattr(lab, "warnings", []))
     block = getattr(lab, "block", lab)
     names = getattr(lab, "probe_names", None)
@@ -124,6 +131,8 @@ def main(args: argparse.Namespace) -> int:
 
         total = site_from_text(args.site).total_nT
     data = EffectData.from_block(block, names, total_nT=total, positions_m=positions)
+    thinned = thinning(lab, limit)
+    del lab, block                                  # the samples live on in `data` only
     cal, effects = None, list(args.effects)
     if args.calibration:
         cal, cal_effects = load_calibration(args.calibration, data.n_probes)
@@ -139,6 +148,9 @@ def main(args: argparse.Namespace) -> int:
         result = diagnose(data, effects=effects, calibration=cal, progress=bar)
     finally:
         bar.close()
+    if thinned is not None:
+        result.thinned, text = thinned
+        result.notes.insert(0, text)
     if args.calibration and effects:
         result.notes.append(f"{args.calibration}: linear part held fixed; the parameters of "
                             f"{', '.join(effects)} are refitted to these data")
@@ -164,3 +176,21 @@ def main(args: argparse.Namespace) -> int:
         else:
             print(f"  report: {report_path}")
     return 0
+
+
+def thinning(lab: Any, limit: int | None) -> tuple[dict[str, Any], str] | None:
+    """What keeping every k-th sample (LabData.every) costs, for the JSON and a note; None when all were kept."""
+    k, n_read, t = lab.every, lab.n_read, lab.block.t_s
+    if k <= 1 or n_read is None:
+        return None
+    used = lab.block.n_samples
+    dt = float(np.median(np.diff(t))) if used > 1 else float("nan")
+    rate = 1.0 / dt if dt > 0 else float("nan")
+    why = (f"--max-samples {limit:,}" if limit is not None
+           else f"the default budget of {DIAGNOSE_PROBE_SAMPLES:,} probe-samples (--max-samples N; 0: all)")
+    info = {"every": k, "n_used": used, "n_read": n_read, "rate_hz": rate, "limit": why}
+    text = (f"thinned: one sample in {k} diagnosed ({used:,} of {n_read:,}; {rate:.3g} Hz, {k} x the recorded "
+            f"interval) to stay within {why}. Motion and effects faster than {rate / 2:.3g} Hz are not seen; the "
+            f"standard errors are those of the samples used, up to {np.sqrt(k):.1f} x the whole recording's under "
+            f"white noise (less under 1/f noise, whose slow wander thinning does not lose)")
+    return info, text
