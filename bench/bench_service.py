@@ -7,13 +7,19 @@
    p99, and the service's CPU use, at 1 kHz with 4 probes.
 
 Run by hand:  .venv/bin/python bench/bench_service.py [--seconds 20]
+(the replay runs with OPENBLAS_NUM_THREADS=1 unless set, as `fluxcal replay` does; the live service is
+started with the environment this was given)
 """
 
 from __future__ import annotations
 
+import os
+
+_USER_BLAS_THREADS = os.environ.get("OPENBLAS_NUM_THREADS")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")        # before numpy loads: the replay CLI's setting
+
 import argparse
 import json
-import os
 import platform
 import signal
 import socket
@@ -81,21 +87,26 @@ def bench_replay(tmp: Path, seconds: float) -> None:
                                                           for p in PROBES]), initial)
     fcfg = config_from_dict(tomllib.loads(config_text(tmp, '[source]\nkind = "sim"', 7447, initial)))
     # replay path: MCAP decode -> pipeline (estimator, gate, correction) -> MCAP write; best of 3
-    times = []
+    times, phases = [], []
     for rep in range(3):
         t0 = time.perf_counter()
         rec = read_recording(tmp / "rep" / "in.mcap")
-        pipe = build_pipeline(fcfg)
         whole = SampleBlock.concat(rec.raw_blocks)
+        t_decode = time.perf_counter() - t0
+        pipe = build_pipeline(fcfg)
+        t_pipe = time.perf_counter() - t0 - t_decode
         out = McapLogger(tmp / "rep", unit="bench", filename=f"out{rep}.mcap")
         for i in range(0, whole.n_samples, 20000):
             b = whole.slice(i, i + 20000)
+            t1 = time.perf_counter()
             r = pipe.process(b)
+            t_pipe += time.perf_counter() - t1
             out.write_raw(b)
             if r.corrected is not None:
                 out.write_corrected(r.corrected)
         out.close()
         times.append(time.perf_counter() - t0)
+        phases.append((t_decode, t_pipe, times[-1] - t_decode - t_pipe))
     t_replay = min(times)
     # bare numerics: parse the ICD bytes and apply a calibration, same samples
     data = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
@@ -113,7 +124,11 @@ def bench_replay(tmp: Path, seconds: float) -> None:
     print(f"replay (MCAP decode + pipeline + MCAP write), {whole.n_samples} samples x {N_PROBES} probes: "
           f"{n / t_replay:,.0f} probe-samples/s (best of 3; median {n / sorted(times)[1]:,.0f})")
     print(f"bare parse + calibrate of the same samples:                         {n / t_bare:,.0f} probe-samples/s")
-    print(f"ratio replay / bare: {t_bare / t_replay:.3f}")
+    print(f"ratio replay / bare: {t_bare / t_replay:.3f} "
+          f"(OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')})")
+    dec, pip, wri = phases[times.index(t_replay)]
+    print(f"  best run: MCAP decode {dec * 1e3:.0f} ms, pipeline {pip * 1e3:.0f} ms, MCAP write {wri * 1e3:.0f} ms; "
+          f"bare {t_bare * 1e3:.1f} ms")
 
 
 def cpu_seconds(pid: int) -> float:
@@ -141,7 +156,10 @@ def bench_live(tmp: Path, seconds: float, block_ms: float | None = None) -> None
     cfg_path.write_text(full.split("\n[sim]")[0] + "\n[estimator]" + full.split("[estimator]", 1)[1])
     prof = os.environ.get("FLUXCAL_PROFILE")
     cmd = [sys.executable] + (["-m", "cProfile", "-o", prof] if prof else []) + ["-m", "service.wiring.cli", "run", "--config", str(cfg_path)]
-    proc = subprocess.Popen(cmd,
+    env = dict(os.environ)
+    if _USER_BLAS_THREADS is None:
+        env.pop("OPENBLAS_NUM_THREADS", None)                  # the live service as a user starts it
+    proc = subprocess.Popen(cmd, env=env,
                             stderr=subprocess.PIPE, text=True)
     time.sleep(3.0)
     client = BusClient(ZenohConfig.client(f"tcp/127.0.0.1:{port}"), "bench", streams=["corrected"])
@@ -195,13 +213,15 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--live-only", action="store_true", help="skip the replay benchmark")
+    ap.add_argument("--replay-only", action="store_true", help="skip the live benchmark")
     ap.add_argument("--block-ms", type=float, default=None, help="[unit] block_ms of the live service (default: its default)")
     args = ap.parse_args()
     print("machine:", machine())
     with tempfile.TemporaryDirectory() as d:
         if not args.live_only:
             bench_replay(Path(d), 60.0)
-        bench_live(Path(d), args.seconds, args.block_ms)
+        if not args.replay_only:
+            bench_live(Path(d), args.seconds, args.block_ms)
 
 
 if __name__ == "__main__":

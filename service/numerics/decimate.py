@@ -53,6 +53,18 @@ class VectorMeans:
             return done
         bins = np.floor(t / self.period_s + 1e-9).astype(np.int64)
         cuts = np.concatenate([[0], np.flatnonzero(np.diff(bins)) + 1, [t.size]])
+        whole = cuts[1:-1]
+        if whole.size - 1 >= self.BATCH:
+            # the intervals between the first (it may end one begun by earlier blocks) and the last (left open)
+            # lie in this block alone: in a long block (replay) they are computed together, with the same rounding
+            if not self.parts:
+                self.bin = int(bins[0])
+            self.parts.append(block_rows(block, slice(0, whole[0])))
+            done.append(self._emit())
+            done += self._whole(block, whole[:-1], whole[1:])
+            self.bin = int(bins[whole[-1]])
+            self.parts.append(block_rows(block, slice(whole[-1], t.size)))
+            return done
         for a, b in zip(cuts[:-1], cuts[1:]):
             if a > 0:
                 done.append(self._emit())
@@ -63,6 +75,49 @@ class VectorMeans:
 
     def flush(self) -> list[dict[str, Any]]:
         return [self._emit()] if self.parts else []
+
+    #: whole intervals in one block from which they are computed together
+    BATCH = 4
+
+    @staticmethod
+    def _sums(x: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
+        """Σ of the rows [start, end) of x (N, ...) for every interval, as ndarray.sum(axis=0) of each interval
+        alone sums them: row after row where a row holds several values, pairwise where it holds one."""
+        if x[0].size == 1:
+            return np.stack([x[a:b].sum(axis=0) for a, b in zip(starts, ends)])
+        length = ends - starts
+        out = np.empty((len(starts),) + x.shape[1:], x.dtype)
+        for n in np.unique(length):                     # intervals of equal length (one or a few lengths)
+            k = np.flatnonzero(length == n)
+            out[k] = x[starts[k, None] + np.arange(n)].sum(axis=1)       # (K, n, ...): row after row, each K
+        return out
+
+    def _means(self, c: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """_mean of every interval of c at once: (K, P, 3) and (K, P), bit for bit."""
+        ok = np.isfinite(c)
+        norm = np.sqrt(np.einsum("npk,npk->np", c, c))          # row by row: the same for any rows
+        nok = np.isfinite(norm)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return (self._sums(np.where(ok, c, 0.0), starts, ends) / self._sums(ok.astype(np.int64), starts, ends),
+                    self._sums(np.where(nok, norm, 0.0), starts, ends) / self._sums(nok.astype(np.int64), starts, ends))
+
+    def _whole(self, block: CorrectedBlock, starts: np.ndarray, ends: np.ndarray) -> list[dict[str, Any]]:
+        """The intervals [start, end) of one block, each as _emit gives it."""
+        mean, total = self._means(block.corrected_nT, starts, ends)
+        n = len(starts)
+        center = diff = tensor = [None] * n
+        if block.center_nT is not None:
+            cm, ct = self._means(block.center_nT[:, None, :], starts, ends)
+            center = [(cm[k, 0], ct[k, 0]) for k in range(n)]
+        if block.diff_nT is not None:
+            dm, dt = self._means(block.diff_nT, starts, ends)
+            diff = [(dm[k], dt[k]) for k in range(n)]
+        if block.tensor_nT_m is not None:
+            g, _ = self._means(block.tensor_nT_m, starts, ends)
+            tensor = [(g[k], float(np.trace(g[k]))) for k in range(n)]
+        return [{"t_s": float(block.t_s[a]), "seq": int(block.seq[a]), "n": int(b - a), "cal_id": int(block.cal_id),
+                 "mean": mean[k], "total": total[k], "center": center[k], "diff": diff[k], "tensor": tensor[k]}
+                for k, (a, b) in enumerate(zip(starts, ends))]
 
     @staticmethod
     def _mean(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,7 @@
 """The one pipeline that live input, replay and `fit --method rls` share.
 
     SampleBlock -> correct with the calibration in use -> differences, centre field, tensor
-               -> ring buffer -> online RLS ellipsoid per probe (unless frozen)
+               -> ring buffer -> online RLS ellipsoid, every probe in one estimator (unless frozen)
                -> every check interval of *data* time: candidate = RLS estimate aligned over the
                   ring buffer; it replaces the calibration in use only if it passes the gate.
 
@@ -114,7 +114,8 @@ class Pipeline:
 
     def reset(self) -> None:
         """Forget what the online estimators learned (the `reset` command)."""
-        self._estimators = [RlsEllipsoid(forgetting=self.forgetting) for _ in range(self.n_probes)]
+        self._rls = RlsEllipsoid(forgetting=self.forgetting, n_probes=self.n_probes)   # one for every probe
+        self._estimators = self._rls.probes()     # each probe as an estimator of its own (the gate reads them)
         self._fill = 0                    # samples buffered towards the next chunk
         self._chunks = 0                  # chunks fed since the last check
 
@@ -159,7 +160,7 @@ class Pipeline:
             self.ring.append(seg)
             if not self.frozen:
                 self._buf_field[self._fill:self._fill + stop - start] = seg.field_nT
-                ref = self._reference_total(seg)
+                ref = reference_total(seg, self.total_nT)
                 self._buf_ref[self._fill:self._fill + stop - start] = ref if ref is not None else np.nan
                 self._fill += stop - start
                 if self._fill == self.chunk:
@@ -174,7 +175,7 @@ class Pipeline:
             start = stop
         corrected = _join(pieces)
         error = ({} if corrected is None else block_error_rms(
-            self.probe_names, corrected, self._reference_total(block.slice(n - corrected.n_samples, n)),
+            self.probe_names, corrected, reference_total(block.slice(n - corrected.n_samples, n), self.total_nT),
             differences=self.positions_m is None))
         return Processed(corrected=corrected, error=error, events=events)
 
@@ -194,18 +195,16 @@ class Pipeline:
             c = _apply(self._matrices, block.field_nT - self._offsets[None])
         return products(block.t_s, block.seq, c, self.positions_m, self.cal_id)
 
-    def _reference_total(self, block: SampleBlock) -> np.ndarray | float | None:
-        return reference_total(block, self.total_nT)
-
     def _update_estimators(self, field_nT: np.ndarray, ref: np.ndarray) -> None:
         ok_rows = np.isfinite(field_nT).all(axis=2)                       # (N, P)
         have_ref = bool(np.isfinite(ref).all())
-        for k, est in enumerate(self._estimators):
+        if ok_rows.all():       # every probe at once: bit for bit the per-probe updates below
+            self._rls.partial_fit(field_nT, total_nT=ref if have_ref else self.total_nT)
+            return
+        for k, est in enumerate(self._estimators):             # a probe's NaN rows dropped (RlsProbe)
             rows = ok_rows[:, k]
-            if not rows.any():
-                continue
-            r = ref[rows] if have_ref else self.total_nT
-            est.partial_fit(field_nT[rows, k], total_nT=r)
+            if rows.any():
+                est.partial_fit(field_nT[rows, k], total_nT=ref[rows] if have_ref else self.total_nT)
 
     # --- the gate (gate.py) and live effects (live_effects.py) -------------------------------------
 

@@ -120,6 +120,10 @@ class RlsEllipsoid:
             self._est.dirty |= self._acc.add(raw, total_nT)   # solved lazily, when an estimate is asked for
         return self
 
+    def probes(self) -> list["RlsProbe"]:
+        """Each probe read, and updated alone, as an estimator of its own (RlsProbe)."""
+        return [RlsProbe(self, j) for j in range(self._p)]
+
     # --- solve ------------------------------------------------------------------------------
 
     def _squeeze(self, a: np.ndarray):
@@ -190,7 +194,7 @@ class RlsEllipsoid:
 
     def _linear_part(self, j: int) -> tuple[np.ndarray, np.ndarray]:
         """(offset_nT, matrix) of probe j without the standard errors (cheap)."""
-        self._est.solve_dirty()
+        self._est.solve_probe(j)
         if not self._est.has_theta[j]:
             self.snapshot(probe=j)                    # raises CalibrationRefused saying why
         return quadric_to_calibration(self._est.theta[j], float(self._acc.scale[j]), self._est.f2(j),
@@ -216,8 +220,8 @@ class RlsEllipsoid:
     def snapshot(self, name: str | None = None, probe: int = 0) -> ProbeCalibration:
         """The current estimate of one probe as a ProbeCalibration with standard errors (raises
         CalibrationRefused while the data do not determine it: never NaN parameters)."""
-        self._est.solve_dirty()
         j = int(probe)
+        self._est.solve_probe(j)
         name = name or f"s{j + 1}"
         if not self._est.has_theta[j]:
             raise CalibrationRefused(f"{name}: the online estimate is not determined yet ({int(self._acc.n[j])} samples, "
@@ -234,6 +238,55 @@ class RlsEllipsoid:
         """Every probe's snapshot."""
         names = names or [f"s{j + 1}" for j in range(self._p)]
         return [self.snapshot(nm, probe=j) for j, nm in enumerate(names)]
+
+
+class RlsProbe:
+    """Probe j of an RlsEllipsoid of P probes as a single-probe estimator: each property solves this probe
+    only (when it took samples since), and `partial_fit` updates it alone, so the estimates, anchors and
+    every later update are those of P separate estimators, bit for bit (tests/test_rls_batched.py)."""
+
+    def __init__(self, est: RlsEllipsoid, j: int) -> None:
+        self.est, self.j = est, int(j)
+
+    def partial_fit(self, field_nT: np.ndarray, total_nT=None) -> "RlsProbe":
+        """Update this probe alone with (N, 3) samples: for blocks whose rows differ by probe (the
+        pipeline drops a probe's NaN rows; a dropped row is not a zero-weight one: time stops for it)."""
+        raw = np.asarray(field_nT, dtype=float)
+        if raw.ndim != 2 or raw.shape[1] != 3:
+            raise DataError(f"field_nT: expected shape (N, 3), got {raw.shape}")
+        if raw.shape[0]:
+            one = self.est._acc.take(self.j)
+            self.est._est.dirty[self.j] |= bool(one.add(raw[:, None, :], total_nT)[0])
+            self.est._acc.put(self.j, one)
+        return self
+
+    @property
+    def n_samples_(self) -> int:
+        return int(self.est._acc.n[self.j])
+
+    @property
+    def condition_(self) -> float:
+        self.est._est.solve_probe(self.j)
+        return float(self.est._est.condition[self.j])
+
+    @property
+    def offset_(self) -> np.ndarray:
+        return self.est._linear_part(self.j)[0]
+
+    @property
+    def matrix_(self) -> np.ndarray:
+        return self.est._linear_part(self.j)[1]
+
+    @property
+    def offset_se_(self) -> np.ndarray:
+        return self.snapshot().offset_se_nT
+
+    @property
+    def matrix_se_(self) -> np.ndarray:
+        return self.snapshot().matrix_se
+
+    def snapshot(self, name: str | None = None) -> ProbeCalibration:
+        return self.est.snapshot(name, probe=self.j)
 
 
 def probe_calibration(name: str, theta: np.ndarray, cov: np.ndarray, scale: float, f2_ref: float,

@@ -37,6 +37,24 @@ class Information:
         # where field directions are taken about, nT: the origin, then the last good estimate's centre
         self.direction_centre = np.zeros((p, 3))
 
+    #: the per-probe state (every array has the probe axis first)
+    STATE = ("info", "eta", "y2", "weight", "n", "origin", "scale", "f2_ref", "assumed_total", "total_known",
+             "last_dir", "direction_centre")
+
+    def take(self, j: int) -> "Information":
+        """A copy of probe j's state as an accumulator of one probe (`put` writes it back): updating it is
+        exactly what a single-probe estimator would do, bit for bit."""
+        one = Information.__new__(Information)
+        one.forgetting, one.forget_deg = self.forgetting, self.forget_deg
+        one.varying_total, one.total_nT = self.varying_total, self.total_nT
+        for name in self.STATE:
+            setattr(one, name, getattr(self, name)[j:j + 1].copy())
+        return one
+
+    def put(self, j: int, one: "Information") -> None:
+        for name in self.STATE:
+            getattr(self, name)[j] = getattr(one, name)[0]
+
     def totals(self, total_nT, raw: np.ndarray, ok: np.ndarray) -> np.ndarray:
         """F per sample and probe, (N, P)."""
         n, p = raw.shape[:2]
@@ -48,7 +66,9 @@ class Information:
             fresh = np.isnan(self.assumed_total) & ok.any(axis=0)
             if fresh.any():
                 mag = np.linalg.norm(np.where(ok[..., None], raw, 0.0), axis=2)
-                self.assumed_total[fresh] = (mag.sum(axis=0) / np.maximum(ok.sum(axis=0), 1))[fresh]
+                # each probe's sum along a contiguous row, as for a single probe (bit for bit)
+                self.assumed_total[fresh] = (np.ascontiguousarray(mag.T).sum(axis=1)
+                                             / np.maximum(ok.sum(axis=0), 1))[fresh]
             return np.broadcast_to(self.assumed_total[None, :], (n, p))
         t = np.asarray(t, dtype=float)
         if t.ndim == 0:
@@ -144,7 +164,8 @@ class Information:
         cy = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
         cz = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
         ang = np.arctan2(np.sqrt(cx * cx + cy * cy + cz * cz), (a * b).sum(axis=-1))
-        return np.degrees(np.where(np.isnan(ang), 0.0, ang)).sum(axis=0)
+        # summed probe by probe along a contiguous row: the same rounding for P probes at once as for one
+        return np.ascontiguousarray(np.degrees(np.where(np.isnan(ang), 0.0, ang)).T).sum(axis=1)
 
     def mean(self, j: int) -> np.ndarray:
         """The weighted mean of probe j's samples in memory, u units (η's x, y, z entries over Σ w)."""
@@ -308,6 +329,12 @@ class Estimates:
         """The centre of the quadric θ (about m), in the accumulator's u units."""
         a = np.array([[theta[0], theta[3], theta[4]], [theta[3], theta[1], theta[5]], [theta[4], theta[5], theta[2]]])
         return m - 0.5 * np.linalg.solve(a, theta[6:9])
+
+    def solve_probe(self, j: int) -> None:
+        """Solve probe j if it took samples since its last solve (the others wait until asked for:
+        a solve moves the anchor, so each probe is solved exactly when a single-probe estimator would be)."""
+        if self.dirty[j]:
+            self.solve(j)
 
     def solve_dirty(self) -> None:
         for j in np.flatnonzero(self.dirty):

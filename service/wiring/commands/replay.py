@@ -8,6 +8,13 @@ many corrected blocks were compared and whether they were identical.
 
 from __future__ import annotations
 
+import os
+
+# The estimator and the gate multiply many small matrices: idle OpenBLAS worker threads spin for the cores
+# between them (measured, bench/bench_service.py with the other core busy: replay 5.8x slower). One thread
+# unless the user says otherwise; this only takes effect when numpy is not loaded yet (the CLI).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import json
 import sys
 import time
