@@ -7,7 +7,7 @@ Pipeline over the data in time order, so `fit --method rls` is exactly what the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -184,20 +184,60 @@ def residual_channels(data: LabData, cal: ArrayCalibration, total: TotalField) -
     return dict(iter_residual_channels(data, cal, total))
 
 
+@dataclass(frozen=True)
+class Reduced:
+    """A residual channel reduced to what its RMS needs: the sum of squares and the count."""
+
+    sumsq: float
+    n: int
+
+
+#: rows per chunk when channels are only summed (hours of data: no channel is held whole)
+CHUNK_ROWS = 1 << 18
+
+
+def channel_sums(data: LabData, cal: ArrayCalibration, total: TotalField,
+                 chunk: int = CHUNK_ROWS) -> dict[str, Reduced]:
+    """The channels of residual_channels, each reduced to its sum of squares over chunks of rows: the memory
+    of one chunk, whatever the recording's length. An estimated total field (no reference, none configured) is
+    the mean |corrected| of probe 1 over every sample, as in iter_residual_channels, taken in a first pass."""
+    b = data.block
+    n = b.n_samples
+    if total.values is None and n:
+        s = sum(float(np.sum(np.linalg.norm(cal.probes[0].apply(b.field_nT[lo:lo + chunk, 0]), axis=1)))
+                for lo in range(0, n, chunk))
+        total = TotalField(s / n, total.source)
+    acc: dict[str, list[float]] = {}
+    for lo in range(0, n, chunk):
+        part = replace(data, block=b.slice(lo, lo + chunk))
+        values = total.values[lo:lo + chunk] if isinstance(total.values, np.ndarray) else total.values
+        for name, v in iter_residual_channels(part, cal, TotalField(values, total.source)):
+            a = acc.setdefault(name, [0.0, 0])
+            a[0] += float(np.dot(v, v))
+            a[1] += v.size
+    return {name: Reduced(s, int(m)) for name, (s, m) in acc.items()}
+
+
 def uncalibrated_rms(data: LabData, total: TotalField) -> dict[str, float]:
     """RMS of the same channels with no calibration at all (raw nT), for 'before'; no channel is kept."""
     ident = ArrayCalibration("none", None, [ProbeCalibration(n, np.zeros(3), np.eye(3)) for n in data.probe_names])
-    return {name: rms(v) for name, v in iter_residual_channels(data, ident, total)}
+    return {name: rms(r) for name, r in channel_sums(data, ident, total).items()}
 
 
-def rms(x: np.ndarray) -> float:
+def rms(x: np.ndarray | Reduced) -> float:
+    if isinstance(x, Reduced):
+        return float(np.sqrt(x.sumsq / x.n)) if x.n else float("nan")
     return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else float("nan")
 
 
-def rms_all(arrays: list[np.ndarray]) -> float:
-    """RMS over every value of several arrays, without joining them."""
-    n = sum(np.size(a) for a in arrays)
-    return float(np.sqrt(sum(float(np.dot(np.ravel(a), np.ravel(a))) for a in arrays) / n)) if n else float("nan")
+def rms_all(arrays: list[np.ndarray | Reduced]) -> float:
+    """RMS over every value of several arrays (or their Reduced sums), without joining them."""
+    def sums(a: np.ndarray | Reduced) -> tuple[float, int]:
+        return (a.sumsq, a.n) if isinstance(a, Reduced) else (float(np.dot(np.ravel(a), np.ravel(a))), np.size(a))
+
+    parts = [sums(a) for a in arrays]
+    n = sum(m for _, m in parts)
+    return float(np.sqrt(sum(s for s, _ in parts) / n)) if n else float("nan")
 
 
 def contract_json(cal: ArrayCalibration, channels: dict[str, np.ndarray], probe_names: list[str],

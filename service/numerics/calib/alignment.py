@@ -40,12 +40,24 @@ def _finite(a: np.ndarray, what: str, ndim: int = 2) -> np.ndarray:
 # --- 000 section 2.2: regression onto probe 1 -------------------------------------------------------
 
 
-def align_regression(ref_nT: np.ndarray, raw_nT: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+#: beyond this many samples the regression is solved from its normal equations summed over chunks of rows
+#: (hours of data: no (N, 4) design is built); below it, by lstsq of the whole design, as the live gate does
+GRAM_ROWS = 1 << 20
+_CHUNK = 1 << 18
+
+
+def align_regression(ref_nT: np.ndarray, raw_nT: np.ndarray, *,
+                     gram_rows: int = GRAM_ROWS) -> tuple[np.ndarray, np.ndarray]:
     """(A, c) minimising ‖B_ref − (A r + c)‖_F over samples (000 eq. 13-16).
 
     ref_nT: the calibrated reference probe's output (N, 3); raw_nT: the other probe's raw output.
     In the paper's symbols A = A_2 and c = −B_2 = −A_2 E_2. Needs the raw samples to span three
     directions (eq. 15: X_2 of full row rank), i.e. turns about at least two axes."""
+    return _regression(ref_nT, raw_nT, gram_rows)[:2]
+
+
+def _regression(ref_nT: np.ndarray, raw_nT: np.ndarray, gram_rows: int):
+    """(A, c, XᵀX, per-axis residual sum of squares, residual (N, 3) or None) of the regression."""
     ref = _finite(ref_nT, "align_regression: ref_nT")
     raw = _finite(raw_nT, "align_regression: raw_nT")
     if ref.shape != raw.shape:
@@ -61,35 +73,64 @@ def align_regression(ref_nT: np.ndarray, raw_nT: np.ndarray) -> tuple[np.ndarray
         raise CalibrationRefused(f"regression alignment: the samples do not span three directions (they lie in "
                                  f"one plane: a single-axis turn about {axis}); turn about the {others[0]} or "
                                  f"{others[1]} axis too")
-    x = np.column_stack([raw, np.ones(raw.shape[0])])
+    n = raw.shape[0]
+    if n > gram_rows:
+        return _regression_by_chunks(ref, raw)
+    x = np.column_stack([raw, np.ones(n)])
     # scale the columns so the rank test does not see nT² against 1
     col = np.linalg.norm(x, axis=0)
     col[col == 0] = 1.0
     coef, _, rank, sv = np.linalg.lstsq(x / col, ref, rcond=None)
     if rank < 4 or sv[-1] < 1e-9 * sv[0]:
-        raise CalibrationRefused("regression alignment: the samples do not span three directions; "
-                                 "rotate about at least two axes")
+        raise CalibrationRefused(_NOT_SPANNED)
     coef = coef / col[:, None]
-    return coef[:3].T, coef[3]
+    a, c = coef[:3].T, coef[3]
+    resid = ref - (raw @ a.T + c)
+    return a, c, x.T @ x, (resid ** 2).sum(axis=0), resid
 
 
-def regression_calibration(name: str, ref_nT: np.ndarray, raw_nT: np.ndarray) -> ProbeCalibration:
+_NOT_SPANNED = "regression alignment: the samples do not span three directions; rotate about at least two axes"
+
+
+def _regression_by_chunks(ref: np.ndarray, raw: np.ndarray):
+    """The same regression from XᵀX and Xᵀ ref summed over chunks of rows, the columns scaled to unit norm as
+    in lstsq's path (the rank test on the singular values of the scaled design: square roots of the scaled
+    Gram's eigenvalues), then the residual's sums of squares in a second pass."""
+    n = raw.shape[0]
+    g, h = np.zeros((4, 4)), np.zeros((4, 3))
+    for lo in range(0, n, _CHUNK):
+        x = np.column_stack([raw[lo:lo + _CHUNK], np.ones(min(_CHUNK, n - lo))])
+        g += x.T @ x
+        h += x.T @ ref[lo:lo + _CHUNK]
+    col = np.sqrt(np.diag(g))
+    col[col == 0] = 1.0
+    gs = g / np.outer(col, col)
+    w = np.linalg.eigvalsh(gs)
+    if w[0] <= 0 or np.sqrt(w[0] / w[-1]) < 1e-9:
+        raise CalibrationRefused(_NOT_SPANNED)
+    coef = np.linalg.solve(gs, h / col[:, None]) / col[:, None]
+    a, c = coef[:3].T, coef[3]
+    ss = np.zeros(3)
+    for lo in range(0, n, _CHUNK):
+        r = ref[lo:lo + _CHUNK] - (raw[lo:lo + _CHUNK] @ a.T + c)
+        ss += (r ** 2).sum(axis=0)
+    return a, c, g, ss, None
+
+
+def regression_calibration(name: str, ref_nT: np.ndarray, raw_nT: np.ndarray, *,
+                           gram_rows: int = GRAM_ROWS) -> ProbeCalibration:
     """Probe k as a ProbeCalibration in the reference probe's frame: M = A, o = −A⁻¹ c, with standard
     errors from the regression and 000's named parameters (sensitivities, unit-column matrix).
 
     The standard errors are those of the regression given the reference: errors of the reference
     probe's own calibration carry over one to one (an offset error δE_1 of probe 1 moves E_k by
     about A_k⁻¹ A_1 δE_1) and are not included."""
-    a, c = align_regression(ref_nT, raw_nT)
+    a, c, xtx, ss, resid = _regression(ref_nT, raw_nT, gram_rows)
     offset = -np.linalg.solve(a, c)
-    raw = np.asarray(raw_nT, float)
-    ref = np.asarray(ref_nT, float)
-    n = raw.shape[0]
-    resid = ref - (raw @ a.T + c)
-    sigma2 = (resid ** 2).sum(axis=0) / max(n - 4, 1)         # per output axis
+    n = np.shape(raw_nT)[0]
+    sigma2 = ss / max(n - 4, 1)                                # per output axis
     # cov of row i of [A | c] is σ_i² (XᵀX)⁻¹, X = [raw, 1]; rows independent
-    x = np.column_stack([raw, np.ones(n)])
-    xtx_inv = np.linalg.pinv(x.T @ x)
+    xtx_inv = np.linalg.pinv(xtx)
     cov = np.kron(np.diag(sigma2), xtx_inv)                    # (12, 12), parameters row by row
     m_se = np.sqrt(np.outer(sigma2, np.diag(xtx_inv)[:3]))
     beta = np.column_stack([a, c]).ravel()
@@ -106,10 +147,11 @@ def regression_calibration(name: str, ref_nT: np.ndarray, raw_nT: np.ndarray) ->
         jac[:, j] = (offset_of(bj) - offset) / h
     o_se = np.sqrt(np.maximum(np.diag(jac @ cov @ jac.T), 0))
     _, k = unit_column_split(a)
+    resid_rms = float(np.sqrt(np.mean(resid ** 2))) if resid is not None else float(np.sqrt(ss.sum() / (3 * n)))
     params = {"align": named(None, None, "", method="regression (000 eq. 10-16)"),
               "offset_nT": named(offset, o_se, "nT"),
               "sensitivity": named(k, None, "", note="000 Table 2: A = N diag(k)^-1, N of unit columns"),
-              "residual_rms_nT": named(float(np.sqrt(np.mean(resid ** 2))), None, "nT",
+              "residual_rms_nT": named(resid_rms, None, "nT",
                                        note="per-axis difference to the reference probe after calibration")}
     return ProbeCalibration(name, offset, a, o_se, m_se, params)
 

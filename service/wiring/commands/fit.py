@@ -14,7 +14,15 @@ from service.io.recordings.labdata import load_data
 from service.numerics.calib.coverage import coverage
 from service.numerics.calib.site import site_from_text
 from service.wiring.commands.notes import say_read_warnings
-from service.wiring.fitting import contract_json, fit_array, residual_channels, rms, rms_all, uncalibrated_rms
+from service.wiring.fitting import (
+    channel_sums,
+    contract_json,
+    fit_array,
+    residual_channels,
+    rms,
+    rms_all,
+    uncalibrated_rms,
+)
 
 
 def _say(msg: str) -> None:
@@ -79,7 +87,10 @@ def main(args: Namespace) -> int:
         rows = ef.result.problem.rows                       # the channels cover the fitted rows only
     else:
         rows = None
-        channels = residual_channels(data, cal, total)
+        # the report bins the residual over direction and needs it whole; otherwise each channel's sum of
+        # squares is enough, taken over chunks of rows (hours of data)
+        channels = (residual_channels(data, cal, total) if getattr(args, "report", None)
+                    else channel_sums(data, cal, total))
     if sys.stderr.isatty():
         print("\r\033[K", end="", file=sys.stderr)
     before = uncalibrated_rms(data, total)
