@@ -147,3 +147,27 @@ def test_a_bad_max_samples_is_refused_with_what_is_allowed(bad, capsys):
         cli.main(["diagnose", str(rec), "--max-samples", bad])
     assert e.value.code == 2
     assert "at least 1000 (0: all samples)" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_fit_with_effects_beyond_the_budget_fits_them_on_one_sample_in_k(monkeypatch, capsys):
+    import service.wiring.commands.fit as fit_cmd
+
+    rec = str(REPO / "recordings" / "grad1-hidden-effect.mcap")               # 24,000 samples of 2 probes
+    assert cli.main(["fit", rec, "--effects", "temperature", "--json"]) == 0
+    whole = json.loads(capsys.readouterr().out)
+    monkeypatch.setattr(fit_cmd, "NONLINEAR_PROBE_SAMPLES", 16_000)            # one sample in 3
+    assert cli.main(["fit", rec, "--effects", "temperature", "--json"]) == 0
+    thin = json.loads(capsys.readouterr().out)
+    assert not any("one sample in" in w for w in whole["warnings"])
+    assert any(w.startswith("effects fitted on one sample in 3 (8,000 of 24,000") for w in thin["warnings"])
+    a, b = whole["effect_params"]["temperature"], thin["effect_params"]["temperature"]
+    assert set(a) == set(b)
+    fitted = {name: p for name, p in b.items() if p["se"] is not None}               # not the reference constants
+    assert len(fitted) == 12
+    for name, p in fitted.items():
+        assert p["se"] >= a[name]["se"]
+        assert abs(p["value"] - a[name]["value"]) <= 3.0 * p["se"], (name, p, a[name])
+    assert b["s1.x nT/degC"]["value"] == pytest.approx(2.0, abs=4 * b["s1.x nT/degC"]["se"])
+    # the linear calibration itself comes from every sample, before the effects are fitted
+    assert thin["rms_nT"] == pytest.approx(whole["rms_nT"], rel=0.05)

@@ -20,6 +20,11 @@ from service.numerics.calib.ellipsoid import fit_ellipsoid
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 from service.numerics.channels import channel_names
 
+#: the probe-samples a nonlinear fit over every sample (diagnose's candidates, fit --effects) is given by default:
+#: a longer recording is thinned to every k-th sample, and the output says so. Such a fit holds about 3 kB per
+#: probe-sample at its peak (measured: bench/bench_hours.py), so this keeps it near 1.5 GB whatever the length.
+NONLINEAR_PROBE_SAMPLES = 500_000
+
 METHODS = ("ellipsoid", "tmi", "sinefit", "two-step", "rls")
 ALIGNS = ("regression", "rotation", "pca")
 

@@ -62,7 +62,7 @@ def load_data(path: str | Path, *, max_samples: int | None = None, max_probe_sam
     every = keep_every(n, probes, max_samples, max_probe_samples)
     if every == 1:
         return replace(lab, n_read=n)
-    return replace(lab, block=_every(lab.block, every), every=every, n_read=n)
+    return replace(lab, block=every_kth(lab.block, every), every=every, n_read=n)
 
 
 def keep_every(n: int, probes: int, max_samples: int | None, max_probe_samples: int | None) -> int:
@@ -76,8 +76,8 @@ def keep_every(n: int, probes: int, max_samples: int | None, max_probe_samples: 
     return k
 
 
-def _every(b: SampleBlock, every: int) -> SampleBlock:
-    """Rows 0, every, 2 every, ... copied (the whole block can then go)."""
+def every_kth(b: SampleBlock, every: int) -> SampleBlock:
+    """Rows 0, every, 2 every, ... of a block, copied (the whole block can then go)."""
     def keep(a: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(a[::every])
     return SampleBlock(t_s=keep(b.t_s), seq=keep(b.seq), field_nT=keep(b.field_nT), temp_C=keep(b.temp_C),

@@ -20,11 +20,6 @@ from service.wiring.commands.notes import say_read_warnings
 # unless the user says otherwise; this only takes effect when numpy is not loaded yet (the CLI).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-#: the probe-samples diagnosed by default: a longer recording is thinned to every k-th sample. Each candidate
-#: is a nonlinear fit over all the samples it is given, about 3 kB per probe-sample at its peak (measured:
-#: bench/bench_hours.py); this keeps the peak near 1.5 GB for a recording of any length.
-DIAGNOSE_PROBE_SAMPLES = 500_000
-
 import argparse  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
@@ -35,6 +30,7 @@ import numpy as np  # noqa: E402
 
 from drivers.config import load_section, read_toml  # noqa: E402
 from drivers.errors import ConfigError, DataError  # noqa: E402
+from service.wiring.fitting import NONLINEAR_PROBE_SAMPLES as DIAGNOSE_PROBE_SAMPLES  # noqa: E402
 from service.wiring.progress import Progress  # noqa: E402
 
 def config_geometry(path: str, n_probes: int) -> tuple[np.ndarray | None, float | None]:

@@ -5,16 +5,18 @@ from __future__ import annotations
 import json
 import sys
 from argparse import Namespace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from service.io.calfile import save_calibration
-from service.io.recordings.labdata import load_data
+from service.io.recordings.labdata import LabData, every_kth, keep_every, load_data
 from service.numerics.calib.coverage import coverage
 from service.numerics.calib.site import site_from_text
 from service.wiring.commands.notes import say_read_warnings
 from service.wiring.fitting import (
+    NONLINEAR_PROBE_SAMPLES,
     channel_sums,
     contract_json,
     fit_array,
@@ -78,7 +80,8 @@ def main(args: Namespace) -> int:
         from service.numerics.engine import fit_with_effects
 
         _say(f"fitting effects {', '.join(args.effects)}")
-        ef, _ = fit_with_effects(data, args.effects, cal, total_nT=known_total,
+        report_data, thinned = effects_data(data)
+        ef, _ = fit_with_effects(report_data, args.effects, cal, total_nT=known_total,
                                  positions_m=positions(cfg, data.block.n_probes))
         method, align = cal.method, cal.align
         cal = ef.calibration()
@@ -86,7 +89,7 @@ def main(args: Namespace) -> int:
         channels = {name: values for name, values in ef.result.channels.as_dict().items()}
         rows = ef.result.problem.rows                       # the channels cover the fitted rows only
     else:
-        rows = None
+        rows, report_data, thinned = None, data, None
         # the report bins the residual over direction and needs it whole; otherwise each channel's sum of
         # squares is enough, taken over chunks of rows (hours of data)
         channels = (residual_channels(data, cal, total) if getattr(args, "report", None)
@@ -98,7 +101,7 @@ def main(args: Namespace) -> int:
                             "rms_after_nT": {k: rms(v) for k, v in channels.items()},
                             "total_field": total.source})
     coverages = [coverage(data.block.field_nT[:, k], centre_nT=p.offset_nT) for k, p in enumerate(cal.probes)]
-    warnings = calibration_warnings(cal, coverages)
+    warnings = calibration_warnings(cal, coverages) + ([thinned] if thinned else [])
     cal.diagnostics["warnings"] = warnings
     if args.out:
         save_calibration(cal, args.out)
@@ -115,8 +118,21 @@ def main(args: Namespace) -> int:
             print(f"calibration written to {args.out}")
     if getattr(args, "report", None):
         sys.stdout.flush()                  # the calibration first: a report that cannot be written must not cost it
-        _write_report(args, data, cal, channels, coverages, warnings, total.source, rows)
+        _write_report(args, report_data, cal, channels, coverages, warnings, total.source, rows)
     return 0
+
+
+def effects_data(data: LabData) -> tuple[LabData, str | None]:
+    """The samples the effects are fitted to: every one, or one in k beyond NONLINEAR_PROBE_SAMPLES (the fit is
+    nonlinear over every sample it is given); then what that costs, said among the warnings."""
+    b = data.block
+    k = keep_every(b.n_samples, b.n_probes, None, NONLINEAR_PROBE_SAMPLES)
+    if k == 1:
+        return data, None
+    part = replace(data, block=every_kth(b, k))
+    return part, (f"effects fitted on one sample in {k} ({part.block.n_samples:,} of {b.n_samples:,}; the linear "
+                  f"calibration on every sample) to stay within {NONLINEAR_PROBE_SAMPLES:,} probe-samples: their "
+                  f"standard errors are those of the samples used, and the residual channels cover those samples")
 
 
 def _write_report(args: Namespace, data, cal, channels, coverages, warnings, total_source, rows) -> None:
