@@ -1,6 +1,7 @@
 """One online estimator for every probe gives, bit for bit, what one estimator per probe gave: the
 accumulated information, every solve (the gate reads each probe as an estimator of its own) and the
-pipeline's corrected output and events, with white and 1/f probe noise, NaN rows and any total field."""
+pipeline's corrected output and events, with white and 1/f probe noise, NaN rows and any total field;
+and so does correcting in spans of one calibration instead of chunk by chunk, in live or replay blocks."""
 
 from __future__ import annotations
 
@@ -78,7 +79,9 @@ def test_one_estimator_of_all_probes_equals_one_per_probe_bit_for_bit(seed, pink
 
 
 class PerProbePipeline(Pipeline):
-    """The pipeline as it was: one estimator per probe, each given its own finite rows."""
+    """The pipeline as it was: one estimator per probe, each given its own finite rows; corrected chunk by chunk."""
+
+    CORRECT_BY_CHUNK = True
 
     def reset(self) -> None:
         self._estimators = [RlsEllipsoid(forgetting=self.forgetting) for _ in range(self.n_probes)]
@@ -94,24 +97,27 @@ class PerProbePipeline(Pipeline):
                 est.partial_fit(field_nT[rows, k], total_nT=ref[rows] if have_ref else self.total_nT)
 
 
-def run(cls, block: SampleBlock, total_nT, commands=()):
+def run(cls, block: SampleBlock, total_nT, commands=(), sizes=(20, 7, 333, 64)):
     pl = cls(n_probes=4, probe_names=["s1", "s2", "s3", "s4"], positions_m=np.array(POSITIONS, float),
              forgetting=0.9995, total_nT=total_nT, min_samples=1500, check_every_samples=600,
              window_samples=4000, chunk_samples=100)
     seqs, vals, events = [], [], []
     i, k = 0, 0
-    sizes = (20, 7, 333, 64)
     while i < block.n_samples:
+        m = sizes[k % len(sizes)]
+        cut = [at for at, _ in commands if i < at < i + m]
+        m = cut[0] - i if cut else m                    # a command applies before its sample, as replay cuts
         for at, name in commands:
-            if i <= at < i + sizes[k % 4]:
+            if at == i:
                 pl.command(name, None, seq=at, t_s=float("nan"))
-        r = pl.process(block.slice(i, i + sizes[k % 4]))
+        r = pl.process(block.slice(i, i + m))
         if r.corrected is not None:
             seqs.append(r.corrected.seq)
-            vals.append(np.concatenate([r.corrected.corrected_nT.reshape(-1), r.corrected.diff_nT.reshape(-1),
-                                        r.corrected.tensor_nT_m.reshape(-1)]))
+            c = r.corrected
+            vals.append(np.concatenate([c.corrected_nT.reshape(c.n_samples, -1), c.diff_nT.reshape(c.n_samples, -1),
+                                        c.tensor_nT_m.reshape(c.n_samples, -1), c.center_nT], axis=1))
         events += [(e.kind, e.seq, repr(e.detail)) for e in r.events]
-        i, k = i + sizes[k % 4], k + 1
+        i, k = i + m, k + 1
     return np.concatenate(seqs), np.concatenate(vals), events, pl.state()
 
 
@@ -125,8 +131,9 @@ def test_the_pipeline_gives_its_per_probe_output_bit_for_bit(seed, pink, nan_row
     total_nT = None if total == "reference" else total
     commands = [(2600, "freeze"), (3000, "unfreeze"), (3800, "reset")]
     old = run(PerProbePipeline, block, total_nT, commands)
-    new = run(Pipeline, block, total_nT, commands)
     assert old[0].size > 1500 and any(e[0] == "calibration" for e in old[2])   # a calibration was learned
-    assert np.array_equal(old[0], new[0]) and same(old[1], new[1])
-    assert old[2] == new[2]
-    assert repr(old[3]) == repr(new[3])
+    for sizes in ((20, 7, 333, 64), (20000,)):                                 # live blocks; replay's
+        new = run(Pipeline, block, total_nT, commands, sizes)
+        assert np.array_equal(old[0], new[0]) and same(old[1], new[1])
+        assert old[2] == new[2]
+        assert repr(old[3]) == repr(new[3])

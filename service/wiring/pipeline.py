@@ -72,6 +72,8 @@ def _join(pieces: list[CorrectedBlock]) -> CorrectedBlock | None:
 class Pipeline:
     """Stateful block processor. `process(block)` is the only hot path."""
 
+    CORRECT_BY_CHUNK = False          # True: correct chunk by chunk, as before the spans (the tests' reference)
+
     def __init__(self, *, n_probes: int, probe_names: list[str], positions_m: np.ndarray | None,
                  forgetting: float = 0.9995, total_nT: float | None = None, align: str = "rotation",
                  min_samples: int = 2000, gate_coverage: float = 0.3, gate_condition: float = 1e3,
@@ -148,14 +150,16 @@ class Pipeline:
         n = block.n_samples
         if n:
             self.next_seq = int(block.seq[-1]) + 1
-        pieces: list[CorrectedBlock] = []
-        start = 0
+        pieces: list[CorrectedBlock | None] = []
+        # corrected in spans of one calibration, up to each check (the products round alike whatever the span);
+        # with live effects chunk by chunk, before each chunk's temperatures are noted
+        by_chunk = self.CORRECT_BY_CHUNK or self.live.fit is not None
+        start = span = 0
         while start < n:
             stop = min(n, start + self.chunk - self._fill)       # up to the next chunk boundary
             seg = block.slice(start, stop)
-            c = self._correct(seg)
-            if c is not None:
-                pieces.append(c)
+            if by_chunk:
+                pieces.append(self._correct(seg))
             self.live.note_temperature(seg.temp_C)
             self.ring.append(seg)
             if not self.frozen:
@@ -169,11 +173,16 @@ class Pipeline:
                     self._chunks += 1
                     if self.check_every_chunks and self._chunks >= self.check_every_chunks:
                         self._chunks = 0
+                        if not by_chunk:                          # with the calibration in use until here
+                            pieces.append(self._correct(block.slice(span, stop)))
+                            span = stop
                         ev = self._check_candidate(int(seg.seq[-1]) + 1, float(seg.t_s[-1]))
                         if ev is not None:
                             events.append(ev)
             start = stop
-        corrected = _join(pieces)
+        if not by_chunk and span < n:
+            pieces.append(self._correct(block.slice(span, n)))
+        corrected = _join([c for c in pieces if c is not None])
         error = ({} if corrected is None else block_error_rms(
             self.probe_names, corrected, reference_total(block.slice(n - corrected.n_samples, n), self.total_nT),
             differences=self.positions_m is None))
@@ -252,19 +261,23 @@ class Pipeline:
 
     def state(self) -> dict[str, Any]:
         """The calibration state for publishing (JSON-ready)."""
-        cal = self.calibration
-        g = self.last_gate
-        return {
-            "cal_id": self.cal_id,
-            "usable": cal is not None,
-            "frozen": self.frozen,
-            "method": None if cal is None else cal.method,
-            "effects": list(self.effects),
-            "probes": [] if cal is None else [
-                {"name": p.name, "offset_nT": p.offset_nT.tolist(), "matrix": p.matrix.tolist(),
-                 "offset_se_nT": np.nan_to_num(p.offset_se_nT, nan=-1).tolist(),
-                 "matrix_se": p.matrix_se.tolist(), "params": p.params} for p in cal.probes],
-            "gate": None if g is None else {"usable": g.usable, "reasons": g.reasons, "coverage": g.coverage,
-                                            "condition": g.condition, "rms_nT": g.rms_nT},
-            "samples_seen": int(min(est.n_samples_ for est in self._estimators)),
-        }
+        return _state(self)
+
+
+def _state(pl: Pipeline) -> dict[str, Any]:
+    cal = pl.calibration
+    g = pl.last_gate
+    return {
+        "cal_id": pl.cal_id,
+        "usable": cal is not None,
+        "frozen": pl.frozen,
+        "method": None if cal is None else cal.method,
+        "effects": list(pl.effects),
+        "probes": [] if cal is None else [
+            {"name": p.name, "offset_nT": p.offset_nT.tolist(), "matrix": p.matrix.tolist(),
+             "offset_se_nT": np.nan_to_num(p.offset_se_nT, nan=-1).tolist(),
+             "matrix_se": p.matrix_se.tolist(), "params": p.params} for p in cal.probes],
+        "gate": None if g is None else {"usable": g.usable, "reasons": g.reasons, "coverage": g.coverage,
+                                        "condition": g.condition, "rms_nT": g.rms_nT},
+        "samples_seen": int(min(est.n_samples_ for est in pl._estimators)),
+    }

@@ -45,6 +45,7 @@ def _label(v: np.ndarray) -> str:
 #: names of the bins, e.g. "+z", "+x-y", "-x+y+z"
 BIN_LABELS = [_label(v) for v in _DIRS]
 _AXIS_NAMES = ("x", "y", "z")
+_BIN_OF = {tuple(int(v) for v in d): b for b, d in enumerate(_DIRS)}      # (i, j, k) -> bin
 _NEIGHBOUR_COS = np.cos(np.radians(61.0))
 #: default share of bins that must be seen
 MIN_FRACTION = 0.3
@@ -229,8 +230,7 @@ def _cube_map(counts: np.ndarray, need: int) -> str:
     def cell(i: int, j: int, k: int) -> str:
         if (i, j, k) == (0, 0, 0):
             return " "
-        b = int(np.flatnonzero((_DIRS == (i, j, k)).all(axis=1))[0])
-        c = counts[b]
+        c = counts[_BIN_OF[(i, j, k)]]
         return "." if c < need else "o" if c < 4 * need else "#"
 
     head = "    z+ (top)       z 0            z- (bottom)"
