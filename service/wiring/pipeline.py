@@ -24,6 +24,7 @@ from drivers.errors import DataError, FluxcalError
 from drivers.ringbuffer import RingBuffer
 from service.numerics.calib.model import ArrayCalibration
 from service.numerics.calib.rls import RlsEllipsoid
+from service.numerics.calib.rls_info import finite_rows
 from service.numerics.channels import block_error_rms
 from service.numerics.outputs import CorrectedBlock, products
 
@@ -205,7 +206,7 @@ class Pipeline:
         return products(block.t_s, block.seq, c, self.positions_m, self.cal_id)
 
     def _update_estimators(self, field_nT: np.ndarray, ref: np.ndarray) -> None:
-        ok_rows = np.isfinite(field_nT).all(axis=2)                       # (N, P)
+        ok_rows = finite_rows(field_nT)                                   # (N, P)
         have_ref = bool(np.isfinite(ref).all())
         if ok_rows.all():       # every probe at once: bit for bit the per-probe updates below
             self._rls.partial_fit(field_nT, total_nT=ref if have_ref else self.total_nT)

@@ -13,6 +13,12 @@ from drivers.errors import DataError
 from .ellipsoid import N_GEOMETRY, normalise, quadric_design, quadric_to_calibration, unit_volume_total
 
 
+def finite_rows(field: np.ndarray) -> np.ndarray:
+    """Where all three components of (..., 3) vectors are finite, (...): isfinite(field).all(axis=-1), without
+    its slow reduction over three (a sixth of the time on a block)."""
+    return np.isfinite(field[..., 0]) & np.isfinite(field[..., 1]) & np.isfinite(field[..., 2])
+
+
 class Information:
     """What the online estimator knows, per probe: Λ, η, Σ w y², Σ w, the samples taken, the origin c and
     scale s (u = (r − c) / s) and F₀² fixed by the first samples, the total field assumed when none is
@@ -84,7 +90,7 @@ class Information:
         (for the swept angle) are taken about `direction_centre`. Returns, per probe, whether it saw a
         sample (its estimate needs solving again)."""
         n = raw.shape[0]
-        ok = np.isfinite(raw).all(axis=2)
+        ok = finite_rows(raw)
         f = self.totals(total_nT, raw, ok)
         ok &= np.isfinite(f)
         all_ok = bool(ok.all())
