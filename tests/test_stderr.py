@@ -1,9 +1,10 @@
 """Standard errors that hold on coloured noise (issue 14): over several seeds the stated standard errors
 cover the truth at their stated rate, within a factor 1.5, under white and under 1/f probe noise. The
 white-noise formula alone understated temperature coefficients 9-fold under 1/f noise (rms z 9.2); the
-block jackknife over time blocks brings them to about 0.9. A drift cannot be told from the noise's own
-wander at periods as long as the record, which no estimate from the record alone sees: under 1/f noise
-its errors are still about twice the stated ones, and diagnose says to take them as lower bounds."""
+block jackknife over time blocks brings them to about 0.9. A drift and the noise's own wander at periods as
+long as the record look alike, and the jackknife does not see that wander (rms z 1.98 under 1/f noise): the
+drift's errors come from a power-law model of each probe's noise spectrum, extended below the fitted band at
+least as steeply as flicker noise (engine/coloured.py)."""
 
 from __future__ import annotations
 
@@ -46,18 +47,47 @@ def z_scores(pink: float, effect: str, seeds: range) -> np.ndarray:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("pink, effect", [(0.0, "temperature"), (0.3, "temperature"), (0.0, "drift")])
+@pytest.mark.parametrize("pink, effect", [(0.0, "temperature"), (0.3, "temperature"), (0.0, "drift"), (0.1, "drift"),
+                                          (0.3, "drift")])
 def test_standard_errors_cover_the_truth_at_their_stated_rate(pink, effect):
     z = z_scores(pink, effect, range(6))
     rms = float(np.sqrt(np.mean(z ** 2)))
     assert 1 / 1.5 <= rms <= 1.5, (rms, z.round(2))
-    assert np.mean(np.abs(z) < 2) >= 0.85
+    assert np.mean(np.abs(z) < 2) >= 0.8
 
 
 @pytest.mark.slow
-def test_under_one_over_f_noise_drift_rates_are_said_to_be_lower_bounds():
-    z = z_scores(0.3, "drift", range(4))
-    # measured, not hidden: the record cannot show the noise's wander at its own length
-    assert float(np.sqrt(np.mean(z ** 2))) > 1.5
+def test_under_one_over_f_noise_diagnose_says_where_the_drift_errors_come_from():
     d = diagnose(world(0, 0.3, "drift"), effects=["drift"])
-    assert any("lower bounds" in n for n in d.notes) and any("block jackknife" in n for n in d.notes)
+    assert any("block jackknife" in n for n in d.notes)
+    assert any("power law" in n and "flicker" in n for n in d.notes), d.notes
+    white = diagnose(world(0, 0.0, "drift"), effects=["drift"])
+    assert not any("power law" in n for n in white.notes)
+
+
+def test_the_spectral_variance_of_a_trend_under_flicker_noise_matches_simulation():
+    """The formula alone (engine/coloured.py): the slope of a line fitted to 1/f noise, 300 records drawn from
+    a process 16 times as long, against the variance the spectrum gives."""
+    from service.numerics.engine.coloured import power_law, spectral_variance
+
+    rng = np.random.default_rng(0)
+    n, dt = 4000, 0.05
+    t = np.arange(n) * dt
+    u = (t - t.mean()) / np.sum((t - t.mean()) ** 2)                      # the slope's weights
+    m = 16 * n
+    f = np.fft.rfftfreq(m, dt)
+    s = np.zeros_like(f)
+    s[1:] = 0.05 / f[1:]                                                  # one-sided, nT^2/Hz
+    scale = np.sqrt(s * m / (4 * dt))                                      # E x^2 = sum S df
+    slopes, fits = [], []
+    for _ in range(300):
+        x = np.fft.irfft((rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)) * scale, n=m)[:n]
+        slopes.append(u @ x)
+        if len(fits) < 20:
+            fits.append(power_law(x + 0.3 * rng.standard_normal(n), dt))
+    want = spectral_variance(u[:, None], np.arange(n), [(0.0, 0.05, -1.0)], dt)
+    assert np.var(slopes) == pytest.approx(want, rel=0.2)
+    alphas = np.array([a for _, _, a in fits])
+    assert np.all((alphas > -1.4) & (alphas < -0.6)), alphas              # flicker found as flicker
+    amps = np.array([a for _, a, _ in fits])
+    assert np.median(amps) == pytest.approx(0.05, rel=0.3)

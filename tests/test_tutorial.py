@@ -55,7 +55,7 @@ def test_the_tutorial_runs_as_written(tmp_path, monkeypatch, capsys, clean_regis
     assert set(v) == {"kind", "effect", "rms_nT", "floor_nT", "left", "advice", "signature"}
     assert set(sig) == {"scalar_rms_nT", "scalar_noise_nT", "shared_fraction", "difference_rms_nT",
                         "difference_noise_nT", "half_power_period_s", "spectral_slope", "line_hz", "probe_share",
-                        "follows"}
+                        "follows", "frames"}
     assert 1.45 < sig["line_hz"] < 1.55 and sig["probe_share"]["s2"] > 0.9 and sig["shared_fraction"] < 0.25
     assert "periodic at 1.5" in v["advice"] and "s2's own" in v["left"]
     assert d["rms_nT"] > 2 * d["noise_nT"]

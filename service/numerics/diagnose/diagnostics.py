@@ -43,6 +43,7 @@ from service.numerics.engine import (
 )
 
 from .fits import heldout, try_candidate
+from .frames import frame_summary, frames
 from .result import N_BLOCKS, Candidate, Diagnosis, Progress
 from .signature import FLOOR_FACTOR, SHARED, signature, verdict
 from .verdict import demote_nested, mark_indistinguishable, rank
@@ -110,6 +111,8 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     noise_nT = float(np.sqrt(np.mean(noise ** 2)))
     where = where_it_fails(ed, cur, noise)
     sig_cur = signature(cur, noise, where)
+    frames_cur = frames(ed, cur, noise)
+    sig_cur["frames"] = frame_summary(frames_cur)
 
     # 4. the verdict over the candidates: which are indistinguishable, which keep their gain beside the
     # others, and their order (verdict.py)
@@ -127,6 +130,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
         left = sig_cur
     elif best.rms_nT > FLOOR_FACTOR * noise_nT:
         left = signature(best.fit, noise, where_it_fails(ed, best.fit, noise))
+        left["frames"] = frame_summary(frames(ed, best.fit, noise))
     else:
         left = {}
     told = verdict(cur.rms_nT, noise_nT, best, left, ed.ref_total_nT is not None)
@@ -138,20 +142,22 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
                      channel_names=list(cur.channels.names), channel_rms_nT=ch_rms, channel_noise_nT=noise,
                      where=where, candidates=cands, worst_segments=worst_segments(cur), n_samples=ed.n_samples,
                      duration_s=ed.duration_s, heldout_rms_nT=cur_ho.rms_nT, notes=notes, fit=cur,
-                     linear_refit_rms_nT=linear_refit, parameters=cur.parameters())
+                     linear_refit_rms_nT=linear_refit, parameters=cur.parameters(), frames=frames_cur)
 
 
 def _coloured_noise_notes(slope: float | None, effects: Sequence[str], duration_s: float) -> list[str]:
-    """What a coloured residual (its spectral slope) means for the standard errors (block jackknife,
-    engine/solve.py): they hold for terms that change within the record, but a drift cannot be told from
-    the noise's own wander at periods as long as the record, which no estimate from the record alone sees."""
+    """What a coloured residual (its spectral slope) means for the standard errors: the block jackknife
+    (engine/solve.py) for terms that change within the record, and for a drift a power-law model of the
+    noise spectrum extended to the record's own periods (engine/coloured.py)."""
     if slope is None or slope > -0.5:
         return []
     out = [f"the residual is coloured (spectrum ~ f^{slope:.1f}): standard errors come from the block jackknife "
            f"over time blocks, not from white-noise formulas"]
     if "drift" in effects:
-        out.append(f"drift: a wander of the noise at periods as long as the record ({duration_s:.0f} s) cannot be "
-                   f"told from a drift; take the drift rates' standard errors as lower bounds")
+        out.append(f"drift: a wander of the noise at periods as long as the record ({duration_s:.0f} s) looks like a "
+                   f"drift; the drift rates' standard errors come from a power law fitted to each probe's noise "
+                   f"spectrum and extended to those periods at least as steeply as flicker (1/f) noise: a noise "
+                   f"that steepens further there (a random walk of the offsets) would make them too small")
     return out
 
 

@@ -24,6 +24,11 @@ from service.numerics.engine import (
 from .result import ABSORBED, CANDIDATE_ITERATIONS, GAIN_SIGMAS, MIN_GAIN, P_SIGNIFICANT, Candidate
 
 
+#: regressors found in the residual are found again without each held-out block (crossfit_heldout); False only
+#: to measure what that changes
+CROSSFIT = True
+
+
 @dataclass
 class Heldout:
     sse_w: np.ndarray
@@ -184,6 +189,8 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
         untestable.reason = f"fit failed: {e}"
         return untestable
     ho = heldout(fit)
+    if term.chooses_in_residual and hints is not None and CROSSFIT:
+        ho = crossfit_heldout(ed, model, cur, cur_ho, name, reference, weights, hints, n_blocks)
     cmp = _compare(cur, cur_ho, fit, ho)
     c = Candidate(effect=name, rms_nT=fit.rms_nT, heldout_rms_nT=ho.rms_nT, gain=cmp["gain"],
                   log_ratio=cmp["lr"], log_ratio_se=cmp["lr_se"], p_value=cmp["p"], bic_delta=cmp["bic"],
@@ -199,3 +206,49 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
         c.reason = f"the model's {absorbed[0]} spans its regressors in these data"
         c.refusal = f"the model's {absorbed[0]} spans it"
     return c
+
+
+def crossfit_heldout(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout, name: str,
+                     reference: np.ndarray, weights: np.ndarray, hints, n_blocks: int) -> Heldout:
+    """The held-out errors of a term that chooses its regressors in the residual (perming step instants): for
+    each block, the regressors are found again in the residual with that block left out, the term fitted with
+    them, and the block predicted by the fit to the others. Found in the whole residual, the steps would be
+    chosen on the very samples they are judged on, and any smooth change left there would pass for steps
+    that predict well. A block with no step found outside it is predicted as the model predicts it. (Terms
+    that only start from the residual, thermal's tau, or take another probe's residual at the same instant as
+    their regressor, ambient, choose nothing there.)"""
+    pr0 = cur.problem
+    sse_w, sse, cnt = cur_ho.sse_w.copy(), cur_ho.sse.copy(), cur_ho.n.copy()
+    refs = [v.cache for v in pr0.views]
+    for b, sl in enumerate(pr0.blocks):
+        masked = [r.copy() for r in hints[0]]
+        for r in masked:
+            r[pr0.rows[sl]] = np.nan
+        pr = Problem(ed, model + make_term(name), cur.state.linear, reference, weights=weights, n_blocks=n_blocks,
+                     hints=(masked, hints[1]), refs=refs)
+        if pr.term_size(name) == 0 or len(pr.blocks) != len(pr0.blocks):
+            continue
+        try:
+            f = _fit_beside(pr, cur)
+        except (FluxcalError, np.linalg.LinAlgError, ValueError):
+            continue
+        h = heldout(f)
+        sse_w[b], sse[b], cnt[b] = h.sse_w[b], h.sse[b], h.n[b]
+    return Heldout(sse_w, sse, cnt)
+
+
+def _fit_beside(pr: Problem, cur: FitResult) -> FitResult:
+    """A candidate problem fitted from the model's fit: its normal equations reused, only the candidate's rows
+    assembled."""
+    start = pr.start_state(cur.state.linear, cur.state)
+    warm = warm_from(cur, pr)
+    if warm is None:
+        return fit_problem(pr, start, max_iter=CANDIDATE_ITERATIONS)
+    ev0 = pr.evaluate(start)
+    jac0 = pr.jacobian(start, ev0)
+    a_c, g_c = pr.assemble(jac0, ev0, only=~warm.known)
+    both = warm.known[:, None] & warm.known[None, :]
+    a_c[:, both] = warm.a_blocks[:, both]
+    g_c[:, warm.known] = warm.g_blocks[:, warm.known]
+    return fit_problem(pr, start, warm=Warm(a_c, g_c, np.ones(pr.n_params, bool)), max_iter=CANDIDATE_ITERATIONS,
+                       ev0=ev0, jac0=jac0)

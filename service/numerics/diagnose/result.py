@@ -108,6 +108,8 @@ class Diagnosis:
     verdict: dict[str, Any] | None = None
     #: set when the samples diagnosed are every k-th of a longer recording: {"every", "n_used", "n_read", ...}
     thinned: dict[str, Any] | None = None
+    #: the residual per axis in the probe, platform and Earth frames (frames.py)
+    frames: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def best(self) -> Candidate | None:
@@ -139,6 +141,7 @@ class Diagnosis:
             d["linear_refit_rms_nT"] = _num(self.linear_refit_rms_nT)
         if self.thinned is not None:
             d["thinned"] = _plain(self.thinned)
+        d["frames"] = _plain(self.frames)
         return d
 
 

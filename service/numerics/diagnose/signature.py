@@ -167,6 +167,8 @@ def describe(sig: dict[str, Any], has_reference: bool) -> tuple[str, str]:
         if slope is not None:
             slow += f", spectrum ~ f^{slope:.1f}"
         parts.append(slow)
+    if sig.get("frames"):
+        parts.append(sig["frames"])
     follows = sig.get("follows") or []
     if follows:
         parts.append("it follows " + ", ".join(

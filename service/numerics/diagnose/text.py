@@ -61,6 +61,10 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
     for w in d.where[:8]:
         band = f" ({w['band']})" if w.get("band") else ""
         lines.append(f"    {w['channel']:<18} {w['observable'] + band:<28} {w['strength']:.2f}")
+    frame_lines = frames_text(d.frames)
+    if frame_lines:
+        lines.append("  per axis (rms nT) in each frame; % of the excess a vector fixed in the platform explains:")
+        lines += frame_lines
     if d.worst_segments:
         seg = ", ".join(f"{s['t_start_s']:.1f}-{s['t_end_s']:.1f} s ({s['rms_nT']:.2f} nT)"
                         for s in d.worst_segments)
@@ -120,4 +124,22 @@ def verdict_lines(d: Diagnosis) -> list[str]:
         out.append(f"  what is left: {v['left']}")
     if v.get("advice"):
         out.append(f"  what would explain it: {v['advice']}")
+    return out
+
+
+def frames_text(entries: list[dict]) -> list[str]:
+    """The frames table (frames.py): one line per channel group with something above its floor."""
+    out = []
+    for e in entries or []:
+        cells = []
+        for frame in ("platform", "probe", "earth"):
+            f = e.get(frame)
+            if f is None or e["platform"]["fixed_share"] is None or (frame != "platform" and "rms_nT" not in f):
+                continue
+            axes = f.get("rms_nT")
+            rms = (" " + " ".join(f"{a[0]} {v:.2f}" for a, v in axes.items())) if axes else ""
+            share = f" {100 * f['fixed_share']:.0f} % fixed" if frame == "platform" else ""
+            cells.append(f"{frame}{share}{rms}")
+        if cells:
+            out.append(f"    {e['channels']:<18} " + "; ".join(cells))
     return out

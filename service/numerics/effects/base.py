@@ -318,10 +318,16 @@ class EffectTerm:
     linear: ClassVar[bool] = True
     #: the term finds its regressors in the residual of the model without it (ProbeView.model_residual)
     needs_residual: ClassVar[bool] = False
+    #: ... and chooses them there (perming step instants): diagnose then finds them again without each
+    #: held-out block, so they are never chosen on the samples they are judged on (diagnose/fits.py)
+    chooses_in_residual: ClassVar[bool] = False
     #: each sample's correction depends on that sample alone (and on references kept with the calibration):
     #: the running service can add it, and correcting block by block gives the same numbers however the input
     #: is cut (no derivatives, smoothing or time shifts across samples)
     per_sample: ClassVar[bool] = False
+    #: a slow term (a function of time alone): under coloured noise its standard errors also come from a
+    #: power-law model of the residual's spectrum (engine/coloured.py), which the block jackknife cannot see
+    slow: ClassVar[bool] = False
     #: other catalogue name -> what motion or data tells the two apart
     separation: ClassVar[dict[str, str]] = {}
 

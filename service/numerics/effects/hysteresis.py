@@ -89,6 +89,7 @@ class Hysteresis(EffectTerm):
     name = "hysteresis"
     title = "Hysteresis"
     needs_residual = True
+    chooses_in_residual = True
     physical = "perming: offset steps after a strong field or a shock"
     separation = {
         "drift": "record longer: a drift changes smoothly, a perming step jumps once",

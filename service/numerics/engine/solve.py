@@ -3,9 +3,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -148,7 +149,68 @@ class FitResult:
             if i.size:
                 ratio = float(np.median(jack[i] / self.stderr[i]))
                 out[idx] = self.stderr[idx] * max(1.0, ratio)
+        # slow terms: the noise's wander at periods as long as the record, from a power law of its spectrum
+        slow = np.array([j for sl in self.problem.slots if sl.term is not None and sl.term.slow
+                         for j in range(sl.start, sl.stop) if not self.undetermined[j]], dtype=int)
+        spectral = self.coloured_stderr(slow) if slow.size else None
+        if spectral is not None:
+            out[slow] = np.maximum(out[slow], spectral)
         return out
+
+    def coloured_stderr(self, idx: np.ndarray) -> np.ndarray | None:
+        """Standard errors of parameters idx under a power-law model of the noise spectrum (engine/coloured.py);
+        None when the noise is not coloured at the record's own period. With the offsets fitted, the model is
+        per probe axis (the channels' sensitivity to a probe's noise is minus their sensitivity to its
+        offset); otherwise per channel, with the channels' slow parts' correlation."""
+        from .coloured import (
+            FLICKER,
+            is_coloured,
+            low_frequency_correlation,
+            pinv_columns,
+            power_law,
+            probe_power_laws,
+            sample_grid,
+            spectral_variance,
+        )
+
+        ch, pr = self.channels, self.problem
+        if ch.values.shape[0] < 512 or self.jac is None:
+            return None
+        grid, dt = sample_grid(ch.t_s)
+        duration = float(ch.t_s[-1] - ch.t_s[0])
+        cols = pinv_columns(self.a_blocks.sum(0), idx, RANK_TOL)
+        w2 = pr.weights ** 2
+        offsets = [(sl.k, j) for sl in pr.slots if sl.kind == "offset" for j in range(sl.start, sl.stop)]
+        if len(offsets) == 3 * pr.P:
+            sens = []
+            for _, j in offsets:
+                unit = np.zeros(pr.n_params)
+                unit[j] = 1.0
+                sens.append(pr.apply(self.jac, self.ev, unit))                  # (N, C) per probe axis
+            gain = np.array([[sum(float(np.mean(sens[3 * k + a][:, c] ** 2)) for a in range(3))
+                              for k in range(pr.P)] for c in range(ch.values.shape[1])])
+            law = probe_power_laws(ch.values, dt, gain)
+            if law is None or not any(is_coloured((float(w), float(a), law[2]), duration) for w, a in zip(*law[:2])):
+                return None
+            if law[2] > FLICKER:
+                law = probe_power_laws(ch.values, dt, gain, alphas=np.array([FLICKER])) or law
+            w, a, alpha = law
+            models = [(float(w[k]), float(a[k]), alpha) for k, _ in offsets]
+            out = []
+            for col in cols.T:
+                u = pr.apply(self.jac, self.ev, col) * w2
+                v = np.column_stack([np.einsum("nc,nc->n", u, d) for d in sens])
+                out.append(spectral_variance(v, grid, models, dt))
+            return np.sqrt(out)
+        models = [power_law(ch.values[:, c], dt) for c in range(ch.values.shape[1])]
+        if not any(is_coloured(m, duration) for m in models):
+            return None
+        models = [power_law(ch.values[:, c], dt, np.array([FLICKER])) or m
+                  if m is not None and is_coloured(m, duration) and m[2] > FLICKER else m
+                  for c, m in enumerate(models)]
+        rho = low_frequency_correlation(ch.values)
+        return np.sqrt([spectral_variance(pr.apply(self.jac, self.ev, col) * w2, grid, models, dt, rho)
+                        for col in cols.T])
 
     def parameters(self, *, effects_only: bool = True) -> list[Parameter]:
         out = []
@@ -195,7 +257,7 @@ class Warm:
     known: np.ndarray
 
 
-def warm_from(base: "FitResult", pr: Problem) -> Warm | None:
+def warm_from(base: FitResult, pr: Problem) -> Warm | None:
     """The base fit's block normal equations placed into problem pr's layout (which must contain every
     base parameter, under the same name, with the same rows, blocks and weights)."""
     names = pr.param_names()
@@ -218,7 +280,7 @@ def warm_from(base: "FitResult", pr: Problem) -> Warm | None:
 
 def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float = 0.01,
                 progress: Callable[[str], None] | None = None, warm: Warm | None = None,
-                ev0: _Eval | None = None, jac0: "_Jac | None" = None) -> FitResult:
+                ev0: _Eval | None = None, jac0: _Jac | None = None) -> FitResult:
     """Gauss-Newton from `start` until every step is below tol_se standard errors. With `warm`, the first
     linearisation assembles only the rows of the parameters warm does not know. ev0, jac0: the residuals
     and Jacobian at `start` when the caller has them already."""

@@ -1,0 +1,163 @@
+"""Standard errors of slow terms under coloured noise, from a power-law model of the residual's spectrum.
+
+A drift (a polynomial in time) and the noise's own wander at periods as long as the record look alike. The
+block jackknife (solve.FitResult.robust_stderr) sees the wander only between its blocks, and under 1/f noise
+the drift rates' errors were about twice the stated ones. Here a parameter's variance is computed from the
+spectrum the noise has at those periods:
+
+- per channel, S(f) = w + a f^alpha (one-sided, nT^2/Hz), fitted to the Welch spectrum of the residual:
+  alpha on a grid in [-2.5, 0], w and a >= 0 by least squares relative to the spectrum;
+- the parameter's weights u (its row of the weighted least-squares solution: delta theta = sum u eps, an
+  (N, C) array) placed on the uniform sample grid (gaps hold no weight), and
+
+      Var = sum_c  integral |U_c(f)|^2 S_c(f) df
+
+  on a zero-padded FFT of u (white noise, S = 2 sigma^2 dt, gives back sigma^2 sum u^2: the usual formula).
+
+The model extends the power law below the band it was fitted on (MIN_CYCLES per record and up: lower, the fitted
+slow terms took the power), never flatter than flicker noise (1/f) once the noise is coloured: that
+assumption, standard for rates under flicker noise (Williams 2003, J. Geodesy 76: 483-494), is what the
+figure rests on; a noise whose spectrum steepens below the band (a random walk of the offsets) is understated. The
+channels are not independent (one probe's noise is in its scalar channel and in every difference with it,
+and a probe's axes mix under its matrix): their cross-spectra are taken as rho sqrt(S_c S_c'), rho the
+correlation of the channels' slow parts (their means over contiguous blocks).
+
+Numerics only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.fft import next_fast_len, rfft, rfftfreq
+from scipy.optimize import nnls
+from scipy.signal import welch
+
+#: the spectral index grid of the power law
+ALPHAS = np.round(np.arange(-2.5, 0.001, 0.05), 3)
+#: a coloured noise is extrapolated below the fitted band at least as steeply as flicker noise (1/f), the
+#: fluxgate's own low-frequency noise: one record fixes alpha only to a few tenths (fits of 1/f noise gave
+#: -0.7 to -1.15), and a flatter law understates the wander at the record's own period
+FLICKER = -1.0
+#: the power law is fitted above this many cycles per record: below, the residual has lost the power that the
+#: fitted slow terms took (a quadratic drift takes the wander at the record's own periods)
+MIN_CYCLES = 16.0
+#: the noise is coloured when its power law is above the white level at this many cycles per record (four
+#: times the lowest fitted frequency)
+COLOURED_CYCLES = 4 * MIN_CYCLES
+
+
+def power_law(y: np.ndarray, dt: float, alphas: np.ndarray = ALPHAS) -> tuple[float, float, float] | None:
+    """(w, a, alpha) of S(f) = w + a f^alpha (one-sided, alpha the best of `alphas`) fitted to y's Welch
+    spectrum above MIN_CYCLES per record, or None when y is too short for a spectrum."""
+    got = probe_power_laws(np.asarray(y, float)[:, None], dt, np.ones((1, 1)), alphas)
+    return None if got is None else (float(got[0][0]), float(got[1][0]), got[2])
+
+
+def _welch_bins(y: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray] | None:
+    n = y.size
+    if n < 512 or not dt > 0:
+        return None
+    f, p = welch(y - y.mean(), fs=1.0 / dt, nperseg=int(2 ** np.floor(np.log2(n / 4))))
+    return f[1:], p[1:]
+
+
+def probe_power_laws(values: np.ndarray, dt: float, gain: np.ndarray,
+                     alphas: np.ndarray = ALPHAS) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """(w (P,), a (P,), alpha): each probe's noise per axis, S_k(f) = w_k + a_k f^alpha (one-sided, the same
+    on its three axes, one alpha for all, the best of `alphas`), fitted to the Welch spectra of the residual
+    channels `values` (N, C) above MIN_CYCLES per record, channel c carrying gain[c, k] times probe k's axis
+    noise power (the sum over the axes of its squared sensitivity to them). The noise lives in the probes,
+    not in the channels: a probe's wander is in its scalar channel and in every difference with it."""
+    spectra = [_welch_bins(values[:, c], dt) for c in range(values.shape[1])]
+    if any(sp is None for sp in spectra):
+        return None
+    f = spectra[0][0]
+    pc = np.array([sp[1] for sp in spectra])                  # (C, F)
+    ok = np.all(pc > 0, axis=0) & (f >= MIN_CYCLES / (values.shape[0] * dt))
+    f, pc = f[ok], pc[:, ok]
+    if f.size < 8:
+        return None
+    c_n, p_n = gain.shape
+    wt = np.sqrt(1.0 / f / np.sum(1.0 / f))                   # as many per decade low as high
+    best, best_score = None, np.inf
+    for alpha in alphas:
+        # rows (c, f): [gain_ck, gain_ck f^alpha] / S_cf, target 1
+        x = np.concatenate([np.repeat(gain[:, None, :], f.size, axis=1),
+                            gain[:, None, :] * (f ** alpha)[None, :, None]], axis=2) / pc[:, :, None]
+        x = (x * wt[None, :, None]).reshape(-1, 2 * p_n)
+        coef, _ = nnls(x, np.tile(wt, c_n))
+        model = np.einsum("ck,kf->cf", gain, coef[:p_n, None] + coef[p_n:, None] * f[None, :] ** alpha)
+        if not np.all(model > 0):
+            continue
+        score = float(np.sum(np.log(pc / model) ** 2 / f[None, :]))
+        if score < best_score:
+            best, best_score = (coef[:p_n].copy(), coef[p_n:].copy(), float(alpha)), score
+    return best
+
+
+def is_coloured(model: tuple[float, float, float] | None, duration_s: float) -> bool:
+    """Whether the power law stands above the white level over the low end of the band it was fitted on, up
+    to COLOURED_CYCLES per record: seen in the data, not only extrapolated (a steep law of tiny amplitude
+    fits a chance excess of white noise in the lowest bins, and would claim a wander hundreds of times the
+    white level at the record's own period)."""
+    if model is None or duration_s <= 0:
+        return False
+    w, a, alpha = model
+    return alpha < -0.3 and a * (COLOURED_CYCLES / duration_s) ** alpha >= max(w, 1e-300)
+
+
+def spectral_variance(u: np.ndarray, grid: np.ndarray, models: list[tuple[float, float, float] | None],
+                      dt: float, rho: np.ndarray | None = None, pad: int = 4) -> float:
+    """Var(sum u eps) for weights u (N, C) at positions `grid` (N,) of a uniform grid of step dt, the noise
+    of channel c having the one-sided spectrum models[c] = (w, a, alpha) and the channels the correlation rho
+    (C, C; None: independent): the cross-spectrum of channels c, c' is rho_cc' sqrt(S_c S_c'). A channel
+    without a model (too short for a spectrum) is taken as white at the mean of the others' white levels."""
+    length = int(grid[-1]) + 1
+    m = next_fast_len(pad * length)
+    f = rfftfreq(m, dt)[1:]
+    known = [mo for mo in models if mo is not None]
+    white = float(np.mean([mo[0] for mo in known])) if known else 0.0
+    used = [c for c in range(u.shape[1]) if np.any(u[:, c])]
+    if not used:
+        return 0.0
+    g = np.empty((f.size, len(used)), complex)
+    for j, c in enumerate(used):
+        w, a, alpha = models[c] if models[c] is not None else (white, 0.0, 0.0)
+        x = np.zeros(length)
+        np.add.at(x, grid, u[:, c])
+        g[:, j] = rfft(x, n=m)[1:] * np.sqrt(w + a * f ** alpha)
+    gram = (g.conj().T @ g).real                             # sum over frequencies of G_c* G_c'
+    r = np.eye(len(used)) if rho is None else rho[np.ix_(used, used)]
+    return float(np.sum(r * gram)) / (m * dt)
+
+
+def low_frequency_correlation(values: np.ndarray, blocks: int = 32) -> np.ndarray:
+    """(C, C) correlation of the channels' slow parts: of their means over `blocks` contiguous blocks (at
+    least four per channel), where a wander shared by channels (one probe's noise in several) shows."""
+    n, c = values.shape
+    nb = min(max(blocks, 4 * c), n // 4)
+    if nb < c + 2:
+        return np.eye(c)
+    means = np.array([b.mean(0) for b in np.array_split(values, nb)])
+    sd = means.std(0)
+    sd[sd <= 0] = 1.0
+    z = (means - means.mean(0)) / sd
+    return z.T @ z / nb
+
+
+def sample_grid(t_s: np.ndarray) -> tuple[np.ndarray, float]:
+    """(positions on a uniform grid of the median interval, that interval) for sample times t_s."""
+    t = np.asarray(t_s, float)
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    return np.rint((t - t[0]) / dt).astype(np.int64), dt
+
+
+def pinv_columns(a: np.ndarray, idx: np.ndarray, rank_tol: float) -> np.ndarray:
+    """Columns idx of the pseudo-inverse of a symmetric normal matrix, on its column-scaled form (as the
+    solve itself: eigenvalues below rank_tol of the largest are a null space)."""
+    d = np.sqrt(np.clip(np.diag(a), 0.0, None))
+    d[d <= 0] = 1.0
+    lam, vec = np.linalg.eigh(a / np.outer(d, d))
+    keep = lam > rank_tol * (lam[-1] if lam[-1] > 0 else 1.0)
+    vk = vec[:, keep]
+    return (vk @ (vk[idx].T / lam[keep][:, None])) / d[:, None] / d[idx][None, :]

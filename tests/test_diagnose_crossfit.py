@@ -1,0 +1,57 @@
+"""Nuisance choices inside the training blocks (issue 14): a term that finds its regressors in the residual
+(perming step instants) is judged on each held-out block with regressors found without that block; a true
+step is still found and judged significant, a smooth offset wander is not called perming."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import service.numerics.effects.hysteresis as hysteresis
+from service.numerics.diagnose import diagnose, summary_text
+from test_diagnose import TUMBLE, data_of, probe, sim_block
+
+
+def stepped(seed: int, *, wander: bool):
+    probes = [probe(0), probe(1)]
+    block = sim_block(probes, n=10000, rate=100.0, motion=TUMBLE, seed=seed)
+    t = block.t_s - block.t_s[0]
+    if wander:       # smooth: a slow swing and a gentle 16-s transition, no jump
+        block.field_nT[:, 1, :] += np.outer(3.0 * np.sin(2 * np.pi * t / 45.0) + 2.0 * np.tanh((t - 60) / 8.0),
+                                            [1.0, -0.6, 0.4])
+    else:
+        block.field_nT[t >= 61.7, 1, :] += np.array([6.0, -4.0, 3.0])
+    return data_of(block, probes)
+
+
+@pytest.mark.slow
+def test_each_held_out_block_gets_steps_found_without_it(monkeypatch):
+    data = stepped(21, wander=False)
+    seen: list[np.ndarray] = []
+    real = hysteresis.detect_steps
+
+    def spy(t_s, residual, gain, **kw):
+        seen.append(np.isnan(residual))
+        return real(t_s, residual, gain, **kw)
+
+    monkeypatch.setattr(hysteresis, "detect_steps", spy)
+    d = diagnose(data, candidates=["hysteresis"])
+    pr = d.fit.problem
+    blocks = [pr.rows[sl] for sl in pr.blocks]
+    # per probe: once in the whole residual (the fit shown), then once per block with that block left out
+    masked = [m for m in seen if m[pr.rows].any()]
+    for rows in blocks:
+        assert any(m[rows].all() and not m[np.setdiff1d(pr.rows, rows)].any() for m in masked), rows[:3]
+    first = d.candidates[0]
+    assert first.effect == "hysteresis" and first.significant, summary_text(d)
+    assert first.gain > 0.5
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [22, 23])
+def test_a_smooth_offset_wander_is_not_called_perming(seed):
+    d = diagnose(stepped(seed, wander=True))
+    hyst = next(c for c in d.candidates if c.effect == "hysteresis")
+    assert not hyst.significant, summary_text(d)
+    assert d.verdict["kind"] in ("unexplained", "partly explained"), d.verdict
+    assert d.verdict["effect"] != "hysteresis"
