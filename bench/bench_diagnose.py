@@ -97,11 +97,13 @@ def main() -> None:
     # the other reading of "the full catalogue": every effect in the model at once
     from service.numerics.effects import EFFECTS
 
+    usable = [name for name, cls in EFFECTS.items() if cls().why_unavailable(data) is None]
     t0 = time.perf_counter()
-    fit, _ = fit_with_effects(data, list(EFFECTS))
+    fit, _ = fit_with_effects(data, usable)
     t_all = time.perf_counter() - t0
     n_par = len(fit.parameters)
-    print(f"fit with every effect in the model ({n_par} effect parameters): {t_all:7.2f} s = "
+    print(f"fit with every effect these data allow in the model ({len(usable)} of {len(EFFECTS)}, {n_par} effect "
+          f"parameters): {t_all:7.2f} s = "
           f"{t_all / t_base:5.1f} x baseline   (rms {fit.rms_nT:.3f} nT)")
     contract = ["temperature", "eddy", "lag", "nonlinearity", "drift"]
     t0 = time.perf_counter()
