@@ -23,7 +23,6 @@ from service.numerics.engine import (
 
 from .result import ABSORBED, CANDIDATE_ITERATIONS, GAIN_SIGMAS, MIN_GAIN, P_SIGNIFICANT, Candidate
 
-
 #: regressors found in the residual are found again without each held-out block (crossfit_heldout); False only
 #: to measure what that changes
 CROSSFIT = True
@@ -162,29 +161,18 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
             untestable.reason = ("no perming step stands out of the noise in the residual" if name == "hysteresis"
                                  else "nothing to fit in these data")
             return untestable
-        start = pr.start_state(cur.state.linear, cur.state)
-        warm = warm_from(cur, pr)
+        start, warm, ev0, jac0 = _warm_start(pr, cur)
         if warm is not None:
-            # the model's normal equations at this very point are known: assemble only the candidate's rows,
-            # and see first whether the model already spans them (then there is nothing to fit)
-            ev0 = pr.evaluate(start)
-            jac0 = pr.jacobian(start, ev0)
-            a_c, g_c = pr.assemble(jac0, ev0, only=~warm.known)
-            both = warm.known[:, None] & warm.known[None, :]
-            a_c[:, both] = warm.a_blocks[:, both]
-            g_c[:, warm.known] = warm.g_blocks[:, warm.known]
-            absorbed = _absorbed_in(pr, a_c.sum(0), name)
+            # the model's normal equations at this very point are known: only the candidate's rows were
+            # assembled; see first whether the model already spans them (then there is nothing to fit)
+            absorbed = _absorbed_in(pr, warm.a_blocks.sum(0), name)
             if absorbed:
                 same = Candidate(effect=name, rms_nT=cur.rms_nT, heldout_rms_nT=cur_ho.rms_nT,
                                  indistinguishable_from=absorbed, separate_by=_separation(name, absorbed[0]),
                                  reason=f"the model's {absorbed[0]} spans its regressors in these data",
                                  refusal=f"the model's {absorbed[0]} spans it")
                 return same
-            warm = Warm(a_c, g_c, np.ones(pr.n_params, bool))
-        # at most CANDIDATE_ITERATIONS: a fit stopped early overstates its RSS, so its gain is understated
-        # (conservative); in practice one or two steps converge and only flat directions creep on
-        fit = (fit_problem(pr, start, warm=warm, max_iter=CANDIDATE_ITERATIONS, ev0=ev0, jac0=jac0)
-               if warm is not None else fit_problem(pr, start, max_iter=CANDIDATE_ITERATIONS))
+        fit = _fit_from(pr, start, warm, ev0, jac0)
     except (FluxcalError, np.linalg.LinAlgError, ValueError) as e:
         untestable.reason = f"fit failed: {e}"
         return untestable
@@ -237,18 +225,30 @@ def crossfit_heldout(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldo
     return Heldout(sse_w, sse, cnt)
 
 
-def _fit_beside(pr: Problem, cur: FitResult) -> FitResult:
-    """A candidate problem fitted from the model's fit: its normal equations reused, only the candidate's rows
-    assembled."""
+def _warm_start(pr: Problem, cur: FitResult) -> tuple[Any, Warm | None, Any, Any]:
+    """(start, warm, ev0, jac0) of a candidate problem from the model's fit: the model's normal equations
+    reused and only the candidate's rows assembled (warm None when the layouts differ)."""
     start = pr.start_state(cur.state.linear, cur.state)
     warm = warm_from(cur, pr)
     if warm is None:
-        return fit_problem(pr, start, max_iter=CANDIDATE_ITERATIONS)
+        return start, None, None, None
     ev0 = pr.evaluate(start)
     jac0 = pr.jacobian(start, ev0)
     a_c, g_c = pr.assemble(jac0, ev0, only=~warm.known)
     both = warm.known[:, None] & warm.known[None, :]
     a_c[:, both] = warm.a_blocks[:, both]
     g_c[:, warm.known] = warm.g_blocks[:, warm.known]
-    return fit_problem(pr, start, warm=Warm(a_c, g_c, np.ones(pr.n_params, bool)), max_iter=CANDIDATE_ITERATIONS,
-                       ev0=ev0, jac0=jac0)
+    return start, Warm(a_c, g_c, np.ones(pr.n_params, bool)), ev0, jac0
+
+
+def _fit_from(pr: Problem, start: Any, warm: Warm | None, ev0: Any, jac0: Any) -> FitResult:
+    """At most CANDIDATE_ITERATIONS: a fit stopped early overstates its RSS, so its gain is understated
+    (conservative); in practice one or two steps converge and only flat directions creep on."""
+    if warm is None:
+        return fit_problem(pr, start, max_iter=CANDIDATE_ITERATIONS)
+    return fit_problem(pr, start, warm=warm, max_iter=CANDIDATE_ITERATIONS, ev0=ev0, jac0=jac0)
+
+
+def _fit_beside(pr: Problem, cur: FitResult) -> FitResult:
+    """A candidate problem fitted from the model's fit."""
+    return _fit_from(pr, *_warm_start(pr, cur))
