@@ -24,7 +24,7 @@ def by_channels(d, name):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [2, 5])
-def test_a_site_gradient_turns_with_the_platform_and_shows_per_earth_axis(seed):
+def test_a_site_gradient_turns_with_the_platform_and_shows_per_earth_axis(seed, tmp_path):
     probes = [probe(k) for k in range(3)]
     block = sim_block(probes, n=6000, rate=100.0, motion=TUMBLE, seed=seed, attitude=True,
                       field={"total_nT": F_TOTAL, "inclination_deg": 62.0, "gradient_nT_m": G})
@@ -44,6 +44,12 @@ def test_a_site_gradient_turns_with_the_platform_and_shows_per_earth_axis(seed):
     left = d.verdict.get("left") or ""
     assert "turns with the platform" in left and "gradient" in left, d.verdict
     assert json.loads(json.dumps(d.as_dict()))["frames"][3]["earth"]["rms_nT"]["north"] > 0
+    if seed == 2:                                            # and the HTML report, with its plot
+        from service.io.report import write_report
+
+        page = write_report(d, tmp_path / "rep").read_text()
+        assert "Per axis, in each frame" in page and "s3-s1.xyz" in page and "north" in page
+        assert (tmp_path / "rep" / "frames.png").stat().st_size > 1000
 
 
 @pytest.mark.slow

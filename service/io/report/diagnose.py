@@ -78,6 +78,52 @@ def _spectrum_figure(plt, d: Diagnosis) -> tuple[str, str, bytes] | None:
     return ("spectrum.png", "Spectrum of the residual of each channel (dotted: its white noise floor)", data)
 
 
+def _frames_figure(plt, d: Diagnosis) -> tuple[str, str, bytes] | None:
+    """Each difference vector's RMS per axis in the platform, probe and Earth frames: which axis carries it,
+    and (with the share fixed in the platform in the title) whether it stands still or turns with the platform."""
+    diffs = [e for e in d.frames if e["kind"] == "difference"]
+    if not diffs:
+        return None
+    fig, axes = plt.subplots(1, len(diffs), figsize=(min(7.5, 2.6 * len(diffs) + 1.0), 3.0), squeeze=False)
+    for ax, e in zip(axes[0], diffs):
+        frames = [f for f in ("platform", "probe", "earth") if f in e and "rms_nT" in e[f]]
+        xs = np.arange(3)
+        w = 0.8 / len(frames)
+        for i, f in enumerate(frames):
+            ax.bar(xs + (i - (len(frames) - 1) / 2) * w, list(e[f]["rms_nT"].values()), w, label=f)
+        ax.set_xticks(xs, ["x / N", "y / E", "z / D"] if "earth" in frames else ["x", "y", "z"], fontsize=8)
+        share = e["platform"]["fixed_share"]
+        ax.set_title(f"{e['channels']}" + ("" if share is None else f" ({100 * share:.0f} % fixed)"), fontsize=8)
+        ax.set_ylabel("RMS (nT)")
+        ax.grid(alpha=0.3, axis="y")
+    axes[0][0].legend(fontsize=7)
+    data = png(fig)
+    plt.close(fig)
+    return ("frames.png", "Each difference vector's RMS per axis in the platform, probe and Earth frames "
+            "(in brackets: the share of its excess a vector fixed in the platform explains)", data)
+
+
+def _frames_table(d: Diagnosis) -> str:
+    rows = []
+    for e in d.frames:
+        for f in ("platform", "probe", "earth"):
+            fr = e.get(f)
+            if fr is None:
+                continue
+            share = fr.get("fixed_share")
+            axes = fr.get("rms_nT") or {}
+            rows.append(f"<tr><td>{html.escape(e['channels'])}</td><td>{f}</td>"
+                        f"<td>{'-' if share is None else f'{100 * share:.0f} %'}</td>"
+                        f"<td>{html.escape(', '.join(f'{k} {v:.3f}' for k, v in axes.items()) or '-')}</td></tr>")
+    if not rows:
+        return ""
+    return ("<h2>Per axis, in each frame</h2><p>The share of the residual's excess over its floor that one vector fixed "
+            "in the platform frame explains (an offset error or a field the platform carries stands still there; a "
+            "field of the site turns with the platform), and the RMS per axis in each frame.</p>"
+            "<table><tr><th>channels</th><th>frame</th><th>fixed in the platform</th><th>RMS per axis (nT)</th></tr>"
+            + "".join(rows) + "</table>")
+
+
 def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
     """(file name, caption, PNG bytes) of every plot."""
     plt = pyplot()
@@ -88,9 +134,9 @@ def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
     before_vals = d.fit.channels.values
     after_vals = after.channels.values if after is not None else None
 
-    spectrum = _spectrum_figure(plt, d)
-    if spectrum is not None:
-        figs.append(spectrum)
+    for extra in (_spectrum_figure(plt, d), _frames_figure(plt, d)):
+        if extra is not None:
+            figs.append(extra)
 
     # residual against the strongest observables
     seen: set[tuple[str, str]] = set()
@@ -228,6 +274,7 @@ blocks, each predicted by the fit to the others.</p>
 <table><tr><th>channel</th><th>RMS (nT)</th><th>noise (nT)</th></tr>{ch_rows}</table>
 <h2>Where the model fails</h2>
 <table><tr><th>channel</th><th>observable</th><th>explained variance</th></tr>{where_rows}</table>
+{_frames_table(d)}
 <h2>Plots</h2>
 {images(figs) if figs else f"<p>{html.escape(note)}</p>"}
 {cal}
