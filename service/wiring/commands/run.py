@@ -4,13 +4,21 @@ the page costs the service only one more Zenoh subscriber)."""
 
 from __future__ import annotations
 
-import signal
-import subprocess
-import sys
-from argparse import Namespace
+import os
 
-from service.wiring.config import load_config
-from service.wiring.daemon import Daemon
+# The estimator and the gate multiply small matrices: idle OpenBLAS worker threads spin for the cores between
+# them (bench/bench_service.py --live-only, 4 probes at 1 kHz, 30 s: 15.3 % of a core with the default threads
+# and the other core busy, 13.3 % with one; idle, 16.9 % and 15.9 %). One thread unless the user says
+# otherwise; this only takes effect when numpy is not loaded yet (the CLI).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import signal  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from argparse import Namespace  # noqa: E402
+
+from service.wiring.config import load_config  # noqa: E402
+from service.wiring.daemon import Daemon  # noqa: E402
 
 
 def start_dashboard(config: str, listen: str) -> subprocess.Popen:
