@@ -101,3 +101,21 @@ def test_channel_sums_give_the_rms_of_the_whole_channels(total):
     ident = ArrayCalibration("none", None, [ProbeCalibration(n, np.zeros(3), np.eye(3)) for n in data.probe_names])
     for name, v in residual_channels(data, ident, tf).items():
         assert before[name] == pytest.approx(rms(v), rel=1e-12)
+
+
+def test_fit_gives_the_same_numbers_with_and_without_a_report(tmp_path, capsys):
+    """The report takes the scalar residuals whole for its direction bins; the figures printed are the chunked
+    sums either way."""
+    import json
+    from pathlib import Path
+
+    from service.wiring import cli
+
+    rec = str(Path(__file__).resolve().parents[1] / "recordings" / "grad1-sim-30s.mcap")
+    assert cli.main(["fit", rec, "--json"]) == 0
+    plain = json.loads(capsys.readouterr().out)
+    assert cli.main(["fit", rec, "--json", "--report", str(tmp_path / "rep")]) == 0
+    with_report = json.loads(capsys.readouterr().out)
+    assert with_report == plain
+    page = (tmp_path / "rep" / "index.html").read_text()
+    assert "s1" in page and "s2" in page

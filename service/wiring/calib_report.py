@@ -14,11 +14,16 @@ from service.numerics.calib.param_table import effect_rows, probe_rows
 from service.numerics.calib.sky import CalibrationSection, probe_sky
 
 
+#: the median |raw| is taken over at most this many samples, evenly spaced (hours of data: no copy of them all)
+SCALE_ROWS = 100_000
+
+
 def _field_scale_nT(cal: Any, raw_nT: np.ndarray) -> float:
     """The total field the offsets are judged against: the calibration's, else the median |raw|."""
     if getattr(cal, "total_nT", None):
         return float(cal.total_nT)
-    return float(np.median(np.linalg.norm(raw_nT.reshape(-1, 3), axis=1)))
+    step = max(1, raw_nT.shape[0] // SCALE_ROWS)
+    return float(np.median(np.linalg.norm(raw_nT[::step].reshape(-1, 3), axis=1)))
 
 
 def section_from_fit(data: Any, cal: Any, channels: dict[str, np.ndarray], coverages: list[Any],

@@ -6,6 +6,7 @@ import json
 import sys
 from argparse import Namespace
 from dataclasses import replace
+from itertools import islice
 from typing import Any
 
 import numpy as np
@@ -20,7 +21,7 @@ from service.wiring.fitting import (
     channel_sums,
     contract_json,
     fit_array,
-    residual_channels,
+    iter_residual_channels,
     rms,
     rms_all,
     uncalibrated_rms,
@@ -90,10 +91,11 @@ def main(args: Namespace) -> int:
         rows = ef.result.problem.rows                       # the channels cover the fitted rows only
     else:
         rows, report_data, thinned = None, data, None
-        # the report bins the residual over direction and needs it whole; otherwise each channel's sum of
-        # squares is enough, taken over chunks of rows (hours of data)
-        channels = (residual_channels(data, cal, total) if getattr(args, "report", None)
-                    else channel_sums(data, cal, total))
+        # each channel's sum of squares is enough, taken over chunks of rows (hours of data); the report bins
+        # the scalar residuals over direction and needs those whole (not the 3 (P - 1) differences)
+        channels = channel_sums(data, cal, total)
+        if getattr(args, "report", None):
+            channels.update(islice(iter_residual_channels(data, cal, total), data.block.n_probes))   # scalars first
     if sys.stderr.isatty():
         print("\r\033[K", end="", file=sys.stderr)
     before = uncalibrated_rms(data, total)
