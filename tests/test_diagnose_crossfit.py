@@ -55,3 +55,28 @@ def test_a_smooth_offset_wander_is_not_called_perming(seed):
     assert not hyst.significant, summary_text(d)
     assert d.verdict["kind"] in ("unexplained", "partly explained"), d.verdict
     assert d.verdict["effect"] != "hysteresis"
+
+
+def test_a_smooth_change_across_a_held_out_block_is_no_step_at_its_edge():
+    """Searched across the hole a held-out block leaves, a smooth change over it looks like a jump at its edge;
+    with the block as a barrier each side is searched on its own (the review's case: a tanh ramp)."""
+    rng = np.random.default_rng(3)
+    n = 100_000
+    t = np.arange(n) * 0.01                                           # 1,000 s at 100 Hz
+    ang = np.cumsum(rng.normal(0, 0.02, (n, 2)), axis=0)
+    gain = np.column_stack([np.cos(ang[:, 0]) * np.cos(ang[:, 1]), np.sin(ang[:, 0]) * np.cos(ang[:, 1]),
+                            np.sin(ang[:, 1])])
+    ramp = 4.0 * np.tanh((t - 450.0) / 60.0)
+    r = gain @ np.array([1.0, -0.5, 0.3]) * ramp + 0.5 * rng.standard_normal(n)
+    hole = (t >= 400.0) & (t <= 500.0)
+    masked = np.where(hole, np.nan, r)
+    kw = dict(window=300, threshold=50.0, max_steps=3)
+    across = hysteresis.detect_steps(t, masked, gain, **kw)
+    around = hysteresis.detect_steps(t, masked, gain, barrier=(400.0, 500.0), **kw)
+    at_edge = [ts for ts, _ in across if 395.0 <= ts <= 505.0]
+    assert at_edge, across                                            # the artefact the barrier removes
+    assert not [ts for ts, _ in around if 395.0 <= ts <= 505.0], around
+    # and a true jump on one side is still found there
+    jumped = masked + np.where(t >= 700.0, gain @ np.array([5.0, -3.0, 2.0]), 0.0)
+    found = hysteresis.detect_steps(t, jumped, gain, barrier=(400.0, 500.0), **kw)
+    assert any(abs(ts - 700.0) < 1.0 for ts, _ in found), found

@@ -34,6 +34,7 @@ def test_keep_every_is_the_smallest_stride_within_both_limits():
     assert keep_every(24000, 2, None, 48000) == 1
     assert keep_every(24000, 2, None, 47999) == 2
     assert keep_every(24000, 4, 20000, 24000) == 4            # the tighter of the two decides
+    assert keep_every(10, 3, None, 10) == 4                   # ceil(10 / 3) = 4 rows x 3 > 10: one more
     for n, p, m in [(1, 1, 1000), (999, 3, 1000), (3_600_000, 4, None)]:
         k = keep_every(n, p, m, 500_000)
         assert len(range(0, n, k)) * p <= 500_000 and (k == 1 or len(range(0, n, k - 1)) * p > 500_000
@@ -160,7 +161,8 @@ def test_fit_with_effects_beyond_the_budget_fits_them_on_one_sample_in_k(monkeyp
     assert cli.main(["fit", rec, "--effects", "temperature", "--json"]) == 0
     thin = json.loads(capsys.readouterr().out)
     assert not any("one sample in" in w for w in whole["warnings"])
-    assert any(w.startswith("effects fitted on one sample in 3 (8,000 of 24,000") for w in thin["warnings"])
+    assert any(w.startswith("effects fitted on one sample in 3 (8,000 of 24,000), the linear calibration refitted")
+               for w in thin["warnings"])
     a, b = whole["effect_params"]["temperature"], thin["effect_params"]["temperature"]
     assert set(a) == set(b)
     fitted = {name: p for name, p in b.items() if p["se"] is not None}               # not the reference constants
@@ -169,5 +171,7 @@ def test_fit_with_effects_beyond_the_budget_fits_them_on_one_sample_in_k(monkeyp
         assert p["se"] >= a[name]["se"]
         assert abs(p["value"] - a[name]["value"]) <= 3.0 * p["se"], (name, p, a[name])
     assert b["s1.x nT/degC"]["value"] == pytest.approx(2.0, abs=4 * b["s1.x nT/degC"]["se"])
-    # the linear calibration itself comes from every sample, before the effects are fitted
+    # the linear calibration, refitted with the effects on those samples, agrees within its standard errors
+    for sw, st in zip(whole["sensors"], thin["sensors"]):
+        assert np.all(np.abs(np.subtract(st["offset_nT"], sw["offset_nT"])) <= 4 * np.array(st["offset_se_nT"]))
     assert thin["rms_nT"] == pytest.approx(whole["rms_nT"], rel=0.05)

@@ -73,6 +73,8 @@ def keep_every(n: int, probes: int, max_samples: int | None, max_probe_samples: 
         k = max(k, -(-n // int(max_samples)))
     if max_probe_samples:
         k = max(k, -(-n * probes // int(max_probe_samples)))
+        while k < n and -(-n // k) * probes > int(max_probe_samples):    # ceil(n / k) rows are kept
+            k += 1
     return k
 
 

@@ -205,13 +205,18 @@ def crossfit_heldout(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldo
     that predict well. A block with no step found outside it is predicted as the model predicts it. (Terms
     that only start from the residual, thermal's tau, or take another probe's residual at the same instant as
     their regressor, ambient, choose nothing there.)"""
+    from service.numerics.effects.hysteresis import BARRIER
+
     pr0 = cur.problem
     sse_w, sse, cnt = cur_ho.sse_w.copy(), cur_ho.sse.copy(), cur_ho.n.copy()
-    refs = [v.cache for v in pr0.views]
     for b, sl in enumerate(pr0.blocks):
+        rows = pr0.rows[sl]
         masked = [r.copy() for r in hints[0]]
         for r in masked:
-            r[pr0.rows[sl]] = np.nan
+            r[rows] = np.nan
+        # searched on each side of the block, not across it (a smooth change across a hole looks like a step)
+        span = (float(ed.t_s[rows[0]]), float(ed.t_s[rows[-1]]))
+        refs = [{**v.cache, BARRIER: span} for v in pr0.views]
         pr = Problem(ed, model + make_term(name), cur.state.linear, reference, weights=weights, n_blocks=n_blocks,
                      hints=(masked, hints[1]), refs=refs)
         if pr.term_size(name) == 0 or len(pr.blocks) != len(pr0.blocks):

@@ -37,13 +37,10 @@ TURNS = 0.2
 
 
 def _rotation_part(m: np.ndarray) -> np.ndarray:
-    """The rotation R of the polar decomposition M = R S (S symmetric positive): probe frame -> common frame."""
+    """The orthogonal factor R of the polar decomposition M = R S (S symmetric positive): probe frame -> common
+    frame. A probe with one axis wired reversed (det M < 0) keeps its reflection, so its axes keep their signs."""
     u, _, vt = np.linalg.svd(m)
-    r = u @ vt
-    if np.linalg.det(r) < 0:
-        u[:, -1] *= -1
-        r = u @ vt
-    return r
+    return u @ vt
 
 
 def _share(fixed_power: float, total_power: float, noise_power: float) -> float | None:
@@ -67,7 +64,7 @@ def frames(data: EffectData, fit: FitResult, noise_nT: np.ndarray) -> list[dict[
         n = fit.ev.nhat[k]
         x = np.column_stack([np.ones_like(r), n])
         coef, *_ = np.linalg.lstsq(x, r, rcond=None)
-        fixed = float(np.mean((n @ coef[1:]) ** 2))
+        fixed = float(np.var(n @ coef[1:]))                   # the variance the direction explains
         share = _share(fixed, float(np.mean((r - r.mean()) ** 2)), float(noise[k] ** 2))
         rot = _rotation_part(mats[k])
         out.append({"channels": fit.channels.names[k], "kind": "scalar",
@@ -87,8 +84,10 @@ def frames(data: EffectData, fit: FitResult, noise_nT: np.ndarray) -> list[dict[
                             "rms_nT": dict(zip(AXES, np.sqrt(np.mean(v ** 2, axis=0)).tolist()))}
         entry["probe"]["fixed_share"] = entry["platform"]["fixed_share"]    # the same vector, turned
         if att is not None:
-            e = np.einsum("nij,nj->ni", att, d)
-            entry["earth"] = {"rms_nT": dict(zip(NED, np.sqrt(np.mean(e ** 2, axis=0)).tolist()))}
+            known = np.all(np.isfinite(att), axis=(1, 2))               # rows whose attitude was logged
+            if known.any():
+                e = np.einsum("nij,nj->ni", att[known], d[known])
+                entry["earth"] = {"rms_nT": dict(zip(NED, np.sqrt(np.mean(e ** 2, axis=0)).tolist()))}
         out.append(entry)
     return out
 

@@ -28,11 +28,25 @@ from .base import AXES, EffectTerm, ProbeView
 
 
 CHI2_3_MEDIAN = 2.366         # median of a chi-square with 3 degrees of freedom
+#: a view's cache key for a stretch (t_lo, t_hi) the steps are searched around, not across (diagnose's
+#: held-out block; diagnose/fits.py crossfit_heldout)
+BARRIER = "ref:hysteresis_barrier"
 
 
 def detect_steps(t_s: np.ndarray, residual: np.ndarray, gain: np.ndarray, *, window: int,
-                 threshold: float = 50.0, max_steps: int = 3) -> list[tuple[float, float]]:
-    """Offset steps in a scalar residual: [(t_step_s, chi2), ...], strongest first."""
+                 threshold: float = 50.0, max_steps: int = 3,
+                 barrier: tuple[float, float] | None = None) -> list[tuple[float, float]]:
+    """Offset steps in a scalar residual: [(t_step_s, chi2), ...], strongest first.
+
+    barrier (t_lo, t_hi): a stretch left out (a held-out block); the samples on either side are searched on
+    their own, so no window spans it (a smooth change across it would otherwise look like a step at its edge)."""
+    if barrier is not None:
+        lo, hi = barrier
+        found = []
+        for side in (t_s < lo, t_s > hi):
+            found += detect_steps(t_s, np.where(side, residual, np.nan), gain, window=window, threshold=threshold,
+                                  max_steps=max_steps)
+        return sorted(found, key=lambda tc: -tc[1])[:max_steps]
     ok = np.isfinite(residual) & np.all(np.isfinite(gain), axis=1)
     idx = np.flatnonzero(ok)
     n, w = idx.size, int(window)
@@ -112,7 +126,8 @@ class Hysteresis(EffectTerm):
                 data = view.data
                 window = int(min(max(data.n_samples // 30, round(2.0 / data.dt_s), 50), data.n_samples // 5))
                 found = detect_steps(data.t_s, view.model_residual, view.model_gain, window=window,
-                                     threshold=self.threshold, max_steps=self.max_steps)
+                                     threshold=self.threshold, max_steps=self.max_steps,
+                                     barrier=view.cache.get(BARRIER))
                 view.cache[key] = sorted(t for t, _ in found)
         return view.cache[key]
 

@@ -107,14 +107,19 @@ def is_coloured(model: tuple[float, float, float] | None, duration_s: float) -> 
 
 
 def spectral_variance(u: np.ndarray, grid: np.ndarray, models: list[tuple[float, float, float] | None],
-                      dt: float, rho: np.ndarray | None = None, pad: int = 4) -> float:
+                      dt: float, rho: np.ndarray | None = None, pad: int = 4, f_min: float = 0.0) -> float:
     """Var(sum u eps) for weights u (N, C) at positions `grid` (N,) of a uniform grid of step dt, the noise
     of channel c having the one-sided spectrum models[c] = (w, a, alpha) and the channels the correlation rho
     (C, C; None: independent): the cross-spectrum of channels c, c' is rho_cc' sqrt(S_c S_c'). A channel
-    without a model (too short for a spectrum) is taken as white at the mean of the others' white levels."""
+    without a model (too short for a spectrum) is taken as white at the mean of the others' white levels.
+
+    Weights that sum to zero for every noise source (a parameter fitted beside offsets) give a finite integral
+    down to f = 0; weights that do not (no offset fitted) would grow with the padding under 1/f noise, and
+    f_min (one cycle per record) then ends the integral where the record itself ends."""
     length = int(grid[-1]) + 1
     m = next_fast_len(pad * length)
     f = rfftfreq(m, dt)[1:]
+    keep = f >= f_min
     known = [mo for mo in models if mo is not None]
     white = float(np.mean([mo[0] for mo in known])) if known else 0.0
     used = [c for c in range(u.shape[1]) if np.any(u[:, c])]
@@ -126,6 +131,7 @@ def spectral_variance(u: np.ndarray, grid: np.ndarray, models: list[tuple[float,
         x = np.zeros(length)
         np.add.at(x, grid, u[:, c])
         g[:, j] = rfft(x, n=m)[1:] * np.sqrt(w + a * f ** alpha)
+    g = g[keep]
     gram = (g.conj().T @ g).real                             # sum over frequencies of G_c* G_c'
     r = np.eye(len(used)) if rho is None else rho[np.ix_(used, used)]
     return float(np.sum(r * gram)) / (m * dt)
@@ -143,6 +149,11 @@ def low_frequency_correlation(values: np.ndarray, blocks: int = 32) -> np.ndarra
     sd[sd <= 0] = 1.0
     z = (means - means.mean(0)) / sd
     return z.T @ z / nb
+
+
+#: a record whose gaps make its time grid longer than this many times its samples gets no spectral errors (the
+#: FFT would be as long as the gaps; the block jackknife stays)
+MAX_GRID_FILL = 8
 
 
 def sample_grid(t_s: np.ndarray) -> tuple[np.ndarray, float]:

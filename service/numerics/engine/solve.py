@@ -164,6 +164,7 @@ class FitResult:
         offset); otherwise per channel, with the channels' slow parts' correlation."""
         from .coloured import (
             FLICKER,
+            MAX_GRID_FILL,
             is_coloured,
             low_frequency_correlation,
             pinv_columns,
@@ -177,7 +178,9 @@ class FitResult:
         if ch.values.shape[0] < 512 or self.jac is None:
             return None
         grid, dt = sample_grid(ch.t_s)
-        duration = float(ch.t_s[-1] - ch.t_s[0])
+        if grid[-1] + 1 > MAX_GRID_FILL * grid.size:
+            return None                                   # mostly gaps: the jackknife's errors stand
+        duration = ch.values.shape[0] * dt                # the length the spectra are taken over (gaps closed)
         cols = pinv_columns(self.a_blocks.sum(0), idx, RANK_TOL)
         w2 = pr.weights ** 2
         offsets = [(sl.k, j) for sl in pr.slots if sl.kind == "offset" for j in range(sl.start, sl.stop)]
@@ -209,8 +212,8 @@ class FitResult:
                   if m is not None and is_coloured(m, duration) and m[2] > FLICKER else m
                   for c, m in enumerate(models)]
         rho = low_frequency_correlation(ch.values)
-        return np.sqrt([spectral_variance(pr.apply(self.jac, self.ev, col) * w2, grid, models, dt, rho)
-                        for col in cols.T])
+        return np.sqrt([spectral_variance(pr.apply(self.jac, self.ev, col) * w2, grid, models, dt, rho,
+                                          f_min=1.0 / duration) for col in cols.T])
 
     def parameters(self, *, effects_only: bool = True) -> list[Parameter]:
         out = []

@@ -125,16 +125,18 @@ def main(args: Namespace) -> int:
 
 
 def effects_data(data: LabData) -> tuple[LabData, str | None]:
-    """The samples the effects are fitted to: every one, or one in k beyond NONLINEAR_PROBE_SAMPLES (the fit is
-    nonlinear over every sample it is given); then what that costs, said among the warnings."""
+    """The samples the effects (and the linear part with them) are fitted to: every one, or one in k beyond
+    NONLINEAR_PROBE_SAMPLES (the fit is nonlinear over every sample it is given); then what that costs, said
+    among the warnings."""
     b = data.block
     k = keep_every(b.n_samples, b.n_probes, None, NONLINEAR_PROBE_SAMPLES)
     if k == 1:
         return data, None
     part = replace(data, block=every_kth(b, k))
-    return part, (f"effects fitted on one sample in {k} ({part.block.n_samples:,} of {b.n_samples:,}; the linear "
-                  f"calibration on every sample) to stay within {NONLINEAR_PROBE_SAMPLES:,} probe-samples: their "
-                  f"standard errors are those of the samples used, and the residual channels cover those samples")
+    return part, (f"effects fitted on one sample in {k} ({part.block.n_samples:,} of {b.n_samples:,}), the linear "
+                  f"calibration refitted with them there (it started from a fit to every sample), to stay within "
+                  f"{NONLINEAR_PROBE_SAMPLES:,} probe-samples: the standard errors are those of the samples used, "
+                  f"and the residual channels cover those samples")
 
 
 def _write_report(args: Namespace, data, cal, channels, coverages, warnings, total_source, rows) -> None:
