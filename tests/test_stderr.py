@@ -91,3 +91,35 @@ def test_the_spectral_variance_of_a_trend_under_flicker_noise_matches_simulation
     assert np.all((alphas > -1.4) & (alphas < -0.6)), alphas              # flicker found as flicker
     amps = np.array([a for _, a, _ in fits])
     assert np.median(amps) == pytest.approx(0.05, rel=0.3)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed, pink", [(1, 0.0), (2, 0.0), (1, 0.3), (2, 0.3)])
+def test_fit_says_its_white_noise_errors_are_lower_bounds_when_the_residual_is_coloured(seed, pink, tmp_path, capsys):
+    """`fit`'s linear calibration states white-noise errors (on this pair under 1/f noise of 0.3 nT/sqrt(Hz) the
+    offsets were off by 30 times their stated errors, rms): where the residual is coloured it says to take them
+    as lower bounds, and stays quiet on white noise."""
+    import json
+
+    from service.wiring import cli
+    from test_diagnose import _write_csv
+
+    probes = [probe(0), probe(1)]
+    for p in probes:
+        p["pink_nT_rtHz"] = pink
+    cfg = load_sim_config({
+        "seed": 100 + seed, "rate_hz": 20.0, "duration_s": 900.0,
+        "field": {"total_nT": 51500.0, "inclination_deg": 62.0, "declination_deg": -5.0},
+        "reference": {"enabled": True, "noise_nT": 0.05}, "motion": TUMBLE, "probes": probes})
+    unit = Unit(cfg)
+    csv = tmp_path / "lab.csv"
+    _write_csv(csv, unit.digitise(0, cfg.n_samples).to_block())
+    assert cli.main(["fit", str(csv), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    said = [w for w in out["warnings"] if "take them as lower bounds" in w]
+    assert bool(said) == (pink > 0), out["warnings"]
+    if pink > 0:
+        truth = np.array(unit.world.truth()["sensors"][0]["offset_nT"])
+        z = (np.array(out["sensors"][0]["offset_nT"]) - truth) / np.array(out["sensors"][0]["offset_se_nT"])
+        assert np.max(np.abs(z)) > 3, z                      # measured, not hidden: why the warning is there
+        assert "s1" in said[0] and "spectrum ~ f^-" in said[0]

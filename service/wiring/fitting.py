@@ -8,6 +8,7 @@ Pipeline over the data in time order, so `fit --method rls` is exactly what the 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from itertools import islice
 from typing import Any, Callable
 
 import numpy as np
@@ -221,6 +222,31 @@ def channel_sums(data: LabData, cal: ArrayCalibration, total: TotalField,
             a[0] += float(np.dot(v, v))
             a[1] += v.size
     return {name: Reduced(s, int(m)) for name, (s, m) in acc.items()}
+
+
+#: the spectra of the scalar residuals are taken over at most this many samples (every k-th: the power law is
+#: fitted from 16 cycles per record up, far below the thinned rate)
+SPECTRUM_ROWS = 200_000
+
+
+def coloured_probes(data: LabData, cal: ArrayCalibration, total: TotalField) -> dict[str, float]:
+    """The probes whose scalar residual is coloured at the record's own periods (a power law above the white
+    level, service.numerics.engine.coloured), with the law's spectral index: there the linear calibration's
+    white-noise standard errors understate the error. One probe's channel at a time."""
+    from service.numerics.engine.coloured import is_coloured, power_law
+
+    b = data.block
+    n = b.n_samples
+    if n < 512:
+        return {}
+    step = max(1, n // SPECTRUM_ROWS)
+    dt = float(np.median(np.diff(b.t_s[::step])))
+    out = {}
+    for name, y in islice(iter_residual_channels(data, cal, total), b.n_probes):     # the scalar channels
+        law = power_law(y[::step], dt)
+        if is_coloured(law, (y[::step].size) * dt):
+            out[name.split(".")[0]] = law[2]
+    return out
 
 
 def uncalibrated_rms(data: LabData, total: TotalField) -> dict[str, float]:

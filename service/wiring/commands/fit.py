@@ -19,6 +19,7 @@ from service.wiring.commands.notes import say_read_warnings
 from service.wiring.fitting import (
     NONLINEAR_PROBE_SAMPLES,
     channel_sums,
+    coloured_probes,
     contract_json,
     fit_array,
     iter_residual_channels,
@@ -104,6 +105,12 @@ def main(args: Namespace) -> int:
                             "total_field": total.source})
     coverages = [coverage(data.block.field_nT[:, k], centre_nT=p.offset_nT) for k, p in enumerate(cal.probes)]
     warnings = calibration_warnings(cal, coverages) + ([thinned] if thinned else [])
+    coloured = coloured_probes(data, cal, total) if not args.effects else {}
+    if coloured:
+        warnings.append(f"{', '.join(coloured)}: the residual is coloured (a power law, spectrum ~ f^"
+                        f"{min(coloured.values()):.1f}, above the white noise at the record's own periods): the offsets' "
+                        f"and matrix's standard errors assume white noise and understate the error (on a simulated "
+                        f"pair under 1/f noise of 0.3 nT/sqrt(Hz), 30 times): take them as lower bounds")
     cal.diagnostics["warnings"] = warnings
     if args.out:
         save_calibration(cal, args.out)
