@@ -62,7 +62,7 @@ def load_data(path: str | Path, *, max_samples: int | None = None, max_probe_sam
     every = keep_every(n, probes, max_samples, max_probe_samples)
     if every == 1:
         return replace(lab, n_read=n)
-    return replace(lab, block=every_kth(lab.block, every), every=every, n_read=n)
+    return replace(lab, block=lab.block.rows(np.arange(0, n, every)), every=every, n_read=n)   # a copy
 
 
 def keep_every(n: int, probes: int, max_samples: int | None, max_probe_samples: int | None) -> int:
@@ -76,14 +76,6 @@ def keep_every(n: int, probes: int, max_samples: int | None, max_probe_samples: 
         while k < n and -(-n // k) * probes > int(max_probe_samples):    # ceil(n / k) rows are kept
             k += 1
     return k
-
-
-def every_kth(b: SampleBlock, every: int) -> SampleBlock:
-    """Rows 0, every, 2 every, ... of a block, copied (the whole block can then go)."""
-    def keep(a: np.ndarray) -> np.ndarray:
-        return np.ascontiguousarray(a[::every])
-    return SampleBlock(t_s=keep(b.t_s), seq=keep(b.seq), field_nT=keep(b.field_nT), temp_C=keep(b.temp_C),
-                       flags=keep(b.flags), extras={k: keep(v) for k, v in b.extras.items()})
 
 
 def load_csv(path: str | Path) -> LabData:

@@ -23,10 +23,6 @@ from service.numerics.engine import (
 
 from .result import ABSORBED, CANDIDATE_ITERATIONS, GAIN_SIGMAS, MIN_GAIN, P_SIGNIFICANT, Candidate
 
-#: regressors found in the residual are found again without each held-out block (crossfit_heldout); False only
-#: to measure what that changes
-CROSSFIT = True
-
 
 @dataclass
 class Heldout:
@@ -177,7 +173,7 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
         untestable.reason = f"fit failed: {e}"
         return untestable
     ho = heldout(fit)
-    if term.chooses_in_residual and hints is not None and CROSSFIT:
+    if term.chooses_in_residual and hints is not None:
         ho = crossfit_heldout(ed, model, cur, cur_ho, name, reference, weights, hints, n_blocks)
     cmp = _compare(cur, cur_ho, fit, ho)
     c = Candidate(effect=name, rms_nT=fit.rms_nT, heldout_rms_nT=ho.rms_nT, gain=cmp["gain"],

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from service.io.calfile import save_calibration
-from service.io.recordings.labdata import LabData, every_kth, keep_every, load_data
+from service.io.recordings.labdata import LabData, keep_every, load_data
 from service.numerics.calib.coverage import coverage
 from service.numerics.calib.site import site_from_text
 from service.wiring.commands.notes import say_read_warnings
@@ -108,9 +108,9 @@ def main(args: Namespace) -> int:
     coloured = coloured_probes(data, cal, total) if not args.effects else {}
     if coloured:
         warnings.append(f"{', '.join(coloured)}: the residual is coloured (a power law, spectrum ~ f^"
-                        f"{min(coloured.values()):.1f}, above the white noise at the record's own periods): the offsets' "
-                        f"and matrix's standard errors assume white noise and understate the error (on a simulated "
-                        f"pair under 1/f noise of 0.3 nT/sqrt(Hz), 30 times): take them as lower bounds")
+                        f"{min(coloured.values()):.1f}, above the white noise at the record's own periods): the "
+                        f"offsets' and matrix's standard errors assume white noise and understate the error (on a "
+                        f"simulated pair under 1/f noise of 0.3 nT/sqrt(Hz), 30 times): take them as lower bounds")
     cal.diagnostics["warnings"] = warnings
     if args.out:
         save_calibration(cal, args.out)
@@ -139,7 +139,7 @@ def effects_data(data: LabData) -> tuple[LabData, str | None]:
     k = keep_every(b.n_samples, b.n_probes, None, NONLINEAR_PROBE_SAMPLES)
     if k == 1:
         return data, None
-    part = replace(data, block=every_kth(b, k))
+    part = replace(data, block=b.rows(np.arange(0, b.n_samples, k)))       # a copy: rows by index
     return part, (f"effects fitted on one sample in {k} ({part.block.n_samples:,} of {b.n_samples:,}), the linear "
                   f"calibration refitted with them there (it started from a fit to every sample), to stay within "
                   f"{NONLINEAR_PROBE_SAMPLES:,} probe-samples: the standard errors are those of the samples used, "
