@@ -361,3 +361,23 @@ def test_the_effects_fit_starts_and_ends_where_the_origin_does_not_matter():
     assert np.allclose(b.offset_nT - shift, a.offset_nT, rtol=0, atol=1e-4)
     assert np.allclose(b.matrix, a.matrix, rtol=0, atol=1e-9)
     assert abs(a.rms_nT - b.rms_nT) < 1e-6
+
+
+@needs_real
+@pytest.mark.parametrize("name", ["imu_freeimucal", "qmc5883l_suarez"])
+def test_fit_offset_errors_cover_the_offsets_the_authors_published(name):
+    """Two calibrations of one recording by different methods differ by their errors: `fit`'s offsets against
+    those the recording's authors published, within 2.5 of the stated errors. The residual of these hand-turned
+    boards is coloured, and the white-noise errors alone were 4.6 (imu_freeimucal) and 5.7 (qmc5883l_suarez)
+    times off (measured); `fit` says which the errors cover and how far the offsets wander beyond the record."""
+    out = _check_honest(_run_fit(REAL / f"{name}.csv"))
+    pub = json.loads((REAL / f"{name}.published.json").read_text())
+    scale = pub["data"]["scale_to_nT"]
+    if "A" in pub:                                       # m = A raw + B: the offset is -A^-1 B
+        published = -np.linalg.solve(np.asarray(pub["A"]), np.asarray(pub["B"])) * scale
+    else:
+        published = np.asarray(pub["offset"]) * scale
+    s = out["sensors"][0]
+    z = (np.asarray(s["offset_nT"]) - published) / np.asarray(s["offset_se_nT"])
+    assert np.all(np.abs(z) < 2.5), z
+    assert any("wander within the record" in w and "nT per decade of time" in w for w in out["warnings"])

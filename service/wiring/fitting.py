@@ -8,7 +8,6 @@ Pipeline over the data in time order, so `fit --method rls` is exactly what the 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from itertools import islice
 from typing import Any, Callable
 
 import numpy as np
@@ -229,24 +228,117 @@ def channel_sums(data: LabData, cal: ArrayCalibration, total: TotalField,
 SPECTRUM_ROWS = 200_000
 
 
-def coloured_probes(data: LabData, cal: ArrayCalibration, total: TotalField) -> dict[str, float]:
-    """The probes whose scalar residual is coloured at the record's own periods (a power law above the white
-    level, service.numerics.engine.coloured), with the law's spectral index: there the linear calibration's
-    white-noise standard errors understate the error. One probe's channel at a time."""
-    from service.numerics.engine.coloured import is_coloured, power_law
+@dataclass(frozen=True)
+class ColouredNoise:
+    """A probe whose residual is coloured at the record's own periods (a power law above the white level,
+    service.numerics.engine.coloured)."""
+
+    probe: str
+    alpha: float                  # the power law's spectral index
+    covered: bool                 # its offsets' standard errors now carry the wander within the record
+    wander_nT: float | None       # how far its offsets wander per decade of time beyond the record
+
+
+def coloured_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -> list[ColouredNoise]:
+    """Where a probe's residual is coloured, its offsets' and matrix's white-noise standard errors (ellipsoid,
+    regression) gain the noise's wander within the record (numerics.calib.offset_noise), in place; a
+    regression-aligned probe's offsets also gain the reference probe's offset errors, which they inherit.
+    Other methods keep white-noise errors, said as such. The spectra over at most SPECTRUM_ROWS samples (every k-th: the power law is fitted
+    from 16 cycles per record up)."""
+    from service.numerics.calib.offset_noise import ellipsoid_weights, record_se, regression_weights, wander_per_decade
+    from service.numerics.engine.coloured import FLICKER, MAX_GRID_FILL, MIN_CYCLES, sample_grid
 
     b = data.block
-    n = b.n_samples
-    if n < 512:
-        return {}
-    step = max(1, n // SPECTRUM_ROWS)
-    dt = float(np.median(np.diff(b.t_s[::step])))
-    out = {}
-    for name, y in islice(iter_residual_channels(data, cal, total), b.n_probes):     # the scalar channels
-        law = power_law(y[::step], dt)
-        if is_coloured(law, (y[::step].size) * dt):
-            out[name.split(".")[0]] = law[2]
+    if b.n_samples < 512:
+        return []
+    idx = np.arange(0, b.n_samples, max(1, b.n_samples // SPECTRUM_ROWS))
+    part = replace(data, block=b.rows(idx))
+    values = total.values[idx] if isinstance(total.values, np.ndarray) else total.values
+    channels = residual_channels(part, cal, TotalField(values, total.source))
+    grid, dt = sample_grid(part.block.t_s)
+    gaps = grid[-1] + 1 > MAX_GRID_FILL * grid.size           # mostly gaps: no spectrum to integrate against
+    duration = grid.size * dt
+    # below the band the law was fitted on, flicker noise (a steeper law measured on real boards, where the
+    # residual follows the hand's slow turning, claimed 1,100-2,400 nT; its halves' fits disagree by 220-340)
+    knee = (MIN_CYCLES / duration, FLICKER)
+    names = data.probe_names
+    out = []
+    for k, p in enumerate(cal.probes):
+        raw = part.block.field_nT[:, k]
+        regression = cal.align == "regression" and k > 0
+        if regression:
+            laws = [_law(channels[f"{names[k]}-{names[0]}.{a}"], dt, duration) for a in "xyz"]
+            ref = cal.probes[0]
+            carry = -np.linalg.solve(p.matrix, ref.matrix)      # delta o_k = -A^-1 M_1 delta o_1
+            var = p.offset_se_nT ** 2 + np.diag(carry @ np.diag(ref.offset_se_nT ** 2) @ carry.T)
+        else:
+            law = _law(channels[f"{names[k]}.scalar"], dt, duration)
+            laws, var = [law] * 3, p.offset_se_nT ** 2
+            if law is not None:
+                # the scalar residual is d^T M eps: its power is mean |M^T d|^2 times a raw axis's
+                corr = p.apply(raw)
+                d = corr / np.linalg.norm(corr, axis=1, keepdims=True)
+                gain = float(np.mean(np.sum((d @ p.matrix) ** 2, axis=1)))
+                laws = [(law[0] / gain, law[1] / gain, law[2])] * 3
+        coloured = [law for law in laws if law is not None]
+        covered = bool(coloured) and not gaps and (regression or cal.method == "ellipsoid")
+        if covered:
+            w_o, w_m = (regression_weights(raw, p.matrix, p.offset_nT) if regression else
+                        ellipsoid_weights(raw, p.offset_nT, p.matrix, p.model_order or "full", values))
+            var = var + record_se(w_o, grid, dt, laws, knee) ** 2
+            shape = record_se(w_m, grid, dt, laws, knee)
+            if p.matrix_se is not None:
+                p.matrix_se = np.sqrt(np.asarray(p.matrix_se, float) ** 2 + shape[:9].reshape(3, 3) ** 2)
+            if not regression:
+                _add_in_variance(p, "nonorth_deg", shape[9:12])
+                _add_in_variance(p, "scale", shape[12:15])
+        if covered or regression:
+            p.offset_se_nT = np.sqrt(var)
+            if "offset_nT" in p.params:
+                p.params["offset_nT"]["se"] = p.offset_se_nT.tolist()
+            _say_sizes(p)
+        if coloured:
+            out.append(ColouredNoise(names[k], min(law[2] for law in coloured), covered,
+                                     max(wander_per_decade(law, duration, knee) for law in coloured)))
     return out
+
+
+def _add_in_variance(p: ProbeCalibration, key: str, extra: np.ndarray) -> None:
+    """A named parameter's standard errors (where it has them: an order may hold it fixed) with `extra` added in
+    variance."""
+    entry = p.params.get(key)
+    if entry is not None and entry.get("se") is not None:
+        entry["se"] = np.hypot(np.asarray(entry["se"], float), extra).tolist()
+
+
+def _say_sizes(p: ProbeCalibration) -> None:
+    """The warning of each offset or named parameter whose standard error exceeds its size, with the errors as
+    they now stand (the fit said it with its white-noise ones)."""
+    from service.numerics.calib.order import size_warning
+
+    for key in ("offset_nT", "scale", "nonorth_deg"):
+        entry = p.params.get(key)
+        if entry is None or entry.get("se") is None:
+            continue
+        labels = entry.get("names") or list("xyz")
+        for lab, v, se in zip(labels, np.atleast_1d(entry["value"]), np.atleast_1d(entry["se"])):
+            head = f"{p.name}: {key}.{lab} = "
+            p.warnings = [w for w in p.warnings if not w.startswith(head)]
+            if np.isfinite(se) and se > abs(v):
+                p.warnings.append(size_warning(p.name, f"{key}.{lab}", float(v), float(se)))
+
+
+def _law(y: np.ndarray, dt: float, duration: float) -> tuple[float, float, float] | None:
+    """The power law of y's spectrum when it is coloured, extended at least as steeply as flicker noise
+    (as the drift's errors, engine/coloured.py); None for white noise."""
+    from service.numerics.engine.coloured import FLICKER, is_coloured, power_law
+
+    law = power_law(y, dt)
+    if not is_coloured(law, duration):
+        return None
+    if law[2] > FLICKER:
+        law = power_law(y, dt, np.array([FLICKER])) or law
+    return law
 
 
 def uncalibrated_rms(data: LabData, total: TotalField) -> dict[str, float]:

@@ -168,5 +168,9 @@ def order_warnings(cal: Any, order: str, missing: list[str], choice: OrderChoice
         labels = p[key].get("names") or list("xyz")
         for lab, vi, si in zip(labels, v, np.atleast_1d(se)):
             if np.isfinite(si) and si > abs(vi):
-                out.append(f"{name}: {key}.{lab} = {vi:.4g} ± {si:.2g}: its standard error exceeds its size")
+                out.append(size_warning(name, f"{key}.{lab}", vi, si))
     return out
+
+
+def size_warning(probe: str, parameter: str, value: float, se: float) -> str:
+    return f"{probe}: {parameter} = {value:.4g} ± {se:.2g}: its standard error exceeds its size"

@@ -19,7 +19,7 @@ from service.wiring.commands.notes import say_read_warnings
 from service.wiring.fitting import (
     NONLINEAR_PROBE_SAMPLES,
     channel_sums,
-    coloured_probes,
+    coloured_offsets,
     contract_json,
     fit_array,
     iter_residual_channels,
@@ -103,14 +103,10 @@ def main(args: Namespace) -> int:
     cal.diagnostics.update({"rms_before_nT": dict(before),
                             "rms_after_nT": {k: rms(v) for k, v in channels.items()},
                             "total_field": total.source})
+    # coloured noise first: it changes the offsets' errors, which the warnings below compare with the offsets
+    coloured = coloured_warnings(coloured_offsets(data, cal, total)) if not args.effects else []
     coverages = [coverage(data.block.field_nT[:, k], centre_nT=p.offset_nT) for k, p in enumerate(cal.probes)]
-    warnings = calibration_warnings(cal, coverages) + ([thinned] if thinned else [])
-    coloured = coloured_probes(data, cal, total) if not args.effects else {}
-    if coloured:
-        warnings.append(f"{', '.join(coloured)}: the residual is coloured (a power law, spectrum ~ f^"
-                        f"{min(coloured.values()):.1f}, above the white noise at the record's own periods): the "
-                        f"offsets' and matrix's standard errors assume white noise and understate the error (on a "
-                        f"simulated pair under 1/f noise of 0.3 nT/sqrt(Hz), 30 times): take them as lower bounds")
+    warnings = calibration_warnings(cal, coverages) + ([thinned] if thinned else []) + coloured
     cal.diagnostics["warnings"] = warnings
     if args.out:
         save_calibration(cal, args.out)
@@ -129,6 +125,24 @@ def main(args: Namespace) -> int:
         sys.stdout.flush()                  # the calibration first: a report that cannot be written must not cost it
         _write_report(args, report_data, cal, channels, coverages, warnings, total.source, rows)
     return 0
+
+
+def coloured_warnings(found) -> list[str]:
+    """What coloured noise does to the linear calibration's standard errors, per probe (fitting.ColouredNoise)."""
+    out = []
+    for c in found:
+        head = (f"{c.probe}: the residual is coloured (a power law, spectrum ~ f^{c.alpha:.1f}, above the white noise "
+                f"at the record's own periods)")
+        if c.covered:
+            out.append(f"{head}: the offsets' and matrix's standard errors include that wander within the record; "
+                       f"if it is the sensor's noise (and not an effect the model lacks: see diagnose), the offsets "
+                       f"wander on beyond the record, about {c.wander_nT:.2g} nT per decade of time, which this record "
+                       f"cannot know")
+        else:
+            out.append(f"{head}: the offsets' and matrix's standard errors assume white noise and understate the "
+                       f"error (on a simulated pair under 1/f noise of 0.3 nT/sqrt(Hz), 30 times): take them as "
+                       f"lower bounds")
+    return out
 
 
 def effects_data(data: LabData) -> tuple[LabData, str | None]:

@@ -1,0 +1,83 @@
+"""The linear calibration's offsets under coloured noise (numerics/calib/offset_noise.py): the weights each
+offset gives every raw axis's noise, and the variance they give under a known 1/f spectrum against a Monte
+Carlo of the fits themselves, on two tumbles."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drivers.sim.streams import PinkNoise
+from service.numerics.calib.alignment import regression_calibration
+from service.numerics.calib.ellipsoid import fit_ellipsoid
+from service.numerics.calib.model import triangular_params
+from service.numerics.calib.offset_noise import ellipsoid_weights, record_se, regression_weights, wander_per_decade
+
+F = 50000.0
+
+
+def tumble(seed: int, n: int = 4000, turns: int = 7, top: float = 0.95) -> np.ndarray:
+    """(n, 3) unit directions turning `turns` times about z while the polar angle swings twice between 9 degrees
+    and `top` x 180: slow, so 1/f noise at the record's own periods matters."""
+    ph = 2 * np.pi * np.arange(n) / n + np.random.default_rng(seed).uniform(0, 2 * np.pi)
+    polar = np.pi * (0.05 + (top - 0.05) * (0.5 - 0.5 * np.cos(2 * ph)))
+    return np.column_stack([np.cos(turns * ph) * np.sin(polar), np.sin(turns * ph) * np.sin(polar), np.cos(polar)])
+
+
+def probe(seed: int, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    m = np.eye(3) + 0.03 * rng.standard_normal((3, 3))
+    o = rng.uniform(-400, 400, 3)
+    return np.linalg.solve(m, (F * d).T).T + o, m, o
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_each_offset_takes_a_constant_in_its_own_axis_one_to_one_whatever_the_origin_and_unit(seed):
+    raw, m, o = probe(seed, tumble(seed))
+    m = np.linalg.qr(m)[1] * np.sign(np.diag(np.linalg.qr(m)[1]))[:, None]    # the fit's triangular form
+    w, w_m = ellipsoid_weights(raw, o, m, "full", F)
+    assert np.allclose(w.sum(axis=0), np.eye(3), atol=1e-6)
+    assert np.allclose(w_m.sum(axis=0), 0.0, atol=1e-9)             # a constant moves the offset alone
+    shift, factor = np.array([3e5, -2e5, 1e5]), 1e-3                # moved and in other units: the same weights
+    moved = ellipsoid_weights((raw + shift) * factor, (o + shift) * factor, m, "full", F * factor)[0]
+    assert np.allclose(moved, w, rtol=0, atol=1e-9 * np.abs(w).max())
+    w2, w2_m = regression_weights(raw, m, o)                         # on the regression's residual: -A^-1
+    assert np.allclose(w2.sum(axis=0), -np.linalg.inv(m), atol=1e-9)
+    assert np.allclose(w2_m.sum(axis=0), 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_offsets_record_error_under_flicker_noise_matches_a_monte_carlo_of_the_fits(seed):
+    """200 fits of one tumble with 1/f noise of 0.5 nT/sqrt(Hz) per raw axis (the simulator's, 1e-5 Hz up):
+    the spread of offset - truth - the noise's mean over the record, and of the matrix's named parameters
+    (ellipsoid) and elements (regression), against record_se's figure for the known law, within 20 %."""
+    n, dt, s = 4000, 0.1, 0.5
+    d = tumble(seed, n)
+    raw, m, o = probe(seed, d)
+    grid = np.arange(n)
+    law = [(0.0, s ** 2, -1.0)] * 3
+    w_o, w_m = ellipsoid_weights(raw, o, m, "full", F)
+    want = record_se(w_o, grid, dt, law)
+    want_m = record_se(w_m, grid, dt, law)[9:]                        # nonorth_deg, then scale
+    # the regression's offsets are immune to first order where the directions average to zero (its weights
+    # are then uniform): a probe that saw mostly the upper half
+    d2 = tumble(seed, n, top=0.6)
+    raw2, m2, o2 = probe(seed + 10, d2)
+    w2_o, w2_m = regression_weights(raw2, m2, o2)
+    want2, want2_m = record_se(w2_o, grid, dt, law), record_se(w2_m, grid, dt, law)
+    errs, errs2, shapes, mats2 = [], [], [], []
+    for k in range(200):
+        noise = PinkNoise(100 * seed + k, 7, np.full(3, s), 1e-5, 0.5 / dt, 1 / dt).draw(0, n)
+        fit = fit_ellipsoid(raw + noise, F, order="full").calibration
+        errs.append(fit.offset_nT - o - noise.mean(axis=0))
+        shapes.append(np.concatenate(triangular_params(fit.matrix)))
+        reg = regression_calibration("s2", F * d2 + noise, raw2)       # the noise in the residual: the reference's
+        errs2.append(reg.offset_nT - o2 + np.linalg.solve(m2, noise.mean(axis=0)))
+        mats2.append(reg.matrix.ravel())
+    assert np.std(errs, axis=0) == pytest.approx(want, rel=0.2)
+    assert np.std(errs2, axis=0) == pytest.approx(want2, rel=0.2)
+    assert np.std(shapes, axis=0) == pytest.approx(want_m, rel=0.2)
+    assert np.std(mats2, axis=0) == pytest.approx(want2_m, rel=0.2)
+    # the record's own mean is what the record cannot know: a decade of time beyond it, sqrt(a ln 10) under 1/f
+    assert wander_per_decade(law[0], n * dt) == pytest.approx(s * np.sqrt(np.log(10)))
+    assert wander_per_decade((0.0, s ** 2, -1.2), n * dt) > wander_per_decade(law[0], n * dt)
