@@ -81,3 +81,58 @@ def test_the_offsets_record_error_under_flicker_noise_matches_a_monte_carlo_of_t
     # the record's own mean is what the record cannot know: a decade of time beyond it, sqrt(a ln 10) under 1/f
     assert wander_per_decade(law[0], n * dt) == pytest.approx(s * np.sqrt(np.log(10)))
     assert wander_per_decade((0.0, s ** 2, -1.2), n * dt) > wander_per_decade(law[0], n * dt)
+
+
+def _pair(n: int, pink: float, seed: int = 3):
+    """test_stderr's pair of probes, n samples at 20 Hz, as `fit` sees it: (data, calibration, total field)."""
+    from test_stderr import pair_unit
+
+    from service.io.recordings.labdata import LabData
+    from service.wiring.fitting import fit_array
+
+    unit = pair_unit(seed, pink)
+    block = unit.digitise(0, n).to_block()
+    data = LabData(block=block, probe_names=["s1", "s2"], path="mem")
+    cal, total = fit_array(data)
+    return data, cal, total
+
+
+def test_a_failure_of_the_coloured_errors_keeps_the_white_ones_and_says_they_are_lower_bounds(monkeypatch):
+    from service.numerics.calib import offset_noise
+    from service.wiring.coloured_fit import coloured_offsets
+    from service.wiring.commands.fit import coloured_warnings
+
+    data, cal, total = _pair(18000, 0.3)
+    white = cal.probes[0].offset_se_nT.copy()
+
+    def broken(*args, **kwargs):
+        raise np.linalg.LinAlgError("singular")
+
+    monkeypatch.setattr(offset_noise, "ellipsoid_weights", broken)
+    found = {c.probe: c for c in coloured_offsets(data, cal, total)}
+    assert not found["s1"].covered and found["s2"].covered
+    assert np.array_equal(cal.probes[0].offset_se_nT, white)
+    said = coloured_warnings(found.values())
+    assert any(w.startswith("s1:") and "lower bounds" in w for w in said), said
+    assert any(w.startswith("s2:") and "wander within the record" in w for w in said), said
+
+
+def test_a_regression_aligned_probe_inherits_the_reference_offset_errors_on_any_record():
+    """Even where no spectrum can be taken (400 samples): probe 2's offset errors are the regression's and
+    probe 1's carried over, -A^-1 M_1 delta o_1; where probe 1 has none (NaN), the regression's alone."""
+    from service.numerics.calib.alignment import regression_calibration
+    from service.wiring.coloured_fit import coloured_offsets
+
+    data, cal, total = _pair(400, 0.0)
+    p1, p2 = cal.probes
+    own = regression_calibration("s2", p1.apply(data.block.field_nT[:, 0]), data.block.field_nT[:, 1]).offset_se_nT
+    assert np.allclose(p2.offset_se_nT, own)
+    assert coloured_offsets(data, cal, total) == []
+    carry = np.linalg.solve(p2.matrix, p1.matrix)
+    assert np.allclose(p2.offset_se_nT, np.sqrt(own ** 2 + np.diag(carry @ np.diag(p1.offset_se_nT ** 2) @ carry.T)))
+    assert p2.params["offset_nT"]["se"] == pytest.approx(p2.offset_se_nT.tolist())
+    data, cal, total = _pair(400, 0.0)
+    cal.probes[0].offset_se_nT = np.full(3, np.nan)
+    before = cal.probes[1].offset_se_nT.copy()
+    coloured_offsets(data, cal, total)
+    assert np.array_equal(cal.probes[1].offset_se_nT, before)

@@ -127,7 +127,7 @@ def regression_calibration(name: str, ref_nT: np.ndarray, raw_nT: np.ndarray, *,
     The standard errors are those of the regression given the reference: errors of the reference
     probe's own calibration carry over one to one (an offset error δE_1 of probe 1 moves E_k by
     about A_k⁻¹ A_1 δE_1) and are not included here (`fluxcal fit` adds them:
-    wiring/fitting.coloured_offsets)."""
+    wiring/coloured_fit.py)."""
     a, c, xtx, ss, resid = _regression(ref_nT, raw_nT, gram_rows)
     offset = -np.linalg.solve(a, c)
     n = np.shape(raw_nT)[0]

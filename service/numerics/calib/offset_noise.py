@@ -7,23 +7,30 @@ and the offsets were off by 30 times their stated errors, the matrix's named par
 
     delta o_j = sum_n sum_a W[n, j, a] eps[n, a],
 
-and the wander is carried in with the power-law spectrum of the probe's noise (engine/coloured.py), as for
-the drift rates: Var = sum_a integral |W_ja(f)|^2 S(f) df. The noise's own mean over the record is a
-constant the record cannot tell from the offset, and under 1/f noise it has no finite variance: the error
-stated is that of the offset over this record (the weights less their mean enter, and the integral ends at
-f = 0 by itself), and how far the offset wanders beyond the record is said apart, per decade of time.
+and the wander is carried in with the power-law spectrum of the probe's noise (engine/coloured.py's law,
+fitted above 16 cycles per record): Var = sum_a integral |W_ja(f)|^2 S(f) df. Below the band the law was
+fitted on it is carried on as flicker noise (the knee; the drift's errors instead keep a steeper law there:
+a law of -2.5 measured on a hand-turned board, whose residual follows the hand's slow turning, claimed
+offset errors of 1,100-2,400 nT where its halves' fits disagree by 220-340 nT). The noise's own mean over
+the record is a constant the record cannot tell from the offset, and under 1/f noise it has no finite
+variance: the error stated is that of the offset over this record (the weights less their mean enter, and
+the integral ends at f = 0 by itself), and how far the offset wanders beyond the record is said apart, per
+decade of time.
 
 - Ellipsoid (000 eq. 5-9 in centred, scaled u): the noise moves the design, and at the fitted quadric
   delta theta = -(Phi^T Phi)^-1 sum_n phi_n g_n^T eps_n, g_n = (2 A' u_n + b') / s the gradient of the
   quadric in r; then delta o = J_o delta theta, and the matrix's terms through their Jacobian likewise.
+  The term (d phi_n / d r)^T times the equation's residual is left out: second order where the model fits,
+  not where a reduced order (axes, sphere) leaves a real misfit.
 - Regression onto the reference probe (000 eq. 13-16): ref = A r + c + e, o = -A^-1 c, and
   delta o = -A^-1 sum_n h_n e_n with h_n = [o, 1]^T (X^T X)^-1 x_n, e the regression's residual per axis
   (the difference channel), whose own spectrum is fitted; row i of A moves by the first three of
   (X^T X)^-1 sum_n x_n e_ni.
 
-In both, the weights of an offset on its own axis sum to one (a constant added to the noise moves the offset
-by that constant). Only the power-law part is integrated here: the white part is the white-noise error
-already stated, and the two add in variance.
+A constant added to the noise moves the offsets by that constant (the ellipsoid's weights sum to the
+identity; the regression's, on its residual, to -A^-1) and the matrix not at all (its weights sum to zero).
+Only the power-law part is integrated here: the white part is the white-noise error already stated, and
+the two add in variance.
 
 Numerics only.
 """
@@ -31,8 +38,8 @@ Numerics only.
 from __future__ import annotations
 
 import numpy as np
+from scipy.fft import next_fast_len, rfft, rfftfreq
 
-from ..engine.coloured import spectral_variance
 from .ellipsoid import (
     normalise,
     quadric_design,
@@ -131,19 +138,51 @@ def regression_weights(raw: np.ndarray, a: np.ndarray, offset: np.ndarray) -> tu
     return w_o, w_m
 
 
+#: the weights are summed into at most this many bins of time before their FFT: their spectrum is that of the
+#: motion (tens of cycles per record), and a power law puts little weight beyond the bins' own Nyquist frequency
+WEIGHT_BINS = 1 << 15
+
+
 def record_se(weights: np.ndarray, grid: np.ndarray, dt: float, laws: list[tuple[float, float, float] | None],
-              knee: tuple[float, float] | None = None) -> np.ndarray:
+              knee: tuple[float, float] | None = None, pad: int = 4, bins: int = WEIGHT_BINS) -> np.ndarray:
     """(J,) the standard error each parameter (an offset, a matrix element) gains from the power-law part
-    a f^alpha of its noise sources' spectra (laws: one (w, a, alpha) per noise source, the weights' last
-    axis; None: no power law; below knee = (f_k, beta) the law carried on at slope beta), to be added in
-    variance to the white-noise error. An offset's error is that over this record: of the static offset plus
-    the noise's mean over the record (a constant the record cannot tell from the offset), so the weights enter
+    a f^alpha of its noise sources' spectra: Var_j = sum_a integral |W_ja(f)|^2 S_a(f) df (the sources
+    independent), on a zero-padded FFT of the weights (N, J, A) placed at `grid` (N,) on a uniform grid of
+    step dt and summed into at most `bins` bins of time (as engine.coloured.spectral_variance). laws: one
+    (w, a, alpha) per source (the weights' last axis; None: no power law); below knee = (f_k, beta) the law
+    carries on at slope beta. To be added in variance to the white-noise error, whose residual variance holds
+    the law's power within the band as well: that part is counted twice, on the safe side, by at most the
+    white-noise error itself. An offset's error is that over this record: of the static offset plus the
+    noise's mean over the record (a constant the record cannot tell from the offset), so the weights enter
     less their mean, which sum to zero and end the integral at f = 0 by themselves (a matrix's sum to zero
     already: a constant moves only the offset)."""
-    models = [(0.0, law[1], law[2]) if law is not None else (0.0, 0.0, 0.0) for law in laws]
     centred = weights - weights.mean(axis=0)
-    return np.sqrt([spectral_variance(centred[:, j, :], grid, models, dt, knee=knee)
-                    for j in range(weights.shape[1])])
+    step = max(1, -(-(int(grid[-1]) + 1) // bins))
+    where = np.asarray(grid) // step
+    length = int(where[-1]) + 1
+    m = next_fast_len(pad * length)
+    f = rfftfreq(m, dt * step)[1:]
+    var = np.zeros(weights.shape[1])
+    for a, law in enumerate(laws):
+        if law is None:
+            continue
+        s = power_law_spectrum(f, law, knee)
+        for j in np.flatnonzero(np.any(centred[:, :, a] != 0, axis=0)):       # structural zeros: none
+            x = np.bincount(where, weights=centred[:, j, a], minlength=length)
+            var[j] += float(np.abs(rfft(x, n=m)[1:]) ** 2 @ s)
+    return np.sqrt(var / (m * dt * step))
+
+
+def power_law_spectrum(f: np.ndarray, law: tuple[float, float, float],
+                       knee: tuple[float, float] | None = None) -> np.ndarray:
+    """The part a f^alpha of the law (w, a, alpha) at frequencies f > 0; below knee = (f_k, beta),
+    a f_k^alpha (f / f_k)^beta."""
+    _, a, alpha = law
+    s = a * f ** alpha
+    if knee is not None:
+        low = f < knee[0]
+        s[low] = a * knee[0] ** alpha * (f[low] / knee[0]) ** knee[1]
+    return s
 
 
 def wander_per_decade(law: tuple[float, float, float], duration_s: float,

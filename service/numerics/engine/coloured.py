@@ -107,8 +107,7 @@ def is_coloured(model: tuple[float, float, float] | None, duration_s: float) -> 
 
 
 def spectral_variance(u: np.ndarray, grid: np.ndarray, models: list[tuple[float, float, float] | None],
-                      dt: float, rho: np.ndarray | None = None, pad: int = 4, f_min: float = 0.0,
-                      knee: tuple[float, float] | None = None) -> float:
+                      dt: float, rho: np.ndarray | None = None, pad: int = 4, f_min: float = 0.0) -> float:
     """Var(sum u eps) for weights u (N, C) at positions `grid` (N,) of a uniform grid of step dt, the noise
     of channel c having the one-sided spectrum models[c] = (w, a, alpha) and the channels the correlation rho
     (C, C; None: independent): the cross-spectrum of channels c, c' is rho_cc' sqrt(S_c S_c'). A channel
@@ -116,9 +115,7 @@ def spectral_variance(u: np.ndarray, grid: np.ndarray, models: list[tuple[float,
 
     Weights that sum to zero for every noise source (a parameter fitted beside offsets) give a finite integral
     down to f = 0; weights that do not (no offset fitted) would grow with the padding under 1/f noise, and
-    f_min (one cycle per record) then ends the integral where the record itself ends. knee = (f_k, beta): below
-    f_k each spectrum is S(f_k) (f / f_k)^beta, the law carried below the band it was fitted on at a slope of
-    its own."""
+    f_min (one cycle per record) then ends the integral where the record itself ends."""
     length = int(grid[-1]) + 1
     m = next_fast_len(pad * length)
     f = rfftfreq(m, dt)[1:]
@@ -133,11 +130,7 @@ def spectral_variance(u: np.ndarray, grid: np.ndarray, models: list[tuple[float,
         w, a, alpha = models[c] if models[c] is not None else (white, 0.0, 0.0)
         x = np.zeros(length)
         np.add.at(x, grid, u[:, c])
-        s = w + a * f ** alpha
-        if knee is not None:
-            low = f < knee[0]
-            s[low] = (w + a * knee[0] ** alpha) * (f[low] / knee[0]) ** knee[1]
-        g[:, j] = rfft(x, n=m)[1:] * np.sqrt(s)
+        g[:, j] = rfft(x, n=m)[1:] * np.sqrt(w + a * f ** alpha)
     g = g[keep]
     gram = (g.conj().T @ g).real                             # sum over frequencies of G_c* G_c'
     r = np.eye(len(used)) if rho is None else rho[np.ix_(used, used)]

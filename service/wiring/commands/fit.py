@@ -15,11 +15,11 @@ from service.io.calfile import save_calibration
 from service.io.recordings.labdata import LabData, keep_every, load_data
 from service.numerics.calib.coverage import coverage
 from service.numerics.calib.site import site_from_text
+from service.wiring.coloured_fit import coloured_offsets
 from service.wiring.commands.notes import say_read_warnings
 from service.wiring.fitting import (
     NONLINEAR_PROBE_SAMPLES,
     channel_sums,
-    coloured_offsets,
     contract_json,
     fit_array,
     iter_residual_channels,
