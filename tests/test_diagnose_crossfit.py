@@ -80,3 +80,48 @@ def test_a_smooth_change_across_a_held_out_block_is_no_step_at_its_edge():
     jumped = masked + np.where(t >= 700.0, gain @ np.array([5.0, -3.0, 2.0]), 0.0)
     found = hysteresis.detect_steps(t, jumped, gain, barrier=(400.0, 500.0), **kw)
     assert any(abs(ts - 700.0) < 1.0 for ts, _ in found), found
+
+
+JUMP = np.array([6.0, -4.0, 3.0])
+
+
+def step_world(seed: int, pink: float = 0.0):
+    """test_perming_step's pair: a private forward model adds an offset jump to probe 2 at 61.7 s."""
+    probes = [probe(0), probe(1)]
+    for p in probes:
+        p["pink_nT_rtHz"] = pink
+    block = sim_block(probes, n=10000, rate=100.0, motion=TUMBLE, seed=seed)
+    block.field_nT[block.t_s - block.t_s[0] >= 61.7, 1, :] += JUMP
+    return data_of(block, probes)
+
+
+@pytest.mark.slow
+def test_a_perming_step_is_found_and_placed_in_every_one_of_ten_worlds():
+    """Ten seeds, white noise: one step on probe 2, no other, its size within 0.3 nT. The calibration fitted
+    across the step had taken part of it and left a residual that follows the direction: before the step
+    was looked for beside the calibration's share (hysteresis.without_calibration_share), seven of these ten
+    were placed, two misplaced by 8 and 11 s and one missed (and diagnose named drift there). Seeds 22 and 29
+    place it 0.8 and 3.2 s late: there the jump is nearly square to the field direction, and the scalar
+    residual does not see it until then."""
+    from service.numerics.engine import fit_with_effects
+
+    for seed in range(20, 30):
+        ef, _ = fit_with_effects(step_world(seed), ["hysteresis"])
+        steps = [p for p in ef.parameters if "step@" in p.name]
+        assert [p.name.split(".")[0] for p in steps] == ["s2"] * 3, (seed, [p.name for p in steps])
+        at = float(steps[0].name.split("@")[1].split("s")[0])
+        assert 61.7 <= at <= 65.0, (seed, at)
+        assert np.allclose([p.value for p in steps], JUMP, atol=0.3), (seed, [p.value for p in steps])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [22, 25])
+def test_where_the_step_was_missed_diagnose_now_explains_it_by_hysteresis(seed):
+    """The two worlds of the ten where diagnose had named drift (22, "explained") or nothing (25)."""
+    data = step_world(seed)
+    d = diagnose(data)
+    first = d.candidates[0]
+    assert first.effect == "hysteresis" and first.significant, summary_text(d)
+    assert d.verdict["kind"] == "explained" and d.verdict["effect"] == "hysteresis", d.verdict
+    d2 = diagnose(data, effects=["hysteresis"])
+    assert d2.rms_nT <= 1.3 * d2.noise_nT

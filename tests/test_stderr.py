@@ -178,3 +178,31 @@ def test_fit_on_white_noise_keeps_the_white_noise_errors(seed, tmp_path, capsys)
     inherited = np.sqrt(np.diag(carry @ np.diag(fit.calibration.offset_se_nT ** 2) @ carry.T))
     assert np.allclose(s2["offset_se_nT"], np.hypot(reg.offset_se_nT, inherited), rtol=1e-3)
 
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("pink", [0.0, 0.3])
+def test_perming_step_sizes_cover_the_truth_under_white_and_one_over_f_noise(pink):
+    """A step is a slow term (a function of time alone): its size against the noise's wander on either side,
+    which the block jackknife sees only between its blocks; under 1/f noise of 0.3 nT/sqrt(Hz) step sizes
+    were off by 2.25 times their errors (rms z, the steps found on seeds 40-45). With the power law's errors
+    (engine/coloured.py, as the drift's), on ten seeds: measured 1.06 white, 0.88 under 1/f; a step found
+    within 5 s of the true instant is compared with the true jump. Under 1/f noise of this size the 7.8 nT
+    step is found in 9 of these ten worlds (in 6 of seeds 10-19): perming is harder to tell from a wander
+    there, and what is not found is not judged here."""
+    from test_diagnose_crossfit import JUMP, step_world
+
+    z, found = [], 0
+    for seed in range(20, 30):
+        ef, _ = fit_with_effects(step_world(seed, pink), ["hysteresis"])
+        for p in ef.parameters:
+            if "step@" not in p.name:
+                continue
+            at = float(p.name.split("@")[1].split("s")[0])
+            near = p.name.startswith("s2.") and abs(at - 61.7) < 5.0
+            found += near
+            z.append((p.value - (JUMP["xyz".index(p.name.split(".")[1][0])] if near else 0.0)) / p.stderr)
+    z = np.array(z)
+    assert found >= (30 if pink == 0 else 24), found          # every world with white noise
+    rms = float(np.sqrt(np.mean(z ** 2)))
+    assert 1 / 1.5 <= rms <= 1.5, (rms, z.round(2))
