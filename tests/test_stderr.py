@@ -206,3 +206,40 @@ def test_perming_step_sizes_cover_the_truth_under_white_and_one_over_f_noise(pin
     assert found >= (30 if pink == 0 else 24), found          # every world with white noise
     rms = float(np.sqrt(np.mean(z ** 2)))
     assert 1 / 1.5 <= rms <= 1.5, (rms, z.round(2))
+
+
+def heater_or_thermal(kind: str, seed: int, pink: float):
+    """test_diagnose_beyond's worlds: a heater current switched every 40 s coupled into probe 2 (`column`), or
+    probe 1 following the temperature through a 90-s lag (`thermal`); with the truth of their parameters."""
+    from test_diagnose import sim_block
+    from test_diagnose_beyond import thermal_world
+
+    if kind == "thermal":
+        return thermal_world(seed, 90.0, pink), {"s1.x nT/degC": 2.5, "s1.y nT/degC": -1.8, "s1.z nT/degC": 1.0,
+                                                 "s1.thermal lag s": 90.0}
+    probes = [probe(0), probe(1), probe(2)]
+    for p in probes:
+        p["pink_nT_rtHz"] = pink
+    block = sim_block(probes, n=12000, rate=20.0, motion=TUMBLE, seed=seed)
+    on = 1.5 * (((block.t_s - block.t_s[0]) // 40) % 2)
+    block.extras["heater_A"] = on + 0.05 * np.random.default_rng(seed).standard_normal(on.size)
+    block.field_nT[:, 1, :] += on[:, None] * np.array([3.0, -2.0, 1.0])
+    return data_of(block, probes), {f"s2.{a} nT per heater_A": v for a, v in zip("xyz", (3.0, -2.0, 1.0))}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind, pink", [("column", 0.0), ("column", 0.3), ("thermal", 0.0), ("thermal", 0.1)])
+def test_every_effects_errors_cover_the_truth_under_one_over_f_noise(kind, pink):
+    """Not only a drift or a step: a heater switched every 40 s and a thermal lag of 90 s vary at periods where
+    1/f noise wanders too. With the block jackknife alone their errors were 2.48 (column, 1/f 0.3 nT/sqrt(Hz))
+    and 2.07 (thermal, 0.1) times too small (rms z, six seeds); with every effect's errors also from the power
+    law (engine/coloured.py), measured 0.90 and 1.35 (white: 1.10 and 0.96)."""
+    z = []
+    for seed in range(1, 7):
+        data, truth = heater_or_thermal(kind, seed, pink)
+        ef, _ = fit_with_effects(data, [kind])
+        got = {p.name: p for p in ef.parameters}
+        z += [(got[n].value - v) / got[n].stderr for n, v in truth.items()]
+    z = np.array(z)
+    rms = float(np.sqrt(np.mean(z ** 2)))
+    assert 1 / 1.5 <= rms <= 1.5, (rms, z.round(2))

@@ -325,9 +325,6 @@ class EffectTerm:
     #: the running service can add it, and correcting block by block gives the same numbers however the input
     #: is cut (no derivatives, smoothing or time shifts across samples)
     per_sample: ClassVar[bool] = False
-    #: a slow term (a function of time alone): under coloured noise its standard errors also come from a
-    #: power-law model of the residual's spectrum (engine/coloured.py), which the block jackknife cannot see
-    slow: ClassVar[bool] = False
     #: other catalogue name -> what motion or data tells the two apart
     separation: ClassVar[dict[str, str]] = {}
 

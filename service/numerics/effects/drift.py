@@ -42,7 +42,6 @@ class Drift(EffectTerm):
 
     name = "drift"
     per_sample = True
-    slow = True
     title = "Drift"
     physical = "slow change of the ambient field or of the offsets over time"
     separation = {

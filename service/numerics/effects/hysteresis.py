@@ -150,7 +150,6 @@ class Hysteresis(EffectTerm):
     title = "Hysteresis"
     needs_residual = True
     chooses_in_residual = True
-    slow = True
     physical = "perming: offset steps after a strong field or a shock"
     separation = {
         "drift": "record longer: a drift changes smoothly, a perming step jumps once",

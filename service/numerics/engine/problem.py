@@ -204,7 +204,8 @@ class Problem:
         return a_b, g_b
 
     def apply(self, jac: "_Jac", ev: _Eval | None, delta: np.ndarray, sl: slice = slice(None)) -> np.ndarray:
-        """J delta on the rows of block slice sl (or all rows), unweighted: (rows, C) change of every channel."""
+        """J delta on the rows of block slice sl (or all rows), unweighted: (rows, C) change of every channel; for
+        delta (n_params, K), K directions at once, (rows, C, K)."""
         ev = jac.ev if ev is None else ev
         if sl == slice(None):
             return np.concatenate([self.apply(jac, ev, delta, c) for b in self.blocks
@@ -226,10 +227,10 @@ class Problem:
                 inc = sb @ d
                 ds = inc if ds is None else ds + inc
         n = self.rows[sl].size
-        out = np.zeros((n, self.C))
+        out = np.zeros((n, self.C) + delta.shape[1:])
         for k in range(self.P):
             if dv[k] is not None:
-                out[:, k] = np.einsum("na,na->n", ev.nhat[k][sl], dv[k])
+                out[:, k] = np.einsum("na,na...->n...", ev.nhat[k][sl], dv[k])
             if ds is not None:
                 out[:, k] += ds
         for k in range(1, self.P):
