@@ -64,14 +64,21 @@ def _welch_bins(y: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray] | Non
     return f[1:], p[1:]
 
 
-def probe_power_laws(values: np.ndarray, dt: float, gain: np.ndarray,
-                     alphas: np.ndarray = ALPHAS) -> tuple[np.ndarray, np.ndarray, float] | None:
+def welch_spectra(values: np.ndarray, dt: float) -> list:
+    """Each channel's Welch spectrum (frequencies, power) without its zero bin; None for a channel too short."""
+    return [_welch_bins(values[:, c], dt) for c in range(values.shape[1])]
+
+
+def probe_power_laws(values: np.ndarray, dt: float, gain: np.ndarray, alphas: np.ndarray = ALPHAS,
+                     spectra: list | None = None) -> tuple[np.ndarray, np.ndarray, float] | None:
     """(w (P,), a (P,), alpha): each probe's noise per axis, S_k(f) = w_k + a_k f^alpha (one-sided, the same
     on its three axes, one alpha for all, the best of `alphas`), fitted to the Welch spectra of the residual
     channels `values` (N, C) above MIN_CYCLES per record, channel c carrying gain[c, k] times probe k's axis
     noise power (the sum over the axes of its squared sensitivity to them). The noise lives in the probes,
-    not in the channels: a probe's wander is in its scalar channel and in every difference with it."""
-    spectra = [_welch_bins(values[:, c], dt) for c in range(values.shape[1])]
+    not in the channels: a probe's wander is in its scalar channel and in every difference with it. spectra:
+    the channels' `welch_spectra`, when already taken."""
+    if spectra is None:
+        spectra = welch_spectra(values, dt)
     if any(sp is None for sp in spectra):
         return None
     f = spectra[0][0]
@@ -82,13 +89,13 @@ def probe_power_laws(values: np.ndarray, dt: float, gain: np.ndarray,
         return None
     c_n, p_n = gain.shape
     wt = np.sqrt(1.0 / f / np.sum(1.0 / f))                   # as many per decade low as high
+    white = np.repeat(gain[:, None, :], f.size, axis=1) / pc[:, :, None] * wt[None, :, None]
+    target = np.tile(wt, c_n)
     best, best_score = None, np.inf
     for alpha in alphas:
-        # rows (c, f): [gain_ck, gain_ck f^alpha] / S_cf, target 1
-        x = np.concatenate([np.repeat(gain[:, None, :], f.size, axis=1),
-                            gain[:, None, :] * (f ** alpha)[None, :, None]], axis=2) / pc[:, :, None]
-        x = (x * wt[None, :, None]).reshape(-1, 2 * p_n)
-        coef, _ = nnls(x, np.tile(wt, c_n))
+        # rows (c, f): [gain_ck, gain_ck f^alpha] / S_cf, target 1 (both weighted)
+        x = np.concatenate([white, white * (f ** alpha)[None, :, None]], axis=2).reshape(-1, 2 * p_n)
+        coef, _ = nnls(x, target)
         model = np.einsum("ck,kf->cf", gain, coef[:p_n, None] + coef[p_n:, None] * f[None, :] ** alpha)
         if not np.all(model > 0):
             continue

@@ -34,8 +34,9 @@ LINEARITY_SE = 0.1
 #: an iteration lowering the weighted RSS by less than this many s^2 ends the fit (flat directions only)
 RSS_TOL = 0.01
 
-#: parameter directions mapped to the channels per pass in coloured_stderr (rows x channels x this, float64)
-APPLY_COLUMNS = 8
+#: coloured_stderr maps parameter directions to the channels in passes of at most this many values (float64:
+#: rows x channels x directions; 160 MB)
+APPLY_VALUES = 20_000_000
 
 
 def solve_normal(a: np.ndarray, g: np.ndarray, damping: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
@@ -177,6 +178,7 @@ class FitResult:
             probe_power_laws,
             sample_grid,
             spectral_variance,
+            welch_spectra,
         )
 
         ch, pr = self.channels, self.problem
@@ -194,17 +196,19 @@ class FitResult:
             units[[j for _, j in offsets], np.arange(len(offsets))] = 1.0
             sens = pr.apply(self.jac, self.ev, units)                            # (N, C, 3P): per probe axis
             gain = np.mean(sens ** 2, axis=0).reshape(ch.values.shape[1], pr.P, 3).sum(axis=2)
-            law = probe_power_laws(ch.values, dt, gain)
+            spectra = welch_spectra(ch.values, dt)
+            law = probe_power_laws(ch.values, dt, gain, spectra=spectra)
             if law is None or not any(is_coloured((float(w), float(a), law[2]), duration) for w, a in zip(*law[:2])):
                 return None
             if law[2] > FLICKER:
-                law = probe_power_laws(ch.values, dt, gain, alphas=np.array([FLICKER])) or law
+                law = probe_power_laws(ch.values, dt, gain, alphas=np.array([FLICKER]), spectra=spectra) or law
             w, a, alpha = law
             models = [(float(w[k]), float(a[k]), alpha) for k, _ in offsets]
             out = []
-            for lo in range(0, cols.shape[1], APPLY_COLUMNS):                  # a few directions per pass
-                u = pr.apply(self.jac, self.ev, cols[:, lo:lo + APPLY_COLUMNS]) * w2[None, :, None]
-                v = np.einsum("nck,ncp->nkp", u, sens)                          # (N, K, 3P)
+            per = max(1, APPLY_VALUES // (ch.values.shape[0] * ch.values.shape[1]))
+            for lo in range(0, cols.shape[1], per):                             # directions per pass
+                u = pr.apply(self.jac, self.ev, cols[:, lo:lo + per]) * w2[None, :, None]
+                v = np.matmul(u.transpose(0, 2, 1), sens)                       # (N, K, 3P)
                 out += [spectral_variance(v[:, i], grid, models, dt) for i in range(v.shape[1])]
             return np.sqrt(out)
         models = [power_law(ch.values[:, c], dt) for c in range(ch.values.shape[1])]
