@@ -11,16 +11,21 @@ import service.numerics.effects.hysteresis as hysteresis
 from service.numerics.diagnose import diagnose, summary_text
 from test_diagnose import TUMBLE, data_of, probe, sim_block
 
+#: test_perming_step's jump: a private forward model adds it to probe 2's offset at 61.7 s
+JUMP = np.array([6.0, -4.0, 3.0])
 
-def stepped(seed: int, *, wander: bool):
+
+def stepped(seed: int, *, wander: bool, pink: float = 0.0):
     probes = [probe(0), probe(1)]
+    for p in probes:
+        p["pink_nT_rtHz"] = pink
     block = sim_block(probes, n=10000, rate=100.0, motion=TUMBLE, seed=seed)
     t = block.t_s - block.t_s[0]
     if wander:       # smooth: a slow swing and a gentle 16-s transition, no jump
         block.field_nT[:, 1, :] += np.outer(3.0 * np.sin(2 * np.pi * t / 45.0) + 2.0 * np.tanh((t - 60) / 8.0),
                                             [1.0, -0.6, 0.4])
     else:
-        block.field_nT[t >= 61.7, 1, :] += np.array([6.0, -4.0, 3.0])
+        block.field_nT[t >= 61.7, 1, :] += JUMP
     return data_of(block, probes)
 
 
@@ -82,19 +87,6 @@ def test_a_smooth_change_across_a_held_out_block_is_no_step_at_its_edge():
     assert any(abs(ts - 700.0) < 1.0 for ts, _ in found), found
 
 
-JUMP = np.array([6.0, -4.0, 3.0])
-
-
-def step_world(seed: int, pink: float = 0.0):
-    """test_perming_step's pair: a private forward model adds an offset jump to probe 2 at 61.7 s."""
-    probes = [probe(0), probe(1)]
-    for p in probes:
-        p["pink_nT_rtHz"] = pink
-    block = sim_block(probes, n=10000, rate=100.0, motion=TUMBLE, seed=seed)
-    block.field_nT[block.t_s - block.t_s[0] >= 61.7, 1, :] += JUMP
-    return data_of(block, probes)
-
-
 @pytest.mark.slow
 def test_a_perming_step_is_found_and_placed_in_every_one_of_ten_worlds():
     """Ten seeds, white noise: one step on probe 2, no other, its size within 0.3 nT. The calibration fitted
@@ -106,7 +98,7 @@ def test_a_perming_step_is_found_and_placed_in_every_one_of_ten_worlds():
     from service.numerics.engine import fit_with_effects
 
     for seed in range(20, 30):
-        ef, _ = fit_with_effects(step_world(seed), ["hysteresis"])
+        ef, _ = fit_with_effects(stepped(seed, wander=False), ["hysteresis"])
         steps = [p for p in ef.parameters if "step@" in p.name]
         assert [p.name.split(".")[0] for p in steps] == ["s2"] * 3, (seed, [p.name for p in steps])
         at = float(steps[0].name.split("@")[1].split("s")[0])
@@ -118,7 +110,7 @@ def test_a_perming_step_is_found_and_placed_in_every_one_of_ten_worlds():
 @pytest.mark.parametrize("seed", [22, 25])
 def test_where_the_step_was_missed_diagnose_now_explains_it_by_hysteresis(seed):
     """The two worlds of the ten where diagnose had named drift (22, "explained") or nothing (25)."""
-    data = step_world(seed)
+    data = stepped(seed, wander=False)
     d = diagnose(data)
     first = d.candidates[0]
     assert first.effect == "hysteresis" and first.significant, summary_text(d)

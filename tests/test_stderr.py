@@ -4,7 +4,9 @@ white-noise formula alone understated temperature coefficients 9-fold under 1/f 
 block jackknife over time blocks brings them to about 0.9. A drift and the noise's own wander at periods as
 long as the record look alike, and the jackknife does not see that wander (rms z 1.98 under 1/f noise): the
 drift's errors come from a power-law model of each probe's noise spectrum, extended below the fitted band at
-least as steeply as flicker noise (engine/coloured.py)."""
+least as steeply as flicker noise (engine/coloured.py). So do every effect's parameters (a step, a heater's
+coupling, a thermal lag: the jackknife alone left them 2 to 2.5 times too small), and `fit`'s linear calibration
+gets the same from weights of its own (numerics/calib/offset_noise.py)."""
 
 from __future__ import annotations
 
@@ -190,11 +192,11 @@ def test_perming_step_sizes_cover_the_truth_under_white_and_one_over_f_noise(pin
     within 5 s of the true instant is compared with the true jump. Under 1/f noise of this size the 7.8 nT
     step is found in 9 of these ten worlds (in 6 of seeds 10-19): perming is harder to tell from a wander
     there, and what is not found is not judged here."""
-    from test_diagnose_crossfit import JUMP, step_world
+    from test_diagnose_crossfit import JUMP, stepped
 
     z, found = [], 0
     for seed in range(20, 30):
-        ef, _ = fit_with_effects(step_world(seed, pink), ["hysteresis"])
+        ef, _ = fit_with_effects(stepped(seed, wander=False, pink=pink), ["hysteresis"])
         for p in ef.parameters:
             if "step@" not in p.name:
                 continue
@@ -203,7 +205,7 @@ def test_perming_step_sizes_cover_the_truth_under_white_and_one_over_f_noise(pin
             found += near
             z.append((p.value - (JUMP["xyz".index(p.name.split(".")[1][0])] if near else 0.0)) / p.stderr)
     z = np.array(z)
-    assert found >= (30 if pink == 0 else 24), found          # every world with white noise
+    assert found >= (30 if pink == 0 else 27), found          # every world (white), nine of ten (1/f)
     rms = float(np.sqrt(np.mean(z ** 2)))
     assert 1 / 1.5 <= rms <= 1.5, (rms, z.round(2))
 

@@ -147,17 +147,18 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
 
 def _coloured_noise_notes(slope: float | None, effects: Sequence[str], duration_s: float) -> list[str]:
     """What a coloured residual (its spectral slope) means for the standard errors: the block jackknife
-    (engine/solve.py) for terms that change within the record, and for a drift a power-law model of the
-    noise spectrum extended to the record's own periods (engine/coloured.py)."""
+    (engine/solve.py), and for every effect a power-law model of the noise spectrum extended to the record's
+    own periods (engine/coloured.py), the larger of the two."""
     if slope is None or slope > -0.5:
         return []
     out = [f"the residual is coloured (spectrum ~ f^{slope:.1f}): standard errors come from the block jackknife "
-           f"over time blocks, not from white-noise formulas"]
-    if "drift" in effects:
-        out.append(f"drift: a wander of the noise at periods as long as the record ({duration_s:.0f} s) looks like a "
-                   f"drift; the drift rates' standard errors come from a power law fitted to each probe's noise "
-                   f"spectrum and extended to those periods at least as steeply as flicker (1/f) noise: a noise "
-                   f"that steepens further there (a random walk of the offsets) would make them too small")
+           f"over time blocks, not from white-noise formulas, and each effect's from a power law fitted to each "
+           f"probe's noise spectrum where that is larger"]
+    if effects:
+        out.append(f"a wander of the noise at periods as long as the record ({duration_s:.0f} s) looks like a drift, "
+                   f"a step or any slow effect; their standard errors come from that power law, extended to those "
+                   f"periods at least as steeply as flicker (1/f) noise: a noise that steepens further there (a "
+                   f"random walk of the offsets) would make them too small")
     return out
 
 

@@ -28,10 +28,12 @@ from .base import AXES, EffectTerm, ProbeView
 
 
 CHI2_3_MEDIAN = 2.366         # median of a chi-square with 3 degrees of freedom
-#: a step's chi-square (3 degrees of freedom, wander-normalised) must exceed this: white noise reaches 1.4e-6 of
-#: it per position (the highest of 18 probe-records of white and 1/f noise, 10 to 23); what it proposes, the
-#: held-out cross-fit judges (diagnose/fits.py)
+#: a step's chi-square (3 degrees of freedom, wander-normalised) must exceed this (a single chi-square_3 passes it
+#: 1.4e-6 of the time; the highest of the windows' values along 18 probe-records of white and 1/f noise without
+#: a step were 10 to 23); what it proposes, the held-out cross-fit judges (diagnose/fits.py)
 THRESHOLD = 30.0
+#: the single step the calibration's share is refitted beside is looked for at most at this many instants
+SCAN_POINTS = 20_000
 #: a view's cache key for a stretch (t_lo, t_hi) the steps are searched around, not across (diagnose's
 #: held-out block; diagnose/fits.py crossfit_heldout)
 BARRIER = "ref:hysteresis_barrier"
@@ -113,9 +115,10 @@ def without_calibration_share(r: np.ndarray, g: np.ndarray, u: np.ndarray, margi
     A calibration fitted to data with an offset step takes part of the step into its offset and shape, and
     leaves a residual that follows the direction all along the record: in one world of ten (a 7.8 nT step,
     white noise) it made the windows' jumps peak 11 s off the step, and in two others it hid the step. So the
-    calibration's share is refitted beside the likeliest single step: its columns X are the residual's
-    sensitivity to the offsets (g) and to the shape (u_a u_b, six), the step's g H(t - t_k), and for every
-    instant k at once (suffix sums) the drop of the residual sum of squares b_k^T C_k^-1 b_k, with
+    calibration's share is refitted beside the likeliest single step (one: further steps are found by the
+    windows in what is left): its columns X are the residual's sensitivity to the offsets (g) and to the shape
+    (u_a u_b, six), the step's g H(t - t_k), and for every instant k (at most SCAN_POINTS of them, `margin`
+    samples from either end) at once by suffix sums the drop of the residual sum of squares b_k^T C_k^-1 b_k, with
     b_k = S_k^T r - S_k^T X (X^T X)^-1 X^T r and C_k = S_k^T S_k - S_k^T X (X^T X)^-1 X^T S_k. The residual
     less X beta of the joint fit at the best instant keeps the step whole and loses the calibration's share;
     the windows' test then judges it (a wander stays a wander: the refit moves only the nine columns)."""
@@ -126,20 +129,33 @@ def without_calibration_share(r: np.ndarray, g: np.ndarray, u: np.ndarray, margi
     x = np.column_stack([g, quad / scale])
     xtx_inv = np.linalg.pinv(x.T @ x)
     proj = xtx_inv @ (x.T @ r)
-    gx = np.cumsum((g[:, :, None] * x[:, None, :])[::-1], axis=0)[::-1]             # S_k^T X, every k
-    gg = np.cumsum((g[:, :, None] * g[:, None, :])[::-1], axis=0)[::-1]             # S_k^T S_k
-    gr = np.cumsum((g * r[:, None])[::-1], axis=0)[::-1]                            # S_k^T r
-    k = np.arange(margin, r.size - margin)
-    c = gg[k] - np.einsum("nij,jk,nlk->nil", gx[k], xtx_inv, gx[k])
-    b = gr[k] - gx[k] @ proj
+    # the instants scanned: every `stride`-th sample (the windows place the step to the sample afterwards); the
+    # sums per stretch between them, a chunk of rows at a time (a few hundred bytes per stretch, not per sample)
+    n = r.size
+    stride = max(1, n // SCAN_POINTS)
+    starts = np.arange(0, n, stride)
+    parts = [np.empty((starts.size, 3, 9)), np.empty((starts.size, 3, 3)), np.empty((starts.size, 3))]
+    rows = stride * 4096
+    for lo in range(0, n, rows):
+        sl = slice(lo, min(n, lo + rows))
+        at = starts[(starts >= lo) & (starts < sl.stop)] - lo
+        seg = slice(lo // stride, lo // stride + at.size)
+        gl = g[sl]
+        parts[0][seg] = np.add.reduceat(gl[:, :, None] * x[sl][:, None, :], at, axis=0)
+        parts[1][seg] = np.add.reduceat(gl[:, :, None] * gl[:, None, :], at, axis=0)
+        parts[2][seg] = np.add.reduceat(gl * r[sl][:, None], at, axis=0)
+    gx, gg, gr = (np.cumsum(a[::-1], axis=0)[::-1] for a in parts)          # S_k^T X, S_k^T S_k, S_k^T r
+    inside = (starts >= margin) & (starts < n - margin)
+    gx, gg, gr, instants = gx[inside], gg[inside], gr[inside], starts[inside]
+    c = gg - np.einsum("nij,jk,nlk->nil", gx, xtx_inv, gx)
+    b = gr - gx @ proj
     ridge = 1e-9 * np.trace(c, axis1=1, axis2=2)[:, None, None] * np.eye(3)
     drop = np.einsum("ni,ni->n", b, np.linalg.solve(c + ridge, b[..., None])[..., 0])
     if not drop.size or not np.all(np.isfinite(drop)):
         return r
-    best = int(k[int(np.argmax(drop))])
-    step = np.where(np.arange(r.size)[:, None] >= best, g, 0.0)
-    design = np.column_stack([x, step])
-    coef, *_ = np.linalg.lstsq(design, r, rcond=None)
+    best = int(instants[int(np.argmax(drop))])
+    step = np.where(np.arange(n)[:, None] >= best, g, 0.0)
+    coef, *_ = np.linalg.lstsq(np.column_stack([x, step]), r, rcond=None)
     return r - x @ coef[:x.shape[1]]
 
 

@@ -118,7 +118,7 @@ def is_coloured(model: tuple[float, float, float] | None, duration_s: float) -> 
 
 #: the weights are summed into at most this many bins of time before the power law's integral (their spectrum
 #: at the record's own periods is what it needs; the white part is summed exactly)
-WEIGHT_BINS = 1 << 13
+WEIGHT_BINS = 1 << 15
 
 
 def spectral_variance(u: np.ndarray, grid: np.ndarray, models: list[tuple[float, float, float] | None],

@@ -137,7 +137,9 @@ class FitResult:
         (about 50 %), so per term (the offsets, the matrices, each effect) the white-noise errors are scaled
         by the median over its parameters of jackknife / white when that exceeds 1: white noise keeps its
         white-noise errors, 1/f noise gets the jackknife's (temperature coefficients were understated
-        9-fold under 1/f noise; now within 0.9, tests/test_stderr.py)."""
+        9-fold under 1/f noise; now within 0.9, tests/test_stderr.py). The jackknife sees the wander only
+        between its blocks: every effect's parameters also get coloured_stderr's power-law figure where that
+        is larger (a drift, a step, a heater switched every 40 s, a 90-s thermal lag)."""
         d = self.block_deltas()
         k = d.shape[0]
         if k < 3 or d.shape[1] == 0:
@@ -158,7 +160,10 @@ class FitResult:
         # jackknife alone left their errors 2 to 2.5 times too small)
         terms = np.array([j for sl in self.problem.slots if sl.term is not None
                           for j in range(sl.start, sl.stop) if not self.undetermined[j]], dtype=int)
-        spectral = self.coloured_stderr(terms) if terms.size else None
+        try:
+            spectral = self.coloured_stderr(terms) if terms.size else None
+        except (np.linalg.LinAlgError, ValueError, RuntimeError):
+            spectral = None                               # the jackknife's errors stand
         if spectral is not None:
             out[terms] = np.maximum(out[terms], spectral)
         return out
@@ -205,9 +210,10 @@ class FitResult:
             w, a, alpha = law
             models = [(float(w[k]), float(a[k]), alpha) for k, _ in offsets]
             out = []
-            per = max(1, APPLY_VALUES // (ch.values.shape[0] * ch.values.shape[1]))
+            per = max(1, APPLY_VALUES // (ch.values.shape[0] * max(ch.values.shape[1], len(offsets))))
             for lo in range(0, cols.shape[1], per):                             # directions per pass
-                u = pr.apply(self.jac, self.ev, cols[:, lo:lo + per]) * w2[None, :, None]
+                u = pr.apply(self.jac, self.ev, cols[:, lo:lo + per])
+                u *= w2[None, :, None]
                 v = np.matmul(u.transpose(0, 2, 1), sens)                       # (N, K, 3P)
                 out += [spectral_variance(v[:, i], grid, models, dt) for i in range(v.shape[1])]
             return np.sqrt(out)
