@@ -177,6 +177,7 @@ class FitResult:
             FLICKER,
             MAX_GRID_FILL,
             is_coloured,
+            looks_white,
             low_frequency_correlation,
             pinv_columns,
             power_law,
@@ -193,6 +194,9 @@ class FitResult:
         if grid[-1] + 1 > MAX_GRID_FILL * grid.size:
             return None                                   # mostly gaps: the jackknife's errors stand
         duration = ch.values.shape[0] * dt                # the length the spectra are taken over (gaps closed)
+        spectra = welch_spectra(ch.values, dt)
+        if looks_white(spectra, duration):
+            return None
         cols = pinv_columns(self.a_blocks.sum(0), idx, RANK_TOL)
         w2 = pr.weights ** 2
         offsets = [(sl.k, j) for sl in pr.slots if sl.kind == "offset" for j in range(sl.start, sl.stop)]
@@ -201,7 +205,6 @@ class FitResult:
             units[[j for _, j in offsets], np.arange(len(offsets))] = 1.0
             sens = pr.apply(self.jac, self.ev, units)                            # (N, C, 3P): per probe axis
             gain = np.mean(sens ** 2, axis=0).reshape(ch.values.shape[1], pr.P, 3).sum(axis=2)
-            spectra = welch_spectra(ch.values, dt)
             law = probe_power_laws(ch.values, dt, gain, spectra=spectra)
             if law is None or not any(is_coloured((float(w), float(a), law[2]), duration) for w, a in zip(*law[:2])):
                 return None
