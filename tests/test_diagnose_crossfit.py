@@ -117,3 +117,21 @@ def test_where_the_step_was_missed_diagnose_now_explains_it_by_hysteresis(seed):
     assert d.verdict["kind"] == "explained" and d.verdict["effect"] == "hysteresis", d.verdict
     d2 = diagnose(data, effects=["hysteresis"])
     assert d2.rms_nT <= 1.3 * d2.noise_nT
+
+
+def test_the_step_search_beside_the_calibration_never_looks_into_the_held_out_block():
+    """detect_steps with the calibration's share refitted (centred) and a held-out block (barrier): what the
+    block holds changes nothing, and a step outside it is found where it is."""
+    rng = np.random.default_rng(4)
+    n = 10000
+    t = np.arange(n) / 100.0
+    ph = 2 * np.pi * t / 6.0
+    g = np.column_stack([np.cos(ph) * np.cos(ph / 3.1), np.sin(ph) * np.cos(ph / 3.1), np.sin(ph / 3.1)])
+    r = 0.5 * rng.standard_normal(n) + (t >= 61.7) * (g @ JUMP)
+    barrier = (20.0, 30.0)
+    found = hysteresis.detect_steps(t, r, g, window=333, barrier=barrier, centred=50000.0 * g)
+    spoiled = r.copy()
+    inside = (t >= barrier[0]) & (t <= barrier[1])
+    spoiled[inside] = 1e3 * rng.standard_normal(int(inside.sum()))
+    assert hysteresis.detect_steps(t, spoiled, g, window=333, barrier=barrier, centred=50000.0 * g) == found
+    assert [round(s, 1) for s, _ in found] == [61.7], found
