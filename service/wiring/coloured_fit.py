@@ -148,20 +148,11 @@ def _add_in_variance(p: ProbeCalibration, key: str, extra: np.ndarray) -> None:
 
 
 def _say_sizes(p: ProbeCalibration) -> None:
-    """The warning of each offset or named parameter whose standard error exceeds its size, with the errors as
-    they now stand (the fit said it with its white-noise ones)."""
-    from service.numerics.calib.order import size_warning
+    """The size warnings (calib.order.size_warnings) with the errors as they now stand: the fit said them with
+    its white-noise ones."""
+    from service.numerics.calib.order import SIZE_WARNING, size_warnings
 
-    for key in ("offset_nT", "scale", "nonorth_deg"):
-        entry = p.params.get(key)
-        if entry is None or entry.get("se") is None:
-            continue
-        labels = entry.get("names") or list("xyz")
-        for lab, v, se in zip(labels, np.atleast_1d(entry["value"]), np.atleast_1d(entry["se"])):
-            head = f"{p.name}: {key}.{lab} = "
-            p.warnings = [w for w in p.warnings if not w.startswith(head)]
-            if np.isfinite(se) and se > abs(v):
-                p.warnings.append(size_warning(p.name, f"{key}.{lab}", float(v), float(se)))
+    p.warnings = [w for w in p.warnings if not w.endswith(SIZE_WARNING)] + size_warnings(p.name, p.params)
 
 
 def _law(y: np.ndarray, dt: float, duration: float) -> tuple[float, float, float] | None:

@@ -38,8 +38,8 @@ Numerics only.
 from __future__ import annotations
 
 import numpy as np
-from scipy.fft import next_fast_len, rfft, rfftfreq
 
+from ..engine.coloured import binned_fft, power_law_spectrum
 from .ellipsoid import (
     normalise,
     quadric_design,
@@ -138,51 +138,27 @@ def regression_weights(raw: np.ndarray, a: np.ndarray, offset: np.ndarray) -> tu
     return w_o, w_m
 
 
-#: the weights are summed into at most this many bins of time before their FFT: their spectrum is that of the
-#: motion (tens of cycles per record), and a power law puts little weight beyond the bins' own Nyquist frequency
-WEIGHT_BINS = 1 << 15
-
-
 def record_se(weights: np.ndarray, grid: np.ndarray, dt: float, laws: list[tuple[float, float, float] | None],
-              knee: tuple[float, float] | None = None, pad: int = 4, bins: int = WEIGHT_BINS) -> np.ndarray:
+              knee: tuple[float, float] | None = None) -> np.ndarray:
     """(J,) the standard error each parameter (an offset, a matrix element) gains from the power-law part
     a f^alpha of its noise sources' spectra: Var_j = sum_a integral |W_ja(f)|^2 S_a(f) df (the sources
-    independent), on a zero-padded FFT of the weights (N, J, A) placed at `grid` (N,) on a uniform grid of
-    step dt and summed into at most `bins` bins of time (as engine.coloured.spectral_variance). laws: one
-    (w, a, alpha) per source (the weights' last axis; None: no power law); below knee = (f_k, beta) the law
-    carries on at slope beta. To be added in variance to the white-noise error, whose residual variance holds
-    the law's power within the band as well: that part is counted twice, on the safe side, by at most the
-    white-noise error itself. An offset's error is that over this record: of the static offset plus the
-    noise's mean over the record (a constant the record cannot tell from the offset), so the weights enter
-    less their mean, which sum to zero and end the integral at f = 0 by themselves (a matrix's sum to zero
-    already: a constant moves only the offset)."""
+    independent), on engine.coloured.binned_fft of the weights (N, J, A) placed at `grid` (N,) on a uniform
+    grid of step dt. laws: one (w, a, alpha) per source (the weights' last axis; None: no power law); below
+    knee = (f_k, beta) the law carries on at slope beta. To be added in variance to the white-noise error,
+    whose residual variance holds the law's power within the band as well: that part is counted twice, on the
+    safe side, by at most the white-noise error itself. An offset's error is that over this record: of the
+    static offset plus the noise's mean over the record (a constant the record cannot tell from the offset),
+    so the weights enter less their mean, which sum to zero and end the integral at f = 0 by themselves (a
+    matrix's sum to zero already: a constant moves only the offset)."""
     centred = weights - weights.mean(axis=0)
-    step = max(1, -(-(int(grid[-1]) + 1) // bins))
-    where = np.asarray(grid) // step
-    length = int(where[-1]) + 1
-    m = next_fast_len(pad * length)
-    f = rfftfreq(m, dt * step)[1:]
     var = np.zeros(weights.shape[1])
     for a, law in enumerate(laws):
-        if law is None:
+        cols = np.flatnonzero(np.any(centred[:, :, a] != 0, axis=0))         # structural zeros: none
+        if law is None or not cols.size:
             continue
-        s = power_law_spectrum(f, law, knee)
-        for j in np.flatnonzero(np.any(centred[:, :, a] != 0, axis=0)):       # structural zeros: none
-            x = np.bincount(where, weights=centred[:, j, a], minlength=length)
-            var[j] += float(np.abs(rfft(x, n=m)[1:]) ** 2 @ s)
-    return np.sqrt(var / (m * dt * step))
-
-
-def power_law_spectrum(f: np.ndarray, law: tuple[float, float, float],
-                       knee: tuple[float, float] | None = None) -> np.ndarray:
-    """The part a f^alpha of the law (w, a, alpha) at frequencies f > 0; below knee = (f_k, beta),
-    a f_k^alpha (f / f_k)^beta."""
-    _, a, alpha = law
-    s = a * f ** alpha
-    if knee is not None:
-        low = f < knee[0]
-        s[low] = a * knee[0] ** alpha * (f[low] / knee[0]) ** knee[1]
-    return s
+        f, x, norm = binned_fft(centred[:, cols, a], grid, dt)
+        var[cols] += power_law_spectrum(f, law, knee) @ np.abs(x) ** 2 / norm
+    return np.sqrt(var)
 
 
 def wander_per_decade(law: tuple[float, float, float], duration_s: float,

@@ -161,16 +161,23 @@ def order_warnings(cal: Any, order: str, missing: list[str], choice: OrderChoice
         out.append(f"{name}: fitted the {order} model; {' and '.join(FIXED[order])} not determined by "
                    f"these samples ({why}): held fixed")
     out += [f"{name}: {m} not determined by these samples (standard error too large)" for m in missing]
-    for key in ("offset_nT", "scale", "nonorth_deg"):
-        v, se = np.atleast_1d(p[key]["value"]), p[key]["se"]
-        if se is None:
+    return out + size_warnings(name, p)
+
+
+#: the named parameters whose standard errors are compared with their size
+SIZED = ("offset_nT", "scale", "nonorth_deg")
+SIZE_WARNING = "its standard error exceeds its size"
+
+
+def size_warnings(name: str, params: dict) -> list[str]:
+    """A warning for each offset or named parameter (SIZED) whose standard error exceeds its size."""
+    out = []
+    for key in SIZED:
+        entry = params.get(key)
+        if entry is None or entry.get("se") is None:
             continue
-        labels = p[key].get("names") or list("xyz")
-        for lab, vi, si in zip(labels, v, np.atleast_1d(se)):
-            if np.isfinite(si) and si > abs(vi):
-                out.append(size_warning(name, f"{key}.{lab}", vi, si))
+        labels = entry.get("names") or list("xyz")
+        for lab, v, se in zip(labels, np.atleast_1d(entry["value"]), np.atleast_1d(entry["se"])):
+            if np.isfinite(se) and se > abs(v):
+                out.append(f"{name}: {key}.{lab} = {v:.4g} ± {se:.2g}: {SIZE_WARNING}")
     return out
-
-
-def size_warning(probe: str, parameter: str, value: float, se: float) -> str:
-    return f"{probe}: {parameter} = {value:.4g} ± {se:.2g}: its standard error exceeds its size"

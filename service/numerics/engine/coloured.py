@@ -49,10 +49,12 @@ MIN_CYCLES = 16.0
 COLOURED_CYCLES = 4 * MIN_CYCLES
 
 
-def power_law(y: np.ndarray, dt: float, alphas: np.ndarray = ALPHAS) -> tuple[float, float, float] | None:
+def power_law(y: np.ndarray, dt: float, alphas: np.ndarray = ALPHAS,
+              spectrum: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float, float] | None:
     """(w, a, alpha) of S(f) = w + a f^alpha (one-sided, alpha the best of `alphas`) fitted to y's Welch
-    spectrum above MIN_CYCLES per record, or None when y is too short for a spectrum."""
-    got = probe_power_laws(np.asarray(y, float)[:, None], dt, np.ones((1, 1)), alphas)
+    spectrum above MIN_CYCLES per record (`spectrum`, when already taken), or None when y is too short."""
+    got = probe_power_laws(np.asarray(y, float)[:, None], dt, np.ones((1, 1)), alphas,
+                           spectra=None if spectrum is None else [spectrum])
     return None if got is None else (float(got[0][0]), float(got[1][0]), got[2])
 
 
@@ -167,18 +169,36 @@ def spectral_variance(u: np.ndarray, grid: np.ndarray, models: list[tuple[float,
     coloured = [j for j in range(len(used)) if laws[j, 1] > 0]
     if not coloured:
         return var
+    f, x, norm = binned_fft(uu[:, coloured], grid, dt, bins, pad)
+    keep = f >= f_min
+    g = x[keep] * np.sqrt(np.column_stack([power_law_spectrum(f[keep], tuple(laws[j])) for j in coloured]))
+    gram = (g.conj().T @ g).real                             # sum over frequencies of G_c* G_c'
+    return var + float(np.sum(r[np.ix_(coloured, coloured)] * gram)) / norm
+
+
+def binned_fft(u: np.ndarray, grid: np.ndarray, dt: float, bins: int = WEIGHT_BINS,
+               pad: int = 4) -> tuple[np.ndarray, np.ndarray, float]:
+    """(f, X, norm): the zero-padded FFT X (F, J) of weights u (N, J) at positions `grid` (N,) of a uniform
+    grid of step dt, summed into at most `bins` bins of time, at frequencies f > 0; sum_f |X_j|^2 S(f) / norm is
+    integral |U_j(f)|^2 S(f) df for a one-sided spectrum S."""
     step = max(1, -(-(int(grid[-1]) + 1) // bins))
     where = np.asarray(grid) // step
     length = int(where[-1]) + 1
     m = next_fast_len(pad * length)
-    f = rfftfreq(m, dt * step)[1:]
-    keep = f >= f_min
-    g = np.empty((int(keep.sum()), len(coloured)), complex)
-    for i, j in enumerate(coloured):
-        x = np.bincount(where, weights=uu[:, j], minlength=length)
-        g[:, i] = rfft(x, n=m)[1:][keep] * np.sqrt(laws[j, 1] * f[keep] ** laws[j, 2])
-    gram = (g.conj().T @ g).real                             # sum over frequencies of G_c* G_c'
-    return var + float(np.sum(r[np.ix_(coloured, coloured)] * gram)) / (m * dt * step)
+    x = np.column_stack([np.bincount(where, weights=u[:, j], minlength=length) for j in range(u.shape[1])])
+    return rfftfreq(m, dt * step)[1:], rfft(x, n=m, axis=0)[1:], m * dt * step
+
+
+def power_law_spectrum(f: np.ndarray, law: tuple[float, float, float],
+                       knee: tuple[float, float] | None = None) -> np.ndarray:
+    """The part a f^alpha of the law (w, a, alpha) at frequencies f > 0; below knee = (f_k, beta), the law
+    carried on at slope beta: a f_k^alpha (f / f_k)^beta."""
+    _, a, alpha = law
+    s = a * f ** alpha
+    if knee is not None:
+        low = f < knee[0]
+        s[low] = a * knee[0] ** alpha * (f[low] / knee[0]) ** knee[1]
+    return s
 
 
 def low_frequency_correlation(values: np.ndarray, blocks: int = 32) -> np.ndarray:

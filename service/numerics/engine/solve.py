@@ -213,22 +213,29 @@ class FitResult:
             w, a, alpha = law
             models = [(float(w[k]), float(a[k]), alpha) for k, _ in offsets]
             out = []
-            per = max(1, APPLY_VALUES // (ch.values.shape[0] * max(ch.values.shape[1], len(offsets))))
-            for lo in range(0, cols.shape[1], per):                             # directions per pass
-                u = pr.apply(self.jac, self.ev, cols[:, lo:lo + per])
-                u *= w2[None, :, None]
+            for u in self._weights(cols, w2, len(offsets)):
                 v = np.matmul(u.transpose(0, 2, 1), sens)                       # (N, K, 3P)
                 out += [spectral_variance(v[:, i], grid, models, dt) for i in range(v.shape[1])]
             return np.sqrt(out)
-        models = [power_law(ch.values[:, c], dt) for c in range(ch.values.shape[1])]
+        models = [power_law(ch.values[:, c], dt, spectrum=spectra[c]) for c in range(ch.values.shape[1])]
         if not any(is_coloured(m, duration) for m in models):
             return None
-        models = [power_law(ch.values[:, c], dt, np.array([FLICKER])) or m
+        models = [power_law(ch.values[:, c], dt, np.array([FLICKER]), spectrum=spectra[c]) or m
                   if m is not None and is_coloured(m, duration) and m[2] > FLICKER else m
                   for c, m in enumerate(models)]
         rho = low_frequency_correlation(ch.values)
-        return np.sqrt([spectral_variance(pr.apply(self.jac, self.ev, col) * w2, grid, models, dt, rho,
-                                          f_min=1.0 / duration) for col in cols.T])
+        return np.sqrt([spectral_variance(u[:, :, i], grid, models, dt, rho, f_min=1.0 / duration)
+                        for u in self._weights(cols, w2, 0) for i in range(u.shape[2])])
+
+    def _weights(self, cols: np.ndarray, w2: np.ndarray, extra: int):
+        """The weighted channel weights (N, C, K) of parameter directions cols (n_params, J), K at a time: as
+        many as APPLY_VALUES allows beside `extra` values per row and direction."""
+        n, c = self.channels.values.shape
+        per = max(1, APPLY_VALUES // (n * max(c, extra)))
+        for lo in range(0, cols.shape[1], per):
+            u = self.problem.apply(self.jac, self.ev, cols[:, lo:lo + per])
+            u *= w2[None, :, None]
+            yield u
 
     def parameters(self, *, effects_only: bool = True) -> list[Parameter]:
         out = []
