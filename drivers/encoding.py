@@ -126,4 +126,49 @@ def decode_raw(data: bytes | memoryview) -> SampleBlock:
     return SampleBlock(t_s=out[0], seq=out[1], field_nT=out[2], temp_C=out[3], flags=out[4], extras=extras)
 
 
-__all__ = ["RAW_ENCODING", "RAW_LAYOUT", "RAW_MAGIC", "check_magic", "decode_raw", "encode_raw", "layout_text"]
+def decode_raw_runs(payloads: list[bytes]) -> list[tuple[SampleBlock, np.ndarray]]:
+    """decode_raw of many consecutive messages at once: each run of messages with the same header and size
+    (a recording's blocks of one layout, the usual case) is decoded by one strided copy per field into one
+    block; returns (block, samples per message) per run, in order. The values are decode_raw's, bit for bit;
+    the first message of every run goes through decode_raw itself, so a damaged one fails with its message."""
+    out: list[tuple[SampleBlock, np.ndarray]] = []
+    i, m = 0, len(payloads)
+    while i < m:
+        first = payloads[i]
+        one = decode_raw(first)                              # validates the layout of the whole run
+        size, n, p = len(first), one.n_samples, one.n_probes
+        # what must be equal byte for byte: the header and the extras' names
+        marks, off = [slice(0, _RAW_HEAD.size)], _RAW_HEAD.size + n * (17 + 32 * p)
+        for name in one.extras:
+            label = len(name.encode())
+            marks.append(slice(off, off + 2 + label))
+            off += 2 + label + 8 * n
+        heads = [first[sl] for sl in marks]
+        j = i + 1
+        while j < m and len(payloads[j]) == size and all(payloads[j][sl] == h for sl, h in zip(marks, heads)):
+            j += 1
+        if j - i == 1:
+            out.append((one, np.array([one.n_samples])))
+            i = j
+            continue
+        rows = np.frombuffer(b"".join(payloads[i:j]), np.uint8).reshape(j - i, size)
+        fields, off = [], _RAW_HEAD.size
+        for dtype, shape in (("<f8", (n,)), ("<i8", (n,)), ("<f8", (n, p, 3)), ("<f8", (n, p)), ("u1", (n,))):
+            width = int(np.dtype(dtype).itemsize * np.prod(shape))
+            a = np.array(rows[:, off:off + width], copy=True).view(dtype)       # writeable, even when empty
+            fields.append(a.reshape(((j - i) * n,) + shape[1:]).astype(a.dtype.newbyteorder("="), copy=False))
+            off += width
+        extras: dict[str, np.ndarray] = {}
+        for name in one.extras:
+            off += 2 + len(name.encode())
+            a = np.array(rows[:, off:off + 8 * n], copy=True).view("<f8")
+            extras[name] = a.reshape(-1).astype(a.dtype.newbyteorder("="), copy=False)
+            off += 8 * n
+        block = SampleBlock(t_s=fields[0], seq=fields[1], field_nT=fields[2], temp_C=fields[3], flags=fields[4],
+                            extras=extras)
+        out.append((block, np.full(j - i, n)))
+        i = j
+    return out
+
+
+__all__ = ["RAW_ENCODING", "RAW_LAYOUT", "RAW_MAGIC", "check_magic", "decode_raw", "decode_raw_runs", "encode_raw", "layout_text"]

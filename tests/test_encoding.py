@@ -208,3 +208,29 @@ def test_json_messages_are_strict_json_with_nan_as_null():
 def test_malformed_json_messages_are_data_errors(bad):
     with pytest.raises(DataError, match="JSON message"):
         decode_json(bad)
+
+
+def test_runs_of_messages_decode_as_each_message_does_bit_for_bit():
+    # runs broken by a change of samples per message, of probes, of extras, and by extras of the same
+    # length under other names (the bytes of the header and the sizes agree there: the names must not)
+    from drivers.encoding import decode_raw_runs
+
+    blocks = ([raw_block(20, 4, seed=k) for k in range(5)] + [raw_block(7, 4, seed=9)]
+              + [raw_block(20, 4, seed=10 + k, extras=()) for k in range(3)]
+              + [raw_block(20, 4, seed=20 + k, extras=("ref_total",)) for k in range(2)]
+              + [raw_block(20, 4, seed=30 + k, extras=("abc_xyz_1",)) for k in range(2)]
+              + [raw_block(20, 2, seed=40 + k) for k in range(3)] + [raw_block(0, 2, seed=50)])
+    blocks[2].field_nT[:] = SPECIAL[0]                        # NaN payloads inside a run survive
+    payloads = [encode_raw(b) for b in blocks]
+    runs = decode_raw_runs(payloads)
+    assert [len(sizes) for _, sizes in runs] == [5, 1, 3, 2, 2, 3, 1]
+    got = [run.slice(a, a + n) for run, sizes in runs
+           for a, n in zip(np.concatenate([[0], np.cumsum(sizes)[:-1]]), sizes)]
+    assert len(got) == len(blocks)
+    for g, want in zip(got, blocks):
+        assert_same_raw(g, want)
+    whole = runs[0][0]
+    assert whole.field_nT.flags.writeable and whole.field_nT.flags.aligned and whole.field_nT.flags.c_contiguous
+    # a damaged message fails as decode_raw fails on it
+    with pytest.raises(DataError, match="trailing"):
+        decode_raw_runs(payloads[:2] + [payloads[2] + b"\0"])

@@ -256,3 +256,49 @@ def test_the_committed_sample_recording_replays(tmp_path):
     got = drain(src)
     assert src.n_probes == 2 and sum(b.n_samples for b in got) == src.counters.frames_accepted > 5000
     assert not src.report.warnings and src.metadata["unit"] == "grad1"
+
+
+def test_the_chunk_reader_gives_the_mcap_librarys_records(tmp_path):
+    # the reader's own parse of a chunk's records equals mcap.stream_reader.breakup_chunk on every chunk of a
+    # recording with schemas, channels and messages of several streams, lz4 and zstd alike
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    from drivers.mcap_source import _chunk_records
+    from service.io.recordings.writer import McapLogger
+
+    for compression in ("lz4", "zstd", "none"):
+        log = McapLogger(tmp_path, unit="u", filename=f"c-{compression}.mcap", compression=compression,
+                         chunk_size=50_000)
+        for k, b in enumerate(blocks(40, n=25)):
+            log.write_raw(b)
+            log.write_event({"kind": "command", "seq": k})
+        log.close()
+        with open(tmp_path / f"c-{compression}.mcap", "rb") as fh:
+            chunks = [r for r in StreamReader(fh, emit_chunks=True).records if isinstance(r, Chunk)]
+        assert len(chunks) >= 2
+        for ch in chunks:
+            assert _chunk_records(ch) == breakup_chunk(ch, validate_crc=True)
+
+
+def test_the_chunk_reader_refuses_malformed_records_inside_a_chunk():
+    # what a damaged chunk with a good CRC may hold: each is an error (the file reader reports it as damage),
+    # never a loop or a record made of garbage; an unknown record is skipped, as the MCAP library does
+    import struct
+
+    from mcap.records import Chunk, Message
+
+    from drivers.mcap_source import _chunk_records
+
+    def chunk(data: bytes) -> Chunk:
+        return Chunk(compression="", data=data, message_start_time=0, message_end_time=0, uncompressed_crc=0,
+                     uncompressed_size=len(data))
+
+    message = struct.pack("<BQHIQQ", 0x05, 22 + 3, 7, 1, 10, 11) + b"abc"
+    assert _chunk_records(chunk(message)) == [Message(channel_id=7, log_time=10, data=b"abc", publish_time=11,
+                                                      sequence=1)]
+    assert _chunk_records(chunk(struct.pack("<BQ", 0x7F, 0) + message))[0].data == b"abc"
+    for bad, why in [(message[:5], "header cut short"), (message[:-1], "runs past"),
+                     (struct.pack("<BQ", 0x05, 10) + bytes(10), "message record of 10 bytes")]:
+        with pytest.raises(ValueError, match=why):
+            _chunk_records(chunk(bad))

@@ -22,6 +22,7 @@ import numpy as np
 from mcap.decoder import DecoderFactory
 
 from drivers.block import SampleBlock
+from drivers.encoding import decode_raw_runs
 from drivers.errors import DataError, RecordingError
 from drivers.mcap_source import (
     ReadReport,
@@ -53,9 +54,10 @@ def concat_corrected(blocks: list[CorrectedBlock]) -> CorrectedBlock:
 
 @dataclass
 class Recording:
-    """A recording in memory: one unit's streams, in recorded order."""
+    """A recording in memory: one unit's streams, in recorded order. The raw samples are held as runs
+    (consecutive messages of one layout decoded into one block); `raw_blocks` gives them message by message."""
 
-    raw_blocks: list[SampleBlock]
+    raw_runs: list[SampleBlock]
     corrected_blocks: list[CorrectedBlock]
     events: list[dict[str, Any]]
     calibration: list[dict[str, Any]]
@@ -67,11 +69,26 @@ class Recording:
     report: ReadReport = field(default_factory=ReadReport)
     every: int = 1                 # read_samples(max_probe_samples=...): every k-th sample kept
     n_read: int | None = None      # the samples in the recording (before keeping every k-th)
+    run_sizes: list[np.ndarray] | None = None    # per run, the samples of each message (None: a message per run)
+
+    @property
+    def raw_blocks(self) -> list[SampleBlock]:
+        """The raw samples as recorded, a block per message (views into the runs)."""
+        if self.run_sizes is None:
+            return self.raw_runs
+        out = []
+        for run, sizes in zip(self.raw_runs, self.run_sizes):
+            if len(sizes) == 1:
+                out.append(run)
+                continue
+            edges = np.concatenate([[0], np.cumsum(sizes)]).tolist()
+            out += [run.slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
+        return out
 
     @property
     def raw(self) -> SampleBlock:
         """Every raw sample in one block (the block itself when there is one: no copy)."""
-        return self.raw_blocks[0] if len(self.raw_blocks) == 1 else SampleBlock.concat(self.raw_blocks)
+        return self.raw_runs[0] if len(self.raw_runs) == 1 else SampleBlock.concat(self.raw_runs)
 
     @property
     def corrected(self) -> CorrectedBlock | None:
@@ -90,7 +107,7 @@ class Recording:
 
     @property
     def n_probes(self) -> int:
-        return self.raw_blocks[0].n_probes
+        return self.raw_runs[0].n_probes
 
     def _json(self, key: str) -> Any:
         report = ReadReport(metadata=self.metadata)
@@ -125,9 +142,8 @@ def read_samples(path: str | Path, *, unit: str | None = None, strict: bool = Tr
     Recording.every says k (1: all kept)."""
     report = ReadReport()
     chosen, units, n, probes, extras = unit, [], 0, set(), None
-    for rec in _chosen_raw(path, report, strict, unit, units):
-        b = _decode(path, rec)
-        chosen = unit_of_topic(rec.topic)
+    for topic, b in _raw_runs(path, report, strict, unit, units):
+        chosen = unit_of_topic(topic)
         n += b.n_samples
         probes.add(b.n_probes)
         extras = set(b.extras) if extras is None else extras & set(b.extras)
@@ -139,8 +155,7 @@ def read_samples(path: str | Path, *, unit: str | None = None, strict: bool = Tr
     fld, temp, flags = np.empty((m, p, 3)), np.empty((m, p)), np.empty(m, np.uint8)
     ext = {k: np.empty(m) for k in sorted(extras or ())}
     at = kept = 0
-    for rec in _chosen_raw(path, ReadReport(), strict, chosen, []):
-        b = _decode(path, rec)
+    for _, b in _raw_runs(path, ReadReport(), strict, chosen, []):
         rows = slice((-at) % every, None, every)     # the rows whose index in the recording divides by k
         k_b = len(range(b.n_samples)[rows])
         sl = slice(kept, kept + k_b)
@@ -174,11 +189,37 @@ def _chosen_raw(path: str | Path, report: ReadReport, strict: bool, unit: str | 
             yield rec
 
 
-def _decode(path: str | Path, rec: Any) -> SampleBlock:
+#: raw messages decoded together (decode_raw_runs): the bytes held besides the decoded samples
+RAW_BATCH = 4096
+
+
+def _raw_runs(path: str | Path, report: ReadReport, strict: bool, unit: str | None, units: list[str],
+              batch: int = RAW_BATCH):
+    """(topic, block) of the raw samples of `unit` (as _chosen_raw), decoded a run of one layout at a time
+    (decode_raw_runs) over at most `batch` messages: a live recording's small messages (8 ms of samples
+    each) without a decode each, and never more than `batch` of them held."""
+    pending: list[bytes] = []
+    topic = ""
+    for rec in _chosen_raw(path, report, strict, unit, units):
+        pending.append(rec.data)
+        topic = rec.topic
+        if len(pending) >= batch:
+            yield from _decode_runs(path, topic, pending)
+            pending = []
+    if pending:
+        yield from _decode_runs(path, topic, pending)
+
+
+def _checked_runs(path: str | Path, topic: str, payloads: list[bytes]) -> list[tuple[SampleBlock, np.ndarray]]:
+    """decode_raw_runs, a damaged message a RecordingError naming the file and topic."""
     try:
-        return decode_raw(rec.data)
+        return decode_raw_runs(payloads)
     except DataError as e:
-        raise RecordingError(f"{path}: {rec.topic}: damaged message: {e}") from None
+        raise RecordingError(f"{path}: {topic}: damaged message: {e}") from None
+
+
+def _decode_runs(path: str | Path, topic: str, payloads: list[bytes]) -> list[tuple[str, SampleBlock]]:
+    return [(topic, b) for b, _ in _checked_runs(path, topic, payloads)]
 
 
 def _check_read(path: str | Path, unit: str | None, units: list[str], any_raw: bool, probes: set[int],
@@ -201,7 +242,9 @@ def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = 
     file is read up to its last complete chunk (`truncated` says so). strict=False skips damaged
     chunks (listed in report.damaged) instead of refusing the file."""
     report = ReadReport()
-    raw: list[SampleBlock] = []
+    raw: list[tuple[SampleBlock, np.ndarray]] = []
+    pending: list[bytes] = []                # raw messages not yet decoded (a batch at a time, as they come)
+    raw_topic = ""
     cor: list[CorrectedBlock] = []
     events: list[dict[str, Any]] = []
     cal: list[dict[str, Any]] = []
@@ -224,15 +267,21 @@ def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = 
         stream = rec.topic.rsplit("/", 1)[1]
         try:
             if rec.encoding == RAW_ENCODING:
-                raw.append(decode_raw(rec.data))
+                pending.append(rec.data)
+                raw_topic = rec.topic
+                if len(pending) >= RAW_BATCH:
+                    raw += _checked_runs(path, raw_topic, pending)
+                    pending = []
             elif rec.encoding == CORRECTED_ENCODING:
                 cor.append(decode_corrected(rec.data))
             elif stream in sinks:
                 sinks[stream](rec.data)
         except DataError as e:
             raise RecordingError(f"{path}: {rec.topic}: damaged message: {e}") from None
-    _check_read(path, unit, units, bool(raw), {b.n_probes for b in raw}, report)
-    return Recording(raw, cor, events, cal, report.metadata, report.files, report.truncated, health, chosen, report)
+    runs = raw + (_checked_runs(path, raw_topic, pending) if pending else [])
+    _check_read(path, unit, units, bool(runs), {b.n_probes for b, _ in runs}, report)
+    return Recording([b for b, _ in runs], cor, events, cal, report.metadata, report.files, report.truncated, health,
+                     chosen, report, run_sizes=[n for _, n in runs])
 
 
 def repair_recording(src: str | Path, dst: str | Path, *, compression: str = "lz4") -> ReadReport:

@@ -94,7 +94,7 @@ def main(args: Namespace) -> int:
                             metadata=dict(rec.metadata))
         # what a replay of this copy needs: the calibration it started from and the commands, where they acted
         logger.write_event(initial_event)
-    blocks = _coalesce(rec.raw_blocks, [c["seq"] for c in commands])
+    blocks = _coalesce(rec.raw, [c["seq"] for c in commands])
     progress = Progress(sum(b.n_samples for b in blocks), "replay")
     samples = 0
     ci = 0
@@ -145,11 +145,10 @@ def main(args: Namespace) -> int:
     return 0
 
 
-def _coalesce(blocks, cut_seqs, max_samples: int = 20000):
+def _coalesce(whole: SampleBlock, cut_seqs, max_samples: int = 20000):
     """Large blocks for speed (the pipeline's output does not depend on blocking), cut where a
     recorded command applies so it lands before the same sample as live."""
     cuts = sorted(set(int(s) for s in cut_seqs))
-    whole = SampleBlock.concat(blocks)
     edges = np.searchsorted(whole.seq, cuts)
     bounds = sorted(set([0, whole.n_samples, *edges.tolist(), *range(0, whole.n_samples, max_samples)]))
     return [whole.slice(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
