@@ -89,22 +89,43 @@ def probe_power_laws(values: np.ndarray, dt: float, gain: np.ndarray, alphas: np
     f, pc = f[ok], pc[:, ok]
     if f.size < 8:
         return None
-    c_n, p_n = gain.shape
+    p_n = gain.shape[1]
     wt = np.sqrt(1.0 / f / np.sum(1.0 / f))                   # as many per decade low as high
-    white = np.repeat(gain[:, None, :], f.size, axis=1) / pc[:, :, None] * wt[None, :, None]
-    target = np.tile(wt, c_n)
+    # rows (c, f): [gain_ck, gain_ck f^alpha] h_cf, h = wt / S, target wt: the least squares of these rows
+    # through their normal equations, whose sums over f are taken for every alpha at once
+    h = wt[None, :] / pc
+    fa = f[:, None] ** np.asarray(alphas, float)[None, :]      # (F, A)
+    h2, hw = h * h, h * wt[None, :]
+    s0, s1, s2 = h2.sum(axis=1), h2 @ fa, h2 @ (fa * fa)     # (C,), (C, A), (C, A)
+    t0, t1 = hw.sum(axis=1), hw @ fa
     best, best_score = None, np.inf
-    for alpha in alphas:
-        # rows (c, f): [gain_ck, gain_ck f^alpha] / S_cf, target 1 (both weighted)
-        x = np.concatenate([white, white * (f ** alpha)[None, :, None]], axis=2).reshape(-1, 2 * p_n)
-        coef, _ = nnls(x, target)
-        model = np.einsum("ck,kf->cf", gain, coef[:p_n, None] + coef[p_n:, None] * f[None, :] ** alpha)
+    for i, alpha in enumerate(alphas):
+        coef = _nnls_normal(np.block([[gain.T @ (s0[:, None] * gain), gain.T @ (s1[:, i, None] * gain)],
+                                      [gain.T @ (s1[:, i, None] * gain), gain.T @ (s2[:, i, None] * gain)]]),
+                            np.concatenate([gain.T @ t0, gain.T @ t1[:, i]]))
+        if alpha == 0.0:                 # f^0 = 1: the two columns are one; all of it is white (as nnls on the rows)
+            coef = np.concatenate([coef[:p_n] + coef[p_n:], np.zeros(p_n)])
+        model = np.einsum("ck,kf->cf", gain, coef[:p_n, None] + coef[p_n:, None] * fa[None, :, i])
         if not np.all(model > 0):
             continue
         score = float(np.sum(np.log(pc / model) ** 2 / f[None, :]))
         if score < best_score:
             best, best_score = (coef[:p_n].copy(), coef[p_n:].copy(), float(alpha)), score
     return best
+
+
+def _nnls_normal(g: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """argmin over c >= 0 of c' g c - 2 b' c (the least squares whose normal equations are g c = b): nnls on
+    a square root of g, column-scaled, without its null space."""
+    d = np.sqrt(np.clip(np.diag(g), 0.0, None))
+    d[d <= 0] = 1.0
+    lam, vec = np.linalg.eigh(g / np.outer(d, d))
+    keep = lam > 1e-13 * max(lam[-1], 1e-300)
+    root = np.sqrt(lam[keep])
+    a = (vec[:, keep] * root).T                               # a' a = g scaled
+    y = (vec[:, keep].T @ (b / d)) / root
+    coef, _ = nnls(a, y)
+    return coef / d
 
 
 def looks_white(spectra: list, duration_s: float, margin: float = 1.2) -> bool:
@@ -156,24 +177,77 @@ def spectral_variance(u: np.ndarray, grid: np.ndarray, models: list[tuple[float,
     Weights that sum to zero for every noise source (a parameter fitted beside offsets) give a finite integral
     down to f = 0; weights that do not (no offset fitted) would grow with the padding under 1/f noise, and
     f_min (one cycle per record) then ends the integral where the record itself ends."""
+    return float(spectral_variances(np.asarray(u)[:, None, :], grid, models, dt, rho, pad, f_min, bins)[0])
+
+
+#: complex values of the weights' FFT held at once by spectral_variances (64 MB)
+FFT_VALUES = 1 << 22
+
+
+def spectral_variances(u: np.ndarray, grid: np.ndarray, models: list[tuple[float, float, float] | None],
+                       dt: float, rho: np.ndarray | None = None, pad: int = 4, f_min: float = 0.0,
+                       bins: int = WEIGHT_BINS) -> np.ndarray:
+    """spectral_variance of K parameters at once, weights u (N, K, C): (K,). The weights are laid out a row
+    per parameter and channel (contiguous rows: half the time of the FFT down columns), the power law taken
+    once for all, and for independent channels (rho None) only each channel's own power formed."""
+    n, k, c = u.shape
     known = [mo for mo in models if mo is not None]
     white = float(np.mean([mo[0] for mo in known])) if known else 0.0
-    used = [c for c in range(u.shape[1]) if np.any(u[:, c])]
+    rows = np.ascontiguousarray(np.moveaxis(u, 0, -1))        # (K, C, N)
+    used = [j for j in range(c) if np.any(rows[:, j])]
     if not used:
-        return 0.0
-    laws = np.array([models[c] if models[c] is not None else (white, 0.0, 0.0) for c in used])
-    r = np.eye(len(used)) if rho is None else rho[np.ix_(used, used)]
-    uu = u[:, used]
+        return np.zeros(k)
+    laws = np.array([models[j] if models[j] is not None else (white, 0.0, 0.0) for j in used])
+    if len(used) < c:
+        rows = rows[:, used]
     sw = np.sqrt(np.clip(laws[:, 0], 0.0, None))
-    var = float(np.sum(r * np.outer(sw, sw) * (uu.T @ uu))) / (2.0 * dt)
+    if rho is None:
+        var = np.einsum("kcn,kcn->kc", rows, rows) @ (sw * sw)
+    else:
+        r = rho[np.ix_(used, used)]
+        var = np.einsum("kcd,cd->k", np.matmul(rows, rows.transpose(0, 2, 1)), r * np.outer(sw, sw))
+    var = var / (2.0 * dt)
     coloured = [j for j in range(len(used)) if laws[j, 1] > 0]
     if not coloured:
         return var
-    f, x, norm = binned_fft(uu[:, coloured], grid, dt, bins, pad)
-    keep = f >= f_min
-    g = x[keep] * np.sqrt(np.column_stack([power_law_spectrum(f[keep], tuple(laws[j])) for j in coloured]))
-    gram = (g.conj().T @ g).real                             # sum over frequencies of G_c* G_c'
-    return var + float(np.sum(r[np.ix_(coloured, coloured)] * gram)) / norm
+    cc = len(coloured)
+    m = _fft_size(grid, bins, pad)[2]
+    per = max(1, FFT_VALUES // (m * cc))                       # parameters per FFT call
+    law = None
+    for lo in range(0, k, per):
+        part = rows[lo:lo + per] if cc == len(used) else rows[lo:lo + per][:, coloured]      # (K', Cc, N)
+        f, x, norm = _binned_rows(part.reshape(-1, n), grid, dt, bins, pad)
+        keep = slice(int(np.searchsorted(f, f_min)), None)       # f increases
+        if law is None:
+            law = np.array([power_law_spectrum(f[keep], tuple(laws[j])) for j in coloured])    # (Cc, F)
+        x = x[:, keep].reshape(part.shape[0], cc, -1)
+        if rho is None:
+            re = x.view(np.float64)                          # real and imaginary parts side by side
+            pw = np.einsum("kcf,kcf,cf->k", re, re, np.repeat(law, 2, axis=1))
+        else:
+            g = x * np.sqrt(law)[None]
+            cross = np.matmul(g, g.conj().transpose(0, 2, 1)).real                        # (K', Cc, Cc)
+            pw = np.einsum("kcd,cd->k", cross, r[np.ix_(coloured, coloured)])
+        var[lo:lo + per] += pw / norm
+    return var
+
+
+def _fft_size(grid: np.ndarray, bins: int, pad: int) -> tuple[int, int, int]:
+    """(step, bins used, FFT length) of binned_fft for positions `grid` (the last one the largest)."""
+    step = max(1, -(-(int(np.max(grid)) + 1) // bins))
+    length = int(np.max(grid)) // step + 1
+    return step, length, next_fast_len(pad * length)
+
+
+def _binned_rows(u: np.ndarray, grid: np.ndarray, dt: float, bins: int, pad: int
+                 ) -> tuple[np.ndarray, np.ndarray, float]:
+    """binned_fft of weights laid out a row each, u (J, N): X is (J, F)."""
+    step, length, m = _fft_size(grid, bins, pad)
+    where = np.asarray(grid) // step
+    x = np.empty((u.shape[0], length))
+    for j in range(u.shape[0]):
+        x[j] = np.bincount(where, weights=u[j], minlength=length)
+    return rfftfreq(m, dt * step)[1:], rfft(x, n=m, axis=1)[:, 1:], m * dt * step
 
 
 def binned_fft(u: np.ndarray, grid: np.ndarray, dt: float, bins: int = WEIGHT_BINS,
@@ -181,12 +255,8 @@ def binned_fft(u: np.ndarray, grid: np.ndarray, dt: float, bins: int = WEIGHT_BI
     """(f, X, norm): the zero-padded FFT X (F, J) of weights u (N, J) at positions `grid` (N,) of a uniform
     grid of step dt, summed into at most `bins` bins of time, at frequencies f > 0; sum_f |X_j|^2 S(f) / norm is
     integral |U_j(f)|^2 S(f) df for a one-sided spectrum S."""
-    step = max(1, -(-(int(grid[-1]) + 1) // bins))
-    where = np.asarray(grid) // step
-    length = int(where[-1]) + 1
-    m = next_fast_len(pad * length)
-    x = np.column_stack([np.bincount(where, weights=u[:, j], minlength=length) for j in range(u.shape[1])])
-    return rfftfreq(m, dt * step)[1:], rfft(x, n=m, axis=0)[1:], m * dt * step
+    f, x, norm = _binned_rows(np.ascontiguousarray(np.asarray(u).T), grid, dt, bins, pad)
+    return f, x.T, norm
 
 
 def power_law_spectrum(f: np.ndarray, law: tuple[float, float, float],

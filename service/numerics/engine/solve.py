@@ -183,7 +183,7 @@ class FitResult:
             power_law,
             probe_power_laws,
             sample_grid,
-            spectral_variance,
+            spectral_variances,
             welch_spectra,
         )
 
@@ -215,8 +215,8 @@ class FitResult:
             out = []
             for u in self._weights(cols, w2, len(offsets)):
                 v = np.matmul(u.transpose(0, 2, 1), sens)                       # (N, K, 3P)
-                out += [spectral_variance(v[:, i], grid, models, dt) for i in range(v.shape[1])]
-            return np.sqrt(out)
+                out.append(spectral_variances(v, grid, models, dt))
+            return np.sqrt(np.concatenate(out))
         models = [power_law(ch.values[:, c], dt, spectrum=spectra[c]) for c in range(ch.values.shape[1])]
         if not any(is_coloured(m, duration) for m in models):
             return None
@@ -224,8 +224,9 @@ class FitResult:
                   if m is not None and is_coloured(m, duration) and m[2] > FLICKER else m
                   for c, m in enumerate(models)]
         rho = low_frequency_correlation(ch.values)
-        return np.sqrt([spectral_variance(u[:, :, i], grid, models, dt, rho, f_min=1.0 / duration)
-                        for u in self._weights(cols, w2, 0) for i in range(u.shape[2])])
+        return np.sqrt(np.concatenate([spectral_variances(u.transpose(0, 2, 1), grid, models, dt, rho,
+                                                          f_min=1.0 / duration)
+                                       for u in self._weights(cols, w2, 0)]))
 
     def _weights(self, cols: np.ndarray, w2: np.ndarray, extra: int):
         """The weighted channel weights (N, C, K) of parameter directions cols (n_params, J), K at a time: as
