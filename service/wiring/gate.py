@@ -36,13 +36,18 @@ class Gate:
         self.coverage, self.condition, self.rms_nT = coverage, condition, rms_nT
         self.refusal: str | None = None   # why the last check found no candidate
 
-    @staticmethod
-    def window(ring: RingBuffer, max_samples: int = 600) -> SampleBlock:
+    def window(self, ring: RingBuffer, max_samples: int = 600) -> SampleBlock:
         """The ring buffer, thinned to at most `max_samples` evenly spaced samples: directions and
-        residuals change slowly, and the gate runs often."""
-        n = len(ring)
-        step = max(1, -(-n // max_samples))
-        return ring.take(np.arange(0, n, step))         # only the rows kept: no copy of the whole ring
+        residuals change slowly, and the gate runs often. Taken once per state of the ring (the candidate
+        and its evaluation at one check share it)."""
+        key = (ring, ring.total_appended, len(ring), max_samples)
+        last = getattr(self, "_window_key", None)
+        if last is None or last[0] is not ring or last[1:] != key[1:]:
+            n = len(ring)
+            step = max(1, -(-n // max_samples))
+            self._window = ring.take(np.arange(0, n, step))    # only the rows kept: no copy of the whole ring
+            self._window_key = key
+        return self._window
 
     def candidate(self, estimators: Sequence[RlsEllipsoid], ring: RingBuffer) -> ArrayCalibration | None:
         """The online estimate, aligned over the ring buffer, or None if not yet determined (then
@@ -76,7 +81,7 @@ class Gate:
             # the directions seen about the candidate's own centre, judged as the batch fit judges them
             # (enough samples, not one plane, conditioned, the share of directions): map, gate and advice agree
             cov = coverage_mod.coverage(raw, centre_nT=p.offset_nT, min_fraction=self.coverage,
-                                        max_condition=self.condition)
+                                        max_condition=self.condition, maps=False)
             covs.append(cov.fraction)
             conds.append(float(est.condition_))
             corr = p.apply(raw)

@@ -157,9 +157,11 @@ def _regions(missing: np.ndarray, seen_dirs: np.ndarray) -> list[MissingRegion]:
 
 def coverage(field_nT: np.ndarray, *, centre_nT: np.ndarray | None = None, min_count: int | None = None,
              min_fraction: float = MIN_FRACTION, max_condition: float = MAX_CONDITION,
-             max_samples: int = MAX_SAMPLES) -> Coverage:
+             max_samples: int = MAX_SAMPLES, maps: bool = True) -> Coverage:
     """Coverage of the field directions in (N, 3) probe samples (rows with NaN are ignored); beyond
-    `max_samples`, of evenly spaced ones (directions change slowly next to the sample rate)."""
+    `max_samples`, of evenly spaced ones (directions change slowly next to the sample rate). maps=False:
+    without the text maps, and without the missing regions unless the samples are not usable (the online
+    gate asks every few seconds, shows no map and says only why a candidate is refused)."""
     f = np.asarray(field_nT, float)
     if f.ndim != 2 or f.shape[1] != 3:
         raise ValueError(f"field_nT: expected shape (N, 3), got {f.shape}")
@@ -176,14 +178,24 @@ def coverage(field_nT: np.ndarray, *, centre_nT: np.ndarray | None = None, min_c
     counts = np.bincount(idx, minlength=26)
     need = min_count if min_count is not None else max(1, n // 1000)
     seen = counts >= need
-    seen_dirs = BIN_CENTRES[seen]
-    regions = _regions(~seen, seen_dirs)
     flatness, normal = planarity(f) if n > 3 else (0.0, np.array([0.0, 0.0, 1.0]))
     cond = samples_condition(f)
     fraction = float(seen.mean())
+    problem = _problem(n, flatness, normal, cond, max_condition, fraction, min_fraction)
+    # the missing regions and the advice they give: always with the maps, else only to say why not usable
+    regions = _regions(~seen, BIN_CENTRES[seen]) if maps or problem else []
     cov = Coverage(fraction, counts, BIN_CENTRES[~seen].copy(), regions, cond, flatness, True, "",
-                   _cube_map(counts, need), _sky_map(dirs), n, need)
+                   _cube_map(counts, need) if maps else "", _sky_map(dirs) if maps else "", n, need)
     advice = cov.advice()
+    if problem:
+        reason = problem + (f"; {advice}" if advice else "")
+        return _replace(cov, usable=False, reason=reason)
+    return _replace(cov, reason=advice)
+
+
+def _problem(n: int, flatness: float, normal: np.ndarray, cond: float, max_condition: float, fraction: float,
+             min_fraction: float) -> str:
+    """Why samples with these figures cannot determine an ellipsoid fit ("" if they can)."""
     problem = ""
     if n < MIN_SAMPLES:
         problem = f"{n} samples; a fit needs at least {MIN_SAMPLES} spread over turns about at least two axes"
@@ -196,10 +208,7 @@ def coverage(field_nT: np.ndarray, *, centre_nT: np.ndarray | None = None, min_c
         problem = f"the samples do not determine an ellipsoid (condition number {cond:.3g} > {max_condition:.3g})"
     elif fraction < min_fraction:
         problem = f"only {fraction:.0%} of the directions seen (at least {min_fraction:.0%} needed)"
-    if problem:
-        reason = problem + (f"; {advice}" if advice else "")
-        return _replace(cov, usable=False, reason=reason)
-    return _replace(cov, reason=advice)
+    return problem
 
 
 def _replace(cov: Coverage, **kw) -> Coverage:

@@ -129,6 +129,21 @@ def quadric_to_calibration(theta: np.ndarray, scale: float, f2_ref: float,
     return offset, lower.T
 
 
+def quadric_to_calibration_many(theta: np.ndarray, scale: float, f2_ref: float,
+                                center: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """quadric_to_calibration of M coefficient vectors (M, k) at once: offsets (M, 3), matrices (M, 3, 3).
+    Raises numpy.linalg.LinAlgError if any of them is not an ellipsoid."""
+    t = np.asarray(theta, float)
+    a = t[:, [0, 3, 4, 3, 1, 5, 4, 5, 2]].reshape(-1, 3, 3)
+    o_u = -0.5 * np.linalg.solve(a, t[:, 6:9, None])[..., 0]
+    k = (f2_ref / scale ** 2) / (1.0 + np.einsum("mi,mij,mj->m", o_u, a, o_u))
+    if not np.all(np.isfinite(k)) or np.any(k == 0):
+        raise np.linalg.LinAlgError("not an ellipsoid")
+    lower = np.linalg.cholesky(a * k[:, None, None])
+    offset = o_u * scale if center is None else np.asarray(center, float) + o_u * scale
+    return offset, lower.transpose(0, 2, 1)
+
+
 def unit_volume_total(theta: np.ndarray, scale: float, center: np.ndarray | None = None) -> float:
     """The total field, nT, that gives the fitted quadric a matrix of determinant 1: the calibrated sphere
     has the volume of the raw ellipsoid. The convention when the field is unknown; it depends on the
@@ -314,6 +329,22 @@ def gram_condition(gram: np.ndarray) -> float:
         return float("inf")
     ev = np.linalg.eigvalsh(gram / np.outer(norms, norms))
     return float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
+
+
+def jacobian_se_many(func: Callable[[np.ndarray], np.ndarray], theta: np.ndarray,
+                     cov: np.ndarray) -> np.ndarray | None:
+    """jacobian_se for a func that maps many θ (M, k) to their values (M, n) in one call: θ and its k
+    forward steps evaluated together (None if func fails at any of them)."""
+    sd = np.sqrt(np.maximum(np.diag(cov), 0))
+    h = np.where(sd > 0, sd * 1e-2, np.abs(theta) * 1e-8 + 1e-12)
+    points = np.vstack([theta, theta + np.diag(h)])
+    try:
+        vals = np.asarray(func(points), float)
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    jac = ((vals[1:] - vals[0]) / h[:, None]).T
+    c = jac @ cov @ jac.T
+    return np.sqrt(np.maximum(np.diag(c), 0))
 
 
 def jacobian_se(func: Callable[[np.ndarray], np.ndarray], theta: np.ndarray,

@@ -37,7 +37,7 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused, DataError, NotCalibratedError
 
-from .ellipsoid import N_GEOMETRY, N_PARAMS, jacobian_se, quadric_to_calibration
+from .ellipsoid import N_GEOMETRY, N_PARAMS, jacobian_se_many, quadric_to_calibration, quadric_to_calibration_many
 from .model import ProbeCalibration, named
 from .rls_info import Estimates, Information
 
@@ -294,10 +294,10 @@ def probe_calibration(name: str, theta: np.ndarray, cov: np.ndarray, scale: floa
     """The calibration of an online estimate θ (about center_nT) with standard errors propagated from cov(θ)."""
     offset, matrix = quadric_to_calibration(theta, scale, f2_ref, center_nT)
 
-    def flat(t: np.ndarray) -> np.ndarray:
-        o, mm = quadric_to_calibration(t, scale, f2_ref, center_nT)
-        return np.concatenate([o, mm.ravel()])
+    def flat(t: np.ndarray) -> np.ndarray:                # (M, k) -> (M, 12)
+        o, mm = quadric_to_calibration_many(t, scale, f2_ref, center_nT)
+        return np.concatenate([o, mm.reshape(-1, 9)], axis=1)
 
-    se = jacobian_se(flat, theta, cov) if np.all(np.isfinite(cov)) else None
+    se = jacobian_se_many(flat, theta, cov) if np.all(np.isfinite(cov)) else None
     o_se, m_se = (np.full(3, np.nan), np.full((3, 3), np.nan)) if se is None else (se[:3], se[3:].reshape(3, 3))
     return ProbeCalibration(name, offset, matrix, o_se, m_se, {"offset_nT": named(offset, o_se, "nT"), **params})
