@@ -153,3 +153,30 @@ def test_a_recording_from_before_the_rate_key_replays_as_its_live_run_did(tmp_pa
     assert replayed and live
     got, want = concat_corrected(replayed), concat_corrected(live)
     assert np.array_equal(got.seq, want.seq) and np.array_equal(got.corrected_nT, want.corrected_nT, equal_nan=True)
+
+
+@pytest.mark.parametrize("speed", [1.0, 4.0])
+def test_a_simulated_unit_paced_by_the_wall_clock_runs_at_its_speed(speed):
+    # [sim] speed: seconds of the unit's time per second of the wall clock (a demo or a test at 3x); the samples
+    # are the same ones, only their pace changes
+    import time
+
+    from drivers.sim.config import load_sim_config
+    from drivers.sim.source import SimSource
+
+    cfg = {"duration_s": 0.0, "rate_hz": 500.0, "realtime": True, "speed": speed, "probes": [{}]}
+    src = SimSource(load_sim_config(cfg))
+    got, t0 = [], time.monotonic()
+    while time.monotonic() - t0 < 1.0:
+        b = src.read(0.05)
+        if b is not None:
+            got.append(b)
+    wall = time.monotonic() - t0
+    n = sum(b.n_samples for b in got)
+    assert 0.8 * 500 * speed * wall < n < 1.1 * 500 * speed * wall + 50, (n, wall)
+    fast = SimSource(load_sim_config({**cfg, "realtime": False}), realtime=False)
+    parts = []
+    while sum(len(p) for p in parts) < n:
+        parts.append(fast.read(0.1).field_nT)
+    want = np.concatenate(parts)[:n]
+    np.testing.assert_array_equal(np.concatenate([b.field_nT for b in got]), want)

@@ -3,7 +3,7 @@
 Every parameter is in physical units and named with its unit. `load_sim_config(table)` checks a
 TOML table strictly (drivers.config): an unknown key or a bad value is a ConfigError naming the key.
 
-    [sim]                  seed, rate_hz, duration_s, realtime, lsb_nT, range_nT, seq_start, t_us_start, can_base_id
+    [sim]                  seed, rate_hz, duration_s, realtime, speed, lsb_nT, range_nT, seq_start, t_us_start, can_base_id
     [sim.field]            total_nT, inclination_deg, declination_deg, gradient_nT_m, drift_nT_per_h  (NED)
     [sim.reference]        enabled, noise_nT                  (scalar total-field reference, ref_total)
     [sim.motion]           kind = "static" | "turntable" | "tumble" | "grid", and its parameters
@@ -221,6 +221,8 @@ class SimConfig:
     rate_hz: float = spec(200.0, min=0.01, max=100000.0, doc="sample rate")
     duration_s: float = spec(60.0, min=0.0, max=1.0e9, doc="length of the run; 0 = until closed")
     realtime: bool = spec(False, doc="pace by the wall clock (true) or as fast as possible (false)")
+    speed: float = spec(1.0, min=0.001, max=1.0e4,
+                        doc="with realtime: seconds of the unit's time per second of the wall clock (a demo at 3)")
     lsb_nT: float = spec(0.001, min=1e-9, max=1e3, doc="nT per ADC count; must equal unit.lsb_nT")
     range_nT: float | None = spec(None, min=1.0, max=1.0e9,
                                   doc="probe range: beyond it an axis saturates (omit: int32 limits only)")

@@ -206,6 +206,16 @@ class TumbleMotion(Motion):
         self.amp_rad_s = 0.35 * w / math.sqrt(self.N_WOBBLE) * rng.uniform(0.5, 1.0, (3, self.N_WOBBLE))
 
     def _euler(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # attitude and rate are asked for at the same instants one after the other: the angles of the last
+        # instants asked for are kept (a third of a simulation's time)
+        last = getattr(self, "_last", None)
+        if last is not None and last[0].shape == np.shape(t_s) and np.array_equal(last[0], t_s):
+            return last[1], last[2]
+        angle, rate = self._euler_at(t_s)
+        self._last = (np.array(t_s, dtype=np.float64, copy=True), angle, rate)
+        return angle, rate
+
+    def _euler_at(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = np.asarray(t_s, dtype=np.float64)[..., None, None]
         arg = 2.0 * math.pi * self.freq_hz * t + self.phase                     # (..., 3, K)
         # e_i(t) = e0_i + w_i t + sum_k a_ik / (2 pi f_ik) sin(2 pi f_ik t + p_ik)

@@ -176,7 +176,7 @@ class Emitter:
     def _loop(self) -> None:
         unit = self.unit
         n = unit.n_samples
-        rate = unit.rate_hz
+        rate = unit.rate_hz * unit.config.speed      # samples per second of the wall clock (realtime)
         outages = [o for o in unit.outages() if o[1] > self.start_index]
         i = self.start_index
         t0 = time.monotonic() - i / rate          # wall clock of sample 0
@@ -217,7 +217,7 @@ class Emitter:
             self._close_port()
         self.record.add_range("outage", a, b)
         if self.realtime:
-            self._sleep_until(t0 + b / self.unit.rate_hz)
+            self._sleep_until(t0 + b / (self.unit.rate_hz * self.unit.config.speed))
         else:
             self._sleep_until(time.monotonic() + self.unit.config.faults.outage_s)
         if not self._stop.is_set():

@@ -46,11 +46,12 @@ class SimSource(Source):
         self.world: World = self.unit.world
         self.realtime = config.realtime if realtime is None else bool(realtime)
         self.rate_hz = config.rate_hz
+        self._pace_hz = config.rate_hz * config.speed       # samples per second of the wall clock (realtime)
         self.block_n = max(1, int(round(block_s * self.rate_hz)))
         self.max_block_n = max(self.block_n, int(round(max_block_s * self.rate_hz)))
         self.next_index = start_index
         # the unit runs from the moment it is opened: sample i exists at t0 + i / rate_hz
-        self._t0 = time.monotonic() - start_index / self.rate_hz
+        self._t0 = time.monotonic() - start_index / self._pace_hz
 
     @property
     def exhausted(self) -> bool:
@@ -68,10 +69,10 @@ class SimSource(Source):
         if self.realtime:
             deadline = None if timeout is None else time.monotonic() + timeout
             while True:
-                due = math.floor((time.monotonic() - self._t0) * self.rate_hz) + 1   # samples 0..due-1 exist
+                due = math.floor((time.monotonic() - self._t0) * self._pace_hz) + 1   # samples 0..due-1 exist
                 if due > start:
                     break
-                wake = self._t0 + start / self.rate_hz
+                wake = self._t0 + start / self._pace_hz
                 if deadline is not None:
                     if time.monotonic() >= deadline:
                         return None

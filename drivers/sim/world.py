@@ -215,6 +215,16 @@ class WorldSamples:
         return int(self.t_s.shape[0])
 
 
+def _attitudes(motion, t: np.ndarray, t_np: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Attitude and angular rate at the unit's instants t (N,) and at each probe's t_np (N, P): the same
+    arrays broadcast when every probe samples at the unit's instant (no effect moved them)."""
+    r0, w0 = motion.attitude(t), motion.angular_rate(t)
+    if np.array_equal(t_np, np.broadcast_to(t[:, None], t_np.shape)):
+        n, p = t_np.shape
+        return r0, w0, np.broadcast_to(r0[:, None], (n, p, 3, 3)), np.broadcast_to(w0[:, None], (n, p, 3))
+    return r0, w0, motion.attitude(t_np), motion.angular_rate(t_np)
+
+
 class World:
     """The simulated world of one [sim] configuration: evaluate it at sample indices or at any instants."""
 
@@ -296,8 +306,7 @@ class World:
             t_np = e.sample_time(t_np)
 
         # field at each probe, at its instant: B_p = R^T (B0 + drift t + G^T R r_k)
-        r = self.motion.attitude(t_np)                                        # (N, P, 3, 3)
-        w = self.motion.angular_rate(t_np)                                    # (N, P, 3)
+        r0, w0, r, w = _attitudes(self.motion, t, t_np)                      # (N, 3, 3), (N, 3), per probe
         pos = self.probes.position_m                                          # (P, 3)
         r_earth = np.einsum("npij,pj->npi", r, pos)
         b_platform = np.einsum("npji,npj->npi", r, self.field.at(t_np, r_earth))
@@ -325,12 +334,11 @@ class World:
             offset = e.offset(ctx, offset)
         output = u + offset                                                   # raw = C A B_s + offset
 
-        r0 = self.motion.attitude(t)                                          # (N, 3, 3) at the unit's instant
         b_earth0 = self.field.at_origin(t)
         ref = np.linalg.norm(b_earth0, axis=-1) if self.config.reference.enabled else None
         return WorldSamples(
             index=np.full(n, -1, np.int64), t_s=t, t_probe_s=t_np, attitude=r0,
-            angular_rate_rad_s=self.motion.angular_rate(t), field_earth_nT=b_earth0,
+            angular_rate_rad_s=w0, field_earth_nT=b_earth0,
             field_origin_nT=np.einsum("nji,nj->ni", r0, b_earth0), field_platform_nT=b_platform,
             field_sensor_nT=b_sensor, dsensor_dt_nT_s=db_sensor, temp_C=temp, output_nT=output,
             noise_nT=np.zeros((n, p, 3)), ref_total_nT=ref)
