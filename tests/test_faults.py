@@ -569,14 +569,25 @@ class ServiceLoop:
         self.thread = threading.Thread(target=self._run, daemon=True, name="fluxcal-test-service")
         self.thread.start()
 
+    #: after the unit's last sample, start over with seq and time carried on (a long run from a short simulation)
+    REPEAT = False
+
     def block(self, i: int) -> SampleBlock:
-        return self.truth.slice(i * self.BLOCK, (i + 1) * self.BLOCK)
+        per = self.truth.n_samples // self.BLOCK
+        if not self.REPEAT or i < per:
+            return self.truth.slice(i * self.BLOCK, (i + 1) * self.BLOCK)
+        turn, j = divmod(i, per)
+        b = self.truth.slice(j * self.BLOCK, (j + 1) * self.BLOCK)
+        span = per * self.BLOCK
+        return SampleBlock(t_s=b.t_s + turn * span * float(self.truth.t_s[1] - self.truth.t_s[0]),
+                           seq=b.seq + turn * span, field_nT=b.field_nT, temp_C=b.temp_C, flags=b.flags,
+                           extras=b.extras)
 
     def _run(self) -> None:
         t_end = time.monotonic() + self.max_s
         try:
             while not self._stop.is_set() and time.monotonic() < t_end \
-                    and (self.sent + 1) * self.BLOCK <= self.truth.n_samples:
+                    and (self.REPEAT or (self.sent + 1) * self.BLOCK <= self.truth.n_samples):
                 for cmd in self.bus.pending_commands():
                     cmd.reply({"ok": True})
                 t0 = time.monotonic()
@@ -702,7 +713,7 @@ def test_a_frozen_dashboard_never_holds_the_service_back():
     # on the raw stream: its TCP window closes and nothing it is sent gets read. The service's publishing
     # must go on at its pace, without errors, and a dashboard that connects afterwards hears it as usual
     ep = f"tcp/127.0.0.1:{free_port()}"
-    u = sim_unit(duration_s=2000.0, rate_hz=1000.0)                # 10,000 blocks: more than 20 s of publishing
+    u = sim_unit(duration_s=100.0, rate_hz=1000.0)                 # 500 blocks, sent over and over (BigBlocks)
     with ExitStack() as stack:
         bus = stack.enter_context(ServiceBus(ZenohConfig(listen=[ep]), "grad1", per_probe=False))
         proc = subprocess.Popen([sys.executable, "-c", _FROZEN_CLIENT, ep], stdout=subprocess.PIPE, text=True,
@@ -741,9 +752,11 @@ def test_a_frozen_dashboard_never_holds_the_service_back():
 
 
 class BigBlocks(ServiceLoop):
-    """ServiceLoop with 200-sample blocks (about 10 kB each): a frozen reader's buffers fill in seconds."""
+    """ServiceLoop with 200-sample blocks (about 10 kB each): a frozen reader's buffers fill in seconds. The
+    unit's samples are sent over and over, seq carried on, for as long as the test runs."""
 
     BLOCK = 200
+    REPEAT = True
 
 
 # --- 7. damaged MCAP recordings (hypothesis) -------------------------------------------------------------
