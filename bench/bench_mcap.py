@@ -10,6 +10,7 @@ one process, best of `--runs`:
     MCAP write  (lz4|zstd|none) McapLogger.write_raw of every block + close (encoding included)
     MCAP read                  McapSource over the file until exhausted (decoding included)
     MCAP write + read          the round trip of a record-then-replay
+    read_recording / read_samples   replay's and fit's / diagnose's readers of the lz4 file, whole
     service write              write_raw + write_corrected (+ the 10 Hz vectors) per block, lz4
 
 Each MCAP figure is printed with its ratio against the bare encode (writes), decode (reads) or
@@ -38,6 +39,7 @@ from drivers.mcap_source import McapSource  # noqa: E402
 from drivers.sim.config import load_sim_config  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
 from service.io.encoding import decode_raw, encode_raw  # noqa: E402
+from service.io.recordings.reader import read_recording, read_samples  # noqa: E402
 from service.io.recordings.writer import McapLogger  # noqa: E402
 from service.numerics.outputs import CorrectedBlock  # noqa: E402
 
@@ -105,10 +107,16 @@ def main() -> None:
                 log.write_raw(b)
                 log.write_corrected(c)
 
+    def whole(reader) -> None:
+        n = reader(tmp / "lz4.mcap").raw.n_samples
+        assert n * 4 == n_ps
+
     cases = {"encode": encode, "decode": decode, "service": service_write}
     for c in ("lz4", "zstd", "none"):
         cases[f"{c} write"] = lambda c=c: write(c)
         cases[f"{c} read"] = lambda c=c: read(c)
+    cases["read_recording"] = lambda: whole(read_recording)
+    cases["read_samples"] = lambda: whole(read_samples)
     best = dict.fromkeys(cases, float("inf"))
     try:
         for _ in range(args.runs):
@@ -133,6 +141,9 @@ def main() -> None:
              f"file {sizes[c] / n_ps:5.2f} B/probe-sample ({sizes[c] / raw_bytes:.0%} of the payloads)")
         line(f"MCAP read (replay), {c}", t_r, f"{t_dec / t_r:5.2f}x bare decode")
         line(f"MCAP write + read, {c}", t_w + t_r, f"{(t_enc + t_dec) / (t_w + t_r):5.2f}x bare encode + decode")
+    for name, what in (("read_recording", "replay's"), ("read_samples", "fit's, diagnose's")):
+        line(f"{name} (lz4, {what})", best[name], f"{t_dec / best[name]:5.2f}x bare decode",
+             "the whole recording into one block")
     t_s = best["service"]
     line("service write, lz4", t_s, f"{t_enc / t_s:5.2f}x bare encode (raw)",
          f"raw + corrected + 10 Hz vectors; {args.seconds / t_s:,.0f}x real time")
