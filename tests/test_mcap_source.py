@@ -302,3 +302,29 @@ def test_the_chunk_reader_refuses_malformed_records_inside_a_chunk():
                      (struct.pack("<BQ", 0x05, 10) + bytes(10), "message record of 10 bytes")]:
         with pytest.raises(ValueError, match=why):
             _chunk_records(chunk(bad))
+
+
+def test_whole_recordings_are_decoded_a_bounded_batch_at_a_time(tmp_path, monkeypatch):
+    # read_recording and read_samples hold at most RAW_BATCH_BYTES of undecoded messages (a recording of large
+    # messages, as `simulate` writes, was once held twice over: fit of an hour at 1 kHz x 4 peaked at 2.3 GB)
+    from drivers.encoding import encode_raw
+    from service.io.recordings import reader
+    from service.io.recordings.writer import McapLogger
+
+    bs = blocks(10, n=1000)
+    log = McapLogger(tmp_path, unit="u", filename="big.mcap")
+    for b in bs:
+        log.write_raw(b)
+    log.close()
+    size = len(encode_raw(bs[0]))
+    monkeypatch.setattr(reader, "RAW_BATCH_BYTES", 3 * size)
+    decoded = []
+    real = reader.decode_raw_runs
+    monkeypatch.setattr(reader, "decode_raw_runs", lambda payloads: decoded.append(len(payloads)) or real(payloads))
+    rec = reader.read_recording(tmp_path / "big.mcap")
+    assert decoded == [3, 3, 3, 1] and len(rec.raw_runs) == 4
+    assert all(same_block(g, w) for g, w in zip(rec.raw_blocks, bs)) and len(rec.raw_blocks) == 10
+    decoded.clear()
+    whole = reader.read_samples(tmp_path / "big.mcap").raw
+    assert decoded == [3, 3, 3, 1] * 2                       # two passes: count, then fill
+    np.testing.assert_array_equal(whole.field_nT, np.concatenate([b.field_nT for b in bs]))

@@ -189,8 +189,10 @@ def _chosen_raw(path: str | Path, report: ReadReport, strict: bool, unit: str | 
             yield rec
 
 
-#: raw messages decoded together (decode_raw_runs): the bytes held besides the decoded samples
+#: raw messages decoded together (decode_raw_runs), at most so many and so many bytes: what is held undecoded
+#: besides the samples (a recording of large messages, `simulate`'s, must not be held twice over)
 RAW_BATCH = 4096
+RAW_BATCH_BYTES = 16 << 20
 
 
 def _raw_runs(path: str | Path, report: ReadReport, strict: bool, unit: str | None, units: list[str],
@@ -199,13 +201,15 @@ def _raw_runs(path: str | Path, report: ReadReport, strict: bool, unit: str | No
     (decode_raw_runs) over at most `batch` messages: a live recording's small messages (8 ms of samples
     each) without a decode each, and never more than `batch` of them held."""
     pending: list[bytes] = []
+    held = 0
     topic = ""
     for rec in _chosen_raw(path, report, strict, unit, units):
         pending.append(rec.data)
+        held += len(rec.data)
         topic = rec.topic
-        if len(pending) >= batch:
+        if len(pending) >= batch or held >= RAW_BATCH_BYTES:
             yield from _decode_runs(path, topic, pending)
-            pending = []
+            pending, held = [], 0
     if pending:
         yield from _decode_runs(path, topic, pending)
 
@@ -244,6 +248,7 @@ def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = 
     report = ReadReport()
     raw: list[tuple[SampleBlock, np.ndarray]] = []
     pending: list[bytes] = []                # raw messages not yet decoded (a batch at a time, as they come)
+    held = 0
     raw_topic = ""
     cor: list[CorrectedBlock] = []
     events: list[dict[str, Any]] = []
@@ -268,10 +273,11 @@ def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = 
         try:
             if rec.encoding == RAW_ENCODING:
                 pending.append(rec.data)
+                held += len(rec.data)
                 raw_topic = rec.topic
-                if len(pending) >= RAW_BATCH:
+                if len(pending) >= RAW_BATCH or held >= RAW_BATCH_BYTES:
                     raw += _checked_runs(path, raw_topic, pending)
-                    pending = []
+                    pending, held = [], 0
             elif rec.encoding == CORRECTED_ENCODING:
                 cor.append(decode_corrected(rec.data))
             elif stream in sinks:
