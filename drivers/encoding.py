@@ -83,6 +83,11 @@ def encode_raw(block: SampleBlock) -> bytes:
     return b"".join(parts)
 
 
+def _raw_fields(n: int, p: int) -> tuple[tuple[str, tuple[int, ...]], ...]:
+    """(dtype, shape) of the fixed fields after the header, in layout order: t_s, seq, field_nT, temp_C, flags."""
+    return ("<f8", (n,)), ("<i8", (n,)), ("<f8", (n, p, 3)), ("<f8", (n, p)), ("u1", (n,))
+
+
 def _array(data: bytes | memoryview, dtype: str, shape: tuple[int, ...], off: int) -> np.ndarray:
     count = 1
     for s in shape:
@@ -104,7 +109,7 @@ def decode_raw(data: bytes | memoryview) -> SampleBlock:
                         f"which need {fixed} bytes before the extras (truncated?)")
     off = _RAW_HEAD.size
     out = []
-    for dtype, shape in (("<f8", (n,)), ("<i8", (n,)), ("<f8", (n, p, 3)), ("<f8", (n, p)), ("u1", (n,))):
+    for dtype, shape in _raw_fields(n, p):
         out.append(_array(data, dtype, shape, off))
         off += out[-1].nbytes
     extras: dict[str, np.ndarray] = {}
@@ -153,7 +158,7 @@ def decode_raw_runs(payloads: list[bytes]) -> list[tuple[SampleBlock, np.ndarray
             continue
         rows = np.frombuffer(b"".join(payloads[i:j]), np.uint8).reshape(j - i, size)
         fields, off = [], _RAW_HEAD.size
-        for dtype, shape in (("<f8", (n,)), ("<i8", (n,)), ("<f8", (n, p, 3)), ("<f8", (n, p)), ("u1", (n,))):
+        for dtype, shape in _raw_fields(n, p):
             width = int(np.dtype(dtype).itemsize * np.prod(shape))
             a = np.array(rows[:, off:off + width], copy=True).view(dtype)       # writeable, even when empty
             fields.append(a.reshape(((j - i) * n,) + shape[1:]).astype(a.dtype.newbyteorder("="), copy=False))

@@ -35,18 +35,21 @@ class Gate:
         self.align, self.min_samples, self.total_nT = align, min_samples, total_nT
         self.coverage, self.condition, self.rms_nT = coverage, condition, rms_nT
         self.refusal: str | None = None   # why the last check found no candidate
+        self._window: SampleBlock | None = None
+        self._window_key: tuple | None = None   # (ring, samples appended, length, max_samples) it was taken at
 
     def window(self, ring: RingBuffer, max_samples: int = 600) -> SampleBlock:
         """The ring buffer, thinned to at most `max_samples` evenly spaced samples: directions and
         residuals change slowly, and the gate runs often. Taken once per state of the ring (the candidate
         and its evaluation at one check share it)."""
         key = (ring, ring.total_appended, len(ring), max_samples)
-        last = getattr(self, "_window_key", None)
+        last = self._window_key
         if last is None or last[0] is not ring or last[1:] != key[1:]:
             n = len(ring)
             step = max(1, -(-n // max_samples))
             self._window = ring.take(np.arange(0, n, step))    # only the rows kept: no copy of the whole ring
             self._window_key = key
+        assert self._window is not None
         return self._window
 
     def candidate(self, estimators: Sequence[RlsEllipsoid], ring: RingBuffer) -> ArrayCalibration | None:

@@ -195,35 +195,41 @@ RAW_BATCH = 4096
 RAW_BATCH_BYTES = 16 << 20
 
 
-def _raw_runs(path: str | Path, report: ReadReport, strict: bool, unit: str | None, units: list[str],
-              batch: int = RAW_BATCH):
-    """(topic, block) of the raw samples of `unit` (as _chosen_raw), decoded a run of one layout at a time
-    (decode_raw_runs) over at most `batch` messages: a live recording's small messages (8 ms of samples
-    each) without a decode each, and never more than `batch` of them held."""
-    pending: list[bytes] = []
-    held = 0
-    topic = ""
+class _RawBatches:
+    """Raw messages decoded a batch at a time as they are read (decode_raw_runs, a run of one layout at a
+    time): a live recording's small messages (8 ms of samples each) without a decode each, and never more
+    than RAW_BATCH messages or RAW_BATCH_BYTES of them held undecoded."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path, self.pending, self.held, self.topic = path, [], 0, ""
+
+    def add(self, topic: str, data: bytes) -> list[tuple[SampleBlock, np.ndarray]]:
+        """Take one message; the runs decoded when the batch is full (else none)."""
+        self.pending.append(data)
+        self.held += len(data)
+        self.topic = topic
+        return self.flush() if len(self.pending) >= RAW_BATCH or self.held >= RAW_BATCH_BYTES else []
+
+    def flush(self) -> list[tuple[SampleBlock, np.ndarray]]:
+        """The runs of the messages taken since the last flush: (block, samples per message); a damaged
+        message is a RecordingError naming the file and topic."""
+        payloads, self.pending, self.held = self.pending, [], 0
+        if not payloads:
+            return []
+        try:
+            return decode_raw_runs(payloads)
+        except DataError as e:
+            raise RecordingError(f"{self.path}: {self.topic}: damaged message: {e}") from None
+
+
+def _raw_runs(path: str | Path, report: ReadReport, strict: bool, unit: str | None, units: list[str]):
+    """(topic, block) of the raw samples of `unit` (as _chosen_raw), decoded in batches (_RawBatches)."""
+    batches = _RawBatches(path)
     for rec in _chosen_raw(path, report, strict, unit, units):
-        pending.append(rec.data)
-        held += len(rec.data)
-        topic = rec.topic
-        if len(pending) >= batch or held >= RAW_BATCH_BYTES:
-            yield from _decode_runs(path, topic, pending)
-            pending, held = [], 0
-    if pending:
-        yield from _decode_runs(path, topic, pending)
-
-
-def _checked_runs(path: str | Path, topic: str, payloads: list[bytes]) -> list[tuple[SampleBlock, np.ndarray]]:
-    """decode_raw_runs, a damaged message a RecordingError naming the file and topic."""
-    try:
-        return decode_raw_runs(payloads)
-    except DataError as e:
-        raise RecordingError(f"{path}: {topic}: damaged message: {e}") from None
-
-
-def _decode_runs(path: str | Path, topic: str, payloads: list[bytes]) -> list[tuple[str, SampleBlock]]:
-    return [(topic, b) for b, _ in _checked_runs(path, topic, payloads)]
+        for b, _ in batches.add(rec.topic, rec.data):
+            yield rec.topic, b
+    for b, _ in batches.flush():
+        yield batches.topic, b
 
 
 def _check_read(path: str | Path, unit: str | None, units: list[str], any_raw: bool, probes: set[int],
@@ -247,9 +253,7 @@ def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = 
     chunks (listed in report.damaged) instead of refusing the file."""
     report = ReadReport()
     raw: list[tuple[SampleBlock, np.ndarray]] = []
-    pending: list[bytes] = []                # raw messages not yet decoded (a batch at a time, as they come)
-    held = 0
-    raw_topic = ""
+    batches = _RawBatches(path)
     cor: list[CorrectedBlock] = []
     events: list[dict[str, Any]] = []
     cal: list[dict[str, Any]] = []
@@ -272,19 +276,14 @@ def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = 
         stream = rec.topic.rsplit("/", 1)[1]
         try:
             if rec.encoding == RAW_ENCODING:
-                pending.append(rec.data)
-                held += len(rec.data)
-                raw_topic = rec.topic
-                if len(pending) >= RAW_BATCH or held >= RAW_BATCH_BYTES:
-                    raw += _checked_runs(path, raw_topic, pending)
-                    pending, held = [], 0
+                raw += batches.add(rec.topic, rec.data)
             elif rec.encoding == CORRECTED_ENCODING:
                 cor.append(decode_corrected(rec.data))
             elif stream in sinks:
                 sinks[stream](rec.data)
         except DataError as e:
             raise RecordingError(f"{path}: {rec.topic}: damaged message: {e}") from None
-    runs = raw + (_checked_runs(path, raw_topic, pending) if pending else [])
+    runs = raw + batches.flush()
     _check_read(path, unit, units, bool(runs), {b.n_probes for b, _ in runs}, report)
     return Recording([b for b, _ in runs], cor, events, cal, report.metadata, report.files, report.truncated, health,
                      chosen, report, run_sizes=[n for _, n in runs])

@@ -350,20 +350,11 @@ def jacobian_se_many(func: Callable[[np.ndarray], np.ndarray], theta: np.ndarray
 def jacobian_se(func: Callable[[np.ndarray], np.ndarray], theta: np.ndarray,
                 cov: np.ndarray) -> np.ndarray | None:
     """Standard errors of func(θ) by a forward-difference Jacobian, steps of 1 % of each θ's own
-    standard error (None if func fails near θ, e.g. the quadric stops being an ellipsoid)."""
+    standard error (None if func fails near θ, e.g. the quadric stops being an ellipsoid; a failure at θ
+    itself raises): jacobian_se_many with func taken one θ at a time."""
     base = np.asarray(func(theta), float)
-    sd = np.sqrt(np.maximum(np.diag(cov), 0))
-    jac = np.empty((base.size, theta.size))
-    for i in range(theta.size):
-        h = sd[i] * 1e-2 if sd[i] > 0 else abs(theta[i]) * 1e-8 + 1e-12
-        t = theta.copy()
-        t[i] += h
-        try:
-            jac[:, i] = (np.asarray(func(t), float) - base) / h
-        except (np.linalg.LinAlgError, ValueError):
-            return None
-    c = jac @ cov @ jac.T
-    return np.sqrt(np.maximum(np.diag(c), 0))
+    return jacobian_se_many(lambda pts: np.stack([base] + [np.asarray(func(t), float) for t in pts[1:]]),
+                            theta, cov)
 
 
 def _propagate(theta: np.ndarray, cov: np.ndarray, scale: float, f2m: float,
