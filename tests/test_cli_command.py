@@ -5,10 +5,13 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 from test_watch import free_port
 from test_zenoh_bus import FakeDaemon
 
 from service.io.bus import ServiceBus, ZenohConfig
+from service.io.calfile import save_calibration
+from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 from service.wiring.cli import main
 
 
@@ -34,10 +37,10 @@ def test_state_and_commands_round_trip_and_a_refusal_exits_1(capsys, tmp_path):
         out, err = capsys.readouterr()
         assert json.loads(out)["ok"] is False and "not applied by unit grad9" in err and "'eddy'" in err
         cal = tmp_path / "cal.json"
-        cal.write_text('{"format": "fluxcal-calibration"}')
+        save_calibration(ArrayCalibration("ellipsoid", None, [ProbeCalibration("s1", np.zeros(3), np.eye(3))]), cal)
         assert main(["command", "apply", str(cal), "--connect", svc.ep]) == 0
         applied = [(name, payload) for _, name, payload, _ in svc.seen if name != "add-effect"]
-        assert applied == [("freeze", ""), ("apply", '{"format": "fluxcal-calibration"}')]
+        assert applied == [("freeze", ""), ("apply", cal.read_text().strip())]
     finally:
         svc.close()
         bus.close()

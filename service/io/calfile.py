@@ -100,11 +100,28 @@ def load_calibration(path: str | Path) -> ArrayCalibration:
 
 
 def calibration_from_json(text: str, origin: str = "<calibration>") -> ArrayCalibration:
+    """The ArrayCalibration of a calibration file's text. Text that is not JSON at all (a CSV given by
+    mistake) is refused as not a calibration, quoting only the start of its first line."""
+    if text.strip() and not text.lstrip().startswith("{"):      # empty: a truncated file, "damaged" below
+        raise DataError(f"{origin}: not a calibration file: expected a calibration JSON written by "
+                        f"`fluxcal fit --out`; it begins {excerpt(text)}")
     try:
         d = json.loads(text)
     except json.JSONDecodeError as e:
         raise DataError(f"{origin}: damaged calibration file (not JSON: {e.msg} at line {e.lineno})") from None
     return calibration_from_dict(d, origin)
+
+
+def excerpt(text: str, limit: int = 60) -> str:
+    """The start of `text` quoted for a message: its first line, at most `limit` characters, and `...`
+    when there is more; a message never carries a whole payload.
+
+    >>> excerpt("t,s1_x,s1_y\\n0,1,2")
+    "'t,s1_x,s1_y' ..."
+    """
+    body = text.strip()
+    first = body.split("\n", 1)[0][:limit]
+    return repr(first) + (" ..." if len(first) < len(body) else "")
 
 
 def _array(v: Any, shape: tuple[int, ...], key: str, origin: str, allow_null: bool = False) -> np.ndarray:

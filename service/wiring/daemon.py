@@ -16,7 +16,7 @@ from typing import Any, Callable
 import numpy as np
 
 from drivers.block import SampleBlock
-from drivers.errors import ConfigError, DriverError, FluxcalError
+from drivers.errors import ConfigError, DataError, DriverError, FluxcalError
 from drivers.source import Source, open_source
 from service.io.calfile import load_calibration, save_calibration
 
@@ -151,7 +151,8 @@ class Daemon:
 
     def _state(self, pipeline: Pipeline, source: Source, logger) -> dict[str, Any]:
         st = pipeline.state()
-        st["health"] = {**source.counters.as_dict(), "processing_errors": self.processing_errors}
+        st["health"] = {**source.counters.as_dict(), "processing_errors": self.processing_errors,
+                        "commands_refused": self._status.refused}
         if logger is not None:
             st["recording"] = logger.status()
         return st
@@ -206,7 +207,9 @@ class Daemon:
             now = time.monotonic()
             if now - last_health >= 1.0:
                 last_health = now
-                health = {**source.counters.as_dict(), "processing_errors": self.processing_errors}
+                health = {**source.counters.as_dict(), "processing_errors": self.processing_errors,
+                          "commands_refused": self._status.refused}
+                self._status.bus_refusals(bus)
                 bus.publish_health(health)
                 if logger is not None:
                     logger.write_health(health)
@@ -268,11 +271,16 @@ class Daemon:
 
 
 def _calibration_from_payload(payload: Any):
-    from service.io.calfile import calibration_from_json
+    """The calibration an `apply` carries: its JSON text, or a path on this host. Anything else (a CSV
+    sent by mistake) is refused naming what was expected and quoting only the start of it."""
+    from service.io.calfile import calibration_from_json, excerpt
 
     if isinstance(payload, (bytes, bytearray)):
         payload = payload.decode("utf-8")
     text = str(payload).strip()
     if text.startswith("{"):
-        return calibration_from_json(text, origin="zenoh command")
+        return calibration_from_json(text, origin="apply payload")
+    if "\n" in text or len(text) > 1024:
+        raise DataError(f"apply: the payload ({len(text):,} characters) is neither a calibration JSON nor a path: "
+                        f"expected a calibration JSON written by `fluxcal fit --out`; it begins {excerpt(text)}")
     return load_calibration(text)

@@ -19,6 +19,8 @@ class StatusLog:
         self._samples = 0
         self._error: dict[str, float] = {}
         self._reasons: tuple[str, ...] = ()
+        self._bus_refused = 0             # the bus's refusals already said
+        self.refused = 0                  # commands the service refused (health: commands_refused)
 
     def block(self, n_samples: int, error: Mapping[str, float]) -> None:
         self._samples += n_samples
@@ -34,11 +36,22 @@ class StatusLog:
             self.say("quality gate: candidate usable" if usable else "quality gate: not yet: " + "; ".join(reasons))
 
     def command(self, name: str, payload: Any, answer: Mapping[str, Any]) -> None:
-        what = name + (f" {payload}" if payload and name != "apply" else "")
+        what = name + (f" {str(payload)[:64]}" if payload and name != "apply" else "")
         if answer.get("ok"):
             self.say(f"command {what}: applied (calibration {answer.get('cal_id')})")
         else:
-            self.say(f"command {what}: refused: {answer.get('error')}")
+            self.refused += 1
+            why = str(answer.get("error"))
+            self.say(f"command {what}: refused: {why if len(why) <= 400 else why[:400] + ' ...'}")
+
+    def bus_refusals(self, bus: Any) -> None:
+        """Commands the bus refused on its own (too large, not UTF-8, not an effect name), said from the
+        service's thread at its health tick: how many and the last reason, never the payload."""
+        refused = getattr(bus, "stats", {}).get("commands_refused", 0)
+        if refused > self._bus_refused:
+            n, self._bus_refused = refused - self._bus_refused, refused
+            self.say(f"{n} command(s) refused by the bus; the last: {getattr(bus, 'last_refused', '')} "
+                     f"(state: bus.commands_refused)")
 
     def tick(self, state: Mapping[str, Any]) -> None:
         """The status line, when `every_s` has passed since the last one."""

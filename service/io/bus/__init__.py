@@ -6,7 +6,7 @@ service's side), client (BusClient, discover_units). Users import from here.
 """
 
 from .client import BusClient, Message, discover_units
-from .keys import COMMANDS, STREAMS, Command, Keys, Series, decode_series, encode_series
+from .keys import COMMANDS, MAX_COMMAND_PAYLOAD_BYTES, STREAMS, Command, Keys, Series, decode_series, encode_series
 from .server import ServiceBus
 from .settings import (
                        DEFAULT_LISTEN,
@@ -20,7 +20,8 @@ from .settings import (
 )
 
 __all__ = [
-    "BusClient", "BusError", "Command", "COMMANDS", "Keys", "Message", "Series", "ServiceBus",
+    "BusClient", "BusError", "Command", "COMMANDS", "MAX_COMMAND_PAYLOAD_BYTES", "Keys", "Message", "Series",
+    "ServiceBus",
     "STREAMS", "ZenohAccessConfig", "ZenohConfig", "ZenohTlsConfig", "discover_units", "make_zenoh_config", "open_session",
     "decode_series", "encode_series", "DEFAULT_PORT", "DEFAULT_LISTEN",
 ]

@@ -12,7 +12,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import zenoh
 
-from .keys import COMMANDS, JSON, Command, Keys, _json_bytes
+from .keys import COMMANDS, JSON, MAX_COMMAND_PAYLOAD_BYTES, Command, Keys, _json_bytes
 from .settings import BusError
 
 #: how long a command waits for the service's thread before it is withdrawn (the client may ask for less)
@@ -47,6 +47,7 @@ class Desk:
         self._state_cache: tuple[float, dict[str, Any]] | None = None
         self._ids = itertools.count(1)
         self._closed = False
+        self.last_refused = ""          # the last refusal, short, for the service's log (stats counts them)
         self._stop = threading.Event()
         self._watchdog = threading.Thread(target=self._watch_late, daemon=True, name=f"fluxcal-bus-{self.unit}-late")
         self._watchdog.start()
@@ -68,14 +69,19 @@ class Desk:
             self.stats["commands_received"] += 1
             if self._closed:
                 return self._refuse(query, name, "the service is stopping")
+            raw = query.payload.to_bytes() if query.payload is not None else b""
+            if len(raw) > MAX_COMMAND_PAYLOAD_BYTES:
+                return self._refuse(query, name, f"payload of {len(raw):,} bytes is too large (at most "
+                                                 f"{MAX_COMMAND_PAYLOAD_BYTES:,}; {name} takes {COMMANDS[name]})")
             try:
-                payload = query.payload.to_bytes().decode("utf-8").strip() if query.payload is not None else ""
+                payload = raw.decode("utf-8").strip()
             except UnicodeDecodeError:
-                return self._refuse(query, name, "payload is not UTF-8 text")
+                return self._refuse(query, name, f"payload of {len(raw):,} bytes is not UTF-8 text")
             if COMMANDS[name] is not None and not payload:
                 return self._refuse(query, name, f"needs a payload: {COMMANDS[name]}")
             if name == "add-effect" and not re.fullmatch(r"[a-z][a-z0-9_\-]{0,63}", payload):
-                return self._refuse(query, name, f"{payload!r} is not an effect name")
+                shown = repr(payload) if len(payload) <= 64 else f"{payload[:40]!r}... ({len(payload):,} characters)"
+                return self._refuse(query, name, f"{shown} is not an effect name")
             wait_s = self.command_wait_s
             asked = query.parameters.get("wait_s")       # the client's own patience, less a margin
             if asked is not None:
@@ -95,6 +101,7 @@ class Desk:
 
     def _refuse(self, query: zenoh.Query, name: str, why: str) -> None:
         self.stats["commands_refused"] += 1
+        self.last_refused = f"{name}: {why}"
         query.reply_err(_json_bytes({"command": name, "ok": False, "error": why}), encoding=JSON)
 
     # --- the bus's own thread: late answers (never a zenoh callback) ----------------------------

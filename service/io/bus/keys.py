@@ -133,6 +133,8 @@ COMMANDS: dict[str, str | None] = {
     "apply": "calibration JSON text, or the path of a calibration file on the service's host",
     "add-effect": "effect name, e.g. temperature",
 }
+#: largest command payload the service takes (a calibration JSON is a few kB; the dashboard's body limit too)
+MAX_COMMAND_PAYLOAD_BYTES = 1 << 20
 
 
 class Keys:

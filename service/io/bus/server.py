@@ -130,6 +130,11 @@ class ServiceBus(SessionHolder):
         """Wait up to `timeout` s for one command (for a service thread that only serves commands)."""
         return self._desk.next_command(timeout)
 
+    @property
+    def last_refused(self) -> str:
+        """The last command the bus refused (malformed, too large, busy) and why, short; stats counts them."""
+        return self._desk.last_refused if self._desk is not None else ""
+
     def state(self) -> dict[str, Any]:
         """What a `state` query answers: state_fn() (or the last calibration and health published) + identity."""
         return self._desk.state()

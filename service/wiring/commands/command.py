@@ -11,8 +11,9 @@ import sys
 from argparse import Namespace
 from pathlib import Path
 
-from drivers.errors import ConfigError, FluxcalError
-from service.io.bus import COMMANDS, BusClient, ZenohConfig, discover_units, open_session
+from drivers.errors import ConfigError, DataError, FluxcalError
+from service.io.bus import COMMANDS, MAX_COMMAND_PAYLOAD_BYTES, BusClient, ZenohConfig, discover_units, open_session
+from service.io.calfile import calibration_from_json
 from service.wiring.commands.watch import _resolve
 
 VERBS = ("state", *COMMANDS)
@@ -27,7 +28,7 @@ def main(args: Namespace) -> int:
     endpoints, unit, tls = _resolve(args)
     payload = args.payload or ""
     if args.verb == "apply" and Path(payload).is_file():
-        payload = Path(payload).read_text()            # the service may run on another host: send the file itself
+        payload = _calibration_text(Path(payload))    # the service may run on another host: send the file itself
     with open_session(ZenohConfig.client(*endpoints, tls=tls)) as session:
         if unit is None:
             units = discover_units(session, timeout=min(2.0, args.timeout))
@@ -44,3 +45,19 @@ def main(args: Namespace) -> int:
               file=sys.stderr)
         return 1
     return 0
+
+
+def _calibration_text(path: Path) -> str:
+    """The text of a calibration file to send with `apply`, checked here first: a wrong file (a CSV, a
+    recording) is refused naming it and what was expected, and is never sent, read whole or printed."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(MAX_COMMAND_PAYLOAD_BYTES + 1)
+    except OSError as e:
+        raise DataError(f"{path}: cannot read the calibration file: {e}") from None
+    text = head.decode("utf-8", errors="replace")
+    if len(head) > MAX_COMMAND_PAYLOAD_BYTES and text.lstrip().startswith("{"):
+        raise DataError(f"{path}: more than {MAX_COMMAND_PAYLOAD_BYTES:,} bytes: too large for a calibration "
+                        f"file (one written by `fluxcal fit --out` is a few kB)")
+    calibration_from_json(text, origin=str(path))    # DataError naming the file, quoting at most a line's start
+    return text
