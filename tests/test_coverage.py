@@ -132,3 +132,47 @@ def test_too_few_and_no_samples():
     nan = raw_from_directions(sphere(500))
     nan[::7] = np.nan
     assert coverage(nan).n_samples == 500 - 72
+
+
+def _pink(n: int, rms: float, rng: np.random.Generator) -> np.ndarray:
+    """(n, 3) noise with a 1/f power spectrum, scaled to `rms` per axis."""
+    f = np.fft.rfftfreq(n)
+    spec = (rng.normal(size=(f.size, 3)) + 1j * rng.normal(size=(f.size, 3))) / np.sqrt(np.maximum(f, f[1]))[:, None]
+    spec[0] = 0
+    x = np.fft.irfft(spec, n, axis=0)
+    return x / x.std(axis=0) * rms
+
+
+def wobbling_turns(axis: str, wobble_deg: float, seed: int, noise: str, n: int = 2000) -> np.ndarray:
+    """Two turns about a probe axis by hand: the field's angle to the axis (60° dip) wanders by ±wobble_deg
+    (a slow random sway), with 1 nT white or 20 nT rms 1/f noise."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 4 * np.pi, n)
+    sway = np.cumsum(rng.normal(size=n))
+    sway = np.radians(wobble_deg) * (sway - sway.mean()) / np.abs(sway - sway.mean()).max()
+    polar = np.radians(30.0) + sway
+    d = np.column_stack([np.sin(polar) * np.cos(t), np.sin(polar) * np.sin(t), np.cos(polar)])
+    d = d[:, {"z": [0, 1, 2], "x": [2, 0, 1], "y": [1, 2, 0]}[axis]]
+    raw = np.linalg.solve(M_TRUE, (TOTAL_NT * d).T).T + O_TRUE
+    return raw + (rng.normal(0, 1.0, raw.shape) if noise == "white" else _pink(n, 20.0, rng))
+
+
+@pytest.mark.parametrize("noise", ["white", "1/f"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_wobbling_single_turn_is_refused_and_a_wide_sway_is_fitted(seed, noise):
+    """Real hand turns wobble, so the samples are not one plane; but a cone a few degrees wide still leaves
+    the offset along the axis to the wobble: refused, naming the axis, in the fit and in coverage about the
+    true centre (the online gate's question). A sway of ±40° is a fit: with white noise within four
+    standard errors of the truth (under 1/f noise these plain errors are too small, by up to 14 times
+    here: the command line's coloured-noise errors, tests/test_stderr.py, are the ones to quote)."""
+    for axis in "xyz":
+        raw = wobbling_turns(axis, 4.0, seed, noise)
+        with pytest.raises(CalibrationRefused, match=rf"one cone about {axis} \(a turn about {axis}"):
+            fit_ellipsoid(raw)
+        cov = coverage(raw, centre_nT=O_TRUE)
+        assert not cov.usable and f"one cone about {axis}" in cov.reason
+    wide = wobbling_turns("z", 40.0, seed, noise)
+    cal = fit_ellipsoid(wide, TOTAL_NT).calibration
+    assert cal.is_finite()
+    if noise == "white":
+        assert np.all(np.abs(cal.offset_nT - O_TRUE) < 4 * cal.offset_se_nT + 1.0), (cal.offset_nT, cal.offset_se_nT)

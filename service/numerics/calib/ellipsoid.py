@@ -45,7 +45,7 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused, DataError
 
-from .excitation import PLANARITY_MIN, coverage_hint, excitation_problem  # noqa: F401 - PLANARITY_MIN re-exported
+from .excitation import PLANARITY_MIN, band_problem, coverage_hint, excitation_problem  # noqa: F401 - PLANARITY_MIN re-exported
 from .model import ProbeCalibration, named, triangular_params
 from .order import (
     EXPANSIONS,
@@ -383,8 +383,9 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     smaller one); "full", "axes" or "sphere" fit that order. What an order holds fixed, and any
     parameter whose standard error exceeds its size, is said in `warnings`.
     Refuses (CalibrationRefused) data that cannot determine even the offsets: too few samples, all in
-    one plane (a single-axis turn), a badly conditioned design, or offsets whose standard errors are
-    a tenth of the field; the message names the missing directions and the motion that would fill them.
+    one plane (a single-axis turn), field directions within a narrow band about one plane (a turn with
+    some wobble: excitation.BAND_MIN_DEG), a badly conditioned design, or offsets whose standard errors
+    are a tenth of the field; the message names the missing directions and the motion that would fill them.
     noise_nT: the noise of |b| if known; standard errors then use it (see `solve_quadric`).
     """
     if order != "auto" and order not in ORDERS:
@@ -397,6 +398,10 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
         sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT,
                             order=ORDERS[ORDERS.index(sol.order) + 1])
         fit, missing = _fit_result(sol, raw, name)
+    corr = fit.calibration.apply(raw)
+    problem = band_problem(corr / np.linalg.norm(corr, axis=1, keepdims=True))
+    if problem:
+        raise CalibrationRefused(f"{name}: {problem}")
     if any(m.startswith("offset") for m in missing):
         se = ", ".join(f"{v:.3g}" for v in fit.calibration.offset_se_nT)
         raise CalibrationRefused(f"{name}: the samples do not determine even the offsets (standard errors {se} nT "
@@ -416,8 +421,11 @@ def _fit_result(sol: QuadricSolution, raw: np.ndarray, name: str) -> tuple[Ellip
     try:
         offset, matrix = quadric_to_calibration(theta, scale, f2m, center)
     except np.linalg.LinAlgError:
-        raise CalibrationRefused(f"{name}: the fitted quadric is not an ellipsoid; the data are not "
-                                 f"one probe rotating in a steady field") from None
+        about_mean = raw - raw.mean(axis=0)
+        turn = band_problem(about_mean / np.maximum(np.linalg.norm(about_mean, axis=1, keepdims=True), 1e-300))
+        raise CalibrationRefused(f"{name}: the fitted quadric is not an ellipsoid; " + (
+            turn.replace("the field directions", "about their mean the samples' directions") if turn else
+            "the data are not one probe rotating in a steady field")) from None
     o_se, m_se = _propagate(theta, cov, scale, f2m, center)
     corr = (raw - offset) @ matrix.T
     rms = float(np.sqrt(np.mean((np.linalg.norm(corr, axis=1) - sol.total_nT) ** 2)))

@@ -8,6 +8,14 @@ import numpy as np
 #: out-of-plane spread / in-plane spread below which samples count as one plane (a single-axis turn)
 PLANARITY_MIN = 0.02
 
+#: half-width (deg) of the band of polar angles about one axis within which the field directions seen (about
+#: the fitted centre) count as one turn: in a turn about an axis the field traces one cone about it, and a
+#: wobble this small leaves the offset along the axis resting on the wobble alone and on the model's shape,
+#: which the samples cannot check. Measured (direction_band) on real hand-turned boards (../shared/real-data):
+#: their single-axis turns read 4-8°, with offsets along the axis 1,500-12,800 nT from the same board's
+#: full-sphere fit; thin plane cuts of full spheres 6-10°; a ±17° band 17-18°, hemispheres 33-39°, a 40° cap 16°.
+BAND_MIN_DEG = 12.0
+
 _AXES = {"+x": (1.0, 0, 0), "-x": (-1.0, 0, 0), "+y": (0, 1.0, 0), "-y": (0, -1.0, 0),
          "+z": (0, 0, 1.0), "-z": (0, 0, -1.0)}
 
@@ -16,6 +24,34 @@ def planarity(raw: np.ndarray) -> tuple[float, np.ndarray]:
     """sqrt(smallest / largest eigenvalue) of the sample covariance, and the plane's normal."""
     w, v = np.linalg.eigh(np.cov(raw.T))
     return (float(np.sqrt(max(w[0], 0.0) / w[2])) if w[2] > 0 else 0.0), v[:, 0]
+
+
+def direction_band(directions: np.ndarray) -> tuple[float, np.ndarray]:
+    """Half-width (deg) of the band of polar angles that holds the unit field directions (N, 3) about the
+    axis they vary least along, and that axis: √3 × the standard deviation of the angle to it (a uniform
+    band of ±w reads w). A single-axis turn traces one cone about its axis and reads its wobble; a full
+    sphere reads about 67°, a hemisphere 37°, a 60° cap 25°. Independent of origin and unit when the
+    directions are taken about the fitted centre in the calibrated frame."""
+    d = np.asarray(directions, float)
+    if d.shape[0] < 3:
+        return 0.0, np.array([0.0, 0.0, 1.0])
+    axis = np.linalg.eigh(np.cov(d.T))[1][:, 0]
+    polar = np.degrees(np.arccos(np.clip(d @ axis, -1.0, 1.0)))
+    return float(np.sqrt(3.0) * np.std(polar)), axis
+
+
+def band_problem(directions: np.ndarray) -> str:
+    """Why directions in a narrow cone-shaped band about one axis (a single-axis turn with some wobble) do
+    not fix the offset along it ("" if they spread wider than BAND_MIN_DEG)."""
+    band, normal = direction_band(directions)
+    if band >= BAND_MIN_DEG:
+        return ""
+    k = int(np.argmax(np.abs(normal)))
+    axis = "xyz"[k] if abs(normal[k]) > 0.9 else "({:.2f}, {:.2f}, {:.2f})".format(*(normal * np.sign(normal[k])))
+    others = sorted(a for _, a in sorted(zip(np.abs(normal), "xyz"))[:2])
+    return (f"the field directions stay within ±{band:.1f}° of one cone about {axis} (a turn about {axis}; at least "
+            f"±{BAND_MIN_DEG:.0f}° needed): the offset along {axis} would rest on that wobble alone and on the "
+            f"sensor's shape, which these samples cannot check; turn about the {others[0]} or {others[1]} axis too")
 
 
 def missing_directions(raw: np.ndarray, cone_deg: float = 45.0) -> list[str]:
