@@ -29,8 +29,8 @@ def test_the_examples_keep_their_calibrations_apart_and_beside_the_repository():
 def test_relative_paths_follow_the_configuration_not_the_working_directory(tmp_path, monkeypatch):
     site = tmp_path / "site"
     site.mkdir()
-    (site / "unit.toml").write_text('[unit]\nname = "north"\nn_probes = 2\n[mcap]\ndir = "rec"\n'
-                                    '[calibration]\ninitial = "cal/start.json"\n')
+    (site / "unit.toml").write_text('[unit]\nname = "north"\nn_probes = 2\n[source]\nkind = "sim"\n'
+                                    '[mcap]\ndir = "rec"\n[calibration]\ninitial = "cal/start.json"\n')
     monkeypatch.chdir(tmp_path)
     cfg = load_config("site/unit.toml")
     assert Path(cfg.mcap.dir) == site / "rec" and Path(cfg.calibration.initial) == site / "cal" / "start.json"

@@ -363,15 +363,15 @@ def test_config_gives_positions_so_the_gradient_is_tested(tmp_path, capsys):
     csv = tmp_path / "turn.csv"
     np.savetxt(csv, vals, delimiter=",", header=",".join(cols), comments="", fmt="%.6f")
     cfg = tmp_path / "array.toml"
-    cfg.write_text("[unit]\nn_probes = 3\n" + "".join(f"[[probes]]\nposition_m = {[float(x) for x in p['position_m']]}\n"
-                                                     for p in probes))
+    cfg.write_text("[unit]\nn_probes = 3\n[source]\nkind = \"sim\"\n"
+                   + "".join(f"[[probes]]\nposition_m = {[float(x) for x in p['position_m']]}\n" for p in probes))
     assert cli.main(["diagnose", str(csv), "--json"]) == 0            # no positions: not testable
     grad = next(c for c in json.loads(capsys.readouterr().out)["candidates"] if c["effect"] == "gradient")
     assert grad["testable"] is False and "positions" in grad["reason"]
     assert cli.main(["diagnose", str(csv), "--config", str(cfg), "--json"]) == 0
     first = json.loads(capsys.readouterr().out)["candidates"][0]
     assert first["effect"] == "gradient" and first["significant"] is True
-    cfg.write_text("[unit]\nn_probes = 3\n[[probes]]\nposition_m = [0.1, 0.0, 0.0]\n")
+    cfg.write_text("[unit]\nn_probes = 3\n[source]\nkind = \"sim\"\n[[probes]]\nposition_m = [0.1, 0.0, 0.0]\n")
     assert cli.main(["diagnose", str(csv), "--config", str(cfg)]) == 2
     assert "1 [[probes]] tables but unit.n_probes = 3" in capsys.readouterr().err
 

@@ -2,7 +2,7 @@
 
     [unit]        name, n_probes, lsb_nT
     [[probes]]    name, position_m (platform frame; needed for tensor components)
-    [source]      kind = "sim" | "serial" | "can" | "replay", then that kind's keys
+    [source]      kind = "sim" | "serial" | "can" | "replay" (required in a file), then that kind's keys
     [sim]         the simulated unit's world (drivers.sim.config)
     [estimator]   the online estimator and its quality gate
     [calibration] where the calibration persists, and an optional one to start from
@@ -174,6 +174,7 @@ def load_config(path: str | Path) -> FluxcalConfig:
     """The configuration of a TOML file; its relative paths (calibration.file, calibration.initial, mcap.dir,
     a replay source's path) are taken relative to the file's directory, not the working directory."""
     raw = read_toml(path)
+    require_source(raw, str(path))
     cfg = config_from_dict(raw, str(path))
     base = Path(path).resolve().parent
 
@@ -189,6 +190,23 @@ def load_config(path: str | Path) -> FluxcalConfig:
     cfg.effects.plugins = [here(p.rpartition(":")[0]) + ":" + p.rpartition(":")[2] if p.rpartition(":")[0].endswith(".py")
                            else p for p in cfg.effects.plugins]
     return cfg
+
+
+SOURCE_KINDS = ("serial", "can", "sim", "replay")
+
+
+def require_source(raw: dict, path: str) -> None:
+    """A configuration file must name its source: an emptied or cut file (or one missing its [source]) is an
+    error, never a simulated unit publishing data on the default port. (A dict built in code, such as the
+    configuration a recording stores, still defaults to the simulator: config_from_dict.)"""
+    allowed = ", ".join(f'"{k}"' for k in SOURCE_KINDS)
+    src = raw.get("source")
+    if isinstance(src, dict) and "kind" in src:
+        return
+    what = ("the file is empty" if not raw else
+            "it has no [source] section" if src is None else "its [source] names no kind")
+    raise ConfigError(f"{path}: [source] kind is required (allowed: {allowed}): {what}; a configuration must say "
+                      f"where the data come from (kind = \"sim\" for the simulated unit, see configs/*.toml)")
 
 
 def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:

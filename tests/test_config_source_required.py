@@ -1,0 +1,38 @@
+"""A configuration file must name its source: an emptied file (or one missing [source] kind) is an error
+naming the key and what is allowed, never a simulated unit "unit1" publishing on 7447 beside the file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from drivers.errors import ConfigError
+from service.wiring.cli import main
+from service.wiring.config import config_from_dict, load_config, require_source
+
+ROOT = Path(__file__).resolve().parents[1]
+REQUIRED = '[source] kind is required (allowed: "serial", "can", "sim", "replay")'
+
+
+@pytest.mark.parametrize("text, what", [
+    ("", "the file is empty"),
+    ("# all commented out\n", "the file is empty"),
+    ('[unit]\nname = "grad1"\n', "it has no [source] section"),
+    ('[source]\ntransport = "pty"\n', "its [source] names no kind"),
+])
+def test_run_refuses_a_config_without_a_source_kind_and_starts_nothing(tmp_path, capsys, text, what):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(text)
+    assert main(["run", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"fluxcal run: {cfg}: {REQUIRED}: {what};") and len(err.splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.toml"]          # no recordings, no state
+
+
+def test_the_example_configs_load_and_a_stored_dict_still_defaults_to_the_simulator():
+    kinds = {p.stem: load_config(p).source.kind for p in sorted((ROOT / "configs").glob("*.toml"))}
+    assert kinds == {"can-example": "can", "serial-example": "serial", "sim-cross": "sim", "sim-gradiometer": "sim"}
+    assert config_from_dict({}).source.kind == "sim"        # a recording's stored configuration of an older run
+    with pytest.raises(ConfigError, match=r"x.toml: \[source\] kind is required .*: it has no \[source\] section"):
+        require_source({"unit": {}}, "x.toml")
