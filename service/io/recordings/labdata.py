@@ -106,8 +106,15 @@ def load_csv(path: str | Path) -> LabData:
     _check_header(p, header, line_no)
 
     body = [ln for ln in lines[header_idx + 1:]]
-    # keep the line numbers of non-empty rows for error messages
-    rows_idx = [j for j, ln in enumerate(body) if ln.strip()]
+    # keep the line numbers of the data rows for error messages; a `#` line may come anywhere (an operator's
+    # note between two turns) and is kept with the header's comments
+    rows_idx = []
+    for j, ln in enumerate(body):
+        s = ln.strip()
+        if s.startswith("#"):
+            comments.append(s[1:].strip())
+        elif s:
+            rows_idx.append(j)
     if not rows_idx:
         raise DataError(f"{p}: header but no data rows")
     if len(rows_idx) != len(body):
