@@ -389,19 +389,38 @@ class McapLogger(ChunkedLog):
         self.close()
 
 
+#: write_recording's chunks and messages: a file cut short (a full disk, a copy stopped half way, `head -c`)
+#: loses its unfinished chunk only, so chunks are small; a block is split into messages of about
+#: RECORDING_MESSAGE_BYTES so that one large block (simulate writes 100,000 samples at a time) is not one chunk
+RECORDING_CHUNK_BYTES = 256 << 10
+RECORDING_MESSAGE_BYTES = 64 << 10
+
+
+def _message_rows(block: SampleBlock) -> int:
+    """Rows of `block` per message of about RECORDING_MESSAGE_BYTES (its arrays' bytes per sample)."""
+    n = block.n_samples
+    size = sum(a.nbytes for a in (block.t_s, block.seq, block.field_nT, block.temp_C, block.flags,
+                                  *block.extras.values()))
+    return max(1, int(RECORDING_MESSAGE_BYTES * n // max(size, 1)))
+
+
 def write_recording(path: str | Path, blocks: Iterable[SampleBlock], *, unit: str, probe_names: list[str],
                     truth: dict | None = None, metadata: dict[str, Any] | None = None) -> None:
-    """One MCAP file of raw blocks (for `simulate` and `decode`), with probe names and the truth.
+    """One MCAP file of raw blocks (for `simulate` and `decode`), with probe names and the truth, in chunks of
+    about RECORDING_CHUNK_BYTES (a truncated copy keeps what came before its cut).
     Written to `<path>.partial` and renamed at the end: a failed write leaves no half file; OSError."""
     p = Path(path)
     meta: dict[str, Any] = {"probe_names": json.dumps(probe_names), **(metadata or {})}
     if truth is not None:
         meta["truth"] = json.dumps(truth)
     tmp = p.with_name(p.name + ".partial")
-    log = McapLogger(p.parent, filename=tmp.name, unit=unit, metadata=meta, flush_interval_s=1e9)
+    log = McapLogger(p.parent, filename=tmp.name, unit=unit, metadata=meta, flush_interval_s=1e9,
+                     chunk_size=RECORDING_CHUNK_BYTES)
     try:
         for b in blocks:
-            log.write_raw(b)
+            step = _message_rows(b)
+            for lo in range(0, max(b.n_samples, 1), step):
+                log.write_raw(b if step >= b.n_samples else b.slice(lo, lo + step))
     finally:
         log.close()
     if log.errors:
