@@ -32,6 +32,8 @@ class LabData:
     #: load_data(max_probe_samples=...): every k-th sample of the file kept (1: all), of n_read in the file
     every: int = 1
     n_read: int | None = None
+    #: an MCAP recording's "fluxcal" metadata record (unit, probe_names, the service's stored config, ...)
+    metadata: dict[str, str] = field(default_factory=dict)
 
     @property
     def ref_total(self) -> np.ndarray | None:
@@ -39,7 +41,8 @@ class LabData:
 
 
 def load_data(path: str | Path, *, max_samples: int | None = None, max_probe_samples: int | None = None) -> LabData:
-    """Load a lab CSV or an MCAP recording written by fluxcal.
+    """Load a lab CSV or an MCAP recording written by fluxcal (a file, or a directory of one run's rotated
+    files: `-0001.mcap`, `-0002.mcap`, ...).
 
     max_samples, max_probe_samples: keep every k-th sample, k the smallest that brings the samples (and
     samples x probes) within them (an MCAP's other samples are never held; a CSV's are parsed, then let go).
@@ -48,21 +51,35 @@ def load_data(path: str | Path, *, max_samples: int | None = None, max_probe_sam
     if not p.exists():
         raise DataError(f"{p}: no such file")
     if p.is_dir():
-        raise DataError(f"{p}: is a directory, expected a .csv or .mcap file")
-    if p.suffix.lower() == ".mcap":
+        _check_one_run(p)
+    if p.is_dir() or p.suffix.lower() == ".mcap":
         from .reader import read_samples  # only when an MCAP file is given
 
         rec = read_samples(p, max_samples=max_samples, max_probe_samples=max_probe_samples)
         names = list(rec.probe_names) if getattr(rec, "probe_names", None) else \
             [f"s{k + 1}" for k in range(rec.raw.n_probes)]
         return LabData(block=rec.raw, probe_names=names, path=str(p), warnings=rec.report.warnings,
-                       every=rec.every, n_read=rec.n_read)
+                       every=rec.every, n_read=rec.n_read, metadata=dict(rec.metadata))
     lab = load_csv(p)
     n, probes = lab.block.n_samples, lab.block.n_probes
     every = keep_every(n, probes, max_samples, max_probe_samples)
     if every == 1:
         return replace(lab, n_read=n)
     return replace(lab, block=lab.block.rows(np.arange(0, n, every)), every=every, n_read=n)   # a copy
+
+
+def _check_one_run(p: Path) -> None:
+    """A directory is read as one run of rotated MCAP files: one without any, or holding several runs (each
+    starts with a -0001 file), is a DataError saying what to give instead."""
+    files = sorted(f.name for f in p.glob("*.mcap") if f.is_file())
+    if not files:
+        raise DataError(f"{p}: is a directory without .mcap files (allowed: a .csv or .mcap file, or a directory of "
+                        f"one run's rotated .mcap files)")
+    starts = [f for f in files if f.endswith("-0001.mcap")]
+    if len(starts) > 1:
+        shown = ", ".join(starts[:4]) + (", ..." if len(starts) > 4 else "")
+        raise DataError(f"{p}: holds {len(starts)} separate runs ({shown}): give one run (its -0001 file, or a "
+                        f"directory of only its files)")
 
 
 def keep_every(n: int, probes: int, max_samples: int | None, max_probe_samples: int | None) -> int:

@@ -28,42 +28,21 @@ from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from drivers.config import load_section, read_toml  # noqa: E402
+from drivers.config import read_toml  # noqa: E402
 from drivers.errors import ConfigError, DataError  # noqa: E402
 from service.wiring.fitting import NONLINEAR_PROBE_SAMPLES as DIAGNOSE_PROBE_SAMPLES  # noqa: E402
 from service.wiring.progress import Progress  # noqa: E402
 
 def config_geometry(path: str, n_probes: int) -> tuple[np.ndarray | None, float | None]:
-    """Probe positions (P, 3) and the total field from a configuration file. The sections diagnose uses
-    are validated strictly ([unit], [[probes]], [estimator], [sim]); the others need not describe a
-    runnable source, but unknown section names are still errors."""
-    from service.wiring.config import _SECTIONS, EstimatorConfig, ProbeConfig, UnitConfig
+    """Probe positions (P, 3) and the total field from a configuration file (recorded_config.geometry: the
+    sections diagnose uses validated strictly, unknown section names errors)."""
+    from service.wiring.recorded_config import geometry
 
     raw = read_toml(path)
     try:
-        for key in raw:
-            if key not in _SECTIONS:
-                raise ConfigError(f"{key}: unknown section (allowed: {', '.join(_SECTIONS)})")
-        unit = load_section(UnitConfig, raw.get("unit", {}), "unit")
-        total = load_section(EstimatorConfig, raw.get("estimator", {}), "estimator").total_nT
-        tables = raw.get("probes", [])
-        if not isinstance(tables, list):
-            raise ConfigError("probes: expected an array of tables [[probes]]")
-        probes = [load_section(ProbeConfig, t, f"probes[{i}]") for i, t in enumerate(tables)]
-        positions = None
-        if probes:
-            if "unit" in raw and len(probes) != unit.n_probes:
-                raise ConfigError(f"probes: {len(probes)} [[probes]] tables but unit.n_probes = {unit.n_probes}")
-            positions = np.array([p.position_m for p in probes], dtype=np.float64)
-        elif "sim" in raw:
-            from drivers.sim.config import load_sim_config
-
-            positions = np.array([p.position_m for p in load_sim_config(raw["sim"]).probes], dtype=np.float64)
-        if positions is not None and positions.shape[0] != n_probes:
-            raise ConfigError(f"probes: {positions.shape[0]} probe positions but the data have {n_probes} probes")
+        return geometry(raw, n_probes)
     except ConfigError as e:
         raise ConfigError(f"{path}: {e}") from None
-    return positions, total
 
 
 def load_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:
@@ -121,7 +100,16 @@ def main(args: argparse.Namespace) -> int:
     say_read_warnings("diagnose", args.data, getattr(lab, "warnings", []))
     block = getattr(lab, "block", lab)
     names = getattr(lab, "probe_names", None)
-    positions, total = (config_geometry(args.config, block.n_probes) if args.config else (None, None))
+    origin = None
+    if args.config:
+        positions, total = config_geometry(args.config, block.n_probes)
+    else:                                         # the configuration a service recording stores, said
+        from service.wiring.recorded_config import stored_config
+
+        given = stored_config(getattr(lab, "metadata", {}), str(args.data), block.n_probes)
+        positions, total, origin = given.positions_m, given.total_nT, given.origin
+        if given.warning:
+            print(f"fluxcal diagnose: warning: {given.warning}", file=sys.stderr)
     if getattr(args, "site", None):
         from service.numerics.calib.site import site_from_text
 
@@ -147,6 +135,10 @@ def main(args: argparse.Namespace) -> int:
     if thinned is not None:
         result.thinned, text = thinned
         result.notes.insert(0, text)
+    taken = (([f"total field {total:,.0f} nT (estimator.total_nT)"] if total is not None and not args.site else [])
+             + ([f"probe positions of {len(positions)} probes"] if positions is not None else []))
+    if origin and taken:
+        result.notes.insert(0, f"{origin}: {'; '.join(taken)}")
     if args.calibration and effects:
         result.notes.append(f"{args.calibration}: linear part held fixed; the parameters of "
                             f"{', '.join(effects)} are refitted to these data")
@@ -155,7 +147,7 @@ def main(args: argparse.Namespace) -> int:
         json.dump(result.as_dict(), sys.stdout)
         sys.stdout.write("\n")
     else:
-        print(summary_text(result, args.data))
+        print(summary_text(result, args.data + (f" ({origin})" if origin else "")))
     sys.stdout.flush()
     if args.report:
         from service.io.report import write_report

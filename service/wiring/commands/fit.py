@@ -27,6 +27,7 @@ from service.wiring.fitting import (
     rms_all,
     uncalibrated_rms,
 )
+from service.wiring.recorded_config import FROM_RECORDING, DataConfig, spread, stored_config
 
 
 def _say(msg: str) -> None:
@@ -53,8 +54,19 @@ def configured_total(cfg) -> float | None:
 def positions(cfg, n_probes: int):
     if cfg is None or cfg.unit.n_probes != n_probes:
         return None
-    pos = np.asarray(cfg.positions_m, float)
-    return pos if np.ptp(pos, axis=0).any() else None
+    return spread(cfg.positions_m)
+
+
+def data_config(args: Namespace, data: LabData) -> DataConfig:
+    """The total field and probe positions: --config, else the configuration the recording stores (said)."""
+    if args.config:
+        cfg = load_optional_config(args.config)
+        return DataConfig(configured_total(cfg), positions(cfg, data.block.n_probes), f"configuration from "
+                                                                                       f"{args.config}")
+    found = stored_config(data.metadata, str(args.data), data.block.n_probes)
+    if found.warning:
+        print(f"fluxcal fit: warning: {found.warning}", file=sys.stderr)
+    return replace(found, positions_m=spread(found.positions_m))
 
 
 def site_total(args: Namespace, configured: float | None) -> tuple[float | None, Any]:
@@ -72,10 +84,10 @@ def main(args: Namespace) -> int:
     args.effects = resolve_effects(args.effects)
     data = load_data(args.data)
     say_read_warnings("fit", args.data, data.warnings)
-    cfg = load_optional_config(args.config)
-    known_total, site = site_total(args, configured_total(cfg))
+    given = data_config(args, data)
+    known_total, site = site_total(args, given.total_nT)
     cal, total = fit_array(data, method=args.method, align=args.align, configured_total_nT=known_total,
-                           positions_m=positions(cfg, data.block.n_probes), progress=_say)
+                           positions_m=given.positions_m, progress=_say)
     if site is not None:
         total.source = f"the site ({site.model})"
     if args.effects:
@@ -84,7 +96,7 @@ def main(args: Namespace) -> int:
         _say(f"fitting effects {', '.join(args.effects)}")
         report_data, thinned = effects_data(data)
         ef, _ = fit_with_effects(report_data, args.effects, cal, total_nT=known_total,
-                                 positions_m=positions(cfg, data.block.n_probes))
+                                 positions_m=given.positions_m)
         method, align = cal.method, cal.align
         cal = ef.calibration()
         cal.method, cal.align = method, align
@@ -107,10 +119,13 @@ def main(args: Namespace) -> int:
     coloured = coloured_warnings(coloured_offsets(data, cal, total)) if not args.effects else []
     coverages = [coverage(data.block.field_nT[:, k], centre_nT=p.offset_nT) for k, p in enumerate(cal.probes)]
     warnings = calibration_warnings(cal, coverages) + ([thinned] if thinned else []) + coloured
+    warnings += [given.warning] if given.warning else []
     cal.diagnostics["warnings"] = warnings
     if args.out:
         save_calibration(cal, args.out)
     result = contract_json(cal, channels, data.probe_names, coverages, warnings)
+    if given.origin == FROM_RECORDING:
+        result["configuration"] = "recording"               # the total field and positions it stores were used
     if site is not None:
         result["site"] = site.as_dict()
     if args.json:
@@ -118,7 +133,7 @@ def main(args: Namespace) -> int:
     else:
         if site is not None:
             print(f"site field: {site.summary()}")
-        print(_summary(data, cal, channels, before, total.source, result, coverages))
+        print(_summary(data, cal, channels, before, total.source, result, coverages, given.origin))
         if args.out:
             print(f"calibration written to {args.out}")
     if getattr(args, "report", None):
@@ -208,11 +223,11 @@ def calibration_warnings(cal, coverages) -> list[str]:
     return out
 
 
-def _summary(data, cal, channels, before, total_source, result, coverages) -> str:
+def _summary(data, cal, channels, before, total_source, result, coverages, origin=None) -> str:
     b = data.block
     lines = [f"{data.path}: {b.n_samples} samples, {b.n_probes} probe(s), {b.t_s[-1] - b.t_s[0]:.1f} s; "
              f"method {cal.method}, align {cal.align or '-'}, effects {', '.join(cal.effects) or '-'}; "
-             f"total field from {total_source}"]
+             f"total field from {total_source}" + (f"; {origin}" if origin == FROM_RECORDING else "")]
     for k, p in enumerate(cal.probes):
         lines.append(f"\n{p.name}")
         lines.append("  offset nT  " + "  ".join(_fmt_pm(v, s) for v, s in zip(p.offset_nT, p.offset_se_nT)))

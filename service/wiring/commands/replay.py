@@ -16,6 +16,7 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import json
+import re
 import sys
 import time
 from argparse import Namespace
@@ -46,6 +47,25 @@ def _check_one_run(path: Path) -> None:
                              f"its -0001 file, or a directory holding only that run's files")
 
 
+def continuation(path: Path, rec) -> str | None:
+    """What to say when `path` is not the start of its run (a rotated file -0002, -0003, ..., or a directory
+    starting with one): the pipeline's state when it began (the calibration learned, the commands applied) is
+    in the earlier files, so its replay cannot match the live output; replay the run from its first file."""
+    first = Path(rec.files[0]) if rec.files else path
+    m = re.match(r"^.+-(\d{4})\.mcap$", first.name)
+    index = int(m.group(1)) if m else int(rec.metadata.get("file_index", "1") or 1) if not path.is_dir() else 1
+    if index <= 1:
+        return None
+    folder = path if path.is_dir() else path.parent
+    starts = sorted(folder.glob("*-0001.mcap"))
+    where = (f"`fluxcal replay {folder}` (the folder of that run's files)" if len(starts) == 1 else
+             f"a folder holding that run's files, from its -0001 file on (`fluxcal replay FOLDER`)")
+    return (f"{first.name} is file {index} of a run the service split into several files: it continues where "
+            f"file {index - 1} stopped, and the state the live run had then (the calibration it had learned, the "
+            f"commands applied) is in the earlier files, so a replay of it alone cannot give the live output; "
+            f"replay the whole run: {where}")
+
+
 #: the rate a serial source was taken to run at before source.rate_hz existed (the live run used it)
 LEGACY_RATE_HZ = 200.0
 
@@ -67,6 +87,9 @@ def main(args: Namespace) -> int:
     _check_one_run(Path(args.recording))
     rec = read_recording(args.recording)
     say_read_warnings("replay", args.recording, rec.report.warnings)
+    later = continuation(Path(args.recording), rec)
+    if later:
+        print(f"fluxcal replay: {later}", file=sys.stderr)
     if args.config:
         cfg = load_config(args.config)
     else:
@@ -131,14 +154,16 @@ def main(args: Namespace) -> int:
           f"probe-samples/s); corrected samples compared with the recording: {compared}, identical: {identical}"
           + (f"; written to {args.out}" if args.out else ""))
     if compared and identical != compared:
-        print(f"fluxcal replay: {compared - identical} corrected sample(s) differ from the live run", file=sys.stderr)
+        print(f"fluxcal replay: {compared - identical} corrected sample(s) differ from the live run"
+              + (" (a continuation replayed alone: see above)" if later else ""), file=sys.stderr)
         return 1
     if not compared:
         live = sum(c.n_samples for c in rec.corrected_blocks)
         replayed = sum(int(s.size) for s in out_seq)
         if live:
             print(f"fluxcal replay: the live run has {live} corrected sample(s), the replay {replayed} at the same "
-                  f"samples: they differ", file=sys.stderr)
+                  f"samples: they differ" + (" (a continuation replayed alone: see above)" if later else ""),
+                  file=sys.stderr)
             return 1
         print("fluxcal replay: nothing to compare: the recording holds no corrected samples (its calibration was "
               f"not usable while it ran); the replay gave {replayed}", file=sys.stderr)
