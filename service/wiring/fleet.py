@@ -29,17 +29,33 @@ from typing import Any
 
 from drivers.errors import ConfigError
 
+_WARNING = re.compile(r"(?m)^fluxcal [a-z-]+: warning: (.*)$")
 _RUN_PART = re.compile(r"^(?P<stem>.+)-(?P<n>\d{4})\.mcap$")
 SUFFIXES = (".mcap", ".csv")
 
 
-def _runs_in(directory: Path) -> list[list[Path]]:
+#: why a path in a folder is not a recording of it (listed in the summary, never skipped unsaid)
+NOT_SEARCHED = "a folder inside a folder given: not searched (give it too, or a pattern such as '{}/**/*.mcap')"
+NOT_RECORDING = "not a recording (allowed: .mcap, .csv)"
+
+
+def _runs_in(directory: Path, skipped: list[tuple[str, str]] | None = None) -> list[list[Path]]:
     """The recordings in a directory: each CSV file, and each run of MCAP files (a -0001 file and the rotated
-    files after it, in name order; a file outside that naming is a run by itself)."""
-    runs: list[list[Path]] = []
+    files after it, in name order; a file outside that naming is a run by itself). What is not one (a folder
+    in it, another file) goes into `skipped` as (path, reason)."""
+    files = []
     for f in sorted(directory.iterdir()):
-        if f.suffix not in SUFFIXES or not f.is_file():
-            continue
+        if f.is_file() and f.suffix in SUFFIXES:
+            files.append(f)
+        elif skipped is not None:
+            skipped.append((str(f), NOT_SEARCHED.format(directory) if f.is_dir() else NOT_RECORDING))
+    return _runs_of(files)
+
+
+def _runs_of(files: list[Path]) -> list[list[Path]]:
+    """Files (in name order) grouped into recordings as _runs_in does."""
+    runs: list[list[Path]] = []
+    for f in files:
         m = _RUN_PART.match(f.name)
         if f.suffix == ".mcap" and m and int(m.group("n")) > 1 and runs and runs[-1][0].suffix == ".mcap" \
                 and _RUN_PART.match(runs[-1][0].name):
@@ -49,40 +65,68 @@ def _runs_in(directory: Path) -> list[list[Path]]:
     return runs
 
 
-def expand_inputs(items: Iterable[str], links: Path) -> list[str]:
+def expand_inputs(items: Iterable[str], links: Path, skipped: list[tuple[str, str]] | None = None,
+                  labels: dict[str, str] | None = None) -> list[str]:
     """Paths, folders and glob patterns -> the recordings, in the order given (duplicates once). A folder holding
     one run stays one recording (as for a single command); a folder of several becomes each of them, a run of
-    several rotated files as a folder of links under `links`. ConfigError names a pattern or path that
-    matches nothing."""
+    several rotated files as a folder of links under `links` (so do the rotated files of one run a pattern
+    matches; `labels` gets each such folder's name for the summary: its first file and how many follow). What a
+    folder holds besides recordings goes into `skipped` as (path, reason). ConfigError names a pattern or path
+    that matches nothing."""
     out: list[str] = []
+
+    def add(run: list[Path], whole: Path | None = None) -> None:
+        if len(run) == 1:
+            out.append(str(run[0]))
+        elif whole is not None:
+            out.append(str(whole))
+        else:
+            d = links / f"{len(out):04d}-{run[0].stem}"
+            d.mkdir(parents=True)
+            for f in run:
+                (d / f.name).symlink_to(f.resolve())
+            out.append(str(d))
+            if labels is not None:
+                labels[str(d)] = f"{run[0]} (+{len(run) - 1} rotated)"
+
     for item in items:
         paths = sorted(glob.glob(item, recursive=True)) if glob.has_magic(item) else [item]
         if not paths:
             raise ConfigError(f"{item!r} matches no file (allowed: recordings (.mcap, .csv), folders of them, or glob "
                               f"patterns such as 'survey/*.mcap')")
+        loose: list[Path] = []                        # the files a pattern matched: one run's files are one
         for p in map(Path, paths):
             if not p.exists():
                 raise ConfigError(f"{p}: no such file or folder")
             if not p.is_dir():
-                out.append(str(p))
+                loose.append(p)
                 continue
-            runs = _runs_in(p)
+            for run in _runs_of_files(loose):
+                add(run)
+            loose = []
+            runs = _runs_in(p, skipped)
             if not runs:
                 raise ConfigError(f"{p}: holds no recording (.mcap, .csv)")
-            if len(runs) == 1:
-                out.append(str(p) if len(runs[0]) > 1 else str(runs[0][0]))
-                continue
             for run in runs:
-                if len(run) == 1:
-                    out.append(str(run[0]))
-                else:
-                    d = links / f"{len(out):04d}-{run[0].stem}"
-                    d.mkdir(parents=True)
-                    for f in run:
-                        (d / f.name).symlink_to(f.resolve())
-                    out.append(str(d))
+                add(run, p if len(runs) == 1 else None)
+        for run in _runs_of_files(loose):
+            add(run)
     seen: set[str] = set()
     return [x for x in out if not (x in seen or seen.add(x))]
+
+
+def _runs_of_files(files: list[Path]) -> list[list[Path]]:
+    """Files a pattern matched (in name order): the rotated files of one run in one folder together, as in a
+    folder (_runs_of); every other file alone."""
+    runs: list[list[Path]] = []
+    group: list[Path] = []
+    for f in [*files, None]:
+        if group and (f is None or f.parent != group[-1].parent):
+            runs += _runs_of(group)
+            group = []
+        if f is not None:
+            group.append(f)
+    return runs
 
 
 def _name(path: str) -> str:
@@ -121,6 +165,8 @@ def run_one(argv: list[str]) -> dict[str, Any]:
         err.write(f"{type(e).__name__}: {e}\n{traceback.format_exc(limit=3)}")
         status = 1
     text = out.getvalue()
+    # what reading lost (a cut tail, damaged records) and other warnings, as the command said them on stderr
+    warned = [m.group(1) for m in _WARNING.finditer(err.getvalue())]
     result = None
     if "--json" in argv:
         try:
@@ -129,7 +175,7 @@ def run_one(argv: list[str]) -> dict[str, Any]:
             result = None
     import resource
 
-    return {"recording": argv[1], "status": int(status), "ok": status == 0, "result": result,
+    return {"recording": argv[1], "status": int(status), "ok": status == 0, "result": result, "warnings": warned,
             "stdout": text[-4000:], "stderr": err.getvalue()[-4000:], "seconds": round(time.perf_counter() - t0, 3),
             # the worker's peak so far (it may have run other recordings before): an upper bound for this one
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
@@ -207,7 +253,9 @@ def run_fleet(command: str, inputs: list[str], options: list[str], outputs: dict
     for folder in outputs.values():
         Path(folder).mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="fluxcal-fleet-") as links:
-        recordings = expand_inputs(inputs, Path(links))
+        skipped: list[tuple[str, str]] = []
+        labels: dict[str, str] = {}
+        recordings = expand_inputs(inputs, Path(links), skipped, labels)
         jobs = [worker_argv(command, r, options, outputs) for r in recordings]
         results: dict[str, dict[str, Any]] = {}
 
@@ -223,10 +271,11 @@ def run_fleet(command: str, inputs: list[str], options: list[str], outputs: dict
         else:
             run_pool(jobs, min(n, len(jobs)), done)
         wall = time.perf_counter() - t0
-        ordered = [results[r] for r in recordings]
+        ordered = [{**results[r], "recording": labels.get(r, r)} for r in recordings]
+    where = scheduler or f"{min(n, len(jobs))} local processes"
     if as_json:
-        json.dump(summary_json(command, ordered, wall, scheduler or f"{min(n, len(jobs))} local processes"), sys.stdout)
+        json.dump(summary_json(command, ordered, wall, where, skipped), sys.stdout)
         sys.stdout.write("\n")
     else:
-        print(summary_table(command, ordered, wall, scheduler or f"{min(n, len(jobs))} local processes"))
+        print(summary_table(command, ordered, wall, where, skipped))
     return 0 if all(r["ok"] for r in ordered) else 1

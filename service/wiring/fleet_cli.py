@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import glob
+import sys
 from pathlib import Path
 
 from drivers.errors import ConfigError
@@ -20,6 +21,19 @@ def _is_fleet(inputs: list[str]) -> bool:
         return True
     p = Path(inputs[0])
     return p.is_dir() and len(_runs_in(p)) > 1                 # a folder of several recordings
+
+
+def _one(path: str, command: str) -> str:
+    """The one recording a path names: a folder holding one file is that file; a folder of one run's rotated
+    files stays the folder (read as that run). What else the folder holds is said on stderr, not passed over."""
+    p = Path(path)
+    if not p.is_dir():
+        return path
+    skipped: list[tuple[str, str]] = []
+    runs = _runs_in(p, skipped)
+    for where, why in skipped:
+        print(f"fluxcal {command}: skipped {where}: {why}", file=sys.stderr)
+    return str(runs[0][0]) if len(runs) == 1 and len(runs[0]) == 1 else path
 
 
 def shared_options(argv: list[str], command: str, inputs: list[str]) -> list[str]:
@@ -50,13 +64,12 @@ def dispatch(args: argparse.Namespace, argv: list[str]) -> int | None:
     of the fleet run."""
     key = "recording" if args.command == "replay" else "data"
     inputs = list(getattr(args, key))
-    if not _is_fleet(inputs):
-        if args.jobs is not None or args.scheduler:
-            raise ConfigError("--jobs/--scheduler: for several recordings; one was given")
-        setattr(args, key, inputs[0])
-        return None
     if args.jobs is not None and args.jobs < 1:
         raise ConfigError(f"--jobs: {args.jobs} is not allowed (allowed: 1 or more)")
+    if not _is_fleet(inputs) and not args.scheduler:
+        # one recording: run here, as without --jobs (the processes are capped at the recordings: one)
+        setattr(args, key, _one(inputs[0], args.command))
+        return None
     outputs = {flag: getattr(args, flag[2:]) for flag in ("--out", "--report") if getattr(args, flag[2:], None)}
     for flag, folder in outputs.items():
         if Path(folder).suffix in (".json", ".mcap") or (Path(folder).exists() and not Path(folder).is_dir()):

@@ -37,17 +37,28 @@ def figures(command: str, r: dict[str, Any]) -> dict[str, Any]:
     return {}
 
 
-def summary_json(command: str, results: list[dict[str, Any]], wall_s: float, where: str) -> dict[str, Any]:
+def _status(r: dict[str, Any]) -> str:
+    """ok, FAILED, or ok with the count of what it warned about (a lost tail, dropped samples)."""
+    n = len(r.get("warnings") or [])
+    return ("ok" if r["ok"] else "FAILED") + (f", {n} warning{'s' if n > 1 else ''}" if n else "")
+
+
+def summary_json(command: str, results: list[dict[str, Any]], wall_s: float, where: str,
+                 skipped: list[tuple[str, str]] | None = None) -> dict[str, Any]:
     return {"command": command, "ran_on": where, "wall_s": round(wall_s, 3), "recordings": len(results),
             "failed": sum(not r["ok"] for r in results),
+            "with_warnings": sum(bool(r.get("warnings")) for r in results),
+            "skipped": [{"path": p, "reason": why} for p, why in skipped or []],
             "results": [{"recording": r["recording"], "ok": r["ok"], "status": r["status"], "seconds": r["seconds"],
-                         "peak_rss_mb": r.get("peak_rss_mb"),
+                         "peak_rss_mb": r.get("peak_rss_mb"), "read_warnings": list(r.get("warnings") or []),
                          **({"error": _why(r)} if not r["ok"] else {}), **figures(command, r),
                          **({"result": r["result"]} if r.get("result") is not None else {})} for r in results]}
 
 
-def summary_table(command: str, results: list[dict[str, Any]], wall_s: float, where: str) -> str:
+def summary_table(command: str, results: list[dict[str, Any]], wall_s: float, where: str,
+                  skipped: list[tuple[str, str]] | None = None) -> str:
     width = max([len("recording")] + [len(r["recording"]) for r in results])
+    ok_width = max([6] + [len(_status(r)) for r in results])
     lines = []
     if command == "fit":
         head = f"{'rms nT':>9} {'worst probe':>11} {'coverage':>8} {'warnings':>8}"
@@ -55,11 +66,10 @@ def summary_table(command: str, results: list[dict[str, Any]], wall_s: float, wh
         head = f"{'verdict':<28} {'rms nT':>8} {'floor nT':>8}  significant"
     else:
         head = "replay"
-    lines.append(f"{'recording':<{width}}  {'ok':<6} {'s':>7}  {head}")
+    lines.append(f"{'recording':<{width}}  {'ok':<{ok_width}} {'s':>7}  {head}")
     for r in results:
         f = figures(command, r)
-        ok = "ok" if r["ok"] else "FAILED"
-        row = f"{r['recording']:<{width}}  {ok:<6} {_num(r['seconds'], '.1f'):>7}  "
+        row = f"{r['recording']:<{width}}  {_status(r):<{ok_width}} {_num(r['seconds'], '.1f'):>7}  "
         if not r["ok"] and not (command == "replay" and r["status"] == 1 and f.get("said")):
             row += _why(r)
         elif command == "fit":
@@ -72,8 +82,17 @@ def summary_table(command: str, results: list[dict[str, Any]], wall_s: float, wh
         else:
             row += f.get("said", "")
         lines.append(row)
+    warned = [r for r in results if r.get("warnings")]
+    if warned:
+        lines.append("\nwarnings (said on stderr; each recording was used without what they name)")
+        lines += [f"  {w}" if w.startswith(r["recording"]) else f"  {r['recording']}: {w}"
+                  for r in warned for w in r["warnings"]]
+    if skipped:
+        lines.append("\nskipped")
+        lines += [f"  {p}: {why}" for p, why in skipped]
     failed = sum(not r["ok"] for r in results)
     busy = sum(r["seconds"] or 0.0 for r in results)
-    lines.append(f"{len(results)} recording(s), {failed} failed; {wall_s:.1f} s on {where} "
+    lines.append(f"{len(results)} recording(s), {failed} failed, {len(warned)} with warnings, {len(skipped or [])} "
+                 f"path(s) skipped; {wall_s:.1f} s on {where} "
                  f"({busy:.1f} s of work: {busy / wall_s if wall_s > 0 else 0:.2f}x one at a time)")
     return "\n".join(lines)
