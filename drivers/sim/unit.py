@@ -58,7 +58,7 @@ class UnitSamples:
 
     @property
     def field_nT(self) -> np.ndarray:
-        """(N, P, 3) counts x lsb_nT, the rails included (no NaN): what a lab CSV carries."""
+        """(N, P, 3) counts x lsb_nT, the rails included (no NaN); to_block() has NaN there."""
         return self.counts.astype(np.float64) * self.lsb_nT
 
     @property

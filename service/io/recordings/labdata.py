@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.block import SampleBlock
+from drivers.block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock
 from drivers.errors import DataError
 
 _PROBE_COL = re.compile(r"^s([1-9][0-9]*)_(x|y|z|temp)$")
@@ -149,14 +149,18 @@ def load_csv(path: str | Path) -> LabData:
         _locate_bad_value(p, header, body_nonempty, lineno)
         raise DataError(f"{p}: could not parse the data rows") from None
 
-    bad = ~np.isfinite(values)
+    # a probe's axis or temperature may be NaN (or inf): saturated or invalid, left out by the fits and counted
+    # there; any other column must be a number
+    may_lack = np.array([bool(_PROBE_COL.match(h)) for h in header])
+    bad = ~np.isfinite(values) & ~may_lack
     if bad.any():
         r, c = np.argwhere(bad)[0]
         rows = lineno[bad.any(axis=1)]
         more = f" and {rows.size - 10} more" if rows.size > 10 else ""
         raise DataError(f"{p}: line {lineno[r]}, column {header[c]!r}: {float(values[r, c])} is not a finite number; "
                         f"non-finite values on line(s) {', '.join(map(str, rows[:10].tolist()))}{more}: "
-                        f"remove or fix those rows")
+                        f"remove or fix those rows (only probe axes and temperatures may be NaN)")
+    values[:, may_lack] = np.where(np.isfinite(values[:, may_lack]), values[:, may_lack], np.nan)
     col = {h: i for i, h in enumerate(header)}
     t = values[:, col["t"]]
     back = np.flatnonzero(np.diff(t) <= 0)
@@ -178,6 +182,8 @@ def load_csv(path: str | Path) -> LabData:
     extras = {h: values[:, i].copy() for h, i in col.items() if h != "t" and not _PROBE_COL.match(h)}
     seq = extras.pop("seq", None)
     flags = extras.pop("flags", None)
+    if flags is not None:
+        _honour_flags(flags.astype(np.uint8), field_nT, temp_C)
     block = SampleBlock(
         t_s=t.copy(),
         seq=seq.astype(np.int64) if seq is not None else np.arange(n, dtype=np.int64),
@@ -187,6 +193,26 @@ def load_csv(path: str | Path) -> LabData:
     )
     return LabData(block=block, probe_names=[f"s{k + 1}" for k in range(n_probes)], path=str(p),
                    comments=comments)
+
+
+def _honour_flags(flags: np.ndarray, field_nT: np.ndarray, temp_C: np.ndarray) -> None:
+    """The ICD flags column, in place: a temperature flagged invalid (bit1) is NaN; in a sample flagged
+    saturated (bit0) the saturated axes are NaN. Those are the axes already NaN or, in a file that wrote the
+    rails as numbers (counts 2147483647 or -2147483648 times lsb_nT), at the largest magnitude of the flagged
+    samples; a flagged sample with neither is NaN for every probe (the flag does not say which axis)."""
+    temp_C[(flags & FLAG_TEMP_INVALID) != 0] = np.nan
+    sat = (flags & FLAG_SATURATED) != 0
+    if not sat.any():
+        return
+    f = field_nT[sat]                                        # (M, P, 3), a copy
+    known = np.isnan(f).any(axis=(1, 2))
+    mag = np.abs(np.where(np.isnan(f), 0.0, f))
+    rail = float(mag[~known].max()) if (~known).any() else 0.0
+    # the two rails differ by one count in 2^31 (5e-10): one magnitude to within 1e-6 is one rail
+    at_rail = (mag >= rail * (1.0 - 1e-6)) & (rail > 0) & ~known[:, None, None]
+    f[at_rail] = np.nan
+    f[~np.isnan(f).any(axis=(1, 2))] = np.nan
+    field_nT[sat] = f
 
 
 def _check_header(p: Path, header: list[str], line_no: int) -> None:

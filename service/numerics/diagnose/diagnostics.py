@@ -65,7 +65,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     ed = as_effect_data(data, total_nT=total_nT, positions_m=positions_m)
     notes: list[str] = []
     if ed.dropped_rows:
-        notes.append(f"{ed.dropped_rows} samples with a saturated axis (NaN) left out")
+        notes += ed.dropped_notes or [f"{ed.dropped_rows} samples with a saturated axis (NaN) left out"]
     fixed = (calibration is not None) if fix_linear is None else bool(fix_linear)
     tell(0.0, "linear calibration")
     if calibration is not None:

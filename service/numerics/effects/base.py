@@ -30,6 +30,7 @@ from drivers.block import SampleBlock, Timed
 from drivers.errors import ConfigError, DataError
 
 from service.numerics.channels import AXES  # noqa: F401 - the effect terms take the axes from here
+from service.numerics.usable import usable_samples
 
 #: extra columns that carry the platform attitude, R = Rz(azimuth) Ry(pitch) Rx(heel), platform -> NED
 ATTITUDE_EULER = ("heel_deg", "pitch_deg", "azimuth_deg")
@@ -68,6 +69,8 @@ class EffectData(Timed):
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     smooth_window_s: float = 0.1
     dropped_rows: int = 0
+    #: what was left out and why, per probe (service.numerics.usable), for the notes
+    dropped_notes: list[str] = field(default_factory=list)
     _cache: dict[Any, Any] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -94,6 +97,7 @@ class EffectData(Timed):
                    smooth_window_s: float = 0.1) -> "EffectData":
         """From a SampleBlock; samples where any probe axis is NaN (saturated) are dropped and counted."""
         names = list(probe_names) if probe_names is not None else [f"s{k + 1}" for k in range(block.n_probes)]
+        usable = usable_samples(block, names) if len(names) == block.n_probes else None
         good = np.all(np.isfinite(block.field_nT), axis=(1, 2)) & np.isfinite(block.t_s)
         ref = block.extras.get("ref_total")
         if ref is not None:
@@ -105,7 +109,8 @@ class EffectData(Timed):
                    temp_C=np.asarray(block.temp_C, dtype=np.float64)[good], probe_names=names,
                    ref_total_nT=None if ref is None else np.asarray(ref, dtype=np.float64)[good],
                    total_nT=total_nT, positions_m=positions_m, extras=extras,
-                   smooth_window_s=smooth_window_s, dropped_rows=int(np.count_nonzero(~good)))
+                   smooth_window_s=smooth_window_s, dropped_rows=int(np.count_nonzero(~good)),
+                   dropped_notes=usable.notes if usable is not None else [])
 
     # -- shapes --------------------------------------------------------------------------------------
 

@@ -11,10 +11,12 @@ from typing import Any
 
 import numpy as np
 
+from drivers.errors import DataError
 from service.io.calfile import save_calibration
 from service.io.recordings.labdata import LabData, keep_every, load_data
 from service.numerics.calib.coverage import coverage
 from service.numerics.calib.site import site_from_text
+from service.numerics.usable import temperature_notes, usable_samples
 from service.wiring.coloured_fit import coloured_offsets
 from service.wiring.commands.notes import say_read_warnings
 from service.wiring.fitting import (
@@ -84,6 +86,7 @@ def main(args: Namespace) -> int:
     args.effects = resolve_effects(args.effects)
     data = load_data(args.data)
     say_read_warnings("fit", args.data, data.warnings)
+    data, left_out = usable_data(data, uses_temperature=bool({"temperature", "thermal"} & set(args.effects)))
     given = data_config(args, data)
     known_total, site = site_total(args, given.total_nT)
     cal, total = fit_array(data, method=args.method, align=args.align, configured_total_nT=known_total,
@@ -118,7 +121,7 @@ def main(args: Namespace) -> int:
     # coloured noise first: it changes the offsets' errors, which the warnings below compare with the offsets
     coloured = coloured_warnings(coloured_offsets(data, cal, total)) if not args.effects else []
     coverages = [coverage(data.block.field_nT[:, k], centre_nT=p.offset_nT) for k, p in enumerate(cal.probes)]
-    warnings = calibration_warnings(cal, coverages) + ([thinned] if thinned else []) + coloured
+    warnings = left_out + calibration_warnings(cal, coverages) + ([thinned] if thinned else []) + coloured
     warnings += [given.warning] if given.warning else []
     cal.diagnostics["warnings"] = warnings
     if args.out:
@@ -140,6 +143,28 @@ def main(args: Namespace) -> int:
         sys.stdout.flush()                  # the calibration first: a report that cannot be written must not cost it
         _write_report(args, report_data, cal, channels, coverages, warnings, total.source, rows)
     return 0
+
+
+#: fewest samples left to fit once the unusable ones are left out (as the effects' fits need)
+MIN_USABLE_SAMPLES = 30
+
+
+def usable_data(data: LabData, *, uses_temperature: bool = False) -> tuple[LabData, list[str]]:
+    """The data without the samples no fit can use (a saturated or non-finite axis, no reference), and what
+    was left out, per probe, as warnings; DataError when too few samples remain. Invalid temperatures matter
+    only to the temperature terms: said when they are fitted, never a reason to leave a sample out."""
+    b = data.block
+    u = usable_samples(b, data.probe_names)
+    notes = list(u.notes)
+    if u.n_dropped:
+        kept = b.n_samples - u.n_dropped
+        if kept < MIN_USABLE_SAMPLES:
+            raise DataError(f"{data.path}: only {kept} of {b.n_samples} samples are usable ({'; '.join(u.notes)}): "
+                            f"too few to fit (at least {MIN_USABLE_SAMPLES})")
+        data = replace(data, block=b.rows(u.keep))
+    if uses_temperature:
+        notes += temperature_notes(data.block, data.probe_names)
+    return data, notes
 
 
 def coloured_warnings(found) -> list[str]:

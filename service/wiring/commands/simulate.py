@@ -99,7 +99,8 @@ def write_csv(path: Path, unit: Unit, unit_name: str, truth_file: str, progress:
         f"field: {f.total_nT:g} nT, inclination {f.inclination_deg:g} deg, declination {f.declination_deg:g} deg "
         f"(NED); motion: {cfg.motion.kind}; effects: {', '.join(unit.world.active_effects) or 'none'}",
         f"probes (platform frame): {probes_text}",
-        f"columns: t s (unit clock), s<k>_x/y/z nT (counts x lsb_nT {cfg.lsb_nT:g}), s<k>_temp degC"
+        f"columns: t s (unit clock), s<k>_x/y/z nT (counts x lsb_nT {cfg.lsb_nT:g}; nan: saturated), "
+        f"s<k>_temp degC (nan: invalid)"
         + (", ref_total nT (scalar reference at the platform origin)" if ref else "")
         + ", seq (sample counter, unwrapped), flags (ICD: bit0 saturated, bit1 temperature invalid)"
         + (", angle_deg (turntable angle), turn (0/1/2: about body x/y/z, -1: dwell)" if table is not None else ""),
@@ -111,7 +112,10 @@ def write_csv(path: Path, unit: Unit, unit_name: str, truth_file: str, progress:
         for start in range(0, n, BLOCK_SAMPLES):
             stop = min(n, start + BLOCK_SAMPLES)
             s = unit.digitise(start, stop)
-            cols = [s.t_us / 1e6, s.field_nT.reshape(len(s), -1), s.temp_C]
+            # as a decoder of the frames has them: a saturated axis and an invalid temperature are NaN (with
+            # the flags beside them), never the rails' numbers (2147483.647 nT at 0.001 nT) a fit would take
+            b = s.to_block()
+            cols = [s.t_us / 1e6, b.field_nT.reshape(len(s), -1), b.temp_C]
             if ref:
                 cols.append(s.ref_total_nT)
             cols += [s.seq, s.flags]
