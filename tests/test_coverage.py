@@ -143,9 +143,11 @@ def _pink(n: int, rms: float, rng: np.random.Generator) -> np.ndarray:
     return x / x.std(axis=0) * rms
 
 
-def wobbling_turns(axis: str, wobble_deg: float, seed: int, noise: str, n: int = 2000) -> np.ndarray:
+def wobbling_turns(axis: str, wobble_deg: float, seed: int, noise: str, misfit_nT: float = 0.0,
+                   n: int = 2000) -> np.ndarray:
     """Two turns about a probe axis by hand: the field's angle to the axis (60° dip) wanders by ±wobble_deg
-    (a slow random sway), with 1 nT white or 20 nT rms 1/f noise."""
+    (a slow random sway), with 1 nT white or 20 nT rms 1/f noise; misfit_nT: a response the ellipsoid cannot
+    follow, |B| off by misfit_nT · cos 3φ around the turn (a real board's 180-220 nT is of this kind)."""
     rng = np.random.default_rng(seed)
     t = np.linspace(0, 4 * np.pi, n)
     sway = np.cumsum(rng.normal(size=n))
@@ -153,26 +155,29 @@ def wobbling_turns(axis: str, wobble_deg: float, seed: int, noise: str, n: int =
     polar = np.radians(30.0) + sway
     d = np.column_stack([np.sin(polar) * np.cos(t), np.sin(polar) * np.sin(t), np.cos(polar)])
     d = d[:, {"z": [0, 1, 2], "x": [2, 0, 1], "y": [1, 2, 0]}[axis]]
-    raw = np.linalg.solve(M_TRUE, (TOTAL_NT * d).T).T + O_TRUE
+    body = (TOTAL_NT + misfit_nT * np.cos(3 * t))[:, None] * d
+    raw = np.linalg.solve(M_TRUE, body.T).T + O_TRUE
     return raw + (rng.normal(0, 1.0, raw.shape) if noise == "white" else _pink(n, 20.0, rng))
 
 
 @pytest.mark.parametrize("noise", ["white", "1/f"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_a_wobbling_single_turn_is_refused_and_a_wide_sway_is_fitted(seed, noise):
-    """Real hand turns wobble, so the samples are not one plane; but a cone a few degrees wide still leaves
-    the offset along the axis to the wobble: refused, naming the axis, in the fit and in coverage about the
-    true centre (the online gate's question). A sway of ±40° is a fit: with white noise within four
-    standard errors of the truth (under 1/f noise these plain errors are too small, by up to 14 times
-    here: the command line's coloured-noise errors, tests/test_stderr.py, are the ones to quote)."""
+def test_a_wobbling_single_turn_is_refused_when_the_misfit_moves_its_axial_offset(seed, noise):
+    """Real hand turns wobble, so the samples are not one plane; the offset along the turn's axis then rests
+    on the wobble, and a misfit the ellipsoid cannot follow moves it by misfit / wobble: with a board's
+    200 nT that is thousands of nT, refused naming the axis. The same ±4° turn with only white noise is
+    fitted, within four standard errors of the truth (the simulated fluxgate's short tumbles are such
+    turns); so is a sway of ±40°. (Under 1/f noise the plain standard errors are
+    too small, by up to 14 times here: the command line's coloured-noise errors, tests/test_stderr.py,
+    are the ones to quote.)"""
     for axis in "xyz":
-        raw = wobbling_turns(axis, 4.0, seed, noise)
-        with pytest.raises(CalibrationRefused, match=rf"one cone about {axis} \(a turn about {axis}"):
+        raw = wobbling_turns(axis, 4.0, seed, noise, misfit_nT=200.0)
+        with pytest.raises(CalibrationRefused, match=rf"one cone about {axis} \(a turn about {axis}\).*% of the field"):
             fit_ellipsoid(raw)
-        cov = coverage(raw, centre_nT=O_TRUE)
-        assert not cov.usable and f"one cone about {axis}" in cov.reason
-    wide = wobbling_turns("z", 40.0, seed, noise)
-    cal = fit_ellipsoid(wide, TOTAL_NT).calibration
-    assert cal.is_finite()
     if noise == "white":
+        cal = fit_ellipsoid(wobbling_turns("z", 4.0, seed, noise), TOTAL_NT).calibration
         assert np.all(np.abs(cal.offset_nT - O_TRUE) < 4 * cal.offset_se_nT + 1.0), (cal.offset_nT, cal.offset_se_nT)
+    wide = fit_ellipsoid(wobbling_turns("z", 40.0, seed, noise), TOTAL_NT).calibration
+    assert wide.is_finite()
+    if noise == "white":
+        assert np.all(np.abs(wide.offset_nT - O_TRUE) < 4 * wide.offset_se_nT + 1.0), (wide.offset_nT, wide.offset_se_nT)

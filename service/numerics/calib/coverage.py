@@ -17,9 +17,8 @@ and which turn would fill the gap.
 - Conditioning: the condition number of the nine-term ellipsoid design (ellipsoid.py) after column
   scaling, the number the batch fit refuses above (ellipsoid.MAX_CONDITION).
 - Refusal (`usable` False, `reason` says why and what to do): fewer than 10 samples, samples in one
-  plane (a single-axis turn: the design has rank 5), condition above the limit, less than
-  `min_fraction` of the bins seen, or (about a given centre) field directions within a narrow band
-  about one plane (a turn with some wobble: excitation.band_problem). A usable set with gaps gets the advice in `reason` too.
+  plane (a single-axis turn: the design has rank 5), condition above the limit, or less than
+  `min_fraction` of the bins seen. A usable set with gaps gets the advice in `reason` too.
 """
 
 from __future__ import annotations
@@ -31,7 +30,7 @@ import numpy as np
 from drivers.errors import CalibrationRefused
 
 from .ellipsoid import MAX_CONDITION, MIN_SAMPLES, gram_condition, normalise, quadric_design
-from .excitation import PLANARITY_MIN, band_problem, planarity
+from .excitation import PLANARITY_MIN, planarity
 
 _DIRS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)],
                  dtype=float)
@@ -183,9 +182,6 @@ def coverage(field_nT: np.ndarray, *, centre_nT: np.ndarray | None = None, min_c
     cond = samples_condition(f)
     fraction = float(seen.mean())
     problem = _problem(n, flatness, normal, cond, max_condition, fraction, min_fraction)
-    if not problem and centre_nT is not None:
-        # about a fitted centre the directions are the field's: a narrow band about one plane is one turn
-        problem = band_problem(dirs)
     # the missing regions and the advice they give: always with the maps, else only to say why not usable
     regions = _regions(~seen, BIN_CENTRES[seen]) if maps or problem else []
     cov = Coverage(fraction, counts, BIN_CENTRES[~seen].copy(), regions, cond, flatness, True, "",

@@ -383,8 +383,9 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     smaller one); "full", "axes" or "sphere" fit that order. What an order holds fixed, and any
     parameter whose standard error exceeds its size, is said in `warnings`.
     Refuses (CalibrationRefused) data that cannot determine even the offsets: too few samples, all in
-    one plane (a single-axis turn), field directions within a narrow band about one plane (a turn with
-    some wobble: excitation.BAND_MIN_DEG), a badly conditioned design, or offsets whose standard errors
+    one plane (a single-axis turn), field directions within a narrow cone about one axis (a turn with
+    some wobble) where the model's misfit would move the offset along the axis by more than a percent of
+    the field (excitation.band_problem), a badly conditioned design, or offsets whose standard errors
     are a tenth of the field; the message names the missing directions and the motion that would fill them.
     noise_nT: the noise of |b| if known; standard errors then use it (see `solve_quadric`).
     """
@@ -399,7 +400,8 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
                             order=ORDERS[ORDERS.index(sol.order) + 1])
         fit, missing = _fit_result(sol, raw, name)
     corr = fit.calibration.apply(raw)
-    problem = band_problem(corr / np.linalg.norm(corr, axis=1, keepdims=True))
+    problem = band_problem(corr / np.linalg.norm(corr, axis=1, keepdims=True), fit.residual_rms_nT,
+                           float(np.sqrt(fit.f2_ref)))
     if problem:
         raise CalibrationRefused(f"{name}: {problem}")
     if any(m.startswith("offset") for m in missing):
@@ -421,11 +423,8 @@ def _fit_result(sol: QuadricSolution, raw: np.ndarray, name: str) -> tuple[Ellip
     try:
         offset, matrix = quadric_to_calibration(theta, scale, f2m, center)
     except np.linalg.LinAlgError:
-        about_mean = raw - raw.mean(axis=0)
-        turn = band_problem(about_mean / np.maximum(np.linalg.norm(about_mean, axis=1, keepdims=True), 1e-300))
-        raise CalibrationRefused(f"{name}: the fitted quadric is not an ellipsoid; " + (
-            turn.replace("the field directions", "about their mean the samples' directions") if turn else
-            "the data are not one probe rotating in a steady field")) from None
+        raise CalibrationRefused(f"{name}: the fitted quadric is not an ellipsoid; the data are not "
+                                 f"one probe rotating in a steady field; {coverage_hint(raw)}") from None
     o_se, m_se = _propagate(theta, cov, scale, f2m, center)
     corr = (raw - offset) @ matrix.T
     rms = float(np.sqrt(np.mean((np.linalg.norm(corr, axis=1) - sol.total_nT) ** 2)))

@@ -9,12 +9,17 @@ import numpy as np
 PLANARITY_MIN = 0.02
 
 #: half-width (deg) of the band of polar angles about one axis within which the field directions seen (about
-#: the fitted centre) count as one turn: in a turn about an axis the field traces one cone about it, and a
-#: wobble this small leaves the offset along the axis resting on the wobble alone and on the model's shape,
-#: which the samples cannot check. Measured (direction_band) on real hand-turned boards (../shared/real-data):
-#: their single-axis turns read 4-8°, with offsets along the axis 1,500-12,800 nT from the same board's
-#: full-sphere fit; thin plane cuts of full spheres 6-10°; a ±17° band 17-18°, hemispheres 33-39°, a 40° cap 16°.
+#: the fitted centre) count as one turn: in a turn about an axis the field traces one cone about it, and the
+#: offset along the axis rests on the wobble. Measured (direction_band) on real hand-turned boards
+#: (../shared/real-data): their single-axis turns read 4-8°, thin plane cuts of full spheres 6-10°; a ±17° band
+#: 17-18°, hemispheres 33-39°, a 40° cap 16°.
 BAND_MIN_DEG = 12.0
+#: ... and such a turn is refused when the model's misfit, levered onto the axial offset (residual RMS over the
+#: directions' spread along the axis), exceeds this share of the field: a misfit the ellipsoid cannot follow
+#: (the boards' 180-220 nT, 0.4 % of the field) then moves that offset by thousands of nT (the boards' turns were
+#: fitted 1,500-12,800 nT from their full-sphere fit, 4-35 times the stated error; their levers read 6-25 % of the
+#: field), while a fluxgate's white noise (0.6 nT) on the same motion levers 0.05 % and its fit is right.
+LEVER_MAX = 0.01
 
 _AXES = {"+x": (1.0, 0, 0), "-x": (-1.0, 0, 0), "+y": (0, 1.0, 0), "-y": (0, -1.0, 0),
          "+z": (0, 0, 1.0), "-z": (0, 0, -1.0)}
@@ -40,18 +45,24 @@ def direction_band(directions: np.ndarray) -> tuple[float, np.ndarray]:
     return float(np.sqrt(3.0) * np.std(polar)), axis
 
 
-def band_problem(directions: np.ndarray) -> str:
+def band_problem(directions: np.ndarray, residual_rms: float, field: float) -> str:
     """Why directions in a narrow cone-shaped band about one axis (a single-axis turn with some wobble) do
-    not fix the offset along it ("" if they spread wider than BAND_MIN_DEG)."""
+    not fix the offset along it, given the fit's residual RMS and the field (same unit): "" if they spread
+    wider than BAND_MIN_DEG or the misfit's lever on that offset stays below LEVER_MAX of the field (nT)."""
     band, normal = direction_band(directions)
     if band >= BAND_MIN_DEG:
+        return ""
+    spread = float(np.std(np.asarray(directions, float) @ normal))
+    lever = residual_rms / max(spread, 1e-12)
+    if not lever > LEVER_MAX * field:
         return ""
     k = int(np.argmax(np.abs(normal)))
     axis = "xyz"[k] if abs(normal[k]) > 0.9 else "({:.2f}, {:.2f}, {:.2f})".format(*(normal * np.sign(normal[k])))
     others = sorted(a for _, a in sorted(zip(np.abs(normal), "xyz"))[:2])
-    return (f"the field directions stay within ±{band:.1f}° of one cone about {axis} (a turn about {axis}; at least "
-            f"±{BAND_MIN_DEG:.0f}° needed): the offset along {axis} would rest on that wobble alone and on the "
-            f"sensor's shape, which these samples cannot check; turn about the {others[0]} or {others[1]} axis too")
+    return (f"the field directions stay within ±{band:.1f}° of one cone about {axis} (a turn about {axis}): the "
+            f"offset along {axis} rests on that wobble, where the model's misfit ({residual_rms:.3g} nT RMS) moves it "
+            f"by about {lever:,.0f} nT, {lever / field:.0%} of the field (at most {LEVER_MAX:.0%}); turn about the "
+            f"{others[0]} or {others[1]} axis too")
 
 
 def missing_directions(raw: np.ndarray, cone_deg: float = 45.0) -> list[str]:
