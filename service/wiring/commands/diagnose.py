@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 
-from service.wiring.commands.notes import say_read_warnings
+from service.wiring.commands.notes import say_field_scale, say_read_warnings
 
 # The fits multiply many small matrices: on a machine whose cores are busy, OpenBLAS worker threads spin
 # for them and double the CPU time (measured: 41 s against 20 s for bench/bench_diagnose.py). One thread
@@ -115,6 +115,11 @@ def main(args: argparse.Namespace) -> int:
 
         total = site_from_text(args.site).total_nT
     data = EffectData.from_block(block, names, total_nT=total, positions_m=positions)
+    ref = data.ref_total_nT                       # the reference the fits use before a configured total
+    scale = say_field_scale("diagnose", args.data, data.raw_nT, data.probe_names, about="a sphere fitted to them",
+                            total_nT=ref if ref is not None else total,
+                            total_source="the ref_total column" if ref is not None else "the site" if args.site
+                            else f"configuration from {args.config}" if args.config else origin or "given")
     thinned = thinning(lab, limit)
     del lab, block                                  # the samples live on in `data` only
     cal, effects = None, list(args.effects)
@@ -135,6 +140,7 @@ def main(args: argparse.Namespace) -> int:
     if thinned is not None:
         result.thinned, text = thinned
         result.notes.insert(0, text)
+    result.notes[0:0] = scale                     # data not in nT first: every figure after it is in their unit
     taken = (([f"total field {total:,.0f} nT (estimator.total_nT)"] if total is not None and not args.site else [])
              + ([f"probe positions of {len(positions)} probes"] if positions is not None else []))
     if origin and taken:

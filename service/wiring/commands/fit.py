@@ -18,7 +18,7 @@ from service.numerics.calib.coverage import coverage
 from service.numerics.calib.site import site_from_text
 from service.numerics.usable import temperature_notes, usable_samples
 from service.wiring.coloured_fit import coloured_offsets
-from service.wiring.commands.notes import say_read_warnings
+from service.wiring.commands.notes import say_field_scale, say_read_warnings
 from service.wiring.fitting import (
     NONLINEAR_PROBE_SAMPLES,
     channel_sums,
@@ -93,6 +93,12 @@ def main(args: Namespace) -> int:
                            positions_m=given.positions_m, progress=_say)
     if site is not None:
         total.source = f"the site ({site.model})"
+    # data in µT (or counts) fit without complaint; said here, before anything is reported in "nT"
+    scale = say_field_scale("fit", args.data, data.block.field_nT, data.probe_names,
+                            centres_nT=[p.offset_nT for p in cal.probes],
+                            total_nT=None if total.source == "estimated" else total.values,
+                            total_source={"config": given.origin or "configured", "ref_total": "the ref_total column"}
+                            .get(total.source, total.source))
     if args.effects:
         from service.numerics.engine import fit_with_effects
 
@@ -123,6 +129,7 @@ def main(args: Namespace) -> int:
     coverages = [coverage(data.block.field_nT[:, k], centre_nT=p.offset_nT) for k, p in enumerate(cal.probes)]
     warnings = left_out + calibration_warnings(cal, coverages) + ([thinned] if thinned else []) + coloured
     warnings += [given.warning] if given.warning else []
+    warnings = scale + warnings
     cal.diagnostics["warnings"] = warnings
     if args.out:
         save_calibration(cal, args.out)

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import sys
-from typing import Sequence
+from typing import Any, Sequence
+
+import numpy as np
 
 
 def say_read_warnings(command: str, source: str, warnings: Sequence[str]) -> None:
@@ -13,3 +15,22 @@ def say_read_warnings(command: str, source: str, warnings: Sequence[str]) -> Non
     if warnings:
         print(f"fluxcal {command}: the data above were read without what is listed; "
               f"`fluxcal repair {source} FIXED.mcap` writes a finished copy of what is readable", file=sys.stderr)
+
+
+def say_field_scale(command: str, source: str, field_nT: Any, probe_names: Sequence[str], *,
+                    centres_nT: Any = None, total_nT: Any = None, total_source: str = "",
+                    about: str = "the fitted centre") -> list[str]:
+    """Data whose size is implausible for nT (µT, counts), and a given total field far off the data's scale,
+    said on stderr (the latter loudly) whatever the output format; returns them for the result's warnings."""
+    from service.numerics.field_scale import field_scale_warnings
+
+    if total_nT is not None and not isinstance(total_nT, (int, float)):
+        finite = np.asarray(total_nT, dtype=np.float64)
+        finite = finite[np.isfinite(finite)]
+        total_nT = float(np.median(finite)) if finite.size else None     # a ref_total column
+    warnings, loud = field_scale_warnings(field_nT, probe_names, centres_nT, total_nT, total_source, about)
+    for w in warnings:
+        print(f"fluxcal {command}: warning: {source}: {w}", file=sys.stderr)
+    for w in loud:
+        print(f"fluxcal {command}: WARNING: {source}: {w}", file=sys.stderr)
+    return loud + warnings

@@ -1,0 +1,89 @@
+"""Data in the wrong unit are said, not silently calibrated: a CSV in µT fitted as nT gave
+`total_nT_assumed 52.7722 nT` without a word, and with a configured total field of 52,500 nT a matrix of
+about 1000. fit and diagnose now warn (a warning, never a refusal), loudly when the total field given and
+the data's scale differ by more than TOTAL_RATIO_LIMIT."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from service.numerics.field_scale import TOTAL_RATIO_LIMIT, field_scale_warnings, sphere_centre
+from service.wiring.cli import main
+
+
+def sphere(n: int = 2000, radius: float = 52_500.0, offset=(250.0, -400.0, 120.0), seed: int = 3) -> np.ndarray:
+    """(n, 1, 3) samples of a tumbling probe: a sphere about an offset, with noise."""
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    b = u * radius + np.asarray(offset) + rng.normal(scale=1e-5 * radius, size=(n, 3))
+    return b[:, None, :]
+
+
+def write_csv(path, field: np.ndarray) -> str:
+    t = np.arange(field.shape[0]) * 0.01
+    np.savetxt(path, np.column_stack([t, field[:, 0]]), delimiter=",", header="t,s1_x,s1_y,s1_z", comments="",
+               fmt="%.6f")
+    return str(path)
+
+
+@pytest.mark.parametrize("unit, factor, guess", [("µT", 1e-3, "µT? (x 1000"), ("mG", 1e-2, "mG? (x 100"),
+                                                 ("G", 1e-5, "G? (x 100000"), ("pT", 1e3, "pT? (x 0.001")])
+def test_a_field_in_another_unit_is_named(unit, factor, guess):
+    b = sphere() * factor
+    warnings, loud = field_scale_warnings(b, ["s1"], [sphere_centre(b[:, 0])])
+    assert len(warnings) == 1 and loud == []
+    assert "implausible for nT" in warnings[0] and guess in warnings[0] and "the CSV contract is nT" in warnings[0]
+    assert f"s1 {52.5e3 * factor:.3g}" in warnings[0]
+
+
+def test_nT_data_and_shielded_or_strong_fields_within_the_bounds_are_quiet():
+    for radius in (52_500.0, 22_000.0, 1_500.0, 800_000.0):          # Earth's range, a partial shield, coils
+        b = sphere(radius=radius)
+        assert field_scale_warnings(b, ["s1"], total_nT=radius, total_source="x") == ([], [])
+    w, _ = field_scale_warnings(sphere(radius=7.0), ["s1"])
+    assert "raw counts? (counts x lsb_nT gives nT)" in w[0]          # no unit makes 7 an Earth field
+
+
+def test_a_given_total_far_from_the_data_is_said_loudly():
+    b = sphere() * 1e-3
+    _, loud = field_scale_warnings(b, ["s1"], total_nT=52_500.0, total_source="configuration from c.toml")
+    assert len(loud) == 1 and "(52,500 nT, configuration from c.toml) is 1,000 times" in loud[0], loud
+    assert "are the data in µT? the CSV contract is nT" in loud[0]
+    b = sphere()                                                      # nT data, a total 6 times too large
+    _, loud = field_scale_warnings(b, ["s1"], total_nT=6 * 52_500.0, total_source="x")
+    assert len(loud) == 1 and "one of the two is in another unit, or wrong" in loud[0]
+    _, loud = field_scale_warnings(b, ["s1"], total_nT=0.9 * TOTAL_RATIO_LIMIT * 52_500.0, total_source="x")
+    assert loud == []
+
+
+def test_fit_warns_on_microtesla_data_and_loudly_with_a_configured_total(tmp_path, capsys):
+    ut = write_csv(tmp_path / "ut.csv", sphere() * 1e-3)
+    assert main(["fit", ut, "--json"]) == 0                           # a warning, not a refusal
+    out, err = capsys.readouterr()
+    line = [w for w in json.loads(out)["warnings"] if "implausible for nT" in w]
+    assert len(line) == 1 and "s1 52.5" in line[0] and "µT?" in line[0]
+    assert f"fluxcal fit: warning: {ut}: median |B| about the fitted centre: s1 52.5" in err and "WARNING" not in err
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[source]\nkind = "sim"\n[unit]\nn_probes = 1\n[estimator]\ntotal_nT = 52500.0\n'
+                   '[[sim.probes]]\nnoise_nT = 0.5\n')
+    assert main(["fit", ut, "--config", str(cfg), "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert f"fluxcal fit: WARNING: {ut}: the total field given (52,500 nT, configuration from {cfg}) is 1,000 " in err
+    assert "are the data in µT?" in err
+    assert sum("times the data's median |B|" in w for w in json.loads(out)["warnings"]) == 1
+    nt = write_csv(tmp_path / "nt.csv", sphere())
+    assert main(["fit", nt, "--config", str(cfg)]) == 0
+    out, err = capsys.readouterr()
+    assert "median |B|" not in out + err
+
+
+def test_diagnose_warns_too(tmp_path, capsys):
+    ut = write_csv(tmp_path / "ut.csv", sphere(n=1500) * 1e-3)
+    assert main(["diagnose", ut, "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert f"fluxcal diagnose: warning: {ut}: median |B| about a sphere fitted to them: s1 52.5" in err
+    assert any("implausible for nT" in n for n in json.loads(out)["notes"])
