@@ -31,9 +31,9 @@ class ColouredNoise:
 
 def coloured_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -> list[ColouredNoise]:
     """Where a probe's residual is coloured, its offsets' and matrix's white-noise standard errors gain the
-    noise's wander within the record (numerics.calib.offset_noise), in place: an ellipsoid-fitted probe's, and
-    a regression-aligned probe's (probes 2 and up, whatever fitted probe 1); others keep white-noise errors and
-    are said to. A regression-aligned probe's offsets also gain the reference probe's offset errors, which they
+    noise's wander within the record (numerics.calib.offset_noise), in place: an ellipsoid-fitted probe's (or
+    rls-fitted: without forgetting the same fit), and a regression-aligned probe's (probes 2 and up, whatever
+    fitted probe 1); others keep white-noise errors and are said to. A regression-aligned probe's offsets also gain the reference probe's offset errors, which they
     inherit (taken as independent of the regression's own, though probe 1's noise is in both), on any record.
     The spectra over at most SPECTRUM_ROWS samples (every k-th: the power law is fitted from 16 cycles per
     record up)."""
@@ -118,7 +118,9 @@ def _coloured_probe(cal: ArrayCalibration, k: int, raw: np.ndarray, names: list[
     coloured = [law for law in laws if law is not None]
     if not coloured:
         return None
-    covered = not ctx.gaps and (regression or cal.method == "ellipsoid")
+    # `rls` without forgetting (fit --method rls) is the batch ellipsoid fit, to 1e-6 of the field
+    # (tests/test_real_sensors.py): the same estimator of the same data, so the same weights of the noise
+    covered = not ctx.gaps and (regression or cal.method in ("ellipsoid", "rls"))
     if covered:
         try:
             w_o, w_m = (regression_weights(raw, p.matrix, p.offset_nT) if regression else
