@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 
 import pytest
 from test_recording import service_config
@@ -81,8 +82,8 @@ def test_the_bus_refuses_a_huge_payload_at_once_with_a_counter(tmp_path):
 
 def test_the_service_logs_a_short_line_and_counts_what_it_refused(tmp_path):
     port = free_port()
-    text = open(service_config(tmp_path, run_s=5)).read().replace('listen = ["tcp/127.0.0.1:0"]',
-                                                                    f'listen = ["tcp/127.0.0.1:{port}"]')
+    text = Path(service_config(tmp_path, run_s=5)).read_text().replace('listen = ["tcp/127.0.0.1:0"]',
+                                                                        f'listen = ["tcp/127.0.0.1:{port}"]')
     (tmp_path / "c.toml").write_text(text)
     said: list[str] = []
     daemon = Daemon(load_config(tmp_path / "c.toml"), say=said.append)

@@ -67,7 +67,8 @@ def test_rls_offsets_under_1_over_f_noise_gain_the_wander_within_the_record(tmp_
 def test_rls_and_the_batch_fit_state_the_same_errors_on_a_real_board():
     def fit(method: str) -> dict:
         proc = subprocess.run([sys.executable, "-m", "service.wiring.cli", "fit", str(REAL / "qmc5883l_suarez.csv"),
-                               "--json", "--method", method], capture_output=True, text=True, cwd=ROOT, timeout=300)
+                               "--json", "--method", method], capture_output=True, text=True, cwd=ROOT, timeout=300,
+                              check=False)
         assert proc.returncode == 0, proc.stderr
         return json.loads(proc.stdout)["sensors"][0]
 
