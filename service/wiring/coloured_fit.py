@@ -78,6 +78,46 @@ class _Spectra:
     knee: tuple[float, float]
 
 
+#: the delete-a-region errors are said when they raise an offset's error by more than this factor
+DIRECTION_SAY = 1.5
+
+
+def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -> list[str]:
+    """Each ellipsoid-fitted probe's offsets' errors at least those of deleting one region of directions at a
+    time (numerics.calib.misfit: a residual tied to the direction, a misfit the model lacks, which neither the
+    white- nor the coloured-noise errors see), in place, where the residual differs between regions beyond
+    chance for white noise; what they raised by more than DIRECTION_SAY, said.
+    After coloured_offsets (the larger of the two stands); a regression-aligned probe's offsets are not an
+    ellipsoid's, and keep theirs."""
+    from service.numerics.calib.misfit import direction_jackknife
+
+    if cal.method not in ("ellipsoid", "rls"):
+        return []
+    out = []
+    for k, p in enumerate(cal.probes):
+        if (cal.align == "regression" and k > 0) or p.offset_se_nT is None:
+            continue
+        try:
+            got = direction_jackknife(data.block.field_nT[:, k], total.values, p.model_order or "full",
+                                      p.offset_nT, p.matrix)
+        except (np.linalg.LinAlgError, ValueError):
+            continue
+        if got is None or not got.significant:
+            continue                       # the residual does not follow the direction: the noise's errors stand
+        se = np.asarray(p.offset_se_nT, float)
+        jack = got.offset_se
+        raised = jack > DIRECTION_SAY * se
+        _set_offset_se(p, np.maximum(se, jack))
+        _say_sizes(p)
+        if raised.any():
+            axes = ", ".join(f"{a} {s:.3g} -> {j:.3g} nT" for a, s, j, r in zip("xyz", se, jack, raised) if r)
+            out.append(f"{p.name}: the residual differs between regions of field direction {got.f_ratio:.3g} times more "
+                       f"than its noise within them (a misfit the model lacks, or noise slower than the turning): the "
+                       f"offsets move by more than their noise errors when one region is left out ({got.cells} "
+                       f"regions), and their errors are those ({axes})")
+    return out
+
+
 def _inherit(p: ProbeCalibration, ref: ProbeCalibration) -> None:
     """A regression-aligned probe's offset errors with the reference probe's carried over: an offset error
     delta o_1 of the reference moves o_k by -A^-1 M_1 delta o_1 (skipped where the reference has none)."""

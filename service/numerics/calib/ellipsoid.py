@@ -409,9 +409,15 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
         raise CalibrationRefused(f"{name}: the samples do not determine even the offsets (standard errors {se} nT "
                                  f"against a field of {float(np.sqrt(fit.f2_ref)):.6g} nT); "
                                  f"{coverage_hint(raw, fit.calibration.offset_nT)}")
+    bias = []
+    if order == "auto" and sol.order != "full":
+        from .misfit import add_order_bias        # a reduced order's offsets can differ from the full model's
+        bias = add_order_bias(fit, lambda: _fit_result(solve_quadric(field_nT, total_nT, name=name, order="full",
+                                                                     max_condition=max_condition, noise_nT=noise_nT),
+                                                       raw, name)[0], name)
     fit.order = sol.order
     fit.choice = choice
-    fit.warnings = order_warnings(fit.calibration, fit.order, missing, choice)
+    fit.warnings = order_warnings(fit.calibration, fit.order, missing, choice) + bias
     fit.calibration.model_order = sol.order
     fit.calibration.warnings = list(fit.warnings)
     return fit

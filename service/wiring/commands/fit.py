@@ -17,7 +17,7 @@ from service.io.recordings.labdata import LabData, keep_every, load_data
 from service.numerics.calib.coverage import coverage
 from service.numerics.calib.site import site_from_text
 from service.numerics.usable import temperature_notes, usable_samples
-from service.wiring.coloured_fit import coloured_offsets
+from service.wiring.coloured_fit import coloured_offsets, direction_offsets
 from service.wiring.commands.notes import say_field_scale, say_read_warnings
 from service.wiring.fitting import (
     NONLINEAR_PROBE_SAMPLES,
@@ -126,6 +126,7 @@ def main(args: Namespace) -> int:
                             "total_field": total.source})
     # coloured noise first: it changes the offsets' errors, which the warnings below compare with the offsets
     coloured = coloured_warnings(coloured_offsets(data, cal, total)) if not args.effects else []
+    coloured += direction_offsets(data, cal, total) if not args.effects else []
     coverages = [coverage(data.block.field_nT[:, k], centre_nT=p.offset_nT) for k, p in enumerate(cal.probes)]
     warnings = left_out + calibration_warnings(cal, coverages) + ([thinned] if thinned else []) + coloured
     warnings += [given.warning] if given.warning else []

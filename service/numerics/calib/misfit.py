@@ -1,0 +1,178 @@
+"""Offsets' standard errors that hold when the residual follows the field direction.
+
+A real board's residual is mostly not noise but a misfit the ellipsoid cannot follow (a few hundred nT on
+the hand-turned boards of ../shared/real-data, 0.4 % of the field, the same each time the field passes the
+same direction). The white-noise errors average it as if every sample were new; the coloured-noise errors
+(offset_noise) see its wander in time. Neither sees that it is tied to the direction: a fit over part of the
+sphere leans on the misfit of the directions it has, and its offsets move by several of their stated errors
+when a region of directions is added or taken away (cuts of the boards' full spheres: a quarter of their
+offsets beyond two stated errors from the full fit, an eighth beyond three).
+
+The delete-a-region jackknife says it: the directions about the fit are cut into DIRECTION_CELLS² cells per
+cube face, the fit is repeated without each cell that holds samples (exact least squares from per-cell normal
+equations: one pass over the samples, hours of data in chunks), and the spread of the offsets over those
+fits, sqrt((G − 1)/G Σ (o_g − ō)²), is their error under a misfit tied to the direction. On white noise it
+agrees with the white-noise error (a direction then carries no misfit of its own).
+
+A reduced model order (axes, sphere), chosen because the held-out blocks do not gain from more terms, holds
+terms fixed that the samples cannot check; where the full model's offsets differ from it by more than the full
+model's own errors, that difference is an error the reduced fit does not state (add_order_bias).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from drivers.errors import CalibrationRefused
+
+from .ellipsoid import _as_total, normalise, quadric_design
+from .order import EXPANSIONS
+
+#: cells per cube-face edge: 6 × 3² = 54 regions of directions
+DIRECTION_CELLS = 3
+#: samples per chunk of the one pass over the data
+CHUNK_ROWS = 65_536
+#: fewer occupied cells than this: no jackknife (too few regions to judge)
+MIN_CELLS = 8
+
+
+def direction_cells(directions: np.ndarray, m: int = DIRECTION_CELLS) -> np.ndarray:
+    """The cell (0 .. 6 m² − 1) of each unit direction (N, 3): its cube face (the largest component and its
+    sign), then an m × m grid of the other two components over that one."""
+    d = np.asarray(directions, float)
+    i = np.arange(d.shape[0])
+    axis = np.argmax(np.abs(d), axis=1)
+    top = np.abs(d[i, axis])
+    top = np.where(top > 0, top, 1.0)
+    u = d[i, (axis + 1) % 3] / top
+    v = d[i, (axis + 2) % 3] / top
+    iu = np.clip(((u + 1.0) * 0.5 * m).astype(int), 0, m - 1)
+    iv = np.clip(((v + 1.0) * 0.5 * m).astype(int), 0, m - 1)
+    return ((axis * 2 + (d[i, axis] > 0)) * m + iu) * m + iv
+
+
+@dataclass(frozen=True)
+class DirectionSpread:
+    """What deleting one region of directions at a time says of a fit's offsets."""
+
+    offset_se: np.ndarray         # (3,) the delete-a-region jackknife's standard errors of the offsets
+    cells: int                    # regions of directions used
+    f_ratio: float                # the scalar residual's variance between regions over that within them
+    significant: bool             # f_ratio beyond chance for white noise (F distribution, 1 in SIGNIFICANCE)
+
+
+#: a residual tied to the direction is taken as real when white noise would give its F ratio this rarely
+SIGNIFICANCE = 1e-3
+
+
+def direction_jackknife(field_nT: np.ndarray, total_nT, order: str, offset_nT: np.ndarray,
+                        matrix: np.ndarray) -> DirectionSpread | None:
+    """The offsets' spread from deleting one region of directions at a time, and whether the scalar residual
+    differs between regions beyond its noise within them (one-way analysis of variance); None with fewer than
+    MIN_CELLS regions. field_nT (N, 3) finite raw samples of one probe; total_nT as ellipsoid.fit_ellipsoid;
+    order the model order fitted; offset_nT and matrix the fit's calibration, which gives each sample's
+    direction and residual. Independent of origin and unit, as the fit."""
+    raw = np.asarray(field_nT, float)
+    n = raw.shape[0]
+    f, known = _as_total(total_nT, n, raw)
+    center, scale = normalise(raw)
+    use_delta = known and float(np.std(f)) > 1.0          # as solve_quadric: the δ column only for a varying F
+    delta = (f ** 2 - float(np.mean(f ** 2))) / scale ** 2
+    t = EXPANSIONS[order]
+    k = t.shape[1] + int(use_delta)
+    cells_n = 6 * DIRECTION_CELLS ** 2
+    grams = np.zeros((cells_n, k, k))
+    rhs = np.zeros((cells_n, k))
+    m = np.asarray(matrix, float)
+    # per region: samples, Σ e and Σ e² of the scalar residual e = |M (r − o)| − F (F unknown: its mean)
+    counts, e_sum, e_sq = np.zeros(cells_n), np.zeros(cells_n), np.zeros(cells_n)
+    f_ref = f if known else None
+    for a in range(0, n, CHUNK_ROWS):
+        r = raw[a:a + CHUNK_ROWS]
+        phi = quadric_design((r - center) / scale) @ t
+        if use_delta:
+            phi = np.column_stack([phi, -delta[a:a + CHUNK_ROWS]])
+        corr = (r - offset_nT) @ m.T
+        cells = direction_cells(corr)
+        mag = np.linalg.norm(corr, axis=1)
+        e = mag - f_ref[a:a + CHUNK_ROWS] if f_ref is not None else mag
+        counts += np.bincount(cells, minlength=cells_n)
+        e_sum += np.bincount(cells, e, minlength=cells_n)
+        e_sq += np.bincount(cells, e * e, minlength=cells_n)
+        order_rows = np.argsort(cells, kind="stable")
+        cs = cells[order_rows]
+        starts = np.flatnonzero(np.r_[True, cs[1:] != cs[:-1]])
+        for s, e in zip(starts, np.r_[starts[1:], cs.size]):
+            p = phi[order_rows[s:e]]
+            grams[cs[s]] += p.T @ p
+            rhs[cs[s]] += p.sum(axis=0)
+    used = np.flatnonzero(grams[:, 0, 0] > 0)
+    if used.size < MIN_CELLS:
+        return None
+    g_all, r_all = grams.sum(axis=0), rhs.sum(axis=0)
+    col = np.sqrt(np.diag(g_all))
+    offsets = []
+    for c in used:
+        try:
+            theta = np.linalg.solve((g_all - grams[c]) / np.outer(col, col), (r_all - rhs[c]) / col) / col
+            nine = t @ theta[:t.shape[1]]
+            a_mat = np.array([[nine[0], nine[3], nine[4]], [nine[3], nine[1], nine[5]], [nine[4], nine[5], nine[2]]])
+            offsets.append(center - 0.5 * scale * np.linalg.solve(a_mat, nine[6:9]))
+        except np.linalg.LinAlgError:
+            continue                      # without this region the rest do not fix an ellipsoid: not counted
+    if len(offsets) < MIN_CELLS:
+        return None
+    o = np.array(offsets)
+    g = o.shape[0]
+    jack = np.sqrt((g - 1) / g * np.sum((o - o.mean(axis=0)) ** 2, axis=0))
+    f_ratio, significant = _anova(counts[used], e_sum[used], e_sq[used])
+    return DirectionSpread(jack, g, f_ratio, significant)
+
+
+def _anova(counts: np.ndarray, sums: np.ndarray, squares: np.ndarray) -> tuple[float, bool]:
+    """One-way analysis of variance of a residual over regions: (between-region over within-region mean
+    square, whether white noise gives that F ratio less often than SIGNIFICANCE)."""
+    from scipy.stats import f as f_dist
+
+    n, g = float(counts.sum()), counts.size
+    if n <= g or g < 2:
+        return float("nan"), False
+    grand = sums.sum() / n
+    between = float(np.sum(sums ** 2 / counts) - n * grand ** 2) / (g - 1)
+    within = float(squares.sum() - np.sum(sums ** 2 / counts)) / (n - g)
+    if not within > 0:
+        return float("inf"), between > 0
+    ratio = between / within
+    return ratio, bool(ratio > f_dist.isf(SIGNIFICANCE, g - 1, n - g))
+
+
+def add_order_bias(fit: Any, full_fit: Callable[[], Any], name: str) -> list[str]:
+    """A reduced order's offsets' errors (fit: ellipsoid.EllipsoidFit, in place) with the part of their difference
+    d from the full model's offsets that the full fit's own errors s do not explain, sqrt(max(0, d² − s²)), added
+    in variance: which of the two models holds, these samples do not say (cuts of a real board's sphere fitted
+    with `axes` were 5.6-7.3 stated errors from the full sphere's offsets; the full model's were 2-3 away).
+    Returns a warning where it more than doubles an error; nothing where the full model is no ellipsoid here."""
+    try:
+        full = full_fit()
+    except (CalibrationRefused, np.linalg.LinAlgError):
+        return []
+    cal = fit.calibration
+    se = np.asarray(cal.offset_se_nT, float)
+    full_se = np.asarray(full.calibration.offset_se_nT, float)
+    if not (np.all(np.isfinite(se)) and np.all(np.isfinite(full_se))):
+        return []
+    diff = cal.offset_nT - full.calibration.offset_nT
+    extra = np.sqrt(np.maximum(diff ** 2 - full_se ** 2, 0.0))
+    new = np.hypot(se, extra)
+    cal.offset_se_nT = new
+    if "offset_nT" in cal.params:
+        cal.params["offset_nT"]["se"] = new.tolist()
+    if not np.any(new > 2 * se):
+        return []
+    return [f"{name}: the full model's offsets differ from these by {', '.join(f'{v:.3g}' for v in diff)} nT, more "
+            f"than its errors explain, and these samples cannot tell the two models apart: the offsets' errors "
+            f"include that difference"]
