@@ -36,3 +36,15 @@ def test_the_example_configs_load_and_a_stored_dict_still_defaults_to_the_simula
     assert config_from_dict({}).source.kind == "sim"        # a recording's stored configuration of an older run
     with pytest.raises(ConfigError, match=r"x.toml: \[source\] kind is required .*: it has no \[source\] section"):
         require_source({"unit": {}}, "x.toml")
+
+
+def test_diagnose_refuses_an_empty_config_it_would_take_geometry_from(tmp_path, capsys):
+    """diagnose's --config gives only positions and the total field (no [source] needed); an emptied file gives
+    neither and is refused, as fit and run refuse it, instead of running as without it."""
+    empty = tmp_path / "empty.toml"
+    empty.write_text("# nothing left\n")
+    data = tmp_path / "d.csv"
+    data.write_text("t,s1_x,s1_y,s1_z\n" + "".join(f"{i},1,2,3\n" for i in range(20)))
+    assert main(["diagnose", str(data), "--config", str(empty)], install_signals=False) == 2
+    err = capsys.readouterr().err
+    assert f"{empty}: the file is empty" in err and "total_nT" in err and "position_m" in err

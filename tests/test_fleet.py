@@ -126,3 +126,12 @@ def test_the_same_runs_go_to_a_dask_cluster(fleet_dir, capsys):
     for seed in (11, 12):
         assert cli.main(["fit", str(fleet_dir / f"grad-{seed}.csv"), "--json"], install_signals=False) == 0
         assert by_name[f"grad-{seed}.csv"]["result"]["sensors"] == json.loads(capsys.readouterr().out)["sensors"]
+
+
+def test_a_recording_named_twice_runs_once(tmp_path, monkeypatch):
+    """By its name and through its folder (or by a relative and an absolute path): one recording, one row."""
+    for name in ("a.csv", "b.csv"):
+        (tmp_path / name).write_bytes(b"x")
+    monkeypatch.chdir(tmp_path)
+    got = expand_inputs(["a.csv", str(tmp_path), str(tmp_path / "b.csv")], tmp_path / "links")
+    assert [Path(g).resolve() for g in got] == [tmp_path / "a.csv", tmp_path / "b.csv"]

@@ -88,7 +88,7 @@ def field_scale_warnings(field_nT: np.ndarray, probe_names: Sequence[str],
         shown = ", ".join(f"{probe_names[k]} {med[k]:.3g}" for k in bad)
         warnings.append(f"median |B| about {about}: {shown}: implausible for nT (Earth's field is "
                         f"{EARTH_NT[0]:,.0f}-{EARTH_NT[1]:,.0f} nT; a field below {PLAUSIBLE_NT[0]:,.0f} or above "
-                        f"{PLAUSIBLE_NT[1]:,.0f} nT is none a fluxgate is calibrated in): {what}; the CSV contract "
+                        f"{PLAUSIBLE_NT[1]:,.0f} nT is not one a fluxgate is calibrated in): {what}; the CSV contract "
                         f"is nT (docs/csv.md), and the offsets and residuals are reported in the data's unit")
     data_scale = float(np.nanmedian(med)) if np.isfinite(med).any() else np.nan
     if total_nT is not None and np.isfinite(total_nT) and np.isfinite(data_scale) and data_scale > 0:

@@ -111,8 +111,8 @@ def expand_inputs(items: Iterable[str], links: Path, skipped: list[tuple[str, st
                 add(run, p if len(runs) == 1 else None)
         for run in _runs_of_files(loose):
             add(run)
-    seen: set[str] = set()
-    return [x for x in out if not (x in seen or seen.add(x))]
+    seen: set[str] = set()                          # one recording named twice (by name, through a folder): once
+    return [x for x in out if not ((key := str(Path(x).resolve())) in seen or seen.add(key))]
 
 
 def _runs_of_files(files: list[Path]) -> list[list[Path]]:

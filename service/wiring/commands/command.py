@@ -29,6 +29,9 @@ def main(args: Namespace) -> int:
     payload = args.payload or ""
     if args.verb == "apply" and Path(payload).is_file():
         payload = _calibration_text(Path(payload))    # the service may run on another host: send the file itself
+    elif args.verb == "apply" and not payload.lstrip().startswith("{"):
+        print(f"fluxcal command: apply: {payload} is not a file here: sent as a path for the service to read on its "
+              f"own host", file=sys.stderr)
     with open_session(ZenohConfig.client(*endpoints, tls=tls)) as session:
         if unit is None:
             units = discover_units(session, timeout=min(2.0, args.timeout))

@@ -39,6 +39,10 @@ def config_geometry(path: str, n_probes: int) -> tuple[np.ndarray | None, float 
     from service.wiring.recorded_config import geometry
 
     raw = read_toml(path)
+    if not raw:
+        raise ConfigError(f"{path}: the file is empty (or only comments): --config gives diagnose the probe positions "
+                          f"([[probes]] position_m) and the total field ([estimator] total_nT); give a configuration "
+                          f"that has them, or leave --config out")
     try:
         return geometry(raw, n_probes)
     except ConfigError as e:
