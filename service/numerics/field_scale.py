@@ -55,7 +55,9 @@ def median_field(field_nT: np.ndarray, centres_nT: Sequence[np.ndarray] | None =
     out = np.empty(f.shape[1])
     for k in range(f.shape[1]):
         c = np.asarray(centres_nT[k], float) if centres_nT is not None else sphere_centre(f[:, k])
-        r = np.linalg.norm(f[:, k] - c, axis=1)
+        # in chunks: no (N, 3) temporaries beside the data (hours of it)
+        r = np.concatenate([np.linalg.norm(f[a:a + 65_536, k] - c, axis=1) for a in range(0, f.shape[0], 65_536)]
+                           or [np.empty(0)])
         r = r[np.isfinite(r)]
         out[k] = float(np.median(r)) if r.size else np.nan
     return out

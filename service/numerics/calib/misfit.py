@@ -29,7 +29,7 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused
 
-from .ellipsoid import _as_total, normalise, quadric_design
+from .ellipsoid import _as_total, quadric_design
 from .order import EXPANSIONS
 
 #: cells per cube-face edge: 6 × 3² = 54 regions of directions
@@ -78,10 +78,15 @@ def direction_jackknife(field_nT: np.ndarray, total_nT, order: str, offset_nT: n
     direction and residual. Independent of origin and unit, as the fit."""
     raw = np.asarray(field_nT, float)
     n = raw.shape[0]
-    f, known = _as_total(total_nT, n, raw)
-    center, scale = normalise(raw)
-    use_delta = known and float(np.std(f)) > 1.0          # as solve_quadric: the δ column only for a varying F
-    delta = (f ** 2 - float(np.mean(f ** 2))) / scale ** 2
+    # u = (r − c) / s of order one, c the mean, s the rms distance from it, in chunks (hours of data: no (N, 3)
+    # temporaries beside the caller's); any such c and s give the same offsets
+    center = raw.mean(axis=0)
+    scale = float(np.sqrt(sum(float(np.sum((raw[a:a + CHUNK_ROWS] - center) ** 2)) for a in range(0, n, CHUNK_ROWS))
+                          / max(n, 1))) or 1.0
+    known = total_nT is not None
+    f = _as_total(total_nT, n, raw)[0] if known else None
+    use_delta = f is not None and float(np.std(f)) > 1.0    # as solve_quadric: the δ column only for a varying F
+    delta = (f ** 2 - float(np.mean(f ** 2))) / scale ** 2 if use_delta else None
     t = EXPANSIONS[order]
     k = t.shape[1] + int(use_delta)
     cells_n = 6 * DIRECTION_CELLS ** 2
@@ -90,16 +95,15 @@ def direction_jackknife(field_nT: np.ndarray, total_nT, order: str, offset_nT: n
     m = np.asarray(matrix, float)
     # per region: samples, Σ e and Σ e² of the scalar residual e = |M (r − o)| − F (F unknown: its mean)
     counts, e_sum, e_sq = np.zeros(cells_n), np.zeros(cells_n), np.zeros(cells_n)
-    f_ref = f if known else None
     for a in range(0, n, CHUNK_ROWS):
         r = raw[a:a + CHUNK_ROWS]
         phi = quadric_design((r - center) / scale) @ t
-        if use_delta:
+        if delta is not None:
             phi = np.column_stack([phi, -delta[a:a + CHUNK_ROWS]])
         corr = (r - offset_nT) @ m.T
         cells = direction_cells(corr)
         mag = np.linalg.norm(corr, axis=1)
-        e = mag - f_ref[a:a + CHUNK_ROWS] if f_ref is not None else mag
+        e = mag - f[a:a + CHUNK_ROWS] if f is not None else mag
         counts += np.bincount(cells, minlength=cells_n)
         e_sum += np.bincount(cells, e, minlength=cells_n)
         e_sq += np.bincount(cells, e * e, minlength=cells_n)
