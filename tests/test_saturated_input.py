@@ -180,3 +180,23 @@ def test_non_finite_time_or_reference_is_still_refused(tmp_path, bad):
 
     with pytest.raises(DataError, match=r"line 3, column 'ref_total'.*only probe axes and temperatures may be NaN"):
         load_csv(p)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_flagged_samples_without_a_rail_are_left_out_for_every_probe(tmp_path, seed):
+    """A logger that flags saturation but writes no rail: the flag does not say which axis, so a flagged sample
+    is left out for every probe, never one real measurement taken for a rail (it was: 499 and 500 of 500)."""
+    rng = np.random.default_rng(seed)
+    n = 2000
+    field = rng.normal(0.0, 30000.0, size=(n, 6))
+    flags = np.zeros(n, int)
+    flagged = rng.choice(n, 500, replace=False)
+    flags[flagged] = 1
+    t = np.arange(n) * 0.01
+    p = tmp_path / "flagged.csv"
+    np.savetxt(p, np.column_stack([t, field, flags]), delimiter=",", comments="",
+               header="t,s1_x,s1_y,s1_z,s2_x,s2_y,s2_z,flags", fmt=["%.3f"] + ["%.6f"] * 6 + ["%d"])
+    b = load_csv(p).block
+    gone = np.isnan(b.field_nT).all(axis=2)
+    assert gone[:, 0].sum() == gone[:, 1].sum() == 500 and set(np.flatnonzero(gone[:, 0])) == set(flagged.tolist())
+    assert not np.isnan(b.field_nT[~gone[:, 0]]).any()

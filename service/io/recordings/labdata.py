@@ -199,7 +199,8 @@ def _honour_flags(flags: np.ndarray, field_nT: np.ndarray, temp_C: np.ndarray) -
     """The ICD flags column, in place: a temperature flagged invalid (bit1) is NaN; in a sample flagged
     saturated (bit0) the saturated axes are NaN. Those are the axes already NaN or, in a file that wrote the
     rails as numbers (counts 2147483647 or -2147483648 times lsb_nT), at the largest magnitude of the flagged
-    samples; a flagged sample with neither is NaN for every probe (the flag does not say which axis)."""
+    samples where more than one axis holds it (a rail repeats, a measurement does not); a flagged sample with
+    neither is NaN for every probe (the flag does not say which axis)."""
     temp_C[(flags & FLAG_TEMP_INVALID) != 0] = np.nan
     sat = (flags & FLAG_SATURATED) != 0
     if not sat.any():
@@ -210,6 +211,10 @@ def _honour_flags(flags: np.ndarray, field_nT: np.ndarray, temp_C: np.ndarray) -
     rail = float(mag[~known].max()) if (~known).any() else 0.0
     # the two rails differ by one count in 2^31 (5e-10): one magnitude to within 1e-6 is one rail
     at_rail = (mag >= rail * (1.0 - 1e-6)) & (rail > 0) & ~known[:, None, None]
+    if np.count_nonzero(at_rail) < 2:
+        # one axis at the largest magnitude is a measurement, not a rail (a rail repeats): the flag then does
+        # not say which axis saturated, and the whole sample goes below
+        at_rail[:] = False
     f[at_rail] = np.nan
     f[~np.isnan(f).any(axis=(1, 2))] = np.nan
     field_nT[sat] = f
