@@ -83,8 +83,8 @@ DIRECTION_SAY = 1.5
 
 
 def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -> list[str]:
-    """Each ellipsoid-fitted probe's offsets' errors at least those of deleting one region of directions at a
-    time (numerics.calib.misfit: a residual tied to the direction, a misfit the model lacks, which neither the
+    """Each ellipsoid-fitted probe's offsets' (and matrix's, angles', scales') errors at least those of deleting
+    one region of directions at a time (numerics.calib.misfit: a residual tied to the direction, a misfit the model lacks, which neither the
     white- nor the coloured-noise errors see), in place, where the residual differs between regions beyond
     chance for white noise; what they raised by more than DIRECTION_SAY, said.
     After coloured_offsets (the larger of the two stands); a regression-aligned probe's offsets are not an
@@ -108,6 +108,12 @@ def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -
         jack = got.offset_se
         raised = jack > DIRECTION_SAY * se
         _set_offset_se(p, np.maximum(se, jack))
+        if p.matrix_se is not None:
+            p.matrix_se = np.maximum(np.asarray(p.matrix_se, float), got.matrix_se)
+        for key, extra in (("nonorth_deg", got.nonorth_se), ("scale", got.scale_se)):
+            entry = p.params.get(key)
+            if entry is not None and entry.get("se") is not None:      # an order may hold them fixed
+                entry["se"] = np.maximum(np.asarray(entry["se"], float), extra).tolist()
         _say_sizes(p)
         if raised.any():
             axes = ", ".join(f"{a} {s:.3g} -> {j:.3g} nT" for a, s, j, r in zip("xyz", se, jack, raised) if r)

@@ -8,7 +8,7 @@ sphere leans on the misfit of the directions it has, and its offsets move by sev
 when a region of directions is added or taken away (cuts of the boards' full spheres: a quarter of their
 offsets beyond two stated errors from the full fit, an eighth beyond three).
 
-The delete-a-region jackknife says it: the directions about the fit are cut into DIRECTION_CELLS² cells per
+The delete-a-region jackknife says it (for the offsets, the matrix and its named angles and scales): the directions about the fit are cut into DIRECTION_CELLS² cells per
 cube face, the fit is repeated without each cell that holds samples (exact least squares from per-cell normal
 equations: one pass over the samples, hours of data in chunks), and the spread of the offsets over those
 fits, sqrt((G − 1)/G Σ (o_g − ō)²), is their error under a misfit tied to the direction. On white noise it
@@ -29,7 +29,8 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused
 
-from .ellipsoid import _as_total, quadric_design
+from .ellipsoid import _as_total, quadric_design, quadric_to_calibration, unit_volume_total
+from .model import triangular_params
 from .order import EXPANSIONS
 
 #: cells per cube-face edge: 6 × 3² = 54 regions of directions
@@ -60,6 +61,9 @@ class DirectionSpread:
     """What deleting one region of directions at a time says of a fit's offsets."""
 
     offset_se: np.ndarray         # (3,) the delete-a-region jackknife's standard errors of the offsets
+    matrix_se: np.ndarray         # (3, 3) ... of the matrix
+    nonorth_se: np.ndarray        # (3,) ... of the non-orthogonality angles, deg (001 eq. 11)
+    scale_se: np.ndarray          # (3,) ... of the scale factors (relative to the assumed field if none is given)
     cells: int                    # regions of directions used
     f_ratio: float                # the scalar residual's variance between regions over that within them
     significant: bool             # f_ratio beyond chance for white noise (F distribution, 1 in SIGNIFICANCE)
@@ -119,22 +123,26 @@ def direction_jackknife(field_nT: np.ndarray, total_nT, order: str, offset_nT: n
         return None
     g_all, r_all = grams.sum(axis=0), rhs.sum(axis=0)
     col = np.sqrt(np.diag(g_all))
-    offsets = []
+    f2 = float(np.mean(f ** 2)) if f is not None else None
+    fits = []                             # per region left out: offset (3), matrix (9), angles (3), scales (3)
     for c in used:
         try:
             theta = np.linalg.solve((g_all - grams[c]) / np.outer(col, col), (r_all - rhs[c]) / col) / col
             nine = t @ theta[:t.shape[1]]
-            a_mat = np.array([[nine[0], nine[3], nine[4]], [nine[3], nine[1], nine[5]], [nine[4], nine[5], nine[2]]])
-            offsets.append(center - 0.5 * scale * np.linalg.solve(a_mat, nine[6:9]))
-        except np.linalg.LinAlgError:
+            # the field the fit assumes when none is given: the one giving the matrix determinant 1, per fit
+            f2_c = f2 if f2 is not None else unit_volume_total(nine, scale, center) ** 2
+            offset, matrix = quadric_to_calibration(nine, scale, f2_c, center)
+            angles, scales = triangular_params(matrix)
+        except (np.linalg.LinAlgError, ValueError):
             continue                      # without this region the rest do not fix an ellipsoid: not counted
-    if len(offsets) < MIN_CELLS:
+        fits.append(np.concatenate([offset, matrix.ravel(), angles, scales]))
+    if len(fits) < MIN_CELLS:
         return None
-    o = np.array(offsets)
-    g = o.shape[0]
-    jack = np.sqrt((g - 1) / g * np.sum((o - o.mean(axis=0)) ** 2, axis=0))
+    x = np.array(fits)
+    g = x.shape[0]
+    jack = np.sqrt((g - 1) / g * np.sum((x - x.mean(axis=0)) ** 2, axis=0))
     f_ratio, significant = _anova(counts[used], e_sum[used], e_sq[used])
-    return DirectionSpread(jack, g, f_ratio, significant)
+    return DirectionSpread(jack[:3], jack[3:12].reshape(3, 3), jack[12:15], jack[15:18], g, f_ratio, significant)
 
 
 def _anova(counts: np.ndarray, sums: np.ndarray, squares: np.ndarray) -> tuple[float, bool]:
