@@ -80,6 +80,10 @@ def test_simulated_csv_carries_saturation_as_nan_and_fit_leaves_it_out(tmp_path,
     assert cli(["diagnose", str(out)]) == 0
     text = capsys.readouterr().out
     assert f"note: s1: {sat[0]} saturated samples left out" in text
+    # the temperature terms are among those diagnose tries: the invalid temperatures of the samples kept, said
+    kept = ~np.isnan(blk.field_nT).any(axis=(1, 2))
+    bad_temp = int(np.count_nonzero(((flags & FLAG_TEMP_INVALID) != 0) & kept))
+    assert f"note: s1_temp: {bad_temp} samples without a valid temperature" in text
     rms, floor = (float(x) for x in text.split("residual RMS ")[1].split(" nT (")[0].split(" nT against a noise floor of "))
     assert rms < 1.2 * floor
 

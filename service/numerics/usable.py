@@ -78,13 +78,15 @@ def usable_samples(block: SampleBlock, probe_names: Sequence[str]) -> Usable:
     return Usable(keep=keep, notes=notes, dropped=dropped)
 
 
-def temperature_notes(block: SampleBlock, probe_names: Sequence[str]) -> list[str]:
+def temperature_notes(block: SampleBlock | np.ndarray, probe_names: Sequence[str]) -> list[str]:
     """Per probe with some but not all temperatures invalid (NaN, or ICD bit1): how many, and what the
-    temperature terms do with them (they take the temperature interpolated in time from the valid ones)."""
+    temperature terms do with them (they take the temperature interpolated in time from the valid ones).
+    block: a SampleBlock or its (N, P) temperatures."""
+    temp = np.asarray(block.temp_C if isinstance(block, SampleBlock) else block, float)
     out = []
     for k, name in enumerate(probe_names):
-        bad = int(np.count_nonzero(~np.isfinite(block.temp_C[:, k])))
-        if 0 < bad < block.n_samples:
+        bad = int(np.count_nonzero(~np.isfinite(temp[:, k])))
+        if 0 < bad < temp.shape[0]:
             out.append(f"{name}_temp: {_samples(bad)} without a valid temperature: the temperature terms take "
                        f"{name}'s temperature there interpolated in time from the valid ones")
     return out

@@ -41,6 +41,7 @@ from service.numerics.engine import (
     residual_hints,
     start_weights,
 )
+from service.numerics.usable import temperature_notes
 
 from .fits import heldout, try_candidate
 from .frames import frame_summary, frames
@@ -66,6 +67,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     notes: list[str] = []
     if ed.dropped_rows:
         notes += ed.dropped_notes or [f"{ed.dropped_rows} samples with a saturated axis (NaN) left out"]
+    notes += temperature_notes(ed.temp_C, ed.probe_names)        # the temperature terms are among those tested
     fixed = (calibration is not None) if fix_linear is None else bool(fix_linear)
     tell(0.0, "linear calibration")
     if calibration is not None:
