@@ -13,6 +13,7 @@ from drivers.errors import CalibrationRefused, FluxcalError
 from drivers.ringbuffer import RingBuffer
 from service.numerics.calib import alignment
 from service.numerics.calib import coverage as coverage_mod
+from service.numerics.calib.excitation import band_problem
 from service.numerics.calib.model import ArrayCalibration
 from service.numerics.calib.rls import RlsEllipsoid
 
@@ -73,7 +74,7 @@ class Gate:
                                       int(estimators[0].n_samples_)))
 
     def evaluate(self, cal: ArrayCalibration, estimators: Sequence[RlsEllipsoid], ring: RingBuffer) -> GateResult:
-        """The quality gate: coverage, conditioning and residual over the ring buffer window."""
+        """The quality gate: coverage, conditioning, residual and one turn's wobble over the ring buffer window."""
         window = self.window(ring)
         reasons: list[str] = []
         covs, conds, rmss = [], [], []
@@ -96,6 +97,13 @@ class Gate:
                 rms = float(np.sqrt(np.mean((np.linalg.norm(corr, axis=1) - r) ** 2)))
             rmss.append(rms)
             name = self.probe_names[k]
+            # one turn about one axis with some wobble: its offset along the axis rests on the wobble (as the
+            # batch fit refuses it: excitation.band_problem); a real hand turn was accepted 63,000 nT off
+            mag = np.linalg.norm(corr, axis=1)
+            turn = band_problem(corr / np.where(mag > 0, mag, 1.0)[:, None], rms, float(np.mean(mag))) \
+                if corr.shape[0] >= 3 and np.isfinite(rms) else ""
+            if turn:
+                reasons.append(f"{name}: {turn}")
             if not cov.usable:
                 reasons.append(f"{name}: {cov.reason}")
             if not np.isfinite(conds[-1]) or conds[-1] > self.condition:
