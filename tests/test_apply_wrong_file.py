@@ -106,3 +106,13 @@ def test_the_service_logs_a_short_line_and_counts_what_it_refused(tmp_path):
     assert max(len(m) for m in said) < 500
     assert sum("command apply: refused: apply: the payload (20,000 characters)" in m for m in said) == 1
     assert sum(m.startswith("1 command(s) refused by the bus; the last: apply: payload of 1,") for m in said) == 1
+
+
+def test_inline_calibration_json_is_never_taken_for_a_file_name():
+    """A calibration's JSON text given inline is longer than a file name may be: asking whether it names a file
+    raised OSError (File name too long) on Python 3.11, a traceback (the review's case)."""
+    from service.wiring.commands.command import _is_file
+
+    text = '{"format": "fluxcal-calibration", "probes": [' + ", ".join(["{}"] * 200) + "]}"
+    assert len(text) > 300
+    assert _is_file(text) is False and _is_file("a" * 5000) is False and _is_file("x\0y") is False

@@ -3,8 +3,10 @@ naming the key and what is allowed, never a simulated unit "unit1" publishing on
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from drivers.errors import ConfigError
@@ -48,3 +50,24 @@ def test_diagnose_refuses_an_empty_config_it_would_take_geometry_from(tmp_path, 
     assert main(["diagnose", str(data), "--config", str(empty)], install_signals=False) == 2
     err = capsys.readouterr().err
     assert f"{empty}: the file is empty" in err and "total_nT" in err and "position_m" in err
+
+
+def test_fit_takes_an_array_description_without_a_source(tmp_path, capsys):
+    """fit's --config describes an array (the total field, probe positions): no source to name. The review
+    found such a file refused after the [source] rule; an empty one still is."""
+    cfg = tmp_path / "array.toml"
+    cfg.write_text("[estimator]\ntotal_nT = 50000.0\n")
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(400, 3))
+    d = 50000.0 * d / np.linalg.norm(d, axis=1, keepdims=True) + [300.0, -200.0, 100.0]
+    data = tmp_path / "d.csv"
+    np.savetxt(data, np.column_stack([np.arange(400) * 0.01, d + rng.normal(0, 1.0, d.shape)]), delimiter=",",
+               header="t,s1_x,s1_y,s1_z", comments="")
+    assert main(["fit", str(data), "--config", str(cfg), "--json"], install_signals=False) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert np.allclose(out["sensors"][0]["offset_nT"], [300.0, -200.0, 100.0], atol=1.0)
+    assert abs(np.mean(out["sensors"][0]["params"]["scale"]["value"]) - 1.0) < 1e-3   # in the configured field
+    empty = tmp_path / "empty.toml"
+    empty.write_text("")
+    assert main(["fit", str(data), "--config", str(empty)], install_signals=False) == 2
+    assert "the file is empty" in capsys.readouterr().err

@@ -48,3 +48,12 @@ def test_fit_reads_a_csv_with_a_comment_line_in_its_body(tmp_path, capsys):
     p.write_text("\n".join([HEADER, *data[:2999], "# operator: a note", data[2999]]) + "\n")
     assert main(["fit", str(p), "--json"]) == 0
     assert "expected" not in capsys.readouterr().err
+
+
+def test_a_bad_value_after_a_nan_is_named_on_its_own_line(tmp_path):
+    """NaN is allowed in a probe's axes (a saturated sample); the slow search for the bad cell stopped at the
+    first NaN and named that line (the review's case)."""
+    p = tmp_path / "bad.csv"
+    p.write_text("t,s1_x,s1_y,s1_z\n0,1,2,3\n1,nan,2,3\n2,1,2,3\n3,1,abc,3\n")
+    with pytest.raises(DataError, match=r"line 5, column 's1_y': 'abc' is not a number"):
+        load_csv(p)

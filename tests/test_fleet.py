@@ -135,3 +135,20 @@ def test_a_recording_named_twice_runs_once(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     got = expand_inputs(["a.csv", str(tmp_path), str(tmp_path / "b.csv")], tmp_path / "links")
     assert [Path(g).resolve() for g in got] == [tmp_path / "a.csv", tmp_path / "b.csv"]
+
+
+def test_a_run_of_rotated_files_named_twice_runs_once(tmp_path):
+    """A folder holding one run's files and a pattern matching the same files (or a folder of runs and a pattern
+    for one of them): one run each, never two link folders of the same files (the review's case)."""
+    one = tmp_path / "one"
+    one.mkdir()
+    for name in ("u-20261101T000000-0001.mcap", "u-20261101T001000-0002.mcap"):
+        (one / name).write_bytes(b"x")
+    links = tmp_path / "links"
+    assert expand_inputs([str(one), str(one / "u-*.mcap")], links) == [str(one)]
+    many = tmp_path / "many"
+    many.mkdir()
+    for name in ("a-20261101T000000-0001.mcap", "a-20261101T001000-0002.mcap", "b-20261102T000000-0001.mcap"):
+        (many / name).write_bytes(b"x")
+    got = expand_inputs([str(many), str(many / "a-*.mcap")], tmp_path / "links2")
+    assert len(got) == 2 and got[1] == str(many / "b-20261102T000000-0001.mcap")

@@ -106,3 +106,68 @@ def test_a_reduced_order_states_its_difference_from_the_full_model():
     err = np.abs(fit.calibration.offset_nT - full)
     assert np.all(err < 3 * fit.calibration.offset_se_nT), (err, fit.calibration.offset_se_nT)
     assert fit.calibration.params["offset_nT"]["se"] == fit.calibration.offset_se_nT.tolist()
+
+
+def _two_rings(seed: int = 1) -> np.ndarray:
+    """One full turn about z and one about x, with a 100 nT misfit (cos 3φ) and 1 nT of noise: the fit leans on
+    the few regions where the rings cross."""
+    from test_coverage import M_TRUE
+
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 2 * np.pi, 1500, endpoint=False)
+    ring = np.column_stack([np.cos(t), np.sin(t), 0 * t])
+    d = np.vstack([ring, ring[:, [2, 0, 1]]])
+    tt = np.r_[t, t]
+    body = (TOTAL_NT + 100 * np.cos(3 * tt))[:, None] * d
+    return np.linalg.solve(M_TRUE, body.T).T + O_TRUE + rng.normal(0, 1, body.shape)
+
+
+def test_regions_the_fit_cannot_do_without_are_counted_and_said():
+    """Two single-axis turns: without 4 of their 26 regions the rest fix no ellipsoid. Those are not averaged
+    away in silence: counted, and the command line says the errors are lower bounds."""
+    raw = _two_rings()
+    fit = fit_ellipsoid(raw, TOTAL_NT, order="full")
+    got = direction_jackknife(raw, TOTAL_NT, "full", fit.calibration.offset_nT, fit.calibration.matrix)
+    assert got.significant and got.failed == 4 and got.cells == 22
+
+
+def _lab(raw: np.ndarray):
+    from drivers.block import SampleBlock
+    from service.io.recordings.labdata import LabData
+
+    n = raw.shape[0]
+    block = SampleBlock(t_s=np.arange(n) * 0.01, seq=np.arange(n), field_nT=raw[:, None, :],
+                        temp_C=np.full((n, 1), np.nan), flags=np.zeros(n, np.uint8))
+    return LabData(block=block, probe_names=["s1"], path="mem.csv")
+
+
+def test_the_fit_step_says_the_errors_are_lower_bounds_and_keeps_a_rotated_matrix():
+    """direction_offsets, as `fit` runs it: on the two rings fitted with the full model it says that some
+    regions cannot be left out (the errors are lower bounds) and raises the offsets' errors to the jackknife's.
+    Rotated (an aligned probe: M' = R M), the regions are still the fit's own and the jackknife's matrix errors
+    are rotated as the matrix is (the review found the triangular [0, 0] written over a rotated one and a
+    rotated [1, 0] never raised); the offsets' errors are raised the same."""
+    from scipy.spatial.transform import Rotation
+
+    from service.numerics.calib.model import ArrayCalibration
+    from service.wiring.coloured_fit import direction_offsets
+    from service.wiring.fitting import TotalField
+
+    raw = _two_rings()
+    fit = fit_ellipsoid(raw, TOTAL_NT, order="full")
+    got = direction_jackknife(raw, TOTAL_NT, "full", fit.calibration.offset_nT, fit.calibration.matrix)
+    plain = ArrayCalibration("ellipsoid", None, [fit.calibration])
+    said = direction_offsets(_lab(raw), plain, TotalField(TOTAL_NT, "config"))
+    assert any("without 4 of the 26 regions" in w and "lower bounds" in w for w in said), said
+    assert np.allclose(plain.probes[0].offset_se_nT, np.maximum(fit.calibration.offset_se_nT, got.offset_se))
+
+    fit = fit_ellipsoid(raw, TOTAL_NT, order="full")
+    r = Rotation.from_euler("z", 60, degrees=True).as_matrix()
+    turned = fit.calibration.rotated(r)
+    before = turned.matrix_se.copy()
+    aligned = ArrayCalibration("ellipsoid", "rotation", [turned])
+    direction_offsets(_lab(raw), aligned, TotalField(TOTAL_NT, "config"))
+    assert np.allclose(turned.offset_se_nT, np.maximum(fit.calibration.offset_se_nT, got.offset_se))
+    rotated_jack = np.sqrt((r ** 2) @ (got.matrix_se ** 2))
+    assert np.allclose(turned.matrix_se, np.maximum(before, rotated_jack))
+    assert turned.matrix_se[1, 0] > before[1, 0]                  # a rotated element raised, not left alone

@@ -98,8 +98,13 @@ def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -
         if (cal.align == "regression" and k > 0) or p.offset_se_nT is None:
             continue
         try:
+            # the fit's own upper-triangular factor (an aligned probe's matrix is R M: QR gives R and M), so the
+            # regions of direction are the fit's whatever the alignment
+            rot, tri = np.linalg.qr(p.matrix)
+            signs = np.where(np.diag(tri) < 0, -1.0, 1.0)
+            rot, tri = rot * signs, tri * signs[:, None]
             got = direction_jackknife(data.block.field_nT[:, k], total.values, p.model_order or "full",
-                                      p.offset_nT, p.matrix)
+                                      p.offset_nT, tri)
         except (np.linalg.LinAlgError, ValueError):
             continue
         if got is None or not got.significant:
@@ -108,19 +113,26 @@ def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -
         jack = got.offset_se
         raised = jack > DIRECTION_SAY * se
         _set_offset_se(p, np.maximum(se, jack))
-        if p.matrix_se is not None:
-            p.matrix_se = np.maximum(np.asarray(p.matrix_se, float), got.matrix_se)
-        for key, extra in (("nonorth_deg", got.nonorth_se), ("scale", got.scale_se)):
+        # the matrix's errors rotated as ProbeCalibration.rotated rotates them (an aligned probe's M' = R M); the
+        # angles are the triangular factor's either way. rls takes a reference as an unknown field: its scale
+        # (and the matrix's) is another convention than the jackknife's, the angles are not
+        same_scale = cal.method == "ellipsoid"
+        if p.matrix_se is not None and same_scale:
+            p.matrix_se = np.maximum(np.asarray(p.matrix_se, float), np.sqrt((rot ** 2) @ (got.matrix_se ** 2)))
+        for key, extra in (("nonorth_deg", got.nonorth_se), ("scale", got.scale_se if same_scale else None)):
             entry = p.params.get(key)
-            if entry is not None and entry.get("se") is not None:      # an order may hold them fixed
+            if extra is not None and entry is not None and entry.get("se") is not None:   # an order may fix them
                 entry["se"] = np.maximum(np.asarray(entry["se"], float), extra).tolist()
         _say_sizes(p)
         if raised.any():
             axes = ", ".join(f"{a} {s:.3g} -> {j:.3g} nT" for a, s, j, r in zip("xyz", se, jack, raised) if r)
-            out.append(f"{p.name}: the residual differs between regions of field direction {got.f_ratio:.3g} times more "
-                       f"than its noise within them (a misfit the model lacks, or noise slower than the turning): the "
-                       f"offsets move by more than their noise errors when one region is left out ({got.cells} "
-                       f"regions), and their errors are those ({axes})")
+            out.append(f"{p.name}: the residual differs between regions of field direction beyond its noise within "
+                       f"them (F ratio {got.f_ratio:.3g} over {got.cells} regions, p < 0.001: a misfit the model lacks, "
+                       f"or noise slower than the turning): the offsets move by more than their noise errors when one "
+                       f"region is left out, and their errors are those ({axes})")
+        if got.failed:
+            out.append(f"{p.name}: without {got.failed} of the {got.cells + got.failed} regions of direction the rest "
+                       f"fix no ellipsoid: the fit leans on those alone, and its errors are lower bounds")
     return out
 
 

@@ -170,11 +170,18 @@ def rate_stated(raw: dict) -> bool:
     return "rate_hz" in src or (isinstance(sim, dict) and "rate_hz" in sim)
 
 
-def load_config(path: str | Path) -> FluxcalConfig:
+def load_config(path: str | Path, *, source_required: bool = True) -> FluxcalConfig:
     """The configuration of a TOML file; its relative paths (calibration.file, calibration.initial, mcap.dir,
-    a replay source's path) are taken relative to the file's directory, not the working directory."""
+    a replay source's path) are taken relative to the file's directory, not the working directory.
+    source_required: a configuration that runs a unit must name its source (require_source); one that only
+    describes an array for fit (probe positions, the total field) need not, but must not be empty."""
     raw = read_toml(path)
-    require_source(raw, str(path))
+    if source_required:
+        require_source(raw, str(path))
+    elif not raw:
+        raise ConfigError(f"{path}: the file is empty (or only comments): --config gives the probe positions "
+                          f"([[probes]] position_m) and the total field ([estimator] total_nT); give a configuration "
+                          f"that has them, or leave --config out")
     cfg = config_from_dict(raw, str(path))
     base = Path(path).resolve().parent
 

@@ -74,8 +74,13 @@ def expand_inputs(items: Iterable[str], links: Path, skipped: list[tuple[str, st
     folder holds besides recordings goes into `skipped` as (path, reason). ConfigError names a pattern or path
     that matches nothing."""
     out: list[str] = []
+    taken: set[tuple[str, ...]] = set()              # the files of each run given: a run named twice runs once
 
     def add(run: list[Path], whole: Path | None = None) -> None:
+        key = tuple(sorted(str(f.resolve()) for f in run))
+        if key in taken:
+            return
+        taken.add(key)
         if len(run) == 1:
             out.append(str(run[0]))
         elif whole is not None:

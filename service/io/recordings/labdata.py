@@ -257,5 +257,5 @@ def _locate_bad_value(p: Path, header: list[str], rows: list[str], lineno: np.nd
             except ValueError:
                 raise DataError(f"{p}: line {lineno[r]}, column {header[c]!r}: {cell.strip()!r} is not a number") \
                     from None
-            if not math.isfinite(v):
+            if not math.isfinite(v) and not _PROBE_COL.match(header[c]):      # a probe's axis or temperature: NaN
                 raise DataError(f"{p}: line {lineno[r]}, column {header[c]!r}: {cell.strip()!r} is not a finite number")

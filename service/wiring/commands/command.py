@@ -27,9 +27,10 @@ def main(args: Namespace) -> int:
     args.seconds = None
     endpoints, unit, tls = _resolve(args)
     payload = args.payload or ""
-    if args.verb == "apply" and Path(payload).is_file():
+    inline = payload.lstrip().startswith("{")          # a calibration's JSON text itself, not a path
+    if args.verb == "apply" and not inline and _is_file(payload):
         payload = _calibration_text(Path(payload))    # the service may run on another host: send the file itself
-    elif args.verb == "apply" and not payload.lstrip().startswith("{"):
+    elif args.verb == "apply" and not inline:
         print(f"fluxcal command: apply: {payload} is not a file here: sent as a path for the service to read on its "
               f"own host", file=sys.stderr)
     with open_session(ZenohConfig.client(*endpoints, tls=tls)) as session:
@@ -48,6 +49,14 @@ def main(args: Namespace) -> int:
               file=sys.stderr)
         return 1
     return 0
+
+
+def _is_file(text: str) -> bool:
+    """Whether text names a file here (False for what cannot be a path: too long a name, a NUL)."""
+    try:
+        return Path(text).is_file()
+    except (OSError, ValueError):
+        return False
 
 
 def _calibration_text(path: Path) -> str:

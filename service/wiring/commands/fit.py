@@ -42,7 +42,7 @@ def load_optional_config(path: str | None):
         return None
     from service.wiring.config import load_config
 
-    return load_config(path)
+    return load_config(path, source_required=False)        # an array's description: no source to name
 
 
 def configured_total(cfg) -> float | None:
