@@ -326,16 +326,21 @@ def test_the_online_estimate_from_any_offset_agrees_with_the_batch_fit(name):
     assert np.all(np.abs(a.offset_nT - batch.offset_nT) < 0.02 * radius)
 
 
+def _serve(block, check_every: int = 200, step: int = 100):
+    """A one-probe service pipeline fed a recording in blocks of `step`: (the pipeline, its events)."""
+    pl = Pipeline(n_probes=1, probe_names=["s1"], positions_m=None, min_samples=500, gate_rms_nT=1e9,
+                  check_every_samples=check_every, window_samples=4000, chunk_samples=100)
+    events = []
+    for i in range(0, block.n_samples, step):
+        events += pl.process(block.slice(i, i + step)).events
+    return pl, events
+
+
 @needs_real
 @pytest.mark.parametrize("name", ["qmc5883l_suarez", "imu_freeimucal"])
 def test_the_service_learns_a_real_board_raw_and_its_gate_passes(name):
     raw = raw_of(name)
-    block = load_data(REAL / f"{name}.csv").block
-    pl = Pipeline(n_probes=1, probe_names=["s1"], positions_m=None, min_samples=500, gate_rms_nT=1e9,
-                  check_every_samples=1000, window_samples=4000, chunk_samples=100)
-    events = []
-    for i in range(0, block.n_samples, 250):
-        events += pl.process(block.slice(i, i + 250)).events
+    pl, events = _serve(load_data(REAL / f"{name}.csv").block, check_every=1000, step=250)
     assert any(e.kind == "calibration" for e in events), [e.detail for e in events][-3:]
     spread_service = spread(pl.calibration.apply(raw[:, None, :])[:, 0])
     assert spread_service < 1.3 * spread(fit_ellipsoid(raw).calibration.apply(raw))
@@ -419,20 +424,12 @@ def test_the_services_gate_refuses_a_real_single_axis_turn(axis):
     the last with the offset along the axis up to 63,000 nT from the board's full-sphere fit (x: −63,791
     against −643). It now refuses each, naming the cone and the turn to add; the board's full sphere is still
     learned, to within 2 % of the field of its batch fit."""
-    block = load_data(REAL / f"hmc5883l_sensorfusion_turn_{axis}.csv").block
-    pl = Pipeline(n_probes=1, probe_names=["s1"], positions_m=None, min_samples=500, gate_rms_nT=1e9,
-                  check_every_samples=200, window_samples=4000, chunk_samples=100)
-    events = []
-    for i in range(0, block.n_samples, 100):
-        events += pl.process(block.slice(i, i + 100)).events
+    pl, events = _serve(load_data(REAL / f"hmc5883l_sensorfusion_turn_{axis}.csv").block)
     assert pl.calibration is None and not any(e.kind == "calibration" for e in events)
     refusals = [r for e in events if e.kind == "gate" for r in e.detail["reasons"]]
     assert any(f"one cone about {axis} (a turn about {axis})" in r for r in refusals), refusals[-3:]
     sphere = load_data(REAL / "hmc5883l_sensorfusion_sphere.csv").block
-    pl = Pipeline(n_probes=1, probe_names=["s1"], positions_m=None, min_samples=500, gate_rms_nT=1e9,
-                  check_every_samples=200, window_samples=4000, chunk_samples=100)
-    for i in range(0, sphere.n_samples, 100):
-        pl.process(sphere.slice(i, i + 100))
+    pl, _ = _serve(sphere)
     raw = sphere.field_nT[:, 0]
     batch = fit_ellipsoid(raw)
     assert pl.calibration is not None
