@@ -137,3 +137,19 @@ def test_patterns_group_one_runs_files_and_folders_list_what_they_skip(tmp_path)
         ("links", "a folder inside a folder given"), ("notes.txt", "not a recording (allowed"),
         ("sub", "a folder inside a folder given")]
     assert np.all([Path(p).exists() for p, _ in skipped])
+
+
+def test_one_rotated_file_fitted_alone_says_it_is_part_of_a_run(rotated, capsys):
+    """fit and diagnose of one file of a rotated run use its samples alone; that is said first, naming the folder
+    (these pieces, a few seconds each, are then refused on their own: too few directions)."""
+    from service.wiring.commands.notes import say_part_of_run
+
+    files = sorted(rotated.glob("*.mcap"))
+    for k, f in enumerate(files[1:], 2):
+        _, _, err = run(["fit", f, "--json"], capsys)
+        note = f"{f.name} is file {k} of {len(files)} of one run the service rotated"
+        assert note in err and f"`fluxcal fit {rotated}` takes the whole run" in err
+    assert note in say_part_of_run("diagnose", str(files[-1])) and say_part_of_run("fit", str(rotated)) is None
+    capsys.readouterr()
+    status, out, err = run(["fit", rotated, "--json"], capsys)
+    assert status == 0 and "of one run the service rotated" not in err

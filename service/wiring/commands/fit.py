@@ -18,7 +18,7 @@ from service.numerics.calib.coverage import coverage
 from service.numerics.calib.site import site_from_text
 from service.numerics.usable import temperature_notes, usable_samples
 from service.wiring.coloured_fit import coloured_offsets, direction_offsets
-from service.wiring.commands.notes import say_field_scale, say_read_warnings
+from service.wiring.commands.notes import say_field_scale, say_part_of_run, say_read_warnings
 from service.wiring.fitting import (
     NONLINEAR_PROBE_SAMPLES,
     channel_sums,
@@ -86,6 +86,7 @@ def main(args: Namespace) -> int:
     args.effects = resolve_effects(args.effects)
     data = load_data(args.data)
     say_read_warnings("fit", args.data, data.warnings)
+    part = say_part_of_run("fit", args.data)
     data, left_out = usable_data(data, uses_temperature=bool({"temperature", "thermal"} & set(args.effects)))
     given = data_config(args, data)
     known_total, site = site_total(args, given.total_nT)
@@ -130,6 +131,7 @@ def main(args: Namespace) -> int:
     coverages = [coverage(data.block.field_nT[:, k], centre_nT=p.offset_nT) for k, p in enumerate(cal.probes)]
     warnings = left_out + calibration_warnings(cal, coverages) + ([thinned] if thinned else []) + coloured
     warnings += [given.warning] if given.warning else []
+    warnings += [part] if part else []
     warnings = scale + warnings
     cal.diagnostics["warnings"] = warnings
     if args.out:

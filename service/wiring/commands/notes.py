@@ -34,3 +34,23 @@ def say_field_scale(command: str, source: str, field_nT: Any, probe_names: Seque
     for w in loud:
         print(f"fluxcal {command}: WARNING: {source}: {w}", file=sys.stderr)
     return loud + warnings
+
+
+def say_part_of_run(command: str, source: str) -> str | None:
+    """A file the service rotated out of a longer run, given alone: said, with the folder that holds the whole run
+    (fit and diagnose then use only this file's samples; replay says more, commands/replay.continuation)."""
+    from pathlib import Path
+
+    from service.wiring.fleet import _runs_of
+
+    p = Path(source)
+    if p.is_dir() or p.suffix != ".mcap":
+        return None
+    run = next((r for r in _runs_of(sorted(p.parent.glob("*.mcap"))) if p.name in {f.name for f in r}), [])
+    if len(run) < 2:
+        return None
+    k = [f.name for f in run].index(p.name) + 1
+    note = (f"{p.name} is file {k} of {len(run)} of one run the service rotated ({run[0].name} ... {run[-1].name}); "
+            f"this uses its samples alone: `fluxcal {command} {p.parent}` takes the whole run")
+    print(f"fluxcal {command}: note: {note}", file=sys.stderr)
+    return note
