@@ -33,10 +33,10 @@ def coloured_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) ->
     """Where a probe's residual is coloured, its offsets' and matrix's white-noise standard errors gain the
     noise's wander within the record (numerics.calib.offset_noise), in place: an ellipsoid-fitted probe's (or
     rls-fitted: without forgetting the same fit), and a regression-aligned probe's (probes 2 and up, whatever
-    fitted probe 1); others keep white-noise errors and are said to. A regression-aligned probe's offsets also gain the reference probe's offset errors, which they
-    inherit (taken as independent of the regression's own, though probe 1's noise is in both), on any record.
-    The spectra over at most SPECTRUM_ROWS samples (every k-th: the power law is fitted from 16 cycles per
-    record up)."""
+    fitted probe 1); others keep white-noise errors and are said to. A regression-aligned probe's offsets also
+    gain the reference probe's offset errors, which they inherit (taken as independent of the regression's
+    own, though probe 1's noise is in both), on any record. The spectra over at most SPECTRUM_ROWS samples
+    (every k-th: the power law is fitted from 16 cycles per record up)."""
     from service.numerics.engine.coloured import FLICKER, MAX_GRID_FILL, MIN_CYCLES, sample_grid
 
     b = data.block
@@ -84,9 +84,9 @@ DIRECTION_SAY = 1.5
 
 def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -> list[str]:
     """Each ellipsoid-fitted probe's offsets' (and matrix's, angles', scales') errors at least those of deleting
-    one region of directions at a time (numerics.calib.misfit: a residual tied to the direction, a misfit the model lacks, which neither the
-    white- nor the coloured-noise errors see), in place, where the residual differs between regions beyond
-    chance for white noise; what they raised by more than DIRECTION_SAY, said.
+    one region of directions at a time (numerics.calib.misfit: a residual tied to the direction, a misfit the
+    model lacks, which neither the white- nor the coloured-noise errors see), in place, where the residual
+    differs between regions beyond chance for white noise; what they raised by more than DIRECTION_SAY, said.
     After coloured_offsets (the larger of the two stands); a regression-aligned probe's offsets are not an
     ellipsoid's, and keep theirs."""
     from service.numerics.calib.misfit import direction_jackknife
@@ -126,10 +126,10 @@ def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -
         _say_sizes(p)
         if raised.any():
             axes = ", ".join(f"{a} {s:.3g} -> {j:.3g} nT" for a, s, j, r in zip("xyz", se, jack, raised) if r)
-            out.append(f"{p.name}: the residual differs between regions of field direction beyond its noise within "
-                       f"them (F ratio {got.f_ratio:.3g} over {got.cells} regions, p < 0.001: a misfit the model lacks, "
-                       f"or noise slower than the turning): the offsets move by more than their noise errors when one "
-                       f"region is left out, and their errors are those ({axes})")
+            out.append(f"{p.name}: the residual differs between regions of field direction beyond its noise "
+                       f"within them (F ratio {got.f_ratio:.3g} over {got.cells} regions, p < 0.001: a misfit the "
+                       f"model lacks, or noise slower than the turning): the offsets move by more than their noise "
+                       f"errors when one region is left out, and their errors are those ({axes})")
         if got.failed:
             out.append(f"{p.name}: without {got.failed} of the {got.cells + got.failed} regions of direction the rest "
                        f"fix no ellipsoid: the fit leans on those alone, and its errors are lower bounds")

@@ -178,10 +178,8 @@ def load_config(path: str | Path, *, source_required: bool = True) -> FluxcalCon
     raw = read_toml(path)
     if source_required:
         require_source(raw, str(path))
-    elif not raw:
-        raise ConfigError(f"{path}: the file is empty (or only comments): --config gives the probe positions "
-                          f"([[probes]] position_m) and the total field ([estimator] total_nT); give a configuration "
-                          f"that has them, or leave --config out")
+    else:
+        require_content(raw, str(path))
     cfg = config_from_dict(raw, str(path))
     base = Path(path).resolve().parent
 
@@ -214,6 +212,15 @@ def require_source(raw: dict, path: str) -> None:
             "it has no [source] section" if src is None else "its [source] names no kind")
     raise ConfigError(f"{path}: [source] kind is required (allowed: {allowed}): {what}; a configuration must say "
                       f"where the data come from (kind = \"sim\" for the simulated unit, see configs/*.toml)")
+
+
+def require_content(raw: dict, path: str) -> None:
+    """A configuration that only describes an array (fit's and diagnose's --config) needs no source, but an
+    emptied file gives nothing and is refused, not taken as no configuration."""
+    if not raw:
+        raise ConfigError(f"{path}: the file is empty (or only comments): --config gives the probe positions "
+                          f"([[probes]] position_m) and the total field ([estimator] total_nT); give a configuration "
+                          f"that has them, or leave --config out")
 
 
 def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:

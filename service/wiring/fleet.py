@@ -49,10 +49,10 @@ def _runs_in(directory: Path, skipped: list[tuple[str, str]] | None = None) -> l
             files.append(f)
         elif skipped is not None:
             skipped.append((str(f), NOT_SEARCHED.format(directory) if f.is_dir() else NOT_RECORDING))
-    return _runs_of(files)
+    return runs_of(files)
 
 
-def _runs_of(files: list[Path]) -> list[list[Path]]:
+def runs_of(files: list[Path]) -> list[list[Path]]:
     """Files (in name order) grouped into recordings as _runs_in does."""
     runs: list[list[Path]] = []
     for f in files:
@@ -122,12 +122,12 @@ def expand_inputs(items: Iterable[str], links: Path, skipped: list[tuple[str, st
 
 def _runs_of_files(files: list[Path]) -> list[list[Path]]:
     """Files a pattern matched (in name order): the rotated files of one run in one folder together, as in a
-    folder (_runs_of); every other file alone."""
+    folder (runs_of); every other file alone."""
     runs: list[list[Path]] = []
     group: list[Path] = []
     for f in [*files, None]:
         if group and (f is None or f.parent != group[-1].parent):
-            runs += _runs_of(group)
+            runs += runs_of(group)
             group = []
         if f is not None:
             group.append(f)

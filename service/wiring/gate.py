@@ -89,19 +89,17 @@ class Gate:
             covs.append(cov.fraction)
             conds.append(float(est.condition_))
             corr = p.apply(raw)
+            mag = np.linalg.norm(corr, axis=1)
             if ref is None:
-                mag = np.linalg.norm(corr, axis=1)
                 rms = float(np.std(mag))
             else:
                 r = ref[np.isfinite(window.field_nT[:, k]).all(axis=1)] if isinstance(ref, np.ndarray) else ref
-                rms = float(np.sqrt(np.mean((np.linalg.norm(corr, axis=1) - r) ** 2)))
+                rms = float(np.sqrt(np.mean((mag - r) ** 2)))
             rmss.append(rms)
             name = self.probe_names[k]
             # one turn about one axis with some wobble: its offset along the axis rests on the wobble (as the
             # batch fit refuses it: excitation.band_problem); a real hand turn was accepted 63,000 nT off
-            mag = np.linalg.norm(corr, axis=1)
-            turn = band_problem(corr / np.where(mag > 0, mag, 1.0)[:, None], rms, float(np.mean(mag))) \
-                if corr.shape[0] >= 3 and np.isfinite(rms) else ""
+            turn = band_problem(corr, rms, float(np.mean(mag))) if np.isfinite(rms) else ""
             if turn:
                 reasons.append(f"{name}: {turn}")
             if not cov.usable:

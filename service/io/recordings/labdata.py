@@ -51,7 +51,7 @@ def load_data(path: str | Path, *, max_samples: int | None = None, max_probe_sam
     if not p.exists():
         raise DataError(f"{p}: no such file")
     if p.is_dir():
-        _check_one_run(p)
+        check_one_run(p)
     if p.is_dir() or p.suffix.lower() == ".mcap":
         from .reader import read_samples  # only when an MCAP file is given
 
@@ -68,7 +68,7 @@ def load_data(path: str | Path, *, max_samples: int | None = None, max_probe_sam
     return replace(lab, block=lab.block.rows(np.arange(0, n, every)), every=every, n_read=n)   # a copy
 
 
-def _check_one_run(p: Path) -> None:
+def check_one_run(p: Path) -> None:
     """A directory is read as one run of rotated MCAP files: one without any, or holding several runs (each
     starts with a -0001 file), is a DataError saying what to give instead."""
     files = sorted(f.name for f in p.glob("*.mcap") if f.is_file())

@@ -45,7 +45,7 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused, DataError
 
-from .excitation import PLANARITY_MIN, band_problem, coverage_hint, excitation_problem  # noqa: F401 - PLANARITY_MIN re-exported
+from .excitation import PLANARITY_MIN, band_problem, coverage_hint, excitation_problem  # noqa: F401 (re-exported)
 from .model import ProbeCalibration, named, triangular_params
 from .order import (
     EXPANSIONS,
@@ -399,9 +399,7 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
         sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT,
                             order=ORDERS[ORDERS.index(sol.order) + 1])
         fit, missing = _fit_result(sol, raw, name)
-    corr = fit.calibration.apply(raw)
-    problem = band_problem(corr / np.linalg.norm(corr, axis=1, keepdims=True), fit.residual_rms_nT,
-                           float(np.sqrt(fit.f2_ref)))
+    problem = band_problem(fit.calibration.apply(raw), fit.residual_rms_nT, float(np.sqrt(fit.f2_ref)))
     if problem:
         raise CalibrationRefused(f"{name}: {problem}")
     if any(m.startswith("offset") for m in missing):

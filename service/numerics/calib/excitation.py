@@ -45,14 +45,20 @@ def direction_band(directions: np.ndarray) -> tuple[float, np.ndarray]:
     return float(np.sqrt(3.0) * np.std(polar)), axis
 
 
-def band_problem(directions: np.ndarray, residual_rms: float, field: float) -> str:
-    """Why directions in a narrow cone-shaped band about one axis (a single-axis turn with some wobble) do
-    not fix the offset along it, given the fit's residual RMS and the field (same unit): "" if they spread
-    wider than BAND_MIN_DEG or the misfit's lever on that offset stays below LEVER_MAX of the field (nT)."""
+def band_problem(corrected: np.ndarray, residual_rms: float, field: float) -> str:
+    """Why calibrated samples (N, 3) whose directions lie in a narrow cone-shaped band about one axis (a
+    single-axis turn with some wobble) do not fix the offset along it, given the fit's residual RMS and the
+    field (same unit): "" if they spread wider than BAND_MIN_DEG or the misfit's lever on that offset stays
+    below LEVER_MAX of the field (nT). The batch fit and the online gate ask it alike."""
+    c = np.asarray(corrected, float)
+    if c.shape[0] < 3:
+        return ""
+    mag = np.linalg.norm(c, axis=1, keepdims=True)
+    directions = c / np.where(mag > 0, mag, 1.0)
     band, normal = direction_band(directions)
     if band >= BAND_MIN_DEG:
         return ""
-    spread = float(np.std(np.asarray(directions, float) @ normal))
+    spread = float(np.std(directions @ normal))
     lever = residual_rms / max(spread, 1e-12)
     if not lever > LEVER_MAX * field:
         return ""

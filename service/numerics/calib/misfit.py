@@ -8,10 +8,11 @@ sphere leans on the misfit of the directions it has, and its offsets move by sev
 when a region of directions is added or taken away (cuts of the boards' full spheres: a quarter of their
 offsets beyond two stated errors from the full fit, an eighth beyond three).
 
-The delete-a-region jackknife says it (for the offsets, the matrix and its named angles and scales): the directions about the fit are cut into DIRECTION_CELLS² cells per
-cube face, the fit is repeated without each cell that holds samples (least squares from per-cell normal equations
-about the whole data's centre: one pass over the samples, hours of data in chunks), and the spread of the offsets over those
-fits, sqrt((G − 1)/G Σ (o_g − ō)²), is their error under a misfit tied to the direction. On white noise it
+The delete-a-region jackknife says it (for the offsets, the matrix and its named angles and scales): the
+directions about the fit are cut into DIRECTION_CELLS² cells per cube face, the fit is repeated without each
+cell that holds samples (least squares from per-cell normal equations about the whole data's centre: one pass
+over the samples, hours of data in chunks), and the spread of the offsets over those fits,
+sqrt((G − 1)/G Σ (o_g − ō)²), is their error under a misfit tied to the direction. On white noise it
 agrees with the white-noise error (a direction then carries no misfit of its own).
 
 A reduced model order (axes, sphere), chosen because the held-out blocks do not gain from more terms, holds
@@ -117,10 +118,10 @@ def direction_jackknife(field_nT: np.ndarray, total_nT, order: str, offset_nT: n
         order_rows = np.argsort(cells, kind="stable")
         cs = cells[order_rows]
         starts = np.flatnonzero(np.r_[True, cs[1:] != cs[:-1]])
-        for s, e in zip(starts, np.r_[starts[1:], cs.size]):
-            p = phi[order_rows[s:e]]
-            grams[cs[s]] += p.T @ p
-            rhs[cs[s]] += p.sum(axis=0)
+        for lo, hi in zip(starts, np.r_[starts[1:], cs.size]):     # ≤ 54 regions: one product each
+            part = phi[order_rows[lo:hi]]
+            grams[cs[lo]] += part.T @ part
+            rhs[cs[lo]] += part.sum(axis=0)
     used = np.flatnonzero(grams[:, 0, 0] > 0)
     if used.size < MIN_CELLS:
         return None

@@ -36,13 +36,11 @@ from service.wiring.progress import Progress  # noqa: E402
 def config_geometry(path: str, n_probes: int) -> tuple[np.ndarray | None, float | None]:
     """Probe positions (P, 3) and the total field from a configuration file (recorded_config.geometry: the
     sections diagnose uses validated strictly, unknown section names errors)."""
+    from service.wiring.config import require_content
     from service.wiring.recorded_config import geometry
 
     raw = read_toml(path)
-    if not raw:
-        raise ConfigError(f"{path}: the file is empty (or only comments): --config gives diagnose the probe positions "
-                          f"([[probes]] position_m) and the total field ([estimator] total_nT); give a configuration "
-                          f"that has them, or leave --config out")
+    require_content(raw, path)
     try:
         return geometry(raw, n_probes)
     except ConfigError as e:

@@ -41,12 +41,12 @@ def say_part_of_run(command: str, source: str) -> str | None:
     (fit and diagnose then use only this file's samples; replay says more, commands/replay.continuation)."""
     from pathlib import Path
 
-    from service.wiring.fleet import _runs_of
+    from service.wiring.fleet import runs_of
 
     p = Path(source)
     if p.is_dir() or p.suffix != ".mcap":
         return None
-    run = next((r for r in _runs_of(sorted(p.parent.glob("*.mcap"))) if p.name in {f.name for f in r}), [])
+    run = next((r for r in runs_of(sorted(p.parent.glob("*.mcap"))) if p.name in {f.name for f in r}), [])
     if len(run) < 2:
         return None
     k = [f.name for f in run].index(p.name) + 1

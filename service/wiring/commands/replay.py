@@ -27,24 +27,12 @@ import numpy as np
 from drivers.block import SampleBlock
 from drivers.errors import RecordingError
 from service.io.calfile import calibration_from_dict
+from service.io.recordings.labdata import check_one_run
 from service.io.recordings.reader import read_recording
 from service.wiring.commands.notes import say_read_warnings
 from service.wiring.config import config_from_dict, load_config, rate_stated
 from service.wiring.daemon import build_pipeline
 from service.wiring.progress import Progress
-
-
-def _check_one_run(path: Path) -> None:
-    """A directory may hold the rotated files of one run; several runs (each starts with a -0001 file)
-    cannot be replayed as one: the pipeline would carry one run's state into the next, and the live
-    output it is compared with was not made that way."""
-    if not path.is_dir():
-        return
-    starts = sorted(p.name for p in path.glob("*-0001.mcap"))
-    if len(starts) > 1:
-        shown = ", ".join(starts[:4]) + (", ..." if len(starts) > 4 else "")
-        raise RecordingError(f"{path}: holds {len(starts)} separate runs ({shown}); replay one run at a time: "
-                             f"its -0001 file, or a directory holding only that run's files")
 
 
 def continuation(path: Path, rec) -> str | None:
@@ -84,7 +72,8 @@ def _with_rate(raw: dict, recording: str) -> dict:
 
 
 def main(args: Namespace) -> int:
-    _check_one_run(Path(args.recording))
+    if Path(args.recording).is_dir():
+        check_one_run(Path(args.recording))     # a folder of one run (the reader's rule, as fit's)
     rec = read_recording(args.recording)
     say_read_warnings("replay", args.recording, rec.report.warnings)
     later = continuation(Path(args.recording), rec)
