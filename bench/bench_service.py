@@ -2,7 +2,8 @@
 
 1. Replay throughput in probe-samples/s, including MCAP decode and write, of a 4-probe 1 kHz
    recording cut into the 20-sample blocks a live unit delivers, against the bare numerics
-   (ICD parse + calibrate) of the same samples in the same run.
+   (ICD parse + calibrate) of the same samples in the same run, and the floor: the parts of that replay no
+   implementation with the same outputs can skip, each timed alone.
 2. Live latency from a frame written to the pty to its corrected Zenoh message received, p50 and
    p99, and the service's CPU use, at 1 kHz with 4 probes.
 
@@ -38,7 +39,7 @@ from drivers.block import SampleBlock
 from drivers.icd import encode_serial, parse_serial
 from drivers.sim.config import load_sim_config
 from drivers.sim.unit import Unit
-from service.io.calfile import save_calibration
+from service.io.calfile import load_calibration, save_calibration
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 
 N_PROBES, RATE = 4, 1000.0
@@ -86,6 +87,7 @@ def bench_replay(tmp: Path, seconds: float) -> None:
     save_calibration(ArrayCalibration("ellipsoid", None, [ProbeCalibration(p["name"], np.zeros(3), np.eye(3))
                                                           for p in PROBES]), initial)
     fcfg = config_from_dict(tomllib.loads(config_text(tmp, '[source]\nkind = "sim"', 7447, initial)))
+    start = load_calibration(initial)
     # replay path: MCAP decode -> pipeline (estimator, gate, correction) -> MCAP write; best of 3
     times, phases = [], []
     for rep in range(3):
@@ -93,7 +95,7 @@ def bench_replay(tmp: Path, seconds: float) -> None:
         rec = read_recording(tmp / "rep" / "in.mcap")
         whole = rec.raw                          # every raw sample, as `fluxcal replay` takes them
         t_decode = time.perf_counter() - t0
-        pipe = build_pipeline(fcfg)
+        pipe = build_pipeline(fcfg, start)      # corrected from the first sample, as a recording's initial event does
         t_pipe = time.perf_counter() - t0 - t_decode
         out = McapLogger(tmp / "rep", unit="bench", filename=f"out{rep}.mcap")
         for i in range(0, whole.n_samples, 20000):
@@ -129,6 +131,66 @@ def bench_replay(tmp: Path, seconds: float) -> None:
     dec, pip, wri = phases[times.index(t_replay)]
     print(f"  best run: MCAP decode {dec * 1e3:.0f} ms, pipeline {pip * 1e3:.0f} ms, MCAP write {wri * 1e3:.0f} ms; "
           f"bare {t_bare * 1e3:.1f} ms")
+    floor_parts(block, t_bare)
+
+
+def floor_parts(block: SampleBlock, t_bare: float) -> None:
+    """The work no replay with unchanged outputs can skip, each part timed alone on the same samples (best of 3):
+    the input's lz4 frames decompressed, the estimator's normal equations accumulated in the pipeline's 0.5-s
+    chunks, the correction with its differences and tensor, and the raw and corrected streams compressed with
+    lz4 as the logger writes them. Their sum against the 2 x bare that a 0.5x ratio allows."""
+    import lz4.frame
+    from drivers.encoding import encode_raw
+    from service.io.encoding import encode_corrected
+    from service.numerics.calib.rls import RlsEllipsoid
+    from service.numerics.outputs import products
+
+    def best(f, k: int = 3) -> float:
+        ts = []
+        for _ in range(k):
+            t0 = time.perf_counter()
+            f()
+            ts.append(time.perf_counter() - t0)
+        return min(ts)
+
+    raw_bytes = encode_raw(block)
+    packed = lz4.frame.compress(raw_bytes)
+    m, o = np.stack([np.eye(3)] * N_PROBES), np.zeros((N_PROBES, 3))
+    pos = np.array([p["position_m"] for p in PROBES], dtype=float)
+
+    def rls() -> None:
+        est = RlsEllipsoid(n_probes=N_PROBES)
+        for i in range(0, block.n_samples, 500):
+            est.partial_fit(block.field_nT[i:i + 500], total_nT=52500.0)
+
+    def correct(lo: int = 0, hi: int | None = None):
+        b = block.slice(lo, block.n_samples if hi is None else hi)
+        d = b.field_nT - o[None]                     # the pipeline's element-by-element product
+        c = d[..., 0:1] * m[None, :, :, 0] + d[..., 1:2] * m[None, :, :, 1] + d[..., 2:3] * m[None, :, :, 2]
+        return products(b.t_s, b.seq, c, pos, 1)
+
+    def correct_all() -> None:                       # in the pipeline's spans: one gate check (5 s) each
+        for i in range(0, block.n_samples, 5000):
+            correct(i, i + 5000)
+
+    corrected_bytes = encode_corrected(correct())
+    mb = 1 << 20                                     # the logger's chunks: 1 MiB before compression
+
+    def compress() -> None:
+        for data in (raw_bytes, corrected_bytes):
+            for i in range(0, len(data), mb):
+                lz4.frame.compress(data[i:i + mb])
+
+    pack = "lz4 compress of raw + corrected out"
+    parts = {"lz4 decompress of the input": best(lambda: lz4.frame.decompress(packed)),
+             "RLS normal equations": best(rls),
+             "correction, differences, tensor": best(correct_all),
+             pack: best(compress)}
+    total = sum(parts.values())
+    print("  floor, each part alone: " + ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in parts.items())
+          + f"; sum {total * 1e3:.0f} ms against the {2e3 * t_bare:.0f} ms a 0.5x ratio allows "
+          f"(at best {t_bare / total:.2f}x; {(len(raw_bytes) + len(corrected_bytes)) / 1e6:.1f} MB written; "
+          f"without compression, [mcap] compression = \"none\", at best {t_bare / (total - parts[pack]):.2f}x)")
 
 
 def cpu_seconds(pid: int) -> float:
