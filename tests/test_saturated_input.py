@@ -62,6 +62,11 @@ def test_simulated_csv_carries_saturation_as_nan_and_fit_leaves_it_out(tmp_path,
     assert sat[0] > 500 and sat[1] > 100                             # both probes saturate somewhere
     out = tmp_path / "faults.csv"
     assert cli(["simulate", "--config", str(cfg), "--out", str(out)]) == 0
+    said = capsys.readouterr().err                                   # simulate counts what it saturated
+    assert f"s1: {sat[0]} samples saturated (beyond range_nT 50000 nT)" in said
+    assert f"s2: {sat[1]} samples saturated" in said
+    n_invalid = int(np.count_nonzero(flags & FLAG_TEMP_INVALID))
+    assert 900 < n_invalid < 1500 and f"{n_invalid} samples with the temperature marked invalid" in said
     body = [ln for ln in out.read_text().splitlines() if not ln.startswith("#")][1:]
     assert not any("2147483" in ln for ln in body)                   # the rails are never written as numbers
     blk = load_csv(out).block

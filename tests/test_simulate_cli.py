@@ -168,3 +168,23 @@ def test_example_configs_pass_the_service_loader():
     for name in ("sim-gradiometer.toml", "sim-cross.toml", "serial-example.toml", "can-example.toml"):
         cfg = load_config(CONFIGS / name)
         assert cfg.unit.n_probes == len(cfg.probes)
+
+
+def test_two_outputs_of_one_name_keep_both_truths(tmp_path, capsys):
+    """run.csv, then run.mcap of another world: the first truth is not overwritten (the second goes to
+    run.mcap.truth.json, said), and writing run.csv again replaces its own truth in place."""
+    cfg = tmp_path / "other.toml"
+    cfg.write_text((CONFIGS / "sim-gradiometer.toml").read_text().replace("seed = 2024 ", "seed = 7 ", 1))
+    assert "seed = 7 " in cfg.read_text()
+    assert cli(["simulate", "--out", str(tmp_path / "run.csv")]) == 0
+    first = json.loads((tmp_path / "run.truth.json").read_text())
+    capsys.readouterr()
+    assert cli(["simulate", "--config", str(cfg), "--out", str(tmp_path / "run.mcap")]) == 0
+    err = capsys.readouterr().err
+    assert "run.truth.json describes another data file beside it: this run's truth is run.mcap.truth.json" in err
+    assert json.loads((tmp_path / "run.truth.json").read_text()) == first
+    second = json.loads((tmp_path / "run.mcap.truth.json").read_text())
+    assert second["data_file"] == "run.mcap" and second["seed"] == 7 and first["seed"] == 2024
+    assert cli(["simulate", "--out", str(tmp_path / "run.csv")]) == 0
+    assert "describes another" not in capsys.readouterr().err
+    assert json.loads((tmp_path / "run.truth.json").read_text()) == first

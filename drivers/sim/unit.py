@@ -250,6 +250,9 @@ class Unit:
         self._serial_u = ChunkedRandom(seed, STREAM_SERIAL, (8,), kind="uniform")
         self._garbage = ChunkedRandom(seed, STREAM_GARBAGE, (config.faults.garbage_max_bytes,), kind="bytes")
         self._can_u = ChunkedRandom(seed, STREAM_CAN, (3 * self.n_probes,), kind="uniform")
+        # what digitise has made so far (a range digitised twice counts twice): for a writer's summary
+        self.saturated_samples = np.zeros(self.n_probes, dtype=np.int64)    # per probe, any axis on a rail
+        self.temp_invalid_samples = 0
 
     # -- time --------------------------------------------------------------------------------------
     def index_at(self, t_s: float) -> int:
@@ -283,6 +286,8 @@ class Unit:
         if f.temp_invalid_fraction > 0:
             bad = self._temp_invalid.draw(start, stop) < f.temp_invalid_fraction
             flags[bad] |= FLAG_TEMP_INVALID
+            self.temp_invalid_samples += int(np.count_nonzero(bad))
+        self.saturated_samples += np.count_nonzero(sat.any(axis=2), axis=0)
         index = np.arange(start, stop, dtype=np.int64)
         t_us = self.config.t_us_start + np.rint(index * (1e6 / self.rate_hz)).astype(np.int64)
         return UnitSamples(index=index, seq=self.config.seq_start + index, t_us=t_us, counts=counts,

@@ -33,6 +33,32 @@ def truth_path(out: Path) -> Path:
     return out.with_name(out.stem + ".truth.json")
 
 
+def free_truth_path(out: Path) -> Path:
+    """truth_path(out), unless that file holds the truth of another data file that is still beside it (run.csv
+    written before run.mcap): then FILE.<suffix>.truth.json, so that neither truth is lost."""
+    path = truth_path(out)
+    try:
+        other = json.loads(path.read_text(encoding="utf-8")).get("data_file")
+    except (OSError, ValueError, AttributeError):
+        return path
+    if isinstance(other, str) and other != out.name and (out.parent / other).exists():
+        return out.with_name(out.name + ".truth.json")
+    return path
+
+
+def _say_faults(unit: Unit, names: list[str]) -> None:
+    """How many samples the run saturated or marked temperature-invalid (NaN and flagged in the output)."""
+    cfg = unit.config
+    limit = f"range_nT {cfg.range_nT:g} nT" if cfg.range_nT is not None else "the int32 rails"
+    for name, k in zip(names, unit.saturated_samples.tolist()):
+        if k:
+            print(f"fluxcal simulate: {name}: {k} samples saturated (beyond {limit}): NaN in the output, "
+                  f"flag bit0 set", file=sys.stderr)
+    if unit.temp_invalid_samples:
+        print(f"fluxcal simulate: {unit.temp_invalid_samples} samples with the temperature marked invalid "
+              f"(flag bit1; NaN in a CSV)", file=sys.stderr)
+
+
 def load_simulation(path: str | None) -> tuple[SimConfig, str]:
     """The [sim] world and the unit name of a configuration file (validated as the service does), or the
     built-in gradiometer."""
@@ -205,7 +231,7 @@ def main(args: Any) -> int:
         raise ConfigError(f"{args.config or 'built-in'}: sim.duration_s: 0 means 'until stopped', which cannot be "
                           f"written to a file; give a duration in seconds")
     unit = Unit(sim)
-    tpath = truth_path(out)
+    tpath = free_truth_path(out)
     truth = unit.world.truth()
     truth.update({"unit": unit_name, "data_file": out.name, "probe_names": [p.name for p in sim.probes]})
 
@@ -233,6 +259,10 @@ def main(args: Any) -> int:
         tmp_data.unlink(missing_ok=True)
         tmp_truth.unlink(missing_ok=True)
     effects = ", ".join(unit.world.active_effects) or "none"
+    _say_faults(unit, [p.name for p in sim.probes])
+    if tpath != truth_path(out):
+        print(f"fluxcal simulate: {truth_path(out).name} describes another data file beside it: this run's truth "
+              f"is {tpath.name}", file=sys.stderr)
     print(f"fluxcal simulate: {n} samples of {sim.n_probes} probe(s) ({n / sim.rate_hz:g} s at {sim.rate_hz:g} Hz, "
           f"unit {unit_name!r}, motion {sim.motion.kind}, effects: {effects}) -> {out}; truth -> {tpath}",
           file=sys.stderr)
