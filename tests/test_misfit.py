@@ -87,9 +87,13 @@ def test_white_noise_keeps_its_errors_and_1f_noise_is_said(seed):
     assert not got.significant and got.f_ratio < 2.0
     assert np.all(np.abs(fit.calibration.offset_nT - O_TRUE) < 4 * fit.calibration.offset_se_nT + 1.0)
     pink = wobbling_turns("z", 40.0, seed, "1/f")
-    fit = fit_ellipsoid(pink, TOTAL_NT)
+    fit = fit_ellipsoid(pink, TOTAL_NT, errors="white")
     got = direction_jackknife(pink, TOTAL_NT, fit.order, fit.calibration.offset_nT, fit.calibration.matrix)
     assert got.significant and np.median(got.offset_se / fit.calibration.offset_se_nT) > 2.0
+    # the fit's own errors (time order: leaving one stretch of time out) see the same, and cover the truth
+    timed = fit_ellipsoid(pink, TOTAL_NT).calibration
+    assert np.median(timed.offset_se_nT / fit.calibration.offset_se_nT) > 2.0
+    assert np.all(np.abs(timed.offset_nT - O_TRUE) < 4 * timed.offset_se_nT), (timed.offset_nT, timed.offset_se_nT)
 
 
 @needs_real

@@ -62,7 +62,8 @@ def fit_probe(method: str, raw: np.ndarray, total: TotalField, block: SampleBloc
               inclination_deg: float | None = None) -> ProbeCalibration:
     """One probe's calibration in its own orthogonal frame."""
     if method == "ellipsoid":
-        return fit_ellipsoid(raw, total.values, name=name).calibration
+        # the white-noise errors: coloured_fit adds the noise's wander and the directions' spread to them
+        return fit_ellipsoid(raw, total.values, name=name, errors="white").calibration
     if method == "tmi":
         from service.numerics.calib.tmi import fit_tmi
 

@@ -373,7 +373,7 @@ def _propagate(theta: np.ndarray, cov: np.ndarray, scale: float, f2m: float,
 
 def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
                   max_condition: float = MAX_CONDITION, noise_nT: float | None = None,
-                  order: str = "auto") -> EllipsoidFit:
+                  order: str = "auto", errors: str = "time") -> EllipsoidFit:
     """Fit offset and upper-triangular matrix to (N, 3) raw samples of one probe.
 
     total_nT: the reference total field per sample (N,), a constant, or None (unknown: the mean raw
@@ -388,9 +388,15 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     the field (excitation.band_problem), a badly conditioned design, or offsets whose standard errors
     are a tenth of the field; the message names the missing directions and the motion that would fill them.
     noise_nT: the noise of |b| if known; standard errors then use it (see `solve_quadric`).
+    errors: "time" (samples in time order): where the residual differs between stretches of time beyond its
+    noise (1/f noise, a misfit following the motion) the errors are at least those of leaving one stretch out
+    (misfit.add_time_spread); "white": the white-noise errors alone, for a caller that adds its own (`fluxcal
+    fit`'s coloured-noise and direction errors). theta_cov stays the white-noise one either way.
     """
     if order != "auto" and order not in ORDERS:
         raise ValueError(f"order: {order!r} is not allowed (allowed: auto, {', '.join(ORDERS)})")
+    if errors not in ("time", "white"):
+        raise ValueError(f"errors: {errors!r} is not allowed (allowed: time, white)")
     raw = np.asarray(field_nT, float)
     sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT, order=order)
     fit, missing = _fit_result(sol, raw, name)
@@ -415,6 +421,9 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
                                                        raw, name)[0], name)
     fit.order = sol.order
     fit.choice = choice
+    if errors == "time":
+        from .misfit import add_time_spread      # (solve_quadric refused rows holding NaN)
+        bias += add_time_spread(fit, raw, total_nT, name)
     fit.warnings = order_warnings(fit.calibration, fit.order, missing, choice) + bias
     fit.calibration.model_order = sol.order
     fit.calibration.warnings = list(fit.warnings)

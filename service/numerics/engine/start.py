@@ -35,7 +35,7 @@ def initial_linear(data: EffectData, reference_nT: np.ndarray | float | None) ->
                 # refuses planar data (a single-axis turn): then our own start, which GN refines
                 with warnings.catch_warnings(), np.errstate(all="ignore"):
                     warnings.simplefilter("ignore")
-                    res = fit_ellipsoid(raw, reference_nT, name=data.probe_names[k])
+                    res = fit_ellipsoid(raw, reference_nT, name=data.probe_names[k], errors="white")
                 cal = getattr(res, "calibration", res)
                 o = np.asarray(cal.offset_nT, dtype=np.float64).reshape(3)
                 m = np.asarray(cal.matrix, dtype=np.float64).reshape(3, 3)
