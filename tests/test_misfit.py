@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_coverage import O_TRUE, TOTAL_NT, wobbling_turns
+from test_coverage import M_TRUE, O_TRUE, TOTAL_NT, _pink, wobbling_turns
 
 from service.io.recordings.labdata import load_data
 from service.numerics.calib.ellipsoid import fit_ellipsoid
-from service.numerics.calib.misfit import direction_jackknife
+from service.numerics.calib.misfit import direction_jackknife, time_jackknife
 from service.wiring import cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -175,3 +175,50 @@ def test_the_fit_step_says_the_errors_are_lower_bounds_and_keeps_a_rotated_matri
     rotated_jack = np.sqrt((r ** 2) @ (got.matrix_se ** 2))
     assert np.allclose(turned.matrix_se, np.maximum(before, rotated_jack))
     assert turned.matrix_se[1, 0] > before[1, 0]                  # a rotated element raised, not left alone
+
+
+def _tumble(seed: int, noise: str, n: int = 4000) -> np.ndarray:
+    """A slow tumble over the whole sphere (three turns in azimuth, two in elevation) in the 50,000 nT field,
+    with 1 nT white or 20 nT rms 1/f noise."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, 1.0, n)
+    az = 2 * np.pi * 3 * t + rng.uniform(0, 2 * np.pi)
+    el = 0.95 * np.arcsin(np.sin(2 * np.pi * 2.3 * t + rng.uniform(0, 2 * np.pi)))
+    d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    raw = np.linalg.solve(M_TRUE, (TOTAL_NT * d).T).T + O_TRUE
+    return raw + (rng.normal(0, 1.0, raw.shape) if noise == "white" else _pink(n, 20.0, rng))
+
+
+def test_the_fits_errors_hold_under_1f_noise_and_white_noise_keeps_its_own():
+    """fit_ellipsoid's errors in time order (misfit.time_jackknife where the residual differs between stretches
+    of time): on eight tumbles under 1/f noise the offsets' z (error over stated error) has an rms near one
+    where the white-noise errors leave it several times larger; under white noise the test never fires and the
+    errors are the white-noise ones exactly."""
+    z_white, z_time = [], []
+    for seed in range(8):
+        raw = _tumble(seed, "1/f")
+        white = fit_ellipsoid(raw, TOTAL_NT, errors="white").calibration
+        fit = fit_ellipsoid(raw, TOTAL_NT)
+        z_white.append((white.offset_nT - O_TRUE) / white.offset_se_nT)
+        z_time.append((fit.calibration.offset_nT - O_TRUE) / fit.calibration.offset_se_nT)
+        assert any("stretches of time" in w for w in fit.warnings)
+        assert np.all(fit.calibration.matrix_se >= white.matrix_se)
+        clean = _tumble(seed, "white")
+        a, b = fit_ellipsoid(clean, TOTAL_NT, errors="white"), fit_ellipsoid(clean, TOTAL_NT)
+        assert np.array_equal(a.calibration.offset_se_nT, b.calibration.offset_se_nT)
+        assert not any("stretches of time" in w for w in b.warnings)
+    rms_white, rms_time = (float(np.sqrt(np.mean(np.square(z)))) for z in (z_white, z_time))
+    assert rms_white > 4.0 and 0.6 < rms_time < 1.6 and np.abs(z_time).max() < 4.0, (rms_white, rms_time)
+
+
+def test_the_time_jackknife_does_not_depend_on_origin_or_unit():
+    raw = _tumble(3, "1/f")
+    fit = fit_ellipsoid(raw, TOTAL_NT)
+    a = time_jackknife(raw, TOTAL_NT, fit.order, fit.calibration.offset_nT, fit.calibration.matrix)
+    shift = np.array([3e5, -2e5, 1e5])
+    moved = (raw + shift) * 1e-3
+    b = time_jackknife(moved, TOTAL_NT * 1e-3, fit.order, (fit.calibration.offset_nT + shift) * 1e-3,
+                       fit.calibration.matrix)
+    assert a.significant and b.significant and a.cells == b.cells == 20
+    np.testing.assert_allclose(b.offset_se / 1e-3, a.offset_se, rtol=1e-5)
+    np.testing.assert_allclose(b.f_ratio, a.f_ratio, rtol=1e-5)
