@@ -104,7 +104,7 @@ def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -
             signs = np.where(np.diag(tri) < 0, -1.0, 1.0)
             rot, tri = rot * signs, tri * signs[:, None]
             got = direction_jackknife(data.block.field_nT[:, k], total.values, p.model_order or "full",
-                                      p.offset_nT, tri)
+                                      p.offset_nT, tri, needed_only=True)
         except (np.linalg.LinAlgError, ValueError):
             continue
         if got is None or not got.significant:

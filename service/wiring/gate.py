@@ -14,6 +14,7 @@ from drivers.ringbuffer import RingBuffer
 from service.numerics.calib import alignment
 from service.numerics.calib import coverage as coverage_mod
 from service.numerics.calib.excitation import band_problem
+from service.numerics.calib.misfit import add_direction_spread, add_time_spread
 from service.numerics.calib.model import ArrayCalibration
 from service.numerics.calib.rls import RlsEllipsoid
 
@@ -36,6 +37,9 @@ class Gate:
         self.align, self.min_samples, self.total_nT = align, min_samples, total_nT
         self.coverage, self.condition, self.rms_nT = coverage, condition, rms_nT
         self.refusal: str | None = None   # why the last check found no candidate
+        # the candidate's errors at least the ring buffer's spread in time and direction (_time_errors); off for
+        # a caller that adds its own (`fit --method rls`: the coloured-noise and direction errors)
+        self.spread_errors = True
         self._window: SampleBlock | None = None
         self._window_key: tuple | None = None   # (ring, samples appended, length, max_samples) it was taken at
 
@@ -64,6 +68,8 @@ class Gate:
         except (CalibrationRefused, FluxcalError) as e:
             self.refusal = str(e)
             return None
+        if self.spread_errors:
+            self._time_errors(probes, ring)
         window = self.window(ring)
         if len(estimators) > 1 and self.align != "none" and window.n_samples >= 3:
             probes = alignment.align_probes(probes, window.field_nT, method=self.align)
@@ -72,6 +78,27 @@ class Gate:
                                 span=(float(window.t_s[0]) if window.n_samples else 0.0,
                                       float(window.t_s[-1]) if window.n_samples else 0.0,
                                       int(estimators[0].n_samples_)))
+
+    #: samples of the ring buffer (evenly spaced) over which the candidate's errors are checked in time
+    TIME_SAMPLES = 4000
+
+    def _time_errors(self, probes: list, ring: RingBuffer) -> None:
+        """Each probe's errors at least those of leaving one stretch of the ring buffer out, and one region of
+        field direction, where its residual differs between them beyond chance for white noise (misfit: as the
+        batch fit's): the estimator's own errors are white-noise ones, and a real board's offsets were 4-7 of
+        them from those its authors published."""
+        n = len(ring)
+        w = ring.take(np.arange(0, n, max(1, -(-n // self.TIME_SAMPLES))))
+        ref = reference_total(w, self.total_nT)
+        for k, p in enumerate(probes):
+            raw = w.field_nT[:, k]
+            ok = np.isfinite(raw).all(axis=1)
+            if isinstance(ref, np.ndarray):
+                ok &= np.isfinite(ref)
+            total = ref[ok] if isinstance(ref, np.ndarray) else ref
+            if np.count_nonzero(ok) >= 200 and p.offset_se_nT is not None and p.matrix_se is not None:
+                add_time_spread(p, "full", raw[ok], total, p.name)
+                add_direction_spread(p, "full", raw[ok], total, p.name)
 
     def evaluate(self, cal: ArrayCalibration, estimators: Sequence[RlsEllipsoid], ring: RingBuffer) -> GateResult:
         """The quality gate: coverage, conditioning, residual and one turn's wobble over the ring buffer window."""

@@ -423,7 +423,7 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     fit.choice = choice
     if errors == "time":
         from .misfit import add_time_spread      # (solve_quadric refused rows holding NaN)
-        bias += add_time_spread(fit, raw, total_nT, name)
+        bias += add_time_spread(fit.calibration, fit.order, raw, total_nT, name)
     fit.warnings = order_warnings(fit.calibration, fit.order, missing, choice) + bias
     fit.calibration.model_order = sol.order
     fit.calibration.warnings = list(fit.warnings)

@@ -34,8 +34,8 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused
 
-from .ellipsoid import _as_total, quadric_design, quadric_to_calibration, unit_volume_total
-from .model import triangular_params
+from .ellipsoid import _as_total, quadric_design, quadric_to_calibration_many
+from .model import triangular_params_many
 from .order import EXPANSIONS
 
 #: cells per cube-face edge: 6 × 3² = 54 regions of directions
@@ -83,31 +83,34 @@ SIGNIFICANCE = 1e-3
 
 
 def direction_jackknife(field_nT: np.ndarray, total_nT, order: str, offset_nT: np.ndarray,
-                        matrix: np.ndarray) -> RegionSpread | None:
+                        matrix: np.ndarray, needed_only: bool = False) -> RegionSpread | None:
     """The offsets' spread from deleting one region of directions at a time, and whether the scalar residual
     differs between regions beyond its noise within them (one-way analysis of variance); None with fewer than
     MIN_CELLS regions. field_nT (N, 3) finite raw samples of one probe; total_nT as ellipsoid.fit_ellipsoid;
     order the model order fitted; offset_nT and matrix the fit's calibration, which gives each sample's
     direction and residual. Independent of origin and unit, as the fit."""
     return region_jackknife(field_nT, total_nT, order, offset_nT, matrix, lambda a, corr: direction_cells(corr),
-                            6 * DIRECTION_CELLS ** 2)
+                            6 * DIRECTION_CELLS ** 2, needed_only)
 
 
 def time_jackknife(field_nT: np.ndarray, total_nT, order: str, offset_nT: np.ndarray, matrix: np.ndarray,
-                   blocks: int = TIME_BLOCKS) -> RegionSpread | None:
+                   blocks: int = TIME_BLOCKS, needed_only: bool = False) -> RegionSpread | None:
     """As direction_jackknife, the regions `blocks` contiguous stretches of the samples in their order (time):
     noise slower than the record's blocks (1/f), or a misfit that follows the motion, moves the offsets between
     them by more than the white-noise errors say (simulated tumbles under 1/f noise, 30 seeds: the offsets'
     errors 7.8 times too small with white-noise errors, within 1.12 of right with these)."""
     n = np.asarray(field_nT).shape[0]
     return region_jackknife(field_nT, total_nT, order, offset_nT, matrix,
-                            lambda a, corr: (np.arange(a, a + corr.shape[0]) * blocks) // max(n, 1), blocks)
+                            lambda a, corr: (np.arange(a, a + corr.shape[0]) * blocks) // max(n, 1), blocks,
+                            needed_only)
 
 
 def region_jackknife(field_nT: np.ndarray, total_nT, order: str, offset_nT: np.ndarray, matrix: np.ndarray,
-                     regions: Callable[[int, np.ndarray], np.ndarray], n_regions: int) -> RegionSpread | None:
+                     regions: Callable[[int, np.ndarray], np.ndarray], n_regions: int,
+                     needed_only: bool = False) -> RegionSpread | None:
     """The delete-a-region jackknife of direction_jackknife, the region of each sample given by
-    regions(first row of the chunk, the chunk's calibrated samples (n, 3)) -> labels 0 .. n_regions − 1."""
+    regions(first row of the chunk, the chunk's calibrated samples (n, 3)) -> labels 0 .. n_regions − 1.
+    needed_only: where the residual does not differ between regions, only the F ratio (the errors zero)."""
     raw = np.asarray(field_nT, float)
     n = raw.shape[0]
     # u = (r − c) / s of order one, c the mean, s the rms distance from it, in chunks (hours of data: no (N, 3)
@@ -122,24 +125,34 @@ def region_jackknife(field_nT: np.ndarray, total_nT, order: str, offset_nT: np.n
     delta = (f ** 2 - float(np.mean(f ** 2))) / scale ** 2 if use_delta else None
     t = EXPANSIONS[order]
     k = t.shape[1] + int(use_delta)
-    cells_n = n_regions
-    grams = np.zeros((cells_n, k, k))
-    rhs = np.zeros((cells_n, k))
     m = np.asarray(matrix, float)
+
+    def chunks():
+        for a in range(0, n, CHUNK_ROWS):
+            r = raw[a:a + CHUNK_ROWS]
+            corr = (r - offset_nT) @ m.T
+            yield a, r, corr, regions(a, corr)
+
     # per region: samples, Σ e and Σ e² of the scalar residual e = |M (r − o)| − F (F unknown: its mean)
-    counts, e_sum, e_sq = np.zeros(cells_n), np.zeros(cells_n), np.zeros(cells_n)
-    for a in range(0, n, CHUNK_ROWS):
-        r = raw[a:a + CHUNK_ROWS]
+    counts, e_sum, e_sq = np.zeros(n_regions), np.zeros(n_regions), np.zeros(n_regions)
+    for a, r, corr, cells in chunks():
+        mag = np.linalg.norm(corr, axis=1)
+        e = mag - f[a:a + CHUNK_ROWS] if f is not None else mag
+        counts += np.bincount(cells, minlength=n_regions)
+        e_sum += np.bincount(cells, e, minlength=n_regions)
+        e_sq += np.bincount(cells, e * e, minlength=n_regions)
+    used = np.flatnonzero(counts > 0)
+    if used.size < MIN_CELLS:
+        return None
+    f_ratio, significant = _anova(counts[used], e_sum[used], e_sq[used])
+    if needed_only and not significant:           # the fits left out are not needed: one pass, no normal equations
+        return RegionSpread(np.zeros(3), np.zeros((3, 3)), np.zeros(3), np.zeros(3), used.size, f_ratio, False)
+    grams = np.zeros((n_regions, k, k))
+    rhs = np.zeros((n_regions, k))
+    for a, r, corr, cells in chunks():
         phi = quadric_design((r - center) / scale) @ t
         if delta is not None:
             phi = np.column_stack([phi, -delta[a:a + CHUNK_ROWS]])
-        corr = (r - offset_nT) @ m.T
-        cells = regions(a, corr)
-        mag = np.linalg.norm(corr, axis=1)
-        e = mag - f[a:a + CHUNK_ROWS] if f is not None else mag
-        counts += np.bincount(cells, minlength=cells_n)
-        e_sum += np.bincount(cells, e, minlength=cells_n)
-        e_sq += np.bincount(cells, e * e, minlength=cells_n)
         order_rows = np.argsort(cells, kind="stable")
         cs = cells[order_rows]
         starts = np.flatnonzero(np.r_[True, cs[1:] != cs[:-1]])
@@ -147,34 +160,47 @@ def region_jackknife(field_nT: np.ndarray, total_nT, order: str, offset_nT: np.n
             part = phi[order_rows[lo:hi]]
             grams[cs[lo]] += part.T @ part
             rhs[cs[lo]] += part.sum(axis=0)
-    used = np.flatnonzero(grams[:, 0, 0] > 0)
-    if used.size < MIN_CELLS:
-        return None
     g_all, r_all = grams.sum(axis=0), rhs.sum(axis=0)
-    col = np.sqrt(np.diag(g_all))
     f2 = float(np.mean(f ** 2)) if f is not None else None
-    fits = []                             # per region left out: offset (3), matrix (9), angles (3), scales (3)
-    failed = 0
-    for c in used:
-        try:
-            theta = np.linalg.solve((g_all - grams[c]) / np.outer(col, col), (r_all - rhs[c]) / col) / col
-            nine = t @ theta[:t.shape[1]]
-            # the field the fit assumes when none is given: the one giving the matrix determinant 1, per fit
-            f2_c = f2 if f2 is not None else unit_volume_total(nine, scale, center) ** 2
-            offset, matrix = quadric_to_calibration(nine, scale, f2_c, center)
-            angles, scales = triangular_params(matrix)
-        except (np.linalg.LinAlgError, ValueError):
-            failed += 1                   # without this region the rest fix no ellipsoid: counted, said
-            continue
-        fits.append(np.concatenate([offset, matrix.ravel(), angles, scales]))
-    if len(fits) < MIN_CELLS:
+    try:
+        x, failed = _left_out_many(g_all, r_all, grams[used], rhs[used], t, scale, center, f2), 0
+    except (np.linalg.LinAlgError, ValueError):     # some region's absence leaves no ellipsoid: one at a time
+        x, failed = _left_out_each(g_all, r_all, grams[used], rhs[used], t, scale, center, f2)
+    if x.shape[0] < MIN_CELLS:
         return None
-    x = np.array(fits)
     g = x.shape[0]
     jack = np.sqrt((g - 1) / g * np.sum((x - x.mean(axis=0)) ** 2, axis=0))
-    f_ratio, significant = _anova(counts[used], e_sum[used], e_sq[used])
     return RegionSpread(jack[:3], jack[3:12].reshape(3, 3), jack[12:15], jack[15:18], g, f_ratio, significant,
-                           failed)
+                        failed)
+
+
+def _left_out_many(g_all: np.ndarray, r_all: np.ndarray, grams: np.ndarray, rhs: np.ndarray, t: np.ndarray,
+                   scale: float, center: np.ndarray, f2: float | None) -> np.ndarray:
+    """(R, 18): per region left out its fit's offset (3), matrix (9), angles (3) and scales (3), every region at
+    once; LinAlgError or ValueError if any of them fixes no ellipsoid."""
+    col = np.sqrt(np.diag(g_all))
+    lhs = (g_all[None] - grams) / np.outer(col, col)[None]
+    theta = np.linalg.solve(lhs, ((r_all[None] - rhs) / col)[..., None])[..., 0] / col
+    nine = theta[:, :t.shape[1]] @ t.T
+    offset, m1 = quadric_to_calibration_many(nine, scale, 1.0, center)
+    # M scales as √F₀²; the field the fit assumes when none is given makes det M = 1, per fit
+    f2s = np.full(nine.shape[0], f2) if f2 is not None else np.linalg.det(m1) ** (-2.0 / 3.0)
+    matrix = m1 * np.sqrt(f2s)[:, None, None]
+    angles, scales = triangular_params_many(matrix)
+    return np.column_stack([offset, matrix.reshape(-1, 9), angles, scales])
+
+
+def _left_out_each(g_all: np.ndarray, r_all: np.ndarray, grams: np.ndarray, rhs: np.ndarray, t: np.ndarray,
+                   scale: float, center: np.ndarray, f2: float | None) -> tuple[np.ndarray, int]:
+    """_left_out_many one region at a time, leaving out those without which the rest fix no ellipsoid: (the
+    fits, how many were left out)."""
+    fits, failed = [], 0
+    for g, r in zip(grams, rhs):
+        try:
+            fits.append(_left_out_many(g_all, r_all, g[None], r[None], t, scale, center, f2)[0])
+        except (np.linalg.LinAlgError, ValueError):
+            failed += 1                   # without this region the rest fix no ellipsoid: counted, said
+    return (np.array(fits) if fits else np.zeros((0, 18))), failed
 
 
 def _anova(counts: np.ndarray, sums: np.ndarray, squares: np.ndarray) -> tuple[float, bool]:
@@ -226,17 +252,35 @@ def add_order_bias(fit: Any, full_fit: Callable[[], Any], name: str) -> list[str
 TIME_SAY = 1.5
 
 
-def add_time_spread(fit: Any, raw: np.ndarray, total_nT, name: str) -> list[str]:
-    """A fit's offsets', matrix's, angles' and scales' errors at least the delete-a-time-block jackknife's
-    (time_jackknife), in place, where the scalar residual differs between the blocks beyond chance for white
-    noise: noise slower than the blocks or a misfit following the motion, which white-noise errors average away.
-    `raw` the fit's finite samples in time order. Returns a warning where an offset's error rises by more than
-    TIME_SAY, and where without some block the rest fix no ellipsoid."""
-    cal = fit.calibration
+def add_time_spread(cal: Any, order: str, raw: np.ndarray, total_nT, name: str) -> list[str]:
+    """A probe calibration's (an upper-triangular fit's) offsets', matrix's, angles' and scales' errors at least
+    the delete-a-time-block jackknife's (time_jackknife), in place, where the scalar residual differs between the
+    blocks beyond chance for white noise: noise slower than the blocks or a misfit following the motion, which
+    white-noise errors average away. `raw` the fit's finite samples in time order, `order` its model order.
+    Returns a warning where an offset's error rises by more than TIME_SAY, and where without some block the rest
+    fix no ellipsoid."""
     try:
-        got = time_jackknife(raw, total_nT, fit.order, cal.offset_nT, cal.matrix)
+        got = time_jackknife(raw, total_nT, order, cal.offset_nT, cal.matrix, needed_only=True)
     except (np.linalg.LinAlgError, ValueError):
         return []
+    return add_spread(cal, got, name, "stretches of time", "blocks of time",
+                      "noise slower than the turning, or a misfit that follows the motion")
+
+
+def add_direction_spread(cal: Any, order: str, raw: np.ndarray, total_nT, name: str) -> list[str]:
+    """As add_time_spread, with the delete-a-region jackknife over regions of field direction (a misfit tied to
+    the direction, which a fit over part of the sphere leans on)."""
+    try:
+        got = direction_jackknife(raw, total_nT, order, cal.offset_nT, cal.matrix, needed_only=True)
+    except (np.linalg.LinAlgError, ValueError):
+        return []
+    return add_spread(cal, got, name, "regions of field direction", "regions of direction",
+                      "a misfit the model lacks, or noise slower than the turning")
+
+
+def add_spread(cal: Any, got: RegionSpread | None, name: str, regions: str, short: str, cause: str) -> list[str]:
+    """cal's errors (offsets, matrix, angles, scales) at least got's where got is significant, in place; the
+    warnings of add_time_spread."""
     if got is None or not got.significant:
         return []
     se = np.asarray(cal.offset_se_nT, float)
@@ -251,10 +295,10 @@ def add_time_spread(fit: Any, raw: np.ndarray, total_nT, name: str) -> list[str]
     raised = new > TIME_SAY * se
     if raised.any():
         axes = ", ".join(f"{a} {s:.3g} -> {j:.3g} nT" for a, s, j, r in zip("xyz", se, new, raised) if r)
-        out.append(f"{name}: the residual differs between stretches of time beyond its noise within them (F ratio "
-                   f"{got.f_ratio:.3g} over {got.cells} blocks, p < 0.001: noise slower than the turning, or a misfit "
-                   f"that follows the motion): the offsets' errors are those of leaving one block out ({axes})")
+        out.append(f"{name}: the residual differs between {regions} beyond its noise within them (F ratio "
+                   f"{got.f_ratio:.3g} over {got.cells} {short}, p < 0.001: {cause}): the offsets' errors are "
+                   f"those of leaving one out ({axes})")
     if got.failed:
-        out.append(f"{name}: without {got.failed} of the {got.cells + got.failed} blocks of time the rest fix no "
+        out.append(f"{name}: without {got.failed} of the {got.cells + got.failed} {short} the rest fix no "
                    f"ellipsoid: the fit leans on those alone, and its errors are lower bounds")
     return out

@@ -205,6 +205,22 @@ def triangular_params(matrix: np.ndarray) -> tuple[list[float], list[float]]:
     return np.degrees([phi, theta, psi]).tolist(), [float(cx), float(cy), float(cz)]
 
 
+def triangular_params_many(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """triangular_params of (M, 3, 3) upper-triangular matrices at once: angles (M, 3) deg, scales (M, 3);
+    ValueError unless every one is upper-triangular with a positive diagonal."""
+    mat = np.asarray(matrices, float)
+    lower = np.abs(mat[:, [1, 2, 2], [0, 0, 1]])
+    if np.any(lower > 1e-12 * np.abs(mat).max(axis=(1, 2))[:, None]) or np.any(mat[:, [0, 1, 2], [0, 1, 2]] <= 0):
+        raise ValueError("triangular_params: expected upper-triangular matrices with a positive diagonal")
+    kx, ky, kz = mat[:, 0, 0], mat[:, 1, 1], mat[:, 2, 2]
+    m, n, g = mat[:, 0, 1] / ky, mat[:, 1, 2] / kz, mat[:, 0, 2] / kz
+    psi = -np.arctan(n)
+    theta = -np.arctan(m)
+    phi = np.arctan((np.sin(theta) * np.sin(psi) - g * np.cos(theta) * np.cos(psi)) / np.cos(psi))
+    scales = np.column_stack([1.0 / (kx * np.cos(phi) * np.cos(theta)), 1.0 / (ky * np.cos(psi)), 1.0 / kz])
+    return np.degrees(np.column_stack([phi, theta, psi])), scales
+
+
 # --- 000 Tables 1-2: non-orthogonality (unit columns) and sensitivity --------------------------------
 
 
