@@ -304,6 +304,10 @@ def main(argv: Sequence[str] | None = None, *, install_signals: bool = True) -> 
         return 130
     except BrokenPipeError:
         return EXIT_FAILURE
+    except OSError as e:                  # a file that could not be read or written: said, never a traceback
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"fluxcal {args.command}: {where}{e.strerror or e}", file=sys.stderr)
+        return EXIT_FAILURE
 
 
 if __name__ == "__main__":

@@ -54,3 +54,27 @@ def say_part_of_run(command: str, source: str) -> str | None:
             f"this uses its samples alone: `fluxcal {command} {p.parent}` takes the whole run")
     print(f"fluxcal {command}: note: {note}", file=sys.stderr)
     return note
+
+
+def check_output_file(path: Any, flag: str = "--out") -> None:
+    """Refuse (DataError, exit 2), before any work, an output file that cannot be written: a folder, a missing
+    folder, or one this user may not write in."""
+    import os
+    import tempfile
+    from pathlib import Path
+
+    from drivers.errors import DataError
+
+    p = Path(path)
+    if p.is_dir():
+        raise DataError(f"{flag} {p}: is a folder; give a file name in it (e.g. {p / 'out.mcap'})")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise DataError(f"{flag} {p}: folder {parent} does not exist")
+    try:                                  # a file made and removed beside it: what the writer will meet (root too)
+        with tempfile.NamedTemporaryFile(dir=parent, prefix=".fluxcal-check-"):
+            pass
+    except OSError as e:
+        raise DataError(f"{flag} {p}: cannot write in {parent} ({e.strerror or e})") from None
+    if p.exists() and not os.access(p, os.W_OK):
+        raise DataError(f"{flag} {p}: the file exists and is not writable")

@@ -100,8 +100,10 @@ def main(args: Namespace) -> int:
     logger = None
     if args.out:
         from service.io.recordings.writer import McapLogger
+        from service.wiring.commands.notes import check_output_file
 
         out = Path(args.out)
+        check_output_file(out)
         logger = McapLogger(out.parent, unit=cfg.unit.name, filename=out.name, rotate_mb=1e9, rotate_s=1e12,
                             metadata=dict(rec.metadata))
         # what a replay of this copy needs: the calibration it started from and the commands, where they acted
@@ -136,6 +138,10 @@ def main(args: Namespace) -> int:
         progress.close()
         if logger is not None:
             logger.close()
+    if logger is not None and (logger.errors or logger.dropped):
+        print(f"fluxcal replay: {args.out}: the replay could not be written ({logger.last_error}); "
+              f"{logger.dropped} message(s) lost", file=sys.stderr)
+        return 1
     compared, identical = _compare(rec.corrected_blocks, out_seq, out_vals)
     dt = time.perf_counter() - t0
     p = cfg.unit.n_probes

@@ -218,13 +218,14 @@ def _write_mcap(writer: Any, path: Path, unit: Unit, unit_name: str, truth: dict
 
 
 def main(args: Any) -> int:
+    from service.wiring.commands.notes import check_output_file
+
     out = Path(args.out)
+    check_output_file(out)
     suffix = out.suffix.lower()
     if suffix not in WRITERS:
         raise DataError(f"{out}: unknown output type {out.suffix!r} (allowed: {', '.join('FILE' + s for s in WRITERS)}: "
                         f"lab CSV, MCAP recording, the unit's serial bytes, a candump log of its CAN frames)")
-    if not out.parent.exists():
-        raise DataError(f"{out}: directory {out.parent} does not exist")
     sim, unit_name = load_simulation(args.config)
     mcap_writer = _mcap_writer(out) if suffix == ".mcap" else None
     if sim.n_samples is None:

@@ -1,0 +1,69 @@
+"""Output files that cannot be written are refused before any work (exit 2, naming the flag and the path),
+and a write that fails later is said (exit 1), never a traceback nor a "written to" over nothing: a replay's
+--out naming a folder used to print "written to" and exit 0 with no file made."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from service.wiring.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "recordings" / "grad1-sim-30s.mcap"
+
+
+@pytest.mark.parametrize("command", [["replay", str(SAMPLE)], ["simulate"]])
+def test_an_output_that_is_a_folder_or_in_no_folder_is_refused_first(tmp_path, capsys, command):
+    folder = tmp_path / "out"
+    folder.mkdir()
+    assert main([*command, "--out", str(folder)]) == 2
+    assert f"--out {folder}: is a folder; give a file name in it" in capsys.readouterr().err
+    assert list(folder.iterdir()) == []
+    missing = tmp_path / "nowhere" / "x.mcap"
+    assert main([*command, "--out", str(missing)]) == 2
+    assert f"folder {missing.parent} does not exist" in capsys.readouterr().err
+    beside_a_file = tmp_path / "plain.txt"
+    beside_a_file.write_text("x")
+    assert main([*command, "--out", str(beside_a_file / "x.mcap")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_fit_refuses_its_output_before_fitting(tmp_path, capsys):
+    csv = tmp_path / "grad.csv"
+    assert main(["simulate", "--out", str(csv)]) == 0
+    capsys.readouterr()
+    assert main(["fit", str(csv), "--out", str(tmp_path / "none" / "cal.json")]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and "--out" in err and "does not exist" in err       # nothing fitted, nothing printed
+
+
+def test_a_write_that_fails_later_is_said_without_a_traceback(tmp_path, capsys, monkeypatch):
+    csv = tmp_path / "grad.csv"
+    assert main(["simulate", "--out", str(csv)]) == 0
+    capsys.readouterr()
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device", str(tmp_path / "cal.json"))
+
+    monkeypatch.setattr("service.wiring.commands.fit.save_calibration", full_disk)
+    assert main(["fit", str(csv), "--out", str(tmp_path / "cal.json")]) == 1
+    err = capsys.readouterr().err
+    assert f"fluxcal fit: {tmp_path / 'cal.json'}: No space left on device" in err and "Traceback" not in err
+
+
+def test_a_replay_whose_output_fails_says_so_and_fails(tmp_path, capsys, monkeypatch):
+    """The recording logger never raises (a live service keeps running on a full disk); replay asks it."""
+    from service.io.recordings import files
+
+    def no_space(self, *args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(files.McapFiles, "flush", no_space)
+    monkeypatch.setattr(files.McapFiles, "finish", no_space)
+    out = tmp_path / "again.mcap"
+    assert main(["replay", str(SAMPLE), "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert "written to" not in captured.out
+    assert f"fluxcal replay: {out}: the replay could not be written" in captured.err and "lost" in captured.err
