@@ -62,6 +62,30 @@ def test_a_smooth_offset_wander_is_not_called_perming(seed):
     assert d.verdict["effect"] != "hysteresis"
 
 
+def warmed(seed: int, tau_s: float, pink: float = 0.0, n: int = 10000, rate: float = 100.0):
+    """stepped's world, probe 2's offset warming up instead: 25, -20, 15 nT x (1 - exp(-t / tau_s)), none of the
+    catalogue's terms (drift is a polynomial)."""
+    probes = [probe(0), probe(1)]
+    for p in probes:
+        p["pink_nT_rtHz"] = pink
+    block = sim_block(probes, n=n, rate=rate, motion=TUMBLE, seed=seed)
+    t = block.t_s - block.t_s[0]
+    block.field_nT[:, 1, :] += np.outer(1.0 - np.exp(-t / tau_s), [25.0, -20.0, 15.0])
+    return data_of(block, probes)
+
+
+@pytest.mark.parametrize("seed, tau_s, pink, n, rate", [(31, 6.0, 0.0, 10000, 100.0), (32, 15.0, 0.0, 10000, 100.0),
+                                                      (33, 15.0, 0.1, 10000, 100.0), (34, 30.0, 0.0, 10000, 100.0),
+                                                      (35, 15.0, 0.0, 24000, 200.0)])
+def test_a_warm_up_is_not_called_perming(seed, tau_s, pink, n, rate):
+    """A user's warm-up (a 25 nT rise over tau_s) was called perming, significant, two steps placed on the rise:
+    a step must fit its stretch better than an offset moving linearly across it (hysteresis._steplike)."""
+    d = diagnose(warmed(seed, tau_s, pink, n, rate), candidates=["hysteresis", "drift"])
+    hyst = next(c for c in d.candidates if c.effect == "hysteresis")
+    assert not hyst.significant, summary_text(d)
+    assert d.verdict.get("effect") != "hysteresis", d.verdict
+
+
 def test_a_smooth_change_across_a_held_out_block_is_no_step_at_its_edge():
     """Searched across the hole a held-out block leaves, a smooth change over it looks like a jump at its edge;
     with the block as a barrier each side is searched on its own (the review's case: a tanh ramp)."""
