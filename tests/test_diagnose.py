@@ -224,6 +224,13 @@ def test_calibration_held_fixed_is_compared_as_is():
     assert d.linear_refit_rms_nT <= RMS_OVER_NOISE * d.noise_nT
     platform = next(c for c in d.candidates if c.effect == "platform")
     assert platform.significant                  # a permanent field at the probe is what an offset change is
+    # ... and a held calibration being off is the same to these data: said beside the verdict (a user's service
+    # calibration, held, was "explained by platform" at 1.01 times the noise floor, with no other word)
+    assert d.verdict["effect"] in ("platform", "thermal")        # the two are indistinguishable here (said)
+    assert d.verdict["linear_refit_nT"] == d.linear_refit_rms_nT
+    assert "or the calibration held is off: refitting its linear part alone gives" in summary_text(d)
+    fresh = diagnose(data, calibration={"sensors": [dict(s) for s in truth["sensors"]]})
+    assert "linear_refit_nT" not in fresh.verdict and "calibration held is off" not in summary_text(fresh)
 
 
 # --- contract, command line, report ----------------------------------------------------------------------------

@@ -136,6 +136,14 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     else:
         left = {}
     told = verdict(cur.rms_nT, noise_nT, best, left, ed.ref_total_nT is not None)
+    if linear_refit is not None and best is not None and best.rms_nT >= (1.0 - LINEAR_REFIT_MARGIN) * linear_refit:
+        told["linear_refit_nT"] = linear_refit       # refitting the calibration held explains as much: one to the data
+    if (linear_refit is not None and best is None and told["kind"] == "unexplained"
+            and linear_refit < (1.0 - 0.1) * cur.rms_nT):
+        told["advice"] = (f"the calibration held is off: refitting its linear part alone brings the residual from "
+                          f"{cur.rms_nT:.3f} to {linear_refit:.3f} nT (diagnose without --calibration, or fit again)"
+                          + (f"; then: {told['advice']}" if told.get("advice") and
+                             linear_refit > FLOOR_FACTOR * noise_nT else ""))
     notes += _coloured_noise_notes(sig_cur.get("spectral_slope"), model.effects, ed.duration_s)
     tell(1.0, "done")
     ch_rms = cur.channels.rms_nT
@@ -145,6 +153,11 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
                      where=where, candidates=cands, worst_segments=worst_segments(cur), n_samples=ed.n_samples,
                      duration_s=ed.duration_s, heldout_rms_nT=cur_ho.rms_nT, notes=notes, fit=cur,
                      linear_refit_rms_nT=linear_refit, parameters=cur.parameters(), frames=frames_cur)
+
+
+#: with the linear part held fixed, the best candidate is said to be no better than a refit of the linear part when
+#: it brings the residual less than this far (relative) below the refit's
+LINEAR_REFIT_MARGIN = 0.005
 
 
 def _coloured_noise_notes(slope: float | None, effects: Sequence[str], duration_s: float) -> list[str]:
@@ -197,3 +210,4 @@ def _demote_without_common_mode(cands: list[Candidate], shared: float | None) ->
             c.refusal = "not common to the probes"
             c.reason = (f"no change common to the probes: {0 if shared is None else 100 * shared:.0f} % of the "
                         f"residual's excess is shared (a change of the site's field would be common to all)")
+

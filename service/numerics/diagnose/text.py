@@ -110,16 +110,23 @@ def verdict_lines(d: Diagnosis) -> list[str]:
     try_it = "" if best is None else f"; try: --effects {','.join(d.effects + [best.effect])}"
     if v["kind"] == "at the floor":
         return ["  no missing effect is significant: the model explains the data down to the noise"]
+    alike = []
+    if v.get("linear_refit_nT") is not None and best is not None:
+        alike = [f"  or the calibration held is off: refitting its linear part alone gives "
+                 f"{v['linear_refit_nT']:.3f} nT as well, and these data cannot tell the two apart"
+                 + (" (a field the platform carries is one only if the calibration was made off the platform, e.g. "
+                    "on a turntable before mounting; a calibration learned in place already holds it)"
+                    if best.effect == "platform" else "")]
     if v["kind"] == "explained":
         return [f"  explained by {best.effect}: adding it brings the residual from {d.rms_nT:.3f} to "
-                f"{best.rms_nT:.3f} nT, the noise floor is {d.noise_nT:.3f} nT{try_it}"]
+                f"{best.rms_nT:.3f} nT, the noise floor is {d.noise_nT:.3f} nT{try_it}"] + alike
     if v["kind"] == "partly explained":
         head = (f"  partly explained by {best.effect}: adding it brings the residual from {d.rms_nT:.3f} to "
                 f"{best.rms_nT:.3f} nT against a {d.noise_nT:.3f} nT floor{try_it}")
     else:
         head = (f"  unexplained: no catalogue effect explains the rest of the residual significantly "
                 f"({d.rms_nT:.3f} nT against a {d.noise_nT:.3f} nT floor)")
-    out = [head]
+    out = [head] + alike
     if v.get("left"):
         out.append(f"  what is left: {v['left']}")
     if v.get("advice"):
