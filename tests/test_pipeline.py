@@ -45,6 +45,33 @@ def test_a_single_axis_turn_never_replaces_a_good_calibration():
     assert st["usable"] and np.all(np.isfinite(st["probes"][0]["offset_nT"]))
 
 
+def test_an_applied_calibration_stays_until_reset():
+    """`apply` of a calibration (a lab fit, say) was replaced by the next usable online candidate 5 s later,
+    without a word; it now stays (the estimator learning, the gate judging), said in the state and the event,
+    until `reset`, after which the online estimate takes over again."""
+    data = block_of({"duration_s": 120.0, "probes": [PROBE]})
+    pl = pipeline()
+    half = data.n_samples // 2
+    for i in range(0, half, 100):
+        pl.process(data.slice(i, i + 100))
+    assert pl.calibration is not None and not pl.state()["held"]       # learned online first
+    lab = fit_ellipsoid(data.field_nT[:, 0], 52500.0).calibration
+    lab.offset_nT = lab.offset_nT + np.array([5.0, 0.0, 0.0])            # a lab calibration, not the online one
+    ev = pl.command("apply", ArrayCalibration("ellipsoid", None, [lab]), seq=int(data.seq[half]), t_s=0.0)
+    applied = pl.cal_id
+    assert "until `reset`" in ev.detail["note"] and pl.state()["held"]
+    events = []
+    for i in range(half, half + 6000, 100):                              # 30 s: six checks
+        events += pl.process(data.slice(i, i + 100)).events
+    assert pl.cal_id == applied and pl.calibration.probes[0] is lab
+    assert not any(e.kind == "calibration" for e in events)
+    pl.command("reset", None, seq=int(data.seq[half + 6000]), t_s=0.0)
+    assert not pl.state()["held"]
+    for i in range(half + 6000, data.n_samples, 100):
+        pl.process(data.slice(i, i + 100))
+    assert pl.cal_id > applied and pl.calibration.probes[0] is not lab     # learned again after the reset
+
+
 def test_outputs_do_not_depend_on_block_boundaries():
     data = block_of({"duration_s": 40.0, "probes": [PROBE]})
     outs = []

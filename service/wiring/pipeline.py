@@ -93,6 +93,7 @@ class Pipeline:
         self._buf_ref = np.empty(self.chunk)
         self.ring = RingBuffer(capacity=window_samples, n_probes=n_probes)
         self.frozen = False
+        self.held = False                 # a calibration applied by command: online candidates do not replace it
         self.calibration: ArrayCalibration | None = None
         self.cal_id = 0
         self.last_gate: GateResult | None = None
@@ -130,16 +131,21 @@ class Pipeline:
             self.frozen = False
         elif name == "reset":
             self.reset()
+            self.held = False             # learn again: the next usable candidate replaces what is in use
         elif name == "apply":
             if not isinstance(payload, ArrayCalibration):
                 raise DataError("apply: expected a calibration")
             self.live.clear()
             self.set_calibration(payload)
+            self.held = True              # it stays: the online estimate keeps learning, the gate judging it
         elif name == "add-effect":
             self.add_effect(str(payload or "").strip())
         else:
             raise FluxcalError(f"unknown command {name!r} (allowed: freeze, unfreeze, reset, apply, add-effect)")
         detail = {"name": name, "cal_id": self.cal_id}
+        if name == "apply":
+            detail["note"] = ("in use until `reset`: the online estimate keeps learning and the gate judging it, "
+                              "but it does not replace an applied calibration")
         if name == "add-effect":
             detail["effect"] = str(payload or "").strip()
         return PipelineEvent("command", seq, t_s, detail)
@@ -250,8 +256,8 @@ class Pipeline:
             return PipelineEvent("gate", seq, t_s, {"usable": False, "reasons": [self.gate.refusal]})
         gate = self.evaluate(cand)
         self.last_gate = gate
-        if self.effects:
-            return None                       # a linear-only candidate never replaces effects
+        if self.effects or self.held:
+            return None                       # a linear-only candidate never replaces effects, nor an applied one
         if not gate.usable:
             return PipelineEvent("gate", seq, t_s, {"usable": False, "reasons": gate.reasons})
         first = self.calibration is None
@@ -272,6 +278,7 @@ def _state(pl: Pipeline) -> dict[str, Any]:
         "cal_id": pl.cal_id,
         "usable": cal is not None,
         "frozen": pl.frozen,
+        "held": pl.held,
         "method": None if cal is None else cal.method,
         "effects": list(pl.effects),
         "probes": [] if cal is None else [

@@ -62,7 +62,8 @@ class StatusLog:
         self._since, self._samples = now, 0
         gate = state.get("gate") or {}
         if state.get("usable"):
-            where = f"calibration {state.get('cal_id')} in use" + (" (frozen)" if state.get("frozen") else "")
+            where = f"calibration {state.get('cal_id')} in use" + (" (frozen)" if state.get("frozen") else "") + (
+                " (applied: held until reset)" if state.get("held") else "")
         else:
             where = f"learning ({state.get('samples_seen', 0)} samples seen)"
         if gate.get("coverage") is not None:

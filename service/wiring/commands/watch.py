@@ -235,6 +235,8 @@ class Dashboard:
             parts.append(f"method {st['method']}")
         if st.get("frozen"):
             parts.append("FROZEN")
+        if st.get("held"):
+            parts.append("APPLIED (held until reset)")
         if gate:
             rms = gate.get("rms_nT")
             rms_txt = ", ".join(_num(r, ".2f") for r in rms) if isinstance(rms, list) else _num(rms, ".2f")

@@ -172,7 +172,7 @@ function renderCalibration(v) {
   const probes = st.probes || [];
   let html = `<p>${st.usable ? '<span class="good">usable</span>' : '<span class="bad">not usable yet</span>'}` +
     ` · cal_id <span id="cal-id">${esc(st.cal_id ?? "–")}</span> · ${esc(st.method || "")}` +
-    (st.frozen ? ' · <b id="frozen">FROZEN</b>' : "") + ` · effects: ${esc((st.effects || []).join(", ") || "none")}` +
+    (st.frozen ? ' · <b id="frozen">FROZEN</b>' : "") + (st.held ? ' · <b id="held">APPLIED: held until reset</b>' : "") + ` · effects: ${esc((st.effects || []).join(", ") || "none")}` +
     ` · ${esc(st.samples_seen ?? "–")} samples seen</p>`;
   if (probes.length) {
     html += "<table class='numbers'><tr><th>probe</th><th>offset x</th><th>offset y</th><th>offset z</th>" +
