@@ -84,6 +84,10 @@ def test_a_warm_up_is_not_called_perming(seed, tau_s, pink, n, rate):
     hyst = next(c for c in d.candidates if c.effect == "hysteresis")
     assert not hyst.significant, summary_text(d)
     assert d.verdict.get("effect") != "hysteresis", d.verdict
+    if d.verdict["kind"] == "unexplained":      # what is left is said as what it is: probe 2's own, in time
+        assert "moves along one direction of the platform frame" in d.verdict["left"], d.verdict
+        assert "turns with the platform" not in d.verdict["left"]
+        assert "so the sensor changed, not the field" in d.verdict["advice"], d.verdict
 
 
 def test_a_smooth_change_across_a_held_out_block_is_no_step_at_its_edge():

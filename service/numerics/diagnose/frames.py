@@ -34,6 +34,9 @@ NED = ("north", "east", "down")
 #: and turns with the platform when such a vector explains less than TURNS
 FIXED = 0.5
 TURNS = 0.2
+#: ... and moves along one direction there (a vector of fixed direction whose size changes) when the largest
+#: principal direction of the difference holds this share of its excess
+LINE = 0.8
 
 
 def _rotation_part(m: np.ndarray) -> np.ndarray:
@@ -83,6 +86,10 @@ def frames(data: EffectData, fit: FitResult, noise_nT: np.ndarray) -> list[dict[
             entry[frame] = {"fixed_share": _share(float(m @ m), total, nz), "vector_nT": m.tolist(),
                             "rms_nT": dict(zip(AXES, np.sqrt(np.mean(v ** 2, axis=0)).tolist()))}
         entry["probe"]["fixed_share"] = entry["platform"]["fixed_share"]    # the same vector, turned
+        # one direction of the platform frame with a size that changes (a probe's offset in time): its share
+        w, vec = np.linalg.eigh(d.T @ d / max(d.shape[0], 1))
+        entry["platform"]["line_share"] = _share(float(w[-1]) - float(np.max(noise[cols] ** 2)), total, nz)
+        entry["probe"]["line_axis"] = (rot.T @ vec[:, -1]).tolist()
         if att is not None:
             known = np.all(np.isfinite(att), axis=(1, 2))               # rows whose attitude was logged
             if known.any():
@@ -106,6 +113,12 @@ def frame_summary(entries: list[dict[str, Any]]) -> str | None:
             said.append(f"{e['channels']} is {100 * share:.0f} % a fixed vector in the platform frame (an offset "
                         f"error or a field the platform carries: {np.linalg.norm(v):.2f} nT, largest on the probe's "
                         f"{AXES[int(np.argmax(np.abs(v)))]} axis)")
+        elif share < TURNS and (e["platform"].get("line_share") or 0.0) >= LINE:
+            v = np.abs(np.asarray(e["probe"]["line_axis"]))
+            said.append(f"{e['channels']} moves along one direction of the platform frame "
+                        f"({100 * e['platform']['line_share']:.0f} % of the excess, mostly the probe's "
+                        f"{AXES[int(np.argmax(v))]} axis) with a size that changes: an offset changing in time, not a "
+                        f"field of the site (which would turn with the platform)")
         elif share < TURNS:
             where = ""
             if "earth" in e:

@@ -192,11 +192,30 @@ def describe(sig: dict[str, Any], has_reference: bool) -> tuple[str, str]:
             follows and follows[0]["strength"] >= 2 * FOLLOWS):
         advice = ("each probe's own slow noise (flicker, spectrum about 1/f): not a missing effect; it limits "
                   "slow terms (drift, temperature) and sets the real floor")
+    elif follows and follows[0]["observable"] == "time":
+        advice = _time_advice(shared, sig.get("probe_share") or {}, has_reference)
     elif follows:
         advice = _follows_advice(follows[0])
     else:
         advice = "nothing the data carry explains it; log what might (temperatures, currents, a reference)"
     return "; ".join(parts), advice
+
+
+def _time_advice(shared: float | None, share: dict[str, float], has_reference: bool) -> str:
+    """A change in time no term follows: what the data already say of whether the field or a sensor changed (a
+    second probe and a reference see a change of the field; a user's warm-up of one probe was told to log one)."""
+    top = [nm for nm, v in sorted(share.items(), key=lambda kv: -kv[1]) if v >= 0.2]
+    if shared is not None and shared <= OWN and top and len(top) < len(share):
+        others = "the other probes" + (" and the reference" if has_reference else "")
+        return (f"a change in time of {' and '.join(top)} alone that no term follows (drift's polynomial does not): "
+                f"{others} do not see it, so the sensor changed, not the field (a warm-up, an offset settling, a "
+                f"temperature the data do not carry); log the sensor's temperature, or add an effect of your own "
+                f"(docs/effects.md)")
+    if shared is not None and shared >= SHARED:
+        return ("a change in time common to the probes that no term follows: a change of the field at the site" +
+                ("; the scalar reference does not follow it: check its timing and position" if has_reference else
+                 "; log a reference magnetometer (ref_total) or try --effects ambient"))
+    return _ADVICE["time"]
 
 
 #: what a residual that follows an observable suggests, when no catalogue term took it
