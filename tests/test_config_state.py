@@ -67,3 +67,27 @@ def test_a_calibration_learned_on_the_simulator_is_not_applied_to_hardware(tmp_p
     said.clear()
     assert initial_calibration(cfg, said.append) is not None and "reloaded" in said[0]
     assert load_calibration(path).diagnostics["learned_on"] == {"unit": "grad1", "source": "serial"}
+
+
+def test_a_missing_initial_calibration_or_serial_port_names_its_key(tmp_path, capsys):
+    """A config that names a calibration file or a port that is not there: the key, then the reason (exit 2 for
+    the file, 1 for the port: hardware), and no 'learning online' line before the error."""
+    from service.wiring.cli import main
+
+    base = ('[unit]\nname = "grad1"\nn_probes = 1\n[source]\nkind = "serial"\nport = "{port}"\nn_probes = 1\n'
+            'rate_hz = 200.0\n[calibration]\nfile = "state/cal.json"\n{initial}[zenoh]\nlisten = ["tcp/127.0.0.1:{zport}"]\n'
+            '[mcap]\nenabled = false\n')
+    cfg = tmp_path / "a.toml"
+    import socket
+
+    with socket.socket() as sk:
+        sk.bind(("127.0.0.1", 0))
+        zport = sk.getsockname()[1]
+    cfg.write_text(base.format(port="/dev/ttyNOPE0", initial='initial = "state/nope.json"\n', zport=zport))
+    assert main(["run", "--config", str(cfg)], install_signals=False) == 2
+    err = capsys.readouterr().err
+    assert f"fluxcal run: calibration.initial: {tmp_path / 'state' / 'nope.json'}: calibration file not found" in err
+    cfg.write_text(base.format(port="/dev/ttyNOPE0", initial="", zport=zport))
+    assert main(["run", "--config", str(cfg)], install_signals=False) == 1
+    err = capsys.readouterr().err
+    assert "fluxcal run: source.port: serial port /dev/ttyNOPE0: cannot open" in err and "learning online" not in err

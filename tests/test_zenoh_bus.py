@@ -170,7 +170,8 @@ def test_unit_and_probe_names_must_be_key_segments():
 def test_open_failures_are_bus_errors_that_say_what_to_do(stack):
     cfg, ep = peer_cfg()
     stack.enter_context(ServiceBus(cfg, "u1"))
-    with pytest.raises(BusError, match="Address already in use.*is another fluxcal already listening"):
+    with pytest.raises(BusError, match=r"^zenoh\.listen: \['tcp/127\.0\.0\.1:\d+'\]: the port is already in use "
+                                       r"\(another fluxcal, or another program, listens there\): choose another port"):
         ServiceBus(ZenohConfig(listen=[ep]), "u2")
     with pytest.raises(BusError, match="is the service .* running and listening there"):
         BusClient(ZenohConfig.client(f"tcp/127.0.0.1:{free_port()}"), "u1")

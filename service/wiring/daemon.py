@@ -61,7 +61,11 @@ def open_configured_source(cfg: FluxcalConfig) -> Source:
         return open_source("sim", sim, unit=cfg.unit, transport=cfg.source.transport)
     if kind == "replay":
         return open_source("replay", path=cfg.source.path)
-    return open_source(kind, cfg.source)
+    try:
+        return open_source(kind, cfg.source)
+    except DriverError as e:                  # the key to change, before the driver's own words
+        keys = {"serial": "source.port", "can": "source.interface, source.channel"}.get(kind, "source")
+        raise DriverError(f"{keys}: {e}") from None
 
 
 def _say(msg: str) -> None:
@@ -90,14 +94,17 @@ class Daemon:
         from service.io.bus import ServiceBus
 
         cfg = self.cfg
-        pipeline = build_pipeline(cfg, initial_calibration(cfg, self.say))
+        notes: list[str] = []                 # said once the source, the bus and the recording are open
+        pipeline = build_pipeline(cfg, initial_calibration(cfg, notes.append))
         source = open_configured_source(cfg)
         logger = None
         bus = None
         try:
             bus = ServiceBus(cfg.zenoh, unit=cfg.unit.name, probe_names=cfg.probe_names,
                              state_fn=lambda: self._state(pipeline, source, logger))
-            logger = open_logger(cfg, pipeline.calibration, self.say)
+            logger = open_logger(cfg, pipeline.calibration, notes.append)
+            for note in notes:
+                self.say(note)
             say_bus(cfg, self.say)
             self._loop(source, pipeline, bus, logger)
             failed = False

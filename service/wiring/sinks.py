@@ -24,7 +24,10 @@ def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None]) -> Any:
     calibration.file if it reads and was learned on this unit and source kind, else None (learn online)."""
     c = cfg.calibration
     if c.initial:
-        cal = load_calibration(c.initial)
+        try:
+            cal = load_calibration(c.initial)
+        except (DataError, OSError) as e:
+            raise ConfigError(f"calibration.initial: {e}") from None
         origin = cal.diagnostics.get("learned_on")
         foreign = f" (learned on unit {origin.get('unit')}, source {origin.get('source')})" \
             if isinstance(origin, dict) and origin != learned_on(cfg) else ""

@@ -257,6 +257,9 @@ def open_session(cfg: "ZenohConfig | zenoh.Config", unit: str | None = None) -> 
             hint = (": the TLS files were read but Zenoh refused them: does zenoh.tls.key belong to zenoh.tls.cert "
                     "(not swapped, not from another certificate), and did zenoh.tls.root_ca sign it? "
                     "(docs/security.md)")
+        elif isinstance(cfg, ZenohConfig) and "in use" in low:
+            raise BusError(f"zenoh.listen: {cfg.listen}: the port is already in use (another fluxcal, or another "
+                           f"program, listens there): choose another port in [zenoh] listen") from None
         elif "listener" in low or "in use" in low:
             hint = ": is another fluxcal already listening there? choose another port in [zenoh] listen"
         elif "connect" in low:
