@@ -190,3 +190,26 @@ def test_several_units_through_a_router_each_with_its_own_values():
         for bus in buses.values():
             bus.close()
         router.close()
+
+
+def test_the_calibration_saved_from_the_dashboard_is_the_one_in_use():
+    """'Save the calibration in use' wrote align null, total_nT null and an empty span where the service used
+    rotation alignment and 52,500 nT; the state now carries them."""
+    from drivers.sim.config import load_sim_config
+    from drivers.sim.unit import Unit
+    from service.io.calfile import calibration_from_dict
+    from service.wiring.dashboard.hub import calibration_file
+    from service.wiring.pipeline import Pipeline
+
+    cfg = load_sim_config({"duration_s": 60.0, "probes": [{"position_m": [-0.25, 0, 0]},
+                                                           {"position_m": [0.25, 0, 0], "offset_nT": [40, 0, 0]}]})
+    block = Unit(cfg).digitise(0, cfg.n_samples).to_block()
+    pl = Pipeline(n_probes=2, probe_names=["s1", "s2"], positions_m=None, total_nT=52500.0, align="rotation",
+                  min_samples=500, check_every_samples=400, window_samples=4000, chunk_samples=100)
+    for i in range(0, block.n_samples, 100):
+        pl.process(block.slice(i, i + 100))
+    assert pl.calibration is not None
+    saved = calibration_from_dict(calibration_file("u1", pl.state()))
+    assert saved.align == "rotation" and saved.total_nT == 52500.0
+    assert saved.span[2] > 0 and saved.span == pl.calibration.span
+    np.testing.assert_array_equal(saved.probes[1].matrix, pl.calibration.probes[1].matrix)

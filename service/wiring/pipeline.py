@@ -280,6 +280,9 @@ def _state(pl: Pipeline) -> dict[str, Any]:
         "frozen": pl.frozen,
         "held": pl.held,
         "method": None if cal is None else cal.method,
+        "align": None if cal is None else cal.align,
+        "total_nT": None if cal is None or cal.total_nT is None else float(cal.total_nT),
+        "span": None if cal is None else [float(cal.span[0]), float(cal.span[1]), int(cal.span[2])],
         "effects": list(pl.effects),
         "probes": [] if cal is None else [
             {"name": p.name, "offset_nT": p.offset_nT.tolist(), "matrix": p.matrix.tolist(),

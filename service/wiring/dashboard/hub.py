@@ -239,6 +239,8 @@ def calibration_file(unit: str, st: dict[str, Any]) -> dict[str, Any]:
     probes = [ProbeCalibration(str(p["name"]), np.asarray(p["offset_nT"], float), np.asarray(p["matrix"], float),
                                se(p.get("offset_se_nT"), (3,)), se(p.get("matrix_se"), (3, 3)))
               for p in st["probes"]]
-    cal = ArrayCalibration(str(st.get("method") or "rls"), None, probes,
+    span = st.get("span") or (0.0, 0.0, 0)
+    cal = ArrayCalibration(str(st.get("method") or "rls"), st.get("align"), probes, total_nT=st.get("total_nT"),
+                           span=(float(span[0]), float(span[1]), int(span[2])),
                            diagnostics={"saved_from": f"fluxcal/{unit} by fluxcal dashboard, cal_id {st.get('cal_id')}"})
     return calibration_to_dict(cal)
