@@ -229,7 +229,7 @@ function renderHealth(v) {
   const bus = (v.health && v.health.bus) || {};
   const good = (k) => k === "frames_accepted" || k.startsWith("published_") || k.startsWith("received");
   $("health").innerHTML = "<tr><th>counter</th><th>value</th></tr>" + Object.entries(counters).concat(
-    Object.entries(bus).filter(([k]) => /errors|dropped|refused|expired/.test(k))).map(([k, x]) =>
+    Object.entries(bus).filter(([k]) => /errors|dropped|refused|expired/.test(k)).map(([k, x]) => ["bus." + k, x])).map(([k, x]) =>
     `<tr><th>${esc(k)}</th><td class="${x && !good(k) ? "bad" : ""}">${esc(x)}</td></tr>`).join("");
   $("events").innerHTML = (v.events || []).slice().reverse().map(e => `<li>${esc(e.kind)} at seq ${esc(e.seq ?? "–")}` +
     (e.reasons && e.reasons.length ? ": " + esc(e.reasons.join("; ")) : "") + (e.command ? " " + esc(e.command) : "") + "</li>").join("");

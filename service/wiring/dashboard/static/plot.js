@@ -15,6 +15,22 @@ function niceTicks(lo, hi, n) {
   return out;
 }
 
+// Ticks of a log10 axis (lo, hi in decades): 1, 2 and 5 times the powers of ten inside it, or 1 alone where
+// those are too many; linear ticks of the log only where the range is under a factor of two.
+function logTicks(lo, hi, n) {
+  for (const mults of [[1, 2, 5], [1]]) {
+    const out = [];
+    for (let d = Math.floor(lo); d <= Math.ceil(hi); d++) {
+      for (const m of mults) {
+        const v = d + Math.log10(m);
+        if (v >= lo - 1e-9 && v <= hi + 1e-9) { out.push(v); }
+      }
+    }
+    if (out.length >= 2 && out.length <= 2 * n) { return out; }
+  }
+  return niceTicks(lo, hi, n);
+}
+
 function fmt(v) {
   const a = Math.abs(v);
   if (a === 0) { return "0"; }
@@ -62,12 +78,12 @@ class Chart {
     if (t1 - t0 < 1e-9) { t0 -= 1; }
     const X = (v) => L + (v - t0) / (t1 - t0) * pw, Y = (v) => T + (1 - (tx(v) - y0) / (y1 - y0)) * ph;
     g.strokeStyle = "#ddd"; g.fillStyle = "#555"; g.lineWidth = 1;
-    const yt = niceTicks(y0, y1, 4), step = yt.length > 1 ? yt[1] - yt[0] : 1;
+    const yt = this.log ? logTicks(y0, y1, 4) : niceTicks(y0, y1, 4), step = yt.length > 1 ? yt[1] - yt[0] : 1;
     const digits = Math.max(0, Math.min(6, -Math.floor(Math.log10(step) + 1e-9)));
     for (const v of yt) {
       const y = T + (1 - (v - y0) / (y1 - y0)) * ph;
       g.beginPath(); g.moveTo(L, y); g.lineTo(L + pw, y); g.stroke();
-      g.fillText(this.log ? fmt(Math.pow(10, v)) : v.toFixed(digits), 2, y + 4);
+      g.fillText(this.log ? fmt(Number(Math.pow(10, v).toPrecision(3))) : v.toFixed(digits), 2, y + 4);
     }
     for (const v of niceTicks(t0, t1, 6)) {
       const x = X(v);
