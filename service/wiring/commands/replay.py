@@ -145,8 +145,11 @@ def main(args: Namespace) -> int:
     compared, identical = _compare(rec.corrected_blocks, out_seq, out_vals)
     dt = time.perf_counter() - t0
     p = cfg.unit.n_probes
+    uncorrected = samples - sum(int(s.size) for s in out_seq)
     print(f"replayed {samples} samples of {p} probe(s) in {dt:.2f} s ({samples * p / max(dt, 1e-9):,.0f} "
           f"probe-samples/s); corrected samples compared with the recording: {compared}, identical: {identical}"
+          + (f" ({uncorrected} earlier sample(s) have no corrected output, live or replayed: no calibration was "
+             f"usable yet)" if uncorrected > 0 and compared else "")
           + (f"; written to {args.out}" if args.out else ""))
     if compared and identical != compared:
         print(f"fluxcal replay: {compared - identical} corrected sample(s) differ from the live run"
