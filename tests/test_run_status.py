@@ -40,3 +40,17 @@ def test_run_says_status_gate_reasons_and_commands(tmp_path):
     assert gate and len(gate) <= 3                      # said when the reasons change, not at every check
     assert any(m.startswith("command freeze: applied") for m in said)
     assert any(m.startswith("command add-effect eddy: refused: add-effect: 'eddy'") for m in said)
+
+
+def test_the_status_line_says_whose_coverage_it_gives():
+    """The gate's figures are the latest check's, said as such: a user read 'calibration 6 in use, coverage 23 %'
+    as the coverage of the calibration in use, beside a dashboard saying 38 %."""
+    from service.wiring.status import StatusLog
+
+    said: list[str] = []
+    log = StatusLog(said.append, 0.0)
+    log.block(200, {"s1.scalar": 0.61})
+    log.tick({"usable": True, "cal_id": 6, "held": True,
+              "gate": {"usable": False, "coverage": 0.23, "condition": 12.5, "reasons": ["s1: only 23 %"]}})
+    assert said and ("calibration 6 in use (applied: held until reset); latest check refused: coverage 23% of its "
+                     "window, condition 12.5; error rms nT: s1.scalar 0.61") in said[-1], said

@@ -67,6 +67,8 @@ class StatusLog:
         else:
             where = f"learning ({state.get('samples_seen', 0)} samples seen)"
         if gate.get("coverage") is not None:
-            where += f", coverage {gate['coverage']:.0%}, condition {gate.get('condition', math.nan):.3g}"
+            verdict = "passed" if gate.get("usable") else "refused"
+            where += (f"; latest check {verdict}: coverage {gate['coverage']:.0%} of its window, condition "
+                      f"{gate.get('condition', math.nan):.3g}")
         err = ", ".join(f"{k} {v:.3g}" for k, v in list(self._error.items())[:4])
         self.say(f"status: {rate:,.0f} samples/s; {where}" + (f"; error rms nT: {err}" if err else ""))
