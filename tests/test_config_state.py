@@ -91,3 +91,29 @@ def test_a_missing_initial_calibration_or_serial_port_names_its_key(tmp_path, ca
     assert main(["run", "--config", str(cfg)], install_signals=False) == 1
     err = capsys.readouterr().err
     assert "fluxcal run: source.port: serial port /dev/ttyNOPE0: cannot open" in err and "learning online" not in err
+
+
+def test_an_applied_calibration_is_persisted_and_reloaded_held(tmp_path):
+    """`apply` persists the calibration (it was kept only in memory) marked applied; a restart reloads it held,
+    as it was (build_pipeline, which replay shares); `reset` persists it no longer held."""
+    from types import SimpleNamespace
+
+    from service.wiring.daemon import Daemon, build_pipeline
+
+    (tmp_path / "sim.toml").write_text('[unit]\nname = "grad1"\nn_probes = 1\n[source]\nkind = "sim"\n'
+                                       '[sim]\nrate_hz = 100.0\n[[sim.probes]]\nname = "s1"\n[calibration]\nfile = "state/cal.json"\n')
+    cfg = load_config(tmp_path / "sim.toml")
+    daemon = Daemon(cfg, say=lambda m: None)
+    pipeline = build_pipeline(cfg, None)
+    lab = ArrayCalibration("ellipsoid", None, [ProbeCalibration("s1", np.array([5.0, 0, 0]), np.eye(3))])
+    bus = SimpleNamespace(publish_calibration=lambda record: None)
+    ev = pipeline.command("apply", lab, seq=0, t_s=0.0)
+    daemon._on_event(ev, pipeline, bus, None)
+    saved = load_calibration(tmp_path / "state" / "cal.json")
+    assert saved.diagnostics["applied"] is True and saved.probes[0].offset_nT[0] == 5.0
+    said: list[str] = []
+    again = build_pipeline(cfg, initial_calibration(cfg, said.append))
+    assert again.held and again.state()["held"] and "held until `reset`" in said[0]
+    daemon._on_event(again.command("reset", None, seq=0, t_s=0.0), again, bus, None)
+    assert load_calibration(tmp_path / "state" / "cal.json").diagnostics["applied"] is False
+    assert not build_pipeline(cfg, initial_calibration(cfg, said.append)).held

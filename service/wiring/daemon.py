@@ -23,7 +23,7 @@ from service.io.calfile import load_calibration, save_calibration
 from .config import RATE_MISSING, FluxcalConfig
 from .input import BatchReader, RateCheck
 from .pipeline import Pipeline, PipelineEvent
-from .sinks import initial_calibration, learned_on, open_logger, say_bus
+from .sinks import RecordingTrouble, initial_calibration, learned_on, open_logger, say_bus
 from .status import StatusLog
 
 
@@ -43,13 +43,16 @@ def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:
     rate = cfg.rate_hz
     if rate is None:
         raise ConfigError(f"{cfg.path}: {RATE_MISSING}")
-    return Pipeline(n_probes=cfg.unit.n_probes, probe_names=cfg.probe_names,
-                    positions_m=positions if has_geometry else None, forgetting=est.forgetting,
-                    total_nT=est.total_nT, align=est.align, min_samples=est.min_samples,
-                    gate_coverage=est.gate_coverage, gate_condition=est.gate_condition,
-                    gate_rms_nT=est.gate_rms_nT, check_every_samples=max(1, int(round(est.check_every_s * rate))),
-                    window_samples=int(est.window_s * rate), chunk_samples=max(1, int(round(est.update_every_s * rate))),
-                    initial=initial)
+    pl = Pipeline(n_probes=cfg.unit.n_probes, probe_names=cfg.probe_names,
+                  positions_m=positions if has_geometry else None, forgetting=est.forgetting,
+                  total_nT=est.total_nT, align=est.align, min_samples=est.min_samples,
+                  gate_coverage=est.gate_coverage, gate_condition=est.gate_condition,
+                  gate_rms_nT=est.gate_rms_nT, check_every_samples=max(1, int(round(est.check_every_s * rate))),
+                  window_samples=int(est.window_s * rate), chunk_samples=max(1, int(round(est.update_every_s * rate))),
+                  initial=initial)
+    # a calibration applied by command stays until `reset`, across a restart (and in its replay) too
+    pl.held = initial is not None and bool(initial.diagnostics.get("applied"))
+    return pl
 
 
 def open_configured_source(cfg: FluxcalConfig) -> Source:
@@ -84,8 +87,7 @@ class Daemon:
         self.cal_path = Path(cfg.calibration.file)
         self._reader = BatchReader(cfg.unit.block_ms, self.stop)
         self.processing_errors = 0            # blocks whose processing raised (their raw data are kept)
-        self._recording_errors_said = 0       # logger errors already said; at most one message a minute
-        self._recording_said_at = -1e9
+        self._recording_trouble = RecordingTrouble(self.say)
         self._last_processing_say = -1e9
         self._rate = RateCheck(cfg, self.say)
         self._status = StatusLog(self.say, cfg.unit.status_s)
@@ -128,16 +130,6 @@ class Daemon:
     def rate_checked(self) -> bool:
         """Whether the unit clock has been compared with the configured rate (input.RateCheck)."""
         return self._rate.checked
-
-    def _say_recording_trouble(self, logger) -> None:
-        """New recording errors (a full disk, a removed drive) are said, at most once a minute, with what
-        they cost so far; the logger itself keeps the data it can and retries (docs/recording.md)."""
-        st = logger.status()
-        now = time.monotonic()
-        if st["errors"] > self._recording_errors_said and now - self._recording_said_at >= 60.0:
-            self._recording_errors_said, self._recording_said_at = st["errors"], now
-            self.say(f"recording trouble: {st['last_error']}; {st['dropped']} message(s) dropped, {st['pending']} "
-                     f"waiting to be written; retrying (health: recording)")
 
     def _process(self, pipeline: Pipeline, block: SampleBlock):
         """pipeline.process, but an error in it (a bug meeting data nobody foresaw) costs that block's
@@ -220,7 +212,7 @@ class Daemon:
                 bus.publish_health(health)
                 if logger is not None:
                     logger.write_health(health)
-                    self._say_recording_trouble(logger)
+                    self._recording_trouble.check(logger)
                 self._status.tick(pipeline.state())
 
     def _emit(self, out, pipeline: Pipeline, bus, logger, announced: bool) -> bool:
@@ -247,9 +239,12 @@ class Daemon:
         if logger is not None:
             logger.write_calibration({**record, "state": state})
         bus.publish_calibration({**record, "state": state})
-        if ev.kind == "calibration" and pipeline.calibration is not None:
+        applied = ev.kind == "command" and ev.detail.get("name") == "apply"
+        reset = ev.kind == "command" and ev.detail.get("name") == "reset"      # no longer held: persisted so
+        if (ev.kind == "calibration" or applied or reset) and pipeline.calibration is not None:
             try:
                 pipeline.calibration.diagnostics["learned_on"] = learned_on(self.cfg)
+                pipeline.calibration.diagnostics["applied"] = applied     # reloaded held, as it was
                 save_calibration(pipeline.calibration, self.cal_path)
             except OSError as e:
                 self.say(f"could not persist the calibration to {self.cal_path}: {e}")
