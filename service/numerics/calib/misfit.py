@@ -259,23 +259,29 @@ def add_time_spread(cal: Any, order: str, raw: np.ndarray, total_nT, name: str) 
     white-noise errors average away. `raw` the fit's finite samples in time order, `order` its model order.
     Returns a warning where an offset's error rises by more than TIME_SAY, and where without some block the rest
     fix no ellipsoid."""
-    try:
-        got = time_jackknife(raw, total_nT, order, cal.offset_nT, cal.matrix, needed_only=True)
-    except (np.linalg.LinAlgError, ValueError):
-        return []
-    return add_spread(cal, got, name, "stretches of time", "blocks of time",
-                      "noise slower than the turning, or a misfit that follows the motion")
+    return _add_region_spread(cal, order, raw, total_nT, name, "time")
 
 
 def add_direction_spread(cal: Any, order: str, raw: np.ndarray, total_nT, name: str) -> list[str]:
     """As add_time_spread, with the delete-a-region jackknife over regions of field direction (a misfit tied to
     the direction, which a fit over part of the sphere leans on)."""
+    return _add_region_spread(cal, order, raw, total_nT, name, "direction")
+
+
+#: per kind of region: the jackknife, and the words of its warning (the regions, their short name, the cause)
+_REGIONS = {"time": (time_jackknife, "stretches of time", "blocks of time",
+                     "noise slower than the turning, or a misfit that follows the motion"),
+            "direction": (direction_jackknife, "regions of field direction", "regions of direction",
+                          "a misfit the model lacks, or noise slower than the turning")}
+
+
+def _add_region_spread(cal: Any, order: str, raw: np.ndarray, total_nT, name: str, kind: str) -> list[str]:
+    jackknife, regions, short, cause = _REGIONS[kind]
     try:
-        got = direction_jackknife(raw, total_nT, order, cal.offset_nT, cal.matrix, needed_only=True)
+        got = jackknife(raw, total_nT, order, cal.offset_nT, cal.matrix, needed_only=True)
     except (np.linalg.LinAlgError, ValueError):
         return []
-    return add_spread(cal, got, name, "regions of field direction", "regions of direction",
-                      "a misfit the model lacks, or noise slower than the turning")
+    return add_spread(cal, got, name, regions, short, cause)
 
 
 def add_spread(cal: Any, got: RegionSpread | None, name: str, regions: str, short: str, cause: str) -> list[str]:
