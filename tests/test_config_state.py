@@ -75,7 +75,8 @@ def test_a_missing_initial_calibration_or_serial_port_names_its_key(tmp_path, ca
     from service.wiring.cli import main
 
     base = ('[unit]\nname = "grad1"\nn_probes = 1\n[source]\nkind = "serial"\nport = "{port}"\nn_probes = 1\n'
-            'rate_hz = 200.0\n[calibration]\nfile = "state/cal.json"\n{initial}[zenoh]\nlisten = ["tcp/127.0.0.1:{zport}"]\n'
+            'rate_hz = 200.0\n[calibration]\nfile = "state/cal.json"\n{initial}'
+            '[zenoh]\nlisten = ["tcp/127.0.0.1:{zport}"]\n'
             '[mcap]\nenabled = false\n')
     cfg = tmp_path / "a.toml"
     import socket
@@ -101,7 +102,8 @@ def test_an_applied_calibration_is_persisted_and_reloaded_held(tmp_path):
     from service.wiring.daemon import Daemon, build_pipeline
 
     (tmp_path / "sim.toml").write_text('[unit]\nname = "grad1"\nn_probes = 1\n[source]\nkind = "sim"\n'
-                                       '[sim]\nrate_hz = 100.0\n[[sim.probes]]\nname = "s1"\n[calibration]\nfile = "state/cal.json"\n')
+                                       '[sim]\nrate_hz = 100.0\n[[sim.probes]]\nname = "s1"\n'
+                                       '[calibration]\nfile = "state/cal.json"\n')
     cfg = load_config(tmp_path / "sim.toml")
     daemon = Daemon(cfg, say=lambda m: None)
     pipeline = build_pipeline(cfg, None)

@@ -107,7 +107,7 @@ def fit_rls(data: LabData, total: TotalField, *, forgetting: float = 1.0, align:
     for i in range(0, n, step):
         pl.process(b.slice(i, i + step))
     pl.flush_estimator()
-    pl.gate.spread_errors = False                     # the white-noise errors: coloured_fit adds its own, as for the batch fit
+    pl.gate.spread_errors = False           # the white-noise errors: coloured_fit adds its own, as to the batch fit
     cand = pl.candidate()
     if cand is None:
         est = pl._estimators[0]
