@@ -247,6 +247,27 @@ def test_perming_steps_found_at_their_instants_and_not_in_noise():
     assert robust_noise(noise * 2.5) == pytest.approx(2.5, rel=0.03)
 
 
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_step_is_found_beside_a_ramp_and_a_ramp_is_no_step(seed):
+    """A warm-up or a ramp keeps the window statistic high along its length: its peaks are judged (a step must fit
+    better than a line, and a jump better than a bend) and rejected without using up the steps allowed, so a
+    weaker true step later is still found (the review's case: a 100 nT ramp over 10-40 s hid a 6 nT step)."""
+    rng = np.random.default_rng(seed)
+    n = 24000
+    t = np.arange(n) / 200.0
+    a, b = 2 * np.pi * 0.13 * t, 2 * np.pi * 0.071 * t + 1.0
+    gain = np.column_stack([np.cos(a) * np.cos(b), np.sin(a) * np.cos(b), np.sin(b)])
+    ramp = np.zeros((n, 3))
+    ramp[:, 0] = 100.0 * np.clip((t - 10.0) / 30.0, 0.0, 1.0)
+    warm = np.outer(1.0 - np.exp(-t / 15.0), [25.0, -20.0, 15.0])
+    step = np.outer(t >= 90.0, [0.0, 6.0, 0.0])
+    for smooth in (ramp, warm):
+        r = np.einsum("ni,ni->n", gain, smooth + step) + 0.5 * rng.standard_normal(n)
+        assert [round(ts, 1) for ts, _ in detect_steps(t, r, gain, window=800)] == [90.0]
+        r = np.einsum("ni,ni->n", gain, smooth) + 0.5 * rng.standard_normal(n)
+        assert detect_steps(t, r, gain, window=800) == []
+
+
 def test_correct_applies_calibration_and_effects_to_other_data():
     kw = {"temp_offset_nT_per_C": [3.0, -2.0, 1.0], "drift_offset_nT_per_h": [200.0, 0.0, -100.0]}
     data, truth, _ = sim([probe(**kw)], n=6000, seed=5)

@@ -32,11 +32,15 @@ CHI2_3_MEDIAN = 2.366         # median of a chi-square with 3 degrees of freedom
 #: 1.4e-6 of the time; the highest of the windows' values along 18 probe-records of white and 1/f noise without
 #: a step were 10 to 23); what it proposes, the held-out cross-fit judges (diagnose/fits.py)
 THRESHOLD = 30.0
-#: a step must beat a linear change of the offset over the same stretch by this many noise variances (the RSS
-#: drops' difference). Measured: true 7.8 nT steps beat the line by 33-2,192 (white noise, ten worlds) and 5-137
-#: (1/f noise of 0.3 nT/sqrt(Hz), nine); a warm-up's rise (25 nT, 15 s) lost to it by 6-40, at each of three
-#: instants. Zero: the step must simply fit better
+#: a step must beat a linear change of the offset, and a jump a bend, over the same stretch by this many noise
+#: variances (the RSS drops' differences). Measured: true 7.8 nT steps beat the line by 33-2,192 (white noise, ten
+#: worlds) and 5-137 (1/f noise of 0.3 nT/sqrt(Hz), nine), the bend by 12-1,266 and 0.7-81; warm-ups (25 nT,
+#: 6-30 s) lost to the line by 6-40; a ramp's corners beat the line (39, 176) and lost to the bend (-55, -1).
+#: Zero: each must simply fit better
 STEP_OVER_RAMP = 0.0
+#: peaks looked at per step allowed: a smooth change rejected (_steplike) keeps chi2 high over its whole length,
+#: and must not use up the search before a true step elsewhere
+MAX_PASSES = 4
 #: the single step the calibration's share is refitted beside is looked for at most at this many instants
 SCAN_POINTS = 20_000
 #: a view's cache key for a stretch (t_lo, t_hi) the steps are searched around, not across (diagnose's
@@ -94,7 +98,9 @@ def detect_steps(t_s: np.ndarray, residual: np.ndarray, gain: np.ndarray, *, win
     chi2 = chi2 / max(1.0, wander)
     steps: list[tuple[float, float]] = []
     chi2 = chi2.copy()
-    for _ in range(max_steps):                      # a few peaks, not a loop over samples
+    for _ in range(MAX_PASSES * max_steps):        # a few peaks, not a loop over samples
+        if len(steps) >= max_steps:
+            break
         j = int(np.argmax(chi2))
         if chi2[j] < threshold:
             break
@@ -110,11 +116,11 @@ def detect_steps(t_s: np.ndarray, residual: np.ndarray, gain: np.ndarray, *, win
                 + np.einsum("ni,ni->n", br, np.linalg.solve(gr + rdg, br[..., None])[..., 0]))
         best = int(np.argmax(gain))
         at = int(split[best])
-        # a step, not a smooth change: over the same stretch the jump must fit better than an offset that moves
-        # linearly in time (as many parameters); a warm-up's rise was taken for two steps (named perming,
-        # confidently) where it is a change no term of the catalogue follows
-        if not _steplike(g[lo:hi], r[lo:hi], float(gain[best]), sigma ** 2 * max(1.0, wander)):
-            chi2[max(0, j - w):j + w] = 0.0
+        # a step, not a smooth change: over the same stretch a jump must fit better than a bend at the same
+        # instant; a warm-up's rise was taken for two steps (perming named, significant) where it is a change no
+        # term of the catalogue follows
+        if not _steplike(g[lo:hi], r[lo:hi], at - lo, sigma ** 2 * max(1.0, wander)):
+            chi2[max(0, j - 2 * w):j + 2 * w] = 0.0     # the stretch judged; a rejection uses no step of max_steps
             continue
         steps.append((float(t[at]), float(chi2[j])))
         chi2[max(0, at - w - i[0]):max(0, at + w - i[0])] = 0.0
@@ -122,16 +128,24 @@ def detect_steps(t_s: np.ndarray, residual: np.ndarray, gain: np.ndarray, *, win
     return steps
 
 
-def _steplike(g: np.ndarray, r: np.ndarray, step_gain: float, noise2: float) -> bool:
-    """Whether one jump at its best instant explains the stretch's residual r (sensitivity g) better than an offset
-    moving linearly across the stretch (as many parameters), by more than STEP_OVER_RAMP noise variances (noise2:
-    sigma², wander included): a rise over seconds fits the line, a jump the step."""
+def _steplike(g: np.ndarray, r: np.ndarray, at: int, noise2: float) -> bool:
+    """Whether the stretch's residual r (sensitivity g) jumps at row `at`: two offsets, before and after, must fit
+    it better than one moving linearly across it, and a line with a jump at `at` better than a line that bends
+    there (each pair with as many parameters), by more than STEP_OVER_RAMP noise variances (noise2: sigma², wander
+    included). A rise over seconds fails the first, the corner of a ramp the second; a perming step passes both."""
     tau = np.linspace(-0.5, 0.5, r.size)[:, None]
-    x = np.concatenate([g, g * tau], axis=1)                     # offset a + b tau per axis: 6 columns
-    gram = x.T @ x
-    b = x.T @ r
-    ramp_gain = float(b @ np.linalg.lstsq(gram, b, rcond=None)[0])
-    return step_gain - ramp_gain > STEP_OVER_RAMP * noise2
+    after = (np.arange(r.size) >= at)[:, None]
+    bent = np.where(after, tau - tau[min(at, r.size - 1)], 0.0)
+
+    def gain(*cols: np.ndarray) -> float:
+        x = np.concatenate([g * c for c in cols], axis=1)
+        b = x.T @ r
+        return float(b @ np.linalg.lstsq(x.T @ x, b, rcond=None)[0])
+
+    one = np.ones_like(tau)
+    margin = STEP_OVER_RAMP * noise2
+    return (gain(one, after) - gain(one, tau) > margin
+            and gain(one, tau, after) - gain(one, tau, bent) > margin)
 
 
 def without_calibration_share(r: np.ndarray, g: np.ndarray, u: np.ndarray, margin: int) -> np.ndarray:
