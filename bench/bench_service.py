@@ -190,7 +190,7 @@ def floor_parts(block: SampleBlock, t_bare: float) -> None:
     print("  floor, each part alone: " + ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in parts.items())
           + f"; sum {total * 1e3:.0f} ms against the {2e3 * t_bare:.0f} ms a 0.5x ratio allows "
           f"(at best {t_bare / total:.2f}x; {(len(raw_bytes) + len(corrected_bytes)) / 1e6:.1f} MB written; "
-          f"without compression, [mcap] compression = \"none\", at best {t_bare / (total - parts[pack]):.2f}x)")
+          f"written uncompressed, at best {t_bare / (total - parts[pack]):.2f}x)")
 
 
 def cpu_seconds(pid: int) -> float:

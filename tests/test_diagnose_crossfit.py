@@ -90,6 +90,20 @@ def test_a_warm_up_is_not_called_perming(seed, tau_s, pink, n, rate):
         assert "so the sensor changed, not the field" in d.verdict["advice"], d.verdict
 
 
+@pytest.mark.parametrize("seed", [36, 37, 38])
+def test_a_fast_warm_up_is_said_as_one_probes_own_offset_changing(seed):
+    """A 6-s warm-up of probe 2 that no term follows: what is left is said as what it is (an offset changing
+    in time along one direction of the platform frame, not a field of the site) and the advice uses the
+    probes and the reference the data have (the sensor changed), where it told the user to log them."""
+    d = diagnose(warmed(seed, 6.0), candidates=["hysteresis", "drift"])
+    assert d.verdict["kind"] == "unexplained", d.verdict
+    assert "moves along one direction of the platform frame" in d.verdict["left"]
+    assert "an offset changing in time, not a field of the site" in d.verdict["left"]
+    assert "turns with the platform" not in d.verdict["left"]
+    assert "so the sensor changed, not the field" in d.verdict["advice"]
+    assert "without a second probe or a reference" not in d.verdict["advice"]
+
+
 def test_a_smooth_change_across_a_held_out_block_is_no_step_at_its_edge():
     """Searched across the hole a held-out block leaves, a smooth change over it looks like a jump at its edge;
     with the block as a barrier each side is searched on its own (the review's case: a tanh ramp)."""

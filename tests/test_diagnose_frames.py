@@ -83,3 +83,20 @@ def test_without_the_attitude_no_earth_frame_is_claimed():
     # a residual at its floor is placed in no frame
     assert all(e["platform"]["fixed_share"] is None or e["platform"]["fixed_share"] < 0.5 for e in d.frames)
     assert frames(data, d.fit, d.channel_noise_nT) == d.frames
+
+
+def test_a_difference_along_one_direction_is_an_offset_only_where_the_platform_turned():
+    """One platform direction with a changing size is an offset changing in time when the platform turned (a
+    field of the site would have moved in its frame); on a platform that barely turned the two cannot be told
+    apart, and the summary says so instead of excluding the site (review)."""
+    from service.numerics.diagnose.frames import frame_summary
+
+    entry = {"channels": "s2-s1.xyz", "kind": "difference",
+             "platform": {"fixed_share": 0.02, "line_share": 0.95, "turned": True},
+             "probe": {"fixed_share": 0.02, "line_axis": [0.1, 0.9, 0.2]}}
+    said = frame_summary([entry])
+    assert "mostly the probe's y axis" in said and "an offset changing in time, not a field of the site" in said
+    entry["platform"]["turned"] = False
+    said = frame_summary([entry])
+    assert "the platform turned too little to tell an offset changing in time from a change of the site's field" \
+        in said and "not a field of the site" not in said

@@ -65,8 +65,10 @@ def test_an_applied_calibration_stays_until_reset():
         events += pl.process(data.slice(i, i + 100)).events
     assert pl.cal_id == applied and pl.calibration.probes[0] is lab
     assert not any(e.kind == "calibration" for e in events)
+    assert pl.state()["gate"] is not None
     pl.command("reset", None, seq=int(data.seq[half + 6000]), t_s=0.0)
     assert not pl.state()["held"]
+    assert pl.state()["gate"] is None                  # no check since the reset: not the one before it
     for i in range(half + 6000, data.n_samples, 100):
         pl.process(data.slice(i, i + 100))
     assert pl.cal_id > applied and pl.calibration.probes[0] is not lab     # learned again after the reset

@@ -18,8 +18,10 @@ from service.wiring.daemon import build_pipeline
 SAMPLE = Path(__file__).resolve().parents[1] / "recordings" / "grad1-sim-30s.mcap"
 
 
-def _live_run_with_a_command(path: Path) -> None:
-    """What the daemon records, with a freeze 2000 samples in and an unfreeze at 4000."""
+def _live_run_with_a_command(path: Path, commands=((2000, "freeze", None), (4000, "unfreeze", None)),
+                             legacy: bool = False) -> None:
+    """What the daemon records, with a freeze 2000 samples in and an unfreeze at 4000 (or `commands`: (sample,
+    verb, payload)); legacy: as a service before applied calibrations were held (its apply events carry no note)."""
     src = read_recording(SAMPLE)
     cfg = config_from_dict(json.loads(src.metadata["config"]), "sample")
     initial = None
@@ -34,7 +36,7 @@ def _live_run_with_a_command(path: Path) -> None:
                      "calibration": None if initial is None else calibration_to_dict(initial)})
     done = 0
     for block in src.raw_blocks:
-        for at, verb in ((2000, "freeze"), (4000, "unfreeze")):
+        for at, verb, payload in commands:
             if done < at <= done + block.n_samples:
                 head = block.slice(0, at - done)
                 r = pl.process(head)
@@ -42,7 +44,12 @@ def _live_run_with_a_command(path: Path) -> None:
                 if r.corrected is not None:
                     log.write_corrected(r.corrected)
                 seq = int(block.seq[at - done])
-                ev = pl.command(verb, None, seq=seq, t_s=float("nan"))
+                ev = pl.command(verb, payload, seq=seq, t_s=float("nan"))
+                if verb == "apply":
+                    ev.detail["calibration"] = calibration_to_dict(payload)
+                    if legacy:
+                        pl.held = False
+                        ev.detail.pop("note")
                 log.write_event({"kind": "command", "seq": seq, **ev.detail})
                 block = block.slice(at - done, block.n_samples)
                 done = at
@@ -77,3 +84,25 @@ def test_nothing_to_compare_is_said(tmp_path, capsys):
     log.close()
     assert main(["replay", str(bare)]) == 0
     assert "nothing to compare" in capsys.readouterr().err
+
+
+def test_an_apply_replays_as_its_live_run_had_it_held_or_not(tmp_path, capsys):
+    """An applied calibration is held until reset; a recording made before that (its apply event has no note)
+    replays as its live run went, the next usable candidate replacing the applied one. Both bit for bit."""
+    import numpy as np
+
+    from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+
+    lab = ArrayCalibration("ellipsoid", "rotation", [ProbeCalibration(n, np.array([3.0, -2.0, 1.0]), np.eye(3))
+                                                     for n in ("s1", "s2")])
+    for legacy in (False, True):
+        live = tmp_path / f"live-{legacy}.mcap"
+        _live_run_with_a_command(live, ((3000, "apply", lab),), legacy=legacy)
+        capsys.readouterr()
+        assert main(["replay", str(live)]) == 0
+        out = capsys.readouterr().out
+        n = int(out.split("compared with the recording: ")[1].split(",")[0])
+        assert n >= 2900 and f"compared with the recording: {n}, identical: {n}" in out
+        # held: the applied offsets correct every later sample; legacy: a candidate took over before the end
+        last = read_recording(live).corrected_blocks[-1]
+        assert (last.cal_id == 1) is (not legacy), last.cal_id

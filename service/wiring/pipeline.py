@@ -122,6 +122,7 @@ class Pipeline:
         self._estimators = self._rls.probes()     # each probe as an estimator of its own (the gate reads them)
         self._fill = 0                    # samples buffered towards the next chunk
         self._chunks = 0                  # chunks fed since the last check
+        self.last_gate = None             # no check since: the state says none, not the one before
 
     def command(self, name: str, payload: Any, seq: int, t_s: float) -> PipelineEvent:
         """Apply a runtime command between blocks; the event records where it took effect."""
@@ -253,6 +254,7 @@ class Pipeline:
         if cand is None:
             if self.gate.refusal is None:
                 return None                   # too few samples yet: nothing to say
+            self.last_gate = GateResult(False, [self.gate.refusal], float("nan"), float("nan"), [])
             return PipelineEvent("gate", seq, t_s, {"usable": False, "reasons": [self.gate.refusal]})
         gate = self.evaluate(cand)
         self.last_gate = gate

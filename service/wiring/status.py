@@ -66,9 +66,11 @@ class StatusLog:
                 " (applied: held until reset)" if state.get("held") else "")
         else:
             where = f"learning ({state.get('samples_seen', 0)} samples seen)"
-        if gate.get("coverage") is not None:
+        if gate:
             verdict = "passed" if gate.get("usable") else "refused"
-            where += (f"; latest check {verdict}: coverage {gate['coverage']:.0%} of its window, condition "
-                      f"{gate.get('condition', math.nan):.3g}")
+            cov = gate.get("coverage")
+            where += f"; latest check {verdict}" + (
+                f": coverage {cov:.0%} of its window, condition {gate.get('condition', math.nan):.3g}"
+                if isinstance(cov, (int, float)) and math.isfinite(cov) else "")
         err = ", ".join(f"{k} {v:.3g}" for k, v in list(self._error.items())[:4])
         self.say(f"status: {rate:,.0f} samples/s; {where}" + (f"; error rms nT: {err}" if err else ""))

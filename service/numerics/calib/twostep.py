@@ -167,7 +167,9 @@ def fit_two_step_full(rotations: Sequence[np.ndarray], *, extra_nT: np.ndarray |
     """
     turns = _check_turns(rotations, name)
     step1 = np.concatenate(turns + ([finite_rows(extra_nT, f"{name}: extra_nT")] if extra_nT is not None else []))
-    fit = fit_ellipsoid(step1, total_nT, name=name)
+    # the white-noise errors: step 1's rows are turns grouped by axis, not in time order, so stretches of them are
+    # no stretches of time (misfit.add_time_spread)
+    fit = fit_ellipsoid(step1, total_nT, name=name, errors="white")
     ell = fit.calibration
     q = ell.matrix.T @ ell.matrix                     # E = M⁻ᵀ M⁻¹ of 004 (eq. 10), scaled to |ĥ| = F
     u, d = _equivalent_frame(q)

@@ -37,6 +37,9 @@ TURNS = 0.2
 #: ... and moves along one direction there (a vector of fixed direction whose size changes) when the largest
 #: principal direction of the difference holds this share of its excess
 LINE = 0.8
+#: the platform turned (a field of the site would move in its frame) when the field's direction there has at
+#: least this total variance (a still platform: about 0; a tumble over the sphere: about 1)
+TURNED = 0.1
 
 
 def _rotation_part(m: np.ndarray) -> np.ndarray:
@@ -90,6 +93,10 @@ def frames(data: EffectData, fit: FitResult, noise_nT: np.ndarray) -> list[dict[
         w, vec = np.linalg.eigh(d.T @ d / max(d.shape[0], 1))
         entry["platform"]["line_share"] = _share(float(w[-1]) - float(np.max(noise[cols] ** 2)), total, nz)
         entry["probe"]["line_axis"] = (rot.T @ vec[:, -1]).tolist()
+        # whether the platform turned enough that a field of the site would have moved in its frame: the spread
+        # (total variance) of the field's direction there
+        nh = np.asarray(fit.ev.nhat[0], float)
+        entry["platform"]["turned"] = bool(np.trace(np.cov(nh.T)) >= TURNED) if nh.shape[0] > 2 else False
         if att is not None:
             known = np.all(np.isfinite(att), axis=(1, 2))               # rows whose attitude was logged
             if known.any():
@@ -115,10 +122,13 @@ def frame_summary(entries: list[dict[str, Any]]) -> str | None:
                         f"{AXES[int(np.argmax(np.abs(v)))]} axis)")
         elif share < TURNS and (e["platform"].get("line_share") or 0.0) >= LINE:
             v = np.abs(np.asarray(e["probe"]["line_axis"]))
-            said.append(f"{e['channels']} moves along one direction of the platform frame "
-                        f"({100 * e['platform']['line_share']:.0f} % of the excess, mostly the probe's "
-                        f"{AXES[int(np.argmax(v))]} axis) with a size that changes: an offset changing in time, not a "
-                        f"field of the site (which would turn with the platform)")
+            head = (f"{e['channels']} moves along one direction of the platform frame "
+                    f"({100 * e['platform']['line_share']:.0f} % of the excess, mostly the probe's "
+                    f"{AXES[int(np.argmax(v))]} axis) with a size that changes")
+            said.append(head + (": an offset changing in time, not a field of the site (which would turn with the "
+                                "platform)" if e["platform"].get("turned") else
+                                ": the platform turned too little to tell an offset changing in time from a change "
+                                "of the site's field"))
         elif share < TURNS:
             where = ""
             if "earth" in e:

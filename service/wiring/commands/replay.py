@@ -72,6 +72,10 @@ def _with_rate(raw: dict, recording: str) -> dict:
 
 
 def main(args: Namespace) -> int:
+    if args.out:
+        from service.wiring.commands.notes import check_output_file
+
+        check_output_file(Path(args.out))       # before any work
     if Path(args.recording).is_dir():
         check_one_run(Path(args.recording))     # a folder of one run (the reader's rule, as fit's)
     rec = read_recording(args.recording)
@@ -100,10 +104,8 @@ def main(args: Namespace) -> int:
     logger = None
     if args.out:
         from service.io.recordings.writer import McapLogger
-        from service.wiring.commands.notes import check_output_file
 
         out = Path(args.out)
-        check_output_file(out)
         logger = McapLogger(out.parent, unit=cfg.unit.name, filename=out.name, rotate_mb=1e9, rotate_s=1e12,
                             metadata=dict(rec.metadata))
         # what a replay of this copy needs: the calibration it started from and the commands, where they acted
@@ -121,6 +123,8 @@ def main(args: Namespace) -> int:
                 payload = (calibration_from_dict(c["calibration"]) if c.get("name") == "apply"
                            else c.get("effect"))
                 pipeline.command(c["name"], payload, seq=c["seq"], t_s=float("nan"))
+                if c.get("name") == "apply" and "note" not in c:
+                    pipeline.held = False     # recorded before applied calibrations were held: as that live run
                 if logger is not None:
                     logger.write_event(c)
                 ci += 1
@@ -138,10 +142,13 @@ def main(args: Namespace) -> int:
         progress.close()
         if logger is not None:
             logger.close()
-    if logger is not None and (logger.errors or logger.dropped):
+    if logger is not None and logger.dropped:
         print(f"fluxcal replay: {args.out}: the replay could not be written ({logger.last_error}); "
               f"{logger.dropped} message(s) lost", file=sys.stderr)
         return 1
+    if logger is not None and logger.errors:
+        print(f"fluxcal replay: {args.out}: {logger.errors} write error(s), retried; nothing was lost "
+              f"(the last: {logger.last_error})", file=sys.stderr)
     compared, identical = _compare(rec.corrected_blocks, out_seq, out_vals)
     dt = time.perf_counter() - t0
     p = cfg.unit.n_probes

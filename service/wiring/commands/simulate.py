@@ -46,17 +46,20 @@ def free_truth_path(out: Path) -> Path:
     return path
 
 
-def _say_faults(unit: Unit, names: list[str]) -> None:
-    """How many samples the run saturated or marked temperature-invalid (NaN and flagged in the output)."""
+def _say_faults(unit: Unit, names: list[str], suffix: str) -> None:
+    """How many samples the run saturated or marked temperature-invalid, and how the output carries them (a CSV
+    and a recording as NaN with the flag, the unit's own bytes as the rails' counts with the flag)."""
     cfg = unit.config
     limit = f"range_nT {cfg.range_nT:g} nT" if cfg.range_nT is not None else "the int32 rails"
+    decoded = suffix in (".csv", ".mcap")
     for name, k in zip(names, unit.saturated_samples.tolist()):
         if k:
-            print(f"fluxcal simulate: {name}: {k} samples saturated (beyond {limit}): NaN in the output, "
-                  f"flag bit0 set", file=sys.stderr)
+            print(f"fluxcal simulate: {name}: {k} samples saturated (beyond {limit}): "
+                  f"{'NaN in the output' if decoded else 'the rail counts in the frames'}, flag bit0 set",
+                  file=sys.stderr)
     if unit.temp_invalid_samples:
         print(f"fluxcal simulate: {unit.temp_invalid_samples} samples with the temperature marked invalid "
-              f"(flag bit1; NaN in a CSV)", file=sys.stderr)
+              f"(flag bit1{'; NaN in a CSV' if suffix == '.csv' else ''})", file=sys.stderr)
 
 
 def load_simulation(path: str | None) -> tuple[SimConfig, str]:
@@ -260,7 +263,7 @@ def main(args: Any) -> int:
         tmp_data.unlink(missing_ok=True)
         tmp_truth.unlink(missing_ok=True)
     effects = ", ".join(unit.world.active_effects) or "none"
-    _say_faults(unit, [p.name for p in sim.probes])
+    _say_faults(unit, [p.name for p in sim.probes], suffix)
     if tpath != truth_path(out):
         print(f"fluxcal simulate: {truth_path(out).name} describes another data file beside it: this run's truth "
               f"is {tpath.name}", file=sys.stderr)

@@ -188,7 +188,8 @@ function renderCalibration(v) {
   const gate = st.gate;
   $("gate").innerHTML = gate ? `<p>quality gate, latest online candidate: ${gate.usable ? '<span class="good">passed</span>' : '<span class="bad">refused</span>'}` +
     (st.usable && !gate.usable ? " (the calibration in use stays)" : "") +
-    ` · its window's coverage ${num(100 * gate.coverage, 0)} % · condition ${num(gate.condition, 1)}</p>` +
+    (gate.coverage === null || gate.coverage === undefined ? "" :
+     ` · its window's coverage ${num(100 * gate.coverage, 0)} % · condition ${num(gate.condition, 1)}`) + "</p>" +
     (gate.reasons && gate.reasons.length ? "<ul id='gate-reasons'>" + gate.reasons.map(r => `<li>${esc(r)}</li>`).join("") + "</ul>" : "")
     : "<p class='muted'>no quality-gate verdict yet</p>";
   const ch = v.cal_history || [];
