@@ -116,6 +116,13 @@ def test_an_applied_calibration_is_persisted_and_reloaded_held(tmp_path):
     said: list[str] = []
     again = build_pipeline(cfg, initial_calibration(cfg, said.append))
     assert again.held and again.state()["held"] and "held until `reset`" in said[0]
+    other = tmp_path / "state" / "other.json"                       # calibration.initial wins: said
+    save_calibration(ArrayCalibration("ellipsoid", None, [ProbeCalibration("s1", np.zeros(3), np.eye(3))]), other)
+    cfg.calibration.initial = str(other)
+    said.clear()
+    assert not build_pipeline(cfg, initial_calibration(cfg, said.append)).held
+    assert any("applied by command and persisted" in m and "is not used" in m for m in said), said
+    cfg.calibration.initial = None
     daemon._on_event(again.command("reset", None, seq=0, t_s=0.0), again, bus, None)
     assert load_calibration(tmp_path / "state" / "cal.json").diagnostics["applied"] is False
     assert not build_pipeline(cfg, initial_calibration(cfg, said.append)).held

@@ -32,6 +32,14 @@ def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None]) -> Any:
         foreign = f" (learned on unit {origin.get('unit')}, source {origin.get('source')})" \
             if isinstance(origin, dict) and origin != learned_on(cfg) else ""
         say(f"starting from calibration {c.initial}{foreign}")
+        persisted = Path(c.file)
+        if persisted.exists() and persisted.resolve() != Path(c.initial).resolve():
+            try:
+                if load_calibration(persisted).diagnostics.get("applied"):
+                    say(f"the calibration applied by command and persisted in {persisted} is not used: "
+                        f"calibration.initial names another (remove the key to reload the applied one)")
+            except DataError:
+                pass
         return cal
     path = Path(c.file)
     if path.exists():
