@@ -251,6 +251,23 @@ def test_a_real_single_axis_turn_is_refused_naming_its_axis_wherever_the_origin(
 
 
 @needs_real
+@pytest.mark.parametrize("method", ["tmi", "rls"])
+def test_every_method_that_fits_the_offsets_refuses_a_real_single_axis_turn(method, capsys):
+    """The cone refusal guarded the default method only: `fit --method tmi` gave turn_x's x offset 9,417 ± 590
+    nT (the sphere: −643) and `--method rls` 9,417 ± 1,900, exit 0 and a calibration written (a user's trial).
+    The same turns, and the nliaudat board's, are now refused by both; a full sphere is still fitted."""
+    from service.wiring.cli import main
+
+    for name, axis in (("hmc5883l_sensorfusion_turn_x", "x"), ("hmc5883l_sensorfusion_turn_z", "z"),
+                       ("hmc5883l_nliaudat", "z")):
+        assert main(["fit", str(REAL / f"{name}.csv"), "--method", method, "--site", "46.5,6.6,400"]) == 2
+        assert f"one cone about {axis} (a turn about {axis})" in capsys.readouterr().err
+    assert main(["fit", str(REAL / "qmc5883l_suarez.csv"), "--method", method, "--site", "46.5,6.6,400", "--json"]) == 0
+    off = np.asarray(json.loads(capsys.readouterr().out)["sensors"][0]["offset_nT"])
+    assert np.allclose(off, [51623.6, 2085.2, 29009.8], atol=1.0)
+
+
+@needs_real
 @pytest.mark.parametrize("name", FULL_SPHERE)
 def test_wide_cuts_of_real_spheres_are_still_fitted(name):
     """What the cone rule must not refuse: hemispheres and a ±17° band about a plane (read 17-39°)."""

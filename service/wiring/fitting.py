@@ -133,6 +133,7 @@ def fit_array(data: LabData, *, method: str = "ellipsoid", align: str | None = N
         cal = fit_rls(data, total, align=align if align in ("rotation", "regression") else "rotation",
                       positions_m=positions_m)
         cal.total_nT = None if isinstance(total.values, np.ndarray) or total.values is None else float(total.values)
+        _refuse_one_cone(cal, data, total)
         return cal, total
     probes = []
     for k in range(p):
@@ -156,7 +157,25 @@ def fit_array(data: LabData, *, method: str = "ellipsoid", align: str | None = N
     cal = ArrayCalibration(method=method, align=align, probes=probes,
                            total_nT=None if not isinstance(total.values, float) else total.values,
                            span=(float(b.t_s[0]), float(b.t_s[-1]), b.n_samples))
+    if method == "tmi":                   # (ellipsoid asks in fit_ellipsoid; sinefit and two-step are made of turns)
+        _refuse_one_cone(cal, data, total)
     return cal, total
+
+
+def _refuse_one_cone(cal: ArrayCalibration, data: LabData, total: TotalField) -> None:
+    """The single-axis-turn refusal of the batch ellipsoid fit (excitation.band_problem), for the methods that fit
+    the same offsets without asking it (tmi, rls): real hand turns gave offsets 9,417 nT where the board's sphere
+    says -643, with exit 0."""
+    from service.numerics.calib.excitation import band_problem
+
+    b = data.block
+    for k, p in enumerate(cal.probes):
+        corr = p.apply(b.field_nT[:, k])
+        mag = np.linalg.norm(corr, axis=1)
+        f = total.per_sample(b.n_samples, fallback=mag)
+        problem = band_problem(corr, float(np.sqrt(np.mean((mag - f) ** 2))), float(np.mean(f)))
+        if problem:
+            raise CalibrationRefused(f"{data.probe_names[k]}: {problem}")
 
 
 def _refuse_non_finite(data: LabData) -> None:
