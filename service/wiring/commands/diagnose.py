@@ -140,6 +140,8 @@ def main(args: argparse.Namespace) -> int:
         result = diagnose(data, effects=effects, calibration=cal, progress=bar)
     finally:
         bar.close()
+    if cal is None:
+        _refuse_one_cone(data, result)
     if thinned is not None:
         result.thinned, text = thinned
         result.notes.insert(0, text)
@@ -191,3 +193,25 @@ def thinning(lab: Any, limit: int | None) -> tuple[dict[str, Any], str] | None:
             f"standard errors are those of the samples used, up to {np.sqrt(k):.1f} x the whole recording's under "
             f"white noise (less under 1/f noise, whose slow wander thinning does not lose)")
     return info, text
+
+
+def _refuse_one_cone(data, result) -> None:
+    """A linear part refitted to a single-axis turn is not determined along the turn's axis (fit refuses it,
+    excitation.band_problem): an effect found on top of it would be that error, and the advice would send the user
+    to a fit that is refused (a real turn was 'explained by crossfield'). Refused alike, with the way out."""
+    from drivers.errors import CalibrationRefused
+    from service.numerics.calib.excitation import band_problem
+
+    lin = result.fit.state.linear
+    for k, name in enumerate(data.probe_names):
+        raw = data.raw_nT[:, k]
+        corr = (raw - lin.offset_nT[k]) @ lin.matrix[k].T
+        mag = np.linalg.norm(corr, axis=1)
+        ref = data.ref_total_nT
+        f = np.asarray(ref, float) if ref is not None else np.full(mag.shape, float(np.mean(mag)))
+        ok = np.isfinite(mag) & np.isfinite(f)
+        problem = band_problem(corr[ok], float(np.sqrt(np.mean((mag[ok] - f[ok]) ** 2))), float(np.mean(f[ok])))
+        if problem:
+            raise CalibrationRefused(f"{name}: {problem}; the linear calibration these data would refit is not "
+                                     f"determined, so no effect can be judged on top of it (or hold one made from "
+                                     f"a fuller turn fixed: --calibration CAL.json)")
