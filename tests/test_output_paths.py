@@ -67,3 +67,32 @@ def test_a_replay_whose_output_fails_says_so_and_fails(tmp_path, capsys, monkeyp
     captured = capsys.readouterr()
     assert "written to" not in captured.out
     assert f"fluxcal replay: {out}: the replay could not be written" in captured.err and "lost" in captured.err
+
+
+def test_replay_out_that_is_no_recording_or_the_input_is_refused(tmp_path, capsys):
+    """A trial's cases: a missing folder written with a trailing slash became a file of that name, '--out x.csv'
+    got MCAP bytes, and '--out' equal to the input overwrote the recording; all silently."""
+    import shutil
+
+    rec = tmp_path / "rec.mcap"
+    shutil.copy(SAMPLE, rec)
+    before = rec.read_bytes()
+    for out, said in ((f"{tmp_path / 'missing'}/", "is a folder"), (str(tmp_path / "x.csv"), "allowed: FILE.mcap"),
+                      (str(rec), "is the input itself")):
+        assert main(["replay", str(rec), "--out", out]) == 2
+        assert said in capsys.readouterr().err
+    assert rec.read_bytes() == before and not (tmp_path / "missing").exists() and not (tmp_path / "x.csv").exists()
+
+
+def test_report_and_fleet_output_folders_are_checked_before_any_work(tmp_path, capsys):
+    csv = tmp_path / "grad.csv"
+    assert main(["simulate", "--out", str(csv)]) == 0
+    capsys.readouterr()
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")
+    for command in (["fit", str(csv)], ["diagnose", str(csv)]):
+        assert main([*command, "--report", str(plain / "r")]) == 2
+        out, err = capsys.readouterr()
+        assert out == "" and f"--report {plain / 'r'}: cannot write there" in err
+    assert main(["fit", str(csv), str(csv), "--out", str(plain / "o")]) == 2
+    assert f"--out {plain / 'o'}: cannot write there" in capsys.readouterr().err

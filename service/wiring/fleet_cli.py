@@ -75,6 +75,9 @@ def dispatch(args: argparse.Namespace, argv: list[str]) -> int | None:
         if Path(folder).suffix in (".json", ".mcap") or (Path(folder).exists() and not Path(folder).is_dir()):
             raise ConfigError(f"{flag}: {folder!r} is not allowed with several recordings (allowed: a folder, "
                               f"which gets one file per recording)")
+        from .commands.notes import check_output_folder
+
+        check_output_folder(folder, flag)                # before any work
     from .progress import Progress
 
     bar = Progress(1.0, f"{args.command} of several recordings", fraction=True)

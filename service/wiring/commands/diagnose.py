@@ -89,6 +89,10 @@ def main(args: argparse.Namespace) -> int:
     from service.numerics.effects.base import EffectData
     from service.wiring.user_effects import load_installed_effects, resolve_effects
 
+    if args.report:
+        from service.wiring.commands.notes import check_output_folder
+
+        check_output_folder(args.report, "--report")          # before any work
     load_installed_effects()
     args.effects = resolve_effects(args.effects)
     known = known_effects()

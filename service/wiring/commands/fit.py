@@ -18,7 +18,8 @@ from service.numerics.calib.coverage import coverage
 from service.numerics.calib.site import site_from_text
 from service.numerics.usable import temperature_notes, usable_samples
 from service.wiring.coloured_fit import coloured_offsets, direction_offsets
-from service.wiring.commands.notes import check_output_file, say_field_scale, say_part_of_run, say_read_warnings
+from service.wiring.commands.notes import (check_output_file, check_output_folder, say_field_scale, say_part_of_run,
+                                           say_read_warnings)
 from service.wiring.fitting import (
     NONLINEAR_PROBE_SAMPLES,
     channel_sums,
@@ -85,7 +86,9 @@ def main(args: Namespace) -> int:
     load_installed_effects()
     args.effects = resolve_effects(args.effects)
     if args.out:
-        check_output_file(args.out)
+        check_output_file(args.out, example="cal.json", not_this=args.data)
+    if args.report:
+        check_output_folder(args.report, "--report")
     data = load_data(args.data)
     say_read_warnings("fit", args.data, data.warnings)
     part = say_part_of_run("fit", args.data)

@@ -56,9 +56,11 @@ def say_part_of_run(command: str, source: str) -> str | None:
     return note
 
 
-def check_output_file(path: Any, flag: str = "--out") -> None:
-    """Refuse (DataError, exit 2), before any work, an output file that cannot be written: a folder, a missing
-    folder, or one this user may not write in."""
+def check_output_file(path: Any, flag: str = "--out", *, suffixes: Sequence[str] = (), example: str = "out.mcap",
+                      not_this: Any = None) -> None:
+    """Refuse (DataError, exit 2), before any work, an output file that cannot be written: a folder (or a name
+    ending in '/'), a missing folder, one this user may not write in, a suffix other than `suffixes` (when given),
+    or the input itself (`not_this`)."""
     import os
     import tempfile
     from pathlib import Path
@@ -66,8 +68,13 @@ def check_output_file(path: Any, flag: str = "--out") -> None:
     from drivers.errors import DataError
 
     p = Path(path)
-    if p.is_dir():
-        raise DataError(f"{flag} {p}: is a folder; give a file name in it (e.g. {p / 'out.mcap'})")
+    if p.is_dir() or str(path).endswith(("/", os.sep)):
+        raise DataError(f"{flag} {path}: is a folder; give a file name in it (e.g. {p / example})")
+    if suffixes and p.suffix.lower() not in suffixes:
+        raise DataError(f"{flag} {p}: this writes {' or '.join(suffixes)} files, not "
+                        f"{p.suffix or 'a name without a suffix'} (allowed: {', '.join('FILE' + x for x in suffixes)})")
+    if not_this is not None and p.exists() and p.resolve() == Path(not_this).resolve():
+        raise DataError(f"{flag} {p}: is the input itself; give another file")
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise DataError(f"{flag} {p}: folder {parent} does not exist")
@@ -78,3 +85,19 @@ def check_output_file(path: Any, flag: str = "--out") -> None:
         raise DataError(f"{flag} {p}: cannot write in {parent} ({e.strerror or e})") from None
     if p.exists() and not os.access(p, os.W_OK):
         raise DataError(f"{flag} {p}: the file exists and is not writable")
+
+
+def check_output_folder(path: Any, flag: str) -> None:
+    """Refuse (DataError, exit 2), before any work, an output folder that cannot be made or written in."""
+    import tempfile
+    from pathlib import Path
+
+    from drivers.errors import DataError
+
+    p = Path(path)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=p, prefix=".fluxcal-check-"):
+            pass
+    except OSError as e:
+        raise DataError(f"{flag} {p}: cannot write there ({e.strerror or e})") from None

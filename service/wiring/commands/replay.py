@@ -75,7 +75,7 @@ def main(args: Namespace) -> int:
     if args.out:
         from service.wiring.commands.notes import check_output_file
 
-        check_output_file(Path(args.out))       # before any work
+        check_output_file(args.out, suffixes=(".mcap",), not_this=args.recording)     # before any work
     if Path(args.recording).is_dir():
         check_one_run(Path(args.recording))     # a folder of one run (the reader's rule, as fit's)
     rec = read_recording(args.recording)

@@ -224,7 +224,7 @@ def main(args: Any) -> int:
     from service.wiring.commands.notes import check_output_file
 
     out = Path(args.out)
-    check_output_file(out)
+    check_output_file(out, example="sim.csv")
     suffix = out.suffix.lower()
     if suffix not in WRITERS:
         raise DataError(f"{out}: unknown output type {out.suffix!r} (allowed: {', '.join('FILE' + s for s in WRITERS)}: "
