@@ -176,6 +176,11 @@ def test_calibration_file_round_trip_and_refusals(tmp_path):
     arr = ArrayCalibration(method="ellipsoid", align=None, probes=[cal], total_nT=52500.0, span=(0.0, 30.0, 6000))
     path = tmp_path / "cal.json"
     save_calibration(arr, path)
+    import os
+
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask              # readable as the user's files are, not 0600
     back = load_calibration(path)
     assert np.array_equal(back.probes[0].matrix, cal.matrix)
     assert np.array_equal(back.probes[0].offset_nT, cal.offset_nT)

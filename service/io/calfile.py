@@ -77,6 +77,9 @@ def save_calibration(cal: ArrayCalibration, path: str | Path) -> None:
             f.write(text + "\n")
             f.flush()
             os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)     # as any file the user writes (mkstemp makes it 0600)
         os.replace(tmp, p)
     except BaseException:
         try:

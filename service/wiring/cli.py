@@ -88,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     fit = _command(sub, "fit", "fit a calibration to lab data (CSV or MCAP)",
                    "  fluxcal fit grad.csv --out cal.json\n  fluxcal fit board.csv --site 46.52,6.63,400 --json\n"
                    "  fluxcal fit grad.csv --effects temperature,drift")
-    fit.add_argument("data", metavar="DATA", nargs="+", help=data_help + FLEET_HELP)
+    fit.add_argument("data", metavar="DATA", nargs="+", help=data_help + fleet_help("--out and --report"))
     fit.add_argument("--config", metavar="FILE", help=config_help)
     fit.add_argument("--method", default="ellipsoid", metavar="M", choices=METHODS,
                      help=f"calibration method (allowed: {', '.join(METHODS)}; default: %(default)s)")
@@ -106,7 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
     dia = _command(sub, "diagnose", "compare model and measurement; find the missing effect",
                    "  fluxcal diagnose recordings/grad1-hidden-effect.mcap\n"
                    "  fluxcal diagnose rec.mcap --effects temperature --report report/")
-    dia.add_argument("data", metavar="DATA", nargs="+", help=data_help + FLEET_HELP)
+    dia.add_argument("data", metavar="DATA", nargs="+", help=data_help + fleet_help("--report"))
     dia.add_argument("--config", metavar="FILE", help=config_help)
     dia.add_argument("--calibration", metavar="CAL.json",
                      help="hold this calibration fixed (a file of `fit --out`, or `fit --json`); default: refit")
@@ -147,7 +147,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "when every one is identical (or there was none to compare, which it says), 1 when any "
                         "differs."))
     rep.add_argument("recording", metavar="REC.mcap", nargs="+",
-                     help="an MCAP file, or a directory of one run's rotated files" + FLEET_HELP)
+                     help="an MCAP file, or a directory of one run's rotated files"
+                     + fleet_help("--out", json_flag=False))
     rep.add_argument("--config", metavar="FILE",
                      help="replay with this configuration (default: the one stored in the recording)")
     rep.add_argument("--out", metavar="OUT.mcap", help="also record the replay here, with the initial calibration and "
@@ -247,8 +248,11 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-FLEET_HELP = ("; several (paths, folders, glob patterns such as 'survey/*.mcap') run on all cores, one summary table "
-              "(--json: JSON) of each recording's result or failure, --out and --report then name folders")
+def fleet_help(outputs: str, json_flag: bool = True) -> str:
+    """The data argument's help for several recordings: what this command's output options become."""
+    return ("; several (paths, folders, glob patterns such as 'survey/*.mcap') run on all cores, one summary table "
+            + ("(--json: JSON) " if json_flag else "") + "of each recording's result or failure"
+            + (f", {outputs} then name{'s' if ' and ' not in outputs else ''} folders" if outputs else ""))
 
 
 def _fleet_options(p: argparse.ArgumentParser) -> None:

@@ -307,7 +307,7 @@ def repair_recording(src: str | Path, dst: str | Path, *, compression: str = "lz
     for f in files:
         target = out_dir / f.name if src_is_dir else Path(dst)
         if target.resolve() == f.resolve():
-            raise RecordingError(f"{target}: repair_recording writes a new file; give another destination")
+            raise RecordingError(f"{target}: is the recording to repair: the repaired copy is written beside it, never over it; give another destination")
         tmp = target.with_name(target.name + ".partial")
         report.files.append(str(f))
         try:

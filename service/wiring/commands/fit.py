@@ -267,7 +267,9 @@ def _summary(data, cal, channels, before, total_source, result, coverages, origi
     b = data.block
     lines = [f"{data.path}: {b.n_samples} samples, {b.n_probes} probe(s), {b.t_s[-1] - b.t_s[0]:.1f} s; "
              f"method {cal.method}, align {cal.align or '-'}, effects {', '.join(cal.effects) or '-'}; "
-             f"total field from {total_source}" + (f"; {origin}" if origin == FROM_RECORDING else "")]
+             + ("total field estimated from the data" if total_source == "estimated"
+              else f"total field from {total_source}")
+             + (f"; {origin}" if origin == FROM_RECORDING else "")]
     for k, p in enumerate(cal.probes):
         lines.append(f"\n{p.name}")
         lines.append("  offset nT  " + "  ".join(_fmt_pm(v, s) for v, s in zip(p.offset_nT, p.offset_se_nT)))
