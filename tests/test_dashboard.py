@@ -212,4 +212,6 @@ def test_the_calibration_saved_from_the_dashboard_is_the_one_in_use():
     saved = calibration_from_dict(calibration_file("u1", pl.state()))
     assert saved.align == "rotation" and saved.total_nT == 52500.0
     assert saved.span[2] > 0 and saved.span == pl.calibration.span
+    t0, t1, n = saved.span                      # one measure: the samples between those instants (200 Hz)
+    assert n == len(pl.ring) and abs((t1 - t0) * 200.0 + 1 - n) < 2
     np.testing.assert_array_equal(saved.probes[1].matrix, pl.calibration.probes[1].matrix)

@@ -77,7 +77,7 @@ class Gate:
                                 total_nT=self.total_nT, effects=[], diagnostics={},
                                 span=(float(window.t_s[0]) if window.n_samples else 0.0,
                                       float(window.t_s[-1]) if window.n_samples else 0.0,
-                                      int(estimators[0].n_samples_)))
+                                      len(ring)))     # the ring buffer's samples between those instants
 
     #: samples of the ring buffer (evenly spaced) over which the candidate's errors are checked in time
     TIME_SAMPLES = 4000

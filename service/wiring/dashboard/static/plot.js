@@ -16,7 +16,7 @@ function niceTicks(lo, hi, n) {
 }
 
 // Ticks of a log10 axis (lo, hi in decades): 1, 2 and 5 times the powers of ten inside it, or 1 alone where
-// those are too many; linear ticks of the log only where the range is under a factor of two.
+// those are too many; round values of the quantity where fewer than two of those fall inside.
 function logTicks(lo, hi, n) {
   for (const mults of [[1, 2, 5], [1]]) {
     const out = [];
@@ -28,7 +28,8 @@ function logTicks(lo, hi, n) {
     }
     if (out.length >= 2 && out.length <= 2 * n) { return out; }
   }
-  return niceTicks(lo, hi, n);
+  // a narrow range: round values of the quantity itself, placed on the log axis
+  return niceTicks(Math.pow(10, lo), Math.pow(10, hi), n).filter(v => v > 0).map(v => Math.log10(v));
 }
 
 function fmt(v) {
