@@ -75,9 +75,7 @@ class Gate:
             probes = alignment.align_probes(probes, window.field_nT, method=self.align)
         return ArrayCalibration(method="rls", align=None if len(estimators) == 1 else self.align, probes=probes,
                                 total_nT=self.total_nT, effects=[], diagnostics={},
-                                span=(float(window.t_s[0]) if window.n_samples else 0.0,
-                                      float(window.t_s[-1]) if window.n_samples else 0.0,
-                                      len(ring)))     # the ring buffer's samples between those instants
+                                span=_span(ring))
 
     #: samples of the ring buffer (evenly spaced) over which the candidate's errors are checked in time
     TIME_SAMPLES = 4000
@@ -139,6 +137,15 @@ class Gate:
                 reasons.append(f"{name}: non-finite parameters")
         return GateResult(usable=not reasons, reasons=reasons, coverage=float(min(covs)),
                           condition=float(max(conds)), rms_nT=rmss)
+
+
+def _span(ring: RingBuffer) -> tuple[float, float, int]:
+    """(t0_s, t1_s, n_samples) of the ring buffer: its first and last instants and the samples between."""
+    n = len(ring)
+    if not n:
+        return 0.0, 0.0, 0
+    ends = ring.take(np.array([0, n - 1]))
+    return float(ends.t_s[0]), float(ends.t_s[-1]), n
 
 
 def reference_total(block: SampleBlock, total_nT: float | None) -> np.ndarray | float | None:
