@@ -96,3 +96,16 @@ def test_report_and_fleet_output_folders_are_checked_before_any_work(tmp_path, c
         assert out == "" and f"--report {plain / 'r'}: cannot write there" in err
     assert main(["fit", str(csv), str(csv), "--out", str(plain / "o")]) == 2
     assert f"--out {plain / 'o'}: cannot write there" in capsys.readouterr().err
+
+
+def test_run_with_a_dashboard_port_in_use_says_so_before_starting(tmp_path, capsys):
+    """The service ran on without its dashboard, which named an option (--listen) the user never typed."""
+    import socket
+
+    with socket.create_server(("127.0.0.1", 0)) as busy:
+        port = busy.getsockname()[1]
+        cfg = ROOT / "configs" / "sim-gradiometer.toml"
+        assert main(["run", "--config", str(cfg), "--dashboard", f"127.0.0.1:{port}"], install_signals=False) == 1
+    err = capsys.readouterr().err
+    assert f"--dashboard 127.0.0.1:{port}: cannot serve there (Address already in use)" in err
+    assert "--listen" not in err

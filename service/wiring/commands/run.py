@@ -17,6 +17,7 @@ import subprocess  # noqa: E402
 import sys  # noqa: E402
 from argparse import Namespace  # noqa: E402
 
+from drivers.errors import FluxcalError  # noqa: E402
 from service.wiring.config import load_config  # noqa: E402
 from service.wiring.daemon import Daemon  # noqa: E402
 
@@ -25,7 +26,17 @@ def start_dashboard(config: str, listen: str) -> subprocess.Popen:
     """`fluxcal dashboard --config CONFIG --listen LISTEN --open` as a child process; it says its address."""
     from service.wiring.commands.watch import parse_listen
 
-    parse_listen(listen, "--dashboard")
+    host, port = parse_listen(listen, "--dashboard")
+    if port:                              # a port in use: said before the service starts, naming the option typed
+        import socket
+
+        try:
+            with socket.create_server((host, port)):
+                pass
+        except OSError as e:
+            why = os.strerror(e.errno) if e.errno else str(e)
+            raise FluxcalError(f"--dashboard {listen}: cannot serve there ({why}): another dashboard or program "
+                               f"holds the port; give another (--dashboard 127.0.0.1:0 picks a free one)") from None
     return subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "dashboard", "--config", config,
                              "--listen", listen, "--open"], stdin=subprocess.DEVNULL)
 
