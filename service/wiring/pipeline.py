@@ -70,6 +70,11 @@ def _join(pieces: list[CorrectedBlock]) -> CorrectedBlock | None:
                           tensor_nT_m=cat("tensor_nT_m"), center_nT=cat("center_nT"), cal_id=pieces[-1].cal_id)
 
 
+#: an apply event's note (its presence also tells replay that the live run held the applied calibration)
+APPLIED_NOTE = ("in use until `reset`: the online estimate keeps learning and the gate judging it, but it does not "
+                "replace an applied calibration")
+
+
 class Pipeline:
     """Stateful block processor. `process(block)` is the only hot path."""
 
@@ -143,12 +148,8 @@ class Pipeline:
             self.add_effect(str(payload or "").strip())
         else:
             raise FluxcalError(f"unknown command {name!r} (allowed: freeze, unfreeze, reset, apply, add-effect)")
-        detail = {"name": name, "cal_id": self.cal_id}
-        if name == "apply":
-            detail["note"] = ("in use until `reset`: the online estimate keeps learning and the gate judging it, "
-                              "but it does not replace an applied calibration")
-        if name == "add-effect":
-            detail["effect"] = str(payload or "").strip()
+        detail = {"name": name, "cal_id": self.cal_id, **({"note": APPLIED_NOTE} if name == "apply" else {}),
+                  **({"effect": str(payload or "").strip()} if name == "add-effect" else {})}
         return PipelineEvent("command", seq, t_s, detail)
 
     # --- hot path --------------------------------------------------------------------------
