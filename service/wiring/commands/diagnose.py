@@ -199,6 +199,10 @@ def thinning(lab: Any, limit: int | None) -> tuple[dict[str, Any], str] | None:
     return info, text
 
 
+#: samples (evenly spaced) on which a refitted linear part is asked whether its directions stay in one cone
+CONE_ROWS = 200_000
+
+
 def _refuse_one_cone(data, result) -> None:
     """A linear part refitted to a single-axis turn is not determined along the turn's axis (fit refuses it,
     excitation.band_problem): an effect found on top of it would be that error, and the advice would send the user
@@ -207,12 +211,14 @@ def _refuse_one_cone(data, result) -> None:
     from service.numerics.calib.excitation import band_problem
 
     lin = result.fit.state.linear
+    rows = np.arange(0, data.n_samples, max(1, data.n_samples // CONE_ROWS))    # hours of data: a thinned share
     for k, name in enumerate(data.probe_names):
-        raw = data.raw_nT[:, k]
+        raw = data.raw_nT[rows, k]
         corr = (raw - lin.offset_nT[k]) @ lin.matrix[k].T
         mag = np.linalg.norm(corr, axis=1)
         ref = data.ref_total_nT
-        f = np.asarray(ref, float) if ref is not None else np.full(mag.shape, float(np.mean(mag)))
+        f = np.asarray(ref, float) if ref is not None else np.asarray(float(np.mean(mag)))
+        f = f[rows] if f.ndim else np.full(mag.shape, float(f))
         ok = np.isfinite(mag) & np.isfinite(f)
         problem = band_problem(corr[ok], float(np.sqrt(np.mean((mag[ok] - f[ok]) ** 2))), float(np.mean(f[ok])))
         if problem:
