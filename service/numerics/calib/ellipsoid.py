@@ -46,18 +46,9 @@ import numpy as np
 from drivers.errors import CalibrationRefused, DataError
 
 from .excitation import PLANARITY_MIN, band_problem, coverage_hint, excitation_problem  # noqa: F401 (re-exported)
-from .model import ProbeCalibration, named, triangular_params
-from .order import (
-    EXPANSIONS,
-    FIXED,
-    ORDERS,
-    OrderChoice,
-    block_normals,
-    choose_order,
-    expand,
-    order_warnings,
-    undetermined,
-)
+from .model import ProbeCalibration, named, scalar_rms, triangular_params
+from .order import (EXPANSIONS, FIXED, ORDERS, OrderChoice, block_normals, choose_order, expand, order_warnings,
+                    sub_chunks, undetermined)
 
 N_GEOMETRY = 9
 N_PARAMS = 10
@@ -105,8 +96,9 @@ def algebraic_ellipsoid(raw: np.ndarray, total_nT: float | None = None) -> tuple
 def normalise(raw: np.ndarray) -> tuple[np.ndarray, float]:
     """(c, s): the samples' mean and their median distance from it, so that u = (r − c) / s is of order
     one whatever the origin and unit of r (the fit's answer then moves with r and nothing else)."""
-    center = raw.mean(axis=0)
-    return center, float(np.median(np.linalg.norm(raw - center, axis=1))) or 1.0
+    center = raw.mean(axis=0)                              # distances a chunk at a time: no (N, 3) temporary
+    d = np.concatenate([np.linalg.norm(raw[a:a + 65536] - center, axis=1) for a in range(0, raw.shape[0], 65536)])
+    return center, float(np.median(d)) or 1.0
 
 
 def quadric_to_calibration(theta: np.ndarray, scale: float, f2_ref: float,
@@ -275,7 +267,7 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     g, r = t.T @ g9 @ t, t.T @ r9
     if use_delta:
         # the δ column: −δ against the geometric columns, itself, and the right side 1
-        gd = t.T @ sum(design(a, b).T @ -delta[a:b] for a, b in zip(edges[:-1], edges[1:]))
+        gd = t.T @ sum(design(c, d).T @ -delta[c:d] for a, b in zip(edges[:-1], edges[1:]) for c, d in sub_chunks(a, b))
         g = np.block([[g, gd[:, None]], [gd[None, :], np.array([[delta @ delta]])]])
         r = np.append(r, -delta.sum())
     # θ = (ΦᵀΦ)⁻¹ Φᵀ1 through the eigenvectors of the column-scaled normal matrix, never an explicit inverse
@@ -292,7 +284,7 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     # the residuals themselves (one product): from the normal equations, n − 2θᵀΦᵀ1 + θᵀΦᵀΦθ, a residual
     # variance of (2 × noise / F)² would be lost in the rounding of n
     sq = 0.0
-    for a, b in zip(edges[:-1], edges[1:]):
+    for a, b in (part for ends in zip(edges[:-1], edges[1:]) for part in sub_chunks(*ends)):
         resid = 1.0 - design(a, b) @ (t @ theta[:t.shape[1]])
         if use_delta:
             resid += delta[a:b] * theta[-1]
@@ -405,7 +397,8 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
         sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT,
                             order=ORDERS[ORDERS.index(sol.order) + 1])
         fit, missing = _fit_result(sol, raw, name)
-    problem = band_problem(fit.calibration.apply(raw), fit.residual_rms_nT, float(np.sqrt(fit.f2_ref)))
+    some = raw[::max(1, raw.shape[0] // 200_000)]          # the cone of directions: a thinned share (hours of data)
+    problem = band_problem(fit.calibration.apply(some), fit.residual_rms_nT, float(np.sqrt(fit.f2_ref)))
     if problem:
         raise CalibrationRefused(f"{name}: {problem}")
     if any(m.startswith("offset") for m in missing):
@@ -439,8 +432,7 @@ def _fit_result(sol: QuadricSolution, raw: np.ndarray, name: str) -> tuple[Ellip
         raise CalibrationRefused(f"{name}: the fitted quadric is not an ellipsoid; the data are not "
                                  f"one probe rotating in a steady field; {coverage_hint(raw)}") from None
     o_se, m_se = _propagate(theta, cov, scale, f2m, center)
-    corr = (raw - offset) @ matrix.T
-    rms = float(np.sqrt(np.mean((np.linalg.norm(corr, axis=1) - sol.total_nT) ** 2)))
+    rms = scalar_rms(raw, offset, matrix, sol.total_nT)
 
     def physical(t: np.ndarray) -> np.ndarray:
         angles, c = triangular_params(quadric_to_calibration(t, scale, f2m, center)[1])

@@ -93,8 +93,8 @@ def turn_axes_for(missing: list[str]) -> list[str]:
 def excitation_problem(raw: np.ndarray) -> str:
     """Why these samples cannot fix an ellipsoid ("" if they can, as far as geometry goes)."""
     plan, normal = planarity(raw)
-    missing = missing_directions(raw - raw.mean(axis=0))
     if plan < PLANARITY_MIN:
+        missing = missing_directions(raw - raw.mean(axis=0))       # only to say (three (N, 3) temporaries)
         axis = "xyz"[int(np.argmax(np.abs(normal)))]
         others = [a for a in "xyz" if a != axis]
         miss = f"; directions near {', '.join(missing)} not covered" if missing else ""

@@ -205,6 +205,16 @@ def triangular_params(matrix: np.ndarray) -> tuple[list[float], list[float]]:
     return np.degrees([phi, theta, psi]).tolist(), [float(cx), float(cy), float(cz)]
 
 
+def scalar_rms(raw: np.ndarray, offset: np.ndarray, matrix: np.ndarray, total_nT) -> float:
+    """RMS of |M (r − o)| − F over (N, 3) raw samples (F a number or (N,)), a chunk of rows at a time (hours of
+    data: no (N, 3) temporaries)."""
+    n, step = raw.shape[0], 65536
+    f = np.broadcast_to(np.asarray(total_nT, float), (n,))
+    sq = sum(float(np.sum((np.linalg.norm((raw[a:a + step] - offset) @ matrix.T, axis=1) - f[a:a + step]) ** 2))
+             for a in range(0, n, step))
+    return float(np.sqrt(sq / max(n, 1)))
+
+
 def triangular_params_many(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """triangular_params of (M, 3, 3) upper-triangular matrices at once: angles (M, 3) deg, scales (M, 3);
     ValueError unless every one is upper-triangular with a positive diagonal."""

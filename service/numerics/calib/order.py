@@ -86,10 +86,22 @@ def block_normals(design, n: int, n_blocks: int = N_BLOCKS) -> tuple[np.ndarray,
     edges = block_edges(n, n_blocks)
     grams, rhs = [], []
     for a, b in zip(edges[:-1], edges[1:]):
-        phi = design(a, b)
-        grams.append(phi.T @ phi)
-        rhs.append(phi.sum(axis=0))
+        g = r = 0.0
+        for c, d in sub_chunks(a, b):               # a block's design a part at a time (hours of data)
+            phi = design(c, d)
+            g, r = g + phi.T @ phi, r + phi.sum(axis=0)
+        grams.append(g)
+        rhs.append(r)
     return edges, grams, rhs
+
+
+#: rows of the design held at a time within a block (19 MB of the nine columns)
+SUB_ROWS = 262_144
+
+
+def sub_chunks(a: int, b: int) -> list[tuple[int, int]]:
+    """Rows a..b in parts of at most SUB_ROWS (one part, itself, up to that size: the same sums as before)."""
+    return [(c, min(b, c + SUB_ROWS)) for c in range(a, b, SUB_ROWS)] or [(a, b)]
 
 
 def heldout_rms(normals: tuple[np.ndarray, list, list], raw: np.ndarray, total: np.ndarray, known: bool,
