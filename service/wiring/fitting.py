@@ -166,16 +166,11 @@ def _refuse_one_cone(cal: ArrayCalibration, data: LabData, total: TotalField) ->
     """The single-axis-turn refusal of the batch ellipsoid fit (excitation.band_problem), for the methods that fit
     the same offsets without asking it (tmi, rls): real hand turns gave offsets 9,417 nT where the board's sphere
     says -643, with exit 0."""
-    from service.numerics.calib.excitation import band_problem
+    from service.numerics.calib.excitation import turn_problem
 
     b = data.block
-    rows = np.arange(0, b.n_samples, max(1, b.n_samples // 200_000))     # a thinned share (hours of data)
     for k, p in enumerate(cal.probes):
-        corr = p.apply(b.field_nT[rows, k])
-        mag = np.linalg.norm(corr, axis=1)
-        f = total.per_sample(b.n_samples, fallback=mag)
-        f = f[rows] if np.ndim(f) and len(f) == b.n_samples else f
-        problem = band_problem(corr, float(np.sqrt(np.mean((mag - f) ** 2))), float(np.mean(f)))
+        problem = turn_problem(b.field_nT[:, k], p.offset_nT, p.matrix, total.values)
         if problem:
             raise CalibrationRefused(f"{data.probe_names[k]}: {problem}")
 

@@ -45,7 +45,8 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused, DataError
 
-from .excitation import PLANARITY_MIN, band_problem, coverage_hint, excitation_problem  # noqa: F401 (re-exported)
+from .excitation import (PLANARITY_MIN, band_problem, coverage_hint, excitation_problem,  # noqa: F401 (re-exported)
+                         turn_problem)
 from .model import ProbeCalibration, named, scalar_rms, triangular_params
 from .order import (EXPANSIONS, FIXED, ORDERS, OrderChoice, block_normals, choose_order, expand, order_warnings,
                     sub_chunks, undetermined)
@@ -397,8 +398,8 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
         sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT,
                             order=ORDERS[ORDERS.index(sol.order) + 1])
         fit, missing = _fit_result(sol, raw, name)
-    some = raw[::max(1, raw.shape[0] // 200_000)]          # the cone of directions: a thinned share (hours of data)
-    problem = band_problem(fit.calibration.apply(some), fit.residual_rms_nT, float(np.sqrt(fit.f2_ref)))
+    problem = turn_problem(raw, fit.calibration.offset_nT, fit.calibration.matrix,
+                           residual_rms=fit.residual_rms_nT, field=float(np.sqrt(fit.f2_ref)))
     if problem:
         raise CalibrationRefused(f"{name}: {problem}")
     if any(m.startswith("offset") for m in missing):

@@ -112,3 +112,26 @@ def coverage_hint(raw: np.ndarray, centre: np.ndarray | None = None) -> str:
         return "spread the samples over more attitudes (turn about at least two axes)"
     return (f"directions near {', '.join(missing)} not covered: turn about the "
             f"{' or '.join(turn_axes_for(missing))} axis")
+
+
+#: samples (evenly spaced) on which turn_problem asks its question: the cone of directions and the misfit's lever
+#: need a fair share of the record, not all of it (hours of data)
+TURN_ROWS = 200_000
+
+
+def turn_problem(raw: np.ndarray, offset_nT: np.ndarray, matrix: np.ndarray, total_nT=None, *,
+                 residual_rms: float | None = None, field: float | None = None) -> str:
+    """band_problem of a calibration (offset, matrix) over its raw samples (N, 3), on at most TURN_ROWS of them
+    evenly spaced: the residual RMS and the field from |M (r − o)| against total_nT (a number or (N,); None: the
+    mean magnitude), unless given (a fit's own). Rows holding NaN are left out. What fit_ellipsoid, the other
+    methods and diagnose ask alike; "" where the directions spread wide enough."""
+    step = max(1, raw.shape[0] // TURN_ROWS)
+    corr = (np.asarray(raw, float)[::step] - offset_nT) @ np.asarray(matrix, float).T
+    mag = np.linalg.norm(corr, axis=1)
+    t = np.asarray(total_nT, float) if total_nT is not None else np.asarray(np.nanmean(mag))
+    f = t[::step] if t.ndim else np.full(mag.shape, float(t))
+    ok = np.isfinite(mag) & np.isfinite(f)
+    if not ok.any():
+        return ""
+    rms = residual_rms if residual_rms is not None else float(np.sqrt(np.mean((mag[ok] - f[ok]) ** 2)))
+    return band_problem(corr[ok], rms, field if field is not None else float(np.mean(f[ok])))

@@ -199,28 +199,16 @@ def thinning(lab: Any, limit: int | None) -> tuple[dict[str, Any], str] | None:
     return info, text
 
 
-#: samples (evenly spaced) on which a refitted linear part is asked whether its directions stay in one cone
-CONE_ROWS = 200_000
-
-
 def _refuse_one_cone(data, result) -> None:
     """A linear part refitted to a single-axis turn is not determined along the turn's axis (fit refuses it,
     excitation.band_problem): an effect found on top of it would be that error, and the advice would send the user
     to a fit that is refused (a real turn was 'explained by crossfield'). Refused alike, with the way out."""
     from drivers.errors import CalibrationRefused
-    from service.numerics.calib.excitation import band_problem
+    from service.numerics.calib.excitation import turn_problem
 
     lin = result.fit.state.linear
-    rows = np.arange(0, data.n_samples, max(1, data.n_samples // CONE_ROWS))    # hours of data: a thinned share
     for k, name in enumerate(data.probe_names):
-        raw = data.raw_nT[rows, k]
-        corr = (raw - lin.offset_nT[k]) @ lin.matrix[k].T
-        mag = np.linalg.norm(corr, axis=1)
-        ref = data.ref_total_nT
-        f = np.asarray(ref, float) if ref is not None else np.asarray(float(np.mean(mag)))
-        f = f[rows] if f.ndim else np.full(mag.shape, float(f))
-        ok = np.isfinite(mag) & np.isfinite(f)
-        problem = band_problem(corr[ok], float(np.sqrt(np.mean((mag[ok] - f[ok]) ** 2))), float(np.mean(f[ok])))
+        problem = turn_problem(data.raw_nT[:, k], lin.offset_nT[k], lin.matrix[k], data.ref_total_nT)
         if problem:
             raise CalibrationRefused(f"{name}: {problem}; the linear calibration these data would refit is not "
                                      f"determined, so no effect can be judged on top of it (or hold one made from "
