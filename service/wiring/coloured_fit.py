@@ -78,18 +78,16 @@ class _Spectra:
     knee: tuple[float, float]
 
 
-#: the delete-a-region errors are said when they raise an offset's error by more than this factor
-DIRECTION_SAY = 1.5
-
 
 def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -> list[str]:
     """Each ellipsoid-fitted probe's offsets' (and matrix's, angles', scales') errors at least those of deleting
     one region of directions at a time (numerics.calib.misfit: a residual tied to the direction, a misfit the
     model lacks, which neither the white- nor the coloured-noise errors see), in place, where the residual
-    differs between regions beyond chance for white noise; what they raised by more than DIRECTION_SAY, said.
+    differs between regions beyond chance for white noise (misfit.add_spread); what they raised by more than
+    misfit.SAY, said.
     After coloured_offsets (the larger of the two stands); a regression-aligned probe's offsets are not an
     ellipsoid's, and keep theirs."""
-    from service.numerics.calib.misfit import direction_jackknife
+    from service.numerics.calib.misfit import add_spread, direction_jackknife
 
     if cal.method not in ("ellipsoid", "rls"):
         return []
@@ -107,32 +105,14 @@ def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -
                                       p.offset_nT, tri, needed_only=True)
         except (np.linalg.LinAlgError, ValueError):
             continue
-        if got is None or not got.significant:
-            continue                       # the residual does not follow the direction: the noise's errors stand
-        se = np.asarray(p.offset_se_nT, float)
-        jack = got.offset_se
-        raised = jack > DIRECTION_SAY * se
-        _set_offset_se(p, np.maximum(se, jack))
-        # the matrix's errors rotated as ProbeCalibration.rotated rotates them (an aligned probe's M' = R M); the
-        # angles are the triangular factor's either way. rls takes a reference as an unknown field: its scale
-        # (and the matrix's) is another convention than the jackknife's, the angles are not
-        same_scale = cal.method == "ellipsoid"
-        if p.matrix_se is not None and same_scale:
-            p.matrix_se = np.maximum(np.asarray(p.matrix_se, float), np.sqrt((rot ** 2) @ (got.matrix_se ** 2)))
-        for key, extra in (("nonorth_deg", got.nonorth_se), ("scale", got.scale_se if same_scale else None)):
-            entry = p.params.get(key)
-            if extra is not None and entry is not None and entry.get("se") is not None:   # an order may fix them
-                entry["se"] = np.maximum(np.asarray(entry["se"], float), extra).tolist()
-        _say_sizes(p)
-        if raised.any():
-            axes = ", ".join(f"{a} {s:.3g} -> {j:.3g} nT" for a, s, j, r in zip("xyz", se, jack, raised) if r)
-            out.append(f"{p.name}: the residual differs between regions of field direction beyond its noise "
-                       f"within them (F ratio {got.f_ratio:.3g} over {got.cells} regions, p < 0.001: a misfit the "
-                       f"model lacks, or noise slower than the turning): the offsets move by more than their noise "
-                       f"errors when one region is left out, and their errors are those ({axes})")
-        if got.failed:
-            out.append(f"{p.name}: without {got.failed} of the {got.cells + got.failed} regions of direction the rest "
-                       f"fix no ellipsoid: the fit leans on those alone, and its errors are lower bounds")
+        # rls takes a reference as an unknown field: its scale (and the matrix's) is another convention than the
+        # jackknife's; the angles are the triangular factor's either way
+        said = add_spread(p, got, p.name, "regions of field direction", "regions of direction",
+                          "a misfit the model lacks, or noise slower than the turning", rotation=rot,
+                          scales=cal.method == "ellipsoid")
+        if got is not None and got.significant:
+            _say_sizes(p)
+        out += said
     return out
 
 

@@ -248,8 +248,8 @@ def add_order_bias(fit: Any, full_fit: Callable[[], Any], name: str) -> list[str
             f"include that difference"]
 
 
-#: the delete-a-block errors are said when they raise an offset's error by more than this factor
-TIME_SAY = 1.5
+#: the delete-a-region errors are said when they raise an offset's error by more than this factor
+SAY = 1.5
 
 
 def add_time_spread(cal: Any, order: str, raw: np.ndarray, total_nT, name: str) -> list[str]:
@@ -257,7 +257,7 @@ def add_time_spread(cal: Any, order: str, raw: np.ndarray, total_nT, name: str) 
     the delete-a-time-block jackknife's (time_jackknife), in place, where the scalar residual differs between the
     blocks beyond chance for white noise: noise slower than the blocks or a misfit following the motion, which
     white-noise errors average away. `raw` the fit's finite samples in time order, `order` its model order.
-    Returns a warning where an offset's error rises by more than TIME_SAY, and where without some block the rest
+    Returns a warning where an offset's error rises by more than SAY, and where without some block the rest
     fix no ellipsoid."""
     return _add_region_spread(cal, order, raw, total_nT, name, "time")
 
@@ -284,21 +284,27 @@ def _add_region_spread(cal: Any, order: str, raw: np.ndarray, total_nT, name: st
     return add_spread(cal, got, name, regions, short, cause)
 
 
-def add_spread(cal: Any, got: RegionSpread | None, name: str, regions: str, short: str, cause: str) -> list[str]:
+def add_spread(cal: Any, got: RegionSpread | None, name: str, regions: str, short: str, cause: str, *,
+               rotation: np.ndarray | None = None, scales: bool = True) -> list[str]:
     """cal's errors (offsets, matrix, angles, scales) at least got's where got is significant, in place; the
-    warnings of add_time_spread."""
+    warnings of add_time_spread. An unknown error (NaN) stays unknown. rotation: R of an aligned probe's matrix
+    R M, whose errors are turned as ProbeCalibration.rotated turns them (the spread is the fit's own triangular
+    M's); scales=False leaves the matrix's and the scales' errors (a fit whose scale is another convention)."""
     if got is None or not got.significant:
         return []
     se = np.asarray(cal.offset_se_nT, float)
-    new = np.fmax(se, got.offset_se)
+    new = np.maximum(se, got.offset_se)
     cal.offset_se_nT = new
-    cal.matrix_se = np.fmax(np.asarray(cal.matrix_se, float), got.matrix_se)
-    for key, value in (("offset_nT", new), ("nonorth_deg", got.nonorth_se), ("scale", got.scale_se)):
+    if cal.matrix_se is not None and scales:
+        m_se = got.matrix_se if rotation is None else np.sqrt((rotation ** 2) @ (got.matrix_se ** 2))
+        cal.matrix_se = np.maximum(np.asarray(cal.matrix_se, float), m_se)
+    named = (("offset_nT", new), ("nonorth_deg", got.nonorth_se), ("scale", got.scale_se if scales else None))
+    for key, value in named:
         entry = cal.params.get(key)
-        if entry is not None and entry.get("se") is not None:          # an order may hold the angles fixed
-            entry["se"] = np.fmax(np.asarray(entry["se"], float), value).tolist()
+        if value is not None and entry is not None and entry.get("se") is not None:   # an order may fix the angles
+            entry["se"] = np.maximum(np.asarray(entry["se"], float), value).tolist()
     out = []
-    raised = new > TIME_SAY * se
+    raised = new > SAY * se
     if raised.any():
         axes = ", ".join(f"{a} {s:.3g} -> {j:.3g} nT" for a, s, j, r in zip("xyz", se, new, raised) if r)
         out.append(f"{name}: the residual differs between {regions} beyond its noise within them (F ratio "
