@@ -1,6 +1,6 @@
 """The running service's calibration errors (what the dashboard shows as offset ± error): the online estimator's
 own are white-noise ones; where the ring buffer's residual differs between stretches of time or regions of field
-direction beyond chance, they are at least those of leaving one out (gate._time_errors, misfit). Checked on real
+direction beyond chance, they are at least those of leaving one out (gate._add_spreads, misfit). Checked on real
 boards against the calibrations their authors published, on simulated 1/f noise against the truth, and on white
 noise, which keeps its errors."""
 

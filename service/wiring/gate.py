@@ -37,7 +37,7 @@ class Gate:
         self.align, self.min_samples, self.total_nT = align, min_samples, total_nT
         self.coverage, self.condition, self.rms_nT = coverage, condition, rms_nT
         self.refusal: str | None = None   # why the last check found no candidate
-        # the candidate's errors at least the ring buffer's spread in time and direction (_time_errors); off for
+        # the candidate's errors at least the ring buffer's spread in time and direction (_add_spreads); off for
         # a caller that adds its own (`fit --method rls`: the coloured-noise and direction errors)
         self.spread_errors = True
         self._window: SampleBlock | None = None
@@ -69,7 +69,7 @@ class Gate:
             self.refusal = str(e)
             return None
         if self.spread_errors:
-            self._time_errors(probes, ring)
+            self._add_spreads(probes, ring)
         window = self.window(ring)
         if len(estimators) > 1 and self.align != "none" and window.n_samples >= 3:
             probes = alignment.align_probes(probes, window.field_nT, method=self.align)
@@ -77,16 +77,16 @@ class Gate:
                                 total_nT=self.total_nT, effects=[], diagnostics={},
                                 span=_span(ring))
 
-    #: samples of the ring buffer (evenly spaced) over which the candidate's errors are checked in time
-    TIME_SAMPLES = 4000
+    #: samples of the ring buffer (evenly spaced) over which the candidate's errors are checked (time, direction)
+    SPREAD_SAMPLES = 4000
 
-    def _time_errors(self, probes: list, ring: RingBuffer) -> None:
+    def _add_spreads(self, probes: list, ring: RingBuffer) -> None:
         """Each probe's errors at least those of leaving one stretch of the ring buffer out, and one region of
         field direction, where its residual differs between them beyond chance for white noise (misfit: as the
         batch fit's): the estimator's own errors are white-noise ones, and a real board's offsets were 4-7 of
         them from those its authors published."""
         n = len(ring)
-        w = ring.take(np.arange(0, n, max(1, -(-n // self.TIME_SAMPLES))))
+        w = ring.take(np.arange(0, n, max(1, -(-n // self.SPREAD_SAMPLES))))
         ref = reference_total(w, self.total_nT)
         for k, p in enumerate(probes):
             raw = w.field_nT[:, k]
