@@ -97,6 +97,7 @@ def bench_replay(tmp: Path, seconds: float) -> None:
         t_decode = time.perf_counter() - t0
         pipe = build_pipeline(fcfg, start)      # corrected from the first sample, as a recording's initial event does
         t_pipe = time.perf_counter() - t0 - t_decode
+        checks = _timed(pipe, "_check_candidate")
         out = McapLogger(tmp / "rep", unit="bench", filename=f"out{rep}.mcap")
         for i in range(0, whole.n_samples, 20000):
             b = whole.slice(i, i + 20000)
@@ -108,7 +109,7 @@ def bench_replay(tmp: Path, seconds: float) -> None:
                 out.write_corrected(r.corrected)
         out.close()
         times.append(time.perf_counter() - t0)
-        phases.append((t_decode, t_pipe, times[-1] - t_decode - t_pipe))
+        phases.append((t_decode, t_pipe, times[-1] - t_decode - t_pipe, sum(checks), len(checks)))
     t_replay = min(times)
     # bare numerics: parse the ICD bytes and apply a calibration, same samples
     data = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
@@ -128,10 +129,26 @@ def bench_replay(tmp: Path, seconds: float) -> None:
     print(f"bare parse + calibrate of the same samples:                         {n / t_bare:,.0f} probe-samples/s")
     print(f"ratio replay / bare: {t_bare / t_replay:.3f} "
           f"(OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')})")
-    dec, pip, wri = phases[times.index(t_replay)]
-    print(f"  best run: MCAP decode {dec * 1e3:.0f} ms, pipeline {pip * 1e3:.0f} ms, MCAP write {wri * 1e3:.0f} ms; "
-          f"bare {t_bare * 1e3:.1f} ms")
+    dec, pip, wri, chk, n_chk = phases[times.index(t_replay)]
+    print(f"  best run: MCAP decode {dec * 1e3:.0f} ms, pipeline {pip * 1e3:.0f} ms (of which the gate's {n_chk} checks "
+          f"{chk * 1e3:.0f} ms), MCAP write {wri * 1e3:.0f} ms; bare {t_bare * 1e3:.1f} ms")
     floor_parts(block, t_bare)
+
+
+def _timed(obj, name: str) -> list[float]:
+    """Wrap obj.name (on the instance) to add each call's duration to the list returned."""
+    spent: list[float] = []
+    inner = getattr(obj, name)
+
+    def wrapper(*a, **k):
+        t0 = time.perf_counter()
+        try:
+            return inner(*a, **k)
+        finally:
+            spent.append(time.perf_counter() - t0)
+
+    setattr(obj, name, wrapper)
+    return spent
 
 
 def floor_parts(block: SampleBlock, t_bare: float) -> None:
@@ -191,6 +208,9 @@ def floor_parts(block: SampleBlock, t_bare: float) -> None:
           + f"; sum {total * 1e3:.0f} ms against the {2e3 * t_bare:.0f} ms a 0.5x ratio allows "
           f"(at best {t_bare / total:.2f}x; {(len(raw_bytes) + len(corrected_bytes)) / 1e6:.1f} MB written; "
           f"written uncompressed, at best {t_bare / (total - parts[pack]):.2f}x)")
+    print(f"  spread perfectly over all {os.cpu_count()} cores (no part waiting for another): at best "
+          f"{t_bare / (total / (os.cpu_count() or 1)):.2f}x, uncompressed {t_bare / ((total - parts[pack]) / (os.cpu_count() or 1)):.2f}x, "
+          f"before the gate's checks that the same outputs need (above)")
 
 
 def cpu_seconds(pid: int) -> float:
