@@ -97,6 +97,10 @@ def test_a_fast_warm_up_is_said_as_one_probes_own_offset_changing(seed):
     probes and the reference the data have (the sensor changed), where it told the user to log them."""
     d = diagnose(warmed(seed, 6.0), candidates=["hysteresis", "drift"])
     assert d.verdict["kind"] == "unexplained", d.verdict
+    # and where no step was fitted, the perming row says what it saw: a change beyond the noise, in s2 alone, no jump
+    hyst = next(c for c in d.candidates if c.effect == "hysteresis")
+    assert hyst.testable or "but smoothly" in hyst.reason and "s2 at " in hyst.reason and "s1" not in hyst.reason, hyst.reason
+    assert not hyst.significant
     assert "moves along one direction of the platform frame" in d.verdict["left"]
     assert "an offset changing in time, not a field of the site" in d.verdict["left"]
     assert "turns with the platform" not in d.verdict["left"]

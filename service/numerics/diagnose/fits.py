@@ -12,6 +12,7 @@ from scipy import stats
 from drivers.errors import FluxcalError
 from service.numerics.effects import Model, known_effects, make_term
 from service.numerics.effects.base import EffectData, EffectTerm
+from service.numerics.effects.hysteresis import no_step_reason
 from service.numerics.engine import (
     RANK_TOL,
     FitResult,
@@ -154,8 +155,7 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
         pr = Problem(ed, model + term, cur.state.linear, reference, weights=weights, n_blocks=n_blocks,
                      hints=hints, refs=[v.cache for v in cur.problem.views])
         if pr.term_size(name) == 0:
-            untestable.reason = ("no perming step stands out of the noise in the residual" if name == "hysteresis"
-                                 else "nothing to fit in these data")
+            untestable.reason = no_step_reason(pr.views) if name == "hysteresis" else "nothing to fit in these data"
             return untestable
         start, warm, ev0, jac0 = _warm_start(pr, cur)
         if warm is not None:

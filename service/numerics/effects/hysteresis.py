@@ -46,23 +46,26 @@ SCAN_POINTS = 20_000
 #: a view's cache key for a stretch (t_lo, t_hi) the steps are searched around, not across (diagnose's
 #: held-out block; diagnose/fits.py crossfit_heldout)
 BARRIER = "ref:hysteresis_barrier"
+#: a view's cache key for the instants where the residual changed beyond the noise but smoothly (not a step)
+SMOOTH = "ref:hysteresis_smooth"
 
 
 def detect_steps(t_s: np.ndarray, residual: np.ndarray, gain: np.ndarray, *, window: int,
                  threshold: float = THRESHOLD, max_steps: int = 3, barrier: tuple[float, float] | None = None,
-                 centred: np.ndarray | None = None) -> list[tuple[float, float]]:
+                 centred: np.ndarray | None = None, smooth: list | None = None) -> list[tuple[float, float]]:
     """Offset steps in a scalar residual: [(t_step_s, chi2), ...], strongest first.
 
     barrier (t_lo, t_hi): a stretch left out (a held-out block); the samples on either side are searched on
     their own, so no window spans it (a smooth change across it would otherwise look like a step at its edge).
     centred (N, 3): raw - offset; given, the residual is first cleaned of what the linear calibration took of
-    a step (`without_calibration_share`)."""
+    a step (`without_calibration_share`). smooth: a list to which the peaks that stood out of the noise but were a
+    smooth change, not a jump (`_steplike`), are added as (t_s, chi2)."""
     if barrier is not None:
         lo, hi = barrier
         found = []
         for side in (t_s < lo, t_s > hi):
             found += detect_steps(t_s, np.where(side, residual, np.nan), gain, window=window, threshold=threshold,
-                                  max_steps=max_steps, centred=centred)
+                                  max_steps=max_steps, centred=centred, smooth=smooth)
         return sorted(found, key=lambda tc: -tc[1])[:max_steps]
     ok = np.isfinite(residual) & np.all(np.isfinite(gain), axis=1)
     if centred is not None:
@@ -120,12 +123,25 @@ def detect_steps(t_s: np.ndarray, residual: np.ndarray, gain: np.ndarray, *, win
         # instant; a warm-up's rise was taken for two steps (perming named, significant) where it is a change no
         # term of the catalogue follows
         if not _steplike(g[lo:hi], r[lo:hi], at - lo, sigma ** 2 * max(1.0, wander)):
+            if smooth is not None:
+                smooth.append((float(t[at]), float(chi2[j])))
             chi2[max(0, j - 2 * w):j + 2 * w] = 0.0     # the stretch judged; a rejection uses no step of max_steps
             continue
         steps.append((float(t[at]), float(chi2[j])))
         chi2[max(0, at - w - i[0]):max(0, at + w - i[0])] = 0.0
         chi2[max(0, j - w):j + w] = 0.0
     return steps
+
+
+def no_step_reason(views) -> str:
+    """Why no perming step was fitted, for diagnose's table: nothing stood out of the noise, or what stood out
+    changed smoothly (a ramp, a warm-up: not a step, and no catalogue term), said with where."""
+    seen = {v.name: v.cache.get(SMOOTH, []) for v in views if v.cache.get(SMOOTH)}
+    if not seen:
+        return "no perming step stands out of the noise in the residual"
+    where = "; ".join(f"{name} at {', '.join(f'{t:.1f}' for t in times)} s" for name, times in seen.items())
+    return (f"no perming step: the residual changes beyond the noise ({where}) but smoothly, over seconds, "
+            f"not in one jump (a ramp, a warm-up)")
 
 
 def _steplike(g: np.ndarray, r: np.ndarray, at: int, noise2: float) -> bool:
@@ -226,10 +242,12 @@ class Hysteresis(EffectTerm):
             else:
                 data = view.data
                 window = int(min(max(data.n_samples // 30, round(2.0 / data.dt_s), 50), data.n_samples // 5))
+                smooth: list[tuple[float, float]] = []
                 found = detect_steps(data.t_s, view.model_residual, view.model_gain, window=window,
                                      threshold=self.threshold, max_steps=self.max_steps,
-                                     barrier=view.cache.get(BARRIER), centred=view.centred_nT)
+                                     barrier=view.cache.get(BARRIER), centred=view.centred_nT, smooth=smooth)
                 view.cache[key] = sorted(t for t, _ in found)
+                view.cache[SMOOTH] = sorted(t for t, _ in smooth)
         return view.cache[key]
 
     def param_names(self, view: ProbeView) -> list[str]:
