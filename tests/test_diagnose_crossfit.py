@@ -181,3 +181,27 @@ def test_the_step_search_beside_the_calibration_never_looks_into_the_held_out_bl
     spoiled[inside] = 1e3 * rng.standard_normal(int(inside.sum()))
     assert hysteresis.detect_steps(t, spoiled, g, window=333, barrier=barrier, centred=50000.0 * g) == found
     assert [round(s, 1) for s, _ in found] == [61.7], found
+
+
+def test_a_refused_linear_part_costs_the_first_fit_only():
+    """diagnose's check of the refitted linear part (the command refuses a single-axis turn with it) runs as soon
+    as the model is fitted, before any candidate: the refusal of an hour of turning no longer waits for the whole
+    diagnosis. It sees the refitted linear part, and is not asked where the linear part is held."""
+    data = data_of(sim_block([probe(0)], n=3000, rate=100.0, motion=TUMBLE, seed=41), [probe(0)])
+    seen, told = [], []
+
+    class Refused(Exception):
+        pass
+
+    def check(lin):
+        seen.append(np.array(lin.offset_nT))
+        raise Refused
+
+    with pytest.raises(Refused):
+        diagnose(data, progress=lambda frac, msg: told.append(frac), check_linear=check)
+    assert len(seen) == 1 and seen[0].shape == (1, 3)
+    assert max(told) <= 0.05                     # no candidate was tried (they report from 0.1 on)
+    full = diagnose(data, candidates=["drift"])
+    assert np.allclose(seen[0], full.fit.state.linear.offset_nT)      # the very linear part the diagnosis refits
+    held = diagnose(data, calibration=full.fit.state.linear, candidates=["drift"], check_linear=check)
+    assert held.fit is not None and len(seen) == 1

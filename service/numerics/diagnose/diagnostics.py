@@ -26,7 +26,7 @@ Numerics only: no file I/O (service.wiring.commands.diagnose and service.io.repo
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -54,11 +54,13 @@ from .where import where_it_fails, worst_segments
 def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None, fix_linear: bool | None = None,
              candidates: Sequence[str] | None = None, total_nT: float | None = None,
              positions_m: np.ndarray | None = None, n_blocks: int = N_BLOCKS,
-             progress: Progress | None = None) -> Diagnosis:
+             progress: Progress | None = None, check_linear: Callable[[Any], None] | None = None) -> Diagnosis:
     """Compare the model (linear calibration + `effects`) with the data; find what fails and what is missing.
 
     calibration: a linear calibration to hold fixed (the model compared is then exactly that
-    calibration plus the effects); None refits the linear part. fix_linear overrides that choice."""
+    calibration plus the effects); None refits the linear part. fix_linear overrides that choice.
+    check_linear(linear): called with a refitted linear part as soon as the model is fitted, before any candidate
+    (it may raise: a refusal then costs the first fit only, not the whole diagnosis)."""
     def tell(frac: float, msg: str) -> None:
         if progress is not None:
             progress(frac, msg)
@@ -89,6 +91,8 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     # 1. the model as it stands
     tell(0.05, f"fitting {model}")
     cur = fit_model(ed, model, linear, reference, weights, n_blocks=n_blocks)
+    if check_linear is not None and not fixed:
+        check_linear(cur.state.linear)
     cur_ho = heldout(cur)
     if not cur.converged:
         notes.append(f"the model fit stopped after {cur.iterations} iterations without converging")

@@ -141,11 +141,10 @@ def main(args: argparse.Namespace) -> int:
             effects = list(cal_effects)                             # the model the file describes
     bar = Progress(1.0, "diagnose", fraction=True)
     try:
-        result = diagnose(data, effects=effects, calibration=cal, progress=bar)
+        result = diagnose(data, effects=effects, calibration=cal, progress=bar,
+                          check_linear=lambda lin: _refuse_one_cone(data, lin))
     finally:
         bar.close()
-    if cal is None:
-        _refuse_one_cone(data, result)
     if thinned is not None:
         result.thinned, text = thinned
         result.notes.insert(0, text)
@@ -199,14 +198,14 @@ def thinning(lab: Any, limit: int | None) -> tuple[dict[str, Any], str] | None:
     return info, text
 
 
-def _refuse_one_cone(data, result) -> None:
+def _refuse_one_cone(data, lin) -> None:
     """A linear part refitted to a single-axis turn is not determined along the turn's axis (fit refuses it,
     excitation.band_problem): an effect found on top of it would be that error, and the advice would send the user
-    to a fit that is refused (a real turn was 'explained by crossfield'). Refused alike, with the way out."""
+    to a fit that is refused (a real turn was 'explained by crossfield'). Refused alike, with the way out, as soon as
+    the linear part is refitted (before the candidates are tried)."""
     from drivers.errors import CalibrationRefused
     from service.numerics.calib.excitation import turn_problem
 
-    lin = result.fit.state.linear
     for k, name in enumerate(data.probe_names):
         problem = turn_problem(data.raw_nT[:, k], lin.offset_nT[k], lin.matrix[k], data.ref_total_nT)
         if problem:
