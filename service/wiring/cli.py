@@ -33,6 +33,12 @@ def _max_samples(text: str) -> int:
     return n
 
 
+def parse_spans(text: str) -> list[tuple[float, float]]:
+    from service.wiring.commands.notes import parse_spans as parse
+
+    return parse(text)
+
+
 def _int_auto(text: str) -> int:
     return int(text, 0)
 
@@ -85,6 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
                  f"YYYY-MM-DD, default today): the total field from the World Magnetic Model, when no ref_total "
                  f"was logged")
 
+    skip_help = ("leave out these stretches of time (seconds of the data's own time t, ends included; several: "
+                 "10-20,95.5-140): a disturbance no term follows, such as diagnose names")
     fit = _command(sub, "fit", "fit a calibration to lab data (CSV or MCAP)",
                    "  fluxcal fit grad.csv --out cal.json\n  fluxcal fit board.csv --site 46.52,6.63,400 --json\n"
                    "  fluxcal fit grad.csv --effects temperature,drift")
@@ -97,6 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
                           f"default: regression for arrays)")
     fit.add_argument("--effects", type=_effects, default=[], metavar="E,..", help=effects_help)
     fit.add_argument("--site", metavar=SITE, help=site_help)
+    fit.add_argument("--skip", type=parse_spans, default=None, metavar="T0-T1,..", help=skip_help)
     fit.add_argument("--out", metavar="CAL.json", help="write the calibration file here (default: none)")
     fit.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
     _fleet_options(fit)
@@ -114,6 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help=f"the effects already in the model (allowed: {EFFECT_NAMES}; {own}); default: none. "
                           f"Effects installed in the entry-point group fluxcal.effects are tried as candidates too")
     dia.add_argument("--site", metavar=SITE, help=site_help)
+    dia.add_argument("--skip", type=parse_spans, default=None, metavar="T0-T1,..", help=skip_help)
     dia.add_argument("--report", metavar="DIR",
                      help="also write an HTML report here (plots: matplotlib; without it the page has the text and "
                           "tables)")

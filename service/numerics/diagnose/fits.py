@@ -182,6 +182,11 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
                   block_log_ratio=cmp["lr_b"], fit=fit)
     c.significant = bool(c.p_value < P_SIGNIFICANT and c.gain >= MIN_GAIN and c.log_ratio > GAIN_SIGMAS * c.log_ratio_se
                          and c.n_params > 0)
+    ruled_out = term.rules_out(c.parameters) if c.significant else None
+    if ruled_out:                  # a shape the effect's physics does not take (perming that came back)
+        c.significant = False
+        c.refusal = "its physics rules it out"
+        c.reason = ruled_out
     absorbed = _absorbed_by(fit, name)
     if absorbed:
         c.indistinguishable_from = absorbed

@@ -207,3 +207,77 @@ def worst_segments(fit: FitResult, *, n_segments: int = 20, top: int = 3) -> lis
                      "worst_channel": fit.channels.names[c], "worst_channel_rms_nT": float(per[c])})
     segs.sort(key=lambda d: -d["rms_nT"])
     return segs[:top]
+
+
+#: a stretch of time is gross where its residual RMS (in noise units, over all channels) is this many times the
+#: median segment's; measured on real boards: 1.3-2.2 x on full spheres (suarez, freeimucal, sensorfusion), 4 x
+#: on two hand-held ones (nliaudat, a flight), 7 x on a hand-held sphere with a 47-s disturbance (Magneto's test
+#: file); 1.06 on a simulated pair
+GROSS_RATIO = 3.0
+#: ... and covers at most this share of the record (more is no stretch but the residual's way)
+GROSS_SHARE = 0.1
+
+
+def _segments(fit: FitResult, noise: np.ndarray, n_segments: int) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """Each row's mean square residual in noise units over the channels, the edges of n_segments equal segments
+    (at least 20 rows each) and the median segment's mean square; None when too short to say."""
+    vals = fit.channels.values
+    n = vals.shape[0]
+    k = min(n_segments, n // 20)
+    if k < 5:
+        return None
+    z2 = np.nanmean((vals / noise[None, :]) ** 2, axis=1)
+    edges = np.linspace(0, n, k + 1).round().astype(int)
+    m = np.array([np.nanmean(z2[a:b]) for a, b in zip(edges[:-1], edges[1:])])
+    typical = float(np.nanmedian(m))
+    return (z2, edges, typical) if typical > 0 else None
+
+
+def gross_stretch(fit: FitResult, noise: np.ndarray, *, n_segments: int = 50) -> dict[str, Any] | None:
+    """The one stretch of time where the residual stands far above the rest: the worst of n_segments equal
+    segments with its neighbours that are as gross, when its RMS in noise units is at least GROSS_RATIO times the
+    median segment's and the stretch covers at most GROSS_SHARE of the rows; else None.
+    {"t_start_s", "t_end_s", "ratio"} (ratio: the stretch's RMS over the median segment's)."""
+    seg = _segments(fit, noise, n_segments)
+    if seg is None:
+        return None
+    z2, edges, typical = seg
+    m = np.array([np.nanmean(z2[a:b]) for a, b in zip(edges[:-1], edges[1:])])
+    ratio = np.sqrt(np.where(np.isfinite(m), m, 0.0) / typical)
+    k = ratio.size
+    worst = int(np.argmax(ratio))
+    if ratio[worst] < GROSS_RATIO:
+        return None
+    # its neighbours join where they are gross too, and within a factor 3 of it (a strong disturbance's pull on the
+    # fit makes other segments a few times the median: they are its echo, not the disturbance)
+    join = max(GROSS_RATIO, ratio[worst] / 3.0)
+    lo = hi = worst
+    while lo > 0 and ratio[lo - 1] >= join:
+        lo -= 1
+    while hi < k - 1 and ratio[hi + 1] >= join:
+        hi += 1
+    a, b = edges[lo], edges[hi + 1]
+    # the disturbance need not start and end on segment edges: grown by fifths of a segment that are as gross
+    fine, bar = max(4, (edges[1] - edges[0]) // 5), join ** 2 * typical
+    while a > 0 and np.nanmean(z2[max(0, a - fine):a]) >= bar:
+        a = max(0, a - fine)
+    while b < z2.size and np.nanmean(z2[b:b + fine]) >= bar:
+        b = min(z2.size, b + fine)
+    if b - a > GROSS_SHARE * z2.size:
+        return None
+    t = fit.channels.t_s
+    return {"t_start_s": float(t[a]), "t_end_s": float(t[b - 1]),
+            "ratio": float(np.sqrt(np.nanmean(z2[a:b]) / typical))}
+
+
+def stretch_ratio(fit: FitResult, noise: np.ndarray, t_start_s: float, t_end_s: float, *,
+                  n_segments: int = 50) -> float:
+    """The RMS (noise units) of fit's residual over [t_start_s, t_end_s] against its median segment's (as
+    gross_stretch measures it): how gross a fit leaves a stretch another fit found gross."""
+    seg = _segments(fit, noise, n_segments)
+    if seg is None:
+        return float("nan")
+    z2, _, typical = seg
+    t = fit.channels.t_s
+    inside = (t >= t_start_s) & (t <= t_end_s)
+    return float(np.sqrt(np.nanmean(z2[inside]) / typical)) if inside.any() else float("nan")

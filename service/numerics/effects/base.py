@@ -337,6 +337,12 @@ class EffectTerm:
         """None if the term can be fitted to these data, else the reason (and what would help)."""
         return None
 
+    def rules_out(self, parameters: Sequence[Any]) -> str | None:
+        """None if the fitted parameters (engine Parameter: name, value, stderr) are a shape this effect's physics
+        allows; else why not, in a few words a user reads as the verdict ("the offset came back: a transient, not
+        perming"). diagnose then does not call the effect significant, however much it gains."""
+        return None
+
     # per-probe parameters
     def param_names(self, view: ProbeView) -> list[str]:
         return []

@@ -20,6 +20,8 @@ axis, in nT.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from service.numerics.noise import robust_noise
@@ -46,6 +48,13 @@ SCAN_POINTS = 20_000
 #: a view's cache key for a stretch (t_lo, t_hi) the steps are searched around, not across (diagnose's
 #: held-out block; diagnose/fits.py crossfit_heldout)
 BARRIER = "ref:hysteresis_barrier"
+#: a step undone by the next: their jumps' sum at most this share of the first's size, or within the errors
+#: (chi-square below RETURNED_CHI2, 3 degrees of freedom, p = 0.01, the two errors taken as independent) (rules_out)
+RETURNED = 0.25
+RETURNED_CHI2 = 11.34
+#: a step that stays counts as perming when its jump's chi-square (3 degrees of freedom) is at least this (p ~ 0.001)
+STAYS_CHI2 = 16.27
+_STEP_NAME = re.compile(r"(?P<probe>.+)\.(?P<axis>[xyz]) step@(?P<t>[-+0-9.eE]+)s nT$")
 #: a view's cache key for the instants where the residual changed beyond the noise but smoothly (not a step)
 SMOOTH = "ref:hysteresis_smooth"
 
@@ -131,6 +140,15 @@ def detect_steps(t_s: np.ndarray, residual: np.ndarray, gain: np.ndarray, *, win
         chi2[max(0, at - w - i[0]):max(0, at + w - i[0])] = 0.0
         chi2[max(0, j - w):j + w] = 0.0
     return steps
+
+
+def _came_back(v0: np.ndarray, v1: np.ndarray) -> bool:
+    """Whether step 1 undoes step 0: v = jump x, y, z and their standard errors."""
+    total = v0[:3] + v1[:3]
+    if np.linalg.norm(total) <= RETURNED * np.linalg.norm(v0[:3]):
+        return True
+    var = v0[3:] ** 2 + v1[3:] ** 2
+    return bool(np.all(np.isfinite(var)) and np.all(var > 0) and float(np.sum(total ** 2 / var)) < RETURNED_CHI2)
 
 
 def no_step_reason(views) -> str:
@@ -252,6 +270,38 @@ class Hysteresis(EffectTerm):
 
     def param_names(self, view: ProbeView) -> list[str]:
         return [f"{view.name}.{a} step@{t:.2f}s nT" for t in self.steps(view) for a in AXES]
+
+    def rules_out(self, parameters) -> str | None:
+        """Perming stays: without one step that stays and is determined (chi-square of its jump at least
+        STAYS_CHI2), where the others come in pairs whose jumps cancel (the offset moved and came back, as under a
+        magnet carried past the probe or a knock), the steps are a transient, not perming."""
+        steps: dict[tuple[str, float], np.ndarray] = {}          # (probe, t) -> jump x, y, z and their errors
+        for p in parameters:
+            m = _STEP_NAME.match(p.name)
+            if m:
+                a = AXES.index(m["axis"])
+                v = steps.setdefault((m["probe"], float(m["t"])), np.full(6, np.nan))
+                v[a], v[3 + a] = p.value, np.nan if p.stderr is None else p.stderr
+        by_probe: dict[str, list[tuple[float, np.ndarray]]] = {}
+        for (probe, t), v in sorted(steps.items(), key=lambda kv: kv[0][1]):
+            by_probe.setdefault(probe, []).append((t, v))
+        pairs = []
+        for probe, seq in by_probe.items():
+            i = 0
+            while i < len(seq):
+                t0, v0 = seq[i]
+                if i + 1 < len(seq) and _came_back(v0, seq[i + 1][1]):
+                    size = float(np.linalg.norm(v0[:3]))
+                    pairs.append(f"{probe} by {size:,.3g} nT over {t0:.1f}-{seq[i + 1][0]:.1f} s")
+                    i += 2
+                    continue
+                if not np.all(np.isfinite(v0)) or float(np.sum((v0[:3] / v0[3:]) ** 2)) >= STAYS_CHI2:
+                    return None                    # a step that stays (or one whose error is not known): perming
+                i += 1
+        if not pairs:
+            return None
+        return (f"the offset came back ({'; '.join(pairs)}) and no other step stays beyond its errors: a transient "
+                f"(a magnet carried past the probe, a knock), not perming, which stays")
 
     def columns(self, view: ProbeView) -> np.ndarray:
         t = view.data.t_s

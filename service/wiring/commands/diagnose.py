@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 
-from service.wiring.commands.notes import say_field_scale, say_part_of_run, say_read_warnings
+from service.wiring.commands.notes import say_field_scale, say_part_of_run, say_read_warnings, skip_spans
 
 # The fits multiply many small matrices: on a machine whose cores are busy, OpenBLAS worker threads spin
 # for them and double the CPU time (measured: 41 s against 20 s for bench/bench_diagnose.py). One thread
@@ -104,6 +104,7 @@ def main(args: argparse.Namespace) -> int:
     lab = load_data(args.data, **({"max_probe_samples": DIAGNOSE_PROBE_SAMPLES} if limit is None
                                   else {"max_samples": limit}))
     say_read_warnings("diagnose", args.data, getattr(lab, "warnings", []))
+    lab = skip_spans("diagnose", str(args.data), lab, getattr(args, "skip", None))
     say_part_of_run("diagnose", str(args.data))
     block = getattr(lab, "block", lab)
     names = getattr(lab, "probe_names", None)

@@ -19,7 +19,7 @@ from service.numerics.calib.site import site_from_text
 from service.numerics.usable import temperature_notes, usable_samples
 from service.wiring.coloured_fit import coloured_offsets, direction_offsets
 from service.wiring.commands.notes import (check_output_file, check_output_folder, say_field_scale, say_part_of_run,
-                                           say_read_warnings)
+                                           say_read_warnings, skip_spans)
 from service.wiring.fitting import (
     NONLINEAR_PROBE_SAMPLES,
     channel_sums,
@@ -91,6 +91,7 @@ def main(args: Namespace) -> int:
         check_output_folder(args.report, "--report")
     data = load_data(args.data)
     say_read_warnings("fit", args.data, data.warnings)
+    data = skip_spans("fit", str(args.data), data, getattr(args, "skip", None))
     part = say_part_of_run("fit", args.data)
     data, left_out = usable_data(data, uses_temperature=bool({"temperature", "thermal"} & set(args.effects)))
     given = data_config(args, data)

@@ -101,3 +101,46 @@ def check_output_folder(path: Any, flag: str) -> None:
             pass
     except OSError as e:
         raise DataError(f"{flag} {p}: cannot write there ({e.strerror or e})") from None
+
+
+def parse_spans(text: str) -> list[tuple[float, float]]:
+    """--skip's value: T0-T1[,T0-T1 ...] in seconds of the data's own time (argparse type; ValueError says why)."""
+    import argparse
+    import re
+
+    spans = []
+    for part in text.split(","):
+        m = re.fullmatch(r"\s*([-+]?[0-9.]+(?:[eE][-+]?\d+)?)\s*-\s*([-+]?[0-9.]+(?:[eE][-+]?\d+)?)\s*", part)
+        lo, hi = (float(m[1]), float(m[2])) if m else (float("nan"), float("nan"))
+        if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
+            raise argparse.ArgumentTypeError(f"{part.strip()!r}: a stretch of time T0-T1 in seconds of the data's "
+                                             f"own time, T1 > T0 (several: 10-20,95.5-140)")
+        spans.append((lo, hi))
+    return spans
+
+
+def skip_spans(command: str, source: str, lab: Any, spans: Sequence[tuple[float, float]] | None) -> Any:
+    """The data without the samples in the stretches --skip names (ends included), said on stderr with how many
+    samples each left out; a stretch that holds no sample is said too, and one that leaves nothing is refused."""
+    import dataclasses
+
+    from drivers.errors import DataError
+
+    if not spans:
+        return lab
+    t = lab.block.t_s
+    out = np.zeros(t.shape, dtype=bool)
+    said = []
+    for lo, hi in spans:
+        inside = (t >= lo) & (t <= hi)
+        said.append(f"{lo:g}-{hi:g} s: {int(np.count_nonzero(inside & ~out)):,}")
+        out |= inside
+    if out.all():
+        raise DataError(f"--skip {','.join(f'{lo:g}-{hi:g}' for lo, hi in spans)}: leaves no sample of {source} "
+                        f"(its time runs {float(np.nanmin(t)):g}-{float(np.nanmax(t)):g} s)")
+    print(f"fluxcal {command}: note: --skip left out {int(out.sum()):,} of {t.size:,} samples ({'; '.join(said)})",
+          file=sys.stderr)
+    if any(s.endswith(": 0") for s in said):
+        print(f"fluxcal {command}: warning: a --skip stretch holds no sample of {source} (its time runs "
+              f"{float(np.nanmin(t)):g}-{float(np.nanmax(t)):g} s)", file=sys.stderr)
+    return dataclasses.replace(lab, block=lab.block.rows(~out))
