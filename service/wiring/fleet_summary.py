@@ -47,7 +47,9 @@ def summary_json(command: str, results: list[dict[str, Any]], wall_s: float, whe
                  skipped: list[tuple[str, str]] | None = None) -> dict[str, Any]:
     return {"command": command, "ran_on": where, "wall_s": round(wall_s, 3), "recordings": len(results),
             "failed": sum(not r["ok"] for r in results),
-            "with_warnings": sum(bool(r.get("warnings")) for r in results),
+            "with_warnings": sum(bool(r.get("warnings")) for r in results),          # read with warnings
+            **({"fit_warned": sum(bool(figures(command, r).get("warnings")) for r in results)}
+               if command == "fit" else {}),
             "skipped": [{"path": p, "reason": why} for p, why in skipped or []],
             "results": [{"recording": r["recording"], "ok": r["ok"], "status": r["status"], "seconds": r["seconds"],
                          "peak_rss_mb": r.get("peak_rss_mb"), "read_warnings": list(r.get("warnings") or []),
@@ -92,7 +94,9 @@ def summary_table(command: str, results: list[dict[str, Any]], wall_s: float, wh
         lines += [f"  {p}: {why}" for p, why in skipped]
     failed = sum(not r["ok"] for r in results)
     busy = sum(r["seconds"] or 0.0 for r in results)
-    lines.append(f"{len(results)} recording(s), {failed} failed, {len(warned)} with warnings, {len(skipped or [])} "
-                 f"path(s) skipped; {wall_s:.1f} s on {where} "
+    fit_warned = sum(bool(figures(command, r).get("warnings")) for r in results) if command == "fit" else 0
+    said = (f"{fit_warned} whose fit warns (the warnings column; --json lists them), " if command == "fit" else "")
+    lines.append(f"{len(results)} recording(s), {failed} failed, {said}{len(warned)} read with warnings"
+                 f"{' (above)' if warned else ''}, {len(skipped or [])} path(s) skipped; {wall_s:.1f} s on {where} "
                  f"({busy:.1f} s of work: {busy / wall_s if wall_s > 0 else 0:.2f}x one at a time)")
     return "\n".join(lines)

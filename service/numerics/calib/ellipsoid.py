@@ -430,8 +430,9 @@ def _fit_result(sol: QuadricSolution, raw: np.ndarray, name: str) -> tuple[Ellip
     try:
         offset, matrix = quadric_to_calibration(theta, scale, f2m, center)
     except np.linalg.LinAlgError:
-        raise CalibrationRefused(f"{name}: the fitted quadric is not an ellipsoid; the data are not "
-                                 f"one probe rotating in a steady field; {coverage_hint(raw)}") from None
+        raise CalibrationRefused(f"{name}: the fitted quadric is not an ellipsoid; the directions seen do not "
+                                 f"determine one (or the field changed while the probe turned); "
+                                 f"{coverage_hint(raw)}") from None
     o_se, m_se = _propagate(theta, cov, scale, f2m, center)
     rms = scalar_rms(raw, offset, matrix, sol.total_nT)
 

@@ -67,7 +67,7 @@ def band_problem(corrected: np.ndarray, residual_rms: float, field: float) -> st
     others = sorted(a for _, a in sorted(zip(np.abs(normal), "xyz"))[:2])
     return (f"the field directions stay within ±{band:.1f}° of one cone about {axis} (a turn about {axis}): the "
             f"offset along {axis} rests on that wobble, where the model's misfit ({residual_rms:.3g} nT RMS) moves it "
-            f"by about {lever:,.0f} nT, {lever / field:.0%} of the field (at most {LEVER_MAX:.0%}); turn about the "
+            f"by about {lever:,.0f} nT, {lever / field:.0%} of the field (accepted up to {LEVER_MAX:.0%}); turn about the "
             f"{others[0]} or {others[1]} axis too")
 
 

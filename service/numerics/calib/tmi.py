@@ -153,8 +153,8 @@ def fit_tmi_full(field_nT: np.ndarray, total_nT, *, name: str = "s1",
     try:
         out = _chain(sol.theta, sol.scale, sol.f2_ref, sol.center)
     except (np.linalg.LinAlgError, ValueError):
-        raise CalibrationRefused(f"{name}: the fitted quadric is not an ellipsoid; the data are not one probe "
-                                 f"rotating in a steady field") from None
+        raise CalibrationRefused(f"{name}: the fitted quadric is not an ellipsoid; the directions seen do "
+                                 f"not determine one (or the field changed while the probe turned)") from None
     se = jacobian_se(lambda t: _chain(t, sol.scale, sol.f2_ref, sol.center), sol.theta, sol.theta_cov)
     se = np.full(out.size, np.nan) if se is None else se
     angles, c, offset, mat, v = out[:3], out[3:6], out[6:9], out[9:18].reshape(3, 3), out[18:]

@@ -43,10 +43,10 @@ class Ambient(EffectTerm):
     }
 
     def why_unavailable(self, data: EffectData) -> str | None:
-        if data.n_probes < 2:
-            return "a change of the ambient field shows only against other probes: it needs an array (or log ref_total)"
         if data.ref_total_nT is not None:
             return "the scalar reference (ref_total) follows the ambient field already"
+        if data.n_probes < 2:
+            return "a change of the ambient field shows only against other probes: it needs an array (or log ref_total)"
         return None
 
     def param_names(self, view: ProbeView) -> list[str]:
