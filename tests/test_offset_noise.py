@@ -136,3 +136,23 @@ def test_a_regression_aligned_probe_inherits_the_reference_offset_errors_on_any_
     before = cal.probes[1].offset_se_nT.copy()
     coloured_offsets(data, cal, total)
     assert np.array_equal(cal.probes[1].offset_se_nT, before)
+
+
+def test_tmi_gets_the_errors_of_the_ellipsoid_fit_it_equals():
+    """`fit --method tmi` is the ellipsoid fit with the total given: the same offsets and matrix (to 1e-9 here), so
+    the same coloured-noise and direction errors. It kept the white-noise ones: on a flight's cabin fluxgate
+    (MagNav, public) +-280 nT where the ellipsoid said +-2,200 and an attitude-based check lay 4-10 of them away."""
+    from service.wiring.coloured_fit import coloured_offsets, direction_offsets
+    from service.wiring.fitting import fit_array
+
+    data, ell, total = _pair(18000, 0.3)
+    tmi, _ = fit_array(data, method="tmi")
+    white = np.array(tmi.probes[0].offset_se_nT, float)
+    for cal in (ell, tmi):
+        coloured_offsets(data, cal, total)
+        direction_offsets(data, cal, total)
+    for pe, pt in zip(ell.probes, tmi.probes):
+        assert np.allclose(pt.offset_nT, pe.offset_nT, rtol=0, atol=1e-9 * 50_000)
+        assert np.allclose(pt.offset_se_nT, pe.offset_se_nT, rtol=1e-6)
+        assert np.allclose(pt.matrix_se, pe.matrix_se, rtol=1e-6)
+    assert np.all(np.asarray(tmi.probes[0].offset_se_nT) > 1.5 * white)        # the 1/f noise's wander, taken

@@ -32,7 +32,7 @@ class ColouredNoise:
 def coloured_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -> list[ColouredNoise]:
     """Where a probe's residual is coloured, its offsets' and matrix's white-noise standard errors gain the
     noise's wander within the record (numerics.calib.offset_noise), in place: an ellipsoid-fitted probe's (or
-    rls-fitted: without forgetting the same fit), and a regression-aligned probe's (probes 2 and up, whatever
+    rls- or tmi-fitted: the same fit without forgetting, or with the total given), and a regression-aligned probe's (probes 2 and up, whatever
     fitted probe 1); others keep white-noise errors and are said to. A regression-aligned probe's offsets also
     gain the reference probe's offset errors, which they inherit (taken as independent of the regression's
     own, though probe 1's noise is in both), on any record. The spectra over at most SPECTRUM_ROWS samples
@@ -80,7 +80,7 @@ class _Spectra:
 
 
 def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -> list[str]:
-    """Each ellipsoid-fitted probe's offsets' (and matrix's, angles', scales') errors at least those of deleting
+    """Each ellipsoid-fitted (rls-, tmi-fitted) probe's offsets' (and matrix's, angles', scales') errors at least those of deleting
     one region of directions at a time (numerics.calib.misfit: a residual tied to the direction, a misfit the
     model lacks, which neither the white- nor the coloured-noise errors see), in place, where the residual
     differs between regions beyond chance for white noise (misfit.add_spread); what they raised by more than
@@ -89,7 +89,7 @@ def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -
     ellipsoid's, and keep theirs."""
     from service.numerics.calib.misfit import add_spread, direction_jackknife
 
-    if cal.method not in ("ellipsoid", "rls"):
+    if cal.method not in ("ellipsoid", "rls", "tmi"):
         return []
     out = []
     for k, p in enumerate(cal.probes):
@@ -109,7 +109,7 @@ def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -
         # jackknife's; the angles are the triangular factor's either way
         said = add_spread(p, got, p.name, "regions of field direction", "regions of direction",
                           "a misfit the model lacks, or noise slower than the turning", rotation=rot,
-                          scales=cal.method == "ellipsoid")
+                          scales=cal.method in ("ellipsoid", "tmi"))
         if got is not None and got.significant:
             _say_sizes(p)
         out += said
@@ -157,8 +157,9 @@ def _coloured_probe(cal: ArrayCalibration, k: int, raw: np.ndarray, names: list[
     if not coloured:
         return None
     # `rls` without forgetting (fit --method rls) is the batch ellipsoid fit, to 1e-6 of the field
-    # (tests/test_real_sensors.py): the same estimator of the same data, so the same weights of the noise
-    covered = not ctx.gaps and (regression or cal.method in ("ellipsoid", "rls"))
+    # (tests/test_real_sensors.py), and `tmi` the ellipsoid fit with the total given, to the digits printed: the
+    # same estimator of the same data, so the same weights of the noise
+    covered = not ctx.gaps and (regression or cal.method in ("ellipsoid", "rls", "tmi"))
     if covered:
         try:
             w_o, w_m = (regression_weights(raw, p.matrix, p.offset_nT) if regression else
