@@ -143,6 +143,10 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     else:
         left = {}
     told = verdict(cur.rms_nT, noise_nT, best, left, ed.ref_total_nT is not None)
+    if best is not None and not best.fit.converged:     # candidates stop early (conservative for the gain)
+        notes.append(f"{best.effect}'s fit stopped after {best.fit.iterations} iterations, not converged: its "
+                     f"parameters and residual are not final (its gain is understated); `--effects {best.effect}` fits "
+                     f"it with more iterations")
     if linear_refit is not None and best is not None and best.rms_nT >= (1.0 - LINEAR_REFIT_MARGIN) * linear_refit:
         told["linear_refit_nT"] = linear_refit       # refitting the calibration held explains as much: one to the data
     if (linear_refit is not None and best is None and told["kind"] == "unexplained"
