@@ -136,3 +136,21 @@ def test_skip_leaves_the_stretch_out_and_says_so(tmp_path, capsys):
     assert e.value.code == 2 and "'9-3': a stretch of time T0-T1" in capsys.readouterr().err
     assert main(["fit", str(path), "--skip=-10-1000"]) == 2
     assert "leaves no sample" in capsys.readouterr().err
+
+
+def test_a_named_effect_whose_fit_stopped_early_is_said_not_final(monkeypatch):
+    """Candidates are fitted in a few iterations (a fit stopped early understates the gain: conservative); the one
+    the verdict names then has figures that are not final, and the notes say so (a flight's platform field did)."""
+    import service.numerics.diagnose.fits as fits
+    from test_diagnose import CASES, data_of, sim_block
+
+    case = CASES["eddy"]
+    data = data_of(sim_block(case["probes"], n=case["n"], rate=case["rate"], motion=case["motion"], seed=7),
+                   case["probes"])
+    full = diagnose(data, candidates=["eddy"])
+    assert full.verdict.get("effect") == "eddy" and full.candidates[0].fit.converged
+    assert not any("not converged" in n for n in full.notes)
+    monkeypatch.setattr(fits, "CANDIDATE_ITERATIONS", 1)
+    early = diagnose(data, candidates=["eddy"])
+    assert early.verdict.get("effect") == "eddy" and not early.candidates[0].fit.converged
+    assert any(n.startswith("eddy's fit stopped after 1 iterations, not converged") for n in early.notes), early.notes
