@@ -156,3 +156,39 @@ def test_tmi_gets_the_errors_of_the_ellipsoid_fit_it_equals():
         assert np.allclose(pt.offset_se_nT, pe.offset_se_nT, rtol=1e-6)
         assert np.allclose(pt.matrix_se, pe.matrix_se, rtol=1e-6)
     assert np.all(np.asarray(tmi.probes[0].offset_se_nT) > 1.5 * white)        # the 1/f noise's wander, taken
+
+
+def test_rls_errors_are_those_of_the_fit_it_equals_with_a_reference_column(monkeypatch):
+    """`fit --method rls` takes a ref_total column's level only (its mean square sets the scale): its offsets are
+    the ellipsoid fit's without the reference (to 1e-6 nT here, with the reference moved by 400 nT), and the noise's
+    and the directions' errors are asked of that fit, not of the reference-constrained one. They were: on a
+    flight (MagNav, public) +-709 nT for an offset whose own fit says +-7,388."""
+    import dataclasses
+
+    from service.numerics.calib import misfit, offset_noise
+    from service.wiring.coloured_fit import coloured_offsets, direction_offsets
+    from service.wiring.fitting import fit_array
+
+    data, _, _ = _pair(18000, 0.3)
+    b = data.block
+    moved = {**b.extras, "ref_total": np.asarray(b.extras["ref_total"], float)
+             + 400.0 * np.sin(np.linspace(0.0, 3.0, b.n_samples))}
+    given = dataclasses.replace(data, block=dataclasses.replace(b, extras=moved))
+    without = dataclasses.replace(data, block=dataclasses.replace(
+        b, extras={k: v for k, v in b.extras.items() if k != "ref_total"}))
+    rls, total = fit_array(given, method="rls", align="none")
+    alone, _ = fit_array(without, method="rls", align="none")
+    assert np.allclose(rls.probes[0].offset_nT, alone.probes[0].offset_nT, rtol=0, atol=1e-6)
+    asked = []
+    weights, jackknife = offset_noise.ellipsoid_weights, misfit.direction_jackknife
+    monkeypatch.setattr(offset_noise, "ellipsoid_weights", lambda *a: asked.append(("weights", a[4])) or weights(*a))
+    monkeypatch.setattr(misfit, "direction_jackknife",
+                        lambda raw, tot, *a, **k: asked.append(("directions", tot)) or jackknife(raw, tot, *a, **k))
+    coloured_offsets(given, rls, total)
+    direction_offsets(given, rls, total)
+    assert {w for w, _ in asked} == {"weights", "directions"} and all(t is None for _, t in asked)
+    ell, total = fit_array(given, method="ellipsoid", align="none")
+    asked.clear()
+    coloured_offsets(given, ell, total)
+    direction_offsets(given, ell, total)
+    assert asked and all(t is not None for _, t in asked)              # the ellipsoid fit takes the reference

@@ -101,8 +101,8 @@ def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -
             rot, tri = np.linalg.qr(p.matrix)
             signs = np.where(np.diag(tri) < 0, -1.0, 1.0)
             rot, tri = rot * signs, tri * signs[:, None]
-            got = direction_jackknife(data.block.field_nT[:, k], total.values, p.model_order or "full",
-                                      p.offset_nT, tri, needed_only=True)
+            got = direction_jackknife(data.block.field_nT[:, k], None if cal.method == "rls" else total.values,
+                                      p.model_order or "full", p.offset_nT, tri, needed_only=True)
         except (np.linalg.LinAlgError, ValueError):
             continue
         # rls takes a reference as an unknown field: its scale (and the matrix's) is another convention than the
@@ -162,8 +162,11 @@ def _coloured_probe(cal: ArrayCalibration, k: int, raw: np.ndarray, names: list[
     covered = not ctx.gaps and (regression or cal.method in ("ellipsoid", "rls", "tmi"))
     if covered:
         try:
+            # rls takes a reference's level only (its mean square sets the scale): its centre and shape are the
+            # ellipsoid fit's without the reference, and so are the noise's weights
             w_o, w_m = (regression_weights(raw, p.matrix, p.offset_nT) if regression else
-                        ellipsoid_weights(raw, p.offset_nT, p.matrix, p.model_order or "full", ctx.total))
+                        ellipsoid_weights(raw, p.offset_nT, p.matrix, p.model_order or "full",
+                                          None if cal.method == "rls" else ctx.total))
             extra_o = record_se(w_o, ctx.grid, ctx.dt, laws, ctx.knee)
             extra_m = record_se(w_m, ctx.grid, ctx.dt, laws, ctx.knee)
         except (np.linalg.LinAlgError, ValueError):
