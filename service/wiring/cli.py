@@ -180,7 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "drift_offset_nT_per_h, pink_nT_rtHz (1/f noise); [sim.field] gradient_nT_m, "
                           "variation_nT (ambient change); [sim.temperature] ramp_C_per_h, amplitude_C; [sim.motion] "
                           "kind (turntable, tumble, grid, static). configs/sim-gradiometer.toml lists them all with "
-                          "units. A .mcap output carries the attitude; a CSV does not")
+                          "units. Neither output carries the platform's attitude (the truth file holds the motion), so a "
+                          "hidden site gradient cannot be diagnosed from them")
     sim.add_argument("--out", required=True, metavar="FILE.csv|FILE.mcap|FILE.bin|FILE.log",
                      help="where to write (allowed: .csv lab data, with angle_deg and turn for a turntable; .mcap a "
                           "recording; .bin the unit's serial bytes; .log a candump log of its CAN frames); a "
