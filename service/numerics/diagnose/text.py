@@ -9,8 +9,8 @@ PARAMETER_LINES = 18
 
 
 DECIDES = (f"    the held-out columns decide: SIGNIFICANT needs a held-out gain of at least {100 * MIN_GAIN:g} %, "
-           f"{GAIN_SIGMAS:g} standard errors\n    (block to block) above zero, and p < {P_SIGNIFICANT:g}; p-value and "
-           f"dBIC assume white noise and alone decide nothing")
+           f"{GAIN_SIGMAS:g} standard errors\n    (block to block) above zero, p < {P_SIGNIFICANT:g}, and parameters "
+           f"beyond their own errors;\n    p-value and dBIC assume white noise and alone decide nothing")
 
 
 def verdict_word(c: Candidate) -> str:
