@@ -1,6 +1,7 @@
-"""A disturbance in time that no term follows (a vehicle or a magnet passing, a knock): named as a stretch, not as an
-effect. On Magneto's public test file a 47-s stretch 4,000 nT off made crossfield 'significant' (21 % held-out gain,
-8 % without it), and an offset that jumped and came back was two perming steps."""
+"""What is not an effect, said as what it is. A disturbance in time that no term follows (a vehicle or a magnet
+passing, a knock): named as a stretch, not as an effect (on Magneto's public test file a 47-s stretch 4,000 nT off
+made crossfield 'significant', 21 % held-out gain, 8 % without it, and an offset that jumped and came back was two
+perming steps). The 1/f noise's slow wander: no effect, and not a field of the site."""
 
 from __future__ import annotations
 
@@ -156,12 +157,14 @@ def test_a_named_effect_whose_fit_stopped_early_is_said_not_final(monkeypatch):
     assert any(n.startswith("eddy's fit stopped after 1 iterations, not converged") for n in early.notes), early.notes
 
 
-def _gradiometer_world(seed: int, seconds: float, pink: float, **motion) -> EffectData:
-    """configs/sim-gradiometer.toml with another seed, length and 1/f noise (and motion), as a user edits it."""
+def _gradiometer_world(seed: int, seconds: float, pink: float, config: str = "sim-gradiometer.toml",
+                       **motion) -> EffectData:
+    """configs/sim-gradiometer.toml (or another) with another seed, length and 1/f noise (and motion), as a user
+    edits it."""
     import tomllib
     from pathlib import Path
 
-    raw = tomllib.loads((Path(__file__).parents[1] / "configs" / "sim-gradiometer.toml").read_text())["sim"]
+    raw = tomllib.loads((Path(__file__).parents[1] / "configs" / config).read_text())["sim"]
     raw.update(seed=seed, duration_s=seconds)
     for p in raw["probes"]:
         p["pink_nT_rtHz"] = pink
@@ -193,3 +196,17 @@ def test_a_real_drift_under_one_over_f_noise_is_still_found(seed, pink):
     world.raw_nT[:, 0, :] += np.outer(t / 3600.0, [120.0, -90.0, 60.0])          # 120, -90, 60 nT/h on s1
     d = diagnose(world, candidates=["drift", "eddy"])
     assert d.verdict.get("effect") == "drift", summary_text(d)
+
+
+@pytest.mark.parametrize("seed", [90002, 90004])
+def test_each_probes_own_noise_is_not_called_a_field_of_the_site(seed):
+    """1/f noise of 1 nT/sqrt(Hz) alone on the 4-probe cross: what is left was 'turns with the platform: a field of the
+    site, such as a gradient' (nothing said it turns: the data carry no attitude) and the advice said the field and
+    the sensor 'cannot be told without a second probe or a reference', of four probes and a reference that see
+    nothing in common."""
+    d = diagnose(_gradiometer_world(seed, 172.8, 1.0, config="sim-cross.toml"))
+    left, advice = d.verdict.get("left") or "", d.verdict.get("advice") or ""
+    assert not [c.effect for c in d.candidates if c.significant], summary_text(d)
+    assert "turns with the platform" not in left and "not fixed in the platform frame" in left, left
+    assert "without a second probe or a reference" not in advice, advice
+    assert advice.startswith(("each probe changes in time on its own", "each probe's own slow noise")), advice

@@ -110,7 +110,7 @@ def frame_summary(entries: list[dict[str, Any]]) -> str | None:
     """One sentence: which difference vectors stand still in the platform frame, and which turn with it (then
     where they lie in the Earth frame, when the attitude is logged). Not the scalar channels: the offsets,
     fitted to them and to the differences together, leave them a fixed part the differences pull against."""
-    said = []
+    said, loose = [], []
     for e in entries:
         share = e["platform"]["fixed_share"]
         if share is None or e["kind"] != "difference":       # a scalar channel's share is shared with the offsets'
@@ -129,11 +129,18 @@ def frame_summary(entries: list[dict[str, Any]]) -> str | None:
                                 "platform)" if e["platform"].get("turned") else
                                 ": the platform turned too little to tell an offset changing in time from a change "
                                 "of the site's field"))
-        elif share < TURNS:
-            where = ""
-            if "earth" in e:
-                rms = e["earth"]["rms_nT"]
-                where = "; in the Earth frame " + ", ".join(f"{k} {v:.2f}" for k, v in rms.items()) + " nT rms"
+        elif share < TURNS and "earth" in e:
+            rms = e["earth"]["rms_nT"]
+            where = "; in the Earth frame " + ", ".join(f"{k} {v:.2f}" for k, v in rms.items()) + " nT rms"
             said.append(f"{e['channels']} turns with the platform ({100 * share:.0f} % fixed in it: a field of the "
                         f"site, such as a gradient across the array{where})")
+        elif share < TURNS:
+            # without the attitude nothing says it turns with the platform: each probe's own noise is not fixed in it
+            # either (1/f noise alone on a 4-probe cross was called a field of the site, three times)
+            loose.append((e["channels"], share))
+    if loose:
+        said.append(f"{', '.join(c for c, _ in loose)} {'is' if len(loose) == 1 else 'are'} not fixed in the platform "
+                    f"frame ({', '.join(f'{100 * v:.0f}' for _, v in loose)} % fixed): not an offset error; a field of "
+                    f"the site (a gradient across the array) or each probe's own noise, which the platform's attitude "
+                    f"in the data (heel_deg, pitch_deg, azimuth_deg) would tell apart")
     return "; ".join(said) if said else None

@@ -211,6 +211,11 @@ def _time_advice(shared: float | None, share: dict[str, float], has_reference: b
                 f"{others} do not see it, so the sensor changed, not the field (a warm-up, an offset settling, a "
                 f"temperature the data do not carry); log the sensor's temperature, or add an effect of your own "
                 f"(docs/effects.md)")
+    if shared is not None and shared <= OWN and len(share) > 1:
+        return (f"each probe changes in time on its own ({100 * shared:.0f} % of the excess shared), which no term "
+                f"follows (drift's polynomial does not): not a field of the site, which all would see; each sensor's "
+                f"slow noise (flicker) or its own slow change (a warm-up, a temperature the data do not carry): log "
+                f"the sensors' temperatures, or record longer to tell noise from a drift")
     if shared is not None and shared >= SHARED:
         return ("a change in time common to the probes that no term follows: a change of the field at the site" +
                 ("; the scalar reference does not follow it: check its timing and position" if has_reference else
