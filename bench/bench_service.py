@@ -208,8 +208,9 @@ def floor_parts(block: SampleBlock, t_bare: float) -> None:
           + f"; sum {total * 1e3:.0f} ms against the {2e3 * t_bare:.0f} ms a 0.5x ratio allows "
           f"(at best {t_bare / total:.2f}x; {(len(raw_bytes) + len(corrected_bytes)) / 1e6:.1f} MB written; "
           f"written uncompressed, at best {t_bare / (total - parts[pack]):.2f}x)")
-    print(f"  spread perfectly over all {os.cpu_count()} cores (no part waiting for another): at best "
-          f"{t_bare / (total / (os.cpu_count() or 1)):.2f}x, uncompressed {t_bare / ((total - parts[pack]) / (os.cpu_count() or 1)):.2f}x, "
+    cores = os.cpu_count() or 1
+    print(f"  spread perfectly over all {cores} cores (no part waiting for another): at best "
+          f"{t_bare * cores / total:.2f}x, uncompressed {t_bare * cores / (total - parts[pack]):.2f}x, "
           f"before the gate's checks that the same outputs need (above)")
 
 

@@ -210,3 +210,52 @@ def test_each_probes_own_noise_is_not_called_a_field_of_the_site(seed):
     assert "turns with the platform" not in left and "not fixed in the platform frame" in left, left
     assert "without a second probe or a reference" not in advice, advice
     assert advice.startswith(("each probe changes in time on its own", "each probe's own slow noise")), advice
+
+
+def test_a_candidate_significant_only_with_the_stretch_is_demoted_and_a_real_one_is_kept():
+    """The re-judging itself (diagnostics._demote_on_one_stretch), whatever made a candidate significant: a drift
+    taken as significant in a world with only a passing disturbance is judged again without the stretch and
+    demoted, with the stretch named; a temperature coefficient that is real keeps its verdict."""
+    from service.numerics.diagnose.diagnostics import _demote_on_one_stretch
+    from service.numerics.diagnose.fits import heldout, try_candidate
+    from service.numerics.effects import make_model
+    from service.numerics.engine import fit_model, initial_linear, reference_total, residual_hints, start_weights
+
+    for data, name, stays in ((world(31, 1000.0), "drift", False),
+                              (world(32, 1000.0, effect={"temp_offset_nT_per_C": [25.0, -18.0, 10.0]}),
+                               "temperature", True)):
+        linear = initial_linear(data, data.total_nT)
+        reference, _ = reference_total(data, linear)
+        weights = start_weights(data, linear, reference)
+        model = make_model([], baseline=True)
+        cur = fit_model(data, model, linear, reference, weights, n_blocks=8)
+        stretch = gross_stretch(cur, 1.0 / weights)
+        assert stretch is not None and stretch["t_start_s"] <= BUMP[0] + 0.5 and stretch["t_end_s"] >= BUMP[1] - 0.5
+        c = try_candidate(data, model, cur, heldout(cur), name, reference, weights, residual_hints(cur), 8)
+        c.significant = True                     # as if the held-out test had passed it
+        notes = _demote_on_one_stretch(data, model, [c], cur, stretch, reference, weights, 8, lambda *a: None)
+        if stays:
+            assert c.significant and c.refusal is None and notes == []
+        else:
+            assert not c.significant and c.refusal == "rests on one stretch"
+            assert c.reason.startswith(f"rests on {stretch['t_start_s']:.1f}-{stretch['t_end_s']:.1f} s")
+            assert len(notes) == 1 and "drift was significant only with it" in notes[0]
+
+
+def test_skip_counts_each_sample_once_and_says_a_stretch_that_holds_none(tmp_path, capsys):
+    """Overlapping stretches: the second's samples already left out are not counted again, and it is not said to
+    hold no sample (it did, before the fix)."""
+    path = tmp_path / "d.csv"
+    t = np.arange(0.0, 100.0, 0.1)
+    rows = np.column_stack([t, 20000 + np.cos(t), 30000 + np.sin(t), 40000 + 0 * t])
+    np.savetxt(path, rows, delimiter=",", header="t,s1_x,s1_y,s1_z", comments="", fmt="%.4f")
+    from service.io.recordings.labdata import load_data
+    from service.wiring.commands.notes import skip_spans
+
+    lab = skip_spans("fit", str(path), load_data(path), [(10.0, 20.0), (15.0, 19.0)])
+    err = capsys.readouterr().err
+    assert lab.block.n_samples == t.size - 101
+    assert "--skip left out 101 of 1,000 samples (10-20 s: 101; 15-19 s: 0)" in err
+    assert "holds no sample" not in err
+    skip_spans("fit", str(path), load_data(path), [(10.0, 20.0), (500.0, 600.0)])
+    assert "a --skip stretch holds no sample" in capsys.readouterr().err

@@ -32,11 +32,11 @@ class ColouredNoise:
 def coloured_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -> list[ColouredNoise]:
     """Where a probe's residual is coloured, its offsets' and matrix's white-noise standard errors gain the
     noise's wander within the record (numerics.calib.offset_noise), in place: an ellipsoid-fitted probe's (or
-    rls- or tmi-fitted: the same fit without forgetting, or with the total given), and a regression-aligned probe's (probes 2 and up, whatever
-    fitted probe 1); others keep white-noise errors and are said to. A regression-aligned probe's offsets also
-    gain the reference probe's offset errors, which they inherit (taken as independent of the regression's
-    own, though probe 1's noise is in both), on any record. The spectra over at most SPECTRUM_ROWS samples
-    (every k-th: the power law is fitted from 16 cycles per record up)."""
+    rls- or tmi-fitted: the same fit without forgetting, or with the total given), and a regression-aligned
+    probe's (probes 2 and up, whatever fitted probe 1); others keep white-noise errors and are said to. A
+    regression-aligned probe's offsets also gain the reference probe's offset errors, which they inherit (taken as
+    independent of the regression's own, though probe 1's noise is in both), on any record. The spectra over at
+    most SPECTRUM_ROWS samples (every k-th: the power law is fitted from 16 cycles per record up)."""
     from service.numerics.engine.coloured import FLICKER, MAX_GRID_FILL, MIN_CYCLES, sample_grid
 
     b = data.block
@@ -79,10 +79,17 @@ class _Spectra:
 
 
 
+def _fitted_total(cal: ArrayCalibration, total):
+    """The total field the calibration's estimator was constrained by, for the fits that stand in for it: rls takes
+    a reference's level only (its mean square sets the scale), so its centre and shape are the ellipsoid fit's
+    without the reference (None)."""
+    return None if cal.method == "rls" else total
+
+
 def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -> list[str]:
-    """Each ellipsoid-fitted (rls-, tmi-fitted) probe's offsets' (and matrix's, angles', scales') errors at least those of deleting
-    one region of directions at a time (numerics.calib.misfit: a residual tied to the direction, a misfit the
-    model lacks, which neither the white- nor the coloured-noise errors see), in place, where the residual
+    """Each ellipsoid-fitted (rls-, tmi-fitted) probe's offsets' (and matrix's, angles', scales') errors at least
+    those of deleting one region of directions at a time (numerics.calib.misfit: a residual tied to the direction,
+    a misfit the model lacks, which neither the white- nor the coloured-noise errors see), in place, where the residual
     differs between regions beyond chance for white noise (misfit.add_spread); what they raised by more than
     misfit.SAY, said.
     After coloured_offsets (the larger of the two stands); a regression-aligned probe's offsets are not an
@@ -101,7 +108,7 @@ def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -
             rot, tri = np.linalg.qr(p.matrix)
             signs = np.where(np.diag(tri) < 0, -1.0, 1.0)
             rot, tri = rot * signs, tri * signs[:, None]
-            got = direction_jackknife(data.block.field_nT[:, k], None if cal.method == "rls" else total.values,
+            got = direction_jackknife(data.block.field_nT[:, k], _fitted_total(cal, total.values),
                                       p.model_order or "full", p.offset_nT, tri, needed_only=True)
         except (np.linalg.LinAlgError, ValueError):
             continue
@@ -162,11 +169,9 @@ def _coloured_probe(cal: ArrayCalibration, k: int, raw: np.ndarray, names: list[
     covered = not ctx.gaps and (regression or cal.method in ("ellipsoid", "rls", "tmi"))
     if covered:
         try:
-            # rls takes a reference's level only (its mean square sets the scale): its centre and shape are the
-            # ellipsoid fit's without the reference, and so are the noise's weights
             w_o, w_m = (regression_weights(raw, p.matrix, p.offset_nT) if regression else
                         ellipsoid_weights(raw, p.offset_nT, p.matrix, p.model_order or "full",
-                                          None if cal.method == "rls" else ctx.total))
+                                          _fitted_total(cal, ctx.total)))
             extra_o = record_se(w_o, ctx.grid, ctx.dt, laws, ctx.knee)
             extra_m = record_se(w_m, ctx.grid, ctx.dt, laws, ctx.knee)
         except (np.linalg.LinAlgError, ValueError):

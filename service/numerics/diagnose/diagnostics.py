@@ -222,9 +222,9 @@ def _demote_on_one_stretch(ed: Any, model: Model, cands: list[Candidate], cur: A
     significant candidate whose fit leaves the stretch the model leaves gross (where.gross_stretch) still gross is
     judged again with the stretch left out, and stays significant only if it still is (one that explains the
     stretch, as eddy a stretch of fast turning, is not asked). Returns a note when one was demoted."""
-    noise = 1.0 / weights
     if stretch is None:
         return []
+    noise = 1.0 / weights
     demoted: list[str] = []
     lo, hi = stretch["t_start_s"], stretch["t_end_s"]
     rows = np.flatnonzero((ed.t_s < lo) | (ed.t_s > hi))

@@ -218,9 +218,10 @@ GROSS_RATIO = 3.0
 GROSS_SHARE = 0.1
 
 
-def _segments(fit: FitResult, noise: np.ndarray, n_segments: int) -> tuple[np.ndarray, np.ndarray, float] | None:
+def _segments(fit: FitResult, noise: np.ndarray,
+              n_segments: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
     """Each row's mean square residual in noise units over the channels, the edges of n_segments equal segments
-    (at least 20 rows each) and the median segment's mean square; None when too short to say."""
+    (at least 20 rows each), each segment's mean square and their median; None when too short to say."""
     vals = fit.channels.values
     n = vals.shape[0]
     k = min(n_segments, n // 20)
@@ -230,7 +231,7 @@ def _segments(fit: FitResult, noise: np.ndarray, n_segments: int) -> tuple[np.nd
     edges = np.linspace(0, n, k + 1).round().astype(int)
     m = np.array([np.nanmean(z2[a:b]) for a, b in zip(edges[:-1], edges[1:])])
     typical = float(np.nanmedian(m))
-    return (z2, edges, typical) if typical > 0 else None
+    return (z2, edges, m, typical) if typical > 0 else None
 
 
 def gross_stretch(fit: FitResult, noise: np.ndarray, *, n_segments: int = 50) -> dict[str, Any] | None:
@@ -241,8 +242,7 @@ def gross_stretch(fit: FitResult, noise: np.ndarray, *, n_segments: int = 50) ->
     seg = _segments(fit, noise, n_segments)
     if seg is None:
         return None
-    z2, edges, typical = seg
-    m = np.array([np.nanmean(z2[a:b]) for a, b in zip(edges[:-1], edges[1:])])
+    z2, edges, m, typical = seg
     ratio = np.sqrt(np.where(np.isfinite(m), m, 0.0) / typical)
     k = ratio.size
     worst = int(np.argmax(ratio))
@@ -277,7 +277,7 @@ def stretch_ratio(fit: FitResult, noise: np.ndarray, t_start_s: float, t_end_s: 
     seg = _segments(fit, noise, n_segments)
     if seg is None:
         return float("nan")
-    z2, _, typical = seg
+    z2, _, _, typical = seg
     t = fit.channels.t_s
     inside = (t >= t_start_s) & (t <= t_end_s)
     return float(np.sqrt(np.nanmean(z2[inside]) / typical)) if inside.any() else float("nan")
