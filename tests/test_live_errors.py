@@ -86,3 +86,18 @@ def test_the_services_offset_errors_under_1f_noise_and_white_noise():
         assert np.array_equal(a.calibration.probes[0].offset_se_nT, b.calibration.probes[0].offset_se_nT)
     rms_white, rms_live = (float(np.sqrt(np.mean(np.square(z)))) for z in (z_white, z_live))
     assert rms_white > 6.0 and rms_live < 4.0, (rms_white, rms_live)
+
+
+def test_the_services_spreads_are_of_fits_unconstrained_by_the_total_as_the_estimator_is(monkeypatch):
+    """The online estimator takes a configured or logged total for its scale only: the fits left out in time and
+    direction are unconstrained too (as `fit --method rls`'s errors), even with a total configured."""
+    import service.wiring.gate as gate
+
+    asked = []
+    for name in ("add_time_spread", "add_direction_spread"):
+        real = getattr(gate, name)
+        monkeypatch.setattr(gate, name, lambda p, order, raw, total, nm, _real=real: asked.append(total)
+                            or _real(p, order, raw, total, nm))
+    block, _, total = _world(0, 3.0)
+    _serve(block, spread=True, total_nT=total, check_every=500, window=6000, chunk=25, step=100)
+    assert asked and all(t is None for t in asked)

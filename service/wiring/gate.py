@@ -84,7 +84,9 @@ class Gate:
         """Each probe's errors at least those of leaving one stretch of the ring buffer out, and one region of
         field direction, where its residual differs between them beyond chance for white noise (misfit: as the
         batch fit's): the estimator's own errors are white-noise ones, and a real board's offsets were 4-7 of
-        them from those its authors published."""
+        them from those its authors published. The fits left out are unconstrained by the total field, as the
+        estimator is (a configured or logged total sets only its scale: coloured_fit._fitted_total); the rows are
+        those the estimator took (a logged total that is not finite drops a row)."""
         n = len(ring)
         w = ring.take(np.arange(0, n, max(1, -(-n // self.SPREAD_SAMPLES))))
         ref = reference_total(w, self.total_nT)
@@ -93,10 +95,9 @@ class Gate:
             ok = np.isfinite(raw).all(axis=1)
             if isinstance(ref, np.ndarray):
                 ok &= np.isfinite(ref)
-            total = ref[ok] if isinstance(ref, np.ndarray) else ref
             if np.count_nonzero(ok) >= 200 and p.offset_se_nT is not None and p.matrix_se is not None:
-                add_time_spread(p, "full", raw[ok], total, p.name)
-                add_direction_spread(p, "full", raw[ok], total, p.name)
+                add_time_spread(p, "full", raw[ok], None, p.name)
+                add_direction_spread(p, "full", raw[ok], None, p.name)
 
     def evaluate(self, cal: ArrayCalibration, estimators: Sequence[RlsEllipsoid], ring: RingBuffer) -> GateResult:
         """The quality gate: coverage, conditioning, residual and one turn's wobble over the ring buffer window."""
