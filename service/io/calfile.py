@@ -17,6 +17,7 @@ import datetime as _dt
 import json
 import math
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -89,17 +90,77 @@ def save_calibration(cal: ArrayCalibration, path: str | Path) -> None:
         raise
 
 
+#: the largest calibration file or payload read (one written by `fit --out` is a few kB; with effects tens of kB)
+MAX_CALIBRATION_BYTES = 1 << 20
+#: the deepest nesting of arrays and objects taken (a calibration file nests 4 deep)
+MAX_JSON_DEPTH = 16
+
+
 def load_calibration(path: str | Path) -> ArrayCalibration:
-    """Read a calibration file; DataError naming the file and the problem (missing, another format or
-    version, not JSON, a missing key, a wrong shape, a NaN)."""
+    """Read a calibration file; DataError naming the file and the problem (missing, not a regular file, too
+    large, another format or version, not JSON, a missing key, a wrong shape, a NaN). A FIFO, a device or
+    /dev/zero is refused before it is opened for reading, so nothing waits on it or reads it without end."""
+    import stat
+
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        st = p.stat()
     except FileNotFoundError:
         raise DataError(f"{p}: calibration file not found") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise DataError(f"{p}: cannot read the calibration file: {e}") from None
+    except OSError as e:
+        raise DataError(f"{p}: cannot read the calibration file: {e.strerror or e}") from None
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a directory" if stat.S_ISDIR(st.st_mode) else "not a regular file (a device, a pipe or a socket)"
+        raise DataError(f"{p}: cannot read the calibration file: {kind}")
+    try:
+        with p.open("rb") as f:
+            raw = f.read(MAX_CALIBRATION_BYTES + 1)
+    except OSError as e:
+        raise DataError(f"{p}: cannot read the calibration file: {e.strerror or e}") from None
+    if len(raw) > MAX_CALIBRATION_BYTES:
+        raise DataError(f"{p}: more than {MAX_CALIBRATION_BYTES:,} bytes: too large for a calibration file (one "
+                        f"written by `fluxcal fit --out` is a few kB)")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise DataError(f"{p}: cannot read the calibration file: not UTF-8 text ({e.reason} at byte {e.start})") \
+            from None
     return calibration_from_json(text, origin=str(p))
+
+
+_JSON_TOKENS = re.compile(rb'"(?:[^"\\]|\\.)*"|[\[\]{}]')
+
+
+def json_depth(raw: bytes) -> int:
+    """The deepest nesting of arrays and objects in JSON text (strings skipped), found without parsing it:
+    text nested thousands deep is refused before json.loads would recurse into it."""
+    depth = worst = 0
+    for m in _JSON_TOKENS.finditer(raw):
+        c = m.group()[0]
+        if c in b"[{":
+            depth += 1
+            worst = max(worst, depth)
+        elif c in b"]}":
+            depth -= 1
+    return worst
+
+
+def parse_json(text: str, origin: str, *, max_bytes: int = MAX_CALIBRATION_BYTES,
+               max_depth: int = MAX_JSON_DEPTH) -> Any:
+    """json.loads bounded in size and depth; DataError naming `origin` and the bound (never a RecursionError
+    or a MemoryError escaping)."""
+    raw = text.encode("utf-8", errors="surrogatepass")
+    if len(raw) > max_bytes:
+        raise DataError(f"{origin}: {len(raw):,} bytes of JSON (at most {max_bytes:,})")
+    depth = json_depth(raw)
+    if depth > max_depth:
+        raise DataError(f"{origin}: JSON nested {depth} deep (at most {max_depth})")
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise DataError(f"{origin}: damaged calibration file (not JSON: {e.msg} at line {e.lineno})") from None
+    except (RecursionError, MemoryError, ValueError) as e:
+        raise DataError(f"{origin}: not readable JSON ({type(e).__name__})") from None
 
 
 def calibration_from_json(text: str, origin: str = "<calibration>") -> ArrayCalibration:
@@ -108,11 +169,7 @@ def calibration_from_json(text: str, origin: str = "<calibration>") -> ArrayCali
     if text.strip() and not text.lstrip().startswith("{"):      # empty: a truncated file, "damaged" below
         raise DataError(f"{origin}: not a calibration file: expected a calibration JSON written by "
                         f"`fluxcal fit --out`; it begins {excerpt(text)}")
-    try:
-        d = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise DataError(f"{origin}: damaged calibration file (not JSON: {e.msg} at line {e.lineno})") from None
-    return calibration_from_dict(d, origin)
+    return calibration_from_dict(parse_json(text, origin), origin)
 
 
 def excerpt(text: str, limit: int = 60) -> str:
@@ -127,10 +184,28 @@ def excerpt(text: str, limit: int = 60) -> str:
     return repr(first) + (" ..." if len(first) < len(body) else "")
 
 
+def _numbers_only(v: Any, allow_null: bool, depth: int = 0) -> bool:
+    """Whether v is numbers (not booleans, not strings: "1e3" and true are no offsets), nested lists of them,
+    or null where allowed."""
+    if isinstance(v, bool):
+        return False
+    if isinstance(v, (int, float)):
+        return True
+    if v is None:
+        return allow_null
+    return isinstance(v, list) and depth < 3 and all(_numbers_only(x, allow_null, depth + 1) for x in v)
+
+
 def _array(v: Any, shape: tuple[int, ...], key: str, origin: str, allow_null: bool = False) -> np.ndarray:
+    if not allow_null and _numbers_only(v, True) and not _numbers_only(v, False):
+        raise DataError(f"{origin}: {key}: holds non-finite values (null)")
+    if not _numbers_only(v, allow_null):
+        raise DataError(f"{origin}: {key}: expected numbers of shape {shape}" + (" or null" if allow_null else "") +
+                        f", got {excerpt(json.dumps(v, default=str)[:200], 40)}")
     try:
-        a = np.array(v if not allow_null else _nulls(v), dtype=float)
-    except (TypeError, ValueError):
+        with np.errstate(over="ignore"):
+            a = np.array(v if not allow_null else _nulls(v), dtype=float)
+    except (TypeError, ValueError, OverflowError):
         raise DataError(f"{origin}: {key}: expected numbers of shape {shape}") from None
     if a.shape != shape:
         raise DataError(f"{origin}: {key}: expected shape {shape}, got {a.shape}")
@@ -173,8 +248,10 @@ def calibration_from_dict(d: Any, origin: str = "<calibration>") -> ArrayCalibra
             params = pd.get("params") or {}
             if not isinstance(params, dict):
                 raise DataError(f"{origin}: damaged calibration file ({key}.params is not an object)")
+            if not isinstance(pd.get("name"), str) or not pd["name"]:
+                raise DataError(f"{origin}: damaged calibration file ({key}.name must be a probe's name)")
             probes.append(ProbeCalibration(
-                str(pd["name"]), _array(pd["offset_nT"], (3,), f"{key}.offset_nT", origin),
+                pd["name"], _array(pd["offset_nT"], (3,), f"{key}.offset_nT", origin),
                 _array(pd["matrix"], (3, 3), f"{key}.matrix", origin),
                 _array(pd.get("offset_se_nT"), (3,), f"{key}.offset_se_nT", origin, True),
                 _array(pd.get("matrix_se"), (3, 3), f"{key}.matrix_se", origin, True),
@@ -189,9 +266,15 @@ def calibration_from_dict(d: Any, origin: str = "<calibration>") -> ArrayCalibra
         align = d.get("align")
         if align is not None and not isinstance(align, str):
             raise DataError(f"{origin}: damaged calibration file (align must be a name or null)")
+        effects = d.get("effects") or []
+        if not isinstance(effects, list) or not all(isinstance(e, str) for e in effects):
+            raise DataError(f"{origin}: damaged calibration file (effects must be a list of effect names)")
+        for k in ("effect_params", "diagnostics", "span"):
+            if not isinstance(d.get(k) or {}, dict):
+                raise DataError(f"{origin}: damaged calibration file ({k} must be an object)")
         span = d.get("span") or {}
         return ArrayCalibration(method=str(d["method"]), align=align, probes=probes,
-                                total_nT=_total(d.get("total_nT"), origin), effects=list(d.get("effects") or []),
+                                total_nT=_total(d.get("total_nT"), origin), effects=list(effects),
                                 effect_params=dict(d.get("effect_params") or {}),
                                 diagnostics=dict(d.get("diagnostics") or {}),
                                 span=(float(span.get("t0_s", 0.0)), float(span.get("t1_s", 0.0)),

@@ -81,6 +81,25 @@ class CalibrationConfig:
                              "directory); default state/<unit>-<source kind>-cal.json")
     initial: str | None = spec(None, doc="start from this calibration file instead of learning from scratch (even "
                                          "one learned on another unit or source: you say so by naming it)")
+    # what a calibration may be and still be applied, reloaded or started from (service.numerics.calib.plausible)
+    max_offset_nT: float = spec(1e6, min=1.0, max=1e9, doc="largest offset a calibration may hold on any axis")
+    max_condition: float = spec(10.0, min=1.0, max=1e6, doc="largest condition number of a calibration's matrix")
+    max_scale: float = spec(2.0, min=1.0, max=100.0,
+                            doc="a calibration's matrix may scale the field by 1/max_scale to max_scale")
+    min_total_nT: float = spec(1000.0, min=0.0, max=1e7, doc="smallest total field a calibration may name")
+    max_total_nT: float = spec(200000.0, min=1.0, max=1e9, doc="largest total field a calibration may name")
+
+    def validate(self, path: str) -> None:
+        if not self.min_total_nT < self.max_total_nT:
+            raise ConfigError(f"{path}.min_total_nT: {self.min_total_nT!r} is not allowed (allowed: below "
+                              f"{path}.max_total_nT = {self.max_total_nT!r})")
+
+    def limits(self):
+        from service.numerics.calib.plausible import CalibrationLimits
+
+        return CalibrationLimits(max_offset_nT=self.max_offset_nT, max_condition=self.max_condition,
+                                 max_scale=self.max_scale, min_total_nT=self.min_total_nT,
+                                 max_total_nT=self.max_total_nT)
 
 
 @dataclass

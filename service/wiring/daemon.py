@@ -23,7 +23,7 @@ from service.io.calfile import load_calibration, save_calibration
 from .config import RATE_MISSING, FluxcalConfig
 from .input import BatchReader, RateCheck
 from .pipeline import Pipeline, PipelineEvent
-from .sinks import RecordingTrouble, initial_calibration, learned_on, open_logger, say_bus
+from .sinks import RecordingTrouble, check_for_unit, initial_calibration, learned_on, open_logger, say_bus
 from .status import StatusLog
 
 
@@ -252,11 +252,13 @@ class Daemon:
             self._status.gate(ev.kind == "calibration" or bool(ev.detail.get("usable")), ev.detail.get("reasons", []))
 
     def _apply_command(self, cmd, pipeline: Pipeline, bus, logger) -> None:
+        """Apply one command between blocks and answer it. Whatever the payload, the answer is ok or a refusal
+        with its reason: an exception of any kind is a refusal, counted and said, never the service's end."""
         seq = pipeline.next_seq            # the command takes effect from the next block on
         try:
             payload = cmd.payload
             if cmd.name == "apply":
-                payload = _calibration_from_payload(payload)
+                payload = calibration_from_payload(payload, self.cfg)
             ev = pipeline.command(cmd.name, payload, seq=seq, t_s=float("nan"))
             if cmd.name == "apply":
                 from service.io.calfile import calibration_to_dict
@@ -268,21 +270,44 @@ class Daemon:
             answer = {"ok": True, "cal_id": pipeline.cal_id}
         except FluxcalError as e:
             answer = {"ok": False, "error": str(e)}
-        cmd.reply(answer)
+        except Exception as e:  # noqa: BLE001 - no payload can stop the service
+            answer = {"ok": False, "error": f"{cmd.name}: not applied: {type(e).__name__} while taking the command "
+                                            f"(a fault of fluxcal's, not of the payload's: please report it)"}
+        try:
+            cmd.reply(answer)
+        except Exception as e:  # noqa: BLE001 - the client went away: the answer is said below anyway
+            self.say(f"command {cmd.name}: the answer could not be sent: {type(e).__name__}")
         self._status.command(cmd.name, cmd.payload, answer)
 
 
-def _calibration_from_payload(payload: Any):
-    """The calibration an `apply` carries: its JSON text, or a path on this host. Anything else (a CSV
-    sent by mistake) is refused naming what was expected and quoting only the start of it."""
-    from service.io.calfile import calibration_from_json, excerpt
+def calibration_from_payload(payload: Any, cfg: FluxcalConfig | None = None):
+    """The calibration an `apply` carries: its JSON content, never a path (a command from the network reads
+    no file on this host: anything that is not a JSON object is refused before any filesystem access, with
+    the same answer whether or not such a file exists). Bounded in size and depth; checked against this unit
+    and physics (service.numerics.calib.plausible) when `cfg` is given; effect terms are refused (the running
+    service takes effects by `add-effect`, refitted on its own window)."""
+    from service.io.calfile import MAX_CALIBRATION_BYTES, calibration_from_json, excerpt
 
     if isinstance(payload, (bytes, bytearray)):
-        payload = payload.decode("utf-8")
-    text = str(payload).strip()
-    if text.startswith("{"):
-        return calibration_from_json(text, origin="apply payload")
-    if "\n" in text or len(text) > 1024:
-        raise DataError(f"apply: the payload ({len(text):,} characters) is neither a calibration JSON nor a path: "
-                        f"expected a calibration JSON written by `fluxcal fit --out`; it begins {excerpt(text)}")
-    return load_calibration(text)
+        try:
+            payload = bytes(payload).decode("utf-8")
+        except UnicodeDecodeError:
+            raise DataError("apply: the payload is not UTF-8 text; expected a calibration's JSON content") from None
+    if not isinstance(payload, str):
+        raise DataError(f"apply: expected a calibration's JSON content, got {type(payload).__name__}")
+    text = payload.strip()
+    if len(text) > MAX_CALIBRATION_BYTES:
+        raise DataError(f"apply: the payload ({len(text):,} characters) is too large for a calibration (at most "
+                        f"{MAX_CALIBRATION_BYTES:,})")
+    if not text.startswith("{"):
+        raise DataError(f"apply: the payload ({len(text):,} characters) is not a calibration's JSON content; apply "
+                        f"takes the content of a file written by `fluxcal fit --out`, never a path (the service "
+                        f"reads no file a command names: `fluxcal command apply FILE` sends the file's content); it "
+                        f"begins {excerpt(text, 24)}")
+    cal = calibration_from_json(text, origin="apply payload")
+    if cfg is not None:
+        try:
+            check_for_unit(cal, cfg)
+        except DataError as e:
+            raise DataError(f"apply: {e}; nothing was applied") from None
+    return cal

@@ -38,6 +38,9 @@ class LiveEffects:
         from service.numerics.engine import fit_with_effects
 
         allowed = self.allowed()
+        if not isinstance(name, str) or len(name) > 64:       # the bus refuses these first; said short anyway
+            shown = repr(name)[:40] + ("..." if len(repr(name)) > 40 else "")
+            raise FluxcalError(f"add-effect: {shown} is not an effect name (allowed: {', '.join(allowed)})")
         if name not in allowed:
             from service.numerics.effects import known_effects
 

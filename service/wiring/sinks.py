@@ -9,6 +9,7 @@ from typing import Any, Callable
 
 from drivers.errors import ConfigError, DataError
 from service.io.calfile import calibration_to_dict, load_calibration
+from service.numerics.calib.plausible import check_calibration
 from service.io.recordings.writer import McapLogger
 
 from .config import FluxcalConfig
@@ -19,6 +20,18 @@ def learned_on(cfg: FluxcalConfig) -> dict[str, str]:
     return {"unit": cfg.unit.name, "source": str(getattr(cfg.source, "kind", "sim"))}
 
 
+def check_for_unit(cal: Any, cfg: FluxcalConfig) -> None:
+    """The one check a calibration passes before the service uses it, by `apply`, reload or calibration.initial:
+    this unit's probes and physics (service.numerics.calib.plausible), and no effect terms (the service takes
+    those by `add-effect`, refitted on its own window: from a file they would be silently dropped)."""
+    if cal.effects:
+        raise DataError(f"fails the effects check: the calibration carries effect terms ({', '.join(cal.effects)}) "
+                        f"that the running service cannot take from a file; use a calibration fitted without "
+                        f"--effects, then `add-effect NAME` (refitted on the service's own window), or correct "
+                        f"offline with `fluxcal fit --effects`")
+    check_calibration(cal, cfg.probe_names, cfg.calibration.limits())
+
+
 def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None]) -> Any:
     """calibration.initial if given (whatever it was learned on: naming it says so), else the persisted
     calibration.file if it reads and was learned on this unit and source kind, else None (learn online)."""
@@ -26,6 +39,7 @@ def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None]) -> Any:
     if c.initial:
         try:
             cal = load_calibration(c.initial)
+            check_for_unit(cal, cfg)
         except (DataError, OSError) as e:
             raise ConfigError(f"calibration.initial: {e}") from None
         origin = cal.diagnostics.get("learned_on")
@@ -45,6 +59,7 @@ def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None]) -> Any:
     if path.exists():
         try:
             cal = load_calibration(path)
+            check_for_unit(cal, cfg)
         except DataError as e:
             say(f"ignoring the persisted calibration: {e}; learning online")
         else:

@@ -130,7 +130,7 @@ COMMANDS: dict[str, str | None] = {
     "freeze": None,                      # stop updating the online estimate; keep the calibration in use
     "unfreeze": None,
     "reset": None,                       # restart the online estimate from nothing
-    "apply": "calibration JSON text, or the path of a calibration file on the service's host",
+    "apply": "a calibration's JSON content (never a path: the service reads no file a command names)",
     "add-effect": "effect name, e.g. temperature",
 }
 #: largest command payload the service takes (a calibration JSON is a few kB; the dashboard's body limit too)

@@ -31,8 +31,8 @@ def main(args: Namespace) -> int:
     if args.verb == "apply" and not inline and _is_file(payload):
         payload = _calibration_text(Path(payload))    # the service may run on another host: send the file itself
     elif args.verb == "apply" and not inline:
-        print(f"fluxcal command: apply: {payload} is not a file here: sent as a path for the service to read on its "
-              f"own host", file=sys.stderr)
+        raise ConfigError(f"apply: {payload!r} is not a file here; apply sends a calibration's content (a file on "
+                          f"this host, or its JSON text): the service reads no file a command names")
     with open_session(ZenohConfig.client(*endpoints, tls=tls)) as session:
         if unit is None:
             units = discover_units(session, timeout=min(2.0, args.timeout))
