@@ -7,6 +7,7 @@ event; everything is flushed and closed in `finally`.
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
@@ -72,8 +73,24 @@ def open_configured_source(cfg: FluxcalConfig) -> Source:
 
 
 def _say(msg: str) -> None:
-    """A line on stderr with the UTC time: a field log is read afterwards, next to the recording."""
-    print(f"fluxcal {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}: {msg}", file=sys.stderr, flush=True)
+    """A line on stderr with the UTC time: a field log is read afterwards, next to the recording. When whatever
+    read stderr has gone (`fluxcal run ... 2>&1 | head -3`, a closed terminal), the service goes on: the lines
+    go to /dev/null from then on, and the health channel and the recording still say everything."""
+    try:
+        print(f"fluxcal {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}: {msg}", file=sys.stderr, flush=True)
+    except (OSError, ValueError):        # BrokenPipeError; ValueError: stderr closed
+        stderr_gone()
+
+
+def stderr_gone() -> None:
+    """Point file descriptor 2 at /dev/null, so that neither the next line nor the interpreter's flush at exit
+    fails on a reader that went away."""
+    try:
+        fd = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(fd, sys.stderr.fileno())
+        os.close(fd)
+    except (OSError, ValueError, AttributeError):
+        sys.stderr = open(os.devnull, "w")      # noqa: SIM115 - stays open for the process's life
 
 
 class Daemon:

@@ -49,8 +49,10 @@ def main(args: Namespace) -> int:
     def stop(signum: int, frame: object) -> None:
         daemon.stop.set()                 # the loop notices between blocks, then flushes and closes
 
-    signal.signal(signal.SIGINT, stop)
-    signal.signal(signal.SIGTERM, stop)
+    # SIGHUP (the terminal or ssh session closed, or `kill -HUP`): a clean stop like SIGTERM, the recording
+    # finished and the calibration persisted (docs/recording.md); there is no reload: restart to re-read the config
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, stop)
     try:
         return daemon.run()
     finally:
