@@ -131,6 +131,8 @@ class Daemon:
             failed = True
             raise
         finally:
+            if bus is not None:
+                self._say_stalls(bus, time.monotonic(), final=True)
             for closer in (source.close, getattr(logger, "close", None), getattr(bus, "close", None)):
                 if closer is not None:
                     try:
@@ -226,11 +228,31 @@ class Daemon:
                 health = {**source.counters.as_dict(), "processing_errors": self.processing_errors,
                           "commands_refused": self._status.refused}
                 self._status.bus_refusals(bus)
+                self._say_stalls(bus, now)
                 bus.publish_health(health)
                 if logger is not None:
                     logger.write_health(health)
                     self._recording_trouble.check(logger)
                 self._status.tick(pipeline.state())
+
+    def _say_stalls(self, bus, now: float, final: bool = False) -> None:
+        """A subscriber that stopped taking data held every stream back (BLOCK streams wait for it up to
+        zenoh.stall_close_ms, then zenoh disconnects it): said at most once a minute with the counts since the
+        last line, and at stop with the totals."""
+        stats = getattr(bus, "stats", {})
+        n, ms = int(stats.get("send_stalls", 0)), int(stats.get("send_stalled_ms", 0))
+        if final:
+            if n:
+                self.say(f"the bus waited for a subscriber that took nothing {n} time(s), {ms / 1000:.1f} s in all, "
+                         f"during this run (health: bus.send_stalls)")
+            return
+        said_n, said_ms, said_at = getattr(self, "_stalls_said", (0, 0, -1e9))
+        if n > said_n and now - said_at >= 60.0:
+            self._stalls_said = (n, ms, now)
+            self.say(f"a subscriber stopped taking data: the streams waited for it {n - said_n} time(s), "
+                     f"{(ms - said_ms) / 1000:.1f} s in all (a subscriber that takes nothing for "
+                     f"{self.cfg.zenoh.stall_close_ms:.0f} ms is disconnected so that it holds back no other one: "
+                     f"zenoh.stall_close_ms; it reconnects and counts what it missed by seq); health: bus.send_stalls")
 
     def _emit(self, out, pipeline: Pipeline, bus, logger, announced: bool) -> bool:
         """Record and publish what processing a block gave; returns whether usability was announced."""

@@ -52,7 +52,9 @@ class BusClient(SessionHolder):
             base = s.split("/", 1)[0]
             if base not in STREAMS or (s != base and (base != "corrected" or not _KEY_CHUNK.match(s[10:]))):
                 raise ConfigError(f"stream {s!r} is not allowed (allowed: {', '.join(STREAMS)}, corrected/<probe>)")
-        self.stats: dict[str, int] = {"decode_errors": 0, "dropped": 0, **{f"received_{s}": 0 for s in names}}
+        self.stats: dict[str, int] = {"decode_errors": 0, "dropped": 0, "missed_raw_samples": 0, "raw_gaps": 0,
+                                      **{f"received_{s}": 0 for s in names}}
+        self._next_raw_seq: int | None = None
         self.last_decode_error = ""
         self._queue: queue.Queue[Message] = queue.Queue(maxsize=capacity)
         self._closed = threading.Event()
@@ -88,6 +90,8 @@ class BusClient(SessionHolder):
                 self.last_decode_error = f"{sample.key_expr}: {e}"
                 continue
             self.stats[stat] += 1
+            if stream == "raw" and getattr(value, "n_samples", 0):
+                self._count_raw_gap(value)
             msg = Message(stream, str(sample.key_expr), value, time.monotonic())
             while not self._closed.is_set():
                 try:
@@ -103,6 +107,16 @@ class BusClient(SessionHolder):
                             self.stats["dropped"] += 1
                         except queue.Empty:
                             pass
+
+    def _count_raw_gap(self, block: Any) -> None:
+        """Samples between the last raw block received and this one: what this subscriber missed (a link closed
+        because it took nothing for the service's zenoh.stall_close_ms, or samples the unit itself lost: the
+        service's health `missed` tells those apart). A seq that goes back (a restarted service) starts afresh."""
+        first, last = int(block.seq[0]), int(block.seq[-1])
+        if self._next_raw_seq is not None and first > self._next_raw_seq:
+            self.stats["missed_raw_samples"] += first - self._next_raw_seq
+            self.stats["raw_gaps"] += 1
+        self._next_raw_seq = last + 1
 
     def recv(self, timeout: float | None = None) -> Message | None:
         """The next message, or None after `timeout` seconds (None: wait until one comes or close)."""

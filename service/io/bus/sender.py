@@ -10,6 +10,11 @@ from collections import deque
 import zenoh
 
 
+#: a put that waits this long is counted as a stall (a subscriber that stopped taking data; zenoh closes its link
+#: after [zenoh] stall_close_ms)
+STALL_S = 0.1
+
+
 class Sender:
     """An outbox of (stream name, publisher, payload) in order, bounded in bytes, and the thread that
     empties it. Beyond the bound the oldest waiting messages are dropped and counted (stats
@@ -17,6 +22,9 @@ class Sender:
 
     def __init__(self, stats: dict[str, int], backlog_bytes: int, thread_name: str) -> None:
         self.stats = stats
+        self.stats.setdefault("send_stalls", 0)
+        self.stats.setdefault("send_stalled_ms", 0)
+        self.last_stall_s = 0.0
         self._outbox: deque[tuple[str, zenoh.Publisher, bytes]] = deque()
         self._outbox_bytes = 0
         self._sending = False
@@ -55,10 +63,16 @@ class Sender:
                 self._sending = True
                 name, pub, payload = self._outbox.popleft()
                 self._outbox_bytes -= len(payload)
+            t0 = time.monotonic()
             try:
                 pub.put(payload)
             except zenoh.ZError:
                 self.stats["publish_errors"] += 1
+            waited = time.monotonic() - t0
+            if waited >= STALL_S:         # a subscriber that takes nothing held every stream back this long
+                self.stats["send_stalls"] += 1
+                self.stats["send_stalled_ms"] += int(waited * 1000)
+                self.last_stall_s = waited
 
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until every message handed over has been put (True) or `timeout` passed (False)."""

@@ -170,6 +170,10 @@ class ZenohConfig:
     multicast_scouting: bool = spec(False, doc="discover peers by UDP multicast (off: explicit endpoints only)")
     per_probe: bool = spec(True, doc="also publish corrected/<probe>, one probe per message")
     express: bool = spec(False, doc="send each message at once instead of letting Zenoh batch (lower latency)")
+    stall_close_ms: float = spec(500.0, min=10.0, max=60000.0,
+                                 doc="a subscriber that takes nothing for this long is disconnected, so that it "
+                                     "holds back no other subscriber longer; it reconnects by itself and counts "
+                                     "the raw samples it missed by their seq (docs/zenoh.md)")
     tls: ZenohTlsConfig = spec(default_factory=ZenohTlsConfig)
     access: ZenohAccessConfig = spec(default_factory=ZenohAccessConfig)
 
@@ -230,6 +234,10 @@ def make_zenoh_config(cfg: ZenohConfig, unit: str | None = None) -> zenoh.Config
     c.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
     c.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
     c.insert_json5("scouting/multicast/enabled", json.dumps(bool(cfg.multicast_scouting)))
+    # BLOCK streams wait for a full link at most this long, then zenoh closes that link (its default, 5 s, let one
+    # frozen subscriber stall every other one, recorders included, for 5 s at a time)
+    c.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close",
+                   json.dumps(int(cfg.stall_close_ms * 1000)))
     if cfg.tls.enabled:
         c.insert_json5("transport/link/tls", json.dumps(cfg.tls.zenoh_json()))
         c.insert_json5("transport/link/protocols", json.dumps(list(_SECURE_PROTOCOLS)))
