@@ -289,3 +289,23 @@ def test_fuzzing_the_handler_leaves_the_service_running_and_its_calibration_unch
     fuzz()
     assert seen["n"] == 10_000
     assert pipeline.calibration is start
+
+
+def test_the_same_check_guards_the_reload_and_calibration_initial(tmp_path):
+    from drivers.errors import ConfigError
+    from service.wiring.sinks import initial_calibration
+
+    cfg = load_config(service_config(tmp_path, run_s=5))
+    for case in ("a mirror (det -1)", "the two probes' entries swapped", "fitted with effects"):
+        d, check = ABSURD[case]
+        Path(cfg.calibration.file).write_text(json.dumps(d))               # persisted by an older fluxcal
+        said: list[str] = []
+        assert initial_calibration(cfg, said.append) is None
+        assert any(f"ignoring the persisted calibration: fails the {check} check" in m for m in said), said
+        cfg.calibration.initial = str(tmp_path / "initial.json")
+        Path(cfg.calibration.initial).write_text(json.dumps(d))
+        with pytest.raises(ConfigError, match=f"calibration.initial: fails the {check} check"):
+            initial_calibration(cfg, said.append)
+        cfg.calibration.initial = None
+    Path(cfg.calibration.file).write_text(json.dumps(good_calibration()))
+    assert initial_calibration(cfg, lambda m: None).probe_names == NAMES
