@@ -99,7 +99,8 @@ def main() -> None:
                     url = re.search(r"http://\S+/", dash.stderr.readline()).group(0)
                     page = browser.new_page()
                     page.goto(url)
-                    page.wait_for_function("document.body.dataset.status === 'live'", timeout=30000)
+                    # a selector, not wait_for_function: the page's Content-Security-Policy forbids eval
+                    page.wait_for_selector("body[data-status='live']", state="attached", timeout=30000)
                     d0 = cpu_seconds(dash.pid)
                     t0 = time.monotonic()
                     withd.append(segment(svc, args.segment_s))

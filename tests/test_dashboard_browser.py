@@ -23,7 +23,9 @@ from tests.test_service_e2e import TOTAL_NT, free_port, stop, write_config
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync"]
+        "--disable-component-update", "--disable-sync",
+        # a name of an attacker's that resolves to this host: DNS rebinding without a DNS server
+        "--host-resolver-rules=MAP evil.example.com 127.0.0.1"]
 
 
 def _need_browser():
@@ -78,11 +80,16 @@ def browser():
 
 
 def _wait(page, expr: str, timeout_s: float, what: str):
-    try:
-        page.wait_for_function(expr, timeout=timeout_s * 1000)
-    except Exception as e:
-        banner = page.eval_on_selector("#banner", "b => b.textContent")
-        raise AssertionError(f"{what} within {timeout_s} s (banner: {banner!r})") from e
+    """Poll `expr` in the page until it is true. Not page.wait_for_function: it evaluates a string inside the page,
+    which the dashboard's Content-Security-Policy (no eval) forbids, as it should."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while not page.evaluate(expr):
+        if time.monotonic() > deadline:
+            banner = page.evaluate("(document.getElementById('banner') || {}).textContent")
+            raise AssertionError(f"{what} within {timeout_s} s (banner: {banner!r})")
+        page.wait_for_timeout(100)
 
 
 def test_page_updates_shows_the_calibration_round_trips_commands_and_sees_the_unit_stop(tmp_path, browser):
@@ -112,8 +119,8 @@ def test_page_updates_shows_the_calibration_round_trips_commands_and_sees_the_un
         within = " && ".join(f"Math.abs(Number(document.querySelector('td[data-col=\"s{k}.total\"]').textContent) - "
                              f"{TOTAL_NT}) < {0.01 * TOTAL_NT}" for k in range(1, 5))
         try:
-            page.wait_for_function(within, timeout=15000)
-        except Exception:
+            _wait(page, within, 15, "|B| within 1 %")
+        except AssertionError:
             totals = {p: page.eval_on_selector(f'td[data-col="{p}.total"]', "td => td.textContent")
                       for p in ("s1", "s2", "s3", "s4")}
             raise AssertionError(f"|B| not within 1 % of {TOTAL_NT} nT for 15 s after a usable calibration: {totals}")
@@ -178,3 +185,146 @@ def test_an_unreachable_unit_is_shown_as_such(browser):
         assert f"cannot reach tcp/127.0.0.1:{port}" in text
     finally:
         stop_dashboard(dash)
+
+
+EVIL_PAGE = """<!doctype html><html><body><iframe name="sink"></iframe><script>
+// A page of another origin open in the operator's browser: every way a web page can send the dashboard a command
+const DASH = "%(dash)s", CMD = JSON.stringify({ unit: "u1", command: "freeze" });
+const out = {};
+async function attempt(name, f) {
+  try {
+    const r = await f();
+    out[name] = r && r.type !== undefined ? "response " + r.type + " " + r.status : String(r);
+  }
+  catch (e) { out[name] = "failed: " + e.message; }
+}
+async function run() {
+  // "simple" requests: no preflight, the browser sends them and hides the answer
+  await attempt("no-cors text/plain", () => fetch(DASH + "api/command", {
+    method: "POST", mode: "no-cors", headers: { "Content-Type": "text/plain" }, body: CMD }));
+  await attempt("no-cors diagnose", () => fetch(DASH + "api/diagnose", { method: "POST", mode: "no-cors",
+                                                                           body: JSON.stringify({ unit: "u1" }) }));
+  await attempt("beacon", () => navigator.sendBeacon(DASH + "api/command", new Blob([CMD], { type: "text/plain" })));
+  // preflighted: JSON and a guessed token need the dashboard's permission, which it never gives
+  await attempt("cors json", () => fetch(DASH + "api/command", { method: "POST", headers: {
+    "Content-Type": "application/json", "X-Fluxcal-Token": "guess" }, body: CMD }).then(r => r.text()));
+  // the token is in the dashboard's page: another origin cannot read it
+  await attempt("read the page", () => fetch(DASH).then(r => r.text()));
+  // a form posted into a frame, its body shaped as JSON
+  await new Promise(done => {
+    document.querySelector("iframe").onload = done; setTimeout(done, 5000);
+    const f = document.createElement("form");
+    f.method = "POST"; f.enctype = "text/plain"; f.action = DASH + "api/command"; f.target = "sink";
+    const i = document.createElement("input");
+    i.name = '{"unit": "u1", "command": "freeze", "pad": "'; i.value = '"}';
+    f.appendChild(i); document.body.appendChild(f); f.submit();
+  });
+  out.form = "submitted";
+  window.results = out;
+  document.title = "done";
+}
+run();
+</script></body></html>"""
+
+
+def _serve_dir(path: Path):
+    """A plain web server of `path` on a free 127.0.0.1 port (another origin than the dashboard's)."""
+    import functools
+    import threading
+    from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+
+    class Quiet(SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    srv = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(path)))
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    return srv
+
+
+def test_a_page_of_another_origin_cannot_command_the_dashboard(tmp_path, browser):
+    """Issue 27: a cross-origin "simple" POST (text/plain) to /api/command was applied. From a page on another
+    origin: fetch without CORS, a beacon, a preflighted JSON fetch, a text/plain form shaped as JSON; and after
+    DNS rebinding (a name of the page's resolved to the dashboard's address). Nothing reaches the unit, while
+    the dashboard's own page still commands it."""
+    from service.wiring.dashboard import DashboardServer, Hub
+    from tests.test_dashboard_security import RecordingUnit
+
+    unit = RecordingUnit()
+    hub = Hub([unit.ep], ["u1"]).start()
+    server = DashboardServer(hub, "127.0.0.1", 0).start()
+    (tmp_path / "evil.html").write_text(EVIL_PAGE % {"dash": server.url})
+    evil = _serve_dir(tmp_path)
+    try:
+        page = browser.new_page()
+        page.goto(server.url)                                    # the operator's own page is open too
+        _wait(page, "document.body.dataset.status === 'live'", 20, "the dashboard's page did not show the unit live")
+        attacker = browser.new_page()
+        attacker.goto(f"http://127.0.0.1:{evil.server_address[1]}/evil.html")
+        _wait(attacker, "document.title === 'done'", 20, "the page of another origin did not finish its attempts")
+        results = attacker.evaluate("window.results")
+        assert results["cors json"].startswith("failed") and results["read the page"].startswith("failed"), results
+        attacker.wait_for_timeout(1000)                          # anything sent has arrived by now
+        assert unit.received == [], unit.received
+        # DNS rebinding: evil.example.com resolves to 127.0.0.1 (--host-resolver-rules), so a page of that name on
+        # the dashboard's port is the same origin as the dashboard for the browser
+        rebound = f"http://evil.example.com:{server.server_address[1]}/"
+        resp = attacker.goto(rebound)
+        assert resp.status == 403 and "not this dashboard's address" in resp.text()
+        same_origin = attacker.evaluate("""async () => {
+            const page = await fetch("/").then(r => r.status);
+            const cmd = await fetch("/api/command", { method: "POST", headers: {
+                "Content-Type": "application/json", "X-Fluxcal-Token": "guess" },
+                body: JSON.stringify({ unit: "u1", command: "reset" }) });
+            return [page, cmd.status];
+        }""")
+        assert same_origin == [403, 403]
+        attacker.wait_for_timeout(1000)
+        assert unit.received == [], unit.received
+        assert hub.view("u1", {})["commands"] == [] and hub.view("u1", {})["diagnosis"]["status"] == "none"
+        refused = server.refused
+        assert refused.get("Content-Type 'text/plain' refused", 0) >= 3, refused       # fetch, beacon, form arrived
+        assert refused.get("Content-Type 'none' refused", 0) + refused.get("Content-Type 'text/plain' refused", 0) >= 4
+        # the operator's own page still commands the unit
+        page.click("button[data-cmd=freeze]")
+        _wait(page, "document.querySelector('#command-log li[data-command=freeze][data-ok=true]') !== null", 15,
+              "the page's own freeze did not come back ok")
+        assert unit.received == [("freeze", "")]
+    finally:
+        evil.shutdown()
+        evil.server_close()
+        server.stop()
+        hub.close()
+        unit.close()
+
+
+def test_a_read_only_dashboard_says_why_its_buttons_are_greyed(browser):
+    """Issue 28: a read-only dashboard greyed its buttons without saying why. Issue 27: it refuses diagnose."""
+    from service.wiring.dashboard import DashboardServer, Hub
+    from tests.test_dashboard_security import RecordingUnit
+
+    unit = RecordingUnit()
+    hub = Hub([unit.ep], ["u1"]).start()
+    server = DashboardServer(hub, "127.0.0.1", 0, read_only=True).start()
+    try:
+        page = browser.new_page()
+        page.goto(server.url)
+        _wait(page, "document.body.dataset.status === 'live' && !document.getElementById('read-only-note').hidden", 20,
+              "the read-only page did not say so")
+        note = page.eval_on_selector("#read-only-note", "p => p.textContent")
+        assert "read-only (started with --read-only)" in note
+        assert "read-only (started with --read-only)" in page.eval_on_selector("#diagnose-note", "p => p.textContent")
+        disabled = page.eval_on_selector_all("button[data-cmd], #diagnose, #apply-file, #apply-payload",
+                                             "bs => bs.map(b => [b.disabled, b.title])")
+        assert len(disabled) == 8 and all(d and "--read-only" in title for d, title in disabled), disabled
+        # the page's own request, token and all, is refused by a read-only server
+        answer = page.evaluate("""() => fetch("/api/diagnose", { method: "POST", headers: {
+            "Content-Type": "application/json",
+            "X-Fluxcal-Token": document.querySelector('meta[name="fluxcal-token"]').content },
+            body: JSON.stringify({ unit: "u1" }) }).then(r => r.json().then(b => [r.status, b.error]))""")
+        assert answer[0] == 403 and "read-only" in answer[1]
+        assert hub.view("u1", {})["diagnosis"]["status"] == "none" and unit.received == []
+    finally:
+        server.stop()
+        hub.close()
+        unit.close()

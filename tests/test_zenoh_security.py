@@ -278,8 +278,10 @@ def test_the_web_dashboard_obeys_tls_and_access_control(site):
             time.sleep(0.2)
 
     def command(url: str, name: str) -> dict:
+        from tests.test_dashboard import page_token
+
         req = urllib.request.Request(url + "api/command", data=json.dumps({"unit": UNIT, "command": name}).encode(),
-                                     headers={"Content-Type": "application/json"})
+                                     headers={"Content-Type": "application/json", "X-Fluxcal-Token": page_token(url)})
         with urllib.request.urlopen(req, timeout=10) as r:
             return json.loads(r.read())
 

@@ -6,6 +6,7 @@ import argparse
 import math
 import sys
 import time
+from typing import Any
 
 from drivers.errors import ConfigError
 from service.wiring.commands.watch import parse_listen, resolve_units
@@ -24,6 +25,22 @@ def _open(url: str) -> None:
               file=sys.stderr, flush=True)
 
 
+def config_geometry(path: str) -> dict[str, Any]:
+    """{unit name: Geometry} of a service configuration: its unit's probe positions and total field, which the
+    dashboard's diagnosis needs as `fluxcal diagnose --config` does (a unit's state does not carry them)."""
+    from drivers.config import read_toml
+    from service.wiring.config import load_config
+    from service.wiring.dashboard.hub import Geometry
+    from service.wiring.recorded_config import geometry
+
+    cfg = load_config(path)
+    try:
+        positions, total = geometry(read_toml(path), cfg.unit.n_probes)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
+    return {cfg.unit.name: Geometry(positions, total, path)}
+
+
 def main(args: argparse.Namespace) -> int:
     from service.wiring.dashboard import DashboardServer, Hub
 
@@ -31,9 +48,10 @@ def main(args: argparse.Namespace) -> int:
     host, port = parse_listen(args.listen)
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise ConfigError(f"--seconds: {args.seconds!r} is not allowed (allowed: a positive number of seconds)")
-    hub = Hub(endpoints, units, tls).start()
+    geometry = config_geometry(args.config) if getattr(args, "config", None) else None
+    hub = Hub(endpoints, units, tls, geometry).start()
     try:
-        server = DashboardServer(hub, host, port, read_only=args.read_only)
+        server = DashboardServer(hub, host, port, read_only=args.read_only, say_refusals=True)
     except OSError as e:
         hub.close()
         raise ConfigError(f"--listen: cannot serve on {args.listen}: {e.strerror or e}") from None
@@ -41,8 +59,9 @@ def main(args: argparse.Namespace) -> int:
     print(f"fluxcal dashboard: {server.url} (units: {', '.join(units) if units else 'every unit found'} via "
           f"{', '.join(endpoints)}){'; read-only' if args.read_only else ''}", file=sys.stderr, flush=True)
     if host not in ("127.0.0.1", "localhost", "::1") and not args.read_only:
-        print("fluxcal dashboard: anyone who reaches this address can send the units commands; use --read-only "
-              "or a loopback address behind an authenticating proxy", file=sys.stderr, flush=True)
+        print("fluxcal dashboard: anyone who reaches this address and loads the page can send the units commands "
+              "(other web pages cannot: Host, Origin and the page's token are checked); use --read-only or a "
+              "loopback address behind an authenticating proxy", file=sys.stderr, flush=True)
     if args.open:
         _open(server.url)
     try:

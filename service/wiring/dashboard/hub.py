@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -19,6 +20,17 @@ from service.io.bus import BusClient, BusError, Keys, ZenohConfig, ZenohTlsConfi
 
 from .view import UnitView
 
+
+@dataclass(frozen=True)
+class Geometry:
+    """A unit's probe positions (P, 3) m and total field nT as its configuration gives them (None: not given),
+    and where from."""
+
+    positions_m: np.ndarray | None
+    total_nT: float | None
+    source: str
+
+
 #: what the dashboard subscribes to: `corrected` carries the differences, centre and tensor too
 STREAMS = ("raw", "corrected", "calibration", "health", "error")
 STATE_EVERY_S = 2.0
@@ -28,8 +40,12 @@ DISCOVER_EVERY_S = 2.0
 class Hub:
     """Connects, follows the named units (or every unit it discovers) and keeps a UnitView of each."""
 
-    def __init__(self, endpoints: list[str], units: list[str] | None, tls: ZenohTlsConfig | None = None) -> None:
+    def __init__(self, endpoints: list[str], units: list[str] | None, tls: ZenohTlsConfig | None = None,
+                 geometry: dict[str, Geometry] | None = None) -> None:
         self.endpoints = endpoints
+        #: per unit, what its configuration says of the probe positions and the total field (the diagnosis needs
+        #: them; a unit's state does not carry them): `fluxcal dashboard --config` gives its unit's
+        self.geometry = dict(geometry or {})
         self.named = list(units) if units else None
         self.tls = tls
         self.lock = threading.Lock()
@@ -190,13 +206,15 @@ class Hub:
             names = list(view.probe_names) or None
             effects = list(view.state.get("effects") or [])
             view.diagnosis = {"status": "running", "started_unix_s": time.time(), "fraction": 0.0}
-        threading.Thread(target=run_diagnosis, args=(view, unit, block, names, effects), daemon=True,
-                         name=f"fluxcal-dashboard-diagnose-{unit}").start()
+        threading.Thread(target=run_diagnosis, args=(view, unit, block, names, effects, self.geometry.get(unit)),
+                         daemon=True, name=f"fluxcal-dashboard-diagnose-{unit}").start()
         return {"status": "running"}
 
 
-def run_diagnosis(view: UnitView, unit: str, block: Any, names: list[str] | None, effects: list[str]) -> None:
-    """A diagnosis of the kept raw samples (service.numerics.diagnose), its result or failure put in the view."""
+def run_diagnosis(view: UnitView, unit: str, block: Any, names: list[str] | None, effects: list[str],
+                  geometry: Geometry | None = None) -> None:
+    """A diagnosis of the kept raw samples (service.numerics.diagnose) with the unit's configured probe positions
+    and total field where the dashboard has them; its result or failure put in the view."""
     from service.numerics.diagnose import diagnose, summary_text
     from service.numerics.effects.base import EffectData
 
@@ -204,7 +222,20 @@ def run_diagnosis(view: UnitView, unit: str, block: Any, names: list[str] | None
         if block is None or block.n_samples < 200:
             raise FluxcalError(f"only {0 if block is None else block.n_samples} raw samples kept so far: "
                                f"wait for more data")
-        data = EffectData.from_block(block, names)
+        positions = None if geometry is None else geometry.positions_m
+        if positions is not None and positions.shape[0] != block.n_probes:
+            raise FluxcalError(f"{geometry.source} gives {positions.shape[0]} probe positions but fluxcal/{unit} "
+                               f"sends {block.n_probes} probes: is it this unit's configuration?")
+        data = EffectData.from_block(block, names, total_nT=None if geometry is None else geometry.total_nT,
+                                     positions_m=positions)
+        if geometry is None:
+            given = (f"no configuration of fluxcal/{unit} given to this dashboard (`fluxcal dashboard --config "
+                     f"FILE` of the unit's service): no probe positions, no total field")
+        else:
+            given = (f"from {geometry.source}: " + ", ".join(
+                ([f"probe positions of {positions.shape[0]} probes"] if positions is not None else
+                 ["no probe positions"]) + ([f"total field {geometry.total_nT:,.0f} nT"]
+                                            if geometry.total_nT is not None else ["no total field"])))
 
         def progress(fraction: float, *_: Any) -> None:
             view.diagnosis = {**view.diagnosis, "fraction": float(fraction)}
@@ -213,7 +244,7 @@ def run_diagnosis(view: UnitView, unit: str, block: Any, names: list[str] | None
         out = result.as_dict()
         view.diagnosis = {"status": "done", "finished_unix_s": time.time(), "n_samples": int(block.n_samples),
                           "duration_s": float(block.t_s[-1] - block.t_s[0]), "effects": effects,
-                          "verdict": out.get("verdict"), "candidates": out.get("candidates"),
+                          "verdict": out.get("verdict"), "candidates": out.get("candidates"), "given": given,
                           "text": summary_text(result, f"fluxcal/{unit}, last {block.n_samples} samples")}
     except (FluxcalError, ValueError, np.linalg.LinAlgError) as e:
         view.diagnosis = {"status": "failed", "error": str(e)}

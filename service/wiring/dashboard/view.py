@@ -17,7 +17,8 @@ from service.numerics.calib.coverage import BIN_CENTRES, BIN_LABELS, coverage
 from service.numerics.decimate import RmsMeans, VectorMeans
 from service.numerics.outputs import CorrectedBlock
 
-from .history import HISTORY, PERIOD_S, Floors, RawKeep, Ring, corrected_columns, corrected_row
+from .history import (HISTORY, PERIOD_S, WINDOW_S, Floors, RawKeep, Ring, WindowMeans, corrected_columns,
+                      corrected_row)
 
 #: a unit that sent nothing for this long is shown as silent
 STALE_S = 3.0
@@ -30,6 +31,29 @@ TRAIL = 200
 def _interval_start(t_s: float) -> float:
     """The start of the 0.1-s interval of unit time that holds t_s: where the page plots its mean."""
     return math.floor(t_s / PERIOD_S + 1e-9) * PERIOD_S
+
+
+def sensor_scales(probe: dict[str, Any]) -> tuple[list[float] | None, str]:
+    """(the sensor's scale factor per axis, where it comes from) of one probe of a unit's state: "scale" means the
+    sensor's (1.021 where it reads 2.1 % high), as `fit` prints it, never the correction matrix's diagonal (0.979).
+    The calibration's params["scale"] where it has one; else the same decomposition (001 eq. 11-12) of its matrix
+    M, taken as the upper-triangular U with U^T U = M^T M (the rotation of an alignment removed).
+
+    >>> m = [[1 / 1.021, 0.001, 0.0], [0.0, 1 / 0.99, 0.0], [0.0, 0.0, 1.0]]
+    >>> [round(c, 4) for c in sensor_scales({"matrix": m})[0]], sensor_scales({"matrix": m})[1]
+    ([1.021, 0.99, 1.0], 'from the matrix')
+    """
+    from service.numerics.calib.model import triangular_params
+
+    sc = (probe.get("params") or {}).get("scale")
+    if isinstance(sc, dict) and np.size(sc.get("value")) == 3:
+        return [float(x) for x in np.ravel(sc["value"])], "the calibration's"
+    try:
+        m = np.asarray(probe.get("matrix"), dtype=np.float64).reshape(3, 3)
+        upper = np.linalg.cholesky(m.T @ m).T
+        return [float(c) for c in triangular_params(upper)[1]], "from the matrix"
+    except (TypeError, ValueError, np.linalg.LinAlgError):
+        return None, "not determined"
 
 
 def _finite(x: Any) -> Any:
@@ -60,6 +84,8 @@ class UnitView:
         self.raw_series: Ring | None = None
         self.error = Ring(["t_s"], HISTORY)
         self.error_names: list[str] = []
+        self.error_window = WindowMeans(WINDOW_S)                  # mean squares of the error over WINDOW_S
+        self.diff_window = WindowMeans(WINDOW_S)                   # mean difference components over WINDOW_S
         self.floors = Floors()
         self.raw_keep = RawKeep()
         self.directions: deque[np.ndarray] = deque(maxlen=COVERAGE_POINTS)   # (P, 3) raw means
@@ -95,7 +121,10 @@ class UnitView:
                 if list(rms) != self.error_names:
                     self.error_names = list(rms)
                     self.error = Ring(["t_s", *self.error_names], HISTORY)
-                self.error.append(_interval_start(rec["t_s"]), np.array([rms[c] for c in self.error_names]))
+                values = np.array([rms[c] for c in self.error_names], dtype=np.float64)
+                self.error.append(_interval_start(rec["t_s"]), values)
+                self.error_window.add(rec["t_s"], rec.get("n", 1), values ** 2,
+                                      key=(tuple(self.error_names), self.state.get("cal_id")))
         elif msg.stream == "health":
             self.health = v
         elif msg.stream == "calibration":
@@ -108,7 +137,11 @@ class UnitView:
     def _corrected(self, block: Any) -> None:
         names = self._names(block.n_probes)
         for rec in self.means.add(block):
-            row = corrected_row(rec)
+            norm = None
+            if rec["diff"] is not None:
+                m = self.diff_window.add(rec["t_s"], rec["n"], rec["diff"][0].ravel(), key=rec["cal_id"])
+                norm = np.linalg.norm(m.reshape(-1, 3), axis=1)
+            row = corrected_row(rec, norm)
             if self.series is None or len(self.series.columns) != row.size + 1:
                 self.series = Ring(["t_s", *corrected_columns(names, rec)])
             self.series.append(_interval_start(rec["t_s"]), row)
@@ -177,6 +210,14 @@ class UnitView:
                           "n_directions": int(d.shape[0]), "probes": probes}
         return self._coverage
 
+    def windows(self) -> dict[str, Any]:
+        """The error table's figures: each channel's RMS over the last WINDOW_S of unit time (the root of the mean
+        square, weighted by samples), and the unit time each average covers now."""
+        ms = self.error_window.mean()
+        rms = {} if ms is None else {c: float(np.sqrt(x)) for c, x in zip(self.error_names, ms)}
+        return {"window_s": WINDOW_S, "error_rms_nT": rms, "error_span_s": round(self.error_window.span_s, 2),
+                "diff_span_s": round(self.diff_window.span_s, 2)}
+
     def view(self, since: dict[str, int]) -> dict[str, Any]:
         """The JSON the page polls: rows of each history after the numbers it already has, and the rest whole."""
         kind, sentence = self.status()
@@ -188,5 +229,8 @@ class UnitView:
             "error": self.error.since(since.get("error", 0)), "floors": self.floors.floors(),
             "coverage": self.coverage_view(), "state": self.state, "cal_history": self.cal_history,
             "events": list(self.events), "commands": list(self.commands), "health": self.health,
-            "diagnosis": self.diagnosis, "raw_kept": {"samples": self.raw_keep.n},
+            "diagnosis": self.diagnosis, "raw_kept": {"samples": self.raw_keep.n}, "windows": self.windows(),
+            "sensor_scales": [{"name": p.get("name"), "scale": sc, "source": src}
+                              for p in self.state.get("probes") or [] if isinstance(p, dict)
+                              for sc, src in [sensor_scales(p)]],
         })

@@ -3,6 +3,8 @@
 
 const WINDOW_S = 600, KEEP = 6000, VIEW_EVERY_MS = 500, UNITS_EVERY_MS = 2000;
 const $ = (id) => document.getElementById(id);
+// this server's session token: only a page served from it can read it; every POST must carry it
+const TOKEN = (document.querySelector('meta[name="fluxcal-token"]') || {}).content || "";
 const { Chart, drawSphere, COLORS } = window.fluxplot;
 const charts = {
   total: new Chart($("chart-total"), { title: "|B| per probe", unit: "nT" }),
@@ -12,7 +14,7 @@ const charts = {
   error: new Chart($("chart-error"), { title: "model-vs-measurement error", unit: "nT RMS", log: true }),
   offsets: new Chart($("chart-offsets"), { title: "offsets by calibration (x: s since this page's first)", unit: "nT" }),
 };
-let unit = null, hist = null, updates = 0, readOnly = false, units = null;
+let unit = null, hist = null, updates = 0, readOnly = false, readOnlyReason = "", units = null;
 
 function newHist() { return { series: null, raw: null, error: null }; }
 
@@ -40,11 +42,30 @@ async function getJSON(url, init) {
   return body;
 }
 
+// a state-changing request: JSON, with the page's token (the server refuses any other)
+function postJSON(url, obj) {
+  return getJSON(url, { method: "POST", headers: { "Content-Type": "application/json", "X-Fluxcal-Token": TOKEN },
+                        body: JSON.stringify(obj) });
+}
+
+// a read-only dashboard greys what it refuses and says why beside it
+function showReadOnly() {
+  const why = readOnly ? (readOnlyReason || "read-only: started with --read-only") : "";
+  document.querySelectorAll("button[data-cmd], #diagnose, [data-needs-write]").forEach(b => {
+    b.disabled = readOnly; b.title = why || b.dataset.title || "";
+  });
+  for (const id of ["read-only-note", "diagnose-note"]) {
+    if (readOnly) { $(id).hidden = false; $(id).textContent = "Greyed: " + why + "."; $(id).dataset.readOnly = "1"; }
+    else if ($(id).dataset.readOnly) { $(id).hidden = true; $(id).textContent = ""; delete $(id).dataset.readOnly; }
+  }
+}
+
 async function pollUnits() {
   try {
     const u = await getJSON("/api/units");
     units = u;
     readOnly = u.read_only;
+    readOnlyReason = u.read_only_reason || "";
     const nav = $("units");
     nav.innerHTML = "";
     for (const x of u.units) {
@@ -57,7 +78,7 @@ async function pollUnits() {
     }
     if (!unit && u.units.length) { unit = u.units[0].unit; hist = newHist(); }
     if (u.message && (!unit || !u.connected)) { banner(u.connected ? "waiting" : "unreachable", u.message); }
-    document.querySelectorAll("button[data-cmd]").forEach(b => { b.disabled = readOnly; });
+    showReadOnly();
   } catch (e) {
     banner("unreachable", "the dashboard server does not answer: " + e.message);
   }
@@ -117,9 +138,11 @@ function render(v) {
                         { window_s: WINDOW_S });
   }
   if (h) {
-    const diffs = h.columns.filter(c => /-.*\.total$/.test(c));
-    charts.diff.draw(h.t, diffs.map(c => ({ name: "|" + c.replace(".total", "") + "|", values: col(h, c) }))
-      .concat(diffs.length ? ["x", "y", "z"].map(a => { const c = diffs[0].replace("total", a); return { name: c, values: col(h, c) }; }) : []),
+    // |d|: the norm of the components' mean over the window, not a mean of |d| (the noise would bias it upward)
+    const diffs = h.columns.filter(c => /-.*\.norm$/.test(c)), win = (v.windows || {}).window_s || 10;
+    charts.diff.title = `differences probe k - probe 1: components (0.1-s means); |d|: norm of the ${num(win, 0)}-s mean components`;
+    charts.diff.draw(h.t, diffs.map(c => ({ name: `|${c.replace(".norm", "")}| (${num(win, 0)}-s mean)`, values: col(h, c) }))
+      .concat(diffs.length ? ["x", "y", "z"].map(a => { const c = diffs[0].replace("norm", a); return { name: c, values: col(h, c) }; }) : []),
       { window_s: WINDOW_S });
     const g = h.columns.filter(c => c.startsWith("G."));
     charts.tensor.draw(h.t, g.map(c => ({ name: c.slice(2), values: col(h, c) })),
@@ -140,12 +163,14 @@ function renderError(v) {
   const e = hist.error;
   if (!e || !e.t.length) { return; }
   const chans = e.columns.slice(1);
-  const floors = v.floors || {};
+  const floors = v.floors || {}, w = v.windows || {}, rms = w.error_rms_nT || {};
+  $("error-window").textContent = num(w.window_s, 0);
   charts.error.draw(e.t, chans.map((c, k) => ({ name: c, values: col(e, c), color: COLORS[k % COLORS.length] })),
     { window_s: WINDOW_S, floor: chans.map((c, k) => ({ name: c, value: floors[c], color: COLORS[k % COLORS.length] })) });
-  let rows = "<tr><th>channel</th><th>error nT</th><th>floor nT</th><th>ratio</th></tr>";
+  const span = w.error_span_s !== undefined && w.error_span_s < w.window_s - 0.05 ? ` (${num(w.error_span_s, 1)} s so far)` : "";
+  let rows = `<tr><th>channel</th><th>error nT, RMS over the last ${num(w.window_s, 0)} s${span}</th><th>floor nT</th><th>ratio</th></tr>`;
   for (const c of chans) {
-    const x = last(col(e, c)), f = floors[c], r = x !== null && f ? x / f : null;
+    const x = rms[c] ?? null, f = floors[c], r = x !== null && f ? x / f : null;
     rows += `<tr><th>${esc(c)}</th><td>${num(x, 3)}</td><td>${num(f, 3)}</td>` +
             `<td class="${r !== null && r > 1.5 ? "bad" : "good"}">${num(r, 2)}</td></tr>`;
   }
@@ -176,13 +201,17 @@ function renderCalibration(v) {
     ` · ${esc(st.samples_seen ?? "–")} samples seen</p>`;
   if (probes.length) {
     html += "<table class='numbers'><tr><th>probe</th><th>offset x</th><th>offset y</th><th>offset z</th>" +
-            "<th>scale x</th><th>scale y</th><th>scale z</th></tr>";
-    for (const p of probes) {
-      const off = p.offset_nT || [], se = p.offset_se_nT || [], m = p.matrix || [[], [], []];
+            "<th>sensor scale x</th><th>sensor scale y</th><th>sensor scale z</th></tr>";
+    const scales = v.sensor_scales || [], sources = new Set();
+    probes.forEach((p, k) => {
+      const off = p.offset_nT || [], se = p.offset_se_nT || [], sc = scales[k] || {}, c = sc.scale || [];
+      if (sc.source) { sources.add(sc.source); }
       html += `<tr><th>${esc(p.name)}</th>` + [0, 1, 2].map(i => `<td>${num(off[i], 1)} ± ${se[i] >= 0 ? num(se[i], 2) : "?"}</td>`).join("")
-        + [0, 1, 2].map(i => `<td>${num(m[i] && m[i][i], 5)}</td>`).join("") + "</tr>";
-    }
-    html += "</table><p class='muted'>offsets in nT ± standard error (? : not determined); scale: the matrix diagonal</p>";
+        + [0, 1, 2].map(i => `<td data-col="${esc(p.name)}.scale">${num(c[i], 5)}</td>`).join("") + "</tr>";
+    });
+    html += "</table><p class='muted'>offsets in nT ± standard error (? : not determined); sensor scale: the " +
+            "sensor's scale factor per axis as <code>fluxcal fit</code> prints it (1.021: the axis reads 2.1 % high; " +
+            "the correction divides it out), " + esc([...sources].join(", ") || "–") + "</p>";
   }
   $("calibration").innerHTML = html;
   const gate = st.gate;
@@ -197,7 +226,8 @@ function renderCalibration(v) {
     const t0 = ch[0].time_unix_s, t = ch.map(c => c.time_unix_s - t0), series = [];
     (ch[ch.length - 1].offset_nT || []).forEach((_, k) => ["x", "y", "z"].forEach((a, i) =>
       series.push({ name: `${probes[k] ? probes[k].name : "s" + (k + 1)}.${a}`, values: ch.map(c => (c.offset_nT[k] || [])[i] ?? null) })));
-    charts.offsets.draw(t, series, {});
+    charts.offsets.draw(t, series, { empty: "no calibration yet" });
+    $("offsets-note").textContent = ch.length < 2 ? "one calibration so far: a point per offset; a line once it changes" : "";
   }
 }
 
@@ -223,6 +253,7 @@ function renderDiagnosis(d, kept) {
   div.innerHTML = `<p id="verdict"><b>${esc((verdict.kind || "") + what)}</b>: residual ${num(verdict.rms_nT, 3)} nT ` +
     `against a floor of ${num(verdict.floor_nT, 3)} nT. ${esc(verdict.left || "")} ${esc(verdict.advice || "")}</p>` +
     `<table class="numbers"><tr><th>effect</th><th>held-out gain</th><th>significant</th><th></th></tr>${rows}</table>` +
+    `<p class="muted" id="diagnosis-given">${esc(d.given || "")}</p>` +
     `<details><summary>full text (${d.n_samples} samples, ${num(d.duration_s, 0)} s)</summary><pre>${esc(d.text)}</pre></details>`;
 }
 
@@ -238,20 +269,29 @@ function renderHealth(v) {
 }
 
 async function sendCommand(name) {
+  // apply sends the calibration's content (chosen here or pasted), never a path: the unit reads no file for us
   const payload = name === "add-effect" ? $("effect-name").value : name === "apply" ? $("apply-payload").value : "";
   const li = document.createElement("li");
   li.textContent = `${name}: sending…`;
   $("command-log").prepend(li);
-  await getJSON("/api/command", { method: "POST", headers: { "Content-Type": "application/json" },
-                                  body: JSON.stringify({ unit, command: name, payload }) }).catch(e => ({ ok: false, error: e.message }));
+  const answer = await postJSON("/api/command", { unit, command: name, payload }).catch(e => ({ ok: false, error: e.message }));
+  if (answer && answer.ok === false && !answer.command) {     // refused here, before it reached the unit
+    li.className = "bad"; li.textContent = `${name}: refused by the dashboard: ${answer.error}`;
+  }
   pollView();
 }
 
+$("apply-file").onchange = async () => {
+  const f = $("apply-file").files[0];
+  if (f) { $("apply-payload").value = await f.text(); }
+};
+
 document.querySelectorAll("button[data-cmd]").forEach(b => { b.onclick = () => sendCommand(b.dataset.cmd); });
 $("diagnose").onclick = async () => {
-  await getJSON("/api/diagnose", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ unit }) })
-    .catch(e => { $("diagnosis").textContent = e.message; });
-  pollView();
+  const answer = await postJSON("/api/diagnose", { unit }).catch(e => ({ ok: false, error: e.message }));
+  if (answer && answer.ok === false) {
+    $("diagnose-note").hidden = false; $("diagnose-note").textContent = "refused: " + answer.error;
+  } else { pollView(); }
 };
 hist = newHist();
 pollUnits();

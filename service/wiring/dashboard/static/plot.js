@@ -10,8 +10,9 @@ function niceTicks(lo, hi, n) {
   const span = hi - lo, raw = span / Math.max(1, n);
   const mag = Math.pow(10, Math.floor(Math.log10(raw)));
   const step = [1, 2, 2.5, 5, 10].map(m => m * mag).find(s => s >= raw) || raw;
+  // k * step, not a running sum: a sum of 0.2 steps from -1 gives -5.6e-17 where 0 belongs (printed "-5.6")
   const out = [];
-  for (let v = Math.ceil(lo / step) * step; v <= hi + step * 1e-9; v += step) { out.push(v); }
+  for (let k = Math.ceil(lo / step - 1e-9); k * step <= hi + step * 1e-9; k++) { out.push(Number((k * step).toPrecision(12))); }
   return out;
 }
 
@@ -76,7 +77,7 @@ class Chart {
     }
     if (y1 - y0 < 1e-9) { y0 -= 0.5; y1 += 0.5; }
     const pad = (y1 - y0) * 0.06; y0 -= pad; y1 += pad;
-    if (t1 - t0 < 1e-9) { t0 -= 1; }
+    if (t1 - t0 < 1e-9) { t0 -= 0.5; t1 += 0.5; }          // one instant: it in the middle of a 1-s axis
     const X = (v) => L + (v - t0) / (t1 - t0) * pw, Y = (v) => T + (1 - (tx(v) - y0) / (y1 - y0)) * ph;
     g.strokeStyle = "#ddd"; g.fillStyle = "#555"; g.lineWidth = 1;
     const yt = this.log ? logTicks(y0, y1, 4) : niceTicks(y0, y1, 4), step = yt.length > 1 ? yt[1] - yt[0] : 1;
@@ -95,12 +96,18 @@ class Chart {
     series.forEach((s, k) => {
       g.strokeStyle = s.color || COLORS[k % COLORS.length]; g.lineWidth = 1.2; g.beginPath();
       let pen = false;
+      const drawn = (i) => i >= 0 && i < s.values.length && s.values[i] !== null && visible[i] && t[i] !== null;
       s.values.forEach((v, i) => {
-        if (v === null || !visible[i] || t[i] === null) { pen = false; return; }
+        if (!drawn(i)) { pen = false; return; }
         const x = X(t[i]), y = Y(v);
         if (pen) { g.lineTo(x, y); } else { g.moveTo(x, y); pen = true; }
       });
       g.stroke();
+      // a value with no drawn neighbour makes no line: a dot shows it (one calibration so far, a lone interval)
+      g.fillStyle = s.color || COLORS[k % COLORS.length];
+      s.values.forEach((v, i) => {
+        if (drawn(i) && !drawn(i - 1) && !drawn(i + 1)) { g.fillRect(X(t[i]) - 2, Y(v) - 2, 4, 4); }
+      });
     });
     (extra.floor || []).forEach((f, k) => {
       if (f.value === null || f.value === undefined) { return; }
