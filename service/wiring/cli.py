@@ -246,7 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
                            "at start)")
     dash.add_argument("--open", action="store_true", help="open the page in this host's web browser")
     dash.add_argument("--read-only", dest="read_only", action="store_true",
-                      help="show, but send no commands (for a page served beyond this host)")
+                      help="show, but send no commands and run no diagnosis (for a page served beyond this host)")
 
     fox = _command(sub, "foxglove", "live bridge for the Foxglove app: a running unit's products on a Foxglove "
                    "WebSocket server",
