@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from .errors import ConfigError
+from .inputs import open_regular
 
 _MISSING = dataclasses.MISSING
 
@@ -44,18 +45,32 @@ def spec(default: Any = _MISSING, *, min: float | None = None, max: float | None
     return dataclasses.field(default=default, metadata=meta)
 
 
+#: the largest configuration file read (the examples in configs/ are 3.6 to 10 kB)
+MAX_CONFIG_BYTES = 1 << 20
+
+
 def read_toml(path: str | Path) -> dict:
-    """Read a TOML file; a missing or malformed file is a ConfigError naming it."""
+    """Read a TOML file; a missing, malformed, oversized or non-regular file (a FIFO, /dev/zero) is a ConfigError
+    naming it."""
     p = Path(path)
+    if not p.exists():
+        raise ConfigError(f"{p}: configuration file not found")
+    with open_regular(p, "configuration", ConfigError) as f:
+        try:
+            data = f.read(MAX_CONFIG_BYTES + 1)
+        except OSError as e:
+            raise ConfigError(f"{p}: cannot read configuration: {e.strerror}") from None
+    if len(data) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{p}: larger than {MAX_CONFIG_BYTES >> 20} MiB (allowed: a configuration up to "
+                          f"{MAX_CONFIG_BYTES >> 20} MiB): not a configuration file?")
     try:
-        with p.open("rb") as f:
-            return tomllib.load(f)
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: configuration file not found") from None
+        return tomllib.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{p}: not valid TOML: not UTF-8 text ({e.reason} at byte {e.start})") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{p}: not valid TOML: {e}") from None
-    except OSError as e:
-        raise ConfigError(f"{p}: cannot read configuration: {e.strerror}") from None
+    except RecursionError:
+        raise ConfigError(f"{p}: not valid TOML: arrays or tables nested too deeply") from None
 
 
 def load_section(cls: type, table: Any, path: str) -> Any:

@@ -34,6 +34,9 @@ from ..errors import ConfigError
 from ..icd import MAX_PROBES
 
 AXES = ("x", "y", "z")
+#: the most samples one run may have (duration_s x rate_hz): `fluxcal simulate` writes each as a line of a
+#: file (about 100 bytes in a CSV), and the fault record keeps one number per fault
+MAX_RUN_SAMPLES = 10**9
 MOTION_KINDS = ("static", "turntable", "tumble", "grid")
 
 
@@ -237,6 +240,11 @@ class SimConfig:
     probes: list[ProbeSimConfig] = spec(default_factory=_default_probes)
 
     def validate(self, path: str) -> None:
+        if self.duration_s * self.rate_hz > MAX_RUN_SAMPLES:
+            n, top = self.duration_s * self.rate_hz, MAX_RUN_SAMPLES / self.rate_hz
+            raise ConfigError(f"{path}.duration_s: {self.duration_s:g} is not allowed: {n:.3g} samples at rate_hz = "
+                              f"{self.rate_hz:g} (allowed: up to {top:.6g} s at this rate, at most "
+                              f"{MAX_RUN_SAMPLES:.0e} samples a run; 0 runs until stopped)")
         n = len(self.probes)
         if not 1 <= n <= MAX_PROBES:
             raise ConfigError(f"{path}.probes: {n} [[{path}.probes]] tables (allowed: 1..{MAX_PROBES})")

@@ -15,6 +15,7 @@ An error names the key, the value and what is allowed (drivers.config).
 from __future__ import annotations
 
 import importlib
+import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -58,14 +59,16 @@ class EstimatorConfig:
     site: str | None = spec(None, doc="LAT,LON,ALT_M[,DATE]: the total field from the World Magnetic Model at the "
                                       "site, for a unit without a scalar magnetometer (instead of total_nT)")
     align: str = spec("rotation", choices=("rotation", "regression", "none"))
-    min_samples: int = spec(2000, min=20)
+    min_samples: int = spec(2000, min=20, max=10**9)
     gate_coverage: float = spec(0.3, min=0.0, max=1.0, doc="fraction of direction bins that must be seen")
     gate_condition: float = spec(1e3, min=1.0)
     gate_rms_nT: float = spec(20.0, min=0.0, doc="largest scalar residual RMS accepted")
     update_every_s: float = spec(0.5, min=0.001, max=60.0,
                                  doc="the estimator takes samples in chunks this long (of data time)")
-    check_every_s: float = spec(5.0, min=0.05, doc="how often the online estimate is checked against the gate")
-    window_s: float = spec(60.0, min=1.0, doc="ring buffer length for alignment and the error metric")
+    check_every_s: float = spec(5.0, min=0.05, max=86400.0,
+                                doc="how often the online estimate is checked against the gate")
+    window_s: float = spec(60.0, min=1.0, doc="ring buffer length for alignment and the error metric; bounded by "
+                                              "memory at the unit's rate and probe count (check_window_memory)")
 
     def validate(self, path: str) -> None:
         if self.site is None:
@@ -114,8 +117,8 @@ class EffectsConfig:
 class McapConfig:
     enabled: bool = spec(True)
     dir: str = spec("recordings/live")
-    rotate_mb: float = spec(256.0, min=0.01)
-    rotate_s: float = spec(3600.0, min=1.0)
+    rotate_mb: float = spec(256.0, min=0.01, max=1.0e6)
+    rotate_s: float = spec(3600.0, min=1.0, max=1.0e7)
     chunk_kb: int = spec(1024, min=4, max=65536)
     flush_s: float = spec(1.0, min=0.05, max=60.0)
 
@@ -134,8 +137,9 @@ class SimSourceConfig:
     transport: str = spec("direct", choices=("direct", "pty", "can-virtual", "slcan"),
                           doc="direct: in-process; pty: ICD bytes through a pseudo-terminal; "
                               "can-virtual / slcan: ICD CAN frames")
-    run_s: float = spec(0.0, min=0.0, doc="how long `fluxcal run` lets the simulated unit run; 0 = until stopped "
-                                          "(`fluxcal simulate` uses sim.duration_s)")
+    run_s: float = spec(0.0, min=0.0, max=1.0e9,
+                        doc="how long `fluxcal run` lets the simulated unit run; 0 = until stopped "
+                            "(`fluxcal simulate` uses sim.duration_s)")
 
 
 _SOURCE_CONFIGS = {
@@ -172,6 +176,46 @@ class FluxcalConfig:
         The estimator's durations (window_s, check_every_s, update_every_s) are counted in samples at it."""
         rate = getattr(self.source, "rate_hz", None) or getattr(self.sim, "rate_hz", None)
         return float(rate) if rate else None
+
+
+#: what the estimator's window and update chunk may take in memory (ring buffer and chunk buffers)
+WINDOW_BUDGET_BYTES = 1 << 30
+
+
+def sample_bytes(n_probes: int) -> int:
+    """Bytes one sample of n_probes takes in the ring buffer (drivers.ringbuffer): t, seq, one extra such as
+    ref_total (8 each), flags (1), and per probe three axes and a temperature (8 each)."""
+    return 25 + 32 * n_probes
+
+
+def check_window_memory(est: EstimatorConfig, rate_hz: float, n_probes: int) -> None:
+    """The estimator's window (window_s) and update chunk (update_every_s) counted in samples at the unit's rate:
+    at least one sample, and within WINDOW_BUDGET_BYTES together (window_s = 1e12 asked numpy for 1.42 PiB)."""
+    per = sample_bytes(n_probes)
+    budget = WINDOW_BUDGET_BYTES
+    where = f"{n_probes} probe(s) at {rate_hz:g} Hz, {per} bytes a sample"
+    chunk = max(1, int(round(est.update_every_s * rate_hz))) * per
+    if chunk > budget // 2:
+        top = budget // 2 // per / rate_hz
+        raise ConfigError(f"estimator.update_every_s: {est.update_every_s:g} is not allowed: {_size(chunk)} a chunk "
+                          f"for {where} (allowed: up to {top:.4g} s, a chunk within {_size(budget // 2)})")
+    window = est.window_s * rate_hz                        # a float: window_s = 1e308 is no integer overflow
+    if window < 1:
+        raise ConfigError(f"estimator.window_s: {est.window_s:g} is not allowed: it holds no sample at {rate_hz:g} Hz "
+                          f"(allowed: at least {1.0 / rate_hz:.4g} s at this rate)")
+    if window * per + chunk > budget:
+        top = (budget - chunk) // per / rate_hz
+        size = f"{_size(window * per)} in memory" if math.isfinite(window) else "more than any memory holds"
+        raise ConfigError(f"estimator.window_s: {est.window_s:g} is not allowed: {window:.4g} samples of {where}, "
+                          f"{size} (allowed: up to {top:.6g} s at this rate and probe count: the window and the "
+                          f"update chunk within {_size(budget)})")
+
+
+def _size(n: float) -> str:
+    for unit, shift in (("EiB", 60), ("PiB", 50), ("TiB", 40), ("GiB", 30), ("MiB", 20), ("kiB", 10)):
+        if n >= 1 << shift:
+            return f"{n / (1 << shift):.3g} {unit}"
+    return f"{n:.0f} bytes"
 
 
 _SECTIONS = ("unit", "probes", "source", "sim", "estimator", "calibration", "zenoh", "mcap", "effects")
@@ -300,6 +344,9 @@ def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
             raise ConfigError(f"source.rate_hz: {src_rate!r} differs from sim.rate_hz = {sim.rate_hz!r} (allowed: "
                               f"the same rate, or leave source.rate_hz out)")
         estimator = load_section(EstimatorConfig, raw.get("estimator", {}), "estimator")
+        rate = src_rate or (sim.rate_hz if sim is not None else None)
+        if rate:
+            check_window_memory(estimator, float(rate), unit.n_probes)
         calibration = load_section(CalibrationConfig, raw.get("calibration", {}), "calibration")
         if not calibration.file:
             # one file per unit and source kind: a calibration learned on the simulator never meets hardware

@@ -5,7 +5,6 @@ Bad input is a DataError naming the file, line and column; nothing is guessed.
 
 from __future__ import annotations
 
-import io
 import math
 import re
 from dataclasses import dataclass, field, replace
@@ -15,8 +14,16 @@ import numpy as np
 
 from drivers.block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock
 from drivers.errors import DataError
+from drivers.inputs import not_regular, read_text
 
 _PROBE_COL = re.compile(r"^s([1-9][0-9]*)_(x|y|z|temp)$")
+
+#: the largest magnitude of any value in a lab CSV: far beyond any field (Earth's is 5e4 nT; in fT 5e10), time
+#: (s) or counter a file holds, and far below sqrt(max float) = 1.3e154, so that squares and products of squares
+#: in the fits stay finite (1e308 on every row gave a LinAlgError traceback)
+MAX_MAGNITUDE = 1e15
+#: rows parsed at once (about 0.1 s each)
+PARSE_ROWS = 1 << 18
 
 
 @dataclass(frozen=True)
@@ -52,6 +59,10 @@ def load_data(path: str | Path, *, max_samples: int | None = None, max_probe_sam
         raise DataError(f"{p}: no such file")
     if p.is_dir():
         check_one_run(p)
+    else:
+        refused = not_regular(p, p.stat().st_mode)     # a FIFO, a device (/dev/zero): before anything opens it
+        if refused:
+            raise refused
     if p.is_dir() or p.suffix.lower() == ".mcap":
         from .reader import read_samples  # only when an MCAP file is given
 
@@ -98,13 +109,8 @@ def keep_every(n: int, probes: int, max_samples: int | None, max_probe_samples: 
 def load_csv(path: str | Path) -> LabData:
     """Parse a lab CSV (CONTRACTS.md §1)."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise DataError(f"{p}: not a text CSV file ({e.reason} at byte {e.start})") from None
-    except OSError as e:
-        raise DataError(f"{p}: cannot read: {e.strerror}") from None
-    lines = text.splitlines()
+    # a regular file within the size and line limits, read in pieces (SIGTERM stops it): drivers.inputs
+    lines = read_text(p, "a lab CSV").splitlines()
     comments: list[str] = []
     header_idx = None
     for i, line in enumerate(lines):
@@ -140,14 +146,18 @@ def load_csv(path: str | Path) -> LabData:
         body_nonempty = body
     lineno = np.asarray(rows_idx) + header_idx + 2
     ncol = len(header)
-    try:
-        values = np.loadtxt(io.StringIO("\n".join(body_nonempty)), delimiter=",", dtype=np.float64,
-                            ndmin=2, comments=None)
-        if values.shape[1] != ncol:
-            raise ValueError
-    except ValueError:
-        _locate_bad_value(p, header, body_nonempty, lineno)
-        raise DataError(f"{p}: could not parse the data rows") from None
+    values = np.empty((len(body_nonempty), ncol))
+    for a in range(0, len(body_nonempty), PARSE_ROWS):   # in pieces: a signal's handler runs between them
+        rows = body_nonempty[a:a + PARSE_ROWS]
+        try:
+            part = np.loadtxt(rows, delimiter=",", dtype=np.float64, ndmin=2, comments=None)
+            if part.shape != (len(rows), ncol):
+                raise ValueError
+        except ValueError:
+            _locate_bad_value(p, header, rows, lineno[a:a + PARSE_ROWS])
+            raise DataError(f"{p}: could not parse the data rows") from None
+        values[a:a + len(rows)] = part
+    del body, body_nonempty, lines
 
     # a probe's axis or temperature may be NaN (or inf): saturated or invalid, left out by the fits and counted
     # there; any other column must be a number
@@ -161,6 +171,7 @@ def load_csv(path: str | Path) -> LabData:
                         f"non-finite values on line(s) {', '.join(map(str, rows[:10].tolist()))}{more}: "
                         f"remove or fix those rows (only probe axes and temperatures may be NaN)")
     values[:, may_lack] = np.where(np.isfinite(values[:, may_lack]), values[:, may_lack], np.nan)
+    _check_magnitude(p, header, values, lineno)
     col = {h: i for i, h in enumerate(header)}
     t = values[:, col["t"]]
     back = np.flatnonzero(np.diff(t) <= 0)
@@ -193,6 +204,21 @@ def load_csv(path: str | Path) -> LabData:
     )
     return LabData(block=block, probe_names=[f"s{k + 1}" for k in range(n_probes)], path=str(p),
                    comments=comments)
+
+
+def _check_magnitude(p: Path, header: list[str], values: np.ndarray, lineno: np.ndarray) -> None:
+    """A value beyond MAX_MAGNITUDE (NaN is not) is a DataError naming its line and column, and the others'."""
+    big = (values > MAX_MAGNITUDE) | (values < -MAX_MAGNITUDE)
+    if not big.any():
+        return
+    r, c = np.argwhere(big)[0]
+    rows = lineno[big.any(axis=1)]
+    more = f" and {rows.size - 10} more" if rows.size > 10 else ""
+    bound = f"{MAX_MAGNITUDE:g}".replace("e+", "e")
+    raise DataError(f"{p}: line {lineno[r]}, column {header[c]!r}: {float(values[r, c]):.10g} is beyond the largest "
+                    f"magnitude read, {bound} (allowed: |value| <= {bound}, so that squares in "
+                    f"the fits stay finite); such values on line(s) {', '.join(map(str, rows[:10].tolist()))}{more}: "
+                    f"no field, time or count is this large (an overflow, or a wrong unit in the export?)")
 
 
 def _honour_flags(flags: np.ndarray, field_nT: np.ndarray, temp_C: np.ndarray) -> None:

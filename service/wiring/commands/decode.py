@@ -7,6 +7,10 @@ the unit clock (t_us unwrapped) in seconds with 6 decimals, i.e. exact microseco
 unit clock, so there t = seq / rate with the rate estimated from the log's timestamps. Saturated
 axes and invalid temperatures are written as nan (the flags column says why). The output is
 written to a temporary file and renamed, so it is complete or absent. Counters go to stderr.
+
+The capture must be a regular file (a FIFO or a device is refused before it is opened). A serial capture is
+streamed, so any size is read (Ctrl-C or SIGTERM stop it between pieces); a CAN log is held whole, so it has
+the size limit of drivers.inputs (FLUXCAL_MAX_INPUT_MB), and a text log the line-length limit.
 """
 
 from __future__ import annotations
@@ -26,10 +30,12 @@ from drivers.assemble import FrameAssembler, SerialFramer
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError, DataError, FluxcalError
 from drivers.icd import MAX_PROBES, frame_length, parse_serial
+from drivers.inputs import check_size, not_regular, open_regular, scan_lines
 from drivers.source import Counters
 from service.wiring.progress import Progress
 
 CHUNK_BYTES = 4 << 20          # serial captures are read in 4 MiB pieces: any size fits in memory
+TEXT_CAN_LOGS = (".log", ".asc", ".csv")          # python-can's line-based formats (.blf is binary)
 
 
 def _say(msg: str) -> None:
@@ -47,10 +53,14 @@ def main(args: argparse.Namespace) -> int:
     suffix = out.suffix.lower()
     if suffix not in (".csv", ".mcap"):
         raise ConfigError(f"--out: {out} must end in .csv or .mcap")
-    if not capture.exists():
-        raise DataError(f"{capture}: capture file not found")
-    if not capture.is_file():
-        raise DataError(f"{capture}: not a file")
+    try:
+        refused = not_regular(capture, os.stat(capture).st_mode)  # a FIFO or a device: refused before any open
+    except FileNotFoundError:
+        raise DataError(f"{capture}: capture file not found") from None
+    except OSError as e:
+        raise DataError(f"{capture}: cannot read ({e.strerror})") from None
+    if refused:
+        raise refused
     if out.exists() and out.resolve() == capture.resolve():
         raise ConfigError(f"--out: {out} is the capture itself; choose another output file")
     if not out.parent.resolve().is_dir():
@@ -93,10 +103,7 @@ def _serial_blocks(capture: Path, n: int, lsb_nT: float, counters: Counters) -> 
     framer = SerialFramer(n, counters)
     assembler = FrameAssembler(n, lsb_nT, counters)
     progress = Progress(capture.stat().st_size, "decode", unit="B")
-    try:
-        f = capture.open("rb")
-    except OSError as e:
-        raise DataError(f"{capture}: cannot read ({e.strerror})") from None
+    f = open_regular(capture, "a capture")         # streamed in CHUNK_BYTES pieces: no size limit is needed
     with f, progress:
         while True:
             chunk = f.read(CHUNK_BYTES)
@@ -112,6 +119,10 @@ def _can_blocks(capture: Path, n: int, base_id: int, lsb_nT: float, counters: Co
     from drivers.assemble import SeqGapCounter
     from drivers.can_source import estimate_rate_hz, read_can_log
 
+    # a CAN log is held whole (its samples), and python-can reads a text log line by line: both bounded first
+    check_size(capture, capture.stat().st_size, "a CAN log")
+    if capture.suffix.lower() in TEXT_CAN_LOGS:
+        scan_lines(capture, "a CAN log")
     samples, _ = read_can_log(capture, n, base_id=base_id, counters=counters)
     if len(samples) == 0:
         return
