@@ -291,7 +291,7 @@ def test_command_line_bad_input_exits_2(tmp_path, capsys):
     assert cli.main(["diagnose", str(csv), "--effects", "temprature"]) == 2
     assert "'temprature'" in capsys.readouterr().err
     assert cli.main(["diagnose", str(csv), "--calibration", str(tmp_path / "none.json")]) == 2
-    assert "no such calibration file" in capsys.readouterr().err
+    assert "calibration file not found" in capsys.readouterr().err
     bad = tmp_path / "bad.json"
     bad.write_text('{"sensors": [1, 2')
     assert cli.main(["diagnose", str(csv), "--calibration", str(bad)]) == 2

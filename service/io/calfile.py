@@ -98,8 +98,13 @@ MAX_JSON_DEPTH = 16
 
 def load_calibration(path: str | Path) -> ArrayCalibration:
     """Read a calibration file; DataError naming the file and the problem (missing, not a regular file, too
-    large, another format or version, not JSON, a missing key, a wrong shape, a NaN). A FIFO, a device or
-    /dev/zero is refused before it is opened for reading, so nothing waits on it or reads it without end."""
+    large, another format or version, not JSON, a missing key, a wrong shape, a NaN)."""
+    return calibration_from_json(read_calibration_text(path), origin=str(Path(path)))
+
+
+def read_calibration_text(path: str | Path) -> str:
+    """The text of a calibration file, bounded: a FIFO, a device or /dev/zero is refused before it is opened
+    for reading (nothing waits on it or reads it without end), and so is a file over MAX_CALIBRATION_BYTES."""
     import stat
 
     p = Path(path)
@@ -121,11 +126,10 @@ def load_calibration(path: str | Path) -> ArrayCalibration:
         raise DataError(f"{p}: more than {MAX_CALIBRATION_BYTES:,} bytes: too large for a calibration file (one "
                         f"written by `fluxcal fit --out` is a few kB)")
     try:
-        text = raw.decode("utf-8")
+        return raw.decode("utf-8")
     except UnicodeDecodeError as e:
         raise DataError(f"{p}: cannot read the calibration file: not UTF-8 text ({e.reason} at byte {e.start})") \
             from None
-    return calibration_from_json(text, origin=str(p))
 
 
 _JSON_TOKENS = re.compile(rb'"(?:[^"\\]|\\.)*"|[\[\]{}]')

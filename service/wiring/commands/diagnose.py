@@ -51,35 +51,22 @@ def load_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:
     """A calibration file: the calibration file of `fit --out` (service.io.calfile), or the JSON of
     `fit --json` (sensors with offset_nT and matrix). Returns the linear part and the effect names the
     file carries."""
+    from service.io.calfile import calibration_from_json, parse_json, read_calibration_text
     from service.numerics.engine import LinearCalibration
 
     p = Path(path)
-    if not p.exists():
-        raise DataError(f"{p}: no such calibration file")
-    first_error: DataError | None = None
+    text = read_calibration_text(p)                       # bounded; DataError for what cannot be read
     try:
-        from service.io.calfile import load_calibration as load_calfile
-    except ImportError:                                   # the calibration core is optional here
-        load_calfile = None
-    if load_calfile is not None:
-        try:
-            cal = load_calfile(p)
-            return LinearCalibration.from_any(cal, n_probes), list(getattr(cal, "effects", []) or [])
-        except DataError as e:
-            first_error = e                               # perhaps `fit --json` output: try that below
+        cal = calibration_from_json(text, origin=str(p))
+        return LinearCalibration.from_any(cal, n_probes), list(cal.effects)
+    except DataError as e:
+        first_error = e                                   # perhaps `fit --json` output: try that below
     try:
-        obj = json.loads(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as e:
-        raise first_error or DataError(f"{p}: cannot read the calibration: {e}") from None
-    except json.JSONDecodeError as e:
-        raise first_error or DataError(f"{p}: line {e.lineno}, column {e.colno}: not valid JSON ({e.msg})") from None
-    try:
+        obj = parse_json(text, str(p))
         effects = list(obj.get("effects") or []) if isinstance(obj, dict) else []
         return LinearCalibration.from_any(obj, n_probes), effects
-    except (DataError, TypeError, ValueError) as e:
-        if first_error is not None:
-            raise first_error from None
-        raise DataError(f"{p}: {e}") from None
+    except (DataError, TypeError, ValueError, AttributeError):
+        raise first_error from None
 
 
 def main(args: argparse.Namespace) -> int:
