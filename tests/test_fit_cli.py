@@ -95,3 +95,50 @@ def test_fit_row_with_another_delimiter_says_so(tmp_path, capsys):
 def test_fit_missing_file(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "nope.csv")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+def _keys(x) -> set[str]:
+    """Every key of a JSON document, at any depth."""
+    if isinstance(x, dict):
+        return set(x) | {k for v in x.values() for k in _keys(v)}
+    if isinstance(x, list):
+        return {k for v in x for k in _keys(v)}
+    return set()
+
+
+@pytest.mark.parametrize("align", ["regression", "rotation"])
+def test_scale_is_the_sensors_scale_of_every_probe_in_text_json_and_the_file(gradiometer, tmp_path, capsys, align):
+    """"scale" had two names and two meanings: fit printed the sensor's scale (1.021) for s1 and called the same figure
+    "sensitivity" for s2, which was besides 000's column gain (1.3e-3 off the sensor's where the axes are not
+    orthogonal), while the dashboard's "scale x" was the correction matrix's diagonal (0.979). One name, one meaning:
+    the sensor's scale factor per axis, above 1 where the simulated sensor reads high."""
+    import re
+
+    path, truth = gradiometer
+    want = {s["name"]: np.array(s["scale"]) for s in truth["sensors"]}
+    assert want["s1"][0] > 1 > want["s2"][0]                       # the configuration reads high and low
+    cal_path = tmp_path / "cal.json"
+    capsys.readouterr()
+    assert main(["fit", str(path), "--align", align, "--out", str(cal_path)]) == 0
+    text = capsys.readouterr().out
+    assert main(["fit", str(path), "--align", align, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    file_json = json.loads(cal_path.read_text())
+    for doc in (text, cal_path.read_text(), json.dumps(out)):
+        assert "sensitivit" not in doc
+    assert "sensitivity" not in _keys(out) | _keys(file_json)
+    blocks = dict(re.findall(r"\n(s\d)\n(.*?)(?=\n\n)", text, flags=re.S))
+    cal = load_calibration(cal_path)
+    for k, s in enumerate(out["sensors"]):
+        c = want[s["name"]]
+        printed = re.search(r"^  scale +\[([^]]+)\]", blocks[s["name"]], flags=re.M)
+        assert printed, blocks[s["name"]]
+        got_text = np.array([float(v) for v in printed[1].split(",")])
+        got_json = np.array(s["params"]["scale"]["value"])
+        got_file = cal.probes[k].value("scale")
+        assert s["params"]["scale"]["names"] == ["c_x", "c_y", "c_z"]
+        for got in (got_text, got_json, got_file):
+            np.testing.assert_allclose(got, c, atol=2e-4)              # the sensor's, within 2e-4 of the truth
+            assert np.array_equal(got > 1, c > 1)                      # > 1 where the sensor reads high
+        # and not the correction matrix's diagonal, which is about 1/scale (0.979 for s1's 1.021)
+        assert np.all(np.abs(np.diag(np.array(s["matrix"])) - got_json) > 5e-3)
