@@ -237,11 +237,16 @@ class Dashboard:
             parts.append("FROZEN")
         if st.get("held"):
             parts.append("APPLIED (held until reset)")
-        if gate:
-            rms = gate.get("rms_nT")
+        rms = gate.get("rms_nT") if gate else None
+        judged = isinstance(rms, (int, float)) or (isinstance(rms, list) and len(rms) > 0)
+        if gate and judged:
             rms_txt = ", ".join(_num(r, ".2f") for r in rms) if isinstance(rms, list) else _num(rms, ".2f")
             parts += [f"coverage {_num(gate.get('coverage'), '.2f')}", f"condition {_num(gate.get('condition'))}",
                       f"residual [{rms_txt}] nT"]
+        elif gate:
+            # a check found no candidate (the online estimate not determined yet, e.g. after the service started
+            # from its saved calibration or a reset): no coverage, condition or residual to show
+            parts.append("no residual yet: the online estimate has no candidate since the start or the last reset")
         if st.get("samples_seen") is not None:
             parts.append(f"{st['samples_seen']} samples seen")
         if st.get("stale"):
@@ -249,7 +254,7 @@ class Dashboard:
             parts.append(f"(state {_num(age, '.0f')} s old: the service is busy, e.g. reconnecting its input)")
         text = "  ".join(parts)
         reasons = gate.get("reasons") if gate else None
-        if reasons and not st.get("usable"):
+        if reasons and (not st.get("usable") or not judged):
             text += "\n  gate: " + "; ".join(map(str, reasons))
         return text
 
@@ -315,7 +320,8 @@ class Dashboard:
         gate = st.get("gate") or {}
         parts = [f"{t:6.1f}s fluxcal/{self.unit}",
                  f"cal={'usable' if st.get('usable') else 'not-usable' if st else '?'}"
-                 + (f" cov={_num(gate.get('coverage'), '.2f')}" if gate else "")
+                 + (f" cov={_num(gate.get('coverage'), '.2f')}" if gate and gate.get("rms_nT") != [] else
+                    " no-candidate-yet" if gate else "")
                  + (f" state-age={_num(st.get('state_age_s'), '.0f')}s" if st.get("stale") else "")]
         c = self.corrected
         if c is not None and c.n_samples:
