@@ -126,7 +126,7 @@ def state_text(st: dict[str, Any]) -> str:
     if not gate:
         lines.append("quality gate: no verdict yet (too few samples since the start or the last reset)")
     else:
-        rms = gate.get("rms_nT") or []
+        rms = gate.get("rms_nT")
         words = ["passed" if gate.get("usable") else "refused"]
         if isinstance(gate.get("coverage"), (int, float)) and math.isfinite(gate["coverage"]):
             words.append(f"coverage {gate['coverage']:.0%} of the 26 direction bins in its window")
@@ -136,7 +136,7 @@ def state_text(st: dict[str, Any]) -> str:
             words.append("scalar residual RMS " + ", ".join(
                 f"{name} {_n(r, '.3f', 'nT')}" for name, r in zip(names or [f"s{k + 1}" for k in range(len(rms))],
                                                                   rms)))
-        else:
+        elif rms == []:                      # the pipeline's mark of a check that found no candidate
             words.append("no candidate to judge, so no residual yet")
         lines.append("quality gate, latest online candidate: " + "; ".join(words) +
                      (" (the calibration in use stays)" if st.get("usable") and not gate.get("usable") else ""))
