@@ -95,3 +95,80 @@ def test_fit_row_with_another_delimiter_says_so(tmp_path, capsys):
 def test_fit_missing_file(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "nope.csv")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+def _keys(x) -> set[str]:
+    """Every key of a JSON document, at any depth."""
+    if isinstance(x, dict):
+        return set(x) | {k for v in x.values() for k in _keys(v)}
+    if isinstance(x, list):
+        return {k for v in x for k in _keys(v)}
+    return set()
+
+
+@pytest.mark.parametrize("align", ["regression", "rotation"])
+def test_scale_is_the_sensors_scale_of_every_probe_in_text_json_and_the_file(gradiometer, tmp_path, capsys, align):
+    """"scale" had two names and two meanings: fit printed the sensor's scale (1.021) for s1 and called the same figure
+    "sensitivity" for s2, which was besides 000's column gain (1.3e-3 off the sensor's where the axes are not
+    orthogonal), while the dashboard's "scale x" was the correction matrix's diagonal (0.979). One name, one meaning:
+    the sensor's scale factor per axis, above 1 where the simulated sensor reads high."""
+    import re
+
+    path, truth = gradiometer
+    want = {s["name"]: np.array(s["scale"]) for s in truth["sensors"]}
+    assert want["s1"][0] > 1 > want["s2"][0]                       # the configuration reads high and low
+    cal_path = tmp_path / "cal.json"
+    capsys.readouterr()
+    assert main(["fit", str(path), "--align", align, "--out", str(cal_path)]) == 0
+    text = capsys.readouterr().out
+    assert main(["fit", str(path), "--align", align, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    file_json = json.loads(cal_path.read_text())
+    for doc in (text, cal_path.read_text(), json.dumps(out)):
+        assert "sensitivit" not in doc
+    assert "sensitivity" not in _keys(out) | _keys(file_json)
+    blocks = dict(re.findall(r"\n(s\d)\n(.*?)(?=\n\n)", text, flags=re.S))
+    cal = load_calibration(cal_path)
+    for k, s in enumerate(out["sensors"]):
+        c = want[s["name"]]
+        printed = re.search(r"^  scale +\[([^]]+)\]", blocks[s["name"]], flags=re.M)
+        assert printed, blocks[s["name"]]
+        got_text = np.array([float(v) for v in printed[1].split(",")])
+        got_json = np.array(s["params"]["scale"]["value"])
+        got_file = cal.probes[k].value("scale")
+        assert s["params"]["scale"]["names"] == ["c_x", "c_y", "c_z"]
+        for got in (got_text, got_json, got_file):
+            np.testing.assert_allclose(got, c, atol=2e-4)              # the sensor's, within 2e-4 of the truth
+            assert np.array_equal(got > 1, c > 1)                      # > 1 where the sensor reads high
+        # and not the correction matrix's diagonal, which is about 1/scale (0.979 for s1's 1.021)
+        assert np.all(np.abs(np.diag(np.array(s["matrix"])) - got_json) > 5e-3)
+
+
+def test_every_residual_is_printed_with_what_it_is(gradiometer, capsys):
+    """s2's block printed "residual_rms_nT 0.997414 nT" and the table 0.811 for s2.scalar, neither saying which
+    residual: the first is the vector residual against the aligned reference s1, the second the scalar one."""
+    import re
+
+    path, truth = gradiometer
+    capsys.readouterr()
+    assert main(["fit", str(path)]) == 0
+    text = capsys.readouterr().out
+    assert main(["fit", str(path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    s1, s2 = out["sensors"]
+    assert "residual_rms_nT" not in text
+    scalar = re.search(r"\ns1\n.*?^  residual +([\d.]+) nT RMS: the scalar residual \|corrected\| − total field",
+                       text, flags=re.S | re.M)
+    vector = re.search(r"\ns2\n.*?^  residual +([\d.]+) nT RMS: the vector residual against the aligned reference, "
+                       r"corrected s2 − corrected s1", text, flags=re.S | re.M)
+    assert scalar and vector, text
+    assert float(scalar[1]) == pytest.approx(s1["params"]["residual_rms_nT"]["value"], rel=1e-5)
+    assert float(scalar[1]) == pytest.approx(s1["scalar_rms_nT"], rel=1e-5)
+    assert float(vector[1]) == pytest.approx(s2["params"]["vector_residual_rms_nT"]["value"], rel=1e-5)
+    # the vector residual is the RMS over s2-s1's three axes, which the table lists: one set of numbers
+    axes = [float(re.search(rf"^  s2-s1\.{a} +[\d.]+ +([\d.]+)$", text, flags=re.M)[1]) for a in "xyz"]
+    assert float(vector[1]) == pytest.approx(np.sqrt(np.mean(np.square(axes))), abs=2e-3)
+    # against the noise the simulation put in: s1 0.6 nT; s2 - s1 per axis hypot(0.6, 0.8) = 1.0 nT
+    assert float(scalar[1]) == pytest.approx(np.mean(truth["sensors"][0]["noise_nT"]), rel=0.05)
+    assert float(vector[1]) == pytest.approx(1.0, rel=0.05)
+    assert "<probe>.scalar: the scalar residual" in text and "<probe>-s1.<axis>: the vector residual" in text

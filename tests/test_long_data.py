@@ -49,7 +49,7 @@ def test_the_regression_by_chunks_equals_lstsq_of_the_whole_design(seed, coloure
     np.testing.assert_allclose(p1.offset_nT, p0.offset_nT, rtol=0, atol=1e-8)
     np.testing.assert_allclose(p1.offset_se_nT, p0.offset_se_nT, rtol=1e-8)
     np.testing.assert_allclose(p1.matrix_se, p0.matrix_se, rtol=1e-8)
-    rr = [p.params["residual_rms_nT"]["value"] for p in (p0, p1)]
+    rr = [p.params["vector_residual_rms_nT"]["value"] for p in (p0, p1)]
     assert rr[1] == pytest.approx(rr[0], rel=1e-10)
     # and the truth: the matrix and offset the data were made with (1/f noise's slow wander is not averaged
     # away as white noise is: 1 nT of it moves the offsets by tenths of a nT)

@@ -93,9 +93,30 @@ def test_report_and_fleet_output_folders_are_checked_before_any_work(tmp_path, c
     for command in (["fit", str(csv)], ["diagnose", str(csv)]):
         assert main([*command, "--report", str(plain / "r")]) == 2
         out, err = capsys.readouterr()
-        assert out == "" and f"--report {plain / 'r'}: cannot write there" in err
+        assert out == "" and f"--report {plain / 'r'}: {plain} is a file, not a folder" in err
+        assert main([*command, "--report", str(plain)]) == 2
+        assert f"--report {plain}: is a file; give a folder" in capsys.readouterr().err
     assert main(["fit", str(csv), str(csv), "--out", str(plain / "o")]) == 2
-    assert f"--out {plain / 'o'}: cannot write there" in capsys.readouterr().err
+    assert f"--out {plain / 'o'}: {plain} is a file, not a folder" in capsys.readouterr().err
+
+
+def test_report_refuses_a_missing_folder_as_out_does_and_makes_only_its_own(tmp_path, capsys):
+    """`fit --report /nonexistent/x` made the whole tree where `--out` refuses a missing folder: a typo in the path
+    grew folders. The report's own folder is made (as --out makes its file), in a folder that must exist."""
+    csv = tmp_path / "grad.csv"
+    assert main(["simulate", "--out", str(csv)]) == 0
+    capsys.readouterr()
+    tree = tmp_path / "nonexistent" / "x"
+    for command in (["fit", str(csv)], ["diagnose", str(csv)], ["fit", str(csv), str(csv)]):
+        assert main([*command, "--report", str(tree)]) == 2
+        out, err = capsys.readouterr()
+        assert out == "" and f"--report {tree}: folder {tree.parent} does not exist" in err
+        assert not tree.parent.exists()
+    # the --out of a fit says the same of the same path
+    assert main(["fit", str(csv), "--out", str(tree / "cal.json")]) == 2
+    assert f"folder {tree} does not exist" in capsys.readouterr().err
+    assert main(["fit", str(csv), "--report", str(tmp_path / "rep")]) == 0
+    assert (tmp_path / "rep" / "index.html").is_file()
 
 
 def test_run_with_a_dashboard_port_in_use_says_so_before_starting(tmp_path, capsys):

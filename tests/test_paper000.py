@@ -79,7 +79,11 @@ def test_table2_probe2_by_regression(sim, result):
     # E2 is found relative to the calibrated probe 1, so probe 1's offset error carries over
     se = np.hypot(cal2.offset_se_nT, fit.calibration.offset_se_nT)
     assert np.all(np.abs(e2 - sim.e2) < 4 * se) and np.abs(e2 - sim.e2).max() < 3.0, (e2 - sim.e2, se)
-    assert np.allclose(cal2.value("sensitivity"), k2)
+    # its `scale` is the sensor's scale factor per axis (the row norms of A2⁻¹), not 000's column gains k2: in
+    # 000's model X = K N⁻¹ B the axis' gain is k_i times the norm of row i of N⁻¹
+    truth = np.linalg.norm(np.diag(sim.k2) @ np.linalg.inv(sim.n2), axis=1)
+    assert np.allclose(cal2.value("scale"), np.linalg.norm(np.linalg.inv(a2), axis=1))
+    assert np.abs(cal2.value("scale") - truth).max() < 1e-4 and "sensitivity" not in cal2.params
 
 
 def test_regression_is_the_frobenius_minimum(sim, result):

@@ -172,3 +172,62 @@ def test_the_service_loads_the_plugins_its_configuration_names(tmp_path):
     (cfg_dir / "typo.toml").write_text(text.replace("plugins", "plugin"))
     with pytest.raises(ConfigError, match="plugin"):
         load_config(cfg_dir / "typo.toml")
+
+
+WARM = textwrap.dedent('''
+    import numpy as np
+    from service.numerics.effects import EffectTerm
+
+    class Warm(EffectTerm):
+        name = "warm"
+        frame = "raw"
+        def param_names(self, view):
+            return [f"{view.name}.{a} nT/degC" for a in "xyz"]
+        def constants(self, view):
+            self.columns(view)
+            return {f"{view.name} T0": (view.cache["ref:warm_t0"], "degC")}
+        def columns(self, view):
+            t = view.data.temperature(view.k)
+            t0 = view.cache.setdefault("ref:warm_t0", float(np.mean(t)))
+            cols = np.zeros((t.size, 3, 3))
+            for a in range(3):
+                cols[:, a, a] = t - t0
+            return cols
+''')
+
+
+def test_a_fixed_reference_is_printed_as_fixed_with_its_value(tmp_path, capsys):
+    """A user effect's T0 (its constants()) was printed "22 (undetermined) degC": held, never fitted, it is
+    fixed, and says so in the text, the JSON, the calibration file and the report's table."""
+    import json
+
+    from service.io.calfile import load_calibration
+    from service.numerics.calib.param_table import effect_rows
+
+    cfg = tmp_path / "warm.toml"
+    cfg.write_text('[unit]\nn_probes = 1\n[sim]\nduration_s = 20\n[sim.temperature]\nstart_C = 18.5\n'
+                   'amplitude_C = 2.0\nperiod_s = 10.0\n[sim.motion]\nkind = "tumble"\nrate_deg_s = 30.0\n'
+                   '[sim.reference]\nenabled = true\n[[sim.probes]]\noffset_nT = [100.0, -50.0, 20.0]\n')
+    csv = tmp_path / "warm.csv"
+    assert main(["simulate", "--config", str(cfg), "--out", str(csv)]) == 0
+    f = tmp_path / "warm.py"
+    f.write_text(WARM)
+    cal = tmp_path / "cal.json"
+    capsys.readouterr()
+    assert main(["fit", str(csv), "--effects", f"{f}:Warm", "--out", str(cal)]) == 0
+    text = capsys.readouterr().out
+    line = next(ln for ln in text.splitlines() if "s1 T0" in ln)
+    t0 = float(line.split("s1 T0")[1].split()[0])
+    assert abs(t0 - 18.5) < 0.3 and "(fixed: " in line and "undetermined" not in line       # the mean temperature
+    # the fitted coefficients keep their errors (the sim has no temperature effect: within 4 of them of zero)
+    for ln in (ln for ln in text.splitlines() if "nT/degC" in ln):
+        value, se = float(ln.split()[3]), float(ln.split()[5])
+        assert "±" in ln and abs(value) < 4 * se
+    assert main(["fit", str(csv), "--effects", f"{f}:Warm", "--json"]) == 0
+    entry = json.loads(capsys.readouterr().out)["effect_params"]["warm"]["s1 T0"]
+    assert entry["fixed"] is True and entry["se"] is None and entry["value"] == pytest.approx(t0, abs=1e-5)
+    saved = load_calibration(cal).effect_params["warm"]
+    assert saved["s1 T0"]["fixed"] is True
+    rows = {r.name: r for r in effect_rows({"warm": saved})}
+    assert rows["s1 T0"].note.startswith("fixed: ") and rows["s1 T0"].warning == ""
+    assert rows["s1.x nT/degC"].se is not None

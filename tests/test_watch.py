@@ -236,3 +236,31 @@ def test_watch_process_stops_cleanly_on_sigterm(publisher):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_a_check_without_a_candidate_says_there_is_no_residual_yet():
+    """After the service started from its saved calibration, the first check found the online estimate not yet
+    determined and the view read "coverage - condition - residual [] nT": now it says what is there. The gate as
+    `fluxcal run` gave it then (configs/sim-gradiometer.toml, a saved calibration, 2000 samples in)."""
+    from service.wiring.commands.command import state_text
+
+    reason = ("s1: the online estimate is not determined yet (2000 samples, condition 782); keep rotating about "
+              "several axes")
+    st = {"usable": True, "cal_id": 1, "method": "rls", "probe_names": ["s1", "s2"],
+          "gate": {"usable": False, "reasons": [reason], "coverage": None, "condition": None, "rms_nT": []}}
+    dash = Dashboard("u1", ["tcp/127.0.0.1:7447"])
+    dash.connected = True
+    dash.update_state(st)
+    text = dash.calibration_summary()
+    assert "[]" not in text and "coverage -" not in text and "condition -" not in text
+    assert "no residual yet: the online estimate has no candidate since the start or the last reset" in text
+    assert f"gate: {reason}" in text                  # why, though the saved calibration is in use
+    dash.last_msg_t = dash.clock()                      # data flow: the one-line view shows the state
+    assert dash.line().endswith("| cal=usable no-candidate-yet") and "cov=" not in dash.line()
+    said = state_text({**st, "unit": "u1"})
+    assert "no candidate to judge, so no residual yet" in said and "[]" not in said and "None" not in said
+    # the next check judged a candidate: its figures are back
+    dash.update_state({"gate": {"usable": True, "reasons": [], "coverage": 0.346, "condition": 89.4,
+                                "rms_nT": [0.625, 0.790]}})
+    text = dash.calibration_summary()
+    assert "coverage 0.35  condition 89.4  residual [0.62, 0.79] nT" in text and "no residual yet" not in text

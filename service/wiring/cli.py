@@ -216,6 +216,8 @@ def build_parser() -> argparse.ArgumentParser:
     cmd.add_argument("--connect", metavar="ENDPOINT", help="the service's endpoint (default: tcp/127.0.0.1:7447)")
     cmd.add_argument("--unit", metavar="NAME", help="the unit (default: the first one found)")
     cmd.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the answer (default: %(default)s)")
+    cmd.add_argument("--json", action="store_true", help="print the service's answer as JSON (default: text for a "
+                                                        "person)")
     cmd.add_argument("--ca", metavar="CA.pem", help="TLS: the site's certificate authority")
     cmd.add_argument("--cert", metavar="CERT.pem", help="TLS: this client's certificate")
     cmd.add_argument("--key", metavar="KEY.pem", help="TLS: this client's private key")

@@ -52,30 +52,59 @@ def _observable_axis(d: Diagnosis, channel: str, observable: str) -> tuple[np.nd
     return None
 
 
+def _spectrum_groups(names: list[str]) -> list[tuple[str, list[int]]]:
+    """The channels in panels of at most a few lines: the scalar channels together, each probe's differences to
+    probe 1 together (3 probes: 3 panels of 3)."""
+    groups: dict[str, list[int]] = {}
+    for c, name in enumerate(names):
+        key = "scalar residuals" if name.endswith(".scalar") else name.rsplit(".", 1)[0]
+        groups.setdefault(key, []).append(c)
+    return list(groups.items())
+
+
 def _spectrum_figure(plt, d: Diagnosis) -> tuple[str, str, bytes] | None:
-    """The spectrum of each channel's residual against its white noise floor: a line, a 1/f rise or a slow
-    wander shows where the verdict's signature came from."""
-    from scipy.signal import welch
+    """The spectrum of every channel's residual against its white noise floor, one panel per group of channels,
+    drawn from the numbers `where` names its bands from (numerics.diagnose.where.excess_spectrum: the periodogram
+    in log-spaced bins), each band it names shaded in its channel's colour."""
+    from service.numerics.diagnose.where import excess_spectrum
 
     ch = d.fit.channels
     if ch.values.shape[0] < 256:
         return None
-    dt = float(np.median(np.diff(ch.t_s)))
-    nper = int(2 ** np.floor(np.log2(ch.values.shape[0] / 4)))
-    fig, ax = plt.subplots(figsize=(7.5, 3.6))
-    for c, name in enumerate(ch.names[:6]):
-        f, p = welch(ch.values[:, c] - ch.values[:, c].mean(), fs=1.0 / dt, nperseg=nper)
-        line, = ax.loglog(f[1:], np.sqrt(p[1:]), lw=0.8, label=name)
-        ax.axhline(np.sqrt(2.0 * d.channel_noise_nT[c] ** 2 * dt), color=line.get_color(), ls=":", lw=0.8)
+    dt = d.fit.problem.data.dt_s
+    bands = {w["channel"]: w for w in d.where if w["observable"] == "frequency" and w.get("band_hz")}
+    groups = _spectrum_groups(list(ch.names))
+    cols = 1 if len(groups) == 1 else 2
+    rows = -(-len(groups) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(7.5, 2.9 * rows), squeeze=False, sharex=True)
     sig = (d.verdict or {}).get("signature") or {}
-    if sig.get("line_hz"):
-        ax.axvline(sig["line_hz"], color="k", ls="--", lw=0.8, label=f"line at {sig['line_hz']:.2f} Hz")
-    ax.set_xlabel("frequency (Hz)")
-    ax.set_ylabel("residual (nT/√Hz)")
-    ax.legend(fontsize=7, ncol=2)
+    for ax, (title, members) in zip(axes.ravel(), groups):
+        for c in members:
+            name = ch.names[c]
+            ex = excess_spectrum(ch.values[:, c], dt, float(d.channel_noise_nT[c]))
+            line, = ax.loglog(ex.freq_hz, np.sqrt(ex.density), lw=0.8, label=name)
+            ax.axhline(np.sqrt(ex.floor), color=line.get_color(), ls=":", lw=0.8)
+            w = bands.get(name)
+            if w is not None:
+                ax.axvspan(*w["band_hz"], color=line.get_color(), alpha=0.15,
+                           label=f"{w['band']} ({100 * w['strength']:.0f} %)")
+        if sig.get("line_hz"):
+            ax.axvline(sig["line_hz"], color="k", ls="--", lw=0.8, label=f"line at {sig['line_hz']:.2f} Hz")
+        ax.set_title(title, fontsize=9)
+        ax.set_ylabel("residual (nT/√Hz)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.legend(fontsize=6, ncol=2)
+    for ax in axes.ravel()[len(groups):]:
+        ax.set_visible(False)
+    for ax in axes[-1]:
+        ax.set_xlabel("frequency (Hz)", fontsize=8)
+    fig.tight_layout()
     data = png(fig)
     plt.close(fig)
-    return ("spectrum.png", "Spectrum of the residual of each channel (dotted: its white noise floor)", data)
+    return ("spectrum.png", f"Spectrum of the residual of each of the {len(ch.names)} channels, the model's before any "
+            f"candidate (the periodogram averaged in log-spaced bins; dotted: its white noise floor; shaded: the band "
+            f"'Where the model fails' names for that channel, and the share of its variance above the floor there)",
+            data)
 
 
 def _frames_figure(plt, d: Diagnosis) -> tuple[str, str, bytes] | None:

@@ -62,10 +62,11 @@ def images(figs: list[Figure]) -> str:
 
 
 def write_page(out_dir: str | Path, page: str, figs: list[Figure]) -> Path:
-    """DIR/index.html and the PNG files beside it; index.html replaced in one step."""
+    """DIR/index.html and the PNG files beside it; index.html replaced in one step. DIR is made if missing, in a
+    folder that must exist (the commands check it first: commands/notes.check_output_folder)."""
     out = Path(out_dir)
     try:
-        out.mkdir(parents=True, exist_ok=True)
+        out.mkdir(exist_ok=True)
         for name, _, data in figs:
             (out / name).write_bytes(data)
         fd, tmp = tempfile.mkstemp(dir=out, prefix=".index-", suffix=".html")

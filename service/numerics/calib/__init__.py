@@ -18,7 +18,8 @@ from .alignment import (
                         rotation_from_samples,
 )
 from .ellipsoid import EllipsoidFit, fit_ellipsoid, triangular_factor
-from .model import ArrayCalibration, ProbeCalibration, triangular_matrix, triangular_params, unit_column_split
+from .model import (ArrayCalibration, ProbeCalibration, sensor_scale, triangular_matrix, triangular_params,
+                    unit_column_split)
 from .tensor import (
                         center_field,
                         cross_positions,
@@ -31,7 +32,8 @@ from .tensor import (
 from .tmi import TmiFit, fit_tmi, fit_tmi_full
 
 __all__ = [
-    "ArrayCalibration", "ProbeCalibration", "triangular_matrix", "triangular_params", "unit_column_split",
+    "ArrayCalibration", "ProbeCalibration", "sensor_scale", "triangular_matrix", "triangular_params",
+    "unit_column_split",
     "EllipsoidFit", "fit_ellipsoid", "triangular_factor",
     "TmiFit", "fit_tmi", "fit_tmi_full",
     "RotationAlignment", "align_probes", "align_regression", "align_rotation", "platform_calibration",

@@ -24,7 +24,7 @@ import numpy as np
 from drivers.errors import CalibrationRefused, DataError
 
 from .excitation import PLANARITY_MIN, planarity
-from .model import ProbeCalibration, named, unit_column_split
+from .model import ProbeCalibration, named, sensor_scale
 
 
 def _finite(a: np.ndarray, what: str, ndim: int = 2) -> np.ndarray:
@@ -122,7 +122,9 @@ def _regression_by_chunks(ref: np.ndarray, raw: np.ndarray):
 def regression_calibration(name: str, ref_nT: np.ndarray, raw_nT: np.ndarray, *,
                            gram_rows: int = GRAM_ROWS) -> ProbeCalibration:
     """Probe k as a ProbeCalibration in the reference probe's frame: M = A, o = −A⁻¹ c, with standard
-    errors from the regression and 000's named parameters (sensitivities, unit-column matrix).
+    errors from the regression and the sensor's scale factor per axis (`scale`: the row norms of A⁻¹, as the
+    ellipsoid fit's c_x, c_y, c_z; not 000's column gains K of A = N K⁻¹, which differ from it where the axes
+    are not orthogonal: by up to 1.3e-3 on configs/sim-gradiometer.toml's s2).
 
     The standard errors are those of the regression given the reference: errors of the reference
     probe's own calibration carry over one to one (an offset error δE_1 of probe 1 moves E_k by
@@ -149,13 +151,17 @@ def regression_calibration(name: str, ref_nT: np.ndarray, raw_nT: np.ndarray, *,
         bj[j] += h
         jac[:, j] = (offset_of(bj) - offset) / h
     o_se = np.sqrt(np.maximum(np.diag(jac @ cov @ jac.T), 0))
-    _, k = unit_column_split(a)
+    scale = sensor_scale(a)
     resid_rms = float(np.sqrt(np.mean(resid ** 2))) if resid is not None else float(np.sqrt(ss.sum() / (3 * n)))
     params = {"align": named(None, None, "", method="regression (000 eq. 10-16)"),
               "offset_nT": named(offset, o_se, "nT"),
-              "sensitivity": named(k, None, "", note="000 Table 2: A = N diag(k)^-1, N of unit columns"),
-              "residual_rms_nT": named(resid_rms, None, "nT",
-                                       note="per-axis difference to the reference probe after calibration")}
+              # no standard error: fluxcal fit widens the matrix's for coloured noise, which this would not follow
+              "scale": named(scale, None, "", names=["c_x", "c_y", "c_z"],
+                             note="the sensor's scale factor per axis: row norms of matrix^-1 (001 eq. 11's c)"),
+              "vector_residual_rms_nT": named(resid_rms, None, "nT",
+                                              note="RMS over the three axes of the corrected vector minus the "
+                                                   "reference probe's (the vector residual against the aligned "
+                                                   "reference)")}
     return ProbeCalibration(name, offset, a, o_se, m_se, params)
 
 

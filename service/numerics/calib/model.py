@@ -12,8 +12,13 @@ Two ways of naming the physics of a matrix live here too:
   unit sensing axes (φ, θ, ψ the non-orthogonality angles); the correction is M = (C A)⁻¹,
   upper-triangular. `triangular_matrix` and `triangular_params` go each way, exactly.
 - 000 Tables 1-2: a correction matrix A split as A = N K⁻¹ with N of unit columns (the
-  "non-orthogonality" matrix) and K = diag(k) the sensitivities (true / nominal), so that the raw
-  output is X = K N⁻¹ B + E. `unit_column_split` does it.
+  "non-orthogonality" matrix) and K = diag(k) 000's column gains, so that the raw output is
+  X = K N⁻¹ B + E. `unit_column_split` does it, for 000's tables; the outputs do not use k.
+
+The sensor's scale factor per axis, `params["scale"]` of every method, is c of 001 eq. 11: raw axis i reads
+c_i times the field along its unit sensing direction, so c_i is the norm of row i of M⁻¹ whatever the frame
+M maps to (`sensor_scale`); above 1 where the axis reads high. 000's k equals it only for orthogonal axes.
+The correction matrix's diagonal is neither (about 1/c), and is called the correction diagonal where shown.
 """
 
 from __future__ import annotations
@@ -231,13 +236,26 @@ def triangular_params_many(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return np.degrees(np.column_stack([phi, theta, psi])), scales
 
 
-# --- 000 Tables 1-2: non-orthogonality (unit columns) and sensitivity --------------------------------
+def sensor_scale(matrix: np.ndarray) -> np.ndarray:
+    """The sensor's scale factor per axis of a correction matrix M in any frame: the row norms of M⁻¹ (the raw
+    output is M⁻¹ B + o, and row i of M⁻¹ is c_i times axis i's unit sensing direction, 001 eq. 11).
+
+    >>> m = triangular_matrix([1.0, -2.0, 1.5], [1.02, 0.98, 1.01])
+    >>> turn = np.array([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]])
+    >>> sensor_scale(turn @ m).round(9).tolist()
+    [1.02, 0.98, 1.01]
+    """
+    return np.linalg.norm(np.linalg.inv(np.asarray(matrix, float)), axis=1)
+
+
+# --- 000 Tables 1-2: non-orthogonality (unit columns) and column gains --------------------------------
 
 
 def unit_column_split(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(N, k): A = N diag(k)⁻¹ with the columns of N unit vectors (000 Tables 1-2).
 
-    k are the sensitivities (true / nominal): the raw output is X = diag(k) N⁻¹ B + E.
+    k are 000's column gains (000 calls them sensitivities): the raw output is X = diag(k) N⁻¹ B + E. They
+    are not the sensor's scale factors (`sensor_scale`) unless the axes are orthogonal.
     """
     a = np.asarray(matrix, float)
     norms = np.linalg.norm(a, axis=0)

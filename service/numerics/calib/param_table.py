@@ -19,9 +19,10 @@ from .model import ProbeCalibration
 from .order import OFFSET_SE_MAX_FRACTION, SCALE_SE_MAX
 
 #: entries of ProbeCalibration.params that describe the fit rather than the sensor
-_NOT_PARAMETERS = {"offset_nT", "samples", "align", "condition", "residual_rms_nT", "memory_samples", "axis_rms_nT",
+_NOT_PARAMETERS = {"offset_nT", "samples", "align", "condition", "residual_rms_nT", "vector_residual_rms_nT",
+                   "memory_samples", "axis_rms_nT",
                    "sine_amplitude_nT", "sine_phase_deg", "sine_mean_nT"}
-_SCALES = {"scale", "sensitivity"}
+_SCALES = {"scale"}
 
 
 @dataclass(frozen=True)
@@ -103,12 +104,17 @@ def probe_rows(p: ProbeCalibration, warnings: Iterable[str] = (), field_nT: floa
 
 
 def effect_rows(effect_params: dict[str, dict[str, dict[str, Any]]]) -> list[ParamRow]:
-    """Rows of the effect terms' parameters {effect: {name: {"value", "se", "unit", "note"}}}."""
+    """Rows of the effect terms' parameters {effect: {name: {"value", "se", "unit", "note"}}}; a term's fixed
+    reference ("fixed": true) is said to be fixed, never undetermined."""
     out = []
     for eff, params in (effect_params or {}).items():
         for name, v in params.items():
             se, note = _finite(v.get("se")), str(v.get("note", ""))
             value = float(v["value"])
+            if v.get("fixed"):
+                out.append(ParamRow(eff, name, value, None, v.get("unit", ""), "",
+                                    f"fixed: {note}" if note else "fixed: held at this value, not fitted"))
+                continue
             warn = "" if note or se is not None else "not determined by these data"
             if se is not None and se > abs(value):
                 warn = "SE exceeds the value"

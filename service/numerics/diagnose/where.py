@@ -4,6 +4,7 @@ columns) and the worst time segments.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -139,29 +140,84 @@ def _with_scalar(basis: Any, scalar: Any) -> Any:
     return basis
 
 
-def _band_excess(y: np.ndarray, dt: float, noise: float) -> tuple[float, str]:
-    """Strongest frequency band of a residual above its white-noise floor: (fraction of variance, band)."""
+#: the width of the band named: the span from the record's longest period to the Nyquist frequency in BANDS equal
+#: steps of log frequency; the band slides in steps of 1/FINE_PER_BAND of its width to where it holds the most
+BANDS = 12
+FINE_PER_BAND = 16
+
+
+@dataclass(frozen=True)
+class ExcessSpectrum:
+    """A residual's periodogram averaged in log-spaced bins, against its white floor, and the band of its excess
+    that `where` names: what the diagnose report draws and what its text says, from one computation."""
+
+    freq_hz: np.ndarray                   # (m,) each non-empty fine bin: the geometric mean of its FFT frequencies
+    density: np.ndarray                   # (m,) its mean one-sided periodogram, nT²/Hz
+    floor: float                          # the white floor's one-sided density 2 σ² dt, nT²/Hz
+    share: float                          # the fraction of the variance above the floor in the band (0: none)
+    band_hz: tuple[float, float] | None   # the band, Hz; None without any excess
+
+    @property
+    def band(self) -> str:
+        return "" if self.band_hz is None else f"{self.band_hz[0]:.3g}-{self.band_hz[1]:.3g} Hz"
+
+
+def excess_spectrum(y: np.ndarray, dt: float, noise: float) -> ExcessSpectrum:
+    """The band of a residual's spectrum holding the largest share of its variance above the white-noise floor,
+    among the bands 1/BANDS of the record's span in log frequency wide, slid in fine steps: placed where the
+    excess lies. (Bands at fixed edges named the one holding most of a hump that straddled two: "1.19-2.55 Hz"
+    for a hump at 0.9-1.8 Hz, 50 Hz for 370 s, while the report's plot showed the hump.)"""
     n = y.size
+    empty = ExcessSpectrum(np.zeros(0), np.zeros(0), 2.0 * noise ** 2 * dt, 0.0, None)
     if n < 64:
-        return 0.0, ""
+        return empty
     y = y - y.mean()
     spec = np.abs(np.fft.rfft(y)) ** 2 / n                  # periodogram, E = variance for white noise
     freq = np.fft.rfftfreq(n, dt)
     total = float(np.sum(y ** 2) / n)
     if total <= 0:
-        return 0.0, ""
-    edges = np.geomspace(freq[1], freq[-1] * 1.0001, 13)
-    best, band = 0.0, ""
-    for a, b in zip(edges[:-1], edges[1:]):                  # 12 bands
-        m = (freq >= a) & (freq < b)
-        if not m.any():
-            continue
-        # share of the mean square: (2/n) sum spec; white noise of variance s^2 has E[spec] = s^2
-        excess = (2.0 / n) * (float(spec[m].sum()) - noise ** 2 * int(m.sum()))
-        frac = excess / total
-        if frac > best:
-            best, band = frac, f"{a:.3g}-{b:.3g} Hz"
-    return float(np.clip(best, 0.0, 1.0)), band
+        return empty
+    spec, freq = spec[1:], freq[1:]                           # no mean
+    edges = np.geomspace(freq[0], freq[-1] * 1.0001, BANDS * FINE_PER_BAND + 1)
+    which = np.clip(np.searchsorted(edges, freq, side="right") - 1, 0, edges.size - 2)
+    m = edges.size - 1
+    count = np.bincount(which, minlength=m)
+    summed = np.bincount(which, weights=spec, minlength=m)
+    # share of the mean square per fine bin: (2/n) sum spec; white noise of variance s^2 has E[spec] = s^2
+    excess = (2.0 / n) * (summed - noise ** 2 * count) / total
+    ok = count > 0
+    first = np.searchsorted(which, np.arange(m), side="left")
+    last = np.searchsorted(which, np.arange(m), side="right") - 1
+    centre = np.sqrt(freq[first[ok]] * freq[last[ok]])
+    density = 2.0 * dt * summed[ok] / count[ok]
+    floor = 2.0 * noise ** 2 * dt
+    # each band of FINE_PER_BAND fine bins that holds a frequency of the record, by its share
+    cum = np.concatenate([[0.0], np.cumsum(excess)])
+    held = cum[FINE_PER_BAND:] - cum[:-FINE_PER_BAND]
+    ccount = np.concatenate([[0], np.cumsum(count)])
+    held = np.where(ccount[FINE_PER_BAND:] - ccount[:-FINE_PER_BAND] > 0, held, -np.inf)
+    k = int(np.argmax(held))
+    share = float(held[k])
+    if not share > 0:
+        return ExcessSpectrum(centre, density, floor, 0.0, None)
+    # a line or a narrow hump lies in many bands alike (their shares differ by the periodogram's scatter, whose
+    # standard deviation in a band of c bins is sqrt(c) (2/n) s^2 / total): of those, the one centred on it
+    scatter = 2.0 * np.sqrt(ccount[k + FINE_PER_BAND] - ccount[k]) * (2.0 / n) * noise ** 2 / total
+    pos = np.clip(excess[k:k + FINE_PER_BAND], 0.0, None)
+    mid = np.log(np.sqrt(edges[:-1] * edges[1:]))                  # each fine bin's middle, log Hz
+    at = float(np.sum(pos * mid[k:k + FINE_PER_BAND]) / np.sum(pos))
+    alike = np.flatnonzero(held >= share - scatter)
+    k = int(alike[np.argmin(np.abs(0.5 * (np.log(edges[alike]) + np.log(edges[alike + FINE_PER_BAND])) - at))])
+    share = float(held[k])
+    return ExcessSpectrum(centre, density, floor, float(min(share, 1.0)),
+                          (float(edges[k]), float(edges[k + FINE_PER_BAND])))
+
+
+def _band_excess(y: np.ndarray, dt: float, noise: float) -> tuple[float, str, tuple[float, float] | None]:
+    """Strongest frequency band of a residual above its white-noise floor: (fraction of variance, band, its edges
+    in Hz); excess_spectrum."""
+    ex = excess_spectrum(y, dt, noise)
+    return float(np.clip(ex.share, 0.0, 1.0)), ex.band, ex.band_hz
 
 
 def where_it_fails(data: EffectData, fit: FitResult, noise_nT: np.ndarray, *, top: int = 30,
@@ -185,9 +241,10 @@ def where_it_fails(data: EffectData, fit: FitResult, noise_nT: np.ndarray, *, to
                 s = max(s, _eta2(y, x(c)))
             if s >= min_strength:
                 out.append({"channel": name, "observable": oname, "strength": s})
-        s, band = _band_excess(vals[:, c], data.dt_s, float(noise_nT[c]))
+        s, band, edges = _band_excess(vals[:, c], data.dt_s, float(noise_nT[c]))
         if s >= min_strength:
-            out.append({"channel": name, "observable": "frequency", "strength": s, "band": band})
+            out.append({"channel": name, "observable": "frequency", "strength": s, "band": band,
+                        "band_hz": list(edges)})
     out.sort(key=lambda d: -d["strength"])
     return out[:top]
 

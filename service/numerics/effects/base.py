@@ -359,7 +359,8 @@ class EffectTerm:
     def constants(self, view: ProbeView) -> dict[str, tuple[float, str]]:
         """Fixed references the parameters are defined against (name -> (value, unit)), e.g. the
         temperature the temperature coefficients are centred on; kept with the calibration, and reused
-        when it is applied to other data."""
+        when it is applied to other data. They are held, not fitted: outputs show them as fixed with their
+        value ("fixed": true in a calibration's effect_params), never as undetermined."""
         return {}
 
     def cached_columns(self, view: ProbeView) -> np.ndarray:

@@ -40,7 +40,8 @@ class EffectsFit:
 
     def calibration(self) -> Any:
         """A service.numerics.calib.model.ArrayCalibration: the linear part with offset standard errors, the
-        effect names and `effect_params` {effect: {name: {"value", "se", "unit"}}}, plus the fit's
+        effect names and `effect_params` {effect: {name: {"value", "se", "unit"}}} (a term's constants with
+        "fixed": true: held at their value, not fitted), plus the fit's
         RMS in `diagnostics`. (The plain LinearCalibration if the calibration core is missing.)"""
         try:
             from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
@@ -52,7 +53,7 @@ class EffectsFit:
         for p in self.parameters:
             effect_params.setdefault(p.term, {})[p.name] = {"value": p.value, "se": p.stderr, "unit": p.unit}
         for term, name, value, unit in self.constants():
-            effect_params.setdefault(term, {})[name] = {"value": value, "se": None, "unit": unit,
+            effect_params.setdefault(term, {})[name] = {"value": value, "se": None, "unit": unit, "fixed": True,
                                                         "note": "reference the parameters are defined against"}
         data = self.result.problem.data
         return ArrayCalibration(method=self.base_method, align=self.base_align, probes=probes, total_nT=self.total_nT,

@@ -1,15 +1,19 @@
 """`fluxcal command VERB [PAYLOAD]`: the running service's commands (and its state) from a shell, no Python.
 
 VERB is `state` or one of the service's commands (freeze, unfreeze, reset, apply, add-effect). The
-answer is printed as JSON; a command the service refused exits 1 with its reason on stderr.
+answer is printed for a person (`state`: the calibration in use, the quality gate's latest verdict, each
+probe's offsets and matrix, the input's health, the recording), or as the service's JSON with `--json`; a
+command the service refused exits 1 with its reason on stderr.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import sys
 from argparse import Namespace
 from pathlib import Path
+from typing import Any
 
 from drivers.errors import ConfigError, DataError, FluxcalError
 from service.io.bus import COMMANDS, MAX_COMMAND_PAYLOAD_BYTES, BusClient, ZenohConfig, discover_units, open_session
@@ -43,7 +47,13 @@ def main(args: Namespace) -> int:
         with BusClient(session, unit, streams=[]) as client:
             answer = (client.query_state(timeout=args.timeout) if args.verb == "state"
                       else client.command(args.verb, payload, timeout=args.timeout))
-    print(json.dumps(answer))
+    if getattr(args, "json", False):
+        print(json.dumps(answer))
+    elif args.verb == "state":
+        print(state_text(answer))
+    elif answer.get("ok", False):
+        print(f"{args.verb}: done by unit {unit}" + (f"; calibration {answer['cal_id']} in use"
+                                                     if answer.get("cal_id") else "; no calibration in use yet"))
     if args.verb != "state" and not answer.get("ok", False):
         print(f"fluxcal command: {args.verb} not applied by unit {unit}: {answer.get('error', 'no reason given')}",
               file=sys.stderr)
@@ -73,3 +83,96 @@ def _calibration_text(path: Path) -> str:
                         f"file (one written by `fluxcal fit --out` is a few kB)")
     calibration_from_json(text, origin=str(path))    # DataError naming the file, quoting at most a line's start
     return text
+
+
+# --- the state for a person ------------------------------------------------------------------------------
+
+
+def _n(x: Any, fmt: str = ".4g", unit: str = "") -> str:
+    """A number as text; "n/a" for a missing or non-finite one (and for the -1 the state gives a missing error)."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+        return "n/a"
+    return format(x, fmt) + (f" {unit}" if unit else "")
+
+
+def _yes(x: Any) -> str:
+    return "yes" if x else "no"
+
+
+def state_text(st: dict[str, Any]) -> str:
+    """The service's state (`fluxcal command state`) as lines a person reads: what it is, then the unit."""
+    lines = []
+    unit = st.get("unit", "?")
+    if st.get("usable"):
+        head = f"unit {unit}: calibration {st.get('cal_id')} in use (method {st.get('method') or '-'}, align " \
+               f"{st.get('align') or '-'}"
+        head += f", total field {_n(st.get('total_nT'), '.1f', 'nT')})" if st.get("total_nT") else ", total field " \
+                f"estimated)"
+    else:
+        head = f"unit {unit}: no calibration in use yet (learning online; corrected output starts once a candidate " \
+               f"passes the quality gate)"
+    lines.append(head)
+    span = st.get("span")
+    if st.get("usable") and isinstance(span, list) and len(span) == 3:
+        lines.append(f"  fitted to {int(span[2]):,} samples, unit time {_n(span[0], '.3f')} to {_n(span[1], '.3f')} s")
+    mode = [("frozen: the online estimate no longer changes what is used" if st.get("frozen") else
+             "learning online"),
+            "held: an applied calibration, kept until reset" if st.get("held") else ""]
+    lines.append("  " + "; ".join(m for m in mode if m) + f"; effects: {', '.join(st.get('effects') or []) or 'none'}"
+                 + (f"; {st['samples_seen']:,} samples seen per probe" if isinstance(st.get("samples_seen"), int)
+                    else ""))
+    names = st.get("probe_names") or [p.get("name") for p in st.get("probes") or []]
+    gate = st.get("gate")
+    if not gate:
+        lines.append("quality gate: no verdict yet (too few samples since the start or the last reset)")
+    else:
+        rms = gate.get("rms_nT")
+        words = ["passed" if gate.get("usable") else "refused"]
+        if isinstance(gate.get("coverage"), (int, float)) and math.isfinite(gate["coverage"]):
+            words.append(f"coverage {gate['coverage']:.0%} of the 26 direction bins in its window")
+        if isinstance(gate.get("condition"), (int, float)) and math.isfinite(gate["condition"]):
+            words.append(f"condition {gate['condition']:.3g}")
+        if rms:
+            words.append("scalar residual RMS " + ", ".join(
+                f"{name} {_n(r, '.3f', 'nT')}" for name, r in zip(names or [f"s{k + 1}" for k in range(len(rms))],
+                                                                  rms)))
+        elif rms == []:                      # the pipeline's mark of a check that found no candidate
+            words.append("no candidate to judge, so no residual yet")
+        lines.append("quality gate, latest online candidate: " + "; ".join(words) +
+                     (" (the calibration in use stays)" if st.get("usable") and not gate.get("usable") else ""))
+        lines += [f"  {r}" for r in gate.get("reasons") or []]
+    for p in st.get("probes") or []:
+        lines.append(f"probe {p.get('name')}")
+        off, se = p.get("offset_nT") or [], p.get("offset_se_nT") or []
+        lines.append("  offset nT   " + "  ".join(
+            f"{_n(v, '10.3f')} ± {_n(e, '.2g') if isinstance(e, (int, float)) and e >= 0 else 'n/a'}"
+            for v, e in zip(off, se + [None] * (len(off) - len(se)))))
+        for i, row in enumerate(p.get("matrix") or []):
+            lines.append(("  matrix     " if i == 0 else "             ") + "  ".join(_n(v, '10.5f') for v in row))
+        params = p.get("params") or {}
+        for key, label in (("scale", "scale"), ("nonorth_deg", "nonorth"), ("misalign_deg", "misalign")):
+            entry = params.get(key)
+            if isinstance(entry, dict) and isinstance(entry.get("value"), list):
+                unit = str(entry.get("unit") or "")
+                lines.append(f"  {label:10s} " + ", ".join(_n(v, '.5g') for v in entry["value"]) +
+                             (f" {unit}" if unit else ""))
+    health = st.get("health") or {}
+    if health:
+        accepted = health.get("frames_accepted")
+        bad = {k: v for k, v in health.items() if k != "frames_accepted" and isinstance(v, (int, float)) and v}
+        lines.append(f"input: {_n(accepted, ',d') if isinstance(accepted, int) else 'n/a'} frames accepted; " +
+                     (", ".join(f"{k.replace('_', ' ')} {v:,}" for k, v in bad.items()) if bad
+                      else "no error counted"))
+    rec = st.get("recording")
+    if rec:
+        trouble = [f"{k} {rec[k]:,}" for k in ("dropped", "errors") if rec.get(k)]
+        lines.append(f"recording: {rec.get('current') or '-'} ({rec.get('files', 0)} file(s), "
+                     f"{rec.get('messages_written', 0):,} messages written, "
+                     f"{(rec.get('bytes_written') or 0) / 1e6:.1f} MB)" +
+                     (f"; {', '.join(trouble)}" if trouble else "") +
+                     (f"; last error: {rec['last_error']}" if rec.get("last_error") else ""))
+    if st.get("stale"):
+        lines.append(f"(this state is {_n(st.get('state_age_s'), '.0f')} s old: the service is busy, e.g. reconnecting "
+                     f"its input)")
+    lines.append("(--json: the service's state as JSON)")
+    return "\n".join(lines)

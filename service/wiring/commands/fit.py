@@ -249,6 +249,17 @@ def _fmt_param(value, se) -> str:
     return f"{seq(value)} ± {seq(se)}"
 
 
+def _fmt_effect_param(v: dict) -> str:
+    """An effect parameter: value ± SE; a term's fixed reference (T0, a time origin) as fixed, with its value;
+    a fitted one the data leave without an error as undetermined."""
+    unit, se = v.get("unit", ""), v.get("se")
+    if v.get("fixed"):
+        return f"{v['value']:.6g} {unit} (fixed: {v.get('note') or 'held at this value, not fitted'})"
+    if se is not None:
+        return f"{v['value']:.6g} ± {se:.3g} {unit}"
+    return f"{v['value']:.6g} {unit} (undetermined: the data do not determine it)"
+
+
 def _fmt_pm(v: float, se: float, digits: int = 3) -> str:
     w = digits + 7
     return f"{v:{w}.{digits}f} ± {se:.1e}" if np.isfinite(se) else f"{v:{w}.{digits}f} ±     n/a"
@@ -262,6 +273,15 @@ def calibration_warnings(cal, coverages) -> list[str]:
     out += [f"{p.name}: only {c.fraction:.0%} of the field directions about the fitted offset were seen; {c.advice()}"
             for p, c in zip(cal.probes, coverages) if c.regions]
     return out
+
+
+#: the residuals among a probe's params, each printed with what it is
+_RESIDUALS = {
+    "residual_rms_nT": "the scalar residual |corrected| − total field of this probe's own fit",
+    "vector_residual_rms_nT": "the vector residual against the aligned reference, corrected {probe} − corrected "
+                              "{ref}, over its three axes",
+    "axis_rms_nT": "the residual of the sine fit to each raw axis (x, y, z)",
+}
 
 
 def _summary(data, cal, channels, before, total_source, result, coverages, origin=None) -> str:
@@ -279,6 +299,10 @@ def _summary(data, cal, channels, before, total_source, result, coverages, origi
         for key, val in p.params.items():
             if key in ("offset_nT", "samples", "align") or not isinstance(val, dict):
                 continue
+            if key in _RESIDUALS:
+                what = _RESIDUALS[key].format(probe=p.name, ref=cal.probes[0].name)
+                lines.append(f"  {'residual':10s} {_fmt_param(val.get('value'), val.get('se'))} nT RMS: {what}")
+                continue
             lines.append(f"  {key:10s} {_fmt_param(val.get('value'), val.get('se'))} {val.get('unit', '')}".rstrip())
         cov = coverages[k]
         if p.model_order != "full":
@@ -291,15 +315,17 @@ def _summary(data, cal, channels, before, total_source, result, coverages, origi
         lines.append("\neffect parameters")
         for eff, params in cal.effect_params.items():
             for name, v in params.items():
-                se = v.get("se")
-                lines.append(f"  {eff:12s} {name:28s} {v['value']:.6g} ± {se:.3g} {v.get('unit', '')}" if se is not None
-                             else f"  {eff:12s} {name:28s} {v['value']:.6g} (undetermined) {v.get('unit', '')}")
+                lines.append(f"  {eff:12s} {name:28s} {_fmt_effect_param(v)}".rstrip())
     lines.append("\nresidual RMS, nT          before       after")
     for name in channels:
         lines.append(f"  {name:20s} {before[name]:12.2f} {rms(channels[name]):11.3f}")
     # every channel has one value per sample: the RMS of them all is the root of the mean square of the RMSs
     lines.append(f"  {'all':20s} {float(np.sqrt(np.mean(np.square(list(before.values()))))):12.2f} "
                  f"{result['rms_nT']:11.3f}")
+    ref = cal.probes[0].name
+    lines.append("  (<probe>.scalar: the scalar residual |corrected| − total field" +
+                 (f"; <probe>-{ref}.<axis>: the vector residual, corrected <probe> − corrected {ref} on that axis"
+                  if len(cal.probes) > 1 else "") + "; before: with no calibration)")
     if result["warnings"]:
         lines.append("\nwarnings")
         lines += [f"  {w}" for w in result["warnings"]]

@@ -88,15 +88,23 @@ def check_output_file(path: Any, flag: str = "--out", *, suffixes: Sequence[str]
 
 
 def check_output_folder(path: Any, flag: str) -> None:
-    """Refuse (DataError, exit 2), before any work, an output folder that cannot be made or written in."""
+    """Refuse (DataError, exit 2), before any work, an output folder that cannot be made or written in. The
+    folder itself is made when missing, as an output file is; the folder that holds it must exist, as for
+    check_output_file (a typo must not grow a tree of folders)."""
     import tempfile
     from pathlib import Path
 
     from drivers.errors import DataError
 
     p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise DataError(f"{flag} {p}: is a file; give a folder (made if missing, in a folder that exists)")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not p.exists() and not parent.is_dir():
+        raise DataError(f"{flag} {p}: " + (f"{parent} is a file, not a folder" if parent.exists() else
+                                            f"folder {parent} does not exist"))
     try:
-        p.mkdir(parents=True, exist_ok=True)
+        p.mkdir(exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=p, prefix=".fluxcal-check-"):
             pass
     except OSError as e:

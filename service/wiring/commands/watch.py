@@ -138,6 +138,26 @@ def _num(x: Any, fmt: str = ".3g") -> str:
     return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, fmt)
 
 
+def _judged(gate: dict[str, Any] | None) -> bool:
+    """Whether the gate's latest check judged a candidate (and so has a coverage, condition and residual): the
+    pipeline gives a check that found none an empty list of residuals."""
+    return bool(gate) and gate.get("rms_nT") != []
+
+
+def _gate_parts(gate: dict[str, Any] | None) -> list[str]:
+    """The gate's latest check in the calibration line."""
+    if not gate:
+        return []
+    if not _judged(gate):
+        # a check found no candidate (the online estimate not determined yet, e.g. after the service started
+        # from its saved calibration or a reset): no coverage, condition or residual to show
+        return ["no residual yet: the online estimate has no candidate since the start or the last reset"]
+    rms = gate.get("rms_nT")
+    rms_txt = ", ".join(_num(r, ".2f") for r in rms) if isinstance(rms, list) else _num(rms, ".2f")
+    return [f"coverage {_num(gate.get('coverage'), '.2f')}", f"condition {_num(gate.get('condition'))}",
+            f"residual [{rms_txt}] nT"]
+
+
 class Dashboard:
     """What the dashboard knows (updated from messages) and how it draws it; no I/O here."""
 
@@ -237,11 +257,8 @@ class Dashboard:
             parts.append("FROZEN")
         if st.get("held"):
             parts.append("APPLIED (held until reset)")
-        if gate:
-            rms = gate.get("rms_nT")
-            rms_txt = ", ".join(_num(r, ".2f") for r in rms) if isinstance(rms, list) else _num(rms, ".2f")
-            parts += [f"coverage {_num(gate.get('coverage'), '.2f')}", f"condition {_num(gate.get('condition'))}",
-                      f"residual [{rms_txt}] nT"]
+        judged = _judged(gate)
+        parts += _gate_parts(gate)
         if st.get("samples_seen") is not None:
             parts.append(f"{st['samples_seen']} samples seen")
         if st.get("stale"):
@@ -249,7 +266,7 @@ class Dashboard:
             parts.append(f"(state {_num(age, '.0f')} s old: the service is busy, e.g. reconnecting its input)")
         text = "  ".join(parts)
         reasons = gate.get("reasons") if gate else None
-        if reasons and not st.get("usable"):
+        if reasons and (not st.get("usable") or not judged):
             text += "\n  gate: " + "; ".join(map(str, reasons))
         return text
 
@@ -315,7 +332,8 @@ class Dashboard:
         gate = st.get("gate") or {}
         parts = [f"{t:6.1f}s fluxcal/{self.unit}",
                  f"cal={'usable' if st.get('usable') else 'not-usable' if st else '?'}"
-                 + (f" cov={_num(gate.get('coverage'), '.2f')}" if gate else "")
+                 + (f" cov={_num(gate.get('coverage'), '.2f')}" if _judged(gate) else
+                    " no-candidate-yet" if gate else "")
                  + (f" state-age={_num(st.get('state_age_s'), '.0f')}s" if st.get("stale") else "")]
         c = self.corrected
         if c is not None and c.n_samples:
