@@ -142,6 +142,19 @@ def test_scale_is_the_sensors_scale_of_every_probe_in_text_json_and_the_file(gra
             assert np.array_equal(got > 1, c > 1)                      # > 1 where the sensor reads high
         # and not the correction matrix's diagonal, which is about 1/scale (0.979 for s1's 1.021)
         assert np.all(np.abs(np.diag(np.array(s["matrix"])) - got_json) > 5e-3)
+    # the dashboard's API: the same file applied to a unit shows the same figures as "sensor scale", whether it
+    # reads params["scale"] or decomposes the matrix (a calibration learned online has no params)
+    from service.wiring.dashboard.view import UnitView
+
+    for keep_params in (True, False):
+        view = UnitView("grad1")
+        view.update_state({"usable": True, "cal_id": 1, "probes": [
+            {"name": p["name"], "offset_nT": p["offset_nT"], "matrix": p["matrix"],
+             "params": p["params"] if keep_params else {}} for p in file_json["probes"]]})
+        shown = {r["name"]: np.array(r["scale"]) for r in json.loads(json.dumps(view.view({})))["sensor_scales"]}
+        for s in out["sensors"]:
+            np.testing.assert_allclose(shown[s["name"]], s["params"]["scale"]["value"], atol=1e-9 if keep_params
+                                       else 2e-4)
 
 
 def test_every_residual_is_printed_with_what_it_is(gradiometer, capsys):

@@ -36,22 +36,21 @@ def _interval_start(t_s: float) -> float:
 def sensor_scales(probe: dict[str, Any]) -> tuple[list[float] | None, str]:
     """(the sensor's scale factor per axis, where it comes from) of one probe of a unit's state: "scale" means the
     sensor's (1.021 where it reads 2.1 % high), as `fit` prints it, never the correction matrix's diagonal (0.979).
-    The calibration's params["scale"] where it has one; else the same decomposition (001 eq. 11-12) of its matrix
-    M, taken as the upper-triangular U with U^T U = M^T M (the rotation of an alignment removed).
+    The calibration's params["scale"] where it has one; else service.numerics.calib.model.sensor_scale of its
+    matrix (the row norms of M⁻¹, whatever rotation an alignment put in M).
 
     >>> m = [[1 / 1.021, 0.001, 0.0], [0.0, 1 / 0.99, 0.0], [0.0, 0.0, 1.0]]
     >>> [round(c, 4) for c in sensor_scales({"matrix": m})[0]], sensor_scales({"matrix": m})[1]
     ([1.021, 0.99, 1.0], 'from the matrix')
     """
-    from service.numerics.calib.model import triangular_params
+    from service.numerics.calib.model import sensor_scale
 
     sc = (probe.get("params") or {}).get("scale")
     if isinstance(sc, dict) and np.size(sc.get("value")) == 3:
         return [float(x) for x in np.ravel(sc["value"])], "the calibration's"
     try:
-        m = np.asarray(probe.get("matrix"), dtype=np.float64).reshape(3, 3)
-        upper = np.linalg.cholesky(m.T @ m).T
-        return [float(c) for c in triangular_params(upper)[1]], "from the matrix"
+        scale = sensor_scale(np.asarray(probe.get("matrix"), dtype=np.float64).reshape(3, 3))
+        return [float(c) for c in scale], "from the matrix"
     except (TypeError, ValueError, np.linalg.LinAlgError):
         return None, "not determined"
 
