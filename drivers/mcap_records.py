@@ -162,22 +162,35 @@ def raw_span(data: bytes) -> tuple[int, float, int, float] | None:
 class HoleTracker:
     """Fills in the holes' sample spans from the raw messages read around them: call `sync()` before each record
     (it takes the holes found since, with the last raw sample of each unit), `raw(unit, data)` for each raw message
-    (the first sample after a pending hole), `finish()` at the end."""
+    (the first sample after a pending hole), `finish()` at the end. Cheap per message: a message's span is read
+    only when a hole needs it."""
 
     def __init__(self, report: ReadReport) -> None:
         self.report, self.seen = report, len(report.holes)
-        self.last: dict[str, tuple[int, float]] = {}
+        self.last_message: dict[str, bytes] = {}     # each unit's last raw message holding samples
         self.pending: list[Hole] = []
 
+    def last(self) -> dict[str, tuple[int, float]]:
+        """Each unit's last raw sample read: (seq, t_s)."""
+        spans = {u: raw_span(d) for u, d in self.last_message.items()}
+        return {u: (s[2], s[3]) for u, s in spans.items() if s is not None}
+
     def sync(self) -> None:
+        if len(self.report.holes) == self.seen:
+            return
         for hole in self.report.holes[self.seen:]:
             if not hole.recorded:
                 hole.units = {u: {"seq_before": s, "t_before": t, "seq_after": None, "t_after": None}
-                              for u, (s, t) in self.last.items()}
+                              for u, (s, t) in self.last().items()}
                 self.pending.append(hole)
         self.seen = len(self.report.holes)
 
     def raw(self, unit: str, data: bytes) -> None:
+        if data[8:12] == b"\x00\x00\x00\x00":
+            return                                   # no sample in it
+        self.last_message[unit] = data
+        if not self.pending:
+            return
         span = raw_span(data)
         if span is None:
             return
@@ -187,7 +200,6 @@ class HoleTracker:
             if side["seq_after"] is None:
                 side["seq_after"], side["t_after"] = span[0], span[1]
         self.pending = [h for h in self.pending if any(s["seq_after"] is None for s in h.units.values())]
-        self.last[unit] = (span[2], span[3])
 
     def finish(self) -> None:
         self.sync()
@@ -291,10 +303,11 @@ _MESSAGE_HEAD = struct.Struct("<BQHIQQ")     # opcode, length, channel id, seque
 _RECORD = struct.Struct("<BQ")
 
 
-def chunk_records(chunk: Any) -> list[Any]:
+def chunk_records(chunk: Any, channel_ids: set[int] | None = None) -> list[Any]:
     """The Schema, Channel and Message records of a chunk: mcap.stream_reader.breakup_chunk (the same
     decompression, CRC check and records) with its messages parsed by one struct call each, a quarter
-    of the time per message (replay reads thousands of small messages a second of recording)."""
+    of the time per message (replay reads thousands of small messages a second of recording). The ids of the
+    channels it declares go into `channel_ids`."""
     from mcap.data_stream import ReadDataStream
     from mcap.records import Channel, Message, Schema
     from mcap.stream_reader import get_chunk_data_stream
@@ -319,6 +332,8 @@ def chunk_records(chunk: Any) -> list[Any]:
         elif opcode in (CHANNEL, SCHEMA):
             body = ReadDataStream(io.BytesIO(data[pos + _RECORD.size:end]))
             out.append(Channel.read(body) if opcode == CHANNEL else Schema.read(body))
+            if opcode == CHANNEL and channel_ids is not None:
+                channel_ids.add(out[-1].id)
         pos = end                                  # other records inside a chunk: skipped, as breakup_chunk does
     return out
 
@@ -329,15 +344,15 @@ def _message_index_ok(body: bytes) -> bool:
     return n_bytes == len(body) - 6 and n_bytes % 16 == 0
 
 
-def parse_record(opcode: int, body: bytes) -> list[Any]:
+def parse_record(opcode: int, body: bytes, channel_ids: set[int] | None = None) -> list[Any]:
     """The records a data-section record holds (a chunk's, broken up), checked as far as the record allows
     (a chunk's fields fill it and its CRC holds, an attachment's CRC holds, metadata fills its record);
-    ValueError or the decoder's own exception when damaged."""
+    ValueError or the decoder's own exception when damaged. The channels declared go into `channel_ids`."""
     from mcap.data_stream import ReadDataStream
     from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
 
     if opcode == CHUNK:
-        return chunk_records(parse_chunk(body))
+        return chunk_records(parse_chunk(body), channel_ids)
     stream = ReadDataStream(io.BytesIO(body))
     if opcode == MESSAGE:
         if len(body) < 22:
@@ -351,6 +366,8 @@ def parse_record(opcode: int, body: bytes) -> list[Any]:
            ATTACHMENT: Attachment.read}[opcode](stream)
     if stream.count != len(body):
         raise ValueError(f"its fields take {stream.count} bytes, the record has {len(body)}")
+    if opcode == CHANNEL and channel_ids is not None:
+        channel_ids.add(rec.id)
     return [rec]
 
 

@@ -43,7 +43,8 @@ def _u64(mm: Any, at: int) -> int:
 
 
 class _FileScan:
-    """The records of one mapped file (see the module docstring); `run()` yields them."""
+    """The records of one mapped file (see the module docstring); `run()` yields them a list at a time (a
+    chunk's, or one record), so that each record passes through one generator only (iter_file_records)."""
 
     def __init__(self, f: Path, mm: Any, size: int, report: ReadReport, strict: bool) -> None:
         self.f, self.mm, self.size, self.report, self.strict = f, mm, size, report, strict
@@ -67,30 +68,31 @@ class _FileScan:
                                           log_time_ns))
 
     def track(self, recs: list[Any]) -> list[Any]:
+        """Records from elsewhere than parse (the summary's channels): their channel ids noted."""
         from mcap.records import Channel
 
         self.channel_ids.update(r.id for r in recs if isinstance(r, Channel))
         return recs
 
     def parse(self, op: int, body: bytes) -> list[Any]:
-        recs = parse_record(op, body)
+        recs = parse_record(op, body, self.channel_ids)
         if op == MESSAGE and recs[0].channel_id not in self.channel_ids:
             raise ValueError(f"a message on channel {recs[0].channel_id}, which no channel record declared")
         return recs
 
-    def run(self) -> Iterator[Any]:
+    def run(self) -> Iterator[list[Any]]:
         return self.indexed() if self.index is not None else self.linear()
 
     # --- a finished file with an index ----------------------------------------------------------------------
 
-    def indexed(self) -> Iterator[Any]:
+    def indexed(self) -> Iterator[list[Any]]:
         idx, mm = self.index, self.mm
         assert idx is not None
         pos = len(MCAP_MAGIC)
         while pos < idx.data_end:
             span = idx.spans.get(pos)
             if span is not None:
-                yield from self.by_index(pos, *span)
+                yield self.by_index(pos, *span)
                 pos += span[1]
                 continue
             nxt = idx.next_bound(pos)
@@ -116,7 +118,7 @@ class _FileScan:
                                                                           "own records)")
             else:
                 try:
-                    yield from self.track(self.parse(op, body))
+                    yield self.parse(op, body)
                 except Exception as e:         # noqa: BLE001 - every decoder's own exception is damage here
                     self.lose(pos, end, f"an unreadable {_name(op)} record ({type(e).__name__}: {e})",
                               f"reading went on at byte {end}")
@@ -125,7 +127,7 @@ class _FileScan:
             self.damaged(f"a damaged data end record header ({_name(mm[idx.data_end])})", idx.data_end,
                          "no data lost (the summary says where the data section ends)")
 
-    def by_index(self, pos: int, op_want: int, total: int, ci: Any) -> Iterator[Any]:
+    def by_index(self, pos: int, op_want: int, total: int, ci: Any) -> list[Any]:
         """The record the index places at pos: read with the index's length whatever its header says."""
         mm = self.mm
         op, length = mm[pos], _u64(mm, pos + 1)
@@ -139,19 +141,19 @@ class _FileScan:
                       f"reading went on with the next indexed record at byte {pos + total}", samples=op_want == CHUNK,
                       log_time_ns=(ci.message_start_time, ci.message_end_time) if ci is not None else None)
             if op_want == CHUNK:               # channels it declared stay known: the summary repeats them
-                yield from self.track([c for c in self.index.schemas + self.index.channels  # type: ignore[union-attr]
-                                       if not hasattr(c, "topic") or c.id not in self.channel_ids])
-            return
+                return self.track([c for c in self.index.schemas + self.index.channels  # type: ignore[union-attr]
+                                   if not hasattr(c, "topic") or c.id not in self.channel_ids])
+            return []
         if not head_ok:
             self.damaged(f"a {name} record whose header is damaged (it says {_name(op)}, {length} bytes; the "
                          f"summary's index: a {name} of {total - RECORD_HEAD} bytes)", pos,
                          "read by its index entry" + (", its CRC holds: nothing lost" if op_want in (CHUNK, ATTACHMENT)
                                                       else ": nothing lost"))
-        yield from self.track(recs)
+        return recs
 
     # --- no index: record by record ---------------------------------------------------------------------------
 
-    def linear(self) -> Iterator[Any]:
+    def linear(self) -> Iterator[list[Any]]:
         mm, size, f, report = self.mm, self.size, self.f, self.report
         pos = len(MCAP_MAGIC)
         while True:
@@ -171,7 +173,7 @@ class _FileScan:
                                             f"every complete chunk before it was read")
                     report.truncated_bytes += size - pos
                     return
-                yield from self.salvage(pos, q, f"a {_name(op)} record whose length field ({length} bytes) runs "
+                yield self.salvage(pos, q, f"a {_name(op)} record whose length field ({length} bytes) runs "
                                                 f"past the end of the file")
                 pos = q
                 continue
@@ -194,7 +196,7 @@ class _FileScan:
                 except Exception as e:         # noqa: BLE001 - a CRC mismatch, a corrupt length or stream
                     what = f"an unreadable {_name(op)} record ({type(e).__name__}: {e})"
                 else:
-                    yield from self.track(recs)
+                    yield recs
                     pos = end
                     continue
             elif op == 0 and _all_zero(mm, pos, size):
@@ -209,7 +211,7 @@ class _FileScan:
             if q is None:
                 self.lose(pos, size, what, "nothing readable follows it")
                 return
-            yield from self.salvage(pos, q, what)
+            yield self.salvage(pos, q, what)
             pos = q
 
     def salvage(self, pos: int, q: int, what: str) -> list[Any]:
@@ -222,7 +224,7 @@ class _FileScan:
             return []
         self.damaged(what, pos, f"a whole chunk lies between it and the next readable record at byte {q} (its "
                                 f"CRC holds): read, nothing lost")
-        return self.track(recs)
+        return recs
 
 
 def resync(mm: Any, size: int, start: int) -> int | None:
@@ -290,6 +292,7 @@ def iter_file_records(path: str | Path, report: ReadReport | None = None, *, str
             raise RecordingError(f"{f}: not an MCAP file (starts with {magic[:8]!r})")
         mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
         try:
-            yield from _FileScan(f, mm, size, report, strict).run()
+            for recs in _FileScan(f, mm, size, report, strict).run():
+                yield from recs
         finally:
             mm.close()

@@ -97,8 +97,10 @@ def iter_records(path: str | Path, report: ReadReport | None = None, *, strict: 
         report.files.append(str(f))
         schemas: dict[int, str] = {}
         channels: dict[int, Channel] = {}
+        raw_units: dict[int, str] = {}             # channel id -> unit, of the raw channels
         for rec in iter_file_records(f, report, strict=strict):
-            holes.sync()
+            if len(report.holes) != holes.seen:
+                holes.sync()
             if isinstance(rec, Message):
                 ch = channels.get(rec.channel_id)
                 if ch is None and strict:
@@ -109,16 +111,18 @@ def iter_records(path: str | Path, report: ReadReport | None = None, *, strict: 
                 if ch is None:
                     report.skipped_messages += 1
                     continue
-                if ch.message_encoding == RAW_ENCODING:
-                    unit = unit_of_topic(ch.topic)
-                    if unit is not None:
-                        holes.raw(unit, rec.data)
+                unit = raw_units.get(rec.channel_id)
+                if unit is not None:
+                    holes.raw(unit, rec.data)
                 if topics is None or ch.topic in topics:
                     report.messages += 1
                     yield McapRecord(ch.topic, ch.message_encoding, rec.data, rec.log_time, rec.publish_time,
                                      schemas.get(ch.schema_id, ""))
             elif isinstance(rec, Channel):
                 channels[rec.id] = rec
+                unit = unit_of_topic(rec.topic)
+                if rec.message_encoding == RAW_ENCODING and unit is not None:
+                    raw_units[rec.id] = unit
             elif isinstance(rec, Schema):
                 schemas[rec.id] = rec.name
             elif isinstance(rec, Metadata):

@@ -126,7 +126,7 @@ def repair_recording(src: str | Path, dst: str | Path, *, compression: str = "lz
                 if not started:
                     w.start(profile="", library="fluxcal repair")
                 w.add_metadata(REPAIR_RECORD, _repair_record(f, report, first_hole, first_cut,
-                                                             report.truncated_bytes - cut_bytes, holes.last, earlier))
+                                                             report.truncated_bytes - cut_bytes, holes.last(), earlier))
                 w.finish()
             tmp.replace(target)
         except OSError as e:
