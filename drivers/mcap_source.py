@@ -1,14 +1,18 @@
 """Reading fluxcal MCAP recordings: the "replay" Source, and the record reader shared with service.io.recordings.reader.
 
 A recording is one .mcap file or a directory of rotated files, read in name order (the logger's
-names `<unit>-<YYYYmmddTHHMMSS>-<NNNN>.mcap` sort in time order). Files are read record by record
-from the start, never through the footer's index, so a file whose writer was killed (no footer, a
-chunk cut short) yields every complete chunk and the cut is reported in `ReadReport.truncated`
-instead of failing. What is reported and what is refused:
+names `<unit>-<YYYYmmddTHHMMSS>-<NNNN>.mcap` sort in time order). Each file's records are read in file
+order by drivers.mcap_scan, which keeps going past what happened to the file and says it:
 
-    no footer, or a record cut short at the end     read; one line in report.truncated per file
-    a chunk whose CRC fails, an unreadable record   RecordingError (strict, the default), or skipped
-      inside the file                               and listed in report.damaged (strict=False)
+    no footer, or a record cut short at the end     read to the last complete chunk; one line in
+      (a killed writer)                             report.truncated per file
+    a damaged record inside the file (a chunk       damage, not a stopped writer: one line in report.damaged;
+      whose CRC fails, a length or opcode hit)      reading goes on with the next indexed chunk (a finished
+                                                    file) or the next readable record (no footer); what is
+                                                    lost is a Hole in report.holes, with the seq and time span
+                                                    of the samples lost; strict=True refuses the file instead
+    a repaired copy                                 its "fluxcal.repair" metadata: the holes the repair found
+                                                    (report.holes) and the cut tail (report.repaired)
     not an MCAP file, missing path, no raw samples  RecordingError
 
 The replay Source yields the recorded raw SampleBlocks bit for bit, one per recorded message, and
@@ -19,12 +23,9 @@ so a replay re-applies them at the same samples.
 
 from __future__ import annotations
 
-import io
 import json
 import logging
-import os
-import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -34,12 +35,11 @@ from .assemble import SeqGapCounter
 from .block import FLAG_TEMP_INVALID, SampleBlock
 from .encoding import RAW_ENCODING, decode_raw
 from .errors import DataError, RecordingError
+from .mcap_records import MCAP_MAGIC, Hole, HoleTracker, ReadReport
+from .mcap_scan import iter_file_records
 from .source import Source
 
 log = logging.getLogger("fluxcal.replay")
-
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-_RECORD_HEAD = 9                      # u8 opcode, u64 length
 
 
 @dataclass
@@ -52,27 +52,6 @@ class McapRecord:
     log_time_ns: int
     publish_time_ns: int = 0
     schema_name: str = ""
-
-
-@dataclass
-class ReadReport:
-    """What reading a recording found besides the messages: files, cut tails, damage, metadata."""
-
-    files: list[str] = field(default_factory=list)
-    truncated: list[str] = field(default_factory=list)    # one line per file whose tail was cut (writer killed)
-    damaged: list[str] = field(default_factory=list)      # records skipped as corrupt (strict=False only)
-    messages: int = 0                                      # messages read
-    skipped_messages: int = 0                              # messages whose channel record was lost
-    truncated_bytes: int = 0                               # bytes at file ends that held no complete record
-    metadata: dict[str, str] = field(default_factory=dict)  # the "fluxcal" metadata record(s)
-    time: dict[str, str] = field(default_factory=dict)      # the "fluxcal.time" metadata record (log_time rule)
-
-    @property
-    def warnings(self) -> list[str]:
-        out = list(self.truncated) + list(self.damaged)
-        if self.skipped_messages:
-            out.append(f"{self.skipped_messages} message(s) skipped: their channel was declared in a lost chunk")
-        return out
 
 
 def recording_files(path: str | Path) -> list[Path]:
@@ -88,176 +67,40 @@ def recording_files(path: str | Path) -> list[Path]:
     return [p]
 
 
-def _all_zero(fh: io.BufferedReader) -> bool:
-    while chunk := fh.read(1 << 20):
-        if chunk.count(0) != len(chunk):
-            return False
-    return True
+def _metadata(report: ReadReport, name: str, values: dict[str, str]) -> None:
+    """The metadata records fluxcal reads: "fluxcal" (unit, configuration, ...), "fluxcal.time" (the log_time
+    rule), "fluxcal.arithmetic" (the machine's arithmetic), "fluxcal.repair" (a repaired copy's holes and cut)."""
+    if name == "fluxcal":
+        report.metadata.update(values)
+    elif name == "fluxcal.time":
+        report.time.update(values)
+    elif name == "fluxcal.arithmetic":
+        report.arithmetic.update(values)
+    elif name == "fluxcal.repair":
+        report.repaired.update(values)
+        try:
+            holes = json.loads(values.get("holes", "[]"))
+        except json.JSONDecodeError:
+            holes = []
+        report.holes += [Hole.from_json(h) for h in holes if isinstance(h, dict)]
 
 
-def iter_file_records(path: str | Path, report: ReadReport | None = None, *, strict: bool = True) -> Iterator[Any]:
-    """The data-section records of one MCAP file in file order, chunks broken up: mcap.records
-    Header, Schema, Channel, Message, Metadata and Attachment objects. Stops at DataEnd or at the
-    end of a file without footer (noted in `report.truncated`)."""
-    from mcap.data_stream import ReadDataStream
-    from mcap.opcode import Opcode
-    from mcap.records import Attachment, Channel, Chunk, Header, Message, Metadata, Schema
-
-    readers = {Opcode.HEADER: Header.read, Opcode.SCHEMA: Schema.read, Opcode.CHANNEL: Channel.read,
-               Opcode.CHUNK: Chunk.read, Opcode.METADATA: Metadata.read, Opcode.ATTACHMENT: Attachment.read}
-    # the summary section's records belong after Data End, where reading stops: met before it, they are
-    # damage (a chunk whose opcode byte was hit reads as one of them, and would vanish without a word)
-    summary_only = {Opcode.CHUNK_INDEX, Opcode.ATTACHMENT_INDEX, Opcode.METADATA_INDEX, Opcode.STATISTICS,
-                    Opcode.SUMMARY_OFFSET, Opcode.FOOTER}
-    report = report if report is not None else ReadReport()
-    f = Path(path)
-
-    def damaged(what: str, pos: int) -> None:
-        msg = f"{f}: {what} at byte {pos}"
-        if strict:
-            raise RecordingError(f"{msg}: the recording is damaged (repair_recording salvages the rest)")
-        report.damaged.append(msg)
-
-    try:
-        fh = f.open("rb")
-    except OSError as e:
-        raise RecordingError(f"{f}: cannot read: {e.strerror or e}") from None
-    with fh:
-        size = os.fstat(fh.fileno()).st_size
-        magic = fh.read(8)
-        if magic != MCAP_MAGIC:
-            if MCAP_MAGIC.startswith(magic):
-                report.truncated.append(f"{f}: empty ({size} bytes): its writer stopped before writing anything")
-                report.truncated_bytes += size
-                return
-            raise RecordingError(f"{f}: not an MCAP file (starts with {magic[:8]!r})")
-        pos = 8
-        while True:
-            head = fh.read(_RECORD_HEAD)
-            if not head:
-                report.truncated.append(f"{f}: no footer: its writer was stopped (killed, power lost) or is still "
-                                        f"writing; every complete chunk was read")
-                return
-            opcode, length = head[0], int.from_bytes(head[1:], "little")
-            if len(head) < _RECORD_HEAD or pos + _RECORD_HEAD + length > size:
-                # the writer died while writing this record: what came before it is whole
-                try:
-                    name = Opcode(opcode).name.lower().replace("_", " ")
-                except ValueError:
-                    name = f"opcode {opcode:#04x}"
-                report.truncated.append(f"{f}: cut inside a {name} record at byte {pos} of {size}: its writer "
-                                        f"was stopped; the {size - pos} bytes of that record are lost, every "
-                                        f"complete chunk before it was read")
-                report.truncated_bytes += size - pos
-                return
-            if opcode == Opcode.DATA_END:
-                if _data_end_in_place(fh, size, pos + _RECORD_HEAD + length):
-                    return
-                # a record header hit in the middle of the file: reading must not stop there in silence
-                damaged("data end record before the end of the data section", pos)
-                fh.seek(length, io.SEEK_CUR)
-            elif opcode == Opcode.MESSAGE_INDEX:
-                # skipped (the reader does not need the index), but only if it is one: u16 channel id,
-                # u32 byte length of its (u64, u64) entries, the entries
-                body = fh.read(length)
-                n_bytes = int.from_bytes(body[2:6], "little") if length >= 6 else -1
-                if n_bytes != length - 6 or n_bytes % 16:
-                    damaged("malformed message index record (a damaged record header?)", pos)
-            elif opcode in summary_only:
-                damaged(f"{Opcode(opcode).name.lower()} record inside the data section", pos)
-                fh.seek(length, io.SEEK_CUR)
-            elif opcode in readers or opcode == Opcode.MESSAGE:
-                body = fh.read(length)
-                stream = ReadDataStream(io.BytesIO(body))
-                try:
-                    rec = Message.read(stream, length) if opcode == Opcode.MESSAGE else readers[opcode](stream)
-                    subs = _chunk_records(rec) if isinstance(rec, Chunk) else [rec]
-                except Exception as e:
-                    # a CRC mismatch, a corrupt length or compressed stream inside the file's bounds; the
-                    # decompressors raise their own types (RuntimeError, zstandard.ZstdError), hence Exception
-                    damaged(f"unreadable {Opcode(opcode).name.lower()} record ({type(e).__name__}: {e})", pos)
-                    subs = []
-                yield from subs
-            elif opcode == 0 and _all_zero(fh):
-                # a filesystem that lost power may leave a zero-filled tail
-                report.truncated.append(f"{f}: ends in {size - pos} zero bytes (power lost while writing?); "
-                                        f"every complete chunk before them was read")
-                report.truncated_bytes += size - pos
-                return
-            else:
-                damaged(f"unknown record opcode {opcode:#04x}", pos)
-                fh.seek(length, io.SEEK_CUR)
-            pos += _RECORD_HEAD + length
-
-
-_MESSAGE_HEAD = struct.Struct("<BQHIQQ")     # opcode, length, channel id, sequence, log time, publish time
-_RECORD = struct.Struct("<BQ")
-
-
-def _chunk_records(chunk: Any) -> list[Any]:
-    """The Schema, Channel and Message records of a chunk: mcap.stream_reader.breakup_chunk (the same
-    decompression, CRC check and records) with its messages parsed by one struct call each, a quarter
-    of the time per message (replay reads thousands of small messages a second of recording)."""
-    from mcap.data_stream import ReadDataStream
-    from mcap.opcode import Opcode
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import get_chunk_data_stream
-
-    stream, size = get_chunk_data_stream(chunk, validate_crc=True)
-    data = stream.read(size)
-    out: list[Any] = []
-    pos, message, head = 0, int(Opcode.MESSAGE), _MESSAGE_HEAD.size
-    while pos < size:
-        if pos + _RECORD.size > size:
-            raise ValueError(f"chunk: a record header cut short at byte {pos} of {size}")
-        opcode, length = _RECORD.unpack_from(data, pos)
-        end = pos + _RECORD.size + length
-        if end > size:
-            raise ValueError(f"chunk: a record of {length} bytes at byte {pos} runs past the chunk's {size}")
-        if opcode == message:
-            if length < head - _RECORD.size:
-                raise ValueError(f"chunk: a message record of {length} bytes at byte {pos}")
-            _, _, channel, sequence, log_time, publish_time = _MESSAGE_HEAD.unpack_from(data, pos)
-            out.append(Message(channel_id=channel, log_time=log_time, data=data[pos + head:end],
-                               publish_time=publish_time, sequence=sequence))
-        elif opcode in (Opcode.CHANNEL, Opcode.SCHEMA):
-            body = ReadDataStream(io.BytesIO(data[pos + _RECORD.size:end]))
-            out.append(Channel.read(body) if opcode == Opcode.CHANNEL else Schema.read(body))
-        pos = end                                  # other records inside a chunk: skipped, as breakup_chunk does
-    return out
-
-
-def _data_end_in_place(fh: io.BufferedReader, size: int, end: int) -> bool:
-    """Whether a Data End record ending at byte `end` is where the file's footer says the data section ends
-    (the summary's start, or the footer itself without a summary). True when there is no footer to ask."""
-    footer_len = _RECORD_HEAD + 20                   # u64 summary start, u64 summary offset start, u32 crc
-    at = size - len(MCAP_MAGIC) - footer_len
-    if at < end:
-        return True
-    here = fh.tell()
-    try:
-        fh.seek(at)
-        tail = fh.read(footer_len + len(MCAP_MAGIC))
-    finally:
-        fh.seek(here)
-    if tail[0] != 0x02 or tail[-len(MCAP_MAGIC):] != MCAP_MAGIC:    # footer opcode, closing magic
-        return True
-    summary_start = int.from_bytes(tail[_RECORD_HEAD:_RECORD_HEAD + 8], "little")
-    return end == (summary_start or at)
-
-
-def iter_records(path: str | Path, report: ReadReport | None = None, *, strict: bool = True,
+def iter_records(path: str | Path, report: ReadReport | None = None, *, strict: bool = False,
                  topics: set[str] | None = None) -> Iterator[McapRecord]:
-    """Every message of the recording in file order (files in name order); the "fluxcal" and
-    "fluxcal.time" metadata records go into `report`."""
+    """Every message of the recording in file order (files in name order); the metadata records fluxcal
+    reads go into `report` (_metadata), and the holes found get the samples on each side (HoleTracker)."""
     from mcap.records import Channel, Message, Metadata, Schema
 
     report = report if report is not None else ReadReport()
+    holes = HoleTracker(report)
     for f in recording_files(path):
         report.files.append(str(f))
         schemas: dict[int, str] = {}
         channels: dict[int, Channel] = {}
+        raw_units: dict[int, str] = {}             # channel id -> unit, of the raw channels
         for rec in iter_file_records(f, report, strict=strict):
+            if len(report.holes) != holes.seen:
+                holes.sync()
             if isinstance(rec, Message):
                 ch = channels.get(rec.channel_id)
                 if ch is None and strict:
@@ -267,19 +110,25 @@ def iter_records(path: str | Path, report: ReadReport | None = None, *, strict: 
                                          f"declared: the recording is damaged (repair_recording salvages the rest)")
                 if ch is None:
                     report.skipped_messages += 1
-                elif topics is None or ch.topic in topics:
+                    continue
+                unit = raw_units.get(rec.channel_id)
+                if unit is not None:
+                    holes.raw(unit, rec.data)
+                if topics is None or ch.topic in topics:
                     report.messages += 1
                     yield McapRecord(ch.topic, ch.message_encoding, rec.data, rec.log_time, rec.publish_time,
                                      schemas.get(ch.schema_id, ""))
             elif isinstance(rec, Channel):
                 channels[rec.id] = rec
+                unit = unit_of_topic(rec.topic)
+                if rec.message_encoding == RAW_ENCODING and unit is not None:
+                    raw_units[rec.id] = unit
             elif isinstance(rec, Schema):
                 schemas[rec.id] = rec.name
             elif isinstance(rec, Metadata):
-                if rec.name == "fluxcal":
-                    report.metadata.update(rec.metadata)
-                elif rec.name == "fluxcal.time":
-                    report.time.update(rec.metadata)
+                _metadata(report, rec.name, rec.metadata)
+        holes.sync()
+    holes.finish()
 
 
 def unit_of_topic(topic: str) -> str | None:
@@ -289,7 +138,7 @@ def unit_of_topic(topic: str) -> str | None:
 
 
 def iter_raw_blocks(path: str | Path, report: ReadReport | None = None, *, unit: str | None = None,
-                    strict: bool = True) -> Iterator[SampleBlock]:
+                    strict: bool = False) -> Iterator[SampleBlock]:
     """The raw SampleBlocks of one unit, in recorded order. unit=None: the only unit recorded
     (a recording that holds several units is refused: name one)."""
     chosen = unit
@@ -318,7 +167,7 @@ class McapSource(Source):
     to its last complete chunk; `report.truncated` says so and a warning is logged once per file.
     """
 
-    def __init__(self, path: str | Path, *, unit: str | None = None, strict: bool = True) -> None:
+    def __init__(self, path: str | Path, *, unit: str | None = None, strict: bool = False) -> None:
         self.path = str(path)
         self.report = ReadReport()
         self._unit = unit
@@ -327,7 +176,7 @@ class McapSource(Source):
         self._event_pos = 0
         self._it = iter_raw_blocks(path, self.report, unit=unit, strict=strict)
         self._next: SampleBlock | None = next(self._it, None)
-        self._warned = 0
+        self._warned = self._holes_warned = 0
         if self._next is None:
             raise RecordingError(f"{path}: no raw samples in this recording"
                                  + (f" ({'; '.join(self.report.warnings)})" if self.report.warnings else ""))
@@ -382,10 +231,17 @@ class McapSource(Source):
             self._event_pos += 1
         return out
 
-    def _warn_new(self) -> None:
-        for w in self.report.warnings[self._warned:]:
+    def _warn_new(self, final: bool = False) -> None:
+        """Log what reading found as it is found; the holes (whose sample spans are known once the samples after
+        them were read) when the recording is exhausted or closed."""
+        lines = self.report.truncated + self.report.damaged
+        for w in lines[self._warned:]:
             log.warning("replay: %s", w)
-        self._warned = len(self.report.warnings)
+        self._warned = len(lines)
+        if final:
+            for h in self.report.holes[self._holes_warned:]:
+                log.warning("replay: %s", h.describe(self._unit))
+            self._holes_warned = len(self.report.holes)
 
     def _read_block(self, timeout: float | None) -> SampleBlock | None:
         b = self._next
@@ -400,17 +256,18 @@ class McapSource(Source):
         c.saturated_axes += int(np.count_nonzero(np.isnan(b.field_nT)))
         c.temp_invalid += int(np.count_nonzero(b.flags & FLAG_TEMP_INVALID))
         self._gaps.update(b.seq, c)
-        self._warn_new()
+        self._warn_new(final=self._next is None)
         return b
 
     def close(self) -> None:
         if not self._closed:
             self._it.close()                     # closes the file being read
+            self._warn_new(final=True)
         super().close()
 
 
 def open_source(config: Any = None, *, path: str | Path | None = None, unit: str | None = None,
-                strict: bool = True, **_: Any) -> McapSource:
+                strict: bool = False, **_: Any) -> McapSource:
     """The "replay" entry of drivers.source.SOURCES: open_source("replay", path=REC, unit=None).
 
     `config` may be the path itself or an object with a `.path` (the [source] section of kind
@@ -436,5 +293,5 @@ def metadata_json(report: ReadReport, key: str, default: Any = None, where: str 
         raise RecordingError(f"{where + ': ' if where else ''}metadata {key!r} is not JSON: {e}") from None
 
 
-__all__ = ["McapRecord", "McapSource", "ReadReport", "RAW_ENCODING", "iter_file_records", "iter_raw_blocks",
-           "iter_records", "metadata_json", "open_source", "recording_files", "unit_of_topic"]
+__all__ = ["MCAP_MAGIC", "Hole", "McapRecord", "McapSource", "ReadReport", "RAW_ENCODING", "iter_file_records",
+           "iter_raw_blocks", "iter_records", "metadata_json", "open_source", "recording_files", "unit_of_topic"]

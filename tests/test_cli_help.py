@@ -60,7 +60,7 @@ def test_the_help_answers_what_a_new_user_had_to_guess():
     cmd = " ".join(subs["command"].format_help().split())
     assert "temperature, drift or nonlinearity" in cmd and "exits with 1" in cmd
     rep = " ".join(subs["replay"].format_help().split())
-    assert "exit 0 when every one is identical" in rep and "1 when any differs" in rep
+    assert "exit 0 when every one equals the live run's" in rep and "1 when any differs by more" in rep
     fit = " ".join(subs["fit"].format_help().split())
     assert "ref_total" in fit and "s<k>_temp" in fit and "heel_deg" in fit and "estimated" in fit
     dec = " ".join(subs["decode"].format_help().split())

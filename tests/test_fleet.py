@@ -107,7 +107,8 @@ def test_replay_of_several_recordings(tmp_path, capsys):
     status = cli.main(["replay", str(tmp_path / "*.mcap"), "--jobs", "2"], install_signals=False)
     out = capsys.readouterr().out
     assert status == 1, out
-    assert len(re.findall(r"[ab]\.mcap\s+ok .* compared with the recording: 2000, identical: 2000", out)) == 2, out
+    # made on another machine: equal within the rounding tolerance, not assumed bit for bit (docs/recording.md)
+    assert len(re.findall(r"[ab]\.mcap\s+ok .* compared with the recording: 2000, bit-identical: \d+", out)) == 2, out
     assert re.search(r"pump\.mcap\s+FAILED .*no configuration stored in the recording; give --config", out)
     assert "3 recording(s), 1 failed" in out
 

@@ -125,7 +125,7 @@ def test_a_file_cut_anywhere_reads_up_to_its_last_complete_chunk(tmp_path):
     assert counts == sorted(counts) and counts[-1] == 50 and abs(counts[1] - 25) <= 2
 
 
-def test_a_corrupted_chunk_is_refused_or_skipped_on_request(tmp_path):
+def test_a_corrupted_chunk_is_read_past_and_said_or_refused_on_request(tmp_path):
     want = blocks(20)
     log = McapLogger(tmp_path / "ok.mcap", unit="u1", flush_interval_s=0.0, compression="none")
     for b in want:
@@ -139,11 +139,14 @@ def test_a_corrupted_chunk_is_refused_or_skipped_on_request(tmp_path):
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(bytes(data))
     with pytest.raises(RecordingError, match="bad.mcap.*damaged"):
-        read_recording(bad)
-    rec = read_recording(bad, strict=False)
-    assert len(rec.raw_blocks) == 19 and len(rec.report.damaged) == 1
+        read_recording(bad, strict=True)
+    rec = read_recording(bad)                                        # by default: read past, and said
+    assert len(rec.raw_blocks) == 19 and len(rec.report.damaged) == 1 and "not a stopped writer" in rec.warnings[0]
     seqs = np.concatenate([b.seq for b in rec.raw_blocks])
     assert not np.isin(want[10].seq, seqs).any() and np.isin(want[11].seq, seqs).all()
+    first, last = int(want[10].seq[0]), int(want[10].seq[-1])
+    assert rec.holes[0].seq_span() == (first, last)
+    assert f"a hole of {last - first + 1} samples at seq {first}-{last}" in rec.warnings[-1]
 
 
 def test_repair_gives_an_indexed_file_that_mcap_reads_with_our_decoders(tmp_path):

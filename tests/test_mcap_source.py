@@ -153,7 +153,7 @@ def chunk_spans(path: Path) -> list[tuple[int, int]]:
         return [(c.chunk_start_offset, c.chunk_length) for c in make_reader(f).get_summary().chunk_indexes]
 
 
-def test_a_damaged_chunk_is_refused_and_repair_salvages_the_rest(tmp_path):
+def test_a_damaged_chunk_is_read_past_and_said_and_repair_records_the_hole(tmp_path, caplog):
     bs = blocks(10)
     record(tmp_path / "ok.mcap", bs, flush_interval_s=0)
     spans = chunk_spans(tmp_path / "ok.mcap")
@@ -162,18 +162,26 @@ def test_a_damaged_chunk_is_refused_and_repair_salvages_the_rest(tmp_path):
     data[start + length - 100] ^= 0xFF                                # one flipped byte in its data
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(bytes(data))
-    with pytest.raises(RecordingError, match=rf"bad.mcap: unreadable chunk record .* at byte {start}: .*damaged"):
-        read_recording(bad)
+    with pytest.raises(RecordingError, match=rf"bad.mcap: an unreadable chunk record .* at byte {start}: .*damaged"):
+        read_recording(bad, strict=True)
     with pytest.raises(RecordingError, match="damaged"):
-        drain(McapSource(bad))
-    rec = read_recording(bad, strict=False)                           # salvage: the other 9 blocks
+        drain(McapSource(bad, strict=True))
+    rec = read_recording(bad)                                         # by default: the other 9 blocks, and said
     assert [int(b.seq[0]) // 50 for b in rec.raw_blocks] == [0, 1, 2, 3, 5, 6, 7, 8, 9]
     assert len(rec.report.damaged) == 1 and "crc" in rec.report.damaged[0].lower()
+    assert "not a stopped writer" in rec.report.damaged[0] and not rec.truncated
+    assert len(rec.holes) == 1 and rec.holes[0].seq_span() == (200, 249)
+    with caplog.at_level(logging.WARNING, logger="fluxcal.replay"):
+        assert len(drain(McapSource(bad))) == 9
+    assert "crc" in caplog.text.lower() and "a hole of 50 samples at seq 200-249" in caplog.text
     report = repair_recording(bad, tmp_path / "fixed.mcap")
-    assert report.damaged and report.messages == 9
+    assert report.damaged and report.messages == 9 and len(report.holes) == 1
     with open(tmp_path / "fixed.mcap", "rb") as f:
         assert make_reader(f).get_summary().statistics.message_count == 9
-    assert not read_recording(tmp_path / "fixed.mcap").warnings
+    fixed = read_recording(tmp_path / "fixed.mcap")                   # whole now, and it says what it lost
+    assert not fixed.truncated and not fixed.report.damaged and fixed.report.repaired["repaired_from"] == "bad.mcap"
+    assert [h.seq_span() for h in fixed.holes] == [(200, 249)] and fixed.holes[0].recorded
+    assert fixed.warnings == [fixed.holes[0].describe()] and "a hole of 50 samples at seq 200-249" in fixed.warnings[0]
 
 
 WRITER = textwrap.dedent("""
@@ -264,7 +272,7 @@ def test_the_chunk_reader_gives_the_mcap_librarys_records(tmp_path):
     from mcap.records import Chunk
     from mcap.stream_reader import StreamReader, breakup_chunk
 
-    from drivers.mcap_source import _chunk_records
+    from drivers.mcap_records import chunk_records as _chunk_records
     from service.io.recordings.writer import McapLogger
 
     for compression in ("lz4", "zstd", "none"):
@@ -288,7 +296,7 @@ def test_the_chunk_reader_refuses_malformed_records_inside_a_chunk():
 
     from mcap.records import Chunk, Message
 
-    from drivers.mcap_source import _chunk_records
+    from drivers.mcap_records import chunk_records as _chunk_records
 
     def chunk(data: bytes) -> Chunk:
         return Chunk(compression="", data=data, message_start_time=0, message_end_time=0, uncompressed_crc=0,

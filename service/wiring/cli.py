@@ -154,8 +154,11 @@ def build_parser() -> argparse.ArgumentParser:
     rep = _command(sub, "replay", "run a recording through the same pipeline and compare with its output",
                    "  fluxcal replay recordings/grad1-sim-30s.mcap\n  fluxcal replay rec.mcap --out again.mcap",
                    more=(" It compares the replay's corrected output with the recording's, sample by sample: exit 0 "
-                        "when every one is identical (or there was none to compare, which it says), 1 when any "
-                        "differs."))
+                        "when every one equals the live run's (bit for bit where the recording names this machine's "
+                        "arithmetic, else within the rounding tolerance of its conditioning, printed with the largest "
+                        "difference; or there was none to compare, which it says), 1 when any differs by more or a "
+                        "calibration was replaced at other samples. The samples after a hole in a damaged recording "
+                        "are not compared, which it says."))
     rep.add_argument("recording", metavar="REC.mcap", nargs="+",
                      help="an MCAP file, or a directory of one run's rotated files"
                      + fleet_help("--out", json_flag=False))

@@ -1,6 +1,7 @@
 """The files of one MCAP logger, one open at a time: names that never overwrite another run's, the header
-(schemas, channels, metadata), what has surely reached the disk, cutting a failed file back to its last
-complete chunk, and the footer. Bytes in, bytes out: no policy (McapLogger retries and rotates)."""
+(schemas, channels, metadata: "fluxcal" and this machine's "fluxcal.arithmetic"), what has surely reached the
+disk, cutting a failed file back to its last complete chunk, and the footer. Bytes in, bytes out: no policy
+(McapLogger retries and rotates)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ from mcap.writer import CompressionType, Writer
 
 from service.io.encoding import CORRECTED_ENCODING, CORRECTED_LAYOUT, RAW_ENCODING, RAW_LAYOUT
 from service.io.foxglove_schemas import json_channels
+
+from .arithmetic import ARITHMETIC_RECORD, machine_arithmetic
 
 #: schema encoding of the binary layouts: the schema data is the layout table as UTF-8 text
 LAYOUT_SCHEMA_ENCODING = "fluxcal.layout"
@@ -68,10 +71,11 @@ class McapFiles:
 
     def __init__(self, directory: Path, path: Path | None, *, unit: str, compression: str,
                  probe_names: Sequence[str], metadata: dict[str, str], fsync: bool,
-                 opener: Callable[[Path, str], Any]) -> None:
+                 opener: Callable[[Path, str], Any], arithmetic: dict[str, str] | None = None) -> None:
         self.dir, self.path, self.single_file = directory, path, path is not None
         self.unit, self.compression, self.probe_names = unit, compression, list(probe_names)
         self.metadata, self.fsync, self.opener = metadata, fsync, opener
+        self.arithmetic = machine_arithmetic() if arithmetic is None else dict(arithmetic)
         self.files: list[str] = []         # every file opened, in order
         self.bytes_written = 0             # bytes that reached files (all files)
         self.writer: Writer | None = None
@@ -150,6 +154,9 @@ class McapFiles:
         w.add_metadata("fluxcal", {"unit": self.unit, "raw_encoding": RAW_ENCODING,
                                    "corrected_encoding": CORRECTED_ENCODING, **self.metadata,
                                    "file_index": str(self._file_index)})
+        # the arithmetic the corrected stream was computed with (none said: unknown); replay says when its own differs
+        if self.arithmetic:
+            w.add_metadata(ARITHMETIC_RECORD, self.arithmetic)
         return channels
 
     def write_time_record(self, epoch_ns: int) -> None:

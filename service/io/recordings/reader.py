@@ -1,14 +1,15 @@
 """Whole recordings for `fit`, `diagnose` and `replay`: read one into memory, rebuild a killed file.
 
     read_recording(path, unit=None) -> Recording   raw and corrected blocks, events, calibration
-                                                   events, health, the "fluxcal" metadata, warnings
-    repair_recording(src, dst) -> ReadReport       a killed writer's file (no footer, cut chunk) copied
-                                                   record for record into an indexed, finished file
+                                                   events, health, the "fluxcal" metadata, warnings, holes
+    repair_recording(src, dst) -> ReadReport       a killed writer's or a damaged file copied record for
+                                                   record into an indexed, finished file (repair.py)
     FluxcalDecoderFactory                          for mcap's own readers: make_reader(f,
                                                    decoder_factories=[FluxcalDecoderFactory()])
 
-Reading goes through drivers.mcap_source (streaming, tolerant of a cut tail, strict about damage);
-bad files raise RecordingError with the file and what is wrong.
+Reading goes through drivers.mcap_source (streaming; a cut tail read to its last chunk, damage read past and
+said, what it lost a hole with its samples' span); files that are no recording raise RecordingError with
+the file and what is wrong.
 """
 
 from __future__ import annotations
@@ -25,15 +26,15 @@ from drivers.block import SampleBlock
 from drivers.encoding import decode_raw_runs
 from drivers.errors import DataError, RecordingError
 from drivers.mcap_source import (
+    Hole,
     ReadReport,
-    iter_file_records,
     iter_records,
     metadata_json,
-    recording_files,
     unit_of_topic,
 )
 from service.io.encoding import CORRECTED_ENCODING, RAW_ENCODING, decode_corrected, decode_json, decode_raw
 from service.io.recordings.labdata import keep_every
+from service.io.recordings.repair import repair_recording  # noqa: F401 - read and repair from one module, as before
 from service.numerics.outputs import CorrectedBlock
 
 
@@ -106,6 +107,16 @@ class Recording:
         return self.report.warnings
 
     @property
+    def holes(self) -> list[Hole]:
+        """Data lost in the middle of the recording: found while reading (damage) or recorded by a repair."""
+        return self.report.holes
+
+    @property
+    def arithmetic(self) -> dict[str, str]:
+        """The arithmetic of the machine that made the recording ("fluxcal.arithmetic"; {} if not said)."""
+        return self.report.arithmetic
+
+    @property
     def n_probes(self) -> int:
         return self.raw_runs[0].n_probes
 
@@ -130,7 +141,7 @@ class Recording:
         return self._json("positions_m")
 
 
-def read_samples(path: str | Path, *, unit: str | None = None, strict: bool = True,
+def read_samples(path: str | Path, *, unit: str | None = None, strict: bool = False,
                  max_samples: int | None = None, max_probe_samples: int | None = None) -> Recording:
     """Only the raw samples of a recording, in one block, for fit and diagnose: read in two passes (count,
     then decode into arrays of the final size), so the samples are held once, never as a list of blocks and
@@ -245,12 +256,12 @@ def _check_read(path: str | Path, unit: str | None, units: list[str], any_raw: b
                              f"read its files one at a time")
 
 
-def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = True) -> Recording:
+def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = False) -> Recording:
     """Read a recording (a file or a directory of rotated files) into memory.
 
     unit=None: the only unit recorded (several -> RecordingError naming them). A killed writer's
-    file is read up to its last complete chunk (`truncated` says so). strict=False skips damaged
-    chunks (listed in report.damaged) instead of refusing the file."""
+    file is read up to its last complete chunk (`truncated` says so); a damaged record is read past
+    (report.damaged says it, `holes` what it lost); strict=True refuses a damaged file instead."""
     report = ReadReport()
     raw: list[tuple[SampleBlock, np.ndarray]] = []
     batches = _RawBatches(path)
@@ -287,72 +298,6 @@ def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = 
     _check_read(path, unit, units, bool(runs), {b.n_probes for b, _ in runs}, report)
     return Recording([b for b, _ in runs], cor, events, cal, report.metadata, report.files, report.truncated, health,
                      chosen, report, run_sizes=[n for _, n in runs])
-
-
-def repair_recording(src: str | Path, dst: str | Path, *, compression: str = "lz4") -> ReadReport:
-    """Copy every readable record of `src` (a killed writer's file, or a directory of them) into a
-    finished, indexed MCAP file `dst` (or directory `dst`, same file names): schemas, channels,
-    messages with their log_time, publish_time and sequence, metadata, attachments. Damaged chunks
-    are skipped and listed in the returned report (`damaged`); the cut tail in `truncated`."""
-    from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
-    from mcap.writer import Writer
-
-    from .writer import COMPRESSIONS
-
-    files = recording_files(src)
-    src_is_dir = Path(src).is_dir()
-    out_dir = Path(dst) if src_is_dir else Path(dst).parent
-    out_dir.mkdir(parents=True, exist_ok=True)
-    report = ReadReport()
-    for f in files:
-        target = out_dir / f.name if src_is_dir else Path(dst)
-        if target.resolve() == f.resolve():
-            raise RecordingError(f"{target}: is the recording to repair: the repaired copy is written beside it, never over it; give another destination")
-        tmp = target.with_name(target.name + ".partial")
-        report.files.append(str(f))
-        try:
-            with open(tmp, "wb") as fh:
-                w = Writer(fh, compression=COMPRESSIONS[compression])
-                started = False
-                schema_ids: dict[int, int] = {0: 0}
-                channel_ids: dict[int, int] = {}
-                for rec in iter_file_records(f, report, strict=False):
-                    if isinstance(rec, Header):
-                        w.start(profile=rec.profile, library=rec.library)
-                        started = True
-                        continue
-                    if not started:
-                        w.start(profile="", library="fluxcal repair")
-                        started = True
-                    if isinstance(rec, Schema):
-                        if rec.id not in schema_ids:
-                            schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
-                    elif isinstance(rec, Channel):
-                        if rec.id not in channel_ids and rec.schema_id in schema_ids:
-                            channel_ids[rec.id] = w.register_channel(rec.topic, rec.message_encoding,
-                                                                     schema_ids[rec.schema_id], rec.metadata)
-                    elif isinstance(rec, Message):
-                        ch = channel_ids.get(rec.channel_id)
-                        if ch is None:
-                            report.skipped_messages += 1
-                            continue
-                        w.add_message(ch, log_time=rec.log_time, data=rec.data, publish_time=rec.publish_time,
-                                      sequence=rec.sequence)
-                        report.messages += 1
-                    elif isinstance(rec, Metadata):
-                        w.add_metadata(rec.name, rec.metadata)
-                        if rec.name == "fluxcal":
-                            report.metadata.update(rec.metadata)
-                    elif isinstance(rec, Attachment):
-                        w.add_attachment(rec.create_time, rec.log_time, rec.name, rec.media_type, rec.data)
-                if not started:
-                    w.start(profile="", library="fluxcal repair")
-                w.finish()
-            tmp.replace(target)
-        except OSError as e:
-            tmp.unlink(missing_ok=True)
-            raise RecordingError(f"{target}: cannot write the repaired file: {e}") from None
-    return report
 
 
 class FluxcalDecoderFactory(DecoderFactory):

@@ -23,7 +23,9 @@ service.io.foxglove_schemas, which the live bridge (`fluxcal foxglove`) uses too
 the replay's exact record.
 
 Each file starts with a "fluxcal" metadata record (unit, stream encodings, file_index and what the
-caller passes: n_probes, lsb_nT, probe_names, positions_m, config) and, once the first sample time
+caller passes: n_probes, lsb_nT, probe_names, positions_m, config), a "fluxcal.arithmetic" record naming
+this machine's arithmetic (numpy and scipy versions, the CPU features numpy dispatches to, each one's BLAS
+and the kernels it chose: arithmetic.py; replay says where its own differs) and, once the first sample time
 is known, a "fluxcal.time" record stating the time base:
 
     log_time     = epoch_ns + round(t_s * 1e9), t_s the unit time of the message's first sample;
@@ -296,6 +298,8 @@ class McapLogger(ChunkedLog):
     file this much later (default 5 s). backlog_mb: at most this much of unwritten messages is kept
     while files fail (the oldest are dropped, and counted, beyond it). opener(path, mode) -> binary file:
     for fault injection in tests. filename: directory + this fixed file name, as if path were the file.
+    arithmetic: the "fluxcal.arithmetic" record (None: this machine's, arithmetic.machine_arithmetic(); {}: none,
+    for a copy of corrected output computed where it is not known).
     """
 
     def __init__(self, path: str | Path, *, unit: str, rotate_mb: float = 256.0, rotate_s: float = 3600.0,
@@ -303,7 +307,7 @@ class McapLogger(ChunkedLog):
                  metadata: dict[str, Any] | None = None, probe_names: Sequence[str] | None = None,
                  vectors_period_s: float = 0.1, epoch_ns: int | None = None, fsync: bool = False,
                  retry_s: float | None = None, backlog_mb: float = 16.0, filename: str | None = None,
-                 opener: Callable[[Path, str], Any] | None = None) -> None:
+                 opener: Callable[[Path, str], Any] | None = None, arithmetic: dict[str, str] | None = None) -> None:
         if not isinstance(unit, str) or not _UNIT_NAME.fullmatch(unit):
             raise ConfigError(f"mcap logger: unit {unit!r} is not allowed (allowed: 1-64 letters, digits, '_' or '-')")
         if compression not in COMPRESSIONS:
@@ -332,7 +336,8 @@ class McapLogger(ChunkedLog):
         self.fsync = fsync
         self._products = Products(self.probe_names, vectors_period_s) if vectors_period_s > 0 else None
         files = McapFiles(self.dir, self.path, unit=unit, compression=compression, probe_names=self.probe_names,
-                          metadata=self.metadata, fsync=fsync, opener=opener or _default_opener)
+                          metadata=self.metadata, fsync=fsync, opener=opener or _default_opener,
+                          arithmetic=arithmetic)
         super().__init__(files, single_file=self.single_file, rotate_bytes=rotate_mb * 1e6, rotate_s=rotate_s,
                          chunk_size=int(chunk_size), flush_interval_s=flush_interval_s, epoch_ns=epoch_ns,
                          retry_s=retry_s, backlog_bytes=max(backlog_mb * 1e6, 2.0 * int(chunk_size)))

@@ -1,9 +1,13 @@
 """`fluxcal replay REC.mcap [--config FILE] [--out OUT.mcap]`: a recording through the same pipeline.
 
 The raw blocks are replayed exactly as they were recorded, and every command the live service
-applied is applied again before the same sample, so the corrected output equals the live run's bit
-for bit (given the same configuration: by default the one stored in the recording). Reports how
-many corrected blocks were compared and whether they were identical.
+applied is applied again before the same sample (given the same configuration: by default the one
+stored in the recording). The corrected output is compared with the recording's, sample by sample:
+bit for bit where the recording names this machine's arithmetic (its "fluxcal.arithmetic" record), else
+within the tolerance rounding can reach through the estimator's conditioning (rounding_tolerance_nT,
+docs/recording.md "Replay equality"), with the largest difference printed; the calibrations must be
+replaced at the same samples as live. A hole (data lost from a damaged recording) is said as one, and
+the samples after it, which the live estimator saw and the replay's cannot follow, are not compared.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import re
 import sys
 import time
 from argparse import Namespace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +34,7 @@ from drivers.errors import RecordingError
 from service.io.calfile import calibration_from_dict
 from service.io.recordings.labdata import check_one_run
 from service.io.recordings.reader import read_recording
+from service.io.recordings.repair import repair_notes
 from service.wiring.commands.notes import say_read_warnings
 from service.wiring.config import config_from_dict, load_config, rate_stated
 from service.wiring.daemon import build_pipeline
@@ -72,6 +78,7 @@ def _with_rate(raw: dict, recording: str) -> dict:
 
 
 def main(args: Namespace) -> int:
+    t_start = time.perf_counter()
     if args.out:
         from service.wiring.commands.notes import check_output_file
 
@@ -79,7 +86,14 @@ def main(args: Namespace) -> int:
     if Path(args.recording).is_dir():
         check_one_run(Path(args.recording))     # a folder of one run (the reader's rule, as fit's)
     rec = read_recording(args.recording)
-    say_read_warnings("replay", args.recording, rec.report.warnings)
+    t_read = time.perf_counter() - t_start
+    lost = [w for w in rec.report.problems if not w.endswith("nothing lost")]
+    say_read_warnings("replay", args.recording, lost)
+    for w in rec.report.problems:
+        if w not in lost:
+            print(f"fluxcal replay: warning: {w}", file=sys.stderr)
+    for line in repair_notes(rec.report):
+        print(f"fluxcal replay: {line}", file=sys.stderr)
     later = continuation(Path(args.recording), rec)
     if later:
         print(f"fluxcal replay: {later}", file=sys.stderr)
@@ -115,6 +129,7 @@ def main(args: Namespace) -> int:
     samples = 0
     ci = 0
     out_seq, out_vals = [], []
+    replaced: list[tuple[int, int, float, str]] = []   # the replay's calibrations: (seq, cal_id, condition, kind)
     t0 = time.perf_counter()
     try:
         for block in blocks:
@@ -122,13 +137,18 @@ def main(args: Namespace) -> int:
                 c = commands[ci]
                 payload = (calibration_from_dict(c["calibration"]) if c.get("name") == "apply"
                            else c.get("effect"))
-                pipeline.command(c["name"], payload, seq=c["seq"], t_s=float("nan"))
+                ev = pipeline.command(c["name"], payload, seq=c["seq"], t_s=float("nan"))
                 if c.get("name") == "apply" and "note" not in c:
                     pipeline.held = False     # recorded before applied calibrations were held: as that live run
+                if c.get("name") == "add-effect":   # refitted over the window: conditioned at most as the gate allows
+                    replaced.append((int(c["seq"]), int(ev.detail["cal_id"]), float(cfg.estimator.gate_condition),
+                                     "add-effect"))
                 if logger is not None:
                     logger.write_event(c)
                 ci += 1
             result = pipeline.process(block)
+            replaced += [(ev.seq, int(ev.detail["cal_id"]), float(ev.detail.get("condition", "nan")), ev.kind)
+                         for ev in result.events if ev.kind == "calibration"]
             samples += block.n_samples
             if logger is not None:
                 logger.write_raw(block)
@@ -142,6 +162,7 @@ def main(args: Namespace) -> int:
         progress.close()
         if logger is not None:
             logger.close()
+    t_pipe = time.perf_counter() - t0
     if logger is not None and logger.dropped:
         print(f"fluxcal replay: {args.out}: the replay could not be written ({logger.last_error}); "
               f"{logger.dropped} message(s) lost", file=sys.stderr)
@@ -149,30 +170,17 @@ def main(args: Namespace) -> int:
     if logger is not None and logger.errors:
         print(f"fluxcal replay: {args.out}: {logger.errors} write error(s), retried; nothing was lost "
               f"(the last: {logger.last_error})", file=sys.stderr)
-    compared, identical = _compare(rec.corrected_blocks, out_seq, out_vals)
-    dt = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    cut, holes = _first_hole(rec, rec.unit)
+    cmp = _compare(rec.corrected_blocks, out_seq, out_vals, before=cut)
+    t_all = time.perf_counter() - t_start
     p = cfg.unit.n_probes
-    uncorrected = samples - sum(int(s.size) for s in out_seq)
-    print(f"replayed {samples} samples of {p} probe(s) in {dt:.2f} s ({samples * p / max(dt, 1e-9):,.0f} "
-          f"probe-samples/s); corrected samples compared with the recording: {compared}, identical: {identical}"
-          + (f" ({uncorrected} earlier sample(s) have no corrected output, live or replayed: no calibration was "
-             f"usable yet)" if uncorrected > 0 and compared else "")
+    print(f"replayed {samples} samples of {p} probe(s) in {t_all:.2f} s: reading the recording {t_read:.2f} s, "
+          f"setting up {t0 - t_start - t_read:.2f} s, the pipeline {t_pipe:.2f} s "
+          f"({samples * p / max(t_pipe, 1e-9):,.0f} probe-samples/s), comparing {time.perf_counter() - t1:.2f} s "
+          f"(the interpreter's start and imports before them not counted)"
           + (f"; written to {args.out}" if args.out else ""))
-    if compared and identical != compared:
-        print(f"fluxcal replay: {compared - identical} corrected sample(s) differ from the live run"
-              + (" (a continuation replayed alone: see above)" if later else ""), file=sys.stderr)
-        return 1
-    if not compared:
-        live = sum(c.n_samples for c in rec.corrected_blocks)
-        replayed = sum(int(s.size) for s in out_seq)
-        if live:
-            print(f"fluxcal replay: the live run has {live} corrected sample(s), the replay {replayed} at the same "
-                  f"samples: they differ" + (" (a continuation replayed alone: see above)" if later else ""),
-                  file=sys.stderr)
-            return 1
-        print("fluxcal replay: nothing to compare: the recording holds no corrected samples (its calibration was "
-              f"not usable while it ran); the replay gave {replayed}", file=sys.stderr)
-    return 0
+    return _verdict(rec, samples, out_seq, cmp, cut, holes, replaced, later)
 
 
 def _coalesce(whole: SampleBlock, cut_seqs, max_samples: int = 20000):
@@ -184,15 +192,143 @@ def _coalesce(whole: SampleBlock, cut_seqs, max_samples: int = 20000):
     return [whole.slice(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
 
 
-def _compare(live_blocks, seqs, values) -> tuple[int, int]:
-    """Samples of the live corrected stream compared with the replay's, matched by seq."""
+#: the unit roundoff of IEEE double precision: one correctly rounded operation errs by at most this, relatively
+UNIT_ROUNDOFF = 2.0 ** -53
+
+
+def rounding_tolerance_nT(largest_nT: float, condition: float, n_samples: int) -> float:
+    """The most rounding can make the corrected output of two machines differ when their arithmetic differs
+    (docs/recording.md, "Replay equality"): the estimator's information is a sum over the n samples it saw, and
+    two orders of summing n terms differ by at most n·u of the sum of their magnitudes, at most n·u relative to
+    the normal matrix's column scaling; its solve turns that into at most κ²·n·u in the parameters (κ the
+    condition number of the column-scaled design, which the gate reports; κ² that of the normal matrix), and the
+    corrected vector y = M (x − c) inherits it in proportion to the field, |y|."""
+    return float(largest_nT) * max(float(condition), 1.0) ** 2 * max(int(n_samples), 1) * UNIT_ROUNDOFF
+
+
+@dataclass
+class Compared:
+    """The live corrected stream against the replay's, matched by seq (before `before`, a hole's first sample)."""
+
+    n: int = 0
+    identical: int = 0
+    diff_nT: np.ndarray = field(default_factory=lambda: np.empty(0))   # per sample, the largest component's
+    seq: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    field_nT: float = 0.0                                               # the largest |y| compared
+    live: int = 0                                                       # live corrected samples (before `before`)
+    replayed: int = 0
+
+    @property
+    def largest(self) -> tuple[float, int | None]:
+        if not self.diff_nT.size:
+            return 0.0, None
+        k = int(np.argmax(self.diff_nT))
+        return float(self.diff_nT[k]), int(self.seq[k])
+
+
+def _compare(live_blocks, seqs, values, before: int | None = None) -> Compared:
+    """Samples of the live corrected stream compared with the replay's, matched by seq; a NaN where the other
+    has a number is an infinite difference."""
     if not live_blocks or not seqs:
-        return 0, 0
+        live = sum(c.n_samples for c in live_blocks) if live_blocks else 0
+        return Compared(live=live, replayed=sum(int(s.size) for s in seqs))
     live_seq = np.concatenate([c.seq for c in live_blocks])
     live_val = np.concatenate([c.corrected_nT for c in live_blocks])
     seq = np.concatenate(seqs)
     val = np.concatenate(values)
+    if before is not None:
+        keep_l, keep_r = live_seq < before, seq < before
+        live_seq, live_val, seq, val = live_seq[keep_l], live_val[keep_l], seq[keep_r], val[keep_r]
     common, il, ir = np.intersect1d(live_seq, seq, return_indices=True)
     a, b = live_val[il], val[ir]
-    same = np.all((a == b) | (np.isnan(a) & np.isnan(b)), axis=(1, 2))
-    return int(common.size), int(same.sum())
+    both_nan = np.isnan(a) & np.isnan(b)
+    d = np.where(both_nan, 0.0, np.abs(a - b))
+    d = np.where(np.isnan(d), np.inf, d)
+    same = np.all((a == b) | both_nan, axis=(1, 2))
+    mag = np.linalg.norm(a, axis=-1)
+    size = float(np.max(mag[np.isfinite(mag)])) if np.isfinite(mag).any() else 0.0
+    return Compared(int(common.size), int(same.sum()), d.max(axis=(1, 2)) if d.size else np.empty(0), common,
+                    size, int(live_seq.size), int(seq.size))
+
+
+def _first_hole(rec, unit: str | None) -> tuple[int | None, list]:
+    """The first sample seq a hole took from `unit`'s raw stream (-1: the recording's start) and the holes."""
+    holes = [h for h in rec.holes if h.seq_span(unit) is not None]
+    firsts = [(-1 if h.seq_span(unit)[0] is None else h.seq_span(unit)[0]) for h in holes]
+    return (min(firsts) if firsts else None), holes
+
+
+def _arithmetic_said(recorded: dict[str, str]) -> tuple[str, bool]:
+    """What replay says of the arithmetic the recording was made with, and whether it is this machine's."""
+    from service.io.recordings.arithmetic import another_instruction_set, arithmetic_differences, machine_arithmetic
+
+    here = machine_arithmetic()
+    diffs = arithmetic_differences(recorded, here)
+    if not diffs:
+        return "recorded with this machine's arithmetic", True
+    if not recorded:
+        return (f"the arithmetic it was recorded with: unknown (recorded before fluxcal named it; here: numpy "
+                f"{here.get('numpy')}, CPU features {here.get('numpy_simd')}, {here.get('numpy_blas')} "
+                f"({here.get('numpy_blas_core') or 'kernels not said'}))"), False
+    what = "on another instruction set" if another_instruction_set(recorded, here) else "with other library versions"
+    return f"recorded {what} ({'; '.join(diffs)})", False
+
+
+def _verdict(rec, samples: int, out_seq, cmp: Compared, cut: int | None, holes: list, replaced,
+             later: str | None) -> int:
+    """Compare, print the verdict (stdout's last line) and what fails (stderr); the exit status: 0 when the replay
+    equals the live run (bit for bit on this machine's arithmetic, else within the rounding tolerance) as far as
+    the recording allows, 1 when it does not."""
+    continued = " (a continuation replayed alone: see above)" if later else ""
+    for h in holes:
+        print(f"fluxcal replay: {h.describe(rec.unit)}", file=sys.stderr)
+    if cut is not None:
+        after = sum(int(np.count_nonzero(c.seq >= cut)) for c in rec.corrected_blocks)
+        print(f"fluxcal replay: the live run's estimator saw the samples lost in the hole and the replay's did not, "
+              f"so the replay cannot follow the live run past it: the {after} corrected sample(s) from seq "
+              f"{max(cut, 0)} on are not compared; those before it are", file=sys.stderr)
+    uncorrected = samples - sum(int(s.size) for s in out_seq)
+    note = (f" ({uncorrected} earlier sample(s) have no corrected output, live or replayed: no calibration was "
+            f"usable yet)" if uncorrected > 0 and cmp.n else "")
+    if not cmp.n:
+        if cmp.live:
+            print(f"fluxcal replay: the live run has {cmp.live} corrected sample(s), the replay {cmp.replayed} at the "
+                  f"same samples: they differ{continued}", file=sys.stderr)
+            return 1
+        print("fluxcal replay: nothing to compare: the recording holds no corrected samples"
+              + (" before its first hole" if cut is not None else " (its calibration was not usable while it ran)")
+              + f"; the replay gave {cmp.replayed}", file=sys.stderr)
+        return 0
+    arith, same = _arithmetic_said(rec.arithmetic)
+    before = [r for r in replaced if cut is None or r[0] < cut]
+    kappa = max([r[2] for r in before if np.isfinite(r[2])], default=1.0)
+    n_seen = samples if cut is None else int(np.count_nonzero(rec.raw.seq < cut))
+    tol = 0.0 if same else rounding_tolerance_nT(cmp.field_nT, kappa, n_seen)
+    largest, at = cmp.largest
+    beyond = int(np.count_nonzero(cmp.diff_nT > tol))
+    head = f"corrected samples compared with the recording: {cmp.n}, bit-identical: {cmp.identical}"
+    if cmp.identical == cmp.n:
+        print(f"{head}{note} — {arith}")
+    elif not beyond:
+        print(f"{head}, equal within {largest:.2g} nT (the largest difference, at seq {at}; tolerance {tol:.2g} nT: "
+              f"rounding amplified by the estimator's conditioning, condition {kappa:.3g} over {n_seen} samples, "
+              f"docs/recording.md){note} — {arith}")
+    else:
+        why = ("recorded with this machine's arithmetic, where the replay is bit for bit" if same else
+               f"tolerance {tol:.2g} nT: rounding amplified by the estimator's conditioning, condition {kappa:.3g} "
+               f"over {n_seen} samples")
+        print(f"{head}, {beyond} beyond the tolerance (the largest difference {largest:.3g} nT at seq {at}; {why})"
+              f"{note} — {arith}")
+        print(f"fluxcal replay: {beyond} corrected sample(s) differ from the live run by more than rounding can "
+              f"explain (the largest by {largest:.3g} nT at seq {at}; " + ("bit for bit expected" if same else
+                                                                          f"tolerance {tol:.2g} nT") + f"){continued}",
+              file=sys.stderr)
+    status = 1 if beyond else 0
+    live_events = [(int(e["seq"]), int(e.get("cal_id", -1))) for e in rec.calibration if e.get("kind") == "calibration"
+                   and isinstance(e.get("seq"), int) and (cut is None or e["seq"] < cut)]
+    ours = [(r[0], r[1]) for r in before if r[3] == "calibration"]
+    if rec.calibration and live_events != ours:
+        print(f"fluxcal replay: the calibration was replaced at other samples than in the live run: live (seq, "
+              f"cal_id) {live_events}, replayed {ours}{continued}", file=sys.stderr)
+        status = 1
+    return status
