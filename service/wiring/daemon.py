@@ -23,7 +23,8 @@ from service.io.calfile import load_calibration, save_calibration
 from .config import RATE_MISSING, FluxcalConfig
 from .input import BatchReader, RateCheck
 from .pipeline import Pipeline, PipelineEvent
-from .sinks import RecordingTrouble, initial_calibration, learned_on, open_logger, say_bus
+from .faults import FaultWatch
+from .sinks import initial_calibration, learned_on, open_logger, say_bus
 from .status import StatusLog
 
 
@@ -87,7 +88,7 @@ class Daemon:
         self.cal_path = Path(cfg.calibration.file)
         self._reader = BatchReader(cfg.unit.block_ms, self.stop)
         self.processing_errors = 0            # blocks whose processing raised (their raw data are kept)
-        self._recording_trouble = RecordingTrouble(self.say)
+        self._faults = FaultWatch(self.say, silence_s=cfg.unit.silence_s, every_s=cfg.unit.status_s)
         self._last_processing_say = -1e9
         self._rate = RateCheck(cfg, self.say)
         self._status = StatusLog(self.say, cfg.unit.status_s)
@@ -114,6 +115,7 @@ class Daemon:
             failed = True
             raise
         finally:
+            self._summary(source, bus, logger)
             for closer in (source.close, getattr(logger, "close", None), getattr(bus, "close", None)):
                 if closer is not None:
                     try:
@@ -152,9 +154,27 @@ class Daemon:
         st = pipeline.state()
         st["health"] = {**source.counters.as_dict(), "processing_errors": self.processing_errors,
                         "commands_refused": self._status.refused}
+        st["faults"] = self._faults.health()
         if logger is not None:
             st["recording"] = logger.status()
         return st
+
+    def _summary(self, source: Source, bus, logger) -> None:
+        """At stop: every loss and fault of the run with its count, said and sent as the last health message."""
+        try:
+            health = {**source.counters.as_dict(), "processing_errors": self.processing_errors,
+                      "commands_refused": self._status.refused}
+            recording = logger.status() if logger is not None else None
+            faults = self._faults.tick(health, recording)
+            faults["summary"] = self._faults.summary(health, recording)
+            for line in faults["summary"]:
+                self.say(line)
+            if bus is not None:
+                bus.publish_health(health, faults=faults)
+            if logger is not None:
+                logger.write_health(health, faults=faults)
+        except Exception as e:  # noqa: BLE001 - the summary must never hide why the service stopped
+            self.say(f"while summarising: {type(e).__name__}: {e}")
 
     def _loop(self, source: Source, pipeline: Pipeline, bus, logger) -> None:
         backoff = 0.1
@@ -209,10 +229,10 @@ class Daemon:
                 health = {**source.counters.as_dict(), "processing_errors": self.processing_errors,
                           "commands_refused": self._status.refused}
                 self._status.bus_refusals(bus)
-                bus.publish_health(health)
+                faults = self._faults.tick(health, logger.status() if logger is not None else None)
+                bus.publish_health(health, faults=faults)
                 if logger is not None:
-                    logger.write_health(health)
-                    self._recording_trouble.check(logger)
+                    logger.write_health(health, faults=faults)
                 self._status.tick(pipeline.state())
 
     def _emit(self, out, pipeline: Pipeline, bus, logger, announced: bool) -> bool:
