@@ -187,7 +187,8 @@ class SerialTimeline:
                  32,767 samples missed that never existed.)
       stale      anything else: the counter or the clock stood still or stepped back. Dropped, counted in
                  `seq_backsteps`. After 8 such frames in a row, each following on from the one before, the
-                 unit is taken to have jumped back and gone on from there: the 8th is accepted as a restart.
+                 unit is taken to have jumped back and gone on from there: the 8th is accepted as a restart
+                 (seq goes on from the last frame's + 1).
 
     A period is known after two frames; before it, forward steps are taken as they come. Blocks whose every
     frame steps forward by less than half the counter's range, with no frame near zero on both counters that
@@ -247,6 +248,7 @@ class SerialTimeline:
         self._stale, self._stale_st = 0, None
 
     def _restart(self, frames: RawFrames, i: int, s: int, rx_time_s: float | None) -> tuple[int, int]:
+        """Accept frame i as the first after a restart; s: the new run's frames before it (lost), if known."""
         p = self.period_us()
         self._period_us = p
         gap_us = 0.0
@@ -311,7 +313,7 @@ class SerialTimeline:
                 if self._stale < self.RESYNC_FRAMES:
                     continue
                 c.seq_backsteps -= 1                         # this one is taken: a restart from here
-                S, T = self._restart(frames, i, si, rx_time_s)
+                S, T = self._restart(frames, i, 0, rx_time_s)  # (how many came before it is not known)
             keep[i] = True
             seq_out.append(S)
             t_out.append(T)

@@ -92,13 +92,12 @@ class FaultWatch:
         self.say, self.silence_s, self.every_s = say, float(silence_s), float(every_s)
         self.clock, self.wall = clock, wall
         self._prev: dict[str, int] = {}
-        self._prev_t: float | None = None
+        self._prev_t: float | None = clock()  # the first tick compares with the start: nothing counted yet
         self._episodes: dict[str, _Episode] = {}
         self.events: deque[dict[str, Any]] = deque(maxlen=HEALTH_EVENTS)
         self.n_events = 0
         self.totals: dict[str, int] = {}
-        now = clock()
-        self._last_activity = now             # silence counts from the start: a unit that never sends is said
+        self._last_activity: float | None = None   # silence counts from the first tick: a unit that never sends is said
         self._silent_since: float | None = None
         self.silences = 0
         self._nd_since: float | None = None   # bytes without a frame since then (not said yet, or said)
@@ -138,6 +137,8 @@ class FaultWatch:
     def _input(self, c: Mapping[str, int], d: Mapping[str, int], now: float) -> None:
         """Silence (nothing at all arrives) and bytes that decode into no frame."""
         got_bytes, frames = d.get("bytes_received", 0), d.get("frames_accepted", 0)
+        if self._last_activity is None:
+            self._last_activity = now
         if got_bytes > 0 or frames > 0 or d.get("crc_failures", 0) > 0:
             if self._silent_since is not None:
                 self._event("silence", "end", self.silences,
@@ -181,7 +182,8 @@ class FaultWatch:
             self._event(kind.name, "event", value, f"{kind.label}: {kind.what.format(n=value)} ({kind.advice}; "
                                                    f"health: counters.{kind.counter})")
         elif grew > 0 and ep is None:
-            self._episodes[kind.name] = _Episode(since=now, start=value - grew, last_grew=now, said_at=now,
+            began = self._prev_t if self._prev_t is not None else now       # within the last interval
+            self._episodes[kind.name] = _Episode(since=began, start=value - grew, last_grew=now, said_at=now,
                                                  said_value=value, said_counters=dict(c))
             window = f" in the last {_ago(dt)}" if dt else ""
             self._event(kind.name, "begin", value,
@@ -231,7 +233,7 @@ class FaultWatch:
             self._rec_episode = _Episode(since=now, start=start, last_grew=now, said_at=now, said_value=dropped)
             self._event("recording", "begin", dropped,
                         f"recording trouble: {st.get('last_error')}; {dropped - start:,} message(s) dropped so far, "
-                        f"{st.get('pending', 0)} waiting to be written; retrying every 5 s (health: recording)")
+                        f"{st.get('pending', 0)} waiting to be written; retrying (health: recording)")
         elif ep is not None:
             resumed = (not new_errors and st.get("current") is not None
                        and int(st.get("messages_written", 0)) > int(prev.get("messages_written", 0)))

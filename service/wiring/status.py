@@ -20,7 +20,7 @@ class StatusLog:
         self._samples = 0
         self._err_sq: dict[str, float] = {}       # per channel: sum of n x rms^2 over the interval's blocks
         self._err_n: dict[str, int] = {}          # ... and of n
-        self._reasons: tuple[str, ...] = ()
+        self._reasons: tuple[str, ...] | None = ()
         self._in_use: tuple[bool, Any] = (False, None)     # (a calibration in use, its cal_id): from the state
         self._refusals_said: set[tuple[str, ...]] = set()  # refusals said while this calibration is in use
         self._bus_refused = 0             # the bus's refusals already said
@@ -82,6 +82,8 @@ class StatusLog:
             in_use = (True, state.get("cal_id"))
             if in_use != self._in_use:
                 self._refusals_said.clear()       # another calibration in use: its refusals are news again
+                if self._reasons:
+                    self._reasons = None
             self._in_use = in_use
         if now - self._since < self.every_s:
             return
