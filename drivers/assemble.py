@@ -47,9 +47,13 @@ class Plausibility:
     def flag(self, field_nT: np.ndarray, saturated: np.ndarray, counts: np.ndarray, temp_C: np.ndarray,
              temp_bad: np.ndarray, flags: np.ndarray, counters: Counters | None) -> np.ndarray:
         """flags with FLAG_IMPLAUSIBLE set where a check fails (a new array only then); counts the reasons."""
+        zero = ~counts.any(axis=2)                                                 # (N, P)
+        high = max(-float(field_nT.min()), float(field_nT.max())) > self.full_scale_nT
+        hot = float(temp_C.min()) < self.temp_min_C or float(temp_C.max()) > self.temp_max_C
+        if not (high or hot or zero.any() or (flags & FLAGS_RESERVED).any()):
+            return flags                       # the common case: a few reductions, no array of its own
         reserved = (flags & FLAGS_RESERVED) != 0                                   # (N,)
         beyond = (np.abs(field_nT) > self.full_scale_nT) & ~saturated               # (N, P, 3)
-        zero = ~(counts != 0).any(axis=2)                                          # (N, P)
         temp_out = ~((temp_C >= self.temp_min_C) & (temp_C <= self.temp_max_C)) & ~temp_bad[:, None]
         bad = reserved | beyond.any(axis=(1, 2)) | zero.any(axis=1) | temp_out.any(axis=1)
         if not bad.any():
@@ -168,6 +172,14 @@ class SerialFramer:
         self._tail = b""
 
 
+def _steps(x: np.ndarray, before: int) -> np.ndarray:
+    """x[i] - x[i - 1], with x[-1] = before (np.diff with prepend, without its cost on small blocks)."""
+    d = np.empty_like(x)
+    d[0] = x[0] - before
+    np.subtract(x[1:], x[:-1], out=d[1:])
+    return d
+
+
 class SerialTimeline:
     """Puts a unit's frames in time order from their counter (seq, uint16) and clock (t_us, uint32), so that
     what leaves the driver has seq and t_s strictly increasing, whatever the unit sends.
@@ -227,13 +239,15 @@ class SerialTimeline:
         t = frames.t_us.astype(np.int64)
         p = self.period_us()
         if self._s0 is not None and p is not None:
-            ds = np.diff(s, prepend=self._s0) & 0xFFFF
-            dt = np.diff(t, prepend=self._t0) & 0xFFFFFFFF
-            ok = (ds >= 1) & (ds < 1 << 15) & (dt >= 1) & (dt < 16384 * p)
-            near = (s < self.NEAR_SEQ) & (t < self.NEAR_T_US)
-            if near.any():
-                ok &= ~near | (np.abs(dt - ds * p) <= 0.5 * p + 1e-4 * dt)
-            if ok.all():                     # the common case: every frame steps forward
+            ds = _steps(s, self._s0)
+            ds &= 0xFFFF
+            dt = _steps(t, self._t0)
+            dt &= 0xFFFFFFFF
+            fast = ds.min() >= 1 and ds.max() < 1 << 15 and dt.min() >= 1 and dt.max() < 16384 * p
+            if fast and s.min() < self.NEAR_SEQ and t.min() < self.NEAR_T_US:
+                near = (s < self.NEAR_SEQ) & (t < self.NEAR_T_US)
+                fast = not (near & (np.abs(dt - ds * p) > 0.5 * p + 1e-4 * dt)).any()
+            if fast:                         # the common case: every frame steps forward
                 seq = self._S0 + np.cumsum(ds)
                 t_us = self._T0 + np.cumsum(dt)
                 self._accept(frames, k - 1, int(seq[-1]), int(t_us[-1]), rx_time_s)
