@@ -143,6 +143,22 @@ def test_a_stale_run_that_goes_on_is_taken_as_a_restart_and_a_long_loss_is_count
     assert third.seq[0] - second.seq[-1] == 70_001 and c.samples_missed == 70_000 and c.restarts == 1
 
 
+def test_can_frames_repeated_are_counted_and_a_restart_keeps_time_going(icd_truth):
+    from drivers.assemble import CanAssembler, CanSamples
+
+    a, b = icd_truth(50, 2, seq0=40_000), icd_truth(50, 2, seed=1, seq0=0)
+    (ia, pa), (ib, pb) = a.can_frames(), b.can_frames()
+    c = Counters()
+    asm = CanAssembler(2, window_samples=8, counters=c, rate_hz=500.0)
+    parts = [asm.push(ia[:150], pa[:150], 1.0), asm.push(ia[140:], pa[140:], 1.01),      # 10 frames sent twice
+             asm.push(ia[:6], pa[:6], 1.02),                                             # a released sample again
+             asm.push(ib, pb, 1.05), asm.flush()]
+    got = CanSamples.concat(parts, 2)
+    assert c.duplicates == 16 and c.restarts == 1 and c.can_incomplete == 0
+    assert got.seq.tolist() == list(range(40_000, 40_100))
+    assert np.array_equal(got.counts, np.concatenate([a.counts, b.counts]))
+
+
 # --- plausibility ------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("seed", [7, 8])
