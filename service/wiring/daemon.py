@@ -160,7 +160,10 @@ class Daemon:
         return st
 
     def _summary(self, source: Source, bus, logger) -> None:
-        """At stop: every loss and fault of the run with its count, said and sent as the last health message."""
+        """At stop: every loss and fault of the run with its count, said and sent as the last health message
+        (nothing when the service stopped before its loop began: it read nothing)."""
+        if not self._faults.started:
+            return
         try:
             health = {**source.counters.as_dict(), "processing_errors": self.processing_errors,
                       "commands_refused": self._status.refused}

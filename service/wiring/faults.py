@@ -251,6 +251,11 @@ class FaultWatch:
 
     # --- what the health channel and the summary carry ------------------------------------------------------
 
+    @property
+    def started(self) -> bool:
+        """Whether a tick has come: the service's loop ran."""
+        return self._last_activity is not None
+
     def active(self) -> list[str]:
         """The faults going on now."""
         out = list(self._episodes)
