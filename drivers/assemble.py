@@ -157,6 +157,7 @@ class SerialFramer:
         parsed = parse_serial(buf, self.n_probes, final=final)
         self._tail = buf[parsed.consumed:]
         c = self.counters
+        c.bytes_received += len(data)
         c.frames_accepted += len(parsed.frames)
         c.crc_failures += parsed.crc_failures
         c.bytes_skipped += parsed.bytes_skipped

@@ -171,7 +171,6 @@ class SerialSource(PortSource):
             remaining = None if deadline is None else deadline - time.monotonic()
             data = self._pull(wait=remaining is None or remaining > 0)
             if data:
-                self.counters.bytes_received += len(data)
                 frames = self._framer.feed(data)
                 if len(frames):
                     return self._assembler.block(frames, rx_time_s=time.monotonic())

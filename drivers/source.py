@@ -21,7 +21,7 @@ class Counters:
 
     frames_accepted: int = 0
     crc_failures: int = 0
-    bytes_received: int = 0     # serial: every byte read from the port
+    bytes_received: int = 0     # serial: every byte read from the port (fed to the framer)
     bytes_skipped: int = 0
     seq_gaps: int = 0           # number of gaps seen
     samples_missed: int = 0     # samples lost inside those gaps

@@ -114,7 +114,7 @@ def test_restart_duplicates_and_stale_frames_are_counted_and_time_never_goes_bac
                            & (np.frombuffer(wire, np.uint8)[2:-1] == icd.VERSION)
                            & (np.frombuffer(wire, np.uint8)[3:] == u.n_probes))
     heads = heads[heads + fl <= len(wire)]
-    assert c.frames_accepted == keep.size + dups + rec.samples("stale").size
+    assert c.frames_accepted == keep.size + dups + rec.samples("stale").size and c.bytes_received == len(wire)
     assert c.crc_failures == heads.size - c.frames_accepted
 
 
