@@ -86,7 +86,7 @@ def expected_repeats(rec: FaultRecord, n: int, stale_frames: int) -> tuple[np.nd
 @pytest.mark.parametrize("seed", [1, 2, 3])
 @pytest.mark.parametrize("seq_start", [39_000, 100])
 def test_restart_duplicates_and_stale_frames_are_counted_and_time_never_goes_back(seed, seq_start):
-    """A restart 1,500 frames in: from seq 40,500 (more than 32,768: it used to read as a wrap and 25,035
+    """A restart 1,500 frames in: from seq 40,499 (more than 32,768: it used to read as a wrap and 25,036
     missed samples) or from seq 1,600 (time went back); with bit errors, duplicated and stale frames."""
     u = unit(seed=seed, seq_start=seq_start, t_us_start=3_000_000_000,
              faults={"bitflip_fraction": 0.01, "duplicate_fraction": 0.02, "stale_fraction": 0.01,
