@@ -5,9 +5,11 @@ Pure numpy over whole batches (no per-sample Python loop) and no I/O: the source
 CAN frames, these classes turn them into samples and keep the health counters.
 
     SerialFramer    bytes in arbitrary chunks -> RawFrames (keeps the unconsumed tail; counters)
-    FrameAssembler  RawFrames -> SampleBlock (unwraps seq and the unit clock, counts seq gaps)
+    SerialTimeline  orders frames by their counter and clock: duplicates, stale frames and unit restarts
+    FrameAssembler  RawFrames -> SampleBlock (seq and the unit clock unwrapped, monotonic; gaps counted)
     CanAssembler    CAN frames (id, 8-byte payload) -> complete samples, in seq order, bounded memory
-    scale_samples   counts -> nT, raw temperature -> degC, saturation and invalid temperature -> NaN
+    scale_samples   counts -> nT, raw temperature -> degC, saturation and invalid temperature -> NaN,
+                    implausible values flagged (Plausibility)
 """
 
 from __future__ import annotations
@@ -16,29 +18,35 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock, Unwrapper
+from .block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock
 from .icd import (DEFAULT_CAN_BASE_ID, SATURATED_COUNTS, TEMP_LSB_C, RawFrames, decode_can,
                   frame_length, parse_serial)
+from .plausibility import Plausibility
 from .source import Counters
+from .timeline import SerialTimeline
 
 _SEQ_MODULUS = 1 << 16
 
 
 def scale_samples(seq: np.ndarray, t_s: np.ndarray, counts: np.ndarray, temp_raw: np.ndarray,
-                  flags: np.ndarray, *, lsb_nT: float, counters: Counters | None = None) -> SampleBlock:
+                  flags: np.ndarray, *, lsb_nT: float, counters: Counters | None = None,
+                  plausibility: Plausibility | None = None) -> SampleBlock:
     """Scale integer samples to a SampleBlock.
 
     field_nT = counts * lsb_nT, NaN where an axis is saturated (exactly int32 max or min);
     temp_C = temp_raw * 0.01, NaN for a sample whose flags say the temperature is invalid.
-    Saturated axes and invalid-temperature samples are added to `counters`.
+    Saturated axes and invalid-temperature samples are added to `counters`; with `plausibility`,
+    implausible samples are flagged FLAG_IMPLAUSIBLE (their values kept) and counted.
     """
     counts = np.asarray(counts)
     saturated = (counts == SATURATED_COUNTS[0]) | (counts == SATURATED_COUNTS[1])
     field_nT = counts * float(lsb_nT)                        # nT = counts x lsb_nT
-    field_nT[saturated] = np.nan
     flags = np.asarray(flags, dtype=np.uint8)
     temp_bad = (flags & FLAG_TEMP_INVALID) != 0
     temp_C = np.asarray(temp_raw) * TEMP_LSB_C                # degC = raw x 0.01
+    if plausibility is not None and counts.shape[0]:
+        flags = plausibility.flag(field_nT, saturated, counts, temp_C, temp_bad, flags, counters)
+    field_nT[saturated] = np.nan
     temp_C[temp_bad] = np.nan
     if counters is not None:
         counters.saturated_axes += int(np.count_nonzero(saturated))
@@ -90,6 +98,7 @@ class SerialFramer:
         parsed = parse_serial(buf, self.n_probes, final=final)
         self._tail = buf[parsed.consumed:]
         c = self.counters
+        c.bytes_received += len(data)
         c.frames_accepted += len(parsed.frames)
         c.crc_failures += parsed.crc_failures
         c.bytes_skipped += parsed.bytes_skipped
@@ -106,27 +115,33 @@ class SerialFramer:
 
 
 class FrameAssembler:
-    """RawFrames from one unit -> SampleBlocks: seq (uint16) and the unit clock t_us (uint32 us)
-    unwrapped across blocks, t_s = t_us / 1e6, scaled with lsb_nT, gaps counted."""
+    """RawFrames from one unit -> SampleBlocks: frames ordered by SerialTimeline (seq and the unit clock t_us
+    unwrapped, strictly increasing; duplicates and stale frames dropped, restarts followed), t_s = t_us / 1e6,
+    scaled with lsb_nT, implausible samples flagged, gaps counted."""
 
-    def __init__(self, n_probes: int, lsb_nT: float, counters: Counters | None = None) -> None:
+    def __init__(self, n_probes: int, lsb_nT: float, counters: Counters | None = None,
+                 plausibility: Plausibility | None = Plausibility()) -> None:
         self.n_probes = n_probes
         self.lsb_nT = float(lsb_nT)
         self.counters = counters if counters is not None else Counters()
-        self._seq = Unwrapper(bits=16)
-        self._t_us = Unwrapper(bits=32)
+        self.plausibility = plausibility
+        self._timeline = SerialTimeline(self.counters)
         self._gaps = SeqGapCounter()
 
-    def block(self, frames: RawFrames) -> SampleBlock:
+    def block(self, frames: RawFrames, rx_time_s: float | None = None) -> SampleBlock:
+        """The samples of `frames`; rx_time_s (host monotonic time they were read) times a unit restart."""
         if len(frames) == 0:
             return SampleBlock.empty(self.n_probes)
-        seq = self._seq.unwrap(frames.seq)
+        keep, seq, t_us = self._timeline.order(frames, rx_time_s)
+        counts, temp_raw, flags = frames.counts, frames.temp_raw, frames.flags
+        if not keep.all():
+            counts, temp_raw, flags = counts[keep], temp_raw[keep], flags[keep]
         # division, not x 1e-6: t_us / 1e6 is the double nearest the exact time, so printing
         # it with 6 decimals gives back the unit's microseconds exactly
-        t_s = self._t_us.unwrap(frames.t_us) / 1e6
+        t_s = t_us / 1e6
         self._gaps.update(seq, self.counters)
-        return scale_samples(seq, t_s, frames.counts, frames.temp_raw, frames.flags,
-                             lsb_nT=self.lsb_nT, counters=self.counters)
+        return scale_samples(seq, t_s, counts, temp_raw, flags, lsb_nT=self.lsb_nT, counters=self.counters,
+                             plausibility=self.plausibility)
 
 
 @dataclass(frozen=True)
@@ -163,10 +178,11 @@ class CanSamples:
                           temp_raw=np.concatenate([p.temp_raw for p in parts]),
                           rx_time_s=np.concatenate([p.rx_time_s for p in parts]))
 
-    def to_block(self, *, rate_hz: float, lsb_nT: float, counters: Counters | None = None) -> SampleBlock:
+    def to_block(self, *, rate_hz: float, lsb_nT: float, counters: Counters | None = None,
+                 plausibility: Plausibility | None = Plausibility()) -> SampleBlock:
         """Scale to a SampleBlock. CAN has no unit clock, so t_s = seq / rate_hz (seq unwrapped)."""
         return scale_samples(self.seq, self.seq / float(rate_hz), self.counts, self.temp_raw, self.flags,
-                             lsb_nT=lsb_nT, counters=counters)
+                             lsb_nT=lsb_nT, counters=counters, plausibility=plausibility)
 
 
 class CanAssembler:
@@ -180,15 +196,20 @@ class CanAssembler:
     incomplete one wait for it so that output stays in seq order.
 
     Frames with foreign or reserved ids are ignored (the bus is shared). A frame for a sample
-    already released is ignored (a late duplicate). seq is unwrapped frame by frame with the
-    signed step ((s - s_prev + 2^15) mod 2^16) - 2^15, so interleaving across a wrap is right. A jump
-    backwards by more than `restart_samples` is taken as the unit restarting its counter: what
-    is pending is settled and assembly starts again from there.
+    already settled (released or given up), or for a slot of a pending sample already filled, is
+    ignored and counted in `duplicates`. seq is unwrapped frame by frame with the signed step
+    ((s - s_prev + 2^15) mod 2^16) - 2^15, so interleaving across a wrap is right. The unit restarting its
+    counter: a jump backwards by more than `restart_samples`, or (with `rate_hz`) a jump forwards to a counter
+    near zero (< restart_samples) that the receive times do not support (less than half its length in time).
+    It is counted in `restarts`, what is pending is settled, and seq goes on from the highest seen + 1 + the
+    new counter: the unwrapped seq (and t_s = seq / rate_hz) never goes back, and no sample is counted missed
+    that never existed.
     """
 
     def __init__(self, n_probes: int, *, base_id: int = DEFAULT_CAN_BASE_ID, window_samples: int = 32,
-                 window_s: float = 0.5, counters: Counters | None = None) -> None:
+                 window_s: float = 0.5, counters: Counters | None = None, rate_hz: float | None = None) -> None:
         self.n_probes = n_probes
+        self.rate_hz = rate_hz
         self.base_id = base_id
         self.window_samples = int(window_samples)
         self.window_s = float(window_s)
@@ -196,6 +217,8 @@ class CanAssembler:
         self.counters = counters if counters is not None else Counters()
         self._last_raw: int | None = None
         self._last_u = 0
+        self._top_u: int | None = None         # the highest unwrapped seq seen, and when it came
+        self._top_rx = -np.inf
         self._max_seen: int | None = None
         self._done_upto: int | None = None     # every sample <= this was released or dropped
         self._clear_pending()
@@ -226,23 +249,16 @@ class CanAssembler:
         mine = probe >= 0
         probe, axis, value, seq, temp, rx = (x[mine] for x in (probe, axis, value, seq, temp, rx))
         self.counters.frames_accepted += int(probe.size)
-        u = self._unwrap(seq)
+        u, restarts = self._unwrap(seq, rx)
 
         out: list[CanSamples] = []
-        # a big step backwards is the unit restarting its counter: settle, then start afresh
+        # at a restart of the unit's counter what is pending is settled, then assembly goes on
         start = 0
-        while start < u.size:
-            seg = slice(start, u.size)
-            ref = -np.inf if self._max_seen is None else self._max_seen
-            run_max = np.maximum.accumulate(np.maximum(u[seg], ref))
-            back = np.flatnonzero(u[seg] < run_max - self.restart_samples)
-            stop = start + int(back[0]) if back.size else u.size
-            seg = slice(start, stop)
-            self._merge(u[seg], probe[seg], axis[seg], value[seg], temp[seg], rx[seg])
+        for stop in restarts + [u.size]:
+            self._merge(u[start:stop], probe[start:stop], axis[start:stop], value[start:stop], temp[start:stop],
+                        rx[start:stop])
             if stop < u.size:
                 out.append(self._release(now_s, final=True))
-                self._max_seen = None
-                self._done_upto = None
             start = stop
         out.append(self._release(now_s, final=False))
         return CanSamples.concat(out, self.n_probes)
@@ -251,10 +267,11 @@ class CanAssembler:
         """End of input: release every complete sample, drop (and count) the incomplete ones."""
         return self._release(np.inf, final=True)
 
-    def _unwrap(self, seq: np.ndarray) -> np.ndarray:
+    def _unwrap(self, seq: np.ndarray, rx: np.ndarray) -> tuple[np.ndarray, list[int]]:
+        """The unwrapped seq of each frame, and the indices where the unit restarted its counter."""
         raw = seq.astype(np.int64)
         if raw.size == 0:
-            return raw
+            return raw, []
         prev = np.empty_like(raw)
         prev[0] = raw[0] if self._last_raw is None else self._last_raw
         prev[1:] = raw[:-1]
@@ -262,15 +279,48 @@ class CanAssembler:
         step = ((raw - prev + _SEQ_MODULUS // 2) % _SEQ_MODULUS) - _SEQ_MODULUS // 2
         base = raw[0] if self._last_raw is None else self._last_u
         u = base + np.cumsum(step)
+        restarts: list[int] = []
+        top = -np.inf if self._top_u is None else float(self._top_u)     # the highest so far, and when it came
+        top_rx = self._top_rx
+        i0 = 0
+        while i0 < u.size:                # restarts are rare: one pass over the rest for each
+            seg, seg_raw, seg_rx = u[i0:], raw[i0:], rx[i0:]
+            run_top = np.maximum.accumulate(np.maximum(seg, top))
+            prior = np.concatenate([[top], run_top[:-1]])                # the highest before each frame
+            back = seg < prior - self.restart_samples
+            if self.rate_hz:
+                # forward to a counter near zero, further than the receive time since the highest allows
+                new_top = np.where(seg > prior, np.arange(seg.size), -1)
+                last = np.concatenate([[-1], np.maximum.accumulate(new_top)[:-1]])
+                prior_rx = np.where(last >= 0, seg_rx[np.maximum(last, 0)], top_rx)
+                jump = seg - prior
+                back |= ((jump > self.restart_samples) & (seg_raw < self.restart_samples)
+                         & ((seg_rx - prior_rx) * self.rate_hz < 0.5 * jump))
+            hits = np.flatnonzero(back)
+            if not hits.size:
+                break
+            j = i0 + int(hits[0])
+            if j > i0:
+                k = i0 + int(np.argmax(u[i0:j]))
+                if u[k] > top:
+                    top, top_rx = float(u[k]), float(rx[k])
+            u[j:] += int(top) + 1 + int(raw[j]) - int(u[j])
+            restarts.append(j)
+            self.counters.restarts += 1
+            i0 = j
         self._last_raw = int(raw[-1])
         self._last_u = int(u[-1])
-        return u
+        if self._top_u is None or int(u.max()) > self._top_u:
+            k = int(np.argmax(u))
+            self._top_u, self._top_rx = int(u[k]), float(rx[k])
+        return u, restarts
 
     def _merge(self, u: np.ndarray, probe: np.ndarray, axis: np.ndarray, value: np.ndarray,
                temp: np.ndarray, rx: np.ndarray) -> None:
         if self._done_upto is not None:
             late = u <= self._done_upto
             if late.any():
+                self.counters.duplicates += int(np.count_nonzero(late))
                 keep = ~late
                 u, probe, axis, value, temp, rx = (x[keep] for x in (u, probe, axis, value, temp, rx))
         if u.size == 0:
@@ -287,6 +337,9 @@ class CanAssembler:
         temps[rows_old] = self._p_temp
         have[rows_old] = self._p_have
         first[rows_old] = self._p_first
+        # a slot filled before, or twice in this batch: a repeated frame (the last one counts)
+        slot = (rows_new * n + probe) * 3 + axis
+        self.counters.duplicates += int(np.count_nonzero(have.reshape(-1)[slot])) + slot.size - np.unique(slot).size
         counts[rows_new, probe, axis] = value
         temps[rows_new, probe, axis] = temp
         have[rows_new, probe, axis] = True

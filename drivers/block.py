@@ -15,6 +15,13 @@ import numpy as np
 FLAG_SATURATED = 0x01
 FLAG_TEMP_INVALID = 0x02
 FLAG_CLOCK_RESYNC = 0x04
+#: bits 3..7, which the ICD says are 0: a frame with any of them set is not to be trusted
+FLAGS_RESERVED = 0xF8
+#: set by the driver (not the unit) on a sample that failed a plausibility check: reserved flag bits,
+#: a value beyond the configured full scale, a probe vector exactly zero, a temperature outside the
+#: probe's range (drivers/assemble.py Plausibility). Recorded as it is; the pipeline and `fit` keep every
+#: sample with any reserved bit set (this one included) out of the estimator and the corrected output.
+FLAG_IMPLAUSIBLE = 0x80
 
 
 class Timed:
@@ -89,6 +96,23 @@ class SampleBlock(Timed):
 
     def slice(self, start: int, stop: int) -> "SampleBlock":
         return self.rows(slice(start, stop))
+
+    def excluded(self) -> np.ndarray:
+        """(N,) bool: samples flagged implausible (any reserved flag bit, FLAG_IMPLAUSIBLE among them)."""
+        return (self.flags & FLAGS_RESERVED) != 0
+
+    def without_implausible(self) -> "SampleBlock":
+        """This block with the field and temperatures of every sample flagged implausible set to NaN (as
+        saturated axes are), so that no estimator, effect or corrected output uses them; the block itself
+        when none is (the common case: one test, no copy)."""
+        bad = self.excluded()
+        if not bad.any():
+            return self
+        field_nT, temp_C = self.field_nT.copy(), self.temp_C.copy()
+        field_nT[bad] = np.nan
+        temp_C[bad] = np.nan
+        return SampleBlock(t_s=self.t_s, seq=self.seq, field_nT=field_nT, temp_C=temp_C, flags=self.flags,
+                           extras=self.extras)
 
     def rows(self, keep: "slice | np.ndarray") -> "SampleBlock":
         """The samples `keep` selects (a slice, indices or a boolean mask), every column alike."""

@@ -12,6 +12,9 @@ CAN log files (candump .log, .asc, .blf, .csv) assembled the same way for `fluxc
     rate_hz = 500.0              # the unit's sample rate: CAN carries no unit clock, t_s = seq / rate_hz
     window_samples = 32          # an incomplete sample is dropped once seq moved on by more than this
     window_s = 0.5               # ... or once this long has passed since its first frame
+    full_scale_nT = 1000000.0    # plausibility, as for serial (drivers/plausibility.py)
+    temp_min_C = -100.0
+    temp_max_C = 200.0
 
 CAN carries no timestamp from the unit, only the uint16 seq; t_s is therefore the unwrapped seq
 divided by the configured rate_hz (sample instants on the unit's own clock, not the host's).
@@ -27,6 +30,7 @@ import can
 import numpy as np
 
 from .assemble import CanAssembler, CanSamples, SeqGapCounter
+from .plausibility import Plausibility, check_temp_range, plausibility_spec
 from .block import SampleBlock
 from .config import spec
 from .errors import ConfigError, DataError, DriverError
@@ -56,9 +60,13 @@ class CanConfig:
                                doc="drop an incomplete sample once seq moved on by more than this")
     window_s: float = spec(0.5, min=0.001, max=60.0, doc="drop an incomplete sample this long after its first frame")
     max_batch: int = spec(4096, min=1, max=1 << 20, doc="most frames assembled per read")
+    full_scale_nT: float = plausibility_spec()["full_scale_nT"]
+    temp_min_C: float = plausibility_spec()["temp_min_C"]
+    temp_max_C: float = plausibility_spec()["temp_max_C"]
 
     def validate(self, path: str) -> None:
         check_base_id(self.base_id, self.n_probes, f"{path}.base_id" if path else "base_id")
+        check_temp_range(self.temp_min_C, self.temp_max_C, path or "source")
 
 
 def check_base_id(base_id: int, n_probes: int, key: str = "base_id") -> None:
@@ -101,7 +109,7 @@ class CanSource(PortSource):
     def __init__(self, *, interface: str, channel: str, n_probes: int, rate_hz: float,
                  bitrate: int = 1_000_000, base_id: int = DEFAULT_CAN_BASE_ID, lsb_nT: float = DEFAULT_LSB_NT,
                  window_samples: int = 32, window_s: float = 0.5, max_batch: int = 4096,
-                 bus_kwargs: dict | None = None) -> None:
+                 bus_kwargs: dict | None = None, plausibility: Plausibility | None = Plausibility()) -> None:
         super().__init__(n_probes)
         check_base_id(base_id, n_probes, "source.base_id")
         if not rate_hz > 0:
@@ -114,8 +122,9 @@ class CanSource(PortSource):
         self.base_id, self.rate_hz, self.lsb_nT = int(base_id), float(rate_hz), float(lsb_nT)
         self.max_batch = int(max_batch)
         self._bus_kwargs = dict(bus_kwargs or {})
+        self.plausibility = plausibility
         self._assembler = CanAssembler(n_probes, base_id=self.base_id, window_samples=window_samples,
-                                       window_s=window_s, counters=self.counters)
+                                       window_s=window_s, counters=self.counters, rate_hz=self.rate_hz)
         self._gaps = SeqGapCounter()
         self._id_range = (self.base_id, self.base_id + 4 * n_probes - 1)
         self._bus: can.BusABC | None = None
@@ -173,7 +182,8 @@ class CanSource(PortSource):
             samples = self._assembler.push(ids, payloads, now, now_s=now)
             if len(samples):
                 self._gaps.update(samples.seq, self.counters)
-                return samples.to_block(rate_hz=self.rate_hz, lsb_nT=self.lsb_nT, counters=self.counters)
+                return samples.to_block(rate_hz=self.rate_hz, lsb_nT=self.lsb_nT, counters=self.counters,
+                                        plausibility=self.plausibility)
             if deadline is not None and time.monotonic() >= deadline:
                 return None
 
@@ -194,9 +204,10 @@ def open_source(config: CanConfig | None = None, **kwargs) -> CanSource:
     names = ("interface", "channel", "n_probes", "rate_hz", "bitrate", "base_id", "lsb_nT", "window_samples",
              "window_s", "max_batch")
     values = {k: getattr(config, k) for k in names}
-    unknown = set(kwargs) - set(values) - {"bus_kwargs"}
+    unknown = set(kwargs) - set(values) - {"bus_kwargs", "plausibility"}
     if unknown:
         raise ConfigError(f"source: unknown CAN option(s) {', '.join(sorted(unknown))} (allowed: {', '.join(names)})")
+    values["plausibility"] = Plausibility(config.full_scale_nT, config.temp_min_C, config.temp_max_C)
     values.update(kwargs)
     return CanSource(**values)
 

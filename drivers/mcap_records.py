@@ -20,16 +20,13 @@ from __future__ import annotations
 
 import bisect
 import io
-import mmap
-import os
 import re
 import struct
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
-from .errors import RecordingError
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 RECORD_HEAD = 9                       # u8 opcode, u64 length

@@ -8,6 +8,9 @@
     lsb_nT = 0.001               # nT per ADC count
     read_timeout_s = 0.02        # longest single wait on the port
     rate_hz = 200.0              # the unit's sample rate (the service counts its durations in samples at it)
+    full_scale_nT = 1000000.0    # plausibility: a larger |axis| (not at a rail) flags the sample implausible
+    temp_min_C = -100.0          # ... and so does a probe temperature outside [temp_min_C, temp_max_C]
+    temp_max_C = 200.0
 
 A pulled cable (or a closed pty) makes `read` raise DriverError; `reopen()` opens the same port
 again (a udev symlink that reappears works). The caller counts read_errors and reconnects.
@@ -23,6 +26,7 @@ from dataclasses import dataclass
 import serial
 
 from .assemble import FrameAssembler, SerialFramer
+from .plausibility import Plausibility, check_temp_range, plausibility_spec
 from .block import SampleBlock
 from .config import spec
 from .errors import ConfigError, DriverError
@@ -47,6 +51,12 @@ class SerialConfig:
                                  doc="the unit's sample rate, Hz: the service counts its durations (estimator "
                                      "window_s, check_every_s, update_every_s) in samples at this rate; the "
                                      "driver itself takes time from the unit clock in each frame")
+    full_scale_nT: float = plausibility_spec()["full_scale_nT"]
+    temp_min_C: float = plausibility_spec()["temp_min_C"]
+    temp_max_C: float = plausibility_spec()["temp_max_C"]
+
+    def validate(self, path: str) -> None:
+        check_temp_range(self.temp_min_C, self.temp_max_C, path or "source")
 
 
 class SerialSource(PortSource):
@@ -58,7 +68,7 @@ class SerialSource(PortSource):
     """
 
     def __init__(self, port: str, *, n_probes: int, baudrate: int = 921600, lsb_nT: float = DEFAULT_LSB_NT,
-                 read_timeout_s: float = 0.02) -> None:
+                 read_timeout_s: float = 0.02, plausibility: Plausibility | None = Plausibility()) -> None:
         super().__init__(n_probes)
         if not read_timeout_s > 0:
             # timeout=0 spins and None blocks forever (DEPENDENCIES.md)
@@ -71,7 +81,7 @@ class SerialSource(PortSource):
         self.lsb_nT = float(lsb_nT)
         self.read_timeout_s = float(read_timeout_s)
         self._framer = SerialFramer(n_probes, self.counters)
-        self._assembler = FrameAssembler(n_probes, self.lsb_nT, self.counters)
+        self._assembler = FrameAssembler(n_probes, self.lsb_nT, self.counters, plausibility=plausibility)
         self._ser: serial.SerialBase | None = None
         self._open()
 
@@ -164,7 +174,7 @@ class SerialSource(PortSource):
             if data:
                 frames = self._framer.feed(data)
                 if len(frames):
-                    return self._assembler.block(frames)
+                    return self._assembler.block(frames, rx_time_s=time.monotonic())
             if deadline is not None and time.monotonic() >= deadline:
                 return None
 
@@ -189,9 +199,10 @@ def open_source(config: SerialConfig | None = None, **kwargs) -> SerialSource:
         kwargs.pop("kind", None)
         return SerialSource(kwargs.pop("port"), **kwargs)
     values = {k: getattr(config, k) for k in ("port", "baudrate", "n_probes", "lsb_nT", "read_timeout_s")}
-    unknown = set(kwargs) - set(values)
+    unknown = set(kwargs) - set(values) - {"plausibility"}
     if unknown:
         raise ConfigError(f"source: unknown serial option(s) {', '.join(sorted(unknown))} "
                           f"(allowed: {', '.join(values)})")
+    values["plausibility"] = Plausibility(config.full_scale_nT, config.temp_min_C, config.temp_max_C)
     values.update(kwargs)
     return SerialSource(values.pop("port"), **values)

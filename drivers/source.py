@@ -21,12 +21,21 @@ class Counters:
 
     frames_accepted: int = 0
     crc_failures: int = 0
+    bytes_received: int = 0     # serial: every byte read from the port (fed to the framer)
     bytes_skipped: int = 0
     seq_gaps: int = 0           # number of gaps seen
     samples_missed: int = 0     # samples lost inside those gaps
     can_incomplete: int = 0     # CAN samples dropped because a frame never came
+    duplicates: int = 0         # frames repeating the last one bit for bit (CAN: a frame already held), dropped
+    seq_backsteps: int = 0      # frames whose counter or clock stepped back (stale), dropped
+    restarts: int = 0           # the unit restarted: counter and clock back near zero, followed on
     saturated_axes: int = 0
     temp_invalid: int = 0
+    implausible_samples: int = 0   # samples flagged implausible (FLAG_IMPLAUSIBLE): kept out of the estimator
+    reserved_flags: int = 0        # ... of which: frames with flag bits the ICD says are 0
+    beyond_full_scale: int = 0     # ... axes beyond the configured full scale (not at a rail)
+    zero_vectors: int = 0          # ... probe vectors exactly (0, 0, 0)
+    temp_out_of_range: int = 0     # ... probe temperatures outside the configured range (not flagged invalid)
     reconnects: int = 0
     read_errors: int = 0
 

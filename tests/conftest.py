@@ -39,7 +39,8 @@ def make_truth(k: int, n: int, seed: int = 0, *, seq0: int = 65536 - 40, t0_us: 
                dt_us: int = 1000) -> IcdTruth:
     """Samples starting 40 before the seq wrap and 30 ms before the unit clock wraps."""
     rng = np.random.default_rng(seed)
-    counts = rng.integers(-2**31 + 1, 2**31 - 1, (k, n, 3), dtype=np.int64).astype(np.int32)
+    # within the drivers' default full scale (1e6 nT) up to 0.005 nT a count: beyond it a sample is flagged
+    counts = rng.integers(-2 * 10**8 + 1, 2 * 10**8, (k, n, 3), dtype=np.int64).astype(np.int32)
     return IcdTruth(seq=seq0 + np.arange(k, dtype=np.int64), t_us=t0_us + dt_us * np.arange(k, dtype=np.int64),
                     counts=counts, temp_raw=rng.integers(-4000, 8000, (k, n)).astype(np.int16),
                     flags=np.zeros(k, np.uint8))

@@ -114,9 +114,28 @@ def test_unit_restart_is_followed(icd_truth):
     counters = Counters()
     asm = CanAssembler(1, window_samples=8, counters=counters)
     got = feed(asm, ids, payloads, np.full(100, 50))
-    assert got.seq.tolist() == list(range(30_000, 30_100)) + list(range(100))
+    # seq goes on from the last sample's (t_s = seq / rate_hz never goes back), no sample counted missed
+    assert got.seq.tolist() == list(range(30_000, 30_200))
     assert np.array_equal(got.counts, np.concatenate([a.counts, b.counts]))
-    assert counters.can_incomplete == 0
+    assert counters.can_incomplete == 0 and counters.restarts == 1
+
+
+def test_unit_restart_after_more_than_half_the_counter_is_not_taken_for_a_wrap(icd_truth):
+    """A restart at seq 40,000 steps 'forward' by 25,536 mod 2^16: with the unit's rate, the receive times say
+    it cannot be 25,536 samples (51 s at 500 Hz) in a tenth of a second."""
+    a = icd_truth(100, 1, seq0=40_000)
+    b = icd_truth(100, 1, seed=1, seq0=0)
+    counters = Counters()
+    asm = CanAssembler(1, window_samples=8, counters=counters, rate_hz=RATE_HZ)
+    parts = [asm.push(*a.can_frames(), 10.0), asm.push(*b.can_frames(), 10.1), asm.flush()]
+    got = CanSamples.concat(parts, 1)
+    assert got.seq.tolist() == list(range(40_000, 40_200))
+    assert counters.restarts == 1 and counters.can_incomplete == 0
+    # the same counters 51 s apart are a wrap with loss, not a restart
+    asm = CanAssembler(1, window_samples=8, counters=Counters(), rate_hz=RATE_HZ)
+    got = CanSamples.concat([asm.push(*a.can_frames(), 10.0), asm.push(*b.can_frames(), 61.2), asm.flush()], 1)
+    assert got.seq.tolist() == list(range(40_000, 40_100)) + list(range(65_536, 65_636))
+    assert asm.counters.restarts == 0
 
 
 def test_saturated_flag_derived_from_counts(icd_truth):

@@ -53,4 +53,5 @@ def test_the_status_line_says_whose_coverage_it_gives():
     log.tick({"usable": True, "cal_id": 6, "held": True,
               "gate": {"usable": False, "coverage": 0.23, "condition": 12.5, "reasons": ["s1: only 23 %"]}})
     assert said and ("calibration 6 in use (applied: held until reset); latest check refused: coverage 23% of its "
-                     "window, condition 12.5; error rms nT: s1.scalar 0.61") in said[-1], said
+                     "window, condition 12.5; error rms nT over the last ") in said[-1], said
+    assert said[-1].endswith("s (200 samples): s1.scalar 0.61"), said

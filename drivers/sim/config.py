@@ -151,13 +151,38 @@ class FaultConfig:
                                     doc="times (s from start) the port closes (pty closed, CAN silent)")
     outage_s: float = spec(1.0, min=0.0, max=1.0e6, doc="how long each outage lasts")
     temp_invalid_fraction: float = spec(0.0, min=0.0, max=1.0, doc="samples flagged temperature-invalid")
+    duplicate_fraction: float = spec(0.0, min=0.0, max=1.0, doc="serial: a frame sent twice, bit for bit")
+    stale_fraction: float = spec(0.0, min=0.0, max=1.0,
+                                 doc="serial: after a frame, the one stale_frames before it sent again (the "
+                                     "counter and clock step back)")
+    stale_frames: int = spec(5, min=1, max=1000, doc="how far back a stale frame is")
+    restart_at_s: list[float] = spec(default_factory=list, min=0.0,
+                                     doc="times (s from start) the unit restarts: counter and clock back to 0")
+    silence_at_s: list[float] = spec(default_factory=list, min=0.0,
+                                     doc="times (s from start) the unit falls silent, the port staying open")
+    silence_s: float = spec(1.0, min=0.0, max=1.0e6, doc="how long each silence lasts")
+    wrong_baud_at_s: list[float] = spec(default_factory=list, min=0.0,
+                                        doc="serial: times the bytes start arriving garbled, as read at a wrong "
+                                            "baud rate (no frame decodes)")
+    wrong_baud_s: float = spec(1.0, min=0.0, max=1.0e6, doc="how long each such stretch lasts")
+    reserved_flag_fraction: float = spec(0.0, min=0.0, max=1.0,
+                                         doc="samples with flag bit 3 set, which the ICD says is 0")
+    full_scale_fraction: float = spec(0.0, min=0.0, max=1.0,
+                                      doc="samples whose probe-1 x reads one count inside the positive rail")
+    zero_vector_fraction: float = spec(0.0, min=0.0, max=1.0, doc="samples whose last probe reads (0, 0, 0)")
+    temp_rail_fraction: float = spec(0.0, min=0.0, max=1.0,
+                                     doc="samples whose probe-1 temperature reads the int16 rail, 327.67 degC")
 
     def validate(self, path: str) -> None:
-        if any(b <= a for a, b in zip(self.outage_at_s, self.outage_at_s[1:])):
-            raise ConfigError(f"{path}.outage_at_s: {self.outage_at_s!r} must be increasing")
-        ends = [a + self.outage_s for a in self.outage_at_s]
-        if any(e > b for e, b in zip(ends, self.outage_at_s[1:])):
-            raise ConfigError(f"{path}.outage_at_s: outages of outage_s = {self.outage_s:g} s overlap")
+        for key, length in (("outage_at_s", "outage_s"), ("silence_at_s", "silence_s"),
+                            ("wrong_baud_at_s", "wrong_baud_s")):
+            at, span = getattr(self, key), getattr(self, length)
+            if any(b <= a for a, b in zip(at, at[1:])):
+                raise ConfigError(f"{path}.{key}: {at!r} must be increasing")
+            if any(a + span > b for a, b in zip(at, at[1:])):
+                raise ConfigError(f"{path}.{key}: stretches of {length} = {span:g} s overlap")
+        if any(b <= a for a, b in zip(self.restart_at_s, self.restart_at_s[1:])):
+            raise ConfigError(f"{path}.restart_at_s: {self.restart_at_s!r} must be increasing")
 
 
 @dataclass

@@ -8,7 +8,8 @@
 Every emitter streams samples [start_index, n_samples) of a Unit, paced by the wall clock
 (realtime) or as fast as the reader takes them, and stops by itself at the end of the run, on
 close(), or with the interpreter (daemon thread). Faults are the Unit's; the emitter adds outages
-(faults.outage_at_s / outage_s) and keeps the FaultRecord of everything it did.
+(faults.outage_at_s / outage_s: the port closes) and silences (faults.silence_at_s / silence_s: nothing
+sent, the port open) and keeps the FaultRecord of everything it did.
 
 The pty and reconnection. A pty slave (/dev/pts/N) disappears when its master closes and cannot
 be opened again, so an emitter never hands out the slave path itself: `emitter.path` is a symlink
@@ -177,13 +178,16 @@ class Emitter:
         unit = self.unit
         n = unit.n_samples
         rate = unit.rate_hz * unit.config.speed      # samples per second of the wall clock (realtime)
-        outages = [o for o in unit.outages() if o[1] > self.start_index]
+        # outages close the port; silences only stop sending (the unit is quiet, the port stays open)
+        outages = sorted([(a, b, "outage") for a, b in unit.outages()]
+                         + [(a, b, "silence") for a, b in unit.silences()])
+        outages = [o for o in outages if o[1] > self.start_index]
         i = self.start_index
         t0 = time.monotonic() - i / rate          # wall clock of sample 0
         while not self._stop.is_set() and (n is None or i < n):
             if outages and outages[0][0] <= i:
-                a, b = outages.pop(0)
-                i = self._outage(max(a, i), b, t0)
+                a, b, kind = outages.pop(0)
+                i = self._outage(max(a, i), b, t0) if kind == "outage" else self._silence(max(a, i), b, t0)
                 continue
             j = i + self.block_n
             if n is not None:
@@ -206,6 +210,17 @@ class Emitter:
             if not complete:
                 self.record.add_range("no_reader", i, j)
             i = self.next_index = j
+
+    def _silence(self, a: int, b: int, t0: float) -> int:
+        """The unit sends nothing for samples [a, b), the port open: as long as they last (realtime) or
+        faults.silence_s of the wall clock (fast). Returns b."""
+        self.record.add_range("silence", a, b)
+        if self.realtime:
+            self._sleep_until(t0 + b / (self.unit.rate_hz * self.unit.config.speed))
+        else:
+            self._sleep_until(time.monotonic() + self.unit.config.faults.silence_s)
+        self.next_index = b
+        return b
 
     def _outage(self, a: int, b: int, t0: float) -> int:
         """The port closes for samples [a, b): drain, close, wait, reopen. Returns b."""

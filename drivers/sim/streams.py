@@ -11,6 +11,7 @@ import numpy as np
 # random streams (spawned from the seed, one per purpose, so one does not shift another)
 STREAM_MOTION, STREAM_NOISE, STREAM_REF, STREAM_TEMP_INVALID, STREAM_SERIAL, STREAM_GARBAGE, STREAM_CAN = range(1, 8)
 STREAM_PINK, STREAM_AMBIENT = 8, 9
+STREAM_IMPLAUSIBLE, STREAM_WIRE_REPEAT, STREAM_GARBLE = 10, 11, 12
 
 
 class ChunkedRandom:

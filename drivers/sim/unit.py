@@ -2,7 +2,8 @@
 and turns it into ICD bytes and CAN frames, with faults injected on request and a record of them.
 
 Samples are addressed by index i from 0: world time i / rate_hz, seq = seq_start + i (wraps at 2^16),
-t_us = t_us_start + round(i 1e6 / rate_hz) (wraps at 2^32). Every random decision is drawn by sample
+t_us = t_us_start + round(i 1e6 / rate_hz) (wraps at 2^32); after a restart at index r (faults.restart_at_s)
+seq = i - r and t_us = round((i - r) 1e6 / rate_hz). Every random decision is drawn by sample
 index (world.ChunkedRandom), so any stretch of the run can be produced again, exactly.
 """
 
@@ -17,9 +18,13 @@ from typing import Any
 import numpy as np
 
 from ..block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock
+
+#: the flag bit the simulated unit sets for faults.reserved_flag_fraction (bits 3..7 are 0 in the ICD)
+FLAG_RESERVED_SIM = 0x08
 from ..icd import SATURATED_COUNTS, TEMP_LSB_C, encode_can, encode_serial, frame_length
 from .config import SimConfig
-from .streams import STREAM_CAN, STREAM_GARBAGE, STREAM_SERIAL, STREAM_TEMP_INVALID, ChunkedRandom
+from .streams import (STREAM_CAN, STREAM_GARBAGE, STREAM_GARBLE, STREAM_IMPLAUSIBLE, STREAM_SERIAL,
+                      STREAM_TEMP_INVALID, STREAM_WIRE_REPEAT, ChunkedRandom)
 from .world import World, WorldSamples
 
 INT32_MAX, INT32_MIN = SATURATED_COUNTS
@@ -129,14 +134,16 @@ class FaultRecord:
     """Exactly what was done to the stream, by sample index; thread-safe (an emitter thread writes it).
 
     kinds (sample indices): drop_frame, bitflip, drop_byte (serial frames corrupted or never sent),
-    garbage_after (frames followed by garbage bytes; no frame is lost by garbage), outage (samples
-    produced while the port was closed), no_reader (produced while no reader had the port open, thrown
+    garbage_after (frames followed by garbage bytes; no frame is lost by garbage), duplicate (frames sent
+    twice), stale (frames followed by the one faults.stale_frames before them, sent again), wrong_baud
+    (frames that arrived garbled), outage (samples produced while the port was closed), silence (samples
+    never sent while the port stayed open), no_reader (produced while no reader had the port open, thrown
     away like a real unit's UART would); CAN: can_dropped holds (sample, probe, axis) rows.
 
     It keeps every index on purpose, so it grows with every fault, but by the index only: one growing
     array per kind (not an array per batch), and ranges (outage, no_reader) as [start, stop) pairs."""
 
-    SERIAL_LOSSES = ("drop_frame", "bitflip", "drop_byte", "outage", "no_reader")
+    SERIAL_LOSSES = ("drop_frame", "bitflip", "drop_byte", "wrong_baud", "outage", "silence", "no_reader")
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -195,7 +202,7 @@ class FaultRecord:
 
     def can_incomplete(self) -> np.ndarray:
         """Samples a CAN reader cannot complete: a frame dropped, or the bus silent."""
-        return np.unique(np.concatenate([self.samples(k) for k in ("can_dropped", "outage", "no_reader")]))
+        return np.unique(np.concatenate([self.samples(k) for k in ("can_dropped", "outage", "silence", "no_reader")]))
 
     def save(self, path: str, **meta: int) -> None:
         """Write the whole record (every index of every kind, the garbage byte count) and integer `meta`
@@ -250,6 +257,9 @@ class Unit:
         self._serial_u = ChunkedRandom(seed, STREAM_SERIAL, (8,), kind="uniform")
         self._garbage = ChunkedRandom(seed, STREAM_GARBAGE, (config.faults.garbage_max_bytes,), kind="bytes")
         self._can_u = ChunkedRandom(seed, STREAM_CAN, (3 * self.n_probes,), kind="uniform")
+        self._implausible_u = ChunkedRandom(seed, STREAM_IMPLAUSIBLE, (4,), kind="uniform")
+        self._repeat_u = ChunkedRandom(seed, STREAM_WIRE_REPEAT, (2,), kind="uniform")
+        self._garble = ChunkedRandom(seed, STREAM_GARBLE, (self.frame_length,), kind="bytes")
         # what digitise has made so far (a range digitised twice counts twice): for a writer's summary
         self.saturated_samples = np.zeros(self.n_probes, dtype=np.int64)    # per probe, any axis on a rail
         self.temp_invalid_samples = 0
@@ -259,13 +269,30 @@ class Unit:
         """First sample index at or after world time t_s."""
         return max(0, math.ceil(t_s * self.rate_hz - 1e-9))
 
-    def outages(self) -> list[tuple[int, int]]:
-        """Sample ranges [a, b) during which the port is closed (faults.outage_at_s, outage_s)."""
-        f = self.config.faults
-        out = [(self.index_at(a), self.index_at(a + f.outage_s)) for a in f.outage_at_s]
+    def _stretches(self, at_s: list[float], span_s: float) -> list[tuple[int, int]]:
+        out = [(self.index_at(a), self.index_at(a + span_s)) for a in at_s]
         if self.n_samples is not None:
             out = [(a, min(b, self.n_samples)) for a, b in out if a < self.n_samples]
         return [(a, b) for a, b in out if b > a]
+
+    def outages(self) -> list[tuple[int, int]]:
+        """Sample ranges [a, b) during which the port is closed (faults.outage_at_s, outage_s)."""
+        f = self.config.faults
+        return self._stretches(f.outage_at_s, f.outage_s)
+
+    def silences(self) -> list[tuple[int, int]]:
+        """Sample ranges [a, b) the unit does not send, the port staying open (faults.silence_at_s, silence_s)."""
+        f = self.config.faults
+        return self._stretches(f.silence_at_s, f.silence_s)
+
+    def wrong_baud(self) -> list[tuple[int, int]]:
+        """Sample ranges [a, b) whose bytes arrive garbled (faults.wrong_baud_at_s, wrong_baud_s)."""
+        f = self.config.faults
+        return self._stretches(f.wrong_baud_at_s, f.wrong_baud_s)
+
+    def restarts(self) -> np.ndarray:
+        """Sample indices at which the unit restarts (faults.restart_at_s), increasing."""
+        return np.array([self.index_at(a) for a in self.config.faults.restart_at_s], np.int64)
 
     # -- digitisation ------------------------------------------------------------------------------
     def digitise(self, start: int, stop: int) -> UnitSamples:
@@ -288,9 +315,23 @@ class Unit:
             flags[bad] |= FLAG_TEMP_INVALID
             self.temp_invalid_samples += int(np.count_nonzero(bad))
         self.saturated_samples += np.count_nonzero(sat.any(axis=2), axis=0)
+        if f.reserved_flag_fraction or f.full_scale_fraction or f.zero_vector_fraction or f.temp_rail_fraction:
+            # valid frames with values no probe gives: set after the counters above, on purpose
+            u = self._implausible_u.draw(start, stop)
+            flags[u[:, 0] < f.reserved_flag_fraction] |= FLAG_RESERVED_SIM
+            counts[u[:, 1] < f.full_scale_fraction, 0, 0] = INT32_MAX - 1
+            counts[u[:, 2] < f.zero_vector_fraction, -1, :] = 0
+            temp_raw[u[:, 3] < f.temp_rail_fraction, 0] = INT16_MAX
         index = np.arange(start, stop, dtype=np.int64)
+        seq = self.config.seq_start + index
         t_us = self.config.t_us_start + np.rint(index * (1e6 / self.rate_hz)).astype(np.int64)
-        return UnitSamples(index=index, seq=self.config.seq_start + index, t_us=t_us, counts=counts,
+        restarts = self.restarts()
+        if restarts.size:
+            k = np.searchsorted(restarts, index, side="right") - 1
+            since = index - restarts[np.maximum(k, 0)]
+            seq = np.where(k >= 0, since, seq)
+            t_us = np.where(k >= 0, np.rint(since * (1e6 / self.rate_hz)).astype(np.int64), t_us)
+        return UnitSamples(index=index, seq=seq, t_us=t_us, counts=counts,
                            temp_raw=temp_raw, flags=flags, ref_total_nT=w.ref_total_nT, lsb_nT=self.lsb_nT,
                            world=w)
 
@@ -298,12 +339,16 @@ class Unit:
     def serial_bytes(self, start: int, stop: int, *, faults: bool = True, record: FaultRecord | None = None,
                      samples: UnitSamples | None = None) -> bytes:
         """ICD serial frames of samples [start, stop), with the configured serial faults applied
-        (garbage, bit flips, dropped bytes, dropped frames) and written into `record`."""
+        (garbage, bit flips, dropped bytes, dropped frames, duplicated and stale frames, garbled stretches)
+        and written into `record`."""
         s = samples if samples is not None else self.digitise(start, stop)
         frames = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
         f = self.config.faults
+        garbled = np.zeros(len(s), bool)
+        for a, b in self.wrong_baud():
+            garbled[max(a, start) - start:max(min(b, stop) - start, 0)] = True
         if not faults or not (f.garbage_fraction or f.bitflip_fraction or f.drop_byte_fraction
-                              or f.drop_frame_fraction):
+                              or f.drop_frame_fraction or f.duplicate_fraction or f.stale_fraction or garbled.any()):
             return frames
         k, fl = len(s), self.frame_length
         a = np.frombuffer(frames, np.uint8).reshape(k, fl).copy()
@@ -324,14 +369,39 @@ class Unit:
         glen = np.where(garbage, 1 + np.minimum((u[:, 7] * gmax).astype(np.int64), gmax - 1), 0)
         gbytes = self._garbage.draw(start, stop)           # (K, gmax)
         gkeep = np.arange(gmax)[None, :] < glen[:, None]
-        out = np.concatenate([a, gbytes], axis=1)[np.concatenate([keep, gkeep], axis=1)]
+        # a frame sent twice (as it went out, damage and all); a stale frame (stale_frames back, intact) after it
+        r = self._repeat_u.draw(start, stop) if f.duplicate_fraction or f.stale_fraction else np.ones((k, 2))
+        dup = (r[:, 0] < f.duplicate_fraction) & ~drop
+        stale = (r[:, 1] < f.stale_fraction) & (s.index >= f.stale_frames)
+        old = np.zeros((k, fl), np.uint8)
+        if stale.any():
+            idx = np.flatnonzero(stale)
+            inside = idx - f.stale_frames >= 0
+            old[idx[inside]] = np.frombuffer(frames, np.uint8).reshape(k, fl)[idx[inside] - f.stale_frames]
+            for i in idx[~inside]:                         # the stale frame comes from before this stretch
+                j = int(s.index[i]) - f.stale_frames
+                p = self.digitise(j, j + 1)
+                old[i] = np.frombuffer(encode_serial(p.seq_raw, p.t_us_raw, p.counts, p.temp_raw, p.flags), np.uint8)
+        if garbled.any():
+            # read at a wrong baud rate: every byte of those frames arrives as another; nothing else comes
+            a[garbled] = self._garble.draw(start, stop)[garbled]
+            keep[garbled] = True
+            dup &= ~garbled
+            stale &= ~garbled
+            gkeep[garbled] = False
+        parts = np.concatenate([a, a, old, gbytes], axis=1)
+        mask = np.concatenate([keep, keep & dup[:, None], np.repeat(stale[:, None], fl, axis=1), gkeep], axis=1)
+        out = parts[mask]
         if record is not None:
             idx = s.index
-            record.add("drop_frame", idx[drop])
-            record.add("bitflip", idx[flip])
-            record.add("drop_byte", idx[lose])
-            record.add("garbage_after", idx[garbage])
-            record.add_garbage_bytes(int(glen.sum()))
+            record.add("drop_frame", idx[drop & ~garbled])
+            record.add("bitflip", idx[flip & ~garbled])
+            record.add("drop_byte", idx[lose & ~garbled])
+            record.add("garbage_after", idx[garbage & ~garbled])
+            record.add("duplicate", idx[dup])
+            record.add("stale", idx[stale])
+            record.add("wrong_baud", idx[garbled])
+            record.add_garbage_bytes(int(glen[~garbled].sum()))
         return out.tobytes()
 
     # -- CAN ---------------------------------------------------------------------------------------

@@ -130,11 +130,15 @@ def decode_json(data: bytes | str) -> dict[str, Any]:
     return obj
 
 
-def health_record(counters: Mapping[str, int], recording: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """The health message: the source's counters (they only grow) and the recorder's status."""
+def health_record(counters: Mapping[str, int], recording: Mapping[str, Any] | None = None,
+                  faults: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The health message: the source's counters (they only grow), the recorder's status and the faults said
+    (service/wiring/faults.py: active, totals, the newest events, at stop the summary)."""
     rec: dict[str, Any] = {"counters": {str(k): int(v) for k, v in counters.items()}}
     if recording is not None:
         rec["recording"] = dict(recording)
+    if faults is not None:
+        rec["faults"] = dict(faults)
     return rec
 
 
@@ -164,7 +168,9 @@ HEALTH_SCHEMA: dict[str, Any] = {
     "required": ["counters"],
     "properties": {"counters": {"type": "object", "additionalProperties": {"type": "integer"},
                                 "description": "source counters (frames_accepted, crc_failures, ...), ever growing"},
-                   "recording": {"type": "object", "description": "McapLogger.status()"}}}
+                   "recording": {"type": "object", "description": "McapLogger.status()"},
+                   "faults": {"type": "object", "description": "losses and faults said: active, totals, events "
+                                                                "(n, kind, phase, count, text), at stop summary"}}}
 
 
 __all__ = ["RAW_ENCODING", "RAW_LAYOUT", "CORRECTED_ENCODING", "CORRECTED_LAYOUT", "encode_raw", "decode_raw",

@@ -38,6 +38,8 @@ class UnitConfig:
                            doc="input is gathered into blocks of about this long before it is processed, "
                                "recorded and published: latency against CPU")
     status_s: float = spec(10.0, min=0.1, max=3600.0, doc="`fluxcal run` says a status line on stderr this often")
+    silence_s: float = spec(5.0, min=0.5, max=86400.0,
+                            doc="nothing from the unit for this long is said (console, health, dashboard), and its end")
 
     def validate(self, path: str) -> None:
         if not _UNIT_NAME.match(self.name):

@@ -19,12 +19,13 @@ import numpy as np
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError, DataError, DriverError, FluxcalError
 from drivers.source import Source, open_source
-from service.io.calfile import load_calibration, save_calibration
+from service.io.calfile import save_calibration
 
 from .config import RATE_MISSING, FluxcalConfig
 from .input import BatchReader, RateCheck
 from .pipeline import Pipeline, PipelineEvent
-from .sinks import RecordingTrouble, check_for_unit, initial_calibration, learned_on, open_logger, say_bus
+from .faults import FaultWatch
+from .sinks import check_for_unit, initial_calibration, learned_on, open_logger, say_bus
 from .status import StatusLog
 
 
@@ -104,7 +105,7 @@ class Daemon:
         self.cal_path = Path(cfg.calibration.file)
         self._reader = BatchReader(cfg.unit.block_ms, self.stop)
         self.processing_errors = 0            # blocks whose processing raised (their raw data are kept)
-        self._recording_trouble = RecordingTrouble(self.say)
+        self._faults = FaultWatch(self.say, silence_s=cfg.unit.silence_s, every_s=cfg.unit.status_s)
         self._last_processing_say = -1e9
         self._rate = RateCheck(cfg, self.say)
         self._status = StatusLog(self.say, cfg.unit.status_s)
@@ -131,8 +132,7 @@ class Daemon:
             failed = True
             raise
         finally:
-            if bus is not None:
-                self._say_stalls(bus, time.monotonic(), final=True)
+            self._summary(source, bus, logger)
             for closer in (source.close, getattr(logger, "close", None), getattr(bus, "close", None)):
                 if closer is not None:
                     try:
@@ -171,9 +171,35 @@ class Daemon:
         st = pipeline.state()
         st["health"] = {**source.counters.as_dict(), "processing_errors": self.processing_errors,
                         "commands_refused": self._status.refused}
+        st["faults"] = self._faults.health()
         if logger is not None:
             st["recording"] = logger.status()
         return st
+
+    def _health(self, source: Source) -> dict[str, Any]:
+        """The health channel's counters: the source's, and what the service refused or failed to process."""
+        return {**source.counters.as_dict(), "processing_errors": self.processing_errors,
+                "commands_refused": self._status.refused}
+
+    def _summary(self, source: Source, bus, logger) -> None:
+        """At stop: every loss and fault of the run with its count, said and sent as the last health message
+        (nothing when the service stopped before its loop began: it read nothing)."""
+        if not self._faults.started:
+            return
+        try:
+            health = self._health(source)
+            recording = logger.status() if logger is not None else None
+            counted = _fault_counters(health, bus)
+            faults = self._faults.tick(counted, recording)
+            faults["summary"] = self._faults.summary(counted, recording)
+            for line in faults["summary"]:
+                self.say(line)
+            if bus is not None:
+                bus.publish_health(health, faults=faults)
+            if logger is not None:
+                logger.write_health(health, faults=faults)
+        except Exception as e:  # noqa: BLE001 - the summary must never hide why the service stopped
+            self.say(f"while summarising: {type(e).__name__}: {e}")
 
     def _loop(self, source: Source, pipeline: Pipeline, bus, logger) -> None:
         backoff = 0.1
@@ -225,34 +251,13 @@ class Daemon:
             now = time.monotonic()
             if now - last_health >= 1.0:
                 last_health = now
-                health = {**source.counters.as_dict(), "processing_errors": self.processing_errors,
-                          "commands_refused": self._status.refused}
+                health = self._health(source)
                 self._status.bus_refusals(bus)
-                self._say_stalls(bus, now)
-                bus.publish_health(health)
+                faults = self._faults.tick(_fault_counters(health, bus), logger.status() if logger is not None else None)
+                bus.publish_health(health, faults=faults)
                 if logger is not None:
-                    logger.write_health(health)
-                    self._recording_trouble.check(logger)
+                    logger.write_health(health, faults=faults)
                 self._status.tick(pipeline.state())
-
-    def _say_stalls(self, bus, now: float, final: bool = False) -> None:
-        """A subscriber that stopped taking data held every stream back (BLOCK streams wait for it up to
-        zenoh.stall_close_ms, then zenoh disconnects it): said at most once a minute with the counts since the
-        last line, and at stop with the totals."""
-        stats = getattr(bus, "stats", {})
-        n, ms = int(stats.get("send_stalls", 0)), int(stats.get("send_stalled_ms", 0))
-        if final:
-            if n:
-                self.say(f"the bus waited for a subscriber that took nothing {n} time(s), {ms / 1000:.1f} s in all, "
-                         f"during this run (health: bus.send_stalls)")
-            return
-        said_n, said_ms, said_at = getattr(self, "_stalls_said", (0, 0, -1e9))
-        if n > said_n and now - said_at >= 60.0:
-            self._stalls_said = (n, ms, now)
-            self.say(f"a subscriber stopped taking data: the streams waited for it {n - said_n} time(s), "
-                     f"{(ms - said_ms) / 1000:.1f} s in all (a subscriber that takes nothing for "
-                     f"{self.cfg.zenoh.stall_close_ms:.0f} ms is disconnected so that it holds back no other one: "
-                     f"zenoh.stall_close_ms; it reconnects and counts what it missed by seq); health: bus.send_stalls")
 
     def _emit(self, out, pipeline: Pipeline, bus, logger, announced: bool) -> bool:
         """Record and publish what processing a block gave; returns whether usability was announced."""
@@ -317,6 +322,11 @@ class Daemon:
         except Exception as e:  # noqa: BLE001 - the client went away: the answer is said below anyway
             self.say(f"command {cmd.name}: the answer could not be sent: {type(e).__name__}")
         self._status.command(cmd.name, cmd.payload, answer)
+
+
+def _fault_counters(health: dict[str, Any], bus) -> dict[str, Any]:
+    """What the FaultWatch follows: the health counters and the bus's stalls (a subscriber that took nothing)."""
+    return {**health, "send_stalls": int(getattr(bus, "stats", {}).get("send_stalls", 0))}
 
 
 def calibration_from_payload(payload: Any, cfg: FluxcalConfig | None = None):

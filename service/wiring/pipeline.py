@@ -156,6 +156,7 @@ class Pipeline:
 
     def process(self, block: SampleBlock) -> Processed:
         events: list[PipelineEvent] = []
+        block = block.without_implausible()     # flagged by the driver: no estimator, effect or output uses them
         n = block.n_samples
         if n:
             self.next_seq = int(block.seq[-1]) + 1

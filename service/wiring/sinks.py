@@ -112,23 +112,3 @@ def say_bus(cfg: FluxcalConfig, say: Callable[[str], None]) -> None:
     for ep in cfg.zenoh.exposed():
         say(f"warning: {ep} is reachable from other hosts in clear text and without access control: "
             f"anyone on that network can read the streams and send commands (docs/security.md)")
-
-
-class RecordingTrouble:
-    """New recording errors (a full disk, a removed drive) said, at most once a minute, with what they cost so far;
-    the logger itself keeps the data it can and retries (docs/recording.md)."""
-
-    def __init__(self, say: Callable[[str], None]) -> None:
-        self.say = say
-        self.errors_said = 0              # logger errors already said
-        self.said_at = -1e9
-
-    def check(self, logger: McapLogger) -> None:
-        import time
-
-        st = logger.status()
-        now = time.monotonic()
-        if st["errors"] > self.errors_said and now - self.said_at >= 60.0:
-            self.errors_said, self.said_at = st["errors"], now
-            self.say(f"recording trouble: {st['last_error']}; {st['dropped']} message(s) dropped, {st['pending']} "
-                     f"waiting to be written; retrying (health: recording)")

@@ -1,6 +1,7 @@
 """What `fluxcal run` says on stderr as it goes, beyond Zenoh and MCAP: a status line at an interval
-(samples per second, learning or usable with the gate's figures, the error), the quality gate's
-reasons when they change, and every command with its answer."""
+(samples per second, learning or usable with the gate's figures, the error as an RMS over the interval with
+the interval stated), the quality gate's reasons when they change (once a calibration is in use, said as the
+latest candidate refused while the calibration in use stays), and every command with its answer."""
 
 from __future__ import annotations
 
@@ -17,23 +18,44 @@ class StatusLog:
         self.say, self.every_s = say, float(every_s)
         self._since = time.monotonic()
         self._samples = 0
-        self._error: dict[str, float] = {}
-        self._reasons: tuple[str, ...] = ()
+        self._err_sq: dict[str, float] = {}       # per channel: sum of n x rms^2 over the interval's blocks
+        self._err_n: dict[str, int] = {}          # ... and of n
+        self._reasons: tuple[str, ...] | None = ()
+        self._in_use: tuple[bool, Any] = (False, None)     # (a calibration in use, its cal_id): from the state
+        self._refusals_said: set[tuple[str, ...]] = set()  # refusals said while this calibration is in use
         self._bus_refused = 0             # the bus's refusals already said
         self.refused = 0                  # commands the service refused (health: commands_refused)
 
     def block(self, n_samples: int, error: Mapping[str, float]) -> None:
+        """A block processed: its samples, and its error per channel (an RMS over its n_samples)."""
         self._samples += n_samples
-        if error:
-            self._error = dict(error)
+        for ch, rms in error.items():
+            if isinstance(rms, (int, float)) and math.isfinite(rms):
+                # the interval's RMS: sqrt(sum n_i rms_i^2 / sum n_i) over its blocks
+                self._err_sq[ch] = self._err_sq.get(ch, 0.0) + n_samples * float(rms) ** 2
+                self._err_n[ch] = self._err_n.get(ch, 0) + n_samples
 
     def gate(self, usable: bool, reasons: list[str]) -> None:
-        """The gate's verdict on a candidate: its reasons are said when they change."""
+        """The gate's verdict on a candidate: its reasons are said when they change. While a calibration is in
+        use a refusal is said as what it is (the latest candidate refused, the calibration in use stays), once
+        for each set of reasons until another calibration comes into use."""
         # the same reasons with other figures (samples seen, a condition number) are not news
         key = () if usable else tuple(re.sub(r"[-+]?\d[\d.,e+-]*", "#", r) for r in reasons)
-        if key != self._reasons:
-            self._reasons = key
-            self.say("quality gate: candidate usable" if usable else "quality gate: not yet: " + "; ".join(reasons))
+        if usable:
+            self._in_use = (True, None)
+            self._refusals_said.clear()
+        if key == self._reasons:
+            return
+        self._reasons = key
+        if usable:
+            self.say("quality gate: candidate usable")
+        elif not self._in_use[0]:
+            self.say("quality gate: not yet: " + "; ".join(reasons))
+        elif key not in self._refusals_said:
+            self._refusals_said.add(key)
+            cal = f" {self._in_use[1]}" if self._in_use[1] is not None else ""
+            self.say(f"quality gate: the latest candidate was refused; the calibration{cal} in use stays: "
+                     + "; ".join(reasons))
 
     def command(self, name: str, payload: Any, answer: Mapping[str, Any]) -> None:
         what = name + (f" {str(payload)[:64]}" if payload and name != "apply" else "")
@@ -56,10 +78,22 @@ class StatusLog:
     def tick(self, state: Mapping[str, Any]) -> None:
         """The status line, when `every_s` has passed since the last one."""
         now = time.monotonic()
+        if state.get("usable"):
+            in_use = (True, state.get("cal_id"))
+            if in_use != self._in_use:
+                self._refusals_said.clear()       # another calibration in use: its refusals are news again
+                if self._reasons:
+                    self._reasons = None
+            self._in_use = in_use
         if now - self._since < self.every_s:
             return
-        rate = self._samples / (now - self._since)
+        span = now - self._since
+        rate = self._samples / span
+        err = ", ".join(f"{k} {math.sqrt(self._err_sq[k] / self._err_n[k]):.3g}"
+                        for k in list(self._err_sq)[:4] if self._err_n[k])
+        n_err = max(self._err_n.values(), default=0)
         self._since, self._samples = now, 0
+        self._err_sq, self._err_n = {}, {}
         gate = state.get("gate") or {}
         if state.get("usable"):
             where = f"calibration {state.get('cal_id')} in use" + (" (frozen)" if state.get("frozen") else "") + (
@@ -72,5 +106,5 @@ class StatusLog:
             where += f"; latest check {verdict}" + (
                 f": coverage {cov:.0%} of its window, condition {gate.get('condition', math.nan):.3g}"
                 if isinstance(cov, (int, float)) and math.isfinite(cov) else "")
-        err = ", ".join(f"{k} {v:.3g}" for k, v in list(self._error.items())[:4])
-        self.say(f"status: {rate:,.0f} samples/s; {where}" + (f"; error rms nT: {err}" if err else ""))
+        self.say(f"status: {rate:,.0f} samples/s; {where}"
+                 + (f"; error rms nT over the last {span:.0f} s ({n_err:,} samples): {err}" if err else ""))

@@ -189,9 +189,12 @@ class ServiceBus(SessionHolder):
         self._put("calibration", self._pubs["calibration"],
                   _json_bytes({**record, "unit": self.unit, "time_unix_s": time.time()}))
 
-    def publish_health(self, counters: Mapping[str, Any]) -> None:
-        """{"counters": source counters, "bus": this bus's counters} as JSON; may be dropped under congestion."""
+    def publish_health(self, counters: Mapping[str, Any], faults: Mapping[str, Any] | None = None) -> None:
+        """{"counters": source counters, "bus": this bus's counters, "faults": the faults said} as JSON; may be
+        dropped under congestion."""
         msg = {"unit": self.unit, "time_unix_s": time.time(), "counters": dict(counters), "bus": dict(self.stats)}
+        if faults is not None:
+            msg["faults"] = dict(faults)
         self._last_health = msg
         self._put("health", self._pubs["health"], _json_bytes(msg))
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock
+from drivers.block import FLAG_SATURATED, FLAG_TEMP_INVALID, FLAGS_RESERVED, SampleBlock
 from drivers.errors import DataError
 from drivers.inputs import not_regular, read_text
 
@@ -69,14 +69,27 @@ def load_data(path: str | Path, *, max_samples: int | None = None, max_probe_sam
         rec = read_samples(p, max_samples=max_samples, max_probe_samples=max_probe_samples)
         names = list(rec.probe_names) if getattr(rec, "probe_names", None) else \
             [f"s{k + 1}" for k in range(rec.raw.n_probes)]
-        return LabData(block=rec.raw, probe_names=names, path=str(p), warnings=rec.report.warnings,
-                       every=rec.every, n_read=rec.n_read, metadata=dict(rec.metadata))
+        check_time_increases(p, rec.raw)
+        return LabData(block=rec.raw.without_implausible(), probe_names=names, path=str(p),
+                       warnings=rec.report.warnings, every=rec.every, n_read=rec.n_read, metadata=dict(rec.metadata))
     lab = load_csv(p)
     n, probes = lab.block.n_samples, lab.block.n_probes
     every = keep_every(n, probes, max_samples, max_probe_samples)
     if every == 1:
         return replace(lab, n_read=n)
     return replace(lab, block=lab.block.rows(np.arange(0, n, every)), every=every, n_read=n)   # a copy
+
+
+def check_time_increases(p: Path, block: SampleBlock) -> None:
+    """A recording's samples in time order, as a CSV's must be: DataError naming the sample where time goes
+    back (a unit restart or a repeated frame recorded by a fluxcal before 2026-12, whose drivers passed them on)."""
+    back = np.flatnonzero(~(np.diff(block.t_s) > 0))
+    if back.size:
+        r = int(back[0]) + 1
+        raise DataError(f"{p}: sample {r} (seq {int(block.seq[r])}): time {float(block.t_s[r])} s does not increase "
+                        f"(previous {float(block.t_s[r - 1])} s, seq {int(block.seq[r - 1])}); {back.size} such "
+                        f"step(s) in the recording; t must be strictly increasing (a unit restart or a repeated frame "
+                        f"recorded as it came: fit the stretches before and after it separately)")
 
 
 def check_one_run(p: Path) -> None:
@@ -222,12 +235,16 @@ def _check_magnitude(p: Path, header: list[str], values: np.ndarray, lineno: np.
 
 
 def _honour_flags(flags: np.ndarray, field_nT: np.ndarray, temp_C: np.ndarray) -> None:
-    """The ICD flags column, in place: a temperature flagged invalid (bit1) is NaN; in a sample flagged
+    """The ICD flags column, in place: a temperature flagged invalid (bit1) is NaN; a sample with a reserved bit
+    (3..7; bit 7 is fluxcal's implausible flag) is NaN throughout; in a sample flagged
     saturated (bit0) the saturated axes are NaN. Those are the axes already NaN or, in a file that wrote the
     rails as numbers (counts 2147483647 or -2147483648 times lsb_nT), at the largest magnitude of the flagged
     samples where more than one axis holds it (a rail repeats, a measurement does not); a flagged sample with
     neither is NaN for every probe (the flag does not say which axis)."""
     temp_C[(flags & FLAG_TEMP_INVALID) != 0] = np.nan
+    implausible = (flags & FLAGS_RESERVED) != 0             # flagged by fluxcal's driver, or bits the ICD says are 0
+    field_nT[implausible] = np.nan
+    temp_C[implausible] = np.nan
     sat = (flags & FLAG_SATURATED) != 0
     if not sat.any():
         return

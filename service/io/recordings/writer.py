@@ -375,9 +375,9 @@ class McapLogger(ChunkedLog):
         """A command or other event, with the seq it applies from: {"kind": "command", "seq": ..., ...}."""
         self._write_json("events", record)
 
-    def write_health(self, counters: dict[str, Any]) -> None:
-        """The source's counters and this logger's status; call it about once a second."""
-        self._write("health", encode_json(health_record(counters, self.status())), None)
+    def write_health(self, counters: dict[str, Any], faults: dict[str, Any] | None = None) -> None:
+        """The source's counters, this logger's status and the faults said; call it about once a second."""
+        self._write("health", encode_json(health_record(counters, self.status(), faults)), None)
 
     def close(self) -> None:
         """Write the last 10 Hz intervals, the last chunk and the footer. Safe to call twice."""

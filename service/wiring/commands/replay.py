@@ -53,7 +53,7 @@ def continuation(path: Path, rec) -> str | None:
     folder = path if path.is_dir() else path.parent
     starts = sorted(folder.glob("*-0001.mcap"))
     where = (f"`fluxcal replay {folder}` (the folder of that run's files)" if len(starts) == 1 else
-             f"a folder holding that run's files, from its -0001 file on (`fluxcal replay FOLDER`)")
+             "a folder holding that run's files, from its -0001 file on (`fluxcal replay FOLDER`)")
     return (f"{first.name} is file {index} of a run the service split into several files: it continues where "
             f"file {index - 1} stopped, and the state the live run had then (the calibration it had learned, the "
             f"commands applied) is in the earlier files, so a replay of it alone cannot give the live output; "

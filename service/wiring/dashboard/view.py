@@ -26,6 +26,8 @@ STALE_S = 3.0
 COVERAGE_POINTS = 6000
 #: directions of the trail drawn on the sphere
 TRAIL = 200
+#: fault events kept (the health channel carries the newest ten; this page keeps more)
+FAULT_EVENTS = 100
 
 
 def _interval_start(t_s: float) -> float:
@@ -93,6 +95,8 @@ class UnitView:
         self.events: deque[dict[str, Any]] = deque(maxlen=50)
         self.commands: deque[dict[str, Any]] = deque(maxlen=50)
         self.health: dict[str, Any] = {}
+        self.fault_events: deque[dict[str, Any]] = deque(maxlen=FAULT_EVENTS)   # losses and faults the service said
+        self._fault_n = 0                 # the newest fault event kept (numbered by the service)
         self.diagnosis: dict[str, Any] = {"status": "none"}
         self._coverage: dict[str, Any] | None = None
         self._coverage_t = -math.inf
@@ -126,6 +130,7 @@ class UnitView:
                                       key=(tuple(self.error_names), self.state.get("cal_id")))
         elif msg.stream == "health":
             self.health = v
+            self._faults(v.get("faults"))
         elif msg.stream == "calibration":
             ev = {k: v.get(k) for k in ("kind", "seq", "t_s", "time_unix_s", "reasons", "command", "ok", "error",
                                         "cal_id") if k in v}
@@ -166,11 +171,34 @@ class UnitView:
             self.probe_names = list(names)
         if isinstance(st.get("health"), dict) and not self.health:
             self.health = {"counters": st["health"]}
+        self._faults(st.get("faults"))
         if st.get("probes") and st.get("cal_id") != prev:
             self.cal_history.append({"time_unix_s": time.time(), "cal_id": st.get("cal_id"),
                                      "offset_nT": [p.get("offset_nT") for p in st["probes"]],
                                      "offset_se_nT": [p.get("offset_se_nT") for p in st["probes"]]})
             del self.cal_history[:-200]
+
+    def _faults(self, faults: Any) -> None:
+        """Keep the fault events of a health message (or a state reply) not kept yet: the service numbers them,
+        and a service that started again numbers from 1."""
+        if not isinstance(faults, dict):
+            return
+        n_events = faults.get("n_events")
+        if isinstance(n_events, int) and n_events < self._fault_n:
+            self._fault_n = 0                 # the service started again
+        for ev in faults.get("events") or []:
+            n = ev.get("n") if isinstance(ev, dict) else None
+            if isinstance(n, int) and n > self._fault_n:
+                self.fault_events.append({k: ev.get(k) for k in ("n", "kind", "phase", "count", "text", "time_unix_s")})
+                self._fault_n = n
+
+    def faults_view(self) -> dict[str, Any]:
+        """The faults panel: what goes on now, every kind's total, the events (newest last), the summary at stop."""
+        f = (self.health or {}).get("faults")
+        if not isinstance(f, dict):
+            f = self.state.get("faults") if isinstance(self.state.get("faults"), dict) else {}
+        return {"active": list(f.get("active") or []), "totals": dict(f.get("totals") or {}),
+                "events": list(self.fault_events), "summary": list(f.get("summary") or [])}
 
     # --- what the page reads --------------------------------------------------------------------
 
@@ -228,6 +256,7 @@ class UnitView:
             "error": self.error.since(since.get("error", 0)), "floors": self.floors.floors(),
             "coverage": self.coverage_view(), "state": self.state, "cal_history": self.cal_history,
             "events": list(self.events), "commands": list(self.commands), "health": self.health,
+            "faults": self.faults_view(),
             "diagnosis": self.diagnosis, "raw_kept": {"samples": self.raw_keep.n}, "windows": self.windows(),
             "sensor_scales": [{"name": p.get("name"), "scale": sc, "source": src}
                               for p in self.state.get("probes") or [] if isinstance(p, dict)

@@ -157,6 +157,7 @@ function render(v) {
   renderCommands(v);
   renderDiagnosis(v.diagnosis, v.raw_kept);
   renderHealth(v);
+  renderFaults(v.faults);
 }
 
 function renderError(v) {
@@ -266,6 +267,26 @@ function renderHealth(v) {
     `<tr><th>${esc(k)}</th><td class="${x && !good(k) ? "bad" : ""}">${esc(x)}</td></tr>`).join("");
   $("events").innerHTML = (v.events || []).slice().reverse().map(e => `<li>${esc(e.kind)} at seq ${esc(e.seq ?? "–")}` +
     (e.reasons && e.reasons.length ? ": " + esc(e.reasons.join("; ")) : "") + (e.command ? " " + esc(e.command) : "") + "</li>").join("");
+}
+
+// losses and faults the service said (health.faults), as events with their counts; the panel is made here
+function renderFaults(f) {
+  if (!f) { return; }
+  let panel = $("faults-panel");
+  if (!panel) {
+    panel = document.createElement("div");
+    panel.id = "faults-panel";
+    panel.innerHTML = "<h3>Losses and faults</h3><p id='faults-active'></p><ol id='faults' reversed></ol>";
+    $("health").after(panel);
+  }
+  const totals = Object.entries(f.totals || {}).filter(([, n]) => n);
+  const now = f.active.length ? `<span class="bad">now: ${esc(f.active.join(", "))}</span> · ` : "";
+  const sums = totals.map(([k, n]) => `${esc(k)} ${esc(n)}`).join(", ");
+  $("faults-active").innerHTML = now + (totals.length ? "totals: " + sums : '<span class="good">none so far</span>');
+  const item = e => `<li class="${e.phase === "end" ? "good" : "bad"}" data-kind="${esc(e.kind)}" ` +
+    `data-count="${esc(e.count)}">${new Date(e.time_unix_s * 1000).toLocaleTimeString()} ${esc(e.text)}</li>`;
+  $("faults").innerHTML = (f.summary || []).map(x => `<li class="summary">${esc(x)}</li>`).join("") +
+    f.events.slice().reverse().map(item).join("");
 }
 
 async function sendCommand(name) {
