@@ -19,7 +19,8 @@ from service.io.bus import MAX_COMMAND_PAYLOAD_BYTES, BusClient, BusError, Servi
 from service.io.calfile import load_calibration
 from service.wiring.cli import main
 from service.wiring.config import load_config
-from service.wiring.daemon import Daemon, calibration_from_payload
+from service.wiring.daemon import Daemon
+from service.wiring.startcal import calibration_from_payload
 
 HEADER = "t,s1_x,s1_y,s1_z,s2_x,s2_y,s2_z,s1_temp,s2_temp,ref_total,seq,flags\n"
 ROW = "0.005000,46000.174,-28171.471,1854.467,40316.566,-32362.920,1211.754,22.00,22.00,52500.0454,1,0\n"

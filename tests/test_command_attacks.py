@@ -31,7 +31,8 @@ from service.io.bus import BusClient, ZenohConfig, ZenohTlsConfig
 from service.io.calfile import calibration_to_dict, load_calibration
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 from service.wiring.config import load_config
-from service.wiring.daemon import Daemon, build_pipeline, calibration_from_payload
+from service.wiring.daemon import Daemon, build_pipeline
+from service.wiring.startcal import calibration_from_payload
 from test_recording import service_config
 from test_zenoh_security import free_port
 
@@ -236,11 +237,6 @@ class _Cmd:
         self.answer = answer
 
 
-class _Bus:
-    def __getattr__(self, name):
-        return lambda *a, **k: None
-
-
 json_values = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20),
     lambda inner: st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=10), inner, max_size=5),
@@ -265,7 +261,9 @@ def test_fuzzing_the_handler_leaves_the_service_running_and_its_calibration_unch
     daemon = Daemon(cfg, say=lambda m: None)
     start = calibration_from_payload(json.dumps(good_calibration()), cfg)
     pipeline = build_pipeline(cfg, start)
-    bus = _Bus()
+    from service.wiring.sinks import Sinks
+
+    sinks = Sinks([], print)
     seen = {"n": 0, "ok": 0}
 
     @settings(max_examples=10_000, deadline=None, database=None, derandomize=True,
@@ -274,7 +272,7 @@ def test_fuzzing_the_handler_leaves_the_service_running_and_its_calibration_unch
     def fuzz(name, payload):
         before = (pipeline.cal_id, pipeline.held, pipeline.calibration)
         cmd = _Cmd(name, payload)
-        daemon._apply_command(cmd, pipeline, bus, None)        # must not raise, whatever the payload
+        daemon._apply_command(cmd, pipeline, sinks)            # must not raise, whatever the payload
         seen["n"] += 1
         assert isinstance(cmd.answer, dict) and isinstance(cmd.answer.get("ok"), bool)
         if cmd.answer["ok"]:                                    # a payload that is a good calibration: put back
@@ -293,7 +291,7 @@ def test_fuzzing_the_handler_leaves_the_service_running_and_its_calibration_unch
 
 def test_the_same_check_guards_the_reload_and_calibration_initial(tmp_path):
     from drivers.errors import ConfigError
-    from service.wiring.sinks import initial_calibration
+    from service.wiring.startcal import initial_calibration
 
     cfg = load_config(service_config(tmp_path, run_s=5))
     for case in ("a mirror (det -1)", "the two probes' entries swapped", "fitted with effects"):

@@ -10,7 +10,7 @@ import numpy as np
 from service.io.calfile import load_calibration, save_calibration
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 from service.wiring.config import load_config
-from service.wiring.sinks import initial_calibration, learned_on
+from service.wiring.startcal import initial_calibration, learned_on
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -97,9 +97,8 @@ def test_a_missing_initial_calibration_or_serial_port_names_its_key(tmp_path, ca
 def test_an_applied_calibration_is_persisted_and_reloaded_held(tmp_path):
     """`apply` persists the calibration (it was kept only in memory) marked applied; a restart reloads it held,
     as it was (build_pipeline, which replay shares); `reset` persists it no longer held."""
-    from types import SimpleNamespace
-
     from service.wiring.daemon import Daemon, build_pipeline
+    from service.wiring.sinks import Sinks
 
     (tmp_path / "sim.toml").write_text('[unit]\nname = "grad1"\nn_probes = 1\n[source]\nkind = "sim"\n'
                                        '[sim]\nrate_hz = 100.0\n[[sim.probes]]\nname = "s1"\n'
@@ -108,9 +107,9 @@ def test_an_applied_calibration_is_persisted_and_reloaded_held(tmp_path):
     daemon = Daemon(cfg, say=lambda m: None)
     pipeline = build_pipeline(cfg, None)
     lab = ArrayCalibration("ellipsoid", None, [ProbeCalibration("s1", np.array([5.0, 0, 0]), np.eye(3))])
-    bus = SimpleNamespace(publish_calibration=lambda record: None)
+    bus = Sinks([], print)                                          # no output: persisting is the daemon's
     ev = pipeline.command("apply", lab, seq=0, t_s=0.0)
-    daemon._on_event(ev, pipeline, bus, None)
+    daemon._on_event(ev, pipeline, bus)
     saved = load_calibration(tmp_path / "state" / "cal.json")
     assert saved.diagnostics["applied"] is True and saved.probes[0].offset_nT[0] == 5.0
     said: list[str] = []
@@ -123,6 +122,6 @@ def test_an_applied_calibration_is_persisted_and_reloaded_held(tmp_path):
     assert not build_pipeline(cfg, initial_calibration(cfg, said.append)).held
     assert any("applied by command and persisted" in m and "is not used" in m for m in said), said
     cfg.calibration.initial = None
-    daemon._on_event(again.command("reset", None, seq=0, t_s=0.0), again, bus, None)
+    daemon._on_event(again.command("reset", None, seq=0, t_s=0.0), again, bus)
     assert load_calibration(tmp_path / "state" / "cal.json").diagnostics["applied"] is False
     assert not build_pipeline(cfg, initial_calibration(cfg, said.append)).held

@@ -12,20 +12,21 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from drivers.block import SampleBlock
-from drivers.errors import ConfigError, DataError, DriverError, FluxcalError
+from drivers.errors import ConfigError, DriverError, FluxcalError
 from drivers.source import Source, open_source
 from service.io.calfile import save_calibration
 
 from .config import RATE_MISSING, FluxcalConfig
-from .input import BatchReader, RateCheck
+from .input import BatchReader, RateCheck, Reconnecting
 from .pipeline import Pipeline, PipelineEvent
 from .faults import FaultWatch
-from .sinks import check_for_unit, initial_calibration, learned_on, open_logger, say_bus
+from .sinks import BusSink, McapSink, Sink, Sinks, say_bus
+from .startcal import calibration_from_payload, initial_calibration, learned_on
 from .status import StatusLog
 
 
@@ -95,14 +96,16 @@ def stderr_gone() -> None:
 
 
 class Daemon:
-    """`fluxcal run`: wires a source, the pipeline, the Zenoh bus and the MCAP logger."""
+    """`fluxcal run`: wires a source, the pipeline and the sinks (the MCAP recording, the Zenoh bus, any others)."""
 
     def __init__(self, cfg: FluxcalConfig, *, stop: threading.Event | None = None,
-                 say: Callable[[str], None] | None = None) -> None:
+                 say: Callable[[str], None] | None = None, sinks: Sequence[Sink] = ()) -> None:
+        """`sinks`: outputs besides the recording and the bus (service.wiring.sinks.Sink), told after them."""
         self.cfg = cfg
         self.stop = stop or threading.Event()
         self.say = say or _say
         self.cal_path = Path(cfg.calibration.file)
+        self.extra_sinks = list(sinks)
         self._reader = BatchReader(cfg.unit.block_ms, self.stop)
         self.processing_errors = 0            # blocks whose processing raised (their raw data are kept)
         self._faults = FaultWatch(self.say, silence_s=cfg.unit.silence_s, every_s=cfg.unit.status_s)
@@ -117,23 +120,25 @@ class Daemon:
         notes: list[str] = []                 # said once the source, the bus and the recording are open
         pipeline = build_pipeline(cfg, initial_calibration(cfg, notes.append))
         source = open_configured_source(cfg)
-        logger = None
+        sinks = Sinks([], self.say)           # the recording first: a raw block is kept before anything else
         bus = None
         try:
             bus = ServiceBus(cfg.zenoh, unit=cfg.unit.name, probe_names=cfg.probe_names,
-                             state_fn=lambda: self._state(pipeline, source, logger))
-            logger = open_logger(cfg, pipeline.calibration, notes.append)
+                             state_fn=lambda: self._state(pipeline, source, sinks))
+            for sink in (McapSink.open(cfg, pipeline.calibration, notes.append), BusSink(bus), *self.extra_sinks):
+                sinks.add(sink)
+            bus = None                        # closed with the sinks from now on
             for note in notes:
                 self.say(note)
             say_bus(cfg, self.say)
-            self._loop(source, pipeline, bus, logger)
+            self._loop(source, pipeline, sinks)
             failed = False
         except BaseException:
             failed = True
             raise
         finally:
-            self._summary(source, bus, logger)
-            for closer in (source.close, getattr(logger, "close", None), getattr(bus, "close", None)):
+            self._summary(source, sinks)
+            for closer in (source.close, sinks.close, getattr(bus, "close", None)):
                 if closer is not None:
                     try:
                         closer()
@@ -167,13 +172,13 @@ class Daemon:
                          f"lost; {self.processing_errors} such block(s) so far (health: processing_errors)")
             return None
 
-    def _state(self, pipeline: Pipeline, source: Source, logger) -> dict[str, Any]:
+    def _state(self, pipeline: Pipeline, source: Source, sinks: Sinks) -> dict[str, Any]:
         st = pipeline.state()
-        st["health"] = {**source.counters.as_dict(), "processing_errors": self.processing_errors,
-                        "commands_refused": self._status.refused}
+        st["health"] = self._health(source)
         st["faults"] = self._faults.health()
-        if logger is not None:
-            st["recording"] = logger.status()
+        recording = sinks.recording()
+        if recording is not None:
+            st["recording"] = recording
         return st
 
     def _health(self, source: Source) -> dict[str, Any]:
@@ -181,58 +186,39 @@ class Daemon:
         return {**source.counters.as_dict(), "processing_errors": self.processing_errors,
                 "commands_refused": self._status.refused}
 
-    def _summary(self, source: Source, bus, logger) -> None:
+    def _tick_health(self, source: Source, sinks: Sinks, bus, final: bool = False) -> None:
+        """The health counters and the faults to every sink; at stop (final), with the summary of the run said."""
+        health = self._health(source)
+        counted = {**health, "send_stalls": int(getattr(bus, "stats", {}).get("send_stalls", 0))}
+        faults = self._faults.tick(counted, sinks.recording())
+        if final:
+            faults["summary"] = self._faults.summary(counted, sinks.recording())
+            for line in faults["summary"]:
+                self.say(line)
+        sinks.health(health, faults)
+
+    def _summary(self, source: Source, sinks: Sinks) -> None:
         """At stop: every loss and fault of the run with its count, said and sent as the last health message
         (nothing when the service stopped before its loop began: it read nothing)."""
         if not self._faults.started:
             return
         try:
-            health = self._health(source)
-            recording = logger.status() if logger is not None else None
-            counted = _fault_counters(health, bus)
-            faults = self._faults.tick(counted, recording)
-            faults["summary"] = self._faults.summary(counted, recording)
-            for line in faults["summary"]:
-                self.say(line)
-            if bus is not None:
-                bus.publish_health(health, faults=faults)
-            if logger is not None:
-                logger.write_health(health, faults=faults)
+            bus = next((s.bus for s in sinks.sinks if isinstance(s, BusSink)), None)
+            self._tick_health(source, sinks, bus, final=True)
         except Exception as e:  # noqa: BLE001 - the summary must never hide why the service stopped
             self.say(f"while summarising: {type(e).__name__}: {e}")
 
-    def _loop(self, source: Source, pipeline: Pipeline, bus, logger) -> None:
-        backoff = 0.1
-        down_since: float | None = None       # monotonic time the input was lost, while it stays down
-        attempts = 0
+    def _loop(self, source: Source, pipeline: Pipeline, sinks: Sinks) -> None:
+        bus = next(s.bus for s in sinks.sinks if isinstance(s, BusSink))       # commands come from it too
+        link = Reconnecting(self._reader, self.stop, self.say)
         last_health = 0.0
         announced = pipeline.calibration is not None
         while not self.stop.is_set():
             for cmd in bus.pending_commands():
-                self._apply_command(cmd, pipeline, bus, logger)
-            block = None                      # nothing to process while the input is down; health still goes out
-            if down_since is None:
-                try:
-                    block = self._reader.read(source)
-                except DriverError as e:
-                    self.say(f"input lost: {e}; reconnecting (backoff from {backoff:.1f} s)")
-                    source.counters.read_errors += 1
-                    down_since, attempts = time.monotonic(), 0
-            if down_since is not None:
-                if self.stop.wait(backoff):
-                    break
-                backoff = min(backoff * 2, 5.0)
-                attempts += 1
-                try:
-                    source.reopen()
-                except DriverError as e:
-                    if attempts in (5, 20) or attempts % 100 == 0:
-                        self.say(f"input still down after {time.monotonic() - down_since:.0f} s and {attempts} "
-                                 f"attempts: {e}; retrying every {backoff:.0f} s")
-                else:
-                    source.counters.reconnects += 1
-                    self.say(f"input reconnected after {time.monotonic() - down_since:.1f} s")
-                    down_since, backoff = None, 0.1
+                self._apply_command(cmd, pipeline, sinks)
+            block = link.read(source)         # None while the input is down: health still goes out
+            if link.stopped:
+                break
             if block is None:
                 if source.exhausted:
                     self.say("source exhausted")
@@ -240,49 +226,34 @@ class Daemon:
             else:
                 if not self.rate_checked:
                     self._check_rate(block)
-                # the raw block is kept and published first: whatever happens to its processing, it is not lost
-                if logger is not None:
-                    logger.write_raw(block)
-                bus.publish_raw(block)
+                sinks.raw(block)              # kept and published first: whatever happens to its processing
                 out = self._process(pipeline, block)     # None: failed, counted and said there
                 if out is not None:
                     self._status.block(block.n_samples, out.error)
-                    announced = self._emit(out, pipeline, bus, logger, announced)
+                    announced = self._emit(out, pipeline, sinks, announced)
             now = time.monotonic()
             if now - last_health >= 1.0:
                 last_health = now
-                health = self._health(source)
                 self._status.bus_refusals(bus)
-                faults = self._faults.tick(_fault_counters(health, bus), logger.status() if logger is not None else None)
-                bus.publish_health(health, faults=faults)
-                if logger is not None:
-                    logger.write_health(health, faults=faults)
+                self._tick_health(source, sinks, bus)
                 self._status.tick(pipeline.state())
 
-    def _emit(self, out, pipeline: Pipeline, bus, logger, announced: bool) -> bool:
+    def _emit(self, out, pipeline: Pipeline, sinks: Sinks, announced: bool) -> bool:
         """Record and publish what processing a block gave; returns whether usability was announced."""
         if out.corrected is not None:
-            if logger is not None:
-                logger.write_corrected(out.corrected)
-            bus.publish_corrected(out.corrected)
-        if out.error and out.corrected is not None:
-            head = {"seq": int(out.corrected.seq[0]), "t_s": float(out.corrected.t_s[0]), "n": out.corrected.n_samples}
-            if logger is not None:
-                logger.write_error(out.error, **head)
-            bus.publish_error(out.error, **head)
+            sinks.corrected(out.corrected)
+            if out.error:
+                c = out.corrected
+                sinks.error(out.error, seq=int(c.seq[0]), t_s=float(c.t_s[0]), n=c.n_samples)
         for ev in out.events:
-            self._on_event(ev, pipeline, bus, logger)
+            self._on_event(ev, pipeline, sinks)
             if ev.kind == "calibration" and not announced:
                 announced = True
                 self.say("calibration usable: corrected output is being published")
         return announced
 
-    def _on_event(self, ev: PipelineEvent, pipeline: Pipeline, bus, logger) -> None:
-        state = pipeline.state()
-        record = {"kind": ev.kind, "seq": ev.seq, "t_s": ev.t_s, **ev.detail}
-        if logger is not None:
-            logger.write_calibration({**record, "state": state})
-        bus.publish_calibration({**record, "state": state})
+    def _on_event(self, ev: PipelineEvent, pipeline: Pipeline, sinks: Sinks) -> None:
+        sinks.event({"kind": ev.kind, "seq": ev.seq, "t_s": ev.t_s, **ev.detail, "state": pipeline.state()})
         applied = ev.kind == "command" and ev.detail.get("name") == "apply"
         reset = ev.kind == "command" and ev.detail.get("name") == "reset"      # no longer held: persisted so
         if (ev.kind == "calibration" or applied or reset) and pipeline.calibration is not None:
@@ -295,7 +266,7 @@ class Daemon:
         if ev.kind in ("gate", "calibration"):
             self._status.gate(ev.kind == "calibration" or bool(ev.detail.get("usable")), ev.detail.get("reasons", []))
 
-    def _apply_command(self, cmd, pipeline: Pipeline, bus, logger) -> None:
+    def _apply_command(self, cmd, pipeline: Pipeline, sinks: Sinks) -> None:
         """Apply one command between blocks and answer it. Whatever the payload, the answer is ok or a refusal
         with its reason: an exception of any kind is a refusal, counted and said, never the service's end."""
         seq = pipeline.next_seq            # the command takes effect from the next block on
@@ -308,9 +279,8 @@ class Daemon:
                 from service.io.calfile import calibration_to_dict
 
                 ev.detail["calibration"] = calibration_to_dict(payload)
-            if logger is not None:
-                logger.write_event({"kind": "command", "seq": seq, **ev.detail})
-            self._on_event(ev, pipeline, bus, logger)
+            sinks.command({"kind": "command", "seq": seq, **ev.detail})
+            self._on_event(ev, pipeline, sinks)
             answer = {"ok": True, "cal_id": pipeline.cal_id}
         except FluxcalError as e:
             answer = {"ok": False, "error": str(e)}
@@ -322,41 +292,3 @@ class Daemon:
         except Exception as e:  # noqa: BLE001 - the client went away: the answer is said below anyway
             self.say(f"command {cmd.name}: the answer could not be sent: {type(e).__name__}")
         self._status.command(cmd.name, cmd.payload, answer)
-
-
-def _fault_counters(health: dict[str, Any], bus) -> dict[str, Any]:
-    """What the FaultWatch follows: the health counters and the bus's stalls (a subscriber that took nothing)."""
-    return {**health, "send_stalls": int(getattr(bus, "stats", {}).get("send_stalls", 0))}
-
-
-def calibration_from_payload(payload: Any, cfg: FluxcalConfig | None = None):
-    """The calibration an `apply` carries: its JSON content, never a path (a command from the network reads
-    no file on this host: anything that is not a JSON object is refused before any filesystem access, with
-    the same answer whether or not such a file exists). Bounded in size and depth; checked against this unit
-    and physics (service.numerics.calib.plausible) when `cfg` is given; effect terms are refused (the running
-    service takes effects by `add-effect`, refitted on its own window)."""
-    from service.io.calfile import MAX_CALIBRATION_BYTES, calibration_from_json, excerpt
-
-    if isinstance(payload, (bytes, bytearray)):
-        try:
-            payload = bytes(payload).decode("utf-8")
-        except UnicodeDecodeError:
-            raise DataError("apply: the payload is not UTF-8 text; expected a calibration's JSON content") from None
-    if not isinstance(payload, str):
-        raise DataError(f"apply: expected a calibration's JSON content, got {type(payload).__name__}")
-    text = payload.strip()
-    if len(text) > MAX_CALIBRATION_BYTES:
-        raise DataError(f"apply: the payload ({len(text):,} characters) is too large for a calibration (at most "
-                        f"{MAX_CALIBRATION_BYTES:,})")
-    if not text.startswith("{"):
-        raise DataError(f"apply: the payload ({len(text):,} characters) is not a calibration's JSON content; apply "
-                        f"takes the content of a file written by `fluxcal fit --out`, never a path (the service "
-                        f"reads no file a command names: `fluxcal command apply FILE` sends the file's content); it "
-                        f"begins {excerpt(text, 24)}")
-    cal = calibration_from_json(text, origin="apply payload")
-    if cfg is not None:
-        try:
-            check_for_unit(cal, cfg)
-        except DataError as e:
-            raise DataError(f"apply: {e}; nothing was applied") from None
-    return cal

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from typing import Callable
 
 from drivers.block import SampleBlock
@@ -12,6 +13,45 @@ from drivers.errors import DriverError
 from drivers.source import Source
 
 from .config import FluxcalConfig
+
+
+class Reconnecting:
+    """Reads blocks (BatchReader) and, when the input is lost (a pulled cable, a closed pty), says so and reopens the
+    source with a backoff from 0.1 s doubling to 5 s, counting read_errors and reconnects in the source's counters.
+    `read` returns a block, or None while nothing came or the input is down; `stopped` turns True when the stop
+    event came during a backoff."""
+
+    def __init__(self, reader: "BatchReader", stop: threading.Event, say: Callable[[str], None]) -> None:
+        self.reader, self.stop, self.say = reader, stop, say
+        self.backoff = 0.1
+        self.down_since: float | None = None  # monotonic time the input was lost, while it stays down
+        self.attempts = 0
+        self.stopped = False
+
+    def read(self, source: Source) -> SampleBlock | None:
+        if self.down_since is None:
+            try:
+                return self.reader.read(source)
+            except DriverError as e:
+                self.say(f"input lost: {e}; reconnecting (backoff from {self.backoff:.1f} s)")
+                source.counters.read_errors += 1
+                self.down_since, self.attempts = time.monotonic(), 0
+        if self.stop.wait(self.backoff):
+            self.stopped = True
+            return None
+        self.backoff = min(self.backoff * 2, 5.0)
+        self.attempts += 1
+        try:
+            source.reopen()
+        except DriverError as e:
+            if self.attempts in (5, 20) or self.attempts % 100 == 0:
+                self.say(f"input still down after {time.monotonic() - self.down_since:.0f} s and {self.attempts} "
+                         f"attempts: {e}; retrying every {self.backoff:.0f} s")
+        else:
+            source.counters.reconnects += 1
+            self.say(f"input reconnected after {time.monotonic() - self.down_since:.1f} s")
+            self.down_since, self.backoff = None, 0.1
+        return None
 
 
 class BatchReader:

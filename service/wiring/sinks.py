@@ -1,79 +1,193 @@
-"""What the service opens from its configuration besides the source: the calibration it starts from, the
-MCAP logger, and what is said about the bus."""
+"""The service's outputs behind one contract (python-can's Listener and Notifier are the model): a `Sink` is told,
+on the service's thread and in order, of everything the loop produces; `Sinks` holds the list and tells each one.
+The MCAP recording and the Zenoh bus are two sinks; a recording that is disabled is simply not in the list, and a
+new output is one class (a test adds one that counts messages, without touching the daemon).
+
+    on_raw(block)               every block as read from the unit, before it is processed
+    on_corrected(block)         its corrected output, differences, centre and tensor
+    on_error(rms_nT, seq, t_s, n)  the model-vs-measurement error of that output
+    on_event(record)            a calibration replaced, a gate refusal, a command applied: with the state after it
+    on_command(record)          a command as applied, for replay to apply again at its seq
+    on_health(counters, faults) the counters and the faults (about once a second, and once at stop)
+    status()                    what the sink says of itself (a recorder: files, errors, drops), or None
+    close()
+"""
 
 from __future__ import annotations
 
 import json
-from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
-from drivers.errors import ConfigError, DataError
-from service.io.calfile import calibration_to_dict, load_calibration
-from service.numerics.calib.plausible import check_calibration
+from drivers.block import SampleBlock
+from drivers.errors import ConfigError
+from service.io.calfile import calibration_to_dict
 from service.io.recordings.writer import McapLogger
+from service.numerics.outputs import CorrectedBlock
 
 from .config import FluxcalConfig
 
 
-def learned_on(cfg: FluxcalConfig) -> dict[str, str]:
-    """What a calibration learned by this service is recorded as learned on: the unit and its source kind."""
-    return {"unit": cfg.unit.name, "source": str(getattr(cfg.source, "kind", "sim"))}
+class Sink:
+    """One output of the service. Every method does nothing unless a sink overrides it: a sink takes what it wants."""
+
+    name = "sink"
+
+    def on_raw(self, block: SampleBlock) -> None:
+        pass
+
+    def on_corrected(self, block: CorrectedBlock) -> None:
+        pass
+
+    def on_error(self, rms_nT: Mapping[str, float], *, seq: int, t_s: float, n: int) -> None:
+        pass
+
+    def on_event(self, record: Mapping[str, Any]) -> None:
+        pass
+
+    def on_command(self, record: Mapping[str, Any]) -> None:
+        pass
+
+    def on_health(self, counters: Mapping[str, Any], faults: Mapping[str, Any] | None) -> None:
+        pass
+
+    def status(self) -> dict[str, Any] | None:
+        return None
+
+    def close(self) -> None:
+        pass
 
 
-def check_for_unit(cal: Any, cfg: FluxcalConfig) -> None:
-    """The one check a calibration passes before the service uses it, by `apply`, reload or calibration.initial:
-    this unit's probes and physics (service.numerics.calib.plausible), and no effect terms (the service takes
-    those by `add-effect`, refitted on its own window: from a file they would be silently dropped)."""
-    if cal.effects:
-        raise DataError(f"fails the effects check: the calibration carries effect terms ({', '.join(cal.effects)}) "
-                        f"that the running service cannot take from a file; use a calibration fitted without "
-                        f"--effects, then `add-effect NAME` (refitted on the service's own window), or correct "
-                        f"offline with `fluxcal fit --effects`")
-    check_calibration(cal, cfg.probe_names, cfg.calibration.limits())
+class Sinks:
+    """The service's sinks, told in order. A sink that raises costs that message for that sink only: the others
+    still get it, the failure is counted (`errors`, by sink) and said at most once a minute per sink."""
 
+    def __init__(self, sinks: list[Sink], say: Callable[[str], None]) -> None:
+        self.sinks = list(sinks)
+        self.say = say
+        self.errors: dict[str, int] = {s.name: 0 for s in self.sinks}
+        self._said_at: dict[str, float] = {}
 
-def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None]) -> Any:
-    """calibration.initial if given (whatever it was learned on: naming it says so), else the persisted
-    calibration.file if it reads and was learned on this unit and source kind, else None (learn online)."""
-    c = cfg.calibration
-    if c.initial:
-        try:
-            cal = load_calibration(c.initial)
-            check_for_unit(cal, cfg)
-        except (DataError, OSError) as e:
-            raise ConfigError(f"calibration.initial: {e}") from None
-        origin = cal.diagnostics.get("learned_on")
-        foreign = f" (learned on unit {origin.get('unit')}, source {origin.get('source')})" \
-            if isinstance(origin, dict) and origin != learned_on(cfg) else ""
-        say(f"starting from calibration {c.initial}{foreign}")
-        persisted = Path(c.file)
-        if persisted.exists() and persisted.resolve() != Path(c.initial).resolve():
+    def _tell(self, method: str, *args: Any, **kwargs: Any) -> None:
+        import time
+
+        for sink in self.sinks:
             try:
-                if load_calibration(persisted).diagnostics.get("applied"):
-                    say(f"the calibration applied by command and persisted in {persisted} is not used: "
-                        f"calibration.initial names another (remove the key to reload the applied one)")
-            except DataError:
-                pass
-        return cal
-    path = Path(c.file)
-    if path.exists():
-        try:
-            cal = load_calibration(path)
-            check_for_unit(cal, cfg)
-        except DataError as e:
-            say(f"ignoring the persisted calibration: {e}; learning online")
-        else:
-            origin = cal.diagnostics.get("learned_on")
-            if isinstance(origin, dict) and origin != learned_on(cfg):
-                say(f"ignoring the persisted calibration {path}: it was learned on unit {origin.get('unit')} from a "
-                    f"{origin.get('source')} source, this is unit {cfg.unit.name} on {learned_on(cfg)['source']}; "
-                    f"learning online (to start from it anyway: calibration.initial = \"{path}\")")
-            else:
-                say(f"reloaded the persisted calibration {path}" + (
-                    " (applied by command: held until `reset`)" if cal.diagnostics.get("applied") else ""))
-                return cal
-    say("no calibration yet: learning online; corrected output starts once it passes the quality gate")
-    return None
+                getattr(sink, method)(*args, **kwargs)
+            except Exception as e:  # noqa: BLE001 - one output's fault must not cost the others theirs
+                self.errors[sink.name] = self.errors.get(sink.name, 0) + 1
+                now = time.monotonic()
+                if now - self._said_at.get(sink.name, -1e9) >= 60.0:
+                    self._said_at[sink.name] = now
+                    self.say(f"output {sink.name} failed on {method[3:]}: {type(e).__name__}: {e}; "
+                             f"{self.errors[sink.name]} failure(s) so far (the other outputs carry on)")
+
+    def raw(self, block: SampleBlock) -> None:
+        self._tell("on_raw", block)
+
+    def corrected(self, block: CorrectedBlock) -> None:
+        self._tell("on_corrected", block)
+
+    def error(self, rms_nT: Mapping[str, float], *, seq: int, t_s: float, n: int) -> None:
+        self._tell("on_error", rms_nT, seq=seq, t_s=t_s, n=n)
+
+    def event(self, record: Mapping[str, Any]) -> None:
+        self._tell("on_event", record)
+
+    def command(self, record: Mapping[str, Any]) -> None:
+        self._tell("on_command", record)
+
+    def health(self, counters: Mapping[str, Any], faults: Mapping[str, Any] | None) -> None:
+        self._tell("on_health", counters, faults)
+
+    def recording(self) -> dict[str, Any] | None:
+        """The recorder's status (the first sink that has one), for the state and the fault watch."""
+        for sink in self.sinks:
+            st = sink.status()
+            if st is not None:
+                return st
+        return None
+
+    def add(self, sink: Sink | None) -> None:
+        """One more sink, told after those before it (None: an output that is disabled, not in the list)."""
+        if sink is not None:
+            self.sinks.append(sink)
+            self.errors.setdefault(sink.name, 0)
+
+    def close(self) -> None:
+        """Close every sink in order; a failure is said and never hides the others' closing."""
+        for sink in self.sinks:
+            try:
+                sink.close()
+            except Exception as e:  # noqa: BLE001 - closing must never hide the first error
+                self.say(f"while closing {sink.name}: {e}")
+
+
+class McapSink(Sink):
+    """Raw and corrected streams, errors, events, commands and health to rotating MCAP files (service.io.recordings)."""
+
+    name = "recording"
+
+    def __init__(self, logger: McapLogger) -> None:
+        self.logger = logger
+
+    @classmethod
+    def open(cls, cfg: FluxcalConfig, calibration: Any, say: Callable[[str], None]) -> "McapSink | None":
+        """The recording of [mcap] (None when disabled), with the calibration the run starts from as its first
+        event; ConfigError naming mcap.dir when nothing can be recorded there."""
+        logger = open_logger(cfg, calibration, say)
+        return None if logger is None else cls(logger)
+
+    def on_raw(self, block: SampleBlock) -> None:
+        self.logger.write_raw(block)
+
+    def on_corrected(self, block: CorrectedBlock) -> None:
+        self.logger.write_corrected(block)
+
+    def on_error(self, rms_nT: Mapping[str, float], *, seq: int, t_s: float, n: int) -> None:
+        self.logger.write_error(dict(rms_nT), seq=seq, t_s=t_s, n=n)
+
+    def on_event(self, record: Mapping[str, Any]) -> None:
+        self.logger.write_calibration(dict(record))
+
+    def on_command(self, record: Mapping[str, Any]) -> None:
+        self.logger.write_event(dict(record))
+
+    def on_health(self, counters: Mapping[str, Any], faults: Mapping[str, Any] | None) -> None:
+        self.logger.write_health(dict(counters), faults=None if faults is None else dict(faults))
+
+    def status(self) -> dict[str, Any]:
+        return self.logger.status()
+
+    def close(self) -> None:
+        self.logger.close()
+
+
+class BusSink(Sink):
+    """The streams published on Zenoh (service.io.bus.ServiceBus); the bus also takes commands and state queries,
+    which the daemon reads from it directly."""
+
+    name = "bus"
+
+    def __init__(self, bus: Any) -> None:
+        self.bus = bus
+
+    def on_raw(self, block: SampleBlock) -> None:
+        self.bus.publish_raw(block)
+
+    def on_corrected(self, block: CorrectedBlock) -> None:
+        self.bus.publish_corrected(block)
+
+    def on_error(self, rms_nT: Mapping[str, float], *, seq: int, t_s: float, n: int) -> None:
+        self.bus.publish_error(rms_nT, seq=seq, t_s=t_s, n=n)
+
+    def on_event(self, record: Mapping[str, Any]) -> None:
+        self.bus.publish_calibration(record)
+
+    def on_health(self, counters: Mapping[str, Any], faults: Mapping[str, Any] | None) -> None:
+        self.bus.publish_health(counters, faults=faults)
+
+    def close(self) -> None:
+        self.bus.close()
 
 
 def open_logger(cfg: FluxcalConfig, calibration: Any, say: Callable[[str], None]) -> McapLogger | None:

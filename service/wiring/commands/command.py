@@ -107,7 +107,7 @@ def state_text(st: dict[str, Any]) -> str:
         head = f"unit {unit}: calibration {st.get('cal_id')} in use (method {st.get('method') or '-'}, align " \
                f"{st.get('align') or '-'}"
         head += f", total field {_n(st.get('total_nT'), '.1f', 'nT')})" if st.get("total_nT") else ", total field " \
-                f"estimated)"
+                "estimated)"
     else:
         head = f"unit {unit}: no calibration in use yet (learning online; corrected output starts once a candidate " \
                f"passes the quality gate)"

@@ -1,0 +1,108 @@
+"""The calibration the service starts from: calibration.initial, else the one persisted in calibration.file if it
+was learned on this unit and source kind, else none (learn online); and the one check every calibration passes
+before the service uses it (apply, reload, calibration.initial)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Callable
+
+from drivers.errors import ConfigError, DataError
+from service.io.calfile import load_calibration
+from service.numerics.calib.plausible import check_calibration
+
+from .config import FluxcalConfig
+
+
+def learned_on(cfg: FluxcalConfig) -> dict[str, str]:
+    """What a calibration learned by this service is recorded as learned on: the unit and its source kind."""
+    return {"unit": cfg.unit.name, "source": str(getattr(cfg.source, "kind", "sim"))}
+
+
+def check_for_unit(cal: Any, cfg: FluxcalConfig) -> None:
+    """The one check a calibration passes before the service uses it, by `apply`, reload or calibration.initial:
+    this unit's probes and physics (service.numerics.calib.plausible), and no effect terms (the service takes
+    those by `add-effect`, refitted on its own window: from a file they would be silently dropped)."""
+    if cal.effects:
+        raise DataError(f"fails the effects check: the calibration carries effect terms ({', '.join(cal.effects)}) "
+                        f"that the running service cannot take from a file; use a calibration fitted without "
+                        f"--effects, then `add-effect NAME` (refitted on the service's own window), or correct "
+                        f"offline with `fluxcal fit --effects`")
+    check_calibration(cal, cfg.probe_names, cfg.calibration.limits())
+
+
+def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None]) -> Any:
+    """calibration.initial if given (whatever it was learned on: naming it says so), else the persisted
+    calibration.file if it reads and was learned on this unit and source kind, else None (learn online)."""
+    c = cfg.calibration
+    if c.initial:
+        try:
+            cal = load_calibration(c.initial)
+            check_for_unit(cal, cfg)
+        except (DataError, OSError) as e:
+            raise ConfigError(f"calibration.initial: {e}") from None
+        origin = cal.diagnostics.get("learned_on")
+        foreign = f" (learned on unit {origin.get('unit')}, source {origin.get('source')})" \
+            if isinstance(origin, dict) and origin != learned_on(cfg) else ""
+        say(f"starting from calibration {c.initial}{foreign}")
+        persisted = Path(c.file)
+        if persisted.exists() and persisted.resolve() != Path(c.initial).resolve():
+            try:
+                if load_calibration(persisted).diagnostics.get("applied"):
+                    say(f"the calibration applied by command and persisted in {persisted} is not used: "
+                        f"calibration.initial names another (remove the key to reload the applied one)")
+            except DataError:
+                pass
+        return cal
+    path = Path(c.file)
+    if path.exists():
+        try:
+            cal = load_calibration(path)
+            check_for_unit(cal, cfg)
+        except DataError as e:
+            say(f"ignoring the persisted calibration: {e}; learning online")
+        else:
+            origin = cal.diagnostics.get("learned_on")
+            if isinstance(origin, dict) and origin != learned_on(cfg):
+                say(f"ignoring the persisted calibration {path}: it was learned on unit {origin.get('unit')} from a "
+                    f"{origin.get('source')} source, this is unit {cfg.unit.name} on {learned_on(cfg)['source']}; "
+                    f"learning online (to start from it anyway: calibration.initial = \"{path}\")")
+            else:
+                say(f"reloaded the persisted calibration {path}" + (
+                    " (applied by command: held until `reset`)" if cal.diagnostics.get("applied") else ""))
+                return cal
+    say("no calibration yet: learning online; corrected output starts once it passes the quality gate")
+    return None
+
+
+def calibration_from_payload(payload: Any, cfg: FluxcalConfig | None = None):
+    """The calibration an `apply` carries: its JSON content, never a path (a command from the network reads
+    no file on this host: anything that is not a JSON object is refused before any filesystem access, with
+    the same answer whether or not such a file exists). Bounded in size and depth; checked against this unit
+    and physics (service.numerics.calib.plausible) when `cfg` is given; effect terms are refused (the running
+    service takes effects by `add-effect`, refitted on its own window)."""
+    from service.io.calfile import MAX_CALIBRATION_BYTES, calibration_from_json, excerpt
+
+    if isinstance(payload, (bytes, bytearray)):
+        try:
+            payload = bytes(payload).decode("utf-8")
+        except UnicodeDecodeError:
+            raise DataError("apply: the payload is not UTF-8 text; expected a calibration's JSON content") from None
+    if not isinstance(payload, str):
+        raise DataError(f"apply: expected a calibration's JSON content, got {type(payload).__name__}")
+    text = payload.strip()
+    if len(text) > MAX_CALIBRATION_BYTES:
+        raise DataError(f"apply: the payload ({len(text):,} characters) is too large for a calibration (at most "
+                        f"{MAX_CALIBRATION_BYTES:,})")
+    if not text.startswith("{"):
+        raise DataError(f"apply: the payload ({len(text):,} characters) is not a calibration's JSON content; apply "
+                        f"takes the content of a file written by `fluxcal fit --out`, never a path (the service "
+                        f"reads no file a command names: `fluxcal command apply FILE` sends the file's content); it "
+                        f"begins {excerpt(text, 24)}")
+    cal = calibration_from_json(text, origin="apply payload")
+    if cfg is not None:
+        try:
+            check_for_unit(cal, cfg)
+        except DataError as e:
+            raise DataError(f"apply: {e}; nothing was applied") from None
+    return cal

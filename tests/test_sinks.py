@@ -1,0 +1,82 @@
+"""The service's outputs behind one contract: adding an output is one class, given to the daemon, which it tells
+of everything the recording and the bus get; a failing output costs only itself."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from service.io.recordings.reader import read_recording
+from service.wiring.config import load_config
+from service.wiring.daemon import Daemon
+from service.wiring.sinks import Sink
+from test_recording import service_config
+
+
+class Counting(Sink):
+    """Counts what it is told: the test's new output."""
+
+    name = "counting"
+
+    def __init__(self) -> None:
+        self.raw_samples = self.raw_blocks = self.corrected_samples = self.errors = self.health = 0
+        self.events: list[str] = []
+        self.closed = False
+
+    def on_raw(self, block) -> None:
+        self.raw_blocks += 1
+        self.raw_samples += block.n_samples
+
+    def on_corrected(self, block) -> None:
+        self.corrected_samples += block.n_samples
+
+    def on_error(self, rms_nT, *, seq, t_s, n) -> None:
+        self.errors += 1
+
+    def on_event(self, record) -> None:
+        self.events.append(record["kind"])
+
+    def on_health(self, counters, faults) -> None:
+        self.health += 1
+
+    def close(self) -> None:
+        self.closed = True
+
+
+class Broken(Sink):
+    name = "broken"
+
+    def on_raw(self, block) -> None:
+        raise OSError("the output's disk went away")
+
+
+def _run(tmp_path: Path, sinks) -> tuple[list[str], object]:
+    text = (Path(service_config(tmp_path, run_s=40, realtime=False)).read_text()
+            .replace('transport = "pty"', 'transport = "direct"'))
+    (tmp_path / "c.toml").write_text(text)
+    said: list[str] = []
+    assert Daemon(load_config(tmp_path / "c.toml"), say=said.append, sinks=sinks).run() == 0
+    return said, read_recording(tmp_path / "rec")
+
+
+def test_a_new_output_is_one_class_told_what_the_recording_gets(tmp_path):
+    counter = Counting()
+    said, rec = _run(tmp_path, [counter])
+    assert counter.raw_blocks == len(rec.raw_blocks) > 0
+    assert counter.raw_samples == sum(b.n_samples for b in rec.raw_blocks) == 8000       # 40 s at 200 Hz
+    assert counter.corrected_samples == sum(b.n_samples for b in rec.corrected_blocks) > 0
+    assert counter.events.count("calibration") == sum(e.get("kind") == "calibration" for e in rec.calibration) >= 1
+    assert len(counter.events) == len(rec.calibration)
+    assert counter.errors > 0 and counter.health >= 1 and counter.closed
+
+
+def test_a_failing_output_costs_only_itself(tmp_path):
+    counter = Counting()
+    said, rec = _run(tmp_path, [Broken(), counter])
+    n = sum(b.n_samples for b in rec.raw_blocks)
+    assert n == counter.raw_samples == 8000                   # the recording and the next output got every block
+    failures = [m for m in said if m.startswith("output broken failed on raw")]
+    assert len(failures) == 1 and "the other outputs carry on" in failures[0]      # said once, not per block
+    seq = np.concatenate([b.seq for b in rec.raw_blocks])
+    assert np.all(np.diff(seq) == 1)
