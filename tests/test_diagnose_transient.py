@@ -250,12 +250,14 @@ def test_skip_counts_each_sample_once_and_says_a_stretch_that_holds_none(tmp_pat
     rows = np.column_stack([t, 20000 + np.cos(t), 30000 + np.sin(t), 40000 + 0 * t])
     np.savetxt(path, rows, delimiter=",", header="t,s1_x,s1_y,s1_z", comments="", fmt="%.4f")
     from service.io.recordings.labdata import load_data
-    from service.wiring.commands.notes import skip_spans
+    from service.wiring.prepare import skip_spans
+    from service.wiring.result import Said, stderr_say
 
-    lab = skip_spans("fit", str(path), load_data(path), [(10.0, 20.0), (15.0, 19.0)])
+    lab = skip_spans(Said("fit", stderr_say("fit")), str(path), load_data(path), [(10.0, 20.0), (15.0, 19.0)])
     err = capsys.readouterr().err
     assert lab.block.n_samples == t.size - 101
     assert "--skip left out 101 of 1,000 samples (10-20 s: 101; 15-19 s: 0)" in err
     assert "holds no sample" not in err
-    skip_spans("fit", str(path), load_data(path), [(10.0, 20.0), (500.0, 600.0)])
-    assert "a --skip stretch holds no sample" in capsys.readouterr().err
+    said = Said("fit")
+    skip_spans(said, str(path), load_data(path), [(10.0, 20.0), (500.0, 600.0)])
+    assert [n.kind for n in said.warnings] == ["skip"] and "a --skip stretch holds no sample" in said.warnings[0].text

@@ -14,7 +14,6 @@ import pytest
 from drivers.errors import ConfigError
 from service.wiring import cli
 from service.wiring.fleet import expand_inputs, run_pool
-from service.wiring.fleet_cli import shared_options
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -56,9 +55,46 @@ def test_folders_globs_and_runs_of_rotated_files_expand_to_recordings(tmp_path):
         expand_inputs([str(tmp_path / "*.nothing")], links)
 
 
-def test_shared_options_drop_the_recordings_and_the_fleets_own_options():
-    argv = ["fit", "a.csv", "--jobs", "2", "b.csv", "--effects", "drift", "--out=cals", "--json", "--site", "1,2,3"]
-    assert shared_options(argv, "fit", ["a.csv", "b.csv"]) == ["--effects", "drift", "--site", "1,2,3"]
+def test_each_recording_gets_the_shared_options_and_its_own_outputs():
+    from service.wiring.commands.fit import FitOptions
+    from service.wiring.fleet import job_for
+
+    shared = FitOptions(effects=["drift"], site="1,2,3")
+    job = job_for("fit", "survey/a.csv", shared, {"out": "cals", "report": "reports"})
+    assert job.options == FitOptions(effects=["drift"], site="1,2,3", out="cals/a.cal.json", report="reports/a")
+    assert job_for("replay", "x/u-0001.mcap", shared, {"out": "again"}).options.out == "again/u-0001.mcap"
+
+
+def test_the_fleet_counts_warnings_as_data_whatever_their_wording(fleet_dir, monkeypatch, capsys):
+    """The fleet read a recording's warnings with a regular expression over its stderr, so a change of wording
+    changed a fleet's result; now the notes travel as data and are counted by level."""
+    import service.wiring.prepare as prepare
+
+    said = prepare.skip_spans
+
+    def reworded(said_, source, lab, spans):            # any wording at all
+        said_("skip", "§§ a wholly new sentence, no 'warning:' in it §§")
+        return said(said_, source, lab, spans)
+
+    monkeypatch.setattr(prepare, "skip_spans", reworded)
+    from service.wiring.commands.fit import FitOptions
+    from service.wiring.fleet import job_for, run_one                # what each worker runs, here in-process
+    from service.wiring.fleet_summary import summary_json
+
+    results = [run_one(job_for("fit", str(p), FitOptions(), {})) for p in sorted(fleet_dir.glob("grad-1*.csv"))]
+    summary = summary_json("fit", results, 1.0, "here")
+    assert summary["failed"] == 0 and summary["with_warnings"] == 3
+    assert all(r["read_warnings"] == ["§§ a wholly new sentence, no 'warning:' in it §§"] for r in summary["results"])
+
+
+def test_the_fleet_imports_no_command_line_module():
+    import ast
+
+    src = (REPO / "service" / "wiring" / "fleet.py").read_text()
+    names = {n.module for n in ast.walk(ast.parse(src)) if isinstance(n, ast.ImportFrom) and n.module} | {
+        a.name for n in ast.walk(ast.parse(src)) if isinstance(n, ast.Import) for a in n.names}
+    assert not {n for n in names if n.endswith(("cli", "fleet_cli"))}, names
+    assert "redirect_stdout" not in src and "cli.main" not in src
 
 
 def test_fit_of_several_recordings_equals_each_alone_and_isolates_a_malformed_one(fleet_dir, tmp_path, capsys):
@@ -83,20 +119,22 @@ def test_fit_of_several_recordings_equals_each_alone_and_isolates_a_malformed_on
     assert len(re.findall(r"grad-1\d\.csv\s+ok", table)) == 3
 
 
-def die_or_answer(argv: list[str]) -> dict:
+def die_or_answer(job) -> dict:
     """A stand-in job for run_pool: a worker that dies without a word on 'die', an answer otherwise."""
-    if argv[1] == "die":
+    if job.source == "die":
         os._exit(9)
-    return {"recording": argv[1], "status": 0, "ok": True, "result": None, "stdout": "", "stderr": "", "seconds": 0.0}
+    return {"recording": job.source, "status": 0, "ok": True, "result": None, "notes": [], "seconds": 0.0}
 
 
 def test_a_worker_that_dies_fails_only_its_own_recording():
+    from service.wiring.fleet import Job
+
     got = []
-    jobs = [["fit", name] for name in ("a", "b", "die", "c", "d")]
+    jobs = [Job("fit", name, None) for name in ("a", "b", "die", "c", "d")]
     run_pool(jobs, 2, got.append, fn=die_or_answer)
     by = {r["recording"]: r for r in got}
     assert sorted(by) == ["a", "b", "c", "d", "die"]
-    assert not by["die"]["ok"] and "died" in by["die"]["stderr"]
+    assert not by["die"]["ok"] and "died" in by["die"]["error"]
     assert all(by[k]["ok"] for k in "abcd")
 
 

@@ -13,7 +13,7 @@ import pytest
 from service.io.recordings.reader import read_recording
 from service.io.recordings.writer import McapLogger
 from service.wiring import cli
-from service.wiring.fleet import expand_inputs
+from service.io.recordings.runs import expand_inputs
 
 REPO = Path(__file__).resolve().parents[1]
 LIVE = REPO / "recordings" / "grad1-sim-30s.mcap"        # `fluxcal run`: estimator.total_nT = 52500 stored
@@ -147,14 +147,15 @@ def test_patterns_group_one_runs_files_and_folders_list_what_they_skip(tmp_path)
 def test_one_rotated_file_fitted_alone_says_it_is_part_of_a_run(rotated, capsys):
     """fit and diagnose of one file of a rotated run use its samples alone; that is said first, naming the folder
     (these pieces, a few seconds each, are then refused on their own: too few directions)."""
-    from service.wiring.commands.notes import say_part_of_run
+    from service.wiring.prepare import part_of_run
+    from service.wiring.result import Said
 
     files = sorted(rotated.glob("*.mcap"))
     for k, f in enumerate(files[1:], 2):
         _, _, err = run(["fit", f, "--json"], capsys)
         note = f"{f.name} is file {k} of {len(files)} of one run the service rotated"
         assert note in err and f"`fluxcal fit {rotated}` takes the whole run" in err
-    assert note in say_part_of_run("diagnose", str(files[-1])) and say_part_of_run("fit", str(rotated)) is None
+    assert note in part_of_run(Said("diagnose"), str(files[-1])) and part_of_run(Said("fit"), str(rotated)) is None
     capsys.readouterr()
     status, out, err = run(["fit", rotated, "--json"], capsys)
     assert status == 0 and "of one run the service rotated" not in err

@@ -309,7 +309,7 @@ def main(argv: Sequence[str] | None = None, *, install_signals: bool = True) -> 
         if args.command in FLEET_COMMANDS:
             from service.wiring.fleet_cli import dispatch
 
-            fleet = dispatch(args, argv)
+            fleet = dispatch(args)
             if fleet is not None:
                 return fleet
         module = importlib.import_module(f"service.wiring.commands.{args.command.replace('-', '_')}")

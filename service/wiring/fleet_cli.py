@@ -3,18 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import glob
 import sys
 from pathlib import Path
 
 from drivers.errors import ConfigError
 
-from .fleet import _runs_in, run_fleet
+from service.io.recordings.runs import runs_in as _runs_in
 
-#: options the fleet handles itself (the value of each is taken out of the per-recording command line)
-_OWN_WITH_VALUE = ("--jobs", "--scheduler", "--out", "--report")
-_OWN_FLAGS = ("--json",)
-
+from .fleet import run_fleet
 
 def _is_fleet(inputs: list[str]) -> bool:
     if len(inputs) > 1 or glob.has_magic(inputs[0]):
@@ -36,30 +34,7 @@ def _one(path: str, command: str) -> str:
     return str(runs[0][0]) if len(runs) == 1 and len(runs[0]) == 1 else path
 
 
-def shared_options(argv: list[str], command: str, inputs: list[str]) -> list[str]:
-    """The command line without the command, the recordings and the fleet's own options: what every recording's
-    command shares."""
-    rest = list(argv)
-    rest.remove(command)
-    for item in inputs:
-        rest.remove(item)
-    out: list[str] = []
-    skip = False
-    for tok in rest:
-        if skip:
-            skip = False
-            continue
-        name = tok.split("=", 1)[0]
-        if name in _OWN_WITH_VALUE:
-            skip = "=" not in tok
-            continue
-        if tok in _OWN_FLAGS:
-            continue
-        out.append(tok)
-    return out
-
-
-def dispatch(args: argparse.Namespace, argv: list[str]) -> int | None:
+def dispatch(args: argparse.Namespace) -> int | None:
     """None after putting the one recording back in `args` (the command runs as always); else the exit status
     of the fleet run."""
     key = "recording" if args.command == "replay" else "data"
@@ -70,20 +45,25 @@ def dispatch(args: argparse.Namespace, argv: list[str]) -> int | None:
         # one recording: run here, as without --jobs (the processes are capped at the recordings: one)
         setattr(args, key, _one(inputs[0], args.command))
         return None
-    outputs = {flag: getattr(args, flag[2:]) for flag in ("--out", "--report") if getattr(args, flag[2:], None)}
-    for flag, folder in outputs.items():
+    outputs = {key: getattr(args, key) for key in ("out", "report") if getattr(args, key, None)}
+    for key, folder in outputs.items():
+        flag = f"--{key}"
         if Path(folder).suffix in (".json", ".mcap") or (Path(folder).exists() and not Path(folder).is_dir()):
             raise ConfigError(f"{flag}: {folder!r} is not allowed with several recordings (allowed: a folder, "
                               f"which gets one file per recording)")
         from .commands.notes import check_output_folder
 
         check_output_folder(folder, flag)                # before any work
+    import importlib
+
     from .progress import Progress
 
+    module = importlib.import_module(f"service.wiring.commands.{args.command}")
+    options = dataclasses.replace(module.options(args), **{key: None for key in outputs})   # each its own, below
     bar = Progress(1.0, f"{args.command} of several recordings", fraction=True)
     try:
-        return run_fleet(args.command, inputs, shared_options(argv, args.command, inputs), outputs,
-                         workers=args.jobs, scheduler=args.scheduler, as_json=getattr(args, "json", False),
+        return run_fleet(args.command, inputs, options, outputs, workers=args.jobs, scheduler=args.scheduler,
+                         as_json=getattr(args, "json", False),
                          progress=lambda n, total: bar(n / max(total, 1), f"{n}/{total} recordings"))
     finally:
         bar.close()

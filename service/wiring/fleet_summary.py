@@ -10,10 +10,17 @@ def _num(x: Any, fmt: str = ".3f") -> str:
 
 
 def _why(r: dict[str, Any]) -> str:
-    """The last meaningful line a failed recording printed."""
-    lines = [ln.strip() for ln in (r.get("stderr") or "").splitlines() + (r.get("stdout") or "").splitlines()
-             if ln.strip() and not ln.startswith(("Traceback", "  File"))]
-    return lines[-1] if lines else f"exit status {r['status']}"
+    """Why a recording failed: the error that stopped it, else the last failure it said, else its exit status."""
+    if r.get("error"):
+        return r["error"].splitlines()[0]
+    said = [n["text"] for n in r.get("notes") or [] if n.get("level") == "error"]
+    return said[-1] if said else f"exit status {r['status']}"
+
+
+def warnings_of(r: dict[str, Any]) -> list[str]:
+    """What a recording's command warned of as it ran (what reading lost, a stored configuration not used, data
+    not in nT, ...): its notes of a warning's level, whatever their wording."""
+    return [n["text"] for n in r.get("notes") or [] if n.get("level") in ("warning", "loud")]
 
 
 def figures(command: str, r: dict[str, Any]) -> dict[str, Any]:
@@ -31,15 +38,13 @@ def figures(command: str, r: dict[str, Any]) -> dict[str, Any]:
                 "floor_nT": v.get("floor_nT"),
                 "significant": [c["effect"] for c in res.get("candidates") or [] if c.get("significant")]}
     if command == "replay":
-        text = r.get("stdout") or ""
-        last = [ln for ln in text.splitlines() if ln.strip()]
-        return {"said": last[-1] if last else ""}
+        return {"said": res.get("verdict") or ""}
     return {}
 
 
 def _status(r: dict[str, Any]) -> str:
     """ok, FAILED, or ok with the count of what it warned about (a lost tail, dropped samples)."""
-    n = len(r.get("warnings") or [])
+    n = len(warnings_of(r))
     return ("ok" if r["ok"] else "FAILED") + (f", {n} warning{'s' if n > 1 else ''}" if n else "")
 
 
@@ -47,12 +52,12 @@ def summary_json(command: str, results: list[dict[str, Any]], wall_s: float, whe
                  skipped: list[tuple[str, str]] | None = None) -> dict[str, Any]:
     return {"command": command, "ran_on": where, "wall_s": round(wall_s, 3), "recordings": len(results),
             "failed": sum(not r["ok"] for r in results),
-            "with_warnings": sum(bool(r.get("warnings")) for r in results),          # read with warnings
+            "with_warnings": sum(bool(warnings_of(r)) for r in results),
             **({"fit_warned": sum(bool(figures(command, r).get("warnings")) for r in results)}
                if command == "fit" else {}),
             "skipped": [{"path": p, "reason": why} for p, why in skipped or []],
             "results": [{"recording": r["recording"], "ok": r["ok"], "status": r["status"], "seconds": r["seconds"],
-                         "peak_rss_mb": r.get("peak_rss_mb"), "read_warnings": list(r.get("warnings") or []),
+                         "peak_rss_mb": r.get("peak_rss_mb"), "read_warnings": warnings_of(r),
                          **({"error": _why(r)} if not r["ok"] else {}), **figures(command, r),
                          **({"result": r["result"]} if r.get("result") is not None else {})} for r in results]}
 
@@ -84,11 +89,11 @@ def summary_table(command: str, results: list[dict[str, Any]], wall_s: float, wh
         else:
             row += f.get("said", "")
         lines.append(row)
-    warned = [r for r in results if r.get("warnings")]
+    warned = [r for r in results if warnings_of(r)]
     if warned:
         lines.append("\nwarnings (said on stderr; each recording was used without what they name)")
         lines += [f"  {w}" if w.startswith(r["recording"]) else f"  {r['recording']}: {w}"
-                  for r in warned for w in r["warnings"]]
+                  for r in warned for w in warnings_of(r)]
     if skipped:
         lines.append("\nskipped")
         lines += [f"  {p}: {why}" for p, why in skipped]

@@ -13,38 +13,25 @@ from __future__ import annotations
 
 import os
 
-from service.wiring.commands.notes import say_field_scale, say_part_of_run, say_read_warnings, skip_spans
-
 # The fits multiply many small matrices: on a machine whose cores are busy, OpenBLAS worker threads spin
 # for them and double the CPU time (measured: 41 s against 20 s for bench/bench_diagnose.py). One thread
 # unless the user says otherwise; this only takes effect when numpy is not loaded yet (the CLI).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import sys  # noqa: E402
+from dataclasses import dataclass, field, replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from drivers.config import read_toml  # noqa: E402
-from drivers.errors import ConfigError, DataError  # noqa: E402
+from drivers.errors import ConfigError, DataError, FluxcalError  # noqa: E402
+from service.wiring.commands.notes import check_output_folder, field_scale_notes  # noqa: E402
 from service.wiring.fitting import NONLINEAR_PROBE_SAMPLES as DIAGNOSE_PROBE_SAMPLES  # noqa: E402
+from service.wiring.prepare import Prepared, prepare  # noqa: E402
 from service.wiring.progress import Progress  # noqa: E402
-
-def config_geometry(path: str, n_probes: int) -> tuple[np.ndarray | None, float | None]:
-    """Probe positions (P, 3) and the total field from a configuration file (recorded_config.geometry: the
-    sections diagnose uses validated strictly, unknown section names errors)."""
-    from service.wiring.config import require_content
-    from service.wiring.recorded_config import geometry
-
-    raw = read_toml(path)
-    require_content(raw, path)
-    try:
-        return geometry(raw, n_probes)
-    except ConfigError as e:
-        raise ConfigError(f"{path}: {e}") from None
+from service.wiring.result import Result, Said, print_result, stderr_say  # noqa: E402
 
 
 def load_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:
@@ -69,103 +56,133 @@ def load_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:
         raise first_error from None
 
 
+@dataclass
+class DiagnoseOptions:
+    """What `diagnose` is asked to do with one recording (the command line's options, or a fleet's)."""
+
+    effects: list[str] = field(default_factory=list)
+    calibration: str | None = None        # a calibration file held fixed
+    config: str | None = None
+    site: str | None = None
+    skip: list[tuple[float, float]] | None = None
+    max_samples: int | None = None        # None: the default budget of probe-samples; 0: all
+    report: str | None = None             # the folder of an HTML report
+
+
+@dataclass
+class DiagnoseResult(Result):
+    """A diagnosis (service.numerics.diagnose.Diagnosis) and how the command line shows it."""
+
+    diagnosis: Any = None
+    title: str = ""                       # the source as the summary names it
+    report: str | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        return self.diagnosis.as_dict()
+
+    def text(self) -> str:
+        from service.numerics.diagnose import summary_text
+
+        return summary_text(self.diagnosis, self.title) + (f"\n  report: {self.report}" if self.report else "")
+
+
 def main(args: argparse.Namespace) -> int:
-    from service.io.recordings.labdata import load_data
-    from service.numerics.diagnose import diagnose, summary_text
+    """The command line: the diagnosis as text, or JSON (--json); notes and progress on stderr as they come."""
+    result = execute(args.data, options(args), Said("diagnose", stderr_say("diagnose")))
+    print_result(result, args.json)
+    if args.json and result.report:
+        print(f"fluxcal diagnose: report written to {result.report}", file=sys.stderr)
+    return result.status
+
+
+def options(args: argparse.Namespace) -> DiagnoseOptions:
+    return DiagnoseOptions(effects=list(args.effects), calibration=args.calibration, config=args.config,
+                           site=args.site, skip=args.skip, max_samples=args.max_samples, report=args.report)
+
+
+def execute(source: str, opts: DiagnoseOptions, said: Said, *, progress: bool = True) -> DiagnoseResult:
+    """`fluxcal diagnose SOURCE`: the report folder checked before any work, the input prepared, the diagnosis."""
     from service.numerics.effects import known_effects
-    from service.numerics.effects.base import EffectData
     from service.wiring.user_effects import load_installed_effects, resolve_effects
 
-    if args.report:
-        from service.wiring.commands.notes import check_output_folder
-
-        check_output_folder(args.report, "--report")          # before any work
+    if opts.report:
+        check_output_folder(opts.report, "--report")          # before any work
     load_installed_effects()
-    args.effects = resolve_effects(args.effects)
+    opts = replace(opts, effects=resolve_effects(opts.effects))
     known = known_effects()
-    unknown = [e for e in args.effects if e not in known]
+    unknown = [e for e in opts.effects if e not in known]
     if unknown:
         raise ConfigError(f"--effects: {', '.join(map(repr, unknown))} not an effect "
                           f"(allowed: {', '.join(known)}; or file.py:ClassName for one of your own)")
-    limit = getattr(args, "max_samples", None)
-    lab = load_data(args.data, **({"max_probe_samples": DIAGNOSE_PROBE_SAMPLES} if limit is None
-                                  else {"max_samples": limit}))
-    say_read_warnings("diagnose", args.data, getattr(lab, "warnings", []))
-    lab = skip_spans("diagnose", str(args.data), lab, getattr(args, "skip", None))
-    say_part_of_run("diagnose", str(args.data))
-    block = getattr(lab, "block", lab)
-    names = getattr(lab, "probe_names", None)
-    origin = None
-    if args.config:
-        positions, total = config_geometry(args.config, block.n_probes)
-    else:                                         # the configuration a service recording stores, said
-        from service.wiring.recorded_config import stored_config
+    limit = opts.max_samples
+    prep = prepare(source, said, config=opts.config, site=opts.site, skip=opts.skip,
+                   **({"max_probe_samples": DIAGNOSE_PROBE_SAMPLES} if limit is None else {"max_samples": limit}))
+    return run(prep, opts, said, progress=progress)
 
-        given = stored_config(getattr(lab, "metadata", {}), str(args.data), block.n_probes)
-        positions, total, origin = given.positions_m, given.total_nT, given.origin
-        if given.warning:
-            print(f"fluxcal diagnose: warning: {given.warning}", file=sys.stderr)
-    if getattr(args, "site", None):
-        from service.numerics.calib.site import site_from_text
 
-        total = site_from_text(args.site).total_nT
-    data = EffectData.from_block(block, names, total_nT=total, positions_m=positions)
+def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = True) -> DiagnoseResult:
+    """The diagnosis of the prepared data (and its report, when asked): figures and notes as data."""
+    from service.numerics.diagnose import diagnose
+    from service.numerics.effects import known_effects
+    from service.numerics.effects.base import EffectData
+
+    lab, source, limit = prep.take_data(), prep.source, opts.max_samples
+    positions, total, origin = prep.positions_m, prep.total_nT, prep.origin
+    data = EffectData.from_block(lab.block, lab.probe_names, total_nT=total, positions_m=positions)
     ref = data.ref_total_nT                       # the reference the fits use before a configured total
-    scale = say_field_scale("diagnose", args.data, data.raw_nT, data.probe_names, about="a sphere fitted to them",
-                            total_nT=ref if ref is not None else total,
-                            total_source="the ref_total column" if ref is not None else "the site" if args.site
-                            else f"configuration from {args.config}" if args.config else origin or "given")
+    scale = field_scale_notes(said, data.raw_nT, data.probe_names, about="a sphere fitted to them",
+                              total_nT=ref if ref is not None else total,
+                              total_source="the ref_total column" if ref is not None else "the site" if opts.site
+                              else f"configuration from {opts.config}" if opts.config else origin or "given")
     thinned = thinning(lab, limit)
-    del lab, block                                  # the samples live on in `data` only
-    cal, effects = None, list(args.effects)
-    if args.calibration:
-        cal, cal_effects = load_calibration(args.calibration, data.n_probes)
+    del lab                                       # the samples live on in `data` only (hours of them)
+    cal, effects = None, list(opts.effects)
+    if opts.calibration:
+        cal, cal_effects = load_calibration(opts.calibration, data.n_probes)
         if not effects:
+            known = known_effects()
             missing = [e for e in cal_effects if e not in known]
             if missing:
-                raise ConfigError(f"{args.calibration}: names the effect(s) {', '.join(map(repr, missing))}, which are "
-                                  f"neither in the catalogue nor installed: give them with --effects "
+                raise ConfigError(f"{opts.calibration}: names the effect(s) {', '.join(map(repr, missing))}, which "
+                                  f"are neither in the catalogue nor installed: give them with --effects "
                                   f"file.py:ClassName")
             effects = list(cal_effects)                             # the model the file describes
-    bar = Progress(1.0, "diagnose", fraction=True)
+    bar = Progress(1.0, "diagnose", fraction=True) if progress else None
     try:
         result = diagnose(data, effects=effects, calibration=cal, progress=bar,
                           check_linear=lambda lin: _refuse_one_cone(data, lin))
     finally:
-        bar.close()
+        if bar is not None:
+            bar.close()
     if thinned is not None:
         result.thinned, text = thinned
         result.notes.insert(0, text)
     result.notes[0:0] = scale                     # data not in nT first: every figure after it is in their unit
-    taken = (([f"total field {total:,.0f} nT (estimator.total_nT)"] if total is not None and not args.site else [])
+    taken = (([f"total field {total:,.0f} nT (estimator.total_nT)"] if total is not None and not opts.site else [])
              + ([f"probe positions of {len(positions)} probes"] if positions is not None else []))
     if origin and taken:
         result.notes.insert(0, f"{origin}: {'; '.join(taken)}")
-    if args.calibration and effects:
-        result.notes.append(f"{args.calibration}: linear part held fixed; the parameters of "
+    if opts.calibration and effects:
+        result.notes.append(f"{opts.calibration}: linear part held fixed; the parameters of "
                             f"{', '.join(effects)} are refitted to these data")
-    # the diagnosis first: a report that cannot be written (matplotlib missing, a full disk) must not cost it
-    if args.json:
-        json.dump(result.as_dict(), sys.stdout)
-        sys.stdout.write("\n")
-    else:
-        print(summary_text(result, args.data + (f" ({origin})" if origin else "")))
-    sys.stdout.flush()
-    if args.report:
+    out = DiagnoseResult("diagnose", source, diagnosis=result, title=source + (f" ({origin})" if origin else ""))
+    if opts.report:
+        # the diagnosis first: a report that cannot be written (a full disk) must not cost it (said, exit 1)
         from service.io.report import write_report
+        from service.io.report.page import NO_MATPLOTLIB, has_matplotlib
         from service.wiring.calib_report import section_from_diagnosis
 
-        from service.io.report.page import NO_MATPLOTLIB, has_matplotlib
-
-        report_path = write_report(result, args.report, title=f"fluxcal diagnose {Path(args.data).name}",
-                                   calibration=section_from_diagnosis(result))
-        if not has_matplotlib():
-            print(f"fluxcal diagnose: report without plots: {NO_MATPLOTLIB}", file=sys.stderr)
-        if args.json:
-            print(f"fluxcal diagnose: report written to {report_path}", file=sys.stderr)
-        else:
-            print(f"  report: {report_path}")
-    return 0
+        try:
+            out.report = str(write_report(result, opts.report, title=f"fluxcal diagnose {Path(source).name}",
+                                          calibration=section_from_diagnosis(result)))
+            out.written.append(out.report)
+            if not has_matplotlib():
+                said("report", f"report without plots: {NO_MATPLOTLIB}", level="note")
+        except (OSError, FluxcalError) as e:
+            said("report", f"{opts.report}: the report could not be written: {e}")
+            out.status = 1
+    out.notes = said.notes
+    return out
 
 
 def thinning(lab: Any, limit: int | None) -> tuple[dict[str, Any], str] | None:

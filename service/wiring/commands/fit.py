@@ -2,24 +2,21 @@
 
 from __future__ import annotations
 
-import json
 import sys
 from argparse import Namespace
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from itertools import islice
 from typing import Any
 
 import numpy as np
 
-from drivers.errors import DataError
+from drivers.errors import DataError, FluxcalError
 from service.io.calfile import save_calibration
-from service.io.recordings.labdata import LabData, keep_every, load_data
+from service.io.recordings.labdata import LabData, keep_every
 from service.numerics.calib.coverage import coverage
-from service.numerics.calib.site import site_from_text
 from service.numerics.usable import temperature_notes, usable_samples
 from service.wiring.coloured_fit import coloured_offsets, direction_offsets
-from service.wiring.commands.notes import (check_output_file, check_output_folder, say_field_scale, say_part_of_run,
-                                           say_read_warnings, skip_spans)
+from service.wiring.commands.notes import check_output_file, check_output_folder, field_scale_notes
 from service.wiring.fitting import (
     NONLINEAR_PROBE_SAMPLES,
     channel_sums,
@@ -30,89 +27,93 @@ from service.wiring.fitting import (
     rms_all,
     uncalibrated_rms,
 )
-from service.wiring.recorded_config import FROM_RECORDING, DataConfig, spread, stored_config
+from service.wiring.prepare import FROM_RECORDING, Prepared, prepare
+from service.wiring.result import Result, Said, print_result, stderr_say
 
 
-def _say(msg: str) -> None:
+def _progress(msg: str) -> None:
     if sys.stderr.isatty():
         print(f"\r\033[K{msg}", end="", file=sys.stderr, flush=True)
 
 
-def load_optional_config(path: str | None):
-    if not path:
-        return None
-    from service.wiring.config import load_config
+@dataclass
+class FitOptions:
+    """What `fit` is asked to do with one recording (the command line's options, or a fleet's)."""
 
-    return load_config(path, source_required=False)        # an array's description: no source to name
-
-
-def configured_total(cfg) -> float | None:
-    if cfg is None:
-        return None
-    if cfg.estimator.total_nT is not None:
-        return cfg.estimator.total_nT
-    return None
+    method: str = "ellipsoid"
+    align: str | None = None
+    effects: list[str] = field(default_factory=list)
+    config: str | None = None
+    site: str | None = None
+    skip: list[tuple[float, float]] | None = None
+    out: str | None = None                # the calibration file to write
+    report: str | None = None             # the folder of an HTML report
 
 
-def positions(cfg, n_probes: int):
-    if cfg is None or cfg.unit.n_probes != n_probes:
-        return None
-    return spread(cfg.positions_m)
+@dataclass
+class FitResult(Result):
+    """A fitted calibration: the JSON contract (docs/contracts.md) and the summary a person reads."""
 
+    contract: dict[str, Any] = field(default_factory=dict)
+    summary: str = ""
+    report: str | None = None             # the report written, if any
 
-def data_config(args: Namespace, data: LabData) -> DataConfig:
-    """The total field and probe positions: --config, else the configuration the recording stores (said)."""
-    if args.config:
-        cfg = load_optional_config(args.config)
-        return DataConfig(configured_total(cfg), positions(cfg, data.block.n_probes), f"configuration from "
-                                                                                       f"{args.config}")
-    found = stored_config(data.metadata, str(args.data), data.block.n_probes)
-    if found.warning:
-        print(f"fluxcal fit: warning: {found.warning}", file=sys.stderr)
-    return replace(found, positions_m=spread(found.positions_m))
+    def as_dict(self) -> dict[str, Any]:
+        return self.contract
 
-
-def site_total(args: Namespace, configured: float | None) -> tuple[float | None, Any]:
-    """The total field: --site (the World Magnetic Model there) over the configuration's."""
-    if not getattr(args, "site", None):
-        return configured, None
-    site = site_from_text(args.site)
-    return site.total_nT, site
+    def text(self) -> str:
+        return self.summary
 
 
 def main(args: Namespace) -> int:
+    """The command line: the result as text, or JSON (--json); the notes said on stderr as they came."""
+    result = execute(args.data, options(args), Said("fit", stderr_say("fit")))
+    print_result(result, args.json)
+    if args.json and result.report:
+        print(f"fluxcal fit: report written to {result.report}", file=sys.stderr)
+    return result.status
+
+
+def options(args: Namespace) -> FitOptions:
+    return FitOptions(method=args.method, align=args.align, effects=list(args.effects), config=args.config,
+                      site=args.site, skip=args.skip, out=args.out, report=args.report)
+
+
+def execute(source: str, opts: FitOptions, said: Said) -> FitResult:
+    """`fluxcal fit SOURCE`: its outputs checked before any work, the input prepared, the calibration fitted."""
     from service.wiring.user_effects import load_installed_effects, resolve_effects
 
     load_installed_effects()
-    args.effects = resolve_effects(args.effects)
-    if args.out:
-        check_output_file(args.out, example="cal.json", not_this=args.data)
-    if args.report:
-        check_output_folder(args.report, "--report")
-    data = load_data(args.data)
-    say_read_warnings("fit", args.data, data.warnings)
-    data = skip_spans("fit", str(args.data), data, getattr(args, "skip", None))
-    part = say_part_of_run("fit", args.data)
-    data, left_out = usable_data(data, uses_temperature=bool({"temperature", "thermal"} & set(args.effects)))
-    given = data_config(args, data)
-    known_total, site = site_total(args, given.total_nT)
-    cal, total = fit_array(data, method=args.method, align=args.align, configured_total_nT=known_total,
-                           positions_m=given.positions_m, progress=_say)
-    if site is not None:
-        total.source = f"the site ({site.model})"
+    opts = replace(opts, effects=resolve_effects(opts.effects))
+    if opts.out:
+        check_output_file(opts.out, example="cal.json", not_this=source)
+    if opts.report:
+        check_output_folder(opts.report, "--report")
+    prep = prepare(source, said, config=opts.config, site=opts.site, skip=opts.skip)
+    return run(prep, opts, said)
+
+
+def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
+    """The calibration of the prepared data (and its files, when asked): figures and notes as data."""
+    data, source = prep.data, prep.source
+    data, left_out = usable_data(data, uses_temperature=bool({"temperature", "thermal"} & set(opts.effects)))
+    known_total = prep.total_nT
+    cal, total = fit_array(data, method=opts.method, align=opts.align, configured_total_nT=known_total,
+                           positions_m=prep.positions_m, progress=_progress)
+    if prep.site is not None:
+        total.source = f"the site ({prep.site.model})"
     # data in µT (or counts) fit without complaint; said here, before anything is reported in "nT"
-    scale = say_field_scale("fit", args.data, data.block.field_nT, data.probe_names,
-                            centres_nT=[p.offset_nT for p in cal.probes],
-                            total_nT=None if total.source == "estimated" else total.values,
-                            total_source={"config": given.origin or "configured", "ref_total": "the ref_total column"}
-                            .get(total.source, total.source))
-    if args.effects:
+    scale = field_scale_notes(said, data.block.field_nT, data.probe_names,
+                              centres_nT=[p.offset_nT for p in cal.probes],
+                              total_nT=None if total.source == "estimated" else total.values,
+                              total_source={"config": prep.origin or "configured", "ref_total": "the ref_total column"}
+                              .get(total.source, total.source))
+    if opts.effects:
         from service.numerics.engine import fit_with_effects
 
-        _say(f"fitting effects {', '.join(args.effects)}")
+        _progress(f"fitting effects {', '.join(opts.effects)}")
         report_data, thinned = effects_data(data)
-        ef, _ = fit_with_effects(report_data, args.effects, cal, total_nT=known_total,
-                                 positions_m=given.positions_m)
+        ef, _ = fit_with_effects(report_data, opts.effects, cal, total_nT=known_total, positions_m=prep.positions_m)
         method, align = cal.method, cal.align
         cal = ef.calibration()
         cal.method, cal.align = method, align
@@ -123,7 +124,7 @@ def main(args: Namespace) -> int:
         # each channel's sum of squares is enough, taken over chunks of rows (hours of data); the report bins
         # the scalar residuals over direction and needs those whole (not the 3 (P - 1) differences)
         channels = channel_sums(data, cal, total)
-        if getattr(args, "report", None):
+        if opts.report:
             channels.update(islice(iter_residual_channels(data, cal, total), data.block.n_probes))   # scalars first
     if sys.stderr.isatty():
         print("\r\033[K", end="", file=sys.stderr)
@@ -132,33 +133,40 @@ def main(args: Namespace) -> int:
                             "rms_after_nT": {k: rms(v) for k, v in channels.items()},
                             "total_field": total.source})
     # coloured noise first: it changes the offsets' errors, which the warnings below compare with the offsets
-    coloured = coloured_warnings(coloured_offsets(data, cal, total)) if not args.effects else []
-    coloured += direction_offsets(data, cal, total) if not args.effects else []
+    coloured = coloured_warnings(coloured_offsets(data, cal, total)) if not opts.effects else []
+    coloured += direction_offsets(data, cal, total) if not opts.effects else []
     coverages = [coverage(data.block.field_nT[:, k], centre_nT=p.offset_nT) for k, p in enumerate(cal.probes)]
     warnings = left_out + calibration_warnings(cal, coverages) + ([thinned] if thinned else []) + coloured
-    warnings += [given.warning] if given.warning else []
-    warnings += [part] if part else []
+    warnings += [prep.config_warning] if prep.config_warning else []
+    warnings += [prep.part_of_run] if prep.part_of_run else []
     warnings = scale + warnings
     cal.diagnostics["warnings"] = warnings
-    if args.out:
-        save_calibration(cal, args.out)
+    out = FitResult("fit", source)
+    if opts.out:
+        save_calibration(cal, opts.out)
+        out.written.append(opts.out)
     result = contract_json(cal, channels, data.probe_names, coverages, warnings)
-    if given.origin == FROM_RECORDING:
+    if prep.origin == FROM_RECORDING:
         result["configuration"] = "recording"               # the total field and positions it stores were used
-    if site is not None:
-        result["site"] = site.as_dict()
-    if args.json:
-        print(json.dumps(result))
-    else:
-        if site is not None:
-            print(f"site field: {site.summary()}")
-        print(_summary(data, cal, channels, before, total.source, result, coverages, given.origin))
-        if args.out:
-            print(f"calibration written to {args.out}")
-    if getattr(args, "report", None):
-        sys.stdout.flush()                  # the calibration first: a report that cannot be written must not cost it
-        _write_report(args, report_data, cal, channels, coverages, warnings, total.source, rows)
-    return 0
+    if prep.site is not None:
+        result["site"] = prep.site.as_dict()
+    text = ([f"site field: {prep.site.summary()}"] if prep.site is not None else [])
+    text.append(_summary(data, cal, channels, before, total.source, result, coverages, prep.origin))
+    if opts.out:
+        text.append(f"calibration written to {opts.out}")
+    if opts.report:
+        # the calibration first: a report that cannot be written must not cost it (said, and the exit status 1)
+        try:
+            path = _write_report(opts.report, source, said, report_data, cal, channels, coverages, warnings,
+                                 total.source, rows)
+            out.written.append(str(path))
+            text.append(f"report: {path}")
+            out.report = str(path)
+        except (OSError, FluxcalError) as e:
+            said("report", f"{opts.report}: the report could not be written: {e}")
+            out.status = 1
+    out.contract, out.summary, out.notes = result, "\n".join(text), said.notes
+    return out
 
 
 #: fewest samples left to fit once the unusable ones are left out (as the effects' fits need)
@@ -216,7 +224,8 @@ def effects_data(data: LabData) -> tuple[LabData, str | None]:
                   f"and the residual channels cover those samples")
 
 
-def _write_report(args: Namespace, data, cal, channels, coverages, warnings, total_source, rows) -> None:
+def _write_report(folder: str, source: str, said: Said, data, cal, channels, coverages, warnings, total_source,
+                  rows) -> Any:
     from pathlib import Path
 
     from service.io.report import write_calibration_report
@@ -226,14 +235,10 @@ def _write_report(args: Namespace, data, cal, channels, coverages, warnings, tot
     b = data.block
     summary = (f"{data.path}: {b.n_samples} samples, {b.n_probes} probe(s), {b.t_s[-1] - b.t_s[0]:.1f} s; "
                f"residual RMS {rms_all(list(channels.values())):.3f} nT over every channel.")
-    path, note = write_calibration_report(section, args.report, title=f"fluxcal fit {Path(args.data).name}",
-                                          summary=summary)
+    path, note = write_calibration_report(section, folder, title=f"fluxcal fit {Path(source).name}", summary=summary)
     if note:
-        print(f"fluxcal fit: {note}", file=sys.stderr)
-    if args.json:
-        print(f"fluxcal fit: report written to {path}", file=sys.stderr)
-    else:
-        print(f"report: {path}")
+        said("report", note, level="note")
+    return path
 
 
 def _fmt_param(value, se) -> str:

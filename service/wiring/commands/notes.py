@@ -1,27 +1,17 @@
-"""What a command says on stderr besides its result: what reading its input lost, and how to mend it."""
+"""What the batch commands share besides the input preparation: a field's scale said, outputs checked before
+any work, --skip's spans parsed."""
 
 from __future__ import annotations
 
-import sys
 from typing import Any, Sequence
 
 import numpy as np
 
 
-def say_read_warnings(command: str, source: str, warnings: Sequence[str]) -> None:
-    """One line per thing reading lost or skipped (a cut tail, a damaged record), then how to mend it."""
-    for w in warnings:
-        print(f"fluxcal {command}: warning: {w}", file=sys.stderr)
-    if warnings:
-        print(f"fluxcal {command}: the data above were read without what is listed; "
-              f"`fluxcal repair {source} FIXED.mcap` writes a finished copy of what is readable", file=sys.stderr)
-
-
-def say_field_scale(command: str, source: str, field_nT: Any, probe_names: Sequence[str], *,
-                    centres_nT: Any = None, total_nT: Any = None, total_source: str = "",
-                    about: str = "the fitted centre") -> list[str]:
-    """Data whose size is implausible for nT (µT, counts), and a given total field far off the data's scale,
-    said on stderr (the latter loudly) whatever the output format; returns them for the result's warnings."""
+def field_scale_notes(said: Any, field_nT: Any, probe_names: Sequence[str], *, centres_nT: Any = None,
+                      total_nT: Any = None, total_source: str = "", about: str = "the fitted centre") -> list[str]:
+    """Data whose size is implausible for nT (µT, counts), and a given total field far off the data's scale, said
+    (the latter loudly) whatever the output format; returns them, loud first, for the result's warnings."""
     from service.numerics.field_scale import field_scale_warnings
 
     if total_nT is not None and not isinstance(total_nT, (int, float)):
@@ -30,30 +20,10 @@ def say_field_scale(command: str, source: str, field_nT: Any, probe_names: Seque
         total_nT = float(np.median(finite)) if finite.size else None     # a ref_total column
     warnings, loud = field_scale_warnings(field_nT, probe_names, centres_nT, total_nT, total_source, about)
     for w in warnings:
-        print(f"fluxcal {command}: warning: {source}: {w}", file=sys.stderr)
+        said("field-scale", w)
     for w in loud:
-        print(f"fluxcal {command}: WARNING: {source}: {w}", file=sys.stderr)
+        said("field-scale", w, level="loud")
     return loud + warnings
-
-
-def say_part_of_run(command: str, source: str) -> str | None:
-    """A file the service rotated out of a longer run, given alone: said, with the folder that holds the whole run
-    (fit and diagnose then use only this file's samples; replay says more, commands/replay.continuation)."""
-    from pathlib import Path
-
-    from service.wiring.fleet import runs_of
-
-    p = Path(source)
-    if p.is_dir() or p.suffix != ".mcap":
-        return None
-    run = next((r for r in runs_of(sorted(p.parent.glob("*.mcap"))) if p.name in {f.name for f in r}), [])
-    if len(run) < 2:
-        return None
-    k = [f.name for f in run].index(p.name) + 1
-    note = (f"{p.name} is file {k} of {len(run)} of one run the service rotated ({run[0].name} ... {run[-1].name}); "
-            f"this uses its samples alone: `fluxcal {command} {p.parent}` takes the whole run")
-    print(f"fluxcal {command}: note: {note}", file=sys.stderr)
-    return note
 
 
 def check_output_file(path: Any, flag: str = "--out", *, suffixes: Sequence[str] = (), example: str = "out.mcap",
@@ -125,31 +95,3 @@ def parse_spans(text: str) -> list[tuple[float, float]]:
                                              f"own time, T1 > T0 (several: 10-20,95.5-140)")
         spans.append((lo, hi))
     return spans
-
-
-def skip_spans(command: str, source: str, lab: Any, spans: Sequence[tuple[float, float]] | None) -> Any:
-    """The data without the samples in the stretches --skip names (ends included), said on stderr with how many
-    samples each left out; a stretch that holds no sample is said too, and one that leaves nothing is refused."""
-    import dataclasses
-
-    from drivers.errors import DataError
-
-    if not spans:
-        return lab
-    t = lab.block.t_s
-    out = np.zeros(t.shape, dtype=bool)
-    said, held = [], []
-    for lo, hi in spans:
-        inside = (t >= lo) & (t <= hi)
-        said.append(f"{lo:g}-{hi:g} s: {int(np.count_nonzero(inside & ~out)):,}")     # not counted twice
-        held.append(bool(inside.any()))
-        out |= inside
-    if out.all():
-        raise DataError(f"--skip {','.join(f'{lo:g}-{hi:g}' for lo, hi in spans)}: leaves no sample of {source} "
-                        f"(its time runs {float(np.nanmin(t)):g}-{float(np.nanmax(t)):g} s)")
-    print(f"fluxcal {command}: note: --skip left out {int(out.sum()):,} of {t.size:,} samples ({'; '.join(said)})",
-          file=sys.stderr)
-    if not all(held):
-        print(f"fluxcal {command}: warning: a --skip stretch holds no sample of {source} (its time runs "
-              f"{float(np.nanmin(t)):g}-{float(np.nanmax(t)):g} s)", file=sys.stderr)
-    return dataclasses.replace(lab, block=lab.block.rows(~out))

@@ -21,10 +21,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import json
 import re
-import sys
 import time
 from argparse import Namespace
 from dataclasses import dataclass, field
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -35,9 +35,12 @@ from service.io.calfile import calibration_from_dict
 from service.io.recordings.labdata import check_one_run
 from service.io.recordings.reader import read_recording
 from service.io.recordings.repair import repair_notes
-from service.wiring.commands.notes import say_read_warnings
+from service.wiring.commands.notes import check_output_file
+from service.wiring.prepare import say_read_warnings
+from service.wiring.result import Result, Said, print_result, stderr_say
 from service.wiring.config import config_from_dict, load_config, rate_stated
 from service.wiring.daemon import build_pipeline
+from service.wiring.sinks import McapSink, Sinks
 from service.wiring.progress import Progress
 
 
@@ -64,66 +67,94 @@ def continuation(path: Path, rec) -> str | None:
 LEGACY_RATE_HZ = 200.0
 
 
-def _with_rate(raw: dict, recording: str) -> dict:
+def _with_rate(raw: dict, recording: str, said: Said) -> dict:
     """A configuration stored before source.rate_hz existed (serial or replay source, no rate stated):
     the live run counted its estimator durations at 200 Hz, so replay must too, to give the same output;
     said, with how to replay at another rate."""
     if not rate_stated(raw):
-        print(f"fluxcal replay: {recording}: its stored configuration names no source.rate_hz (it was recorded "
-              f"before the key existed, when a serial source was taken to run at {LEGACY_RATE_HZ:g} Hz): replaying "
-              f"at {LEGACY_RATE_HZ:g} Hz as the live run did; give --config with source.rate_hz for another rate",
-              file=sys.stderr)
+        said("config", f"{recording}: its stored configuration names no source.rate_hz (it was recorded before the "
+                       f"key existed, when a serial source was taken to run at {LEGACY_RATE_HZ:g} Hz): replaying at "
+                       f"{LEGACY_RATE_HZ:g} Hz as the live run did; give --config with source.rate_hz for another rate",
+             level="say")
         raw = {**raw, "source": {**raw["source"], "rate_hz": LEGACY_RATE_HZ}}
     return raw
 
 
-def main(args: Namespace) -> int:
-    t_start = time.perf_counter()
-    if args.out:
-        from service.wiring.commands.notes import check_output_file
+@dataclass
+class ReplayOptions:
+    config: str | None = None             # replay with this configuration (default: the one stored)
+    out: str | None = None                # also record the replay here
 
-        check_output_file(args.out, suffixes=(".mcap",), not_this=args.recording)     # before any work
-    if Path(args.recording).is_dir():
-        check_one_run(Path(args.recording))     # a folder of one run (the reader's rule, as fit's)
-    rec = read_recording(args.recording)
+
+@dataclass
+class ReplayResult(Result):
+    """A replay and its comparison with the live run: the figures, and the lines a person reads."""
+
+    samples: int = 0
+    probes: int = 0
+    compared: int = 0
+    identical: int = 0
+    largest_nT: float | None = None
+    tolerance_nT: float | None = None
+    beyond: int = 0
+    holes: int = 0
+    same_arithmetic: bool | None = None
+    seconds: dict[str, float] = field(default_factory=dict)
+    lines: list[str] = field(default_factory=list)
+
+    @property
+    def verdict(self) -> str:
+        """The last line said on stdout: how the replay compares with the live run."""
+        return self.lines[-1] if self.lines else ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {**super().as_dict(), "samples": self.samples, "probes": self.probes, "compared": self.compared,
+                "identical": self.identical, "largest_nT": self.largest_nT, "tolerance_nT": self.tolerance_nT,
+                "beyond": self.beyond, "holes": self.holes, "same_arithmetic": self.same_arithmetic,
+                "seconds": self.seconds, "verdict": self.verdict}
+
+    def text(self) -> str:
+        return "\n".join(self.lines)
+
+
+def options(args: Namespace) -> ReplayOptions:
+    return ReplayOptions(config=args.config, out=args.out)
+
+
+def main(args: Namespace) -> int:
+    """The command line: the replay's lines on stdout, what fails on stderr as it comes; exit 0 or 1."""
+    result = execute(args.recording, options(args), Said("replay", stderr_say("replay")))
+    print_result(result, False)
+    return result.status
+
+
+def execute(source: str, opts: ReplayOptions, said: Said, *, sinks: list[Any] | None = None) -> ReplayResult:
+    """`fluxcal replay SOURCE`: read, replay through the pipeline, compare with the live run. The replay goes to
+    `sinks` (service.wiring.sinks.Sink) as the live run went to the service's, and to a recording at opts.out."""
+    t_start = time.perf_counter()
+    if opts.out:
+        check_output_file(opts.out, suffixes=(".mcap",), not_this=source)     # before any work
+    if Path(source).is_dir():
+        check_one_run(Path(source))           # a folder of one run (the reader's rule, as fit's)
+    rec = read_recording(source)
     t_read = time.perf_counter() - t_start
     lost = [w for w in rec.report.problems if not w.endswith("nothing lost")]
-    say_read_warnings("replay", args.recording, lost)
+    say_read_warnings(said, source, lost)
     for w in rec.report.problems:
         if w not in lost:
-            print(f"fluxcal replay: warning: {w}", file=sys.stderr)
+            said("read", w)
     for line in repair_notes(rec.report):
-        print(f"fluxcal replay: {line}", file=sys.stderr)
-    later = continuation(Path(args.recording), rec)
+        said("read", line, level="say")
+    later = continuation(Path(source), rec)
     if later:
-        print(f"fluxcal replay: {later}", file=sys.stderr)
-    if args.config:
-        cfg = load_config(args.config)
-    else:
-        text = rec.metadata.get("config")
-        if not text:
-            raise RecordingError(f"{args.recording}: no configuration stored in the recording; give --config")
-        cfg = config_from_dict(_with_rate(json.loads(text), args.recording), f"{args.recording} (stored configuration)")
-    initial = None
-    initial_event = {"kind": "initial", "seq": 0, "calibration": None}
-    commands = []
-    for ev in rec.events:
-        if ev.get("kind") == "initial" and ev.get("calibration"):
-            initial = calibration_from_dict(ev["calibration"], "recorded initial calibration")
-            initial_event = ev
-        elif ev.get("kind") == "command":
-            commands.append(ev)
-    commands.sort(key=lambda e: e["seq"])
+        said("part-of-run", later, level="say")
+    cfg = _configuration(source, rec, opts, said)
+    initial, initial_event, commands = _initial_and_commands(rec)
     pipeline = build_pipeline(cfg, initial)
-    logger = None
-    if args.out:
-        from service.io.recordings.writer import McapLogger
-
-        out = Path(args.out)
-        logger = McapLogger(out.parent, unit=cfg.unit.name, filename=out.name, rotate_mb=1e9, rotate_s=1e12,
-                            metadata=dict(rec.metadata))
-        # what a replay of this copy needs: the calibration it started from and the commands, where they acted
-        logger.write_event(initial_event)
+    outputs = Sinks([], lambda m: said("output", m, level="error"))
+    recording = _recording(opts.out, cfg, rec, initial_event) if opts.out else None
+    for sink in ([recording] if recording else []) + list(sinks or []):
+        outputs.add(sink)
     blocks = _coalesce(rec.raw, [c["seq"] for c in commands])
     progress = Progress(sum(b.n_samples for b in blocks), "replay")
     samples = 0
@@ -143,44 +174,86 @@ def main(args: Namespace) -> int:
                 if c.get("name") == "add-effect":   # refitted over the window: conditioned at most as the gate allows
                     replaced.append((int(c["seq"]), int(ev.detail["cal_id"]), float(cfg.estimator.gate_condition),
                                      "add-effect"))
-                if logger is not None:
-                    logger.write_event(c)
+                outputs.command(c)
                 ci += 1
             result = pipeline.process(block)
             replaced += [(ev.seq, int(ev.detail["cal_id"]), float(ev.detail.get("condition", "nan")), ev.kind)
                          for ev in result.events if ev.kind == "calibration"]
             samples += block.n_samples
-            if logger is not None:
-                logger.write_raw(block)
-                if result.corrected is not None:
-                    logger.write_corrected(result.corrected)
+            outputs.raw(block)
             if result.corrected is not None:
+                outputs.corrected(result.corrected)
                 out_seq.append(result.corrected.seq)
                 out_vals.append(result.corrected.corrected_nT)
             progress.to(samples)
     finally:
         progress.close()
-        if logger is not None:
-            logger.close()
+        outputs.close()
     t_pipe = time.perf_counter() - t0
-    if logger is not None and logger.dropped:
-        print(f"fluxcal replay: {args.out}: the replay could not be written ({logger.last_error}); "
-              f"{logger.dropped} message(s) lost", file=sys.stderr)
-        return 1
-    if logger is not None and logger.errors:
-        print(f"fluxcal replay: {args.out}: {logger.errors} write error(s), retried; nothing was lost "
-              f"(the last: {logger.last_error})", file=sys.stderr)
+    out = ReplayResult("replay", str(source), samples=samples, probes=cfg.unit.n_probes)
+    if recording is not None:
+        logger = recording.logger
+        if logger.dropped:
+            said("output", f"{opts.out}: the replay could not be written ({logger.last_error}); {logger.dropped} "
+                           f"message(s) lost", level="error")
+            out.status, out.notes = 1, said.notes
+            return out
+        if logger.errors:
+            said("output", f"{opts.out}: {logger.errors} write error(s), retried; nothing was lost (the last: "
+                           f"{logger.last_error})", level="say")
+        out.written.append(str(opts.out))
     t1 = time.perf_counter()
     cut, holes = _first_hole(rec, rec.unit)
     cmp = _compare(rec.corrected_blocks, out_seq, out_vals, before=cut)
     t_all = time.perf_counter() - t_start
     p = cfg.unit.n_probes
-    print(f"replayed {samples} samples of {p} probe(s) in {t_all:.2f} s: reading the recording {t_read:.2f} s, "
-          f"setting up {t0 - t_start - t_read:.2f} s, the pipeline {t_pipe:.2f} s "
-          f"({samples * p / max(t_pipe, 1e-9):,.0f} probe-samples/s), comparing {time.perf_counter() - t1:.2f} s "
-          f"(the interpreter's start and imports before them not counted)"
-          + (f"; written to {args.out}" if args.out else ""))
-    return _verdict(rec, samples, out_seq, cmp, cut, holes, replaced, later)
+    out.seconds = {"all": t_all, "reading": t_read, "setting_up": t0 - t_start - t_read, "pipeline": t_pipe,
+                   "comparing": time.perf_counter() - t1}
+    out.lines.append(f"replayed {samples} samples of {p} probe(s) in {t_all:.2f} s: reading the recording "
+                     f"{t_read:.2f} s, setting up {t0 - t_start - t_read:.2f} s, the pipeline {t_pipe:.2f} s "
+                     f"({samples * p / max(t_pipe, 1e-9):,.0f} probe-samples/s), comparing "
+                     f"{time.perf_counter() - t1:.2f} s (the interpreter's start and imports before them not counted)"
+                     + (f"; written to {opts.out}" if opts.out else ""))
+    out.status = _verdict(out, said, rec, out_seq, cmp, cut, holes, replaced, later)
+    out.notes = said.notes
+    return out
+
+
+def _configuration(source: str, rec, opts: ReplayOptions, said: Said):
+    """The configuration to replay with: --config, else the one the recording stores (the live run's)."""
+    if opts.config:
+        return load_config(opts.config)
+    text = rec.metadata.get("config")
+    if not text:
+        raise RecordingError(f"{source}: no configuration stored in the recording; give --config")
+    return config_from_dict(_with_rate(json.loads(text), source, said), f"{source} (stored configuration)")
+
+
+def _initial_and_commands(rec) -> tuple[Any, dict, list[dict]]:
+    """The calibration the live run started from (and its event), and the commands it applied, in seq order."""
+    initial = None
+    initial_event = {"kind": "initial", "seq": 0, "calibration": None}
+    commands = []
+    for ev in rec.events:
+        if ev.get("kind") == "initial" and ev.get("calibration"):
+            initial = calibration_from_dict(ev["calibration"], "recorded initial calibration")
+            initial_event = ev
+        elif ev.get("kind") == "command":
+            commands.append(ev)
+    commands.sort(key=lambda e: e["seq"])
+    return initial, initial_event, commands
+
+
+def _recording(path: str, cfg, rec, initial_event: dict) -> McapSink:
+    """The replay recorded at `path`, with the initial calibration and the commands, where they acted: what a
+    replay of this copy needs."""
+    from service.io.recordings.writer import McapLogger
+
+    out = Path(path)
+    logger = McapLogger(out.parent, unit=cfg.unit.name, filename=out.name, rotate_mb=1e9, rotate_s=1e12,
+                        metadata=dict(rec.metadata))
+    logger.write_event(initial_event)
+    return McapSink(logger)
 
 
 def _coalesce(whole: SampleBlock, cut_seqs, max_samples: int = 20000):
@@ -274,30 +347,32 @@ def _arithmetic_said(recorded: dict[str, str]) -> tuple[str, bool]:
     return f"recorded {what} ({'; '.join(diffs)})", False
 
 
-def _verdict(rec, samples: int, out_seq, cmp: Compared, cut: int | None, holes: list, replaced,
+def _verdict(out: ReplayResult, said: Said, rec, out_seq, cmp: Compared, cut: int | None, holes: list, replaced,
              later: str | None) -> int:
     """Compare, print the verdict (stdout's last line) and what fails (stderr); the exit status: 0 when the replay
     equals the live run (bit for bit on this machine's arithmetic, else within the rounding tolerance) as far as
     the recording allows, 1 when it does not."""
     continued = " (a continuation replayed alone: see above)" if later else ""
+    samples = out.samples
+    out.holes = len(holes)
     for h in holes:
-        print(f"fluxcal replay: {h.describe(rec.unit)}", file=sys.stderr)
+        said("hole", h.describe(rec.unit), level="say")
     if cut is not None:
         after = sum(int(np.count_nonzero(c.seq >= cut)) for c in rec.corrected_blocks)
-        print(f"fluxcal replay: the live run's estimator saw the samples lost in the hole and the replay's did not, "
-              f"so the replay cannot follow the live run past it: the {after} corrected sample(s) from seq "
-              f"{max(cut, 0)} on are not compared; those before it are", file=sys.stderr)
+        said("hole", f"the live run's estimator saw the samples lost in the hole and the replay's did not, so the "
+                     f"replay cannot follow the live run past it: the {after} corrected sample(s) from seq "
+                     f"{max(cut, 0)} on are not compared; those before it are", level="say")
     uncorrected = samples - sum(int(s.size) for s in out_seq)
     note = (f" ({uncorrected} earlier sample(s) have no corrected output, live or replayed: no calibration was "
             f"usable yet)" if uncorrected > 0 and cmp.n else "")
     if not cmp.n:
         if cmp.live:
-            print(f"fluxcal replay: the live run has {cmp.live} corrected sample(s), the replay {cmp.replayed} at the "
-                  f"same samples: they differ{continued}", file=sys.stderr)
+            said("differ", f"the live run has {cmp.live} corrected sample(s), the replay {cmp.replayed} at the same "
+                           f"samples: they differ{continued}", level="error")
             return 1
-        print("fluxcal replay: nothing to compare: the recording holds no corrected samples"
-              + (" before its first hole" if cut is not None else " (its calibration was not usable while it ran)")
-              + f"; the replay gave {cmp.replayed}", file=sys.stderr)
+        said("compare", "nothing to compare: the recording holds no corrected samples"
+             + (" before its first hole" if cut is not None else " (its calibration was not usable while it ran)")
+             + f"; the replay gave {cmp.replayed}", level="say")
         return 0
     arith, same = _arithmetic_said(rec.arithmetic)
     before = [r for r in replaced if cut is None or r[0] < cut]
@@ -306,29 +381,31 @@ def _verdict(rec, samples: int, out_seq, cmp: Compared, cut: int | None, holes: 
     tol = 0.0 if same else rounding_tolerance_nT(cmp.field_nT, kappa, n_seen)
     largest, at = cmp.largest
     beyond = int(np.count_nonzero(cmp.diff_nT > tol))
+    out.compared, out.identical, out.same_arithmetic = cmp.n, cmp.identical, same
+    out.largest_nT, out.tolerance_nT, out.beyond = float(largest), float(tol), beyond
     head = f"corrected samples compared with the recording: {cmp.n}, bit-identical: {cmp.identical}"
     if cmp.identical == cmp.n:
-        print(f"{head}{note} — {arith}")
+        out.lines.append(f"{head}{note} — {arith}")
     elif not beyond:
-        print(f"{head}, equal within {largest:.2g} nT (the largest difference, at seq {at}; tolerance {tol:.2g} nT: "
-              f"rounding amplified by the estimator's conditioning, condition {kappa:.3g} over {n_seen} samples, "
-              f"docs/recording.md){note} — {arith}")
+        out.lines.append(f"{head}, equal within {largest:.2g} nT (the largest difference, at seq {at}; tolerance "
+                         f"{tol:.2g} nT: rounding amplified by the estimator's conditioning, condition {kappa:.3g} over "
+                         f"{n_seen} samples, docs/recording.md){note} — {arith}")
     else:
         why = ("recorded with this machine's arithmetic, where the replay is bit for bit" if same else
                f"tolerance {tol:.2g} nT: rounding amplified by the estimator's conditioning, condition {kappa:.3g} "
                f"over {n_seen} samples")
-        print(f"{head}, {beyond} beyond the tolerance (the largest difference {largest:.3g} nT at seq {at}; {why})"
-              f"{note} — {arith}")
-        print(f"fluxcal replay: {beyond} corrected sample(s) differ from the live run by more than rounding can "
-              f"explain (the largest by {largest:.3g} nT at seq {at}; " + ("bit for bit expected" if same else
-                                                                          f"tolerance {tol:.2g} nT") + f"){continued}",
-              file=sys.stderr)
+        out.lines.append(f"{head}, {beyond} beyond the tolerance (the largest difference {largest:.3g} nT at seq "
+                         f"{at}; {why}){note} — {arith}")
+        said("differ", f"{beyond} corrected sample(s) differ from the live run by more than rounding can explain (the "
+                       f"largest by {largest:.3g} nT at seq {at}; " + ("bit for bit expected" if same else
+                                                                       f"tolerance {tol:.2g} nT") + f"){continued}",
+             level="error")
     status = 1 if beyond else 0
     live_events = [(int(e["seq"]), int(e.get("cal_id", -1))) for e in rec.calibration if e.get("kind") == "calibration"
                    and isinstance(e.get("seq"), int) and (cut is None or e["seq"] < cut)]
     ours = [(r[0], r[1]) for r in before if r[3] == "calibration"]
     if rec.calibration and live_events != ours:
-        print(f"fluxcal replay: the calibration was replaced at other samples than in the live run: live (seq, "
-              f"cal_id) {live_events}, replayed {ours}{continued}", file=sys.stderr)
+        said("differ", f"the calibration was replaced at other samples than in the live run: live (seq, cal_id) "
+                       f"{live_events}, replayed {ours}{continued}", level="error")
         status = 1
     return status

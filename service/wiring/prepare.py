@@ -1,0 +1,151 @@
+"""One preparation of the input for `fit`, `diagnose` and their fleets: the data read, what reading lost said, the
+stretches --skip names left out, a rotated file given alone said, the total field and probe positions taken from
+--config or else from the configuration a service recording stores, and --site's World Magnetic Model field.
+
+    prepare(source, said, config=..., site=..., skip=..., max_samples=..., max_probe_samples=...) -> Prepared
+
+One semantics whichever command asks: the configuration's probe positions must be as many as the data's probes
+(ConfigError otherwise), positions all at one point tell no probes apart (None), --site's field replaces a
+configured total, and every note goes through `said` (service.wiring.result.Said) as data.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from drivers.config import read_toml
+from drivers.errors import ConfigError, DataError
+from service.io.recordings.labdata import LabData, load_data
+from service.numerics.calib.site import SiteField, site_from_text
+
+from .recorded_config import FROM_RECORDING, geometry, spread, stored_config
+from .result import Said
+
+
+@dataclass
+class Prepared:
+    """The input of one recording, ready for a fit or a diagnosis."""
+
+    source: str                                   # the path as given
+    data: LabData
+    positions_m: np.ndarray | None = None         # (P, 3) m, None: none given, or all at one point
+    total_nT: float | None = None                 # the total field given (config or site); a ref_total column is data
+    origin: str | None = None                     # where positions and total came from: FROM_RECORDING, "configuration
+                                                  # from FILE", or None (the data alone)
+    site: SiteField | None = None
+    skipped: list[tuple[float, float]] = field(default_factory=list)
+    part_of_run: str | None = None                # a rotated file given alone: what it is part of
+    config_warning: str | None = None             # a stored configuration that could not be used, and why
+
+    def take_data(self) -> LabData:
+        """The data, let go of here: a consumer that turns them into another form (diagnose's EffectData) holds
+        them once, not twice (hours of samples)."""
+        data, self.data = self.data, None
+        if data is None:
+            raise ValueError(f"{self.source}: the prepared data were already taken")
+        return data
+
+    @property
+    def total_source(self) -> str | None:
+        """What the given total field is, for a sentence: the site, the configuration, or None."""
+        if self.site is not None:
+            return f"the site ({self.site.model})"
+        if self.total_nT is not None:
+            return self.origin
+        return None
+
+
+def prepare(source: str, said: Said, *, config: str | None = None, site: str | None = None,
+            skip: Sequence[tuple[float, float]] | None = None, max_samples: int | None = None,
+            max_probe_samples: int | None = None) -> Prepared:
+    """Read `source` and gather what the fits need beside the samples (module docstring)."""
+    data = load_data(source, max_samples=max_samples, max_probe_samples=max_probe_samples)
+    say_read_warnings(said, source, data.warnings)
+    data = skip_spans(said, source, data, skip)
+    part = part_of_run(said, source)
+    n_probes = data.block.n_probes
+    if config:
+        positions, total = config_geometry(config, n_probes)
+        origin, warning = f"configuration from {config}", None
+    else:                                         # the configuration a service recording stores, said
+        given = stored_config(data.metadata, str(source), n_probes)
+        positions, total, origin, warning = given.positions_m, given.total_nT, given.origin, given.warning
+        if warning:
+            said("config", warning)
+    the_site = site_from_text(site) if site else None
+    if the_site is not None:
+        total = the_site.total_nT
+    return Prepared(source=str(source), data=data, positions_m=spread(positions), total_nT=total, origin=origin,
+                    site=the_site, skipped=list(skip or []), part_of_run=part, config_warning=warning)
+
+
+def config_geometry(path: str, n_probes: int) -> tuple[np.ndarray | None, float | None]:
+    """Probe positions (P, 3) and the total field from a configuration file (recorded_config.geometry: the
+    sections used validated strictly, unknown section names errors), naming the file in any error."""
+    from service.wiring.config import require_content
+
+    raw = read_toml(path)
+    require_content(raw, path)
+    try:
+        return geometry(raw, n_probes)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
+
+
+def say_read_warnings(said: Said, source: str, warnings: Sequence[str]) -> None:
+    """One note per thing reading lost or skipped (a cut tail, a damaged record), then how to mend it."""
+    for w in warnings:
+        said("read", w)
+    if warnings:
+        said("read", f"the data above were read without what is listed; `fluxcal repair {source} FIXED.mcap` writes "
+                     f"a finished copy of what is readable", level="say")
+
+
+def part_of_run(said: Said, source: str) -> str | None:
+    """A file the service rotated out of a longer run, given alone: said, with the folder that holds the whole run
+    (fit and diagnose then use only this file's samples; replay says more, commands/replay.continuation)."""
+    from service.io.recordings.runs import runs_of
+
+    p = Path(source)
+    if p.is_dir() or p.suffix != ".mcap":
+        return None
+    run = next((r for r in runs_of(sorted(p.parent.glob("*.mcap"))) if p.name in {f.name for f in r}), [])
+    if len(run) < 2:
+        return None
+    k = [f.name for f in run].index(p.name) + 1
+    note = (f"{p.name} is file {k} of {len(run)} of one run the service rotated ({run[0].name} ... {run[-1].name}); "
+            f"this uses its samples alone: `fluxcal {said.command} {p.parent}` takes the whole run")
+    said("part-of-run", note, level="note")
+    return note
+
+
+def skip_spans(said: Said, source: str, lab: Any, spans: Sequence[tuple[float, float]] | None) -> Any:
+    """The data without the samples in the stretches --skip names (ends included), said with how many samples
+    each left out; a stretch that holds no sample is said too, and one that leaves nothing is refused."""
+    if not spans:
+        return lab
+    t = lab.block.t_s
+    out = np.zeros(t.shape, dtype=bool)
+    counts, held = [], []
+    for lo, hi in spans:
+        inside = (t >= lo) & (t <= hi)
+        counts.append(f"{lo:g}-{hi:g} s: {int(np.count_nonzero(inside & ~out)):,}")     # not counted twice
+        held.append(bool(inside.any()))
+        out |= inside
+    if out.all():
+        raise DataError(f"--skip {','.join(f'{lo:g}-{hi:g}' for lo, hi in spans)}: leaves no sample of {source} "
+                        f"(its time runs {float(np.nanmin(t)):g}-{float(np.nanmax(t)):g} s)")
+    said("skip", f"--skip left out {int(out.sum()):,} of {t.size:,} samples ({'; '.join(counts)})", level="note")
+    if not all(held):
+        said("skip", f"a --skip stretch holds no sample of {source} (its time runs {float(np.nanmin(t)):g}-"
+                     f"{float(np.nanmax(t)):g} s)")
+    return dataclasses.replace(lab, block=lab.block.rows(~out))
+
+
+__all__ = ["FROM_RECORDING", "Prepared", "config_geometry", "part_of_run", "prepare", "say_read_warnings",
+           "skip_spans"]

@@ -1,0 +1,117 @@
+"""What a batch command gives back: a Result with its figures and its notes as data, never text another part
+of fluxcal parses. The command line formats a Result as text or JSON; a fleet ships Results from its workers.
+
+    Note     one thing a command says besides its figures: a warning (something was lost, left out or is
+             doubtful), a note (what was done), or a loud warning (the figures may mean nothing)
+    Said     the notes of one run, in order; each handed at once to a `say` callback (the command line prints
+             it on stderr as it comes; a fleet's worker keeps it with the result)
+    Result   command, source, notes, exit status, files written; `as_dict()` (JSON) and `text()` (a person)
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+#: how loud a note is: said as "note: ...", "warning: ..." or "WARNING: ..."; "say" (what was done) and
+#: "error" (what failed: the exit status says so too) are said as they are, without a word before them
+LEVELS = ("note", "say", "warning", "loud", "error")
+_WORDS = {"note": "note: ", "say": "", "warning": "warning: ", "loud": "WARNING: ", "error": ""}
+
+
+@dataclass(frozen=True)
+class Note:
+    """One thing said, as data. `kind` names what it is about (a fleet counts warnings by it, whatever the
+    wording): "read" (what reading lost), "skip", "part-of-run", "config", "field-scale", "left-out", ...; `text`
+    is the sentence for a person."""
+
+    kind: str
+    text: str
+    level: str = "warning"
+
+    @property
+    def is_warning(self) -> bool:
+        """Whether it says something was lost, left out, doubtful or failed (not only what was done)."""
+        return self.level in ("warning", "loud", "error")
+
+    def line(self, command: str) -> str:
+        """As the command line says it on stderr."""
+        return f"fluxcal {command}: {_WORDS[self.level]}{self.text}"
+
+    def as_dict(self) -> dict[str, str]:
+        return {"kind": self.kind, "level": self.level, "text": self.text}
+
+
+def stderr_say(command: str) -> Callable[[Note], None]:
+    """The command line's `say`: each note on stderr as it comes."""
+    def say(note: Note) -> None:
+        print(note.line(command), file=sys.stderr, flush=True)
+    return say
+
+
+class Said:
+    """The notes of one command's run, in the order said; each also handed to `say` at once (None: kept only)."""
+
+    def __init__(self, command: str, say: Callable[[Note], None] | None = None) -> None:
+        self.command = command
+        self.say = say
+        self.notes: list[Note] = []
+
+    def __call__(self, kind: str, text: str, level: str = "warning") -> Note:
+        if level not in LEVELS:
+            raise ValueError(f"level {level!r} (allowed: {', '.join(LEVELS)})")
+        note = Note(kind, text, level)
+        self.notes.append(note)
+        if self.say is not None:
+            self.say(note)
+        return note
+
+    def extend(self, notes: list[Note]) -> None:
+        """Notes said elsewhere (a preparation), taken into this run's, and said."""
+        for n in notes:
+            self(n.kind, n.text, n.level)
+
+    @property
+    def warnings(self) -> list[Note]:
+        return [n for n in self.notes if n.is_warning]
+
+
+@dataclass
+class Result:
+    """One batch command's outcome on one input. Subclasses add the figures and override `as_dict` (the
+    command's JSON contract, docs/contracts.md) and `text` (what a person reads)."""
+
+    command: str
+    source: str
+    notes: list[Note] = field(default_factory=list)
+    status: int = 0                                   # the exit status the command line returns
+    written: list[str] = field(default_factory=list)  # files and folders written
+
+    @property
+    def ok(self) -> bool:
+        return self.status == 0
+
+    @property
+    def warnings(self) -> list[Note]:
+        return [n for n in self.notes if n.is_warning]
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"command": self.command, "source": self.source, "status": self.status,
+                "notes": [n.as_dict() for n in self.notes], "written": list(self.written)}
+
+    def text(self) -> str:
+        return ""
+
+
+def print_result(result: Result, as_json: bool) -> None:
+    """A result on stdout: its JSON on one line, or its text for a person."""
+    import json
+
+    if as_json:
+        print(json.dumps(result.as_dict()))
+    else:
+        text = result.text()
+        if text:
+            print(text)
+    sys.stdout.flush()
