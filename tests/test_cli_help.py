@@ -35,8 +35,27 @@ def test_every_option_says_what_it_does_and_every_command_has_an_example(name):
 
 
 def test_the_help_names_what_the_code_allows():
-    assert [e.strip() for e in cli.EFFECT_NAMES.split(",")] == list(EFFECTS)
-    assert cli.METHODS == tuple(METHODS) and cli.ALIGNS == tuple(ALIGNS)
+    from service.wiring.commands import options
+
+    assert [e.strip() for e in options.EFFECT_NAMES.split(",")] == list(EFFECTS)
+    assert options.METHODS == tuple(METHODS) and options.ALIGNS == tuple(ALIGNS)
+
+
+def test_each_command_declares_its_options_and_the_list_names_it_as_the_command_does():
+    """build_parser is a loop over the commands; the line `fluxcal --help` shows for each is its module's own."""
+    from service.wiring.commands import COMMANDS
+
+    for name, short in COMMANDS.items():
+        module = cli.command_module(name)
+        assert module.HELP.short == short and callable(module.add_options) and callable(module.main), name
+    # one command's parser imports that command's module alone
+    import subprocess
+    import sys
+
+    code = ("import sys; from service.wiring import cli; cli.build_parser('repair'); "
+            "print(sorted(m for m in sys.modules if m.startswith('service.wiring.commands.')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "['service.wiring.commands.options', 'service.wiring.commands.repair']"
 
 
 def test_version(capsys):

@@ -9,7 +9,26 @@ import time
 from typing import Any
 
 from drivers.errors import ConfigError
+from service.wiring.commands.options import CommandHelp, client_options
 from service.wiring.commands.watch import parse_listen, resolve_units
+
+HELP = CommandHelp("web dashboard of running units: live plots with history, coverage, "
+                   "calibration, health, diagnosis and commands, served on this host",
+                   "  fluxcal dashboard --config configs/sim-gradiometer.toml --open\n"
+                   "  fluxcal dashboard --connect tcp/10.0.0.5:7447 --unit grad1 --unit grad2 --listen 0.0.0.0:8090",
+                   more=(" It subscribes over Zenoh like `watch` (lossily: it never holds a unit back) and serves a"
+                   " page at --listen; the plot code comes from the package, no internet needed. Ctrl-C stops"
+                   " it."))
+
+
+def add_options(p: argparse.ArgumentParser) -> None:
+    client_options(p, "dashboard")
+    p.add_argument("--listen", default="127.0.0.1:8090", metavar="HOST:PORT",
+                   help="where the page is served (default: %(default)s, this host only; port 0: a free one, said "
+                        "at start)")
+    p.add_argument("--open", action="store_true", help="open the page in this host's web browser")
+    p.add_argument("--read-only", dest="read_only", action="store_true",
+                   help="show, but send no commands and run no diagnosis (for a page served beyond this host)")
 
 
 def _open(url: str) -> None:

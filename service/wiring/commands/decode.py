@@ -19,10 +19,10 @@ import argparse
 import math
 import os
 import re
-import sys
 import tempfile
 from pathlib import Path
-from typing import Iterator
+from dataclasses import dataclass, field
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -32,24 +32,71 @@ from drivers.errors import ConfigError, DataError, FluxcalError
 from drivers.icd import MAX_PROBES, frame_length, parse_serial
 from drivers.inputs import check_size, not_regular, open_regular, scan_lines
 from drivers.source import Counters
+from service.wiring.commands.options import CommandHelp, int_auto
 from service.wiring.progress import Progress
+from service.wiring.result import Result, Said, stderr_say
 
 CHUNK_BYTES = 4 << 20          # serial captures are read in 4 MiB pieces: any size fits in memory
 TEXT_CAN_LOGS = (".log", ".asc", ".csv")          # python-can's line-based formats (.blf is binary)
 
 
-def _say(msg: str) -> None:
-    print(f"fluxcal decode: {msg}", file=sys.stderr, flush=True)
+HELP = CommandHelp("turn a serial capture or CAN log into data (CSV or MCAP) for fit and diagnose",
+                   "  fluxcal decode capture.bin --probes 2 --out data.csv\n"
+                   "  fluxcal decode bus.log --can --probes 4 --base-id 0x200 --out data.mcap")
+
+
+def add_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("capture", metavar="CAPTURE", help="raw serial bytes, or a CAN log (.log, .asc, .blf) with --can")
+    p.add_argument("--probes", type=int, required=True, metavar="N", help="probes in each frame (1..8; required)")
+    p.add_argument("--can", action="store_true",
+                   help="the capture is a CAN log (default: serial bytes). CAN frames carry no unit clock: t is "
+                        "the sample counter over the rate estimated from the log's timestamps. Neither carries a "
+                        "total field: give fit and diagnose --site or a config's total field")
+    p.add_argument("--lsb-nT", dest="lsb_nT", type=float, default=0.001, metavar="X",
+                   help="nT per ADC count (default: %(default)s)")
+    p.add_argument("--base-id", dest="base_id", type=int_auto, default=0x200, metavar="ID",
+                   help="first CAN identifier of the unit (default: 0x200)")
+    p.add_argument("--out", required=True, metavar="FILE.csv|FILE.mcap", help="where to write the data")
+
+
+@dataclass
+class DecodeOptions:
+    probes: int
+    out: str
+    can: bool = False
+    lsb_nT: float = 0.001
+    base_id: int = 0x200
+
+
+@dataclass
+class DecodeResult(Result):
+    """A capture decoded into data: how many samples, and the parser's counters (what was lost and why)."""
+
+    samples: int = 0
+    counters: dict[str, int] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {**super().as_dict(), "samples": self.samples, "counters": self.counters}
+
+
+def options(args: argparse.Namespace) -> DecodeOptions:
+    return DecodeOptions(probes=args.probes, out=args.out, can=args.can, lsb_nT=args.lsb_nT, base_id=args.base_id)
 
 
 def main(args: argparse.Namespace) -> int:
-    n = args.probes
+    """The command line: what was written and the counters said on stderr (the data go to --out)."""
+    return execute(args.capture, options(args), Said("decode", stderr_say("decode"))).status
+
+
+def execute(source: str, opts: DecodeOptions, said: Said) -> DecodeResult:
+    """`fluxcal decode SOURCE`: the capture's frames through the live parser into a CSV or an MCAP recording."""
+    n = opts.probes
     if not 1 <= n <= MAX_PROBES:
         raise ConfigError(f"--probes: {n} is not allowed (allowed: 1..{MAX_PROBES}, the unit's number of probes)")
-    if not (math.isfinite(args.lsb_nT) and args.lsb_nT > 0):
-        raise ConfigError(f"--lsb-nT: {args.lsb_nT!r} is not allowed (allowed: a positive number of nT per count)")
-    capture = Path(args.capture)
-    out = Path(args.out)
+    if not (math.isfinite(opts.lsb_nT) and opts.lsb_nT > 0):
+        raise ConfigError(f"--lsb-nT: {opts.lsb_nT!r} is not allowed (allowed: a positive number of nT per count)")
+    capture = Path(source)
+    out = Path(opts.out)
     suffix = out.suffix.lower()
     if suffix not in (".csv", ".mcap"):
         raise ConfigError(f"--out: {out} must end in .csv or .mcap")
@@ -67,23 +114,23 @@ def main(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out: directory {out.parent} does not exist")
 
     counters = Counters()
-    if args.can:
+    if opts.can:
         from drivers.can_source import check_base_id
 
-        check_base_id(args.base_id, n, "--base-id")
-        blocks, t_format = _can_blocks(capture, n, args.base_id, args.lsb_nT, counters), "%.9f"
+        check_base_id(opts.base_id, n, "--base-id")
+        blocks, t_format = _can_blocks(capture, n, opts.base_id, opts.lsb_nT, counters, said), "%.9f"
     else:
-        blocks, t_format = _serial_blocks(capture, n, args.lsb_nT, counters), "%.6f"
+        blocks, t_format = _serial_blocks(capture, n, opts.lsb_nT, counters), "%.6f"
 
     counted = _Counted(blocks)
     if suffix == ".csv":
-        _write_csv(out, n, t_format, counted, capture, args, counters)
+        _write_csv(out, n, t_format, counted, capture, opts, counters)
     else:
-        _write_mcap(out, n, counted, capture, args, counters)
-    total = counted.samples
-    _say(f"{total} samples -> {out}")
-    _say(_counters_line(counters, args.can))
-    return 0
+        _write_mcap(out, n, counted, capture, opts, counters)
+    said("written", f"{counted.samples} samples -> {out}", level="say")
+    said("counters", _counters_line(counters, opts.can), level="say")
+    return DecodeResult("decode", str(source), notes=said.notes, written=[str(out)], samples=counted.samples,
+                        counters=dict(counters.as_dict()))
 
 
 def _counters_line(c: Counters, can_log: bool) -> str:
@@ -115,7 +162,8 @@ def _serial_blocks(capture: Path, n: int, lsb_nT: float, counters: Counters) -> 
             progress.to(framer.bytes_fed)
 
 
-def _can_blocks(capture: Path, n: int, base_id: int, lsb_nT: float, counters: Counters) -> Iterator[SampleBlock]:
+def _can_blocks(capture: Path, n: int, base_id: int, lsb_nT: float, counters: Counters,
+                said: Said) -> Iterator[SampleBlock]:
     from drivers.assemble import SeqGapCounter
     from drivers.can_source import estimate_rate_hz, read_can_log
 
@@ -128,17 +176,19 @@ def _can_blocks(capture: Path, n: int, base_id: int, lsb_nT: float, counters: Co
         return
     rate = estimate_rate_hz(samples)
     if rate is None:
-        _say("CAN carries no unit clock and the log's timestamps do not give the rate: t is the sample counter")
+        said("clock", "CAN carries no unit clock and the log's timestamps do not give the rate: t is the sample "
+                       "counter", level="say")
         rate = 1.0
     else:
-        _say(f"CAN carries no unit clock: t = seq / {rate:.6g} Hz, the rate estimated from the log's timestamps")
+        said("clock", f"CAN carries no unit clock: t = seq / {rate:.6g} Hz, the rate estimated from the log's "
+                      f"timestamps", level="say")
     SeqGapCounter().update(samples.seq, counters)
     yield samples.to_block(rate_hz=rate, lsb_nT=lsb_nT, counters=counters)
 
 
-def _no_frames_message(capture: Path, n: int, args: argparse.Namespace, c: Counters) -> str:
-    if args.can:
-        lo, hi = args.base_id, args.base_id + 4 * n - 1
+def _no_frames_message(capture: Path, n: int, opts: DecodeOptions, c: Counters) -> str:
+    if opts.can:
+        lo, hi = opts.base_id, opts.base_id + 4 * n - 1
         if c.frames_accepted == 0:
             return (f"{capture}: no CAN frame with the ids of a {n}-probe unit ({lo:#x}..{hi:#x}); check --probes, "
                     f"--base-id and that the file is a CAN log")
@@ -215,7 +265,7 @@ class _Counted:
             yield b
 
 
-def _write_csv(out: Path, n: int, t_format: str, blocks: _Counted, capture: Path, args: argparse.Namespace,
+def _write_csv(out: Path, n: int, t_format: str, blocks: _Counted, capture: Path, opts: DecodeOptions,
                counters: Counters) -> None:
     try:
         writer = _CsvWriter(out, n, t_format)
@@ -225,7 +275,7 @@ def _write_csv(out: Path, n: int, t_format: str, blocks: _Counted, capture: Path
         for block in blocks:
             writer.write(block)
         if blocks.samples == 0:
-            raise DataError(_no_frames_message(capture, n, args, counters))
+            raise DataError(_no_frames_message(capture, n, opts, counters))
         writer.commit()
     except OSError as e:
         writer.abort()
@@ -235,7 +285,7 @@ def _write_csv(out: Path, n: int, t_format: str, blocks: _Counted, capture: Path
         raise
 
 
-def _write_mcap(out: Path, n: int, blocks: _Counted, capture: Path, args: argparse.Namespace,
+def _write_mcap(out: Path, n: int, blocks: _Counted, capture: Path, opts: DecodeOptions,
                 counters: Counters) -> None:
     """Through service.io.recordings.writer.write_recording(path, blocks, unit=, probe_names=), the MCAP logger's
     whole-file entry point, into a temporary file renamed on success."""
@@ -246,7 +296,7 @@ def _write_mcap(out: Path, n: int, blocks: _Counted, capture: Path, args: argpar
     try:
         write_recording(tmp, blocks, unit=unit, probe_names=[f"s{k}" for k in range(1, n + 1)])
         if blocks.samples == 0:
-            raise DataError(_no_frames_message(capture, n, args, counters))
+            raise DataError(_no_frames_message(capture, n, opts, counters))
         os.replace(tmp, out)
     except OSError as e:
         raise FluxcalError(f"writing {out} failed ({e}); nothing was written") from e

@@ -28,10 +28,50 @@ import numpy as np  # noqa: E402
 
 from drivers.errors import ConfigError, DataError, FluxcalError  # noqa: E402
 from service.wiring.commands.notes import check_output_folder, field_scale_notes  # noqa: E402
+from service.wiring.commands.options import (  # noqa: E402
+    CONFIG_HELP,
+    DATA_HELP,
+    EFFECT_NAMES,
+    OWN_EFFECT,
+    SITE,
+    SITE_HELP,
+    SKIP_HELP,
+    CommandHelp,
+    effect_names,
+    fleet_help,
+    fleet_options,
+    max_samples,
+    time_spans,
+)
 from service.wiring.fitting import NONLINEAR_PROBE_SAMPLES as DIAGNOSE_PROBE_SAMPLES  # noqa: E402
 from service.wiring.prepare import Prepared, prepare  # noqa: E402
 from service.wiring.progress import Progress  # noqa: E402
 from service.wiring.result import Result, Said, print_result, stderr_say  # noqa: E402
+
+HELP = CommandHelp("compare model and measurement; find the missing effect",
+                   "  fluxcal diagnose recordings/grad1-hidden-effect.mcap\n"
+                   "  fluxcal diagnose rec.mcap --effects temperature --report report/")
+
+
+def add_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("data", metavar="DATA", nargs="+", help=DATA_HELP + fleet_help("--report"))
+    p.add_argument("--config", metavar="FILE", help=CONFIG_HELP)
+    p.add_argument("--calibration", metavar="CAL.json",
+                   help="hold this calibration fixed (a file of `fit --out`, or `fit --json`); default: refit")
+    p.add_argument("--effects", type=effect_names, default=[], metavar="E,..",
+                   help=f"the effects already in the model (allowed: {EFFECT_NAMES}; {OWN_EFFECT}); default: none. "
+                        f"Effects installed in the entry-point group fluxcal.effects are tried as candidates too")
+    p.add_argument("--site", metavar=SITE, help=SITE_HELP)
+    p.add_argument("--skip", type=time_spans, default=None, metavar="T0-T1,..", help=SKIP_HELP)
+    p.add_argument("--report", metavar="DIR",
+                   help="also write an HTML report here (plots: matplotlib; without it the page has the text and "
+                        "tables)")
+    p.add_argument("--max-samples", type=max_samples, default=None, metavar="N",
+                   help="diagnose at most N samples: a longer recording is thinned to every k-th sample, and "
+                        "the output says so (default: 500,000 probe-samples, e.g. 125,000 samples of 4 probes, "
+                        "about 1.5 GB; 0: all)")
+    p.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
+    fleet_options(p)
 
 
 def load_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 from argparse import Namespace
 from dataclasses import dataclass, field, replace
@@ -17,6 +18,21 @@ from service.numerics.calib.coverage import coverage
 from service.numerics.usable import temperature_notes, usable_samples
 from service.wiring.coloured_fit import coloured_offsets, direction_offsets
 from service.wiring.commands.notes import check_output_file, check_output_folder, field_scale_notes
+from service.wiring.commands.options import (
+    ALIGNS,
+    CONFIG_HELP,
+    DATA_HELP,
+    EFFECTS_HELP,
+    METHODS,
+    SITE,
+    SITE_HELP,
+    SKIP_HELP,
+    CommandHelp,
+    effect_names,
+    fleet_help,
+    fleet_options,
+    time_spans,
+)
 from service.wiring.fitting import (
     NONLINEAR_PROBE_SAMPLES,
     channel_sums,
@@ -29,6 +45,28 @@ from service.wiring.fitting import (
 )
 from service.wiring.prepare import FROM_RECORDING, Prepared, prepare
 from service.wiring.result import Result, Said, print_result, stderr_say
+
+HELP = CommandHelp("fit a calibration to lab data (CSV or MCAP)",
+                   "  fluxcal fit grad.csv --out cal.json\n  fluxcal fit board.csv --site 46.52,6.63,400 --json\n"
+                   "  fluxcal fit grad.csv --effects temperature,drift")
+
+
+def add_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("data", metavar="DATA", nargs="+", help=DATA_HELP + fleet_help("--out and --report"))
+    p.add_argument("--config", metavar="FILE", help=CONFIG_HELP)
+    p.add_argument("--method", default="ellipsoid", metavar="M", choices=METHODS,
+                   help=f"calibration method (allowed: {', '.join(METHODS)}; default: %(default)s)")
+    p.add_argument("--align", default=None, metavar="A", choices=ALIGNS,
+                   help=f"how the probes of an array are brought to one frame (allowed: {', '.join(ALIGNS)}; "
+                        f"default: regression for arrays)")
+    p.add_argument("--effects", type=effect_names, default=[], metavar="E,..", help=EFFECTS_HELP)
+    p.add_argument("--site", metavar=SITE, help=SITE_HELP)
+    p.add_argument("--skip", type=time_spans, default=None, metavar="T0-T1,..", help=SKIP_HELP)
+    p.add_argument("--out", metavar="CAL.json", help="write the calibration file here (default: none)")
+    p.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
+    fleet_options(p)
+    p.add_argument("--report", metavar="DIR",
+                   help="also write an HTML report of the calibration here (plots: matplotlib)")
 
 
 def _progress(msg: str) -> None:

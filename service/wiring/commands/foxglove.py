@@ -28,6 +28,7 @@ import zenoh
 from drivers.errors import ConfigError
 from service.io.bus import BusClient, BusError, Message, ZenohConfig, ZenohTlsConfig, discover_units, open_session
 from service.io.foxglove_schemas import PRODUCT_STREAMS, Products, error_message, json_channels, message_bytes
+from service.wiring.commands.options import CommandHelp, client_options
 
 from .watch import parse_listen, resolve_units
 
@@ -37,6 +38,19 @@ SERVED = (*PRODUCT_STREAMS, "calibration", "health")
 RETRY_S = 1.0                 # reconnect / rediscover period
 REPORT_S = 30.0               # a status line this often while it runs
 _wall_ns = time.time_ns
+
+
+HELP = CommandHelp("live bridge for the Foxglove app: a running unit's products on a Foxglove "
+                   "WebSocket server",
+                   "  fluxcal foxglove --config configs/sim-gradiometer.toml   # then in Foxglove: Open connection, "
+                   "ws://127.0.0.1:8765",
+                   more=" It subscribes over Zenoh like `watch` and never holds the unit back. Ctrl-C stops it.")
+
+
+def add_options(p: argparse.ArgumentParser) -> None:
+    client_options(p, "bridge")
+    p.add_argument("--listen", default="127.0.0.1:8765", metavar="HOST:PORT",
+                   help="the Foxglove WebSocket server's address (default: %(default)s; port 0: a free one)")
 
 
 class UnitFeed:

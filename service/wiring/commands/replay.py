@@ -19,13 +19,14 @@ import os
 # unless the user says otherwise; this only takes effect when numpy is not loaded yet (the CLI).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import argparse
 import json
 import re
 import time
 from argparse import Namespace
 from dataclasses import dataclass, field
-from typing import Any
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -36,12 +37,33 @@ from service.io.recordings.labdata import check_one_run
 from service.io.recordings.reader import read_recording
 from service.io.recordings.repair import repair_notes
 from service.wiring.commands.notes import check_output_file
-from service.wiring.prepare import say_read_warnings
-from service.wiring.result import Result, Said, print_result, stderr_say
+from service.wiring.commands.options import CommandHelp, fleet_help, fleet_options
 from service.wiring.config import config_from_dict, load_config, rate_stated
 from service.wiring.daemon import build_pipeline
-from service.wiring.sinks import McapSink, Sinks
+from service.wiring.prepare import say_read_warnings
 from service.wiring.progress import Progress
+from service.wiring.result import Result, Said, print_result, stderr_say
+from service.wiring.sinks import McapSink, Sinks
+
+HELP = CommandHelp("run a recording through the same pipeline and compare with its output",
+                   "  fluxcal replay recordings/grad1-sim-30s.mcap\n  fluxcal replay rec.mcap --out again.mcap",
+                   more=(" It compares the replay's corrected output with the recording's, sample by sample: exit 0 "
+                   "when every one equals the live run's (bit for bit where the recording names this machine's "
+                   "arithmetic, else within the rounding tolerance of its conditioning, printed with the largest "
+                   "difference; or there was none to compare, which it says), 1 when any differs by more or a "
+                   "calibration was replaced at other samples. The samples after a hole in a damaged recording "
+                   "are not compared, which it says."))
+
+
+def add_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("recording", metavar="REC.mcap", nargs="+",
+                   help="an MCAP file, or a directory of one run's rotated files"
+                   + fleet_help("--out", json_flag=False))
+    p.add_argument("--config", metavar="FILE",
+                   help="replay with this configuration (default: the one stored in the recording)")
+    p.add_argument("--out", metavar="OUT.mcap", help="also record the replay here, with the initial calibration and "
+                                                    "the commands, so it replays again (default: none)")
+    fleet_options(p)
 
 
 def continuation(path: Path, rec) -> str | None:

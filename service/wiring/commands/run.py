@@ -12,14 +12,35 @@ import os
 # otherwise; this only takes effect when numpy is not loaded yet (the CLI).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import argparse  # noqa: E402
 import signal  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 from argparse import Namespace  # noqa: E402
 
 from drivers.errors import FluxcalError  # noqa: E402
+from service.wiring.commands.options import CommandHelp  # noqa: E402
 from service.wiring.config import load_config  # noqa: E402
 from service.wiring.daemon import Daemon  # noqa: E402
+
+HELP = CommandHelp("run the service: source -> calibration -> Zenoh and MCAP",
+                   "  fluxcal run --config configs/sim-gradiometer.toml   # saves to state/, records to "
+                   "recordings/live/\n"
+                   "                                                      # (its paths are ../state, ../recordings: "
+                   "relative to configs/)",
+                   more=(" Paths in the configuration ([calibration] file, [mcap] dir) are relative to the configuration file."
+                   " It runs until Ctrl-C or SIGTERM (a clean stop: files finished and closed), or for [source] run_s"
+                   " seconds on the simulated unit. A calibration saved by an earlier run of the same unit and source kind is"
+                   " reloaded at start (its path is said); delete that file to learn afresh (`fluxcal command reset` makes a"
+                   " running service forget what it learned). Status lines, gate reasons and commands go to stderr every"
+                   " [unit] status_s seconds; recordings to [mcap] dir."))
+
+
+def add_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", required=True, metavar="FILE", help="the service's TOML configuration (required)")
+    p.add_argument("--dashboard", nargs="?", const="127.0.0.1:8090", default=None, metavar="HOST:PORT",
+                   help="also serve the web dashboard (`fluxcal dashboard`, a process of its own) at HOST:PORT "
+                        "(default: 127.0.0.1:8090) and open it in this host's browser if it has one")
 
 
 def start_dashboard(config: str, listen: str) -> subprocess.Popen:

@@ -9,10 +9,11 @@ appear complete or not at all. Without --config the built-in gradiometer world i
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
-import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,10 +23,33 @@ from drivers.config import load_section, read_toml
 from drivers.errors import ConfigError, DataError
 from drivers.sim.config import GRADIOMETER, SimConfig, load_sim_config
 from drivers.sim.unit import Unit
+from service.wiring.commands.options import CommandHelp
 from service.wiring.progress import Progress
+from service.wiring.result import Result, Said, stderr_say
 
 BLOCK_SAMPLES = 100_000       # samples formatted per write: bounded memory for long runs
 DEFAULT_UNIT_NAME = "grad1"
+
+
+HELP = CommandHelp("write simulated unit data",
+                   "  fluxcal simulate --config configs/sim-gradiometer.toml --out grad.csv\n"
+                   "  fluxcal simulate --out capture.bin      # then: fluxcal decode capture.bin --probes 2 --out d.csv\n"
+                   "  fluxcal simulate --out bus.log          # then: fluxcal decode bus.log --can --probes 2 --out d.csv")
+
+
+def add_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="FILE",
+                   help="the [sim] section to simulate (default: a built-in gradiometer). Hide an effect by giving "
+                        "its keys: [[sim.probes]] temp_offset_nT_per_C, eddy_s, lag_s, nonlin_quadratic_per_nT, "
+                        "drift_offset_nT_per_h, pink_nT_rtHz (1/f noise); [sim.field] gradient_nT_m, "
+                        "variation_nT (ambient change); [sim.temperature] ramp_C_per_h, amplitude_C; [sim.motion] "
+                        "kind (turntable, tumble, grid, static). configs/sim-gradiometer.toml lists them all with "
+                        "units. Neither output carries the platform's attitude (the truth file holds the motion), so a "
+                        "hidden site gradient cannot be diagnosed from them")
+    p.add_argument("--out", required=True, metavar="FILE.csv|FILE.mcap|FILE.bin|FILE.log",
+                   help="where to write (allowed: .csv lab data, with angle_deg and turn for a turntable; .mcap a "
+                        "recording; .bin the unit's serial bytes; .log a candump log of its CAN frames); a "
+                        ".truth.json with every simulated parameter goes beside it")
 
 
 def truth_path(out: Path) -> Path:
@@ -46,7 +70,7 @@ def free_truth_path(out: Path) -> Path:
     return path
 
 
-def _say_faults(unit: Unit, names: list[str], suffix: str) -> None:
+def _say_faults(said: Said, unit: Unit, names: list[str], suffix: str) -> None:
     """How many samples the run saturated or marked temperature-invalid, and how the output carries them (a CSV
     and a recording as NaN with the flag, the unit's own bytes as the rails' counts with the flag)."""
     cfg = unit.config
@@ -54,12 +78,12 @@ def _say_faults(unit: Unit, names: list[str], suffix: str) -> None:
     decoded = suffix in (".csv", ".mcap")
     for name, k in zip(names, unit.saturated_samples.tolist()):
         if k:
-            print(f"fluxcal simulate: {name}: {k} samples saturated (beyond {limit}): "
-                  f"{'NaN in the output' if decoded else 'the rail counts in the frames'}, flag bit0 set",
-                  file=sys.stderr)
+            said("saturated", f"{name}: {k} samples saturated (beyond {limit}): "
+                              f"{'NaN in the output' if decoded else 'the rail counts in the frames'}, flag bit0 set",
+                 level="say")
     if unit.temp_invalid_samples:
-        print(f"fluxcal simulate: {unit.temp_invalid_samples} samples with the temperature marked invalid "
-              f"(flag bit1{'; NaN in a CSV' if suffix == '.csv' else ''})", file=sys.stderr)
+        said("temp-invalid", f"{unit.temp_invalid_samples} samples with the temperature marked invalid "
+                             f"(flag bit1{'; NaN in a CSV' if suffix == '.csv' else ''})", level="say")
 
 
 def load_simulation(path: str | None) -> tuple[SimConfig, str]:
@@ -220,19 +244,46 @@ def _write_mcap(writer: Any, path: Path, unit: Unit, unit_name: str, truth: dict
     return n
 
 
+@dataclass
+class SimulateOptions:
+    out: str
+    config: str | None = None             # the [sim] section to simulate (None: the built-in gradiometer)
+
+
+@dataclass
+class SimulateResult(Result):
+    """Simulated data written: how many samples, and the truth file beside them."""
+
+    samples: int = 0
+    truth: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {**super().as_dict(), "samples": self.samples, "truth": self.truth}
+
+
+def options(args: Any) -> SimulateOptions:
+    return SimulateOptions(out=args.out, config=args.config)
+
+
 def main(args: Any) -> int:
+    """The command line: what was written said on stderr (the data go to --out)."""
+    return execute(options(args), Said("simulate", stderr_say("simulate"))).status
+
+
+def execute(opts: SimulateOptions, said: Said) -> SimulateResult:
+    """`fluxcal simulate`: a simulated unit's data and its truth, written atomically."""
     from service.wiring.commands.notes import check_output_file
 
-    out = Path(args.out)
+    out = Path(opts.out)
     check_output_file(out, example="sim.csv")
     suffix = out.suffix.lower()
     if suffix not in WRITERS:
         raise DataError(f"{out}: unknown output type {out.suffix!r} (allowed: {', '.join('FILE' + s for s in WRITERS)}: "
                         f"lab CSV, MCAP recording, the unit's serial bytes, a candump log of its CAN frames)")
-    sim, unit_name = load_simulation(args.config)
+    sim, unit_name = load_simulation(opts.config)
     mcap_writer = _mcap_writer(out) if suffix == ".mcap" else None
     if sim.n_samples is None:
-        raise ConfigError(f"{args.config or 'built-in'}: sim.duration_s: 0 means 'until stopped', which cannot be "
+        raise ConfigError(f"{opts.config or 'built-in'}: sim.duration_s: 0 means 'until stopped', which cannot be "
                           f"written to a file; give a duration in seconds")
     unit = Unit(sim)
     tpath = free_truth_path(out)
@@ -263,11 +314,12 @@ def main(args: Any) -> int:
         tmp_data.unlink(missing_ok=True)
         tmp_truth.unlink(missing_ok=True)
     effects = ", ".join(unit.world.active_effects) or "none"
-    _say_faults(unit, [p.name for p in sim.probes], suffix)
+    _say_faults(said, unit, [p.name for p in sim.probes], suffix)
     if tpath != truth_path(out):
-        print(f"fluxcal simulate: {truth_path(out).name} describes another data file beside it: this run's truth "
-              f"is {tpath.name}", file=sys.stderr)
-    print(f"fluxcal simulate: {n} samples of {sim.n_probes} probe(s) ({n / sim.rate_hz:g} s at {sim.rate_hz:g} Hz, "
-          f"unit {unit_name!r}, motion {sim.motion.kind}, effects: {effects}) -> {out}; truth -> {tpath}",
-          file=sys.stderr)
-    return 0
+        said("truth", f"{truth_path(out).name} describes another data file beside it: this run's truth is "
+                      f"{tpath.name}", level="say")
+    said("written", f"{n} samples of {sim.n_probes} probe(s) ({n / sim.rate_hz:g} s at {sim.rate_hz:g} Hz, unit "
+                    f"{unit_name!r}, motion {sim.motion.kind}, effects: {effects}) -> {out}; truth -> {tpath}",
+         level="say")
+    return SimulateResult("simulate", opts.config or "built-in", notes=said.notes, written=[str(out), str(tpath)],
+                          samples=int(n), truth=str(tpath))

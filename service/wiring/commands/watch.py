@@ -38,6 +38,7 @@ from service.io.bus import (
     discover_units,
     open_session,
 )
+from service.wiring.commands.options import CommandHelp
 
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 TTY_PERIOD_S = 0.25            # redraw rate on a terminal (4 Hz)
@@ -45,6 +46,23 @@ LINE_PERIOD_S = 1.0            # one line per second otherwise
 STALE_S = 3.0                  # no message for this long: say that nothing arrives
 STATE_EVERY_S = 2.0            # how often the calibration state is queried
 STREAMS = ("raw", "corrected", "diff", "tensor", "calibration", "health", "error")
+
+
+HELP = CommandHelp("terminal dashboard of a running service: each probe's field and |B|, the error "
+                   "against the noise, cal= the quality gate (usable or not; `fluxcal command state` says why), "
+                   "cov= the share of field directions seen; one line a second when not on a terminal",
+                   "  fluxcal watch --connect tcp/127.0.0.1:7447\n  fluxcal watch --config configs/sim-gradiometer.toml")
+
+
+def add_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="FILE", help="take the endpoints, unit and TLS from this configuration")
+    p.add_argument("--connect", metavar="ENDPOINT", help="the service's endpoint, e.g. tcp/127.0.0.1:7447 "
+                                                        "(default: tcp/127.0.0.1:7447)")
+    p.add_argument("--unit", metavar="NAME", help="the unit to watch (default: the first one found)")
+    p.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")
+    p.add_argument("--ca", metavar="CA.pem", help="TLS: the site's certificate authority")
+    p.add_argument("--cert", metavar="CERT.pem", help="TLS: this dashboard's certificate")
+    p.add_argument("--key", metavar="KEY.pem", help="TLS: this dashboard's private key")
 
 
 def dashboard_endpoints(zcfg: ZenohConfig) -> list[str]:

@@ -1,0 +1,100 @@
+"""What the commands' options share: argument types, the help of the data, config, effects, site and skip
+options, the fleet's options and a Zenoh client's options. Light: `fluxcal --help` imports it and nothing heavy."""
+
+from __future__ import annotations
+
+import argparse
+import textwrap
+from dataclasses import dataclass
+
+METHODS = ("ellipsoid", "tmi", "sinefit", "two-step", "rls")
+ALIGNS = ("regression", "rotation", "pca")
+#: the catalogue of effects (service.numerics.effects.EFFECTS), named here so --help needs no numerics import
+EFFECT_NAMES = ("temperature, thermal, eddy, lag, nonlinearity, drift, gradient, crossfield, hysteresis, platform, "
+                "column, ambient")
+SITE = "LAT,LON,ALT_M[,DATE]"
+
+DATA_HELP = ("a lab CSV or an MCAP recording of fluxcal. CSV columns: t (s), s1_x, s1_y, s1_z, s2_x, ... (nT); "
+             "optional: s<k>_temp (degC, for temperature), ref_total (nT, a scalar reference: without it and "
+             "without --site or the config's total field, the total field is estimated and an overall scale "
+             "cannot be seen), heel_deg, pitch_deg, azimuth_deg (attitude, for gradient), any other column "
+             "(diagnose tests what the residual follows); docs/csv.md")
+CONFIG_HELP = "a fluxcal TOML configuration (configs/ has examples): probe positions, total field, site"
+OWN_EFFECT = "or FILE.py:ClassName / package.module:ClassName for an effect of your own, docs/effects.md"
+EFFECTS_HELP = f"effect terms, comma-separated (allowed: {EFFECT_NAMES}; {OWN_EFFECT}); default: none"
+SITE_HELP = (f"the site as {SITE} (degrees north, degrees east, metres above the ellipsoid; DATE as "
+             f"YYYY-MM-DD, default today): the total field from the World Magnetic Model, when no ref_total "
+             f"was logged")
+SKIP_HELP = ("leave out these stretches of time (seconds of the data's own time t, ends included; several: "
+             "10-20,95.5-140): a disturbance no term follows, such as diagnose names")
+
+
+@dataclass(frozen=True)
+class CommandHelp:
+    """What `fluxcal COMMAND --help` says besides the options: the summary, the examples, and more."""
+
+    summary: str
+    examples: str
+    more: str = ""
+
+    def add_to(self, sub, name: str) -> argparse.ArgumentParser:
+        text = self.summary[0].upper() + self.summary[1:] + "." + (" " + self.more.strip() if self.more else "")
+        return sub.add_parser(name, help=self.short, description=textwrap.fill(text, 100),
+                              epilog="examples:\n" + self.examples,
+                              formatter_class=argparse.RawDescriptionHelpFormatter, allow_abbrev=False)
+
+    @property
+    def short(self) -> str:
+        return self.summary.split(": ")[0] if len(self.summary) > 70 else self.summary
+
+
+def effect_names(text: str) -> list[str]:
+    return [e.strip() for e in text.split(",") if e.strip()]
+
+
+def max_samples(text: str) -> int:
+    try:
+        n = int(text.replace("_", "").replace(",", ""))
+    except ValueError:
+        n = -1
+    if n < 0 or (0 < n < 1000):
+        raise argparse.ArgumentTypeError(f"{text!r}: a whole number of samples, at least 1000 (0: all samples)")
+    return n
+
+
+def time_spans(text: str) -> list[tuple[float, float]]:
+    from service.wiring.commands.notes import parse_spans
+
+    return parse_spans(text)
+
+
+def int_auto(text: str) -> int:
+    return int(text, 0)
+
+
+def fleet_help(outputs: str, json_flag: bool = True) -> str:
+    """The data argument's help for several recordings: what this command's output options become."""
+    return ("; several (paths, folders, glob patterns such as 'survey/*.mcap') run on all cores, one summary table "
+            + ("(--json: JSON) " if json_flag else "") + "of each recording's result or failure"
+            + (f", {outputs} then name{'s' if ' and ' not in outputs else ''} folders" if outputs else ""))
+
+
+def fleet_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="several recordings: processes to run them on (default: one per core)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="several recordings: run them on this Dask distributed cluster instead, e.g. "
+                        "tcp://10.0.0.9:8786 (its workers need fluxcal installed)")
+
+
+def client_options(p: argparse.ArgumentParser, who: str) -> None:
+    """--config/--connect/--unit/--seconds and TLS, as for `watch`; --unit may be given several times."""
+    p.add_argument("--config", metavar="FILE", help="take the endpoints, unit and TLS from this configuration")
+    p.add_argument("--connect", metavar="ENDPOINT", help="the units' endpoint or router, e.g. tcp/127.0.0.1:7447 "
+                                                        "(default: tcp/127.0.0.1:7447)")
+    p.add_argument("--unit", metavar="NAME", action="append",
+                   help="a unit to show; repeat for several (default: every unit found)")
+    p.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")
+    p.add_argument("--ca", metavar="CA.pem", help="TLS: the site's certificate authority")
+    p.add_argument("--cert", metavar="CERT.pem", help=f"TLS: this {who}'s certificate")
+    p.add_argument("--key", metavar="KEY.pem", help=f"TLS: this {who}'s private key")
