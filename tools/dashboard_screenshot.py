@@ -61,6 +61,16 @@ def stop(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
+def shrink(path: str) -> None:
+    """128 colours, no dithering: a third of the size, the same to the eye (Pillow comes with matplotlib)."""
+    try:
+        from PIL import Image
+    except ImportError:
+        return
+    im = Image.open(path).convert("RGB")
+    im.quantize(colors=128, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(path, optimize=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(REPO / "docs" / "dashboard.png"))
@@ -92,6 +102,7 @@ def main() -> None:
                      "the diagnosis did not finish")
                 page.screenshot(path=args.out, full_page=True)
                 browser.close()
+            shrink(args.out)
         finally:
             stop(dash)
             stop(svc)
