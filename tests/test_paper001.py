@@ -97,8 +97,8 @@ def test_table2_tmi_rmse(sim, fits10, fits_all):
 
 def test_first_ten_samples_of_one_z_turn_are_refused(sim):
     # [FastRotation] section 5.1 calibrates from the first ten samples of the z turn; they lie on one conic in one
-    # plane in every probe frame, and the ten-column design has rank 5 (the README says 6: that is
-    # the bound for any planar set; the points of one turn also satisfy the conic's equation)
+    # plane in every probe frame, and the ten-column design has rank 5 (6 is the bound for any planar set,
+    # docs/references.md; the points of one turn also satisfy the conic's equation)
     turn = sim.first_turn()[:10]
     raw = sim.raw_nT[turn, 0]
     noiseless = paper001(seed=1, noise_nT=0.0).raw_nT[turn, 0]
