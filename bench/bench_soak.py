@@ -67,7 +67,7 @@ from drivers.block import SampleBlock  # noqa: E402
 N_PROBES, RATE = 4, 1000.0
 UNIT = "soak"
 TOTAL_NT = 60000.0
-# the four-probe cross of configs/sim-cross.toml (paper 001), at 1 kHz and tumbling so it calibrates online
+# the four-probe cross of configs/sim-cross.toml ([FastRotation]), at 1 kHz and tumbling so it calibrates online
 PROBES = [
     {"name": "s1", "position_m": [0.2, 0.0, 0.0], "scale": [1.253, 1.175, 0.859], "nonorth_deg": [3.56, -1.85, 2.27],
      "misalign_deg": [-21.97, 12.88, 13.64], "offset_nT": [357.0, 160.0, -213.0], "noise_nT": 1.0},

@@ -1,6 +1,6 @@
 """Forward simulations of the papers' own simulation setups, for tests (and anyone who needs them).
 
-000 section 3 (two-fluxgate gradiometer, Xi'an): field (31653.3, −1968.8, 41810.1) nT, three
+[TwoFluxgate] section 3 (two-fluxgate gradiometer, Xi'an): field (31653.3, −1968.8, 41810.1) nT, three
 one-turn rotations by eq. 17 (about x: θ, about y: φ, about z: ψ), 10 points per turn 36° apart,
 X_k = A_k⁻¹ B + E_k + ξ_k (eq. 18). Probe truth from Tables 1-2 as A = N K⁻¹, N the tables'
 "non-orthogonality" matrix (columns normalised to unit length; the extracted text prints 1.027 in
@@ -13,7 +13,7 @@ sensitivities, so the raw output is X = K N⁻¹ B + E. Choices the paper leaves
 - the total field: the printed components have |B| = 52477.5 nT, not the 52532.7 nT printed
   beside them; the components are simulated and their norm is the total field.
 
-001 section 5.1 (four-probe cross): TMI 60000 nT, inclination 57°, declination −5° (x north,
+[FastRotation] section 5.1 (four-probe cross): TMI 60000 nT, inclination 57°, declination −5° (x north,
 y east, z down), platform attitudes Tγ(30°·i) Tβ(30°·j) Tα(30°·k) B_geo, i (z) fastest, then j (y),
 then k (x): 12³ = 1728 samples; the first twelve are one turn about z. Per probe q: the
 misaligned ideal output B_c = T_qᵀ B_oc + ξ (T_q = Tα Tβ Tγ of Table 3, eq. 5-6; ξ ~ N(0, 1 nT²) per
@@ -33,7 +33,7 @@ from service.numerics.calib.alignment import rotation_from_angles
 from service.numerics.calib.model import sensing_matrix, triangular_matrix
 from service.numerics.calib.tensor import cross_positions
 
-# --- 000 -------------------------------------------------------------------------------------------
+# --- [TwoFluxgate] ---------------------------------------------------------------------------------
 
 P000_FIELD_NT = np.array([31653.3, -1968.8, 41810.1])
 P000_TOTAL_PRINTED_NT = 52532.7
@@ -49,7 +49,7 @@ P000_TABLE3_AFTER = np.array([4.6, 4.1, 5.4, 5.6, 5.9])
 
 
 def rotation_000(theta: float, phi: float, psi: float) -> np.ndarray:
-    """000 eq. 17: B = R B0 for rotations θ about x, φ about y, ψ about z (radians)."""
+    """[TwoFluxgate] eq. 17: B = R B0 for rotations θ about x, φ about y, ψ about z (radians)."""
     ct, st, cp, sp, cs, ss = np.cos(theta), np.sin(theta), np.cos(phi), np.sin(phi), np.cos(psi), np.sin(psi)
     return np.array([[cp * cs, st * sp * cs + ct * ss, -ct * sp * cs + st * ss],
                      [-cp * ss, -(st * sp * ss - ct * cs), ct * sp * ss + st * cs],
@@ -77,7 +77,7 @@ class Paper000:
 
     @property
     def a1(self) -> np.ndarray:
-        """True A_1 (B = A_1 (X_1 − E_1)) = N_1 K_1⁻¹: 000 eq. 8's zero pattern."""
+        """True A_1 (B = A_1 (X_1 − E_1)) = N_1 K_1⁻¹: [TwoFluxgate] eq. 8's zero pattern."""
         return self.n1 / self.k1
 
     @property
@@ -87,7 +87,7 @@ class Paper000:
 
 def paper000(seed: int = 0, *, noise_var_nT2: float = 3.0, per_axis: bool = False,
              points_per_turn: int = 10) -> Paper000:
-    """000 section 3's simulation (see the module docstring for the readings chosen)."""
+    """[TwoFluxgate] section 3's simulation (see the module docstring for the readings chosen)."""
     rng = np.random.default_rng(seed)
     sigma = np.sqrt(noise_var_nT2) if per_axis else np.sqrt(noise_var_nT2 / 3.0)
     ang = 2 * np.pi * np.arange(points_per_turn) / points_per_turn
@@ -101,7 +101,7 @@ def paper000(seed: int = 0, *, noise_var_nT2: float = 3.0, per_axis: bool = Fals
     return sim
 
 
-# --- 001 -------------------------------------------------------------------------------------------
+# --- [FastRotation] --------------------------------------------------------------------------------
 
 P001_TOTAL_NT = 60000.0
 P001_INCLINATION_DEG = 57.0
@@ -183,7 +183,7 @@ def geomagnetic_001() -> np.ndarray:
 
 
 def paper001(seed: int = 0, *, noise_nT: float = 1.0) -> Paper001:
-    """001 section 5.1's simulation (see the module docstring)."""
+    """[FastRotation] section 5.1's simulation (see the module docstring)."""
     rng = np.random.default_rng(seed)
     b_geo = geomagnetic_001()
     step = np.radians(30.0)

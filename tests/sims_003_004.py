@@ -1,6 +1,6 @@
-"""Forward simulations of papers 003 and 004's own setups, for their tests.
+"""Forward simulations of [SineFit] and [TwoStep]'s own setups, for their tests.
 
-003 section 3 (non-orthogonality from a turntable rotation): α = 1.5°, β = 32.5°, γ = 1.7°,
+[SineFit] section 3 (non-orthogonality from a turntable rotation): α = 1.5°, β = 32.5°, γ = 1.7°,
 B = 52000 nT, I = 47°, the probe level on a turntable turning about its z axis, raw = S B (eq. 1,
 no scale or offset errors). Choices the paper leaves open, made here:
 - the initial phase: θ_x0 = 91°, which makes the noise-free data give exactly the fitted curves the
@@ -12,7 +12,7 @@ no scale or offset errors). Choices the paper leaves open, made here:
   error of |B| is the noise along B); with σ = n per axis it comes out ≈ n, not "below the noise
   level". `noise_sd_per_level=1.0` gives the other reading.
 
-004 section 4 (two-step heading calibration, a manual three-axis turntable): tilt states level,
+[TwoStep] section 4 (two-step heading calibration, a manual three-axis turntable): tilt states level,
 roll ±30°, ±60°, +90°, pitch ±30°, ±60°, +90°; headings 0°…330° every 30° in each (11 × 12 = 132
 points). Attitude R = Rz(heading) Ry(pitch) Rx(roll) (NED, x forward, z down), h_b = Rᵀ h_n.
 Step 1 uses all 132 points, step 2 the level (a turn about body z), roll +90° (about body y) and
@@ -26,7 +26,7 @@ roll ±30/±60 and pitch ±30/±60 (the paper's figures 3-5). The paper gives no
 - the turntable (0.1° scale): every set angle (heading per point, roll and pitch per state) is off
   by a uniform error within ±0.05°, and a per-point wobble of the axis during a sweep (σ
   `wobble_deg`, larger in the roll/pitch +90° states where the gimbal is locked by hand) makes
-  the single-axis turns "non-ideal" (004 section 3.2 item 2): that is what leaves V̂ non-orthogonal.
+  the single-axis turns "non-ideal" ([TwoStep] section 3.2 item 2): that is what leaves V̂ non-orthogonal.
 """
 
 from __future__ import annotations
@@ -35,21 +35,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# --- 003 -------------------------------------------------------------------------------------------
+# --- [SineFit] -------------------------------------------------------------------------------------
 
 P003_ALPHA_DEG, P003_BETA_DEG, P003_GAMMA_DEG = 1.5, 32.5, 1.7
 P003_TOTAL_NT, P003_INCLINATION_DEG = 52000.0, 47.0
-#: 003 Table 1: noise nT -> α, β, γ, φ, η (deg), σ (nT)
+#: [SineFit] Table 1: noise nT -> α, β, γ, φ, η (deg), σ (nT)
 P003_TABLE1 = {0: (1.500, 32.500, 1.700, 88.566, 89.050, 0.000),
                30: (1.500, 32.599, 1.713, 88.557, 89.040, 15.729),
                50: (1.500, 32.258, 1.485, 88.744, 89.175, 23.986),
                100: (1.500, 32.160, 1.528, 88.707, 89.153, 52.452)}
-#: 003 section 3.1, the fitted curves of the noise-free simulation: amplitude, phase (deg), mean
+#: [SineFit] section 3.1, the fitted curves of the noise-free simulation: amplitude, phase (deg), mean
 P003_CURVES = {"x": (35463.9, 91.0, 0.0), "y": (35463.9, 179.5, 0.0), "z": (10520.8, 123.5, 38013.7)}
 
 
 def s_matrix_003(alpha_deg: float, beta_deg: float, gamma_deg: float) -> np.ndarray:
-    """003 eq. 1: raw = S B; rows are the unit sensing axes in O_XYZ."""
+    """[SineFit] eq. 1: raw = S B; rows are the unit sensing axes in O_XYZ."""
     a, b, g = np.radians([alpha_deg, beta_deg, gamma_deg])
     return np.array([[1.0, 0.0, 0.0],
                      [np.sin(a), np.cos(a), 0.0],
@@ -90,7 +90,7 @@ def paper003(noise_nT: float = 0.0, seed: int = 0, *, n_samples: int = 360, nois
     incl = np.radians(P003_INCLINATION_DEG)
     bxy, bz = P003_TOTAL_NT * np.cos(incl), P003_TOTAL_NT * np.sin(incl)
     th0 = np.radians(theta0_deg)
-    # 003 eq. 3 and 5: B_X = B_xy sin(θ + θ_x0), B_Y = B_xy cos(θ + θ_x0) (a turn about +Z)
+    # [SineFit] eq. 3 and 5: B_X = B_xy sin(θ + θ_x0), B_Y = B_xy cos(θ + θ_x0) (a turn about +Z)
     field = np.column_stack([bxy * np.sin(theta + th0), bxy * np.cos(theta + th0), np.full(n_samples, bz)])
     s = s_matrix_003(alpha_deg, beta_deg, gamma_deg)
     k = np.asarray(scale, float)
@@ -101,14 +101,14 @@ def paper003(noise_nT: float = 0.0, seed: int = 0, *, n_samples: int = 360, nois
                     P003_INCLINATION_DEG, o, k)
 
 
-# --- 004 -------------------------------------------------------------------------------------------
+# --- [TwoStep] -------------------------------------------------------------------------------------
 
 P004_TOTAL_NT, P004_INCLINATION_DEG = 54500.0, 59.5
 P004_HEADINGS_DEG = np.arange(0.0, 360.0, 30.0)
 #: (roll, pitch) of the tilt states in the paper's order; the last three are not in the heading figures
 P004_TILTS_DEG = [(0.0, 0.0), (30.0, 0.0), (-30.0, 0.0), (60.0, 0.0), (-60.0, 0.0),
                   (0.0, 30.0), (0.0, -30.0), (0.0, 60.0), (0.0, -60.0), (90.0, 0.0), (0.0, 90.0)]
-#: 004 section 4.1.2: heading error after calibration, max and RMS (deg)
+#: [TwoStep] section 4.1.2: heading error after calibration, max and RMS (deg)
 P004_RESULTS = {"two-step": (0.40, 0.21), "no-sign": (180.00, 102.90), "no-orth": (1.39, 0.62),
                 "dot-product": (0.42, 0.20)}
 
@@ -187,7 +187,7 @@ def sensor_matrix_004(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]
 
 def paper004(seed: int = 0, *, noise_nT: float = 2.0, reading_deg: float = 0.05,
              wobble_deg: tuple[float, float, float] = (0.02, 0.3, 0.3)) -> Paper004:
-    """The 132 calibration points of 004 section 4.1.1.
+    """The 132 calibration points of [TwoStep] section 4.1.1.
 
     reading_deg: half-width of the uniform error of every set angle (the 0.1° scale).
     wobble_deg: σ of the per-point tilt of the turn axis during the sweeps, for (level and tilted

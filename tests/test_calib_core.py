@@ -115,7 +115,7 @@ def test_block_update_equals_sample_by_sample():
 
 
 def test_rls_tracks_an_offset_step_within_stated_samples():
-    # memory 1/(1-λ) = 1000 samples; stated (README): after 10 memories the offset is within 2 nT of
+    # memory 1/(1-λ) = 1000 samples; stated (docs/service.md): after 10 memories the offset is within 2 nT of
     # a 100 nT step. Mixed data from before and after the step fit a compromise ellipsoid, so the
     # approach is slower than an exponential average's (measured: 47% after 1, 67% after 5 memories)
     lam = 0.999

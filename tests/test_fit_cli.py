@@ -1,4 +1,4 @@
-"""`fluxcal fit` end to end: simulate → fit → compare with the simulator's truth (CONTRACTS §2-3)."""
+"""`fluxcal fit` end to end: simulate → fit → compare with the simulator's truth (docs/cli.md, docs/contracts.md)."""
 
 from __future__ import annotations
 
@@ -109,7 +109,7 @@ def _keys(x) -> set[str]:
 @pytest.mark.parametrize("align", ["regression", "rotation"])
 def test_scale_is_the_sensors_scale_of_every_probe_in_text_json_and_the_file(gradiometer, tmp_path, capsys, align):
     """"scale" had two names and two meanings: fit printed the sensor's scale (1.021) for s1 and called the same figure
-    "sensitivity" for s2, which was besides 000's column gain (1.3e-3 off the sensor's where the axes are not
+    "sensitivity" for s2, which was besides [TwoFluxgate]'s column gain (1.3e-3 off the sensor's where the axes are not
     orthogonal), while the dashboard's "scale x" was the correction matrix's diagonal (0.979). One name, one meaning:
     the sensor's scale factor per axis, above 1 where the simulated sensor reads high."""
     import re

@@ -1,4 +1,4 @@
-"""`fluxcal fit --method sinefit | two-step` from lab CSVs of papers 003 and 004's own simulations."""
+"""`fluxcal fit --method sinefit | two-step` from lab CSVs of [SineFit] and [TwoStep]'s own simulations."""
 
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ def test_two_step_without_turn_marks_is_refused(tmp_path, capsys):
 
 
 def test_two_step_fits_its_ellipsoid_to_every_row_and_gives_no_turn_advice(tmp_path, capsys):
-    """004 step 1 uses all samples: rows marked with no turn (here tilted sweeps, turn = -1) count too; the
+    """[TwoStep] step 1 uses all samples: rows marked with no turn (here tilted sweeps, turn = -1) count too; the
     summary does not advise turning about another axis, the turns being the design."""
     p = paper004(seed=1)
     turns = p.turns()

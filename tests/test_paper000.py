@@ -1,4 +1,4 @@
-"""Paper 000 (two-fluxgate gradiometer calibration), on its own simulation (section 3, Tables 1-3).
+"""[TwoFluxgate] (two-fluxgate gradiometer calibration), on its own simulation (section 3, Tables 1-3).
 
 Probe 1: the linearised least-squares ellipsoid under the known total field (eq. 5-9), expressed in
 the paper's eq. 8 factor and split into its Table 1 form (non-orthogonality with unit columns,
@@ -19,7 +19,7 @@ from service.numerics.calib.tensor import differences
 
 
 def calibrate(sim):
-    """000's two steps; returns (A1 in the eq. 8 frame, E1, A2, E2, fit of probe 1)."""
+    """[TwoFluxgate]'s two steps; returns (A1 in the eq. 8 frame, E1, A2, E2, fit of probe 1)."""
     fit = fit_ellipsoid(sim.raw1_nT, sim.total_nT, noise_nT=sim.noise_nT)
     m1, e1 = fit.calibration.matrix, fit.calibration.offset_nT
     a1 = triangular_factor(m1.T @ m1, "000")                  # eq. 8
@@ -79,8 +79,8 @@ def test_table2_probe2_by_regression(sim, result):
     # E2 is found relative to the calibrated probe 1, so probe 1's offset error carries over
     se = np.hypot(cal2.offset_se_nT, fit.calibration.offset_se_nT)
     assert np.all(np.abs(e2 - sim.e2) < 4 * se) and np.abs(e2 - sim.e2).max() < 3.0, (e2 - sim.e2, se)
-    # its `scale` is the sensor's scale factor per axis (the row norms of A2⁻¹), not 000's column gains k2: in
-    # 000's model X = K N⁻¹ B the axis' gain is k_i times the norm of row i of N⁻¹
+    # its `scale` is the sensor's scale factor per axis (the row norms of A2⁻¹), not [TwoFluxgate]'s column gains k2: in
+    # [TwoFluxgate]'s model X = K N⁻¹ B the axis' gain is k_i times the norm of row i of N⁻¹
     truth = np.linalg.norm(np.diag(sim.k2) @ np.linalg.inv(sim.n2), axis=1)
     assert np.allclose(cal2.value("scale"), np.linalg.norm(np.linalg.inv(a2), axis=1))
     assert np.abs(cal2.value("scale") - truth).max() < 1e-4 and "sensitivity" not in cal2.params

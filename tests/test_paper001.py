@@ -1,4 +1,4 @@
-"""Paper 001 (fast rotation calibration of a four-probe cross tensor array), on its own simulation.
+"""[FastRotation] (fast rotation calibration of a four-probe cross tensor array), on its own simulation.
 
 Tables 1-2: the TMI method (section 4) per probe; Tables 3-4: misalignment (section 3) and the
 tensor. Where the paper's numbers cannot be reached from its stated noise, the tests assert what
@@ -96,9 +96,9 @@ def test_table2_tmi_rmse(sim, fits10, fits_all):
 
 
 def test_first_ten_samples_of_one_z_turn_are_refused(sim):
-    # 001 section 5.1 calibrates from the first ten samples of the z turn; they lie on one conic in one
-    # plane in every probe frame, and the ten-column design has rank 5 (the README says 6: that is
-    # the bound for any planar set; the points of one turn also satisfy the conic's equation)
+    # [FastRotation] section 5.1 calibrates from the first ten samples of the z turn; they lie on one conic in one
+    # plane in every probe frame, and the ten-column design has rank 5 (6 is the bound for any planar set,
+    # docs/references.md; the points of one turn also satisfy the conic's equation)
     turn = sim.first_turn()[:10]
     raw = sim.raw_nT[turn, 0]
     noiseless = paper001(seed=1, noise_nT=0.0).raw_nT[turn, 0]

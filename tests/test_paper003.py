@@ -1,4 +1,4 @@
-"""Paper 003 (non-orthogonality from a turntable rotation by sine fits): its simulation and Table 1.
+"""[SineFit] (non-orthogonality from a turntable rotation by sine fits): its simulation and Table 1.
 
 The simulation (tests/sims_003_004.py): α = 1.5°, β = 32.5°, γ = 1.7°, B = 52000 nT, I = 47°, one
 turn of 360 samples, initial phase 91° (which reproduces the paper's printed curves), noise read
@@ -52,7 +52,7 @@ def test_table1_angles_within_035_deg_and_residual_below_the_noise(noise_nT):
     s = paper003(noise_nT, seed=0)
     r = fit_sine_nonorthogonality(s.theta_rad, s.raw_nT)
     err = angles(r) - TRUTH
-    # 003: "β and γ change by at most 0.35°"; measured (seed 0): β 0.03 / 0.05 / 0.09°, α and γ < 0.02°
+    # [SineFit]: "β and γ change by at most 0.35°"; measured (seed 0): β 0.03 / 0.05 / 0.09°, α and γ < 0.02°
     assert np.abs(err).max() < 0.35, err
     # each error within 4 of its own standard error: the standard errors are honest
     se = np.array([r.se_deg["alpha"], r.se_deg["beta"], r.se_deg["gamma"]])
@@ -139,7 +139,7 @@ def test_method_entry_point_returns_a_probe_calibration():
 
 
 def test_fluxcal_fit_sinefit_from_a_lab_csv(tmp_path, capsys):
-    # CONTRACTS §1-2: a lab CSV with the table angle in an 'angle_deg' column
+    # docs/csv.md, docs/cli.md: a lab CSV with the table angle in an 'angle_deg' column
     import json
 
     from service.wiring.cli import main

@@ -1,8 +1,8 @@
-"""Paper 004 (equivalent two-step calibration for heading): its experiment's grid, simulated.
+"""[TwoStep] (equivalent two-step calibration for heading): its experiment's grid, simulated.
 
 Grid (tests/sims_003_004.py): level, roll ±30/±60/+90°, pitch ±30/±60/+90°, headings 0-330° every
 30°; step 1 on all 132 points, step 2 on the level, roll +90° and pitch +90° sweeps; heading
-errors on the 108 points of the paper's figures. 004 reports max/RMS heading error 0.40/0.21°
+errors on the 108 points of the paper's figures. [TwoStep] reports max/RMS heading error 0.40/0.21°
 (two-step), 180.00/102.90° (no sign correction), 1.39/0.62° (no orthogonality correction).
 """
 
@@ -39,7 +39,7 @@ def test_two_step_heading_error_within_half_a_degree(seed):
     s = paper004(seed)
     r = fit(s)
     mx, rms = max_rms(heading_errors(s, r.calibration.matrix, r.calibration.offset_nT))
-    # 004: 0.40° max, 0.21° RMS; measured here 0.17-0.41° max, 0.06-0.19° RMS over seeds 0-19
+    # [TwoStep]: 0.40° max, 0.21° RMS; measured here 0.17-0.41° max, 0.06-0.19° RMS over seeds 0-19
     assert mx <= 0.5 and rms <= 0.25, (mx, rms)
     # step 1 + 2 together are the sensor model up to the (0.1°-class) misalignment left by the turns
     assert np.allclose(np.linalg.det(r.v), 1.0) and np.allclose(r.v.T @ r.v, np.eye(3), atol=1e-12)
@@ -52,7 +52,7 @@ def test_step1_gives_u_d_b_of_the_ellipsoid_and_step2_v():
     assert np.abs(r.offset_nT - s.b_true_nT).max() < 5.0
     assert np.allclose(r.u.T @ r.u, np.eye(3), atol=1e-12) and np.linalg.det(r.u) > 0
     m_hat = r.u @ np.diag(r.d) @ r.v
-    scale = np.cbrt(np.linalg.det(s.m_true) / np.linalg.det(m_hat))  # 004 leaves the scale k free
+    scale = np.cbrt(np.linalg.det(s.m_true) / np.linalg.det(m_hat))  # [TwoStep] leaves the scale k free
     assert np.abs(scale * m_hat - s.m_true).max() < 0.01
     # with the total field given, the calibrated vectors are in nT and undo M within ~0.3°
     r_nt = fit(s, total_nT=P004_TOTAL_NT)
@@ -64,7 +64,7 @@ def test_without_sign_correction_heading_fails_like_the_paper_and_the_sign_corre
     s = paper004(0)
     raw_pca = fit(s, sign_correction=False)
     mx, rms = max_rms(heading_errors(s, raw_pca.calibration.matrix, raw_pca.calibration.offset_nT))
-    # 004: 180.00° max, 102.90° RMS. Here the eigensolver returns V̂_x and V̂_y negated: 180° max, 133° RMS
+    # [TwoStep]: 180.00° max, 102.90° RMS. Here the eigensolver returns V̂_x and V̂_y negated: 180° max, 133° RMS
     assert mx > 179.0 and rms > 90.0, (mx, rms)
     fixed = fit(s)
     assert fixed.pca.flipped == [True, True, False]
@@ -113,7 +113,7 @@ def test_orthogonality_correction_lowers_the_heading_error():
         assert no_orth.calibration.params["v_non_orthogonality_deg"]["value"] > 0.02
         assert int(np.argmin(full.pca.contribution)) == 2          # the level sweep (about z) is the cleanest
         if seed == 0:
-            # measured: 0.40° max / 0.15° RMS without, 0.23° / 0.09° with (004: 1.39 / 0.62 vs 0.40 / 0.21)
+            # measured: 0.40° max / 0.15° RMS without, 0.23° / 0.09° with ([TwoStep]: 1.39 / 0.62 vs 0.40 / 0.21)
             assert e_no[0] > 1.5 * e_full[0] and e_no[1] > e_full[1]
     assert sum(worse) >= 9, worse
 
@@ -179,7 +179,7 @@ def test_align_pca_turns_two_probes_onto_the_platform_frame():
 
 
 def test_fluxcal_fit_two_step_from_a_lab_csv(tmp_path, capsys):
-    # CONTRACTS §1-2: a lab CSV with a 'turn' column (0/1/2 = about x/y/z, -1 = not a turn);
+    # docs/csv.md, docs/cli.md: a lab CSV with a 'turn' column (0/1/2 = about x/y/z, -1 = not a turn);
     # `fit` uses the three turns for both steps (36 points)
     import json
 

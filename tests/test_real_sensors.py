@@ -300,7 +300,7 @@ def test_a_sparse_plane_is_refused_naming_the_turn():
 
 @needs_real
 def test_two_step_on_three_real_turns_calibrates_the_sphere_recording_and_ignores_the_origin():
-    """004 on the board's three single-axis turns (offset ~ a fifth of the field): the turns'
+    """[TwoStep] on the board's three single-axis turns (offset ~ a fifth of the field): the turns'
     calibration, applied to the same board's full-sphere recording, leaves 0.66 % spread of |B| (the
     sphere's own fit 0.46 %, raw about its mean 15 %); moved by millions of nT and rescaled, the same answer."""
     turns = [raw_of(f"hmc5883l_sensorfusion_turn_{a}") for a in "xyz"]

@@ -91,7 +91,7 @@ def test_fit_report_offsets_match_the_truth_and_maps_are_images(tmp_path, capsys
             got, se, _ = rows[(sensor["name"], f"offset_nT.{axis}")]
             assert se is not None and 0 < se < 1.0
             assert abs(got - want) < 5 * se + 0.05, (sensor["name"], axis, got, want, se)
-    # probe 1's own fit names its scale factors (001 eq. 11), as simulated
+    # probe 1's own fit names its scale factors ([FastRotation] eq. 11), as simulated
     for label, want in zip(("c_x", "c_y", "c_z"), truth["sensors"][0]["scale"]):
         got, se, _ = rows[("s1", f"scale.{label}")]
         assert got == pytest.approx(want, abs=1e-4)

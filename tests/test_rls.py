@@ -67,7 +67,7 @@ def test_with_forgetting_stationary_data_agree_with_the_batch_within_standard_er
 @pytest.mark.parametrize("lam", [0.999, 0.998])
 def test_an_offset_step_is_tracked_within_the_samples_lambda_states(lam):
     # After k samples the data from before a step weigh λ^k of the memory, so a step S is expected
-    # within ε after k = ln(S / ε) / (−ln λ) samples. Stated (README): within ε after 1.2 k samples,
+    # within ε after k = ln(S / ε) / (−ln λ) samples. Stated (docs/service.md): within ε after 1.2 k samples,
     # the 20 % for motion that covers the sphere unevenly within one memory. 100 nT to 2 nT:
     # 4695 samples at λ = 0.999 (4.7 memories), 2346 at 0.998.
     step_nT, eps_nT = 100.0, 2.0

@@ -1,4 +1,4 @@
-"""The simulated world against its own truth and against paper 001: field, motion, forward model, effects."""
+"""The simulated world against its own truth and against [FastRotation]: field, motion, forward model, effects."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ def make(probes=None, **sim):
 
 
 def paper001_cross(noise_nT=1.0):
-    """Paper 001 section 5.1: four probes in a cross (d = 0.4 m), Table 1 errors, Table 3 misalignments,
+    """[FastRotation] section 5.1: four probes in a cross (d = 0.4 m), Table 1 errors, Table 3 misalignments,
     60000 nT, I = 57 deg, D = -5 deg, 12^3 attitudes (z fastest, then y, then x)."""
     phi = [3.56, -2.74, 1.86, -3.28]
     theta = [-1.85, 3.11, -2.95, 2.44]
@@ -154,14 +154,14 @@ def test_matrices_are_paper001_eq11_and_eq5():
     phi, theta, psi = np.radians([3.56, -1.85, 2.27])
     a = nonorthogonality_matrix(phi, theta, psi)
     c = np.array([1.253, 1.175, 0.859])
-    # 001 eq. 12: (C A)^-1 is upper triangular with k_x = 1/(c_x cosφ cosθ), k_y = 1/(c_y cosψ), k_z = 1/c_z,
+    # [FastRotation] eq. 12: (C A)^-1 is upper triangular with k_x = 1/(c_x cosφ cosθ), k_y = 1/(c_y cosψ), k_z = 1/c_z,
     # m k_y = -tanθ k_y, n k_z = -tanψ k_z
     inv = np.linalg.inv(c[:, None] * a)
     kx, ky, kz = 1 / (c[0] * math.cos(phi) * math.cos(theta)), 1 / (c[1] * math.cos(psi)), 1 / c[2]
     assert inv[0, 0] == pytest.approx(kx) and inv[1, 1] == pytest.approx(ky) and inv[2, 2] == pytest.approx(kz)
     assert inv[0, 1] == pytest.approx(-math.tan(theta) * ky) and inv[1, 2] == pytest.approx(-math.tan(psi) * kz)
     assert abs(inv[1, 0]) < 1e-15 and abs(inv[2, 0]) < 1e-15 and abs(inv[2, 1]) < 1e-15
-    # 001 eq. 6 written out: first row of T = (cosβcosγ, cosβsinγ, -sinβ)
+    # [FastRotation] eq. 6 written out: first row of T = (cosβcosγ, cosβsinγ, -sinβ)
     al, be, ga = np.radians([-21.97, 12.88, 13.64])
     t = misalignment_matrix(al, be, ga)
     np.testing.assert_allclose(t[0], [math.cos(be) * math.cos(ga), math.cos(be) * math.sin(ga), -math.sin(be)])
@@ -170,7 +170,7 @@ def test_matrices_are_paper001_eq11_and_eq5():
 
 
 def test_paper001_table2_and_table4_before_calibration():
-    """Our forward model on paper 001's simulation gives the paper's uncalibrated errors (Tables 2, 4)."""
+    """Our forward model on [FastRotation]'s simulation gives the paper's uncalibrated errors (Tables 2, 4)."""
     w = paper001_cross(noise_nT=1.0)
     s = w.samples(0, 1728)
     tmi_rmse = np.sqrt(np.mean((np.linalg.norm(s.raw_nT, axis=-1) - 60000.0) ** 2, axis=0))

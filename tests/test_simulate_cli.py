@@ -1,5 +1,5 @@
 """`fluxcal simulate`: the lab CSV and the truth JSON beside it, checked against the simulated world and
-paper 001; configuration errors name the key; the example configurations stay complete and in sync."""
+[FastRotation]; configuration errors name the key; the example configurations stay complete and in sync."""
 
 from __future__ import annotations
 
@@ -63,7 +63,7 @@ def test_cross_config_reproduces_paper001_before_calibration(tmp_path, capsys):
     blk = load_csv(out).block
     assert blk.n_samples == 1728 and blk.n_probes == 4
     tmi = np.sqrt(np.mean((np.linalg.norm(blk.field_nT, axis=-1) - 60000.0) ** 2, axis=0))
-    np.testing.assert_allclose(tmi, [8994.31, 6714.99, 9041.56, 8723.06], atol=0.5)      # 001 Table 2
+    np.testing.assert_allclose(tmi, [8994.31, 6714.99, 9041.56, 8723.06], atol=0.5)      # [FastRotation] Table 2
     np.testing.assert_allclose(blk.extras["ref_total"], 60000.0, atol=0.05)
     truth = json.loads((tmp_path / "cross.truth.json").read_text())
     assert truth["unit"] == "cross1" and truth["motion"]["n_attitudes"] == 1728

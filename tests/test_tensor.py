@@ -65,7 +65,7 @@ def test_general_positions_recover_the_full_tensor_without_symmetry():
 
 
 def test_uniform_field_gives_zero_and_the_noise_floor():
-    # 001's check: a uniform field has G = 0; noise σ per probe gives √2 σ / d per component
+    # [FastRotation]'s check: a uniform field has G = 0; noise σ per probe gives √2 σ / d per component
     rng = np.random.default_rng(5)
     b = np.array([30000.0, -2000.0, 45000.0]) + rng.normal(0, 1.0, (20000, 4, 3))
     g = tensor_from_cross(b, 0.4)

@@ -189,18 +189,19 @@ class FaultConfig:
 class ProbeSimConfig:
     """One three-axis probe: where it sits, its paper-001 errors, its noise and its effect parameters.
 
-    Forward model (001 eq. 4, 5, 11): raw = C A (Tα Tβ Tγ)^T B_platform + offset, with
+    Forward model ([FastRotation] eq. 4, 5, 11): raw = C A (Tα Tβ Tγ)^T B_platform + offset, with
     C = diag(scale), A from nonorth_deg = [φ, θ, ψ], Tα/Tβ/Tγ from misalign_deg = [α, β, γ].
     """
 
     name: str = spec("", doc="defaults to s<k>")
     position_m: list[float] = spec(default_factory=_zeros3, length=3, min=-100.0, max=100.0,
                                    doc="probe centre in the platform frame")
-    scale: list[float] = spec([1.0, 1.0, 1.0], length=3, min=0.01, max=100.0, doc="c_x, c_y, c_z (001 eq. 11)")
+    scale: list[float] = spec([1.0, 1.0, 1.0], length=3, min=0.01, max=100.0,
+                               doc="c_x, c_y, c_z ([FastRotation] eq. 11)")
     nonorth_deg: list[float] = spec(default_factory=_zeros3, length=3, min=-45.0, max=45.0,
-                                    doc="φ, θ, ψ non-orthogonality angles (001 eq. 11)")
+                                    doc="φ, θ, ψ non-orthogonality angles ([FastRotation] eq. 11)")
     misalign_deg: list[float] = spec(default_factory=_zeros3, length=3, min=-180.0, max=180.0,
-                                     doc="α heel (x), β pitch (y), γ azimuth (z) (001 eq. 4-5)")
+                                     doc="α heel (x), β pitch (y), γ azimuth (z) ([FastRotation] eq. 4-5)")
     offset_nT: list[float] = spec(default_factory=_zeros3, length=3, min=-1.0e6, max=1.0e6)
     noise_nT: list[float] | float = spec(0.0, length=3, min=0.0, max=1.0e5,
                                          doc="Gaussian noise per axis, 1 sigma; one number or three")

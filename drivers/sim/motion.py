@@ -1,4 +1,4 @@
-"""The platform's motion and the frames of the simulated world: rotations, attitudes, the paper 001
+"""The platform's motion and the frames of the simulated world: rotations, attitudes, the [FastRotation]
 misalignment and non-orthogonality matrices, the geomagnetic field, and the motions a run can make.
 """
 
@@ -43,30 +43,30 @@ def attitude_from_euler_deg(heel_deg: float, pitch_deg: float, azimuth_deg: floa
 
 
 def heel_matrix(alpha_rad: float) -> np.ndarray:
-    """Tα of 001 eq. 4: [[1, 0, 0], [0, cosα, sinα], [0, -sinα, cosα]]."""
+    """Tα of [FastRotation] eq. 4: [[1, 0, 0], [0, cosα, sinα], [0, -sinα, cosα]]."""
     c, s = math.cos(alpha_rad), math.sin(alpha_rad)
     return np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
 
 
 def pitch_matrix(beta_rad: float) -> np.ndarray:
-    """Tβ of 001 eq. 4: [[cosβ, 0, -sinβ], [0, 1, 0], [sinβ, 0, cosβ]]."""
+    """Tβ of [FastRotation] eq. 4: [[cosβ, 0, -sinβ], [0, 1, 0], [sinβ, 0, cosβ]]."""
     c, s = math.cos(beta_rad), math.sin(beta_rad)
     return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
 
 
 def azimuth_matrix(gamma_rad: float) -> np.ndarray:
-    """Tγ of 001 eq. 4: [[cosγ, sinγ, 0], [-sinγ, cosγ, 0], [0, 0, 1]]."""
+    """Tγ of [FastRotation] eq. 4: [[cosγ, sinγ, 0], [-sinγ, cosγ, 0], [0, 0, 1]]."""
     c, s = math.cos(gamma_rad), math.sin(gamma_rad)
     return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def misalignment_matrix(alpha_rad: float, beta_rad: float, gamma_rad: float) -> np.ndarray:
-    """T = Tα Tβ Tγ (001 eq. 5): B_platform = T B_sensor."""
+    """T = Tα Tβ Tγ ([FastRotation] eq. 5): B_platform = T B_sensor."""
     return heel_matrix(alpha_rad) @ pitch_matrix(beta_rad) @ azimuth_matrix(gamma_rad)
 
 
 def nonorthogonality_matrix(phi_rad: float, theta_rad: float, psi_rad: float) -> np.ndarray:
-    """A of 001 eq. 11: [[cosθcosφ, sinθcosφ, sinφ], [0, cosψ, sinψ], [0, 0, 1]]."""
+    """A of [FastRotation] eq. 11: [[cosθcosφ, sinθcosφ, sinφ], [0, cosψ, sinψ], [0, 0, 1]]."""
     cf, sf = math.cos(phi_rad), math.sin(phi_rad)
     ct, st = math.cos(theta_rad), math.sin(theta_rad)
     cp, sp = math.cos(psi_rad), math.sin(psi_rad)
@@ -240,7 +240,7 @@ class TumbleMotion(Motion):
 
 
 class GridMotion(Motion):
-    """Static attitudes on a nested grid (001 section 5.1: 12 per turn, z fastest, then y, then x:
+    """Static attitudes on a nested grid ([FastRotation] section 5.1: 12 per turn, z fastest, then y, then x:
     12^3 attitudes), each held hold_s: R = R0 R_{axes[-1]}(a) ... R_{axes[0]}(b); ω = 0 while held."""
 
     def __init__(self, initial: np.ndarray, axes: list[str], steps_per_turn: int, hold_s: float) -> None:

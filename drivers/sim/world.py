@@ -1,5 +1,5 @@
 """The simulated world: platform motion, the ambient field with its gradient and drift, and each probe's
-forward model (paper 001) with the physical effects. Pure numpy over arrays of instants; no I/O.
+forward model ([FastRotation]) with the physical effects. Pure numpy over arrays of instants; no I/O.
 
 Frames and conventions:
 
@@ -7,11 +7,11 @@ Frames and conventions:
   B_earth = F (cos I cos D, cos I sin D, sin I), I inclination (positive down), D declination (east);
 - platform frame: rigid with the platform; its attitude R(t) maps platform to earth, v_earth = R v_platform,
   and its body angular rate ω (platform frame, rad/s) satisfies dR/dt = R [ω]x;
-- site gradient G[i, j] = dB_j/dx_i (001 eq. 1) in the earth frame, about the platform origin (the
+- site gradient G[i, j] = dB_j/dx_i ([FastRotation] eq. 1) in the earth frame, about the platform origin (the
   rotation centre): B_earth(r) = B0 + drift_nT_per_h·t/3600 + G^T r;
-- probe (sensor) frame: the ideal orthogonal axes of probe k; 001 eq. 5: B_platform = Tα Tβ Tγ B_sensor,
+- probe (sensor) frame: the ideal orthogonal axes of probe k; [FastRotation] eq. 5: B_platform = Tα Tβ Tγ B_sensor,
   so B_sensor = (Tα Tβ Tγ)^T B_platform (heel α about x, pitch β about y, azimuth γ about z, eq. 4);
-- output (001 eq. 11): raw = C A B_sensor + offset, C = diag(c_x, c_y, c_z),
+- output ([FastRotation] eq. 11): raw = C A B_sensor + offset, C = diag(c_x, c_y, c_z),
   A = [[cosθcosφ, sinθcosφ, sinφ], [0, cosψ, sinψ], [0, 0, 1]];
 - truth calibration: matrix = (C A (Tα Tβ Tγ)^T)^-1, so that matrix (raw - offset) = B_platform.
 
@@ -167,12 +167,12 @@ class ProbeArray:
 
     @property
     def nonorth(self) -> np.ndarray:
-        """(P, 3, 3) A of 001 eq. 11."""
+        """(P, 3, 3) A of [FastRotation] eq. 11."""
         return np.stack([nonorthogonality_matrix(*np.radians(a)) for a in self.nonorth_deg])
 
     @property
     def misalign(self) -> np.ndarray:
-        """(P, 3, 3) T = Tα Tβ Tγ of 001 eq. 5 (B_platform = T B_sensor)."""
+        """(P, 3, 3) T = Tα Tβ Tγ of [FastRotation] eq. 5 (B_platform = T B_sensor)."""
         return np.stack([misalignment_matrix(*np.radians(a)) for a in self.misalign_deg])
 
     @property
@@ -182,7 +182,7 @@ class ProbeArray:
 
     @property
     def truth_matrix(self) -> np.ndarray:
-        """(P, 3, 3) F^-1: matrix (raw - offset) = B_platform (CONTRACTS.md section 3's `matrix`)."""
+        """(P, 3, 3) F^-1: matrix (raw - offset) = B_platform (the `matrix` of docs/contracts.md)."""
         f = self.forward_matrix
         return np.linalg.solve(f, np.broadcast_to(np.eye(3), f.shape))
 
@@ -251,7 +251,7 @@ class World:
     # -- what is on ----------------------------------------------------------------------------------
     @property
     def active_effects(self) -> list[str]:
-        """Names of the effects with non-zero parameters (CONTRACTS.md names, plus 'gradient')."""
+        """Names of the effects with non-zero parameters (the `--effects` names of docs/effects.md, plus 'gradient')."""
         names = [e.name for e in self.effects if e.active()]
         if np.any(self.field.drift_nT_per_h) and "drift" not in names:
             names.append("drift")

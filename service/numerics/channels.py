@@ -1,4 +1,4 @@
-"""The one naming of the residual channels (CONTRACTS §3): s<k>.scalar, s<k>-s1.<axis>, s<k>-ref.<axis>;
+"""The one naming of the residual channels (docs/contracts.md): s<k>.scalar, s<k>-s1.<axis>, s<k>-ref.<axis>;
 and the model-vs-measurement error of a block in those channels. Light: the pipeline imports it."""
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ class CorrectedBlock(Timed):
     corrected_nT  (N, P, 3)    float64  calibrated, aligned field of every probe
     diff_nT       (N, P-1, 3)  float64  probe k minus probe 1 (gradiometer differences), None if P == 1
     tensor_nT_m   (N, 3, 3)    float64  gradient tensor G[i, j] = dB_j/dx_i, None unless geometry allows
-    center_nT     (N, 3)       float64  field at the array centre (mean of probes, 001 eq. 3), None if P == 1
+    center_nT     (N, 3)       float64  field at the array centre (mean of probes, [FastRotation] eq. 3), None if P == 1
     cal_id        int                   which calibration produced it (increments when one is replaced)
     """
 

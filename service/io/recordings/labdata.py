@@ -1,4 +1,4 @@
-"""Lab data for `fit` and `diagnose`: the CSV of CONTRACTS.md §1, or an MCAP recording, as one SampleBlock.
+"""Lab data for `fit` and `diagnose`: the CSV of docs/csv.md, or an MCAP recording, as one SampleBlock.
 
 Bad input is a DataError naming the file, line and column; nothing is guessed.
 """
@@ -120,7 +120,7 @@ def keep_every(n: int, probes: int, max_samples: int | None, max_probe_samples: 
 
 
 def load_csv(path: str | Path) -> LabData:
-    """Parse a lab CSV (CONTRACTS.md §1)."""
+    """Parse a lab CSV (docs/csv.md)."""
     p = Path(path)
     # a regular file within the size and line limits, read in pieces (SIGTERM stops it): drivers.inputs
     lines = read_text(p, "a lab CSV").splitlines()

@@ -1,9 +1,10 @@
 """Calibration numerics: pure numpy/scipy, no I/O.
 
-model (ProbeCalibration, ArrayCalibration, the 001 triangular and 000 unit-column parameterisations),
-ellipsoid (000, 004 step 1), tmi (001 section 4), sinefit (003), twostep (004), rls (the online
-estimator), alignment (000 regression, 001 rotation), tensor (001), coverage (what users need to
-trust a fit). The calibration file is read and written in service.io.calfile.
+model (ProbeCalibration, ArrayCalibration, the [FastRotation] triangular and [TwoFluxgate] unit-column
+parameterisations), ellipsoid ([TwoFluxgate], [TwoStep] step 1), tmi ([FastRotation] section 4), sinefit
+([SineFit]), twostep ([TwoStep]), rls (the online estimator), alignment ([TwoFluxgate] regression,
+[FastRotation] rotation), tensor ([FastRotation]), coverage (what users need to trust a fit). The papers'
+keys are defined in docs/references.md. The calibration file is read and written in service.io.calfile.
 """
 
 from .alignment import (

@@ -1,18 +1,18 @@
-"""Alignment of probes to each other or to the platform (CONTRACTS `--align`).
+"""Alignment of probes to each other or to the platform (`--align`, docs/calibration.md).
 
-- regression (000 section 2.2, eq. 10-16): probe k's raw output X_k regressed onto the calibrated
+- regression ([TwoFluxgate] section 2.2, eq. 10-16): probe k's raw output X_k regressed onto the calibrated
   probe-1 output X = A_1 (X_1 − E_1): minimising ‖X − (A_k X_k − B_k)‖_F² over N samples gives,
   setting the derivatives in B_k and A_k to zero (eq. 15), the multivariate linear regression of
   eq. 16, one row of A_k (and of B_k) per axis. It calibrates probe k and its attitude relative to
   probe 1 in one step; E_k = A_k⁻¹ B_k. `align_regression`, `regression_calibration`.
-- rotation (001 section 3, eq. 3-10): each calibrated probe rotated onto the platform. The platform
+- rotation ([FastRotation] section 3, eq. 3-10): each calibrated probe rotated onto the platform. The platform
   output is B0 = the mean of the probes' raw outputs (eq. 3), itself calibrated with the TMI
   method (`platform_calibration`); then per probe the x and y rows of T = Tα Tβ Tγ by least
   squares from N ≥ 3 samples (eq. 8-9; one turn is enough: three samples 120° apart about z are
   linearly independent) and heel α, pitch β, azimuth γ from them (eq. 10). `align_rotation`.
 - `align_probes(..., "rotation")`, used by the service's pipeline on long windows, takes the
   constrained optimum instead (Kabsch/SVD onto the mean frame of the probes, iterated).
-- pca (004 section 3.2) lives in twostep.py.
+- pca ([TwoStep] section 3.2) lives in twostep.py.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def _finite(a: np.ndarray, what: str, ndim: int = 2) -> np.ndarray:
     return x
 
 
-# --- 000 section 2.2: regression onto probe 1 -------------------------------------------------------
+# --- [TwoFluxgate] section 2.2: regression onto probe 1 ---------------------------------------------
 
 
 #: beyond this many samples the regression is solved from its normal equations summed over chunks of rows
@@ -48,7 +48,7 @@ _CHUNK = 1 << 18
 
 def align_regression(ref_nT: np.ndarray, raw_nT: np.ndarray, *,
                      gram_rows: int = GRAM_ROWS) -> tuple[np.ndarray, np.ndarray]:
-    """(A, c) minimising ‖B_ref − (A r + c)‖_F over samples (000 eq. 13-16).
+    """(A, c) minimising ‖B_ref − (A r + c)‖_F over samples ([TwoFluxgate] eq. 13-16).
 
     ref_nT: the calibrated reference probe's output (N, 3); raw_nT: the other probe's raw output.
     In the paper's symbols A = A_2 and c = −B_2 = −A_2 E_2. Needs the raw samples to span three
@@ -123,7 +123,7 @@ def regression_calibration(name: str, ref_nT: np.ndarray, raw_nT: np.ndarray, *,
                            gram_rows: int = GRAM_ROWS) -> ProbeCalibration:
     """Probe k as a ProbeCalibration in the reference probe's frame: M = A, o = −A⁻¹ c, with standard
     errors from the regression and the sensor's scale factor per axis (`scale`: the row norms of A⁻¹, as the
-    ellipsoid fit's c_x, c_y, c_z; not 000's column gains K of A = N K⁻¹, which differ from it where the axes
+    ellipsoid fit's c_x, c_y, c_z; not [TwoFluxgate]'s column gains K of A = N K⁻¹, which differ from it where the axes
     are not orthogonal: by up to 1.3e-3 on configs/sim-gradiometer.toml's s2).
 
     The standard errors are those of the regression given the reference: errors of the reference
@@ -165,11 +165,11 @@ def regression_calibration(name: str, ref_nT: np.ndarray, raw_nT: np.ndarray, *,
     return ProbeCalibration(name, offset, a, o_se, m_se, params)
 
 
-# --- 001 section 3: rotation onto the platform ------------------------------------------------------
+# --- [FastRotation] section 3: rotation onto the platform -------------------------------------------
 
 
 def rotation_from_angles(alpha: float, beta: float, gamma: float) -> np.ndarray:
-    """T = Tα Tβ Tγ of 001 eq. 4-5 (heel about x, pitch about y, azimuth about z; radians):
+    """T = Tα Tβ Tγ of [FastRotation] eq. 4-5 (heel about x, pitch about y, azimuth about z; radians):
     platform = T · probe."""
     ca, sa, cb, sb, cg, sg = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta), np.cos(gamma), np.sin(gamma)
     ta = np.array([[1, 0, 0], [0, ca, sa], [0, -sa, ca]])
@@ -179,7 +179,7 @@ def rotation_from_angles(alpha: float, beta: float, gamma: float) -> np.ndarray:
 
 
 def angles_from_rotation(r: np.ndarray) -> tuple[float, float, float]:
-    """Heel α, pitch β, azimuth γ (rad) of R = Tα Tβ Tγ (001 eq. 6, 10)."""
+    """Heel α, pitch β, azimuth γ (rad) of R = Tα Tβ Tγ ([FastRotation] eq. 6, 10)."""
     beta = -np.arcsin(np.clip(r[0, 2], -1, 1))
     gamma = np.arctan2(r[0, 1], r[0, 0])
     alpha = np.arctan2(r[1, 2], r[2, 2])
@@ -187,7 +187,7 @@ def angles_from_rotation(r: np.ndarray) -> tuple[float, float, float]:
 
 
 def rotation_from_samples(platform_nT: np.ndarray, probe_nT: np.ndarray) -> tuple[np.ndarray, tuple[float, float, float]]:
-    """001 eq. 8-10: V_x, V_y by least squares from N ≥ 3 samples, then α, β, γ and R = Tα Tβ Tγ.
+    """[FastRotation] eq. 8-10: V_x, V_y by least squares from N ≥ 3 samples, then α, β, γ and R = Tα Tβ Tγ.
 
     β = −arcsin V_x3, γ = atan2(V_x2, V_x1) (the paper's arctan(V_x2/V_x1) loses the quadrant
     beyond ±90°), α = arcsin(V_y3 / cos β)."""
@@ -209,12 +209,12 @@ def rotation_from_samples(platform_nT: np.ndarray, probe_nT: np.ndarray) -> tupl
 
 
 def platform_output(raw_nT: np.ndarray) -> np.ndarray:
-    """B0 of 001 eq. 3: the mean of the probes' outputs, (N, P, 3) -> (N, 3)."""
+    """B0 of [FastRotation] eq. 3: the mean of the probes' outputs, (N, P, 3) -> (N, 3)."""
     return _finite(raw_nT, "platform_output: raw_nT", ndim=3).mean(axis=1)
 
 
 def platform_calibration(raw_nT: np.ndarray, total_nT, *, name: str = "platform") -> ProbeCalibration:
-    """001 section 2: B0 (eq. 3) treated as a virtual probe with its own offset, scale factors and
+    """[FastRotation] section 2: B0 (eq. 3) treated as a virtual probe with its own offset, scale factors and
     non-orthogonality, calibrated with the TMI method; its corrected output is the platform frame."""
     from .tmi import fit_tmi
 
@@ -223,7 +223,7 @@ def platform_calibration(raw_nT: np.ndarray, total_nT, *, name: str = "platform"
 
 @dataclass
 class RotationAlignment:
-    """001 section 3 for P probes: platform = rotations[k] · corrected_k."""
+    """[FastRotation] section 3 for P probes: platform = rotations[k] · corrected_k."""
 
     rotations: np.ndarray        # (P, 3, 3)
     angles_rad: np.ndarray       # (P, 3) heel α, pitch β, azimuth γ
@@ -257,10 +257,10 @@ def mean_frame_reference(corrected: list[np.ndarray]) -> np.ndarray:
 
 def align_rotation(corrected: list[np.ndarray], reference_nT: np.ndarray | None = None, *,
                    samples: np.ndarray | None = None) -> RotationAlignment:
-    """001 section 3: the rotation of each calibrated probe onto the platform, from N ≥ 3 samples.
+    """[FastRotation] section 3: the rotation of each calibrated probe onto the platform, from N ≥ 3 samples.
 
     corrected: per probe (N, 3), each in its own orthogonal frame (after fit_tmi / fit_ellipsoid).
-    reference_nT: the platform output (N, 3) — in 001 the calibrated B0,
+    reference_nT: the platform output (N, 3) — in [FastRotation] the calibrated B0,
       `platform_calibration(raw, F).apply(platform_output(raw))`. None: the mean frame of the
       probes (`mean_frame_reference`), for when the raw outputs are not at hand.
     samples: which samples to use (e.g. three 120° apart on one turn); default all.
@@ -326,7 +326,7 @@ def align_probes(probes: list[ProbeCalibration], raw_nT: np.ndarray, method: str
                  iterations: int = 3) -> list[ProbeCalibration]:
     """Express every probe in one common frame, using (N, P, 3) raw samples seen together.
 
-    rotation: onto the probes' mean frame (001's platform); regression: onto probe 1 (000).
+    rotation: onto the probes' mean frame ([FastRotation]'s platform); regression: onto probe 1 ([TwoFluxgate]).
     """
     raw = np.asarray(raw_nT, float)
     ok = np.isfinite(raw).all(axis=(1, 2))

@@ -1,4 +1,4 @@
-"""Linear least-squares ellipsoid fit (000 eq. 5-9, 004 eq. 5-14).
+"""Linear least-squares ellipsoid fit ([TwoFluxgate] eq. 5-9, [TwoStep] eq. 5-14).
 
 A probe with offset o and matrix M sees raw samples r on the quadric
 
@@ -14,15 +14,15 @@ independent of where the origin is: a sensor whose hard-iron offset is several t
 the origin outside its ellipsoid, where the uncentred form's constant changes sign (κ < 0) and its
 conditioning collapses. Either sign of the fitted quadric is accepted (A' and κ flip together). The tenth column (δ) enters only when the
 reference total field F varies enough to carry information. Fixing the right side to 1 removes the
-exact null direction of the ten-term form with a constant right side (000 eq. 6 keeps nine terms
-and the right side F², dropping oᵀQo; 001 eq. 15-16 keeps the constant column and the right side
+exact null direction of the ten-term form with a constant right side ([TwoFluxgate] eq. 6 keeps nine terms
+and the right side F², dropping oᵀQo; [FastRotation] eq. 15-16 keeps the constant column and the right side
 F², and then V = (0, …, 0, F²) fits any data exactly). o = −A'⁻¹ b' s / 2 and Q follows from the
 known F₀: κ (1 + uₒᵀA'uₒ) = F₀², uₒ = (o − c)/s.
 
-Matrix convention: M is the upper-triangular Cholesky factor of Q (001's triangular model, eq. 12):
+Matrix convention: M is the upper-triangular Cholesky factor of Q ([FastRotation]'s triangular model, eq. 12):
 only the rotation ambiguity of Q = MᵀM is fixed, by putting the corrected z axis along the
 sensor's z winding and the corrected y axis in its y-z plane; the alignment step rotates each probe
-into a common frame. `triangular_factor(q, "000")` gives 000's own factor (eq. 8) instead.
+into a common frame. `triangular_factor(q, "000")` gives [TwoFluxgate]'s own factor (eq. 8) instead.
 
 Total field F: the reference per sample (`ref_total`), a configured constant, or — when unknown —
 the field that gives M unit determinant (unit_volume_total). Then the scale of M is a convention, not a measurement (a fluxgate
@@ -472,8 +472,8 @@ def _fit_result(sol: QuadricSolution, raw: np.ndarray, name: str) -> tuple[Ellip
 def triangular_factor(q: np.ndarray, pattern: str = "upper") -> np.ndarray:
     """A factor A of a positive definite Q (AᵀA = Q) with its rotation fixed by a zero pattern.
 
-    "upper": upper-triangular, positive diagonal (001's triangular model; what `fit_ellipsoid` gives).
-    "000":   [[a11, a12, 0], [0, a22, 0], [a31, a32, a33]] of 000 eq. 8:
+    "upper": upper-triangular, positive diagonal ([FastRotation]'s triangular model; what `fit_ellipsoid` gives).
+    "000":   [[a11, a12, 0], [0, a22, 0], [a31, a32, a33]] of [TwoFluxgate] eq. 8:
              a33 = √Q33, a32 = Q23/a33, a31 = Q13/a33, a11 = √(Q11 − a31²),
              a12 = (Q12 − a31 a32)/a11 (the paper prints a31 on the left), a22 = √(Q22 − a12² − a32²).
     Raises numpy.linalg.LinAlgError unless Q is positive definite.

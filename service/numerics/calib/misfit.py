@@ -69,7 +69,7 @@ class RegionSpread:
 
     offset_se: np.ndarray         # (3,) the delete-a-region jackknife's standard errors of the offsets
     matrix_se: np.ndarray         # (3, 3) ... of the matrix
-    nonorth_se: np.ndarray        # (3,) ... of the non-orthogonality angles, deg (001 eq. 11)
+    nonorth_se: np.ndarray        # (3,) ... of the non-orthogonality angles, deg ([FastRotation] eq. 11)
     scale_se: np.ndarray          # (3,) ... of the scale factors (relative to the assumed field if none is given)
     cells: int                    # regions used
     f_ratio: float                # the one-way F ratio of the scalar residual over the regions

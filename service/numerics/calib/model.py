@@ -1,23 +1,23 @@
 """The probe model: corrected = matrix · (raw − offset_nT), per probe, and the array of probes.
 
 `matrix` maps a probe's raw output (nT at nominal scale) to an orthogonal frame: the probe's own
-triangular frame after a single-probe fit (001 eq. 12: upper-triangular, the z axis along the
+triangular frame after a single-probe fit ([FastRotation] eq. 12: upper-triangular, the z axis along the
 sensor's z winding, y in its y-z plane), or the common (platform / probe-1) frame after alignment.
 Effect terms (service.numerics.effects) add to this linear part; they are not applied here.
 
 Two ways of naming the physics of a matrix live here too:
 
-- 001 eq. 11-12 (the triangular model): raw = C A B_c + I with C = diag(c_x, c_y, c_z) the scale
+- [FastRotation] eq. 11-12 (the triangular model): raw = C A B_c + I with C = diag(c_x, c_y, c_z) the scale
   factors and A = [[cosθ cosφ, sinθ cosφ, sinφ], [0, cosψ, sinψ], [0, 0, 1]] whose rows are the
   unit sensing axes (φ, θ, ψ the non-orthogonality angles); the correction is M = (C A)⁻¹,
   upper-triangular. `triangular_matrix` and `triangular_params` go each way, exactly.
-- 000 Tables 1-2: a correction matrix A split as A = N K⁻¹ with N of unit columns (the
-  "non-orthogonality" matrix) and K = diag(k) 000's column gains, so that the raw output is
-  X = K N⁻¹ B + E. `unit_column_split` does it, for 000's tables; the outputs do not use k.
+- [TwoFluxgate] Tables 1-2: a correction matrix A split as A = N K⁻¹ with N of unit columns (the
+  "non-orthogonality" matrix) and K = diag(k) [TwoFluxgate]'s column gains, so that the raw output is
+  X = K N⁻¹ B + E. `unit_column_split` does it, for [TwoFluxgate]'s tables; the outputs do not use k.
 
-The sensor's scale factor per axis, `params["scale"]` of every method, is c of 001 eq. 11: raw axis i reads
+The sensor's scale factor per axis, `params["scale"]` of every method, is c of [FastRotation] eq. 11: raw axis i reads
 c_i times the field along its unit sensing direction, so c_i is the norm of row i of M⁻¹ whatever the frame
-M maps to (`sensor_scale`); above 1 where the axis reads high. 000's k equals it only for orthogonal axes.
+M maps to (`sensor_scale`); above 1 where the axis reads high. [TwoFluxgate]'s k equals it only for orthogonal axes.
 The correction matrix's diagonal is neither (about 1/c), and is called the correction diagonal where shown.
 """
 
@@ -152,11 +152,11 @@ def scalar_residual_summary(cal: ArrayCalibration, raw_nT: np.ndarray,
     return {p.name: {"before_nT": float(b), "after_nT": float(a)} for p, b, a in zip(cal.probes, before, after)}
 
 
-# --- 001 eq. 11-12: the triangular model ------------------------------------------------------------
+# --- [FastRotation] eq. 11-12: the triangular model -------------------------------------------------
 
 
 def triangular_matrix(nonorth_deg: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """M = (C A)⁻¹ of 001 eq. 12 from φ, θ, ψ (deg) and c_x, c_y, c_z.
+    """M = (C A)⁻¹ of [FastRotation] eq. 12 from φ, θ, ψ (deg) and c_x, c_y, c_z.
 
     M = [[k_x, m k_y, g k_z], [0, k_y, n k_z], [0, 0, k_z]] with k_x = 1/(c_x cosφ cosθ),
     k_y = 1/(c_y cosψ), k_z = 1/c_z, m = −tanθ, n = −tanψ and
@@ -181,7 +181,7 @@ def triangular_matrix(nonorth_deg: np.ndarray, scale: np.ndarray) -> np.ndarray:
 
 
 def sensing_matrix(nonorth_deg: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """C A of 001 eq. 11 (raw = C A B_c + I): rows are the scaled unit sensing axes."""
+    """C A of [FastRotation] eq. 11 (raw = C A B_c + I): rows are the scaled unit sensing axes."""
     phi, theta, psi = np.radians(np.asarray(nonorth_deg, float))
     a = np.array([[np.cos(theta) * np.cos(phi), np.sin(theta) * np.cos(phi), np.sin(phi)],
                   [0.0, np.cos(psi), np.sin(psi)],
@@ -190,7 +190,7 @@ def sensing_matrix(nonorth_deg: np.ndarray, scale: np.ndarray) -> np.ndarray:
 
 
 def triangular_params(matrix: np.ndarray) -> tuple[list[float], list[float]]:
-    """(φ, θ, ψ in degrees, [c_x, c_y, c_z]) of an upper-triangular correction M (001 eq. 11-12).
+    """(φ, θ, ψ in degrees, [c_x, c_y, c_z]) of an upper-triangular correction M ([FastRotation] eq. 11-12).
 
     Inverts `triangular_matrix` exactly: k = diag(M); m = M12/k_y, n = M23/k_z, g = M13/k_z;
     ψ = −atan n, θ = −atan m, tanφ = (sinθ sinψ − g cosθ cosψ)/cosψ; c_z = 1/k_z,
@@ -238,7 +238,7 @@ def triangular_params_many(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 def sensor_scale(matrix: np.ndarray) -> np.ndarray:
     """The sensor's scale factor per axis of a correction matrix M in any frame: the row norms of M⁻¹ (the raw
-    output is M⁻¹ B + o, and row i of M⁻¹ is c_i times axis i's unit sensing direction, 001 eq. 11).
+    output is M⁻¹ B + o, and row i of M⁻¹ is c_i times axis i's unit sensing direction, [FastRotation] eq. 11).
 
     >>> m = triangular_matrix([1.0, -2.0, 1.5], [1.02, 0.98, 1.01])
     >>> turn = np.array([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]])
@@ -248,13 +248,13 @@ def sensor_scale(matrix: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.linalg.inv(np.asarray(matrix, float)), axis=1)
 
 
-# --- 000 Tables 1-2: non-orthogonality (unit columns) and column gains --------------------------------
+# --- [TwoFluxgate] Tables 1-2: non-orthogonality (unit columns) and column gains ----------------------
 
 
 def unit_column_split(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, k): A = N diag(k)⁻¹ with the columns of N unit vectors (000 Tables 1-2).
+    """(N, k): A = N diag(k)⁻¹ with the columns of N unit vectors ([TwoFluxgate] Tables 1-2).
 
-    k are 000's column gains (000 calls them sensitivities): the raw output is X = diag(k) N⁻¹ B + E. They
+    k are [TwoFluxgate]'s column gains (it calls them sensitivities): the raw output is X = diag(k) N⁻¹ B + E. They
     are not the sensor's scale factors (`sensor_scale`) unless the axes are orthogonal.
     """
     a = np.asarray(matrix, float)

@@ -17,12 +17,12 @@ variance: the error stated is that of the offset over this record (the weights l
 the integral ends at f = 0 by itself), and how far the offset wanders beyond the record is said apart, per
 decade of time.
 
-- Ellipsoid (000 eq. 5-9 in centred, scaled u): the noise moves the design, and at the fitted quadric
+- Ellipsoid ([TwoFluxgate] eq. 5-9 in centred, scaled u): the noise moves the design, and at the fitted quadric
   delta theta = -(Phi^T Phi)^-1 sum_n phi_n g_n^T eps_n, g_n = (2 A' u_n + b') / s the gradient of the
   quadric in r; then delta o = J_o delta theta, and the matrix's terms through their Jacobian likewise.
   The term (d phi_n / d r)^T times the equation's residual is left out: second order where the model fits,
   not where a reduced order (axes, sphere) leaves a real misfit.
-- Regression onto the reference probe (000 eq. 13-16): ref = A r + c + e, o = -A^-1 c, and
+- Regression onto the reference probe ([TwoFluxgate] eq. 13-16): ref = A r + c + e, o = -A^-1 c, and
   delta o = -A^-1 sum_n h_n e_n with h_n = [o, 1]^T (X^T X)^-1 x_n, e the regression's residual per axis
   (the difference channel), whose own spectrum is fitted; row i of A moves by the first three of
   (X^T X)^-1 sum_n x_n e_ni.

@@ -1,6 +1,6 @@
-"""Non-orthogonality of a three-axis probe from one turntable rotation by sine fits (paper 003).
+"""Non-orthogonality of a three-axis probe from one turntable rotation by sine fits ([SineFit]).
 
-Model (003 eq. 1): the probe's axes in the orthogonal frame O_XYZ (X along the x winding, Y in the
+Model ([SineFit] eq. 1): the probe's axes in the orthogonal frame O_XYZ (X along the x winding, Y in the
 x-y winding plane, Z normal to it) give the raw output
 
     x = k_x B_X + o_x
@@ -8,12 +8,12 @@ x-y winding plane, Z normal to it) give the raw output
     z = k_z (cosβ sinγ B_X + sinβ sinγ B_Y + cosγ B_Z) + o_z
 
 α: the y winding's tilt from Y in the X-Y plane; β: the azimuth of the z winding's projection on
-the X-Y plane from X; γ: the z winding's tilt from Z. 003 has k = 1 and o = 0; scales and offsets
+the X-Y plane from X; γ: the z winding's tilt from Z. [SineFit] has k = 1 and o = 0; scales and offsets
 are added here where one turn determines them.
 
 A turn by θ about Z (the table's axis; right-handed about +z) in a field with a component
 B_xy = B cos I in the turn plane and B_Z = B sin I along the axis (I: inclination of the field to
-the plane) makes (003 eq. 3, 5)
+the plane) makes ([SineFit] eq. 3, 5)
 
     x = A_x sin(θ + θ_x0) + C_x,   A_x = k_x B_xy
     y = A_y sin(θ + θ_y0) + C_y,   A_y = k_y B_xy,   θ_y0 = θ_x0 + 90° − α
@@ -32,12 +32,12 @@ The correction is eq. 2 (B = S⁻¹ (raw − o) / k), computed as eq. 7 and 10:
     B_X = x',  B_Y = (y' − B_X sinα) / cosα,  B_Z = (z' − B_X cosβ sinγ − B_Y sinβ sinγ) / cosγ.
 
 What one turn cannot separate, and what is assumed (each reported in params["assumed"]):
-- k_z and sinγ enter z only as their product: k_z = k_x is assumed (003 has k = 1).
+- k_z and sinγ enter z only as their product: k_z = k_x is assumed ([SineFit] has k = 1).
 - o_z and the axial field: C_z = o_z + k_z B_Z cosγ. With the inclination known, B_Z = B_xy tan I
-  fixes o_z; without it o_z = 0 is assumed (003) and the inclination is estimated from C_z.
-- the absolute scale k_x needs the total field B (and I, or o_z = 0); without B, k_x = 1 (003):
+  fixes o_z; without it o_z = 0 is assumed ([SineFit]) and the inclination is estimated from C_z.
+- the absolute scale k_x needs the total field B (and I, or o_z = 0); without B, k_x = 1 ([SineFit]):
   the output is in the x winding's units.
-No total-field reference is needed (003's point); α and β need nothing but the phases.
+No total-field reference is needed ([SineFit]'s point); α and β need nothing but the phases.
 
 When the table angle is not recorded, a constant rate is assumed and estimated from the data (one
 frequency common to the three axes, refined on the total residual); the phase differences do not
@@ -114,7 +114,7 @@ def _largest_gap_deg(theta_rad: np.ndarray) -> float:
 
 
 def _trajectory_angle(field_nT: np.ndarray) -> np.ndarray:
-    """ψ = atan2(x − x̄, y − ȳ) unwrapped: grows with θ in 003's convention (x = sin, y = cos)."""
+    """ψ = atan2(x − x̄, y − ȳ) unwrapped: grows with θ in [SineFit]'s convention (x = sin, y = cos)."""
     c = 0.5 * (field_nT.min(axis=0) + field_nT.max(axis=0))
     return np.unwrap(np.arctan2(field_nT[:, 0] - c[0], field_nT[:, 1] - c[1]))
 
@@ -141,7 +141,7 @@ def estimate_rate(t_s: np.ndarray, field_nT: np.ndarray) -> float:
 def fit_sine_nonorthogonality(theta_rad: np.ndarray | None, field_nT: np.ndarray, *,
                               t_s: np.ndarray | None = None, total_nT: float | None = None,
                               inclination_deg: float | None = None, name: str = "s1") -> SineFit:
-    """003: α, β, γ (and offsets, relative scale) from (N, 3) raw samples of one turn about the probe z.
+    """[SineFit]: α, β, γ (and offsets, relative scale) from (N, 3) raw samples of one turn about the probe z.
 
     theta_rad: the table angle per sample (right-handed about the probe's +z); None: estimated at a
       constant rate from `t_s` (or from the sample index if `t_s` is None, i.e. uniform sampling).
@@ -166,7 +166,7 @@ def fit_sine_nonorthogonality(theta_rad: np.ndarray | None, field_nT: np.ndarray
             raise ValueError(f"theta_rad: expected {n} angles, got {theta.shape[0]}")
     reversed_ = False
     if theta_rad is not None:
-        # the x-y trajectory must advance with θ (003 eq. 3: x ∝ sin, y ∝ cos); a table angle read the
+        # the x-y trajectory must advance with θ ([SineFit] eq. 3: x ∝ sin, y ∝ cos); a table angle read the
         # other way round would turn α and β into −α and −β
         psi = _trajectory_angle(raw)
         if np.polyfit(theta, psi, 1)[0] < 0:

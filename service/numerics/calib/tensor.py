@@ -1,17 +1,17 @@
 """Gradiometer differences, gradient-tensor components and their invariants, over whole blocks.
 
-Convention: G[i, j] = ∂B_j / ∂x_i (001 eq. 1), in nT/m, platform frame, for corrected fields of
+Convention: G[i, j] = ∂B_j / ∂x_i ([FastRotation] eq. 1), in nT/m, platform frame, for corrected fields of
 shape (N, P, 3); every function is vectorised over N and returns the shapes of
 service.numerics.outputs.CorrectedBlock (diff (N, P−1, 3), tensor (N, 3, 3), centre (N, 3)).
 
 From P probes at positions r_k the field differences obey B_k − B_0 = Gᵀ (r_k − r_0) to first
 order; `tensor_from_positions` solves it by least squares about the centroid (B_0 the mean field,
-r_0 the mean position). For 001's planar cross (probes 1, 3 on the x baseline, 2, 4 on the y
-baseline, d apart in each pair) it reduces exactly to 001 eq. 2: row x = (B_1 − B_3)/d, row y =
-(B_2 − B_4)/d. A planar array measures only the in-plane rows (six components; 001 keeps ∂B_y/∂x and
+r_0 the mean position). For [FastRotation]'s planar cross (probes 1, 3 on the x baseline, 2, 4 on the y
+baseline, d apart in each pair) it reduces exactly to [FastRotation] eq. 2: row x = (B_1 − B_3)/d, row y =
+(B_2 − B_4)/d. A planar array measures only the in-plane rows (six components; [FastRotation] keeps ∂B_y/∂x and
 ∂B_x/∂y as independent measurements); the out-of-plane row follows from a source-free field
 (G symmetric and traceless): G[z, x] = G[x, z], G[z, y] = G[y, z], G[z, z] = −(G[x, x] + G[y, y]).
-(001 eq. 2 as printed repeats the x-pair column in the third column; the paper's own Table 4 uses
+([FastRotation] eq. 2 as printed repeats the x-pair column in the third column; the paper's own Table 4 uses
 ∂B_z/∂x = (B_z1 − B_z3)/d there, as here.)
 """
 
@@ -23,24 +23,24 @@ import numpy as np
 
 from drivers.errors import ConfigError
 
-#: the six components a planar x-y array measures, as (row, column) of G, named as 001 Table 4 does:
+#: the six components a planar x-y array measures, as (row, column) of G, named as [FastRotation] Table 4 does:
 #: Bxx = (Bx1−Bx3)/d, Bxy = (Bx2−Bx4)/d, Bxz = (Bz1−Bz3)/d, Byx = (By1−By3)/d, Byy = (By2−By4)/d,
 #: Byz = (Bz2−Bz4)/d (checked: these reproduce its "before calibration" row exactly)
 MEASURED_001 = {"Bxx": (0, 0), "Bxy": (1, 0), "Bxz": (0, 2), "Byx": (0, 1), "Byy": (1, 1), "Byz": (1, 2)}
 
 
 def differences(corrected_nT: np.ndarray) -> np.ndarray:
-    """Probe k minus probe 1, (N, P, 3) -> (N, P−1, 3) (000's gradiometer output, eq. 10)."""
+    """Probe k minus probe 1, (N, P, 3) -> (N, P−1, 3) ([TwoFluxgate]'s gradiometer output, eq. 10)."""
     return corrected_nT[:, 1:] - corrected_nT[:, :1]
 
 
 def center_field(corrected_nT: np.ndarray) -> np.ndarray:
-    """B0, the field at the array centre: the mean of the probes (001 eq. 3), (N, P, 3) -> (N, 3)."""
+    """B0, the field at the array centre: the mean of the probes ([FastRotation] eq. 3), (N, P, 3) -> (N, 3)."""
     return corrected_nT.mean(axis=1)
 
 
 def cross_positions(baseline_m: float) -> np.ndarray:
-    """Positions (4, 3) in m of 001's planar cross: probe 1 at +x, 2 at +y, 3 at −x, 4 at −y, each
+    """Positions (4, 3) in m of [FastRotation]'s planar cross: probe 1 at +x, 2 at +y, 3 at −x, 4 at −y, each
     pair `baseline_m` apart (the baseline d of eq. 2)."""
     h = 0.5 * float(baseline_m)
     return np.array([[h, 0.0, 0.0], [0.0, h, 0.0], [-h, 0.0, 0.0], [0.0, -h, 0.0]])
@@ -88,7 +88,7 @@ def _complete_planar(g: np.ndarray) -> None:
 
 
 def tensor_from_cross(corrected_nT: np.ndarray, baseline_m: float) -> np.ndarray:
-    """001 eq. 2 for the cross (probes 1, 3 on +x, −x and 2, 4 on +y, −y; `cross_positions`):
+    """[FastRotation] eq. 2 for the cross (probes 1, 3 on +x, −x and 2, 4 on +y, −y; `cross_positions`):
     (N, 4, 3) corrected fields -> (N, 3, 3), G[x, :] = (B_1 − B_3)/d, G[y, :] = (B_2 − B_4)/d."""
     b = np.asarray(corrected_nT, float)
     if b.ndim != 3 or b.shape[1:] != (4, 3):
@@ -104,7 +104,7 @@ tensor_cross = tensor_from_cross        # the name the first version used
 
 
 def measured_components(g: np.ndarray) -> dict[str, np.ndarray]:
-    """The six measured components of a planar-cross tensor, named as in 001 Table 4, each (N,)."""
+    """The six measured components of a planar-cross tensor, named as in [FastRotation] Table 4, each (N,)."""
     return {name: g[:, i, j] for name, (i, j) in MEASURED_001.items()}
 
 

@@ -1,6 +1,6 @@
-"""Ten-parameter linear calibration against a scalar (TMI) reference, 001 section 4.
+"""Ten-parameter linear calibration against a scalar (TMI) reference, [FastRotation] section 4.
 
-The probe model (001 eq. 11-12): raw B_r = C A B_c + I, corrected B_c = M (B_r − I) with
+The probe model ([FastRotation] eq. 11-12): raw B_r = C A B_c + I, corrected B_c = M (B_r − I) with
 M = [[k_x, m k_y, g k_z], [0, k_y, n k_z], [0, 0, k_z]] upper-triangular. Then (eq. 13)
 
     |B_c|² = k_x² (B_x + k_m B_y + k_g B_z − i_1)² + k_y² (B_y + k_n B_z − i_2)² + k_z² (B_z − i_3)²
@@ -26,7 +26,7 @@ Two things in the paper do not hold as printed, and this module does what they i
   (sinθ cosφ sinψ − sinφ cosψ)/(cosθ cosφ cosψ) (model.triangular_matrix).
 
 Ten samples are the minimum, and they must not be coplanar: the first ten samples of one turn about
-z (as 001 section 5.1 uses) lie on one conic in one plane in every probe frame and the ten-column
+z (as [FastRotation] section 5.1 uses) lie on one conic in one plane in every probe frame and the ten-column
 design has rank 5 (noise lifts the five null singular values only to ~1e-5 of the largest);
 such data are refused with the motion that would help.
 """
@@ -48,7 +48,7 @@ V_TERMS = ("Bx", "By", "Bz", "Bx2", "By2", "Bz2", "BxBy", "BxBz", "ByBz", "1")
 
 @dataclass
 class TmiFit:
-    """Everything 001 section 4 computes, with standard errors."""
+    """Everything [FastRotation] section 4 computes, with standard errors."""
 
     calibration: ProbeCalibration
     v: np.ndarray                  # (10,) eq. 15 coefficients, nT units (V·[B terms] = F²)
@@ -140,7 +140,7 @@ def _chain(theta: np.ndarray, scale: float, f2_ref: float, center: np.ndarray) -
 
 def fit_tmi_full(field_nT: np.ndarray, total_nT, *, name: str = "s1",
                  max_condition: float = MAX_CONDITION, noise_nT: float | None = None) -> TmiFit:
-    """001 section 4 on (N ≥ 10, 3) raw samples of one probe and the scalar reference F (N,) or F.
+    """[FastRotation] section 4 on (N ≥ 10, 3) raw samples of one probe and the scalar reference F (N,) or F.
 
     noise_nT: the noise of |b| if known; standard errors then use it rather than the residuals
     (ten samples leave a single degree of freedom to estimate the noise from)."""
@@ -177,6 +177,6 @@ def fit_tmi_full(field_nT: np.ndarray, total_nT, *, name: str = "s1",
 
 def fit_tmi(field_nT: np.ndarray, total_nT, *, name: str = "s1",
             max_condition: float = MAX_CONDITION, noise_nT: float | None = None) -> ProbeCalibration:
-    """001 section 4: the probe's calibration in its own triangular frame, with named parameters
+    """[FastRotation] section 4: the probe's calibration in its own triangular frame, with named parameters
     nonorth_deg (φ, θ, ψ), scale (c_x, c_y, c_z), offset_nT (i_x, i_y, i_z) and their standard errors."""
     return fit_tmi_full(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT).calibration

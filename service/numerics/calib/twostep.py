@@ -1,14 +1,14 @@
-"""The equivalent two-step calibration (paper 004): ellipsoid, then PCA of three single-axis turns.
+"""The equivalent two-step calibration ([TwoStep]): ellipsoid, then PCA of three single-axis turns.
 
-Model (004 eq. 1-3): h_s = M h_b + b with the SVD view M = U D V: the body frame is turned by the
+Model ([TwoStep] eq. 1-3): h_s = M h_b + b with the SVD view M = U D V: the body frame is turned by the
 orthogonal V into an "equivalent sensor frame", stretched by D = diag(d) and turned by U, then
 shifted by b. The correction (eq. 4) is ĥ_b = V̂⁻¹ D̂⁻¹ Û⁻¹ (h_s − b̂).
 
 Step 1, equivalent sensor frame (eq. 5-14): the ellipsoid fit gives b̂ and the quadric
-E = M⁻ᵀ M⁻¹ (here scaled so |ĥ| equals the total field F, 004 sets k = 1: the scale does not
+E = M⁻ᵀ M⁻¹ (here scaled so |ĥ| equals the total field F, [TwoStep] sets k = 1: the scale does not
 matter for heading); E = U_E D_E U_Eᵀ (eq. 12) gives Û = U_E (eq. 13), d̂ = 1/√d_E (eq. 14).
 U_E's columns are chosen with det Û = +1, so that V is a rotation when M keeps the handedness
-(004 notes V is orthogonal "not necessarily a rotation": that is exactly this sign choice, and
+([TwoStep] notes V is orthogonal "not necessarily a rotation": that is exactly this sign choice, and
 the right-handed cross products of the orthogonality correction need a rotation).
 
 Step 2, equivalent misalignment (eq. 15-18): ĥ_c = D̂⁻¹ Ûᵀ (h_s − b̂) = V h_b (eq. 15-16). During a
@@ -23,7 +23,7 @@ plane whose normal is V_i: the eigenvector P3 of the smallest eigenvalue of thei
   other two, the middle one the cross product of the new pair (eq. 18 for α_z < α_x < α_y:
   V_cz = V_z, V_cy = V_z × V_x, V_cx = V_cy × V_z), each normalised.
 
-`align_pca` is the same step 2 for an array (`--align pca`, 004 section 3.2): every probe, already
+`align_pca` is the same step 2 for an array (`--align pca`, [TwoStep] section 3.2): every probe, already
 calibrated in its own orthogonal frame, is turned onto the platform frame that the three turns
 define.
 """
@@ -90,7 +90,7 @@ def _right_handed_cross(a: int, b: int, va: np.ndarray, vb: np.ndarray) -> tuple
 
 
 def orthogonality_correction(v: np.ndarray, contribution: np.ndarray) -> tuple[np.ndarray, list[int]]:
-    """004 eq. 18 for any order of the variance contributions: keep the best column, rebuild the worst
+    """[TwoStep] eq. 18 for any order of the variance contributions: keep the best column, rebuild the worst
     from the other two, then the middle from the new pair; returns (V̂_c, columns best to worst)."""
     order = [int(i) for i in np.argsort(contribution)]
     best, mid, worst = order
@@ -158,12 +158,12 @@ def _check_turns(rotations: Sequence[np.ndarray], name: str) -> list[np.ndarray]
 def fit_two_step_full(rotations: Sequence[np.ndarray], *, extra_nT: np.ndarray | None = None,
                       total_nT: float | None = None, sign_correction: bool = True, orth_correction: bool = True,
                       name: str = "s1") -> TwoStepFit:
-    """004: step 1 (ellipsoid) on every sample, step 2 (PCA) on the three turns.
+    """[TwoStep]: step 1 (ellipsoid) on every sample, step 2 (PCA) on the three turns.
 
     rotations: three (N_i, 3) raw arrays, turns about the body x, y and z axes, each made with the
-      field well off the turn plane (|h_s,i| ≫ 0: 004 section 3.2.1).
+      field well off the turn plane (|h_s,i| ≫ 0: [TwoStep] section 3.2.1).
     extra_nT: (K, 3) further raw samples for step 1 only (e.g. tilted sweeps).
-    total_nT: the total field (scales the result to nT; 004 leaves it free, heading does not need it).
+    total_nT: the total field (scales the result to nT; [TwoStep] leaves it free, heading does not need it).
     """
     turns = _check_turns(rotations, name)
     step1 = np.concatenate(turns + ([finite_rows(extra_nT, f"{name}: extra_nT")] if extra_nT is not None else []))
@@ -171,7 +171,7 @@ def fit_two_step_full(rotations: Sequence[np.ndarray], *, extra_nT: np.ndarray |
     # no stretches of time (misfit.add_time_spread)
     fit = fit_ellipsoid(step1, total_nT, name=name, errors="white")
     ell = fit.calibration
-    q = ell.matrix.T @ ell.matrix                     # E = M⁻ᵀ M⁻¹ of 004 (eq. 10), scaled to |ĥ| = F
+    q = ell.matrix.T @ ell.matrix                     # E = M⁻ᵀ M⁻¹ of [TwoStep] (eq. 10), scaled to |ĥ| = F
     u, d = _equivalent_frame(q)
     b = ell.offset_nT
     equiv = (u / d).T                                 # D̂⁻¹ Ûᵀ
@@ -227,7 +227,7 @@ def fit_two_step(rotations: Sequence[np.ndarray], *, extra_nT: np.ndarray | None
 
 def align_pca(probes: Sequence[ProbeCalibration], field_nT: np.ndarray, turn: np.ndarray, *,
               sign_correction: bool = True, orth_correction: bool = True) -> list[ProbeCalibration]:
-    """`--align pca` (004 section 3.2): turn every calibrated probe onto the platform frame that three
+    """`--align pca` ([TwoStep] section 3.2): turn every calibrated probe onto the platform frame that three
     single-axis turns of the platform define.
 
     probes: each probe's calibration in its own orthogonal frame; field_nT: (N, P, 3) raw;

@@ -1,7 +1,7 @@
 """Model versus measurement: residual channels, where the model fails, and which effect is missing.
 
 `diagnose(data, effects=...)` fits the model (the linear calibration plus the named effects) and
-reports (CONTRACTS.md §3):
+reports (docs/contracts.md):
 
 - channels: each probe's scalar residual |corrected| - total field and, for arrays, each component
   of each aligned probe minus probe 1; rms_nT over all of them; noise_nT, the noise floor of the same

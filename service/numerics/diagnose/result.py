@@ -84,7 +84,7 @@ class Candidate:
 
 @dataclass
 class Diagnosis:
-    """Everything `fluxcal diagnose` reports; `as_dict()` is the CONTRACTS §3 JSON."""
+    """Everything `fluxcal diagnose` reports; `as_dict()` is the JSON of docs/contracts.md."""
 
     effects: list[str]
     model: str

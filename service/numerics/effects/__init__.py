@@ -1,4 +1,4 @@
-"""The catalogue of physical effect terms (CONTRACTS.md §2 `--effects`), one module per effect.
+"""The catalogue of physical effect terms (`--effects`, docs/effects.md), one module per effect.
 
     temperature   offset and scale factor change with probe temperature      nT/degC, ppm/degC per axis
     thermal       the same, on a core temperature lagging the logged one     nT/degC, ppm/degC per axis, s

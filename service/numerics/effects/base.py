@@ -310,7 +310,7 @@ class ProbeView:
 class EffectTerm:
     """One physical effect with named parameters in physical units (subclass per effect).
 
-    Subclasses set `name` (the catalogue name of CONTRACTS.md), `title` (printed name), `physical`
+    Subclasses set `name` (the catalogue name, docs/effects.md), `title` (printed name), `physical`
     (one line), `frame` and `linear`, and implement `param_names` and `columns` (linear terms) or
     `correction` and `jacobian` (non-linear terms). Shared parameters (one set for all probes) use
     `shared_names` with `shared_vcolumns` (corrected frame, per probe) or `shared_scolumns` (added to
@@ -445,7 +445,7 @@ class Model:
 
     @property
     def effects(self) -> list[str]:
-        """Catalogue names of the effect terms (the `effects` of CONTRACTS.md §3)."""
+        """Catalogue names of the effect terms (the `effects` of docs/contracts.md)."""
         return [t.name for t in self.effect_terms]
 
     def without_baseline(self) -> "Model":

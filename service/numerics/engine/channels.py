@@ -1,4 +1,4 @@
-"""The residual channels (CONTRACTS §3) and their one naming: s<k>.scalar, s<k>-s1.<axis>, s<k>-ref.<axis>.
+"""The residual channels (docs/contracts.md) and their one naming: s<k>.scalar, s<k>-s1.<axis>, s<k>-ref.<axis>.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ class Channels:
 
     @property
     def total_rms_nT(self) -> float:
-        """RMS over all channels (CONTRACTS §3 rms_nT)."""
+        """RMS over all channels (`rms_nT` of docs/contracts.md)."""
         return float(np.sqrt(np.mean(self.values ** 2)))
 
     def as_dict(self) -> dict[str, np.ndarray]:

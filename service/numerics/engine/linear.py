@@ -23,8 +23,8 @@ class LinearCalibration:
 
     @classmethod
     def from_any(cls, cal: Any, n_probes: int) -> "LinearCalibration":
-        """From an ArrayCalibration (service.numerics.calib.model), a list of ProbeCalibration, a CONTRACTS §3
-        `fit --json` dict (sensors: offset_nT, matrix), or a LinearCalibration."""
+        """From an ArrayCalibration (service.numerics.calib.model), a list of ProbeCalibration, a `fit --json`
+        dict (docs/contracts.md: sensors with offset_nT and matrix), or a LinearCalibration."""
         if isinstance(cal, LinearCalibration):
             return cal.copy()
         probes = None

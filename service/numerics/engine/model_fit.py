@@ -21,7 +21,7 @@ from .state import layout_slots
 
 @dataclass
 class EffectsFit:
-    """A calibration with effect terms: the linear part (CONTRACTS §3: corrected = matrix (raw - offset)
+    """A calibration with effect terms: the linear part (docs/contracts.md: corrected = matrix (raw - offset)
     before any effect term) plus every effect parameter with its standard error."""
 
     probe_names: list[str]
@@ -80,7 +80,7 @@ class EffectsFit:
         return out
 
     def as_dict(self) -> dict[str, Any]:
-        """JSON-ready: the sensors in CONTRACTS §3 form plus `effect_parameters` with errors."""
+        """JSON-ready: the sensors in the form of docs/contracts.md plus `effect_parameters` with errors."""
         sensors = [{"name": n, "offset_nT": self.offset_nT[k].tolist(), "matrix": self.matrix[k].tolist(),
                     "scalar_rms_nT": self.channel_rms_nT.get(f"{n}.scalar")}
                    for k, n in enumerate(self.probe_names)]

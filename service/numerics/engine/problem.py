@@ -1,6 +1,6 @@
 """Fitting a linear calibration plus effect terms to the residual channels, by Gauss-Newton.
 
-Residual channels (CONTRACTS.md §3), for probes k = 1..P with y_k = raw_k - o_k - sum theta phi:
+Residual channels (docs/contracts.md), for probes k = 1..P with y_k = raw_k - o_k - sum theta phi:
 
     v_k        = M_k y_k - sum (corrected-frame corrections)          the corrected field
     s<k>.scalar: |v_k| - F(t)                                          F: ref_total, configured or estimated

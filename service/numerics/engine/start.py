@@ -20,7 +20,7 @@ NOISE_FLOOR_NT = 1e-3
 
 def initial_linear(data: EffectData, reference_nT: np.ndarray | float | None) -> LinearCalibration:
     """A starting linear calibration: an ellipsoid per probe (service.numerics.calib when present), then each
-    probe regressed onto probe 1 (paper 000 eq. 10-16) for the alignment. Gauss-Newton refines it."""
+    probe regressed onto probe 1 ([TwoFluxgate] eq. 10-16) for the alignment. Gauss-Newton refines it."""
     f_total = None if reference_nT is None else float(np.median(reference_nT))
     offs, mats = [], []
     try:
