@@ -1,4 +1,4 @@
-"""Batch calibration of lab data with any method of CONTRACTS §2 (`fluxcal fit` and `diagnose`).
+"""Batch calibration of lab data with any method of docs/calibration.md (`fluxcal fit` and `diagnose`).
 
 One function per step: the total field to fit against, per-probe fits by method, alignment to a
 common frame, and the residual channels the contracts define. `rls` runs the service's own
@@ -85,7 +85,7 @@ def fit_probe(method: str, raw: np.ndarray, total: TotalField, block: SampleBloc
             raise CalibrationRefused("two-step needs three single-axis turns marked in a 'turn' column "
                                      "(0 = about x, 1 = about y, 2 = about z), each with at least 10 samples")
         tv = None if total.values is None else float(np.mean(total.values))
-        # 004 fits step 1's ellipsoid to every sample, the turns' and the rest (tilted sweeps, transitions)
+        # [TwoStep] fits step 1's ellipsoid to every sample, the turns' and the rest (tilted sweeps, transitions)
         rest = raw[~np.isin(turn, (0, 1, 2))]
         return fit_two_step(turns, extra_nT=rest if rest.shape[0] else None, total_nT=tv, name=name)
     raise DataError(f"method {method!r} is not allowed (allowed: {', '.join(METHODS)})")
@@ -184,7 +184,7 @@ def _refuse_non_finite(data: LabData) -> None:
 
 
 def iter_residual_channels(data: LabData, cal: ArrayCalibration, total: TotalField):
-    """(name, values) of each CONTRACTS §3 channel in turn: s<k>.scalar = |corrected| − F, and for arrays
+    """(name, values) of each residual channel of docs/contracts.md in turn: s<k>.scalar = |corrected| − F, and for arrays
     s<k>-s1.<axis>; one probe's corrected samples at a time besides probe 1's (hours of data)."""
     b = data.block
     names = iter(channel_names(data.probe_names))
@@ -203,7 +203,7 @@ def iter_residual_channels(data: LabData, cal: ArrayCalibration, total: TotalFie
 
 
 def residual_channels(data: LabData, cal: ArrayCalibration, total: TotalField) -> dict[str, np.ndarray]:
-    """CONTRACTS §3 channels: s<k>.scalar = |corrected| − F, and for arrays s<k>-s1.<axis>."""
+    """The residual channels of docs/contracts.md: s<k>.scalar = |corrected| − F, and for arrays s<k>-s1.<axis>."""
     return dict(iter_residual_channels(data, cal, total))
 
 
@@ -265,7 +265,7 @@ def rms_all(arrays: list[np.ndarray | Reduced]) -> float:
 
 def contract_json(cal: ArrayCalibration, channels: dict[str, np.ndarray], probe_names: list[str],
                   coverages: list[Any] | None = None, warnings: list[str] | None = None) -> dict[str, Any]:
-    """`fluxcal fit --json`: CONTRACTS §3, and what the text shows besides (docs/contracts.md): standard
+    """`fluxcal fit --json`: docs/contracts.md: its keys and what the text shows besides: standard
     errors, named parameters, the model order, the coverage about each fitted offset, and warnings."""
     diff = [v for k, v in channels.items() if not k.endswith(".scalar")]
     sensors = []

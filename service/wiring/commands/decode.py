@@ -229,7 +229,7 @@ class _AtomicFile:
 
 
 class _CsvWriter:
-    """CONTRACTS.md section 1 columns plus seq and flags, rows written block by block."""
+    """The columns of docs/csv.md plus seq and flags, rows written block by block."""
 
     def __init__(self, path: Path, n: int, t_format: str) -> None:
         self.n = n

@@ -2,7 +2,7 @@
 
 Compares the model (a linear calibration plus the named effects) with the measurement, says where
 it fails and which catalogue effect is missing (service.numerics.diagnose). With --json, one JSON object
-on stdout (CONTRACTS.md §3); otherwise a readable summary. A progress bar goes to stderr when it is
+on stdout (docs/contracts.md); otherwise a readable summary. A progress bar goes to stderr when it is
 a terminal. --calibration holds that linear calibration fixed (the model compared is that file's linear part
 plus the effects: --effects, else those the file names, their parameters refitted); without it the
 linear part is refitted to DATA. --config gives the probe

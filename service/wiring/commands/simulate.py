@@ -1,6 +1,6 @@
 """`fluxcal simulate [--config FILE] --out FILE.csv|FILE.mcap`: write simulated unit data and its truth.
 
-The CSV is the lab format of CONTRACTS.md section 1 (comments first, then t, s<k>_x/y/z, s<k>_temp,
+The CSV is the lab format of docs/csv.md (comments first, then t, s<k>_x/y/z, s<k>_temp,
 ref_total, seq, flags); the truth JSON beside it (FILE.truth.json) holds every parameter of the world,
 each probe's calibration matrix and offset included (drivers.sim.world.World.truth). Both files
 appear complete or not at all. Without --config the built-in gradiometer world is used
