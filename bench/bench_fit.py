@@ -23,7 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from drivers.sim.config import load_sim_config  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
-from service.numerics.calib.ellipsoid import fit_ellipsoid, normalise, quadric_design  # noqa: E402
+from service.numerics.calib.ellipsoid import fit_ellipsoid
+from service.numerics.calib.quadric import normalise, quadric_design
 
 
 def main() -> None:

@@ -71,11 +71,12 @@ def make_samples(seconds: float):
 
 
 def bench_replay(tmp: Path, seconds: float) -> None:
-    from service.wiring.config import config_from_dict
     import tomllib
-    from service.io.recordings.writer import McapLogger
-    from service.wiring.daemon import build_pipeline
+
     from service.io.recordings.reader import read_recording
+    from service.io.recordings.writer import McapLogger
+    from service.wiring.config import config_from_dict
+    from service.wiring.daemon import build_pipeline
 
     cfg, unit, s = make_samples(seconds)
     block = s.to_block()
@@ -157,6 +158,7 @@ def floor_parts(block: SampleBlock, t_bare: float) -> None:
     chunks, the correction with its differences and tensor, and the raw and corrected streams compressed with
     lz4 as the logger writes them. Their sum against the 2 x bare that a 0.5x ratio allows."""
     import lz4.frame
+
     from drivers.encoding import encode_raw
     from service.io.encoding import encode_corrected
     from service.numerics.calib.rls import RlsEllipsoid

@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 
 from drivers.errors import ConfigError, DataError
 from service.io.calfile import calibration_from_json
-from service.wiring.config import config_from_dict
 from service.io.recordings.labdata import load_csv
+from service.wiring.config import config_from_dict
 
 SETTINGS = settings(max_examples=int(__import__("os").environ.get("FLUXCAL_PROPERTY_EXAMPLES", "150")), deadline=None,
                     derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])

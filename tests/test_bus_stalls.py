@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_zenoh_security import free_port
 
 from drivers.block import SampleBlock
 from service.io.bus import ServiceBus, ZenohConfig
-from test_zenoh_security import free_port
 
 SUBSCRIBER = """
 import json, os, sys, time

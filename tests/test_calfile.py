@@ -7,12 +7,12 @@ import os
 
 import numpy as np
 import pytest
+from paper_sims import paper001
 
 from drivers.errors import DataError
-from paper_sims import paper001
 from service.io import calfile
-from service.numerics.calib.alignment import align_rotation
 from service.io.calfile import FORMAT, VERSION, load_calibration, save_calibration
+from service.numerics.calib.alignment import align_rotation
 from service.numerics.calib.model import ArrayCalibration, scalar_residual_summary
 from service.numerics.calib.tmi import fit_tmi
 

@@ -11,8 +11,8 @@ import pytest
 from drivers.errors import CalibrationRefused, DataError
 from drivers.sim.config import load_sim_config
 from drivers.sim.world import World
-from service.numerics.calib.alignment import align_probes, angles_from_rotation, rotation_from_angles
 from service.io.calfile import load_calibration, save_calibration
+from service.numerics.calib.alignment import align_probes, angles_from_rotation, rotation_from_angles
 from service.numerics.calib.coverage import coverage
 from service.numerics.calib.ellipsoid import fit_ellipsoid
 from service.numerics.calib.model import ArrayCalibration

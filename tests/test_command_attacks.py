@@ -22,10 +22,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from certs import Authority
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_recording import service_config
+from test_zenoh_security import free_port
 
-from certs import Authority
 from drivers.errors import DataError
 from service.io.bus import BusClient, ZenohConfig, ZenohTlsConfig
 from service.io.calfile import calibration_to_dict, load_calibration
@@ -33,8 +35,6 @@ from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 from service.wiring.config import load_config
 from service.wiring.daemon import Daemon, build_pipeline
 from service.wiring.startcal import calibration_from_payload
-from test_recording import service_config
-from test_zenoh_security import free_port
 
 NAMES = ["s1", "s2"]
 

@@ -13,10 +13,10 @@ import pytest
 
 from drivers.block import SampleBlock
 from drivers.sim import Unit, load_sim_config
-from service.wiring import cli
 from service.numerics.diagnose import diagnose, summary_text
 from service.numerics.effects import EFFECTS
 from service.numerics.effects.base import EffectData
+from service.wiring import cli
 
 F_TOTAL = 51500.0
 RMS_OVER_NOISE = 1.2            # "with it added, rms falls to within 20 % of the noise floor"

@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_diagnose import TUMBLE, data_of, probe
 
 from drivers.sim import Unit, load_sim_config
 from service.numerics.diagnose import diagnose, summary_text
-from test_diagnose import TUMBLE, data_of, probe
 
 F_TOTAL = 51500.0
 

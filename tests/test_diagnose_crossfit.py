@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_diagnose import TUMBLE, data_of, probe, sim_block
 
 import service.numerics.effects.hysteresis as hysteresis
 from service.numerics.diagnose import diagnose, summary_text
-from test_diagnose import TUMBLE, data_of, probe, sim_block
 
 #: test_perming_step's jump: a private forward model adds it to probe 2's offset at 61.7 s
 JUMP = np.array([6.0, -4.0, 3.0])

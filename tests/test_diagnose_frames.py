@@ -9,11 +9,11 @@ import json
 
 import numpy as np
 import pytest
+from test_diagnose import F_TOTAL, TUMBLE, data_of, probe, sim_block
 
 from drivers.sim import Unit, load_sim_config
 from service.numerics.diagnose import diagnose, summary_text
 from service.numerics.diagnose.frames import _rotation_part, frames
-from test_diagnose import F_TOTAL, TUMBLE, data_of, probe, sim_block
 
 G = [[25.0, 6.0, -8.0], [6.0, -15.0, 5.0], [-8.0, 5.0, -10.0]]
 

@@ -7,9 +7,9 @@ from __future__ import annotations
 import json
 
 import pytest
+from test_real_sensors import REAL, needs_real
 
 from service.wiring.cli import main
-from test_real_sensors import REAL, needs_real
 
 NAMES = ["qmc5883l_suarez", "imu_freeimucal", "hmc5883l_sensorfusion_sphere"]
 TURNS = {"hmc5883l_nliaudat": "z", "hmc5883l_sensorfusion_turn_x": "x", "hmc5883l_sensorfusion_turn_y": "y",

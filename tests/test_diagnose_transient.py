@@ -9,6 +9,7 @@ import json
 
 import numpy as np
 import pytest
+from test_diagnose import F_TOTAL, TUMBLE, probe
 
 from drivers.sim import Unit, load_sim_config
 from service.numerics.diagnose import diagnose, summary_text
@@ -17,7 +18,6 @@ from service.numerics.effects.base import EffectData
 from service.numerics.effects.hysteresis import Hysteresis
 from service.numerics.engine.solve import Parameter
 from service.wiring.cli import main
-from test_diagnose import F_TOTAL, TUMBLE, probe
 
 BUMP = (140.0, 148.0)             # s: where the disturbance is
 
@@ -142,8 +142,9 @@ def test_skip_leaves_the_stretch_out_and_says_so(tmp_path, capsys):
 def test_a_named_effect_whose_fit_stopped_early_is_said_not_final(monkeypatch):
     """Candidates are fitted in a few iterations (a fit stopped early understates the gain: conservative); the one
     the verdict names then has figures that are not final, and the notes say so (a flight's platform field did)."""
-    import service.numerics.diagnose.fits as fits
     from test_diagnose import CASES, data_of, sim_block
+
+    import service.numerics.diagnose.fits as fits
 
     case = CASES["eddy"]
     data = data_of(sim_block(case["probes"], n=case["n"], rate=case["rate"], motion=case["motion"], seed=7),

@@ -14,8 +14,18 @@ from hypothesis import strategies as st
 
 from drivers.block import SampleBlock
 from drivers.errors import DataError
-from service.io.encoding import (CORRECTED_LAYOUT, RAW_LAYOUT, decode_corrected, decode_json, decode_raw,
-                              encode_corrected, encode_json, encode_raw, health_record, json_ready)
+from service.io.encoding import (
+    CORRECTED_LAYOUT,
+    RAW_LAYOUT,
+    decode_corrected,
+    decode_json,
+    decode_raw,
+    encode_corrected,
+    encode_json,
+    encode_raw,
+    health_record,
+    json_ready,
+)
 from service.numerics.outputs import CorrectedBlock
 
 # bit patterns that a float conversion would change: quiet and signalling NaNs with payloads,

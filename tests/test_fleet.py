@@ -78,7 +78,7 @@ def test_the_fleet_counts_warnings_as_data_whatever_their_wording(fleet_dir, mon
 
     monkeypatch.setattr(prepare, "skip_spans", reworded)
     from service.wiring.commands.fit import FitOptions
-    from service.wiring.fleet import job_for, run_one                # what each worker runs, here in-process
+    from service.wiring.fleet import job_for, run_one  # what each worker runs, here in-process
     from service.wiring.fleet_summary import summary_json
 
     results = [run_one(job_for("fit", str(p), FitOptions(), {})) for p in sorted(fleet_dir.glob("grad-1*.csv"))]

@@ -29,10 +29,10 @@ import pytest
 
 from drivers import icd
 from drivers.assemble import FrameAssembler, SerialFramer
-from drivers.plausibility import Plausibility
 from drivers.block import FLAG_IMPLAUSIBLE, FLAG_TEMP_INVALID, SampleBlock
 from drivers.config import load_section
 from drivers.errors import ConfigError
+from drivers.plausibility import Plausibility
 from drivers.serial_source import SerialConfig
 from drivers.sim import FaultRecord, Unit, load_sim_config
 from drivers.sim.unit import FLAG_RESERVED_SIM

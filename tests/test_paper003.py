@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from sims_003_004 import P003_CURVES, P003_TABLE1, paper003
 
 from drivers.errors import CalibrationRefused
 from service.numerics.calib.sinefit import fit_sine_nonorthogonality, fit_sinefit
-from sims_003_004 import P003_CURVES, P003_TABLE1, paper003
 
 TRUTH = (1.5, 32.5, 1.7)
 

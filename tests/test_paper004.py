@@ -12,11 +12,11 @@ import itertools
 
 import numpy as np
 import pytest
+from sims_003_004 import P004_TOTAL_NT, attitude, heading_error_deg, paper004, tilt_compensated_heading_deg
 
 from drivers.errors import CalibrationRefused
 from service.numerics.calib.model import ProbeCalibration
 from service.numerics.calib.twostep import align_pca, fit_two_step, fit_two_step_full, orthogonality_correction
-from sims_003_004 import (P004_TOTAL_NT, attitude, heading_error_deg, paper004, tilt_compensated_heading_deg)
 
 
 def fit(sim, **kw):

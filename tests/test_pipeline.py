@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from drivers.block import SampleBlock
 from drivers.sim.config import load_sim_config
 from service.numerics.calib.ellipsoid import fit_ellipsoid
 from service.numerics.calib.model import ArrayCalibration
 from service.wiring.pipeline import Pipeline
-from drivers.block import SampleBlock
 
 
 def block_of(world_cfg: dict) -> SampleBlock:

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
-
-from service.io.bus import BusClient, ZenohConfig
 from test_recording import service_config
 from test_zenoh_security import free_port
+
+from service.io.bus import BusClient, ZenohConfig
 
 
 def _config(tmp_path: Path) -> tuple[str, str]:

@@ -124,9 +124,9 @@ def test_a_recording_from_before_the_rate_key_replays_as_its_live_run_did(tmp_pa
 
     from drivers.sim.config import load_sim_config
     from drivers.sim.source import SimSource
-    from service.wiring.cli import main
-    from service.io.recordings.writer import McapLogger
     from service.io.recordings.reader import concat_corrected, read_recording
+    from service.io.recordings.writer import McapLogger
+    from service.wiring.cli import main
 
     src = SimSource(load_sim_config({"duration_s": 20.0, "rate_hz": 200.0, "motion": {"kind": "tumble", "rate_deg_s": 40.0},
                                      "probes": [{}, {"offset_nT": [30, 0, 0]}]}),

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from service.io.recordings.reader import read_recording
+from service.io.recordings.runs import expand_inputs
 from service.io.recordings.writer import McapLogger
 from service.wiring import cli
-from service.io.recordings.runs import expand_inputs
 
 REPO = Path(__file__).resolve().parents[1]
 LIVE = REPO / "recordings" / "grad1-sim-30s.mcap"        # `fluxcal run`: estimator.total_nT = 52500 stored

@@ -13,8 +13,13 @@ from drivers.block import FLAG_SATURATED, FLAG_TEMP_INVALID
 from drivers.errors import ConfigError
 from drivers.sim import Unit, World, load_sim_config
 from drivers.sim.config import GRADIOMETER
-from drivers.sim.motion import (attitude_from_euler_deg, geomagnetic_field_nT, misalignment_matrix,
-                               nonorthogonality_matrix, rotation)
+from drivers.sim.motion import (
+    attitude_from_euler_deg,
+    geomagnetic_field_nT,
+    misalignment_matrix,
+    nonorthogonality_matrix,
+    rotation,
+)
 
 F, INC, DEC = 50000.0, 62.0, -4.0
 

@@ -12,8 +12,8 @@ import pytest
 
 from drivers.sim import Unit, load_sim_config
 from drivers.sim.config import GRADIOMETER
-from service.wiring.cli import main as cli
 from service.io.recordings.labdata import load_csv
+from service.wiring.cli import main as cli
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -145,7 +145,14 @@ def test_example_config_sections_validate(name):
     from drivers.can_source import CanConfig
     from drivers.config import load_section
     from drivers.serial_source import SerialConfig
-    from service.wiring.config import CalibrationConfig, EstimatorConfig, McapConfig, ProbeConfig, SimSourceConfig, UnitConfig
+    from service.wiring.config import (
+        CalibrationConfig,
+        EstimatorConfig,
+        McapConfig,
+        ProbeConfig,
+        SimSourceConfig,
+        UnitConfig,
+    )
 
     raw = tomllib.loads((CONFIGS / name).read_text())
     source_cls = {"sim": SimSourceConfig, "serial": SerialConfig, "can": CanConfig}[raw["source"]["kind"]]

@@ -6,12 +6,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from test_recording import service_config
 
 from service.io.recordings.reader import read_recording
 from service.wiring.config import load_config
 from service.wiring.daemon import Daemon
 from service.wiring.sinks import Sink
-from test_recording import service_config
 
 
 class Counting(Sink):

@@ -136,8 +136,8 @@ def test_fit_offsets_standard_errors_cover_the_record_truth_under_one_over_f_noi
     offset_noise.py), both probes' offsets (ellipsoid, regression) and probe 1's angles and scale factors within
     1.5 on six seeds (measured: offsets 0.86 and 1.03, shape 0.96 and 1.00), and the warning says what the
     figure covers and how far the offsets wander beyond the record."""
-    from service.numerics.calib.ellipsoid import triangular_factor
     from service.numerics.calib.model import triangular_params
+    from service.numerics.calib.quadric import triangular_factor
 
     z, z_shape = [], []
     for seed in range(6):

@@ -8,8 +8,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.errors import ConfigError
-from service.numerics.calib.tensor import (center_field, cross_positions, differences, invariants, measured_components,
-                                  tensor_from_cross, tensor_from_positions)
+from service.numerics.calib.tensor import (
+    center_field,
+    cross_positions,
+    differences,
+    invariants,
+    measured_components,
+    tensor_from_cross,
+    tensor_from_positions,
+)
 from service.numerics.outputs import CorrectedBlock
 
 

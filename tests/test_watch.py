@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from drivers.block import SampleBlock
-from service.wiring.cli import main as cli_main
-from service.wiring.commands.watch import Dashboard, dashboard_endpoints
-from service.numerics.outputs import CorrectedBlock
 from service.io.bus import Message, Series, ServiceBus, ZenohConfig
+from service.numerics.outputs import CorrectedBlock
+from service.wiring.cli import main as cli_main
+from service.wiring.commands.watch import TerminalView, dashboard_endpoints
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -162,8 +162,9 @@ def test_watch_usage_errors_exit_2_with_a_message(argv, message, capsys):
 
 
 def test_watch_takes_endpoint_and_unit_from_the_service_config():
-    from service.wiring.commands.watch import _resolve
     import argparse
+
+    from service.wiring.commands.watch import _resolve
 
     args = argparse.Namespace(config=str(REPO / "configs" / "sim-gradiometer.toml"), connect=None, unit=None,
                               seconds=None)
@@ -175,7 +176,7 @@ def test_watch_takes_endpoint_and_unit_from_the_service_config():
 
 def test_terminal_frame_redraws_in_place_with_every_panel():
     now = [100.0]
-    dash = Dashboard("u1", ["tcp/127.0.0.1:7447"], clock=lambda: now[0])
+    dash = TerminalView("u1", ["tcp/127.0.0.1:7447"], clock=lambda: now[0])
     dash.connected = True
     cb = corrected_block(0)
     dash.update(Message("corrected", "fluxcal/u1/corrected", cb))
@@ -199,7 +200,7 @@ def test_terminal_frame_redraws_in_place_with_every_panel():
 
 
 def test_not_usable_yet_shows_the_gate_reasons_and_the_raw_vectors():
-    dash = Dashboard("u1", ["tcp/127.0.0.1:7447"])
+    dash = TerminalView("u1", ["tcp/127.0.0.1:7447"])
     dash.connected = True
     raw = SampleBlock(t_s=np.zeros(1), seq=np.zeros(1, np.int64), field_nT=np.array([[[10.0, 20.0, 30.0]]]),
                       temp_C=np.zeros((1, 1)), flags=np.zeros(1, np.uint8))
@@ -248,7 +249,7 @@ def test_a_check_without_a_candidate_says_there_is_no_residual_yet():
               "several axes")
     st = {"usable": True, "cal_id": 1, "method": "rls", "probe_names": ["s1", "s2"],
           "gate": {"usable": False, "reasons": [reason], "coverage": None, "condition": None, "rms_nT": []}}
-    dash = Dashboard("u1", ["tcp/127.0.0.1:7447"])
+    dash = TerminalView("u1", ["tcp/127.0.0.1:7447"])
     dash.connected = True
     dash.update_state(st)
     text = dash.calibration_summary()

@@ -17,11 +17,19 @@ import pytest
 from drivers.block import SampleBlock
 from drivers.config import load_section
 from drivers.errors import ConfigError, DataError
-from service.numerics.outputs import CorrectedBlock
 from service.io.bus import (
-    BusClient, BusError, Keys, ServiceBus, ZenohConfig, decode_series, discover_units, encode_series,
-    make_zenoh_config, open_session,
+    BusClient,
+    BusError,
+    Keys,
+    ServiceBus,
+    ZenohConfig,
+    decode_series,
+    discover_units,
+    encode_series,
+    make_zenoh_config,
+    open_session,
 )
+from service.numerics.outputs import CorrectedBlock
 
 
 def free_port() -> int:

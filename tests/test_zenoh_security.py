@@ -19,17 +19,23 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
-
 from certs import Authority
+
 from drivers.block import SampleBlock
 from drivers.config import load_section
 from drivers.errors import ConfigError
-from service.wiring.cli import main as cli_main
 from service.io.bus import (
-    BusClient, BusError, ServiceBus, ZenohAccessConfig, ZenohConfig, ZenohTlsConfig, discover_units,
-    make_zenoh_config, open_session,
+    BusClient,
+    BusError,
+    ServiceBus,
+    ZenohAccessConfig,
+    ZenohConfig,
+    ZenohTlsConfig,
+    discover_units,
+    make_zenoh_config,
+    open_session,
 )
+from service.wiring.cli import main as cli_main
 
 UNIT = "grad1"
 

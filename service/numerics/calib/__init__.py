@@ -18,9 +18,16 @@ from .alignment import (
                         rotation_from_angles,
                         rotation_from_samples,
 )
-from .ellipsoid import EllipsoidFit, fit_ellipsoid, triangular_factor
-from .model import (ArrayCalibration, ProbeCalibration, sensor_scale, triangular_matrix, triangular_params,
-                    unit_column_split)
+from .ellipsoid import EllipsoidFit, fit_ellipsoid
+from .model import (
+                        ArrayCalibration,
+                        ProbeCalibration,
+                        sensor_scale,
+                        triangular_matrix,
+                        triangular_params,
+                        unit_column_split,
+)
+from .quadric import triangular_factor
 from .tensor import (
                         center_field,
                         cross_positions,

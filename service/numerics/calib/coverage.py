@@ -29,8 +29,8 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused
 
-from .ellipsoid import MAX_CONDITION, MIN_SAMPLES, gram_condition, normalise, quadric_design
 from .excitation import PLANARITY_MIN, planarity
+from .quadric import MAX_CONDITION, MIN_SAMPLES, gram_condition, normalise, quadric_design
 
 _DIRS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)],
                  dtype=float)

@@ -34,9 +34,9 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused
 
-from .ellipsoid import _as_total, quadric_design, quadric_to_calibration_many
 from .model import triangular_params_many
 from .order import EXPANSIONS
+from .quadric import as_total, quadric_design, quadric_to_calibration_many
 
 #: cells per cube-face edge: 6 × 3² = 54 regions of directions
 DIRECTION_CELLS = 3
@@ -120,7 +120,7 @@ def region_jackknife(field_nT: np.ndarray, total_nT, order: str, offset_nT: np.n
     scale = float(np.sqrt(sum(float(np.sum((raw[a:a + CHUNK_ROWS] - center) ** 2)) for a in range(0, n, CHUNK_ROWS))
                           / max(n, 1))) or 1.0
     known = total_nT is not None
-    f = _as_total(total_nT, n, raw)[0] if known else None
+    f = as_total(total_nT, n, raw)[0] if known else None
     use_delta = f is not None and float(np.std(f)) > 1.0    # as solve_quadric: the δ column only for a varying F
     delta = (f ** 2 - float(np.mean(f ** 2))) / scale ** 2 if use_delta else None
     t = EXPANSIONS[order]

@@ -40,14 +40,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..engine.coloured import binned_fft, power_law_spectrum
-from .ellipsoid import (
-    normalise,
-    quadric_design,
-    quadric_to_calibration,
-    unit_volume_total,
-)
 from .model import triangular_params
 from .order import EXPANSIONS
+from .quadric import normalise, quadric_design, quadric_to_calibration, unit_volume_total
 
 
 def ellipsoid_weights(raw: np.ndarray, offset: np.ndarray, matrix: np.ndarray, order: str = "full",

@@ -37,8 +37,8 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused, DataError, NotCalibratedError
 
-from .ellipsoid import N_GEOMETRY, N_PARAMS, jacobian_se_many, quadric_to_calibration, quadric_to_calibration_many
 from .model import ProbeCalibration, named
+from .quadric import N_GEOMETRY, N_PARAMS, jacobian_se_many, quadric_to_calibration, quadric_to_calibration_many
 from .rls_info import Estimates, Information
 
 

@@ -10,7 +10,7 @@ from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
 from drivers.errors import DataError
 
-from .ellipsoid import N_GEOMETRY, normalise, quadric_design, quadric_to_calibration, unit_volume_total
+from .quadric import N_GEOMETRY, normalise, quadric_design, quadric_to_calibration, unit_volume_total
 
 
 def finite_rows(field: np.ndarray) -> np.ndarray:

@@ -54,8 +54,8 @@ from scipy.optimize import minimize_scalar
 
 from drivers.errors import CalibrationRefused
 
-from .ellipsoid import finite_rows, jacobian_se
 from .model import ProbeCalibration, named
+from .quadric import finite_rows, jacobian_se
 
 #: largest gap in table angle (mod 360°) a fit accepts: beyond it the sine and the constant blur
 MAX_ANGLE_GAP_DEG = 120.0

@@ -39,8 +39,9 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused
 
-from .ellipsoid import MAX_CONDITION, MIN_SAMPLES, jacobian_se, quadric_matrix, solve_quadric
+from .ellipsoid import solve_quadric
 from .model import ProbeCalibration, named, triangular_params
+from .quadric import MAX_CONDITION, MIN_SAMPLES, jacobian_se, quadric_matrix
 
 #: names of the ten coefficients of eq. 15, in order
 V_TERMS = ("Bx", "By", "Bz", "Bx2", "By2", "Bz2", "BxBy", "BxBz", "ByBz", "1")

@@ -37,8 +37,9 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused, DataError
 
-from .ellipsoid import finite_rows, fit_ellipsoid
+from .ellipsoid import fit_ellipsoid
 from .model import ProbeCalibration, named
+from .quadric import finite_rows
 
 _AXIS = "xyz"
 #: the turn's axial raw component must be at least this share of |h_s| for the sign assumption

@@ -9,7 +9,7 @@ errors, warm starts), starting values (start.py), and the public entry, `fit_wit
 from service.numerics.channels import channel_names
 from service.numerics.noise import channel_noise
 
-from .channels import Channels
+from .residuals import Channels
 from .linear import LinearCalibration
 from .model_fit import EffectsFit, fit_model, fit_with_effects, residual_hints
 from .problem import Problem, as_effect_data, reference_total

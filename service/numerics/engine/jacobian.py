@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .channels import _Eval
+from .residuals import _Eval
 from .state import _SYM, State, _Slot
 
 #: bytes of one chunk of Jacobian rows (3 rows per sample, 8 bytes per column): well under glibc's 32 MiB

@@ -9,9 +9,10 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from drivers.errors import CalibrationRefused
+from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 from service.numerics.effects.base import REF_PREFIX, Baseline, EffectData, Model
 
-from .channels import Channels
+from .residuals import Channels
 from .linear import LinearCalibration
 from .problem import Problem, as_effect_data, reference_total
 from .solve import FitResult, Parameter, fit_problem
@@ -42,11 +43,7 @@ class EffectsFit:
         """A service.numerics.calib.model.ArrayCalibration: the linear part with offset standard errors, the
         effect names and `effect_params` {effect: {name: {"value", "se", "unit"}}} (a term's constants with
         "fixed": true: held at their value, not fitted), plus the fit's
-        RMS in `diagnostics`. (The plain LinearCalibration if the calibration core is missing.)"""
-        try:
-            from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
-        except Exception:                                     # noqa: BLE001 - optional collaborator
-            return LinearCalibration(self.offset_nT.copy(), self.matrix.copy())
+        RMS in `diagnostics`."""
         probes = [ProbeCalibration(n, self.offset_nT[k].copy(), self.matrix[k].copy(), self.offset_stderr_nT[k].copy())
                   for k, n in enumerate(self.probe_names)]
         effect_params: dict[str, Any] = {}

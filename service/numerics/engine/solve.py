@@ -12,7 +12,7 @@ import numpy as np
 
 from service.numerics.effects.base import Model
 
-from .channels import Channels, _Eval
+from .residuals import Channels, _Eval
 from .jacobian import _Jac
 from .problem import Problem
 from .state import State

@@ -7,7 +7,9 @@ import warnings
 
 import numpy as np
 
-from service.numerics.calib.ellipsoid import algebraic_ellipsoid
+from drivers.errors import CalibrationRefused
+from service.numerics.calib.ellipsoid import fit_ellipsoid
+from service.numerics.calib.quadric import algebraic_ellipsoid
 from service.numerics.effects.base import EffectData, Model
 from service.numerics.noise import channel_noise
 
@@ -19,18 +21,14 @@ NOISE_FLOOR_NT = 1e-3
 
 
 def initial_linear(data: EffectData, reference_nT: np.ndarray | float | None) -> LinearCalibration:
-    """A starting linear calibration: an ellipsoid per probe (service.numerics.calib when present), then each
+    """A starting linear calibration: an ellipsoid per probe (service.numerics.calib.ellipsoid), then each
     probe regressed onto probe 1 ([TwoFluxgate] eq. 10-16) for the alignment. Gauss-Newton refines it."""
     f_total = None if reference_nT is None else float(np.median(reference_nT))
     offs, mats = [], []
-    try:
-        from service.numerics.calib.ellipsoid import fit_ellipsoid  # the calibration core, when it exists
-    except Exception:                                          # noqa: BLE001 - optional collaborator
-        fit_ellipsoid = None
     for k in range(data.n_probes):
         raw = data.raw_nT[:, k, :]
         o = m = None
-        if fit_ellipsoid is not None and reference_nT is not None:
+        if reference_nT is not None:
             try:
                 # refuses planar data (a single-axis turn): then our own start, which GN refines
                 with warnings.catch_warnings(), np.errstate(all="ignore"):
@@ -39,7 +37,7 @@ def initial_linear(data: EffectData, reference_nT: np.ndarray | float | None) ->
                 cal = getattr(res, "calibration", res)
                 o = np.asarray(cal.offset_nT, dtype=np.float64).reshape(3)
                 m = np.asarray(cal.matrix, dtype=np.float64).reshape(3, 3)
-            except Exception:                                  # noqa: BLE001 - fall back to our own start
+            except (CalibrationRefused, np.linalg.LinAlgError):   # planar data: our own start, GN refines it
                 o = m = None
         if o is None or not np.all(np.isfinite(m)):
             o, m = algebraic_ellipsoid(raw, f_total)

@@ -16,7 +16,7 @@ COMMANDS: dict[str, str] = {
     "simulate": "write simulated unit data",
     "decode": "turn a serial capture or CAN log into data (CSV or MCAP) for fit and diagnose",
     "command": "send the running service a command, or ask its state",
-    "watch": "terminal dashboard of a running service",
+    "watch": "terminal view of a running service",
     "dashboard": "web dashboard of running units",
     "foxglove": "live bridge for the Foxglove app",
 }

@@ -1,4 +1,4 @@
-"""`fluxcal watch [--config F | --connect ENDPOINT] [--unit NAME] [--seconds S]`: a terminal dashboard.
+"""`fluxcal watch [--config F | --connect ENDPOINT] [--unit NAME] [--seconds S]`: a terminal view.
 
 Connects to a running `fluxcal run` as a Zenoh client (directly to its listen endpoint, or to the
 router it is connected to) and shows, refreshed 4 times a second: the corrected vector and |B| of
@@ -48,7 +48,7 @@ STATE_EVERY_S = 2.0            # how often the calibration state is queried
 STREAMS = ("raw", "corrected", "diff", "tensor", "calibration", "health", "error")
 
 
-HELP = CommandHelp("terminal dashboard of a running service: each probe's field and |B|, the error "
+HELP = CommandHelp("terminal view of a running service: each probe's field and |B|, the error "
                    "against the noise, cal= the quality gate (usable or not; `fluxcal command state` says why), "
                    "cov= the share of field directions seen; one line a second when not on a terminal",
                    "  fluxcal watch --connect tcp/127.0.0.1:7447\n  fluxcal watch --config configs/sim-gradiometer.toml")
@@ -176,8 +176,8 @@ def _gate_parts(gate: dict[str, Any] | None) -> list[str]:
             f"residual [{rms_txt}] nT"]
 
 
-class Dashboard:
-    """What the dashboard knows (updated from messages) and how it draws it; no I/O here."""
+class TerminalView:
+    """What `fluxcal watch` shows on the terminal (updated from messages) and how it draws it; no I/O here."""
 
     def __init__(self, unit: str | None, endpoints: list[str], clock: Callable[[], float] = time.monotonic) -> None:
         self.unit = unit
@@ -405,7 +405,7 @@ def run(endpoints: list[str], unit: str | None, seconds: float | None, out: Text
     period = TTY_PERIOD_S if tty else LINE_PERIOD_S
     start = time.monotonic()
     deadline = None if seconds is None else start + seconds
-    dash = Dashboard(unit, endpoints)
+    dash = TerminalView(unit, endpoints)
     session = client = alive_sub = None
     state_q: _StateQuery | None = None
     next_state = 0.0

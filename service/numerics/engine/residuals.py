@@ -1,5 +1,6 @@
-"""The residual channels (docs/contracts.md) and their one naming: s<k>.scalar, s<k>-s1.<axis>, s<k>-ref.<axis>.
-"""
+"""The residuals of one evaluation of a fit: the values of each residual channel on the fitted rows (Channels)
+and what an evaluation carries besides (_Eval). The channels' names have their one home in
+service.numerics.channels."""
 
 from __future__ import annotations
 
