@@ -167,6 +167,11 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--out", metavar="OUT.mcap", help="also record the replay here, with the initial calibration and "
                                                       "the commands, so it replays again (default: none)")
     _fleet_options(rep)
+    ins = _command(sub, "inspect", "list what a recording holds and how fit and diagnose would map it",
+                   "  fluxcal inspect flight.ulg\n  fluxcal inspect robot_bag/ --json")
+    ins.add_argument("file", metavar="FILE", help="a ROS 2 bag (.mcap, rosbag2 directory, .db3), a PX4 .ulg, an "
+                                                  "ArduPilot .bin, a fluxcal .mcap or a lab .csv")
+    ins.add_argument("--json", action="store_true", help="the inspection as JSON")
     fix = _command(sub, "repair", "copy a recording cut by a killed writer (or damaged) into a finished one",
                    "  fluxcal repair recordings/live/grad1-20261124T101500-0003.mcap fixed.mcap\n"
                    "  fluxcal repair recordings/live/ fixed/")
