@@ -6,6 +6,8 @@ TOML table strictly (drivers.config): an unknown key or a bad value is a ConfigE
     [sim]                  seed, rate_hz, duration_s, realtime, speed, lsb_nT, range_nT, seq_start, t_us_start, can_base_id
     [sim.field]            total_nT, inclination_deg, declination_deg, gradient_nT_m, drift_nT_per_h  (NED)
     [sim.reference]        enabled, noise_nT                  (scalar total-field reference, ref_total)
+    [sim.track]            enabled, latitude_deg, longitude_deg, altitude_start_m, climb_m_s, year  (a platform that
+                           climbs through the main field: the World Magnetic Model along it, and lat/lon/alt columns)
     [sim.motion]           kind = "static" | "turntable" | "tumble" | "grid", and its parameters
     [sim.temperature]      start_C, ramp_C_per_h, amplitude_C, period_s, reference_C
     [sim.faults]           wire faults (serial and CAN) and flagged samples
@@ -92,6 +94,20 @@ class ReferenceConfig:
 
     enabled: bool = spec(False)
     noise_nT: float = spec(0.01, min=0.0, max=1.0e4, doc="Gaussian noise of the reference, 1 sigma")
+
+
+@dataclass
+class TrackConfig:
+    """A platform climbing (or descending) straight up through the main field: the field at the platform origin is
+    the World Magnetic Model (pygeomag) at its position and date, in place of [sim.field]'s total, inclination and
+    declination (its gradient, drift and variation still add); the samples carry lat_deg, lon_deg, alt_m."""
+
+    enabled: bool = spec(False)
+    latitude_deg: float = spec(51.0, min=-89.0, max=89.0, doc="geodetic latitude of the climb")
+    longitude_deg: float = spec(0.0, min=-180.0, max=180.0, doc="longitude of the climb")
+    altitude_start_m: float = spec(0.0, min=-1000.0, max=800000.0, doc="height above the WGS84 ellipsoid at t = 0")
+    climb_m_s: float = spec(0.0, min=-10000.0, max=10000.0, doc="rate of climb (negative: descent)")
+    year: float = spec(2026.0, min=2010.0, max=2030.0, doc="decimal year of the flight (the model's date)")
 
 
 @dataclass
@@ -260,6 +276,7 @@ class SimConfig:
     can_base_id: int = spec(0x200, min=0, max=0x7FF, doc="CAN base identifier B (ids B + 4k + axis)")
     field: FieldConfig = spec(default_factory=FieldConfig)
     reference: ReferenceConfig = spec(default_factory=ReferenceConfig)
+    track: TrackConfig = spec(default_factory=TrackConfig)
     motion: MotionConfig = spec(default_factory=MotionConfig)
     temperature: TemperatureConfig = spec(default_factory=TemperatureConfig)
     faults: FaultConfig = spec(default_factory=FaultConfig)

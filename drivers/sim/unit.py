@@ -44,6 +44,8 @@ class UnitSamples:
     ref_total_nT: np.ndarray | None
     lsb_nT: float
     world: WorldSamples
+    #: lat_deg, lon_deg, alt_m of each sample ([sim.track]), or None
+    position: dict[str, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return int(self.index.shape[0])
@@ -78,6 +80,8 @@ class UnitSamples:
         temp = self.temp_C
         temp[(self.flags & FLAG_TEMP_INVALID) != 0] = np.nan
         extras = {} if self.ref_total_nT is None else {"ref_total": self.ref_total_nT.copy()}
+        if self.position is not None:
+            extras.update({k: v.copy() for k, v in self.position.items()})
         return SampleBlock(t_s=self.t_us / 1e6, seq=self.seq.copy(), field_nT=field,
                            temp_C=temp, flags=self.flags.copy(), extras=extras)
 
@@ -333,7 +337,7 @@ class Unit:
             t_us = np.where(k >= 0, np.rint(since * (1e6 / self.rate_hz)).astype(np.int64), t_us)
         return UnitSamples(index=index, seq=seq, t_us=t_us, counts=counts,
                            temp_raw=temp_raw, flags=flags, ref_total_nT=w.ref_total_nT, lsb_nT=self.lsb_nT,
-                           world=w)
+                           world=w, position=None if self.world.track is None else self.world.track.position(w.t_s))
 
     # -- serial ------------------------------------------------------------------------------------
     def serial_bytes(self, start: int, stop: int, *, faults: bool = True, record: FaultRecord | None = None,

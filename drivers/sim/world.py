@@ -29,7 +29,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from .config import FieldConfig, ProbeSimConfig, SimConfig, TemperatureConfig
+from .config import FieldConfig, ProbeSimConfig, SimConfig, TemperatureConfig, TrackConfig
 from .motion import (
     GridMotion,
     Motion,
@@ -62,6 +62,49 @@ from .streams import STREAM_AMBIENT, STREAM_NOISE, STREAM_PINK, STREAM_REF, Chun
 PINK_F_LO_HZ = 1e-4
 
 
+class ClimbTrack:
+    """[sim.track]: the platform's position at world time t (straight up or down from one place) and the main field
+    there, NED, from pygeomag's own GeoMag.calculate at heights TRACK_GRID_M apart, linear between them (the field's
+    curvature with height, about 12 F / R^2 = 1.5e-8 nT/m^2, makes that at most 5e-6 nT off)."""
+
+    def __init__(self, cfg: TrackConfig, duration_s: float) -> None:
+        from pygeomag import GeoMag
+
+        self.cfg = cfg
+        lo, hi = sorted((cfg.altitude_start_m, cfg.altitude_start_m + cfg.climb_m_s * max(duration_s, 0.0)))
+        heights = np.arange(lo - TRACK_GRID_M, hi + 2 * TRACK_GRID_M, TRACK_GRID_M)
+        model = GeoMag()
+        res = [model.calculate(glat=cfg.latitude_deg, glon=cfg.longitude_deg, alt=h / 1000.0, time=cfg.year)
+               for h in heights]
+        self.heights_m = heights
+        self.ned_nT = np.array([[r.x, r.y, r.z] for r in res])
+        self.model = str(model.model)
+
+    def altitude_m(self, t_s: np.ndarray) -> np.ndarray:
+        return self.cfg.altitude_start_m + self.cfg.climb_m_s * np.asarray(t_s, np.float64)
+
+    def field_nT(self, t_s: np.ndarray) -> np.ndarray:
+        """(..., 3) NED at the platform origin at world times t."""
+        h = self.altitude_m(t_s)
+        return np.stack([np.interp(h, self.heights_m, self.ned_nT[:, a]) for a in range(3)], axis=-1)
+
+    def rate_nT_s(self, t_s: np.ndarray) -> np.ndarray:
+        """(..., 3) d/dt of field_nT: the climb rate times the slope with height."""
+        h = self.altitude_m(t_s)
+        slope = np.diff(self.ned_nT, axis=0) / TRACK_GRID_M
+        i = np.clip(np.searchsorted(self.heights_m, h, side="right") - 1, 0, slope.shape[0] - 1)
+        return self.cfg.climb_m_s * slope[i]
+
+    def position(self, t_s: np.ndarray) -> dict[str, np.ndarray]:
+        t = np.asarray(t_s, np.float64)
+        return {"lat_deg": np.full(t.shape, self.cfg.latitude_deg), "lon_deg": np.full(t.shape, self.cfg.longitude_deg),
+                "alt_m": self.altitude_m(t)}
+
+
+#: heights between the track's model evaluations, m
+TRACK_GRID_M = 50.0
+
+
 @dataclass(frozen=True)
 class AmbientField:
     """B_earth(t, r) = B0 + drift_nT_per_h t / 3600 + v(t) + G^T r, NED, r from the platform origin in m;
@@ -71,9 +114,10 @@ class AmbientField:
     gradient_nT_m: np.ndarray      # (3, 3) G[i, j] = dB_j/dx_i
     drift_nT_per_h: np.ndarray     # (3,)
     variation: OneOverF | None = None
+    track: ClimbTrack | None = None
 
     @staticmethod
-    def from_config(cfg: FieldConfig, seed: int = 0) -> "AmbientField":
+    def from_config(cfg: FieldConfig, seed: int = 0, track: ClimbTrack | None = None) -> "AmbientField":
         variation = None
         if cfg.variation_nT > 0:
             f_lo, f_hi = 1.0 / cfg.variation_max_period_s, 1.0 / cfg.variation_min_period_s
@@ -81,16 +125,20 @@ class AmbientField:
             variation = OneOverF(seed, STREAM_AMBIENT, np.full(3, density), f_lo, f_hi)
         return AmbientField(vector_nT=geomagnetic_field_nT(cfg.total_nT, cfg.inclination_deg, cfg.declination_deg),
                             gradient_nT_m=np.array(cfg.gradient_nT_m, dtype=np.float64),
-                            drift_nT_per_h=np.array(cfg.drift_nT_per_h, dtype=np.float64), variation=variation)
+                            drift_nT_per_h=np.array(cfg.drift_nT_per_h, dtype=np.float64), variation=variation,
+                            track=track)
 
     def at_origin(self, t_s: np.ndarray) -> np.ndarray:
-        """(..., 3) B0 + drift t + v(t)."""
-        b = self.vector_nT + self.drift_nT_per_h * (np.asarray(t_s)[..., None] / 3600.0)
+        """(..., 3) B0 + drift t + v(t); B0 the model along [sim.track] where it is on."""
+        b0 = self.vector_nT if self.track is None else self.track.field_nT(t_s)
+        b = b0 + self.drift_nT_per_h * (np.asarray(t_s)[..., None] / 3600.0)
         return b if self.variation is None else b + self._variation(t_s, False)
 
     def rate_at(self, t_s: np.ndarray) -> np.ndarray:
         """(..., 3) dB/dt at the origin, nT/s."""
         r = np.broadcast_to(self.rate_nT_s, (*np.shape(t_s), 3))
+        if self.track is not None:
+            r = r + self.track.rate_nT_s(t_s)
         return r if self.variation is None else r + self._variation(t_s, True)
 
     def _variation(self, t_s: np.ndarray, derivative: bool) -> np.ndarray:
@@ -234,7 +282,8 @@ class World:
         self.n_probes = config.n_probes
         self.n_samples = config.n_samples
         self.motion = make_motion(config.motion, config.seed)
-        self.field = AmbientField.from_config(config.field, config.seed)
+        self.track = ClimbTrack(config.track, config.duration_s) if config.track.enabled else None
+        self.field = AmbientField.from_config(config.field, config.seed, self.track)
         self.probes = ProbeArray.from_config(config.probes)
         self.temperature = TemperatureProfile(config.temperature)
         self.effects: list[Effect] = [cls.from_config(config) for cls in EFFECTS]

@@ -99,6 +99,7 @@ def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -
     if cal.method not in ("ellipsoid", "rls", "tmi"):
         return []
     out = []
+    ref_se = None if cal.probes[0].offset_se_nT is None else np.array(cal.probes[0].offset_se_nT, float)
     for k, p in enumerate(cal.probes):
         if (cal.align == "regression" and k > 0) or p.offset_se_nT is None:
             continue
@@ -120,13 +121,23 @@ def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -
         if got is not None and got.significant:
             _say_sizes(p)
         out += said
+    if cal.align == "regression" and ref_se is not None:
+        # the regression-aligned probes inherited the reference's offset errors before these widened them: they
+        # take the widening too (an offset error of the reference moves theirs one to one, _inherit)
+        for p in cal.probes[1:]:
+            _inherit(p, cal.probes[0], before=ref_se)
     return out
 
 
-def _inherit(p: ProbeCalibration, ref: ProbeCalibration) -> None:
+def _inherit(p: ProbeCalibration, ref: ProbeCalibration, *, before: np.ndarray | None = None) -> None:
     """A regression-aligned probe's offset errors with the reference probe's carried over: an offset error
-    delta o_1 of the reference moves o_k by -A^-1 M_1 delta o_1 (skipped where the reference has none)."""
+    delta o_1 of the reference moves o_k by -A^-1 M_1 delta o_1 (skipped where the reference has none). before: the
+    reference's errors already carried over; only what they grew by since is added."""
     se = np.asarray(ref.offset_se_nT, float)
+    if before is not None:
+        se = np.sqrt(np.maximum(se ** 2 - np.asarray(before, float) ** 2, 0.0))
+        if not np.any(se > 0):
+            return
     if p.offset_se_nT is None or not np.all(np.isfinite(se)):
         return
     try:

@@ -38,7 +38,10 @@ ATTITUDE_QUATERNION = ("q_w", "q_x", "q_y", "q_z")
 #: extra columns that are bookkeeping, not observables
 #: extra columns of a reference vector: the field at the platform origin in the platform frame, nT
 REF_VECTOR = ("ref_x", "ref_y", "ref_z")
-NOT_OBSERVABLES = frozenset({"ref_total", "seq", "flags", *ATTITUDE_EULER, *ATTITUDE_QUATERNION, *REF_VECTOR})
+#: the model's field along a track, NED (service.numerics.calib.track): bookkeeping of the reference, not a logged value
+REF_DIRECTION = ("ref_north_nT", "ref_east_nT", "ref_down_nT")
+NOT_OBSERVABLES = frozenset({"ref_total", "seq", "flags", *ATTITUDE_EULER, *ATTITUDE_QUATERNION, *REF_VECTOR,
+                             *REF_DIRECTION})
 
 
 # --- the data every term looks at -------------------------------------------------------------------

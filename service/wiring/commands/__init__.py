@@ -12,6 +12,7 @@ COMMANDS: dict[str, str] = {
     "diagnose": "compare model and measurement; find the missing effect",
     "run": "run the service: source -> calibration -> Zenoh and MCAP",
     "replay": "run a recording through the same pipeline and compare with its output",
+    "inspect": "list what a recording holds and how fit and diagnose would map it",
     "repair": "copy a recording cut by a killed writer (or damaged) into a finished one",
     "simulate": "write simulated unit data",
     "decode": "turn a serial capture or CAN log into data (CSV or MCAP) for fit and diagnose",

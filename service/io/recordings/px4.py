@@ -1,0 +1,235 @@
+"""PX4 flight logs (ULog, read by pyulog) as lab data:
+
+    sensor_mag (every instance)    -> a probe s1, s2, ... (instance order): x, y, z in gauss x 1e5 = nT (PX4's unit
+                                      for sensor_mag), at timestamp_sample (else timestamp), us since boot;
+                                      its temperature -> s<k>_temp where the log has one (not all 0 or NaN)
+    vehicle_attitude q[0..3]       -> heel_deg, pitch_deg, azimuth_deg (PX4's q: FRD body -> NED, as fluxcal's)
+    vehicle_gps_position/sensor_gps-> lat_deg, lon_deg, alt_m (above the ellipsoid where logged, else MSL: said);
+                                      samples without a 3D fix left out
+    battery_status[i].current_a    -> battery_current_a (instance 0), battery<i>_current_a (A; -1: not measured)
+
+On one time base by service.numerics.merge. The date comes from the GPS's UTC time where the log has a fix.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.errors import DataError
+from service.io.recordings.formats import Inspection, StreamInfo, lab_data, missing_package, rate
+from service.io.recordings.labdata import LabData
+from service.numerics.merge import Series, merge
+
+#: PX4's sensor_mag is in gauss
+NT_PER_GAUSS = 1e5
+GPS_TOPICS = ("vehicle_gps_position", "sensor_gps")
+WANTED = ("sensor_mag", "vehicle_attitude", *GPS_TOPICS, "battery_status")
+
+
+@dataclass(frozen=True)
+class Px4Mapping:
+    """Which streams become what. mags: the sensor_mag instances to take as probes, in order (None: every one);
+    the others on or off."""
+
+    mags: Sequence[int] | None = None
+    attitude: bool = True
+    position: bool = True
+    currents: bool = True
+    temperatures: bool = True
+
+
+def _ulog(path: Path, only: Sequence[str] | None = WANTED):
+    try:
+        from pyulog import ULog
+    except ImportError:
+        raise missing_package("pyulog", "px4", "a PX4 log (ULog)") from None
+    try:
+        return ULog(str(path), list(only) if only is not None else None)
+    except Exception as e:  # noqa: BLE001 - pyulog raises bare exceptions on a damaged file
+        raise DataError(f"{path}: not a readable PX4 ULog ({type(e).__name__}: {e})") from None
+
+
+def _time_us(d: Any) -> np.ndarray:
+    t = d.data.get("timestamp_sample")
+    return np.asarray(t if t is not None and np.any(t) else d.data["timestamp"], np.int64)
+
+
+def _instances(ulog: Any, name: str) -> list[Any]:
+    return sorted((d for d in ulog.data_list if d.name == name), key=lambda d: d.multi_id)
+
+
+def _gps(ulog: Any) -> Any | None:
+    for name in GPS_TOPICS:
+        got = _instances(ulog, name)
+        if got:
+            return got[0]
+    return None
+
+
+def _position(d: Any) -> tuple[np.ndarray, np.ndarray, str]:
+    """(t_us, (n, 3) lat, lon, alt m, which altitude) of a GPS topic's samples with a 3D fix."""
+    x = d.data
+    fix = np.asarray(x.get("fix_type", np.full(len(x["timestamp"]), 3)))
+    if "latitude_deg" in x:                                            # PX4 1.14 on: degrees and metres
+        lat, lon = np.asarray(x["latitude_deg"], float), np.asarray(x["longitude_deg"], float)
+        ell, msl = x.get("altitude_ellipsoid_m"), x.get("altitude_msl_m")
+        scale = 1.0
+    else:                                                              # 1e-7 degrees and mm
+        lat, lon = np.asarray(x["lat"], float) * 1e-7, np.asarray(x["lon"], float) * 1e-7
+        ell, msl = x.get("alt_ellipsoid"), x.get("alt")
+        scale = 1e-3
+    if ell is not None and np.any(np.asarray(ell)[fix >= 3] != 0):
+        alt, which = np.asarray(ell, float) * scale, "above the WGS84 ellipsoid"
+    else:
+        alt, which = np.asarray(msl, float) * scale, "above mean sea level (no ellipsoidal height logged: the geoid's " \
+                                                    "undulation, up to about 100 m, is in it)"
+    ok = fix >= 3
+    return np.asarray(x["timestamp"], np.int64)[ok], np.column_stack([lat, lon, alt])[ok], which
+
+
+def _utc_offset_s(d: Any | None) -> float | None:
+    """UNIX time minus boot time, s, from the GPS's UTC time (None without one)."""
+    if d is None or "time_utc_usec" not in d.data:
+        return None
+    utc = np.asarray(d.data["time_utc_usec"], np.int64)
+    ok = utc > 0
+    if not ok.any():
+        return None
+    return float(np.median(utc[ok] - np.asarray(d.data["timestamp"], np.int64)[ok])) / 1e6
+
+
+def _temperature(d: Any) -> np.ndarray | None:
+    t = d.data.get("temperature")
+    if t is None:
+        return None
+    t = np.asarray(t, float)
+    return None if not np.any(np.isfinite(t) & (t != 0)) else t
+
+
+def _currents(ulog: Any) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    out = {}
+    for d in _instances(ulog, "battery_status"):
+        c = np.asarray(d.data.get("current_a", []), float)
+        ok = np.isfinite(c) & (c != -1.0)                         # -1: not measured
+        if ok.any():
+            key = "battery_current_a" if d.multi_id == 0 else f"battery{d.multi_id}_current_a"
+            out[key] = (np.asarray(d.data["timestamp"], np.int64)[ok], c[ok])
+    return out
+
+
+def load_px4(path: str | Path, mapping: Px4Mapping | None = None) -> LabData:
+    """A PX4 ULog as LabData (module docstring)."""
+    m = mapping or Px4Mapping()
+    ulog = _ulog(Path(path))
+    mags = _instances(ulog, "sensor_mag")
+    if m.mags is not None:
+        have = {d.multi_id: d for d in mags}
+        missing = [i for i in m.mags if i not in have]
+        if missing:
+            raise DataError(f"mags: instance(s) {missing} not in {path} (its sensor_mag instances: "
+                            f"{sorted(have) or 'none'})")
+        mags = [have[i] for i in m.mags]
+    if not mags:
+        raise DataError(f"{path}: no sensor_mag in the log (its topics: "
+                        f"{', '.join(sorted({d.name for d in _ulog(Path(path), None).data_list}))}): nothing to "
+                        f"calibrate (PX4 logs sensor_mag with SDLOG_PROFILE's default set)")
+    t_all = [_time_us(d) for d in mags]
+    origin = min(int(t.min()) for t in t_all if t.size)
+
+    def s(t_us: np.ndarray) -> np.ndarray:
+        return (np.asarray(t_us, np.int64) - origin) / 1e6
+
+    notes = ["sensor_mag: x, y, z taken in gauss (PX4's unit) and in the frame PX4 logs them (rotated to the "
+             "board/body frame by CAL_MAGn_ROT), as raw as PX4 logs them (before its calibration)"]
+    probes, temps, sources = [], {}, {}
+    for k, (d, t) in enumerate(zip(mags, t_all)):
+        name = f"s{k + 1}"
+        v = np.column_stack([np.asarray(d.data[a], float) for a in "xyz"]) * NT_PER_GAUSS
+        probes.append((name, Series(s(t), v, f"sensor_mag[{d.multi_id}] device {_device(d)}")))
+        sources[name] = f"sensor_mag[{d.multi_id}]"
+        temp = _temperature(d) if m.temperatures else None
+        if temp is not None:
+            temps[name] = Series(s(t), temp, f"sensor_mag[{d.multi_id}].temperature")
+            sources[f"{name}_temp"] = f"sensor_mag[{d.multi_id}].temperature"
+    columns: dict[str, Series] = {}
+    attitude = None
+    if m.attitude:
+        att = _instances(ulog, "vehicle_attitude")
+        if att:
+            q = np.column_stack([np.asarray(att[0].data[f"q[{i}]"], float) for i in range(4)])
+            attitude = Series(s(att[0].data["timestamp"]), q, "vehicle_attitude q (FRD -> NED)")
+            sources.update(dict.fromkeys(("heel_deg", "pitch_deg", "azimuth_deg"), "vehicle_attitude"))
+    gps = _gps(ulog)
+    if m.position and gps is not None:
+        t_us, pos, which = _position(gps)
+        if t_us.size:
+            for c, col in enumerate(("lat_deg", "lon_deg", "alt_m")):
+                columns[col] = Series(s(t_us), pos[:, c], f"{gps.name} (3D fix)")
+                sources[col] = gps.name
+            notes.append(f"alt_m from {gps.name}: {which}")
+    if m.currents:
+        for col, (t_us, c) in _currents(ulog).items():
+            columns[col] = Series(s(t_us), c, f"battery_status {col}")
+            sources[col] = "battery_status.current_a"
+    try:
+        merged = merge(probes, temperatures=temps, columns=columns, attitude=attitude)
+    except ValueError as e:
+        raise DataError(f"{path}: {e}") from None
+    offset = _utc_offset_s(gps)
+    if offset is None:
+        notes.append("no GPS UTC time in the log: the date of the flight is unknown")
+    return lab_data(merged, [n for n, _ in probes], path, fmt="px4", sources=sources,
+                    origin_unix_s=None if offset is None else offset + origin / 1e6, notes=notes)
+
+
+def _device(d: Any) -> str:
+    dev = d.data.get("device_id")
+    return f"{int(dev[0]):#x}" if dev is not None and len(dev) else "?"
+
+
+def inspect_px4(path: str | Path, mapping: Px4Mapping | None = None) -> Inspection:
+    """What a ULog holds (every topic instance, counts, rates) and how load_px4 would map it."""
+    m = mapping or Px4Mapping()
+    ulog = _ulog(Path(path), None)
+    mags = [d.multi_id for d in _instances(ulog, "sensor_mag")]
+    chosen = list(m.mags) if m.mags is not None else mags
+    gps = _gps(ulog)
+    currents = _currents(ulog) if m.currents else {}
+    streams = []
+    for d in sorted(ulog.data_list, key=lambda d: (d.name, d.multi_id)):
+        t = np.asarray(d.data["timestamp"], np.int64)
+        maps, note = "", ""
+        if d.name == "sensor_mag":
+            if d.multi_id in chosen:
+                k = chosen.index(d.multi_id) + 1
+                temp = _temperature(d) is not None and m.temperatures
+                maps = f"probe s{k} (gauss x 1e5 = nT)" + (f", s{k}_temp" if temp else "")
+                note = f"device {_device(d)}" + ("" if temp else "; no temperature logged")
+            else:
+                note = "not in the mapping's mags"
+        elif d.name == "vehicle_attitude" and d.multi_id == 0 and m.attitude:
+            maps = "heel_deg, pitch_deg, azimuth_deg"
+        elif gps is not None and d is gps and m.position:
+            maps = "lat_deg, lon_deg, alt_m"
+            note = f"{int(np.count_nonzero(np.asarray(d.data.get('fix_type', [3] * t.size)) >= 3)):,} with a 3D fix"
+        elif d.name == "battery_status":
+            key = "battery_current_a" if d.multi_id == 0 else f"battery{d.multi_id}_current_a"
+            maps = key if key in currents else ""
+            note = "" if maps else "current_a not measured (-1)"
+        name = d.name if d.multi_id == 0 and d.name != "sensor_mag" else f"{d.name}[{d.multi_id}]"
+        streams.append(StreamInfo(name, d.name, int(t.size), rate((t - t[:1]) / 1e6), maps, note))
+    warnings = [] if mags else ["no sensor_mag in the log: nothing to calibrate"]
+    span = (ulog.last_timestamp - ulog.start_timestamp) / 1e6
+    columns = ([f"s{k + 1}_temp" for k, i in enumerate(chosen)
+                if m.temperatures and any(_temperature(d) is not None for d in _instances(ulog, "sensor_mag")
+                                          if d.multi_id == i)]
+               + (["heel_deg", "pitch_deg", "azimuth_deg"] if m.attitude and _instances(ulog, "vehicle_attitude")
+                  else []) + (["lat_deg", "lon_deg", "alt_m"] if m.position and gps is not None else [])
+               + list(currents))
+    return Inspection(str(path), "px4-ulog", streams, [f"s{k + 1}" for k in range(len(chosen))], columns, warnings,
+                      duration_s=span)

@@ -1,0 +1,66 @@
+"""The service's corrected (and, if asked, raw) vectors as a ROS 2 bag beside its own recording: a Sink
+(sinks.py) around service.io.recordings.ros2_writer.Ros2BagWriter, for the live service and `replay --out`.
+
+    sink = Ros2BagSink.open("run_ros2", unit=cfg.unit.name, probe_names=cfg.probe_names)
+    ...                                   # the daemon (or replay) tells it on_raw / on_corrected
+    sink.close()                          # writes metadata.yaml: then `ros2 bag info run_ros2` and rosbags read it
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from drivers.block import SampleBlock
+from drivers.errors import ConfigError, RecordingError
+from service.io.recordings.ros2_writer import Ros2BagWriter
+from service.numerics.outputs import CorrectedBlock
+
+from .sinks import Sink
+
+
+class Ros2BagSink(Sink):
+    """sensor_msgs/msg/MagneticField per probe and sample into a rosbag2 directory (MCAP storage, CDR)."""
+
+    name = "ros2-bag"
+
+    def __init__(self, writer: Ros2BagWriter, *, raw: bool = False) -> None:
+        self.writer = writer
+        self.raw = raw
+
+    @classmethod
+    def open(cls, path: str | Path, *, unit: str, probe_names: list[str], raw: bool = False,
+             stamp_origin_ns: int | None = None, key: str = "--ros2-out") -> "Ros2BagSink":
+        """A new bag at path (a directory that must not exist or be empty). stamp_origin_ns: UNIX time of the unit's
+        t = 0 in ns, added to every sample time to make its header stamp (None: 0, the unit's own clock as the stamps;
+        a live run gives time.time_ns() minus its first block's t_s). ConfigError naming `key` when no bag can be
+        written there."""
+        origin = int(stamp_origin_ns) if stamp_origin_ns is not None else 0
+        try:
+            return cls(Ros2BagWriter(Path(path), unit=unit, probe_names=list(probe_names), stamp_origin_ns=origin),
+                       raw=raw)
+        except (OSError, RecordingError) as e:
+            raise ConfigError(f"{key}: {str(path)!r}: cannot write a ROS 2 bag there ({e}; allowed: a new or empty "
+                              f"directory this user can create)") from None
+
+    def on_raw(self, block: SampleBlock) -> None:
+        if self.raw:
+            self.writer.write_raw(block)
+
+    def on_corrected(self, block: CorrectedBlock) -> None:
+        self.writer.write_corrected(block)
+
+    def status(self) -> dict[str, Any] | None:
+        return None            # the recorder's status is the MCAP recording's (Sinks.recording takes the first)
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+def replay_ros2_sink(out: str | Path, cfg: Any, *, raw: bool = False, origin_unix_s: float | None = None) -> Ros2BagSink:
+    """The sink `replay --ros2-out DIR` tells of every replayed block (on_raw, on_corrected) and closes at the end:
+    stamps are the unit's sample times plus origin_unix_s (the recording's start in UNIX time where it is known;
+    else the unit's clock as it is, said by the stamps starting near 0)."""
+    origin = None if origin_unix_s is None else int(round(origin_unix_s * 1e9))
+    return Ros2BagSink.open(out, unit=cfg.unit.name, probe_names=list(cfg.probe_names), raw=raw,
+                            stamp_origin_ns=origin)
