@@ -15,10 +15,11 @@ import pytest
 
 pytest.importorskip("pymavlink", reason="the ArduPilot reader's optional package: pip install 'fluxcal[ardupilot]'")
 
-from drivers.errors import DataError
 from flightlogs import CURRENT_COUPLING_NT_A, simulated_flight, write_dataflash
+
+from drivers.errors import DataError
 from service.io.recordings.ardupilot import ArduPilotMapping, inspect_ardupilot
-from service.io.recordings.labdata import load_data
+from service.io.recordings.load import load_data
 from service.wiring import cli
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -21,7 +21,8 @@ from drivers.config import MAX_CONFIG_BYTES, read_toml
 from drivers.errors import ConfigError, DataError
 from drivers.ringbuffer import RingBuffer
 from drivers.sim.config import MAX_RUN_SAMPLES, load_sim_config
-from service.io.recordings.labdata import MAX_MAGNITUDE, load_csv, load_data
+from service.io.recordings.labdata import MAX_MAGNITUDE, load_csv
+from service.io.recordings.load import load_data
 from service.wiring.cli import _sigterm_to_keyboard_interrupt, main
 from service.wiring.config import WINDOW_BUDGET_BYTES, config_from_dict, sample_bytes
 

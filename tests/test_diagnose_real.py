@@ -29,7 +29,7 @@ def test_diagnose_runs_on_every_real_recording_and_describes_what_is_left(name, 
     d = _diagnose(name, capsys)
     v = d["verdict"]
     assert v["kind"] in ("at the floor", "explained", "partly explained", "unexplained")
-    from service.io.recordings.labdata import load_data
+    from service.io.recordings.load import load_data
 
     assert d["n_samples"] >= 0.9 * load_data(REAL / f"{name}.csv").block.n_samples     # the samples are kept
     if v["kind"] in ("partly explained", "unexplained"):

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from drivers.sim import Unit, load_sim_config
-from service.io.recordings.labdata import keep_every, load_csv, load_data
+from service.io.recordings.labdata import keep_every, load_csv
+from service.io.recordings.load import load_data
 from service.io.recordings.reader import read_recording, read_samples
 from service.numerics.diagnose import diagnose, summary_text
 from service.wiring import cli

@@ -250,7 +250,7 @@ def test_skip_counts_each_sample_once_and_says_a_stretch_that_holds_none(tmp_pat
     t = np.arange(0.0, 100.0, 0.1)
     rows = np.column_stack([t, 20000 + np.cos(t), 30000 + np.sin(t), 40000 + 0 * t])
     np.savetxt(path, rows, delimiter=",", header="t,s1_x,s1_y,s1_z", comments="", fmt="%.4f")
-    from service.io.recordings.labdata import load_data
+    from service.io.recordings.load import load_data
     from service.wiring.prepare import skip_spans
     from service.wiring.result import Said, stderr_say
 

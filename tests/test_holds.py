@@ -84,7 +84,7 @@ def test_chance_repeats_of_a_quantised_sensor_are_kept():
                     reason="../shared/real-data is absent (public recordings, see its README)")
 def test_real_bursty_board_repeats():
     """The HMC5883L board read in bursts faster than the sensor converts: 239 exact repeats of 8,190, 19 by chance."""
-    from service.io.recordings.labdata import load_data
+    from service.io.recordings.load import load_data
 
     lab = load_data(REAL / "hmc5883l_sensorfusion_sphere.csv")
     h = find_holds(lab.block.field_nT, lab.probe_names)

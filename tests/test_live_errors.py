@@ -15,7 +15,7 @@ import pytest
 from drivers.block import SampleBlock
 from drivers.sim.config import load_sim_config
 from drivers.sim.world import World
-from service.io.recordings.labdata import load_data
+from service.io.recordings.load import load_data
 from service.wiring.pipeline import Pipeline
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -526,7 +526,7 @@ def test_a_pty_unit_with_bit_errors_repeats_a_restart_and_absurd_values_is_said_
         assert counts == sorted(counts) and counts[-1] <= truth[key]
 
     # fit takes the recording (time increases), without the flagged samples
-    from service.io.recordings.labdata import load_data
+    from service.io.recordings.load import load_data
 
     data = load_data(rec_dir)
     assert np.isnan(data.block.field_nT[(data.block.flags & FLAG_IMPLAUSIBLE) != 0]).all()

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from test_coverage import M_TRUE, O_TRUE, TOTAL_NT, _pink, wobbling_turns
 
-from service.io.recordings.labdata import load_data
+from service.io.recordings.load import load_data
 from service.numerics.calib.ellipsoid import fit_ellipsoid
 from service.numerics.calib.misfit import direction_jackknife, time_jackknife
 from service.wiring import cli

@@ -13,9 +13,10 @@ import pytest
 
 pytest.importorskip("pyulog", reason="the PX4 reader's optional package: pip install 'fluxcal[px4]'")
 
-from drivers.errors import DataError
 from flightlogs import CURRENT_COUPLING_NT_A, simulated_flight, write_ulog
-from service.io.recordings.labdata import load_data
+
+from drivers.errors import DataError
+from service.io.recordings.load import load_data
 from service.io.recordings.px4 import Px4Mapping, inspect_px4
 from service.wiring import cli
 

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from drivers.block import SampleBlock
 from drivers.errors import CalibrationRefused
-from service.io.recordings.labdata import load_data
+from service.io.recordings.load import load_data
 from service.numerics.calib.coverage import coverage
 from service.numerics.calib.ellipsoid import fit_ellipsoid
 from service.numerics.calib.model import triangular_matrix

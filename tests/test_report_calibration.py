@@ -105,7 +105,7 @@ def test_fit_report_offsets_match_the_truth_and_maps_are_images(tmp_path, capsys
 def test_fit_and_diagnose_reports_name_the_direction_never_visited(tmp_path, capsys, seed):
     csv, truth = simulate(tmp_path, TURNTABLE.format(seed=seed), "turn")
     # the premise, from the data and the true offset: -x-y-z is the one named direction left unvisited
-    from service.io.recordings.labdata import load_data
+    from service.io.recordings.load import load_data
     from service.numerics.calib.sky import nearest_angles_deg, unit_directions
 
     dirs = unit_directions(load_data(str(csv)).block.field_nT[:, 0], np.array(truth["sensors"][0]["offset_nT"]))

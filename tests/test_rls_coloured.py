@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.io.recordings.labdata import load_data
+from service.io.recordings.load import load_data
 from service.wiring.cli import main
 from service.wiring.coloured_fit import coloured_offsets
 from service.wiring.fitting import fit_array

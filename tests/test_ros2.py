@@ -17,10 +17,15 @@ pytest.importorskip("rosbags", reason="the ROS 2 reader's optional package: pip 
 
 from drivers.errors import DataError
 from drivers.sim import Unit, load_sim_config
-from service.io.recordings.labdata import load_data
+from service.io.recordings.load import load_data
 from service.io.recordings.ros2 import Ros2Mapping, inspect_ros2
-from service.numerics.merge import (Q_NED_FROM_ENU, euler_from_quaternion, ned_from_enu_quaternion,
-                                    quaternion_from_euler, quaternion_product)
+from service.numerics.merge import (
+    Q_NED_FROM_ENU,
+    euler_from_quaternion,
+    ned_from_enu_quaternion,
+    quaternion_from_euler,
+    quaternion_product,
+)
 from service.wiring import cli
 
 MAG, IMU, TEMP, NAV = ("sensor_msgs/msg/MagneticField", "sensor_msgs/msg/Imu", "sensor_msgs/msg/Temperature",
@@ -108,10 +113,10 @@ def write_mcap_ros2(path, messages) -> None:
 
 def _rosbags_msg(ts, kind: str, m: dict):
     """A rosbags message object of a message given as nested dicts."""
-    from rosbags.typesys.stores.ros2_humble import (builtin_interfaces__msg__Time as Time,
-                                                    geometry_msgs__msg__Quaternion as Quat,
-                                                    geometry_msgs__msg__Vector3 as Vec,
-                                                    std_msgs__msg__Header as Header)
+    from rosbags.typesys.stores.ros2_humble import builtin_interfaces__msg__Time as Time
+    from rosbags.typesys.stores.ros2_humble import geometry_msgs__msg__Quaternion as Quat
+    from rosbags.typesys.stores.ros2_humble import geometry_msgs__msg__Vector3 as Vec
+    from rosbags.typesys.stores.ros2_humble import std_msgs__msg__Header as Header
 
     h = Header(stamp=Time(**m["header"]["stamp"]), frame_id=m["header"]["frame_id"])
     cls = ts.types[kind]

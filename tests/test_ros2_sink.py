@@ -66,7 +66,7 @@ def test_replayed_corrected_vectors_read_back_by_rosbags(tmp_path):
         first = next(make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
             topics=["/fluxcal/grad1/s2/magnetic_field"]))
     assert first[3].magnetic_field.z == cor.corrected_nT[0, 1, 2] * 1e-9
-    from service.io.recordings.labdata import load_data
+    from service.io.recordings.load import load_data
     from service.io.recordings.ros2 import Ros2Mapping
 
     lab = load_data(tmp_path / "out", mapping=Ros2Mapping(probes={"s1": "/fluxcal/grad1/s1/magnetic_field",

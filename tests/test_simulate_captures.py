@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.io.recordings.labdata import load_data
+from service.io.recordings.load import load_data
 from service.wiring.cli import main
 
 TURNTABLE = """[unit]

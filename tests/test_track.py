@@ -16,8 +16,14 @@ from pygeomag.wmm import wmm_2010, wmm_2015v2, wmm_2020, wmm_2025
 from drivers.block import SampleBlock
 from drivers.errors import DataError
 from drivers.sim import Unit, load_sim_config
-from service.numerics.calib.track import (DIRECTION, decimal_years, follows_height_note, model_for, track_reference,
-                                          wmm_field)
+from service.numerics.calib.track import (
+    DIRECTION,
+    decimal_years,
+    follows_height_note,
+    model_for,
+    track_reference,
+    wmm_field,
+)
 from service.wiring import cli
 
 WITHIN_FLOOR = 1.3

@@ -13,7 +13,6 @@ from service.numerics.calib.coverage import coverage
 from service.numerics.calib.param_table import effect_rows, probe_rows
 from service.numerics.calib.sky import CalibrationSection, probe_sky
 
-
 #: the median |raw| is taken over at most this many samples, evenly spaced (hours of data: no copy of them all)
 SCALE_ROWS = 100_000
 

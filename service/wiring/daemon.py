@@ -22,13 +22,12 @@ from drivers.source import Source, open_source
 from service.io.calfile import save_calibration
 
 from .config import RATE_MISSING, FluxcalConfig
+from .faults import FaultWatch
 from .input import BatchReader, RateCheck, Reconnecting
 from .pipeline import Pipeline, PipelineEvent
-from .faults import FaultWatch
 from .sinks import BusSink, McapSink, Sink, Sinks, say_bus
 from .startcal import calibration_from_payload, initial_calibration, learned_on
 from .status import StatusLog
-
 
 
 def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:

@@ -20,11 +20,11 @@ import sys
 import tempfile
 import time
 import traceback
+from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context
 from pathlib import Path
-from collections.abc import Callable
 from typing import Any
 
 from drivers.errors import CalibrationRefused, ConfigError, DataError, FluxcalError

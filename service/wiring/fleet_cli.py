@@ -9,10 +9,10 @@ import sys
 from pathlib import Path
 
 from drivers.errors import ConfigError
-
 from service.io.recordings.runs import runs_in as _runs_in
 
 from .fleet import run_fleet
+
 
 def _is_fleet(inputs: list[str]) -> bool:
     if len(inputs) > 1 or glob.has_magic(inputs[0]):

@@ -20,7 +20,8 @@ import numpy as np
 
 from drivers.config import read_toml
 from drivers.errors import ConfigError, DataError
-from service.io.recordings.labdata import LabData, load_data
+from service.io.recordings.labdata import LabData
+from service.io.recordings.load import load_data
 from service.numerics.calib.site import SiteField, site_from_text
 
 from .recorded_config import FROM_RECORDING, geometry, spread, stored_config

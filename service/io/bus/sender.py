@@ -9,7 +9,6 @@ from collections import deque
 
 import zenoh
 
-
 #: a put that waits this long is counted as a stall (a subscriber that stopped taking data; zenoh closes its link
 #: after [zenoh] stall_close_ms)
 STALL_S = 0.1

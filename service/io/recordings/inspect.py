@@ -36,7 +36,7 @@ def inspect_file(path: str | Path, mapping: Any = None) -> Inspection:
 
 def _inspect_lab(p: Path, fmt: str) -> Inspection:
     """A lab CSV or a fluxcal recording: its probes and columns as load_data reads them."""
-    from service.io.recordings.labdata import load_data
+    from service.io.recordings.load import load_data
 
     lab = load_data(p)
     b = lab.block

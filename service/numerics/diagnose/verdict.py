@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from service.numerics.effects import known_effects
 from service.numerics.engine import (
     solve_normal,
 )
 
 from .fits import _separation, _slot_indices
-from service.numerics.effects import known_effects
-
 from .result import COLLINEAR_R2, GAIN_SIGMAS, GAIN_TOLERANCE, MIN_GAIN, Candidate
 
 

@@ -34,8 +34,8 @@ from typing import Iterable
 
 from drivers.errors import ConfigError
 
-from .base import Baseline, EffectData, EffectTerm, Model, ProbeView
 from .ambient import Ambient
+from .base import Baseline, EffectData, EffectTerm, Model, ProbeView
 from .column import Column
 from .crossfield import Crossfield
 from .drift import Drift

@@ -28,7 +28,6 @@ from scipy.signal import savgol_filter
 
 from drivers.block import SampleBlock, Timed
 from drivers.errors import ConfigError, DataError
-
 from service.numerics.channels import AXES  # noqa: F401 - the effect terms take the axes from here
 from service.numerics.usable import usable_samples
 

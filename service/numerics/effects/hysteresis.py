@@ -28,7 +28,6 @@ from service.numerics.noise import robust_noise
 
 from .base import AXES, EffectTerm, ProbeView
 
-
 CHI2_3_MEDIAN = 2.366         # median of a chi-square with 3 degrees of freedom
 #: a step's chi-square (3 degrees of freedom, wander-normalised) must exceed this (a single chi-square_3 passes it
 #: 1.4e-6 of the time; the highest of the windows' values along 18 probe-records of white and 1/f noise without

@@ -9,10 +9,10 @@ errors, warm starts), starting values (start.py), and the public entry, `fit_wit
 from service.numerics.channels import channel_names
 from service.numerics.noise import channel_noise
 
-from .residuals import Channels
 from .linear import LinearCalibration
 from .model_fit import EffectsFit, fit_model, fit_with_effects, residual_hints
 from .problem import Problem, as_effect_data, reference_total
+from .residuals import Channels
 from .solve import RANK_TOL, FitResult, Parameter, Warm, fit_problem, solve_normal, warm_from
 from .start import initial_linear, start_weights
 

@@ -12,9 +12,9 @@ from drivers.errors import CalibrationRefused
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 from service.numerics.effects.base import REF_PREFIX, Baseline, EffectData, Model
 
-from .residuals import Channels
 from .linear import LinearCalibration
 from .problem import Problem, as_effect_data, reference_total
+from .residuals import Channels
 from .solve import FitResult, Parameter, fit_problem
 from .start import initial_linear, start_weights
 from .state import layout_slots

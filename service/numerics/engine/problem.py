@@ -29,9 +29,9 @@ from drivers.errors import CalibrationRefused, DataError
 from service.numerics.channels import channel_names
 from service.numerics.effects.base import REF_PREFIX, EffectData, Model, ProbeView
 
-from .residuals import _Eval
 from .jacobian import _chunks, _Jac, block_jacobian, local_jacobian
 from .linear import LinearCalibration
+from .residuals import _Eval
 from .state import State, layout_slots, start_state, update_state
 
 

@@ -12,9 +12,9 @@ import numpy as np
 
 from service.numerics.effects.base import Model
 
-from .residuals import Channels, _Eval
 from .jacobian import _Jac
 from .problem import Problem
+from .residuals import Channels, _Eval
 from .state import State
 
 #: eigenvalues of the column-scaled normal matrix below this fraction of the largest are a null space: a

@@ -17,8 +17,7 @@ from service.numerics.calib.coverage import BIN_CENTRES, BIN_LABELS, coverage
 from service.numerics.decimate import RmsMeans, VectorMeans
 from service.numerics.outputs import CorrectedBlock
 
-from .history import (HISTORY, PERIOD_S, WINDOW_S, Floors, RawKeep, Ring, WindowMeans, corrected_columns,
-                      corrected_row)
+from .history import HISTORY, PERIOD_S, WINDOW_S, Floors, RawKeep, Ring, WindowMeans, corrected_columns, corrected_row
 
 #: a unit that sent nothing for this long is shown as silent
 STALE_S = 3.0
