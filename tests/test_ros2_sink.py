@@ -114,3 +114,39 @@ def test_bad_places_and_bad_vectors(tmp_path):
     w.close()
     assert w.skipped == 1 and w.status()["topics"] == {"/fluxcal/u/s1/magnetic_field_raw": 3}
     assert len(read_bag(tmp_path / "b")["/fluxcal/u/s1/magnetic_field_raw"]) == 3
+
+
+def test_the_configuration_turns_the_bag_on_and_replay_writes_one(tmp_path, capsys):
+    """[ros2] enabled: the running service writes a bag of its own (stamps: UNIX time from the first block on);
+    `replay --ros2-out DIR` writes the replay's corrected vectors, read back by rosbags."""
+    import time
+
+    from service.wiring.cli import main
+    from service.wiring.config import load_config
+    from service.wiring.daemon import Daemon
+    from test_recording import service_config
+
+    text = (Path(service_config(tmp_path, run_s=40, realtime=False)).read_text()
+            .replace('transport = "pty"', 'transport = "direct"') + f'\n[ros2]\nenabled = true\ndir = "{tmp_path}/bags"\n')
+    (tmp_path / "c.toml").write_text(text)
+    before = time.time_ns()
+    assert Daemon(load_config(tmp_path / "c.toml"), say=lambda m: None).run() == 0
+    bags = sorted((tmp_path / "bags").iterdir())
+    assert len(bags) == 1 and bags[0].name.startswith("grad1-")
+    got = read_bag(bags[0])
+    rec = read_recording(tmp_path / "rec")
+    n = sum(b.n_samples for b in rec.corrected_blocks)
+    assert n > 0 and all(len(got[f"/fluxcal/grad1/{p}/magnetic_field"]) == n for p in ("s1", "s2"))
+    stamps = [m.header.stamp.sec for _, m in got["/fluxcal/grad1/s1/magnetic_field"]]
+    assert before // 10**9 - 1 <= stamps[0] <= time.time() + 40        # UNIX seconds, not the unit's from 0
+    # the replay of that run, through the command line
+    capsys.readouterr()
+    assert main(["replay", str(tmp_path / "rec"), "--ros2-out", str(tmp_path / "again")]) == 0
+    assert "ROS 2 bag written to" in capsys.readouterr().out
+    again = read_bag(tmp_path / "again")
+    for p in ("s1", "s2"):
+        live = np.array([[m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z]
+                         for _, m in got[f"/fluxcal/grad1/{p}/magnetic_field"]])
+        replayed = np.array([[m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z]
+                             for _, m in again[f"/fluxcal/grad1/{p}/magnetic_field"]])
+        np.testing.assert_array_equal(live, replayed)                # this machine's arithmetic: bit for bit

@@ -125,6 +125,14 @@ class McapConfig:
     flush_s: float = spec(1.0, min=0.05, max=60.0)
 
 
+@dataclass
+class Ros2Config:
+    enabled: bool = spec(False, doc="also write the corrected vectors as a ROS 2 bag (sensor_msgs/msg/MagneticField, "
+                                    "MCAP storage, CDR; docs/ros2.md), a new folder under dir at each start")
+    dir: str = spec("recordings/ros2", doc="where the bags go (relative paths: to the configuration's directory)")
+    raw: bool = spec(False, doc="also write the raw (uncorrected) vectors, on topics of their own")
+
+
 @dataclass(kw_only=True)   # path has no default and follows kind's
 class ReplayConfig:
     kind: str = spec("replay", choices=("replay",))
@@ -161,6 +169,7 @@ class FluxcalConfig:
     zenoh: Any
     mcap: McapConfig
     effects: EffectsConfig = field(default_factory=EffectsConfig)
+    ros2: Ros2Config = field(default_factory=Ros2Config)
     path: str = ""
     raw: dict = field(default_factory=dict)
 
@@ -220,7 +229,7 @@ def _size(n: float) -> str:
     return f"{n:.0f} bytes"
 
 
-_SECTIONS = ("unit", "probes", "source", "sim", "estimator", "calibration", "zenoh", "mcap", "effects")
+_SECTIONS = ("unit", "probes", "source", "sim", "estimator", "calibration", "zenoh", "mcap", "effects", "ros2")
 
 RATE_MISSING = ("source.rate_hz: missing (allowed: the unit's sample rate in Hz, 0.001 to 100000; the estimator's "
                 "window_s, check_every_s and update_every_s are counted in samples at this rate)")
@@ -255,6 +264,7 @@ def load_config(path: str | Path, *, source_required: bool = True) -> FluxcalCon
     if cfg.calibration.initial:
         cfg.calibration.initial = here(cfg.calibration.initial)
     cfg.mcap.dir = here(cfg.mcap.dir)
+    cfg.ros2.dir = here(cfg.ros2.dir)
     if getattr(cfg.source, "kind", "") == "replay":
         cfg.source.path = here(cfg.source.path)
     cfg.effects.plugins = [here(p.rpartition(":")[0]) + ":" + p.rpartition(":")[2] if p.rpartition(":")[0].endswith(".py")
@@ -358,7 +368,9 @@ def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
         zenoh_cfg = load_section(ZenohConfig, raw.get("zenoh", {}), "zenoh")
         mcap = load_section(McapConfig, raw.get("mcap", {}), "mcap")
         effects = load_section(EffectsConfig, raw.get("effects", {}), "effects")
+        ros2 = load_section(Ros2Config, raw.get("ros2", {}), "ros2")
     except ConfigError as e:
         raise err(str(e)) from None
     return FluxcalConfig(unit=unit, probes=probes, source=source, sim=sim, estimator=estimator,
-                         calibration=calibration, zenoh=zenoh_cfg, mcap=mcap, effects=effects, path=path, raw=raw)
+                         calibration=calibration, zenoh=zenoh_cfg, mcap=mcap, effects=effects, ros2=ros2, path=path,
+                         raw=raw)

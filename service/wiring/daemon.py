@@ -124,7 +124,10 @@ class Daemon:
         try:
             bus = ServiceBus(cfg.zenoh, unit=cfg.unit.name, probe_names=cfg.probe_names,
                              state_fn=lambda: self._state(pipeline, source, sinks))
-            for sink in (McapSink.open(cfg, pipeline.calibration, notes.append), BusSink(bus), *self.extra_sinks):
+            from service.wiring.ros2_sink import Ros2BagSink
+
+            for sink in (McapSink.open(cfg, pipeline.calibration, notes.append), BusSink(bus),
+                         Ros2BagSink.live(cfg), *self.extra_sinks):
                 sinks.add(sink)
             bus = None                        # closed with the sinks from now on
             for note in notes:

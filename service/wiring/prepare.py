@@ -42,6 +42,8 @@ class Prepared:
     skipped: list[tuple[float, float]] = field(default_factory=list)
     part_of_run: str | None = None                # a rotated file given alone: what it is part of
     config_warning: str | None = None             # a stored configuration that could not be used, and why
+    track: str | None = None                      # the model whose field along the track is the data's ref_total
+    holds: Any = None                             # service.numerics.holds.Holds: the logger's held samples left out
 
     def take_data(self) -> LabData:
         """The data, let go of here: a consumer that turns them into another form (diagnose's EffectData) holds
@@ -53,7 +55,9 @@ class Prepared:
 
     @property
     def total_source(self) -> str | None:
-        """What the given total field is, for a sentence: the site, the configuration, or None."""
+        """What the given total field is, for a sentence: the track, the site, the configuration, or None."""
+        if self.track is not None:
+            return f"the reference field along the track ({self.track})"
         if self.site is not None:
             return f"the site ({self.site.model})"
         if self.total_nT is not None:
@@ -63,11 +67,15 @@ class Prepared:
 
 def prepare(source: str, said: Said, *, config: str | None = None, site: str | None = None,
             skip: Sequence[tuple[float, float]] | None = None, max_samples: int | None = None,
-            max_probe_samples: int | None = None) -> Prepared:
-    """Read `source` and gather what the fits need beside the samples (module docstring)."""
-    data = load_data(source, max_samples=max_samples, max_probe_samples=max_probe_samples)
-    say_read_warnings(said, source, data.warnings)
+            max_probe_samples: int | None = None, mapping: Any = None) -> Prepared:
+    """Read `source` and gather what the fits need beside the samples (module docstring). `mapping`: another
+    ecosystem's reader options (ros2.Ros2Mapping, px4.Px4Mapping, ardupilot.ArduPilotMapping)."""
+    data = load_data(source, max_samples=max_samples, max_probe_samples=max_probe_samples, mapping=mapping)
+    say_read_warnings(said, source, data.warnings, repairable=data.metadata.get("format") not in FOREIGN)
+    for note in data.notes:                       # how another ecosystem's topics were matched into samples
+        said("format", note, level="note")
     data = skip_spans(said, source, data, skip)
+    data, holds = _without_holds(said, data)
     part = part_of_run(said, source)
     n_probes = data.block.n_probes
     if config:
@@ -81,8 +89,42 @@ def prepare(source: str, said: Said, *, config: str | None = None, site: str | N
     the_site = site_from_text(site) if site else None
     if the_site is not None:
         total = the_site.total_nT
+    data, track = _along_the_track(said, data, the_site)
     return Prepared(source=str(source), data=data, positions_m=spread(positions), total_nT=total, origin=origin,
-                    site=the_site, skipped=list(skip or []), part_of_run=part, config_warning=warning)
+                    site=the_site, skipped=list(skip or []), part_of_run=part, config_warning=warning, track=track,
+                    holds=holds)
+
+
+#: the formats of other ecosystems' logs (not fluxcal's recordings: `fluxcal repair` does not mend them)
+FOREIGN = ("ros2", "px4", "ardupilot")
+
+
+def _without_holds(said: Said, data: LabData) -> tuple[LabData, Any]:
+    """The data without the samples a logger repeated when no new one came (service.numerics.holds), said."""
+    from service.numerics.holds import without_holds
+
+    block, holds = without_holds(data.block, data.probe_names)
+    for note in holds.notes:
+        said("holds", note, level="warning" if holds.held.any() and "left out" in note else "note")
+    return (dataclasses.replace(data, block=block) if block is not data.block else data), holds
+
+
+def _along_the_track(said: Said, data: LabData, site: SiteField | None) -> tuple[LabData, str | None]:
+    """Where the data carry a position (lat_deg, lon_deg, alt_m), the World Magnetic Model's field at every sample
+    (service.numerics.calib.track) as the reference: said, with what it replaces."""
+    from service.numerics.calib.track import track_reference
+
+    t0 = data.metadata.get("t0_unix_s")
+    year = None
+    if site is not None and site.year is not None:
+        year = site.year
+    track = track_reference(data.block, t0_unix_s=float(t0) if t0 is not None else None, year=year)
+    if track is None:
+        return data, None
+    said("track", track.note, level="note")
+    for note in track.notes:
+        said("track", note)
+    return dataclasses.replace(data, block=track.block), track.model
 
 
 def config_geometry(path: str, n_probes: int) -> tuple[np.ndarray | None, float | None]:
@@ -98,11 +140,12 @@ def config_geometry(path: str, n_probes: int) -> tuple[np.ndarray | None, float 
         raise ConfigError(f"{path}: {e}") from None
 
 
-def say_read_warnings(said: Said, source: str, warnings: Sequence[str]) -> None:
-    """One note per thing reading lost or skipped (a cut tail, a damaged record), then how to mend it."""
+def say_read_warnings(said: Said, source: str, warnings: Sequence[str], repairable: bool = True) -> None:
+    """One note per thing reading lost or skipped (a cut tail, a damaged record), then how to mend a recording of
+    fluxcal's (`repair` does not mend another ecosystem's log)."""
     for w in warnings:
         said("read", w)
-    if warnings:
+    if warnings and repairable:
         said("read", f"the data above were read without what is listed; `fluxcal repair {source} FIXED.mcap` writes "
                      f"a finished copy of what is readable", level="say")
 

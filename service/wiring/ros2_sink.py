@@ -24,9 +24,25 @@ class Ros2BagSink(Sink):
 
     name = "ros2-bag"
 
-    def __init__(self, writer: Ros2BagWriter, *, raw: bool = False) -> None:
+    def __init__(self, writer: Ros2BagWriter, *, raw: bool = False, wall_clock: bool = False) -> None:
         self.writer = writer
         self.raw = raw
+        self.wall_clock = wall_clock          # stamps: the wall clock at the first block, then the unit's clock on
+
+    @classmethod
+    def live(cls, cfg: Any) -> "Ros2BagSink | None":
+        """The bag of the running service's [ros2] section (None when disabled): a new folder under ros2.dir named
+        after the unit and the start's UTC time; stamps in UNIX time, the unit's clock set against the wall clock
+        at the first block."""
+        r = cfg.ros2
+        if not r.enabled:
+            return None
+        import time as _time
+
+        folder = Path(r.dir) / f"{cfg.unit.name}-{_time.strftime('%Y%m%dT%H%M%S', _time.gmtime())}"
+        sink = cls.open(folder, unit=cfg.unit.name, probe_names=list(cfg.probe_names), raw=r.raw, key="ros2.dir")
+        sink.wall_clock = True
+        return sink
 
     @classmethod
     def open(cls, path: str | Path, *, unit: str, probe_names: list[str], raw: bool = False,
@@ -44,6 +60,11 @@ class Ros2BagSink(Sink):
                               f"directory this user can create)") from None
 
     def on_raw(self, block: SampleBlock) -> None:
+        if self.wall_clock and block.n_samples:     # the first block: the unit's t_s against the wall clock
+            import time as _time
+
+            self.writer.stamp_origin_ns = _time.time_ns() - int(round(float(block.t_s[0]) * 1e9))
+            self.wall_clock = False
         if self.raw:
             self.writer.write_raw(block)
 

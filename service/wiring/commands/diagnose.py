@@ -172,7 +172,8 @@ def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = T
     ref = data.ref_total_nT                       # the reference the fits use before a configured total
     scale = field_scale_notes(said, data.raw_nT, data.probe_names, about="a sphere fitted to them",
                               total_nT=ref if ref is not None else total,
-                              total_source="the ref_total column" if ref is not None else "the site" if opts.site
+                              total_source=prep.total_source if prep.track is not None else
+                              "the ref_total column" if ref is not None else "the site" if opts.site
                               else f"configuration from {opts.config}" if opts.config else origin or "given")
     thinned = thinning(lab, limit)
     del lab                                       # the samples live on in `data` only (hours of them)
@@ -202,6 +203,12 @@ def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = T
              + ([f"probe positions of {len(positions)} probes"] if positions is not None else []))
     if origin and taken:
         result.notes.insert(0, f"{origin}: {'; '.join(taken)}")
+    from service.numerics.calib.track import follows_height_note
+
+    height = follows_height_note(result.where,
+                                 track_used=prep.track is not None)
+    if height:
+        result.notes.append(height)
     if opts.calibration and effects:
         result.notes.append(f"{opts.calibration}: linear part held fixed; the parameters of "
                             f"{', '.join(effects)} are refitted to these data")

@@ -140,6 +140,8 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
                            positions_m=prep.positions_m, progress=_progress)
     if prep.site is not None:
         total.source = f"the site ({prep.site.model})"
+    if prep.track is not None:                    # the data's ref_total is the model along the track
+        total.source = prep.total_source
     # data in µT (or counts) fit without complaint; said here, before anything is reported in "nT"
     scale = field_scale_notes(said, data.block.field_nT, data.probe_names,
                               centres_nT=[p.offset_nT for p in cal.probes],

@@ -1,4 +1,4 @@
-"""`fluxcal replay REC.mcap [--config FILE] [--out OUT.mcap]`: a recording through the same pipeline.
+"""`fluxcal replay REC.mcap [--config FILE] [--out OUT.mcap] [--ros2-out DIR]`: a recording through the same pipeline.
 
 The raw blocks are replayed exactly as they were recorded, and every command the live service
 applied is applied again before the same sample (given the same configuration: by default the one
@@ -63,6 +63,9 @@ def add_options(p: argparse.ArgumentParser) -> None:
                    help="replay with this configuration (default: the one stored in the recording)")
     p.add_argument("--out", metavar="OUT.mcap", help="also record the replay here, with the initial calibration and "
                                                     "the commands, so it replays again (default: none)")
+    p.add_argument("--ros2-out", dest="ros2_out", metavar="DIR",
+                   help="also write the corrected vectors as sensor_msgs/msg/MagneticField in a ROS 2 bag, a new "
+                        "folder DIR (MCAP storage, CDR; docs/ros2.md); stamps are the unit's time (default: none)")
     fleet_options(p)
 
 
@@ -106,6 +109,7 @@ def _with_rate(raw: dict, recording: str, said: Said) -> dict:
 class ReplayOptions:
     config: str | None = None             # replay with this configuration (default: the one stored)
     out: str | None = None                # also record the replay here
+    ros2_out: str | None = None           # also write the corrected vectors as a ROS 2 bag (a folder) here
 
 
 @dataclass
@@ -140,7 +144,7 @@ class ReplayResult(Result):
 
 
 def options(args: Namespace) -> ReplayOptions:
-    return ReplayOptions(config=args.config, out=args.out)
+    return ReplayOptions(config=args.config, out=args.out, ros2_out=args.ros2_out)
 
 
 def main(args: Namespace) -> int:
@@ -177,6 +181,10 @@ def execute(source: str, opts: ReplayOptions, said: Said, *, sinks: list[Any] | 
     recording = _recording(opts.out, cfg, rec, initial_event) if opts.out else None
     for sink in ([recording] if recording else []) + list(sinks or []):
         outputs.add(sink)
+    if opts.ros2_out:
+        from service.wiring.ros2_sink import replay_ros2_sink
+
+        outputs.add(replay_ros2_sink(opts.ros2_out, cfg))
     blocks = _coalesce(rec.raw, [c["seq"] for c in commands])
     progress = Progress(sum(b.n_samples for b in blocks), "replay")
     samples = 0
@@ -235,7 +243,8 @@ def execute(source: str, opts: ReplayOptions, said: Said, *, sinks: list[Any] | 
                      f"{t_read:.2f} s, setting up {t0 - t_start - t_read:.2f} s, the pipeline {t_pipe:.2f} s "
                      f"({samples * p / max(t_pipe, 1e-9):,.0f} probe-samples/s), comparing "
                      f"{time.perf_counter() - t1:.2f} s (the interpreter's start and imports before them not counted)"
-                     + (f"; written to {opts.out}" if opts.out else ""))
+                     + (f"; written to {opts.out}" if opts.out else "")
+                     + (f"; ROS 2 bag written to {opts.ros2_out}" if opts.ros2_out else ""))
     out.status = _verdict(out, said, rec, out_seq, cmp, cut, holes, replaced, later)
     out.notes = said.notes
     return out
