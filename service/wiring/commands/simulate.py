@@ -143,6 +143,10 @@ def write_csv(path: Path, unit: Unit, unit_name: str, truth_file: str, progress:
     if table is not None:
         header += ["angle_deg", "turn"]
         fmt += ["%.6f", "%d"]
+    track = unit.world.track                  # [sim.track]: where the platform is, as a GNSS receiver logs it
+    if track is not None:
+        header += ["lat_deg", "lon_deg", "alt_m"]
+        fmt += ["%.7f", "%.7f", "%.3f"]
     f = cfg.field
     probes_text = ", ".join(f"{pr.name} at {pr.position_m} m" for pr in cfg.probes)
     comments = [
@@ -156,7 +160,8 @@ def write_csv(path: Path, unit: Unit, unit_name: str, truth_file: str, progress:
         f"s<k>_temp degC (nan: invalid)"
         + (", ref_total nT (scalar reference at the platform origin)" if ref else "")
         + ", seq (sample counter, unwrapped), flags (ICD: bit0 saturated, bit1 temperature invalid)"
-        + (", angle_deg (turntable angle), turn (0/1/2: about body x/y/z, -1: dwell)" if table is not None else ""),
+        + (", angle_deg (turntable angle), turn (0/1/2: about body x/y/z, -1: dwell)" if table is not None else "")
+        + (", lat_deg, lon_deg, alt_m (the platform's position: [sim.track])" if track is not None else ""),
     ]
     with open(path, "w", encoding="utf-8", newline="\n") as fh:
         for c in comments:
@@ -174,6 +179,9 @@ def write_csv(path: Path, unit: Unit, unit_name: str, truth_file: str, progress:
             cols += [s.seq, s.flags]
             if table is not None:
                 cols += list(table(np.arange(start, stop) / cfg.rate_hz))
+            if track is not None:
+                pos = track.position(np.arange(start, stop) / cfg.rate_hz)
+                cols += [pos["lat_deg"], pos["lon_deg"], pos["alt_m"]]
             rows = np.column_stack([np.asarray(c, dtype=np.float64).reshape(len(s), -1) for c in cols])
             np.savetxt(fh, rows, fmt=fmt, delimiter=",")
             if progress is not None:
