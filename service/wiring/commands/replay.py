@@ -186,12 +186,41 @@ def execute(source: str, opts: ReplayOptions, said: Said, *, sinks: list[Any] | 
 
         outputs.add(replay_ros2_sink(opts.ros2_out, cfg))
     blocks = _coalesce(rec.raw, [c["seq"] for c in commands])
-    progress = Progress(sum(b.n_samples for b in blocks), "replay")
-    samples = 0
-    ci = 0
-    out_seq, out_vals = [], []
-    replaced: list[tuple[int, int, float, str]] = []   # the replay's calibrations: (seq, cal_id, condition, kind)
     t0 = time.perf_counter()
+    try:
+        samples, out_seq, out_vals, replaced = _run_blocks(pipeline, cfg, blocks, commands, outputs)
+    finally:
+        outputs.close()
+    t_pipe = time.perf_counter() - t0
+    out = ReplayResult("replay", str(source), samples=samples, probes=cfg.unit.n_probes)
+    if recording is not None and not _recorded(recording, opts.out, out, said):
+        return out
+    t1 = time.perf_counter()
+    cut, holes = _first_hole(rec, rec.unit)
+    cmp = _compare(rec.corrected_blocks, out_seq, out_vals, before=cut)
+    t_all = time.perf_counter() - t_start
+    p = cfg.unit.n_probes
+    out.seconds = {"all": t_all, "reading": t_read, "setting_up": t0 - t_start - t_read, "pipeline": t_pipe,
+                   "comparing": time.perf_counter() - t1}
+    out.lines.append(f"replayed {samples} samples of {p} probe(s) in {t_all:.2f} s: reading the recording "
+                     f"{t_read:.2f} s, setting up {t0 - t_start - t_read:.2f} s, the pipeline {t_pipe:.2f} s "
+                     f"({samples * p / max(t_pipe, 1e-9):,.0f} probe-samples/s), comparing "
+                     f"{time.perf_counter() - t1:.2f} s (the interpreter's start and imports before them not counted)"
+                     + (f"; written to {opts.out}" if opts.out else "")
+                     + (f"; ROS 2 bag written to {opts.ros2_out}" if opts.ros2_out else ""))
+    out.status = _verdict(out, said, rec, out_seq, cmp, cut, holes, replaced, later)
+    out.notes = said.notes
+    return out
+
+
+def _run_blocks(pipeline, cfg, blocks, commands: list[dict], outputs: Sinks):
+    """The blocks through the pipeline, each recorded command applied before the sample it was applied before live;
+    every block and its output to the outputs. Returns (samples, out_seq, out_vals, replaced): the corrected
+    output's seq and values, and the replay's calibrations (seq, cal_id, condition, kind)."""
+    progress = Progress(sum(b.n_samples for b in blocks), "replay")
+    samples, ci = 0, 0
+    out_seq, out_vals = [], []
+    replaced: list[tuple[int, int, float, str]] = []
     try:
         for block in blocks:
             while ci < len(commands) and block.n_samples and commands[ci]["seq"] <= int(block.seq[0]):
@@ -218,36 +247,22 @@ def execute(source: str, opts: ReplayOptions, said: Said, *, sinks: list[Any] | 
             progress.to(samples)
     finally:
         progress.close()
-        outputs.close()
-    t_pipe = time.perf_counter() - t0
-    out = ReplayResult("replay", str(source), samples=samples, probes=cfg.unit.n_probes)
-    if recording is not None:
-        logger = recording.logger
-        if logger.dropped:
-            said("output", f"{opts.out}: the replay could not be written ({logger.last_error}); {logger.dropped} "
-                           f"message(s) lost", level="error")
-            out.status, out.notes = 1, said.notes
-            return out
-        if logger.errors:
-            said("output", f"{opts.out}: {logger.errors} write error(s), retried; nothing was lost (the last: "
-                           f"{logger.last_error})", level="say")
-        out.written.append(str(opts.out))
-    t1 = time.perf_counter()
-    cut, holes = _first_hole(rec, rec.unit)
-    cmp = _compare(rec.corrected_blocks, out_seq, out_vals, before=cut)
-    t_all = time.perf_counter() - t_start
-    p = cfg.unit.n_probes
-    out.seconds = {"all": t_all, "reading": t_read, "setting_up": t0 - t_start - t_read, "pipeline": t_pipe,
-                   "comparing": time.perf_counter() - t1}
-    out.lines.append(f"replayed {samples} samples of {p} probe(s) in {t_all:.2f} s: reading the recording "
-                     f"{t_read:.2f} s, setting up {t0 - t_start - t_read:.2f} s, the pipeline {t_pipe:.2f} s "
-                     f"({samples * p / max(t_pipe, 1e-9):,.0f} probe-samples/s), comparing "
-                     f"{time.perf_counter() - t1:.2f} s (the interpreter's start and imports before them not counted)"
-                     + (f"; written to {opts.out}" if opts.out else "")
-                     + (f"; ROS 2 bag written to {opts.ros2_out}" if opts.ros2_out else ""))
-    out.status = _verdict(out, said, rec, out_seq, cmp, cut, holes, replaced, later)
-    out.notes = said.notes
-    return out
+    return samples, out_seq, out_vals, replaced
+
+
+def _recorded(recording: McapSink, path: str, out: ReplayResult, said: Said) -> bool:
+    """Whether the replay's own recording was written whole (said when not, the result then failed)."""
+    logger = recording.logger
+    if logger.dropped:
+        said("output", f"{path}: the replay could not be written ({logger.last_error}); {logger.dropped} message(s) "
+                       f"lost", level="error")
+        out.status, out.notes = 1, said.notes
+        return False
+    if logger.errors:
+        said("output", f"{path}: {logger.errors} write error(s), retried; nothing was lost (the last: "
+                       f"{logger.last_error})", level="say")
+    out.written.append(str(path))
+    return True
 
 
 def _configuration(source: str, rec, opts: ReplayOptions, said: Said):

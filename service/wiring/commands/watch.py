@@ -398,90 +398,112 @@ class _StateQuery:
         return True, None
 
 
+class _Link:
+    """The watch's connection to a unit: the session (tried again every second), the unit (found when not named),
+    its streams, its liveliness and its state (asked every STATE_EVERY_S); `poll` feeds the view what came."""
+
+    def __init__(self, endpoints: list[str], tls: ZenohTlsConfig | None, view: TerminalView) -> None:
+        self.endpoints, self.tls, self.view = endpoints, tls, view
+        self.session = self.client = self.alive_sub = None
+        self.state_q: _StateQuery | None = None
+        self.next_state = self.next_connect = self.next_discover = 0.0
+
+    def poll(self, now: float) -> None:
+        view = self.view
+        if self.session is None and now >= self.next_connect:
+            try:
+                self.session = open_session(ZenohConfig.client(*self.endpoints, tls=self.tls))
+                view.connected = True
+            except BusError:
+                self.next_connect = now + 1.0
+        if self.session is not None and view.unit is None and now >= self.next_discover:
+            units = discover_units(self.session, timeout=0.3)
+            self.next_discover = now + 1.0
+            if len(units) == 1:
+                view.unit = units[0]
+            elif len(units) > 1:
+                raise ConfigError(f"several units are running via {', '.join(self.endpoints)}: {', '.join(units)}; "
+                                  f"choose one with --unit")
+        if self.session is not None and view.unit is not None and self.client is None:
+            keys = Keys(view.unit)
+            self.client = BusClient(self.session, view.unit, streams=STREAMS, lossless=False, capacity=64)
+            self.alive_sub = self.session.liveliness().declare_subscriber(keys.alive, zenoh.handlers.RingChannel(16),
+                                                                          history=True)
+            view.alive = False                  # until the token's history says otherwise
+        if self.client is not None:
+            self._state(now)
+            self._alive()
+            for msg in self.client.drain():
+                view.update(msg)
+
+    def _state(self, now: float) -> None:
+        if self.state_q is None and now >= self.next_state:
+            self.state_q, self.next_state = _StateQuery(self.session, Keys(self.view.unit).state), now + STATE_EVERY_S
+        if self.state_q is not None:
+            done, st = self.state_q.poll()
+            if st is not None:
+                self.view.update_state(st)
+            if done:
+                self.state_q = None
+
+    def _alive(self) -> None:
+        while True:
+            try:
+                s = self.alive_sub.try_recv()
+            except zenoh.ZError:
+                return
+            if s is None:
+                return
+            self.view.alive = s.kind == zenoh.SampleKind.PUT
+
+    def wait(self, seconds: float) -> None:
+        """Wait up to `seconds` (at most 0.05) for a message, feeding it to the view."""
+        if self.client is not None:
+            msg = self.client.recv(timeout=max(0.0, min(seconds, 0.05)))
+            if msg is not None:
+                self.view.update(msg)
+        else:
+            time.sleep(max(0.0, min(seconds, 0.05)))
+
+    def close(self) -> None:
+        for closer in (getattr(self.alive_sub, "undeclare", None), getattr(self.client, "close", None),
+                       getattr(self.session, "close", None)):
+            if closer is not None:
+                try:
+                    closer()
+                except (zenoh.ZError, KeyboardInterrupt):
+                    pass
+
+
 def run(endpoints: list[str], unit: str | None, seconds: float | None, out: TextIO, *,
         tty: bool | None = None, tls: ZenohTlsConfig | None = None) -> int:
-    """The dashboard loop; returns the exit status."""
+    """The watch's loop; returns the exit status."""
     tty = out.isatty() if tty is None else tty
     period = TTY_PERIOD_S if tty else LINE_PERIOD_S
     start = time.monotonic()
     deadline = None if seconds is None else start + seconds
-    dash = TerminalView(unit, endpoints)
-    session = client = alive_sub = None
-    state_q: _StateQuery | None = None
-    next_state = 0.0
-    next_connect = 0.0
-    next_discover = 0.0
+    view = TerminalView(unit, endpoints)
+    link = _Link(endpoints, tls, view)
     next_frame = start + (0.5 if not tty else 0.0)
     if tty:
         out.write("\x1b[?25l\x1b[2J")              # hide the cursor, clear once
     try:
         while deadline is None or time.monotonic() < deadline:
-            now = time.monotonic()
-            if session is None and now >= next_connect:
-                try:
-                    session = open_session(ZenohConfig.client(*endpoints, tls=tls))
-                    dash.connected = True
-                except BusError:
-                    next_connect = now + 1.0
-            if session is not None and dash.unit is None and now >= next_discover:
-                units = discover_units(session, timeout=0.3)
-                next_discover = now + 1.0
-                if len(units) == 1:
-                    dash.unit = units[0]
-                elif len(units) > 1:
-                    raise ConfigError(f"several units are running via {', '.join(endpoints)}: {', '.join(units)}; "
-                                      f"choose one with --unit")
-            if session is not None and dash.unit is not None and client is None:
-                keys = Keys(dash.unit)
-                client = BusClient(session, dash.unit, streams=STREAMS, lossless=False, capacity=64)
-                alive_sub = session.liveliness().declare_subscriber(keys.alive, zenoh.handlers.RingChannel(16),
-                                                                    history=True)
-                dash.alive = False                  # until the token's history says otherwise
-            if client is not None:
-                if state_q is None and now >= next_state:
-                    state_q, next_state = _StateQuery(session, Keys(dash.unit).state), now + STATE_EVERY_S
-                if state_q is not None:
-                    done, st = state_q.poll()
-                    if st is not None:
-                        dash.update_state(st)
-                    if done:
-                        state_q = None
-                while True:
-                    try:
-                        s = alive_sub.try_recv()
-                    except zenoh.ZError:
-                        break
-                    if s is None:
-                        break
-                    dash.alive = s.kind == zenoh.SampleKind.PUT
-                for msg in client.drain():
-                    dash.update(msg)
+            link.poll(time.monotonic())
             now = time.monotonic()
             if now >= next_frame:
-                out.write(dash.render_tty() if tty else dash.line() + "\n")
+                out.write(view.render_tty() if tty else view.line() + "\n")
                 out.flush()
                 next_frame = now + period
-            wait = min(next_frame, deadline if deadline is not None else next_frame) - time.monotonic()
-            if client is not None:
-                msg = client.recv(timeout=max(0.0, min(wait, 0.05)))
-                if msg is not None:
-                    dash.update(msg)
-            else:
-                time.sleep(max(0.0, min(wait, 0.05)))
+            link.wait(min(next_frame, deadline if deadline is not None else next_frame) - time.monotonic())
     except KeyboardInterrupt:
         pass
     finally:
         if tty:
             out.write("\x1b[?25h\n")
             out.flush()
-        for closer in (getattr(alive_sub, "undeclare", None), getattr(client, "close", None),
-                       getattr(session, "close", None)):
-            if closer is not None:
-                try:
-                    closer()
-                except (zenoh.ZError, KeyboardInterrupt):
-                    pass
-    return 0 if dash.n_messages or seconds is None else 1
+        link.close()
+    return 0 if view.n_messages or seconds is None else 1
 
 
 def main(args: argparse.Namespace) -> int:
