@@ -145,4 +145,27 @@ def test_real_px4_log_end_to_end(capsys):
     day = dt.datetime.fromtimestamp(float(lab.metadata["t0_unix_s"]), dt.timezone.utc).date()
     assert day == dt.date(2021, 4, 21)
     assert cli.main(["fit", str(REAL)]) == 2
-    assert "s1: 6 samples; the fit needs at least 10" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "s1: 5 samples; the fit needs at least 10" in err       # one of the 6 a logger's hold, left out: said
+    assert "s1: 1 of 6 samples (17%) repeat the previous one exactly" in err
+
+
+@pytest.mark.skipif(not (REAL.parent / "px4_pyulog_sample.ulg").exists(),
+                    reason="../shared/real-data/px4_pyulog_sample.ulg (pyulog's sample flight) is absent")
+def test_a_real_flight_of_an_older_px4_is_read_and_its_cone_refused(capsys):
+    """pyulog's sample.ulg: a real flight of 69 s whose one magnetometer an older PX4 logged in sensor_combined
+    (17,070 rows at the gyroscope's rate, 6,750 magnetometer samples). Read end to end; fitted with the total field
+    estimated, its cone of directions gave a matrix no sensor has (condition 9.4, 62 degrees of non-orthogonality)
+    which passed the cone check on its own shape: refused now, saying which turn is missing."""
+    path = REAL.parent / "px4_pyulog_sample.ulg"
+    lab = load_data(path)
+    assert lab.probe_names == ["s1"] and lab.block.n_samples == 6750
+    total = np.linalg.norm(lab.block.field_nT[:, 0], axis=1)
+    assert 45_000 < np.median(total) < 51_000                          # the Earth's field, in nT
+    assert {"heel_deg", "pitch_deg", "azimuth_deg"} <= set(lab.block.extras)
+    capsys.readouterr()
+    assert cli.main(["fit", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "the fitted calibration is no sensor's (fails the condition check" in err and "turn about" in err
+    assert cli.main(["fit", str(path), "--site", "47.4,8.5,500"]) == 2               # the total given: the cone
+    assert "one cone about" in capsys.readouterr().err

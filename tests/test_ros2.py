@@ -336,3 +336,19 @@ def test_fluxcal_recordings_are_not_taken_for_bags():
     from service.io.recordings.formats import detect_format
 
     assert detect_format("recordings/grad1-sim-30s.mcap") == "fluxcal"
+
+
+def test_topics_chosen_on_the_command_line(same_data, capsys):
+    """--topics NAME=TOPIC,..: the same choice from the command line, and a refusal that names the option."""
+    from service.wiring.cli import main
+
+    root, _ = same_data
+    capsys.readouterr()
+    assert main(["fit", str(root / "same.mcap"), "--topics", "s1=/mag2/field,imu=none", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    alone = load_data(root / "same.mcap", mapping=Ros2Mapping(probes={"s1": "/mag2/field"}, imu=None))
+    assert [s["name"] for s in out["sensors"]] == ["s1"] and alone.probe_names == ["s1"]
+    assert main(["fit", str(root / "same.csv"), "--topics", "s1=/mag2/field"]) == 2
+    assert "--topics: " in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["fit", str(root / "same.mcap"), "--topics", "s1"])

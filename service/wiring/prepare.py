@@ -67,9 +67,11 @@ class Prepared:
 
 def prepare(source: str, said: Said, *, config: str | None = None, site: str | None = None,
             skip: Sequence[tuple[float, float]] | None = None, max_samples: int | None = None,
-            max_probe_samples: int | None = None, mapping: Any = None) -> Prepared:
-    """Read `source` and gather what the fits need beside the samples (module docstring). `mapping`: another
-    ecosystem's reader options (ros2.Ros2Mapping, px4.Px4Mapping, ardupilot.ArduPilotMapping)."""
+            max_probe_samples: int | None = None, topics: dict[str, str | None] | None = None,
+            mags: Sequence[int] | None = None) -> Prepared:
+    """Read `source` and gather what the fits need beside the samples (module docstring). topics, mags: another
+    ecosystem's log, which topics (a ROS 2 bag) or compass instances (PX4, ArduPilot) become what."""
+    mapping = log_mapping(source, topics, mags)
     data = load_data(source, max_samples=max_samples, max_probe_samples=max_probe_samples, mapping=mapping)
     say_read_warnings(said, source, data.warnings, repairable=data.metadata.get("format") not in FOREIGN)
     for note in data.notes:                       # how another ecosystem's topics were matched into samples
@@ -93,6 +95,35 @@ def prepare(source: str, said: Said, *, config: str | None = None, site: str | N
     return Prepared(source=str(source), data=data, positions_m=spread(positions), total_nT=total, origin=origin,
                     site=the_site, skipped=list(skip or []), part_of_run=part, config_warning=warning, track=track,
                     holds=holds)
+
+
+def log_mapping(source: str, topics: dict[str, str | None] | None, mags: Sequence[int] | None) -> Any:
+    """The reader's options of another ecosystem's log from --topics and --mags (None: the reader's defaults);
+    ConfigError for an option the file's format does not take."""
+    if not topics and not mags:
+        return None
+    from service.io.recordings.formats import detect_format
+
+    fmt = detect_format(source)
+    if topics and fmt not in ("ros2-mcap", "ros2-bag"):
+        raise ConfigError(f"--topics: {source} is not a ROS 2 bag ({fmt}): --topics names a bag's topics")
+    if mags and fmt not in ("px4-ulog", "ardupilot-bin"):
+        raise ConfigError(f"--mags: {source} is not a PX4 or ArduPilot log ({fmt})")
+    if topics:
+        from service.io.recordings.ros2 import AUTO, Ros2Mapping
+
+        probes = {k: v for k, v in topics.items() if k not in ("imu", "gps", "battery") and not k.startswith("temp.")}
+        temps = {k[5:]: v for k, v in topics.items() if k.startswith("temp.") and v is not None}
+        return Ros2Mapping(probes={k: v for k, v in probes.items() if v is not None} or None,
+                           temperatures=temps or None, imu=topics.get("imu", AUTO),
+                           navsatfix=topics.get("gps", AUTO), battery=topics.get("battery", AUTO))
+    if fmt == "px4-ulog":
+        from service.io.recordings.px4 import Px4Mapping
+
+        return Px4Mapping(mags=tuple(mags))
+    from service.io.recordings.ardupilot import ArduPilotMapping
+
+    return ArduPilotMapping(mags=tuple(mags))
 
 
 #: the formats of other ecosystems' logs (not fluxcal's recordings: `fluxcal repair` does not mend them)

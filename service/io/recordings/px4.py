@@ -28,7 +28,9 @@ from service.numerics.merge import Series, merge
 #: PX4's sensor_mag is in gauss
 NT_PER_GAUSS = 1e5
 GPS_TOPICS = ("vehicle_gps_position", "sensor_gps")
-WANTED = ("sensor_mag", "vehicle_attitude", *GPS_TOPICS, "battery_status")
+WANTED = ("sensor_mag", "sensor_combined", "vehicle_attitude", *GPS_TOPICS, "battery_status")
+#: PX4's "no sample" in sensor_combined's relative timestamps
+RELATIVE_TIMESTAMP_INVALID = 0x7FFFFFFF
 
 
 @dataclass(frozen=True)
@@ -61,6 +63,29 @@ def _time_us(d: Any) -> np.ndarray:
 
 def _instances(ulog: Any, name: str) -> list[Any]:
     return sorted((d for d in ulog.data_list if d.name == name), key=lambda d: d.multi_id)
+
+
+@dataclass(frozen=True)
+class _CombinedMag:
+    """An older PX4's one magnetometer, logged in sensor_combined (magnetometer_ga[0..2], gauss) at the gyroscope's
+    rate: each magnetometer sample once, at its own instant (timestamp + magnetometer_timestamp_relative)."""
+
+    data: dict
+    multi_id: int = 0
+    name: str = "sensor_combined.magnetometer_ga"
+
+
+def _combined_mag(ulog: Any) -> _CombinedMag | None:
+    d = next((x for x in ulog.data_list if x.name == "sensor_combined" and "magnetometer_ga[0]" in x.data), None)
+    if d is None:
+        return None
+    rel = np.asarray(d.data.get("magnetometer_timestamp_relative", np.zeros(len(d.data["timestamp"]))), np.int64)
+    t = np.asarray(d.data["timestamp"], np.int64) + rel
+    ok = rel != RELATIVE_TIMESTAMP_INVALID
+    first = np.concatenate([[True], np.diff(t) != 0]) & ok      # the rows between two samples repeat the last one
+    take = np.flatnonzero(first)
+    return _CombinedMag({"timestamp": t[take], **{a: np.asarray(d.data[f"magnetometer_ga[{i}]"], float)[take]
+                                                  for i, a in enumerate("xyz")}})
 
 
 def _gps(ulog: Any) -> Any | None:
@@ -134,6 +159,10 @@ def load_px4(path: str | Path, mapping: Px4Mapping | None = None) -> LabData:
             raise DataError(f"mags: instance(s) {missing} not in {path} (its sensor_mag instances: "
                             f"{sorted(have) or 'none'})")
         mags = [have[i] for i in m.mags]
+    older = None
+    if not mags and m.mags in (None, (0,), [0]):
+        older = _combined_mag(ulog)           # a PX4 before sensor_mag was logged: its one magnetometer
+        mags = [older] if older is not None else []
     if not mags:
         raise DataError(f"{path}: no sensor_mag in the log (its topics: "
                         f"{', '.join(sorted({d.name for d in _ulog(Path(path), None).data_list}))}): nothing to "
@@ -146,12 +175,17 @@ def load_px4(path: str | Path, mapping: Px4Mapping | None = None) -> LabData:
 
     notes = ["sensor_mag: x, y, z taken in gauss (PX4's unit) and in the frame PX4 logs them (rotated to the "
              "board/body frame by CAL_MAGn_ROT), as raw as PX4 logs them (before its calibration)"]
+    if older is not None:
+        notes = ["sensor_combined.magnetometer_ga[0..2] (an older PX4's log: no sensor_mag) taken in gauss, each "
+                 "magnetometer sample once at its own instant (the rows between two samples repeat the last one), "
+                 "in the body frame, after PX4's own calibration of the day (CAL_MAG0_*: its offsets are taken out)"]
     probes, temps, sources = [], {}, {}
     for k, (d, t) in enumerate(zip(mags, t_all)):
         name = f"s{k + 1}"
         v = np.column_stack([np.asarray(d.data[a], float) for a in "xyz"]) * NT_PER_GAUSS
-        probes.append((name, Series(s(t), v, f"sensor_mag[{d.multi_id}] device {_device(d)}")))
-        sources[name] = f"sensor_mag[{d.multi_id}]"
+        what = d.name if isinstance(d, _CombinedMag) else f"sensor_mag[{d.multi_id}] device {_device(d)}"
+        probes.append((name, Series(s(t), v, what)))
+        sources[name] = d.name if isinstance(d, _CombinedMag) else f"sensor_mag[{d.multi_id}]"
         temp = _temperature(d) if m.temperatures else None
         if temp is not None:
             temps[name] = Series(s(t), temp, f"sensor_mag[{d.multi_id}].temperature")

@@ -47,6 +47,27 @@ class ImplausibleCalibration(DataError):
         self.check = check
 
 
+def matrix_problem(m: np.ndarray, limits: CalibrationLimits = CalibrationLimits(),
+                   keys: bool = True) -> tuple[str, str] | None:
+    """(check, why) for a correction matrix no sensor has (a mirror, a condition or a scale beyond the limits), or
+    None. The fits ask it too: data that do not determine the shape can return one (keys: name the configuration
+    keys that set the limits)."""
+    sign, logdet = np.linalg.slogdet(m)
+    if not sign > 0:
+        return "mirror", (f"the matrix's determinant is {sign * np.exp(logdet):.4g}: a correction that mirrors (or "
+                          f"flattens) the sensor frame")
+    sv = np.linalg.svd(m, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+    if not cond <= limits.max_condition:
+        return "condition", (f"the matrix's condition number is {cond:.4g} (at most {limits.max_condition:.4g}"
+                             + (": calibration.max_condition)" if keys else ")"))
+    lo, hi = 1.0 / limits.max_scale, limits.max_scale
+    if not (sv[-1] >= lo and sv[0] <= hi):                         # (max_scale inf: the level not judged)
+        return "scale", (f"the matrix scales the field by {sv[-1]:.4g} to {sv[0]:.4g} (allowed {lo:.4g} to {hi:.4g}"
+                         + (": calibration.max_scale" if keys else "") + "): the sensor's scale factors must be near 1")
+    return None
+
+
 def check_calibration(cal, probe_names: Sequence[str], limits: CalibrationLimits = CalibrationLimits()) -> None:
     """Raise ImplausibleCalibration naming the first check `cal` (an ArrayCalibration) fails; None if it passes."""
     names = [p.name for p in cal.probes]
@@ -67,21 +88,9 @@ def check_calibration(cal, probe_names: Sequence[str], limits: CalibrationLimits
         if not worst <= limits.max_offset_nT:
             raise ImplausibleCalibration("offset", f"{p.name}: an offset of {worst:.4g} nT (at most "
                                          f"{limits.max_offset_nT:.4g} nT: calibration.max_offset_nT)")
-        sv = np.linalg.svd(m, compute_uv=False)
-        sign, logdet = np.linalg.slogdet(m)
-        if not sign > 0:
-            raise ImplausibleCalibration("mirror", f"{p.name}: the matrix's determinant is "
-                                         f"{sign * np.exp(logdet):.4g}: a correction that mirrors (or flattens) the "
-                                         f"sensor frame")
-        cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
-        if not cond <= limits.max_condition:
-            raise ImplausibleCalibration("condition", f"{p.name}: the matrix's condition number is {cond:.4g} (at "
-                                         f"most {limits.max_condition:.4g}: calibration.max_condition)")
-        lo, hi = 1.0 / limits.max_scale, limits.max_scale
-        if not (sv[-1] >= lo and sv[0] <= hi):
-            raise ImplausibleCalibration("scale", f"{p.name}: the matrix scales the field by {sv[-1]:.4g} to "
-                                         f"{sv[0]:.4g} (allowed {lo:.4g} to {hi:.4g}: calibration.max_scale): the "
-                                         f"sensor's scale factors must be near 1")
+        problem = matrix_problem(m, limits)
+        if problem is not None:
+            raise ImplausibleCalibration(problem[0], f"{p.name}: {problem[1]}")
     total = cal.total_nT
     if total is not None and not (limits.min_total_nT <= total <= limits.max_total_nT):
         raise ImplausibleCalibration("total field", f"total_nT {total:.4g} (allowed {limits.min_total_nT:.4g} to "

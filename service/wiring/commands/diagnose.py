@@ -32,16 +32,20 @@ from service.wiring.commands.options import (  # noqa: E402
     CONFIG_HELP,
     DATA_HELP,
     EFFECT_NAMES,
+    MAGS_HELP,
     OWN_EFFECT,
     SITE,
     SITE_HELP,
     SKIP_HELP,
+    TOPICS_HELP,
     CommandHelp,
     effect_names,
     fleet_help,
     fleet_options,
+    mags,
     max_samples,
     time_spans,
+    topics,
 )
 from service.wiring.fitting import NONLINEAR_PROBE_SAMPLES as DIAGNOSE_PROBE_SAMPLES  # noqa: E402
 from service.wiring.prepare import Prepared, prepare  # noqa: E402
@@ -63,6 +67,8 @@ def add_options(p: argparse.ArgumentParser) -> None:
                         f"Effects installed in the entry-point group fluxcal.effects are tried as candidates too")
     p.add_argument("--site", metavar=SITE, help=SITE_HELP)
     p.add_argument("--skip", type=time_spans, default=None, metavar="T0-T1,..", help=SKIP_HELP)
+    p.add_argument("--topics", type=topics, default=None, metavar="NAME=TOPIC,..", help=TOPICS_HELP)
+    p.add_argument("--mags", type=mags, default=None, metavar="I,..", help=MAGS_HELP)
     p.add_argument("--report", metavar="DIR",
                    help="also write an HTML report here (plots: matplotlib; without it the page has the text and "
                         "tables)")
@@ -105,6 +111,8 @@ class DiagnoseOptions:
     config: str | None = None
     site: str | None = None
     skip: list[tuple[float, float]] | None = None
+    topics: dict[str, str | None] | None = None   # another ecosystem's log: what becomes what
+    mags: tuple[int, ...] | None = None
     max_samples: int | None = None        # None: the default budget of probe-samples; 0: all
     report: str | None = None             # the folder of an HTML report
 
@@ -137,7 +145,8 @@ def main(args: argparse.Namespace) -> int:
 
 def options(args: argparse.Namespace) -> DiagnoseOptions:
     return DiagnoseOptions(effects=list(args.effects), calibration=args.calibration, config=args.config,
-                           site=args.site, skip=args.skip, max_samples=args.max_samples, report=args.report)
+                           site=args.site, skip=args.skip, topics=args.topics, mags=args.mags,
+                           max_samples=args.max_samples, report=args.report)
 
 
 def execute(source: str, opts: DiagnoseOptions, said: Said, *, progress: bool = True) -> DiagnoseResult:
@@ -155,7 +164,8 @@ def execute(source: str, opts: DiagnoseOptions, said: Said, *, progress: bool = 
         raise ConfigError(f"--effects: {', '.join(map(repr, unknown))} not an effect "
                           f"(allowed: {', '.join(known)}; or file.py:ClassName for one of your own)")
     limit = opts.max_samples
-    prep = prepare(source, said, config=opts.config, site=opts.site, skip=opts.skip,
+    prep = prepare(source, said, config=opts.config, site=opts.site, skip=opts.skip, topics=opts.topics,
+                   mags=opts.mags,
                    **({"max_probe_samples": DIAGNOSE_PROBE_SAMPLES} if limit is None else {"max_samples": limit}))
     return run(prep, opts, said, progress=progress)
 

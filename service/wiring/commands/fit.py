@@ -23,15 +23,19 @@ from service.wiring.commands.options import (
     CONFIG_HELP,
     DATA_HELP,
     EFFECTS_HELP,
+    MAGS_HELP,
     METHODS,
     SITE,
     SITE_HELP,
     SKIP_HELP,
+    TOPICS_HELP,
     CommandHelp,
     effect_names,
     fleet_help,
     fleet_options,
+    mags,
     time_spans,
+    topics,
 )
 from service.wiring.fitting import (
     NONLINEAR_PROBE_SAMPLES,
@@ -62,6 +66,8 @@ def add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--effects", type=effect_names, default=[], metavar="E,..", help=EFFECTS_HELP)
     p.add_argument("--site", metavar=SITE, help=SITE_HELP)
     p.add_argument("--skip", type=time_spans, default=None, metavar="T0-T1,..", help=SKIP_HELP)
+    p.add_argument("--topics", type=topics, default=None, metavar="NAME=TOPIC,..", help=TOPICS_HELP)
+    p.add_argument("--mags", type=mags, default=None, metavar="I,..", help=MAGS_HELP)
     p.add_argument("--out", metavar="CAL.json", help="write the calibration file here (default: none)")
     p.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
     fleet_options(p)
@@ -84,6 +90,8 @@ class FitOptions:
     config: str | None = None
     site: str | None = None
     skip: list[tuple[float, float]] | None = None
+    topics: dict[str, str | None] | None = None   # another ecosystem's log: what becomes what
+    mags: tuple[int, ...] | None = None
     out: str | None = None                # the calibration file to write
     report: str | None = None             # the folder of an HTML report
 
@@ -114,7 +122,8 @@ def main(args: Namespace) -> int:
 
 def options(args: Namespace) -> FitOptions:
     return FitOptions(method=args.method, align=args.align, effects=list(args.effects), config=args.config,
-                      site=args.site, skip=args.skip, out=args.out, report=args.report)
+                      site=args.site, skip=args.skip, topics=args.topics, mags=args.mags, out=args.out,
+                      report=args.report)
 
 
 def execute(source: str, opts: FitOptions, said: Said) -> FitResult:
@@ -127,7 +136,8 @@ def execute(source: str, opts: FitOptions, said: Said) -> FitResult:
         check_output_file(opts.out, example="cal.json", not_this=source)
     if opts.report:
         check_output_folder(opts.report, "--report")
-    prep = prepare(source, said, config=opts.config, site=opts.site, skip=opts.skip)
+    prep = prepare(source, said, config=opts.config, site=opts.site, skip=opts.skip, topics=opts.topics,
+                   mags=opts.mags)
     return run(prep, opts, said)
 
 

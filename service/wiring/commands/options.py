@@ -68,6 +68,40 @@ def time_spans(text: str) -> list[tuple[float, float]]:
     return parse_spans(text)
 
 
+TOPICS_HELP = ("another ecosystem's log: which ROS 2 topics become what, comma-separated NAME=TOPIC: a probe "
+               "(s1=/imu/mag), a probe's temperature (temp.s1=/imu/temperature), imu=, gps= (NavSatFix), battery= "
+               "(BatteryState), each TOPIC or none (default: every MagneticField topic a probe, in topic order; the "
+               "others taken where there is one of their kind; `fluxcal inspect FILE` shows the mapping)")
+MAGS_HELP = ("a PX4 or ArduPilot log: the compass instances to take as probes, in order, e.g. 0,2 (default: every "
+             "one)")
+
+
+def topics(text: str) -> dict[str, str | None]:
+    """--topics' value: {name: topic or None}; argparse type (ArgumentTypeError says what is allowed)."""
+    out: dict[str, str | None] = {}
+    for part in text.split(","):
+        name, sep, topic = part.strip().partition("=")
+        ok_name = name in ("imu", "gps", "battery") or (name.startswith("temp.") and len(name) > 5) or \
+            (name and name.replace("_", "").isalnum() and not name.startswith("temp."))
+        if not sep or not ok_name or not topic.strip() or name in out:
+            raise argparse.ArgumentTypeError(f"{part.strip()!r}: NAME=TOPIC (allowed NAME: a probe name, temp.<probe>, "
+                                             f"imu, gps, battery, each once; TOPIC a topic or none)")
+        out[name] = None if topic.strip() == "none" else topic.strip()
+    return out
+
+
+def mags(text: str) -> tuple[int, ...]:
+    """--mags' value: compass instances, e.g. 0,2."""
+    try:
+        got = tuple(int(x) for x in text.split(","))
+    except ValueError:
+        got = ()
+    if not got or any(k < 0 for k in got) or len(set(got)) != len(got):
+        raise argparse.ArgumentTypeError(f"{text!r}: compass instances, e.g. 0,2 (allowed: whole numbers from 0, each "
+                                         f"once)")
+    return got
+
+
 def int_auto(text: str) -> int:
     return int(text, 0)
 
