@@ -1,6 +1,7 @@
 """One preparation of the input for `fit`, `diagnose` and their fleets: the data read, what reading lost said, the
-stretches --skip names left out, a rotated file given alone said, the total field and probe positions taken from
---config or else from the configuration a service recording stores, and --site's World Magnetic Model field.
+stretches --skip names left out, a rotated file given alone said, a logger's held samples left out, the total field
+and probe positions taken from --config or else from the configuration a service recording stores (said in the
+header line), --site's World Magnetic Model field, and the model along the track where the data carry a position.
 
     prepare(source, said, config=..., site=..., skip=..., max_samples=..., max_probe_samples=...) -> Prepared
 
@@ -12,19 +13,19 @@ configured total, and every note goes through `said` (service.wiring.result.Said
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
-from drivers.config import read_toml
+from drivers.config import load_section, read_toml
 from drivers.errors import ConfigError, DataError
 from service.io.recordings.labdata import LabData
 from service.io.recordings.load import load_data
 from service.numerics.calib.site import SiteField, site_from_text
 
-from .recorded_config import FROM_RECORDING, geometry, spread, stored_config
 from .result import Said
 
 
@@ -158,8 +159,78 @@ def _along_the_track(said: Said, data: LabData, site: SiteField | None) -> tuple
     return dataclasses.replace(data, block=track.block), track.model
 
 
+#: the header's words for a configuration taken from the recording
+FROM_RECORDING = "configuration from the recording"
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """What fit and diagnose take from a configuration; `origin` None: there was none."""
+
+    total_nT: float | None = None
+    positions_m: np.ndarray | None = None
+    origin: str | None = None           # FROM_RECORDING, or "configuration from FILE" (--config)
+    warning: str | None = None          # a stored configuration that could not be used, and why
+
+
+def geometry(raw: dict[str, Any], n_probes: int) -> tuple[np.ndarray | None, float | None]:
+    """Probe positions (P, 3) and the total field of a raw configuration. The sections used are validated
+    strictly ([unit], [[probes]], [estimator], [sim]); the others need not describe a runnable source, but
+    unknown section names are still errors (ConfigError, without the file's name)."""
+    from service.wiring.config import _SECTIONS, EstimatorConfig, ProbeConfig, UnitConfig
+
+    for key in raw:
+        if key not in _SECTIONS:
+            raise ConfigError(f"{key}: unknown section (allowed: {', '.join(_SECTIONS)})")
+    unit = load_section(UnitConfig, raw.get("unit", {}), "unit")
+    total = load_section(EstimatorConfig, raw.get("estimator", {}), "estimator").total_nT
+    tables = raw.get("probes", [])
+    if not isinstance(tables, list):
+        raise ConfigError("probes: expected an array of tables [[probes]]")
+    probes = [load_section(ProbeConfig, t, f"probes[{i}]") for i, t in enumerate(tables)]
+    positions = None
+    if probes:
+        if "unit" in raw and len(probes) != unit.n_probes:
+            raise ConfigError(f"probes: {len(probes)} [[probes]] tables but unit.n_probes = {unit.n_probes}")
+        positions = np.array([p.position_m for p in probes], dtype=np.float64)
+    elif "sim" in raw:
+        from drivers.sim.config import load_sim_config
+
+        positions = np.array([p.position_m for p in load_sim_config(raw["sim"]).probes], dtype=np.float64)
+    if positions is not None and positions.shape[0] != n_probes:
+        raise ConfigError(f"probes: {positions.shape[0]} probe positions but the data have {n_probes} probes")
+    return positions, total
+
+
+def stored_config(metadata: dict[str, str], where: str, n_probes: int) -> DataConfig:
+    """The total field and probe positions of the configuration a service recording stores (its "fluxcal"
+    metadata record's `config`). None of it when the recording stores none (a CSV, `simulate`'s recordings);
+    a stored configuration that cannot be read is a warning saying so (the caller says it and counts it), and
+    the data are then used as without one."""
+    text = metadata.get("config")
+    if not text:
+        return DataConfig()
+    try:
+        raw = json.loads(text)
+        if not isinstance(raw, dict):
+            raise ConfigError(f"expected a table, got {type(raw).__name__}")
+        positions, total = geometry(raw, n_probes)
+    except (ValueError, ConfigError) as e:
+        return DataConfig(warning=f"{where}: its stored configuration cannot be used ({e}): the total field and "
+                                  f"probe positions are not taken from it; give them with --config FILE")
+    return DataConfig(total, positions, FROM_RECORDING)
+
+
+def spread(positions_m: Any) -> np.ndarray | None:
+    """Probe positions that tell the probes apart (None when there are none, or all are at one point)."""
+    if positions_m is None:
+        return None
+    pos = np.asarray(positions_m, float)
+    return pos if np.ptp(pos, axis=0).any() else None
+
+
 def config_geometry(path: str, n_probes: int) -> tuple[np.ndarray | None, float | None]:
-    """Probe positions (P, 3) and the total field from a configuration file (recorded_config.geometry: the
+    """Probe positions (P, 3) and the total field from a configuration file (geometry: the
     sections used validated strictly, unknown section names errors), naming the file in any error."""
     from service.wiring.config import require_content
 

@@ -50,7 +50,7 @@ def config_geometry(path: str) -> dict[str, Any]:
     from drivers.config import read_toml
     from service.wiring.config import load_config
     from service.wiring.dashboard.hub import Geometry
-    from service.wiring.recorded_config import geometry
+    from service.wiring.prepare import geometry
 
     cfg = load_config(path)
     try:
