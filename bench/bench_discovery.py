@@ -90,13 +90,14 @@ def run_real() -> None:
         d1 = diagnose(touched, discover=True)
         f0, f1 = d0.discovery, d1.discovery
         ratio = f1.heldout_rms_nT / d0.heldout_rms_nT if f1.claimed else float("nan")
-        good = f1.claimed and ratio <= 1.1 and named(d1, kind)
+        good = f1.claimed and ratio <= 1.1 and named(d1, kind, probe="s1")
         found += bool(good)
         quiet += not f0.claimed
         total += 1
         print(f"{'FOUND' if good else 'miss '} {name:<30} {kind:<16} held-out with/untouched {ratio:5.3f} "
               f"(before {d1.heldout_rms_nT / d0.heldout_rms_nT:5.3f}); untouched: "
               f"{'CLAIM ' + f0.groups[0].reading[:80] if f0.claimed else 'nothing claimed'}; "
+              f"{'weak held-out test; ' if d1.heldout_weak else ''}"
               f"{(f1.groups[0].reading if f1.claimed else f1.reason)[:140]}", flush=True)
     print(f"== real: found {found} of {total}; nothing claimed on the untouched copy in {quiet} of {total}",
           flush=True)

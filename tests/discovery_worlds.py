@@ -146,13 +146,17 @@ def config_world(config: str, seed: int, *, pink: float, seconds: float | None =
     return EffectData.from_block(block)
 
 
-def named(d: Any, kind: str) -> bool:
+def named(d: Any, kind: str, probe: str | None = None) -> bool:
     """Whether diagnose's verdict names what the world of `kind` holds: a discovered group of the right kind on
-    the right observable, and the verdict's advice says the observable and the word of its physics."""
+    the right observable, and the verdict's advice says the observable and the word of its physics. probe: where the
+    effect is, when not where the world of `kind` puts it (a real recording's s1)."""
     f = getattr(d, "discovery", None)
     if f is None or not f.claimed:
         return False
     obs, group_kind, words = TRUTH[kind]
+    if probe is not None:
+        obs = obs.replace("s2", probe).replace("s3", probe)
+        words = tuple(w.replace("s2", probe).replace("s3", probe) for w in words)
     advice = (d.verdict or {}).get("advice") or ""
     return any(g.observable == obs and g.group.kind == group_kind and all(w in g.reading for w in words)
                for g in f.groups) and all(w in advice for w in words)

@@ -162,7 +162,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
                                                weights, n_blocks, noise, noise_nT, tell)
         best = next((c for c in cands if c.significant and c.fit is not None), None)
 
-    weak = heldout_weakness(cur)
+    weak = heldout_weakness(cur, cur_ho.rms_nT)
     if weak is not None:
         notes.append(f"the held-out test is weak here: {weak['reason']}; {weak['advice']}")
         if found is not None and found.claimed:

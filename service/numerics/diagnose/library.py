@@ -54,7 +54,7 @@ MAX_LINES = 2
 #: the phase of an unnamed positive column is tried where its band holds this share of some channel's excess power
 BAND_SHARE = 0.2
 #: the smooth sign of a rate: tanh(rate / (LOOP_SCALE std(rate)))
-LOOP_SCALES = (0.05,)
+LOOP_SCALES = (0.05, 0.3)
 #: a column's unit by its name: cycles per unit of the column
 PHASE_HINTS = (("rpm", 1.0 / 60.0), ("rad_s", 1.0 / (2 * np.pi)), ("rads", 1.0 / (2 * np.pi)), ("rps", 1.0),
                ("hz", 1.0), ("freq", 1.0))

@@ -13,12 +13,15 @@ DECIDES = (f"    the held-out columns decide: SIGNIFICANT needs a held-out gain 
            f"beyond their own errors;\n    p-value and dBIC assume white noise and alone decide nothing")
 
 
-def verdict_word(c: Candidate) -> str:
-    """The verdict column: SIGNIFICANT, or "no" with the figure that refused it."""
+def verdict_word(c: Candidate, weak: dict | None = None) -> str:
+    """The verdict column: SIGNIFICANT, or "no" with the figure that refused it ("undecided" where the held-out test
+    is weak and nothing else refused it)."""
     if c.significant:
         return "SIGNIFICANT"
     if c.refusal:
         return f"no: {c.refusal}"
+    if weak and c.n_params > 0:
+        return "undecided: the held-out test is weak here"
     if c.n_params <= 0:
         return "no: nothing determined"
     if c.gain <= 0:
@@ -79,7 +82,7 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
         if not c.testable:
             lines.append(f"    {c.effect:<14} {'-':>12}  {'-':>8}   {'-':>6}   {'-':>8}  {'-':>9}   not testable: {c.reason}")
             continue
-        verdict = verdict_word(c)
+        verdict = verdict_word(c, d.heldout_weak)
         lines.append(f"    {c.effect:<14} {c.rms_nT:10.3f} nT {c.heldout_rms_nT:8.3f}   {gain_text(c.gain, d.heldout_weak)}  "
                      f"{c.p_value:9.2g}  {c.bic_delta:9.1f}   {verdict}")
     told: set[frozenset] = set()
