@@ -47,6 +47,9 @@ BLOCK_SPLIT = 2
 #: group added in a fold that does not predict lowers the gain); the selection on all blocks also asks each group's
 #: held-out gain
 INNER_HELDOUT = True
+#: the groups each selection chooses among: the strongest of those whose F-test beside the model alone, on its
+#: training blocks, is below P_SIGNIFICANT over the number tried (the dense normal equations are for these only)
+SHORTLIST = 16
 #: groups a discovered set holds at most
 MAX_GROUPS = 4
 
@@ -74,59 +77,156 @@ class Normals:
     spans: list[slice]
 
 
+def _edges(fit: FitResult, split: int) -> list[tuple[int, int]]:
+    """Discovery's time blocks: each of the fit's cut into `split` contiguous ones (positions in the fit's rows)."""
+    return [(int(a), int(b)) for blk in fit.problem.blocks
+            for a, b in zip(np.linspace(blk.start, blk.stop, split + 1)[:-1].round(),
+                            np.linspace(blk.start, blk.stop, split + 1)[1:].round()) if b > a]
+
+
+def _channels(fit: FitResult):
+    """(probe, kind) of every residual channel family the assembly visits."""
+    pr = fit.problem
+    for k in range(pr.P):
+        for kind in ("scalar", "diff", "vec"):
+            if (kind == "diff" and k == 0) or (kind == "vec" and pr.vref is None):
+                continue
+            yield k, kind
+
+
+def _chunks_of(fit: FitResult, split: int, max_rows: int):
+    """(block, positions) of the rows the normal equations use: at most max_rows spread evenly, CHUNK_ROWS at a time."""
+    stride = max(1, -(-fit.problem.M // max_rows))
+    for b, (lo_b, hi_b) in enumerate(_edges(fit, split)):
+        pos = np.arange(lo_b, hi_b, stride)
+        for lo in range(0, pos.size, CHUNK_ROWS):
+            yield b, pos[lo:lo + CHUNK_ROWS]
+
+
+def _response(g: Group, data: EffectData, fit: FitResult, rows: np.ndarray, start: int = 0) -> tuple:
+    """A group's slot for local_jacobian at `rows`: its span and d v_k / d theta for the probes it moves."""
+    lin = fit.state.linear
+    cols = g.columns(data, lin.offset_nT, rows)
+    vb = ({k: -cols for k in range(fit.problem.P)} if g.common else
+          {g.probe: -np.matmul(lin.matrix[g.probe], cols)})
+    return (_Span(start, start + g.size), vb, None)
+
+
+def _weighted(fit: FitResult, r: np.ndarray, k: int, kind: str) -> tuple[Any, np.ndarray]:
+    pr = fit.problem
+    if kind == "scalar":
+        return pr.weights[k], r[:, k] * pr.weights[k]
+    cols = pr._cols(kind, k)
+    return pr.weights[cols], (r[:, cols] * pr.weights[cols]).reshape(-1)
+
+
 def normals(data: EffectData, fit: FitResult, groups: list[Group], max_rows: int = SCREEN_ROWS,
             split: int = BLOCK_SPLIT) -> Normals:
     """The normal equations of the model and the groups at fit's state, block by block (see the module doc): each of
-    the fit's time blocks cut into `split` contiguous ones."""
+    the fit's time blocks cut into `split` contiguous ones. Dense: for the groups a selection chooses among."""
     pr = fit.problem
-    lin = fit.state.linear
     spans, start = [], pr.n_params
     for g in groups:
         spans.append(slice(start, start + g.size))
         start += g.size
-    edges = [(int(a), int(b)) for blk in pr.blocks
-             for a, b in zip(np.linspace(blk.start, blk.stop, split + 1)[:-1].round(),
-                             np.linspace(blk.start, blk.stop, split + 1)[1:].round()) if b > a]
-    p, nb = start, len(edges)
+    p, nb = start, len(_edges(fit, split))
     a, gv = np.zeros((nb, p, p)), np.zeros((nb, p))
     sse, cnt = np.zeros(nb), np.zeros(nb)
-    stride = max(1, -(-pr.M // max_rows))
-    r_all = fit.channels.values
-    w_all = pr.weights
-    for b, (lo_b, hi_b) in enumerate(edges):
-        pos = np.arange(lo_b, hi_b, stride)
-        for lo in range(0, pos.size, CHUNK_ROWS):
-            chunk = pos[lo:lo + CHUNK_ROWS]
-            rows = pr.rows[chunk]
-            blk = block_jacobian(pr, fit.jac, chunk) if pr.n_params else []
-            for g, sp in zip(groups, spans):
-                cols = g.columns(data, lin.offset_nT, rows)
-                if g.common:
-                    vb = {k: -cols for k in range(pr.P)}
-                else:
-                    vb = {g.probe: -np.matmul(lin.matrix[g.probe], cols)}
-                blk.append((_Span(sp.start, sp.stop), vb, None))
-            r = r_all[chunk]
-            sse[b] += float(np.sum((r * w_all) ** 2))
-            cnt[b] += r.size
-            for k in range(pr.P):
-                for kind in ("scalar", "diff", "vec"):
-                    if (kind == "diff" and k == 0) or (kind == "vec" and pr.vref is None):
-                        continue
-                    if kind == "scalar":
-                        w = w_all[k]
-                        rl = r[:, k] * w
-                    else:
-                        cols_c = pr._cols(kind, k)
-                        w = w_all[cols_c]
-                        rl = (r[:, cols_c] * w).reshape(-1)
-                    local = local_jacobian(blk, fit.ev.nhat[k][chunk] if kind == "scalar" else None, k, kind, w)
-                    if local is None:
-                        continue
-                    jl, idx = local
-                    a[b][np.ix_(idx, idx)] += jl.T @ jl
-                    gv[b, idx] += jl.T @ rl
+    for b, chunk in _chunks_of(fit, split, max_rows):
+        rows = pr.rows[chunk]
+        blk = block_jacobian(pr, fit.jac, chunk) if pr.n_params else []
+        blk += [_response(g, data, fit, rows, sp.start) for g, sp in zip(groups, spans)]
+        r = fit.channels.values[chunk]
+        sse[b] += float(np.sum((r * pr.weights) ** 2))
+        cnt[b] += r.size
+        for k, kind in _channels(fit):
+            w, rl = _weighted(fit, r, k, kind)
+            local = local_jacobian(blk, fit.ev.nhat[k][chunk] if kind == "scalar" else None, k, kind, w)
+            if local is None:
+                continue
+            jl, idx = local
+            a[b][np.ix_(idx, idx)] += jl.T @ jl
+            gv[b, idx] += jl.T @ rl
     return Normals(a, gv, sse, cnt, pr.n_params, spans)
+
+
+@dataclass
+class Marginals:
+    """Per block, the model's normal equations and, per group, its own block and its cross terms with the model only
+    (not with the other groups): enough for each group's F-test beside the model on any set of blocks, at a cost and
+    a memory linear in the library's size."""
+
+    a_mm: np.ndarray                 # (K, pm, pm)
+    g_m: np.ndarray                  # (K, pm)
+    sse: np.ndarray
+    n: np.ndarray
+    a_gg: list[np.ndarray]           # per group (K, m, m)
+    a_gm: list[np.ndarray]           # per group (K, m, pm)
+    g_g: list[np.ndarray]            # per group (K, m)
+
+
+def marginals(data: EffectData, fit: FitResult, groups: list[Group], max_rows: int = SCREEN_ROWS,
+              split: int = BLOCK_SPLIT) -> Marginals:
+    pr = fit.problem
+    pm, nb = pr.n_params, len(_edges(fit, split))
+    out = Marginals(np.zeros((nb, pm, pm)), np.zeros((nb, pm)), np.zeros(nb), np.zeros(nb),
+                    [np.zeros((nb, g.size, g.size)) for g in groups], [np.zeros((nb, g.size, pm)) for g in groups],
+                    [np.zeros((nb, g.size)) for g in groups])
+    for b, chunk in _chunks_of(fit, split, max_rows):
+        rows = pr.rows[chunk]
+        blk = block_jacobian(pr, fit.jac, chunk) if pm else []
+        r = fit.channels.values[chunk]
+        out.sse[b] += float(np.sum((r * pr.weights) ** 2))
+        out.n[b] += r.size
+        model: dict[tuple[int, str], Any] = {}
+        for k, kind in _channels(fit):
+            w, rl = _weighted(fit, r, k, kind)
+            local = local_jacobian(blk, fit.ev.nhat[k][chunk] if kind == "scalar" else None, k, kind, w) if blk else None
+            model[(k, kind)] = (w, rl, local)
+            if local is not None:
+                jm, idx = local
+                out.a_mm[b][np.ix_(idx, idx)] += jm.T @ jm
+                out.g_m[b, idx] += jm.T @ rl
+        for i, g in enumerate(groups):
+            slot = [_response(g, data, fit, rows)]
+            for (k, kind), (w, rl, local) in model.items():
+                if g.common and kind != "scalar":
+                    continue                                   # a common field cancels in the differences
+                if not g.common and not (k == g.probe or (kind == "diff" and g.probe == 0)):
+                    continue
+                mine = local_jacobian(slot, fit.ev.nhat[k][chunk] if kind == "scalar" else None, k, kind, w)
+                if mine is None:
+                    continue
+                jg = mine[0]
+                out.a_gg[i][b] += jg.T @ jg
+                out.g_g[i][b] += jg.T @ rl
+                if local is not None:
+                    jm, idx = local
+                    out.a_gm[i][b][:, idx] += jg.T @ jm
+    return out
+
+
+def shortlist(mg: Marginals, train: list[int], p_level: float, size: int) -> list[int]:
+    """The groups whose F-test beside the model alone, on the train blocks, is below p_level: the `size` strongest."""
+    a_mm, g_m, sse = mg.a_mm[train].sum(0), mg.g_m[train].sum(0), float(mg.sse[train].sum())
+    n_t = float(mg.n[train].sum())
+    pm = a_mm.shape[0]
+    rss0, rank0 = _rss(a_mm, g_m, sse, np.arange(pm))
+    scored = []
+    for i in range(len(mg.a_gg)):
+        agg, agm, gg = mg.a_gg[i][train].sum(0), mg.a_gm[i][train].sum(0), mg.g_g[i][train].sum(0)
+        a = np.block([[a_mm, agm.T], [agm, agg]])
+        g = np.concatenate([g_m, gg])
+        rss1, rank1 = _rss(a, g, sse, np.arange(a.shape[0]))
+        dp = rank1 - rank0
+        if dp <= 0 or not rss1 < rss0:
+            continue
+        dof = max(n_t - rank1, 1.0)
+        logp = float(stats.f.logsf(((rss0 - rss1) / dp) / (max(rss1, 1e-300) / dof), dp, dof))
+        if logp <= np.log(p_level):
+            scored.append((logp, -(rss0 - rss1), i))
+    scored.sort()
+    return [i for _, _, i in scored[:size]]
 
 
 # --- the selection, inside training blocks ------------------------------------------------------------
@@ -221,13 +321,14 @@ class Crossval:
         return _passes(self.sse_base, self.sse_with, self.n)
 
 
-def crossval(nm: Normals, p_level: float, allowed: np.ndarray | None = None) -> Crossval:
+def crossval(nm: Normals, p_level: float, allowed: list[np.ndarray] | None = None) -> Crossval:
+    """allowed: per block, the groups the selection without that block may choose (its shortlist)."""
     k = nm.a.shape[0]
     base, with_, chosen = np.zeros(k), np.zeros(k), []
     model = _idx(nm, [])
     for b in range(k):
         train = [j for j in range(k) if j != b]
-        s = select(nm, train, p_level, allowed=allowed, heldout_rule=INNER_HELDOUT)
+        s = select(nm, train, p_level, allowed=None if allowed is None else allowed[b], heldout_rule=INNER_HELDOUT)
         chosen.append(s)
         base[b] = heldout_sse(nm, model, train, [b])[0]
         with_[b] = heldout_sse(nm, _idx(nm, s), train, [b])[0] if s else base[b]
@@ -345,12 +446,23 @@ def discover(data: EffectData, base: FitResult, base_ho: Heldout, reference: np.
         out.reason = "the data carry nothing to build a group from"
         return out
     p_level = P_SIGNIFICANT / len(groups)
-    tell(f"normal equations of {len(groups)} groups")
-    nm = normals(data, base, groups)
-    tell("selection inside training blocks")
-    cv = crossval(nm, p_level)
+    tell(f"screening {len(groups)} groups")
+    mg = marginals(data, base, groups)
+    k = mg.sse.size
+    lists = [shortlist(mg, [j for j in range(k) if j != b], p_level, SHORTLIST) for b in range(k)]
+    lists.append(shortlist(mg, list(range(k)), p_level, SHORTLIST))
+    union = sorted(set().union(*lists))
+    if not union:
+        out.reason = (f"no group's F-test beside the model reaches p < {p_level:.2g} (P_SIGNIFICANT over the "
+                      f"{len(groups)} groups tried)")
+        return out
+    tell(f"selection inside training blocks among {len(union)} groups")
+    nm = normals(data, base, [groups[i] for i in union])
+    where = {g: j for j, g in enumerate(union)}
+    allowed = [np.isin(np.arange(len(union)), [where[i] for i in lst]) for lst in lists]
+    cv = crossval(nm, p_level, allowed=allowed[:k])
     ok, out.cv_gain, out.cv_log_ratio, out.cv_log_ratio_se = cv.verdict
-    chosen = select(nm, list(range(nm.a.shape[0])), p_level)
+    chosen = [union[j] for j in select(nm, list(range(k)), p_level, allowed=allowed[k])]
     if not chosen:
         out.reason = (f"no group passes the selection on all blocks (F-test at p < {p_level:.2g}, held-out gain at "
                       f"least {100 * MIN_GAIN:g} % and {GAIN_SIGMAS:g} standard errors above zero)")
