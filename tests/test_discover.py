@@ -14,6 +14,7 @@ real recordings, and prints the counts."""
 
 from __future__ import annotations
 
+import json
 import re
 
 import numpy as np
@@ -57,6 +58,8 @@ def test_an_effect_outside_the_catalogue_is_found_named_and_brought_to_the_floor
     assert named(d, kind), text
     assert f.cv_gain >= 0.02 and f.cv_log_ratio > 2 * f.cv_log_ratio_se, text
     assert "beyond the catalogue" in text and "log " not in (d.verdict["advice"] or ""), text
+    js = json.loads(json.dumps(d.as_dict(), allow_nan=False))["discovery"]          # the contract's JSON
+    assert js["claimed"] and js["groups"][0]["reading"] == f.groups[0].reading and js["sentence"] in js["sentence"]
     if kind == "temperature rotation":                      # 40 µrad/degC about the platform's z, in the differences
         rot = _group(d, "matrix").parts["rotation"]
         assert rot["values"][2] == pytest.approx(40.0, rel=0.03) and rot["significant"], rot

@@ -347,7 +347,8 @@ def borrowed_notes(data: Any) -> list[str]:
             f"temperature" for n in data.probe_names if n not in own]
 
 
-def verdict(rms_nT: float, noise_nT: float, best: Any, left: dict[str, Any], carried: "Carried | bool") -> dict[str, Any]:
+def verdict(rms_nT: float, noise_nT: float, best: Any, left: dict[str, Any],
+            carried: "Carried | bool") -> dict[str, Any]:
     """The verdict in three kinds (plus "at the floor"), JSON-ready; `left` the signature of what the best
     candidate (or the model, without one) leaves."""
     if best is None and rms_nT <= FLOOR_FACTOR * noise_nT:

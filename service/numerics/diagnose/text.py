@@ -83,7 +83,8 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
             lines.append(f"    {c.effect:<14} {'-':>12}  {'-':>8}   {'-':>6}   {'-':>8}  {'-':>9}   not testable: {c.reason}")
             continue
         verdict = verdict_word(c, d.heldout_weak)
-        lines.append(f"    {c.effect:<14} {c.rms_nT:10.3f} nT {c.heldout_rms_nT:8.3f}   {gain_text(c.gain, d.heldout_weak)}  "
+        gain = gain_text(c.gain, d.heldout_weak)
+        lines.append(f"    {c.effect:<14} {c.rms_nT:10.3f} nT {c.heldout_rms_nT:8.3f}   {gain}  "
                      f"{c.p_value:9.2g}  {c.bic_delta:9.1f}   {verdict}")
     told: set[frozenset] = set()
     for c in d.candidates:
@@ -122,15 +123,16 @@ def discovery_lines(d: Diagnosis) -> list[str]:
     f = getattr(d, "discovery", None)
     if f is None:
         return []
-    out = ["", f"  beyond the catalogue (discovery: {f.tried} groups of {f.tried_params} parameters built from what the "
-               f"data carry, chosen inside training blocks):"]
+    out = ["", f"  beyond the catalogue (discovery: {f.tried} groups of {f.tried_params} parameters built from what "
+               f"the data carry, chosen inside training blocks):"]
     if not f.claimed:
         out.append(f"    nothing claimed: {f.reason}")
         return out
     for g in f.groups:
         out.append(f"    {g.reading}")
-    out.append(f"    with {'it' if len(f.groups) == 1 else 'them'}: residual {f.rms_nT:.3f} nT, held-out {f.heldout_rms_nT:.3f} "
-               f"nT (from {f.base_heldout_rms_nT:.3f}) against a {f.floor_nT:.3f} nT floor; judged on held-out blocks "
+    out.append(f"    with {'it' if len(f.groups) == 1 else 'them'}: residual {f.rms_nT:.3f} nT, held-out "
+               f"{f.heldout_rms_nT:.3f} nT (from {f.base_heldout_rms_nT:.3f}) against a {f.floor_nT:.3f} nT floor; "
+               f"judged on held-out blocks "
                f"with every choice made without them: gain {100 * f.cv_gain:.1f} %, "
                f"{f.cv_log_ratio / f.cv_log_ratio_se if f.cv_log_ratio_se > 0 else float('inf'):.1f} standard errors")
     return out

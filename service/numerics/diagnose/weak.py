@@ -77,8 +77,9 @@ def heldout_weakness(fit: FitResult, heldout_rms_nT: float | None = None) -> dic
     if med >= OVERLAP and (ratio is None or ratio < HELDOUT_RATIO):
         return None
     if med >= OVERLAP:
+        seconds = fit.problem.data.duration_s
         return {"reason": f"the model's own held-out error is {ratio:.2f} times its in-sample error: the time blocks "
-                          f"differ from one another ({fit.problem.data.duration_s:.0f} s of data), so each is predicted "
+                          f"differ from one another ({seconds:.0f} s of data), so each is predicted "
                           f"by extrapolation and a held-out gain, or its standard error, says little of an effect",
                 "overlap": overlap.tolist(), "ratio": ratio,
                 "advice": "a longer recording that repeats its motion would decide (the whole sphere two or three "

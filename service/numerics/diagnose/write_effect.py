@@ -125,7 +125,8 @@ def _feature_code(g: Group) -> tuple[str, list[str]]:
 
 def _group_block(g: Group, indent: str) -> list[str]:
     expr, pre = _feature_code(g)
-    out = [f"{indent}# {g.kind}: {g.feature.name}" + (f" (borrowed: {g.feature.borrowed})" if g.feature.borrowed else "")]
+    borrowed = f" (borrowed: {g.feature.borrowed})" if g.feature.borrowed else ""
+    out = [f"{indent}# {g.kind}: {g.feature.name}{borrowed}"]
     out += [indent + ln for ln in pre]
     builder = {"offset": "offset_columns({x})", "common offset": "offset_columns({x})",
                "matrix": "matrix_columns({x}, view.centred_nT)", "wave": "wave_columns({x})",
