@@ -193,7 +193,7 @@ def marginals(data: EffectData, fit: FitResult, groups: list[Group], max_rows: i
         for i, g in enumerate(groups):
             slot = [_response(g, data, fit, rows)]
             for (k, kind), (w, rl, local) in model.items():
-                if g.common and kind != "scalar":
+                if g.common and kind == "diff":
                     continue                                   # a common field cancels in the differences
                 if not g.common and not (k == g.probe or (kind == "diff" and g.probe == 0)):
                     continue
