@@ -58,6 +58,12 @@ def test_the_tutorial_runs_as_written(tmp_path, monkeypatch, capsys, clean_regis
                         "follows", "frames"}
     assert 1.45 < sig["line_hz"] < 1.55 and sig["probe_share"]["s2"] > 0.9 and sig["shared_fraction"] < 0.25
     assert "periodic at 1.5" in v["advice"] and "s2's own" in v["left"]
+    # beyond the catalogue: discovery finds the field at 1.5 Hz on s2, 4 nT on x and y, and the floor with it
+    f = d["discovery"]
+    assert f["claimed"] and len(f["groups"]) == 1 and f["heldout_rms_nT"] <= 1.3 * d["noise_nT"]
+    g = f["groups"][0]
+    assert g["probe"] == "s2" and g["kind"] == "wave" and g["how"] == "line" and "1.5 Hz" in g["reading"]
+    assert g["parts"]["amplitude_platform_frame_nT"] == pytest.approx([4.0, 4.0, 0.0], abs=0.1)
     assert d["rms_nT"] > 2 * d["noise_nT"]
     # 3. with the effect: at the floor, the pump's 4 nT found on s2
     assert main(cmds[1] + ["--json"]) == 0

@@ -43,24 +43,30 @@ from service.numerics.engine import (
 )
 from service.numerics.usable import temperature_notes
 
+from .discover import beside
+from .discover import discover as find_terms
 from .fits import heldout, try_candidate
 from .frames import frame_summary, frames
-from .result import N_BLOCKS, Candidate, Diagnosis, Progress
-from .signature import FLOOR_FACTOR, SHARED, signature, verdict
+from .result import N_BLOCKS, P_SIGNIFICANT, Candidate, Diagnosis, Progress
+from .signature import FLOOR_FACTOR, SHARED, Carried, borrowed_notes, describe, signature, verdict
 from .verdict import demote_nested, mark_indistinguishable, rank
+from .weak import heldout_weakness
 from .where import GROSS_RATIO, gross_stretch, stretch_ratio, where_it_fails, worst_segments
 
 
 def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None, fix_linear: bool | None = None,
              candidates: Sequence[str] | None = None, total_nT: float | None = None,
              positions_m: np.ndarray | None = None, n_blocks: int = N_BLOCKS,
-             progress: Progress | None = None, check_linear: Callable[[Any], None] | None = None) -> Diagnosis:
+             progress: Progress | None = None, check_linear: Callable[[Any], None] | None = None,
+             discover: bool | None = None) -> Diagnosis:
     """Compare the model (linear calibration + `effects`) with the data; find what fails and what is missing.
 
     calibration: a linear calibration to hold fixed (the model compared is then exactly that
     calibration plus the effects); None refits the linear part. fix_linear overrides that choice.
     check_linear(linear): called with a refitted linear part as soon as the model is fitted, before any candidate
-    (it may raise: a refusal then costs the first fit only, not the whole diagnosis)."""
+    (it may raise: a refusal then costs the first fit only, not the whole diagnosis).
+    discover: look for the missing term in the library beyond the catalogue (discover.py): None (the default) where
+    the catalogue leaves an excess (the verdict unexplained or partly explained), True always, False never."""
     def tell(frac: float, msg: str) -> None:
         if progress is not None:
             progress(frac, msg)
@@ -70,6 +76,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     if ed.dropped_rows:
         notes += ed.dropped_notes or [f"{ed.dropped_rows} samples with a saturated axis (NaN) left out"]
     notes += temperature_notes(ed.temp_C, ed.probe_names)        # the temperature terms are among those tested
+    notes += borrowed_notes(ed)
     fixed = (calibration is not None) if fix_linear is None else bool(fix_linear)
     tell(0.0, "linear calibration")
     if calibration is not None:
@@ -142,7 +149,26 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
         left["frames"] = frame_summary(frames(ed, best.fit, noise))
     else:
         left = {}
-    told = verdict(cur.rms_nT, noise_nT, best, left, ed.ref_total_nT is not None)
+    carried = Carried.of(ed)
+    told = verdict(cur.rms_nT, noise_nT, best, left, carried)
+
+    # 6. beyond the catalogue: the library of terms the data allow (discover.py), where the catalogue leaves an excess
+    found = None
+    base_fit = best.fit if best is not None else cur
+    if discover or (discover is None and (told["kind"] in ("unexplained", "partly explained")
+                                          or family_excess(base_fit, noise) >= DISCOVER_EXCESS)):
+        tell(0.93, "discovery beyond the catalogue")
+        found, told, cands = _beyond_catalogue(ed, model, cur, cur_ho, cands, told, sig_cur, carried, reference,
+                                               weights, n_blocks, noise, noise_nT, tell)
+        best = next((c for c in cands if c.significant and c.fit is not None), None)
+
+    weak = heldout_weakness(cur, cur_ho.rms_nT)
+    if weak is not None:
+        notes.append(f"the held-out test is weak here: {weak['reason']}; {weak['advice']}")
+        if found is not None and found.claimed:
+            told["advice"] += f"; but the held-out test is weak here ({weak['reason']}): {weak['advice']}"
+        elif told["kind"] == "unexplained":
+            told["advice"] = _weak_advice(weak, cands, told.get("advice"))
     if best is not None and not best.fit.converged:     # candidates stop early (conservative for the gain)
         notes.append(f"{best.effect}'s fit stopped after {best.fit.iterations} iterations, not converged: its "
                      f"parameters and residual are not final (its gain is understated); `--effects {best.effect}` fits "
@@ -158,6 +184,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     if stretch is not None and told["kind"] == "unexplained":
         told["advice"] = _stretch_advice(stretch, told.get("advice"))
     notes += _coloured_noise_notes(sig_cur.get("spectral_slope"), model.effects, ed.duration_s)
+
     tell(1.0, "done")
     ch_rms = cur.channels.rms_nT
     return Diagnosis(effects=model.effects, model=str(model), linear="fixed" if fixed else "refit",
@@ -165,7 +192,25 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
                      channel_names=list(cur.channels.names), channel_rms_nT=ch_rms, channel_noise_nT=noise,
                      where=where, candidates=cands, worst_segments=worst_segments(cur), n_samples=ed.n_samples,
                      duration_s=ed.duration_s, heldout_rms_nT=cur_ho.rms_nT, notes=notes, fit=cur,
-                     linear_refit_rms_nT=linear_refit, parameters=cur.parameters(), frames=frames_cur)
+                     linear_refit_rms_nT=linear_refit, parameters=cur.parameters(), frames=frames_cur,
+                     discovery=found, heldout_weak=weak)
+
+
+#: discovery runs by itself where the catalogue leaves an excess: the verdict unexplained or partly explained, or a
+#: family of channels (the scalar channels, or the differences) this many times its floor (a field common to the
+#: probes shows in the scalar channels alone; over all channels it is diluted under the verdict's 1.3)
+DISCOVER_EXCESS = 1.15
+
+
+def family_excess(fit: Any, noise: np.ndarray) -> float:
+    """The largest RMS over noise floor of a family of channels: the scalar channels, the differences, the
+    differences to a reference vector (each pooled)."""
+    pr = fit.problem
+    rms = fit.channels.rms_nT
+    fams: dict[str, list[int]] = {}
+    for c in range(len(rms)):
+        fams.setdefault(pr.channel_probe(c)[0], []).append(c)
+    return max(float(np.sqrt(np.mean(rms[c] ** 2) / np.mean(noise[c] ** 2))) for c in fams.values())
 
 
 #: with the linear part held fixed, the best candidate is said to be no better than a refit of the linear part when
@@ -257,6 +302,60 @@ def _stretch_advice(stretch: dict[str, Any], advice: str | None) -> str:
     return (f"first {lo:.1f}-{hi:.1f} s, where the residual is {stretch['ratio']:.1f} x the rest's: a disturbance in time "
             f"(a vehicle or a magnet passing, a knock, a glitch) pulls the fit over the whole record; judge the rest "
             f"without it (--skip {lo:.1f}-{hi:.1f})" + (f"; then: {advice}" if advice else ""))
+
+
+def _beyond_catalogue(ed: Any, model: Model, cur: Any, cur_ho: Any, cands: list[Candidate], told: dict[str, Any],
+                      sig_cur: dict[str, Any], carried: Carried, reference: np.ndarray, weights: np.ndarray,
+                      n_blocks: int, noise: np.ndarray, noise_nT: float, tell: Any) -> tuple[Any, dict, list]:
+    """Discovery beside the model and the catalogue's best effect (if any); where it claims, the catalogue's best
+    judged again beside the groups found (kept only where it still adds, as two catalogue effects are), and the
+    verdict said again with the finding as its advice. Returns (the Discovery, the verdict, the candidates)."""
+    best = next((c for c in cands if c.significant and c.fit is not None), None)
+    base = best.fit if best is not None else cur
+    found = find_terms(ed, base, heldout(base) if best is not None else cur_ho, reference, weights, n_blocks,
+                       noise_nT, progress=lambda msg: tell(0.95, msg))
+    if not found.claimed:
+        return found, told, cands
+    if best is not None:
+        tell(0.97, f"{best.effect} beside what discovery found")
+        alone = beside(found, ed, cur, cur_ho, reference, weights, n_blocks)
+        if alone.claimed:
+            again = try_candidate(ed, alone.fit.model, alone.fit, heldout(alone.fit), best.effect, reference, weights,
+                                  residual_hints(alone.fit), n_blocks)
+            if not again.significant:
+                best.significant = False
+                best.refusal = "nothing beyond the discovered"
+                best.reason = (f"nothing beyond what discovery found: beside it, {best.effect}'s held-out gain is "
+                               f"{100 * again.gain:.1f} %")
+                found = alone
+                cands = rank(cands)
+                best = next((c for c in cands if c.significant and c.fit is not None), None)
+    base = best.fit if best is not None else cur
+    sig0 = sig_cur if best is None else signature(base, noise, where_it_fails(ed, base, noise))
+    sig0.setdefault("frames", frame_summary(frames(ed, base, noise)))
+    again_told = verdict(cur.rms_nT, noise_nT, best, sig0, carried)
+    if again_told["kind"] in ("at the floor", "explained"):
+        # the verdict is over all channels together; a family of them was not at its floor
+        again_told.update(kind="unexplained" if best is None else "partly explained", left=describe(sig0, carried)[0],
+                          advice=None, signature=sig0)
+    if told.get("linear_refit_nT") is not None:
+        again_told["linear_refit_nT"] = told["linear_refit_nT"]
+    again_told["advice"] = found.sentence() + (
+        f"; beside it: {again_told['advice']}" if again_told.get("advice") and
+        found.heldout_rms_nT > FLOOR_FACTOR * noise_nT else "")
+    return found, again_told, cands
+
+
+def _weak_advice(weak: dict[str, Any], cands: list[Candidate], advice: str | None) -> str:
+    """Unexplained on data whose held-out test is weak: say so, what would decide, and which candidate explains most
+    in-sample (undecided, not named as the cause)."""
+    tried = [c for c in cands if c.testable and c.fit is not None and c.n_params > 0 and c.p_value < P_SIGNIFICANT]
+    top = min(tried, key=lambda c: c.bic_delta, default=None)
+    said = (f"the held-out test cannot decide on these data ({weak['reason']}); "
+            + (f"in-sample, {top.effect} explains most (residual {top.rms_nT:.3f} nT, dBIC {top.bic_delta:.0f}), "
+               f"undecided; " if top is not None else "")
+            + weak["advice"])
+    return said + (f"; then: {advice}" if advice else "")
 
 
 def _demote_without_common_mode(cands: list[Candidate], shared: float | None) -> None:

@@ -202,7 +202,7 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
     return c
 
 
-def _beyond_errors(parameters) -> str | None:
+def _beyond_errors(parameters, p_level: float = P_SIGNIFICANT) -> str | None:
     """None where the candidate's determined parameters, with their standard errors (which take the residual's
     power law where it is coloured), stand beyond zero: jointly (sum of (value / error)^2 above the chi-square
     quantile of p = P_SIGNIFICANT) or one alone (|value / error| above the normal quantile of p = P_SIGNIFICANT / k,
@@ -215,12 +215,12 @@ def _beyond_errors(parameters) -> str | None:
                   and p.stderr > 0 and np.isfinite(p.value)])
     if not z.size:
         return None
-    wald, crit = float(np.sum(z ** 2)), float(stats.chi2.isf(P_SIGNIFICANT, z.size))
-    one, one_crit = float(np.max(np.abs(z))), float(stats.norm.isf(P_SIGNIFICANT / (2 * z.size)))
+    wald, crit = float(np.sum(z ** 2)), float(stats.chi2.isf(p_level, z.size))
+    one, one_crit = float(np.max(np.abs(z))), float(stats.norm.isf(p_level / (2 * z.size)))
     if wald >= crit or one >= one_crit:
         return None
     return (f"its {z.size} parameters are within their errors of zero (sum of (value / error)^2 {wald:.1f}, below "
-            f"{crit:.1f}; the largest {one:.1f} errors, below {one_crit:.1f}; p < {P_SIGNIFICANT:g}): the held-out gain "
+            f"{crit:.1f}; the largest {one:.1f} errors, below {one_crit:.1f}; p < {p_level:.2g}): the held-out gain "
             f"follows the noise's slow wander, not this effect")
 
 

@@ -110,6 +110,10 @@ class Diagnosis:
     thinned: dict[str, Any] | None = None
     #: the residual per axis in the probe, platform and Earth frames (frames.py)
     frames: list[dict[str, Any]] = field(default_factory=list)
+    #: beyond the catalogue: what discovery tried and found (discover.Discovery), None where it did not run
+    discovery: Any = None
+    #: why the held-out test cannot judge these data and what recording would (weak.py), None where it can
+    heldout_weak: dict[str, Any] | None = None
 
     @property
     def best(self) -> Candidate | None:
@@ -142,6 +146,10 @@ class Diagnosis:
         if self.thinned is not None:
             d["thinned"] = _plain(self.thinned)
         d["frames"] = _plain(self.frames)
+        if self.discovery is not None:
+            d["discovery"] = self.discovery.as_dict()
+        if self.heldout_weak is not None:
+            d["heldout_weak"] = _plain(self.heldout_weak)
         return d
 
 

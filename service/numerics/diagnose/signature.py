@@ -22,6 +22,7 @@ Numerics only.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -130,8 +131,71 @@ def _period_text(s: float) -> str:
     return f"{s / 60:.0f} min" if s >= 120 else f"{s:.0f} s" if s >= 2 else f"{s * 1000:.0f} ms"
 
 
-def describe(sig: dict[str, Any], has_reference: bool) -> tuple[str, str]:
-    """(what is left, what would explain it), one sentence each, from a signature."""
+@dataclass(frozen=True)
+class Carried:
+    """What the data carry, so that the advice never asks to log it: the probes with a temperature of their own
+    and those that borrow another's, the logged columns, a scalar or vector reference, the number of probes, the
+    attitude."""
+
+    temperatures: tuple[str, ...] = ()
+    borrowed: tuple[str, ...] = ()
+    columns: tuple[str, ...] = ()
+    reference: bool = False
+    vector_reference: bool = False
+    probes: int = 1
+    attitude: bool = False
+
+    @classmethod
+    def of(cls, data: Any) -> "Carried":
+        """From an EffectData."""
+        from service.numerics.effects.column import usable_columns
+
+        own = tuple(n for k, n in enumerate(data.probe_names) if np.isfinite(data.temp_C[:, k]).sum() >= 2)
+        borrowed = tuple(n for n in data.probe_names if n not in own) if own else ()
+        return cls(temperatures=own, borrowed=borrowed, columns=tuple(usable_columns(data)),
+                   reference=data.ref_total_nT is not None, vector_reference=data.ref_vector_nT is not None,
+                   probes=data.n_probes, attitude=data.attitude() is not None)
+
+    @property
+    def temperature(self) -> bool:
+        return bool(self.temperatures)
+
+    def logged(self) -> str:
+        """'heater_A, fan_hz' or 'no column'."""
+        return ", ".join(self.columns) if self.columns else "no column"
+
+
+#: every request to log something the advice can make, by what it asks for; `ask` gives it only where the data do
+#: not carry that (tests/test_advice.py goes over every advice path with every combination)
+LOG_ASKS = {
+    "temperature": "log the sensors' temperatures",
+    "reference": "log a reference magnetometer (a ref_total column)",
+    "second probe": "log a second probe or a reference magnetometer",
+    "phase": "log the phase or speed of what turns at that rate",
+    "column": "log what might follow it (a current, a voltage, a speed)",
+}
+
+
+def ask(what: str, carried: Carried) -> str | None:
+    """The request to log `what` (a key of LOG_ASKS), or None where the data carry it already."""
+    have = {"temperature": carried.temperature,
+            "reference": carried.reference or carried.vector_reference,
+            "second probe": carried.probes > 1 or carried.reference or carried.vector_reference,
+            "phase": False, "column": False}[what]
+    return None if have else LOG_ASKS[what]
+
+
+def _either(*options: str | None) -> str:
+    """'a, or b' of the options that are not None."""
+    got = [o for o in options if o]
+    return ", or ".join(got)
+
+
+def describe(sig: dict[str, Any], carried: "Carried | bool") -> tuple[str, str]:
+    """(what is left, what would explain it), one sentence each, from a signature; `carried`: what the data carry
+    (a bool: only whether there is a scalar reference, for callers that know nothing else)."""
+    if not isinstance(carried, Carried):
+        carried = Carried(reference=bool(carried))
     parts, advice = [], ""
     shared = sig.get("shared_fraction")
     diff_up = ("difference_rms_nT" in sig
@@ -178,63 +242,74 @@ def describe(sig: dict[str, Any], has_reference: bool) -> tuple[str, str]:
     # (time is no cause: any slow change follows it; whether the change is shared decides first)
     strong = follows and follows[0]["observable"] not in ("frequency", "time") and follows[0]["strength"] >= 0.5
     if strong:
-        advice = _follows_advice(follows[0])
+        advice = _follows_advice(follows[0], carried)
     elif line is not None:
+        logged = (f"; no logged column ({carried.logged()}) follows it" if carried.columns else "")
         advice = (f"something periodic at {line:.2f} Hz (a motor, pump or fan near the probe, a rotating part, an "
-                  f"aliased mains harmonic): nothing in the catalogue is periodic; log its phase or speed, or add an "
-                  f"effect of your own with a sine and a cosine at that frequency (docs/effects.md)")
+                  f"aliased mains harmonic): nothing in the catalogue is periodic{logged}; "
+                  + _either(ask("phase", carried), "add an effect of your own with a sine and a cosine at that "
+                                                   "frequency (docs/effects.md)"))
     elif shared is not None and shared >= SHARED and not diff_up:
         advice = ("a field change at the site, common to all probes: " +
-                  ("the scalar reference does not follow it; check its timing and position" if has_reference else
-                   "log a reference magnetometer (a ref_total column) so the total field follows it, or let the "
-                   "other probes measure it (--effects ambient)"))
+                  ("the scalar reference does not follow it; check its timing and position" if carried.reference else
+                   _either(ask("reference", carried) and ask("reference", carried) + " so the total field follows it",
+                           "let the other probes measure it (--effects ambient)")))
     elif shared is not None and shared <= OWN and slope is not None and -1.6 <= slope <= -0.5 and not (
             follows and follows[0]["strength"] >= 2 * FOLLOWS):
         advice = ("each probe's own slow noise (flicker, spectrum about 1/f): not a missing effect; it limits "
                   "slow terms (drift, temperature) and sets the real floor")
     elif follows and follows[0]["observable"] == "time":
-        advice = _time_advice(shared, sig.get("probe_share") or {}, has_reference)
+        advice = _time_advice(shared, sig.get("probe_share") or {}, carried)
     elif follows:
-        advice = _follows_advice(follows[0])
+        advice = _follows_advice(follows[0], carried)
     else:
-        advice = "nothing the data carry explains it; log what might (temperatures, currents, a reference)"
+        carry = [w for w, on in (("temperatures", carried.temperature), ("a reference", carried.reference),
+                                 (f"columns ({carried.logged()})", bool(carried.columns))) if on]
+        asks = [a for a in (ask("temperature", carried), ask("reference", carried)) if a]
+        advice = ("nothing the data carry explains it" + (f" (they carry {', '.join(carry)})" if carry else "") + "; "
+                  + _either(*asks, LOG_ASKS["column"]))
     return "; ".join(parts), advice
 
 
-def _time_advice(shared: float | None, share: dict[str, float], has_reference: bool) -> str:
+def _time_advice(shared: float | None, share: dict[str, float], carried: Carried) -> str:
     """A change in time no term follows: what the data already say of whether the field or a sensor changed (a
     second probe and a reference see a change of the field; a user's warm-up of one probe was told to log one)."""
     top = [nm for nm, v in sorted(share.items(), key=lambda kv: -kv[1]) if v >= 0.2]
+    unseen_temp = ("a temperature the data do not carry" if not carried.temperature else
+                   "a temperature the logged one does not follow, or its lag")
+    own = "add an effect of your own (docs/effects.md)"
     if shared is not None and shared <= OWN and top and len(top) < len(share):
-        others = "the other probes" + (" and the reference" if has_reference else "")
+        others = "the other probes" + (" and the reference" if carried.reference else "")
         return (f"a change in time of {' and '.join(top)} alone that no term follows (drift's polynomial does not): "
-                f"{others} do not see it, so the sensor changed, not the field (a warm-up, an offset settling, a "
-                f"temperature the data do not carry); log the sensor's temperature, or add an effect of your own "
-                f"(docs/effects.md)")
+                f"{others} do not see it, so the sensor changed, not the field (a warm-up, an offset settling, "
+                f"{unseen_temp}); " + _either(ask("temperature", carried), own))
     if shared is not None and shared <= OWN and len(share) > 1:
         return (f"each probe changes in time on its own ({100 * shared:.0f} % of the excess shared), which no term "
                 f"follows (drift's polynomial does not): not a field of the site, which all would see; each sensor's "
-                f"slow noise (flicker) or its own slow change (a warm-up, a temperature the data do not carry): log "
-                f"the sensors' temperatures, or record longer to tell noise from a drift")
+                f"slow noise (flicker) or its own slow change (a warm-up, {unseen_temp}): "
+                + _either(ask("temperature", carried), "record longer to tell noise from a drift"))
     if shared is not None and shared >= SHARED:
         return ("a change in time common to the probes that no term follows: a change of the field at the site" +
-                ("; the scalar reference does not follow it: check its timing and position" if has_reference else
-                 "; log a reference magnetometer (ref_total) or try --effects ambient"))
-    return _ADVICE["time"]
+                ("; the scalar reference does not follow it: check its timing and position" if carried.reference else
+                 "; " + _either(ask("reference", carried), "try --effects ambient")))
+    if carried.probes > 1 or carried.reference or carried.vector_reference:
+        return ("a change in time that no term follows (drift's polynomial does not); "
+                + _either(ask("temperature", carried), own))
+    return ("a change in time that no term follows (drift's polynomial does not): whether the field or the sensor "
+            "changed cannot be told without a second probe or a reference magnetometer; "
+            + _either(ask("second probe", carried), ask("temperature", carried), own))
 
 
 #: what a residual that follows an observable suggests, when no catalogue term took it
 _ADVICE = {
-    "time": "a change in time that no term follows (drift's polynomial does not): whether the field or the sensor "
-            "changed cannot be told without a second probe or a reference magnetometer; log one, or the "
-            "sensor's temperature",
     "temperature": "a temperature dependence that the temperature and thermal terms do not take (a higher power, "
-                   "or a delay beyond theirs); log the temperature nearer the core",
+                   "a delay beyond theirs, or a matrix that follows it): the logged temperature may be far from the "
+                   "core",
     "temperature rate": "a dependence on how fast the temperature changes: a core that lags its logged temperature "
                         "(try thermal) or a thermal gradient across the sensor",
     "temperature, delayed": "the temperature with a delay: a core that lags its logged temperature (try thermal)",
     "angular rate": "a dependence on the rotation rate that eddy and lag do not take (a filter in the sensor's "
-                    "electronics, a time base that drifts)",
+                    "electronics, a core's loop that follows the sign of the rate, a time base that drifts)",
     "orientation": "a dependence on orientation that the linear calibration, nonlinearity and crossfield do not take "
                    "(a soft-iron part moving with the sensor, a field of the platform)",
     "heading": "a dependence on heading: a field of the platform or the site that turns with it (platform, "
@@ -243,16 +318,37 @@ _ADVICE = {
 }
 
 
-def _follows_advice(top: dict[str, Any]) -> str:
+def _follows_advice(top: dict[str, Any], carried: "Carried | None" = None) -> str:
+    carried = carried or Carried()
     obs = top["observable"]
     if obs == "frequency":
+        logged = (f" (no logged column, {carried.logged()}, follows it)" if carried.columns else "")
         return (f"a narrow-band disturbance at {top.get('band', 'one band')} (something turning, vibrating or "
-                f"switching at that rate near the probe): log it, or add an effect of your own (docs/effects.md)")
+                f"switching at that rate near the probe){logged}: "
+                + _either(ask("phase", carried), "add an effect of your own (docs/effects.md)"))
+    if obs == "time":
+        return _time_advice(None, {}, carried)
+    if obs.endswith(" x field direction"):
+        col = obs[:-len(" x field direction")]
+        return (f"a coupling of {col} seen through the field's direction (an offset or a scale that follows {col}: "
+                f"in the scalar channel it shows as {col} times the field direction's components), which no catalogue "
+                f"term takes as it is: an effect of your own on {col} (docs/effects.md)")
     return _ADVICE.get(obs, f"a coupling of {obs} (a column of the data) that no catalogue term takes: an effect of "
                             f"your own on that column (docs/effects.md)")
 
 
-def verdict(rms_nT: float, noise_nT: float, best: Any, left: dict[str, Any], has_reference: bool) -> dict[str, Any]:
+def borrowed_notes(data: Any) -> list[str]:
+    """A probe without a temperature of its own takes the others' mean in every temperature term: say so."""
+    own = [n for k, n in enumerate(data.probe_names) if np.isfinite(data.temp_C[:, k]).sum() >= 2]
+    if not own:
+        return []
+    return [f"{n} has no temperature of its own: the temperature terms take the mean of {', '.join(own)}'s "
+            f"(borrowed); a coefficient fitted for {n} is a coefficient on {'their' if len(own) > 1 else 'its'} "
+            f"temperature" for n in data.probe_names if n not in own]
+
+
+def verdict(rms_nT: float, noise_nT: float, best: Any, left: dict[str, Any],
+            carried: "Carried | bool") -> dict[str, Any]:
     """The verdict in three kinds (plus "at the floor"), JSON-ready; `left` the signature of what the best
     candidate (or the model, without one) leaves."""
     if best is None and rms_nT <= FLOOR_FACTOR * noise_nT:
@@ -265,7 +361,7 @@ def verdict(rms_nT: float, noise_nT: float, best: Any, left: dict[str, Any], has
         kind = "partly explained"
     else:
         kind = "unexplained"
-    what, advice = describe(left, has_reference)
+    what, advice = describe(left, carried)
     return {"kind": kind, "effect": None if best is None else best.effect, "rms_nT": after, "floor_nT": noise_nT,
             "left": None if kind == "explained" else what, "advice": None if kind == "explained" else advice,
             "signature": left}

@@ -13,12 +13,15 @@ DECIDES = (f"    the held-out columns decide: SIGNIFICANT needs a held-out gain 
            f"beyond their own errors;\n    p-value and dBIC assume white noise and alone decide nothing")
 
 
-def verdict_word(c: Candidate) -> str:
-    """The verdict column: SIGNIFICANT, or "no" with the figure that refused it."""
+def verdict_word(c: Candidate, weak: dict | None = None) -> str:
+    """The verdict column: SIGNIFICANT, or "no" with the figure that refused it ("undecided" where the held-out test
+    is weak and nothing else refused it)."""
     if c.significant:
         return "SIGNIFICANT"
     if c.refusal:
         return f"no: {c.refusal}"
+    if weak and c.n_params > 0:
+        return "undecided: the held-out test is weak here"
     if c.n_params <= 0:
         return "no: nothing determined"
     if c.gain <= 0:
@@ -72,13 +75,16 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
     lines.append("")
     lines.append("  candidate effects (blocked held-out test):")
     lines.append(DECIDES)
+    if d.heldout_weak:
+        lines.append(f"    the held-out test is weak here: {d.heldout_weak['reason']}: the gains are not a verdict")
     lines.append("    effect         rms if added  held-out   gain     p-value   dBIC       verdict")
     for c in d.candidates:
         if not c.testable:
             lines.append(f"    {c.effect:<14} {'-':>12}  {'-':>8}   {'-':>6}   {'-':>8}  {'-':>9}   not testable: {c.reason}")
             continue
-        verdict = verdict_word(c)
-        lines.append(f"    {c.effect:<14} {c.rms_nT:10.3f} nT {c.heldout_rms_nT:8.3f}   {100 * c.gain:5.1f}%  "
+        verdict = verdict_word(c, d.heldout_weak)
+        gain = gain_text(c.gain, d.heldout_weak)
+        lines.append(f"    {c.effect:<14} {c.rms_nT:10.3f} nT {c.heldout_rms_nT:8.3f}   {gain}  "
                      f"{c.p_value:9.2g}  {c.bic_delta:9.1f}   {verdict}")
     told: set[frozenset] = set()
     for c in d.candidates:
@@ -94,11 +100,42 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
             else:
                 lines.append(f"  {c.effect} and {other} are indistinguishable with these data (equal held-out gain, "
                              f"collinear regressors): {c.separate_by}.")
+    lines += discovery_lines(d)
     lines.append("")
     lines += verdict_lines(d)
     for n in d.notes:
         lines.append(f"  note: {n}")
     return "\n".join(lines)
+
+
+def gain_text(gain: float, weak: dict | None = None) -> str:
+    """The gain column, 6 characters: a percentage; 'weak' where the held-out test cannot judge the data; below
+    -100 % (the held-out error more than doubled: an extrapolation, whose size says nothing) '<-100%'."""
+    if weak:
+        return "  weak"
+    if gain < -1.0:
+        return "<-100%"
+    return f"{100 * gain:5.1f}%"
+
+
+def discovery_lines(d: Diagnosis) -> list[str]:
+    """What discovery tried beyond the catalogue, and each group it found read as physics."""
+    f = getattr(d, "discovery", None)
+    if f is None:
+        return []
+    out = ["", f"  beyond the catalogue (discovery: {f.tried} groups of {f.tried_params} parameters built from what "
+               f"the data carry, chosen inside training blocks):"]
+    if not f.claimed:
+        out.append(f"    nothing claimed: {f.reason}")
+        return out
+    for g in f.groups:
+        out.append(f"    {g.reading}")
+    out.append(f"    with {'it' if len(f.groups) == 1 else 'them'}: residual {f.rms_nT:.3f} nT, held-out "
+               f"{f.heldout_rms_nT:.3f} nT (from {f.base_heldout_rms_nT:.3f}) against a {f.floor_nT:.3f} nT floor; "
+               f"judged on held-out blocks "
+               f"with every choice made without them: gain {100 * f.cv_gain:.1f} %, "
+               f"{f.cv_log_ratio / f.cv_log_ratio_se if f.cv_log_ratio_se > 0 else float('inf'):.1f} standard errors")
+    return out
 
 
 def verdict_lines(d: Diagnosis) -> list[str]:

@@ -130,7 +130,23 @@ def observables(data: EffectData, fit: FitResult, rows: np.ndarray) -> dict[str,
         v = vals[full_rows]
         if float(np.ptp(v)) > 0:
             out[name] = _with_scalar(lambda c, _v=v: np.column_stack([_v, _v ** 2]), v)
+            out[f"{name} x field direction"] = _times_direction(v, probe_u)
+    if "temperature" in out:
+        out["temperature x field direction"] = _times_direction(
+            lambda c: temps[pr.channel_probe(c)[1]], probe_u)
     return out
+
+
+def _times_direction(x: Any, direction: Any) -> Any:
+    """The basis x n_a, x (n_a^2 - 1/3) of an observable x times the field's direction n in the channel's probe:
+    an offset that follows x shows in a scalar channel as x n.b, a scale that follows it as x n_a^2, which no
+    association with x alone, or with the direction alone, sees (a heater current coupled into a probe's axes)."""
+    def basis(c: int) -> np.ndarray:
+        v = x(c) if callable(x) else x
+        u = direction(c)
+        v = v - np.mean(v)
+        return np.column_stack([v[:, None] * u, v[:, None] * (u[:, :2] ** 2 - 1.0 / 3.0)])
+    return basis
 
 
 def _with_scalar(basis: Any, scalar: Any) -> Any:

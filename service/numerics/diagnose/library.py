@@ -1,0 +1,463 @@
+"""The library of candidate terms that discovery tries beyond the catalogue, generated from what the data carry.
+
+Features: time series the data carry or imply, each centred on its mean over the data (a reference the
+parameters are defined against, kept with the written effect):
+
+- each observable: each probe's temperature, every logged column, time, the total field of a varying scalar
+  reference, the angular rate |w|; the slow ones (temperatures, columns) also low-passed by a first-order lag
+  (time constants on a grid of ratio 3: the selection chooses among them inside its training blocks);
+- the phase of a logged speed or frequency column (2 pi times its time integral, in Hz, rpm or rad/s as its
+  name says, else tried as Hz and rpm where the residual has power in that band), cosine and sine;
+- the spectral lines of the residual (peaks standing LINE_FACTOR above their neighbourhood), cosine and sine;
+- the smooth sign of each axis' rate of change, tanh(rate / s) (a core's loop: an offset that depends on
+  whether the field along the axis rises or falls).
+
+Groups of a few parameters in physical units. Per probe, in its raw frame (subtracted before its matrix):
+
+    offset   x e_a                          nT per unit of x, per axis
+    matrix   1e-6 x u_j e_i, u = raw - o     ppm per unit: the probe's matrix follows x, read back as scale
+                                            (diagonal), non-orthogonality (symmetric) and rotation (antisymmetric)
+    wave     cos(phi) e_a, sin(phi) e_a     nT: a field at a phase
+    loop     tanh(rate_a / s_a) e_a         nT: the offset follows the sign of the axis' rate
+
+(a raw-frame term with free per-axis amplitudes spans the same as the corrected-frame one: the matrix is
+constant). For arrays, common to all probes in the aligned (corrected) frame, one set for the array: a field
+following x or at a phase, which shows in the scalar channels and cancels in the differences (the channel
+families: an effect of one probe shows in its scalar channel and its differences, a common one in the scalar
+channels only).
+
+Numerics only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.signal import welch
+
+from service.numerics.effects.base import AXES, EffectData, EffectTerm, ProbeView, axis_columns
+from service.numerics.effects.column import usable_columns
+from service.numerics.effects.thermal import low_pass
+
+#: low-pass time constants: from a quarter of the record down by factors of 3, at most this many
+N_TAUS = 4
+TAU_RATIO = 3.0
+#: the smallest time constant tried, in sample intervals (shorter is the value itself)
+MIN_TAU_SAMPLES = 20
+#: a spectral line: a Welch bin this many times the median of its neighbourhood, holding this share of a channel's
+#: excess power; at most MAX_LINES lines
+LINE_FACTOR = 8.0
+LINE_SHARE = 0.05
+MAX_LINES = 2
+#: the phase of an unnamed positive column is tried where its band holds this share of some channel's excess power
+BAND_SHARE = 0.2
+#: the smooth sign of a rate: tanh(rate / (LOOP_SCALE std(rate)))
+LOOP_SCALES = (0.05, 0.3)
+#: a column's unit by its name: cycles per unit of the column
+PHASE_HINTS = (("rpm", 1.0 / 60.0), ("rad_s", 1.0 / (2 * np.pi)), ("rads", 1.0 / (2 * np.pi)), ("rps", 1.0),
+               ("hz", 1.0), ("freq", 1.0))
+SPEED_WORDS = ("speed", "tach", "fan", "pump", "motor", "rotor", "prop", "wheel", "rev")
+UNIT_OF_SCALE = {1.0: "Hz", 1.0 / 60.0: "rpm", 1.0 / (2 * np.pi): "rad/s"}
+
+
+@dataclass
+class Feature:
+    """A time series a group follows. values: (N,) centred on `centre`, or (N, 2) cos and sin of a phase, or
+    (N, 3) per axis (the loop). recipe: how the written effect makes it again (JSON-ready)."""
+
+    name: str                        # "s2_temp", "heater_A low-passed 60 s", "fan_hz phase", "line at 1.51 Hz"
+    observable: str                  # what the data carry: "s2_temp", "heater_A", "time", "residual", "rate of s1"
+    unit: str                        # the unit per which a coefficient is given: "degC", "heater_A", "h", ""
+    how: str                         # "value", "low-passed", "phase", "line", "sign of rate"
+    recipe: dict[str, Any]
+    values: np.ndarray = field(repr=False)
+    per_sample: bool = True
+    borrowed: str | None = None      # a probe's temperature taken from others: from which
+
+    @property
+    def per(self) -> str:
+        """' per heater_A', '/degC', '/h' (after a unit in a parameter name)."""
+        if self.unit in ("degC", "h", "nT", "deg/s"):
+            return f"/{self.unit}"
+        return f" per {self.unit}" if self.unit else ""
+
+
+@dataclass
+class Group:
+    """A few parameters that follow one feature: kind offset, matrix, wave, loop (per probe, raw frame) or common
+    offset, common wave (all probes, corrected frame)."""
+
+    kind: str
+    probe: int | None                # None: common to all probes
+    probe_name: str
+    feature: Feature
+
+    @property
+    def common(self) -> bool:
+        return self.probe is None
+
+    @property
+    def frame(self) -> str:
+        return "corrected" if self.common else "raw"
+
+    @property
+    def per_sample(self) -> bool:
+        return self.feature.per_sample
+
+    @property
+    def key(self) -> str:
+        return f"{self.probe_name} {self.kind} {self.feature.name}"
+
+    @property
+    def size(self) -> int:
+        return {"offset": 3, "matrix": 9, "wave": 6, "loop": 3, "common offset": 3, "common wave": 6}[self.kind]
+
+    @property
+    def slow(self) -> bool:
+        return self.feature.how in ("value", "low-passed") and self.feature.observable != "angular rate"
+
+    def param_names(self) -> list[str]:
+        p, f = self.probe_name, self.feature
+        if self.kind in ("offset", "common offset"):
+            return [f"{p}.{f.name} {a} nT{f.per}" for a in AXES]
+        if self.kind == "matrix":
+            return [f"{p}.{f.name} [{a}{b}] ppm{f.per}" for a in AXES for b in AXES]
+        if self.kind in ("wave", "common wave"):
+            return [f"{p}.{f.name} {part} {a} nT" for part in ("cos", "sin") for a in AXES]
+        return [f"{p}.{f.name} {a} nT" for a in AXES]                       # loop
+
+    def columns(self, data: EffectData, offset_nT: np.ndarray, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """(n, 3, size) regressors at `rows`: raw frame for a probe's group (u = raw - offset_nT[probe]), corrected
+        frame for a common one."""
+        v = self.feature.values[rows]
+        n = v.shape[0]
+        if self.kind in ("offset", "common offset"):
+            return axis_columns(np.repeat(v[:, None], 3, axis=1))
+        if self.kind == "loop":
+            return axis_columns(v)
+        if self.kind in ("wave", "common wave"):
+            out = np.zeros((n, 3, 6))
+            idx = np.arange(3)
+            out[:, idx, idx] = v[:, :1]
+            out[:, idx, 3 + idx] = v[:, 1:2]
+            return out
+        u = data.raw_nT[rows, self.probe, :] - offset_nT[self.probe]
+        out = np.zeros((n, 3, 9))
+        for i in range(3):
+            out[:, i, 3 * i:3 * i + 3] = 1e-6 * v[:, None] * u
+        return out
+
+
+# --- features -------------------------------------------------------------------------------------------
+
+def tau_grid(data: EffectData) -> list[float]:
+    """Low-pass time constants: a quarter of the record, then down by TAU_RATIO, at least MIN_TAU_SAMPLES
+    sample intervals; at most N_TAUS, rounded to two significant figures (written into the effect)."""
+    out, tau = [], data.duration_s / 4.0
+    while tau >= MIN_TAU_SAMPLES * data.dt_s and len(out) < N_TAUS:
+        out.append(float(f"{tau:.2g}"))
+        tau /= TAU_RATIO
+    return out
+
+
+def _centred(x: np.ndarray) -> tuple[np.ndarray, float]:
+    c = float(np.mean(x))
+    return x - c, c
+
+
+def angular_rate_deg_s(data: EffectData) -> np.ndarray:
+    """(N,) |w| of probe 1's field direction, deg/s: |b x db/dt| / |b|^2 (as where.py measures it)."""
+    s, r = data.smooth(0), data.rate(0)
+    return np.degrees(np.linalg.norm(np.cross(s, r), axis=1) / np.sum(s * s, axis=1))
+
+
+def phase_of(t_s: np.ndarray, x: np.ndarray, cycles_per_unit: float) -> np.ndarray:
+    """2 pi cycles_per_unit times the time integral of x from the first sample (trapezoids), rad."""
+    inc = 0.5 * (x[1:] + x[:-1]) * np.diff(t_s)
+    return 2 * np.pi * cycles_per_unit * np.concatenate([[0.0], np.cumsum(inc)])
+
+
+def loop_values(rate: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """(N, 3) the smooth sign of each axis' rate: tanh(rate / scale)."""
+    return np.tanh(rate / scale)
+
+
+def temperature_features(data: EffectData) -> list[tuple[int, Feature]]:
+    """(probe, its temperature as a feature): its own, or the others' mean (borrowed, said)."""
+    if not data.has_temperature():
+        return []
+    out = []
+    own = [k for k in range(data.n_probes) if np.isfinite(data.temp_C[:, k]).sum() >= 2]
+    for k, name in enumerate(data.probe_names):
+        t = data.temperature(k)
+        if t is None or float(np.ptp(t)) <= 1e-6:
+            continue
+        values, centre = _centred(t)
+        borrowed = None if k in own else ", ".join(data.probe_names[j] for j in own)
+        fname = f"{name}_temp" if borrowed is None else f"{name}_temp (the mean of {borrowed}'s)"
+        out.append((k, Feature(fname, f"{name}_temp", "degC", "value",
+                               {"source": "temperature", "probe": k, "centre": centre}, values,
+                               borrowed=borrowed)))
+    return out
+
+
+def _low_passed(data: EffectData, f: Feature, raw: np.ndarray, taus: list[float]) -> list[Feature]:
+    out = []
+    for tau in taus:
+        values, centre = _centred(low_pass(data.t_s, raw, tau))
+        out.append(Feature(f"{f.name} low-passed {tau:g} s", f.observable, f.unit, "low-passed",
+                           {**f.recipe, "low_pass_s": tau, "centre": centre}, values, per_sample=False,
+                           borrowed=f.borrowed))
+    return out
+
+
+def _series(fit: Any, noise: np.ndarray) -> list[tuple[np.ndarray, float]]:
+    """The residual as sets of series whose summed spectrum shows a field at a frequency, each with its white
+    floor (one-sided density): per probe its scalar residual times each component of its field direction (a
+    field b cos(w t) on the probe puts n.b cos(w t) in its scalar channel: the carrier at w is in r n, not in r,
+    whose spectrum the turning direction spreads into sidebands), per difference vector its three axes."""
+    pr, vals = fit.problem, fit.channels.values
+    dt = float(np.median(np.diff(fit.channels.t_s)))
+    out = []
+    for k in range(pr.P):
+        out.append((vals[:, k:k + 1] * fit.ev.nhat[k], 2.0 * float(noise[k]) ** 2 * dt))
+    for k in range(1, pr.P):
+        cols = pr._cols("diff", k)
+        out.append((vals[:, cols], 2.0 * float(np.sum(noise[cols] ** 2)) * dt))
+    return out
+
+
+def relagged(data: EffectData, f: Feature, tau_s: float) -> Feature:
+    """A low-passed feature again at another time constant (from its recipe: a temperature or a column)."""
+    r = f.recipe
+    if r["source"] == "temperature":
+        raw = data.temperature(r["probe"])
+    else:
+        raw = usable_columns(data)[r["column"]]
+    base = f.name.rsplit(" low-passed", 1)[0]
+    values, centre = _centred(low_pass(data.t_s, raw, tau_s))
+    return Feature(f"{base} low-passed {tau_s:g} s", f.observable, f.unit, "low-passed",
+                   {**r, "low_pass_s": tau_s, "centre": centre}, values, per_sample=False, borrowed=f.borrowed)
+
+
+def _excess_spectra(fit: Any, noise: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per set of series (_series): (frequencies, excess power density over its white floor)."""
+    n = fit.channels.values.shape[0]
+    if n < 256:
+        return []
+    dt = float(np.median(np.diff(fit.channels.t_s)))
+    nper = int(2 ** np.floor(np.log2(n / 8)))
+    out = []
+    for x, white in _series(fit, noise):
+        f, p = welch(x - x.mean(0), fs=1.0 / dt, nperseg=nper, axis=0)
+        out.append((f[1:], np.clip(p[1:].sum(axis=1) - white, 0.0, None)))
+    return out
+
+
+def spectral_lines(fit: Any, noise: np.ndarray) -> list[float]:
+    """Frequencies (Hz) of the residual's spectral lines: Welch peaks (of the sets of series of _series) standing
+    LINE_FACTOR above the median of their neighbourhood and holding LINE_SHARE of a set's excess, strongest first
+    (MAX_LINES), each refined on the whole residual to a fraction of a Welch bin (the largest summed periodogram
+    over a fine grid about it)."""
+    t = fit.channels.t_s
+    n = t.size
+    if n < 512:
+        return []
+    dt = float(np.median(np.diff(t)))
+    nper = int(2 ** np.floor(np.log2(n / 8)))
+    sets = _series(fit, noise)
+    peaks: list[tuple[float, float, int]] = []
+    for c, (x, white) in enumerate(sets):
+        f, p = welch(x - x.mean(0), fs=1.0 / dt, nperseg=nper, axis=0)
+        p = p.sum(axis=1)
+        excess = np.clip(p - white, 0.0, None)
+        tot = float(excess[1:].sum())
+        if tot <= 0:
+            continue
+        half = 16
+        padded = np.pad(p, half, mode="edge")
+        hood = np.median(np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1), axis=1)
+        local_max = np.zeros(p.size, bool)
+        local_max[1:-1] = (p[1:-1] >= p[:-2]) & (p[1:-1] >= p[2:])
+        cand = np.flatnonzero(local_max & (p >= LINE_FACTOR * np.maximum(hood, white)))
+        for i in cand[cand >= 4]:
+            share = float(excess[max(1, i - 2):i + 3].sum()) / tot
+            if share >= LINE_SHARE:
+                peaks.append((share * tot / white, float(f[i]), c))
+    peaks.sort(reverse=True)
+    out: list[float] = []
+    df = 1.0 / (nper * dt)
+    stride = max(1, n // 50000)
+    for _, f0, c in peaks:
+        if any(abs(f0 - g) < 3 * df for g in out):
+            continue
+        grid = np.linspace(f0 - df, f0 + df, 81)
+        x = sets[c][0][::stride]
+        e = np.exp(-2j * np.pi * np.outer(grid, t[::stride] - t[0]))
+        pw = np.sum(np.abs(e @ (x - x.mean(0))) ** 2, axis=1)
+        i = int(np.clip(np.argmax(pw), 1, grid.size - 2))
+        # the peak between grid points: the vertex of the parabola through the three about the largest
+        y0, y1, y2 = np.log(np.maximum(pw[i - 1:i + 2], 1e-300))
+        shift = 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2) if (y0 - 2 * y1 + y2) < 0 else 0.0
+        out.append(float(f"{grid[i] + np.clip(shift, -1, 1) * (grid[1] - grid[0]):.6g}"))
+        if len(out) >= MAX_LINES:
+            break
+    return out
+
+
+def _phase_scales(name: str) -> tuple[list[float], bool]:
+    low = name.lower()
+    for word, scale in PHASE_HINTS:
+        if word in low:
+            return [scale], True
+    return [1.0, 1.0 / 60.0], any(w in low for w in SPEED_WORDS)
+
+
+def phase_features(data: EffectData, spectra: list, columns: dict[str, np.ndarray]) -> list[Feature]:
+    """The phase of each positive logged column that could be a speed or a frequency: named so (rpm, Hz,
+    rad/s, speed ...), or with a share BAND_SHARE of some channel's excess power in the band it spans."""
+    out = []
+    nyquist = 0.5 / data.dt_s
+    for name in columns:
+        x = np.asarray(data.extras[name], dtype=np.float64)
+        ok = np.isfinite(x)
+        if ok.sum() < 2 or float(np.min(x[ok])) < 0 or float(np.max(x[ok])) <= 0:
+            continue
+        if not ok.all():
+            x = np.interp(data.t_s, data.t_s[ok], x[ok])
+        scales, named = _phase_scales(name)
+        for scale in scales:
+            lo, hi = float(np.min(x)) * scale, float(np.max(x)) * scale
+            if hi >= nyquist or hi <= 2.0 / data.duration_s:
+                continue
+            if not named:
+                band = [float(e[(f >= 0.9 * lo) & (f <= 1.1 * hi)].sum()) / max(float(e.sum()), 1e-300)
+                        for f, e in spectra]
+                if not band or max(band) < BAND_SHARE:
+                    continue
+            phi = phase_of(data.t_s, x, scale)
+            unit = UNIT_OF_SCALE.get(scale, f"{scale:g} Hz per unit")
+            label = f"{name} phase" if len(scales) == 1 else f"{name} phase (as {unit})"
+            out.append(Feature(label, name, "", "phase", {"source": "phase", "column": name,
+                                                          "cycles_per_unit": scale, "unit": unit},
+                               np.column_stack([np.cos(phi), np.sin(phi)]), per_sample=False))
+    return out
+
+
+def line_features(data: EffectData, lines: list[float]) -> list[Feature]:
+    out = []
+    for hz in lines:
+        w = 2 * np.pi * hz * data.t_s
+        out.append(Feature(f"line at {hz:.4g} Hz", "residual", "", "line", {"source": "line", "hz": hz},
+                           np.column_stack([np.cos(w), np.sin(w)])))
+    return out
+
+
+# --- the library -------------------------------------------------------------------------------------------
+
+@dataclass
+class Library:
+    """The groups tried, and the features they follow (for the report: what was looked at)."""
+
+    groups: list[Group]
+    taus_s: list[float]
+    lines_hz: list[float]
+    borrowed: dict[str, str]          # probe -> whose temperature it takes
+
+    @property
+    def n_params(self) -> int:
+        return sum(g.size for g in self.groups)
+
+
+def build_library(data: EffectData, fit: Any, noise: np.ndarray) -> Library:
+    """Every group the data allow, for the residual of `fit` (its spectral lines, the bands it has power in)."""
+    names = data.probe_names
+    taus = tau_grid(data)
+    per_probe: dict[int, list[Feature]] = {k: [] for k in range(data.n_probes)}
+    shared: list[Feature] = []          # features of the platform: every probe may follow them
+    borrowed = {}
+    for k, f in temperature_features(data):
+        raw = f.values + f.recipe["centre"]
+        per_probe[k] += [f] + _low_passed(data, f, raw, taus)
+        if f.borrowed:
+            borrowed[names[k]] = f.borrowed
+    cols = usable_columns(data)
+    column_features = []
+    for c, v in cols.items():
+        raw = v + float(np.nanmean(data.extras[c]))
+        f = Feature(c, c, c, "value", {"source": "column", "column": c, "centre": float(np.mean(raw))}, v)
+        column_features += [f] + _low_passed(data, f, raw, taus)
+    shared += column_features
+    t, tc = _centred((data.t_s - data.t_s[0]) / 3600.0)
+    time_f = Feature("time", "time", "h", "value", {"source": "time", "centre": tc}, t)
+    extra = []
+    if data.ref_total_nT is not None and float(np.ptp(data.ref_total_nT)) > 1.0:
+        b, bc = _centred(np.asarray(data.ref_total_nT, float))
+        extra.append(Feature("total field", "ref_total", "nT", "value", {"source": "ref_total", "centre": bc}, b))
+    w = angular_rate_deg_s(data)
+    if float(np.ptp(w)) > 1e-6:
+        wv, wc = _centred(w)
+        extra.append(Feature("angular rate", "angular rate", "deg/s", "value",
+                             {"source": "angular rate", "centre": wc}, wv, per_sample=False))
+    spectra = _excess_spectra(fit, noise)
+    waves = phase_features(data, spectra, cols) + line_features(data, spectral_lines(fit, noise))
+
+    groups: list[Group] = []
+    for k in range(data.n_probes):
+        pname = names[k]
+        for f in per_probe[k] + column_features + extra:
+            groups += [Group("offset", k, pname, f), Group("matrix", k, pname, f)]
+        groups.append(Group("matrix", k, pname, time_f))
+        groups += [Group("wave", k, pname, f) for f in waves]
+        rate = data.rate(k)
+        for s in LOOP_SCALES:
+            scale = s * np.std(rate, axis=0)
+            if np.all(scale > 0):
+                label = "sign of rate" if len(LOOP_SCALES) == 1 else f"sign of rate ({s:g})"
+                lf = Feature(label, f"rate of {pname}", "", "sign of rate",
+                             {"source": "sign of rate", "scale": [float(x) for x in scale]},
+                             loop_values(rate, scale), per_sample=False)
+                groups.append(Group("loop", k, pname, lf))
+    if data.n_probes > 1:
+        groups += [Group("common offset", None, "common", f) for f in shared]
+        groups += [Group("common wave", None, "common", f) for f in waves]
+    return Library(groups, taus, [f.recipe["hz"] for f in waves if f.how == "line"], borrowed)
+
+
+# --- a group as a term the engine fits ------------------------------------------------------------------
+
+class GroupTerm(EffectTerm):
+    """One library group as an effect term (the engine fits the groups discovery chose, with standard errors
+    and held-out blocks, like any effect)."""
+
+    linear = True
+    title = "Discovered"
+    physical = "a term the library of discovery found"
+
+    def __init__(self, group: Group, index: int) -> None:
+        self.group = group
+        self.name = f"discovered-{index + 1}"                      # type: ignore[misc]
+        self.frame = group.frame                                  # type: ignore[misc]
+        self.per_sample = group.per_sample                        # type: ignore[misc]
+        self.title = f"{group.probe_name} {group.kind} ~ {group.feature.name}"   # type: ignore[misc]
+
+    def param_names(self, view: ProbeView) -> list[str]:
+        return self.group.param_names() if view.k == self.group.probe else []
+
+    def columns(self, view: ProbeView) -> np.ndarray:
+        offsets = np.zeros((view.data.n_probes, 3))
+        offsets[view.k] = view.offset_nT
+        return self.group.columns(view.data, offsets)
+
+    def shared_names(self, data: EffectData) -> list[str]:
+        return self.group.param_names() if self.group.common else []
+
+    def shared_vcolumns(self, data: EffectData, k: int) -> np.ndarray | None:
+        if not self.group.common:
+            return None
+        key = ("discovered", self.group.key)
+        if key not in data._cache:
+            data._cache[key] = self.group.columns(data, np.zeros((data.n_probes, 3)))
+        return data._cache[key]

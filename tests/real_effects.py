@@ -1,0 +1,89 @@
+"""Public recordings of real magnetometers (../shared/real-data) with a logged column and an effect of it added
+on top of their real noise, and their copy with the same column but no effect (issue 30's acceptance: discovery
+finds the effect and brings the held-out error within 1.1x the copy's, and claims nothing on the copy).
+
+The columns are made from the recording's own clock: a fan whose speed wanders (Hz), a supply that wanders and
+steps (V), a heater switched at random (A). The effects are sized against each recording's noise.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from service.numerics.effects.base import EffectData
+from service.numerics.effects.thermal import low_pass
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real-data"
+
+#: (recording, kind, size): kinds of tests/discovery_worlds.py that a single probe without a reference shows, sized
+#: so that the residual grows by about 1.3-1.5x (nT, ppm/V: these boards' noise is 70-200 nT)
+CASES = (
+    ("hmc5883l_sensorfusion_sphere", "fan phase", 500.0),
+    ("hmc5883l_sensorfusion_sphere", "supply scale", 30000.0),
+    ("hmc5883l_sensorfusion_sphere", "lagged heater", 1500.0),
+    ("hmc5883l_sensorfusion_sphere", "core loop", 300.0),
+    ("qmc5883l_suarez", "fan phase", 300.0),
+    ("qmc5883l_suarez", "lagged heater", 800.0),
+    ("qmc5883l_suarez", "core loop", 250.0),
+    ("imu_freeimucal", "lagged heater", 1500.0),
+)
+
+
+def _columns(t: np.ndarray, seed: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    s = t - t[0]
+    d = float(s[-1])
+    fan = 1.1 + 0.3 * np.sin(2 * np.pi * s / (d / 3.1) + rng.uniform(0, 6.3)) + 0.0005 * rng.standard_normal(t.size)
+    switches = np.cumsum(rng.uniform(d / 40, d / 12, 200))
+    heater = 1.5 * (np.searchsorted(switches, s) % 2) + 0.01 * rng.standard_normal(t.size)
+    # a supply loaded by a motor: steps every 2-6 s (a few samples apart at 1 Hz) and a slow swing
+    steps = 0.3 * (np.searchsorted(np.cumsum(rng.uniform(2.0, 6.0, int(d / 2) + 2)), s) % 3 - 1)
+    vbus = 12.0 + 0.2 * np.sin(2 * np.pi * s / (d / 2.3)) + steps + 0.002 * rng.standard_normal(t.size)
+    return {"fan_hz": np.clip(fan, 0.05, None), "heater_A": heater, "vbus_V": vbus}
+
+
+def with_effect(data: EffectData, kind: str, size: float, seed: int = 5) -> tuple[EffectData, EffectData]:
+    """(the recording with the columns and the effect, the same with the columns only)."""
+    t = data.t_s
+    cols = _columns(t, seed)
+    raw = data.raw_nT.copy()
+    u = raw[:, 0] - np.median(raw[:, 0], axis=0)
+    if kind == "fan phase":
+        f = cols["fan_hz"]
+        phi = 2 * np.pi * np.concatenate([[0.0], np.cumsum(0.5 * (f[1:] + f[:-1]) * np.diff(t))]) + 0.3
+        raw[:, 0] += size * np.column_stack([np.cos(phi), np.sin(phi), 0.5 * np.cos(phi)])
+    elif kind == "supply scale":
+        v = cols["vbus_V"] - cols["vbus_V"].mean()
+        raw[:, 0] += 1e-6 * size * np.array([1.0, -0.8, 0.6]) * v[:, None] * u
+    elif kind == "core loop":
+        from scipy.signal import savgol_filter
+
+        # the core follows the field's true rate: the recording's, smoothed over a quarter of a second
+        win = max(5, int(0.25 / np.median(np.diff(t))) | 1)
+        rate = np.gradient(savgol_filter(raw[:, 0], win, 2, axis=0), t, axis=0)
+        raw[:, 0] += size * np.array([1.0, -0.8, 0.8]) * np.tanh(rate / (0.05 * rate.std(0)))
+    elif kind == "lagged heater":
+        lag = low_pass(t, cols["heater_A"], 0.05 * float(t[-1] - t[0]))
+        raw[:, 0] += size * np.outer(lag - lag.mean(), [1.0, -0.7, 0.5])
+    else:
+        raise ValueError(kind)
+
+    def copy(r: np.ndarray) -> EffectData:
+        return EffectData(t_s=t.copy(), raw_nT=r, temp_C=data.temp_C.copy(), probe_names=list(data.probe_names),
+                          ref_total_nT=data.ref_total_nT, total_nT=data.total_nT, positions_m=data.positions_m,
+                          extras={**{k: v.copy() for k, v in data.extras.items()}, **cols},
+                          smooth_window_s=data.smooth_window_s)
+    return copy(raw), copy(data.raw_nT.copy())
+
+
+def cases() -> Iterator[tuple[str, str, EffectData, EffectData]]:
+    from service.io.recordings.labdata import load_data
+    from service.numerics.engine import as_effect_data
+
+    for name, kind, size in CASES:
+        data = as_effect_data(load_data(REAL / f"{name}.csv"))
+        touched, control = with_effect(data, kind, size)
+        yield name, kind, touched, control
