@@ -80,7 +80,7 @@ def with_effect(data: EffectData, kind: str, size: float, seed: int = 5) -> tupl
 
 
 def cases() -> Iterator[tuple[str, str, EffectData, EffectData]]:
-    from service.io.recordings.labdata import load_data
+    from service.io.recordings.load import load_data
     from service.numerics.engine import as_effect_data
 
     for name, kind, size in CASES:

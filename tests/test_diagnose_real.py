@@ -60,8 +60,10 @@ def test_a_real_single_axis_turn_is_refused_unless_a_calibration_is_held(name, c
 @needs_real
 @pytest.mark.slow
 def test_the_bursty_recording_keeps_its_samples(capsys):
+    """Every sample, but the 239 that repeat the one before exactly (18.8 expected by chance): the board's driver read
+    the sensor faster than it measured (bursts of ~8 samples 2-3 ms apart), a logger's hold, left out and said."""
     d = _diagnose("hmc5883l_sensorfusion_sphere", capsys)
-    assert d["n_samples"] == 8190
+    assert d["n_samples"] == 8190 - 239
     assert d["rms_nT"] < 2 * d["noise_nT"]                # hand-turned hobby board: ~250 against ~140 nT
 
 

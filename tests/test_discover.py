@@ -222,7 +222,7 @@ def test_an_effect_added_to_a_real_recording_is_found_and_its_untouched_copy_cla
 
     if not REAL.is_dir():
         pytest.skip(f"{REAL} is absent (public recordings, not in the repository)")
-    from service.io.recordings.labdata import load_data
+    from service.io.recordings.load import load_data
     from service.numerics.engine import as_effect_data
 
     size = next(s for n, k, s in CASES if (n, k) == (name, kind))

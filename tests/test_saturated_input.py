@@ -155,7 +155,7 @@ def test_csv_flags_column_is_honoured_when_the_rails_are_numbers(tmp_path):
 
 def test_too_few_usable_samples_is_a_clear_error(tmp_path, capsys):
     t = np.arange(40) * 0.01
-    v = np.column_stack([t] + [np.full(40, 1000.0)] * 6)
+    v = np.column_stack([t] + [1000.0 + 10.0 * k + t * (k + 1) for k in range(6)])   # no two rows alike (no holds)
     v[5:, 1] = np.nan
     p = tmp_path / "few.csv"
     np.savetxt(p, v, delimiter=",", header="t,s1_x,s1_y,s1_z,s2_x,s2_y,s2_z", comments="", fmt="%.3f")

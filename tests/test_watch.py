@@ -20,7 +20,8 @@ from drivers.block import SampleBlock
 from service.io.bus import Message, Series, ServiceBus, ZenohConfig
 from service.numerics.outputs import CorrectedBlock
 from service.wiring.cli import main as cli_main
-from service.wiring.commands.watch import TerminalView, dashboard_endpoints
+from service.wiring.commands.client import dashboard_endpoints
+from service.wiring.commands.watch import TerminalView
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -164,7 +165,7 @@ def test_watch_usage_errors_exit_2_with_a_message(argv, message, capsys):
 def test_watch_takes_endpoint_and_unit_from_the_service_config():
     import argparse
 
-    from service.wiring.commands.watch import _resolve
+    from service.wiring.commands.client import resolve as _resolve
 
     args = argparse.Namespace(config=str(REPO / "configs" / "sim-gradiometer.toml"), connect=None, unit=None,
                               seconds=None)

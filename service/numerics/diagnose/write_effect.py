@@ -217,7 +217,7 @@ def effect_source(found: Any, class_name: str = "Discovered", name: str = "disco
     names = effect_classes(groups, class_name)
     found_lines = "\n".join(f"  - {readings.get(id(g), g.key)}" for g in groups)
     use = ", ".join(f"FILE.py:{c}" for c in names)
-    doc = (f"An effect written by fluxcal diagnose from what discovery found beyond the catalogue"
+    doc = ("An effect written by fluxcal diagnose from what discovery found beyond the catalogue"
            + (f" in {data_name}" if data_name else "") + f":\n\n{found_lines}\n\n"
            f"Give it back with --effects {use} (rename the class and `name` as you like; docs/effects.md).\n"
            f"The references the parameters are centred on (the means of the data fitted) are kept with the\n"

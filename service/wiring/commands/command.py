@@ -19,8 +19,8 @@ from typing import Any
 from drivers.errors import ConfigError, DataError, FluxcalError
 from service.io.bus import COMMANDS, MAX_COMMAND_PAYLOAD_BYTES, BusClient, ZenohConfig, discover_units, open_session
 from service.io.calfile import calibration_from_json
+from service.wiring.commands.client import resolve
 from service.wiring.commands.options import CommandHelp
-from service.wiring.commands.watch import _resolve
 
 VERBS = ("state", *COMMANDS)
 
@@ -55,7 +55,7 @@ def main(args: Namespace) -> int:
     if args.verb != "state" and COMMANDS[args.verb] is not None and not args.payload:
         raise ConfigError(f"{args.verb}: needs a payload: {COMMANDS[args.verb]}")
     args.seconds = None
-    endpoints, unit, tls = _resolve(args)
+    endpoints, unit, tls = resolve(args)
     payload = args.payload or ""
     inline = payload.lstrip().startswith("{")          # a calibration's JSON text itself, not a path
     if args.verb == "apply" and not inline and _is_file(payload):

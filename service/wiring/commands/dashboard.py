@@ -9,8 +9,8 @@ import time
 from typing import Any
 
 from drivers.errors import ConfigError
+from service.wiring.commands.client import parse_listen, resolve_units
 from service.wiring.commands.options import CommandHelp, client_options
-from service.wiring.commands.watch import parse_listen, resolve_units
 
 HELP = CommandHelp("web dashboard of running units: live plots with history, coverage, "
                    "calibration, health, diagnosis and commands, served on this host",

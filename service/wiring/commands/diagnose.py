@@ -180,7 +180,7 @@ def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = T
     positions, total, origin = prep.positions_m, prep.total_nT, prep.origin
     data = EffectData.from_block(lab.block, lab.probe_names, total_nT=total, positions_m=positions)
     ref = data.ref_total_nT                       # the reference the fits use before a configured total
-    scale = field_scale_notes(said, data.raw_nT, data.probe_names, about="a sphere fitted to them",
+    scale = field_scale_notes(said, source, data.raw_nT, data.probe_names, about="a sphere fitted to them",
                               total_nT=ref if ref is not None else total,
                               total_source=prep.total_source if prep.track is not None else
                               "the ref_total column" if ref is not None else "the site" if opts.site

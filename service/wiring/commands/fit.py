@@ -153,7 +153,7 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     if prep.track is not None:                    # the data's ref_total is the model along the track
         total.source = prep.total_source
     # data in µT (or counts) fit without complaint; said here, before anything is reported in "nT"
-    scale = field_scale_notes(said, data.block.field_nT, data.probe_names,
+    scale = field_scale_notes(said, source, data.block.field_nT, data.probe_names,
                               centres_nT=[p.offset_nT for p in cal.probes],
                               total_nT=None if total.source == "estimated" else total.values,
                               total_source={"config": prep.origin or "configured", "ref_total": "the ref_total column"}

@@ -30,7 +30,7 @@ from service.io.bus import BusClient, BusError, Message, ZenohConfig, ZenohTlsCo
 from service.io.foxglove_schemas import PRODUCT_STREAMS, Products, error_message, json_channels, message_bytes
 from service.wiring.commands.options import CommandHelp, client_options
 
-from .watch import parse_listen, resolve_units
+from .client import parse_listen, resolve_units
 
 #: Zenoh streams the bridge subscribes to, and the Foxglove channels it serves
 SUBSCRIBED = ("corrected", "error", "calibration", "health")

@@ -8,7 +8,7 @@ from typing import Any, Sequence
 import numpy as np
 
 
-def field_scale_notes(said: Any, field_nT: Any, probe_names: Sequence[str], *, centres_nT: Any = None,
+def field_scale_notes(said: Any, source: str, field_nT: Any, probe_names: Sequence[str], *, centres_nT: Any = None,
                       total_nT: Any = None, total_source: str = "", about: str = "the fitted centre") -> list[str]:
     """Data whose size is implausible for nT (µT, counts), and a given total field far off the data's scale, said
     (the latter loudly) whatever the output format; returns them, loud first, for the result's warnings."""
@@ -20,9 +20,9 @@ def field_scale_notes(said: Any, field_nT: Any, probe_names: Sequence[str], *, c
         total_nT = float(np.median(finite)) if finite.size else None     # a ref_total column
     warnings, loud = field_scale_warnings(field_nT, probe_names, centres_nT, total_nT, total_source, about)
     for w in warnings:
-        said("field-scale", w)
+        said("field-scale", f"{source}: {w}")
     for w in loud:
-        said("field-scale", w, level="loud")
+        said("field-scale", f"{source}: {w}", level="loud")
     return loud + warnings
 
 

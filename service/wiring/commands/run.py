@@ -45,7 +45,7 @@ def add_options(p: argparse.ArgumentParser) -> None:
 
 def start_dashboard(config: str, listen: str) -> subprocess.Popen:
     """`fluxcal dashboard --config CONFIG --listen LISTEN --open` as a child process; it says its address."""
-    from service.wiring.commands.watch import parse_listen
+    from service.wiring.commands.client import parse_listen
 
     host, port = parse_listen(listen, "--dashboard")
     if port:                              # a port in use: said before the service starts, naming the option typed

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import sys
 import time
 from collections import deque
@@ -38,6 +37,7 @@ from service.io.bus import (
     discover_units,
     open_session,
 )
+from service.wiring.commands.client import resolve
 from service.wiring.commands.options import CommandHelp
 
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
@@ -63,85 +63,6 @@ def add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ca", metavar="CA.pem", help="TLS: the site's certificate authority")
     p.add_argument("--cert", metavar="CERT.pem", help="TLS: this dashboard's certificate")
     p.add_argument("--key", metavar="KEY.pem", help="TLS: this dashboard's private key")
-
-
-def dashboard_endpoints(zcfg: ZenohConfig) -> list[str]:
-    """Where a dashboard on this host reaches a service configured with `zcfg`: its listen endpoints (a
-    wildcard address becomes loopback), else the router it connects to.
-
-    >>> dashboard_endpoints(ZenohConfig(listen=["tcp/0.0.0.0:7447", "tcp/[::]:7448"]))
-    ['tcp/127.0.0.1:7447', 'tcp/[::1]:7448']
-    """
-    eps = []
-    for ep in zcfg.listen:
-        ep = re.sub(r"^(\w+)/0\.0\.0\.0:", r"\1/127.0.0.1:", ep)
-        ep = re.sub(r"^(\w+)/\[::\]:", r"\1/[::1]:", ep)
-        if not re.search(r":0(?:$|[#?])", ep):          # port 0: chosen at start, unknown from here
-            eps.append(ep)
-    return eps or list(zcfg.connect)
-
-
-def _resolve(args: argparse.Namespace) -> tuple[list[str], str | None, ZenohTlsConfig]:
-    endpoints: list[str] = []
-    unit = getattr(args, "unit", None)
-    tls = ZenohTlsConfig()
-    if getattr(args, "config", None):
-        from service.wiring.config import load_config
-
-        cfg = load_config(args.config)
-        endpoints = dashboard_endpoints(cfg.zenoh)
-        tls = cfg.zenoh.tls
-        unit = unit or cfg.unit.name
-        if not endpoints and not args.connect:
-            raise ConfigError(f"{args.config}: zenoh: the service neither listens on a fixed port nor connects to a "
-                              f"router; give --connect ENDPOINT")
-    if getattr(args, "connect", None):
-        endpoints = [args.connect]
-    if not endpoints:
-        endpoints = [DEFAULT_ENDPOINT]
-    given = {k: getattr(args, k, None) for k in ("ca", "cert", "key")}
-    if any(given.values()):
-        tls = ZenohTlsConfig(root_ca=given["ca"], cert=given["cert"], key=given["key"])
-        try:
-            tls.validate("tls")
-        except ConfigError as e:
-            key, _, why = str(e).partition(": ")
-            flag = {"tls.root_ca": "--ca", "tls.cert": "--cert", "tls.key": "--key"}.get(key, key)
-            raise ConfigError(f"{flag}: {why}") from None
-    try:
-        ZenohConfig.client(*endpoints, tls=tls)         # a typo in an endpoint is a usage error, not a retry loop
-    except ConfigError as e:
-        flag = "--connect" if getattr(args, "connect", None) else f"{args.config}: zenoh"
-        raise ConfigError(f"{flag}: {str(e).split(': ', 1)[-1]}") from None
-    if unit is not None:
-        Keys(unit)
-    if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
-        raise ConfigError(f"--seconds: {args.seconds!r} is not allowed (allowed: a positive number of seconds)")
-    return endpoints, unit, tls
-
-
-def resolve_units(args: argparse.Namespace) -> tuple[list[str], list[str] | None, ZenohTlsConfig]:
-    """As `_resolve`, for commands whose --unit may be repeated (dashboard, foxglove): the units named, the
-    configuration's unit, or None (every unit found)."""
-    named = list(args.unit or [])
-    endpoints, unit, tls = _resolve(argparse.Namespace(**{**vars(args), "unit": named[0] if named else None}))
-    for u in named:
-        Keys(u)
-    return endpoints, named or ([unit] if unit else None), tls
-
-
-def parse_listen(text: str, flag: str = "--listen") -> tuple[str, int]:
-    """A server address HOST:PORT (IPv6 in brackets) for --listen; ConfigError naming the option.
-
-    >>> parse_listen("127.0.0.1:0"), parse_listen("[::1]:8765")
-    (('127.0.0.1', 0), ('::1', 8765))
-    """
-    m = re.fullmatch(r"\[([0-9A-Fa-f:.]+)\]:(\d{1,5})|([^:\[\]]+):(\d{1,5})", text or "")
-    port = int(m.group(2) or m.group(4)) if m else -1
-    if not m or port > 65535:
-        raise ConfigError(f"{flag}: {text!r} is not allowed (allowed: HOST:PORT, e.g. 127.0.0.1:8090; port 0: "
-                          f"a free one)")
-    return m.group(1) or m.group(3), port
 
 
 def _vec(v: np.ndarray, width: int = 10) -> str:
@@ -507,7 +428,7 @@ def run(endpoints: list[str], unit: str | None, seconds: float | None, out: Text
 
 
 def main(args: argparse.Namespace) -> int:
-    endpoints, unit, tls = _resolve(args)
+    endpoints, unit, tls = resolve(args)
     status = run(endpoints, unit, args.seconds, sys.stdout, tls=tls)
     if status:
         where = f"fluxcal/{unit}" if unit else "any fluxcal unit"

@@ -1,0 +1,316 @@
+"""Discovery's selection (discover.py steps 1-3): the normal equations of the model and of each candidate group, per
+time block (screening), the grouped forward selection inside training blocks, and the held-out judgement of the
+whole procedure. Numerics only."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from service.numerics.effects.base import EffectData
+from service.numerics.engine import FitResult, solve_normal
+from service.numerics.engine.jacobian import block_jacobian, local_jacobian
+
+from .library import Group
+from .result import GAIN_SIGMAS, MIN_GAIN
+
+#: rows of the normal equations of the library, spread evenly over each block
+SCREEN_ROWS = 16384
+#: rows per chunk of the assembly
+CHUNK_ROWS = 1024
+#: discovery's time blocks: each of the fit's (N_BLOCKS) cut in this many: the held-out test's standard error comes
+#: from the spread of more blocks (a real hour-long recording with a lagged heater added: 8 blocks left its 13 %
+#: gain at 1.2 standard errors, 16 at 2.6)
+BLOCK_SPLIT = 2
+#: the groups each selection chooses among: the strongest of those whose F-test beside the model alone, on its
+#: training blocks, is below P_SIGNIFICANT over the number tried (the dense normal equations are for these only)
+SHORTLIST = 16
+#: groups a discovered set holds at most
+MAX_GROUPS = 4
+
+
+@dataclass
+class _Span:
+    start: int
+    stop: int
+
+    @property
+    def size(self) -> int:
+        return self.stop - self.start
+
+
+@dataclass
+class Normals:
+    """Per block: A (K, p, p), g (K, p), the weighted sum of squares and the count of residual values; the first
+    n_model parameters the model's, then each group's span."""
+
+    a: np.ndarray
+    g: np.ndarray
+    sse: np.ndarray
+    n: np.ndarray
+    n_model: int
+    spans: list[slice]
+
+
+def _edges(fit: FitResult, split: int) -> list[tuple[int, int]]:
+    """Discovery's time blocks: each of the fit's cut into `split` contiguous ones (positions in the fit's rows)."""
+    return [(int(a), int(b)) for blk in fit.problem.blocks
+            for a, b in zip(np.linspace(blk.start, blk.stop, split + 1)[:-1].round(),
+                            np.linspace(blk.start, blk.stop, split + 1)[1:].round()) if b > a]
+
+
+def _channels(fit: FitResult):
+    """(probe, kind) of every residual channel family the assembly visits."""
+    pr = fit.problem
+    for k in range(pr.P):
+        for kind in ("scalar", "diff", "vec"):
+            if (kind == "diff" and k == 0) or (kind == "vec" and pr.vref is None):
+                continue
+            yield k, kind
+
+
+def _chunks_of(fit: FitResult, split: int, max_rows: int):
+    """(block, positions) of the rows the normal equations use: at most max_rows spread evenly, CHUNK_ROWS at a time."""
+    stride = max(1, -(-fit.problem.M // max_rows))
+    for b, (lo_b, hi_b) in enumerate(_edges(fit, split)):
+        pos = np.arange(lo_b, hi_b, stride)
+        for lo in range(0, pos.size, CHUNK_ROWS):
+            yield b, pos[lo:lo + CHUNK_ROWS]
+
+
+def _response(g: Group, data: EffectData, fit: FitResult, rows: np.ndarray, start: int = 0) -> tuple:
+    """A group's slot for local_jacobian at `rows`: its span and d v_k / d theta for the probes it moves."""
+    lin = fit.state.linear
+    cols = g.columns(data, lin.offset_nT, rows)
+    vb = ({k: -cols for k in range(fit.problem.P)} if g.common else
+          {g.probe: -np.matmul(lin.matrix[g.probe], cols)})
+    return (_Span(start, start + g.size), vb, None)
+
+
+def _weighted(fit: FitResult, r: np.ndarray, k: int, kind: str) -> tuple[Any, np.ndarray]:
+    pr = fit.problem
+    if kind == "scalar":
+        return pr.weights[k], r[:, k] * pr.weights[k]
+    cols = pr._cols(kind, k)
+    return pr.weights[cols], (r[:, cols] * pr.weights[cols]).reshape(-1)
+
+
+def normals(data: EffectData, fit: FitResult, groups: list[Group], max_rows: int = SCREEN_ROWS,
+            split: int = BLOCK_SPLIT) -> Normals:
+    """The normal equations of the model and the groups at fit's state, block by block (see the module doc): each of
+    the fit's time blocks cut into `split` contiguous ones. Dense: for the groups a selection chooses among."""
+    pr = fit.problem
+    spans, start = [], pr.n_params
+    for g in groups:
+        spans.append(slice(start, start + g.size))
+        start += g.size
+    p, nb = start, len(_edges(fit, split))
+    a, gv = np.zeros((nb, p, p)), np.zeros((nb, p))
+    sse, cnt = np.zeros(nb), np.zeros(nb)
+    for b, chunk in _chunks_of(fit, split, max_rows):
+        rows = pr.rows[chunk]
+        blk = block_jacobian(pr, fit.jac, chunk) if pr.n_params else []
+        blk += [_response(g, data, fit, rows, sp.start) for g, sp in zip(groups, spans)]
+        r = fit.channels.values[chunk]
+        sse[b] += float(np.sum((r * pr.weights) ** 2))
+        cnt[b] += r.size
+        for k, kind in _channels(fit):
+            w, rl = _weighted(fit, r, k, kind)
+            local = local_jacobian(blk, fit.ev.nhat[k][chunk] if kind == "scalar" else None, k, kind, w)
+            if local is None:
+                continue
+            jl, idx = local
+            a[b][np.ix_(idx, idx)] += jl.T @ jl
+            gv[b, idx] += jl.T @ rl
+    return Normals(a, gv, sse, cnt, pr.n_params, spans)
+
+
+@dataclass
+class Marginals:
+    """Per block, the model's normal equations and, per group, its own block and its cross terms with the model only
+    (not with the other groups): enough for each group's F-test beside the model on any set of blocks, at a cost and
+    a memory linear in the library's size."""
+
+    a_mm: np.ndarray                 # (K, pm, pm)
+    g_m: np.ndarray                  # (K, pm)
+    sse: np.ndarray
+    n: np.ndarray
+    a_gg: list[np.ndarray]           # per group (K, m, m)
+    a_gm: list[np.ndarray]           # per group (K, m, pm)
+    g_g: list[np.ndarray]            # per group (K, m)
+
+
+def marginals(data: EffectData, fit: FitResult, groups: list[Group], max_rows: int = SCREEN_ROWS,
+              split: int = BLOCK_SPLIT) -> Marginals:
+    pr = fit.problem
+    pm, nb = pr.n_params, len(_edges(fit, split))
+    out = Marginals(np.zeros((nb, pm, pm)), np.zeros((nb, pm)), np.zeros(nb), np.zeros(nb),
+                    [np.zeros((nb, g.size, g.size)) for g in groups], [np.zeros((nb, g.size, pm)) for g in groups],
+                    [np.zeros((nb, g.size)) for g in groups])
+    for b, chunk in _chunks_of(fit, split, max_rows):
+        rows = pr.rows[chunk]
+        blk = block_jacobian(pr, fit.jac, chunk) if pm else []
+        r = fit.channels.values[chunk]
+        out.sse[b] += float(np.sum((r * pr.weights) ** 2))
+        out.n[b] += r.size
+        model: dict[tuple[int, str], Any] = {}
+        for k, kind in _channels(fit):
+            w, rl = _weighted(fit, r, k, kind)
+            nh = fit.ev.nhat[k][chunk] if kind == "scalar" else None
+            local = local_jacobian(blk, nh, k, kind, w) if blk else None
+            model[(k, kind)] = (w, rl, local)
+            if local is not None:
+                jm, idx = local
+                out.a_mm[b][np.ix_(idx, idx)] += jm.T @ jm
+                out.g_m[b, idx] += jm.T @ rl
+        for i, g in enumerate(groups):
+            slot = [_response(g, data, fit, rows)]
+            for (k, kind), (w, rl, local) in model.items():
+                if g.common and kind == "diff":
+                    continue                                   # a common field cancels in the differences
+                if not g.common and not (k == g.probe or (kind == "diff" and g.probe == 0)):
+                    continue
+                mine = local_jacobian(slot, fit.ev.nhat[k][chunk] if kind == "scalar" else None, k, kind, w)
+                if mine is None:
+                    continue
+                jg = mine[0]
+                out.a_gg[i][b] += jg.T @ jg
+                out.g_g[i][b] += jg.T @ rl
+                if local is not None:
+                    jm, idx = local
+                    out.a_gm[i][b][:, idx] += jg.T @ jm
+    return out
+
+
+def shortlist(mg: Marginals, train: list[int], p_level: float, size: int) -> list[int]:
+    """The groups whose F-test beside the model alone, on the train blocks, is below p_level: the `size` strongest."""
+    a_mm, g_m, sse = mg.a_mm[train].sum(0), mg.g_m[train].sum(0), float(mg.sse[train].sum())
+    n_t = float(mg.n[train].sum())
+    pm = a_mm.shape[0]
+    rss0, rank0 = rss_of(a_mm, g_m, sse, np.arange(pm))
+    scored = []
+    for i in range(len(mg.a_gg)):
+        agg, agm, gg = mg.a_gg[i][train].sum(0), mg.a_gm[i][train].sum(0), mg.g_g[i][train].sum(0)
+        a = np.block([[a_mm, agm.T], [agm, agg]])
+        g = np.concatenate([g_m, gg])
+        rss1, rank1 = rss_of(a, g, sse, np.arange(a.shape[0]))
+        dp = rank1 - rank0
+        if dp <= 0 or not rss1 < rss0:
+            continue
+        dof = max(n_t - rank1, 1.0)
+        logp = float(stats.f.logsf(((rss0 - rss1) / dp) / (max(rss1, 1e-300) / dof), dp, dof))
+        if logp <= np.log(p_level):
+            scored.append((logp, -(rss0 - rss1), i))
+    scored.sort()
+    return [i for _, _, i in scored[:size]]
+
+
+# --- the selection, inside training blocks ------------------------------------------------------------
+
+def _idx(nm: Normals, chosen: list[int]) -> np.ndarray:
+    return np.concatenate([np.arange(nm.n_model)] + [np.arange(nm.spans[i].start, nm.spans[i].stop) for i in chosen])
+
+
+def _solve(a: np.ndarray, g: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, int]:
+    """delta on idx (-A^+ g of the sub-system) and its rank."""
+    if idx.size == 0:
+        return np.zeros(0), 0
+    d, _, _, rank = solve_normal(a[np.ix_(idx, idx)], g[idx])
+    return d, rank
+
+
+def rss_of(a: np.ndarray, g: np.ndarray, sse: float, idx: np.ndarray) -> tuple[float, int]:
+    d, rank = _solve(a, g, idx)
+    return sse + float(g[idx] @ d), rank
+
+
+def heldout_sse(nm: Normals, idx: np.ndarray, train: list[int], test: list[int]) -> np.ndarray:
+    """Weighted SSE of each test block predicted by the fit on the train blocks less that block (linearised)."""
+    a_t, g_t = nm.a[train].sum(0), nm.g[train].sum(0)
+    out = np.zeros(len(test))
+    for i, j in enumerate(test):
+        a, g = (a_t - nm.a[j], g_t - nm.g[j]) if j in train else (a_t, g_t)
+        d, _ = _solve(a, g, idx)
+        aj = nm.a[j][np.ix_(idx, idx)]
+        out[i] = nm.sse[j] + 2.0 * float(nm.g[j, idx] @ d) + float(d @ aj @ d)
+    return out
+
+
+def _passes(sse_base: np.ndarray, sse_with: np.ndarray, n: np.ndarray) -> tuple[bool, float, float, float]:
+    """The catalogue's held-out rule: (passes, gain, mean log ratio, its standard error)."""
+    gain = 1.0 - float(sse_with.sum() / sse_base.sum()) if sse_base.sum() > 0 else 0.0
+    lr_b = np.log(np.maximum(sse_base / n, 1e-300) / np.maximum(sse_with / n, 1e-300))
+    lr = float(lr_b.mean())
+    se = float(lr_b.std(ddof=1) / np.sqrt(lr_b.size)) if lr_b.size > 1 else float("inf")
+    return gain >= MIN_GAIN and lr > GAIN_SIGMAS * se, gain, lr, se
+
+
+def select(nm: Normals, train: list[int], p_level: float, max_groups: int = MAX_GROUPS,
+           allowed: np.ndarray | None = None) -> list[int]:
+    """Grouped forward selection on the train blocks alone (the module doc, step 2): the groups chosen, in order."""
+    a_t, g_t, sse_t = nm.a[train].sum(0), nm.g[train].sum(0), float(nm.sse[train].sum())
+    n_t = float(nm.n[train].sum())
+    log_level = np.log(p_level)
+    chosen: list[int] = []
+    while len(chosen) < max_groups:
+        base = _idx(nm, chosen)
+        rss0, rank0 = rss_of(a_t, g_t, sse_t, base)
+        best = None
+        for gi, sp in enumerate(nm.spans):
+            if gi in chosen or (allowed is not None and not allowed[gi]):
+                continue
+            idx = np.concatenate([base, np.arange(sp.start, sp.stop)])
+            rss1, rank1 = rss_of(a_t, g_t, sse_t, idx)
+            dp = rank1 - rank0
+            if dp <= 0 or not rss1 < rss0:
+                continue
+            dof = max(n_t - rank1, 1.0)
+            f = ((rss0 - rss1) / dp) / (max(rss1, 1e-300) / dof)
+            logp = float(stats.f.logsf(f, dp, dof))
+            key = (logp, -(rss0 - rss1))
+            if best is None or key < best[0]:
+                best = (key, gi)
+        if best is None or best[0][0] > log_level:
+            break
+        gi = best[1]
+        with_g = np.concatenate([base, np.arange(nm.spans[gi].start, nm.spans[gi].stop)])
+        s0 = heldout_sse(nm, base, train, train)
+        s1 = heldout_sse(nm, with_g, train, train)
+        if not _passes(s0, s1, nm.n[train])[0]:
+            break
+        chosen.append(gi)
+    return chosen
+
+
+@dataclass
+class Crossval:
+    """The selection judged on held-out blocks: each block predicted by what the selection chose without it."""
+
+    sse_base: np.ndarray
+    sse_with: np.ndarray
+    n: np.ndarray
+    chosen: list[list[int]]
+
+    @property
+    def verdict(self) -> tuple[bool, float, float, float]:
+        return _passes(self.sse_base, self.sse_with, self.n)
+
+
+def crossval(nm: Normals, p_level: float, allowed: list[np.ndarray] | None = None) -> Crossval:
+    """allowed: per block, the groups the selection without that block may choose (its shortlist)."""
+    k = nm.a.shape[0]
+    base, with_, chosen = np.zeros(k), np.zeros(k), []
+    model = _idx(nm, [])
+    for b in range(k):
+        train = [j for j in range(k) if j != b]
+        s = select(nm, train, p_level, allowed=None if allowed is None else allowed[b], )
+        chosen.append(s)
+        base[b] = heldout_sse(nm, model, train, [b])[0]
+        with_[b] = heldout_sse(nm, _idx(nm, s), train, [b])[0] if s else base[b]
+    return Crossval(base, with_, nm.n.copy(), chosen)
+
+
+# --- the result -----------------------------------------------------------------------------------------
