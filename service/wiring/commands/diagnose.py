@@ -27,7 +27,7 @@ from typing import Any  # noqa: E402
 import numpy as np  # noqa: E402
 
 from drivers.errors import ConfigError, DataError, FluxcalError  # noqa: E402
-from service.wiring.commands.notes import check_output_folder, field_scale_notes  # noqa: E402
+from service.wiring.commands.notes import check_output_file, check_output_folder, field_scale_notes  # noqa: E402
 from service.wiring.commands.options import (  # noqa: E402
     CONFIG_HELP,
     DATA_HELP,
@@ -72,6 +72,10 @@ def add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--report", metavar="DIR",
                    help="also write an HTML report here (plots: matplotlib; without it the page has the text and "
                         "tables)")
+    p.add_argument("--write-effect", dest="write_effect", metavar="FILE.py",
+                   help="where the diagnosis discovers a term beyond the catalogue, write it here as an effect of your "
+                        "own (docs/effects.md), which --effects FILE.py:Discovered takes back; rename and edit it "
+                        "(default: none)")
     p.add_argument("--max-samples", type=max_samples, default=None, metavar="N",
                    help="diagnose at most N samples: a longer recording is thinned to every k-th sample, and "
                         "the output says so (default: 500,000 probe-samples, e.g. 125,000 samples of 4 probes, "
@@ -115,6 +119,7 @@ class DiagnoseOptions:
     mags: tuple[int, ...] | None = None
     max_samples: int | None = None        # None: the default budget of probe-samples; 0: all
     report: str | None = None             # the folder of an HTML report
+    write_effect: str | None = None       # where to write a discovered term as an effect module
 
 
 @dataclass
@@ -146,7 +151,7 @@ def main(args: argparse.Namespace) -> int:
 def options(args: argparse.Namespace) -> DiagnoseOptions:
     return DiagnoseOptions(effects=list(args.effects), calibration=args.calibration, config=args.config,
                            site=args.site, skip=args.skip, topics=args.topics, mags=args.mags,
-                           max_samples=args.max_samples, report=args.report)
+                           max_samples=args.max_samples, report=args.report, write_effect=args.write_effect)
 
 
 def execute(source: str, opts: DiagnoseOptions, said: Said, *, progress: bool = True) -> DiagnoseResult:
@@ -156,6 +161,9 @@ def execute(source: str, opts: DiagnoseOptions, said: Said, *, progress: bool = 
 
     if opts.report:
         check_output_folder(opts.report, "--report")          # before any work
+    if opts.write_effect:
+        check_output_file(opts.write_effect, "--write-effect", suffixes=(".py",), example="found.py",
+                          not_this=source)
     load_installed_effects()
     opts = replace(opts, effects=resolve_effects(opts.effects))
     known = known_effects()
@@ -223,6 +231,8 @@ def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = T
         result.notes.append(f"{opts.calibration}: linear part held fixed; the parameters of "
                             f"{', '.join(effects)} are refitted to these data")
     out = DiagnoseResult("diagnose", source, diagnosis=result, title=source + (f" ({origin})" if origin else ""))
+    if opts.write_effect:
+        write_discovered(out, opts.write_effect, source, said)
     if opts.report:
         # the diagnosis first: a report that cannot be written (a full disk) must not cost it (said, exit 1)
         from service.io.report import write_report
@@ -240,6 +250,37 @@ def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = T
             out.status = 1
     out.notes = said.notes
     return out
+
+
+def write_discovered(out: DiagnoseResult, path: str, source: str, said: Said) -> None:
+    """The terms discovery found, written as an effect module at `path` (atomically: a temporary file renamed), said
+    with how to take it back; where it found none, no file, and that is said instead (the exit status stays 0)."""
+    import os
+    import tempfile
+
+    from service.numerics.diagnose.write_effect import effect_classes, effect_source
+
+    found = getattr(out.diagnosis, "discovery", None)
+    if found is None or not found.claimed:
+        why = "discovery did not run" if found is None else (found.reason or "it claims nothing")
+        said("write-effect", f"--write-effect {path}: nothing written: no term was discovered beyond the catalogue "
+                             f"({why})")
+        return
+    text = effect_source(found, data_name=Path(source).name)
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".tmp", dir=target.parent or ".")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    out.written.append(str(target))
+    use = ",".join(f"{target}:{c}" for c in effect_classes([g.group for g in found.groups]))
+    said("write-effect", f"the discovered term written to {target} as an effect of your own: rename it and give it "
+                         f"back with --effects {use} (fit, diagnose; a running service takes it from [effects] "
+                         f"plugins where it acts on each sample alone)", level="say")
 
 
 def thinning(lab: Any, limit: int | None) -> tuple[dict[str, Any], str] | None:
