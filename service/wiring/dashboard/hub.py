@@ -196,6 +196,11 @@ class Hub:
             st = dict(self.views[unit].state)
         return calibration_file(unit, st)
 
+    def discovered_effect(self, unit: str) -> str:
+        """The effect module the unit's last diagnosis discovered (KeyError: a unit not followed)."""
+        with self.lock:
+            return discovered_effect(self.views[unit])
+
     def diagnose(self, unit: str) -> dict[str, Any]:
         """Start a diagnosis of the unit's kept raw samples on a thread of this process; returns at once."""
         with self.lock:
@@ -242,12 +247,29 @@ def run_diagnosis(view: UnitView, unit: str, block: Any, names: list[str] | None
 
         result = diagnose(data, effects=effects, progress=progress)
         out = result.as_dict()
+        found = getattr(result, "discovery", None)
+        effect = None
+        if found is not None and found.claimed:
+            from service.numerics.diagnose.write_effect import effect_source
+
+            effect = effect_source(found, data_name=f"fluxcal/{unit}, last {block.n_samples} samples")
         view.diagnosis = {"status": "done", "finished_unix_s": time.time(), "n_samples": int(block.n_samples),
                           "duration_s": float(block.t_s[-1] - block.t_s[0]), "effects": effects,
                           "verdict": out.get("verdict"), "candidates": out.get("candidates"), "given": given,
+                          "discovery": None if found is None else {"claimed": bool(found.claimed),
+                                                                   "sentence": found.sentence()},
+                          "effect_module": effect,
                           "text": summary_text(result, f"fluxcal/{unit}, last {block.n_samples} samples")}
     except (FluxcalError, ValueError, np.linalg.LinAlgError) as e:
         view.diagnosis = {"status": "failed", "error": str(e)}
+
+
+def discovered_effect(view: UnitView) -> str:
+    """The effect module the last diagnosis discovered (diagnose --write-effect's text); FluxcalError when none."""
+    text = (view.diagnosis or {}).get("effect_module")
+    if not text:
+        raise FluxcalError("no term discovered beyond the catalogue in the last diagnosis: nothing to write")
+    return text
 
 
 def calibration_file(unit: str, st: dict[str, Any]) -> dict[str, Any]:

@@ -6,6 +6,7 @@ internet), and a small JSON API the page polls. A page polls; a closed tab sends
     GET  /api/units             {"connected", "endpoints", "units": [{"unit", "status", "status_text"}], "message",
                                  "read_only"}
     GET  /api/calibration?unit=U  the calibration in use as a calibration file, which `apply` takes back
+    GET  /api/effect?unit=U     the term the last diagnosis discovered, as an effect module (diagnose --write-effect)
     GET  /api/view?unit=U&series=N&raw=N&error=N
                                 one unit's view (service.wiring.dashboard.view.UnitView.view): the history
                                 rows after the numbers given, and the rest whole
@@ -180,6 +181,16 @@ class _Handler(BaseHTTPRequestHandler):
                 name = "".join(c for c in unit if c.isalnum() or c in "_-") or "unit"
                 self._send(200, json.dumps(cal, indent=1).encode(), "application/json",
                            (("Content-Disposition", f'attachment; filename="{name}-calibration.json"'),))
+            elif url.path == "/api/effect":
+                unit = q.get("unit", "")
+                try:
+                    text = hub.discovered_effect(unit)
+                except FluxcalError as e:
+                    self._json({"error": str(e)}, 409)
+                    return
+                name = "".join(c for c in unit if c.isalnum() or c in "_-") or "unit"
+                self._send(200, text.encode(), "text/x-python; charset=utf-8",
+                           (("Content-Disposition", f'attachment; filename="{name}_discovered.py"'),))
             elif url.path == "/api/view":
                 since = {k: int(q.get(k, 0) or 0) for k in ("series", "raw", "error")}
                 self._json(hub.view(q.get("unit", ""), since))

@@ -254,6 +254,9 @@ function renderDiagnosis(d, kept) {
   div.innerHTML = `<p id="verdict"><b>${esc((verdict.kind || "") + what)}</b>: residual ${num(verdict.rms_nT, 3)} nT ` +
     `against a floor of ${num(verdict.floor_nT, 3)} nT. ${esc(verdict.left || "")} ${esc(verdict.advice || "")}</p>` +
     `<table class="numbers"><tr><th>effect</th><th>held-out gain</th><th>significant</th><th></th></tr>${rows}</table>` +
+    (d.discovery ? `<p id="discovery">beyond the catalogue: ${esc(d.discovery.sentence || "")}` +
+      (d.effect_module ? ` <a id="effect-download" href="/api/effect?unit=${encodeURIComponent(unit)}" ` +
+        `download>write it as an effect of your own (.py)</a>` : "") + `</p>` : "") +
     `<p class="muted" id="diagnosis-given">${esc(d.given || "")}</p>` +
     `<details><summary>full text (${d.n_samples} samples, ${num(d.duration_s, 0)} s)</summary><pre>${esc(d.text)}</pre></details>`;
 }
