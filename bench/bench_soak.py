@@ -468,6 +468,7 @@ class Subscriber:
 
 def make_daemon(cfg, probe: Probe, subscriber_endpoint: str | None, messages: list[str]):
     from service.wiring.daemon import Daemon
+    from service.wiring.sinks import BusSink, McapSink
 
     class SoakDaemon(Daemon):
         """The daemon unchanged, plus taps on its parts (the loop is the daemon's own)."""
@@ -477,7 +478,10 @@ def make_daemon(cfg, probe: Probe, subscriber_endpoint: str | None, messages: li
         bus_stats: dict | None = None
         logger_status: dict | None = None
 
-        def _loop(self, source, pipeline, bus, logger) -> None:
+        def _loop(self, source, pipeline, sinks) -> None:
+            # the bus and the recording as the daemon holds them: among its sinks
+            bus = next(s.bus for s in sinks.sinks if isinstance(s, BusSink))
+            logger = next((s.logger for s in sinks.sinks if isinstance(s, McapSink)), None)
             probe.attach(source, pipeline, bus, logger)
             if subscriber_endpoint is not None:
                 # the fast emitter waits in the full pty meanwhile: nothing is lost while we wait
@@ -489,7 +493,7 @@ def make_daemon(cfg, probe: Probe, subscriber_endpoint: str | None, messages: li
                 time.sleep(0.3)
             probe.start()
             try:
-                super()._loop(source, pipeline, bus, logger)
+                super()._loop(source, pipeline, sinks)
             finally:
                 probe.finish()
                 if self.subscriber is not None:
