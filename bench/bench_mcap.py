@@ -27,6 +27,7 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -58,27 +59,14 @@ def make_blocks(seconds: float, block: int, n_probes: int = 4, rate_hz: float = 
                         temp_C=temp[i:i + block], flags=flags[i:i + block]) for i in range(0, n, block)]
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=60.0)
-    ap.add_argument("--block", type=int, default=50)
-    ap.add_argument("--runs", type=int, default=3)
-    args = ap.parse_args()
+COMPRESSIONS = ("lz4", "zstd", "none")
 
-    import mcap
 
-    blocks = make_blocks(args.seconds, args.block)
-    n_ps = sum(b.n_samples * b.n_probes for b in blocks)
-    print(f"machine: {cpu_model()} ({platform.machine()}), os.cpu_count() = {os.cpu_count()}, "
-          f"Python {platform.python_version()}, numpy {np.__version__}, mcap {getattr(mcap, '__version__', '?')}")
-    print(f"data: {len(blocks)} blocks of {args.block} samples x 4 probes ({args.seconds:.0f} s at 1 kHz), "
-          f"{n_ps:,} probe-samples; best of {args.runs} rounds, each round runs every case (a busy machine "
-          f"slows all alike)")
-    payloads = [encode_raw(b) for b in blocks]
-    raw_bytes = sum(len(p) for p in payloads)
+def make_cases(blocks: list[SampleBlock], payloads: list[bytes], tmp: Path, n_ps: int) -> dict[str, Callable[[], None]]:
+    """Every measured case by name (see the module docstring) over the blocks and their encoded payloads, its
+    files written to and read from `tmp`."""
     cors = [CorrectedBlock(b.t_s, b.seq, b.field_nT * 1.0001, b.field_nT[:, 1:] - b.field_nT[:, :1], None,
                            b.field_nT.mean(axis=1), 1) for b in blocks]
-    tmp = Path(tempfile.mkdtemp(prefix="bench_mcap_"))
 
     def encode() -> None:
         for b in blocks:
@@ -112,22 +100,27 @@ def main() -> None:
         assert n * 4 == n_ps
 
     cases = {"encode": encode, "decode": decode, "service": service_write}
-    for c in ("lz4", "zstd", "none"):
+    for c in COMPRESSIONS:
         cases[f"{c} write"] = lambda c=c: write(c)
         cases[f"{c} read"] = lambda c=c: read(c)
     cases["read_recording"] = lambda: whole(read_recording)
     cases["read_samples"] = lambda: whole(read_samples)
-    best = dict.fromkeys(cases, float("inf"))
-    try:
-        for _ in range(args.runs):
-            for name, fn in cases.items():
-                t0 = time.perf_counter()
-                fn()
-                best[name] = min(best[name], time.perf_counter() - t0)
-        sizes = {c: (tmp / f"{c}.mcap").stat().st_size for c in ("lz4", "zstd", "none")}
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    return cases
 
+
+def best_times(cases: dict[str, Callable[[], None]], runs: int) -> dict[str, float]:
+    """The best wall time of each case over `runs` rounds, each round running every case."""
+    best = dict.fromkeys(cases, float("inf"))
+    for _ in range(runs):
+        for name, fn in cases.items():
+            t0 = time.perf_counter()
+            fn()
+            best[name] = min(best[name], time.perf_counter() - t0)
+    return best
+
+
+def print_results(best: dict[str, float], n_ps: int, raw_bytes: int, sizes: dict[str, int], seconds: float) -> None:
+    """One line per case: probe-samples/s, the ratio against the bare encode / decode, the file size."""
     def line(label: str, t: float, ratio: str = "", extra: str = "") -> None:
         print(f"{label:<30}{n_ps / t:>14,.0f} probe-samples/s  {ratio:<26}{extra}")
 
@@ -135,7 +128,7 @@ def main() -> None:
     line("bare encode_raw", t_enc, "", f"{raw_bytes / n_ps:.1f} B/probe-sample")
     line("bare decode_raw", t_dec)
     line("bare encode + decode", t_enc + t_dec)
-    for c in ("lz4", "zstd", "none"):
+    for c in COMPRESSIONS:
         t_w, t_r = best[f"{c} write"], best[f"{c} read"]
         line(f"MCAP write, {c}", t_w, f"{t_enc / t_w:5.2f}x bare encode",
              f"file {sizes[c] / n_ps:5.2f} B/probe-sample ({sizes[c] / raw_bytes:.0%} of the payloads)")
@@ -146,7 +139,34 @@ def main() -> None:
              "the whole recording into one block")
     t_s = best["service"]
     line("service write, lz4", t_s, f"{t_enc / t_s:5.2f}x bare encode (raw)",
-         f"raw + corrected + 10 Hz vectors; {args.seconds / t_s:,.0f}x real time")
+         f"raw + corrected + 10 Hz vectors; {seconds / t_s:,.0f}x real time")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--block", type=int, default=50)
+    ap.add_argument("--runs", type=int, default=3)
+    args = ap.parse_args()
+
+    import mcap
+
+    blocks = make_blocks(args.seconds, args.block)
+    n_ps = sum(b.n_samples * b.n_probes for b in blocks)
+    print(f"machine: {cpu_model()} ({platform.machine()}), os.cpu_count() = {os.cpu_count()}, "
+          f"Python {platform.python_version()}, numpy {np.__version__}, mcap {getattr(mcap, '__version__', '?')}")
+    print(f"data: {len(blocks)} blocks of {args.block} samples x 4 probes ({args.seconds:.0f} s at 1 kHz), "
+          f"{n_ps:,} probe-samples; best of {args.runs} rounds, each round runs every case (a busy machine "
+          f"slows all alike)")
+    payloads = [encode_raw(b) for b in blocks]
+    raw_bytes = sum(len(p) for p in payloads)
+    tmp = Path(tempfile.mkdtemp(prefix="bench_mcap_"))
+    try:
+        best = best_times(make_cases(blocks, payloads, tmp, n_ps), args.runs)
+        sizes = {c: (tmp / f"{c}.mcap").stat().st_size for c in COMPRESSIONS}
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    print_results(best, n_ps, raw_bytes, sizes, args.seconds)
 
 
 if __name__ == "__main__":

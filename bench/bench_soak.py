@@ -55,7 +55,9 @@ import tempfile
 import threading
 import time
 import tracemalloc
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from _machine import cpu_model
@@ -468,6 +470,7 @@ class Subscriber:
 
 def make_daemon(cfg, probe: Probe, subscriber_endpoint: str | None, messages: list[str]):
     from service.wiring.daemon import Daemon
+    from service.wiring.sinks import BusSink, McapSink
 
     class SoakDaemon(Daemon):
         """The daemon unchanged, plus taps on its parts (the loop is the daemon's own)."""
@@ -477,7 +480,10 @@ def make_daemon(cfg, probe: Probe, subscriber_endpoint: str | None, messages: li
         bus_stats: dict | None = None
         logger_status: dict | None = None
 
-        def _loop(self, source, pipeline, bus, logger) -> None:
+        def _loop(self, source, pipeline, sinks) -> None:
+            # the bus and the recording as the daemon holds them: among its sinks
+            bus = next(s.bus for s in sinks.sinks if isinstance(s, BusSink))
+            logger = next((s.logger for s in sinks.sinks if isinstance(s, McapSink)), None)
             probe.attach(source, pipeline, bus, logger)
             if subscriber_endpoint is not None:
                 # the fast emitter waits in the full pty meanwhile: nothing is lost while we wait
@@ -489,7 +495,7 @@ def make_daemon(cfg, probe: Probe, subscriber_endpoint: str | None, messages: li
                 time.sleep(0.3)
             probe.start()
             try:
-                super()._loop(source, pipeline, bus, logger)
+                super()._loop(source, pipeline, sinks)
             finally:
                 probe.finish()
                 if self.subscriber is not None:
@@ -577,7 +583,8 @@ def check(results: list[bool], ok: bool, what: str, counted: bool = True) -> Non
     print(f"{'PASS' if ok else 'FAIL'}  {what}" + ("" if counted else "  (indicative: not counted)"))
 
 
-def main() -> int:
+def parse_args() -> argparse.Namespace:
+    """The command line (see the module docstring)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--minutes", type=float, default=10.0, help="simulated minutes (default 10)")
     ap.add_argument("--quick", action="store_true", help="one simulated minute (memory check not counted)")
@@ -590,143 +597,222 @@ def main() -> int:
                     help="diagnosis: trace Python and numpy allocations (FRAMES deep, default 1; several times "
                          "slower) and print where memory grew between warm-up and the end")
     ap.add_argument("--subscribe", help=argparse.SUPPRESS)
-    args = ap.parse_args()
-    if args.subscribe:
-        subscriber_main(args.subscribe)
-        return 0
-    if args.tracemalloc:
-        tracemalloc.start(args.tracemalloc)
-    seconds = 60.0 * (1.0 if args.quick else args.minutes)
-    print("machine:", machine())
-    print(f"code: {code_version()}")
-    print(f"load average at start: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
-    results: list[bool] = []
-    with tempfile.TemporaryDirectory(prefix="fluxcal-soak-") as d:
-        tmp = Path(d)
-        tempfile.tempdir = d                  # the emitter's pty symlink directory goes in here too
-        port = free_port()
-        rotate_mb = max(4.0, round(seconds * 0.08))           # 4-5 files per run (about 0.35 MB per sim s)
-        sim_proc = None if args.sim_in_process else SimProcess(tmp, seconds)
-        if sim_proc is not None:
-            atexit.register(sim_proc.stop)          # whatever stops this run stops the simulated unit too
-        cfg = service_config(tmp, seconds, port, rotate_mb, None if sim_proc is None else sim_proc.path)
-        # warm-up: the estimator's ring buffer has filled, wrapped, and the gate has run twice over it
-        est = cfg.estimator
-        warmup_full = est.window_s + 2 * est.check_every_s
-        memory_counted = seconds >= 3 * warmup_full
-        warmup_s = warmup_full if memory_counted else seconds / 3
-        every_s = 10.0 if seconds >= 60 else max(1.0, seconds / 6)
-        print_every_s = every_s * max(1, round(seconds / every_s / 20))
-        warmup_s = every_s * np.ceil(warmup_s / every_s - 1e-9)
-        print(f"soak: {N_PROBES} probes at {RATE:.0f} Hz, {seconds:.0f} simulated s of the daemon through a pty at "
-              f"full speed; faults per frame: garbage {FAULTS['garbage_fraction']}, bit flip "
-              f"{FAULTS['bitflip_fraction']}, lost byte {FAULTS['drop_byte_fraction']}, dropped frame "
-              f"{FAULTS['drop_frame_fraction']}; outages of {FAULTS['outage_s']:.0f} s at "
-              f"{', '.join(f'{a:g} s' for a in sim_table(seconds)['faults']['outage_at_s'])}; MCAP rotated every {rotate_mb:g} MB; "
-              f"warm-up {warmup_s:.0f} s" + ("" if memory_counted else
-                                             f" (the run is shorter than 3 x the {warmup_full:g} s warm-up of ring "
+    return ap.parse_args()
+
+
+@dataclass
+class Schedule:
+    """When the service is sampled and its rows printed, and where its warm-up ends (simulated seconds)."""
+
+    warmup_full: float          # the estimator's ring buffer filled and wrapped, and two gate checks over it
+    memory_counted: bool        # the run is at least 3 x warmup_full: the memory check counts
+    warmup_s: float
+    every_s: float
+    print_every_s: float
+
+
+def schedule(cfg, seconds: float) -> Schedule:
+    """The warm-up and the sampling intervals of a run of `seconds` simulated seconds."""
+    # warm-up: the estimator's ring buffer has filled, wrapped, and the gate has run twice over it
+    est = cfg.estimator
+    warmup_full = est.window_s + 2 * est.check_every_s
+    memory_counted = seconds >= 3 * warmup_full
+    warmup_s = warmup_full if memory_counted else seconds / 3
+    every_s = 10.0 if seconds >= 60 else max(1.0, seconds / 6)
+    print_every_s = every_s * max(1, round(seconds / every_s / 20))
+    warmup_s = every_s * np.ceil(warmup_s / every_s - 1e-9)
+    return Schedule(warmup_full, memory_counted, warmup_s, every_s, print_every_s)
+
+
+def print_plan(seconds: float, rotate_mb: float, sch: Schedule) -> None:
+    """The run's set-up in one line: probes, rate, faults, outages, file rotation and warm-up."""
+    print(f"soak: {N_PROBES} probes at {RATE:.0f} Hz, {seconds:.0f} simulated s of the daemon through a pty at "
+          f"full speed; faults per frame: garbage {FAULTS['garbage_fraction']}, bit flip "
+          f"{FAULTS['bitflip_fraction']}, lost byte {FAULTS['drop_byte_fraction']}, dropped frame "
+          f"{FAULTS['drop_frame_fraction']}; outages of {FAULTS['outage_s']:.0f} s at "
+          f"{', '.join(f'{a:g} s' for a in sim_table(seconds)['faults']['outage_at_s'])}; MCAP rotated every "
+          f"{rotate_mb:g} MB; "
+          f"warm-up {sch.warmup_s:.0f} s" + ("" if sch.memory_counted else
+                                             f" (the run is shorter than 3 x the {sch.warmup_full:g} s warm-up of ring "
                                              f"buffer + 2 gate checks: the memory check is not counted)"))
-        probe = Probe(every_s, print_every_s, warmup_s)
-        messages: list[str] = []
-        endpoint = None if args.no_subscriber else f"tcp/127.0.0.1:{port}"
-        daemon = make_daemon(cfg, probe, endpoint, messages)
+
+
+@dataclass
+class SoakRun:
+    """What a soak leaves for its summary and its checks."""
+
+    cfg: Any
+    seconds: float
+    schedule: Schedule
+    probe: Probe
+    daemon: Any
+    messages: list[str]
+    endpoint: str | None            # the Zenoh subscriber's, or None without one
+    sim_proc: SimProcess | None     # None: the unit ran in the service's process
+    rc: int                         # the daemon's exit status
+    t_run: float                    # wall seconds of the daemon's run
+    counters: dict                  # the source's
+    record: Any                     # the simulated unit's FaultRecord
+    framer: Any                     # the source's framer (its pending bytes)
+    emitted: int
+    reconnects: int
+    sim_ok: bool                    # the unit's process ended well (always, in process)
+    rec: Any                        # the recording read back
+    rec_seq: np.ndarray             # the seq of every recorded raw sample
+    rec_mb: float
+    t_bare: float                   # the bare pipeline over the recorded blocks: wall and CPU seconds
+    cpu_bare: float
+    bare_out: list
+
+
+def run_watched(daemon, sim_proc: SimProcess | None, seconds: float) -> tuple[int, float]:
+    """The daemon's run, stopped by a watchdog after twice real time (a stuck soak, whose checks then fail):
+    its exit status and wall seconds. The simulated unit is stopped after it, if it has not ended."""
+    limit_s = 2 * seconds + 120
+    watchdog = threading.Timer(limit_s, lambda: (print(f"watchdog: stopping the daemon after {limit_s:.0f} s",
+                                                       flush=True), daemon.stop.set()))
+    watchdog.daemon = True
+    print(Probe.HEADER, flush=True)
+    t_run = time.perf_counter()
+    watchdog.start()
+    try:
+        rc = daemon.run()
+    finally:
+        watchdog.cancel()
         if sim_proc is not None:
-            print(f"the simulated unit runs in its own process (pid {sim_proc.proc.pid}) on {sim_proc.path}")
-            probe.sim_stat, probe.sim_process = sim_proc.stat_path, sim_proc
-            threading.Thread(target=end_when_delivered, args=(sim_proc, probe, daemon), daemon=True).start()
-        # bounded: a soak that takes longer than twice real time is stuck; it stops and its checks fail
-        limit_s = 2 * seconds + 120
-        watchdog = threading.Timer(limit_s, lambda: (print(f"watchdog: stopping the daemon after {limit_s:.0f} s",
-                                                           flush=True), daemon.stop.set()))
-        watchdog.daemon = True
-        print(Probe.HEADER, flush=True)
-        t_run = time.perf_counter()
-        watchdog.start()
-        try:
-            rc = daemon.run()
-        finally:
-            watchdog.cancel()
-            if sim_proc is not None:
-                sim_proc.stop()           # it has ended by itself, unless the run was cut short
-        t_run = time.perf_counter() - t_run
-        tempfile.tempdir = None
-        source = probe.source
-        counters = source.counters.as_dict()
-        if sim_proc is None:
-            record, framer = source.record, source.inner._framer
-            emitted, reconnects, sim_ok = int(source.emitter.next_index), source.emitter.reconnects, True
-        else:
-            if sim_proc.exit_code is None:
-                sim_proc.wait()
-            sim_proc.load_record()
-            if sim_proc.record is None:
-                raise SystemExit(f"the simulated unit left no fault record (exit {sim_proc.exit_code}): "
-                                 f"{sim_proc.stderr.strip()}")
-            record, framer = sim_proc.record, source._framer
-            emitted, reconnects = sim_proc.meta["next_index"], sim_proc.meta["reconnects"]
-            sim_ok = sim_proc.exit_code == 0
+            sim_proc.stop()           # it has ended by itself, unless the run was cut short
+    return rc, time.perf_counter() - t_run
 
-        # --- read the recording back; the bare pipeline over the same blocks ----------------------------
-        from service.io.recordings.reader import read_recording
 
-        rec = read_recording(tmp / "rec")
-        blocks = rec.raw_blocks
-        t_bare, cpu_bare, bare_out = bare_pipeline(cfg, blocks)
-        rec_seq = np.concatenate([b.seq for b in blocks])
-        n_rec = int(rec_seq.size)
-        n_rec_cor = sum(b.n_samples for b in rec.corrected_blocks)
-        rec_mb = sum(os.path.getsize(f) for f in rec.files) / 1e6
+def unit_outcome(probe: Probe, sim_proc: SimProcess | None) -> tuple[Any, Any, int, int, bool]:
+    """The simulated unit's side once the run is over: its fault record, the source's framer, the samples it
+    emitted, its reconnects and whether its process ended well."""
+    source = probe.source
+    if sim_proc is None:
+        return source.record, source.inner._framer, int(source.emitter.next_index), source.emitter.reconnects, True
+    if sim_proc.exit_code is None:
+        sim_proc.wait()
+    sim_proc.load_record()
+    if sim_proc.record is None:
+        raise SystemExit(f"the simulated unit left no fault record (exit {sim_proc.exit_code}): "
+                         f"{sim_proc.stderr.strip()}")
+    return (sim_proc.record, source._framer, sim_proc.meta["next_index"], sim_proc.meta["reconnects"],
+            sim_proc.exit_code == 0)
 
-    # --- summary ------------------------------------------------------------------------------------------
+
+def soak(tmp: Path, seconds: float, args: argparse.Namespace) -> SoakRun:
+    """One soak in `tmp`: the simulated unit (in its own process unless --sim-in-process) read by the daemon,
+    tapped by a Probe; then the recording read back and the bare pipeline run over its raw blocks."""
+    tempfile.tempdir = str(tmp)           # the emitter's pty symlink directory goes in here too
+    port = free_port()
+    rotate_mb = max(4.0, round(seconds * 0.08))           # 4-5 files per run (about 0.35 MB per sim s)
+    sim_proc = None if args.sim_in_process else SimProcess(tmp, seconds)
+    if sim_proc is not None:
+        atexit.register(sim_proc.stop)          # whatever stops this run stops the simulated unit too
+    cfg = service_config(tmp, seconds, port, rotate_mb, None if sim_proc is None else sim_proc.path)
+    sch = schedule(cfg, seconds)
+    print_plan(seconds, rotate_mb, sch)
+    probe = Probe(sch.every_s, sch.print_every_s, sch.warmup_s)
+    messages: list[str] = []
+    endpoint = None if args.no_subscriber else f"tcp/127.0.0.1:{port}"
+    daemon = make_daemon(cfg, probe, endpoint, messages)
+    if sim_proc is not None:
+        print(f"the simulated unit runs in its own process (pid {sim_proc.proc.pid}) on {sim_proc.path}")
+        probe.sim_stat, probe.sim_process = sim_proc.stat_path, sim_proc
+        threading.Thread(target=end_when_delivered, args=(sim_proc, probe, daemon), daemon=True).start()
+    rc, t_run = run_watched(daemon, sim_proc, seconds)
+    tempfile.tempdir = None
+    counters = probe.source.counters.as_dict()
+    record, framer, emitted, reconnects, sim_ok = unit_outcome(probe, sim_proc)
+
+    # --- read the recording back; the bare pipeline over the same blocks ----------------------------
+    from service.io.recordings.reader import read_recording
+
+    rec = read_recording(tmp / "rec")
+    t_bare, cpu_bare, bare_out = bare_pipeline(cfg, rec.raw_blocks)
+    return SoakRun(cfg=cfg, seconds=seconds, schedule=sch, probe=probe, daemon=daemon, messages=messages,
+                   endpoint=endpoint, sim_proc=sim_proc, rc=rc, t_run=t_run, counters=counters, record=record,
+                   framer=framer, emitted=emitted, reconnects=reconnects, sim_ok=sim_ok, rec=rec,
+                   rec_seq=np.concatenate([b.seq for b in rec.raw_blocks]),
+                   rec_mb=sum(os.path.getsize(f) for f in rec.files) / 1e6,
+                   t_bare=t_bare, cpu_bare=cpu_bare, bare_out=bare_out)
+
+
+@dataclass
+class Memory:
+    """The service's memory over the rows after warm-up: RSS less the simulator's own fault record, which grows
+    with every fault it injects (the simulated unit shares the process in process; beside real hardware it
+    does not exist)."""
+
+    warm: dict                  # the row at the end of the warm-up, the row of the largest, the last row
+    rmax: dict
+    end: dict
+    svc: dict[int, float]       # the service's kB per row, by id(row)
+    growth_end: float           # % of the warm row's, at the end and at most
+    growth_max: float
+    raw_end: float              # VmRSS itself at the end, % of the warm row's
+    slope: float                # least-squares trend, kB per simulated minute
+
+
+def memory(probe: Probe) -> Memory:
+    """The service's memory figures from the probe's rows."""
     rows = probe.rows
     warm = probe.warm_row() or rows[0]
     after = [r for r in rows if r["sim_s"] >= warm["sim_s"]]
     end = rows[-1]
-    # the service's memory: RSS less the simulator's own fault record, which grows with every fault it
-    # injects (the simulated unit shares the process here; beside real hardware it does not exist)
     svc = {id(r): r["rss_kb"] - r["record_kb"] for r in rows}
     rmax = max(after, key=lambda r: svc[id(r)])
-    growth_end = 100.0 * (svc[id(end)] / svc[id(warm)] - 1)
-    growth_max = 100.0 * (svc[id(rmax)] / svc[id(warm)] - 1)
-    raw_end = 100.0 * (end["rss_kb"] / warm["rss_kb"] - 1)
     xs = np.array([r["sim_s"] for r in after])
     ys = np.array([svc[id(r)] for r in after], float)
     slope = float(np.polyfit(xs, ys, 1)[0]) * 60.0 if xs.size >= 3 and np.ptp(xs) > 0 else float("nan")
+    return Memory(warm=warm, rmax=rmax, end=end, svc=svc,
+                  growth_end=100.0 * (svc[id(end)] / svc[id(warm)] - 1),
+                  growth_max=100.0 * (svc[id(rmax)] / svc[id(warm)] - 1),
+                  raw_end=100.0 * (end["rss_kb"] / warm["rss_kb"] - 1), slope=slope)
+
+
+def print_summary(run: SoakRun, mem: Memory) -> None:
+    """The run in figures: memory, CPU, throughput against the bare pipeline, the recording, the counters, the
+    fault record, the bus; and where traced memory grew (--tracemalloc)."""
+    probe, daemon, sim_proc, cfg, rec = run.probe, run.daemon, run.sim_proc, run.cfg, run.rec
+    rows, warm, rmax, end, svc = probe.rows, mem.warm, mem.rmax, mem.end, mem.svc
+    blocks = rec.raw_blocks
     sim_total, cpu_total, sim_cpu = end["sim_s"], end["cpu_s"], end["sim_cpu_s"]
     service_cpu = cpu_total - sim_cpu
     wall_data = probe.t_last_block - probe.t_first_block
     ps = probe.n_in * N_PROBES                                  # probe-samples delivered
-    thr, thr_bare = ps / wall_data, ps / t_bare
-    print(f"\ndaemon exit {rc} after {t_run:.1f} s wall for {sim_total:.0f} simulated s ({sim_total / t_run:.1f}x real "
-          f"time), {len(messages)} service messages; load average at end: "
+    thr, thr_bare = ps / wall_data, ps / run.t_bare
+    print(f"\ndaemon exit {run.rc} after {run.t_run:.1f} s wall for {sim_total:.0f} simulated s "
+          f"({sim_total / run.t_run:.1f}x real time), {len(run.messages)} service messages; load average at end: "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     what = ("VmRSS of the service's process (the simulated unit runs in another)" if sim_proc is not None
             else "VmRSS less the simulator's fault record")
     print(f"memory ({what}): {rows[0]['rss_kb'] / 1024:.1f} MB before the first "
-          f"sample; after warm-up ({warm['sim_s']:.0f} s) {svc[id(warm)] / 1024:.1f} MB, max {svc[id(rmax)] / 1024:.1f} "
-          f"MB (at {rmax['sim_s']:.0f} s), end {svc[id(end)] / 1024:.1f} MB: growth {growth_end:+.2f} % at the end, "
-          f"{growth_max:+.2f} % at most; least-squares trend after warm-up {slope:+.0f} kB per simulated minute; "
-          f"Python objects {warm['objs']} -> {end['objs']}"
-          + ("" if sim_proc is not None else f"; VmRSS itself {raw_end:+.2f} % at the end, the record "
+          f"sample; after warm-up ({warm['sim_s']:.0f} s) {svc[id(warm)] / 1024:.1f} MB, max "
+          f"{svc[id(rmax)] / 1024:.1f} MB (at {rmax['sim_s']:.0f} s), end {svc[id(end)] / 1024:.1f} MB: growth "
+          f"{mem.growth_end:+.2f} % at the end, {mem.growth_max:+.2f} % at most; least-squares trend after warm-up "
+          f"{mem.slope:+.0f} kB per simulated minute; Python objects {warm['objs']} -> {end['objs']}"
+          + ("" if sim_proc is not None else f"; VmRSS itself {mem.raw_end:+.2f} % at the end, the record "
                                              f"{end['record_kb']:.0f} kB"))
     print(f"CPU: {cpu_total / sim_total:.3f} s per simulated s in all ({cpu_total:.1f} s), of which the simulated "
           f"unit {sim_cpu / sim_total:.3f} ({'its emitter thread' if sim_proc is None else 'its own process'}) "
           f"and the service (its thread, zenoh, MCAP) "
-          f"{service_cpu / sim_total:.3f}; at {sim_total / t_run:.1f}x real time the daemon gathers about "
-          f"{probe.n_in / max(probe.blocks, 1):.0f} samples per block (about {cfg.unit.block_ms * RATE / 1000:g} at real "
-          f"time: block_ms {cfg.unit.block_ms:g})")
+          f"{service_cpu / sim_total:.3f}; at {sim_total / run.t_run:.1f}x real time the daemon gathers about "
+          f"{probe.n_in / max(probe.blocks, 1):.0f} samples per block (about {cfg.unit.block_ms * RATE / 1000:g} at "
+          f"real time: block_ms {cfg.unit.block_ms:g})")
     print(f"throughput: {thr:,.0f} probe-samples/s through the daemon (wall, first to last block, outages and the "
           f"{cfg.unit.block_ms:g} ms gathering wait per block included); bare pipeline over the same {len(blocks)} "
           f"blocks {thr_bare:,.0f} probe-samples/s (best of 2): ratio {thr / thr_bare:.3f}")
-    print(f"CPU per probe-sample: service {1e6 * service_cpu / ps:.2f} us, bare pipeline {1e6 * cpu_bare / ps:.2f} us: "
-          f"ratio bare / service {cpu_bare / service_cpu:.3f}")
-    print(f"recording: {len(rec.files)} files, {rec_mb:.1f} MB, {len(blocks)} raw messages, {len(rec.corrected_blocks)} "
-          f"corrected, {len(rec.calibration)} calibration events, {len(rec.health)} health; truncated "
-          f"{len(rec.truncated)}, warnings {len(rec.warnings)}; logger: {json.dumps({k: (daemon.logger_status or {}).get(k) for k in ('messages', 'messages_written', 'dropped', 'errors')})}")
-    print(f"source counters: {json.dumps(counters)}")
-    rec_kb = record_kb(record)
-    print(f"fault record: {json.dumps(record.as_dict())}; emitter reconnects {reconnects}; the record itself holds "
-          f"{rec_kb:.0f} kB" + (" of the process's memory (it grows with every fault: simulator only)"
+    print(f"CPU per probe-sample: service {1e6 * service_cpu / ps:.2f} us, bare pipeline "
+          f"{1e6 * run.cpu_bare / ps:.2f} us: ratio bare / service {run.cpu_bare / service_cpu:.3f}")
+    logger = {k: (daemon.logger_status or {}).get(k) for k in ('messages', 'messages_written', 'dropped', 'errors')}
+    print(f"recording: {len(rec.files)} files, {run.rec_mb:.1f} MB, {len(blocks)} raw messages, "
+          f"{len(rec.corrected_blocks)} corrected, {len(rec.calibration)} calibration events, {len(rec.health)} "
+          f"health; truncated {len(rec.truncated)}, warnings {len(rec.warnings)}; logger: {json.dumps(logger)}")
+    print(f"source counters: {json.dumps(run.counters)}")
+    rec_kb = record_kb(run.record)
+    print(f"fault record: {json.dumps(run.record.as_dict())}; emitter reconnects {run.reconnects}; the record "
+          f"itself holds {rec_kb:.0f} kB" + (" of the process's memory (it grows with every fault: simulator only)"
                                 if sim_proc is None else " in the simulator's process"))
     if daemon.bus_stats:
         bs = daemon.bus_stats
@@ -739,24 +825,32 @@ def main() -> int:
     if probe.snapshots is not None and len(probe.snapshots) == 2:
         print_growth(*probe.snapshots)
 
-    # --- exact counts ---------------------------------------------------------------------------------------
-    n_run = int(round(RATE * seconds))
+
+def check_counts(run: SoakRun, mem: Memory, results: list[bool]) -> None:
+    """The exact counts (emitted == delivered + lost; delivered == through the pipeline == recorded == received
+    on Zenoh; the source's counters against the fault record), the recorded output reproduced, the memory flat:
+    each printed PASS or FAIL and appended to `results` (the memory check only in a long enough run)."""
+    probe, record, emitted, counters = run.probe, run.record, run.emitted, run.counters
+    rec_seq = run.rec_seq
+    n_rec = int(rec_seq.size)
+    n_rec_cor = sum(b.n_samples for b in run.rec.corrected_blocks)
+    n_run = int(round(RATE * run.seconds))
     lost = record.serial_lost()
     expected = np.setdiff1d(np.arange(emitted, dtype=np.int64), lost)
-    sub = daemon.sub_result
+    sub = run.daemon.sub_result
     print()
     print(f"samples emitted by the simulator     {emitted}")
     print(f"lost to injected damage (record)     {lost.size}  ("
           + ", ".join(f"{k} {record.samples(k).size}" for k in record.SERIAL_LOSSES) + ")")
     print(f"delivered intact (through pipeline)  {probe.n_in}")
     print(f"in the MCAP recording                {n_rec}")
-    if endpoint is not None:
+    if run.endpoint is not None:
         print(f"received on Zenoh (raw)              {sub['raw'] if sub else 'no result'}")
     print(f"corrected samples                    pipeline {probe.n_corrected}, recording {n_rec_cor}"
           + (f", Zenoh {sub['corrected']}" if sub else ""))
-    check(results, rc == 0 and sim_ok and emitted == n_run,
+    check(results, run.rc == 0 and run.sim_ok and emitted == n_run,
           f"the run completed: {emitted} samples emitted of {n_run}, the service stopped "
-          + ("by itself at the end of the simulated run" if sim_proc is None
+          + ("by itself at the end of the simulated run" if run.sim_proc is None
              else "once the unit had closed its port and the input had stayed still 3 s"))
     check(results, emitted == probe.n_in + lost.size,
           f"emitted {emitted} == delivered {probe.n_in} + lost {lost.size} ({probe.n_in + lost.size})")
@@ -771,6 +865,29 @@ def main() -> int:
     check(results, counters["samples_missed"] == inner_lost,
           f"source samples_missed (seq gaps) {counters['samples_missed']} == lost between the first and last "
           f"delivered sample {inner_lost}")
+    check_skipped_bytes(run, results)
+    check(results, probe.n_corrected == n_rec_cor,
+          f"corrected samples: pipeline {probe.n_corrected} == recording {n_rec_cor}")
+    if run.endpoint is not None:
+        ok = sub is not None and sub["raw"] == probe.n_in and sub["raw_seq_sum"] == probe.seq_sum
+        check(results, ok, f"received on Zenoh (raw) {sub['raw'] if sub else '-'} == delivered {probe.n_in}, same "
+                           f"seq checksum")
+        ok = sub is not None and sub["corrected"] == probe.n_corrected and sub["corrected_seq_sum"] == probe.cor_seq_sum
+        check(results, ok, f"received on Zenoh (corrected) {sub['corrected'] if sub else '-'} == pipeline "
+                           f"{probe.n_corrected}, same seq checksum")
+    if hasattr(run.daemon, "processing_errors"):
+        check(results, run.daemon.processing_errors == 0,
+              f"blocks whose processing failed: {run.daemon.processing_errors}")
+    check(results, same_output(run.bare_out, run.rec.corrected_blocks),
+          "the bare pipeline over the recorded raw blocks reproduces the recorded corrected output bit for bit")
+    check(results, mem.growth_end <= 5.0 and mem.growth_max <= 5.0,
+          f"memory flat within 5 % after warm-up (end {mem.growth_end:+.2f} %, max {mem.growth_max:+.2f} %)",
+          counted=run.schedule.memory_counted)
+
+
+def check_skipped_bytes(run: SoakRun, results: list[bool]) -> None:
+    """The bytes the source skipped (and its framer holds) against the injected garbage and damaged frames."""
+    record, counters, framer = run.record, run.counters, run.framer
     fl = 13 + 14 * N_PROBES
     # a frame can have a bit flipped and a byte lost both (the unit draws them independently): on the
     # wire it is then fl - 1 bytes, once
@@ -781,22 +898,25 @@ def main() -> int:
     check(results, skipped == record.garbage_bytes + damaged,
           f"bytes skipped {counters['bytes_skipped']} + left pending {framer.pending_bytes} == garbage "
           f"{record.garbage_bytes} + damaged frames {damaged}")
-    check(results, probe.n_corrected == n_rec_cor,
-          f"corrected samples: pipeline {probe.n_corrected} == recording {n_rec_cor}")
-    if endpoint is not None:
-        ok = sub is not None and sub["raw"] == probe.n_in and sub["raw_seq_sum"] == probe.seq_sum
-        check(results, ok, f"received on Zenoh (raw) {sub['raw'] if sub else '-'} == delivered {probe.n_in}, same "
-                           f"seq checksum")
-        ok = sub is not None and sub["corrected"] == probe.n_corrected and sub["corrected_seq_sum"] == probe.cor_seq_sum
-        check(results, ok, f"received on Zenoh (corrected) {sub['corrected'] if sub else '-'} == pipeline "
-                           f"{probe.n_corrected}, same seq checksum")
-    if hasattr(daemon, "processing_errors"):
-        check(results, daemon.processing_errors == 0, f"blocks whose processing failed: {daemon.processing_errors}")
-    check(results, same_output(bare_out, rec.corrected_blocks),
-          "the bare pipeline over the recorded raw blocks reproduces the recorded corrected output bit for bit")
-    check(results, growth_end <= 5.0 and growth_max <= 5.0,
-          f"memory flat within 5 % after warm-up (end {growth_end:+.2f} %, max {growth_max:+.2f} %)",
-          counted=memory_counted)
+
+
+def main() -> int:
+    args = parse_args()
+    if args.subscribe:
+        subscriber_main(args.subscribe)
+        return 0
+    if args.tracemalloc:
+        tracemalloc.start(args.tracemalloc)
+    seconds = 60.0 * (1.0 if args.quick else args.minutes)
+    print("machine:", machine())
+    print(f"code: {code_version()}")
+    print(f"load average at start: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    results: list[bool] = []
+    with tempfile.TemporaryDirectory(prefix="fluxcal-soak-") as d:
+        run = soak(Path(d), seconds, args)
+    mem = memory(run.probe)
+    print_summary(run, mem)
+    check_counts(run, mem, results)
     n_fail = results.count(False)
     print(f"{'PASS' if not n_fail else 'FAIL'}: {len(results) - n_fail} of {len(results)} counted checks passed")
     return 1 if n_fail else 0

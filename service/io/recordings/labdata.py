@@ -95,7 +95,29 @@ def load_csv(path: str | Path) -> LabData:
     # a regular file within the size and line limits, read in pieces (SIGTERM stops it): drivers.inputs
     lines = read_text(p, "a lab CSV").splitlines()
     comments: list[str] = []
-    header_idx = None
+    header_idx = _find_header(p, lines, comments)
+    header = [h.strip() for h in lines[header_idx].split(",")]
+    _check_header(p, header, header_idx + 1)         # 1-based line number of the header
+    rows, lineno = _data_rows(p, lines, header_idx, comments)
+    values = _parse_rows(p, header, rows, lineno)
+    del rows, lines
+
+    # a probe's axis or temperature may be NaN (or inf): saturated or invalid, left out by the fits and counted
+    # there; any other column must be a number
+    may_lack = np.array([bool(_PROBE_COL.match(h)) for h in header])
+    _check_finite(p, header, values, lineno, may_lack)
+    values[:, may_lack] = np.where(np.isfinite(values[:, may_lack]), values[:, may_lack], np.nan)
+    _check_magnitude(p, header, values, lineno)
+    col = {h: i for i, h in enumerate(header)}
+    _check_time_column(p, values[:, col["t"]], lineno)
+    block, n_probes = _csv_block(header, values)
+    return LabData(block=block, probe_names=[f"s{k + 1}" for k in range(n_probes)], path=str(p),
+                   comments=comments)
+
+
+def _find_header(p: Path, lines: list[str], comments: list[str]) -> int:
+    """The index of the header line: the first line neither blank nor a `#` comment; the comments before it
+    are appended to `comments`. DataError if there is none."""
     for i, line in enumerate(lines):
         s = line.strip()
         if not s:
@@ -103,17 +125,14 @@ def load_csv(path: str | Path) -> LabData:
         if s.startswith("#"):
             comments.append(s[1:].strip())
             continue
-        header_idx = i
-        break
-    if header_idx is None:
-        raise DataError(f"{p}: no header line (expected e.g. 't,s1_x,s1_y,s1_z')")
-    header = [h.strip() for h in lines[header_idx].split(",")]
-    line_no = header_idx + 1  # 1-based line number of the header
-    _check_header(p, header, line_no)
+        return i
+    raise DataError(f"{p}: no header line (expected e.g. 't,s1_x,s1_y,s1_z')")
 
+
+def _data_rows(p: Path, lines: list[str], header_idx: int, comments: list[str]) -> tuple[list[str], np.ndarray]:
+    """The data rows after the header and their 1-based line numbers (kept for error messages); a `#` line may
+    come anywhere (an operator's note between two turns) and is appended to `comments`. DataError if no row."""
     body = [ln for ln in lines[header_idx + 1:]]
-    # keep the line numbers of the data rows for error messages; a `#` line may come anywhere (an operator's
-    # note between two turns) and is kept with the header's comments
     rows_idx = []
     for j, ln in enumerate(body):
         s = ln.strip()
@@ -123,28 +142,30 @@ def load_csv(path: str | Path) -> LabData:
             rows_idx.append(j)
     if not rows_idx:
         raise DataError(f"{p}: header but no data rows")
-    if len(rows_idx) != len(body):
-        body_nonempty = [body[j] for j in rows_idx]
-    else:
-        body_nonempty = body
-    lineno = np.asarray(rows_idx) + header_idx + 2
+    rows = [body[j] for j in rows_idx] if len(rows_idx) != len(body) else body
+    return rows, np.asarray(rows_idx) + header_idx + 2
+
+
+def _parse_rows(p: Path, header: list[str], rows: list[str], lineno: np.ndarray) -> np.ndarray:
+    """The rows as an (N, columns) float array; the first bad cell is a DataError naming its line and column."""
     ncol = len(header)
-    values = np.empty((len(body_nonempty), ncol))
-    for a in range(0, len(body_nonempty), PARSE_ROWS):   # in pieces: a signal's handler runs between them
-        rows = body_nonempty[a:a + PARSE_ROWS]
+    values = np.empty((len(rows), ncol))
+    for a in range(0, len(rows), PARSE_ROWS):   # in pieces: a signal's handler runs between them
+        part_rows = rows[a:a + PARSE_ROWS]
         try:
-            part = np.loadtxt(rows, delimiter=",", dtype=np.float64, ndmin=2, comments=None)
-            if part.shape != (len(rows), ncol):
+            part = np.loadtxt(part_rows, delimiter=",", dtype=np.float64, ndmin=2, comments=None)
+            if part.shape != (len(part_rows), ncol):
                 raise ValueError
         except ValueError:
-            _locate_bad_value(p, header, rows, lineno[a:a + PARSE_ROWS])
+            _locate_bad_value(p, header, part_rows, lineno[a:a + PARSE_ROWS])
             raise DataError(f"{p}: could not parse the data rows") from None
-        values[a:a + len(rows)] = part
-    del body, body_nonempty, lines
+        values[a:a + len(part_rows)] = part
+    return values
 
-    # a probe's axis or temperature may be NaN (or inf): saturated or invalid, left out by the fits and counted
-    # there; any other column must be a number
-    may_lack = np.array([bool(_PROBE_COL.match(h)) for h in header])
+
+def _check_finite(p: Path, header: list[str], values: np.ndarray, lineno: np.ndarray, may_lack: np.ndarray) -> None:
+    """A non-finite value outside the columns that `may_lack` one (a probe's axes and temperature) is a
+    DataError naming its line and column, and the other such lines."""
     bad = ~np.isfinite(values) & ~may_lack
     if bad.any():
         r, c = np.argwhere(bad)[0]
@@ -153,16 +174,22 @@ def load_csv(path: str | Path) -> LabData:
         raise DataError(f"{p}: line {lineno[r]}, column {header[c]!r}: {float(values[r, c])} is not a finite number; "
                         f"non-finite values on line(s) {', '.join(map(str, rows[:10].tolist()))}{more}: "
                         f"remove or fix those rows (only probe axes and temperatures may be NaN)")
-    values[:, may_lack] = np.where(np.isfinite(values[:, may_lack]), values[:, may_lack], np.nan)
-    _check_magnitude(p, header, values, lineno)
-    col = {h: i for i, h in enumerate(header)}
-    t = values[:, col["t"]]
+
+
+def _check_time_column(p: Path, t: np.ndarray, lineno: np.ndarray) -> None:
+    """The t column strictly increasing, else a DataError naming the first line where it does not."""
     back = np.flatnonzero(np.diff(t) <= 0)
     if back.size:
         r = back[0] + 1
         raise DataError(f"{p}: line {lineno[r]}, column 't': time {float(t[r])} does not increase "
                         f"(previous {float(t[r - 1])}); t must be strictly increasing")
 
+
+def _csv_block(header: list[str], values: np.ndarray) -> tuple[SampleBlock, int]:
+    """The checked values as a SampleBlock (probe columns into field and temperature, seq and flags into theirs,
+    the flags honoured, any other column an extra) and the number of probes."""
+    col = {h: i for i, h in enumerate(header)}
+    t = values[:, col["t"]]
     n_probes = max(int(_PROBE_COL.match(h).group(1)) for h in header if _PROBE_COL.match(h))
     n = values.shape[0]
     field_nT = np.empty((n, n_probes, 3))
@@ -185,8 +212,7 @@ def load_csv(path: str | Path) -> LabData:
         flags=flags.astype(np.uint8) if flags is not None else np.zeros(n, np.uint8),
         extras=extras,
     )
-    return LabData(block=block, probe_names=[f"s{k + 1}" for k in range(n_probes)], path=str(p),
-                   comments=comments)
+    return block, n_probes
 
 
 def _check_magnitude(p: Path, header: list[str], values: np.ndarray, lineno: np.ndarray) -> None:

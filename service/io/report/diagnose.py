@@ -156,18 +156,20 @@ def _frames_table(d: Diagnosis) -> str:
 def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
     """(file name, caption, PNG bytes) of every plot."""
     plt = pyplot()
-    figs: list[tuple[str, str, bytes]] = []
-    best = d.best
-    after = best.fit if best is not None else None
-    names = d.channel_names
-    before_vals = d.fit.channels.values
-    after_vals = after.channels.values if after is not None else None
+    m = d.fit.channels.values.shape[0]
+    sel = np.arange(0, m, max(1, m // MAX_POINTS))       # at most about MAX_POINTS points per series
+    figs = [f for f in (_spectrum_figure(plt, d), _frames_figure(plt, d)) if f is not None]
+    figs += _where_figures(plt, d, sel)
+    figs.append(_channels_figure(plt, d))
+    figs.append(_time_figure(plt, d, sel))
+    candidates = _candidates_figure(plt, d)
+    if candidates is not None:
+        figs.append(candidates)
+    return figs
 
-    for extra in (_spectrum_figure(plt, d), _frames_figure(plt, d)):
-        if extra is not None:
-            figs.append(extra)
 
-    # residual against the strongest observables
+def _where_picks(d: Diagnosis, most: int = 3) -> list[dict]:
+    """The strongest (channel, observable) pairs of `d.where`, each once, frequency bands left out: at most `most`."""
     seen: set[tuple[str, str]] = set()
     picks = []
     for w in d.where:
@@ -176,16 +178,24 @@ def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
             continue
         seen.add(key)
         picks.append(w)
-        if len(picks) == 3:
+        if len(picks) == most:
             break
-    m = before_vals.shape[0]
-    sel = np.arange(0, m, max(1, m // MAX_POINTS))
-    for i, w in enumerate(picks):
+    return picks
+
+
+def _where_figures(plt, d: Diagnosis, sel: np.ndarray) -> list[tuple[str, str, bytes]]:
+    """The residual of a channel against each of its strongest observables, before and after the best candidate
+    (the samples `sel`)."""
+    best = d.best
+    after_vals = best.fit.channels.values if best is not None else None
+    before_vals = d.fit.channels.values
+    figs = []
+    for i, w in enumerate(_where_picks(d)):
         axis = _observable_axis(d, w["channel"], w["observable"])
         if axis is None:
             continue
         x, label = axis
-        c = names.index(w["channel"])
+        c = d.channel_names.index(w["channel"])
         fig, ax = plt.subplots(figsize=(7.5, 3.6))
         ax.plot(x[sel], before_vals[sel, c], ".", ms=2, alpha=0.5, label=f"before: {d.model}")
         if after_vals is not None:
@@ -198,31 +208,43 @@ def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
         figs.append((f"where_{i + 1}.png", f"Residual of {w['channel']} against {w['observable']}, "
                      f"before and after adding the best candidate", png(fig)))
         plt.close(fig)
+    return figs
 
-    # error per channel before / after
+
+def _channels_figure(plt, d: Diagnosis) -> tuple[str, str, bytes]:
+    """The RMS of each channel before and after the best candidate, against its noise floor (log scale)."""
+    from matplotlib.ticker import ScalarFormatter
+
+    best = d.best
+    names = d.channel_names
     fig, ax = plt.subplots(figsize=(7.5, 3.4))
     xs = np.arange(len(names))
     wbar = 0.28
     ax.bar(xs - wbar, d.channel_rms_nT, wbar, label="before")
-    if after is not None:
-        ax.bar(xs, after.channels.rms_nT, wbar, label=f"after + {best.effect}")
+    if best is not None:
+        ax.bar(xs, best.fit.channels.rms_nT, wbar, label=f"after + {best.effect}")
     ax.bar(xs + wbar, d.channel_noise_nT, wbar, label="noise floor", color="0.6")
     ax.set_xticks(xs, names, rotation=30, ha="right", fontsize=8)
     ax.set_ylabel("RMS (nT)")
     ax.set_yscale("log")
-    from matplotlib.ticker import ScalarFormatter
-
     ax.yaxis.set_major_formatter(ScalarFormatter())
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, axis="y")
-    figs.append(("channels.png", "Error per channel before and after, against the noise floor", png(fig)))
+    data = png(fig)
     plt.close(fig)
+    return ("channels.png", "Error per channel before and after, against the noise floor", data)
 
-    # residual over time
+
+def _time_figure(plt, d: Diagnosis, sel: np.ndarray) -> tuple[str, str, bytes]:
+    """The residual's RMS over the channels along time, before and after the best candidate (the samples `sel`),
+    the worst segments shaded."""
+    best = d.best
     t = d.fit.channels.t_s
+    before_vals = d.fit.channels.values
     fig, ax = plt.subplots(figsize=(7.5, 3.4))
     ax.plot(t[sel], np.sqrt(np.mean(before_vals[sel] ** 2, axis=1)), lw=0.6, label="before")
-    if after_vals is not None:
+    if best is not None:
+        after_vals = best.fit.channels.values
         ax.plot(t[sel], np.sqrt(np.mean(after_vals[sel] ** 2, axis=1)), lw=0.6, label=f"after + {best.effect}")
     for s in d.worst_segments:
         ax.axvspan(s["t_start_s"], s["t_end_s"], color="red", alpha=0.08)
@@ -230,25 +252,30 @@ def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
     ax.set_ylabel("RMS over channels (nT)")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    figs.append(("time.png", "Residual over time (worst segments shaded)", png(fig)))
+    data = png(fig)
     plt.close(fig)
+    return ("time.png", "Residual over time (worst segments shaded)", data)
 
-    # candidates: held-out RMS
+
+def _candidates_figure(plt, d: Diagnosis) -> tuple[str, str, bytes] | None:
+    """The held-out RMS of each testable candidate (green: significant) against the model's and the noise floor;
+    None when no candidate could be tested."""
     testable = [c for c in d.candidates if c.testable]
-    if testable:
-        fig, ax = plt.subplots(figsize=(7.5, 3.2))
-        ys = np.arange(len(testable))
-        ax.barh(ys, [c.heldout_rms_nT for c in testable],
-                color=["tab:green" if c.significant else "tab:gray" for c in testable])
-        ax.axvline(d.heldout_rms_nT, color="k", lw=1, label="model now (held-out)")
-        ax.axvline(d.noise_nT, color="tab:red", lw=1, ls="--", label="noise floor")
-        ax.set_yticks(ys, [c.effect for c in testable])
-        ax.invert_yaxis()
-        ax.set_xlabel("held-out RMS with the effect added (nT)")
-        ax.legend(fontsize=8)
-        figs.append(("candidates.png", "Held-out RMS of each candidate (green: significant)", png(fig)))
-        plt.close(fig)
-    return figs
+    if not testable:
+        return None
+    fig, ax = plt.subplots(figsize=(7.5, 3.2))
+    ys = np.arange(len(testable))
+    ax.barh(ys, [c.heldout_rms_nT for c in testable],
+            color=["tab:green" if c.significant else "tab:gray" for c in testable])
+    ax.axvline(d.heldout_rms_nT, color="k", lw=1, label="model now (held-out)")
+    ax.axvline(d.noise_nT, color="tab:red", lw=1, ls="--", label="noise floor")
+    ax.set_yticks(ys, [c.effect for c in testable])
+    ax.invert_yaxis()
+    ax.set_xlabel("held-out RMS with the effect added (nT)")
+    ax.legend(fontsize=8)
+    data = png(fig)
+    plt.close(fig)
+    return ("candidates.png", "Held-out RMS of each candidate (green: significant)", data)
 
 
 def _table(d: Diagnosis) -> str:

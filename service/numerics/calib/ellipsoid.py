@@ -155,10 +155,7 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     t = EXPANSIONS[order]
     g, r = t.T @ g9 @ t, t.T @ r9
     if use_delta:
-        # the δ column: −δ against the geometric columns, itself, and the right side 1
-        gd = t.T @ sum(design(c, d).T @ -delta[c:d] for a, b in zip(edges[:-1], edges[1:]) for c, d in sub_chunks(a, b))
-        g = np.block([[g, gd[:, None]], [gd[None, :], np.array([[delta @ delta]])]])
-        r = np.append(r, -delta.sum())
+        g, r = _with_delta_column(g, r, t, design, edges, delta)
     # θ = (ΦᵀΦ)⁻¹ Φᵀ1 through the eigenvectors of the column-scaled normal matrix, never an explicit inverse
     col = np.sqrt(np.diag(g))
     lam, vec = np.linalg.eigh(g / np.outer(col, col))
@@ -170,14 +167,7 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
             f2_ref = float(f[0] ** 2)
         except np.linalg.LinAlgError:
             pass                     # not an ellipsoid: the caller refuses it
-    # the residuals themselves (one product): from the normal equations, n − 2θᵀΦᵀ1 + θᵀΦᵀΦθ, a residual
-    # variance of (2 × noise / F)² would be lost in the rounding of n
-    sq = 0.0
-    for a, b in (part for ends in zip(edges[:-1], edges[1:]) for part in sub_chunks(*ends)):
-        resid = 1.0 - design(a, b) @ (t @ theta[:t.shape[1]])
-        if use_delta:
-            resid += delta[a:b] * theta[-1]
-        sq += float(resid @ resid)
+    sq = _residual_sum_sq(design, edges, t, theta, delta if use_delta else None)
     dof = max(n - g.shape[0], 1)
     sigma2 = sq / dof
     if noise_nT is not None:
@@ -193,6 +183,28 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     if order != "full":
         theta, theta_cov = expand(theta, theta_cov, order, extra=int(use_delta))
     return QuadricSolution(theta, theta_cov, scale, f2_ref, cond9, f, known, center, order, choice)
+
+
+def _with_delta_column(g: np.ndarray, r: np.ndarray, t: np.ndarray, design, edges: np.ndarray,
+                       delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The normal equations (g, r) of the expanded order `t` with the δ column added: −δ against the geometric
+    columns, itself, and the right side 1 (`design(a, b)`: the nine-term design of samples a..b)."""
+    gd = t.T @ sum(design(c, d).T @ -delta[c:d] for a, b in zip(edges[:-1], edges[1:]) for c, d in sub_chunks(a, b))
+    g = np.block([[g, gd[:, None]], [gd[None, :], np.array([[delta @ delta]])]])
+    return g, np.append(r, -delta.sum())
+
+
+def _residual_sum_sq(design, edges: np.ndarray, t: np.ndarray, theta: np.ndarray, delta: np.ndarray | None) -> float:
+    """The sum of the squared residuals 1 − Φθ (+ δ θ_δ when `delta` is given), a part of the samples at a time.
+    The residuals themselves (one product): from the normal equations, n − 2θᵀΦᵀ1 + θᵀΦᵀΦθ, a residual
+    variance of (2 × noise / F)² would be lost in the rounding of n."""
+    sq = 0.0
+    for a, b in (part for ends in zip(edges[:-1], edges[1:]) for part in sub_chunks(*ends)):
+        resid = 1.0 - design(a, b) @ (t @ theta[:t.shape[1]])
+        if delta is not None:
+            resid += delta[a:b] * theta[-1]
+        sq += float(resid @ resid)
+    return sq
 
 
 def _nine(theta: np.ndarray, order: str, use_delta: bool) -> np.ndarray:

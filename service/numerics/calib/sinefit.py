@@ -138,23 +138,12 @@ def estimate_rate(t_s: np.ndarray, field_nT: np.ndarray) -> float:
     return float(res.x)
 
 
-def fit_sine_nonorthogonality(theta_rad: np.ndarray | None, field_nT: np.ndarray, *,
-                              t_s: np.ndarray | None = None, total_nT: float | None = None,
-                              inclination_deg: float | None = None, name: str = "s1") -> SineFit:
-    """[SineFit]: α, β, γ (and offsets, relative scale) from (N, 3) raw samples of one turn about the probe z.
-
-    theta_rad: the table angle per sample (right-handed about the probe's +z); None: estimated at a
-      constant rate from `t_s` (or from the sample index if `t_s` is None, i.e. uniform sampling).
-    total_nT: the total field B, if known: fixes the absolute scale k_x.
-    inclination_deg: the field's inclination to the turn plane (the geomagnetic dip for a level
-      table), if known: fixes the z offset; otherwise o_z = 0 is assumed and I is estimated.
-    Refuses (CalibrationRefused) fewer than 8 samples or a turn leaving a gap larger than 120°.
-    """
-    raw = finite_rows(field_nT, f"{name}: field_nT")
+def _table_angle(theta_rad: np.ndarray | None, t_s: np.ndarray | None, raw: np.ndarray,
+                 name: str) -> tuple[np.ndarray, float | None, bool]:
+    """The table angle per sample (given, or estimated at a constant rate), turned to advance with the x-y
+    trajectory: (θ in rad, the estimated rate or None, whether a given angle was reversed). Refuses a turn
+    that leaves a gap larger than MAX_ANGLE_GAP_DEG."""
     n = raw.shape[0]
-    if n < MIN_SAMPLES:
-        raise CalibrationRefused(f"{name}: {n} samples; the sine fit needs at least {MIN_SAMPLES} spread over "
-                                 f"one full turn of the table")
     rate = None
     if theta_rad is None:
         t = np.arange(n, dtype=float) if t_s is None else np.asarray(t_s, float)
@@ -175,84 +164,113 @@ def fit_sine_nonorthogonality(theta_rad: np.ndarray | None, field_nT: np.ndarray
     if gap > MAX_ANGLE_GAP_DEG:
         raise CalibrationRefused(f"{name}: the table angles leave a gap of {gap:.0f}° (at most "
                                  f"{MAX_ANGLE_GAP_DEG:.0f}° allowed): turn the table through one full turn")
+    return theta, rate, reversed_
 
-    coef, cov_axes, axis_rms = _sine_lstsq(theta, raw)
-    p = coef.reshape(-1)                                         # [a_x, b_x, c_x, a_y, b_y, c_y, a_z, b_z, c_z]
-    cov = np.zeros((9, 9))
-    for k in range(3):
-        cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] = cov_axes[k]
+
+def _assumptions(total_nT: float | None, inclination_deg: float | None) -> list[str]:
+    """What one turn cannot separate and the fit therefore assumes, given what is known."""
     assumed = ["k_z = k_x (z scale and sinγ enter only as their product)"]
     if inclination_deg is None:
         assumed.append("o_z = 0 (the z offset and the axial field B_Z enter only as their sum)")
     if total_nT is None:
         assumed.append("k_x = 1 (no total field given: the output is in the x winding's units)")
+    return assumed
 
-    def physics(q: np.ndarray) -> dict[str, np.ndarray]:
-        c = q.reshape(3, 3)
-        amp = np.hypot(c[:, 0], c[:, 1])                         # A = √(a² + b²)
-        ph = np.degrees(np.arctan2(c[:, 1], c[:, 0]))            # a sinθ + b cosθ = A sin(θ + θ0)
-        alpha = _wrap_deg(90.0 - (ph[1] - ph[0]))                # eq. 4
-        beta = _wrap_deg(ph[2] - ph[0])                          # eq. 6
-        sin_g = amp[2] / amp[0]                                  # eq. 9, least-squares form
-        gamma = np.degrees(np.arcsin(np.clip(sin_g, -1.0, 1.0)))
-        a_r, b_r, g_r = np.radians([alpha, beta, gamma])
-        phi = np.degrees(np.arccos(np.cos(b_r) * np.sin(g_r)))            # eq. 11
-        eta = np.degrees(np.arccos(np.sin(a_r + b_r) * np.sin(g_r)))      # eq. 12
-        # C_z = o_z + k_x B_Z cosγ, in x-winding units: k_x B_Z = A_x tan I
-        if inclination_deg is not None:
-            incl = float(inclination_deg)
-            kbz = amp[0] * np.tan(np.radians(incl))
-            o_z = c[2, 2] - kbz * np.cos(g_r)
-        else:
-            o_z = 0.0
-            kbz = c[2, 2] / np.cos(g_r)
-            incl = np.degrees(np.arctan2(kbz, amp[0]))
-        if total_nT is None:
-            k_x = 1.0
-        elif inclination_deg is not None:
-            k_x = amp[0] / (float(total_nT) * np.cos(np.radians(incl)))  # A_x = k_x B cos I
-        else:
-            k_x = np.hypot(amp[0], kbz) / float(total_nT)               # |(A_x, k_x B_Z)| = k_x B
-        k_y = k_x * amp[1] / amp[0]
-        offset = np.array([c[0, 2], c[1, 2], o_z])
-        # eq. 2 / 7 / 10: M = (K S)⁻¹, lower-triangular
-        sa, ca, sb, cb, sg, cg = np.sin(a_r), np.cos(a_r), np.sin(b_r), np.cos(b_r), np.sin(g_r), np.cos(g_r)
-        s = np.array([[1.0, 0.0, 0.0], [sa, ca, 0.0], [cb * sg, sb * sg, cg]])
-        m = np.linalg.solve(np.diag([k_x, k_y, k_x]) @ s, np.eye(3))
-        return {"angles": np.array([alpha, beta, gamma, phi, eta]), "offset": offset,
-                "scale": np.array([k_x, k_y, k_x]), "matrix": m, "incl": np.array([incl]),
-                "amp": amp, "phase": ph}
 
-    keys = ("angles", "offset", "scale", "matrix", "incl")
+def _sine_physics(q: np.ndarray, total_nT: float | None, inclination_deg: float | None) -> dict[str, np.ndarray]:
+    """The angles, offset, scales, correction matrix and inclination from the nine sine coefficients
+    q = [a_x, b_x, c_x, a_y, b_y, c_y, a_z, b_z, c_z] (eq. 4, 6, 9, 11, 12 and 2 / 7 / 10)."""
+    c = q.reshape(3, 3)
+    amp = np.hypot(c[:, 0], c[:, 1])                         # A = √(a² + b²)
+    ph = np.degrees(np.arctan2(c[:, 1], c[:, 0]))            # a sinθ + b cosθ = A sin(θ + θ0)
+    alpha = _wrap_deg(90.0 - (ph[1] - ph[0]))                # eq. 4
+    beta = _wrap_deg(ph[2] - ph[0])                          # eq. 6
+    sin_g = amp[2] / amp[0]                                  # eq. 9, least-squares form
+    gamma = np.degrees(np.arcsin(np.clip(sin_g, -1.0, 1.0)))
+    a_r, b_r, g_r = np.radians([alpha, beta, gamma])
+    phi = np.degrees(np.arccos(np.cos(b_r) * np.sin(g_r)))            # eq. 11
+    eta = np.degrees(np.arccos(np.sin(a_r + b_r) * np.sin(g_r)))      # eq. 12
+    # C_z = o_z + k_x B_Z cosγ, in x-winding units: k_x B_Z = A_x tan I
+    if inclination_deg is not None:
+        incl = float(inclination_deg)
+        kbz = amp[0] * np.tan(np.radians(incl))
+        o_z = c[2, 2] - kbz * np.cos(g_r)
+    else:
+        o_z = 0.0
+        kbz = c[2, 2] / np.cos(g_r)
+        incl = np.degrees(np.arctan2(kbz, amp[0]))
+    if total_nT is None:
+        k_x = 1.0
+    elif inclination_deg is not None:
+        k_x = amp[0] / (float(total_nT) * np.cos(np.radians(incl)))  # A_x = k_x B cos I
+    else:
+        k_x = np.hypot(amp[0], kbz) / float(total_nT)               # |(A_x, k_x B_Z)| = k_x B
+    k_y = k_x * amp[1] / amp[0]
+    offset = np.array([c[0, 2], c[1, 2], o_z])
+    # eq. 2 / 7 / 10: M = (K S)⁻¹, lower-triangular
+    sa, ca, sb, cb, sg, cg = np.sin(a_r), np.cos(a_r), np.sin(b_r), np.cos(b_r), np.sin(g_r), np.cos(g_r)
+    s = np.array([[1.0, 0.0, 0.0], [sa, ca, 0.0], [cb * sg, sb * sg, cg]])
+    m = np.linalg.solve(np.diag([k_x, k_y, k_x]) @ s, np.eye(3))
+    return {"angles": np.array([alpha, beta, gamma, phi, eta]), "offset": offset,
+            "scale": np.array([k_x, k_y, k_x]), "matrix": m, "incl": np.array([incl]),
+            "amp": amp, "phase": ph}
 
+
+#: the parts of `_sine_physics` whose standard errors are propagated, in this order
+_SE_KEYS = ("angles", "offset", "scale", "matrix", "incl")
+
+
+def _physics_with_se(p: np.ndarray, cov: np.ndarray, total_nT: float | None,
+                     inclination_deg: float | None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """`_sine_physics` at the coefficients p and the standard errors of its `_SE_KEYS` parts, propagated from
+    the coefficients' covariance cov (9, 9) through the Jacobian (NaN where it cannot be taken)."""
     def flat(q: np.ndarray) -> np.ndarray:
-        d = physics(q)
-        return np.concatenate([np.ravel(d[k]) for k in keys])
+        d = _sine_physics(q, total_nT, inclination_deg)
+        return np.concatenate([np.ravel(d[k]) for k in _SE_KEYS])
 
-    est = physics(p)
+    est = _sine_physics(p, total_nT, inclination_deg)
     se = jacobian_se(flat, p, cov)
     if se is None:
         se = np.full(flat(p).size, np.nan)
     i = 0
     se_parts = {}
-    for k in keys:
+    for k in _SE_KEYS:
         size = np.size(est[k])
         se_parts[k] = se[i:i + size].reshape(np.shape(est[k]))
         i += size
-    angles, angles_se = est["angles"], se_parts["angles"]
-    offset, matrix = est["offset"], est["matrix"]
+    return est, se_parts
+
+
+def _block_covariance(cov_axes: np.ndarray) -> np.ndarray:
+    """The (9, 9) covariance of the nine coefficients from the three axes' (3, 3) ones (the axes independent)."""
+    cov = np.zeros((9, 9))
+    for k in range(3):
+        cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] = cov_axes[k]
+    return cov
+
+
+def _residual_rms(raw: np.ndarray, offset: np.ndarray, matrix: np.ndarray, total_nT: float | None) -> float:
+    """Eq. 13: RMS of |corrected| − B (B given, else the mean |corrected|)."""
     corr = (raw - offset) @ matrix.T
     mag = np.linalg.norm(corr, axis=1)
     ref = float(total_nT) if total_nT is not None else float(np.mean(mag))
-    resid = float(np.sqrt(np.mean((mag - ref) ** 2)))             # eq. 13
-    names5 = ["alpha", "beta", "gamma", "phi", "eta"]
-    params = {
-        "nonorth_deg": named(angles[:3], angles_se[:3], "deg", names=names5[:3],
+    return float(np.sqrt(np.mean((mag - ref) ** 2)))
+
+
+_ANGLE_NAMES = ["alpha", "beta", "gamma", "phi", "eta"]
+
+
+def _sine_params(est: dict, se_parts: dict, coef: np.ndarray, cov_axes: np.ndarray, axis_rms: np.ndarray,
+                 resid: float, n: int, inclination_deg: float | None, assumed: list[str]) -> dict:
+    """The calibration's params: the fitted quantities named with their units and standard errors."""
+    angles, angles_se = est["angles"], se_parts["angles"]
+    return {
+        "nonorth_deg": named(angles[:3], angles_se[:3], "deg", names=_ANGLE_NAMES[:3],
                              note="003 eq. 1: y winding tilt in the x-y plane (alpha), azimuth (beta) and tilt "
                                   "from the normal (gamma) of the z winding"),
         "axis_angles_deg": named(angles[3:], angles_se[3:], "deg", names=["phi_xz", "eta_yz"],
                                  note="003 eq. 11-12: angles between the x and z, y and z windings"),
-        "offset_nT": named(offset, se_parts["offset"], "nT"),
+        "offset_nT": named(est["offset"], se_parts["offset"], "nT"),
         "scale": named(est["scale"], se_parts["scale"], "", names=["k_x", "k_y", "k_z"]),
         "inclination_deg": named(est["incl"][0], se_parts["incl"][0] if inclination_deg is None else 0.0, "deg",
                                  note="given" if inclination_deg is not None else "estimated with o_z = 0"),
@@ -264,6 +282,34 @@ def fit_sine_nonorthogonality(theta_rad: np.ndarray | None, field_nT: np.ndarray
         "samples": named(n, None, ""),
         "assumed": assumed,
     }
+
+
+def fit_sine_nonorthogonality(theta_rad: np.ndarray | None, field_nT: np.ndarray, *,
+                              t_s: np.ndarray | None = None, total_nT: float | None = None,
+                              inclination_deg: float | None = None, name: str = "s1") -> SineFit:
+    """[SineFit]: α, β, γ (and offsets, relative scale) from (N, 3) raw samples of one turn about the probe z.
+
+    theta_rad: the table angle per sample (right-handed about the probe's +z); None: estimated at a
+      constant rate from `t_s` (or from the sample index if `t_s` is None, i.e. uniform sampling).
+    total_nT: the total field B, if known: fixes the absolute scale k_x.
+    inclination_deg: the field's inclination to the turn plane (the geomagnetic dip for a level
+      table), if known: fixes the z offset; otherwise o_z = 0 is assumed and I is estimated.
+    Refuses (CalibrationRefused) fewer than 8 samples or a turn leaving a gap larger than 120°.
+    """
+    raw = finite_rows(field_nT, f"{name}: field_nT")
+    n = raw.shape[0]
+    if n < MIN_SAMPLES:
+        raise CalibrationRefused(f"{name}: {n} samples; the sine fit needs at least {MIN_SAMPLES} spread over "
+                                 f"one full turn of the table")
+    theta, rate, reversed_ = _table_angle(theta_rad, t_s, raw, name)
+    coef, cov_axes, axis_rms = _sine_lstsq(theta, raw)
+    p = coef.reshape(-1)                                         # [a_x, b_x, c_x, a_y, b_y, c_y, a_z, b_z, c_z]
+    assumed = _assumptions(total_nT, inclination_deg)
+    est, se_parts = _physics_with_se(p, _block_covariance(cov_axes), total_nT, inclination_deg)
+    angles, angles_se = est["angles"], se_parts["angles"]
+    offset, matrix = est["offset"], est["matrix"]
+    resid = _residual_rms(raw, offset, matrix, total_nT)
+    params = _sine_params(est, se_parts, coef, cov_axes, axis_rms, resid, n, inclination_deg, assumed)
     if rate is not None:
         params["rate_rad_s"] = named(rate, None, "rad/s", note="estimated (table angle not given)")
     if reversed_:
@@ -274,7 +320,7 @@ def fit_sine_nonorthogonality(theta_rad: np.ndarray | None, field_nT: np.ndarray
                                  f"about the probe's z axis?)")
     return SineFit(calibration=cal, alpha_deg=float(angles[0]), beta_deg=float(angles[1]),
                    gamma_deg=float(angles[2]), phi_deg=float(angles[3]), eta_deg=float(angles[4]),
-                   se_deg=dict(zip(names5, map(float, angles_se))), amplitude_nT=est["amp"],
+                   se_deg=dict(zip(_ANGLE_NAMES, map(float, angles_se))), amplitude_nT=est["amp"],
                    phase_deg=est["phase"], mean_nT=coef[:, 2].copy(), axis_rms_nT=axis_rms,
                    residual_rms_nT=resid, inclination_deg=float(est["incl"][0]), rate_rad_s=rate,
                    angle_reversed=reversed_, assumed=assumed)

@@ -91,18 +91,7 @@ def detect_steps(t_s: np.ndarray, residual: np.ndarray, gain: np.ndarray, *, win
     s_gg = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(g[:, :, None] * g[:, None, :], axis=0)])
     s_gr = np.concatenate([np.zeros((1, 3)), np.cumsum(g * r[:, None], axis=0)])
     i = np.arange(w, n - w + 1)
-    g_left, g_right = s_gg[i] - s_gg[i - w], s_gg[i + w] - s_gg[i]
-    b_left, b_right = s_gr[i] - s_gr[i - w], s_gr[i + w] - s_gr[i]
-    eye = np.eye(3)
-    # a small ridge: a window of turns about one axis does not fix all three offset components
-    ridge = 1e-6 * np.trace(g_left + g_right, axis1=1, axis2=2)[:, None, None] * eye
-    d_left = np.linalg.solve(g_left + ridge, b_left[..., None])[..., 0]
-    d_right = np.linalg.solve(g_right + ridge, b_right[..., None])[..., 0]
-    jump = d_right - d_left
-    # covariance of the jump / sigma^2 = G_L^-1 + G_R^-1 (3x3 per instant)
-    cov = np.linalg.solve(g_left + ridge, np.broadcast_to(eye, g_left.shape)) + \
-        np.linalg.solve(g_right + ridge, np.broadcast_to(eye, g_right.shape))
-    chi2 = np.einsum("ni,ni->n", jump, np.linalg.solve(cov, jump[..., None])[..., 0]) / sigma ** 2
+    chi2 = _window_jump_chi2(s_gg, s_gr, i, w) / sigma ** 2
     # the residual's wander: how much larger chi2 typically is than white noise makes it (a few steps
     # move the median of thousands of window positions little)
     wander = float(np.median(chi2)) / CHI2_3_MEDIAN
@@ -118,15 +107,7 @@ def detect_steps(t_s: np.ndarray, residual: np.ndarray, gain: np.ndarray, *, win
         # the sliding statistic has broad flanks and its peak can sit off the step when a window sees
         # few directions: place the step where one jump within [i_j - 2w, i_j + 2w) fits best
         lo, hi = max(0, int(i[j]) - 2 * w), min(n, int(i[j]) + 2 * w)
-        split = np.arange(max(lo + w // 2, int(i[j]) - w), min(hi - w // 2, int(i[j]) + w))
-        gl, gr = s_gg[split] - s_gg[lo], s_gg[hi] - s_gg[split]
-        bl, br = s_gr[split] - s_gr[lo], s_gr[hi] - s_gr[split]
-        rdg = 1e-6 * np.trace(gl + gr, axis1=1, axis2=2)[:, None, None] * eye
-        # RSS drop of fitting separate offsets left and right: b_L^T G_L^-1 b_L + b_R^T G_R^-1 b_R
-        gain = (np.einsum("ni,ni->n", bl, np.linalg.solve(gl + rdg, bl[..., None])[..., 0])
-                + np.einsum("ni,ni->n", br, np.linalg.solve(gr + rdg, br[..., None])[..., 0]))
-        best = int(np.argmax(gain))
-        at = int(split[best])
+        at = _best_split(s_gg, s_gr, lo, hi, int(i[j]), w)
         # a step, not a smooth change: over the same stretch a jump must fit better than a bend at the same
         # instant; a warm-up's rise was taken for two steps (perming named, significant) where it is a change no
         # term of the catalogue follows
@@ -139,6 +120,36 @@ def detect_steps(t_s: np.ndarray, residual: np.ndarray, gain: np.ndarray, *, win
         chi2[max(0, at - w - i[0]):max(0, at + w - i[0])] = 0.0
         chi2[max(0, j - w):j + w] = 0.0
     return steps
+
+
+def _window_jump_chi2(s_gg: np.ndarray, s_gr: np.ndarray, i: np.ndarray, w: int) -> np.ndarray:
+    """χ² σ² of the jump between the offsets fitted to the w samples before and the w after each instant i, from
+    the cumulative sums s_gg of g gᵀ and s_gr of g r (each with a leading zero row)."""
+    g_left, g_right = s_gg[i] - s_gg[i - w], s_gg[i + w] - s_gg[i]
+    b_left, b_right = s_gr[i] - s_gr[i - w], s_gr[i + w] - s_gr[i]
+    eye = np.eye(3)
+    # a small ridge: a window of turns about one axis does not fix all three offset components
+    ridge = 1e-6 * np.trace(g_left + g_right, axis1=1, axis2=2)[:, None, None] * eye
+    d_left = np.linalg.solve(g_left + ridge, b_left[..., None])[..., 0]
+    d_right = np.linalg.solve(g_right + ridge, b_right[..., None])[..., 0]
+    jump = d_right - d_left
+    # covariance of the jump / sigma^2 = G_L^-1 + G_R^-1 (3x3 per instant)
+    cov = np.linalg.solve(g_left + ridge, np.broadcast_to(eye, g_left.shape)) + \
+        np.linalg.solve(g_right + ridge, np.broadcast_to(eye, g_right.shape))
+    return np.einsum("ni,ni->n", jump, np.linalg.solve(cov, jump[..., None])[..., 0])
+
+
+def _best_split(s_gg: np.ndarray, s_gr: np.ndarray, lo: int, hi: int, centre: int, w: int) -> int:
+    """The sample within w of `centre` (and w/2 inside lo..hi) where separate offsets before and after it fit
+    the stretch lo..hi best (cumulative sums as in `_window_jump_chi2`)."""
+    split = np.arange(max(lo + w // 2, centre - w), min(hi - w // 2, centre + w))
+    gl, gr = s_gg[split] - s_gg[lo], s_gg[hi] - s_gg[split]
+    bl, br = s_gr[split] - s_gr[lo], s_gr[hi] - s_gr[split]
+    rdg = 1e-6 * np.trace(gl + gr, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+    # RSS drop of fitting separate offsets left and right: b_L^T G_L^-1 b_L + b_R^T G_R^-1 b_R
+    drop = (np.einsum("ni,ni->n", bl, np.linalg.solve(gl + rdg, bl[..., None])[..., 0])
+            + np.einsum("ni,ni->n", br, np.linalg.solve(gr + rdg, br[..., None])[..., 0]))
+    return int(split[int(np.argmax(drop))])
 
 
 def _came_back(v0: np.ndarray, v1: np.ndarray) -> bool:

@@ -323,13 +323,7 @@ def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float =
     rank = 0
     while True:
         jac = jac0 if (it == 0 and jac0 is not None) else pr.jacobian(st, ev)
-        if warm is not None and it == 0:
-            a_b, g_b = pr.assemble(jac, ev, only=~warm.known)
-            keep = warm.known
-            a_b[:, keep[:, None] & keep[None, :]] = warm.a_blocks[:, keep[:, None] & keep[None, :]]
-            g_b[:, keep] = warm.g_blocks[:, keep]
-        else:
-            a_b, g_b = pr.assemble(jac, ev)
+        a_b, g_b = _assemble(pr, jac, ev, warm if it == 0 else None)
         if pr.n_params == 0:
             converged = True
             break
@@ -340,36 +334,18 @@ def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float =
         if small or it >= max_iter:
             converged = small
             if small and np.any(delta):
-                # the last step is tiny: take it without re-linearising, and move the block gradients
-                # with it (g_b + A_b delta), so the held-out solves start from the final point
-                trial = pr.update(st, delta)
-                ev_t = pr.evaluate(trial)
-                rss_t = pr.weighted_rss(ev_t)
-                if np.isfinite(rss_t) and rss_t <= rss * (1 + 1e-9):
-                    st, ev, rss = trial, ev_t, rss_t
-                    g_b = g_b + np.einsum("bij,j->bi", a_b, delta)
+                st, ev, rss, g_b = _take_last_step(pr, st, ev, rss, delta, a_b, g_b)
             break
         it += 1
-        damping = 0.0
-        for _ in range(10):
-            # Levenberg-Marquardt: a step that does not lower the RSS (a badly determined direction
-            # taken too far) is retried shorter and turned towards the gradient
-            if damping > 0:
-                delta, *_ = solve_normal(a_b.sum(0), g_b.sum(0), damping)
-            trial = pr.update(st, delta)
-            ev_t = pr.evaluate(trial)
-            rss_t = pr.weighted_rss(ev_t)
-            if np.isfinite(rss_t) and rss_t <= rss * (1 + 1e-12) + 1e-12:
-                break
-            damping = 1e-6 if damping == 0 else damping * 10.0
-        else:
+        step = _descent_step(pr, st, rss, a_b, g_b, delta)
+        if step is None:
             converged = True                                  # no descent left: at the minimum
             break
-        step = 1.0 if damping == 0 else 0.0
+        delta, damping, trial, ev_t, rss_t = step
         predicted = rss + float(g_b.sum(0) @ delta)           # rss - g^T A^+ g of the linearised problem
         # the excess of the actual over the predicted RSS bounds how far the step is from the minimum:
         # excess = d^T A d for a parameter error d, i.e. sqrt(excess / s2) standard errors
-        linear_enough = step == 1.0 and abs(rss_t - predicted) <= LINEARITY_SE ** 2 * s2
+        linear_enough = damping == 0 and abs(rss_t - predicted) <= LINEARITY_SE ** 2 * s2
         # an iteration that lowers the RSS by less than RSS_TOL s^2 only creeps along flat directions
         flat = rss - rss_t < RSS_TOL * s2
         st, ev, rss = trial, ev_t, rss_t
@@ -390,6 +366,49 @@ def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float =
     return FitResult(problem=pr, state=st, channels=chans, values=values,
                      stderr=np.sqrt(np.clip(cov * s2, 0, None)), undetermined=undet, rank=rank, rss_w=rss,
                      iterations=it, converged=converged, a_blocks=a_b, g_blocks=g_b, jac=jac, ev=ev)
+
+
+def _assemble(pr: Problem, jac: _Jac, ev: _Eval, warm: Warm | None) -> tuple[np.ndarray, np.ndarray]:
+    """The per-block normal matrices and gradients of this linearisation; with `warm`, only the rows of the
+    parameters warm does not know are assembled, the known ones taken from it."""
+    if warm is None:
+        return pr.assemble(jac, ev)
+    a_b, g_b = pr.assemble(jac, ev, only=~warm.known)
+    keep = warm.known
+    a_b[:, keep[:, None] & keep[None, :]] = warm.a_blocks[:, keep[:, None] & keep[None, :]]
+    g_b[:, keep] = warm.g_blocks[:, keep]
+    return a_b, g_b
+
+
+def _take_last_step(pr: Problem, st: State, ev: _Eval, rss: float, delta: np.ndarray, a_b: np.ndarray,
+                    g_b: np.ndarray) -> tuple[State, _Eval, float, np.ndarray]:
+    """The last, tiny step taken without re-linearising unless it raises the RSS: (state, residuals, RSS, block
+    gradients), the gradients moved with it (g_b + A_b delta) so the held-out solves start from the final point."""
+    trial = pr.update(st, delta)
+    ev_t = pr.evaluate(trial)
+    rss_t = pr.weighted_rss(ev_t)
+    if np.isfinite(rss_t) and rss_t <= rss * (1 + 1e-9):
+        return trial, ev_t, rss_t, g_b + np.einsum("bij,j->bi", a_b, delta)
+    return st, ev, rss, g_b
+
+
+def _descent_step(pr: Problem, st: State, rss: float, a_b: np.ndarray, g_b: np.ndarray,
+                  delta: np.ndarray) -> tuple[np.ndarray, float, State, _Eval, float] | None:
+    """A step that does not raise the RSS: the Gauss-Newton `delta`, else (Levenberg-Marquardt) one retried
+    shorter and turned towards the gradient, up to ten times; (step, damping, state, residuals, RSS) or None
+    when none descends (the fit is at the minimum)."""
+    damping = 0.0
+    for _ in range(10):
+        # a step that does not lower the RSS (a badly determined direction taken too far) is retried damped
+        if damping > 0:
+            delta, *_ = solve_normal(a_b.sum(0), g_b.sum(0), damping)
+        trial = pr.update(st, delta)
+        ev_t = pr.evaluate(trial)
+        rss_t = pr.weighted_rss(ev_t)
+        if np.isfinite(rss_t) and rss_t <= rss * (1 + 1e-12) + 1e-12:
+            return delta, damping, trial, ev_t, rss_t
+        damping = 1e-6 if damping == 0 else damping * 10.0
+    return None
 
 
 def _flatten(pr: Problem, st: State) -> np.ndarray:
