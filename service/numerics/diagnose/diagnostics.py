@@ -72,13 +72,116 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
             progress(frac, msg)
 
     ed = as_effect_data(data, total_nT=total_nT, positions_m=positions_m)
+    notes = _data_notes(ed)
+    fixed = (calibration is not None) if fix_linear is None else bool(fix_linear)
+    tell(0.0, "linear calibration")
+    linear, reference, ref_kind, weights, model = _start(ed, calibration, fixed, effects, notes)
+
+    # 1. the model as it stands
+    tell(0.05, f"fitting {model}")
+    cur = fit_model(ed, model, linear, reference, weights, n_blocks=n_blocks)
+    if check_linear is not None and not fixed:
+        check_linear(cur.state.linear)
+    cur_ho = heldout(cur)
+    if not cur.converged:
+        notes.append(f"the model fit stopped after {cur.iterations} iterations without converging")
+    linear_refit = None
+    if fixed:                               # what refitting the calibration held would give, for comparison
+        tell(0.1, "linear refit for comparison")
+        linear_refit = fit_model(ed, Model([Baseline()]) + model, linear, reference, weights, n_blocks=n_blocks).rms_nT
+
+    # 2. the candidates: each effect not in the model, fitted beside it and judged on held-out blocks (fits.py)
+    names = list(candidates) if candidates is not None else [n for n in known_effects() if n not in model]
+    cands = _try_each(ed, model, cur, cur_ho, names, reference, weights, n_blocks, tell)
+
+    # 3. where the model fails: what the residual follows (where.py), and the signature of that residual
+    tell(0.87, "where it fails")
+    noise = 1.0 / weights
+    noise_nT = float(np.sqrt(np.mean(noise ** 2)))
+    where, sig_cur, frames_cur = _where(ed, cur, noise)
+
+    # 4. the verdict over the candidates: which are indistinguishable, which keep their gain beside the
+    # others, and their order (verdict.py)
+    tell(0.9, "comparing candidates")
+    cands, stretch = _compare(ed, model, cur, cands, sig_cur, reference, weights, n_blocks, tell, notes)
+
+    # 5. the verdict in kinds, and what is left described (signature.py)
+    best = next((c for c in cands if c.significant and c.fit is not None), None)
+    carried = Carried.of(ed)
+    told = verdict(cur.rms_nT, noise_nT, best, _what_is_left(ed, best, sig_cur, noise, noise_nT), carried)
+
+    # 6. beyond the catalogue: the library of terms the data allow (discover.py), where the catalogue leaves an excess
+    found = None
+    base_fit = best.fit if best is not None else cur
+    if discover or (discover is None and (told["kind"] in ("unexplained", "partly explained")
+                                          or family_excess(base_fit, noise) >= DISCOVER_EXCESS)):
+        tell(0.93, "discovery beyond the catalogue")
+        found, told, cands = _beyond_catalogue(ed, model, cur, cur_ho, cands, told, sig_cur, carried, reference,
+                                               weights, n_blocks, noise, noise_nT, tell)
+        best = next((c for c in cands if c.significant and c.fit is not None), None)
+
+    weak = heldout_weakness(cur, cur_ho.rms_nT)
+    _last_advice(told, notes, cur, best, found, weak, cands, linear_refit, noise_nT, stretch)
+    notes += _coloured_noise_notes(sig_cur.get("spectral_slope"), model.effects, ed.duration_s)
+
+    tell(1.0, "done")
+    return Diagnosis(effects=model.effects, model=str(model), linear="fixed" if fixed else "refit",
+                     reference=ref_kind, rms_nT=cur.rms_nT, noise_nT=noise_nT, verdict=told,
+                     channel_names=list(cur.channels.names), channel_rms_nT=cur.channels.rms_nT,
+                     channel_noise_nT=noise,
+                     where=where, candidates=cands, worst_segments=worst_segments(cur), n_samples=ed.n_samples,
+                     duration_s=ed.duration_s, heldout_rms_nT=cur_ho.rms_nT, notes=notes, fit=cur,
+                     linear_refit_rms_nT=linear_refit, parameters=cur.parameters(), frames=frames_cur,
+                     discovery=found, heldout_weak=weak)
+
+
+def _data_notes(ed: Any) -> list[str]:
+    """What the data left out or lack that every figure depends on: saturated rows, invalid or borrowed temperatures."""
     notes: list[str] = []
     if ed.dropped_rows:
         notes += ed.dropped_notes or [f"{ed.dropped_rows} samples with a saturated axis (NaN) left out"]
     notes += temperature_notes(ed.temp_C, ed.probe_names)        # the temperature terms are among those tested
-    notes += borrowed_notes(ed)
-    fixed = (calibration is not None) if fix_linear is None else bool(fix_linear)
-    tell(0.0, "linear calibration")
+    return notes + borrowed_notes(ed)
+
+
+def _where(ed, fit, noise: np.ndarray) -> tuple[list, dict, Any]:
+    """What the residual of `fit` follows (where.py), its signature with the frames it stands still in."""
+    where = where_it_fails(ed, fit, noise)
+    sig = signature(fit, noise, where)
+    fr = frames(ed, fit, noise)
+    sig["frames"] = frame_summary(fr)
+    return where, sig, fr
+
+
+def _compare(ed, model, cur, cands: list[Candidate], sig_cur: dict, reference, weights, n_blocks: int, tell,
+             notes: list[str]) -> tuple[list[Candidate], Any]:
+    """The candidates against each other (verdict.py): which are indistinguishable or nested, which need a common
+    mode, which rest on one stretch of time, which keep their gain beside the best; ranked. Also the worst stretch."""
+    mark_indistinguishable(cands)
+    demote_nested(cands)
+    _demote_without_common_mode(cands, sig_cur.get("shared_fraction"))
+    cands = rank(cands)
+    stretch = gross_stretch(cur, 1.0 / weights)
+    notes += _demote_on_one_stretch(ed, model, cands, cur, stretch, reference, weights, n_blocks, tell)
+    cands = rank(cands)
+    _beyond_the_best(ed, model, cands, reference, weights, n_blocks, tell)
+    return rank(cands), stretch
+
+
+def _what_is_left(ed, best, sig_cur: dict, noise: np.ndarray, noise_nT: float) -> dict:
+    """The signature of what the best candidate leaves (the model's own without one; nothing at the floor)."""
+    if best is None:
+        return sig_cur
+    if best.rms_nT > FLOOR_FACTOR * noise_nT:
+        left = signature(best.fit, noise, where_it_fails(ed, best.fit, noise))
+        left["frames"] = frame_summary(frames(ed, best.fit, noise))
+        return left
+    return {}
+
+
+def _start(ed: Any, calibration: Any, fixed: bool, effects: Sequence[str], notes: list[str]):
+    """The linear part the model starts from (the calibration held, or one fitted), the reference total field and
+    what it is, the channels' weights and the model; an effect the data cannot take refused."""
     if calibration is not None:
         linear = LinearCalibration.from_any(calibration, ed.n_probes)
     else:
@@ -94,75 +197,23 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
         why = t.why_unavailable(ed)
         if why:
             raise CalibrationRefused(f"effect {t.name!r} cannot be fitted to these data: {why}")
+    return linear, reference, ref_kind, weights, model
 
-    # 1. the model as it stands
-    tell(0.05, f"fitting {model}")
-    cur = fit_model(ed, model, linear, reference, weights, n_blocks=n_blocks)
-    if check_linear is not None and not fixed:
-        check_linear(cur.state.linear)
-    cur_ho = heldout(cur)
-    if not cur.converged:
-        notes.append(f"the model fit stopped after {cur.iterations} iterations without converging")
 
-    linear_refit = None
-    if fixed:
-        tell(0.1, "linear refit for comparison")
-        linear_refit = fit_model(ed, Model([Baseline()]) + model, linear, reference, weights,
-                                 n_blocks=n_blocks).rms_nT
-
-    # 2. the candidates: each effect not in the model, fitted beside it and judged on held-out blocks (fits.py)
-    names = list(candidates) if candidates is not None else [n for n in known_effects() if n not in model]
+def _try_each(ed, model, cur, cur_ho, names: list[str], reference, weights, n_blocks: int, tell) -> list[Candidate]:
+    """Each named effect fitted beside the model and judged on held-out blocks (fits.try_candidate)."""
     hints = residual_hints(cur)
     cands: list[Candidate] = []
     for i, name in enumerate(names):
         tell(0.15 + 0.7 * i / max(len(names), 1), f"trying {name}")
         cands.append(try_candidate(ed, model, cur, cur_ho, name, reference, weights, hints, n_blocks))
+    return cands
 
-    # 3. where the model fails: what the residual follows (where.py), and the signature of that residual
-    tell(0.87, "where it fails")
-    noise = 1.0 / weights
-    noise_nT = float(np.sqrt(np.mean(noise ** 2)))
-    where = where_it_fails(ed, cur, noise)
-    sig_cur = signature(cur, noise, where)
-    frames_cur = frames(ed, cur, noise)
-    sig_cur["frames"] = frame_summary(frames_cur)
 
-    # 4. the verdict over the candidates: which are indistinguishable, which keep their gain beside the
-    # others, and their order (verdict.py)
-    tell(0.9, "comparing candidates")
-    mark_indistinguishable(cands)
-    demote_nested(cands)
-    _demote_without_common_mode(cands, sig_cur.get("shared_fraction"))
-    cands = rank(cands)
-    stretch = gross_stretch(cur, 1.0 / weights)
-    notes += _demote_on_one_stretch(ed, model, cands, cur, stretch, reference, weights, n_blocks, tell)
-    cands = rank(cands)
-    _beyond_the_best(ed, model, cands, reference, weights, n_blocks, tell)
-    cands = rank(cands)
-
-    # 5. the verdict in kinds, and what is left described (signature.py)
-    best = next((c for c in cands if c.significant and c.fit is not None), None)
-    if best is None:
-        left = sig_cur
-    elif best.rms_nT > FLOOR_FACTOR * noise_nT:
-        left = signature(best.fit, noise, where_it_fails(ed, best.fit, noise))
-        left["frames"] = frame_summary(frames(ed, best.fit, noise))
-    else:
-        left = {}
-    carried = Carried.of(ed)
-    told = verdict(cur.rms_nT, noise_nT, best, left, carried)
-
-    # 6. beyond the catalogue: the library of terms the data allow (discover.py), where the catalogue leaves an excess
-    found = None
-    base_fit = best.fit if best is not None else cur
-    if discover or (discover is None and (told["kind"] in ("unexplained", "partly explained")
-                                          or family_excess(base_fit, noise) >= DISCOVER_EXCESS)):
-        tell(0.93, "discovery beyond the catalogue")
-        found, told, cands = _beyond_catalogue(ed, model, cur, cur_ho, cands, told, sig_cur, carried, reference,
-                                               weights, n_blocks, noise, noise_nT, tell)
-        best = next((c for c in cands if c.significant and c.fit is not None), None)
-
-    weak = heldout_weakness(cur, cur_ho.rms_nT)
+def _last_advice(told: dict, notes: list[str], cur, best, found, weak, cands, linear_refit, noise_nT: float,
+                 stretch) -> None:
+    """What the verdict and the notes say last: a weak held-out test, a fit stopped early, a calibration held that is
+    off, a disturbance in time."""
     if weak is not None:
         notes.append(f"the held-out test is weak here: {weak['reason']}; {weak['advice']}")
         if found is not None and found.claimed:
@@ -183,17 +234,6 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
                              linear_refit > FLOOR_FACTOR * noise_nT else ""))
     if stretch is not None and told["kind"] == "unexplained":
         told["advice"] = _stretch_advice(stretch, told.get("advice"))
-    notes += _coloured_noise_notes(sig_cur.get("spectral_slope"), model.effects, ed.duration_s)
-
-    tell(1.0, "done")
-    ch_rms = cur.channels.rms_nT
-    return Diagnosis(effects=model.effects, model=str(model), linear="fixed" if fixed else "refit",
-                     reference=ref_kind, rms_nT=cur.rms_nT, noise_nT=noise_nT, verdict=told,
-                     channel_names=list(cur.channels.names), channel_rms_nT=ch_rms, channel_noise_nT=noise,
-                     where=where, candidates=cands, worst_segments=worst_segments(cur), n_samples=ed.n_samples,
-                     duration_s=ed.duration_s, heldout_rms_nT=cur_ho.rms_nT, notes=notes, fit=cur,
-                     linear_refit_rms_nT=linear_refit, parameters=cur.parameters(), frames=frames_cur,
-                     discovery=found, heldout_weak=weak)
 
 
 #: discovery runs by itself where the catalogue leaves an excess: the verdict unexplained or partly explained, or a
