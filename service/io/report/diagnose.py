@@ -18,6 +18,7 @@ import numpy as np
 
 from service.numerics.calib.sky import CalibrationSection
 from service.numerics.diagnose import DECIDES, Diagnosis, verdict_lines, verdict_word
+from service.numerics.diagnose.text import discovery_lines, gain_text
 
 from .calibration import section_figures, section_html
 from .page import CSS, NO_MATPLOTLIB, has_matplotlib, images, png, pyplot, write_page
@@ -289,13 +290,30 @@ def _table(d: Diagnosis) -> str:
         elif c.reason:
             note = c.reason
         if c.testable:
-            cells = [c.effect, f"{c.rms_nT:.3f}", f"{c.heldout_rms_nT:.3f}",
-                     f"{100 * c.gain:.1f}% (t = {c.log_ratio / c.log_ratio_se if c.log_ratio_se > 0 else float('inf'):.1f})", f"{c.p_value:.2g}", f"{c.bic_delta:.1f}",
-                     "<b>SIGNIFICANT</b>" if c.significant else html.escape(verdict_word(c)), html.escape(note)]
+            weak = d.heldout_weak
+            t = c.log_ratio / c.log_ratio_se if c.log_ratio_se > 0 else float("inf")
+            gain = html.escape(gain_text(c.gain, weak).strip()) + ("" if weak or c.gain < -1.0 else f" (t = {t:.1f})")
+            cells = [c.effect, f"{c.rms_nT:.3f}", f"{c.heldout_rms_nT:.3f}", gain, f"{c.p_value:.2g}",
+                     f"{c.bic_delta:.1f}",
+                     "<b>SIGNIFICANT</b>" if c.significant else html.escape(verdict_word(c, weak)), html.escape(note)]
         else:
             cells = [c.effect, "-", "-", "-", "-", "-", "not testable", html.escape(note)]
         rows.append("<tr>" + "".join(f"<td>{x}</td>" for x in cells) + "</tr>")
     return ("<p>" + html.escape(" ".join(DECIDES.split())) + "</p><table>" + head + "".join(rows) + "</table>")
+
+
+def _discovery(d: Diagnosis) -> str:
+    """Beyond the catalogue: what discovery tried and found, as the terminal says it, and how to write it as an effect
+    of your own (diagnose --write-effect)."""
+    lines = discovery_lines(d)
+    if not lines:
+        return ""
+    found = getattr(d, "discovery", None)
+    write = ("<p>Write it as an effect of your own: <code>fluxcal diagnose DATA --write-effect FILE.py</code>, then "
+             "<code>--effects FILE.py:Discovered</code> (docs/tutorial-discover.md).</p>"
+             if found is not None and found.claimed else "")
+    return ("<h2>Beyond the catalogue</h2><pre>" + html.escape("\n".join(ln.strip() for ln in lines if ln.strip()))
+            + "</pre>" + write)
 
 
 def render_html(d: Diagnosis, figs: list[tuple[str, str, bytes]], title: str,
@@ -326,6 +344,7 @@ held-out {d.heldout_rms_nT:.3f} nT.</p>
 <p>Each effect is fitted in addition to the model and judged on {len(d.fit.problem.blocks)} contiguous time
 blocks, each predicted by the fit to the others.</p>
 {_table(d)}
+{_discovery(d)}
 <h2>Channels</h2>
 <table><tr><th>channel</th><th>RMS (nT)</th><th>noise (nT)</th></tr>{ch_rows}</table>
 <h2>Where the model fails</h2>
