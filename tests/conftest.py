@@ -4,6 +4,15 @@ opens like hardware while the test writes the unit's bytes on the other end."""
 from __future__ import annotations
 
 import os
+import sys
+from pathlib import Path
+
+# tests/ mirrors the source's wings (numerics, io, drivers, wiring) with end-to-end tests in e2e; their modules
+# import each other's helpers by module name (`from test_recording import service_config`): every folder on the path
+_HERE = Path(__file__).resolve().parent
+for _folder in (_HERE, *sorted(p for p in _HERE.iterdir() if p.is_dir() and p.name[0] not in "._")):
+    if str(_folder) not in sys.path:
+        sys.path.insert(0, str(_folder))
 
 # The suite multiplies small matrices while the services it starts run beside it on the other core: idle
 # OpenBLAS threads spin for the cores between products (replay measured 5.8x slower that way). One thread, as

@@ -1,7 +1,7 @@
 """Make docs/dashboard.png: the web dashboard of the simulated four-probe cross (configs/sim-cross.toml) in
 headless Chromium, once the calibration is usable and a diagnosis of the kept samples has run.
 
-The service and `fluxcal dashboard` run as in tests/test_dashboard_browser.py: loopback on a free port, the
+The service and `fluxcal dashboard` run as in tests/e2e/test_dashboard_browser.py: loopback on a free port, the
 calibration file and recordings in a temporary directory. Needs Chromium (/usr/bin/chromium) and Playwright
 (`pip install -e '.[test]'`). About a minute: the unit runs in real time at 10 Hz and the gate needs 300 samples.
 

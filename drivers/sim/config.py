@@ -332,7 +332,7 @@ def load_sim_config(table: Any, path: str = "sim") -> SimConfig:
 
 
 #: the built-in world of `fluxcal simulate` without --config; configs/sim-gradiometer.toml has the same
-#: [sim] tables with every key commented (tests/test_simulate_cli.py checks they agree)
+#: [sim] tables with every key commented (tests/wiring/test_simulate_cli.py checks they agree)
 GRADIOMETER: dict[str, Any] = {
     "seed": 2024,
     "rate_hz": 200.0,

@@ -3,5 +3,5 @@
 calib (estimators, alignment, tensor, coverage, model order, the site field), effects (one small class
 per physical effect), engine (the effects fit), diagnose (what is missing), noise, outputs and
 decimate. Imports only numpy, scipy and drivers' data types (SampleBlock, the error tree); a test
-(tests/test_layout.py) keeps it so.
+(tests/e2e/test_layout.py) keeps it so.
 """

@@ -175,7 +175,7 @@ def _coloured_probe(cal: ArrayCalibration, k: int, raw: np.ndarray, names: list[
     if not coloured:
         return None
     # `rls` without forgetting (fit --method rls) is the batch ellipsoid fit, to 1e-6 of the field
-    # (tests/test_real_sensors.py), and `tmi` the ellipsoid fit with the total given, to the digits printed: the
+    # (tests/numerics/test_real_sensors.py), and `tmi` the ellipsoid fit with the total given, to the digits printed: the
     # same estimator of the same data, so the same weights of the noise
     covered = not ctx.gaps and (regression or cal.method in ("ellipsoid", "rls", "tmi"))
     if covered:

@@ -3,7 +3,7 @@
 The ellipsoid's and the regression's standard errors are white-noise ones, sigma^2 (X^T X)^-1: under 1/f
 noise a probe's noise wanders at the record's own periods, a wander each offset takes almost one to one,
 and the offsets were off by 30 times their stated errors, the matrix's named parameters by 3 to 7 times
-(tests/test_stderr.py). Here each parameter is written as a weighted sum of each raw axis's noise,
+(tests/numerics/test_stderr.py). Here each parameter is written as a weighted sum of each raw axis's noise,
 
     delta o_j = sum_n sum_a W[n, j, a] eps[n, a],
 

@@ -243,7 +243,7 @@ class RlsEllipsoid:
 class RlsProbe:
     """Probe j of an RlsEllipsoid of P probes as a single-probe estimator: each property solves this probe
     only (when it took samples since), and `partial_fit` updates it alone, so the estimates, anchors and
-    every later update are those of P separate estimators, bit for bit (tests/test_rls_batched.py)."""
+    every later update are those of P separate estimators, bit for bit (tests/numerics/test_rls_batched.py)."""
 
     def __init__(self, est: RlsEllipsoid, j: int) -> None:
         self.est, self.j = est, int(j)

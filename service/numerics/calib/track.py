@@ -9,7 +9,7 @@ ground): one --site total makes that change a residual that "follows time" and a
 
 The evaluation is pygeomag's (the WMM report's algorithm: geodetic -> spherical coordinates, Gauss-normalised
 Legendre functions by recursion, the sums to degree 12) with the samples as numpy arrays and the terms as the
-loop; it agrees with pygeomag's own GeoMag.calculate at sample points to 1e-6 nT (tests/test_track.py). The model
+loop; it agrees with pygeomag's own GeoMag.calculate at sample points to 1e-6 nT (tests/numerics/test_track.py). The model
 is the core field only: crustal anomalies and the day's variation (tens to hundreds of nT) are not in it.
 
 Numerics only: the coefficients are the tables pygeomag ships as Python modules; no file is read here.

@@ -166,7 +166,7 @@ class Carried:
 
 
 #: every request to log something the advice can make, by what it asks for; `ask` gives it only where the data do
-#: not carry that (tests/test_advice.py goes over every advice path with every combination)
+#: not carry that (tests/numerics/test_advice.py goes over every advice path with every combination)
 LOG_ASKS = {
     "temperature": "log the sensors' temperatures",
     "reference": "log a reference magnetometer (a ref_total column)",

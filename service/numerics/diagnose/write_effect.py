@@ -2,7 +2,7 @@
 of one EffectTerm class per frame (a probe's groups in its raw frame; groups common to all probes in the aligned
 frame, as shared parameters), with named parameters in physical units, `frame`, and `per_sample` where each sample's
 correction needs that sample alone. `--effects FILE.py:Discovered` takes it back unchanged, and fitted on the same
-data it gives the discovered error (the same regressors, computed the same way: tests/test_discover.py).
+data it gives the discovered error (the same regressors, computed the same way: tests/numerics/test_discover.py).
 
 Only text: the caller writes it where the user asked. Numerics only.
 """

@@ -137,7 +137,7 @@ class FitResult:
         (about 50 %), so per term (the offsets, the matrices, each effect) the white-noise errors are scaled
         by the median over its parameters of jackknife / white when that exceeds 1: white noise keeps its
         white-noise errors, 1/f noise gets the jackknife's (temperature coefficients were understated
-        9-fold under 1/f noise; now within 0.9, tests/test_stderr.py). The jackknife sees the wander only
+        9-fold under 1/f noise; now within 0.9, tests/numerics/test_stderr.py). The jackknife sees the wander only
         between its blocks: every effect's parameters also get coloured_stderr's power-law figure where that
         is larger (a drift, a step, a heater switched every 40 s, a 90-s thermal lag)."""
         d = self.block_deltas()

@@ -3,7 +3,7 @@ runs from `main(args) -> int`; the batch commands (fit, diagnose, replay) also g
 -> Result` (service.wiring.result), which the command line formats and a fleet ships.
 
 COMMANDS lists them in the order `fluxcal --help` shows them, with the line it shows for each (the module's
-`HELP.short`; tests/test_cli_help.py holds the two together): the command line imports only the module of the
+`HELP.short`; tests/wiring/test_cli_help.py holds the two together): the command line imports only the module of the
 command it runs.
 """
 

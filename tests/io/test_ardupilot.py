@@ -1,0 +1,119 @@
+"""ArduPilot DataFlash logs as lab data (service/io/recordings/ardupilot.py): a log built from the format's
+specification (FMT-described messages, MAG with an instance field as ArduPilot 4 writes it) and read by pymavlink
+gives every compass instance as a probe (milligauss -> nT), ATT as the attitude columns, GPS as the track and BAT's
+current as a column, the date from the GPS week; the column effect finds the current's field; a public log with
+MAG, MAG2 and MAG3 (pymavlink's own test log) is read end to end where ../shared/real-data has it."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pymavlink", reason="the ArduPilot reader's optional package: pip install 'fluxcal[ardupilot]'")
+
+from flightlogs import CURRENT_COUPLING_NT_A, simulated_flight, write_dataflash
+
+from drivers.errors import DataError
+from service.io.recordings.ardupilot import ArduPilotMapping, inspect_ardupilot
+from service.io.recordings.load import load_data
+from service.wiring import cli
+
+ROOT = Path(__file__).resolve().parents[2]
+REAL = ROOT.parent / "shared" / "real-data" / "ardupilot_pymavlink_test.BIN"
+BOOT_US = 30_000_000
+GPS_WEEK, GPS_MS_AT_BOOT = 2300, 200_000_000        # 2024-02-04 + 200,000 s
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    d = simulated_flight(n=3000, rate_hz=25.0, seed=7)
+    us = BOOT_US + np.round(d["t_s"] * 1e6).astype(np.int64)
+    n = us.size
+    mags = [("MAG", "QBhhhhhhhhhBQ", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S",
+             {"TimeUS": np.concatenate([us, us + 400]), "I": np.repeat([0, 1], n),
+              **{f"Mag{a}": np.round(np.concatenate([d["field_nT"][:, 0, c], d["field_nT"][:, 1, c]]) / 100.0)
+                 for c, a in enumerate("XYZ")},
+              **{f"Ofs{a}": np.repeat([-50, 20], n) for a in "XYZ"},
+              **{f"MO{a}": np.zeros(2 * n) for a in "XYZ"}, "Health": np.ones(2 * n),
+              "S": np.concatenate([us, us + 400])})]
+    att = ("ATT", "QccccCCCC", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw",
+           {"TimeUS": us + 1000, "DesRoll": np.zeros(n), "Roll": d["euler"][:, 0], "DesPitch": np.zeros(n),
+            "Pitch": d["euler"][:, 1], "DesYaw": np.zeros(n), "Yaw": d["euler"][:, 2] % 360.0,
+            "ErrRP": np.zeros(n), "ErrYaw": np.zeros(n)})
+    g = slice(0, None, 5)
+    gps = ("GPS", "QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U",
+           {"TimeUS": us[g], "I": np.zeros(us[g].size), "Status": np.full(us[g].size, 3),
+            "GMS": GPS_MS_AT_BOOT + us[g] // 1000, "GWk": np.full(us[g].size, GPS_WEEK),
+            "NSats": np.full(us[g].size, 12), "HDop": np.ones(us[g].size), "Lat": d["lat"][g], "Lng": d["lon"][g],
+            "Alt": d["alt"][g], "Spd": np.zeros(us[g].size), "GCrs": np.zeros(us[g].size),
+            "VZ": np.zeros(us[g].size), "Yaw": np.zeros(us[g].size), "U": np.ones(us[g].size)})
+    bat = ("BAT", "QBfffffhf", "TimeUS,I,Volt,VoltR,Curr,CurrTot,EnrgTot,Temp,Res",
+           {"TimeUS": us + 200, "I": np.zeros(n), "Volt": np.full(n, 12.0), "VoltR": np.full(n, 12.1),
+            "Curr": d["current_a"], "CurrTot": np.zeros(n), "EnrgTot": np.zeros(n), "Temp": np.zeros(n),
+            "Res": np.zeros(n)})
+    path = tmp_path_factory.mktemp("ardupilot") / "flight.bin"
+    write_dataflash(path, [*mags, att, gps, bat])
+    return path, d
+
+
+def test_every_compass_a_probe_with_its_columns(flight):
+    path, d = flight
+    lab = load_data(path)
+    b = lab.block
+    assert lab.probe_names == ["s1", "s2"]
+    unix0 = 315964800.0 + GPS_WEEK * 604800.0 + GPS_MS_AT_BOOT / 1e3 - 18.0      # UNIX time at boot
+    boot_s = float(lab.metadata["t0_unix_s"]) - unix0 + b.t_s
+    sel = np.rint((boot_s - BOOT_US / 1e6) * 25.0).astype(int)
+    np.testing.assert_allclose(d["t_s"][sel], boot_s - BOOT_US / 1e6, atol=1e-4)
+    np.testing.assert_allclose(b.field_nT, np.round(d["field_nT"][sel] / 100.0) * 100.0, atol=1e-9)   # 1 mG
+    assert np.isnan(b.temp_C).all()
+    for c, col in enumerate(("heel_deg", "pitch_deg", "azimuth_deg")):
+        err = (b.extras[col] - d["euler"][sel, c] + 180.0) % 360.0 - 180.0
+        assert np.percentile(np.abs(err), 99) < 0.5, col      # 0.01 deg steps, interpolated over 1 ms
+    np.testing.assert_allclose(b.extras["battery_current_a"], d["current_a"][sel], atol=0.01)
+    np.testing.assert_allclose(b.extras["alt_m"], d["alt"][sel], atol=0.02)
+    assert dt.datetime.fromtimestamp(float(lab.metadata["t0_unix_s"]), dt.timezone.utc).date() == \
+        dt.date(2024, 2, 6)
+    assert "its offsets at the log's end, nT: s1 -5000, -5000, -5000; s2 2000, 2000, 2000" in lab.notes[0]
+
+
+def test_the_current_shows_in_the_fit(flight, capsys):
+    path, _ = flight
+    capsys.readouterr()
+    assert cli.main(["fit", str(path), "--json", "--effects", "column"]) == 0
+    col = json.loads(capsys.readouterr().out)["effect_params"]["column"]
+    for a, want in zip("xyz", CURRENT_COUPLING_NT_A):
+        got = col[f"s1.{a} nT per battery_current_a"]
+        assert abs(got["value"] - want) < 4 * got["se"] + 1.0, (a, got, want)
+
+
+def test_mapping_and_inspect(flight, capsys):
+    path, _ = flight
+    lab = load_data(path, mapping=ArduPilotMapping(mags=(1,), attitude=False, position=False, currents=False))
+    assert lab.probe_names == ["s1"] and lab.block.extras == {}
+    with pytest.raises(DataError, match=r"mags: compass instance\(s\) \[3\] not in"):
+        load_data(path, mapping=ArduPilotMapping(mags=(3,)))
+    by = {s.name: s for s in inspect_ardupilot(path).streams}
+    assert by["MAG[1]"].maps_to.startswith("probe s2") and by["MAG[0]"].rate_hz == pytest.approx(25.0, rel=1e-6)
+    assert by["GPS[0]"].maps_to == "lat_deg, lon_deg, alt_m" and by["BAT[0]"].maps_to == "battery_current_a"
+    assert cli.main(["inspect", str(path), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["format"] == "ardupilot-bin"
+
+
+@pytest.mark.skipif(not REAL.is_file(), reason=f"{REAL} is absent (pymavlink's tests/test.BIN, LGPL-3.0: see "
+                                               f"../shared/real-data/README.md)")
+def test_public_log_end_to_end():
+    """MAG, MAG2, MAG3 (the older naming of instances): three probes in the Earth's field at CMAC, the date from the
+    GPS week (2017-10-29)."""
+    lab = load_data(REAL)
+    assert lab.probe_names == ["s1", "s2", "s3"]
+    total = np.linalg.norm(lab.block.field_nT, axis=2)
+    assert np.all((total > 30_000) & (total < 90_000))
+    assert -35.37 < float(np.mean(lab.block.extras["lat_deg"])) < -35.36
+    assert dt.datetime.fromtimestamp(float(lab.metadata["t0_unix_s"]), dt.timezone.utc).date() == \
+        dt.date(2017, 10, 29)
+    assert {"heel_deg", "battery_current_a", "alt_m"} <= set(lab.block.extras)

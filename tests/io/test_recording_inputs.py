@@ -1,0 +1,161 @@
+"""fit and diagnose of service recordings as they are: the configuration stored in them, a folder of one run's
+rotated files, a continuation replayed alone, and fleets that carry each recording's read warnings."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.io.recordings.reader import read_recording
+from service.io.recordings.runs import expand_inputs
+from service.io.recordings.writer import McapLogger
+from service.wiring import cli
+
+REPO = Path(__file__).resolve().parents[2]
+LIVE = REPO / "recordings" / "grad1-sim-30s.mcap"        # `fluxcal run`: estimator.total_nT = 52500 stored
+
+
+def run(argv, capsys):
+    status = cli.main([str(a) for a in argv], install_signals=False)
+    out = capsys.readouterr()
+    return status, out.out, out.err
+
+
+@pytest.fixture(scope="module")
+def rotated(tmp_path_factory) -> Path:
+    """LIVE written again as the service writes a long run: rotated into several files of one run."""
+    d = tmp_path_factory.mktemp("rot")
+    rec = read_recording(LIVE)
+    keep = {k: v for k, v in rec.metadata.items() if k in ("n_probes", "lsb_nT", "probe_names", "positions_m", "config")}
+    # its corrected stream was computed where LIVE was made: the copy names that arithmetic (none: unknown)
+    log = McapLogger(d, unit="grad1", rotate_mb=0.12, chunk_size=16 << 10, metadata=keep, arithmetic=rec.arithmetic)
+    for ev in rec.events:
+        log.write_event(ev)
+    cor = iter(rec.corrected_blocks)
+    nxt = next(cor, None)
+    for b in rec.raw_blocks:
+        log.write_raw(b)
+        while nxt is not None and nxt.seq[-1] <= b.seq[-1]:
+            log.write_corrected(nxt)
+            nxt = next(cor, None)
+    log.close()
+    assert len(list(d.glob("grad1-*-000?.mcap"))) >= 3
+    return d
+
+
+def test_fit_takes_the_total_field_from_the_stored_configuration(capsys):
+    status, out, _ = run(["fit", LIVE, "--json"], capsys)
+    stored = json.loads(out)
+    assert status == 0 and stored["configuration"] == "recording"
+    status, out, _ = run(["fit", LIVE, "--json", "--config", REPO / "configs" / "sim-gradiometer.toml"], capsys)
+    given = json.loads(out)
+    assert status == 0 and "configuration" not in given
+    for a, b in zip(stored["sensors"], given["sensors"]):            # the same fit as --config, to the bit
+        assert a["matrix"] == b["matrix"] and a["offset_nT"] == b["offset_nT"]
+    # the 52,500 nT stored, not the 52,772 estimated: s1's x scale 0.97982, where estimating gave 0.98490 (0.5 %)
+    assert stored["sensors"][0]["matrix"][0][0] == pytest.approx(0.97982, abs=2e-5)
+    status, out, _ = run(["fit", LIVE], capsys)
+    assert "total field from config; configuration from the recording" in out.splitlines()[0]
+
+
+def test_diagnose_takes_the_probe_positions_and_total_field_from_the_recording(capsys):
+    status, out, _ = run(["diagnose", LIVE, "--json"], capsys)
+    d = json.loads(out)
+    assert status == 0 and d["reference"] == "config"
+    assert d["notes"][0] == ("configuration from the recording: total field 52,500 nT (estimator.total_nT); "
+                             "probe positions of 2 probes")
+    gradient = next(c for c in d["candidates"] if c["effect"] == "gradient")
+    assert "probe positions" not in (gradient.get("reason") or "")          # it needs the attitude now, no more
+
+
+def test_a_folder_of_one_runs_rotated_files_is_that_run(rotated, capsys):
+    status, out, _ = run(["fit", LIVE, "--json"], capsys)
+    whole = json.loads(out)
+    for jobs in ([], ["--jobs", "2"]):                    # --jobs with one recording: run it, as without
+        status, out, err = run(["fit", rotated, "--json", *jobs], capsys)
+        assert status == 0, err
+        got = json.loads(out)
+        assert got["sensors"] == whole["sensors"] and got["configuration"] == "recording"
+    status, out, err = run(["fit", rotated / "*.mcap", "--jobs", "2", "--json"], capsys)
+    fleet = json.loads(out)                               # a pattern matching one run's files: that run, once
+    assert status == 0 and fleet["recordings"] == 1
+    assert fleet["results"][0]["result"]["sensors"] == whole["sensors"]
+    status, out, err = run(["diagnose", rotated, "--max-samples", "2000"], capsys)
+    assert status == 0 and out.splitlines()[0] == f"fluxcal diagnose {rotated} (configuration from the recording)"
+    status, _, err = run(["fit", LIVE, "--jobs", "0"], capsys)
+    assert status == 2 and "--jobs: 0 is not allowed" in err
+
+
+def test_a_continuation_replayed_alone_says_so_and_names_the_folder(rotated, capsys):
+    second = next(rotated.glob("*-0002.mcap"))
+    status, _, err = run(["replay", second], capsys)
+    assert f"{second.name} is file 2 of a run" in err and f"`fluxcal replay {rotated}`" in err
+    status, out, err = run(["replay", rotated], capsys)
+    assert status == 0 and "compared with the recording: 2000, bit-identical: " in out and "is file" not in err
+
+
+def test_a_fleet_carries_the_lost_bytes_and_lists_what_it_skipped(tmp_path, capsys):
+    folder = tmp_path / "recs"
+    (folder / "live").mkdir(parents=True)
+    shutil.copy(LIVE, folder / "good.mcap")
+    shutil.copy(LIVE, folder / "live" / "grad1-20261126T020717-0001.mcap")
+    cut = folder / "cut.mcap"
+    cut.write_bytes(LIVE.read_bytes()[:500_000])
+    status, out, _ = run(["fit", folder, "--jobs", "2", "--json"], capsys)
+    s = json.loads(out)
+    assert status == 0 and s["recordings"] == 2 and s["with_warnings"] == 1
+    assert s["skipped"] == [{"path": str(folder / "live"), "reason": "a folder inside a folder given: not searched "
+                             f"(give it too, or a pattern such as '{folder}/**/*.mcap')"}]
+    by = {Path(r["recording"]).name: r for r in s["results"]}
+    assert by["good.mcap"]["read_warnings"] == []
+    (lost,) = by["cut.mcap"]["read_warnings"]
+    assert lost.startswith(f"{cut}: cut inside a chunk record at byte 401216 of 500000") and \
+        "the 98784 bytes of that record are lost" in lost
+    status, out, _ = run(["fit", folder, "--jobs", "2"], capsys)
+    rows = {ln.split()[0]: ln for ln in out.splitlines() if ln.startswith(str(folder))}
+    assert "ok, 1 warning " in rows[str(cut)] and rows[str(folder / "good.mcap")].split()[1] == "ok"
+    assert f"  {lost}" in out.splitlines() and "skipped" in out.splitlines()
+    # the two kinds of warning counted apart: the fits' (the column) and the reading's (listed above the line)
+    fit_warned = sum(r["warnings"] > 0 for r in s["results"])
+    assert s["fit_warned"] == fit_warned
+    assert (f"2 recording(s), 0 failed, {fit_warned} whose fit warns (the warnings column; --json lists them), "
+            f"1 read with warnings (above), 1 path(s) skipped") in out
+
+
+def test_patterns_group_one_runs_files_and_folders_list_what_they_skip(tmp_path):
+    for name in ("u-20261101T000000-0001.mcap", "u-20261101T001000-0002.mcap", "v-20261102T000000-0001.mcap",
+                 "notes.txt"):
+        (tmp_path / name).write_bytes(b"x")
+    (tmp_path / "sub").mkdir()
+    links, skipped, labels = tmp_path / "links", [], {}
+    got = expand_inputs([str(tmp_path / "*.mcap")], links, skipped, labels)
+    assert len(got) == 2 and got[1] == str(tmp_path / "v-20261102T000000-0001.mcap")
+    assert sorted(f.name for f in Path(got[0]).iterdir()) == ["u-20261101T000000-0001.mcap",
+                                                             "u-20261101T001000-0002.mcap"]
+    assert labels[got[0]] == f"{tmp_path / 'u-20261101T000000-0001.mcap'} (+1 rotated)"
+    expand_inputs([str(tmp_path)], tmp_path / "links2", skipped)
+    assert [(Path(p).name, why.split(":")[0]) for p, why in skipped] == [
+        ("links", "a folder inside a folder given"), ("notes.txt", "not a recording (allowed"),
+        ("sub", "a folder inside a folder given")]
+    assert np.all([Path(p).exists() for p, _ in skipped])
+
+
+def test_one_rotated_file_fitted_alone_says_it_is_part_of_a_run(rotated, capsys):
+    """fit and diagnose of one file of a rotated run use its samples alone; that is said first, naming the folder
+    (these pieces, a few seconds each, are then refused on their own: too few directions)."""
+    from service.wiring.prepare import part_of_run
+    from service.wiring.result import Said
+
+    files = sorted(rotated.glob("*.mcap"))
+    for k, f in enumerate(files[1:], 2):
+        _, _, err = run(["fit", f, "--json"], capsys)
+        note = f"{f.name} is file {k} of {len(files)} of one run the service rotated"
+        assert note in err and f"`fluxcal fit {rotated}` takes the whole run" in err
+    assert note in part_of_run(Said("diagnose"), str(files[-1])) and part_of_run(Said("fit"), str(rotated)) is None
+    capsys.readouterr()
+    status, out, err = run(["fit", rotated, "--json"], capsys)
+    assert status == 0 and "of one run the service rotated" not in err

@@ -1,0 +1,239 @@
+"""Discovery beyond the catalogue (issue 30), on worlds made for it (tests/discovery_worlds.py: the simulated unit with
+an effect the catalogue has no term for, and logged columns beside it), white and 1/f noise:
+
+- each kind is found: the discovered groups bring the held-out error within 1.3x the floor, the verdict names the
+  observable and the physical group, and the parameters come back as the world put them;
+- effect-free worlds, discovery forced on: nothing claimed;
+- the groups found, written as an effect module, are taken back by `--effects FILE.py:Class`, pass register_effect
+  and give the discovered error again within 2 %;
+- real recordings with a logged column and an effect of it added: found; their copy without it: nothing claimed;
+- a probe whose temperature is another's says so; a coupling seen only through the field's direction is named.
+
+A representative subset: bench/bench_discovery.py sweeps 6 kinds x 3 seeds x white and 1/f, 30 controls and the
+real recordings, and prints the counts."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+from discovery_worlds import F_TOTAL, named, world
+
+from service.numerics.diagnose import diagnose, summary_text
+from service.numerics.diagnose.write_effect import effect_classes, effect_source
+from service.numerics.effects import _REGISTERED, known_effects, register_effect
+
+#: what this file tests besides what it imports (tests/index.py: every module findable from its test)
+COVERS = ("service.numerics.diagnose.discover", "service.numerics.diagnose.selection", "service.numerics.diagnose.weak")
+
+FLOOR = 1.3
+
+
+@pytest.fixture
+def clean_registry():
+    before = dict(_REGISTERED)
+    yield
+    _REGISTERED.clear()
+    _REGISTERED.update(before)
+
+
+def _group(d, kind):
+    return next(g for g in d.discovery.groups if g.group.kind == kind)
+
+
+def _values(g):
+    return np.array([p.value for p in g.parameters])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind, seed, pink", [("temperature rotation", 1, 0.0), ("fan phase", 2, 0.1),
+                                              ("core loop", 3, 0.0), ("lagged heater", 1, 0.1),
+                                              ("supply scale", 2, 0.0), ("common line", 3, 0.1)])
+def test_an_effect_outside_the_catalogue_is_found_named_and_brought_to_the_floor(kind, seed, pink):
+    d = diagnose(world(kind, seed, pink=pink))
+    text = summary_text(d)
+    f = d.discovery
+    assert f is not None and f.claimed, text
+    assert d.heldout_rms_nT > FLOOR * d.noise_nT or max(d.channel_rms_nT / d.channel_noise_nT) > FLOOR, text
+    assert f.heldout_rms_nT <= FLOOR * d.noise_nT, text
+    assert named(d, kind), text
+    assert f.cv_gain >= 0.02 and f.cv_log_ratio > 2 * f.cv_log_ratio_se, text
+    assert "beyond the catalogue" in text and "log " not in (d.verdict["advice"] or ""), text
+    js = json.loads(json.dumps(d.as_dict(), allow_nan=False))["discovery"]          # the contract's JSON
+    assert js["claimed"] and js["groups"][0]["reading"] == f.groups[0].reading and js["sentence"] in js["sentence"]
+    if kind == "temperature rotation":                      # 40 µrad/degC about the platform's z, in the differences
+        rot = _group(d, "matrix").parts["rotation"]
+        assert rot["values"][2] == pytest.approx(40.0, rel=0.03) and rot["significant"], rot
+        assert "alignment" in d.verdict["advice"] and "µrad/degC" in d.verdict["advice"]
+    elif kind == "fan phase":                               # 3 nT turning in x-y, 0.9 nT on z
+        amp = _group(d, "wave").parts["amplitude_platform_frame_nT"]
+        assert amp == pytest.approx([3.0, 3.0, 0.9], abs=0.25), amp
+    elif kind == "core loop":
+        assert _values(_group(d, "loop")) == pytest.approx([4.0, -3.0, 3.0], rel=0.05)
+    elif kind == "lagged heater":                           # 8, -6, 4 nT/A through a lag of 60 s
+        g = _group(d, "offset")
+        assert _values(g) == pytest.approx([8.0, -6.0, 4.0], rel=0.25)
+        assert 35.0 <= g.group.feature.recipe["low_pass_s"] <= 100.0
+    elif kind == "supply scale":                            # 300, -200, 250 ppm/V of the probe's axes
+        sc = _group(d, "matrix").parts["scale"]
+        assert sc["values"] == pytest.approx([300.0, -200.0, 250.0], rel=0.05), sc
+    else:                                                   # 6 nT at 1.37 Hz, common: the scalar channels only
+        g = _group(d, "common wave")
+        assert abs(g.group.feature.recipe["hz"] - 1.37) < 0.002
+        assert np.linalg.norm(g.parts["amplitude_platform_frame_nT"]) == pytest.approx(6.0, rel=0.1)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("which, seed, pink", [("discovery", 101, 0.0), ("discovery", 111, 0.3),
+                                               ("sim-gradiometer.toml", 90005, 5.0), ("sim-cross.toml", 90004, 1.0)])
+def test_nothing_is_claimed_on_effect_free_worlds(which, seed, pink):
+    from discovery_worlds import config_world
+
+    data = (world(None, seed, pink=pink) if which == "discovery" else
+            config_world(which, seed, pink=pink, seconds=300.0 if which == "sim-gradiometer.toml" else None))
+    d = diagnose(data, discover=True)
+    assert d.discovery is not None and d.discovery.tried > 20
+    assert not d.discovery.claimed, summary_text(d)
+    assert "nothing claimed" in summary_text(d)
+
+
+@pytest.fixture(scope="module")
+def found_worlds():
+    """Diagnoses whose discovery the round trips below write out: a per-sample matrix (raw frame), a lag and a
+    phase (not per sample), a field common to the probes (aligned frame, shared)."""
+    out = {}
+    for kind, seed in (("temperature rotation", 4), ("lagged heater", 5), ("common line", 6)):
+        data = world(kind, seed)
+        out[kind] = (data, diagnose(data))
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["temperature rotation", "lagged heater", "common line"])
+def test_the_groups_found_written_as_an_effect_are_taken_back_and_give_the_same_error(kind, found_worlds, tmp_path,
+                                                                                     clean_registry):
+    from service.wiring.user_effects import resolve_effects
+
+    data, d = found_worlds[kind]
+    f = d.discovery
+    assert f.claimed, summary_text(d)
+    source = effect_source(f, data_name="a test world")
+    compile(source, "found.py", "exec")
+    path = tmp_path / "found.py"
+    path.write_text(source)
+    classes = effect_classes([g.group for g in f.groups])
+    names = resolve_effects([f"{path}:{c}" for c in classes])           # register_effect took them
+    assert names == (["discovered"] if len(classes) == 1 else ["discovered", "discovered-common"])
+    for name in names:
+        cls = known_effects()[name]
+        assert register_effect(cls) == name                           # again: the same class passes
+        term = cls()
+        assert term.frame == ("corrected" if f.groups[0].group.common else "raw")
+        assert term.per_sample == all(g.group.per_sample for g in f.groups)
+    catalogue = [c.effect for c in d.candidates if c.significant]
+    again = diagnose(data, effects=catalogue + names, discover=False)
+    assert again.rms_nT == pytest.approx(f.rms_nT, rel=0.02)
+    assert again.heldout_rms_nT == pytest.approx(f.heldout_rms_nT, rel=0.02)
+    ours = {p.name: p.value for p in f.fit.parameters() if p.term.startswith("discovered-")}
+    theirs = {p.name: p.value for p in again.parameters if p.term in names}
+    assert ours.keys() == theirs.keys()
+    assert np.allclose([theirs[k] for k in ours], list(ours.values()), rtol=1e-3, atol=1e-6)
+
+
+def test_the_written_effect_says_what_it_is_and_is_refused_when_there_is_nothing():
+    from service.numerics.diagnose.library import Feature, Group
+
+    t = np.linspace(0, 10, 50)
+    f = Feature("s2_temp", "s2_temp", "degC", "value", {"source": "temperature", "probe": 1, "centre": 0.0}, t)
+    source = effect_source([Group("matrix", 1, "s2", f)])
+    assert "class Discovered(EffectTerm)" in source and "frame = 'raw'" in source and "per_sample = True" in source
+    assert "view.data.temperature(view.data.probe_names.index('s2'))" in source
+    with pytest.raises(ValueError, match="no group"):
+        effect_source([])
+
+
+@pytest.mark.slow
+def test_a_borrowed_temperature_is_said():
+    data = world("temperature rotation", 7)
+    data.temp_C[:, 2] = np.nan                        # s3 logs no temperature: the temperature terms take s1's and s2's
+    d = diagnose(data)
+    assert any("s3 has no temperature of its own" in n and "borrowed" in n for n in d.notes), d.notes
+    assert d.discovery.borrowed == {"s3": "s1, s2"}
+    assert named(d, "temperature rotation"), summary_text(d)
+
+
+@pytest.mark.slow
+def test_a_coupling_seen_only_through_the_field_direction_is_named():
+    """A logged current coupled into one probe's axes: in its scalar channel it is the current times the field's
+    direction, which no association with one observable sees."""
+    from test_diagnose import TUMBLE, data_of, probe, sim_block
+
+    probes = [probe(0)]
+    block = sim_block(probes, n=8000, rate=20.0, motion=TUMBLE, seed=5)
+    t = block.t_s - block.t_s[0]
+    current = np.sin(2 * np.pi * t / 37.0) + 0.3 * np.sin(2 * np.pi * t / 11.0)
+    block.extras["heater_A"] = current
+    block.field_nT[:, 0, :] += current[:, None] * np.array([6.0, -5.0, 4.0])
+    d = diagnose(data_of(block, probes), candidates=[])
+    top = d.where[0]
+    assert top["observable"] == "heater_A x field direction" and top["strength"] > 0.5, d.where[:4]
+    alone = max((w["strength"] for w in d.where if w["observable"] == "heater_A"), default=0.0)
+    assert alone < top["strength"] - 0.3, d.where[:4]
+    assert "heater_A x field direction" in d.verdict["left"]
+    assert "seen through the field's direction" in d.verdict["advice"] or "heater_A" in d.verdict["advice"]
+
+
+def test_a_gain_that_is_an_extrapolation_is_not_printed_as_a_percentage():
+    from service.numerics.diagnose.text import gain_text
+
+    assert gain_text(-947.88) == "<-100%" and gain_text(0.123) == " 12.3%"
+    assert gain_text(0.5, {"reason": "separate turns"}) == "  weak"
+
+
+@pytest.mark.slow
+def test_separate_turns_make_the_held_out_test_weak_and_it_says_what_would_decide():
+    """Three single turns, one about each axis, each in its own blocks: every block is predicted by extrapolation
+    to orientations no other block saw."""
+    from test_diagnose import probe
+
+    from drivers.sim import Unit, load_sim_config
+    from service.numerics.effects.base import EffectData
+
+    probes = [probe(0), probe(1)]
+    cfg = load_sim_config({"seed": 3, "rate_hz": 50.0, "duration_s": 40.0,
+                           "field": {"total_nT": F_TOTAL, "inclination_deg": 62.0, "declination_deg": -5.0},
+                           "reference": {"enabled": True, "noise_nT": 0.05},
+                           "motion": {"kind": "turntable", "axes": ["z", "y", "x"], "rate_deg_s": 30.0, "turns": 1,
+                                      "dwell_s": 0.5, "ramp_s": 1.0},
+                           "probes": probes})
+    data = EffectData.from_block(Unit(cfg).digitise(0, cfg.n_samples).to_block(),
+                                 positions_m=np.array([p["position_m"] for p in probes]))
+    d = diagnose(data)
+    text = summary_text(d)
+    assert d.heldout_weak is not None, text
+    assert "the held-out test is weak here" in text and any("would decide" in n for n in d.notes), d.notes
+    rows = [ln for ln in text.splitlines() if re.match(r"    [a-z]+ +[0-9.]+ nT ", ln)]
+    assert rows and all("%" not in ln and " weak " in ln for ln in rows), rows
+    assert all("SIGNIFICANT" in ln or "no: " in ln or "undecided" in ln for ln in rows), rows
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, kind", [("qmc5883l_suarez", "fan phase"), ("imu_freeimucal", "lagged heater")])
+def test_an_effect_added_to_a_real_recording_is_found_and_its_untouched_copy_claims_nothing(name, kind):
+    from real_effects import CASES, REAL, with_effect
+
+    if not REAL.is_dir():
+        pytest.skip(f"{REAL} is absent (public recordings, not in the repository)")
+    from service.io.recordings.load import load_data
+    from service.numerics.engine import as_effect_data
+
+    size = next(s for n, k, s in CASES if (n, k) == (name, kind))
+    touched, control = with_effect(as_effect_data(load_data(REAL / f"{name}.csv")), kind, size)
+    d0 = diagnose(control, discover=True)
+    assert not d0.discovery.claimed, summary_text(d0)
+    d1 = diagnose(touched)
+    assert d1.heldout_rms_nT > 1.2 * d0.heldout_rms_nT                 # the effect shows above the real noise
+    assert d1.discovery.claimed and named(d1, kind, probe="s1"), summary_text(d1)
+    assert d1.discovery.heldout_rms_nT <= 1.1 * d0.heldout_rms_nT, summary_text(d1)

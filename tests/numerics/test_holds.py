@@ -1,0 +1,94 @@
+"""Held values (service/numerics/holds.py): a logger that repeats a probe's previous value when no new sample came.
+A channel with 75 % held rows: kept, its noise floor collapses to the diagnosis's smallest (0.001 nT) and a staircase
+band shows in its spectrum; left out, its floor is within 20 % of the same channel's without holds and no band shows
+at 50-96 Hz (or anywhere the unheld channel has none). A quantised sensor's chance repeats are kept; real recordings'
+repeats counted."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers.block import SampleBlock
+from drivers.sim import Unit, load_sim_config
+from service.numerics.diagnose import diagnose
+from service.numerics.effects.base import EffectData
+from service.numerics.holds import find_holds, without_holds
+
+ROOT = Path(__file__).resolve().parents[2]
+REAL = ROOT.parent / "shared" / "real-data"
+
+
+def _tumbling(seed: int, pink: float) -> SampleBlock:
+    cfg = load_sim_config({"seed": seed, "rate_hz": 200.0, "duration_s": 120.0,
+                           "motion": {"kind": "tumble", "rate_deg_s": 30.0, "tumble_period_s": 9.0},
+                           "probes": [{"position_m": [0, 0, 0], "offset_nT": [300, -200, 150],
+                                       "scale": [1.01, 0.99, 1.0], "noise_nT": 1.0, "pink_nT_rtHz": [pink] * 3}]})
+    return Unit(cfg).digitise(0, cfg.n_samples).to_block()
+
+
+def _held(b: SampleBlock, seed: int, fresh_fraction: float = 0.25) -> SampleBlock:
+    """The logger's view: a new value at a random quarter of the rows, the previous one repeated at the others."""
+    fresh = np.random.default_rng(seed).random(b.n_samples) < fresh_fraction
+    fresh[0] = True
+    last = np.maximum.accumulate(np.where(fresh, np.arange(b.n_samples), 0))
+    return SampleBlock(t_s=b.t_s, seq=b.seq, field_nT=b.field_nT[last], temp_C=b.temp_C, flags=b.flags)
+
+
+def _bands(result) -> list[tuple[float, float]]:
+    text = json.dumps(result.as_dict())
+    return [(float(a), float(b)) for a, b in re.findall(r"([0-9.]+)-([0-9.]+) Hz", text)]
+
+
+@pytest.mark.parametrize("seed, pink", [(1, 0.0), (2, 0.0), (3, 0.3)])
+def test_a_channel_with_75_percent_held_rows(seed, pink):
+    b = _tumbling(seed, pink)
+    held = _held(b, seed)
+    unheld = diagnose(EffectData.from_block(b, ["s1"]))
+    kept = diagnose(EffectData.from_block(held, ["s1"]))
+    out, h = without_holds(held, ["s1"])
+    left_out = diagnose(EffectData.from_block(out, ["s1"]))
+    floor0, floor_kept, floor = (float(r.channel_noise_nT[0]) for r in (unheld, kept, left_out))
+    assert 0.74 < h.counts["s1"] / b.n_samples < 0.76 and h.by_chance["s1"] < 1.0
+    assert floor_kept < 0.01 * floor0                       # the problem: the floor of a staircase
+    assert abs(floor / floor0 - 1.0) < 0.20, (floor, floor0)
+    assert not any(lo <= 96.0 and hi >= 50.0 for lo, hi in _bands(left_out)), _bands(left_out)
+    # no band the unheld channel does not have (the 1/f noise's own, at tenths of a Hz, it has)
+    assert all(hi < 1.0 for lo, hi in _bands(left_out)) and all(hi < 1.0 for lo, hi in _bands(unheld))
+    assert h.notes[0].startswith("s1: 17,9") or h.notes[0].startswith("s1: 18,0")
+    assert "left out of the noise floor, the fits and the spectra" in h.notes[0]
+    print(f"seed {seed}, 1/f {pink}: floor {floor0:.4f} nT without holds, {floor_kept:.4f} with them kept, "
+          f"{floor:.4f} with them left out ({floor / floor0 - 1:+.1%}); bands {_bands(left_out)}")
+
+
+def test_chance_repeats_of_a_quantised_sensor_are_kept():
+    rng = np.random.default_rng(4)
+    n = 20_000
+    # at rest, noise 0.3 counts: most readings repeat by chance on every axis
+    f = np.round(rng.normal(0.0, 0.3, (n, 1, 3)) + np.array([120.0, -40.0, 300.0])) * 91.7
+    h = find_holds(f, ["s1"])
+    assert h.counts["s1"] > 0.2 * n and not h.held.any()
+    assert "about as many as the sensor's resolution gives by chance" in h.notes[0]
+    two = np.concatenate([f, f + rng.normal(0, 1.0, (n, 1, 3))], axis=1)
+    two[5, 1] = two[4, 1]                                    # one real hold on s2, whose floats never repeat by chance
+    g = find_holds(two, ["s1", "s2"])
+    assert np.flatnonzero(g.held[:, 1]).tolist() == [5] and not g.held[:, 0].any()
+    assert g.keep.sum() == n - 1
+
+
+@pytest.mark.skipif(not (REAL / "hmc5883l_sensorfusion_sphere.csv").is_file(),
+                    reason="../shared/real-data is absent (public recordings, see its README)")
+def test_real_bursty_board_repeats():
+    """The HMC5883L board read in bursts faster than the sensor converts: 239 exact repeats of 8,190, 19 by chance."""
+    from service.io.recordings.load import load_data
+
+    lab = load_data(REAL / "hmc5883l_sensorfusion_sphere.csv")
+    h = find_holds(lab.block.field_nT, lab.probe_names)
+    assert h.counts["s1"] == 239 and h.by_chance["s1"] == pytest.approx(18.8, abs=0.1)
+    assert int(h.held.sum()) == 239
+    q = load_data(REAL / "qmc5883l_suarez.csv")
+    assert not find_holds(q.block.field_nT, q.probe_names).held.any()
