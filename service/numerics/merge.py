@@ -195,6 +195,28 @@ def euler_from_quaternion(q: np.ndarray) -> np.ndarray:
     return np.column_stack([heel, pitch, azimuth])
 
 
+#: a column is taken only where its samples give a value at this share of the probes' instants, at least
+COLUMN_MIN_SHARE = 0.5
+
+
+def _columns_on(columns: dict[str, Series], t: np.ndarray, keep: np.ndarray, warnings: list[str]) -> dict:
+    """Each column interpolated at the instants t, `keep` narrowed to where it has a value. A column whose samples
+    cover less than COLUMN_MIN_SHARE of the instants kept (a GPS logged on another clock, a stream that started
+    late) is left out instead, not the probes' rows; said."""
+    extras: dict[str, np.ndarray] = {}
+    for col, s in columns.items():
+        v, ok = interpolate(s, t)
+        if np.count_nonzero(ok & keep) < COLUMN_MIN_SHARE * np.count_nonzero(keep):
+            warnings.append(f"{col} ({s.source}, {s.n:,} samples): a value at only {int(np.count_nonzero(ok & keep)):,} "
+                            f"of {int(np.count_nonzero(keep)):,} instants of the probes: the column left out (not the "
+                            f"rows: its samples cover less than {COLUMN_MIN_SHARE:.0%} of them)")
+            continue
+        _say_cut(warnings, col, s, ok, keep)
+        keep &= ok
+        extras[col] = v
+    return extras
+
+
 def merge(probes: list[tuple[str, Series]], *, temperatures: dict[str, Series] | None = None,
           columns: dict[str, Series] | None = None, attitude: Series | None = None) -> Merged:
     """One SampleBlock of the streams, by the rule of the module docstring.
@@ -236,12 +258,7 @@ def merge(probes: list[tuple[str, Series]], *, temperatures: dict[str, Series] |
                             f"instants of {names[base_k]}: those rows left out (the probes are compared sample by "
                             f"sample; a value is never borrowed from another instant)")
         keep &= got
-    extras: dict[str, np.ndarray] = {}
-    for col, s in columns.items():
-        v, ok = interpolate(s, t)
-        _say_cut(warnings, col, s, ok, keep)
-        keep &= ok
-        extras[col] = v
+    extras = _columns_on(columns, t, keep, warnings)
     if attitude is not None:
         q, ok = interpolate(Series(attitude.t_s, continuous_quaternions(attitude.values), attitude.source), t)
         _say_cut(warnings, "attitude (heel_deg, pitch_deg, azimuth_deg)", attitude, ok, keep)

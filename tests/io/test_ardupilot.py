@@ -117,3 +117,33 @@ def test_public_log_end_to_end():
     assert dt.datetime.fromtimestamp(float(lab.metadata["t0_unix_s"]), dt.timezone.utc).date() == \
         dt.date(2017, 10, 29)
     assert {"heel_deg", "battery_current_a", "alt_m"} <= set(lab.block.extras)
+
+
+FLIGHT = ROOT.parent / "shared" / "real-data" / "ardupilot_erlerobot_pxf_copter.BIN"
+STILL_CURRENT = ROOT.parent / "shared" / "real-data" / "ardupilot_erlerobot_erlebrain3.BIN"
+
+
+@pytest.mark.skipif(not FLIGHT.is_file(), reason=f"{FLIGHT} is absent (a public ArduPilot flight, erlerobot/logs: see "
+                                                 f"its README beside it)")
+def test_a_real_copter_flight_is_read_and_fitted_and_its_cone_said(capsys):
+    """A real copter's 20-minute flight: its compass a probe, the battery current a column. Level flight turning
+    about z is a cone of directions: diagnose refuses to judge effects on a calibration those data do not determine,
+    and says which turn is missing."""
+    lab = load_data(FLIGHT)
+    assert lab.probe_names == ["s1"] and lab.block.n_samples == 4660
+    assert "battery_current_a" in lab.block.extras
+    assert np.ptp(lab.block.extras["battery_current_a"]) > 100          # a current that changes: a column
+    capsys.readouterr()
+    assert cli.main(["diagnose", str(FLIGHT)]) == 2
+    assert "one cone about z" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not STILL_CURRENT.is_file(), reason=f"{STILL_CURRENT} is absent (see its README beside it)")
+def test_a_logged_current_that_never_changes_is_named_never_asked_for(capsys):
+    """The battery monitor of this flight read 0 A throughout: diagnose said 'log the heater or motor currents' of
+    data that log one; it names the column now, and what its constancy means."""
+    capsys.readouterr()
+    assert cli.main(["diagnose", str(STILL_CURRENT)]) == 0
+    out = capsys.readouterr().out
+    line = next(ln for ln in out.splitlines() if ln.strip().startswith("column"))
+    assert "battery_current_a" in line and "do not change" in line and "log the" not in line

@@ -157,7 +157,7 @@ def test_damaged_and_foreign_files_are_refused_clearly(tmp_path):
 
 WRITER = textwrap.dedent("""
     import sys, time
-    sys.path[:0] = [{root!r}, {root!r} + "/tests"]
+    sys.path[:0] = [{root!r}, {root!r} + "/tests", {root!r} + "/tests/io"]
     from test_recording import sim_blocks
     from service.io.recordings.writer import McapLogger
     blocks = sim_blocks(30.0)

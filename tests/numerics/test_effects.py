@@ -337,3 +337,21 @@ def test_reference_vector_gives_vector_channels_and_probe_1_lag():
     # with a vector reference the probe's rotation is determined: its matrix is the truth calibration
     assert np.allclose(fit.matrix[0], truth["sensors"][0]["matrix"], atol=2e-4)
     assert ch.total_rms_nT < 1.1 * 0.8
+
+
+def test_a_column_logged_but_never_changing_is_named_not_asked_for():
+    """A battery monitor that read 0 A throughout (a real flight's): the column effect said 'log the heater or motor
+    currents' of data that log one; it names the column and says it does not change."""
+    import numpy as np
+
+    from service.numerics.effects.base import EffectData
+    from service.numerics.effects.column import Column
+
+    n = 200
+    d = EffectData(t_s=np.arange(n) * 0.1, raw_nT=np.ones((n, 1, 3)), temp_C=np.full((n, 1), np.nan),
+                   probe_names=["s1"], extras={"battery_current_a": np.zeros(n)})
+    why = Column().why_unavailable(d)
+    assert "battery_current_a" in why and "do not change" in why and "log the" not in why
+    bare = EffectData(t_s=np.arange(n) * 0.1, raw_nT=np.ones((n, 1, 3)), temp_C=np.full((n, 1), np.nan),
+                      probe_names=["s1"], extras={})
+    assert "log the" in Column().why_unavailable(bare)

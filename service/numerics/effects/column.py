@@ -40,10 +40,14 @@ class Column(EffectTerm):
     physical = "the field of something the recording logs (a current, a voltage, a reference), per axis"
 
     def why_unavailable(self, data: EffectData) -> str | None:
-        if not usable_columns(data):
-            return ("the data carry no auxiliary column that changes (extra CSV columns, MCAP channels: log the "
-                    "heater or motor currents, a reference magnetometer)")
-        return None
+        if usable_columns(data):
+            return None
+        logged = sorted(data.observables())
+        if logged:                            # logged, but constant: say which, never ask to log what is logged
+            return (f"the auxiliary column(s) the data carry ({', '.join(logged)}) do not change over the record: "
+                    f"nothing to fit against (a current that reads 0 throughout is not measured: check its sensor)")
+        return ("the data carry no auxiliary column that changes (extra CSV columns, MCAP channels: log the "
+                "heater or motor currents, a reference magnetometer)")
 
     def _cols(self, view: ProbeView) -> dict[str, np.ndarray]:
         key = "column:values"
