@@ -7,8 +7,9 @@ Pipeline over the data in time order, so `fit --method rls` is exactly what the 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -19,6 +20,7 @@ from service.numerics.calib.alignment import align_probes
 from service.numerics.calib.ellipsoid import fit_ellipsoid
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 from service.numerics.channels import channel_names
+from service.numerics.jsonsafe import json_safe
 
 #: the probe-samples a nonlinear fit over every sample (diagnose's candidates, fit --effects) is given by default:
 #: a longer recording is thinned to every k-th sample, and the output says so. Such a fit holds about 3 kB per
@@ -297,8 +299,8 @@ def contract_json(cal: ArrayCalibration, channels: dict[str, np.ndarray], probe_
     for k, p in enumerate(cal.probes):
         entry = {"name": p.name, "offset_nT": p.offset_nT.tolist(), "matrix": p.matrix.tolist(),
                  "scalar_rms_nT": rms(channels[f"{p.name}.scalar"]),
-                 "offset_se_nT": _finite_or_none(p.offset_se_nT), "matrix_se": _finite_or_none(p.matrix_se),
-                 "model_order": p.model_order, "params": _finite_or_none(p.params)}
+                 "offset_se_nT": json_safe(p.offset_se_nT), "matrix_se": json_safe(p.matrix_se),
+                 "model_order": p.model_order, "params": json_safe(p.params)}
         if coverages is not None:
             c = coverages[k]
             entry["coverage"] = {"fraction": c.fraction, "missing": [
@@ -314,21 +316,8 @@ def contract_json(cal: ArrayCalibration, channels: dict[str, np.ndarray], probe_
         "rms_nT": rms_all(list(channels.values())),
         "warnings": list(warnings or []),
         # the effect terms' parameters, as the text lists them: {effect: {name: {"value", "se", "unit"}}}
-        "effect_params": _finite_or_none({eff: {name: dict(v) for name, v in ps.items()}
-                                          for eff, ps in (cal.effect_params or {}).items()}),
+        "effect_params": json_safe({eff: {name: dict(v) for name, v in ps.items()}
+                                    for eff, ps in (cal.effect_params or {}).items()}),
     }
 
 
-def _finite_or_none(x: Any) -> Any:
-    """Plain JSON: arrays as lists, NaN and inf as null (JSON has neither)."""
-    if isinstance(x, dict):
-        return {k: _finite_or_none(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_finite_or_none(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _finite_or_none(x.tolist())
-    if isinstance(x, (float, np.floating)):
-        return float(x) if np.isfinite(x) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    return x

@@ -26,8 +26,9 @@ Numerics only.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -35,6 +36,8 @@ from scipy import stats
 from drivers.errors import FluxcalError
 from service.numerics.effects.base import AXES, EffectData
 from service.numerics.engine import FitResult, Parameter, Problem, residual_hints
+from service.numerics.jsonsafe import finite_or_none as _num
+from service.numerics.jsonsafe import json_safe as _plain
 
 from .fits import Heldout, _beyond_errors, _compare, _fit_beside, heldout
 from .library import TAU_RATIO, Group, GroupTerm, Library, build_library, relagged
@@ -110,25 +113,6 @@ class Discovery:
                 "cv_gain": _num(self.cv_gain), "cv_log_ratio": _num(self.cv_log_ratio),
                 "cv_log_ratio_se": _num(self.cv_log_ratio_se), "reason": self.reason, "taus_s": list(self.taus_s),
                 "lines_hz": list(self.lines_hz), "borrowed": dict(self.borrowed), "sentence": self.sentence()}
-
-
-def _num(x: Any) -> Any:
-    if x is None:
-        return None
-    x = float(x)
-    return x if np.isfinite(x) else None
-
-
-def _plain(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {k: _plain(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
-    if isinstance(x, (float, np.floating)):
-        return _num(x)
-    if isinstance(x, np.ndarray):
-        return _plain(x.tolist())
-    return x
 
 
 # --- discovery ------------------------------------------------------------------------------------------

@@ -3,8 +3,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -12,6 +13,8 @@ from service.numerics.engine import (
     FitResult,
     Parameter,
 )
+from service.numerics.jsonsafe import finite_or_none as _num
+from service.numerics.jsonsafe import json_safe as _plain
 
 P_SIGNIFICANT = 1e-3
 
@@ -153,20 +156,3 @@ class Diagnosis:
         return d
 
 
-def _num(x: Any) -> Any:
-    """JSON-safe float (None for NaN/inf)."""
-    if x is None:
-        return None
-    x = float(x)
-    return x if np.isfinite(x) else None
-
-
-def _plain(x: Any) -> Any:
-    """Floats made JSON-safe (NaN/inf -> None) through dicts and lists."""
-    if isinstance(x, dict):
-        return {k: _plain(v) for k, v in x.items()}
-    if isinstance(x, list):
-        return [_plain(v) for v in x]
-    if isinstance(x, float):
-        return _num(x)
-    return x

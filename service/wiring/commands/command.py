@@ -20,7 +20,7 @@ from drivers.errors import ConfigError, DataError, FluxcalError
 from service.io.bus import COMMANDS, MAX_COMMAND_PAYLOAD_BYTES, BusClient, ZenohConfig, discover_units, open_session
 from service.io.calfile import calibration_from_json
 from service.wiring.commands.client import resolve
-from service.wiring.commands.options import CommandHelp
+from service.wiring.commands.options import CommandHelp, connection_options
 
 VERBS = ("state", *COMMANDS)
 
@@ -38,15 +38,11 @@ def add_options(p: argparse.ArgumentParser) -> None:
                                                "refused command exits with 1 and says why")
     p.add_argument("payload", metavar="PAYLOAD", nargs="?", default=None,
                    help="what the command needs (apply: a calibration file; add-effect: an effect name)")
-    p.add_argument("--config", metavar="FILE", help="take the endpoints, unit and TLS from this configuration")
-    p.add_argument("--connect", metavar="ENDPOINT", help="the service's endpoint (default: tcp/127.0.0.1:7447)")
+    connection_options(p, "client")
     p.add_argument("--unit", metavar="NAME", help="the unit (default: the first one found)")
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the answer (default: %(default)s)")
     p.add_argument("--json", action="store_true", help="print the service's answer as JSON (default: text for a "
                                                       "person)")
-    p.add_argument("--ca", metavar="CA.pem", help="TLS: the site's certificate authority")
-    p.add_argument("--cert", metavar="CERT.pem", help="TLS: this client's certificate")
-    p.add_argument("--key", metavar="KEY.pem", help="TLS: this client's private key")
 
 
 def main(args: Namespace) -> int:

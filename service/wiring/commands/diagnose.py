@@ -32,20 +32,13 @@ from service.wiring.commands.options import (  # noqa: E402
     CONFIG_HELP,
     DATA_HELP,
     EFFECT_NAMES,
-    MAGS_HELP,
     OWN_EFFECT,
-    SITE,
-    SITE_HELP,
-    SKIP_HELP,
-    TOPICS_HELP,
     CommandHelp,
+    data_options,
     effect_names,
     fleet_help,
     fleet_options,
-    mags,
     max_samples,
-    time_spans,
-    topics,
 )
 from service.wiring.fitting import NONLINEAR_PROBE_SAMPLES as DIAGNOSE_PROBE_SAMPLES  # noqa: E402
 from service.wiring.prepare import Prepared, prepare  # noqa: E402
@@ -65,10 +58,7 @@ def add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--effects", type=effect_names, default=[], metavar="E,..",
                    help=f"the effects already in the model (allowed: {EFFECT_NAMES}; {OWN_EFFECT}); default: none. "
                         f"Effects installed in the entry-point group fluxcal.effects are tried as candidates too")
-    p.add_argument("--site", metavar=SITE, help=SITE_HELP)
-    p.add_argument("--skip", type=time_spans, default=None, metavar="T0-T1,..", help=SKIP_HELP)
-    p.add_argument("--topics", type=topics, default=None, metavar="NAME=TOPIC,..", help=TOPICS_HELP)
-    p.add_argument("--mags", type=mags, default=None, metavar="I,..", help=MAGS_HELP)
+    data_options(p)
     p.add_argument("--report", metavar="DIR",
                    help="also write an HTML report here (plots: matplotlib; without it the page has the text and "
                         "tables)")

@@ -23,19 +23,12 @@ from service.wiring.commands.options import (
     CONFIG_HELP,
     DATA_HELP,
     EFFECTS_HELP,
-    MAGS_HELP,
     METHODS,
-    SITE,
-    SITE_HELP,
-    SKIP_HELP,
-    TOPICS_HELP,
     CommandHelp,
+    data_options,
     effect_names,
     fleet_help,
     fleet_options,
-    mags,
-    time_spans,
-    topics,
 )
 from service.wiring.fitting import (
     NONLINEAR_PROBE_SAMPLES,
@@ -64,10 +57,7 @@ def add_options(p: argparse.ArgumentParser) -> None:
                    help=f"how the probes of an array are brought to one frame (allowed: {', '.join(ALIGNS)}; "
                         f"default: regression for arrays)")
     p.add_argument("--effects", type=effect_names, default=[], metavar="E,..", help=EFFECTS_HELP)
-    p.add_argument("--site", metavar=SITE, help=SITE_HELP)
-    p.add_argument("--skip", type=time_spans, default=None, metavar="T0-T1,..", help=SKIP_HELP)
-    p.add_argument("--topics", type=topics, default=None, metavar="NAME=TOPIC,..", help=TOPICS_HELP)
-    p.add_argument("--mags", type=mags, default=None, metavar="I,..", help=MAGS_HELP)
+    data_options(p)
     p.add_argument("--out", metavar="CAL.json", help="write the calibration file here (default: none)")
     p.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
     fleet_options(p)

@@ -121,14 +121,28 @@ def fleet_options(p: argparse.ArgumentParser) -> None:
                         "tcp://10.0.0.9:8786 (its workers need fluxcal installed)")
 
 
-def client_options(p: argparse.ArgumentParser, who: str) -> None:
-    """--config/--connect/--unit/--seconds and TLS, as for `watch`; --unit may be given several times."""
+def data_options(p: argparse.ArgumentParser) -> None:
+    """What `prepare` takes beside the data (fit, diagnose): the site, stretches to skip, another ecosystem's
+    topics and magnetometers."""
+    p.add_argument("--site", metavar=SITE, help=SITE_HELP)
+    p.add_argument("--skip", type=time_spans, default=None, metavar="T0-T1,..", help=SKIP_HELP)
+    p.add_argument("--topics", type=topics, default=None, metavar="NAME=TOPIC,..", help=TOPICS_HELP)
+    p.add_argument("--mags", type=mags, default=None, metavar="I,..", help=MAGS_HELP)
+
+
+def connection_options(p: argparse.ArgumentParser, who: str,
+                       connect: str = "the service's endpoint, e.g. tcp/127.0.0.1:7447") -> None:
+    """--config, --connect and TLS: how a client (watch, command, dashboard, bridge) reaches the units."""
     p.add_argument("--config", metavar="FILE", help="take the endpoints, unit and TLS from this configuration")
-    p.add_argument("--connect", metavar="ENDPOINT", help="the units' endpoint or router, e.g. tcp/127.0.0.1:7447 "
-                                                        "(default: tcp/127.0.0.1:7447)")
-    p.add_argument("--unit", metavar="NAME", action="append",
-                   help="a unit to show; repeat for several (default: every unit found)")
-    p.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")
+    p.add_argument("--connect", metavar="ENDPOINT", help=f"{connect} (default: tcp/127.0.0.1:7447)")
     p.add_argument("--ca", metavar="CA.pem", help="TLS: the site's certificate authority")
     p.add_argument("--cert", metavar="CERT.pem", help=f"TLS: this {who}'s certificate")
     p.add_argument("--key", metavar="KEY.pem", help=f"TLS: this {who}'s private key")
+
+
+def client_options(p: argparse.ArgumentParser, who: str) -> None:
+    """The connection, --unit (repeatable) and --seconds, for the dashboard and the bridge."""
+    connection_options(p, who, "the units' endpoint or router, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--unit", metavar="NAME", action="append",
+                   help="a unit to show; repeat for several (default: every unit found)")
+    p.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")

@@ -38,7 +38,7 @@ from service.io.bus import (
     open_session,
 )
 from service.wiring.commands.client import resolve
-from service.wiring.commands.options import CommandHelp
+from service.wiring.commands.options import CommandHelp, connection_options
 
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 TTY_PERIOD_S = 0.25            # redraw rate on a terminal (4 Hz)
@@ -55,14 +55,9 @@ HELP = CommandHelp("terminal view of a running service: each probe's field and |
 
 
 def add_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", metavar="FILE", help="take the endpoints, unit and TLS from this configuration")
-    p.add_argument("--connect", metavar="ENDPOINT", help="the service's endpoint, e.g. tcp/127.0.0.1:7447 "
-                                                        "(default: tcp/127.0.0.1:7447)")
+    connection_options(p, "terminal view")
     p.add_argument("--unit", metavar="NAME", help="the unit to watch (default: the first one found)")
     p.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")
-    p.add_argument("--ca", metavar="CA.pem", help="TLS: the site's certificate authority")
-    p.add_argument("--cert", metavar="CERT.pem", help="TLS: this dashboard's certificate")
-    p.add_argument("--key", metavar="KEY.pem", help="TLS: this dashboard's private key")
 
 
 def _vec(v: np.ndarray, width: int = 10) -> str:
