@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from .errors import ConfigError
-from .inputs import open_regular
+from .inputs import read_small
 
 _MISSING = dataclasses.MISSING
 
@@ -53,16 +53,9 @@ def read_toml(path: str | Path) -> dict:
     """Read a TOML file; a missing, malformed, oversized or non-regular file (a FIFO, /dev/zero) is a ConfigError
     naming it."""
     p = Path(path)
-    if not p.exists():
-        raise ConfigError(f"{p}: configuration file not found")
-    with open_regular(p, "configuration", ConfigError) as f:
-        try:
-            data = f.read(MAX_CONFIG_BYTES + 1)
-        except OSError as e:
-            raise ConfigError(f"{p}: cannot read configuration: {e.strerror}") from None
-    if len(data) > MAX_CONFIG_BYTES:
-        raise ConfigError(f"{p}: larger than {MAX_CONFIG_BYTES >> 20} MiB (allowed: a configuration up to "
-                          f"{MAX_CONFIG_BYTES >> 20} MiB): not a configuration file?")
+    data = read_small(p, "configuration file", MAX_CONFIG_BYTES, ConfigError,
+                      f"larger than {MAX_CONFIG_BYTES >> 20} MiB (allowed: a configuration up to "
+                      f"{MAX_CONFIG_BYTES >> 20} MiB): not a configuration file?")
     try:
         return tomllib.loads(data.decode("utf-8"))
     except UnicodeDecodeError as e:

@@ -104,6 +104,23 @@ def open_regular(path: str | Path, what: str = "input", error: type[FluxcalError
         raise
 
 
+def read_small(path: str | Path, what: str, limit: int, error: type[FluxcalError], too_large: str) -> bytes:
+    """The bytes of a small file (a configuration, a calibration), refused as open_regular refuses, when missing
+    ("{path}: {what} not found") or beyond `limit` bytes ("{path}: " + too_large); at most limit + 1 bytes are
+    read, so /dev/zero behind a link cannot hold the reader."""
+    p = Path(path)
+    if not p.exists() and not p.is_symlink():
+        raise error(f"{p}: {what} not found")
+    with open_regular(p, f"the {what}", error) as f:
+        try:
+            data = f.read(limit + 1)
+        except OSError as e:
+            raise error(f"{p}: cannot read the {what}: {e.strerror or e}") from None
+    if len(data) > limit:
+        raise error(f"{p}: {too_large}")
+    return data
+
+
 def check_size(path: str | Path, size: int, what: str = "input") -> None:
     """A DataError when `size` bytes is beyond the size limit, saying the limit and how to raise it."""
     limit = max_input_bytes()

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from drivers.errors import DataError
+from drivers.inputs import read_small
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 
 FORMAT = "fluxcal.calibration"
@@ -105,26 +106,10 @@ def load_calibration(path: str | Path) -> ArrayCalibration:
 def read_calibration_text(path: str | Path) -> str:
     """The text of a calibration file, bounded: a FIFO, a device or /dev/zero is refused before it is opened
     for reading (nothing waits on it or reads it without end), and so is a file over MAX_CALIBRATION_BYTES."""
-    import stat
-
     p = Path(path)
-    try:
-        st = p.stat()
-    except FileNotFoundError:
-        raise DataError(f"{p}: calibration file not found") from None
-    except OSError as e:
-        raise DataError(f"{p}: cannot read the calibration file: {e.strerror or e}") from None
-    if not stat.S_ISREG(st.st_mode):
-        kind = "a directory" if stat.S_ISDIR(st.st_mode) else "not a regular file (a device, a pipe or a socket)"
-        raise DataError(f"{p}: cannot read the calibration file: {kind}")
-    try:
-        with p.open("rb") as f:
-            raw = f.read(MAX_CALIBRATION_BYTES + 1)
-    except OSError as e:
-        raise DataError(f"{p}: cannot read the calibration file: {e.strerror or e}") from None
-    if len(raw) > MAX_CALIBRATION_BYTES:
-        raise DataError(f"{p}: more than {MAX_CALIBRATION_BYTES:,} bytes: too large for a calibration file (one "
-                        f"written by `fluxcal fit --out` is a few kB)")
+    raw = read_small(p, "calibration file", MAX_CALIBRATION_BYTES, DataError,
+                     f"more than {MAX_CALIBRATION_BYTES:,} bytes: too large for a calibration file (one written by "
+                     f"`fluxcal fit --out` is a few kB)")
     try:
         return raw.decode("utf-8")
     except UnicodeDecodeError as e:

@@ -33,6 +33,7 @@ import secrets
 import socket
 import sys
 import threading
+from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from typing import Any
@@ -112,6 +113,17 @@ class _Handler(BaseHTTPRequestHandler):
     def _json(self, obj: Any, status: int = 200) -> None:
         self._send(status, json.dumps(obj, allow_nan=False, separators=(",", ":")).encode(), "application/json")
 
+    def _download(self, unit: str, make: Callable[[str], str], ctype: str, filename: str) -> None:
+        """A unit's file to save (its calibration, a discovered effect), or 409 with why there is none yet."""
+        try:
+            text = make(unit)
+        except FluxcalError as e:
+            self._json({"error": str(e)}, 409)
+            return
+        name = "".join(c for c in unit if c.isalnum() or c in "_-") or "unit"
+        self._send(200, text.encode(), ctype,
+                   (("Content-Disposition", f'attachment; filename="{filename.format(name)}"'),))
+
     def _refuse(self, status: int, why: str) -> None:
         self.server.count_refused(why)
         self._json({"ok": False, "error": why}, status)
@@ -172,25 +184,11 @@ class _Handler(BaseHTTPRequestHandler):
                             "read_only_reason": READ_ONLY_REASON if self.server.read_only else "",
                             "refused_requests": dict(self.server.refused)})
             elif url.path == "/api/calibration":
-                unit = q.get("unit", "")
-                try:
-                    cal = hub.calibration_file(unit)
-                except FluxcalError as e:
-                    self._json({"error": str(e)}, 409)
-                    return
-                name = "".join(c for c in unit if c.isalnum() or c in "_-") or "unit"
-                self._send(200, json.dumps(cal, indent=1).encode(), "application/json",
-                           (("Content-Disposition", f'attachment; filename="{name}-calibration.json"'),))
+                self._download(q.get("unit", ""), lambda u: json.dumps(hub.calibration_file(u), indent=1),
+                               "application/json", "{}-calibration.json")
             elif url.path == "/api/effect":
-                unit = q.get("unit", "")
-                try:
-                    text = hub.discovered_effect(unit)
-                except FluxcalError as e:
-                    self._json({"error": str(e)}, 409)
-                    return
-                name = "".join(c for c in unit if c.isalnum() or c in "_-") or "unit"
-                self._send(200, text.encode(), "text/x-python; charset=utf-8",
-                           (("Content-Disposition", f'attachment; filename="{name}_discovered.py"'),))
+                self._download(q.get("unit", ""), hub.discovered_effect, "text/x-python; charset=utf-8",
+                               "{}_discovered.py")
             elif url.path == "/api/view":
                 since = {k: int(q.get(k, 0) or 0) for k in ("series", "raw", "error")}
                 self._json(hub.view(q.get("unit", ""), since))
