@@ -113,3 +113,15 @@ def pty_port():
     yield make
     for p in ports:
         p.close()
+
+
+@pytest.fixture
+def clean_registry():
+    """The effect registry as it was before the test: effects a test registers (its own, a discovered one) leave
+    with it."""
+    from service.numerics.effects import _REGISTERED
+
+    before = dict(_REGISTERED)
+    yield
+    _REGISTERED.clear()
+    _REGISTERED.update(before)

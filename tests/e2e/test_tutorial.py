@@ -22,14 +22,6 @@ def _commands() -> list[list[str]]:
     return [shlex.split(m.group(1)) for m in re.finditer(r"^    fluxcal (.+)$", TUTORIAL.read_text(), re.M)]
 
 
-@pytest.fixture
-def clean_registry():
-    before = dict(_REGISTERED)
-    yield
-    _REGISTERED.clear()
-    _REGISTERED.update(before)
-
-
 def test_the_code_in_the_tutorial_is_the_example_file():
     code = re.search(r"```python\n(.*?)```", TUTORIAL.read_text(), re.S).group(1)
     example = (ROOT / "docs" / "examples" / "pump.py").read_text()

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 
-from service.numerics.effects import _REGISTERED
 from service.wiring.cli import main
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -20,14 +19,6 @@ TUTORIAL = ROOT / "docs" / "tutorial-discover.md"
 
 def _commands() -> list[list[str]]:
     return [shlex.split(m.group(1)) for m in re.finditer(r"^    fluxcal (.+)$", TUTORIAL.read_text(), re.M)]
-
-
-@pytest.fixture
-def clean_registry():
-    before = dict(_REGISTERED)
-    yield
-    _REGISTERED.clear()
-    _REGISTERED.update(before)
 
 
 @pytest.mark.slow

@@ -23,20 +23,12 @@ from discovery_worlds import F_TOTAL, named, world
 
 from service.numerics.diagnose import diagnose, summary_text
 from service.numerics.diagnose.write_effect import effect_classes, effect_source
-from service.numerics.effects import _REGISTERED, known_effects, register_effect
+from service.numerics.effects import known_effects, register_effect
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
 COVERS = ("service.numerics.diagnose.discover", "service.numerics.diagnose.selection", "service.numerics.diagnose.weak")
 
 FLOOR = 1.3
-
-
-@pytest.fixture
-def clean_registry():
-    before = dict(_REGISTERED)
-    yield
-    _REGISTERED.clear()
-    _REGISTERED.update(before)
 
 
 def _group(d, kind):

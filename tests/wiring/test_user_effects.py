@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from drivers.errors import ConfigError
-from service.numerics.effects import _REGISTERED, EFFECTS, EffectTerm, known_effects
+from service.numerics.effects import EFFECTS, EffectTerm, known_effects
 from service.wiring import user_effects
 from service.wiring.cli import main
 from service.wiring.user_effects import load_installed_effects, resolve_effects
@@ -35,12 +35,7 @@ GOOD = textwrap.dedent('''
 ''')
 
 
-@pytest.fixture(autouse=True)
-def clean_registry():
-    before = dict(_REGISTERED)
-    yield
-    _REGISTERED.clear()
-    _REGISTERED.update(before)
+pytestmark = pytest.mark.usefixtures("clean_registry")      # tests/conftest.py
 
 
 def test_a_file_effect_is_registered_and_named(tmp_path):
