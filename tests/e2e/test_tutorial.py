@@ -77,17 +77,11 @@ def test_the_tutorial_runs_as_written(tmp_path, monkeypatch, capsys, clean_regis
     assert "give them with --effects file.py:ClassName" in capsys.readouterr().err
 
 
-@pytest.mark.slow
-def test_the_running_service_takes_the_pump_from_its_plugins(tmp_path, clean_registry):
-    """Section 4: a configuration naming the plugin, the pipeline of `fluxcal run` (build_pipeline), the
-    recording fed block by block, `add-effect pump` once the calibration is usable: s2's error falls to its
-    noise."""
-    from service.io.recordings.reader import read_recording
-    from service.wiring.config import load_config
-    from service.wiring.daemon import build_pipeline
-
-    cfg_path = tmp_path / "pump.toml"
-    cfg_path.write_text(f"""
+def pump_config(tmp_path: Path, plugin: str) -> Path:
+    """The tutorials' configuration: grad3's pump recording replayed, the effect `plugin` (FILE.py:Class) in
+    [effects] plugins."""
+    path = tmp_path / "pump.toml"
+    path.write_text(f"""
 [unit]
 name = "grad3"
 n_probes = 3
@@ -100,8 +94,21 @@ window_s = 40.0
 check_every_s = 2.0
 min_samples = 500
 [effects]
-plugins = ["{ROOT / 'docs' / 'examples' / 'pump.py'}:Pump"]
+plugins = ["{plugin}"]
 """)
+    return path
+
+
+@pytest.mark.slow
+def test_the_running_service_takes_the_pump_from_its_plugins(tmp_path, clean_registry):
+    """Section 4: a configuration naming the plugin, the pipeline of `fluxcal run` (build_pipeline), the
+    recording fed block by block, `add-effect pump` once the calibration is usable: s2's error falls to its
+    noise."""
+    from service.io.recordings.reader import read_recording
+    from service.wiring.config import load_config
+    from service.wiring.daemon import build_pipeline
+
+    cfg_path = pump_config(tmp_path, f"{ROOT / 'docs' / 'examples' / 'pump.py'}:Pump")
     cfg = load_config(cfg_path)
     block = read_recording(ROOT / "recordings" / "grad3-pump.mcap").raw_blocks[0]
 

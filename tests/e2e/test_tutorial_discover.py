@@ -10,6 +10,7 @@ import shlex
 from pathlib import Path
 
 import pytest
+from test_tutorial import pump_config
 
 from service.wiring.cli import main
 
@@ -67,22 +68,7 @@ def _service_and_dashboard(tmp_path: Path, effect: Path) -> tuple[float, float]:
     from service.wiring.daemon import build_pipeline
     from service.wiring.dashboard.view import UnitView
 
-    cfg_path = tmp_path / "pump.toml"
-    cfg_path.write_text(f"""
-[unit]
-name = "grad3"
-n_probes = 3
-[source]
-kind = "replay"
-path = "{ROOT / 'recordings' / 'grad3-pump.mcap'}"
-rate_hz = 25.0
-[estimator]
-window_s = 40.0
-check_every_s = 2.0
-min_samples = 500
-[effects]
-plugins = ["{effect}:FoundPump"]
-""")
+    cfg_path = pump_config(tmp_path, f"{effect}:FoundPump")
     pl = build_pipeline(load_config(cfg_path))
     block = read_recording(ROOT / "recordings" / "grad3-pump.mcap").raw_blocks[0]
     view = UnitView("grad3")
