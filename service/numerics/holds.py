@@ -7,7 +7,9 @@ compared sample by sample), and said.
 
 A quantised sensor at rest repeats a reading by chance too: exact repeats are taken for holds only where they are
 more than CHANCE_FACTOR times as many as the per-axis repeat rates would give by chance (the rate at which each axis
-alone repeats, on the samples that are not whole repeats, multiplied over the three axes).
+repeats on the pairs where another axis changed, which no hold is and where independent axes repeat at their own
+rate, multiplied over the three axes). A coarse sensor at rest whose every axis repeats most of the time by chance
+is thereby kept whole; a hold among such repeats cannot be told from them, and is kept too.
 
 >>> f = np.zeros((8, 1, 3)); f[:, 0, 0] = [1.0, 2.0, 2.0, 2.0, 5.0, 6.0, 6.0, 7.1]; f[:, 0, 1] = np.arange(8) ** 0.5
 >>> f[2:4, 0, 1] = f[1, 0, 1]; f[6, 0, 1] = f[5, 0, 1]
@@ -65,9 +67,7 @@ def find_holds(field_nT: np.ndarray, probe_names: Sequence[str]) -> Holds:
         whole = axis_same.all(axis=1)
         m = int(np.count_nonzero(whole))
         pairs = int(np.count_nonzero(pair))
-        rest = max(pairs - m, 1)
-        rates = (axis_same.sum(axis=0) - m) / rest
-        expected = float(pairs * np.prod(rates))
+        expected = float(pairs * np.prod(_chance_rates(axis_same, pair)))
         counts[name], chance[name] = m, expected
         if m and m > CHANCE_FACTOR * expected:
             held[1:, k] = whole
@@ -82,6 +82,17 @@ def find_holds(field_nT: np.ndarray, probe_names: Sequence[str]) -> Holds:
         notes.append(f"{rows:,} of {n:,} rows left out for holds in all: a row held for one probe is left out for every "
                      f"probe (the probes are compared sample by sample)")
     return Holds(held, counts, chance, notes)
+
+
+def _chance_rates(axis_same: np.ndarray, pair: np.ndarray) -> np.ndarray:
+    """(3,) how often each axis repeats by chance: on the pairs where another axis changed (a hold never is one of
+    them; for independent axes the rate there is the axis' own). Where the other two never change, all pairs."""
+    rates = np.empty(3)
+    for a in range(3):
+        moved = pair & ~axis_same[:, [b for b in range(3) if b != a]].all(axis=1)
+        base = moved if moved.any() else pair
+        rates[a] = np.count_nonzero(axis_same[:, a] & base) / max(int(np.count_nonzero(base)), 1)
+    return rates
 
 
 def without_holds(block: SampleBlock, probe_names: Sequence[str]) -> tuple[SampleBlock, Holds]:
