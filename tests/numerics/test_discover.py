@@ -14,6 +14,8 @@ real recordings, and prints the counts."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import re
 
@@ -229,3 +231,49 @@ def test_an_effect_added_to_a_real_recording_is_found_and_its_untouched_copy_cla
     assert d1.heldout_rms_nT > 1.2 * d0.heldout_rms_nT                 # the effect shows above the real noise
     assert d1.discovery.claimed and named(d1, kind, probe="s1"), summary_text(d1)
     assert d1.discovery.heldout_rms_nT <= 1.1 * d0.heldout_rms_nT, summary_text(d1)
+
+
+def _heater_world(seed: int, heater_mean_A: float):
+    """Two probes tumbling; a heater current (a slow random walk about heater_mean_A, logged) puts a field common to
+    both, fixed in the platform frame: (30, -20, 10) nT per A."""
+    from drivers.sim import Unit, load_sim_config
+    from service.numerics.effects.base import EffectData
+
+    cfg = load_sim_config({"seed": seed, "rate_hz": 50.0, "duration_s": 240.0,
+                           "motion": {"kind": "tumble", "rate_deg_s": 30.0, "tumble_period_s": 9.0},
+                           "probes": [{"position_m": [0, 0, 0], "noise_nT": 0.3},
+                                      {"position_m": [0.5, 0, 0], "noise_nT": 0.3}]})
+    block = Unit(cfg).digitise(0, cfg.n_samples).to_block()
+    rng = np.random.default_rng(seed)
+    walk = np.cumsum(rng.normal(0.0, 1.0, block.n_samples))
+    heater = heater_mean_A + (walk - walk.mean()) / np.ptp(walk) * 2.0
+    block = dataclasses.replace(block, field_nT=block.field_nT + (heater[:, None] * [30.0, -20.0, 10.0])[:, None, :],
+                                extras={**block.extras, "heater_A": heater})
+    return EffectData.from_block(block, ["s1", "s2"])
+
+
+@pytest.mark.parametrize("seeds", [(1, 2), (3, 4), (5, 6)])
+def test_a_written_common_effect_keeps_its_reference_on_other_data(seeds, tmp_path, clean_registry):
+    """A group common to the probes, written as an effect, fitted on one recording and applied to another whose
+    heater runs 10 A higher: the coefficient stays referenced to the fitted data's mean (a `ref:` key that travels
+    with the calibration, as a probe's references do), so the other recording is corrected to its noise. Centred
+    again on the other data's own mean it was left 10 A x 37 nT/A off (review of stop 32)."""
+    from service.numerics.diagnose.library import Feature, Group
+    from service.numerics.engine import fit_with_effects
+    from service.wiring.user_effects import resolve_effects
+
+    a, b = _heater_world(seeds[0], 1.0), _heater_world(seeds[1], 11.0)
+    feature = Feature("heater_A", "heater_A", "heater_A", "value", {"source": "column", "column": "heater_A"},
+                      np.zeros(a.n_samples))
+    path = tmp_path / "heater.py"
+    path.write_text(effect_source([Group("common offset", None, "common", feature)]))
+    names = resolve_effects([f"{path}:Discovered"])
+    fit, _ = fit_with_effects(a, names)
+    values = {p.name: p.value for p in fit.result.parameters()}
+    per_A = [v for k, v in values.items() if k.startswith("common")]
+    assert np.allclose(sorted(np.abs(per_A)), [10.0, 20.0, 30.0], rtol=0.05), values
+    # the field's magnitude is constant in the simulated world: what varies in |corrected| is error
+    spread_b = np.std(np.linalg.norm(fit.correct(b), axis=2), axis=0)
+    spread_a = np.std(np.linalg.norm(fit.correct(a), axis=2), axis=0)
+    print(f"|corrected| spread on the fitted data {spread_a} nT, on the other data {spread_b} nT")
+    assert np.all(spread_b < 1.5 * spread_a + 0.2), (spread_a, spread_b)

@@ -182,11 +182,12 @@ def _class(groups: Sequence[Group], class_name: str, name: str, readings: dict[i
 SHARED_VIEW = '''
 
 class _Data:
-    """What the common groups look at: the data, and a cache for their references."""
+    """What the common groups look at: the data, and their references (the means of the data fitted), kept on
+    the data under a `ref:` key, which travels with a fitted calibration to other data as a probe's do."""
 
     def __init__(self, data):
         self.data = data
-        self.cache = data._cache.setdefault("discovered:refs", {})
+        self.cache = data._cache.setdefault("ref:discovered", {})      # a `ref:` key: kept with the calibration
 '''
 
 

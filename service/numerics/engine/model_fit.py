@@ -90,6 +90,11 @@ class EffectsFit:
     def correct(self, data: Any) -> np.ndarray:
         """(N, P, 3) corrected field of other data with this calibration and its effects."""
         ed = as_effect_data(data, probe_names=self.probe_names)
+        # the references of terms shared by the probes (kept on the data, not on a probe's view): keep them too
+        fitted = self.result.problem.data
+        if ed is not fitted:
+            ed._cache.update({k: v for k, v in fitted._cache.items()
+                              if isinstance(k, str) and k.startswith(REF_PREFIX)})
         lin = LinearCalibration(self.offset_nT, self.matrix)
         pr = Problem(ed, Model(self.result.model.effect_terms), lin, np.zeros(ed.n_samples), n_blocks=1,
                      rows=np.arange(ed.n_samples))
