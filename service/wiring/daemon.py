@@ -126,10 +126,12 @@ class Daemon:
                              state_fn=lambda: self._state(pipeline, source, sinks))
             from service.wiring.ros2_sink import Ros2BagSink
 
-            for sink in (McapSink.open(cfg, pipeline.calibration, notes.append), BusSink(bus),
-                         Ros2BagSink.live(cfg), *self.extra_sinks):
+            sinks.add(McapSink.open(cfg, pipeline.calibration, notes.append))   # each closed with the sinks as
+            sinks.add(BusSink(bus))                                                # soon as it is open
+            bus = None
+            sinks.add(Ros2BagSink.live(cfg, self.say))
+            for sink in self.extra_sinks:
                 sinks.add(sink)
-            bus = None                        # closed with the sinks from now on
             for note in notes:
                 self.say(note)
             say_bus(cfg, self.say)
@@ -176,25 +178,26 @@ class Daemon:
 
     def _state(self, pipeline: Pipeline, source: Source, sinks: Sinks) -> dict[str, Any]:
         st = pipeline.state()
-        st["health"] = self._health(source)
+        st["health"] = self._health(source, sinks)
         st["faults"] = self._faults.health()
         recording = sinks.recording()
         if recording is not None:
             st["recording"] = recording
         return st
 
-    def _health(self, source: Source) -> dict[str, Any]:
-        """The health channel's counters: the source's, and what the service refused or failed to process."""
+    def _health(self, source: Source, sinks: Sinks) -> dict[str, Any]:
+        """The health channel's counters: the source's, what the service refused or failed to process, and the
+        messages an output failed to take (all outputs; by output in the summary at stop)."""
         return {**source.counters.as_dict(), "processing_errors": self.processing_errors,
-                "commands_refused": self._status.refused}
+                "commands_refused": self._status.refused, "output_failures": sum(sinks.errors.values())}
 
     def _tick_health(self, source: Source, sinks: Sinks, bus, final: bool = False) -> None:
         """The health counters and the faults to every sink; at stop (final), with the summary of the run said."""
-        health = self._health(source)
+        health = self._health(source, sinks)
         counted = {**health, "send_stalls": int(getattr(bus, "stats", {}).get("send_stalls", 0))}
         faults = self._faults.tick(counted, sinks.recording())
         if final:
-            faults["summary"] = self._faults.summary(counted, sinks.recording())
+            faults["summary"] = self._faults.summary(counted, sinks.recording(), outputs=sinks.errors)
             for line in faults["summary"]:
                 self.say(line)
         sinks.health(health, faults)

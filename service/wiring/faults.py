@@ -294,8 +294,10 @@ class FaultWatch:
                   "no_decode_bytes": self.no_decode_bytes, "recording_troubles": self.recording.troubles}
         return {"active": self.active(), "totals": totals, "n_events": self.n_events, "events": list(self.events)}
 
-    def summary(self, counters: Mapping[str, int], recording: Mapping[str, Any] | None = None) -> list[str]:
-        """The lines said at stop: every loss and fault of the run with its count, or that there was none."""
+    def summary(self, counters: Mapping[str, int], recording: Mapping[str, Any] | None = None,
+                outputs: Mapping[str, int] | None = None) -> list[str]:
+        """The lines said at stop: every loss and fault of the run with its count, or that there was none.
+        outputs: by output (recording, bus, ros2-bag, ...), the messages it failed to take."""
         c = {k: int(v) for k, v in counters.items()}
         lines = []
         frames = c.get("frames_accepted", 0)
@@ -318,6 +320,10 @@ class FaultWatch:
             lines.append(f"recording: {int(recording.get('dropped', 0)):,} message(s) dropped, "
                          f"{int(recording.get('errors', 0)):,} write error(s) in {self.recording.troubles} stretch(es) "
                          f"of trouble")
+        failed = {k: int(v) for k, v in (outputs or {}).items() if v}
+        if failed:
+            lines.append("outputs failed: " + ", ".join(f"{k} {v:,} message(s)" for k, v in failed.items())
+                         + " not taken (each said as it began)")
         head = f"summary at stop: {frames:,} frame(s) accepted"
         if not lines:
             return [head + "; no loss and no fault seen"]

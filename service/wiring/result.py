@@ -67,11 +67,6 @@ class Said:
             self.say(note)
         return note
 
-    def extend(self, notes: list[Note]) -> None:
-        """Notes said elsewhere (a preparation), taken into this run's, and said."""
-        for n in notes:
-            self(n.kind, n.text, n.level)
-
     @property
     def warnings(self) -> list[Note]:
         return [n for n in self.notes if n.is_warning]

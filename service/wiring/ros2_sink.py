@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -24,13 +25,15 @@ class Ros2BagSink(Sink):
 
     name = "ros2-bag"
 
-    def __init__(self, writer: Ros2BagWriter, *, raw: bool = False, wall_clock: bool = False) -> None:
+    def __init__(self, writer: Ros2BagWriter, *, raw: bool = False, wall_clock: bool = False,
+                 say: Callable[[str], None] | None = None) -> None:
         self.writer = writer
         self.raw = raw
         self.wall_clock = wall_clock          # stamps: the wall clock at the first block, then the unit's clock on
+        self.say = say                        # where the bag's account is said when it closes
 
     @classmethod
-    def live(cls, cfg: Any) -> "Ros2BagSink | None":
+    def live(cls, cfg: Any, say: Callable[[str], None] | None = None) -> "Ros2BagSink | None":
         """The bag of the running service's [ros2] section (None when disabled): a new folder under ros2.dir named
         after the unit and the start's UTC time; stamps in UNIX time, the unit's clock set against the wall clock
         at the first block."""
@@ -41,7 +44,7 @@ class Ros2BagSink(Sink):
 
         folder = Path(r.dir) / f"{cfg.unit.name}-{_time.strftime('%Y%m%dT%H%M%S', _time.gmtime())}"
         sink = cls.open(folder, unit=cfg.unit.name, probe_names=list(cfg.probe_names), raw=r.raw, key="ros2.dir")
-        sink.wall_clock = True
+        sink.wall_clock, sink.say = True, say
         return sink
 
     @classmethod
@@ -75,13 +78,24 @@ class Ros2BagSink(Sink):
         return None            # the recorder's status is the MCAP recording's (Sinks.recording takes the first)
 
     def close(self) -> None:
+        """Finish the bag and say what it holds, and what it could not hold (a sample with a non-finite axis, such
+        as a saturated probe's, or stamped before 1970: sensor_msgs has no place for either)."""
         self.writer.close()
+        if self.say is not None:
+            w = self.writer
+            left = (f"; {w.skipped:,} probe-sample(s) not written (a non-finite axis, or a stamp before the UNIX "
+                    f"epoch); the MCAP recording keeps them") if w.skipped else ""
+            self.say(f"ROS 2 bag {w.path}: {w.message_count:,} message(s) on {len(w.status()['topics'])} "
+                     f"topic(s){left}")
 
 
-def replay_ros2_sink(out: str | Path, cfg: Any, *, raw: bool = False, origin_unix_s: float | None = None) -> Ros2BagSink:
+def replay_ros2_sink(out: str | Path, cfg: Any, *, raw: bool = False, origin_unix_s: float | None = None,
+                     say: Callable[[str], None] | None = None) -> Ros2BagSink:
     """The sink `replay --ros2-out DIR` tells of every replayed block (on_raw, on_corrected) and closes at the end:
     stamps are the unit's sample times plus origin_unix_s (the recording's start in UNIX time where it is known;
     else the unit's clock as it is, said by the stamps starting near 0)."""
     origin = None if origin_unix_s is None else int(round(origin_unix_s * 1e9))
-    return Ros2BagSink.open(out, unit=cfg.unit.name, probe_names=list(cfg.probe_names), raw=raw,
+    sink = Ros2BagSink.open(out, unit=cfg.unit.name, probe_names=list(cfg.probe_names), raw=raw,
                             stamp_origin_ns=origin)
+    sink.say = say
+    return sink

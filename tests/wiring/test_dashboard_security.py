@@ -149,6 +149,12 @@ def test_requests_not_from_the_dashboards_own_page_change_nothing(dashboard):
         assert code == 403 and "not this dashboard's address" in body["error"], path
     code, _, units = request(server, "GET", "/api/units", None, {"Host": host})
     assert code == 200 and sum(units["refused_requests"].values()) >= len(attempts) + 2 + 1 + 4
+    # counted by kind, from a fixed set: the requests' own Hosts, types and origins are no keys (review, stop 32)
+    from service.wiring.dashboard.server import _REFUSAL_KINDS
+
+    kinds = {k for _, k in _REFUSAL_KINDS} | {"fetch site", "token", "payload", "other"}
+    assert set(units["refused_requests"]) <= kinds, units["refused_requests"]
+    assert units["refused_requests"]["host"] >= 4
     # the positive control: the page's own request goes through, once
     code, _, body = request(server, "POST", "/api/command", FREEZE, own)
     assert code == 200 and body["ok"] is True and body["command"] == "freeze"

@@ -17,6 +17,8 @@ from service.io.recordings.reader import read_recording
 from service.io.recordings.ros2_writer import Ros2BagWriter
 from service.wiring.ros2_sink import Ros2BagSink, replay_ros2_sink
 
+ROOT = Path(__file__).resolve().parents[2]
+
 ORIGIN_NS = 1_750_000_000_000_000_000
 
 
@@ -151,3 +153,16 @@ def test_the_configuration_turns_the_bag_on_and_replay_writes_one(tmp_path, caps
         replayed = np.array([[m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z]
                              for _, m in again[f"/fluxcal/grad1/{p}/magnetic_field"]])
         np.testing.assert_array_equal(live, replayed)                # this machine's arithmetic: bit for bit
+
+
+def test_replay_refuses_a_bag_it_cannot_write_before_any_work(tmp_path, capsys):
+    """`replay --out o.mcap --ros2-out blocker/y` with blocker a file: exit 2 before anything is read or written (no
+    o.mcap without a footer left behind)."""
+    from service.wiring.cli import main
+
+    (tmp_path / "blocker").write_text("a file")
+    rc = main(["replay", str(ROOT / "recordings" / "grad1-sim-30s.mcap"), "--out", str(tmp_path / "o.mcap"),
+               "--ros2-out", str(tmp_path / "blocker" / "y")])
+    assert rc == 2
+    assert "--ros2-out" in capsys.readouterr().err
+    assert not (tmp_path / "o.mcap").exists()

@@ -80,3 +80,44 @@ def test_a_failing_output_costs_only_itself(tmp_path):
     assert len(failures) == 1 and "the other outputs carry on" in failures[0]      # said once, not per block
     seq = np.concatenate([b.seq for b in rec.raw_blocks])
     assert np.all(np.diff(seq) == 1)
+    # the loss is said at stop as well, with its count, and not as "no loss and no fault seen"
+    summary = [m for m in said if m.startswith("summary")]
+    assert not any("no loss and no fault seen" in m for m in summary), summary
+    blocks = len(rec.raw_blocks)
+    assert f"summary: outputs failed: broken {blocks:,} message(s) not taken (each said as it began)" in summary
+    assert rec.health[-1]["counters"]["output_failures"] == blocks
+
+
+def test_a_replay_whose_output_fails_fails(tmp_path):
+    """replay to an output that fails: exit status 1, and the verdict (the fleet table's column) is the failure, not
+    the comparison's last line."""
+    from service.wiring.commands.replay import ReplayOptions, execute
+    from service.wiring.result import Said
+
+    _run(tmp_path, [])
+    out = execute(str(tmp_path / "rec"), ReplayOptions(), Said("replay"), sinks=[Broken()])
+    assert out.status == 1
+    assert out.verdict.startswith("an output failed, so what it holds is incomplete: broken ")
+    assert out.compared > 0 and out.beyond == 0                       # the comparison itself held
+
+
+def test_an_output_that_cannot_open_leaves_the_recording_finished(tmp_path):
+    """[ros2] dir under a plain file: the service refuses to start (exit by ConfigError naming ros2.dir), and the MCAP
+    recording it had opened already is closed with its footer, not left as a killed writer's."""
+    import pytest
+
+    from drivers.errors import ConfigError
+
+    (tmp_path / "blocker").write_text("a file, not a folder")
+    text = (Path(service_config(tmp_path, run_s=5, realtime=False)).read_text()
+            .replace('transport = "pty"', 'transport = "direct"') + f'\n[ros2]\nenabled = true\ndir = "{tmp_path}/blocker/x"\n')
+    (tmp_path / "c.toml").write_text(text)
+    with pytest.raises(ConfigError, match="ros2.dir"):
+        Daemon(load_config(tmp_path / "c.toml"), say=lambda m: None).run()
+    files = sorted((tmp_path / "rec").glob("*.mcap"))
+    assert len(files) == 1
+    from mcap.reader import make_reader
+
+    with open(files[0], "rb") as f:
+        summary = make_reader(f).get_summary()                    # None for a file without its footer
+    assert summary is not None and summary.statistics is not None

@@ -117,10 +117,6 @@ def _n(x: Any, fmt: str = ".4g", unit: str = "") -> str:
     return format(x, fmt) + (f" {unit}" if unit else "")
 
 
-def _yes(x: Any) -> str:
-    return "yes" if x else "no"
-
-
 def state_text(st: dict[str, Any]) -> str:
     """The service's state (`fluxcal command state`) as lines a person reads: what it is, then the unit."""
     lines = []

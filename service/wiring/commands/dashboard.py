@@ -47,17 +47,14 @@ def _open(url: str) -> None:
 def config_geometry(path: str) -> dict[str, Any]:
     """{unit name: Geometry} of a service configuration: its unit's probe positions and total field, which the
     dashboard's diagnosis needs as `fluxcal diagnose --config` does (a unit's state does not carry them)."""
-    from drivers.config import read_toml
     from service.wiring.config import load_config
     from service.wiring.dashboard.hub import Geometry
-    from service.wiring.prepare import geometry
+    from service.wiring.prepare import config_geometry as read_geometry
+    from service.wiring.prepare import spread
 
     cfg = load_config(path)
-    try:
-        positions, total = geometry(read_toml(path), cfg.unit.n_probes)
-    except ConfigError as e:
-        raise ConfigError(f"{path}: {e}") from None
-    return {cfg.unit.name: Geometry(positions, total, path)}
+    positions, total = read_geometry(path, cfg.unit.n_probes)
+    return {cfg.unit.name: Geometry(spread(positions), total, path)}     # probes at one point: no positions, as fit
 
 
 def main(args: argparse.Namespace) -> int:

@@ -36,7 +36,7 @@ from service.io.calfile import calibration_from_dict
 from service.io.recordings.labdata import check_one_run
 from service.io.recordings.reader import read_recording
 from service.io.recordings.repair import repair_notes
-from service.wiring.commands.notes import check_output_file
+from service.wiring.commands.notes import check_output_file, check_output_folder
 from service.wiring.commands.options import CommandHelp, fleet_help, fleet_options
 from service.wiring.config import config_from_dict, load_config, rate_stated
 from service.wiring.daemon import build_pipeline
@@ -130,7 +130,12 @@ class ReplayResult(Result):
 
     @property
     def verdict(self) -> str:
-        """The last line said on stdout: how the replay compares with the live run."""
+        """How the replay compares with the live run: the last line said on stdout, or, when the replay failed
+        (status 1), the last error said of it (the one that sums the failure up)."""
+        if self.status:
+            errors = [n.text for n in self.notes if n.level == "error"]
+            if errors:
+                return errors[-1]
         return self.lines[-1] if self.lines else ""
 
     def as_dict(self) -> dict[str, Any]:
@@ -160,6 +165,8 @@ def execute(source: str, opts: ReplayOptions, said: Said, *, sinks: list[Any] | 
     t_start = time.perf_counter()
     if opts.out:
         check_output_file(opts.out, suffixes=(".mcap",), not_this=source)     # before any work
+    if opts.ros2_out:
+        check_output_folder(opts.ros2_out, "--ros2-out")
     if Path(source).is_dir():
         check_one_run(Path(source))           # a folder of one run (the reader's rule, as fit's)
     rec = read_recording(source)
@@ -178,16 +185,16 @@ def execute(source: str, opts: ReplayOptions, said: Said, *, sinks: list[Any] | 
     initial, initial_event, commands = _initial_and_commands(rec)
     pipeline = build_pipeline(cfg, initial)
     outputs = Sinks([], lambda m: said("output", m, level="error"))
-    recording = _recording(opts.out, cfg, rec, initial_event) if opts.out else None
-    for sink in ([recording] if recording else []) + list(sinks or []):
-        outputs.add(sink)
-    if opts.ros2_out:
-        from service.wiring.ros2_sink import replay_ros2_sink
-
-        outputs.add(replay_ros2_sink(opts.ros2_out, cfg))
     blocks = _coalesce(rec.raw, [c["seq"] for c in commands])
-    t0 = time.perf_counter()
-    try:
+    try:                                      # every output opened is closed, whichever fails to open
+        recording = _recording(opts.out, cfg, rec, initial_event) if opts.out else None
+        for sink in ([recording] if recording else []) + list(sinks or []):
+            outputs.add(sink)
+        if opts.ros2_out:
+            from service.wiring.ros2_sink import replay_ros2_sink
+
+            outputs.add(replay_ros2_sink(opts.ros2_out, cfg, say=lambda m: said("output", m, level="say")))
+        t0 = time.perf_counter()
         samples, out_seq, out_vals, replaced = _run_blocks(pipeline, cfg, blocks, commands, outputs)
     finally:
         outputs.close()
@@ -209,6 +216,11 @@ def execute(source: str, opts: ReplayOptions, said: Said, *, sinks: list[Any] | 
                      + (f"; written to {opts.out}" if opts.out else "")
                      + (f"; ROS 2 bag written to {opts.ros2_out}" if opts.ros2_out else ""))
     out.status = _verdict(out, said, rec, out_seq, cmp, cut, holes, replaced, later)
+    failed = {name: n for name, n in outputs.errors.items() if n}
+    if failed:
+        said("output", "an output failed, so what it holds is incomplete: "
+             + ", ".join(f"{name} {n:,} time(s)" for name, n in failed.items()), level="error")
+        out.status = 1
     out.notes = said.notes
     return out
 

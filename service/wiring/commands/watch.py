@@ -7,7 +7,7 @@ health counters, and the calibration state (usable?, coverage, quality). On a te
 in place with plain ANSI codes; when stdout is not a terminal (a log, a pipe, a test) it prints one
 line per second instead. It says so when nothing arrives, and waits for the service to come up.
 
-The dashboard subscribes lossily (service.io.bus.BusClient(lossless=False)): it shows the newest
+The view subscribes lossily (service.io.bus.BusClient(lossless=False)): it shows the newest
 data and never holds the service back. Exit status: 0 after Ctrl-C / SIGTERM or after --seconds
 with data received; 1 if --seconds passed without any data.
 """
@@ -27,7 +27,6 @@ import zenoh
 
 from drivers.errors import ConfigError
 from service.io.bus import (
-    DEFAULT_PORT,
     BusClient,
     BusError,
     Keys,
@@ -40,7 +39,6 @@ from service.io.bus import (
 from service.wiring.commands.client import resolve
 from service.wiring.commands.options import CommandHelp, connection_options
 
-DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 TTY_PERIOD_S = 0.25            # redraw rate on a terminal (4 Hz)
 LINE_PERIOD_S = 1.0            # one line per second otherwise
 STALE_S = 3.0                  # no message for this long: say that nothing arrives

@@ -282,6 +282,28 @@ class _Handler(BaseHTTPRequestHandler):
     do_OPTIONS = do_PUT = do_DELETE = do_PATCH = _refuse_other
 
 
+#: the kinds refusals are counted by, from how their reasons begin: a fixed set, so that a request's own words (a
+#: Host, a Content-Type, a command's name) never become a key and the counts cannot grow without bound
+_REFUSAL_KINDS = (("no Host header", "host"), ("Host ", "host"), ("Content-Type ", "content type"),
+                  ("a request from another origin", "origin"), ("request body of", "body size"),
+                  ("bad request:", "bad request"), ("command ", "command"), ("apply", "apply payload"),
+                  ("the dashboard failed", "failed"), ("method ", "method"))
+
+
+def refusal_kind(why: str) -> str:
+    """The kind a refusal's reason is counted by (one of a fixed set; "other" for a reason of no known kind)."""
+    for start, kind in _REFUSAL_KINDS:
+        if why.startswith(start):
+            return kind
+    if why.endswith("(Sec-Fetch-Site)"):
+        return "fetch site"
+    if TOKEN_HEADER in why.split(":")[0]:
+        return "token"
+    if "the payload must be" in why:
+        return "payload"
+    return "other"
+
+
 def command_payload(name: str, payload: Any) -> tuple[str, str]:
     """(the payload text sent to the unit, why it is refused or ""). `apply` carries a calibration itself, as a
     JSON object or its text, never a path: the dashboard's host and the unit's may differ, and a path would have
@@ -344,7 +366,7 @@ class DashboardServer(ThreadingHTTPServer):
     def count_refused(self, why: str) -> None:
         """Count a refused request by the kind of reason; the first of each kind is said on stderr (a page of
         another origin trying its luck is worth an operator's attention, its hundredth try is not)."""
-        key = why.split(":")[0].split(" (")[0][:60]
+        key = refusal_kind(why)
         with self._refused_lock:
             self.refused[key] = self.refused.get(key, 0) + 1
             first = self.refused[key] == 1
