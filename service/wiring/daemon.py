@@ -73,6 +73,20 @@ def open_configured_source(cfg: FluxcalConfig) -> Source:
         raise DriverError(f"{keys}: {e}") from None
 
 
+def open_outputs(sinks: Sinks, cfg: FluxcalConfig, calibration: Any, bus: Any, note: Callable[[str], None],
+                 say: Callable[[str], None], extra: Sequence[Sink]) -> None:
+    """The service's outputs into `sinks`, the recording first (a raw block is kept before anything else): each is
+    among the sinks, and so closed with them, as soon as it is open, whichever opens next fails (the bus closes
+    twice harmlessly)."""
+    from service.wiring.ros2_sink import Ros2BagSink
+
+    sinks.add(McapSink.open(cfg, calibration, note))
+    sinks.add(BusSink(bus))
+    sinks.add(Ros2BagSink.live(cfg, say))
+    for sink in extra:
+        sinks.add(sink)
+
+
 def _say(msg: str) -> None:
     """A line on stderr with the UTC time: a field log is read afterwards, next to the recording. When whatever
     read stderr has gone (`fluxcal run ... 2>&1 | head -3`, a closed terminal), the service goes on: the lines
@@ -124,14 +138,7 @@ class Daemon:
         try:
             bus = ServiceBus(cfg.zenoh, unit=cfg.unit.name, probe_names=cfg.probe_names,
                              state_fn=lambda: self._state(pipeline, source, sinks))
-            from service.wiring.ros2_sink import Ros2BagSink
-
-            sinks.add(McapSink.open(cfg, pipeline.calibration, notes.append))   # each closed with the sinks as
-            sinks.add(BusSink(bus))                                                # soon as it is open
-            bus = None
-            sinks.add(Ros2BagSink.live(cfg, self.say))
-            for sink in self.extra_sinks:
-                sinks.add(sink)
+            open_outputs(sinks, cfg, pipeline.calibration, bus, notes.append, self.say, self.extra_sinks)
             for note in notes:
                 self.say(note)
             say_bus(cfg, self.say)

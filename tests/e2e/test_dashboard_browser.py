@@ -283,8 +283,9 @@ def test_a_page_of_another_origin_cannot_command_the_dashboard(tmp_path, browser
         assert unit.received == [], unit.received
         assert hub.view("u1", {})["commands"] == [] and hub.view("u1", {})["diagnosis"]["status"] == "none"
         refused = server.refused
-        assert refused.get("Content-Type 'text/plain' refused", 0) >= 3, refused       # fetch, beacon, form arrived
-        assert refused.get("Content-Type 'none' refused", 0) + refused.get("Content-Type 'text/plain' refused", 0) >= 4
+        # counted by kind (a fixed set: the request's own Content-Type is no key): fetch, beacon and form arrived
+        # as text/plain, one with none
+        assert refused.get("content type", 0) >= 4, refused
         # the operator's own page still commands the unit
         page.click("button[data-cmd=freeze]")
         _wait(page, "document.querySelector('#command-log li[data-command=freeze][data-ok=true]') !== null", 15,
