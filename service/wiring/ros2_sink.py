@@ -84,7 +84,7 @@ class Ros2BagSink(Sink):
         if self.say is not None:
             w = self.writer
             left = (f"; {w.skipped:,} probe-sample(s) not written (a non-finite axis, or a stamp before the UNIX "
-                    f"epoch); the MCAP recording keeps them") if w.skipped else ""
+                    f"epoch: sensor_msgs has no place for either)") if w.skipped else ""
             self.say(f"ROS 2 bag {w.path}: {w.message_count:,} message(s) on {len(w.status()['topics'])} "
                      f"topic(s){left}")
 

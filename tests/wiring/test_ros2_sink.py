@@ -116,6 +116,15 @@ def test_bad_places_and_bad_vectors(tmp_path):
     w.close()
     assert w.skipped == 1 and w.status()["topics"] == {"/fluxcal/u/s1/magnetic_field_raw": 3}
     assert len(read_bag(tmp_path / "b")["/fluxcal/u/s1/magnetic_field_raw"]) == 3
+    # the sink says at close what the bag holds and what it could not
+    said: list[str] = []
+    sink = Ros2BagSink.open(tmp_path / "c", unit="u", probe_names=["s1"], raw=True)
+    sink.say = said.append
+    sink.on_raw(SampleBlock(t_s=np.arange(4.0), seq=np.arange(4), field_nT=f, temp_C=np.zeros((4, 1)),
+                            flags=np.zeros(4, np.uint8)))
+    sink.close()
+    assert said == [f"ROS 2 bag {tmp_path / 'c'}: 3 message(s) on 1 topic(s); 1 probe-sample(s) not written (a "
+                    f"non-finite axis, or a stamp before the UNIX epoch: sensor_msgs has no place for either)"]
 
 
 def test_the_configuration_turns_the_bag_on_and_replay_writes_one(tmp_path, capsys):
