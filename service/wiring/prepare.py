@@ -45,6 +45,8 @@ class Prepared:
     config_warning: str | None = None             # a stored configuration that could not be used, and why
     track: str | None = None                      # the model whose field along the track is the data's ref_total
     holds: Any = None                             # service.numerics.holds.Holds: the logger's held samples left out
+    held: Any = None                              # a linear calibration to hold fixed (--calibration), or None
+    held_effects: list[str] = field(default_factory=list)     # the effects the held calibration's file names
 
     def take_data(self) -> LabData:
         """The data, let go of here: a consumer that turns them into another form (diagnose's EffectData) holds
@@ -53,6 +55,16 @@ class Prepared:
         if data is None:
             raise ValueError(f"{self.source}: the prepared data were already taken")
         return data
+
+    @property
+    def given_total_source(self) -> str:
+        """Where the total field a diagnosis compares with comes from, for the data's scale note: the track, the
+        site, the configuration, or "given"."""
+        if self.track is not None:
+            return self.total_source or "given"
+        if self.site is not None:
+            return "the site"
+        return self.origin or "given"
 
     @property
     def total_source(self) -> str | None:
@@ -69,9 +81,10 @@ class Prepared:
 def prepare(source: str, said: Said, *, config: str | None = None, site: str | None = None,
             skip: Sequence[tuple[float, float]] | None = None, max_samples: int | None = None,
             max_probe_samples: int | None = None, topics: dict[str, str | None] | None = None,
-            mags: Sequence[int] | None = None) -> Prepared:
+            mags: Sequence[int] | None = None, calibration: str | None = None) -> Prepared:
     """Read `source` and gather what the fits need beside the samples (module docstring). topics, mags: another
-    ecosystem's log, which topics (a ROS 2 bag) or compass instances (PX4, ArduPilot) become what."""
+    ecosystem's log, which topics (a ROS 2 bag) or compass instances (PX4, ArduPilot) become what. calibration: a
+    calibration file whose linear part is to be held fixed (held_calibration)."""
     mapping = log_mapping(source, topics, mags)
     data = load_data(source, max_samples=max_samples, max_probe_samples=max_probe_samples, mapping=mapping)
     say_read_warnings(said, source, data.warnings, repairable=data.metadata.get("format") not in FOREIGN)
@@ -81,6 +94,7 @@ def prepare(source: str, said: Said, *, config: str | None = None, site: str | N
     data, holds = _without_holds(said, data)
     part = part_of_run(said, source)
     n_probes = data.block.n_probes
+    held, held_effects = held_calibration(calibration, n_probes) if calibration else (None, [])
     if config:
         positions, total = config_geometry(config, n_probes)
         origin, warning = f"configuration from {config}", None
@@ -95,7 +109,79 @@ def prepare(source: str, said: Said, *, config: str | None = None, site: str | N
     data, track = _along_the_track(said, data, the_site)
     return Prepared(source=str(source), data=data, positions_m=spread(positions), total_nT=total, origin=origin,
                     site=the_site, skipped=list(skip or []), part_of_run=part, config_warning=warning, track=track,
-                    holds=holds)
+                    holds=holds, held=held, held_effects=held_effects)
+
+
+def held_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:
+    """A calibration file to hold fixed: the calibration file of `fit --out` (service.io.calfile), or the JSON of
+    `fit --json` (sensors with offset_nT and matrix). Returns the linear part and the effect names the file
+    carries; DataError for a file that is neither."""
+    from service.io.calfile import calibration_from_json, parse_json, read_calibration_text
+    from service.numerics.engine import LinearCalibration
+
+    p = Path(path)
+    text = read_calibration_text(p)                       # bounded; DataError for what cannot be read
+    try:
+        cal = calibration_from_json(text, origin=str(p))
+        return LinearCalibration.from_any(cal, n_probes), list(cal.effects)
+    except DataError as e:
+        first_error = e                                   # perhaps `fit --json` output: try that below
+    try:
+        obj = parse_json(text, str(p))
+        effects = list(obj.get("effects") or []) if isinstance(obj, dict) else []
+        return LinearCalibration.from_any(obj, n_probes), effects
+    except (DataError, TypeError, ValueError, AttributeError):
+        raise first_error from None
+
+
+@dataclass
+class EffectInput:
+    """The prepared data as the effect models take them (service.numerics.effects.base.EffectData), with the notes
+    a diagnosis says before its own: where the geometry came from, the data's scale, what thinning cost."""
+
+    data: Any                                     # EffectData
+    notes: list[str]
+    thinned: dict[str, Any] | None = None         # `thinning`'s figures, None when every sample was kept
+
+
+def effect_input(prep: Prepared, said: Said, *, budget: str) -> EffectInput:
+    """The prepared data let go of (Prepared.take_data) into EffectData, said: the thinning `budget` (the words
+    of what limited the samples) imposed, and the data's scale against the total field given (field_scale_notes).
+    The samples then live in the EffectData alone (hours of them)."""
+    from service.numerics.effects.base import EffectData
+    from service.wiring.commands.notes import field_scale_notes
+
+    lab = prep.take_data()
+    thinned = thinning(lab, budget)
+    total, positions = prep.total_nT, prep.positions_m
+    taken = (([f"total field {total:,.0f} nT (estimator.total_nT)"] if total is not None and prep.site is None
+              else []) + ([f"probe positions of {len(positions)} probes"] if positions is not None else []))
+    data = EffectData.from_block(lab.block, lab.probe_names, total_nT=total, positions_m=positions)
+    del lab
+    ref = data.ref_total_nT                       # the reference the fits use before a configured total
+    scale = field_scale_notes(said, prep.source, data.raw_nT, data.probe_names, about="a sphere fitted to them",
+                              total_nT=ref if ref is not None else total,
+                              total_source=prep.given_total_source if ref is None or prep.track is not None
+                              else "the ref_total column")
+    notes = (([f"{prep.origin}: {'; '.join(taken)}"] if prep.origin and taken else [])
+             + scale + ([thinned[1]] if thinned is not None else []))
+    return EffectInput(data, notes, thinned[0] if thinned is not None else None)
+
+
+def thinning(lab: Any, budget: str) -> tuple[dict[str, Any], str] | None:
+    """What keeping every k-th sample (LabData.every) costs, for the JSON and a note; None when all were kept."""
+    k, n_read, t = lab.every, lab.n_read, lab.block.t_s
+    if k <= 1 or n_read is None:
+        return None
+    used = lab.block.n_samples
+    dt = float(np.median(np.diff(t))) if used > 1 else float("nan")
+    rate = 1.0 / dt if dt > 0 else float("nan")
+    info = {"every": k, "n_used": used, "n_read": n_read, "rate_hz": rate, "limit": budget}
+    text = (f"thinned: one sample in {k} diagnosed ({used:,} of {n_read:,}; {rate:.3g} Hz, {k} x the recorded "
+            f"interval) to stay within {budget}. Motion and effects faster than {rate / 2:.3g} Hz are not seen; the "
+            f"standard errors are those of the samples used, up to {np.sqrt(k):.1f} x the whole recording's under "
+            f"white noise (less under 1/f noise, whose slow wander thinning does not lose)")
+    return info, text
 
 
 def log_mapping(source: str, topics: dict[str, str | None] | None, mags: Sequence[int] | None) -> Any:
@@ -293,5 +379,5 @@ def skip_spans(said: Said, source: str, lab: Any, spans: Sequence[tuple[float, f
     return dataclasses.replace(lab, block=lab.block.rows(~out))
 
 
-__all__ = ["FROM_RECORDING", "Prepared", "config_geometry", "part_of_run", "prepare", "say_read_warnings",
-           "skip_spans"]
+__all__ = ["FROM_RECORDING", "EffectInput", "Prepared", "config_geometry", "effect_input", "part_of_run", "prepare",
+           "say_read_warnings", "skip_spans", "thinning"]

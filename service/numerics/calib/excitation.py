@@ -135,3 +135,18 @@ def turn_problem(raw: np.ndarray, offset_nT: np.ndarray, matrix: np.ndarray, tot
         return ""
     rms = residual_rms if residual_rms is not None else float(np.sqrt(np.mean((mag[ok] - f[ok]) ** 2)))
     return band_problem(corr[ok], rms, field if field is not None else float(np.mean(f[ok])))
+
+
+def refuse_one_cone(data, linear) -> None:
+    """Refuse (CalibrationRefused) a linear part refitted to a single-axis turn of any probe of `data` (an
+    EffectData): it is not determined along the turn's axis (fit refuses it, band_problem), so an effect found on
+    top of it would be that error, and the advice would send the user to a fit that is refused (a real turn was
+    'explained by crossfield'). diagnose asks it as soon as the linear part is refitted, before any candidate."""
+    from drivers.errors import CalibrationRefused
+
+    for k, name in enumerate(data.probe_names):
+        problem = turn_problem(data.raw_nT[:, k], linear.offset_nT[k], linear.matrix[k], data.ref_total_nT)
+        if problem:
+            raise CalibrationRefused(f"{name}: {problem}; the linear calibration these data would refit is not "
+                                     f"determined, so no effect can be judged on top of it (or hold one made from "
+                                     f"a fuller turn fixed: --calibration CAL.json)")

@@ -21,13 +21,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse  # noqa: E402
 import sys  # noqa: E402
 from dataclasses import dataclass, field, replace  # noqa: E402
-from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
-import numpy as np  # noqa: E402
-
-from drivers.errors import ConfigError, DataError, FluxcalError  # noqa: E402
-from service.wiring.commands.notes import check_output_file, check_output_folder, field_scale_notes  # noqa: E402
+from drivers.errors import ConfigError  # noqa: E402
+from service.wiring.commands.notes import check_output_file, check_output_folder  # noqa: E402
 from service.wiring.commands.options import (  # noqa: E402
     CONFIG_HELP,
     DATA_HELP,
@@ -40,8 +37,9 @@ from service.wiring.commands.options import (  # noqa: E402
     fleet_options,
     max_samples,
 )
+from service.wiring.commands.written import write_diagnosis_report, write_discovered  # noqa: E402
 from service.wiring.fitting import NONLINEAR_PROBE_SAMPLES as DIAGNOSE_PROBE_SAMPLES  # noqa: E402
-from service.wiring.prepare import Prepared, prepare  # noqa: E402
+from service.wiring.prepare import Prepared, effect_input, prepare  # noqa: E402
 from service.wiring.progress import Progress  # noqa: E402
 from service.wiring.result import Result, Said, print_result, stderr_say  # noqa: E402
 
@@ -72,28 +70,6 @@ def add_options(p: argparse.ArgumentParser) -> None:
                         "about 1.5 GB; 0: all)")
     p.add_argument("--json", action="store_true", help="print JSON (docs/contracts.md) instead of the summary")
     fleet_options(p)
-
-
-def load_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:
-    """A calibration file: the calibration file of `fit --out` (service.io.calfile), or the JSON of
-    `fit --json` (sensors with offset_nT and matrix). Returns the linear part and the effect names the
-    file carries."""
-    from service.io.calfile import calibration_from_json, parse_json, read_calibration_text
-    from service.numerics.engine import LinearCalibration
-
-    p = Path(path)
-    text = read_calibration_text(p)                       # bounded; DataError for what cannot be read
-    try:
-        cal = calibration_from_json(text, origin=str(p))
-        return LinearCalibration.from_any(cal, n_probes), list(cal.effects)
-    except DataError as e:
-        first_error = e                                   # perhaps `fit --json` output: try that below
-    try:
-        obj = parse_json(text, str(p))
-        effects = list(obj.get("effects") or []) if isinstance(obj, dict) else []
-        return LinearCalibration.from_any(obj, n_probes), effects
-    except (DataError, TypeError, ValueError, AttributeError):
-        raise first_error from None
 
 
 @dataclass
@@ -145,7 +121,8 @@ def options(args: argparse.Namespace) -> DiagnoseOptions:
 
 
 def execute(source: str, opts: DiagnoseOptions, said: Said, *, progress: bool = True) -> DiagnoseResult:
-    """`fluxcal diagnose SOURCE`: the report folder checked before any work, the input prepared, the diagnosis."""
+    """`fluxcal diagnose SOURCE`: the outputs checked before any work, the input prepared (with the calibration
+    held fixed, when given), the model's effects known, the diagnosis."""
     from service.numerics.effects import known_effects
     from service.wiring.user_effects import load_installed_effects, resolve_effects
 
@@ -163,145 +140,51 @@ def execute(source: str, opts: DiagnoseOptions, said: Said, *, progress: bool = 
                           f"(allowed: {', '.join(known)}; or file.py:ClassName for one of your own)")
     limit = opts.max_samples
     prep = prepare(source, said, config=opts.config, site=opts.site, skip=opts.skip, topics=opts.topics,
-                   mags=opts.mags,
+                   mags=opts.mags, calibration=opts.calibration,
                    **({"max_probe_samples": DIAGNOSE_PROBE_SAMPLES} if limit is None else {"max_samples": limit}))
+    if prep.held is not None and not opts.effects:            # the model the file describes
+        missing = [e for e in prep.held_effects if e not in known]
+        if missing:
+            raise ConfigError(f"{opts.calibration}: names the effect(s) {', '.join(map(repr, missing))}, which "
+                              f"are neither in the catalogue nor installed: give them with --effects "
+                              f"file.py:ClassName")
+        opts = replace(opts, effects=list(prep.held_effects))
     return run(prep, opts, said, progress=progress)
 
 
 def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = True) -> DiagnoseResult:
-    """The diagnosis of the prepared data (and its report, when asked): figures and notes as data."""
-    from service.numerics.diagnose import diagnose
-    from service.numerics.effects import known_effects
-    from service.numerics.effects.base import EffectData
+    """The diagnosis of the prepared data (and its outputs, when asked): figures and notes as data. The data go one
+    way: prepared (effect_input), diagnosed (service.numerics), written."""
+    from service.numerics.calib.excitation import refuse_one_cone
+    from service.numerics.calib.track import follows_height_note
+    from service.numerics.diagnose.diagnostics import diagnose
 
-    lab, source, limit = prep.take_data(), prep.source, opts.max_samples
-    positions, total, origin = prep.positions_m, prep.total_nT, prep.origin
-    data = EffectData.from_block(lab.block, lab.probe_names, total_nT=total, positions_m=positions)
-    ref = data.ref_total_nT                       # the reference the fits use before a configured total
-    scale = field_scale_notes(said, source, data.raw_nT, data.probe_names, about="a sphere fitted to them",
-                              total_nT=ref if ref is not None else total,
-                              total_source=prep.total_source if prep.track is not None else
-                              "the ref_total column" if ref is not None else "the site" if opts.site
-                              else f"configuration from {opts.config}" if opts.config else origin or "given")
-    thinned = thinning(lab, limit)
-    del lab                                       # the samples live on in `data` only (hours of them)
-    cal, effects = None, list(opts.effects)
-    if opts.calibration:
-        cal, cal_effects = load_calibration(opts.calibration, data.n_probes)
-        if not effects:
-            known = known_effects()
-            missing = [e for e in cal_effects if e not in known]
-            if missing:
-                raise ConfigError(f"{opts.calibration}: names the effect(s) {', '.join(map(repr, missing))}, which "
-                                  f"are neither in the catalogue nor installed: give them with --effects "
-                                  f"file.py:ClassName")
-            effects = list(cal_effects)                             # the model the file describes
+    limit = opts.max_samples
+    budget = (f"--max-samples {limit:,}" if limit is not None
+              else f"the default budget of {DIAGNOSE_PROBE_SAMPLES:,} probe-samples (--max-samples N; 0: all)")
+    ready = effect_input(prep, said, budget=budget)
+    data = ready.data
     bar = Progress(1.0, "diagnose", fraction=True) if progress else None
     try:
-        result = diagnose(data, effects=effects, calibration=cal, progress=bar,
-                          check_linear=lambda lin: _refuse_one_cone(data, lin))
+        result = diagnose(data, effects=list(opts.effects), calibration=prep.held, progress=bar,
+                          check_linear=lambda lin: refuse_one_cone(data, lin))
     finally:
         if bar is not None:
             bar.close()
-    if thinned is not None:
-        result.thinned, text = thinned
-        result.notes.insert(0, text)
-    result.notes[0:0] = scale                     # data not in nT first: every figure after it is in their unit
-    taken = (([f"total field {total:,.0f} nT (estimator.total_nT)"] if total is not None and not opts.site else [])
-             + ([f"probe positions of {len(positions)} probes"] if positions is not None else []))
-    if origin and taken:
-        result.notes.insert(0, f"{origin}: {'; '.join(taken)}")
-    from service.numerics.calib.track import follows_height_note
-
-    height = follows_height_note(result.where,
-                                 track_used=prep.track is not None)
+    if ready.thinned is not None:
+        result.thinned = ready.thinned
+    result.notes[0:0] = ready.notes               # data not in nT first: every figure after it is in their unit
+    height = follows_height_note(result.where, track_used=prep.track is not None)
     if height:
         result.notes.append(height)
-    if opts.calibration and effects:
+    if prep.held is not None and opts.effects:
         result.notes.append(f"{opts.calibration}: linear part held fixed; the parameters of "
-                            f"{', '.join(effects)} are refitted to these data")
+                            f"{', '.join(opts.effects)} are refitted to these data")
+    source, origin = prep.source, prep.origin
     out = DiagnoseResult("diagnose", source, diagnosis=result, title=source + (f" ({origin})" if origin else ""))
     if opts.write_effect:
         write_discovered(out, opts.write_effect, source, said)
     if opts.report:
-        # the diagnosis first: a report that cannot be written (a full disk) must not cost it (said, exit 1)
-        from service.io.report import write_report
-        from service.io.report.page import NO_MATPLOTLIB, has_matplotlib
-        from service.wiring.calib_report import section_from_diagnosis
-
-        try:
-            out.report = str(write_report(result, opts.report, title=f"fluxcal diagnose {Path(source).name}",
-                                          calibration=section_from_diagnosis(result)))
-            out.written.append(out.report)
-            if not has_matplotlib():
-                said("report", f"report without plots: {NO_MATPLOTLIB}", level="note")
-        except (OSError, FluxcalError) as e:
-            said("report", f"{opts.report}: the report could not be written: {e}")
-            out.status = 1
+        write_diagnosis_report(out, opts.report, said)
     out.notes = said.notes
     return out
-
-
-def write_discovered(out: DiagnoseResult, path: str, source: str, said: Said) -> None:
-    """The terms discovery found, written as an effect module at `path` (atomically: a temporary file renamed), said
-    with how to take it back; where it found none, no file, and that is said instead (the exit status stays 0)."""
-    import os
-    import tempfile
-
-    from service.numerics.diagnose.write_effect import effect_classes, effect_source
-
-    found = getattr(out.diagnosis, "discovery", None)
-    if found is None or not found.claimed:
-        why = "discovery did not run" if found is None else (found.reason or "it claims nothing")
-        said("write-effect", f"--write-effect {path}: nothing written: no term was discovered beyond the catalogue "
-                             f"({why})")
-        return
-    text = effect_source(found, data_name=Path(source).name)
-    target = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".tmp", dir=target.parent or ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    out.written.append(str(target))
-    use = ",".join(f"{target}:{c}" for c in effect_classes([g.group for g in found.groups]))
-    said("write-effect", f"the discovered term written to {target} as an effect of your own: rename it and give it "
-                         f"back with --effects {use} (fit, diagnose; a running service takes it from [effects] "
-                         f"plugins where it acts on each sample alone)", level="say")
-
-
-def thinning(lab: Any, limit: int | None) -> tuple[dict[str, Any], str] | None:
-    """What keeping every k-th sample (LabData.every) costs, for the JSON and a note; None when all were kept."""
-    k, n_read, t = lab.every, lab.n_read, lab.block.t_s
-    if k <= 1 or n_read is None:
-        return None
-    used = lab.block.n_samples
-    dt = float(np.median(np.diff(t))) if used > 1 else float("nan")
-    rate = 1.0 / dt if dt > 0 else float("nan")
-    why = (f"--max-samples {limit:,}" if limit is not None
-           else f"the default budget of {DIAGNOSE_PROBE_SAMPLES:,} probe-samples (--max-samples N; 0: all)")
-    info = {"every": k, "n_used": used, "n_read": n_read, "rate_hz": rate, "limit": why}
-    text = (f"thinned: one sample in {k} diagnosed ({used:,} of {n_read:,}; {rate:.3g} Hz, {k} x the recorded "
-            f"interval) to stay within {why}. Motion and effects faster than {rate / 2:.3g} Hz are not seen; the "
-            f"standard errors are those of the samples used, up to {np.sqrt(k):.1f} x the whole recording's under "
-            f"white noise (less under 1/f noise, whose slow wander thinning does not lose)")
-    return info, text
-
-
-def _refuse_one_cone(data, lin) -> None:
-    """A linear part refitted to a single-axis turn is not determined along the turn's axis (fit refuses it,
-    excitation.band_problem): an effect found on top of it would be that error, and the advice would send the user
-    to a fit that is refused (a real turn was 'explained by crossfield'). Refused alike, with the way out, as soon as
-    the linear part is refitted (before the candidates are tried)."""
-    from drivers.errors import CalibrationRefused
-    from service.numerics.calib.excitation import turn_problem
-
-    for k, name in enumerate(data.probe_names):
-        problem = turn_problem(data.raw_nT[:, k], lin.offset_nT[k], lin.matrix[k], data.ref_total_nT)
-        if problem:
-            raise CalibrationRefused(f"{name}: {problem}; the linear calibration these data would refit is not "
-                                     f"determined, so no effect can be judged on top of it (or hold one made from "
-                                     f"a fuller turn fixed: --calibration CAL.json)")

@@ -1,0 +1,47 @@
+"""What diagnose writes beside its result (service.wiring.commands.written): no effect module where discovery found
+nothing (said, exit status kept), and a report that cannot be written costs the exit status, never the diagnosis."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+from service.wiring.commands.diagnose import DiagnoseResult
+from service.wiring.commands.written import write_diagnosis_report, write_discovered
+from service.wiring.result import Said
+
+
+def _out(discovery=None) -> DiagnoseResult:
+    return DiagnoseResult("diagnose", "rec.mcap", diagnosis=SimpleNamespace(discovery=discovery))
+
+
+def test_no_module_is_written_where_discovery_claimed_nothing(tmp_path):
+    said = Said("diagnose")
+    for found, why in ((None, "discovery did not run"),
+                       (SimpleNamespace(claimed=False, reason="no group passes the selection"),
+                        "no group passes the selection")):
+        out = _out(found)
+        write_discovered(out, str(tmp_path / "found.py"), "rec.mcap", said)
+        assert out.written == [] and out.status == 0
+        assert not (tmp_path / "found.py").exists()
+        assert said.notes[-1].kind == "write-effect" and said.notes[-1].is_warning
+        assert f"nothing written: no term was discovered beyond the catalogue ({why})" in said.notes[-1].text
+
+
+def test_a_report_that_cannot_be_written_is_said_and_costs_the_status(tmp_path, monkeypatch):
+    import service.io.report as report
+    import service.wiring.calib_report as calib_report
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(report, "write_report", full_disk)
+    monkeypatch.setattr(calib_report, "section_from_diagnosis", lambda d: None)
+    said = Said("diagnose")
+    out = _out()
+    diagnosis = out.diagnosis
+    write_diagnosis_report(out, str(tmp_path / "rep"), said)
+    assert out.status == 1 and out.report is None and out.written == []
+    assert out.diagnosis is diagnosis                             # the diagnosis stays
+    assert said.notes[-1].kind == "report"
+    assert f"{tmp_path / 'rep'}: the report could not be written" in said.notes[-1].text
+    assert "No space left on device" in said.notes[-1].text
