@@ -190,16 +190,12 @@ def _refuse_unphysical(cal: ArrayCalibration, data: LabData) -> None:
 
 
 def _refuse_one_cone(cal: ArrayCalibration, data: LabData, total: TotalField) -> None:
-    """The single-axis-turn refusal of the batch ellipsoid fit (excitation.band_problem), for the methods that fit
-    the same offsets without asking it (tmi, rls): real hand turns gave offsets 9,417 nT where the board's sphere
-    says -643, with exit 0."""
-    from service.numerics.calib.excitation import turn_problem
+    """The single-axis-turn refusal (excitation.refuse_one_cone) for the methods that fit the offsets without
+    asking it (tmi, rls)."""
+    from service.numerics.calib.excitation import refuse_one_cone
 
-    b = data.block
-    for k, p in enumerate(cal.probes):
-        problem = turn_problem(b.field_nT[:, k], p.offset_nT, p.matrix, total.values)
-        if problem:
-            raise CalibrationRefused(f"{data.probe_names[k]}: {problem}")
+    refuse_one_cone(data.block.field_nT, [p.offset_nT for p in cal.probes], [p.matrix for p in cal.probes],
+                    total.values, data.probe_names)
 
 
 def _refuse_non_finite(data: LabData) -> None:

@@ -137,16 +137,17 @@ def turn_problem(raw: np.ndarray, offset_nT: np.ndarray, matrix: np.ndarray, tot
     return band_problem(corr[ok], rms, field if field is not None else float(np.mean(f[ok])))
 
 
-def refuse_one_cone(data, linear) -> None:
-    """Refuse (CalibrationRefused) a linear part refitted to a single-axis turn of any probe of `data` (an
-    EffectData): it is not determined along the turn's axis (fit refuses it, band_problem), so an effect found on
-    top of it would be that error, and the advice would send the user to a fit that is refused (a real turn was
-    'explained by crossfield'). diagnose asks it as soon as the linear part is refitted, before any candidate."""
+
+def refuse_one_cone(raw_nT: np.ndarray, offsets_nT, matrices, total_nT, probe_names, *, then: str = "") -> None:
+    """Refuse (CalibrationRefused, naming the probe) offsets and matrices fitted to a single-axis turn of any probe
+    of `raw_nT` (N, P, 3): they are not determined along the turn's axis (turn_problem). `then`: what the refusal
+    costs, appended. fit asks it of the methods that do not ask it themselves (tmi, rls: real hand turns gave offsets
+    9,417 nT where the board's sphere says -643, with exit 0); diagnose as soon as it refits the linear part, before
+    any candidate (an effect found on top of an undetermined part would be that error: a real turn was 'explained
+    by crossfield')."""
     from drivers.errors import CalibrationRefused
 
-    for k, name in enumerate(data.probe_names):
-        problem = turn_problem(data.raw_nT[:, k], linear.offset_nT[k], linear.matrix[k], data.ref_total_nT)
+    for k, name in enumerate(probe_names):
+        problem = turn_problem(raw_nT[:, k], offsets_nT[k], matrices[k], total_nT)
         if problem:
-            raise CalibrationRefused(f"{name}: {problem}; the linear calibration these data would refit is not "
-                                     f"determined, so no effect can be judged on top of it (or hold one made from "
-                                     f"a fuller turn fixed: --calibration CAL.json)")
+            raise CalibrationRefused(f"{name}: {problem}{then}")

@@ -167,7 +167,11 @@ def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = T
     bar = Progress(1.0, "diagnose", fraction=True) if progress else None
     try:
         result = diagnose(data, effects=list(opts.effects), calibration=prep.held, progress=bar,
-                          check_linear=lambda lin: refuse_one_cone(data, lin))
+                          check_linear=lambda lin: refuse_one_cone(
+                              data.raw_nT, lin.offset_nT, lin.matrix, data.ref_total_nT, data.probe_names,
+                              then="; the linear calibration these data would refit is not determined, so no effect "
+                                   "can be judged on top of it (or hold one made from a fuller turn fixed: "
+                                   "--calibration CAL.json)"))
     finally:
         if bar is not None:
             bar.close()
