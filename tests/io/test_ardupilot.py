@@ -2,13 +2,13 @@
 specification (FMT-described messages, MAG with an instance field as ArduPilot 4 writes it) and read by pymavlink
 gives every compass instance as a probe (milligauss -> nT), ATT as the attitude columns, GPS as the track and BAT's
 current as a column, the date from the GPS week; the column effect finds the current's field; a public log with
-MAG, MAG2 and MAG3 (pymavlink's own test log) is read end to end where ../shared/real-data has it."""
+MAG, MAG2 and MAG3 (pymavlink's own test log) is read end to end where ../shared/real-data or $FLUXCAL_REAL_DATA has
+it (tests/real_data.py), and two real flights of erlerobot/logs."""
 
 from __future__ import annotations
 
 import datetime as dt
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,14 +16,13 @@ import pytest
 pytest.importorskip("pymavlink", reason="the ArduPilot reader's optional package: pip install 'fluxcal[ardupilot]'")
 
 from flightlogs import CURRENT_COUPLING_NT_A, simulated_flight, write_dataflash
+from real_data import needs_real, real
 
 from drivers.errors import DataError
 from service.io.recordings.ardupilot import ArduPilotMapping, inspect_ardupilot
 from service.io.recordings.load import load_data
 from service.wiring import cli
 
-ROOT = Path(__file__).resolve().parents[2]
-REAL = ROOT.parent / "shared" / "real-data" / "ardupilot_pymavlink_test.BIN"
 BOOT_US = 30_000_000
 GPS_WEEK, GPS_MS_AT_BOOT = 2300, 200_000_000        # 2024-02-04 + 200,000 s
 
@@ -104,12 +103,11 @@ def test_mapping_and_inspect(flight, capsys):
     assert json.loads(capsys.readouterr().out)["format"] == "ardupilot-bin"
 
 
-@pytest.mark.skipif(not REAL.is_file(), reason=f"{REAL} is absent (pymavlink's tests/test.BIN, LGPL-3.0: see "
-                                               f"../shared/real-data/README.md)")
+@needs_real("ardupilot_pymavlink_test.BIN")
 def test_public_log_end_to_end():
     """MAG, MAG2, MAG3 (the older naming of instances): three probes in the Earth's field at CMAC, the date from the
     GPS week (2017-10-29)."""
-    lab = load_data(REAL)
+    lab = load_data(real("ardupilot_pymavlink_test.BIN"))
     assert lab.probe_names == ["s1", "s2", "s3"]
     total = np.linalg.norm(lab.block.field_nT, axis=2)
     assert np.all((total > 30_000) & (total < 90_000))
@@ -119,31 +117,31 @@ def test_public_log_end_to_end():
     assert {"heel_deg", "battery_current_a", "alt_m"} <= set(lab.block.extras)
 
 
-FLIGHT = ROOT.parent / "shared" / "real-data" / "ardupilot_erlerobot_pxf_copter.BIN"
-STILL_CURRENT = ROOT.parent / "shared" / "real-data" / "ardupilot_erlerobot_erlebrain3.BIN"
+FLIGHT = "ardupilot_erlerobot_pxf_copter.BIN"
+STILL_CURRENT = "ardupilot_erlerobot_erlebrain3.BIN"
 
 
-@pytest.mark.skipif(not FLIGHT.is_file(), reason=f"{FLIGHT} is absent (a public ArduPilot flight, erlerobot/logs: see "
-                                                 f"its README beside it)")
+@needs_real(FLIGHT)
 def test_a_real_copter_flight_is_read_and_fitted_and_its_cone_said(capsys):
     """A real copter's 20-minute flight: its compass a probe, the battery current a column. Level flight turning
     about z is a cone of directions: diagnose refuses to judge effects on a calibration those data do not determine,
     and says which turn is missing."""
-    lab = load_data(FLIGHT)
+    path = real(FLIGHT)
+    lab = load_data(path)
     assert lab.probe_names == ["s1"] and lab.block.n_samples == 4660
     assert "battery_current_a" in lab.block.extras
     assert np.ptp(lab.block.extras["battery_current_a"]) > 100          # a current that changes: a column
     capsys.readouterr()
-    assert cli.main(["diagnose", str(FLIGHT)]) == 2
+    assert cli.main(["diagnose", str(path)]) == 2
     assert "one cone about z" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(not STILL_CURRENT.is_file(), reason=f"{STILL_CURRENT} is absent (see its README beside it)")
+@needs_real(STILL_CURRENT)
 def test_a_logged_current_that_never_changes_is_named_never_asked_for(capsys):
     """The battery monitor of this flight read 0 A throughout: diagnose said 'log the heater or motor currents' of
     data that log one; it names the column now, and what its constancy means."""
     capsys.readouterr()
-    assert cli.main(["diagnose", str(STILL_CURRENT)]) == 0
+    assert cli.main(["diagnose", str(real(STILL_CURRENT))]) == 0
     out = capsys.readouterr().out
     line = next(ln for ln in out.splitlines() if ln.strip().startswith("column"))
     assert "battery_current_a" in line and "do not change" in line and "log the" not in line
