@@ -117,3 +117,18 @@ def test_real_bursty_board_repeats():
     assert int(h.held.sum()) == 239
     q = load_data(real("qmc5883l_suarez.csv"))
     assert not find_holds(q.block.field_nT, q.probe_names).held.any()
+
+
+def test_a_sensor_that_never_changes_is_refused_not_a_crash(tmp_path, capsys):
+    """A real ArduPilot log (erlerobot/logs pxf/copter/31-3-2015/83.BIN) logged one compass value 784 times (its
+    offsets on a zero reading): counted as chance repeats of a coarse sensor, kept, and diagnose divided by a median
+    field of zero. It says what the samples are now."""
+    from service.wiring.cli import main
+
+    path = tmp_path / "stuck.csv"
+    t = np.arange(800) * 0.1
+    path.write_text("t,s1_x,s1_y,s1_z\n" + "".join(f"{x:.1f},-3600,100,-5600\n" for x in t))
+    capsys.readouterr()
+    assert main(["diagnose", str(path)]) == 2
+    assert "s1: all 800 samples are the same vector (-3600, 100, -5600 nT): the sensor did not measure" in \
+        capsys.readouterr().err
