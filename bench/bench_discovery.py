@@ -10,8 +10,9 @@ Run by hand, one at a time on a shared machine:
 - controls: effect-free worlds on the repository's configs and the discovery worlds' own, white and 1/f, with
   decoy columns logged, discovery forced on: claimed where it claims anything (the acceptance asks none in 29
   of 30);
-- real: the public recordings of ../shared/real-data with a logged column and an effect of it added, and their
-  copy with the column but no effect: found, the held-out error within 1.1x the copy's, nothing claimed on it.
+- real: the public recordings of ../shared/real-data (or $FLUXCAL_REAL_DATA) with a logged column and an effect of
+  it added, and their copy with the column but no effect: found, the held-out error within 1.1x the copy's, nothing
+  claimed on it.
 
 Prints one line per world and the counts.
 """
@@ -79,10 +80,10 @@ def run_controls() -> None:
 
 
 def run_real() -> None:
-    from real_effects import REAL, cases
+    from real_effects import cases, missing
 
-    if not REAL.is_dir():
-        print(f"== real: {REAL} is absent")
+    if missing():
+        print("== real: " + "; ".join(missing()))
         return
     found = quiet = total = 0
     for name, kind, touched, control in cases():

@@ -1,6 +1,7 @@
-"""Public recordings of real magnetometers (../shared/real-data) with a logged column and an effect of it added
-on top of their real noise, and their copy with the same column but no effect (issue 30's acceptance: discovery
-finds the effect and brings the held-out error within 1.1x the copy's, and claims nothing on the copy).
+"""Public recordings of real magnetometers (../shared/real-data or $FLUXCAL_REAL_DATA: real_data.py) with a logged
+column and an effect of it added on top of their real noise, and their copy with the same column but no effect
+(issue 30's acceptance: discovery finds the effect and brings the held-out error within 1.1x the copy's, and claims
+nothing on the copy).
 
 The columns are made from the recording's own clock: a fan whose speed wanders (Hz), a supply that wanders and
 steps (V), a heater switched at random (A). The effects are sized against each recording's noise.
@@ -8,15 +9,13 @@ steps (V), a heater switched at random (A). The effects are sized against each r
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+from real_data import absent, find
 
 from service.numerics.effects.base import EffectData
 from service.numerics.effects.thermal import low_pass
-
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real-data"
 
 #: (recording, kind, size): kinds of tests/discovery_worlds.py that a single probe without a reference shows, sized
 #: so that the residual grows by about 1.3-1.5x (nT, ppm/V: these boards' noise is 70-200 nT)
@@ -79,11 +78,16 @@ def with_effect(data: EffectData, kind: str, size: float, seed: int = 5) -> tupl
     return copy(raw), copy(data.raw_nT.copy())
 
 
+def missing() -> list[str]:
+    """Why the cases cannot run here: one line per recording absent (real_data.absent), none where all are found."""
+    return [absent(f"{n}.csv") for n in sorted({n for n, _, _ in CASES}) if find(f"{n}.csv") is None]
+
+
 def cases() -> Iterator[tuple[str, str, EffectData, EffectData]]:
     from service.io.recordings.load import load_data
     from service.numerics.engine import as_effect_data
 
     for name, kind, size in CASES:
-        data = as_effect_data(load_data(REAL / f"{name}.csv"))
+        data = as_effect_data(load_data(find(f"{name}.csv")))
         touched, control = with_effect(data, kind, size)
         yield name, kind, touched, control

@@ -1,12 +1,12 @@
 """PX4 ULog as lab data (service/io/recordings/px4.py): a ULog built from the format's specification and read by
 pyulog gives every sensor_mag instance as a probe (gauss -> nT), its temperature, the attitude, the track and the
 battery current as columns; `fit` fits it with both compasses as probes and `diagnose` finds the current; a real
-flight log (pyulog's own sample, BSD-3-Clause) is read end to end where ../shared/real-data has it."""
+flight log (pyulog's own sample, BSD-3-Clause) is read end to end where ../shared/real-data or $FLUXCAL_REAL_DATA
+has it (tests/real_data.py)."""
 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,14 +14,13 @@ import pytest
 pytest.importorskip("pyulog", reason="the PX4 reader's optional package: pip install 'fluxcal[px4]'")
 
 from flightlogs import CURRENT_COUPLING_NT_A, simulated_flight, write_ulog
+from real_data import needs_real, real
 
 from drivers.errors import DataError
 from service.io.recordings.load import load_data
 from service.io.recordings.px4 import Px4Mapping, inspect_px4
 from service.wiring import cli
 
-ROOT = Path(__file__).resolve().parents[2]
-REAL = ROOT.parent / "shared" / "real-data" / "px4_sample_log_small.ulg"
 BOOT_US = 20_000_000                      # the log starts 20 s after boot
 UTC_AT_BOOT_US = 1_700_000_000_000_000    # 2023-11-14
 
@@ -128,14 +127,14 @@ def test_mapping_and_inspect(flight, capsys):
     assert "PX4 flight log (ULog)" in capsys.readouterr().out
 
 
-@pytest.mark.skipif(not REAL.is_file(), reason=f"{REAL} is absent (a public PX4 log, pyulog's test/sample_log_small.ulg, "
-                                               f"BSD-3-Clause: see ../shared/real-data/README.md)")
+@needs_real("px4_sample_log_small.ulg")
 def test_real_px4_log_end_to_end(capsys):
     """A real flight (CubeOrange, 2021-04-21): two compasses logged at 1 Hz, two batteries, GPS. Read end to end:
     both compasses as probes in the Earth's field, the date from the GPS; too few samples to fit (6), which fit
     says instead of fitting."""
     capsys.readouterr()
-    lab = load_data(REAL)
+    path = real("px4_sample_log_small.ulg")
+    lab = load_data(path)
     assert lab.probe_names == ["s1", "s2"] and lab.block.n_samples == 6
     total = np.linalg.norm(lab.block.field_nT, axis=2)
     assert np.all((total > 20_000) & (total < 80_000))                  # gauss x 1e5: the Earth's field in nT
@@ -144,20 +143,19 @@ def test_real_px4_log_end_to_end(capsys):
     import datetime as dt
     day = dt.datetime.fromtimestamp(float(lab.metadata["t0_unix_s"]), dt.timezone.utc).date()
     assert day == dt.date(2021, 4, 21)
-    assert cli.main(["fit", str(REAL)]) == 2
+    assert cli.main(["fit", str(path)]) == 2
     err = capsys.readouterr().err
     assert "s1: 5 samples; the fit needs at least 10" in err       # one of the 6 a logger's hold, left out: said
     assert "s1: 1 of 6 samples (17%) repeat the previous one exactly" in err
 
 
-@pytest.mark.skipif(not (REAL.parent / "px4_pyulog_sample.ulg").exists(),
-                    reason="../shared/real-data/px4_pyulog_sample.ulg (pyulog's sample flight) is absent")
+@needs_real("px4_pyulog_sample.ulg")
 def test_a_real_flight_of_an_older_px4_is_read_and_its_cone_refused(capsys):
     """pyulog's sample.ulg: a real flight of 69 s whose one magnetometer an older PX4 logged in sensor_combined
     (17,070 rows at the gyroscope's rate, 6,750 magnetometer samples). Read end to end; fitted with the total field
     estimated, its cone of directions gave a matrix no sensor has (condition 9.4, 62 degrees of non-orthogonality)
     which passed the cone check on its own shape: refused now, saying which turn is missing."""
-    path = REAL.parent / "px4_pyulog_sample.ulg"
+    path = real("px4_pyulog_sample.ulg")
     lab = load_data(path)
     assert lab.probe_names == ["s1"] and lab.block.n_samples == 6750
     total = np.linalg.norm(lab.block.field_nT[:, 0], axis=1)

@@ -1,13 +1,13 @@
-"""diagnose on every public recording of a real magnetometer in ../shared/real-data (issue 14): it runs on
-each, bursty time base included (2 ms bursts with 20-60 ms between them were taken for 2,958 gaps and
-left nothing to fit), and says what its residual follows."""
+"""diagnose on every public recording of a real magnetometer in ../shared/real-data (issue 14; found by
+tests/real_data.py): it runs on each, bursty time base included (2 ms bursts with 20-60 ms between them were
+taken for 2,958 gaps and left nothing to fit), and says what its residual follows."""
 
 from __future__ import annotations
 
 import json
 
 import pytest
-from test_real_sensors import REAL, needs_real
+from real_data import real
 
 from service.wiring.cli import main
 
@@ -18,11 +18,10 @@ TURNS = {"hmc5883l_nliaudat": "z", "hmc5883l_sensorfusion_turn_x": "x", "hmc5883
 
 def _diagnose(name: str, capsys, *extra: str) -> dict:
     capsys.readouterr()
-    assert main(["diagnose", str(REAL / f"{name}.csv"), "--json", *extra]) == 0, capsys.readouterr().err
+    assert main(["diagnose", str(real(f"{name}.csv")), "--json", *extra]) == 0, capsys.readouterr().err
     return json.loads(capsys.readouterr().out)
 
 
-@needs_real
 @pytest.mark.slow
 @pytest.mark.parametrize("name", NAMES)
 def test_diagnose_runs_on_every_real_recording_and_describes_what_is_left(name, capsys):
@@ -31,12 +30,11 @@ def test_diagnose_runs_on_every_real_recording_and_describes_what_is_left(name, 
     assert v["kind"] in ("at the floor", "explained", "partly explained", "unexplained")
     from service.io.recordings.load import load_data
 
-    assert d["n_samples"] >= 0.9 * load_data(REAL / f"{name}.csv").block.n_samples     # the samples are kept
+    assert d["n_samples"] >= 0.9 * load_data(real(f"{name}.csv")).block.n_samples     # the samples are kept
     if v["kind"] in ("partly explained", "unexplained"):
         assert v["left"] and v["advice"], v            # what is left is always described
 
 
-@needs_real
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(TURNS))
 def test_a_real_single_axis_turn_is_refused_unless_a_calibration_is_held(name, capsys, tmp_path):
@@ -44,20 +42,19 @@ def test_a_real_single_axis_turn_is_refused_unless_a_calibration_is_held(name, c
     was 'explained by crossfield' and sent the user to a refused fit. Refused alike, naming the cone and the way
     out; with the board's own sphere calibration held, the turn is diagnosed."""
     capsys.readouterr()
-    assert main(["diagnose", str(REAL / f"{name}.csv")]) == 2
+    assert main(["diagnose", str(real(f"{name}.csv"))]) == 2
     err = capsys.readouterr().err
     axis = TURNS[name]
     assert f"one cone about {axis} (a turn about {axis})" in err and "--calibration CAL.json" in err
     if name.startswith("hmc5883l_sensorfusion"):
         cal = tmp_path / "sphere.json"
-        assert main(["fit", str(REAL / "hmc5883l_sensorfusion_sphere.csv"), "--out", str(cal)]) == 0
+        assert main(["fit", str(real("hmc5883l_sensorfusion_sphere.csv")), "--out", str(cal)]) == 0
         capsys.readouterr()
         d = _diagnose(name, capsys, "--calibration", str(cal))
         assert d["linear"] == "fixed" and d["verdict"]["kind"] in ("at the floor", "explained", "partly explained",
                                                                     "unexplained")
 
 
-@needs_real
 @pytest.mark.slow
 def test_the_bursty_recording_keeps_its_samples(capsys):
     """Every sample, but the 239 that repeat the one before exactly (18.8 expected by chance): the board's driver read
@@ -67,7 +64,6 @@ def test_the_bursty_recording_keeps_its_samples(capsys):
     assert d["rms_nT"] < 2 * d["noise_nT"]                # hand-turned hobby board: ~250 against ~140 nT
 
 
-@needs_real
 @pytest.mark.slow
 def test_an_hour_long_recording_whose_residual_follows_time_says_so(capsys):
     d = _diagnose("imu_freeimucal", capsys)

@@ -216,15 +216,14 @@ def test_separate_turns_make_the_held_out_test_weak_and_it_says_what_would_decid
 @pytest.mark.slow
 @pytest.mark.parametrize("name, kind", [("qmc5883l_suarez", "fan phase"), ("imu_freeimucal", "lagged heater")])
 def test_an_effect_added_to_a_real_recording_is_found_and_its_untouched_copy_claims_nothing(name, kind):
-    from real_effects import CASES, REAL, with_effect
+    from real_data import real
+    from real_effects import CASES, with_effect
 
-    if not REAL.is_dir():
-        pytest.skip(f"{REAL} is absent (public recordings, not in the repository)")
     from service.io.recordings.load import load_data
     from service.numerics.engine import as_effect_data
 
     size = next(s for n, k, s in CASES if (n, k) == (name, kind))
-    touched, control = with_effect(as_effect_data(load_data(REAL / f"{name}.csv")), kind, size)
+    touched, control = with_effect(as_effect_data(load_data(real(f"{name}.csv"))), kind, size)
     d0 = diagnose(control, discover=True)
     assert not d0.discovery.claimed, summary_text(d0)
     d1 = diagnose(touched)

@@ -11,7 +11,8 @@ from drivers.sim import Unit, load_sim_config
 from service.numerics.effects import EFFECTS, Baseline, Drift, Eddy, EffectData, Lag, Model, Temperature, make_model
 from service.numerics.effects.gradient import gradient_basis
 from service.numerics.effects.hysteresis import detect_steps
-from service.numerics.engine import LinearCalibration, fit_with_effects
+from service.numerics.effects.platform import Platform
+from service.numerics.engine import LinearCalibration, Parameter, fit_with_effects
 from service.numerics.noise import robust_noise
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
@@ -232,6 +233,23 @@ def test_platform_fields_seen_through_a_fixed_lab_calibration():
     # a scalar channel sees the symmetric part of the induced matrix (its rotation part is a frame change)
     assert np.max(np.abs((got + got.T) / 2 - ind)) < 3e-5
     assert np.allclose(fit.offset_nT, off) and ch.total_rms_nT < 1.1 * 0.8
+    assert Platform().rules_out(fit.parameters) is None                  # a platform's small induced field
+
+
+def test_a_platform_term_that_cancels_the_field_is_ruled_out():
+    """With A = I and |p| the total field the platform term fits any data exactly: the corrected field is -p. On a
+    real flight log held to a poor calibration the fit went there (A's diagonal 0.95-0.99, 19 nT left under a noise
+    floor of 296 nT) and diagnose called it 'explained by platform'. Ruled out by its physics now."""
+    a = np.diag([0.946, 0.949, 0.992]) + 0.01
+    pars = [Parameter(f"s1.platform permanent {x} nT", v, None, "platform") for x, v in zip("xyz", (-834, 8593, 21713))]
+    pars += [Parameter(f"s1.platform induced[{x}{y}]", a[i, j], 0.03, "platform")
+             for i, x in enumerate("xyz") for j, y in enumerate("xyz")]
+    why = Platform().rules_out(pars)
+    assert why is not None and why.startswith("s1's induced field would be 1.0") and "cancels the measured field" in why
+    v0 = np.random.default_rng(1).normal(0.0, 20000.0, (50, 3))
+    p = np.array([0.0, 0.0, 50000.0])
+    corrected = v0 - Platform().correction(None, np.concatenate([p, np.eye(3).ravel()]), v0)
+    assert np.allclose(np.linalg.norm(corrected, axis=1), 50000.0)          # any data, fitted exactly
 
 
 def test_perming_steps_found_at_their_instants_and_not_in_noise():

@@ -8,19 +8,16 @@ from __future__ import annotations
 
 import json
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
+from real_data import needs_real, real
 
 from drivers.block import SampleBlock
 from drivers.sim import Unit, load_sim_config
 from service.numerics.diagnose import diagnose
 from service.numerics.effects.base import EffectData
 from service.numerics.holds import find_holds, without_holds
-
-ROOT = Path(__file__).resolve().parents[2]
-REAL = ROOT.parent / "shared" / "real-data"
 
 
 def _tumbling(seed: int, pink: float) -> SampleBlock:
@@ -109,15 +106,29 @@ def test_a_coarse_sensors_holds_are_found(sigma):
     assert h.by_chance["s1"] < 0.2 * n
 
 
-@pytest.mark.skipif(not (REAL / "hmc5883l_sensorfusion_sphere.csv").is_file(),
-                    reason="../shared/real-data is absent (public recordings, see its README)")
+@needs_real("hmc5883l_sensorfusion_sphere.csv", "qmc5883l_suarez.csv")
 def test_real_bursty_board_repeats():
     """The HMC5883L board read in bursts faster than the sensor converts: 239 exact repeats of 8,190, 20 by chance."""
     from service.io.recordings.load import load_data
 
-    lab = load_data(REAL / "hmc5883l_sensorfusion_sphere.csv")
+    lab = load_data(real("hmc5883l_sensorfusion_sphere.csv"))
     h = find_holds(lab.block.field_nT, lab.probe_names)
     assert h.counts["s1"] == 239 and h.by_chance["s1"] == pytest.approx(19.8, abs=0.1)
     assert int(h.held.sum()) == 239
-    q = load_data(REAL / "qmc5883l_suarez.csv")
+    q = load_data(real("qmc5883l_suarez.csv"))
     assert not find_holds(q.block.field_nT, q.probe_names).held.any()
+
+
+def test_a_sensor_that_never_changes_is_refused_not_a_crash(tmp_path, capsys):
+    """A real ArduPilot log (erlerobot/logs pxf/copter/31-3-2015/83.BIN) logged one compass value 784 times (its
+    offsets on a zero reading): counted as chance repeats of a coarse sensor, kept, and diagnose divided by a median
+    field of zero. It says what the samples are now."""
+    from service.wiring.cli import main
+
+    path = tmp_path / "stuck.csv"
+    t = np.arange(800) * 0.1
+    path.write_text("t,s1_x,s1_y,s1_z\n" + "".join(f"{x:.1f},-3600,100,-5600\n" for x in t))
+    capsys.readouterr()
+    assert main(["diagnose", str(path)]) == 2
+    assert "s1: all 800 samples are the same vector (-3600, 100, -5600 nT): the sensor did not measure" in \
+        capsys.readouterr().err

@@ -7,20 +7,16 @@ noise, which keeps its errors."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
+from real_data import real
 
 from drivers.block import SampleBlock
 from drivers.sim.config import load_sim_config
 from drivers.sim.world import World
 from service.io.recordings.load import load_data
 from service.wiring.pipeline import Pipeline
-
-ROOT = Path(__file__).resolve().parents[2]
-REAL = ROOT.parent / "shared" / "real-data"
-needs_real = pytest.mark.skipif(not REAL.is_dir(), reason=f"{REAL} is absent (public recordings, not in the repository)")
 
 
 def _serve(block: SampleBlock, *, spread: bool, total_nT: float | None = None, check_every: int = 1000,
@@ -36,19 +32,18 @@ def _serve(block: SampleBlock, *, spread: bool, total_nT: float | None = None, c
 
 
 def _published(name: str) -> np.ndarray:
-    pub = json.loads((REAL / f"{name}.published.json").read_text())
+    pub = json.loads(real(f"{name}.published.json").read_text())
     scale = pub["data"]["scale_to_nT"]
     if "A" in pub:                                       # m = A raw + B: the offset is -A^-1 B
         return -np.linalg.solve(np.asarray(pub["A"]), np.asarray(pub["B"])) * scale
     return np.asarray(pub["offset"]) * scale
 
 
-@needs_real
 @pytest.mark.parametrize("name", ["qmc5883l_suarez", "imu_freeimucal"])
 def test_the_services_offset_errors_cover_what_a_real_boards_authors_published(name):
     """The live offsets at the end of the recording were 3.4-7.4 of the estimator's own errors from the
     published ones; now within four of the stated errors, which rose several times."""
-    block = load_data(REAL / f"{name}.csv").block
+    block = load_data(real(f"{name}.csv")).block
     white = _serve(block, spread=False).calibration.probes[0]
     live = _serve(block, spread=True).calibration.probes[0]
     assert np.array_equal(live.offset_nT, white.offset_nT)           # the estimate itself is untouched

@@ -4,10 +4,10 @@ partial coverage against their own full spheres, white noise left alone, a reduc
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
+from real_data import real
 from test_coverage import M_TRUE, O_TRUE, TOTAL_NT, _pink, wobbling_turns
 
 from service.io.recordings.load import load_data
@@ -15,9 +15,6 @@ from service.numerics.calib.ellipsoid import fit_ellipsoid
 from service.numerics.calib.misfit import direction_jackknife, time_jackknife
 from service.wiring import cli
 
-ROOT = Path(__file__).resolve().parents[2]
-REAL = ROOT.parent / "shared" / "real-data"
-needs_real = pytest.mark.skipif(not REAL.is_dir(), reason=f"{REAL} is absent (public recordings, not in the repository)")
 BOARDS = ["qmc5883l_suarez", "imu_freeimucal", "hmc5883l_sensorfusion_sphere"]
 
 
@@ -30,7 +27,6 @@ def _cuts(raw: np.ndarray) -> dict[str, np.ndarray]:
     return cuts
 
 
-@needs_real
 def test_cuts_of_real_spheres_land_within_their_stated_errors_of_the_full_fit(tmp_path, capsys):
     """Eight cuts (hemispheres, bands) of each board's full sphere, fitted by `fluxcal fit`, against the full
     sphere's offsets. With the noise's errors alone (white and coloured) 18 of 72 offsets were beyond two
@@ -38,7 +34,7 @@ def test_cuts_of_real_spheres_land_within_their_stated_errors_of_the_full_fit(tm
     difference from the full model, 10 and 2 (worst 3.2). The angles likewise."""
     z, za = [], []
     for name in BOARDS:
-        data = load_data(REAL / f"{name}.csv")
+        data = load_data(real(f"{name}.csv"))
         raw, t = data.block.field_nT[:, 0], data.block.t_s
         whole = fit_ellipsoid(raw).calibration
         full, angles = whole.offset_nT, np.asarray(whole.params["nonorth_deg"]["value"])
@@ -61,10 +57,9 @@ def test_cuts_of_real_spheres_land_within_their_stated_errors_of_the_full_fit(tm
     assert np.count_nonzero(za > 3) <= 2 and np.count_nonzero(za > 2) <= 6 and za.max() < 4.5, np.sort(za)[-6:]
 
 
-@needs_real
 @pytest.mark.parametrize("name", BOARDS)
 def test_a_real_boards_residual_follows_the_direction_wherever_its_origin(name):
-    raw = load_data(REAL / f"{name}.csv").block.field_nT[:, 0]
+    raw = load_data(real(f"{name}.csv")).block.field_nT[:, 0]
     got = []
     for shift, factor in ((np.zeros(3), 1.0), (np.array([2e6, -1e6, 5e5]), 1e-3)):
         moved = (raw + shift) * factor
@@ -96,12 +91,11 @@ def test_white_noise_keeps_its_errors_and_1f_noise_is_said(seed):
     assert np.all(np.abs(timed.offset_nT - O_TRUE) < 4 * timed.offset_se_nT), (timed.offset_nT, timed.offset_se_nT)
 
 
-@needs_real
 def test_a_reduced_order_states_its_difference_from_the_full_model():
     """A hemisphere of the freeimucal board fitted with `axes` (the held-out blocks gain nothing from the
     full model's three angles): its z offset was 621 nT from the full sphere's with a stated error of 86; the
     full model's offsets differ by 390 nT, which its own errors (42) do not explain: now in the error, and said."""
-    raw = load_data(REAL / "imu_freeimucal.csv").block.field_nT[:, 0]
+    raw = load_data(real("imu_freeimucal.csv")).block.field_nT[:, 0]
     cut = _cuts(raw)["+x"]
     fit = fit_ellipsoid(raw[cut])
     full = fit_ellipsoid(raw).calibration.offset_nT

@@ -2,7 +2,8 @@
 depend on where the origin is or what the unit is.
 
 The recordings are public data in ../shared/real-data (its README): hand-turned hobby boards with
-their authors' published calibrations. They are read from there, never copied into the project.
+their authors' published calibrations. They are read from there (or $FLUXCAL_REAL_DATA: tests/real_data.py),
+never copied into the project.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from real_data import find, real
 
 from drivers.block import SampleBlock
 from drivers.errors import CalibrationRefused
@@ -32,15 +34,13 @@ from service.wiring.pipeline import Pipeline
 COVERS = ("service.numerics.calib.excitation",)
 
 ROOT = Path(__file__).resolve().parents[2]
-REAL = ROOT.parent / "shared" / "real-data"
-needs_real = pytest.mark.skipif(not REAL.is_dir(), reason=f"{REAL} is absent (public recordings, not in the repository)")
 FULL_SPHERE = ["qmc5883l_suarez", "imu_freeimucal", "hmc5883l_sensorfusion_sphere"]
 PARTIAL = ["hmc5883l_nliaudat", "hmc5883l_sensorfusion_turn_x", "hmc5883l_sensorfusion_turn_y",
            "hmc5883l_sensorfusion_turn_z"]
 
 
 def raw_of(name: str) -> np.ndarray:
-    return load_data(REAL / f"{name}.csv").block.field_nT[:, 0, :]
+    return load_data(real(f"{name}.csv")).block.field_nT[:, 0, :]
 
 
 def spread(b: np.ndarray) -> float:
@@ -51,8 +51,8 @@ def spread(b: np.ndarray) -> float:
 
 def authors_calibrated(name: str, raw_nT: np.ndarray) -> np.ndarray | None:
     """The recording calibrated as its authors published (None where they published nothing)."""
-    path = REAL / f"{name}.published.json"
-    if not path.exists():
+    path = find(f"{name}.published.json")
+    if path is None:
         return None
     pub = json.loads(path.read_text())
     raw = raw_nT / pub["data"]["scale_to_nT"]             # back to the source's own units
@@ -84,7 +84,6 @@ def reference_fit(raw: np.ndarray) -> np.ndarray:
 # --- the full-sphere recordings, raw ---------------------------------------------------------------
 
 
-@needs_real
 @pytest.mark.parametrize("name", FULL_SPHERE)
 def test_a_full_sphere_with_a_large_offset_fits_raw_as_well_as_the_best_reference(name):
     raw = raw_of(name)
@@ -101,7 +100,6 @@ def test_a_full_sphere_with_a_large_offset_fits_raw_as_well_as_the_best_referenc
     assert fit.order == "full" and coverage(raw, centre_nT=cal.offset_nT).fraction > 0.9
 
 
-@needs_real
 def test_the_suarez_board_matches_its_authors_calibration():
     """2.906 % against the authors' 2.904 % spread of |B| (measured; their fit minimised it directly)."""
     raw = raw_of("qmc5883l_suarez")
@@ -109,7 +107,6 @@ def test_the_suarez_board_matches_its_authors_calibration():
     assert abs(ours - spread(authors_calibrated("qmc5883l_suarez", raw))) < 0.0005
 
 
-@needs_real
 @pytest.mark.parametrize("name", FULL_SPHERE)
 def test_coverage_is_counted_about_the_fitted_centre(name):
     """About zero a board with a large offset 'sees' one direction (8 % reported before); about its
@@ -129,7 +126,6 @@ def _moved(raw: np.ndarray, shift: np.ndarray, factor: float):
     return (raw + shift) * factor
 
 
-@needs_real
 @pytest.mark.parametrize("name", FULL_SPHERE)
 def test_moving_a_real_recording_moves_only_the_offset(name):
     raw = raw_of(name)
@@ -207,15 +203,13 @@ def _check_honest(proc: subprocess.CompletedProcess) -> dict | None:
     return out
 
 
-@needs_real
 @pytest.mark.parametrize("name", PARTIAL)
 def test_partial_real_recordings_are_fitted_honestly_or_refused_with_the_turn(name):
-    out = _check_honest(_run_fit(REAL / f"{name}.csv"))
+    out = _check_honest(_run_fit(real(f"{name}.csv")))
     if out is not None:
         assert out["warnings"], "partial coverage must never pass without a word"
 
 
-@needs_real
 @pytest.mark.parametrize("name", ["qmc5883l_suarez", "imu_freeimucal"])
 @pytest.mark.parametrize("keep", ["+z", "-x", "plane"])
 def test_cuts_of_real_recordings_are_fitted_honestly_or_refused(tmp_path, name, keep):
@@ -235,7 +229,6 @@ def test_cuts_of_real_recordings_are_fitted_honestly_or_refused(tmp_path, name, 
     _check_honest(_run_fit(path))
 
 
-@needs_real
 @pytest.mark.parametrize("axis", "xyz")
 def test_a_real_single_axis_turn_is_refused_naming_its_axis_wherever_the_origin(axis):
     """A hand turn about one axis wobbles a few degrees; fitted anyway, the offset along the axis came out
@@ -253,7 +246,6 @@ def test_a_real_single_axis_turn_is_refused_naming_its_axis_wherever_the_origin(
     assert 3.0 < bands[0] < 9.0 and bands[0] == bands[1]
 
 
-@needs_real
 @pytest.mark.parametrize("method", ["tmi", "rls"])
 def test_every_method_that_fits_the_offsets_refuses_a_real_single_axis_turn(method, capsys):
     """The cone refusal guarded the default method only: `fit --method tmi` gave turn_x's x offset 9,417 ± 590
@@ -263,14 +255,13 @@ def test_every_method_that_fits_the_offsets_refuses_a_real_single_axis_turn(meth
 
     for name, axis in (("hmc5883l_sensorfusion_turn_x", "x"), ("hmc5883l_sensorfusion_turn_z", "z"),
                        ("hmc5883l_nliaudat", "z")):
-        assert main(["fit", str(REAL / f"{name}.csv"), "--method", method, "--site", "46.5,6.6,400"]) == 2
+        assert main(["fit", str(real(f"{name}.csv")), "--method", method, "--site", "46.5,6.6,400"]) == 2
         assert f"one cone about {axis} (a turn about {axis})" in capsys.readouterr().err
-    assert main(["fit", str(REAL / "qmc5883l_suarez.csv"), "--method", method, "--site", "46.5,6.6,400", "--json"]) == 0
+    assert main(["fit", str(real("qmc5883l_suarez.csv")), "--method", method, "--site", "46.5,6.6,400", "--json"]) == 0
     off = np.asarray(json.loads(capsys.readouterr().out)["sensors"][0]["offset_nT"])
     assert np.allclose(off, [51623.6, 2085.2, 29009.8], atol=1.0)
 
 
-@needs_real
 @pytest.mark.parametrize("name", FULL_SPHERE)
 def test_wide_cuts_of_real_spheres_are_still_fitted(name):
     """What the cone rule must not refuse: hemispheres and a ±17° band about a plane (read 17-39°)."""
@@ -301,7 +292,6 @@ def test_a_sparse_plane_is_refused_naming_the_turn():
         fit_ellipsoid(raw)
 
 
-@needs_real
 def test_two_step_on_three_real_turns_calibrates_the_sphere_recording_and_ignores_the_origin():
     """[TwoStep] on the board's three single-axis turns (offset ~ a fifth of the field): the turns'
     calibration, applied to the same board's full-sphere recording, leaves 0.66 % spread of |B| (the
@@ -320,7 +310,6 @@ def test_two_step_on_three_real_turns_calibrates_the_sphere_recording_and_ignore
 # --- the online estimator and the service's gate on the same recordings -------------------------------
 
 
-@needs_real
 @pytest.mark.parametrize("name", FULL_SPHERE)
 def test_the_online_estimate_from_any_offset_agrees_with_the_batch_fit(name):
     """Without forgetting the online estimate of a raw recording is the batch fit; with the service's
@@ -356,21 +345,19 @@ def _serve(block, check_every: int = 200, step: int = 100):
     return pl, events
 
 
-@needs_real
 @pytest.mark.parametrize("name", ["qmc5883l_suarez", "imu_freeimucal"])
 def test_the_service_learns_a_real_board_raw_and_its_gate_passes(name):
     raw = raw_of(name)
-    pl, events = _serve(load_data(REAL / f"{name}.csv").block, check_every=1000, step=250)
+    pl, events = _serve(load_data(real(f"{name}.csv")).block, check_every=1000, step=250)
     assert any(e.kind == "calibration" for e in events), [e.detail for e in events][-3:]
     spread_service = spread(pl.calibration.apply(raw[:, None, :])[:, 0])
     assert spread_service < 1.3 * spread(fit_ellipsoid(raw).calibration.apply(raw))
     assert pl.last_gate.coverage > 0.9                               # counted about the estimate's centre
 
 
-@needs_real
 @pytest.mark.parametrize("name", FULL_SPHERE)
 def test_fit_rls_succeeds_on_raw_real_recordings(name):
-    proc = _run_fit(REAL / f"{name}.csv", "--method", "rls")
+    proc = _run_fit(real(f"{name}.csv"), "--method", "rls")
     assert proc.returncode == 0, proc.stderr
     s = json.loads(proc.stdout)["sensors"][0]
     raw = raw_of(name)
@@ -417,15 +404,14 @@ def test_the_effects_fit_starts_and_ends_where_the_origin_does_not_matter():
     assert abs(a.rms_nT - b.rms_nT) < 1e-6
 
 
-@needs_real
 @pytest.mark.parametrize("name", ["imu_freeimucal", "qmc5883l_suarez"])
 def test_fit_offset_errors_cover_the_offsets_the_authors_published(name):
     """Two calibrations of one recording by different methods differ by their errors: `fit`'s offsets against
     those the recording's authors published, within 2.5 of the stated errors. The residual of these hand-turned
     boards is coloured, and the white-noise errors alone were 4.6 (imu_freeimucal) and 5.7 (qmc5883l_suarez)
     times off (measured); `fit` says which the errors cover and how far the offsets wander beyond the record."""
-    out = _check_honest(_run_fit(REAL / f"{name}.csv"))
-    pub = json.loads((REAL / f"{name}.published.json").read_text())
+    out = _check_honest(_run_fit(real(f"{name}.csv")))
+    pub = json.loads((real(f"{name}.published.json")).read_text())
     scale = pub["data"]["scale_to_nT"]
     if "A" in pub:                                       # m = A raw + B: the offset is -A^-1 B
         published = -np.linalg.solve(np.asarray(pub["A"]), np.asarray(pub["B"])) * scale
@@ -437,18 +423,17 @@ def test_fit_offset_errors_cover_the_offsets_the_authors_published(name):
     assert any("wander within the record" in w and "nT per decade of time" in w for w in out["warnings"])
 
 
-@needs_real
 @pytest.mark.parametrize("axis", "xyz")
 def test_the_services_gate_refuses_a_real_single_axis_turn(axis):
     """Fed a hand turn about one axis from an identity calibration, the online gate accepted 2-7 candidates,
     the last with the offset along the axis up to 63,000 nT from the board's full-sphere fit (x: −63,791
     against −643). It now refuses each, naming the cone and the turn to add; the board's full sphere is still
     learned, to within 2 % of the field of its batch fit."""
-    pl, events = _serve(load_data(REAL / f"hmc5883l_sensorfusion_turn_{axis}.csv").block)
+    pl, events = _serve(load_data(real(f"hmc5883l_sensorfusion_turn_{axis}.csv")).block)
     assert pl.calibration is None and not any(e.kind == "calibration" for e in events)
     refusals = [r for e in events if e.kind == "gate" for r in e.detail["reasons"]]
     assert any(f"one cone about {axis} (a turn about {axis})" in r for r in refusals), refusals[-3:]
-    sphere = load_data(REAL / "hmc5883l_sensorfusion_sphere.csv").block
+    sphere = load_data(real("hmc5883l_sensorfusion_sphere.csv")).block
     pl, _ = _serve(sphere)
     raw = sphere.field_nT[:, 0]
     batch = fit_ellipsoid(raw)

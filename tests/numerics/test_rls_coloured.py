@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
+from real_data import needs_real, real
 
 from service.io.recordings.load import load_data
 from service.wiring.cli import main
@@ -18,7 +18,6 @@ from service.wiring.coloured_fit import coloured_offsets
 from service.wiring.fitting import fit_array
 
 ROOT = Path(__file__).resolve().parents[2]
-REAL = ROOT.parent / "shared" / "real-data"
 
 PINK = """[unit]
 n_probes = 1
@@ -63,10 +62,10 @@ def test_rls_offsets_under_1_over_f_noise_gain_the_wander_within_the_record(tmp_
     assert not any("take them as lower bounds" in w for w in out["warnings"])
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason=f"{REAL} is absent (public recordings, not in the repository)")
+@needs_real("qmc5883l_suarez.csv")
 def test_rls_and_the_batch_fit_state_the_same_errors_on_a_real_board():
     def fit(method: str) -> dict:
-        proc = subprocess.run([sys.executable, "-m", "service.wiring.cli", "fit", str(REAL / "qmc5883l_suarez.csv"),
+        proc = subprocess.run([sys.executable, "-m", "service.wiring.cli", "fit", str(real("qmc5883l_suarez.csv")),
                                "--json", "--method", method], capture_output=True, text=True, cwd=ROOT, timeout=300,
                               check=False)
         assert proc.returncode == 0, proc.stderr

@@ -9,7 +9,8 @@
                             fluxcal's convention: R = Rz(yaw) Ry(pitch) Rx(roll))
     GPS (first instance) -> lat_deg, lon_deg, alt_m (Alt: above mean sea level); samples without a 3D fix (Status < 3)
                             left out
-    BAT / CURR Curr      -> battery_current_a (instance 0), battery<i>_current_a (A)
+    BAT / CURR Curr      -> battery_current_a (instance 0), battery<i>_current_a (A; the older CURR, to 3.4, logs it as
+                            an integer in hundredths of an ampere: scaled)
 
 On one time base by service.numerics.merge. The date comes from the GPS week and time of week where the log has
 a fix.
@@ -30,6 +31,8 @@ from service.numerics.merge import Series, merge, quaternion_from_euler
 
 #: ArduPilot logs the field in milligauss
 NT_PER_MILLIGAUSS = 100.0
+#: the older CURR message (ArduPilot to 3.4) logs Curr as an integer: the current in amperes x 100
+AMPERES_PER_INTEGER_CURR = 0.01
 #: GPS time = UNIX time + leap seconds (18 since 2017-01-01) from 1980-01-06
 GPS_EPOCH_UNIX_S = 315964800.0
 GPS_LEAP_S = 18.0
@@ -56,6 +59,16 @@ def _stream(name: str, msg: Any) -> tuple[str, int]:
         if v is not None and base != "ATT":
             return base, int(v)
     return ("BAT" if base == "CURR" else base), inst
+
+
+def _unit(msg: Any, field: str) -> float:
+    """What a field's logged number is multiplied by to give fluxcal's unit: 1, but for a current logged as an integer
+    (CURR to ArduPilot 3.4: hundredths of an ampere; its CurrTot in mAh agrees with that scale)."""
+    if field != "Curr":
+        return 1.0
+    fmt = msg.fmt
+    i = fmt.colhash.get(field)
+    return AMPERES_PER_INTEGER_CURR if i is not None and fmt.format[i] in "bBhHiI" else 1.0
 
 
 def _read(path: Path) -> dict[tuple[str, int], dict[str, list[float]]]:
@@ -86,7 +99,7 @@ def _read(path: Path) -> dict[tuple[str, int], dict[str, list[float]]]:
             d = out.setdefault((kind, inst), {"t_us": []})
             d["t_us"].append(float(t_us))
             for f in want:
-                d.setdefault(f, []).append(float(getattr(msg, f, np.nan)))
+                d.setdefault(f, []).append(float(getattr(msg, f, np.nan)) * _unit(msg, f))
     finally:
         r.close()
     return out

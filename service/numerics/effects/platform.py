@@ -7,13 +7,26 @@ its field induced by the ambient field. (The eddy-current part of Tolles-Lawson 
 While the linear calibration is fitted to the same data, p and A cannot be told from the probe's
 offset and matrix: the term is meant for data taken on the platform with a calibration from the lab
 held fixed (`diagnose --calibration CAL.json`).
+
+A platform's induced field is a small fraction of the ambient field (an aircraft's, 1e-4 to 1e-2 of it). With A = I
+and |p| the total field the term fits any data exactly, noise included: it cancels the measured field and puts a
+constant vector of the field's size in its place. On a real flight log whose held calibration was poor (27 % of the
+field RMS) the fit went there (A's diagonal 0.95-0.99, a residual of 19 nT under a noise floor of 296 nT); an induced
+matrix whose largest singular value reaches MAX_INDUCED is ruled out as no platform's.
 """
 
 from __future__ import annotations
 
+import re
+from typing import Any, Sequence
+
 import numpy as np
 
 from .base import AXES, EffectTerm, ProbeView
+
+#: the largest induced field, as a fraction of the ambient field, a platform's term may take (rules_out)
+MAX_INDUCED = 0.5
+_INDUCED = re.compile(r"(?P<probe>.+)\.platform induced\[(?P<a>[xyz])(?P<b>[xyz])\]$")
 
 
 class Platform(EffectTerm):
@@ -28,6 +41,23 @@ class Platform(EffectTerm):
         "baseline": "hold a calibration made off the platform fixed (diagnose --calibration CAL.json): with the "
                     "probe calibration refitted, platform fields are indistinguishable from offsets and matrix",
     }
+
+    def rules_out(self, parameters: Sequence[Any]) -> str | None:
+        """An induced matrix whose largest singular value reaches MAX_INDUCED: the term replaced the measured field
+        (module docstring), not a platform's field beside it."""
+        induced: dict[str, np.ndarray] = {}
+        for p in parameters:
+            m = _INDUCED.match(p.name)
+            if m:
+                induced.setdefault(m["probe"], np.zeros((3, 3)))[AXES.index(m["a"]), AXES.index(m["b"])] = p.value
+        for probe, a in induced.items():
+            size = float(np.linalg.norm(a, 2))
+            if not size < MAX_INDUCED:
+                left = float(np.linalg.svd(np.eye(3) - a, compute_uv=False).min())
+                return (f"{probe}'s induced field would be {size:.2f} of the ambient field (a platform's is a small "
+                        f"fraction of it): the fit cancels the measured field (what is left of it along one "
+                        f"direction: {left:.2g} of it) and puts a constant vector in its place, which fits any data")
+        return None
 
     def param_names(self, view: ProbeView) -> list[str]:
         p = view.name

@@ -7,7 +7,7 @@ import warnings
 
 import numpy as np
 
-from drivers.errors import CalibrationRefused
+from drivers.errors import CalibrationRefused, DataError
 from service.numerics.calib.ellipsoid import fit_ellipsoid
 from service.numerics.calib.quadric import algebraic_ellipsoid
 from service.numerics.effects.base import EffectData, Model
@@ -27,6 +27,10 @@ def initial_linear(data: EffectData, reference_nT: np.ndarray | float | None) ->
     offs, mats = [], []
     for k in range(data.n_probes):
         raw = data.raw_nT[:, k, :]
+        if raw.shape[0] and not np.ptp(raw, axis=0).any():
+            v = ", ".join(f"{x:.6g}" for x in raw[0])
+            raise DataError(f"{data.probe_names[k]}: all {raw.shape[0]:,} samples are the same vector ({v} nT): the "
+                            f"sensor did not measure (stuck, or not there); nothing to calibrate")
         o = m = None
         if reference_nT is not None:
             try:

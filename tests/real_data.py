@@ -1,0 +1,79 @@
+"""Where the tests find the public recordings of real magnetometers and the real flight logs: never in the
+repository (their licences do not all allow it). A file is looked for in ../shared/real-data beside the checkout
+(where CI has it), then in the folder the environment variable FLUXCAL_REAL_DATA names; a test whose file is in
+neither skips, naming both places and where the file comes from.
+
+    from real_data import real, needs_real
+    path = real("qmc5883l_suarez.csv")               # the file, or the test skips (the reason says why)
+    @needs_real("px4_pyulog_sample.ulg")             # a test (or parametrized test) that needs these files
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ENV = "FLUXCAL_REAL_DATA"
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "real-data"
+
+_PYULOG = "github PX4/pyulog @3cf17793f14709713ab297d3743314c658874068"
+_PYMAVLINK = "github ArduPilot/pymavlink @b4c7ca298cfac46aa841994d5d3288143e2fa7e5"
+_ERLE = "github erlerobot/logs @3f7d4a0d17f2485f7fa5cb7124fc2a5b13d6c688"
+_FUSION = "github sunsided/sensor-fusion @f16045a, data/set-2/"
+_CSV = "converted to fluxcal's CSV (the file's header says how) from "
+
+#: where each file comes from: repository, commit, path in it (and licence where it has one)
+SOURCES = {
+    "px4_sample_log_small.ulg": f"{_PYULOG}, test/sample_log_small.ulg (BSD-3-Clause)",
+    "px4_pyulog_sample.ulg": f"{_PYULOG}, test/sample.ulg (BSD-3-Clause)",
+    "ardupilot_pymavlink_test.BIN": f"{_PYMAVLINK}, tests/test.BIN (LGPL-3.0)",
+    "ardupilot_erlerobot_pxf_copter.BIN": f"{_ERLE}, pxf/copter/PXFv2.0b+Rpi.BIN (no licence stated)",
+    "ardupilot_erlerobot_erlebrain3.BIN": f"{_ERLE}, pxf/copter/Erle-Brain3.BIN (no licence stated)",
+    "qmc5883l_suarez.csv": f"{_CSV}github tomisuarez2/MagnetometerCalibration @9590433, "
+                           "calibration data/filtered_raw_data.csv",
+    "imu_freeimucal.csv": f"{_CSV}github uutzinger/freeIMUCal @b15b2d3, mag_data.txt",
+    "hmc5883l_nliaudat.csv": f"{_CSV}github nliaudat/magnetometer_calibration @2f65d06, mag_out_sample.txt",
+    "hmc5883l_sensorfusion_sphere.csv": f"{_CSV}{_FUSION}full-sphere/*.mat (EUPL-1.2)",
+    **{f"hmc5883l_sensorfusion_turn_{a}.csv": f"{_CSV}{_FUSION}rotate-ccw-around-{a}-pointing-{d}/*.mat (EUPL-1.2)"
+       for a, d in (("x", "forward"), ("y", "left"), ("z", "up"))},
+    "qmc5883l_suarez.published.json": "the calibration published in github tomisuarez2/MagnetometerCalibration "
+                                      "@9590433",
+    "imu_freeimucal.published.json": "the calibration published in github uutzinger/freeIMUCal @b15b2d3",
+    "hmc5883l_nliaudat.published.json": "the calibration published in github nliaudat/magnetometer_calibration "
+                                        "@2f65d06",
+}
+
+
+def places() -> list[Path]:
+    """The folders looked in, in order."""
+    extra = os.environ.get(ENV, "").strip()
+    return [SHARED] + ([Path(extra).expanduser()] if extra else [])
+
+
+def find(name: str) -> Path | None:
+    """The first of places() that holds the file `name`, or None."""
+    return next((p / name for p in places() if (p / name).is_file()), None)
+
+
+def absent(name: str) -> str:
+    """Why a test of `name` skips: where it was looked for, and where the file comes from."""
+    env = os.environ.get(ENV, "").strip()
+    where = f"{SHARED}, nor in ${ENV}" + (f" ({env})" if env else " (not set)")
+    return (f"{name} is neither in {where}: public data, never in the repository; it comes from "
+            f"{SOURCES.get(name, 'see ../shared/real-data/README.md')}")
+
+
+def real(name: str) -> Path:
+    """The real-data file `name`; the calling test skips where it is absent (absent(name) says why)."""
+    path = find(name)
+    if path is None:
+        pytest.skip(absent(name))
+    return path
+
+
+def needs_real(*names: str) -> pytest.MarkDecorator:
+    """Skip the test where any of these files is absent (the first one missing named in the reason)."""
+    missing = [n for n in names if find(n) is None]
+    return pytest.mark.skipif(bool(missing), reason=absent(missing[0]) if missing else "")
