@@ -203,5 +203,37 @@ def test_a_refused_linear_part_costs_the_first_fit_only():
     assert max(told) <= 0.05                     # no candidate was tried (they report from 0.1 on)
     full = diagnose(data, candidates=["drift"])
     assert np.allclose(seen[0], full.fit.state.linear.offset_nT)      # the very linear part the diagnosis refits
-    held = diagnose(data, calibration=full.fit.state.linear, candidates=["drift"], check_linear=check)
-    assert held.fit is not None and len(seen) == 1
+    # held: the check is asked of the refit made for comparison only, and its refusal is words, never the diagnosis'
+    from drivers.errors import CalibrationRefused
+
+    def refuse(lin):
+        seen.append(np.array(lin.offset_nT))
+        raise CalibrationRefused("s1: one cone")
+
+    held = diagnose(data, calibration=full.fit.state.linear, candidates=["drift"], check_linear=refuse)
+    assert held.fit is not None and len(seen) == 2
+
+
+def test_a_calibration_held_that_is_off_is_not_sent_to_a_refit_the_data_do_not_determine():
+    """A real copter log held to the autopilot's calibration: 'refitting its linear part alone brings the residual
+    from 6,382 to 1,888 nT (diagnose without --calibration, or fit again)', where diagnose without --calibration
+    refuses those data (one cone). The refit's figure stays, with why it is not determined, never the advice."""
+    from drivers.errors import CalibrationRefused
+
+    data = data_of(sim_block([probe(0)], n=3000, rate=100.0, motion=TUMBLE, seed=43), [probe(0)])
+    lin = diagnose(data, candidates=[]).fit.state.linear
+    off = {"sensors": [{"name": data.probe_names[0], "offset_nT": (lin.offset_nT[0] + [400.0, -300.0, 200.0]).tolist(),
+                        "matrix": lin.matrix[0].tolist()}]}
+
+    def refuse(linear):
+        refused = CalibrationRefused("s1: within one cone about z; or hold one made from a fuller turn fixed")
+        refused.problem = "s1: within one cone about z"
+        raise refused
+
+    for check, says in ((None, "(diagnose without --calibration, or fit again)"),
+                        (refuse, "in-sample, but these data do not determine that refit (s1: within one cone about z)"
+                                 ": a calibration of the same sensor from a fuller turn, held here, would tell")):
+        d = diagnose(data, calibration=off, candidates=[], check_linear=check)
+        assert d.verdict["kind"] == "unexplained" and d.linear_refit_rms_nT < 0.5 * d.rms_nT
+        assert says in d.verdict["advice"], d.verdict["advice"]
+        assert (check is None) == ("diagnose without --calibration" in d.verdict["advice"])

@@ -373,3 +373,35 @@ def test_a_column_logged_but_never_changing_is_named_not_asked_for():
     bare = EffectData(t_s=np.arange(n) * 0.1, raw_nT=np.ones((n, 1, 3)), temp_C=np.full((n, 1), np.nan),
                       probe_names=["s1"], extras={})
     assert "log the" in Column().why_unavailable(bare)
+
+
+def test_a_nonlinearity_that_folds_the_transfer_back_within_the_readings_is_ruled_out():
+    """A real copter log's compass held to a poor calibration: the nonlinearity term fitted q = -2e-4 /nT over
+    readings of +-20,000 nT and took the verdict ('partly explained'); its transfer r = u + q u^2 + c u^3 would fold
+    back within those readings (slope 1 + 2 q u = -7 at 20,000 nT). A real fluxgate's stays within 1e-3 of 1."""
+    from types import SimpleNamespace
+
+    from service.numerics.effects import make_term
+    from service.numerics.effects.base import ReadingSpan
+
+    term = make_term("nonlinearity")
+    span = ReadingSpan(["s1"], np.array([[-20000.0, -15000.0, -3000.0]]), np.array([[21000.0, 14000.0, 2500.0]]))
+
+    def params(q, c):
+        return [SimpleNamespace(name=f"s1.{a} quadratic 1/nT", value=q, stderr=1e-9) for a in "xyz"] + \
+               [SimpleNamespace(name=f"s1.{a} cubic 1/nT2", value=c, stderr=1e-14) for a in "xyz"]
+
+    why = term.rules_out_over(params(-2e-4, 0.0), span)
+    assert why is not None and "s1's x transfer would fold back" in why and "21,000 nT" in why
+    assert term.rules_out_over(params(2e-7, -1e-12), span) is None         # a fluxgate's: slope within 1e-2 of 1
+    # a cubic alone: 1 + 3 c u^2 with c = -4e-10 is 0.47 at 21,000 nT (x's upper end), below MIN_SLOPE; on narrow
+    # readings (-3,000..2,500 nT: 0.99) it passes
+    why = term.rules_out_over(params(0.0, -4e-10), span)
+    assert why is not None and "s1's x transfer would lose 53% of its gain" in why and "21,000 nT" in why
+    narrow = ReadingSpan(["s1"], np.array([[-3000.0] * 3]), np.array([[2500.0] * 3]))
+    assert term.rules_out_over(params(0.0, -4e-10), narrow) is None
+    # a slope whose least value lies between the ends (c > 0: at u = -q / 3c = 2,000 nT, 1 - q^2 / 3c = 0.4) while
+    # both ends pass (1.75 at -1,000 nT, 0.55 at 3,000 nT): judged at its turning point
+    inside = ReadingSpan(["s1"], np.array([[-1000.0] * 3]), np.array([[3000.0] * 3]))
+    why = term.rules_out_over(params(-3e-4, 5e-8), inside)
+    assert why is not None and "slope 0.4 at 2,000 nT" in why

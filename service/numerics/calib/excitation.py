@@ -150,4 +150,6 @@ def refuse_one_cone(raw_nT: np.ndarray, offsets_nT, matrices, total_nT, probe_na
     for k, name in enumerate(probe_names):
         problem = turn_problem(raw_nT[:, k], offsets_nT[k], matrices[k], total_nT)
         if problem:
-            raise CalibrationRefused(f"{name}: {problem}{then}")
+            refused = CalibrationRefused(f"{name}: {problem}{then}")
+            refused.problem = f"{name}: {problem}"            # what is not determined, for advice that quotes it
+            raise refused

@@ -63,8 +63,8 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
 
     calibration: a linear calibration to hold fixed (the model compared is then exactly that
     calibration plus the effects); None refits the linear part. fix_linear overrides that choice.
-    check_linear(linear): called with a refitted linear part as soon as the model is fitted, before any candidate
-    (it may raise: a refusal then costs the first fit only, not the whole diagnosis).
+    check_linear(linear): asked of the refitted linear part before any candidate (a refusal costs the first fit
+    only); where the calibration is held, of the refit made for comparison (a refusal is then said in the advice).
     discover: look for the missing term in the library beyond the catalogue (discover.py): None (the default) where
     the catalogue leaves an excess (the verdict unexplained or partly explained), True always, False never."""
     def tell(frac: float, msg: str) -> None:
@@ -85,10 +85,11 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     cur_ho = heldout(cur)
     if not cur.converged:
         notes.append(f"the model fit stopped after {cur.iterations} iterations without converging")
-    linear_refit = None
+    linear_refit = refit_refused = None
     if fixed:                               # what refitting the calibration held would give, for comparison
         tell(0.1, "linear refit for comparison")
-        linear_refit = fit_model(ed, Model([Baseline()]) + model, linear, reference, weights, n_blocks=n_blocks).rms_nT
+        refit = fit_model(ed, Model([Baseline()]) + model, linear, reference, weights, n_blocks=n_blocks)
+        linear_refit, refit_refused = refit.rms_nT, _refused(check_linear, refit.state.linear)
 
     # 2. the candidates: each effect not in the model, fitted beside it and judged on held-out blocks (fits.py)
     names = list(candidates) if candidates is not None else [n for n in known_effects() if n not in model]
@@ -121,7 +122,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
         best = next((c for c in cands if c.significant and c.fit is not None), None)
 
     weak = heldout_weakness(cur, cur_ho.rms_nT)
-    _last_advice(told, notes, cur, best, found, weak, cands, linear_refit, noise_nT, stretch)
+    _last_advice(told, notes, cur, best, found, weak, cands, (linear_refit, refit_refused), noise_nT, stretch)
     notes += _coloured_noise_notes(sig_cur.get("spectral_slope"), model.effects, ed.duration_s)
 
     tell(1.0, "done")
@@ -210,10 +211,23 @@ def _try_each(ed, model, cur, cur_ho, names: list[str], reference, weights, n_bl
     return cands
 
 
-def _last_advice(told: dict, notes: list[str], cur, best, found, weak, cands, linear_refit, noise_nT: float,
+def _refused(check_linear: Callable[[Any], None] | None, linear: Any) -> str | None:
+    """Why `check_linear` refuses the linear part `linear` (None: it takes it, or there is no check)."""
+    if check_linear is None:
+        return None
+    try:
+        check_linear(linear)
+    except CalibrationRefused as e:
+        return getattr(e, "problem", None) or str(e)     # what is not determined, without the refusal's way out
+    return None
+
+
+def _last_advice(told: dict, notes: list[str], cur, best, found, weak, cands, refit: tuple, noise_nT: float,
                  stretch) -> None:
     """What the verdict and the notes say last: a weak held-out test, a fit stopped early, a calibration held that is
-    off, a disturbance in time."""
+    off (refit: the residual of the linear part refitted, and why these data do not determine it, or None), a
+    disturbance in time."""
+    linear_refit, refit_refused = refit
     if weak is not None:
         notes.append(f"the held-out test is weak here: {weak['reason']}; {weak['advice']}")
         if found is not None and found.claimed:
@@ -229,7 +243,10 @@ def _last_advice(told: dict, notes: list[str], cur, best, found, weak, cands, li
     if (linear_refit is not None and best is None and told["kind"] == "unexplained"
             and linear_refit < (1.0 - 0.1) * cur.rms_nT):
         told["advice"] = (f"the calibration held is off: refitting its linear part alone brings the residual from "
-                          f"{cur.rms_nT:.3f} to {linear_refit:.3f} nT (diagnose without --calibration, or fit again)"
+                          f"{cur.rms_nT:.3f} to {linear_refit:.3f} nT "
+                          + ("(diagnose without --calibration, or fit again)" if refit_refused is None else
+                             f"in-sample, but these data do not determine that refit ({refit_refused}): a calibration "
+                             f"of the same sensor from a fuller turn, held here, would tell")
                           + (f"; then: {told['advice']}" if told.get("advice") and
                              linear_refit > FLOOR_FACTOR * noise_nT else ""))
     if stretch is not None and told["kind"] == "unexplained":

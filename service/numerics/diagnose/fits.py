@@ -11,7 +11,7 @@ from scipy import stats
 
 from drivers.errors import FluxcalError
 from service.numerics.effects import Model, known_effects, make_term
-from service.numerics.effects.base import EffectData, EffectTerm
+from service.numerics.effects.base import EffectData, EffectTerm, ReadingSpan
 from service.numerics.effects.hysteresis import no_step_reason
 from service.numerics.engine import (
     RANK_TOL,
@@ -187,7 +187,9 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
         c.significant = False
         c.refusal = "within its errors of zero"
         c.reason = wald
-    ruled_out = term.rules_out(c.parameters) if c.significant else None
+    ruled_out = ((term.rules_out(c.parameters)
+                  or term.rules_out_over(c.parameters, ReadingSpan.of(ed, fit.state.linear.offset_nT)))
+                 if c.significant else None)
     if ruled_out:                  # a shape the effect's physics does not take (perming that came back)
         c.significant = False
         c.refusal = "its physics rules it out"

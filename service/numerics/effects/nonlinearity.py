@@ -11,9 +11,17 @@ uses du/dq = -u^2 / D, du/dc = -u^3 / D, D = 1 + 2 q u + 3 c u^2.
 
 from __future__ import annotations
 
+import re
+from typing import Any, Sequence
+
 import numpy as np
 
-from .base import AXES, EffectTerm, ProbeView, axis_columns
+from .base import AXES, EffectTerm, ProbeView, ReadingSpan, axis_columns
+
+#: the least slope dr/du = 1 + 2 q u + 3 c u^2 a sensor's transfer keeps over its readings (real fluxgates: within
+#: 1e-3 of 1): below it the fitted q and c bend the transfer until it (nearly) folds back, no sensor's
+MIN_SLOPE = 0.5
+_COEF = re.compile(r"(?P<probe>.+)\.(?P<axis>[xyz]) (?P<kind>quadratic|cubic) 1/nT2?$")
 
 
 def invert(r: np.ndarray, q: np.ndarray, c: np.ndarray, iterations: int = 3) -> np.ndarray:
@@ -48,6 +56,28 @@ class Nonlinearity(EffectTerm):
     def param_names(self, view: ProbeView) -> list[str]:
         p = view.name
         return [f"{p}.{a} quadratic 1/nT" for a in AXES] + [f"{p}.{a} cubic 1/nT2" for a in AXES]
+
+    def rules_out_over(self, parameters: Sequence[Any], span: ReadingSpan) -> str | None:
+        """A transfer whose slope falls below MIN_SLOPE within the readings (a real log's compass held to a poor
+        calibration: q = -2e-4 /nT over readings of +-20,000 nT, the response folded back on itself): the term bent
+        itself to the data, it is not the sensor's. The slope is judged at the readings' ends and, for a cubic, at
+        its turning point where that lies between them."""
+        coef: dict[tuple[str, int], list[float]] = {}
+        for p in parameters:
+            m = _COEF.match(p.name)
+            if m and m["probe"] in span.probe_names:
+                coef.setdefault((m["probe"], AXES.index(m["axis"])), [0.0, 0.0])[m["kind"] == "cubic"] = p.value
+        for (probe, a), (q, c) in coef.items():
+            k = span.probe_names.index(probe)
+            lo, hi = float(span.low_nT[k, a]), float(span.high_nT[k, a])
+            at = [lo, hi] + ([-q / (3 * c)] if c != 0 and lo < -q / (3 * c) < hi else [])
+            slopes = [1 + 2 * q * u + 3 * c * u * u for u in at]
+            worst = int(np.argmin(slopes))
+            if slopes[worst] < MIN_SLOPE:
+                how = "fold back" if slopes[worst] <= 0 else f"lose {1 - slopes[worst]:.0%} of its gain"
+                return (f"{probe}'s {AXES[a]} transfer would {how} within its readings (slope {slopes[worst]:.2g} at {at[worst]:,.0f} nT about the offset; a "
+                        f"sensor's stays near 1): the term bent itself to the data")
+        return None
 
     def _u(self, view: ProbeView, theta: np.ndarray) -> np.ndarray:
         return invert(view.centred_nT, theta[:3], theta[3:])
