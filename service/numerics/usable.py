@@ -78,6 +78,20 @@ def usable_samples(block: SampleBlock, probe_names: Sequence[str]) -> Usable:
     return Usable(keep=keep, notes=notes, dropped=dropped)
 
 
+def refuse_stuck(field_nT: np.ndarray, probe_names: Sequence[str]) -> None:
+    """DataError for a probe whose every sample (N, P, 3) is the same vector: the sensor did not measure (stuck, or
+    not there). fit and diagnose ask it before fitting (a real ArduPilot log's compass, 784 identical rows, crashed
+    diagnose and was called 'a single-axis turn' by fit)."""
+    from drivers.errors import DataError
+
+    for k, name in enumerate(probe_names):
+        raw = field_nT[:, k, :]
+        if raw.shape[0] and not np.ptp(raw, axis=0).any():
+            v = ", ".join(f"{x:.6g}" for x in raw[0])
+            raise DataError(f"{name}: all {raw.shape[0]:,} samples are the same vector ({v} nT): the sensor did not "
+                            f"measure (stuck, or not there); nothing to calibrate")
+
+
 def temperature_notes(block: SampleBlock | np.ndarray, probe_names: Sequence[str]) -> list[str]:
     """Per probe with some but not all temperatures invalid (NaN, or ICD bit1): how many, and what the
     temperature terms do with them (they take the temperature interpolated in time from the valid ones).

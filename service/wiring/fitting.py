@@ -21,6 +21,7 @@ from service.numerics.calib.ellipsoid import fit_ellipsoid
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 from service.numerics.channels import channel_names
 from service.numerics.jsonsafe import json_safe
+from service.numerics.usable import refuse_stuck
 
 #: the probe-samples a nonlinear fit over every sample (diagnose's candidates, fit --effects) is given by default:
 #: a longer recording is thinned to every k-th sample, and the output says so. Such a fit holds about 3 kB per
@@ -125,6 +126,7 @@ def fit_array(data: LabData, *, method: str = "ellipsoid", align: str | None = N
     """Every probe fitted by `method`, then aligned (arrays: regression by default)."""
     b = data.block
     _refuse_non_finite(data)
+    refuse_stuck(b.field_nT, data.probe_names)
     total = total_field(data, configured_total_nT)
     p = b.n_probes
     if align is None and p > 1:

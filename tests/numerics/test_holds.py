@@ -128,7 +128,9 @@ def test_a_sensor_that_never_changes_is_refused_not_a_crash(tmp_path, capsys):
     path = tmp_path / "stuck.csv"
     t = np.arange(800) * 0.1
     path.write_text("t,s1_x,s1_y,s1_z\n" + "".join(f"{x:.1f},-3600,100,-5600\n" for x in t))
-    capsys.readouterr()
-    assert main(["diagnose", str(path)]) == 2
-    assert "s1: all 800 samples are the same vector (-3600, 100, -5600 nT): the sensor did not measure" in \
-        capsys.readouterr().err
+    for command in (["diagnose"], ["fit"], ["fit", "--method", "rls"]):      # fit called it 'a single-axis turn'
+        capsys.readouterr()
+        assert main([*command, str(path)]) == 2
+        err = capsys.readouterr().err
+        assert "s1: all 800 samples are the same vector (-3600, 100, -5600 nT): the sensor did not measure" in err
+        assert "turn" not in err

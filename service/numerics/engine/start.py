@@ -7,11 +7,12 @@ import warnings
 
 import numpy as np
 
-from drivers.errors import CalibrationRefused, DataError
+from drivers.errors import CalibrationRefused
 from service.numerics.calib.ellipsoid import fit_ellipsoid
 from service.numerics.calib.quadric import algebraic_ellipsoid
 from service.numerics.effects.base import EffectData, Model
 from service.numerics.noise import channel_noise
+from service.numerics.usable import refuse_stuck
 
 from .linear import LinearCalibration
 from .problem import Problem
@@ -24,13 +25,10 @@ def initial_linear(data: EffectData, reference_nT: np.ndarray | float | None) ->
     """A starting linear calibration: an ellipsoid per probe (service.numerics.calib.ellipsoid), then each
     probe regressed onto probe 1 ([TwoFluxgate] eq. 10-16) for the alignment. Gauss-Newton refines it."""
     f_total = None if reference_nT is None else float(np.median(reference_nT))
+    refuse_stuck(data.raw_nT, data.probe_names)
     offs, mats = [], []
     for k in range(data.n_probes):
         raw = data.raw_nT[:, k, :]
-        if raw.shape[0] and not np.ptp(raw, axis=0).any():
-            v = ", ".join(f"{x:.6g}" for x in raw[0])
-            raise DataError(f"{data.probe_names[k]}: all {raw.shape[0]:,} samples are the same vector ({v} nT): the "
-                            f"sensor did not measure (stuck, or not there); nothing to calibrate")
         o = m = None
         if reference_nT is not None:
             try:
