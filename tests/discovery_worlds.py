@@ -33,14 +33,15 @@ from service.numerics.effects.thermal import low_pass
 ROOT = Path(__file__).resolve().parents[1]
 F_TOTAL = 51500.0
 KINDS = ("temperature rotation", "fan phase", "core loop", "lagged heater", "supply scale", "common line")
-#: what the discovered groups must name, per kind: (observable, kind of group, a word of the reading)
+#: what the discovered groups must name, per kind: (observable, kinds of group, words of the reading); a scale that
+#: follows the supply is a `scale` group (its offset and scale factors) or the scale part of a `matrix`
 TRUTH = {
-    "temperature rotation": ("s2_temp", "matrix", ("s2_temp", "rotation")),
-    "fan phase": ("fan_hz", "wave", ("fan_hz", "phase")),
-    "core loop": ("rate of s3", "loop", ("s3", "sign of each axis' rate")),
-    "lagged heater": ("heater_A", "offset", ("heater_A", "lag")),
-    "supply scale": ("vbus_V", "matrix", ("vbus_V", "scale")),
-    "common line": ("residual", "common wave", ("1.37 Hz", "common to all probes")),
+    "temperature rotation": ("s2_temp", ("matrix",), ("s2_temp", "rotation")),
+    "fan phase": ("fan_hz", ("wave",), ("fan_hz", "phase")),
+    "core loop": ("rate of s3", ("loop",), ("s3", "sign of each axis' rate")),
+    "lagged heater": ("heater_A", ("offset",), ("heater_A", "lag")),
+    "supply scale": ("vbus_V", ("scale", "matrix"), ("vbus_V", "scale")),
+    "common line": ("residual", ("common wave",), ("1.37 Hz", "common to all probes")),
 }
 TUMBLE = {"kind": "tumble", "rate_deg_s": 30.0, "tumble_period_s": 6.0}
 
@@ -153,10 +154,10 @@ def named(d: Any, kind: str, probe: str | None = None) -> bool:
     f = getattr(d, "discovery", None)
     if f is None or not f.claimed:
         return False
-    obs, group_kind, words = TRUTH[kind]
+    obs, group_kinds, words = TRUTH[kind]
     if probe is not None:
         obs = obs.replace("s2", probe).replace("s3", probe)
         words = tuple(w.replace("s2", probe).replace("s3", probe) for w in words)
     advice = (d.verdict or {}).get("advice") or ""
-    return any(g.observable == obs and g.group.kind == group_kind and all(w in g.reading for w in words)
+    return any(g.observable == obs and g.group.kind in group_kinds and all(w in g.reading for w in words)
                for g in f.groups) and all(w in advice for w in words)

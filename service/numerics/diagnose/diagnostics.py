@@ -287,8 +287,8 @@ def _coloured_noise_notes(slope: float | None, effects: Sequence[str], duration_
     if effects:
         out.append(f"a wander of the noise at periods as long as the record ({duration_s:.0f} s) looks like a drift, "
                    f"a step or any slow effect; their standard errors come from that power law, extended to those "
-                   f"periods at least as steeply as flicker (1/f) noise: a noise that steepens further there (a "
-                   f"random walk of the offsets) would make them too small")
+                   f"periods as flicker (1/f) noise: a noise that steepens there (a random walk of the offsets) "
+                   f"would make them too small")
     return out
 
 

@@ -5,18 +5,21 @@
    at most SCREEN_ROWS rows spread evenly over each block (the residual, the model's Jacobian and each group's
    response: a probe's group in its scalar channel and its differences, a common one in the scalar channels). For
    each fold (the blocks less one) and for all blocks, the SHORTLIST groups whose F-test beside the model, on those
-   blocks alone, is strongest and below P_SIGNIFICANT over the number of groups tried.
+   blocks alone, is strongest and below P_SIGNIFICANT over the number of groups tried. The lines and bands a fold
+   may follow are those its training blocks show (fold_waves).
 2. Grouped forward selection among a fold's shortlist, every choice made inside its training blocks (the dense
    normal equations of the shortlists' union): the group whose F-test is strongest is added while its p-value is
    below that level and, leaving each training block out in turn, its held-out gain is at least MIN_GAIN and
    GAIN_SIGMAS standard errors (block to block) above zero; at most MAX_GROUPS. The F-test alone passes a real
-   residual's structure (on a real hand-turned sphere it chose four groups in every fold, three of them noise). The
-   low-pass time constant, the speed's unit and the frequency are which group of the library is chosen, so they
-   are chosen there too.
+   residual's structure (on a real hand-turned sphere it chose four groups in every fold, three of them noise),
+   and prefers a larger group there: one that holds a smaller (an offset and scale, its offset) is taken only
+   where it predicts the training blocks better than the smaller. The low-pass time constant, the speed's unit and
+   the frequency are which group of the library is chosen, so they are chosen there too.
 3. The procedure judged on held-out blocks: for each block, the selection run on the others and the block
    predicted by what it chose and fitted there. Discovery claims a set of groups only where that held-out gain
    is at least MIN_GAIN and GAIN_SIGMAS standard errors above zero (exact for the linearised problem).
-4. The set chosen on all blocks (a lag's time constant then refined between its grid neighbours) fitted by the
+4. The set chosen on all blocks (a lag's time constant then refined between its grid neighbours, a loop's sign
+   taken again from the reading less its steps) fitted by the
    engine beside the model (all rows, Gauss-Newton, 1/f-aware standard errors); a group stays only where its
    parameters stand beyond their errors (jointly, or one alone) at P_SIGNIFICANT over the number of groups tried;
    read back as physics with standard errors.
@@ -40,9 +43,19 @@ from service.numerics.jsonsafe import finite_or_none as _num
 from service.numerics.jsonsafe import json_safe as _plain
 
 from .fits import Heldout, _beyond_errors, _compare, _fit_beside, heldout
-from .library import TAU_RATIO, Group, GroupTerm, Library, build_library, relagged
+from .library import (
+    TAU_RATIO,
+    Group,
+    GroupTerm,
+    Library,
+    build_library,
+    loop_feature,
+    relagged,
+    wave_features,
+    wave_groups,
+)
 from .result import GAIN_SIGMAS, MIN_GAIN, P_SIGNIFICANT
-from .selection import SHORTLIST, crossval, marginals, normals, rss_of, select, shortlist
+from .selection import SHORTLIST, blocks_of, crossval, fit_all, marginals, normals, rss_of, select, shortlist
 
 
 @dataclass
@@ -127,7 +140,7 @@ def discover(data: EffectData, base: FitResult, base_ho: Heldout, reference: np.
             progress(msg)
 
     lib = library or build_library(data, base, 1.0 / weights)
-    groups = lib.groups
+    groups = list(lib.groups)
     out = Discovery(tried=len(groups), tried_params=lib.n_params, claimed=False, groups=[],
                     base_rms_nT=base.rms_nT, base_heldout_rms_nT=base_ho.rms_nT, floor_nT=floor_nT,
                     taus_s=lib.taus_s, lines_hz=lib.lines_hz, borrowed=lib.borrowed)
@@ -135,15 +148,25 @@ def discover(data: EffectData, base: FitResult, base_ho: Heldout, reference: np.
         out.reason = "the data carry nothing to build a group from"
         return out
     p_level = P_SIGNIFICANT / len(groups)
+    n_lib = len(groups)
+    # the lines and bands each fold's selection may follow: those its own training blocks show
+    extra, owner, hidden = fold_waves(data, base, 1.0 / weights, groups, blocks_of(base))
+    groups += extra
     tell(f"screening {len(groups)} groups")
     mg = marginals(data, base, groups)
     k = mg.sse.size
-    lists = [shortlist(mg, [j for j in range(k) if j != b], p_level, SHORTLIST) for b in range(k)]
-    lists.append(shortlist(mg, list(range(k)), p_level, SHORTLIST))
+    lists = [shortlist(mg, [j for j in range(k) if j != b], p_level, SHORTLIST,
+                       [i for i in range(len(groups)) if (i < n_lib and i not in hidden[b])
+                        or (i >= n_lib and owner[i - n_lib] == b)]) for b in range(k)]
+    lists.append(shortlist(mg, list(range(k)), p_level, SHORTLIST, list(range(n_lib))))
     union = sorted(set().union(*lists))
+    # the offset group each scale group holds, which the selection takes instead where the scale adds nothing
+    held = {(g.probe, g.feature.name): i for i, g in enumerate(groups) if g.kind == "offset"}
+    union = sorted(set(union) | {held[(groups[i].probe, groups[i].feature.name)] for i in union
+                                 if groups[i].kind == "scale" and (groups[i].probe, groups[i].feature.name) in held})
     if not union:
         out.reason = (f"no group's F-test beside the model reaches p < {p_level:.2g} (P_SIGNIFICANT over the "
-                      f"{len(groups)} groups tried)")
+                      f"{n_lib} groups tried)")
         return out
     tell(f"selection inside training blocks among {len(union)} groups")
     nm = normals(data, base, [groups[i] for i in union])
@@ -163,8 +186,47 @@ def discover(data: EffectData, base: FitResult, base_ho: Heldout, reference: np.
                       f"standard errors; needs {100 * MIN_GAIN:g} % and {GAIN_SIGMAS:g})")
         return out
     tell("fitting the groups found")
-    return conclude(out, data, base, base_ho, refine_lags(data, base, [groups[i] for i in chosen]), reference,
-                    weights, n_blocks, p_level)
+    kept = refine_loops(data, base, refine_lags(data, base, [groups[i] for i in chosen]))
+    return conclude(out, data, base, base_ho, kept, reference, weights, n_blocks, p_level)
+
+
+#: a line that a fold's training blocks show is the whole residual's where their frequencies differ by at most this
+#: many cycles per record (a phase error of a few degrees over the record)
+SAME_LINE_CYCLES = 0.1
+
+
+def fold_waves(data: EffectData, base: FitResult, noise: np.ndarray, groups: list[Group],
+               edges: list[tuple[int, int]]) -> tuple[list[Group], list[int], list[set[int]]]:
+    """The residual chooses the lines and the bands (a column's phase tried where its band holds excess power) that
+    the library follows; seen on the whole residual, a held-out block's own noise would have helped choose them. So
+    each fold looks at its training blocks alone: a wave of the library its training blocks do not show is hidden
+    from its selection, and one they show that the library lacks is added for it alone. Returns (the groups added,
+    the fold each belongs to, per fold the indices in `groups` hidden from it)."""
+    full = {id(g.feature): g.feature for g in groups if g.kind in ("wave", "common wave")}
+    extra: list[Group] = []
+    owner: list[int] = []
+    hidden: list[set[int]] = []
+    for b, span in enumerate(edges):
+        seen, new = set(), []
+        for f in wave_features(data, base, noise, exclude=span):
+            same = next((m for m in full.values() if _same_wave(f, m, data.duration_s)), None)
+            if same is None:
+                new.append(f)
+            else:
+                seen.add(id(same))
+        hidden.append({i for i, g in enumerate(groups) if id(g.feature) in full and id(g.feature) not in seen})
+        added = wave_groups(data, new)
+        extra += added
+        owner += [b] * len(added)
+    return extra, owner, hidden
+
+
+def _same_wave(f: Any, g: Any, duration_s: float) -> bool:
+    if f.how != g.how:
+        return False
+    if f.how == "phase":
+        return f.recipe["column"] == g.recipe["column"] and f.recipe["cycles_per_unit"] == g.recipe["cycles_per_unit"]
+    return abs(f.recipe["hz"] - g.recipe["hz"]) * duration_s <= SAME_LINE_CYCLES
 
 
 def conclude(out: Discovery, data: EffectData, base: FitResult, base_ho: Heldout, kept: list[Group],
@@ -234,6 +296,31 @@ def refine_lags(data: EffectData, base: FitResult, groups: list[Group]) -> list[
             if rss < best_rss:
                 best, best_rss = cand, rss
         out[i] = best
+    return out
+
+
+#: a chosen loop is refined at most this many times (its steps fitted beside the groups chosen, its sign taken again
+#: from the reading less them: library.loop_feature) while the sum of squares falls
+LOOP_REFINE = 4
+
+
+def refine_loops(data: EffectData, base: FitResult, groups: list[Group]) -> list[Group]:
+    """Each loop chosen, its sign taken again from the reading less its fitted steps (the claim was decided on the
+    reading's own rate, inside training blocks; this only takes the loop's own steps out of the rate it follows)."""
+    out = list(groups)
+    for i, g in enumerate(groups):
+        if g.kind != "loop":
+            continue
+        nm = normals(data, base, out)
+        d, best_rss = fit_all(nm)
+        for _ in range(LOOP_REFINE):
+            f = loop_feature(data, g.probe, g.feature.name, np.asarray(g.feature.recipe["scale"]), d[nm.spans[i]])
+            trial = out[:i] + [Group(g.kind, g.probe, g.probe_name, f)] + out[i + 1:]
+            nm = normals(data, base, trial)
+            d, rss = fit_all(nm)
+            if not rss < best_rss:
+                break
+            out, best_rss = trial, rss
     return out
 
 
@@ -311,6 +398,18 @@ def matrix_parts(values: np.ndarray, cov: np.ndarray, m: np.ndarray) -> dict[str
     return out
 
 
+def scale_parts(values: np.ndarray, cov: np.ndarray) -> dict[str, Any]:
+    """A scale group's 6 values (offset nT, scale ppm per unit, per axis of the probe) in its two parts with standard
+    errors and their joint Wald statistic."""
+    out: dict[str, Any] = {}
+    for part, sl in (("offset", slice(0, 3)), ("scale", slice(3, 6))):
+        v, c = values[sl], cov[sl, sl]
+        wald = _wald(v, c)
+        out[part] = {"values": v.tolist(), "stderr": np.sqrt(np.clip(np.diag(c), 0.0, None)).tolist(), "wald": wald,
+                     "significant": bool(wald >= stats.chi2.isf(P_SIGNIFICANT, 3)), "frame": "probe"}
+    return out
+
+
 def read_group(g: Group, term: str, params: list[Parameter], fit: FitResult) -> FoundGroup:
     """A group's parameters as physics, in the probe's and the aligned (platform) frame, with standard errors."""
     values, cov = _covariance(fit, term)
@@ -328,6 +427,20 @@ def read_group(g: Group, term: str, params: list[Parameter], fit: FitResult) -> 
                 f"{who} follows {src} (it shows in the scalar channels and cancels in the differences)")
         reading = (f"{head}: ({', '.join(f'{v:.3g}' for v in values)}) +- ({', '.join(f'{s:.2g}' for s in se)}) "
                    f"{unit} on the {'platform' if g.common else 'probe'}'s x, y, z axes")
+    elif g.kind == "scale":
+        parts.update(scale_parts(values, cov))
+        off, sc = parts["offset"], parts["scale"]
+        if sc["significant"] or (not off["significant"] and sc["wald"] >= off["wald"]):
+            v, se = np.asarray(sc["values"]), np.asarray(sc["stderr"])
+            i = int(np.argmax(np.abs(v)))
+            reading = (f"{g.probe_name}'s scale factors follow {src}: scale {v[i]:.3g} +- {se[i]:.2g} ppm{f.per} of "
+                       f"the probe's {AXES[i]} ({', '.join(f'{x:.3g}' for x in v)} ppm{f.per} on x, y, z), its offset "
+                       f"({', '.join(f'{x:.3g}' for x in off['values'])}) +- "
+                       f"({', '.join(f'{x:.2g}' for x in off['stderr'])}) nT{f.per}")
+        else:
+            reading = (f"{g.probe_name}'s offset follows {src} (its scale factors within their errors): "
+                       f"({', '.join(f'{x:.3g}' for x in off['values'])}) +- "
+                       f"({', '.join(f'{x:.2g}' for x in off['stderr'])}) nT{f.per} on the probe's x, y, z axes")
     elif g.kind == "matrix":
         parts.update(matrix_parts(values, cov, fit.state.linear.matrix[g.probe]))
         named = {p: parts[p] for p in MATRIX_PARTS}

@@ -8,13 +8,18 @@ parameters are defined against, kept with the written effect):
   (time constants on a grid of ratio 3: the selection chooses among them inside its training blocks);
 - the phase of a logged speed or frequency column (2 pi times its time integral, in Hz, rpm or rad/s as its
   name says, else tried as Hz and rpm where the residual has power in that band), cosine and sine;
-- the spectral lines of the residual (peaks standing LINE_FACTOR above their neighbourhood), cosine and sine;
+- the spectral lines of the residual (spectra.py: peaks standing above their neighbourhood), cosine and sine;
 - the smooth sign of each axis' rate of change, tanh(rate / s) (a core's loop: an offset that depends on
   whether the field along the axis rises or falls).
 
 Groups of a few parameters in physical units. Per probe, in its raw frame (subtracted before its matrix):
 
     offset   x e_a                          nT per unit of x, per axis
+    scale    x e_a, 1e-6 x u_a e_a          nT and ppm per unit: the offset and the scale factors follow x, the
+                                            catalogue's temperature term for any observable (a supply or a heater
+                                            that moves a probe's gain moves its offset too, and a gain that acts on
+                                            the raw output, or about any centre, is a scale about the fitted centre
+                                            and an offset)
     matrix   1e-6 x u_j e_i, u = raw - o     ppm per unit: the probe's matrix follows x, read back as scale
                                             (diagonal), non-orthogonality (symmetric) and rotation (antisymmetric)
     wave     cos(phi) e_a, sin(phi) e_a     nT: a field at a phase
@@ -35,22 +40,18 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.signal import welch
 
 from service.numerics.effects.base import AXES, EffectData, EffectTerm, ProbeView, axis_columns
 from service.numerics.effects.column import usable_columns
 from service.numerics.effects.thermal import low_pass
+
+from .spectra import excess_spectra, spectral_lines
 
 #: low-pass time constants: from a quarter of the record down by factors of 3, at most this many
 N_TAUS = 4
 TAU_RATIO = 3.0
 #: the smallest time constant tried, in sample intervals (shorter is the value itself)
 MIN_TAU_SAMPLES = 20
-#: a spectral line: a Welch bin this many times the median of its neighbourhood, holding this share of a channel's
-#: excess power; at most MAX_LINES lines
-LINE_FACTOR = 8.0
-LINE_SHARE = 0.05
-MAX_LINES = 2
 #: the phase of an unnamed positive column is tried where its band holds this share of some channel's excess power
 BAND_SHARE = 0.2
 #: the smooth sign of a rate: tanh(rate / (LOOP_SCALE std(rate)))
@@ -86,8 +87,8 @@ class Feature:
 
 @dataclass
 class Group:
-    """A few parameters that follow one feature: kind offset, matrix, wave, loop (per probe, raw frame) or common
-    offset, common wave (all probes, corrected frame)."""
+    """A few parameters that follow one feature: kind offset, scale, matrix, wave, loop (per probe, raw frame) or
+    common offset, common wave (all probes, corrected frame)."""
 
     kind: str
     probe: int | None                # None: common to all probes
@@ -112,7 +113,8 @@ class Group:
 
     @property
     def size(self) -> int:
-        return {"offset": 3, "matrix": 9, "wave": 6, "loop": 3, "common offset": 3, "common wave": 6}[self.kind]
+        return {"offset": 3, "scale": 6, "matrix": 9, "wave": 6, "loop": 3, "common offset": 3,
+                "common wave": 6}[self.kind]
 
     @property
     def slow(self) -> bool:
@@ -122,6 +124,8 @@ class Group:
         p, f = self.probe_name, self.feature
         if self.kind in ("offset", "common offset"):
             return [f"{p}.{f.name} {a} nT{f.per}" for a in AXES]
+        if self.kind == "scale":
+            return [f"{p}.{f.name} {a} nT{f.per}" for a in AXES] + [f"{p}.{f.name} {a} ppm{f.per}" for a in AXES]
         if self.kind == "matrix":
             return [f"{p}.{f.name} [{a}{b}] ppm{f.per}" for a in AXES for b in AXES]
         if self.kind in ("wave", "common wave"):
@@ -144,6 +148,12 @@ class Group:
             out[:, idx, 3 + idx] = v[:, 1:2]
             return out
         u = data.raw_nT[rows, self.probe, :] - offset_nT[self.probe]
+        if self.kind == "scale":
+            out = np.zeros((n, 3, 6))
+            idx = np.arange(3)
+            out[:, idx, idx] = v[:, None]
+            out[:, idx, 3 + idx] = 1e-6 * v[:, None] * u
+            return out
         out = np.zeros((n, 3, 9))
         for i in range(3):
             out[:, i, 3 * i:3 * i + 3] = 1e-6 * v[:, None] * u
@@ -184,6 +194,29 @@ def loop_values(rate: np.ndarray, scale: np.ndarray) -> np.ndarray:
     return np.tanh(rate / scale)
 
 
+#: a refined loop's sign is taken again this many times from the reading less its steps (loop_feature)
+LOOP_PASSES = 2
+
+
+def loop_feature(data: EffectData, k: int, label: str, scale: np.ndarray,
+                 less_nT: np.ndarray | None = None) -> Feature:
+    """The smooth sign of each axis' rate of probe k (a core's loop). The core follows the field's rate, not the
+    reading's, and its own steps are in the reading: each step puts a spike of its own sign in the reading's rate
+    where the field's turns, and on a noisy real board the sign chatters there (an offset stepping 250 nT with the
+    sign of a 50-Hz board's rate, found from the reading's rate: held-out error 1.16 times the untouched board's;
+    from the field's: 1.00). less_nT: the steps fitted (nT per axis); the sign is then taken again LOOP_PASSES times
+    from the reading less the steps times the sign before."""
+    scale = np.asarray(scale, float)
+    values = loop_values(data.rate(k), scale)
+    recipe: dict[str, Any] = {"source": "sign of rate", "scale": [float(x) for x in scale]}
+    if less_nT is not None:
+        raw = data.raw_nT[:, k, :]
+        for _ in range(LOOP_PASSES):
+            values = loop_values(data.derivative(raw - np.asarray(less_nT, float) * values), scale)
+        recipe.update(less_nT=[float(x) for x in less_nT], passes=LOOP_PASSES)
+    return Feature(label, f"rate of {data.probe_names[k]}", "", "sign of rate", recipe, values, per_sample=False)
+
+
 def temperature_features(data: EffectData) -> list[tuple[int, Feature]]:
     """(probe, its temperature as a feature): its own, or the others' mean (borrowed, said)."""
     if not data.has_temperature():
@@ -213,22 +246,6 @@ def _low_passed(data: EffectData, f: Feature, raw: np.ndarray, taus: list[float]
     return out
 
 
-def _series(fit: Any, noise: np.ndarray) -> list[tuple[np.ndarray, float]]:
-    """The residual as sets of series whose summed spectrum shows a field at a frequency, each with its white
-    floor (one-sided density): per probe its scalar residual times each component of its field direction (a
-    field b cos(w t) on the probe puts n.b cos(w t) in its scalar channel: the carrier at w is in r n, not in r,
-    whose spectrum the turning direction spreads into sidebands), per difference vector its three axes."""
-    pr, vals = fit.problem, fit.channels.values
-    dt = float(np.median(np.diff(fit.channels.t_s)))
-    out = []
-    for k in range(pr.P):
-        out.append((vals[:, k:k + 1] * fit.ev.nhat[k], 2.0 * float(noise[k]) ** 2 * dt))
-    for k in range(1, pr.P):
-        cols = pr._cols("diff", k)
-        out.append((vals[:, cols], 2.0 * float(np.sum(noise[cols] ** 2)) * dt))
-    return out
-
-
 def relagged(data: EffectData, f: Feature, tau_s: float) -> Feature:
     """A low-passed feature again at another time constant (from its recipe: a temperature or a column)."""
     r = f.recipe
@@ -240,71 +257,6 @@ def relagged(data: EffectData, f: Feature, tau_s: float) -> Feature:
     values, centre = _centred(low_pass(data.t_s, raw, tau_s))
     return Feature(f"{base} low-passed {tau_s:g} s", f.observable, f.unit, "low-passed",
                    {**r, "low_pass_s": tau_s, "centre": centre}, values, per_sample=False, borrowed=f.borrowed)
-
-
-def _excess_spectra(fit: Any, noise: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per set of series (_series): (frequencies, excess power density over its white floor)."""
-    n = fit.channels.values.shape[0]
-    if n < 256:
-        return []
-    dt = float(np.median(np.diff(fit.channels.t_s)))
-    nper = int(2 ** np.floor(np.log2(n / 8)))
-    out = []
-    for x, white in _series(fit, noise):
-        f, p = welch(x - x.mean(0), fs=1.0 / dt, nperseg=nper, axis=0)
-        out.append((f[1:], np.clip(p[1:].sum(axis=1) - white, 0.0, None)))
-    return out
-
-
-def spectral_lines(fit: Any, noise: np.ndarray) -> list[float]:
-    """Frequencies (Hz) of the residual's spectral lines: Welch peaks (of the sets of series of _series) standing
-    LINE_FACTOR above the median of their neighbourhood and holding LINE_SHARE of a set's excess, strongest first
-    (MAX_LINES), each refined on the whole residual to a fraction of a Welch bin (the largest summed periodogram
-    over a fine grid about it)."""
-    t = fit.channels.t_s
-    n = t.size
-    if n < 512:
-        return []
-    dt = float(np.median(np.diff(t)))
-    nper = int(2 ** np.floor(np.log2(n / 8)))
-    sets = _series(fit, noise)
-    peaks: list[tuple[float, float, int]] = []
-    for c, (x, white) in enumerate(sets):
-        f, p = welch(x - x.mean(0), fs=1.0 / dt, nperseg=nper, axis=0)
-        p = p.sum(axis=1)
-        excess = np.clip(p - white, 0.0, None)
-        tot = float(excess[1:].sum())
-        if tot <= 0:
-            continue
-        half = 16
-        padded = np.pad(p, half, mode="edge")
-        hood = np.median(np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1), axis=1)
-        local_max = np.zeros(p.size, bool)
-        local_max[1:-1] = (p[1:-1] >= p[:-2]) & (p[1:-1] >= p[2:])
-        cand = np.flatnonzero(local_max & (p >= LINE_FACTOR * np.maximum(hood, white)))
-        for i in cand[cand >= 4]:
-            share = float(excess[max(1, i - 2):i + 3].sum()) / tot
-            if share >= LINE_SHARE:
-                peaks.append((share * tot / white, float(f[i]), c))
-    peaks.sort(reverse=True)
-    out: list[float] = []
-    df = 1.0 / (nper * dt)
-    stride = max(1, n // 50000)
-    for _, f0, c in peaks:
-        if any(abs(f0 - g) < 3 * df for g in out):
-            continue
-        grid = np.linspace(f0 - df, f0 + df, 81)
-        x = sets[c][0][::stride]
-        e = np.exp(-2j * np.pi * np.outer(grid, t[::stride] - t[0]))
-        pw = np.sum(np.abs(e @ (x - x.mean(0))) ** 2, axis=1)
-        i = int(np.clip(np.argmax(pw), 1, grid.size - 2))
-        # the peak between grid points: the vertex of the parabola through the three about the largest
-        y0, y1, y2 = np.log(np.maximum(pw[i - 1:i + 2], 1e-300))
-        shift = 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2) if (y0 - 2 * y1 + y2) < 0 else 0.0
-        out.append(float(f"{grid[i] + np.clip(shift, -1, 1) * (grid[1] - grid[0]):.6g}"))
-        if len(out) >= MAX_LINES:
-            break
-    return out
 
 
 def _phase_scales(name: str) -> tuple[list[float], bool]:
@@ -355,6 +307,23 @@ def line_features(data: EffectData, lines: list[float]) -> list[Feature]:
     return out
 
 
+def wave_features(data: EffectData, fit: Any, noise: np.ndarray,
+                  exclude: tuple[int, int] | None = None) -> list[Feature]:
+    """The features the residual itself chooses: the phases of the columns whose band holds some of its excess
+    power (phase_features) and its spectral lines. exclude: rows of the fit not looked at (a held-out block)."""
+    spectra = excess_spectra(fit, noise, exclude)
+    lines = line_features(data, spectral_lines(fit, noise, exclude))
+    return phase_features(data, spectra, usable_columns(data)) + lines
+
+
+def wave_groups(data: EffectData, waves: list[Feature]) -> list[Group]:
+    """The groups of build_library that follow these wave features: each probe's, and the common one of an array."""
+    out = [Group("wave", k, data.probe_names[k], f) for k in range(data.n_probes) for f in waves]
+    if data.n_probes > 1:
+        out += [Group("common wave", None, "common", f) for f in waves]
+    return out
+
+
 # --- the library -------------------------------------------------------------------------------------------
 
 @dataclass
@@ -401,14 +370,13 @@ def build_library(data: EffectData, fit: Any, noise: np.ndarray) -> Library:
         wv, wc = _centred(w)
         extra.append(Feature("angular rate", "angular rate", "deg/s", "value",
                              {"source": "angular rate", "centre": wc}, wv, per_sample=False))
-    spectra = _excess_spectra(fit, noise)
-    waves = phase_features(data, spectra, cols) + line_features(data, spectral_lines(fit, noise))
+    waves = wave_features(data, fit, noise)
 
     groups: list[Group] = []
     for k in range(data.n_probes):
         pname = names[k]
         for f in per_probe[k] + column_features + extra:
-            groups += [Group("offset", k, pname, f), Group("matrix", k, pname, f)]
+            groups += [Group(kind, k, pname, f) for kind in ("offset", "scale", "matrix")]
         groups.append(Group("matrix", k, pname, time_f))
         groups += [Group("wave", k, pname, f) for f in waves]
         rate = data.rate(k)
@@ -416,10 +384,7 @@ def build_library(data: EffectData, fit: Any, noise: np.ndarray) -> Library:
             scale = s * np.std(rate, axis=0)
             if np.all(scale > 0):
                 label = "sign of rate" if len(LOOP_SCALES) == 1 else f"sign of rate ({s:g})"
-                lf = Feature(label, f"rate of {pname}", "", "sign of rate",
-                             {"source": "sign of rate", "scale": [float(x) for x in scale]},
-                             loop_values(rate, scale), per_sample=False)
-                groups.append(Group("loop", k, pname, lf))
+                groups.append(Group("loop", k, pname, loop_feature(data, k, label, scale)))
     if data.n_probes > 1:
         groups += [Group("common offset", None, "common", f) for f in shared]
         groups += [Group("common wave", None, "common", f) for f in waves]

@@ -4,11 +4,11 @@ whole procedure. Numerics only."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from scipy import special, stats
 
 from service.numerics.effects.base import EffectData
 from service.numerics.engine import FitResult, solve_normal
@@ -53,6 +53,12 @@ class Normals:
     n: np.ndarray
     n_model: int
     spans: list[slice]
+    nested: list[int | None] = field(default_factory=list)    # per group, a smaller group it holds (nested_in)
+
+
+def blocks_of(fit: FitResult, split: int = BLOCK_SPLIT) -> list[tuple[int, int]]:
+    """Discovery's time blocks: (start, stop) positions in the fit's rows."""
+    return _edges(fit, split)
 
 
 def _edges(fit: FitResult, split: int) -> list[tuple[int, int]]:
@@ -125,7 +131,14 @@ def normals(data: EffectData, fit: FitResult, groups: list[Group], max_rows: int
             jl, idx = local
             a[b][np.ix_(idx, idx)] += jl.T @ jl
             gv[b, idx] += jl.T @ rl
-    return Normals(a, gv, sse, cnt, pr.n_params, spans)
+    return Normals(a, gv, sse, cnt, pr.n_params, spans, nested_in(groups))
+
+
+def nested_in(groups: list[Group]) -> list[int | None]:
+    """Per group, the index among `groups` of a smaller group it holds, else None: a scale group (offset and scale
+    factors following x) holds the offset group of the same probe and feature."""
+    where = {(g.kind, g.probe, g.feature.name): i for i, g in enumerate(groups)}
+    return [where.get(("offset", g.probe, g.feature.name)) if g.kind == "scale" else None for g in groups]
 
 
 @dataclass
@@ -185,14 +198,16 @@ def marginals(data: EffectData, fit: FitResult, groups: list[Group], max_rows: i
     return out
 
 
-def shortlist(mg: Marginals, train: list[int], p_level: float, size: int) -> list[int]:
-    """The groups whose F-test beside the model alone, on the train blocks, is below p_level: the `size` strongest."""
+def shortlist(mg: Marginals, train: list[int], p_level: float, size: int,
+              candidates: list[int] | None = None) -> list[int]:
+    """The groups whose F-test beside the model alone, on the train blocks, is below p_level: the `size` strongest
+    (among `candidates`, where given)."""
     a_mm, g_m, sse = mg.a_mm[train].sum(0), mg.g_m[train].sum(0), float(mg.sse[train].sum())
     n_t = float(mg.n[train].sum())
     pm = a_mm.shape[0]
     rss0, rank0 = rss_of(a_mm, g_m, sse, np.arange(pm))
     scored = []
-    for i in range(len(mg.a_gg)):
+    for i in range(len(mg.a_gg)) if candidates is None else candidates:
         agg, agm, gg = mg.a_gg[i][train].sum(0), mg.a_gm[i][train].sum(0), mg.g_g[i][train].sum(0)
         a = np.block([[a_mm, agm.T], [agm, agg]])
         g = np.concatenate([g_m, gg])
@@ -201,11 +216,44 @@ def shortlist(mg: Marginals, train: list[int], p_level: float, size: int) -> lis
         if dp <= 0 or not rss1 < rss0:
             continue
         dof = max(n_t - rank1, 1.0)
-        logp = float(stats.f.logsf(((rss0 - rss1) / dp) / (max(rss1, 1e-300) / dof), dp, dof))
+        logp = f_logsf(((rss0 - rss1) / dp) / (max(rss1, 1e-300) / dof), dp, dof)
         if logp <= np.log(p_level):
             scored.append((logp, -(rss0 - rss1), i))
     scored.sort()
     return [i for _, _, i in scored[:size]]
+
+
+def f_logsf(f: float, d1: float, d2: float) -> float:
+    """ln P(F > f) for F(d1, d2), also where the probability is below the smallest float: there scipy gives -inf,
+    and the groups of a strong effect all tied at -inf were then ranked by their sum of squares alone, which the
+    larger group always wins (an offset that follows a lagged heater lost to the 6 parameters of its offset and
+    scale). The tail is I_x(d2/2, d1/2), x = d2 / (d2 + d1 f) (log_betainc)."""
+    v = float(stats.f.logsf(f, d1, d2))
+    if np.isfinite(v) or not f > 0:
+        return v
+    return log_betainc(0.5 * d2, 0.5 * d1, d2 / (d2 + d1 * f))
+
+
+def log_betainc(a: float, b: float, x: float) -> float:
+    """ln I_x(a, b), the regularised incomplete beta function, for x below (a + 1) / (a + b + 2), by its continued
+    fraction (modified Lentz, as Numerical Recipes' betacf), where it converges: x^a (1 - x)^b / (a B(a, b)) times
+    the fraction, taken in logarithms so that it holds far below the smallest float."""
+    tiny = 1e-300
+    qab, qap, qam = a + b, a + 1.0, a - 1.0
+    c, d = 1.0, 1.0 - qab * x / qap
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    h = d
+    for m in range(1, 10000):
+        m2 = 2 * m
+        for aa in (m * (b - m) * x / ((qam + m2) * (a + m2)), -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2))):
+            d = 1.0 + aa * d
+            d = 1.0 / (d if abs(d) > tiny else tiny)
+            c = 1.0 + aa / c
+            c = c if abs(c) > tiny else tiny
+            h *= d * c
+        if abs(d * c - 1.0) < 1e-12:
+            break
+    return float(a * np.log(x) + b * np.log1p(-x) - np.log(a) - special.betaln(a, b) + np.log(h))
 
 
 # --- the selection, inside training blocks ------------------------------------------------------------
@@ -225,6 +273,13 @@ def _solve(a: np.ndarray, g: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, i
 def rss_of(a: np.ndarray, g: np.ndarray, sse: float, idx: np.ndarray) -> tuple[float, int]:
     d, rank = _solve(a, g, idx)
     return sse + float(g[idx] @ d), rank
+
+
+def fit_all(nm: Normals) -> tuple[np.ndarray, float]:
+    """The linearised fit of the model and every group on all blocks: (delta, its weighted sum of squares)."""
+    a, g = nm.a.sum(0), nm.g.sum(0)
+    d, _ = _solve(a, g, np.arange(a.shape[0]))
+    return d, float(nm.sse.sum()) + float(g @ d)
 
 
 def heldout_sse(nm: Normals, idx: np.ndarray, train: list[int], test: list[int]) -> np.ndarray:
@@ -250,7 +305,11 @@ def _passes(sse_base: np.ndarray, sse_with: np.ndarray, n: np.ndarray) -> tuple[
 
 def select(nm: Normals, train: list[int], p_level: float, max_groups: int = MAX_GROUPS,
            allowed: np.ndarray | None = None) -> list[int]:
-    """Grouped forward selection on the train blocks alone (the module doc, step 2): the groups chosen, in order."""
+    """Grouped forward selection on the train blocks alone (the module doc, step 2): the groups chosen, in order.
+    Where the strongest group holds a smaller one of the same feature (a scale group its offset), the smaller is
+    taken unless the larger's held-out gain beside it passes the held-out rule: the smallest set that predicts (on
+    a real residual, whose structure the F-test takes for signal, the 6 parameters of a heater's offset and scale
+    outranked its offset alone and predicted the held-out blocks worse)."""
     a_t, g_t, sse_t = nm.a[train].sum(0), nm.g[train].sum(0), float(nm.sse[train].sum())
     n_t = float(nm.n[train].sum())
     log_level = np.log(p_level)
@@ -269,14 +328,20 @@ def select(nm: Normals, train: list[int], p_level: float, max_groups: int = MAX_
                 continue
             dof = max(n_t - rank1, 1.0)
             f = ((rss0 - rss1) / dp) / (max(rss1, 1e-300) / dof)
-            logp = float(stats.f.logsf(f, dp, dof))
+            logp = f_logsf(f, dp, dof)
             key = (logp, -(rss0 - rss1))
             if best is None or key < best[0]:
                 best = (key, gi)
         if best is None or best[0][0] > log_level:
             break
         gi = best[1]
-        with_g = np.concatenate([base, np.arange(nm.spans[gi].start, nm.spans[gi].stop)])
+        sub = nm.nested[gi] if nm.nested else None
+        if sub is not None and sub not in chosen:
+            with_sub = _idx(nm, chosen + [sub])
+            if not _passes(heldout_sse(nm, with_sub, train, train),
+                           heldout_sse(nm, _idx(nm, chosen + [gi]), train, train), nm.n[train])[0]:
+                gi = sub
+        with_g = _idx(nm, chosen + [gi])
         s0 = heldout_sse(nm, base, train, train)
         s1 = heldout_sse(nm, with_g, train, train)
         if not _passes(s0, s1, nm.n[train])[0]:

@@ -38,6 +38,16 @@ def matrix_columns(x, u):
     return out
 
 
+def scale_columns(x, u):
+    """(N, 3, 6): x on each axis (nT per unit of x), then 1e-6 x u_i on axis i (ppm per unit of x): the offset and
+    the scale factors follow x."""
+    out = np.zeros((x.size, 3, 6))
+    idx = np.arange(3)
+    out[:, idx, idx] = x[:, None]
+    out[:, idx, 3 + idx] = 1e-6 * x[:, None] * u
+    return out
+
+
 def wave_columns(phase):
     """(N, 3, 6): cos and sin of a phase on each axis (nT)."""
     out = np.zeros((phase.size, 3, 6))
@@ -112,7 +122,14 @@ def _feature_code(g: Group) -> tuple[str, list[str]]:
     elif src == "sign of rate":
         k = g.probe
         lines.append(f"scale = np.array({[float(x) for x in r['scale']]!r})       # nT/s: the sign's width per axis")
-        return f"np.tanh(view.data.rate({k}) / scale)", lines
+        lines.append(f"sign = np.tanh(view.data.rate({k}) / scale)")
+        if "less_nT" in r:
+            # the core follows the field's rate: the sign taken again from the reading less the steps found
+            lines.append(f"steps = np.array({[float(x) for x in r['less_nT']]!r})       # nT per axis")
+            lines.append(f"for _ in range({int(r['passes'])}):")
+            lines.append(f"    less = view.data.raw_nT[:, {k}, :] - steps * sign")
+            lines.append("    sign = np.tanh(view.data.derivative(less) / scale)")
+        return "sign", lines
     else:
         raise ValueError(f"recipe: {r!r} is not one the writer knows")
     if src == "phase":
@@ -129,6 +146,7 @@ def _group_block(g: Group, indent: str) -> list[str]:
     out = [f"{indent}# {g.kind}: {g.feature.name}{borrowed}"]
     out += [indent + ln for ln in pre]
     builder = {"offset": "offset_columns({x})", "common offset": "offset_columns({x})",
+               "scale": "scale_columns({x}, view.centred_nT)",
                "matrix": "matrix_columns({x}, view.centred_nT)", "wave": "wave_columns({x})",
                "common wave": "wave_columns({x})", "loop": "loop_columns({x})"}[g.kind]
     out.append(f"{indent}parts.append({builder.format(x=expr)})")

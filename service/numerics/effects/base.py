@@ -176,13 +176,15 @@ class EffectData(Timed):
         """(N, 3) d raw/dt of probe k in nT/s: Savitzky-Golay derivative (vectorised over the run)."""
         key = ("rate", k)
         if key not in self._cache:
-            if self._uniform():
-                r = savgol_filter(self.raw_nT[:, k, :], self.window_samples, 2, deriv=1, delta=self.dt_s,
-                                  axis=0, mode="interp")
-            else:
-                r = np.gradient(self.smooth(k), self.t_s, axis=0)
-            self._cache[key] = r
+            self._cache[key] = self.derivative(self.raw_nT[:, k, :])
         return self._cache[key]
+
+    def derivative(self, x: np.ndarray) -> np.ndarray:
+        """d x/dt of a series x (N, ...) on this time base, as rate() takes a probe's: the Savitzky-Golay derivative
+        on a uniform time base, else the gradient of the smoothed series."""
+        if self._uniform():
+            return savgol_filter(x, self.window_samples, 2, deriv=1, delta=self.dt_s, axis=0, mode="interp")
+        return np.gradient(savgol_filter(x, self.window_samples, 2, axis=0, mode="interp"), self.t_s, axis=0)
 
     def temperature(self, k: int) -> np.ndarray | None:
         """(N,) probe k's temperature, gaps (NaN) filled by interpolation in time; the mean of the

@@ -17,9 +17,14 @@ spectrum the noise has at those periods:
   a zero-padded FFT of u summed into at most WEIGHT_BINS bins of time.
 
 The model extends the power law below the band it was fitted on (MIN_CYCLES per record and up: lower, the fitted
-slow terms took the power), never flatter than flicker noise (1/f) once the noise is coloured: that
-assumption, standard for rates under flicker noise (Williams 2003, J. Geodesy 76: 483-494), is what the
-figure rests on; a noise whose spectrum steepens below the band (a random walk of the offsets) is understated. The
+slow terms took the power) as flicker noise (1/f): a law flatter than flicker is made flicker once the noise is
+coloured, and a steeper one is carried on below the band at flicker's slope (the knee, as fit's offsets take it:
+calib/offset_noise.py). That assumption, standard for rates under flicker noise (Williams 2003, J. Geodesy 76:
+483-494), is what the figure rests on; a noise whose spectrum steepens below the band (a random walk of the
+offsets) is understated. A steeper law carried on steeply claims what the data deny: on a real hand-turned board
+(106 s) the residual's law above the band is f^-2.5 (the hand's turning, about 10 s a turn) and its own power at
+1-2 cycles per record is 260 times below that law's; an offset that follows a logged heater got 2,700 nT/A
+where its spread over 60 random heater histories is 281 (the knee: 319). The
 channels are not independent (one probe's noise is in its scalar channel and in every difference with it,
 and a probe's axes mix under its matrix): their cross-spectra are taken as rho (sqrt(w_c w_c') +
 sqrt(p_c p_c')), p the power law, rho the correlation of the channels' slow parts (their means over
@@ -163,7 +168,7 @@ WEIGHT_BINS = 1 << 15
 
 def spectral_variance(u: np.ndarray, grid: np.ndarray, models: list[tuple[float, float, float] | None],
                       dt: float, rho: np.ndarray | None = None, pad: int = 4, f_min: float = 0.0,
-                      bins: int = WEIGHT_BINS) -> float:
+                      bins: int = WEIGHT_BINS, knee: tuple[float, float] | None = None) -> float:
     """Var(sum u eps) for weights u (N, C) at positions `grid` (N,) of a uniform grid of step dt, the noise
     of channel c having the one-sided spectrum models[c] = (w, a, alpha) and the channels the correlation rho
     (C, C; None: independent). A channel without a model (too short for a spectrum) is taken as white at the
@@ -176,8 +181,9 @@ def spectral_variance(u: np.ndarray, grid: np.ndarray, models: list[tuple[float,
 
     Weights that sum to zero for every noise source (a parameter fitted beside offsets) give a finite integral
     down to f = 0; weights that do not (no offset fitted) would grow with the padding under 1/f noise, and
-    f_min (one cycle per record) then ends the integral where the record itself ends."""
-    return float(spectral_variances(np.asarray(u)[:, None, :], grid, models, dt, rho, pad, f_min, bins)[0])
+    f_min (one cycle per record) then ends the integral where the record itself ends. knee = (f_k, beta): below
+    f_k a law steeper than beta carries on at slope beta (power_law_spectrum)."""
+    return float(spectral_variances(np.asarray(u)[:, None, :], grid, models, dt, rho, pad, f_min, bins, knee)[0])
 
 
 #: complex values of the weights' FFT held at once by spectral_variances (64 MB)
@@ -186,7 +192,7 @@ FFT_VALUES = 1 << 22
 
 def spectral_variances(u: np.ndarray, grid: np.ndarray, models: list[tuple[float, float, float] | None],
                        dt: float, rho: np.ndarray | None = None, pad: int = 4, f_min: float = 0.0,
-                       bins: int = WEIGHT_BINS) -> np.ndarray:
+                       bins: int = WEIGHT_BINS, knee: tuple[float, float] | None = None) -> np.ndarray:
     """spectral_variance of K parameters at once, weights u (N, K, C): (K,). The weights are laid out a row
     per parameter and channel (contiguous rows: half the time of the FFT down columns), the power law taken
     once for all, and for independent channels (rho None) only each channel's own power formed."""
@@ -219,7 +225,8 @@ def spectral_variances(u: np.ndarray, grid: np.ndarray, models: list[tuple[float
         f, x, norm = _binned_rows(part.reshape(-1, n), grid, dt, bins, pad)
         keep = slice(int(np.searchsorted(f, f_min)), None)       # f increases
         if law is None:
-            law = np.array([power_law_spectrum(f[keep], tuple(laws[j])) for j in coloured])    # (Cc, F)
+            law = np.array([power_law_spectrum(f[keep], tuple(laws[j]), knee if knee is not None
+                                               and laws[j, 2] < knee[1] else None) for j in coloured])  # (Cc, F)
         x = x[:, keep].reshape(part.shape[0], cc, -1)
         if rho is None:
             re = x.view(np.float64)                          # real and imaginary parts side by side
@@ -290,11 +297,30 @@ def low_frequency_correlation(values: np.ndarray, blocks: int = 32) -> np.ndarra
 MAX_GRID_FILL = 8
 
 
+#: a time base is bursty where the 95th percentile of its intervals is this many times their median (as
+#: EffectData.gap_s: a hobby board sending bursts of samples 2 ms apart with 20-60 ms between them)
+BURSTY = 1.5
+
+
 def sample_grid(t_s: np.ndarray) -> tuple[np.ndarray, float]:
-    """(positions on a uniform grid of the median interval, that interval) for sample times t_s."""
+    """(positions on a uniform grid, its step) for sample times t_s, laid out as the residual's spectra are taken
+    (welch_spectra: over the samples in their order). A steady time base: its median interval, a gap held as its
+    length. A bursty one: the samples in their order at their mean interval, a gap (an interval over BURSTY times
+    the 95th percentile) held as its length; the bursts' rhythm is far faster than the periods the power law
+    serves. On the median interval a bursty record's spectra were read at 4 times their frequencies and over a
+    quarter of its duration (a real hand-turned board of 106 s, 8,190 samples 2-58 ms apart: an offset that
+    follows a logged heater got 7,600 nT/A for an error whose spread over 60 random heater histories is 281)."""
     t = np.asarray(t_s, float)
-    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
-    return np.rint((t - t[0]) / dt).astype(np.int64), dt
+    if t.size < 2:
+        return np.zeros(t.size, np.int64), 1.0
+    d = np.diff(t)
+    med, p95 = float(np.median(d)), float(np.percentile(d, 95))
+    if p95 <= BURSTY * med:
+        return np.rint((t - t[0]) / med).astype(np.int64), med
+    gap = d > BURSTY * p95
+    step = float(np.mean(d[~gap])) if np.any(~gap) else med
+    inc = np.where(gap, np.maximum(np.rint(d / step), 1.0), 1.0).astype(np.int64)
+    return np.concatenate([[0], np.cumsum(inc)]), step
 
 
 def pinv_columns(a: np.ndarray, idx: np.ndarray, rank_tol: float) -> np.ndarray:

@@ -176,6 +176,7 @@ class FitResult:
         from .coloured import (
             FLICKER,
             MAX_GRID_FILL,
+            MIN_CYCLES,
             is_coloured,
             looks_white,
             low_frequency_correlation,
@@ -197,6 +198,7 @@ class FitResult:
         spectra = welch_spectra(ch.values, dt)
         if looks_white(spectra, duration):
             return None
+        knee = (MIN_CYCLES / duration, FLICKER)           # below the band the law was fitted on: flicker at most
         cols = pinv_columns(self.a_blocks.sum(0), idx, RANK_TOL)
         w2 = pr.weights ** 2
         offsets = [(sl.k, j) for sl in pr.slots if sl.kind == "offset" for j in range(sl.start, sl.stop)]
@@ -215,7 +217,7 @@ class FitResult:
             out = []
             for u in self._weights(cols, w2, len(offsets)):
                 v = np.matmul(u.transpose(0, 2, 1), sens)                       # (N, K, 3P)
-                out.append(spectral_variances(v, grid, models, dt))
+                out.append(spectral_variances(v, grid, models, dt, knee=knee))
             return np.sqrt(np.concatenate(out))
         models = [power_law(ch.values[:, c], dt, spectrum=spectra[c]) for c in range(ch.values.shape[1])]
         if not any(is_coloured(m, duration) for m in models):
@@ -225,7 +227,7 @@ class FitResult:
                   for c, m in enumerate(models)]
         rho = low_frequency_correlation(ch.values)
         return np.sqrt(np.concatenate([spectral_variances(u.transpose(0, 2, 1), grid, models, dt, rho,
-                                                          f_min=1.0 / duration)
+                                                          f_min=1.0 / duration, knee=knee)
                                        for u in self._weights(cols, w2, 0)]))
 
     def _weights(self, cols: np.ndarray, w2: np.ndarray, extra: int):
