@@ -15,7 +15,6 @@ real recordings, and prints the counts."""
 from __future__ import annotations
 
 import dataclasses
-
 import json
 import re
 
