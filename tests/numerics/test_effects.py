@@ -382,7 +382,7 @@ def test_a_nonlinearity_that_folds_the_transfer_back_within_the_readings_is_rule
     from types import SimpleNamespace
 
     from service.numerics.effects import make_term
-    from service.numerics.effects.base import ReadingSpan
+    from service.numerics.effects.span import ReadingSpan
 
     term = make_term("nonlinearity")
     span = ReadingSpan(["s1"], np.array([[-20000.0, -15000.0, -3000.0]]), np.array([[21000.0, 14000.0, 2500.0]]))

@@ -273,15 +273,13 @@ def test_a_real_bursty_boards_errors_match_the_spread_over_random_heater_histori
     follows a logged heater switched at random (lagged 5 s), fitted by `column`. Its stated errors against the
     spread of its coefficients over 24 random heater histories: 0.76-1.47 (were 9-17 times: the law read at 4 times
     its frequencies, on the median interval, and carried below its band at -2.5)."""
-    from test_real_sensors import REAL, needs_real
+    from real_data import real
 
-    if not REAL.is_dir():
-        pytest.skip(needs_real.kwargs["reason"])
     from service.io.recordings.load import load_data
     from service.numerics.effects.thermal import low_pass
     from service.numerics.engine import as_effect_data
 
-    data = as_effect_data(load_data(REAL / "hmc5883l_sensorfusion_sphere.csv"))
+    data = as_effect_data(load_data(real("hmc5883l_sensorfusion_sphere.csv")))
     s = data.t_s - data.t_s[0]
     values, stated = [], []
     for seed in range(24):

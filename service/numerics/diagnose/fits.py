@@ -11,8 +11,9 @@ from scipy import stats
 
 from drivers.errors import FluxcalError
 from service.numerics.effects import Model, known_effects, make_term
-from service.numerics.effects.base import EffectData, EffectTerm, ReadingSpan
+from service.numerics.effects.base import EffectData, EffectTerm
 from service.numerics.effects.hysteresis import no_step_reason
+from service.numerics.effects.span import ReadingSpan
 from service.numerics.engine import (
     RANK_TOL,
     FitResult,

@@ -311,22 +311,6 @@ class ProbeView:
 
 # --- terms and their composition ----------------------------------------------------------------------
 
-@dataclass(frozen=True)
-class ReadingSpan:
-    """The readings a fit saw, per probe and axis, about the probe's offset (nT): what a term's physics is judged
-    over (EffectTerm.rules_out_over)."""
-
-    probe_names: list[str]
-    low_nT: np.ndarray                    # (P, 3)
-    high_nT: np.ndarray                   # (P, 3)
-
-    @classmethod
-    def of(cls, data: EffectData, offsets_nT: np.ndarray) -> ReadingSpan:
-        """The span of `data`'s raw readings about `offsets_nT` (P, 3), non-finite samples left out."""
-        centred = data.raw_nT - np.asarray(offsets_nT, dtype=np.float64)[None]
-        return cls(list(data.probe_names), np.nanmin(centred, axis=0), np.nanmax(centred, axis=0))
-
-
 class EffectTerm:
     """One physical effect with named parameters in physical units (subclass per effect).
 
@@ -363,9 +347,10 @@ class EffectTerm:
         perming"). diagnose then does not call the effect significant, however much it gains."""
         return None
 
-    def rules_out_over(self, parameters: Sequence[Any], span: ReadingSpan) -> str | None:
-        """As rules_out, for a shape the physics rules out only over the readings the data hold (`span`: each probe
-        axis' lowest and highest reading about its offset): a transfer that folds back within them."""
+    def rules_out_over(self, parameters: Sequence[Any], span: Any) -> str | None:
+        """As rules_out, for a shape the physics rules out only over the readings the data hold (`span`, a
+        service.numerics.effects.span.ReadingSpan: each probe axis' lowest and highest reading about its offset): a
+        transfer that folds back within them."""
         return None
 
     # per-probe parameters

@@ -16,7 +16,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .base import AXES, EffectTerm, ProbeView, ReadingSpan, axis_columns
+from .base import AXES, EffectTerm, ProbeView, axis_columns
+from .span import ReadingSpan
 
 #: the least slope dr/du = 1 + 2 q u + 3 c u^2 a sensor's transfer keeps over its readings (real fluxgates: within
 #: 1e-3 of 1): below it the fitted q and c bend the transfer until it (nearly) folds back, no sensor's
