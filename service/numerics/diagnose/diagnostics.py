@@ -287,8 +287,9 @@ def _coloured_noise_notes(slope: float | None, effects: Sequence[str], duration_
     if effects:
         out.append(f"a wander of the noise at periods as long as the record ({duration_s:.0f} s) looks like a drift, "
                    f"a step or any slow effect; their standard errors come from that power law, extended to those "
-                   f"periods as flicker (1/f) noise: a noise that steepens there (a random walk of the offsets) "
-                   f"would make them too small")
+                   f"periods as fitted where the residual keeps that power there, else as flicker (1/f) noise: a "
+                   f"noise that steepens only below what the record shows (a random walk of the offsets slower "
+                   f"than it) would make them too small")
     return out
 
 

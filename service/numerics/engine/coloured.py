@@ -19,12 +19,15 @@ spectrum the noise has at those periods:
 The model extends the power law below the band it was fitted on (MIN_CYCLES per record and up: lower, the fitted
 slow terms took the power) as flicker noise (1/f): a law flatter than flicker is made flicker once the noise is
 coloured, and a steeper one is carried on below the band at flicker's slope (the knee, as fit's offsets take it:
-calib/offset_noise.py). That assumption, standard for rates under flicker noise (Williams 2003, J. Geodesy 76:
-483-494), is what the figure rests on; a noise whose spectrum steepens below the band (a random walk of the
-offsets) is understated. A steeper law carried on steeply claims what the data deny: on a real hand-turned board
-(106 s) the residual's law above the band is f^-2.5 (the hand's turning, about 10 s a turn) and its own power at
-1-2 cycles per record is 260 times below that law's; an offset that follows a logged heater got 2,700 nT/A
-where its spread over 60 random heater histories is 281 (the knee: 319). The
+calib/offset_noise.py) where the residual's own power at 1-2 cycles per record refutes the steep law
+(low_frequency_knee), else steeply. That assumption, standard for rates under flicker noise (Williams 2003, J.
+Geodesy 76: 483-494), is what the figure rests on; a noise whose spectrum steepens below what the record shows is
+understated. A steeper law carried on steeply claims what the data deny: on a real hand-turned board (106 s) the
+residual's law above the band is f^-2.5 (the hand's turning, about 10 s a turn) and its own power at 1-2 cycles
+per record is 260 times below that law's; an offset that follows a logged heater got 2,700 nT/A where its spread
+over 60 random heater histories is 281 (the knee: 319). Under a random walk the residual keeps the steep power
+there, and the knee taken regardless made a drift that is not there significant (its errors 2-4 times too
+small). The
 channels are not independent (one probe's noise is in its scalar channel and in every difference with it,
 and a probe's axes mix under its matrix): their cross-spectra are taken as rho (sqrt(w_c w_c') +
 sqrt(p_c p_c')), p the power law, rho the correlation of the channels' slow parts (their means over
@@ -264,6 +267,35 @@ def binned_fft(u: np.ndarray, grid: np.ndarray, dt: float, bins: int = WEIGHT_BI
     integral |U_j(f)|^2 S(f) df for a one-sided spectrum S."""
     f, x, norm = _binned_rows(np.ascontiguousarray(np.asarray(u).T), grid, dt, bins, pad)
     return f, x.T, norm
+
+
+#: the knee is taken where each coloured channel's own power at 1-2 cycles per record is this many times below its
+#: steep law carried on there: the data refute the steep law below its band (a hand-turned board: 260 times below);
+#: a random walk's residual keeps its steep power there (a drift fitted beside it included) and keeps the steep law
+KNEE_EVIDENCE = 10.0
+
+
+def low_frequency_knee(values: np.ndarray, dt: float, spectra: list) -> tuple[float, float] | None:
+    """(f_k, FLICKER): carry laws steeper than flicker on below their band (MIN_CYCLES per record) at flicker's
+    slope, where the residual `values` (N, C, the samples in order at step dt; `spectra` their welch_spectra) show
+    it: at 1-2 cycles per record, each channel whose law is coloured and steeper than flicker holds KNEE_EVIDENCE
+    times less power than that law carried on steeply. None: the steep law stands (it is not refuted, or no law
+    is steeper than flicker)."""
+    from scipy.signal import periodogram
+
+    n = values.shape[0]
+    duration = n * dt
+    f, power = periodogram(values, fs=1.0 / dt, detrend="constant", axis=0)
+    low = slice(1, 3)                                     # 1 and 2 cycles per record
+    steep = False
+    for c in range(values.shape[1]):
+        law = power_law(values[:, c], dt, spectrum=spectra[c]) if spectra[c] is not None else None
+        if law is None or not is_coloured(law, duration) or law[2] >= FLICKER:
+            continue
+        steep = True
+        if KNEE_EVIDENCE * float(np.mean(power[low, c])) > float(np.mean(power_law_spectrum(f[low], law))):
+            return None
+    return (MIN_CYCLES / duration, FLICKER) if steep else None
 
 
 def power_law_spectrum(f: np.ndarray, law: tuple[float, float, float],

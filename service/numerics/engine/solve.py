@@ -176,10 +176,10 @@ class FitResult:
         from .coloured import (
             FLICKER,
             MAX_GRID_FILL,
-            MIN_CYCLES,
             is_coloured,
             looks_white,
             low_frequency_correlation,
+            low_frequency_knee,
             pinv_columns,
             power_law,
             probe_power_laws,
@@ -198,7 +198,7 @@ class FitResult:
         spectra = welch_spectra(ch.values, dt)
         if looks_white(spectra, duration):
             return None
-        knee = (MIN_CYCLES / duration, FLICKER)           # below the band the law was fitted on: flicker at most
+        knee = low_frequency_knee(ch.values, dt, spectra)    # below the band: flicker where the data show it
         cols = pinv_columns(self.a_blocks.sum(0), idx, RANK_TOL)
         w2 = pr.weights ** 2
         offsets = [(sl.k, j) for sl in pr.slots if sl.kind == "offset" for j in range(sl.start, sl.stop)]
