@@ -89,7 +89,8 @@ def refuse_stuck(field_nT: np.ndarray, probe_names: Sequence[str]) -> None:
         if raw.shape[0] and not np.ptp(raw, axis=0).any():
             v = ", ".join(f"{x:.6g}" for x in raw[0])
             raise DataError(f"{name}: all {raw.shape[0]:,} samples are the same vector ({v} nT): the sensor did not "
-                            f"measure (stuck, or not there); nothing to calibrate")
+                            f"measure (stuck, or not there); nothing to calibrate: leave its columns out (a PX4 or "
+                           f"ArduPilot log: --mags with the instances that measure)")
 
 
 def temperature_notes(block: SampleBlock | np.ndarray, probe_names: Sequence[str]) -> list[str]:

@@ -128,7 +128,9 @@ def test_a_sensor_that_never_changes_is_refused_not_a_crash(tmp_path, capsys):
     path = tmp_path / "stuck.csv"
     t = np.arange(800) * 0.1
     path.write_text("t,s1_x,s1_y,s1_z\n" + "".join(f"{x:.1f},-3600,100,-5600\n" for x in t))
-    for command in (["diagnose"], ["fit"], ["fit", "--method", "rls"]):      # fit called it 'a single-axis turn'
+    cal = tmp_path / "identity.json"                  # held: it said 'the model explains the data down to the noise'
+    cal.write_text('{"sensors": [{"name": "s1", "offset_nT": [0, 0, 0], "matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}]}')
+    for command in (["diagnose"], ["diagnose", "--calibration", str(cal)], ["fit"], ["fit", "--method", "rls"]):
         capsys.readouterr()
         assert main([*command, str(path)]) == 2
         err = capsys.readouterr().err

@@ -137,7 +137,6 @@ def turn_problem(raw: np.ndarray, offset_nT: np.ndarray, matrix: np.ndarray, tot
     return band_problem(corr[ok], rms, field if field is not None else float(np.mean(f[ok])))
 
 
-
 def refuse_one_cone(raw_nT: np.ndarray, offsets_nT, matrices, total_nT, probe_names, *, then: str = "") -> None:
     """Refuse (CalibrationRefused, naming the probe) offsets and matrices fitted to a single-axis turn of any probe
     of `raw_nT` (N, P, 3): they are not determined along the turn's axis (turn_problem). `then`: what the refusal

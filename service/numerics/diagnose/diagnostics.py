@@ -41,7 +41,7 @@ from service.numerics.engine import (
     residual_hints,
     start_weights,
 )
-from service.numerics.usable import temperature_notes
+from service.numerics.usable import refuse_stuck, temperature_notes
 
 from .discover import beside
 from .discover import discover as find_terms
@@ -182,7 +182,9 @@ def _what_is_left(ed, best, sig_cur: dict, noise: np.ndarray, noise_nT: float) -
 
 def _start(ed: Any, calibration: Any, fixed: bool, effects: Sequence[str], notes: list[str]):
     """The linear part the model starts from (the calibration held, or one fitted), the reference total field and
-    what it is, the channels' weights and the model; an effect the data cannot take refused."""
+    what it is, the channels' weights and the model; an effect the data cannot take refused, and a probe that did
+    not measure (usable.refuse_stuck), a calibration held or not."""
+    refuse_stuck(ed.raw_nT, ed.probe_names)
     if calibration is not None:
         linear = LinearCalibration.from_any(calibration, ed.n_probes)
     else:

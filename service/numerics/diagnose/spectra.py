@@ -9,6 +9,8 @@ from typing import Any
 import numpy as np
 from scipy.signal import welch
 
+from service.numerics.engine.coloured import sample_grid
+
 #: a spectral line: a Welch bin this many times the median of its neighbourhood, holding this share of a channel's
 #: excess power; at most MAX_LINES lines
 LINE_FACTOR = 8.0
@@ -24,7 +26,7 @@ def series(fit: Any, noise: np.ndarray, exclude: tuple[int, int] | None = None) 
     series less its mean; exclude = (start, stop) of the fit's rows: those rows held at zero (a held-out block,
     which the lines and bands of its fold's library must not see), the floor scaled to the rows kept."""
     pr, vals = fit.problem, fit.channels.values
-    dt = float(np.median(np.diff(fit.channels.t_s)))
+    dt = sample_grid(fit.channels.t_s)[1]          # the samples in order (bursty: mean interval)
     keep = np.ones(vals.shape[0], bool)
     if exclude is not None:
         keep[exclude[0]:exclude[1]] = False
@@ -49,7 +51,7 @@ def excess_spectra(fit: Any, noise: np.ndarray,
     n = fit.channels.values.shape[0]
     if n < 256:
         return []
-    dt = float(np.median(np.diff(fit.channels.t_s)))
+    dt = sample_grid(fit.channels.t_s)[1]          # the samples in order (bursty: mean interval)
     nper = int(2 ** np.floor(np.log2(n / 8)))
     out = []
     for x, white in series(fit, noise, exclude):
@@ -67,7 +69,7 @@ def spectral_lines(fit: Any, noise: np.ndarray, exclude: tuple[int, int] | None 
     n = t.size
     if n < 512:
         return []
-    dt = float(np.median(np.diff(t)))
+    dt = sample_grid(t)[1]
     nper = int(2 ** np.floor(np.log2(n / 8)))
     sets = series(fit, noise, exclude)
     peaks: list[tuple[float, float, int]] = []

@@ -76,8 +76,9 @@ class Nonlinearity(EffectTerm):
             worst = int(np.argmin(slopes))
             if slopes[worst] < MIN_SLOPE:
                 how = "fold back" if slopes[worst] <= 0 else f"lose {1 - slopes[worst]:.0%} of its gain"
-                return (f"{probe}'s {AXES[a]} transfer would {how} within its readings (slope {slopes[worst]:.2g} at {at[worst]:,.0f} nT about the offset; a "
-                        f"sensor's stays near 1): the term bent itself to the data")
+                return (f"{probe}'s {AXES[a]} transfer would {how} within its readings (slope {slopes[worst]:.2g} "
+                        f"at {at[worst]:,.0f} nT about the offset; a sensor's stays near 1): the term bent itself "
+                        f"to the data")
         return None
 
     def _u(self, view: ProbeView, theta: np.ndarray) -> np.ndarray:
