@@ -309,7 +309,8 @@ def select(nm: Normals, train: list[int], p_level: float, max_groups: int = MAX_
     Where the strongest group holds a smaller one of the same feature (a scale group its offset), the smaller is
     taken unless the larger's held-out gain beside it passes the held-out rule: the smallest set that predicts (on
     a real residual, whose structure the F-test takes for signal, the 6 parameters of a heater's offset and scale
-    outranked its offset alone and predicted the held-out blocks worse)."""
+    outranked its offset alone and predicted the held-out blocks worse). The smaller is taken only where the fold
+    allows it (`allowed`), and a larger chosen after its smaller replaces it."""
     a_t, g_t, sse_t = nm.a[train].sum(0), nm.g[train].sum(0), float(nm.sse[train].sum())
     n_t = float(nm.n[train].sum())
     log_level = np.log(p_level)
@@ -336,7 +337,7 @@ def select(nm: Normals, train: list[int], p_level: float, max_groups: int = MAX_
             break
         gi = best[1]
         sub = nm.nested[gi] if nm.nested else None
-        if sub is not None and sub not in chosen:
+        if sub is not None and sub not in chosen and (allowed is None or allowed[sub]):
             with_sub = _idx(nm, chosen + [sub])
             if not _passes(heldout_sse(nm, with_sub, train, train),
                            heldout_sse(nm, _idx(nm, chosen + [gi]), train, train), nm.n[train])[0]:
@@ -346,6 +347,8 @@ def select(nm: Normals, train: list[int], p_level: float, max_groups: int = MAX_
         s1 = heldout_sse(nm, with_g, train, train)
         if not _passes(s0, s1, nm.n[train])[0]:
             break
+        if sub is not None and sub in chosen and sub != gi:
+            chosen.remove(sub)                    # the larger holds it: one group, never its columns twice
         chosen.append(gi)
     return chosen
 
