@@ -149,7 +149,7 @@ def effect_input(prep: Prepared, said: Said, *, budget: str) -> EffectInput:
     of what limited the samples) imposed, and the data's scale against the total field given (field_scale_notes).
     The samples then live in the EffectData alone (hours of them)."""
     from service.numerics.effects.base import EffectData
-    from service.wiring.commands.notes import field_scale_notes
+    from service.wiring.scale_notes import field_scale_notes
 
     lab = prep.take_data()
     thinned = thinning(lab, budget)

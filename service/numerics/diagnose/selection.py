@@ -223,15 +223,22 @@ def shortlist(mg: Marginals, train: list[int], p_level: float, size: int,
     return [i for _, _, i in scored[:size]]
 
 
+#: below this ln p scipy's tail is a denormal float (a few values left: ties again decided by sums of squares)
+DENORMAL_LOG = -700.0
+
+
 def f_logsf(f: float, d1: float, d2: float) -> float:
     """ln P(F > f) for F(d1, d2), also where the probability is below the smallest float: there scipy gives -inf,
     and the groups of a strong effect all tied at -inf were then ranked by their sum of squares alone, which the
     larger group always wins (an offset that follows a lagged heater lost to the 6 parameters of its offset and
     scale). The tail is I_x(d2/2, d1/2), x = d2 / (d2 + d1 f) (log_betainc)."""
+    if not f > 0 or not np.isfinite(f):
+        return 0.0 if not f > 0 else -np.inf
     v = float(stats.f.logsf(f, d1, d2))
-    if np.isfinite(v) or not f > 0:
+    x = d2 / (d2 + d1 * f)
+    if (np.isfinite(v) and v > DENORMAL_LOG) or not x < (0.5 * d2 + 1.0) / (0.5 * (d1 + d2) + 2.0):
         return v
-    return log_betainc(0.5 * d2, 0.5 * d1, d2 / (d2 + d1 * f))
+    return log_betainc(0.5 * d2, 0.5 * d1, x)       # where scipy's figure is denormal (a few values left) or -inf
 
 
 def log_betainc(a: float, b: float, x: float) -> float:

@@ -45,6 +45,11 @@ NOT_OBSERVABLES = frozenset({"ref_total", "seq", "flags", *ATTITUDE_EULER, *ATTI
 
 # --- the data every term looks at -------------------------------------------------------------------
 
+#: an interval this many times the typical one is a gap (EffectData.gap_s), and a time base whose 95th percentile
+#: interval is this many times its median is bursty (engine.coloured.sample_grid)
+GAP_FACTOR = 1.5
+
+
 @dataclass
 class EffectData(Timed):
     """N samples of P probes prepared for effect fitting: raw field, time, temperature, references.
@@ -138,11 +143,11 @@ class EffectData(Timed):
 
     @property
     def gap_s(self) -> float:
-        """An interval longer than this is a gap: 1.5 times the typical interval, where the typical one is the
+        """An interval longer than this is a gap: GAP_FACTOR times the typical interval, where the typical one is the
         median for a steady time base and the 95th percentile for a bursty one (a hobby board sending bursts
         of samples 2 ms apart with 20-60 ms between bursts: those pauses are its rhythm, not gaps)."""
         d = np.diff(self.t_s)
-        return 1.5 * max(float(np.median(d)), float(np.percentile(d, 95)))
+        return GAP_FACTOR * max(float(np.median(d)), float(np.percentile(d, 95)))
 
     def valid_rows(self) -> np.ndarray:
         """Rows used for fitting: away from the ends and from gaps in time (gap_s)."""

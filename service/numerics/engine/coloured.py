@@ -43,6 +43,8 @@ from scipy.fft import next_fast_len, rfft, rfftfreq
 from scipy.optimize import nnls
 from scipy.signal import welch
 
+from service.numerics.effects.base import GAP_FACTOR
+
 #: the spectral index grid of the power law
 ALPHAS = np.round(np.arange(-2.5, 0.001, 0.05), 3)
 #: a coloured noise is extrapolated below the fitted band at least as steeply as flicker noise (1/f), the
@@ -331,7 +333,7 @@ MAX_GRID_FILL = 8
 
 #: a time base is bursty where the 95th percentile of its intervals is this many times their median (as
 #: EffectData.gap_s: a hobby board sending bursts of samples 2 ms apart with 20-60 ms between them)
-BURSTY = 1.5
+BURSTY = GAP_FACTOR
 
 
 def sample_grid(t_s: np.ndarray) -> tuple[np.ndarray, float]:

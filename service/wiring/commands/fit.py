@@ -17,7 +17,7 @@ from service.io.recordings.labdata import LabData, keep_every
 from service.numerics.calib.coverage import coverage
 from service.numerics.usable import temperature_notes, usable_samples
 from service.wiring.coloured_fit import coloured_offsets, direction_offsets
-from service.wiring.commands.notes import check_output_file, check_output_folder, field_scale_notes
+from service.wiring.commands.notes import check_output_file, check_output_folder
 from service.wiring.commands.options import (
     ALIGNS,
     CONFIG_HELP,
@@ -42,6 +42,7 @@ from service.wiring.fitting import (
 )
 from service.wiring.prepare import FROM_RECORDING, Prepared, prepare
 from service.wiring.result import Result, Said, print_result, stderr_say
+from service.wiring.scale_notes import field_scale_notes
 
 HELP = CommandHelp("fit a calibration to lab data (CSV or MCAP)",
                    "  fluxcal fit grad.csv --out cal.json\n  fluxcal fit board.csv --site 46.52,6.63,400 --json\n"

@@ -1,29 +1,11 @@
-"""What the batch commands share besides the input preparation: a field's scale said, outputs checked before
-any work, --skip's spans parsed."""
+"""What the batch commands share besides the input preparation: outputs checked before any work, --skip's spans
+parsed (a field's scale is said by service.wiring.scale_notes)."""
 
 from __future__ import annotations
 
 from typing import Any, Sequence
 
 import numpy as np
-
-
-def field_scale_notes(said: Any, source: str, field_nT: Any, probe_names: Sequence[str], *, centres_nT: Any = None,
-                      total_nT: Any = None, total_source: str = "", about: str = "the fitted centre") -> list[str]:
-    """Data whose size is implausible for nT (µT, counts), and a given total field far off the data's scale, said
-    (the latter loudly) whatever the output format; returns them, loud first, for the result's warnings."""
-    from service.numerics.field_scale import field_scale_warnings
-
-    if total_nT is not None and not isinstance(total_nT, (int, float)):
-        finite = np.asarray(total_nT, dtype=np.float64)
-        finite = finite[np.isfinite(finite)]
-        total_nT = float(np.median(finite)) if finite.size else None     # a ref_total column
-    warnings, loud = field_scale_warnings(field_nT, probe_names, centres_nT, total_nT, total_source, about)
-    for w in warnings:
-        said("field-scale", f"{source}: {w}")
-    for w in loud:
-        said("field-scale", f"{source}: {w}", level="loud")
-    return loud + warnings
 
 
 def check_output_file(path: Any, flag: str = "--out", *, suffixes: Sequence[str] = (), example: str = "out.mcap",
