@@ -237,3 +237,6 @@ def test_a_calibration_held_that_is_off_is_not_sent_to_a_refit_the_data_do_not_d
         assert d.verdict["kind"] == "unexplained" and d.linear_refit_rms_nT < 0.5 * d.rms_nT
         assert says in d.verdict["advice"], d.verdict["advice"]
         assert (check is None) == ("diagnose without --calibration" in d.verdict["advice"])
+        assert d.linear_refit_refused == (None if check is None else "s1: within one cone about z")
+        assert d.as_dict().get("linear_refit_refused") == d.linear_refit_refused
+        assert ("in-sample, but these data do not determine that refit" in summary_text(d)) == (check is not None)

@@ -107,6 +107,7 @@ class Diagnosis:
     notes: list[str]
     fit: FitResult = field(repr=False)
     linear_refit_rms_nT: float | None = None
+    linear_refit_refused: str | None = None     # why these data do not determine that refit (None: they do)
     parameters: list[Parameter] = field(default_factory=list)
     verdict: dict[str, Any] | None = None
     #: set when the samples diagnosed are every k-th of a longer recording: {"every", "n_used", "n_read", ...}
@@ -146,6 +147,8 @@ class Diagnosis:
         }
         if self.linear_refit_rms_nT is not None:
             d["linear_refit_rms_nT"] = _num(self.linear_refit_rms_nT)
+        if self.linear_refit_refused is not None:
+            d["linear_refit_refused"] = self.linear_refit_refused
         if self.thinned is not None:
             d["thinned"] = _plain(self.thinned)
         d["frames"] = _plain(self.frames)

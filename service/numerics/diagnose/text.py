@@ -44,7 +44,8 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
     lines.append(f"  residual RMS {d.rms_nT:.3f} nT against a noise floor of {d.noise_nT:.3f} nT "
                  f"({ratio:.2f} x noise); held-out {d.heldout_rms_nT:.3f} nT")
     if d.linear_refit_rms_nT is not None:
-        lines.append(f"  refitting the linear part would give {d.linear_refit_rms_nT:.3f} nT")
+        lines.append(f"  refitting the linear part would give {d.linear_refit_rms_nT:.3f} nT"
+                     + (" in-sample, but these data do not determine that refit" if d.linear_refit_refused else ""))
     lines.append("")
     lines.append("  channel              rms nT   noise nT")
     for n, r, s in zip(d.channel_names, d.channel_rms_nT, d.channel_noise_nT):
