@@ -93,23 +93,25 @@ def test_a_real_effect_beside_a_disturbance():
     assert temp.significant and temp.refusal is None, summary_text(d)
 
 
-def _p(name: str, value: float, se: float = 1.0) -> Parameter:
-    return Parameter(name, value, se, "hysteresis")
+def _p(axis: str, at_s: float, value: float, se: float | None = 1.0) -> Parameter:
+    """A fitted step of s1 as the engine gives it: its name for people, its probe and key (step, instant, axis) for
+    the term's rules (param_keys)."""
+    return Parameter(f"s1.{axis} step@{at_s:.2f}s nT", value, se, "hysteresis", "s1", ("step", at_s, "xyz".index(axis)))
 
 
 def test_perming_rules_out_only_steps_that_all_came_back():
     h = Hysteresis()
-    back = [_p("s1.x step@10.00s nT", 100.0), _p("s1.y step@10.00s nT", -50.0), _p("s1.z step@10.00s nT", 0.0),
-            _p("s1.x step@18.00s nT", -98.0), _p("s1.y step@18.00s nT", 51.0), _p("s1.z step@18.00s nT", 1.0)]
+    back = [_p("x", 10.0, 100.0), _p("y", 10.0, -50.0), _p("z", 10.0, 0.0),
+            _p("x", 18.0, -98.0), _p("y", 18.0, 51.0), _p("z", 18.0, 1.0)]
     assert "the offset came back (s1 by 112 nT over 10.0-18.0 s)" in h.rules_out(back)
-    stays = [_p("s1.x step@30.00s nT", 8.0), _p("s1.y step@30.00s nT", 0.0), _p("s1.z step@30.00s nT", 0.0)]
+    stays = [_p("x", 30.0, 8.0), _p("y", 30.0, 0.0), _p("z", 30.0, 0.0)]
     assert h.rules_out(stays) is None                                       # one step of 8 errors: perming
     assert h.rules_out(back + stays) is None                                # a transient and a step that stays
-    weak = [_p("s1.x step@30.00s nT", 2.0), _p("s1.y step@30.00s nT", 1.0), _p("s1.z step@30.00s nT", 0.0)]
+    weak = [_p("x", 30.0, 2.0), _p("y", 30.0, 1.0), _p("z", 30.0, 0.0)]
     assert "came back" in h.rules_out(back + weak)                          # beside a step its errors cover
     assert h.rules_out(back[:3]) is None                                    # one step alone stays
-    undetermined = [_p("s1.x step@30.00s nT", 2.0, None), _p("s1.y step@30.00s nT", 1.0, None),
-                    _p("s1.z step@30.00s nT", 0.0, None)]
+    undetermined = [_p("x", 30.0, 2.0, None), _p("y", 30.0, 1.0, None),
+                    _p("z", 30.0, 0.0, None)]
     assert h.rules_out(back + undetermined) is None                         # unknown errors: not ruled out
 
 

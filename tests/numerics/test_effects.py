@@ -241,8 +241,9 @@ def test_a_platform_term_that_cancels_the_field_is_ruled_out():
     real flight log held to a poor calibration the fit went there (A's diagonal 0.95-0.99, 19 nT left under a noise
     floor of 296 nT) and diagnose called it 'explained by platform'. Ruled out by its physics now."""
     a = np.diag([0.946, 0.949, 0.992]) + 0.01
-    pars = [Parameter(f"s1.platform permanent {x} nT", v, None, "platform") for x, v in zip("xyz", (-834, 8593, 21713))]
-    pars += [Parameter(f"s1.platform induced[{x}{y}]", a[i, j], 0.03, "platform")
+    pars = [Parameter(f"s1.platform permanent {x} nT", v, None, "platform", "s1", ("permanent", i))
+            for i, (x, v) in enumerate(zip("xyz", (-834, 8593, 21713)))]
+    pars += [Parameter(f"s1.platform induced[{x}{y}]", a[i, j], 0.03, "platform", "s1", ("induced", i, j))
              for i, x in enumerate("xyz") for j, y in enumerate("xyz")]
     why = Platform().rules_out(pars)
     assert why is not None and why.startswith("s1's induced field would be 1.0") and "cancels the measured field" in why
@@ -379,8 +380,6 @@ def test_a_nonlinearity_that_folds_the_transfer_back_within_the_readings_is_rule
     """A real copter log's compass held to a poor calibration: the nonlinearity term fitted q = -2e-4 /nT over
     readings of +-20,000 nT and took the verdict ('partly explained'); its transfer r = u + q u^2 + c u^3 would fold
     back within those readings (slope 1 + 2 q u = -7 at 20,000 nT). A real fluxgate's stays within 1e-3 of 1."""
-    from types import SimpleNamespace
-
     from service.numerics.effects import make_term
     from service.numerics.effects.span import ReadingSpan
 
@@ -388,8 +387,9 @@ def test_a_nonlinearity_that_folds_the_transfer_back_within_the_readings_is_rule
     span = ReadingSpan(["s1"], np.array([[-20000.0, -15000.0, -3000.0]]), np.array([[21000.0, 14000.0, 2500.0]]))
 
     def params(q, c):
-        return [SimpleNamespace(name=f"s1.{a} quadratic 1/nT", value=q, stderr=1e-9) for a in "xyz"] + \
-               [SimpleNamespace(name=f"s1.{a} cubic 1/nT2", value=c, stderr=1e-14) for a in "xyz"]
+        return [Parameter(f"s1.{a} quadratic 1/nT", q, 1e-9, "nonlinearity", "s1", ("quadratic", i))
+                for i, a in enumerate("xyz")] + \
+               [Parameter(f"s1.{a} cubic 1/nT2", c, 1e-14, "nonlinearity", "s1", ("cubic", i)) for i, a in enumerate("xyz")]
 
     why = term.rules_out_over(params(-2e-4, 0.0), span)
     assert why is not None and "s1's x transfer would fold back" in why and "21,000 nT" in why

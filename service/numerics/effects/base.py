@@ -362,6 +362,12 @@ class EffectTerm:
     def param_names(self, view: ProbeView) -> list[str]:
         return []
 
+    def param_keys(self, view: ProbeView) -> list[tuple]:
+        """What each of param_names(view) is, as a key the term reads back from a fitted Parameter (its `key`, beside
+        its `probe`) where its rules look at its parameters (rules_out): never their names, which are for people. By
+        default each one's position; a term with rules gives its own (a kind and an axis, a step's instant)."""
+        return [(j,) for j in range(len(self.param_names(view)))]
+
     def columns(self, view: ProbeView) -> np.ndarray:
         """(N, 3, m) regressors phi_j of a linear term for probe view.k."""
         raise NotImplementedError

@@ -20,8 +20,6 @@ axis, in nT.
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 
 from service.numerics.noise import robust_noise
@@ -53,7 +51,6 @@ RETURNED = 0.25
 RETURNED_CHI2 = 11.34
 #: a step that stays counts as perming when its jump's chi-square (3 degrees of freedom) is at least this (p ~ 0.001)
 STAYS_CHI2 = 16.27
-_STEP_NAME = re.compile(r"(?P<probe>.+)\.(?P<axis>[xyz]) step@(?P<t>[-+0-9.eE]+)s nT$")
 #: a view's cache key for the instants where the residual changed beyond the noise but smoothly (not a step)
 SMOOTH = "ref:hysteresis_smooth"
 
@@ -281,16 +278,18 @@ class Hysteresis(EffectTerm):
     def param_names(self, view: ProbeView) -> list[str]:
         return [f"{view.name}.{a} step@{t:.2f}s nT" for t in self.steps(view) for a in AXES]
 
+    def param_keys(self, view: ProbeView) -> list[tuple]:
+        return [("step", float(t), a) for t in self.steps(view) for a in range(3)]
+
     def rules_out(self, parameters) -> str | None:
         """Perming stays: without one step that stays and is determined (chi-square of its jump at least
         STAYS_CHI2), where the others come in pairs whose jumps cancel (the offset moved and came back, as under a
         magnet carried past the probe or a knock), the steps are a transient, not perming."""
         steps: dict[tuple[str, float], np.ndarray] = {}          # (probe, t) -> jump x, y, z and their errors
         for p in parameters:
-            m = _STEP_NAME.match(p.name)
-            if m:
-                a = AXES.index(m["axis"])
-                v = steps.setdefault((m["probe"], float(m["t"])), np.full(6, np.nan))
+            if p.term == self.name and p.key[:1] == ("step",):
+                _, t, a = p.key
+                v = steps.setdefault((p.probe, t), np.full(6, np.nan))
                 v[a], v[3 + a] = p.value, np.nan if p.stderr is None else p.stderr
         by_probe: dict[str, list[tuple[float, np.ndarray]]] = {}
         for (probe, t), v in sorted(steps.items(), key=lambda kv: kv[0][1]):

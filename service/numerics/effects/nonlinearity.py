@@ -11,7 +11,6 @@ uses du/dq = -u^2 / D, du/dc = -u^3 / D, D = 1 + 2 q u + 3 c u^2.
 
 from __future__ import annotations
 
-import re
 from typing import Any, Sequence
 
 import numpy as np
@@ -22,7 +21,6 @@ from .span import ReadingSpan
 #: the least slope dr/du = 1 + 2 q u + 3 c u^2 a sensor's transfer keeps over its readings (real fluxgates: within
 #: 1e-3 of 1): below it the fitted q and c bend the transfer until it (nearly) folds back, no sensor's
 MIN_SLOPE = 0.5
-_COEF = re.compile(r"(?P<probe>.+)\.(?P<axis>[xyz]) (?P<kind>quadratic|cubic) 1/nT2?$")
 
 
 def invert(r: np.ndarray, q: np.ndarray, c: np.ndarray, iterations: int = 3) -> np.ndarray:
@@ -58,6 +56,9 @@ class Nonlinearity(EffectTerm):
         p = view.name
         return [f"{p}.{a} quadratic 1/nT" for a in AXES] + [f"{p}.{a} cubic 1/nT2" for a in AXES]
 
+    def param_keys(self, view: ProbeView) -> list[tuple]:
+        return [("quadratic", a) for a in range(3)] + [("cubic", a) for a in range(3)]
+
     def rules_out_over(self, parameters: Sequence[Any], span: ReadingSpan) -> str | None:
         """A transfer whose slope falls below MIN_SLOPE within the readings (a real log's compass held to a poor
         calibration: q = -2e-4 /nT over readings of +-20,000 nT, the response folded back on itself): the term bent
@@ -65,9 +66,9 @@ class Nonlinearity(EffectTerm):
         its turning point where that lies between them."""
         coef: dict[tuple[str, int], list[float]] = {}
         for p in parameters:
-            m = _COEF.match(p.name)
-            if m and m["probe"] in span.probe_names:
-                coef.setdefault((m["probe"], AXES.index(m["axis"])), [0.0, 0.0])[m["kind"] == "cubic"] = p.value
+            if p.term == self.name and p.probe in span.probe_names and len(p.key) == 2:
+                kind, axis = p.key
+                coef.setdefault((p.probe, axis), [0.0, 0.0])[kind == "cubic"] = p.value
         for (probe, a), (q, c) in coef.items():
             k = span.probe_names.index(probe)
             lo, hi = float(span.low_nT[k, a]), float(span.high_nT[k, a])

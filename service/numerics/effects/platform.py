@@ -17,7 +17,6 @@ matrix whose largest singular value reaches MAX_INDUCED is ruled out as no platf
 
 from __future__ import annotations
 
-import re
 from typing import Any, Sequence
 
 import numpy as np
@@ -26,7 +25,6 @@ from .base import AXES, EffectTerm, ProbeView
 
 #: the largest induced field, as a fraction of the ambient field, a platform's term may take (rules_out)
 MAX_INDUCED = 0.5
-_INDUCED = re.compile(r"(?P<probe>.+)\.platform induced\[(?P<a>[xyz])(?P<b>[xyz])\]$")
 
 
 class Platform(EffectTerm):
@@ -47,9 +45,8 @@ class Platform(EffectTerm):
         (module docstring), not a platform's field beside it."""
         induced: dict[str, np.ndarray] = {}
         for p in parameters:
-            m = _INDUCED.match(p.name)
-            if m:
-                induced.setdefault(m["probe"], np.zeros((3, 3)))[AXES.index(m["a"]), AXES.index(m["b"])] = p.value
+            if p.term == self.name and p.key[:1] == ("induced",):
+                induced.setdefault(p.probe, np.zeros((3, 3)))[p.key[1], p.key[2]] = p.value
         for probe, a in induced.items():
             size = float(np.linalg.norm(a, 2))
             if not size < MAX_INDUCED:
@@ -63,6 +60,9 @@ class Platform(EffectTerm):
         p = view.name
         return ([f"{p}.platform permanent {a} nT" for a in AXES]
                 + [f"{p}.platform induced[{a}{b}]" for a in AXES for b in AXES])
+
+    def param_keys(self, view: ProbeView) -> list[tuple]:
+        return [("permanent", a) for a in range(3)] + [("induced", a, b) for a in range(3) for b in range(3)]
 
     def _columns(self, view: ProbeView, v0: np.ndarray | None) -> np.ndarray:
         v = view.corrected_nT if v0 is None else v0

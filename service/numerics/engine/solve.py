@@ -68,6 +68,8 @@ class Parameter:
     value: float
     stderr: float | None
     term: str
+    probe: str | None = None          # the probe it belongs to (None: shared, or the baseline's)
+    key: tuple = ()                   # what it is, as its term's param_keys say: the term reads this, never the name
 
     @property
     def unit(self) -> str:
@@ -252,7 +254,9 @@ class FitResult:
                 i = s.start + j
                 val = self.values[i]
                 se = None if self.undetermined[i] else float(robust[i])
-                out.append(Parameter(name, float(val), se, s.term.name if s.term is not None else "baseline"))
+                out.append(Parameter(name, float(val), se, s.term.name if s.term is not None else "baseline",
+                                     None if s.k is None else self.problem.data.probe_names[s.k],
+                                     s.keys[j] if s.keys else (j,)))
         return out
 
     def heldout(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

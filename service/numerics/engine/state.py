@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
@@ -33,6 +33,7 @@ class _Slot:
     term: EffectTerm | None
     names: list[str]
     start: int = 0
+    keys: list[tuple] = field(default_factory=list)      # the term's param_keys, beside names
 
     @property
     def size(self) -> int:
@@ -63,7 +64,10 @@ def layout_slots(data: EffectData, terms: Sequence[EffectTerm], views: Sequence[
         for term in terms:
             names = term.param_names(views[k])
             if names:
-                slots.append(_Slot("term", k, term, names))
+                keys = term.param_keys(views[k])
+                if len(keys) != len(names):
+                    raise ValueError(f"{term.name}: {len(keys)} param_keys for {len(names)} param_names")
+                slots.append(_Slot("term", k, term, names, keys=keys))
     for term in terms:
         names = term.shared_names(data)
         if names:
