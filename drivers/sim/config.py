@@ -16,12 +16,10 @@ TOML table strictly (drivers.config): an unknown key or a bad value is a ConfigE
 >>> cfg = load_sim_config({"rate_hz": 100.0, "probes": [{"position_m": [0.2, 0.0, 0.0]}]})
 >>> cfg.rate_hz, len(cfg.probes), cfg.probes[0].name
 (100.0, 1, 's1')
->>> load_sim_config({"probes": [{"scael": [1, 1, 1]}]})
+>>> load_sim_config({"probes": [{"scael": [1, 1, 1]}]})  # doctest: +ELLIPSIS
 Traceback (most recent call last):
 ...
-drivers.errors.ConfigError: sim.probes[0].scael: unknown key (allowed: name, position_m, scale, nonorth_deg, \
-misalign_deg, offset_nT, noise_nT, temp_offset_C, temp_offset_nT_per_C, temp_scale_ppm_per_C, eddy_s, lag_s, \
-nonlin_quadratic_per_nT, nonlin_cubic_per_nT2, drift_offset_nT_per_h)
+drivers.errors.ConfigError: sim.probes[0].scael: unknown key (allowed: name, position_m, scale, nonorth_deg, ...)
 """
 
 from __future__ import annotations
