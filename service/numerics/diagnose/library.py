@@ -189,6 +189,11 @@ def phase_of(t_s: np.ndarray, x: np.ndarray, cycles_per_unit: float) -> np.ndarr
     return 2 * np.pi * cycles_per_unit * np.concatenate([[0.0], np.cumsum(inc)])
 
 
+def loop_label(width: float) -> str:
+    """A loop feature's name: its sign's width as a share of the rate's spread, where the library tries several."""
+    return "sign of rate" if len(LOOP_SCALES) == 1 else f"sign of rate ({width:g})"
+
+
 def loop_values(rate: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """(N, 3) the smooth sign of each axis' rate: tanh(rate / scale)."""
     return np.tanh(rate / scale)
@@ -199,20 +204,23 @@ LOOP_PASSES = 2
 
 
 def loop_feature(data: EffectData, k: int, label: str, scale: np.ndarray,
-                 less_nT: np.ndarray | None = None) -> Feature:
+                 less_nT: np.ndarray | None = None, window_s: float | None = None) -> Feature:
     """The smooth sign of each axis' rate of probe k (a core's loop). The core follows the field's rate, not the
     reading's, and its own steps are in the reading: each step puts a spike of its own sign in the reading's rate
     where the field's turns, and on a noisy real board the sign chatters there (an offset stepping 250 nT with the
     sign of a 50-Hz board's rate, found from the reading's rate: held-out error 1.16 times the untouched board's;
     from the field's: 1.00). less_nT: the steps fitted (nT per axis); the sign is then taken again LOOP_PASSES times
-    from the reading less the steps times the sign before."""
+    from the reading less the steps times the sign before. window_s: the rate's window (None: the data's own,
+    smooth_window_s); where the field's rate turns depends on it (discover.refine_loops chooses it)."""
     scale = np.asarray(scale, float)
-    values = loop_values(data.rate(k), scale)
+    raw = data.raw_nT[:, k, :]
+    values = loop_values(data.rate(k) if window_s is None else data.derivative(raw, window_s), scale)
     recipe: dict[str, Any] = {"source": "sign of rate", "scale": [float(x) for x in scale]}
+    if window_s is not None:
+        recipe["window_s"] = float(window_s)
     if less_nT is not None:
-        raw = data.raw_nT[:, k, :]
         for _ in range(LOOP_PASSES):
-            values = loop_values(data.derivative(raw - np.asarray(less_nT, float) * values), scale)
+            values = loop_values(data.derivative(raw - np.asarray(less_nT, float) * values, window_s), scale)
         recipe.update(less_nT=[float(x) for x in less_nT], passes=LOOP_PASSES)
     return Feature(label, f"rate of {data.probe_names[k]}", "", "sign of rate", recipe, values, per_sample=False)
 
@@ -383,8 +391,7 @@ def build_library(data: EffectData, fit: Any, noise: np.ndarray) -> Library:
         for s in LOOP_SCALES:
             scale = s * np.std(rate, axis=0)
             if np.all(scale > 0):
-                label = "sign of rate" if len(LOOP_SCALES) == 1 else f"sign of rate ({s:g})"
-                groups.append(Group("loop", k, pname, loop_feature(data, k, label, scale)))
+                groups.append(Group("loop", k, pname, loop_feature(data, k, loop_label(s), scale)))
     if data.n_probes > 1:
         groups += [Group("common offset", None, "common", f) for f in shared]
         groups += [Group("common wave", None, "common", f) for f in waves]

@@ -122,13 +122,19 @@ def _feature_code(g: Group) -> tuple[str, list[str]]:
     elif src == "sign of rate":
         k = g.probe
         lines.append(f"scale = np.array({[float(x) for x in r['scale']]!r})       # nT/s: the sign's width per axis")
-        lines.append(f"sign = np.tanh(view.data.rate({k}) / scale)")
+        window = r.get("window_s")
+        if window is None:
+            lines.append(f"sign = np.tanh(view.data.rate({k}) / scale)")
+        else:
+            lines.append(f"window = {float(window)!r}       # s: the rate's window")
+            lines.append(f"sign = np.tanh(view.data.derivative(view.data.raw_nT[:, {k}, :], window) / scale)")
         if "less_nT" in r:
             # the core follows the field's rate: the sign taken again from the reading less the steps found
             lines.append(f"steps = np.array({[float(x) for x in r['less_nT']]!r})       # nT per axis")
             lines.append(f"for _ in range({int(r['passes'])}):")
             lines.append(f"    less = view.data.raw_nT[:, {k}, :] - steps * sign")
-            lines.append("    sign = np.tanh(view.data.derivative(less) / scale)")
+            over = "" if window is None else ", window"
+            lines.append(f"    sign = np.tanh(view.data.derivative(less{over}) / scale)")
         return "sign", lines
     else:
         raise ValueError(f"recipe: {r!r} is not one the writer knows")

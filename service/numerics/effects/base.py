@@ -133,7 +133,11 @@ class EffectData(Timed):
     @property
     def window_samples(self) -> int:
         """Savitzky-Golay window in samples: odd, at least 5, about smooth_window_s long."""
-        w = int(round(self.smooth_window_s / self.dt_s)) | 1
+        return self.samples_for(self.smooth_window_s)
+
+    def samples_for(self, window_s: float) -> int:
+        """A Savitzky-Golay window of about window_s, in samples: odd, at least 5, at most a quarter of the run."""
+        w = int(round(window_s / self.dt_s)) | 1
         return int(min(max(w, 5), max(5, (self.n_samples // 4) | 1)))
 
     @property
@@ -184,12 +188,14 @@ class EffectData(Timed):
             self._cache[key] = self.derivative(self.raw_nT[:, k, :])
         return self._cache[key]
 
-    def derivative(self, x: np.ndarray) -> np.ndarray:
+    def derivative(self, x: np.ndarray, window_s: float | None = None) -> np.ndarray:
         """d x/dt of a series x (N, ...) on this time base, as rate() takes a probe's: the Savitzky-Golay derivative
-        on a uniform time base, else the gradient of the smoothed series."""
+        on a uniform time base, else the gradient of the smoothed series; over a window of about window_s (None:
+        smooth_window_s)."""
+        w = self.window_samples if window_s is None else self.samples_for(window_s)
         if self._uniform():
-            return savgol_filter(x, self.window_samples, 2, deriv=1, delta=self.dt_s, axis=0, mode="interp")
-        return np.gradient(savgol_filter(x, self.window_samples, 2, axis=0, mode="interp"), self.t_s, axis=0)
+            return savgol_filter(x, w, 2, deriv=1, delta=self.dt_s, axis=0, mode="interp")
+        return np.gradient(savgol_filter(x, w, 2, axis=0, mode="interp"), self.t_s, axis=0)
 
     def temperature(self, k: int) -> np.ndarray | None:
         """(N,) probe k's temperature, gaps (NaN) filled by interpolation in time; the mean of the
