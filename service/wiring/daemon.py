@@ -194,9 +194,11 @@ class Daemon:
 
     def _health(self, source: Source, sinks: Sinks) -> dict[str, Any]:
         """The health channel's counters: the source's, what the service refused or failed to process, and the
-        messages an output failed to take (all outputs; by output in the summary at stop)."""
+        messages an output failed to take: all outputs', and each failing output's own (`output_failures.<name>`,
+        where the dashboard's health table shows them beside the others; in the summary at stop too)."""
         return {**source.counters.as_dict(), "processing_errors": self.processing_errors,
-                "commands_refused": self._status.refused, "output_failures": sum(sinks.errors.values())}
+                "commands_refused": self._status.refused, "output_failures": sum(sinks.errors.values()),
+                **{f"output_failures.{name}": n for name, n in sinks.errors.items() if n}}
 
     def _tick_health(self, source: Source, sinks: Sinks, bus, final: bool = False) -> None:
         """The health counters and the faults to every sink; at stop (final), with the summary of the run said."""

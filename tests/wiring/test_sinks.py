@@ -86,6 +86,8 @@ def test_a_failing_output_costs_only_itself(tmp_path):
     blocks = len(rec.raw_blocks)
     assert f"summary: outputs failed: broken {blocks:,} message(s) not taken (each said as it began)" in summary
     assert rec.health[-1]["counters"]["output_failures"] == blocks
+    assert rec.health[-1]["counters"]["output_failures.broken"] == blocks          # by output, where people look
+    assert "output_failures.recording" not in rec.health[-1]["counters"]           # only the outputs that failed
 
 
 def test_a_replay_whose_output_fails_fails(tmp_path):
