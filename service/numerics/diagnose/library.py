@@ -204,23 +204,25 @@ LOOP_PASSES = 2
 
 
 def loop_feature(data: EffectData, k: int, label: str, scale: np.ndarray,
-                 less_nT: np.ndarray | None = None, window_s: float | None = None) -> Feature:
+                 less_nT: np.ndarray | None = None, window: int | None = None) -> Feature:
     """The smooth sign of each axis' rate of probe k (a core's loop). The core follows the field's rate, not the
     reading's, and its own steps are in the reading: each step puts a spike of its own sign in the reading's rate
     where the field's turns, and on a noisy real board the sign chatters there (an offset stepping 250 nT with the
     sign of a 50-Hz board's rate, found from the reading's rate: held-out error 1.16 times the untouched board's;
     from the field's: 1.00). less_nT: the steps fitted (nT per axis); the sign is then taken again LOOP_PASSES times
-    from the reading less the steps times the sign before. window_s: the rate's window (None: the data's own,
-    smooth_window_s); where the field's rate turns depends on it (discover.refine_loops chooses it)."""
+    from the reading less the steps times the sign before. window: the samples the rate is taken over (odd; None:
+    the data's own, window_samples); where the field's rate turns depends on it (discover.refine_loops chooses
+    it). In samples: on a bursty time base a time would say little (77 samples 3.3 ms apart at the median span
+    1.0 s on a hand-turned board)."""
     scale = np.asarray(scale, float)
     raw = data.raw_nT[:, k, :]
-    values = loop_values(data.rate(k) if window_s is None else data.derivative(raw, window_s), scale)
+    values = loop_values(data.rate(k) if window is None else data.derivative(raw, window), scale)
     recipe: dict[str, Any] = {"source": "sign of rate", "scale": [float(x) for x in scale]}
-    if window_s is not None:
-        recipe["window_s"] = float(window_s)
+    if window is not None:
+        recipe["window_samples"] = int(window)
     if less_nT is not None:
         for _ in range(LOOP_PASSES):
-            values = loop_values(data.derivative(raw - np.asarray(less_nT, float) * values, window_s), scale)
+            values = loop_values(data.derivative(raw - np.asarray(less_nT, float) * values, window), scale)
         recipe.update(less_nT=[float(x) for x in less_nT], passes=LOOP_PASSES)
     return Feature(label, f"rate of {data.probe_names[k]}", "", "sign of rate", recipe, values, per_sample=False)
 

@@ -122,11 +122,11 @@ def _feature_code(g: Group) -> tuple[str, list[str]]:
     elif src == "sign of rate":
         k = g.probe
         lines.append(f"scale = np.array({[float(x) for x in r['scale']]!r})       # nT/s: the sign's width per axis")
-        window = r.get("window_s")
+        window = r.get("window_samples")
         if window is None:
             lines.append(f"sign = np.tanh(view.data.rate({k}) / scale)")
         else:
-            lines.append(f"window = {float(window)!r}       # s: the rate's window")
+            lines.append(f"window = {int(window)!r}       # samples: the rate's window (odd)")
             lines.append(f"sign = np.tanh(view.data.derivative(view.data.raw_nT[:, {k}, :], window) / scale)")
         if "less_nT" in r:
             # the core follows the field's rate: the sign taken again from the reading less the steps found

@@ -133,11 +133,7 @@ class EffectData(Timed):
     @property
     def window_samples(self) -> int:
         """Savitzky-Golay window in samples: odd, at least 5, about smooth_window_s long."""
-        return self.samples_for(self.smooth_window_s)
-
-    def samples_for(self, window_s: float) -> int:
-        """A Savitzky-Golay window of about window_s, in samples: odd, at least 5, at most a quarter of the run."""
-        w = int(round(window_s / self.dt_s)) | 1
+        w = int(round(self.smooth_window_s / self.dt_s)) | 1
         return int(min(max(w, 5), max(5, (self.n_samples // 4) | 1)))
 
     @property
@@ -188,11 +184,10 @@ class EffectData(Timed):
             self._cache[key] = self.derivative(self.raw_nT[:, k, :])
         return self._cache[key]
 
-    def derivative(self, x: np.ndarray, window_s: float | None = None) -> np.ndarray:
-        """d x/dt of a series x (N, ...) on this time base, as rate() takes a probe's: the Savitzky-Golay derivative
-        on a uniform time base, else the gradient of the smoothed series; over a window of about window_s (None:
-        smooth_window_s)."""
-        w = self.window_samples if window_s is None else self.samples_for(window_s)
+    def derivative(self, x: np.ndarray, window: int | None = None) -> np.ndarray:
+        """d x/dt of a series x (N, ...) over `window` samples (odd; None: window_samples), as rate() takes a probe's:
+        the Savitzky-Golay derivative on a uniform time base, else the gradient of the smoothed series."""
+        w = self.window_samples if window is None else int(window)
         if self._uniform():
             return savgol_filter(x, w, 2, deriv=1, delta=self.dt_s, axis=0, mode="interp")
         return np.gradient(savgol_filter(x, w, 2, axis=0, mode="interp"), self.t_s, axis=0)
@@ -359,9 +354,8 @@ class EffectTerm:
         return None
 
     def rules_out_over(self, parameters: Sequence[Any], span: Any) -> str | None:
-        """As rules_out, for a shape the physics rules out only over the readings the data hold (`span`, a
-        service.numerics.effects.span.ReadingSpan: each probe axis' lowest and highest reading about its offset): a
-        transfer that folds back within them."""
+        """As rules_out, for a shape ruled out only over the readings the data hold (`span`, a span.ReadingSpan: each
+        probe axis' lowest and highest reading about its offset): a transfer that folds back within them."""
         return None
 
     # per-probe parameters
@@ -369,9 +363,8 @@ class EffectTerm:
         return []
 
     def param_keys(self, view: ProbeView) -> list[tuple]:
-        """What each of param_names(view) is, as a key the term reads back from a fitted Parameter (its `key`, beside
-        its `probe`) where its rules look at its parameters (rules_out): never their names, which are for people. By
-        default each one's position; a term with rules gives its own (a kind and an axis, a step's instant)."""
+        """What each of param_names(view) is (default: its position), as its rules read it back from a fitted
+        Parameter's `key` beside its `probe` (rules_out), never from names, which are for people."""
         return [(j,) for j in range(len(self.param_names(view)))]
 
     def columns(self, view: ProbeView) -> np.ndarray:
