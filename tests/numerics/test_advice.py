@@ -129,3 +129,6 @@ def test_a_catalogue_term_asks_for_a_log_only_where_the_data_lack_it():
                       extras={"heater_A": np.sin(np.arange(n))})
     assert Column().why_unavailable(data) is None                 # its 'log the heater currents' is not said
     assert "follows the ambient field already" in Ambient().why_unavailable(data)   # nor ambient's 'log a reference'
+    data.extras.clear()                                           # no column: column asks for one, not for ref_total
+    why = Column().why_unavailable(data)
+    assert "log the heater or motor currents" in why and "reference" not in why, why

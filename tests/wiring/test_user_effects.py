@@ -5,6 +5,7 @@ wrong, never a traceback."""
 from __future__ import annotations
 
 import textwrap
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -36,6 +37,8 @@ GOOD = textwrap.dedent('''
 
 
 pytestmark = pytest.mark.usefixtures("clean_registry")      # tests/conftest.py
+ROOT = Path(__file__).resolve().parents[2]
+SIM = str(ROOT / "recordings" / "grad1-sim-30s.mcap")
 
 
 def test_a_file_effect_is_registered_and_named(tmp_path):
@@ -226,3 +229,62 @@ def test_a_fixed_reference_is_printed_as_fixed_with_its_value(tmp_path, capsys):
     rows = {r.name: r for r in effect_rows({"warm": saved})}
     assert rows["s1 T0"].note.startswith("fixed: ") and rows["s1 T0"].warning == ""
     assert rows["s1.x nT/degC"].se is not None
+
+
+BROKEN = textwrap.dedent('''
+    import numpy as np
+    from service.numerics.effects import EffectTerm
+
+    class Broken(EffectTerm):
+        name = "broken"
+        frame = FRAME
+        def param_names(self, view):
+            return [f"{view.name}.broken {a} nT" for a in "xy"]
+        def columns(self, view):
+            n = view.data.n_samples
+            return BODY
+''')
+
+
+@pytest.mark.parametrize("frame, body, said", [
+    ("'raw'", "view.data.extras['heater_B']", "columns() raised KeyError: 'heater_B'"),
+    ("'raw'", "np.ones((n, 3))", "columns() returned (6000, 3) where (6000, 3, 2) is asked"),
+    ("'raw'", "np.ones((n, 3, 3))", "columns() returned (6000, 3, 3) where (6000, 3, 2) is asked"),
+    ("'raw'", "np.full((n, 3, 2), np.nan)", "columns() returned 36,000 NaN or infinite value(s)"),
+    ("'rwa'", "np.ones((n, 3, 2))", "Broken.frame = 'rwa' is not allowed (allowed: raw, corrected)"),
+])
+def test_an_effect_whose_methods_fail_is_said_by_name_never_a_traceback(tmp_path, capsys, frame, body, said):
+    """A new user's own effects (columns of the wrong shape, a parameter count that is not the columns', NaN
+    columns, a column the data lack, a misspelt frame): each was a traceback from deep in the fit, or (the frame)
+    taken silently with a held-out error below its in-sample one. Now fit and diagnose stop with the effect's name,
+    where it came from and what is wrong (service/numerics/effects/guard.py)."""
+    f = tmp_path / "broken.py"
+    f.write_text(BROKEN.replace("FRAME", frame).replace("BODY", body))
+    for command in ("fit", "diagnose"):
+        capsys.readouterr()
+        assert main([command, SIM, "--effects", f"{f}:Broken"]) == 2
+        err = capsys.readouterr().err
+        assert said in err and "Traceback" not in err, err
+        if frame == "'raw'":
+            assert f"effect 'broken' ({f}:Broken)" in err, err
+
+
+def test_a_written_effect_given_data_without_its_column_says_which(tmp_path, capsys):
+    """discover's written module follows a logged column: on data that lack it, fit says which column is missing
+    (why_unavailable), not KeyError."""
+    import sys
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from discovery_worlds import world
+
+    from service.numerics.diagnose import diagnose
+    from service.numerics.diagnose.write_effect import effect_source
+
+    d = diagnose(world("lagged heater", 5))
+    assert d.discovery.claimed
+    f = tmp_path / "found.py"
+    f.write_text(effect_source(d.discovery, data_name="a test world"))
+    capsys.readouterr()
+    main(["fit", SIM, "--effects", f"{f}:Discovered"])
+    err = capsys.readouterr().err
+    assert "effect 'discovered' cannot be fitted to these data: the data carry no heater_A column" in err, err

@@ -159,6 +159,30 @@ def _group_block(g: Group, indent: str) -> list[str]:
     return out
 
 
+def _why_unavailable(groups: Sequence[Group]) -> list[str]:
+    """The written class's why_unavailable: the columns, temperatures or reference its groups follow, said missing
+    where other data lack them (a KeyError deep in the fit before)."""
+    columns = sorted({g.feature.recipe["column"] for g in groups if "column" in g.feature.recipe})
+    temperature = any(g.feature.recipe["source"] == "temperature" for g in groups)
+    reference = any(g.feature.recipe["source"] == "ref_total" for g in groups)
+    if not (columns or temperature or reference):
+        return []
+    out = ["    def why_unavailable(self, data):",
+           "        \"\"\"What these data lack that the groups follow (None: nothing).\"\"\""]
+    if columns:
+        out += [f"        missing = [c for c in {columns!r} if c not in data.extras]",
+                "        if missing:",
+                "            return (f\"the data carry no {', '.join(missing)} column (this effect follows it; \"",
+                "                    f\"columns carried: {', '.join(sorted(data.extras)) or 'none'})\")"]
+    if temperature:
+        out += ["        if not data.has_temperature():",
+                "            return \"the data carry no probe temperature (this effect follows it)\""]
+    if reference:
+        out += ["        if data.ref_total_nT is None:",
+                "            return \"the data carry no reference total field, ref_total (this effect follows it)\""]
+    return out + ["        return None", ""]
+
+
 def _names_code(g: Group) -> str:
     return f"{g.param_names()!r}"
 
@@ -170,11 +194,15 @@ def _class(groups: Sequence[Group], class_name: str, name: str, readings: dict[i
     physical = "; ".join(readings.get(id(g), g.key) for g in groups)
     doc = ("Groups common to all probes, in the aligned frame (shared parameters)." if common else
            f"Groups of {', '.join(probes)}, each in its probe's raw frame (subtracted before its matrix).")
+    if len(physical) > 300:                                     # at a word, said as cut
+        physical = physical[:300].rsplit(" ", 1)[0] + " ..."
     lines = ["", "", f"class {class_name}(EffectTerm):", f'    """{doc}"""', "",
-             f"    name = {name!r}", f"    title = {class_name!r}", f"    physical = {physical[:300]!r}",
+             f"    name = {name!r}", f"    title = {class_name!r}       # what reports call it: rename it with the class",
+             f"    physical = {physical!r}",
              f"    frame = {'corrected' if common else 'raw'!r}",
              f"    per_sample = {per_sample!r}" + ("" if per_sample else
                                                    "       # a lag, a phase or a rate needs the samples before"), ""]
+    lines += _why_unavailable(groups)
     if common:
         lines += ["    def shared_names(self, data):", "        names = []"]
         lines += [f"        names += {_names_code(g)}" for g in groups]

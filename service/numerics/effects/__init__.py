@@ -41,6 +41,7 @@ from .crossfield import Crossfield
 from .drift import Drift
 from .eddy import Eddy
 from .gradient import Gradient
+from .guard import guarded
 from .hysteresis import Hysteresis
 from .lag import Lag
 from .nonlinearity import Nonlinearity
@@ -57,6 +58,8 @@ EFFECTS: dict[str, type[EffectTerm]] = {
 
 #: effects registered by the user (name -> class), beside the catalogue
 _REGISTERED: dict[str, type[EffectTerm]] = {}
+#: where each registered effect came from (file.py:Class, or its module), for the messages
+_ORIGIN: dict[str, str] = {}
 
 _NAME_CHARS = set("abcdefghijklmnopqrstuvwxyz0123456789_-")
 
@@ -70,6 +73,7 @@ def register_effect(cls: object, origin: str = "") -> str:
     """Add a user's effect class (an EffectTerm subclass with a `name`) beside the catalogue; returns its name.
     ConfigError says what is wrong with it (origin: where it came from, for the message)."""
     where = f"{origin}: " if origin else ""
+    cls = getattr(cls, "user_class", cls)               # a registered (guarded) class given again: the user's own
     if not (isinstance(cls, type) and issubclass(cls, EffectTerm)) or cls in (EffectTerm, Baseline):
         raise ConfigError(f"--effects: {where}{cls!r} is not an effect (allowed: a subclass of "
                           f"service.numerics.effects.EffectTerm; docs/effects.md)")
@@ -78,15 +82,19 @@ def register_effect(cls: object, origin: str = "") -> str:
         raise ConfigError(f"--effects: {where}{cls.__name__}.name = {name!r} is not allowed (allowed: a lower-case "
                           f"name of letters, digits, _ and -, starting with a letter)")
     taken = known_effects().get(name)
-    if taken is not None and taken is not cls:
+    if taken is not None and getattr(taken, "user_class", taken) is cls:
+        return name                                         # the same class again
+    if taken is not None:
         raise ConfigError(f"--effects: {where}{cls.__name__}.name = {name!r} is taken by "
-                          f"{taken.__module__}.{taken.__name__} (allowed: a name not in {', '.join(known_effects())})")
+                          f"{_ORIGIN.get(name, taken.__module__ + '.' + taken.__name__)} (allowed: a name not in "
+                          f"{', '.join(known_effects())})")
     linear = cls.columns is not EffectTerm.columns
     nonlinear = cls.correction is not EffectTerm.correction and cls.jacobian is not EffectTerm.jacobian
     if not (linear or nonlinear or cls.shared_names is not EffectTerm.shared_names):
         raise ConfigError(f"--effects: {where}{cls.__name__} defines neither columns() (a linear term) nor "
                           f"correction() and jacobian() (a non-linear one); docs/effects.md")
-    _REGISTERED[name] = cls
+    _REGISTERED[name] = guarded(cls, origin)            # what it raises or returns wrong is said (guard.py)
+    _ORIGIN[name] = origin or f"{cls.__module__}.{cls.__name__}"
     return name
 
 

@@ -46,8 +46,9 @@ class Column(EffectTerm):
         if logged:                            # logged, but constant: say which, never ask to log what is logged
             return (f"the auxiliary column(s) the data carry ({', '.join(logged)}) do not change over the record: "
                     f"nothing to fit against (a current that reads 0 throughout is not measured: check its sensor)")
+        reference = "" if data.ref_total_nT is not None else ", a reference magnetometer"   # never what is logged
         return ("the data carry no auxiliary column that changes (extra CSV columns, MCAP channels: log the "
-                "heater or motor currents, a reference magnetometer)")
+                f"heater or motor currents{reference})")
 
     def _cols(self, view: ProbeView) -> dict[str, np.ndarray]:
         key = "column:values"
