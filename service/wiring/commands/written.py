@@ -26,6 +26,9 @@ def write_discovered(out: Any, path: str, source: str, said: Said) -> None:
         return
     text = effect_source(found, data_name=Path(source).name)
     target = Path(path)
+    kept = _keep_earlier(target, text)
+    if kept is not None:
+        said("write-effect", f"{target} held another module (your edits?): kept as {kept}", level="say")
     fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".tmp", dir=target.parent or ".")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
@@ -39,6 +42,22 @@ def write_discovered(out: Any, path: str, source: str, said: Said) -> None:
     said("write-effect", f"the discovered term written to {target} as an effect of your own: rename it and give it "
                          f"back with --effects {use} (fit, diagnose; a running service takes it from [effects] "
                          f"plugins where it acts on each sample alone)", level="say")
+
+
+def _keep_earlier(target: Path, text: str) -> Path | None:
+    """Where a file at `target` that differs from `text` is kept (renamed to the first free target.~N~, as GNU's
+    numbered backups), so that writing the module again never loses what a user edited there; None where there was
+    none, or the same text."""
+    try:
+        if not target.is_file() or target.read_text(encoding="utf-8", errors="replace") == text:
+            return None
+    except OSError:
+        return None
+    n = 1
+    while (kept := target.with_name(f"{target.name}.~{n}~")).exists():
+        n += 1
+    os.replace(target, kept)
+    return kept
 
 
 def write_diagnosis_report(out: Any, folder: str, said: Said) -> None:
