@@ -288,3 +288,17 @@ def test_a_written_effect_given_data_without_its_column_says_which(tmp_path, cap
     main(["fit", SIM, "--effects", f"{f}:Discovered"])
     err = capsys.readouterr().err
     assert "effect 'discovered' cannot be fitted to these data: the data carry no heater_A column" in err, err
+
+
+def test_advice_names_a_users_effect_as_the_command_line_takes_it(tmp_path, capsys):
+    """'try: --effects discovered,nonlinearity' exited 2 ('discovered' is not an effect) where the model held a
+    user's effect: the advice gives it as the file.py:Class it came as, so that it runs as written."""
+    f = tmp_path / "mine.py"
+    f.write_text(GOOD)
+    capsys.readouterr()
+    assert main(["diagnose", str(ROOT / "recordings" / "grad1-hidden-effect.mcap"), "--effects", f"{f}:Bump"]) == 0
+    out = capsys.readouterr().out
+    advice = next(ln for ln in out.splitlines() if "try: --effects" in ln)
+    spec = advice.split("try: --effects ", 1)[1].split()[0]
+    assert spec == f"{f}:Bump,temperature", advice
+    assert main(["fit", str(ROOT / "recordings" / "grad1-hidden-effect.mcap"), "--effects", spec]) == 0   # runs

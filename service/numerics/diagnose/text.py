@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from service.numerics.effects import effect_spec
+
 from .result import GAIN_SIGMAS, MIN_GAIN, P_SIGNIFICANT, Candidate, Diagnosis
 
 PARAMETER_LINES = 18
@@ -145,7 +147,8 @@ def verdict_lines(d: Diagnosis) -> list[str]:
     best = d.best
     if v is None:                                   # a Diagnosis made by hand, without a verdict
         return ["  no missing effect is significant" if best is None else f"  most likely missing: {best.effect}"]
-    try_it = "" if best is None else f"; try: --effects {','.join(d.effects + [best.effect])}"
+    # as the command line takes them: a user's effect as the file.py:Class it was given as
+    try_it = "" if best is None else f"; try: --effects {','.join(map(effect_spec, d.effects + [best.effect]))}"
     if v["kind"] == "at the floor":
         return ["  no missing effect is significant: the model explains the data down to the noise"]
     alike = []

@@ -69,6 +69,13 @@ def known_effects() -> dict[str, type[EffectTerm]]:
     return {**EFFECTS, **_REGISTERED}
 
 
+def effect_spec(name: str) -> str:
+    """How to name an effect on the command line: a registered one as it was given (file.py:Class,
+    package.module:Class), so that advice naming it can be run as written; the catalogue's by name."""
+    origin = _ORIGIN.get(name, "")
+    return origin if ":" in origin else name
+
+
 def register_effect(cls: object, origin: str = "") -> str:
     """Add a user's effect class (an EffectTerm subclass with a `name`) beside the catalogue; returns its name.
     ConfigError says what is wrong with it (origin: where it came from, for the message)."""
@@ -113,6 +120,6 @@ def make_model(names: Iterable[str], *, baseline: bool = True) -> Model:
     return Model(([Baseline()] if baseline else []) + terms)
 
 
-__all__ = ["EFFECTS", "known_effects", "register_effect", "make_term", "make_model", "Baseline", "EffectData", "EffectTerm", "Model", "ProbeView",
+__all__ = ["EFFECTS", "known_effects", "effect_spec", "register_effect", "make_term", "make_model", "Baseline", "EffectData", "EffectTerm", "Model", "ProbeView",
            "Temperature", "ThermalLag", "Eddy", "Lag", "Nonlinearity", "Drift", "Gradient", "Crossfield", "Hysteresis",
            "Platform", "Column", "Ambient"]
