@@ -390,8 +390,10 @@ def _beyond_catalogue(ed: Any, model: Model, cur: Any, cur_ho: Any, cands: list[
                 found = alone
                 cands = rank(cands)
                 best = next((c for c in cands if c.significant and c.fit is not None), None)
-    base = best.fit if best is not None else cur
-    sig0 = sig_cur if best is None else signature(base, noise, where_it_fails(ed, base, noise))
+    # what is left beside the finding: the residual with the groups found (its 'beside it' named the very column
+    # the groups follow, from the residual without them)
+    base = found.fit if found.fit is not None else (best.fit if best is not None else cur)
+    sig0 = signature(base, noise, where_it_fails(ed, base, noise))
     sig0.setdefault("frames", frame_summary(frames(ed, base, noise)))
     again_told = verdict(cur.rms_nT, noise_nT, best, sig0, carried)
     if again_told["kind"] in ("at the floor", "explained"):

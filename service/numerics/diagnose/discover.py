@@ -94,8 +94,9 @@ class Discovery:
         found = "; ".join(g.reading for g in self.groups)
         return (f"discovered beyond the catalogue: {found}; with {'it' if len(self.groups) == 1 else 'them'} the "
                 f"held-out error falls from {self.base_heldout_rms_nT:.3f} to {self.heldout_rms_nT:.3f} nT against a "
-                f"{self.floor_nT:.3f} nT floor (chosen inside training blocks, judged on held-out ones: gain "
-                f"{100 * self.cv_gain:.0f} %); write it as an effect of your own (docs/effects.md)")
+                f"{self.floor_nT:.3f} nT floor (the search itself, every choice made without the block it predicts, "
+                f"takes {100 * self.cv_gain:.0f} % of the held-out sum of squares); write it as an effect of your own "
+                f"(docs/effects.md)")
 
     def as_dict(self) -> dict[str, Any]:
         return {"tried": self.tried, "tried_params": self.tried_params, "claimed": self.claimed,

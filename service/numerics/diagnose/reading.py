@@ -54,8 +54,9 @@ def _wald(values: np.ndarray, cov: np.ndarray) -> float:
 
 
 def covariance(fit: FitResult, term: str) -> tuple[np.ndarray, np.ndarray]:
-    """(values, covariance) of a term's parameters: the normal matrix's inverse, scaled as the robust (1/f-aware)
-    standard errors are to the white-noise ones."""
+    """(values, covariance) of a term's parameters: the correlations of the normal matrix's inverse, with each
+    parameter's own robust (1/f-aware) standard error on the diagonal, as the fitted parameters state it (scaled by
+    the median ratio of the two instead, a reading's errors (40, 28, 58) stood beside the parameters' (40, 36, 55))."""
     pr = fit.problem
     idx = np.concatenate([np.arange(s.start, s.stop) for s in pr.slots if s.term is not None and s.term.name == term])
     a = fit.a_blocks.sum(0)
@@ -66,9 +67,8 @@ def covariance(fit: FitResult, term: str) -> tuple[np.ndarray, np.ndarray]:
     s2 = fit.rss_w / max(fit.n_rows - fit.rank, 1)
     cov = inv[np.ix_(idx, idx)] * s2
     white = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-    robust = fit.robust_stderr[idx]
-    scale = float(np.median(robust / white))
-    return fit.values[idx], cov * max(scale, 1.0) ** 2
+    robust = np.where(fit.undetermined[idx], white, np.maximum(fit.robust_stderr[idx], white))
+    return fit.values[idx], cov / np.outer(white, white) * np.outer(robust, robust)
 
 
 #: a matrix that follows x, split into its physical parts: scale and non-orthogonality in the probe's frame (its

@@ -135,8 +135,8 @@ def discovery_lines(d: Diagnosis) -> list[str]:
         out.append(f"    {g.reading}")
     out.append(f"    with {'it' if len(f.groups) == 1 else 'them'}: residual {f.rms_nT:.3f} nT, held-out "
                f"{f.heldout_rms_nT:.3f} nT (from {f.base_heldout_rms_nT:.3f}) against a {f.floor_nT:.3f} nT floor; "
-               f"judged on held-out blocks "
-               f"with every choice made without them: gain {100 * f.cv_gain:.1f} %, "
+               f"the search itself, every choice made without the block it predicts, takes {100 * f.cv_gain:.1f} % "
+               f"of the held-out sum of squares, "
                f"{f.cv_log_ratio / f.cv_log_ratio_se if f.cv_log_ratio_se > 0 else float('inf'):.1f} standard errors")
     return out
 
