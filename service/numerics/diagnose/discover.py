@@ -57,7 +57,18 @@ from .library import (
 )
 from .reading import FoundGroup, covariance, read_group, scale_parts
 from .result import GAIN_SIGMAS, MIN_GAIN, P_SIGNIFICANT
-from .selection import SHORTLIST, blocks_of, crossval, fit_all, marginals, normals, rss_of, select, shortlist
+from .selection import (
+    SHORTLIST,
+    blocks_of,
+    crossval,
+    fit_all,
+    marginals,
+    normals,
+    prune,
+    rss_of,
+    select,
+    shortlist,
+)
 
 
 @dataclass
@@ -167,6 +178,8 @@ def discover(data: EffectData, base: FitResult, base_ho: Heldout, reference: np.
         return out
     tell("fitting the groups found")
     kept = refine_loops(data, base, refine_lags(data, base, [groups[i] for i in chosen]))
+    if len(kept) > 1:                               # refined, each still passes beside the others, or goes
+        kept = [kept[i] for i in prune(normals(data, base, kept))]
     return conclude(out, data, base, base_ho, kept, reference, weights, n_blocks, p_level)
 
 
