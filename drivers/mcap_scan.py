@@ -286,7 +286,8 @@ def iter_file_records(path: str | Path, report: ReadReport | None = None, *, str
         magic = fh.read(len(MCAP_MAGIC))
         if magic != MCAP_MAGIC:
             if MCAP_MAGIC.startswith(magic):
-                report.truncated.append(f"{f}: empty ({size} bytes): its writer stopped before writing anything")
+                what = "empty (0 bytes)" if not size else f"cut inside its magic ({size} of {len(MCAP_MAGIC)} bytes)"
+                report.truncated.append(f"{f}: {what}: its writer stopped before writing anything")
                 report.truncated_bytes += size
                 return
             raise RecordingError(f"{f}: not an MCAP file (starts with {magic[:8]!r})")

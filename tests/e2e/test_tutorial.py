@@ -57,6 +57,8 @@ def test_the_tutorial_runs_as_written(tmp_path, monkeypatch, capsys, clean_regis
     assert g["probe"] == "s2" and g["kind"] == "wave" and g["how"] == "line" and "1.5 Hz" in g["reading"]
     assert g["parts"]["amplitude_platform_frame_nT"] == pytest.approx([4.0, 4.0, 0.0], abs=0.1)
     assert d["rms_nT"] > 2 * d["noise_nT"]
+    # the size of the library the tutorial quotes is the run's
+    assert f"discovery: {f['tried']} groups of {f['tried_params']} parameters" in TUTORIAL.read_text()
     # 3. with the effect: at the floor, the pump's 4 nT found on s2
     assert main(cmds[1] + ["--json"]) == 0
     d2 = json.loads(capsys.readouterr().out)

@@ -34,6 +34,8 @@ def test_the_discovery_tutorial_runs_as_written(tmp_path, monkeypatch, capsys, c
     assert main(cmds[0]) == 0
     out, err = capsys.readouterr()
     assert "a field periodic at 1.5 Hz" in out and "on s2" in out
+    quoted = re.search(r"discovery: \d+ groups of \d+ parameters", TUTORIAL.read_text()).group(0)
+    assert quoted in out, quoted                     # the figures the tutorial quotes are the run's
     written = tmp_path / "found_pump.py"
     assert written.is_file() and "written to found_pump.py" in err and "--effects found_pump.py:Discovered" in err
     text = written.read_text()

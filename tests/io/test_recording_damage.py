@@ -183,3 +183,27 @@ def test_a_repaired_copy_of_a_killed_writers_file_records_that_it_was_cut(writte
     assert main(["replay", str(fixed)]) == 0
     err = capsys.readouterr().err
     assert "repaired copy of cut.mcap, whose writer was stopped" in err and f"last sample kept: seq {last}" in err
+
+
+@pytest.mark.parametrize("command", ["fit", "diagnose", "inspect"])
+def test_a_file_cut_within_its_first_40_bytes_is_said_in_one_line_never_a_traceback(command, tmp_path, capsys):
+    """The head of a real recording, 0 to 40 bytes of it (the magic, the header record cut anywhere), and a few
+    bytes that are no MCAP at all: every reader that sniffs the format says what is wrong with the file in one line
+    naming it, with the exit status of any other damaged file (2), never a traceback (issue: `struct.error` from
+    the format's sniffing on a 7-byte file)."""
+    head = SAMPLE.read_bytes()[:41]                 # the magic (8 bytes), the header record (24), a metadata record
+    cases = {f"head{n}.mcap": head[:n] for n in range(41)}
+    cases.update({"garb.mcap": b"garbage", "one.mcap": b"\x00"})
+    for name, blob in cases.items():
+        path = tmp_path / name
+        path.write_bytes(blob)
+        assert main([command, str(path)], install_signals=False) == 2, name
+        out, err = capsys.readouterr()
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"fluxcal {command}: {path}: "), (name, err)
+        assert "Traceback" not in err and "struct.error" not in err and not out, (name, err)
+        n = len(blob)
+        said = ("not an MCAP file" if not head.startswith(blob) else "empty (0 bytes)" if not n else
+                f"cut inside its magic ({n} of 8 bytes)" if n < 8 else "no footer" if n in (8, 32) else
+                "cut inside a header record at byte 8" if n < 32 else "cut inside a metadata record at byte 32")
+        assert said in err, (name, err)

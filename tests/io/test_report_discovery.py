@@ -23,6 +23,11 @@ def test_the_report_says_what_was_discovered_and_how_to_write_it(tmp_path, capsy
     page = (tmp_path / "rep" / "index.html").read_text()
     assert "<h2>Beyond the catalogue</h2>" in page and "a field periodic at 1.5 Hz" in page
     assert "--write-effect FILE.py" in page
+    # its long lines (195 characters on this recording) wrap inside the page (60em wide), not off its right edge
+    pre = page.split("<h2>Beyond the catalogue</h2><pre>")[1].split("</pre>")[0]
+    assert max(len(line) for line in pre.splitlines()) > 150
+    style = page.split("<style>")[1].split("</style>")[0]
+    assert "pre { white-space: pre-wrap; overflow-wrap: anywhere; }" in style
 
 
 def test_the_dashboard_offers_the_discovered_term_as_an_effect_module(tmp_path):

@@ -59,6 +59,8 @@ def detect_format(path: str | Path) -> str:
 def mcap_is_ros2(path: Path) -> bool:
     """An MCAP file holds a ROS 2 bag (not a fluxcal recording) when its header's profile is "ros2", or, with no
     profile, when its first channel carries CDR messages (fluxcal writes profile "" and its own encodings)."""
+    import struct
+
     from mcap.exceptions import McapError
     from mcap.records import Channel, Header
     from mcap.stream_reader import StreamReader
@@ -75,7 +77,8 @@ def mcap_is_ros2(path: Path) -> bool:
                     return rec.message_encoding == "cdr"
                 if n > 10_000:
                     return False
-    except (McapError, OSError, ValueError, EOFError):
+    except (McapError, OSError, ValueError, EOFError, struct.error):
+        # struct.error: mcap's reader unpacks a record cut short (a file of 1-7 bytes, a header cut) as it is
         return False                             # the fluxcal reader says what is wrong with the file
     return False
 

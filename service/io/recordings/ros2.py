@@ -180,15 +180,33 @@ class _McapBag(_Bag):
             raise missing_package("mcap-ros2-support", "ros2", "a ROS 2 bag in MCAP") from None
         return make_reader(f, decoder_factories=[DecoderFactory()])
 
-    def topics(self) -> dict[str, str]:
-        from mcap.exceptions import McapError
+    def _unreadable(self, e: Exception, where: str) -> DataError:
+        """The DataError of a damaged file: mcap, zstd and the CDR decoder raise their own exceptions, or bare ones
+        (struct.error on a record cut short, KeyError, OverflowError, a message definition's parse error)."""
+        import struct
 
+        from mcap.exceptions import EndOfFile
+
+        what = ("it ends inside a record" if isinstance(e, EndOfFile) else "a record cut short"
+                if isinstance(e, struct.error) else f"{type(e).__name__}: {e}")
+        return DataError(f"{self.path}: {where} ({what}); a bag whose writer was killed can be finished with "
+                         f"`mcap recover`, a damaged one cannot be read here")
+
+    def _log_time(self, topic: str, ns: int) -> int:
+        """A message's log time (ns, an unsigned 64-bit field), refused beyond 2**63 - 1 (the year 2262): damage."""
+        if ns >= 1 << 63:
+            raise DataError(f"{self.path}: a message on {topic} has the log time {ns} ns, beyond 2**63 (the year "
+                            f"2262): the file is damaged")
+        return ns
+
+    def topics(self) -> dict[str, str]:
         with open(self.path, "rb") as f:
             try:
                 summary = self._reader(f).get_summary()
-            except (McapError, ValueError, EOFError) as e:
-                raise DataError(f"{self.path}: not a readable MCAP file ({e}); a bag whose writer was killed can "
-                                f"be finished with `mcap recover`") from None
+            except DataError:
+                raise
+            except Exception as e:  # noqa: BLE001 - the readers raise bare exceptions on a damaged file
+                raise self._unreadable(e, "not a readable MCAP file") from None
         if summary is None:
             raise DataError(f"{self.path}: the MCAP file has no summary (its writer was killed?): finish it with "
                             f"`mcap recover IN OUT` first")
@@ -198,19 +216,24 @@ class _McapBag(_Bag):
     def times(self) -> dict[str, np.ndarray]:
         out: dict[str, list[int]] = {}
         with open(self.path, "rb") as f:
-            for _, ch, msg in self._reader(f).iter_messages(log_time_order=False):
-                out.setdefault(ch.topic, []).append(msg.log_time)
+            try:
+                for _, ch, msg in self._reader(f).iter_messages(log_time_order=False):
+                    out.setdefault(ch.topic, []).append(self._log_time(ch.topic, msg.log_time))
+            except DataError:
+                raise
+            except Exception as e:  # noqa: BLE001 - the readers raise bare exceptions on a damaged file
+                raise self._unreadable(e, "a message could not be read") from None
         return {k: np.asarray(v, np.int64) for k, v in out.items()}
 
     def messages(self, topics: set[str]) -> Iterator[tuple[str, int, Any]]:
-        from mcap.exceptions import McapError
-
         with open(self.path, "rb") as f:
             try:
                 for _, ch, msg, decoded in self._reader(f).iter_decoded_messages(topics=sorted(topics)):
-                    yield ch.topic, msg.log_time, decoded
-            except McapError as e:
-                raise DataError(f"{self.path}: a message could not be decoded ({e})") from None
+                    yield ch.topic, self._log_time(ch.topic, msg.log_time), decoded
+            except DataError:
+                raise
+            except Exception as e:  # noqa: BLE001 - the readers raise bare exceptions on a damaged file
+                raise self._unreadable(e, "a message could not be read or decoded") from None
 
 
 class _RosbagsBag(_Bag):
@@ -304,35 +327,43 @@ def _collect(bag: _Bag, p: _Plan) -> dict[str, _Collected]:
     kinds.update({t: k for t, k in ((p.imu, IMU), (p.navsatfix, NAVSATFIX), (p.battery, BATTERY)) if t})
     got = {t: _Collected([], []) for t in kinds}
     for topic, log_ns, msg in bag.messages(set(kinds)):
-        c, kind = got[topic], kinds[topic]
-        if kind == MAGNETIC_FIELD:
-            v = msg.magnetic_field
-            value: Any = (v.x * 1e9, v.y * 1e9, v.z * 1e9)                 # tesla -> nT
-            c.frame_id = c.frame_id or str(msg.header.frame_id)
-        elif kind == TEMPERATURE:
-            value = float(msg.temperature)
-        elif kind == IMU:
-            if float(msg.orientation_covariance[0]) == -1.0:               # REP 145: no orientation given
-                c.left_out += 1
-                continue
-            o = msg.orientation
-            value = (o.w, o.x, o.y, o.z)
-            c.frame_id = c.frame_id or str(msg.header.frame_id)
-        elif kind == NAVSATFIX:
-            if int(msg.status.status) < 0 or not math.isfinite(float(msg.altitude)):
-                c.left_out += 1
-                continue
-            value = (float(msg.latitude), float(msg.longitude), float(msg.altitude))
-        else:                                                               # BatteryState
-            if not math.isfinite(float(msg.current)):
-                c.left_out += 1
-                continue
-            value = float(msg.current)
-        ns, from_log = _stamp_ns(msg, log_ns)
-        c.stamps.append(ns)
-        c.values.append(value)
-        c.from_log += from_log
+        try:
+            _take(got[topic], kinds[topic], log_ns, msg)
+        except (AttributeError, TypeError, ValueError, IndexError) as e:
+            raise DataError(f"{bag.path}: a message on {topic} is not the {kinds[topic]} fluxcal reads ({e}): its "
+                            f"message definition in the file differs from the standard one (damaged?)") from None
     return got
+
+
+def _take(c: _Collected, kind: str, log_ns: int, msg: Any) -> None:
+    """One decoded message of its kind into its topic's collection (or counted as left out)."""
+    if kind == MAGNETIC_FIELD:
+        v = msg.magnetic_field
+        value: Any = (v.x * 1e9, v.y * 1e9, v.z * 1e9)                 # tesla -> nT
+        c.frame_id = c.frame_id or str(msg.header.frame_id)
+    elif kind == TEMPERATURE:
+        value = float(msg.temperature)
+    elif kind == IMU:
+        if float(msg.orientation_covariance[0]) == -1.0:               # REP 145: no orientation given
+            c.left_out += 1
+            return
+        o = msg.orientation
+        value = (o.w, o.x, o.y, o.z)
+        c.frame_id = c.frame_id or str(msg.header.frame_id)
+    elif kind == NAVSATFIX:
+        if int(msg.status.status) < 0 or not math.isfinite(float(msg.altitude)):
+            c.left_out += 1
+            return
+        value = (float(msg.latitude), float(msg.longitude), float(msg.altitude))
+    else:                                                               # BatteryState
+        if not math.isfinite(float(msg.current)):
+            c.left_out += 1
+            return
+        value = float(msg.current)
+    ns, from_log = _stamp_ns(msg, log_ns)
+    c.stamps.append(ns)
+    c.values.append(value)
+    c.from_log += from_log
 
 
 def load_ros2(path: str | Path, mapping: Ros2Mapping | None = None) -> LabData:

@@ -22,7 +22,8 @@ td, th { border: 1px solid #bbb; padding: 0.2em 0.6em; text-align: left; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; }
 td.warn { color: #a40000; font-weight: bold; }
 p.warn { color: #a40000; }
-figure { margin: 1.5em 0; } img { max-width: 100%; } figcaption { font-size: 0.85em; color: #555; }"""
+figure { margin: 1.5em 0; } img { max-width: 100%; } figcaption { font-size: 0.85em; color: #555; }
+pre { white-space: pre-wrap; overflow-wrap: anywhere; }"""
 
 NO_MATPLOTLIB = ("the HTML report needs matplotlib, which is not installed: pip install matplotlib "
                  "(or the project's [plots] extra)")
