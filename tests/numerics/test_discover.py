@@ -186,12 +186,12 @@ def test_a_coupling_seen_only_through_the_field_direction_is_named():
     assert top["observable"] == "heater_A x field direction" and top["strength"] > 0.5, d.where[:4]
     alone = max((w["strength"] for w in d.where if w["observable"] == "heater_A"), default=0.0)
     assert alone < top["strength"] - 0.3, d.where[:4]
-    if d.discovery is not None and d.discovery.claimed:     # found: what is left is said beside it, without it
+    assert "heater_A x field direction" in d.verdict["left"]
+    assert "seen through the field's direction" in d.verdict["advice"] or "heater_A" in d.verdict["advice"]
+    if d.discovery is not None and d.discovery.claimed:     # found: 'beside it' says what is left without it
         assert any(g.observable == "heater_A" for g in d.discovery.groups), summary_text(d)
-        assert "heater_A" not in d.verdict["left"] and "heater_A" in d.verdict["advice"], d.verdict
-    else:
-        assert "heater_A x field direction" in d.verdict["left"]
-        assert "seen through the field's direction" in d.verdict["advice"] or "heater_A" in d.verdict["advice"]
+        beside_it = d.verdict["advice"].partition("; beside it: ")[2]
+        assert "heater_A" not in beside_it, d.verdict["advice"]
 
 
 def test_a_gain_that_is_an_extrapolation_is_not_printed_as_a_percentage():

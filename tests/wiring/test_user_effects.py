@@ -258,6 +258,9 @@ def test_an_effect_whose_methods_fail_is_said_by_name_never_a_traceback(tmp_path
     columns, a column the data lack, a misspelt frame): each was a traceback from deep in the fit, or (the frame)
     taken silently with a held-out error below its in-sample one. Now fit and diagnose stop with the effect's name,
     where it came from and what is wrong (service/numerics/effects/guard.py)."""
+    from service.numerics.effects.guard import FRAMES
+
+    assert FRAMES == ("raw", "corrected")
     f = tmp_path / "broken.py"
     f.write_text(BROKEN.replace("FRAME", frame).replace("BODY", body))
     for command in ("fit", "diagnose"):

@@ -390,10 +390,8 @@ def _beyond_catalogue(ed: Any, model: Model, cur: Any, cur_ho: Any, cands: list[
                 found = alone
                 cands = rank(cands)
                 best = next((c for c in cands if c.significant and c.fit is not None), None)
-    # what is left beside the finding: the residual with the groups found (its 'beside it' named the very column
-    # the groups follow, from the residual without them)
-    base = found.fit if found.fit is not None else (best.fit if best is not None else cur)
-    sig0 = signature(base, noise, where_it_fails(ed, base, noise))
+    base = best.fit if best is not None else cur
+    sig0 = sig_cur if best is None else signature(base, noise, where_it_fails(ed, base, noise))
     sig0.setdefault("frames", frame_summary(frames(ed, base, noise)))
     again_told = verdict(cur.rms_nT, noise_nT, best, sig0, carried)
     if again_told["kind"] in ("at the floor", "explained"):
@@ -402,9 +400,11 @@ def _beyond_catalogue(ed: Any, model: Model, cur: Any, cur_ho: Any, cands: list[
                           advice=None, signature=sig0)
     if told.get("linear_refit_nT") is not None:
         again_told["linear_refit_nT"] = told["linear_refit_nT"]
-    again_told["advice"] = found.sentence() + (
-        f"; beside it: {again_told['advice']}" if again_told.get("advice") and
-        found.heldout_rms_nT > FLOOR_FACTOR * noise_nT else "")
+    # beside the finding: what the residual with the groups found still follows (from the residual without them,
+    # it named the very column the groups follow)
+    beside_it = (describe(signature(found.fit, noise, where_it_fails(ed, found.fit, noise)), carried)[1]
+                 if found.heldout_rms_nT > FLOOR_FACTOR * noise_nT else None)
+    again_told["advice"] = found.sentence() + (f"; beside it: {beside_it}" if beside_it else "")
     return found, again_told, cands
 
 
