@@ -121,12 +121,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
                                                weights, n_blocks, noise, noise_nT, tell)
         best = next((c for c in cands if c.significant and c.fit is not None), None)
 
-    # judged on the best model found: a missing effect that changes in time makes the model's own held-out error
-    # large against its in-sample one, which the effect, once added, takes away (a tutorial's temperature effect:
-    # 1.38 without it, 1.00 with it, called SIGNIFICANT under "the gains are not a verdict")
-    judged = ((found.fit, found.heldout_rms_nT) if found is not None and found.claimed and found.fit is not None else
-              (best.fit, best.heldout_rms_nT) if best is not None else (cur, cur_ho.rms_nT))
-    weak = heldout_weakness(*judged)
+    weak = _weakness(cur, cur_ho, best, found)
     _last_advice(told, notes, cur, best, found, weak, cands, (linear_refit, refit_refused), noise_nT, stretch)
     notes += _coloured_noise_notes(sig_cur.get("spectral_slope"), model.effects, ed.duration_s)
 
@@ -227,6 +222,18 @@ def _refused(check_linear: Callable[[Any], None] | None, linear: Any) -> str | N
     except CalibrationRefused as e:
         return getattr(e, "problem", None) or str(e)     # what is not determined, without the refusal's way out
     return None
+
+
+def _weakness(cur: Any, cur_ho: Any, best: Candidate | None, found: Any) -> dict[str, Any] | None:
+    """Whether the held-out test can judge these data (weak.py), asked of the best model found: a missing effect that
+    changes in time makes the model's own held-out error large against its in-sample one, which the effect, once
+    added, takes away (a tutorial's temperature effect: 1.38 without it, 1.00 with it, called SIGNIFICANT under 'the
+    gains are not a verdict')."""
+    if found is not None and found.claimed and found.fit is not None:
+        return heldout_weakness(found.fit, found.heldout_rms_nT)
+    if best is not None:
+        return heldout_weakness(best.fit, best.heldout_rms_nT)
+    return heldout_weakness(cur, cur_ho.rms_nT)
 
 
 def _last_advice(told: dict, notes: list[str], cur, best, found, weak, cands, refit: tuple, noise_nT: float,
