@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -192,6 +193,16 @@ class _McapBag(_Bag):
         return DataError(f"{self.path}: {where} ({what}); a bag whose writer was killed can be finished with "
                          f"`mcap recover`, a damaged one cannot be read here")
 
+    @contextmanager
+    def _damage(self, where: str) -> Iterator[None]:
+        """What the readers raise on a damaged file (their own exceptions, or bare ones) said as _unreadable."""
+        try:
+            yield
+        except DataError:
+            raise
+        except Exception as e:  # noqa: BLE001 - the readers raise bare exceptions on a damaged file
+            raise self._unreadable(e, where) from None
+
     def _log_time(self, topic: str, ns: int) -> int:
         """A message's log time (ns, an unsigned 64-bit field), refused beyond 2**63 - 1 (the year 2262): damage."""
         if ns >= 1 << 63:
@@ -200,13 +211,8 @@ class _McapBag(_Bag):
         return ns
 
     def topics(self) -> dict[str, str]:
-        with open(self.path, "rb") as f:
-            try:
-                summary = self._reader(f).get_summary()
-            except DataError:
-                raise
-            except Exception as e:  # noqa: BLE001 - the readers raise bare exceptions on a damaged file
-                raise self._unreadable(e, "not a readable MCAP file") from None
+        with open(self.path, "rb") as f, self._damage("not a readable MCAP file"):
+            summary = self._reader(f).get_summary()
         if summary is None:
             raise DataError(f"{self.path}: the MCAP file has no summary (its writer was killed?): finish it with "
                             f"`mcap recover IN OUT` first")
@@ -215,25 +221,15 @@ class _McapBag(_Bag):
 
     def times(self) -> dict[str, np.ndarray]:
         out: dict[str, list[int]] = {}
-        with open(self.path, "rb") as f:
-            try:
-                for _, ch, msg in self._reader(f).iter_messages(log_time_order=False):
-                    out.setdefault(ch.topic, []).append(self._log_time(ch.topic, msg.log_time))
-            except DataError:
-                raise
-            except Exception as e:  # noqa: BLE001 - the readers raise bare exceptions on a damaged file
-                raise self._unreadable(e, "a message could not be read") from None
+        with open(self.path, "rb") as f, self._damage("a message could not be read"):
+            for _, ch, msg in self._reader(f).iter_messages(log_time_order=False):
+                out.setdefault(ch.topic, []).append(self._log_time(ch.topic, msg.log_time))
         return {k: np.asarray(v, np.int64) for k, v in out.items()}
 
     def messages(self, topics: set[str]) -> Iterator[tuple[str, int, Any]]:
-        with open(self.path, "rb") as f:
-            try:
-                for _, ch, msg, decoded in self._reader(f).iter_decoded_messages(topics=sorted(topics)):
-                    yield ch.topic, self._log_time(ch.topic, msg.log_time), decoded
-            except DataError:
-                raise
-            except Exception as e:  # noqa: BLE001 - the readers raise bare exceptions on a damaged file
-                raise self._unreadable(e, "a message could not be read or decoded") from None
+        with open(self.path, "rb") as f, self._damage("a message could not be read or decoded"):
+            for _, ch, msg, decoded in self._reader(f).iter_decoded_messages(topics=sorted(topics)):
+                yield ch.topic, self._log_time(ch.topic, msg.log_time), decoded
 
 
 class _RosbagsBag(_Bag):
