@@ -305,3 +305,31 @@ def test_advice_names_a_users_effect_as_the_command_line_takes_it(tmp_path, caps
     spec = advice.split("try: --effects ", 1)[1].split()[0]
     assert spec == f"{f}:Bump,temperature", advice
     assert main(["fit", str(ROOT / "recordings" / "grad1-hidden-effect.mcap"), "--effects", spec]) == 0   # runs
+
+
+SHARED = textwrap.dedent('''
+    import numpy as np
+    from service.numerics.effects import EffectTerm
+
+    class Common(EffectTerm):
+        name = "common"
+        frame = "corrected"
+        def shared_names(self, data):
+            return ["common x nT", "common y nT"]
+        def shared_vcolumns(self, data, k):
+            return BODY
+''')
+
+
+@pytest.mark.parametrize("body, said", [
+    ("data.extras['pump_A'][:, None, None] * np.ones((1, 3, 2))", "shared_vcolumns() raised KeyError: 'pump_A'"),
+    ("np.ones((data.n_samples, 3, 3))", "shared_vcolumns() returned (6000, 3, 3) where (6000, 3, 2) is asked"),
+])
+def test_a_shared_effect_whose_columns_fail_is_said_by_name(tmp_path, capsys, body, said):
+    """The same for an effect with parameters shared by the probes (a written effect common to all probes is one)."""
+    f = tmp_path / "common.py"
+    f.write_text(SHARED.replace("BODY", body))
+    capsys.readouterr()
+    assert main(["fit", SIM, "--effects", f"{f}:Common"]) == 2
+    err = capsys.readouterr().err
+    assert said in err and f"effect 'common' ({f}:Common)" in err and "Traceback" not in err, err

@@ -41,8 +41,8 @@ def _array(who: str, method: str, out: Any, shape: tuple[int, ...]) -> np.ndarra
 
 
 def guarded(cls: type[EffectTerm], origin: str) -> type[EffectTerm]:
-    """A subclass of the user's `cls` whose columns, correction and jacobian are checked (shape, parameter count,
-    finite) and whose failures are said (module doc). Its `user_class` is `cls`."""
+    """A subclass of the user's `cls` whose columns, correction, jacobian and shared columns are checked (shape,
+    parameter count, finite) and whose failures are said (module doc). Its `user_class` is `cls`."""
     if getattr(cls, "frame", "raw") not in FRAMES:
         raise ConfigError(f"--effects: {origin}: {cls.__name__}.frame = {cls.frame!r} is not allowed (allowed: "
                           f"{', '.join(FRAMES)})")
@@ -66,6 +66,17 @@ def guarded(cls: type[EffectTerm], origin: str) -> type[EffectTerm]:
     def why_unavailable(self, data):
         return _said(who, "why_unavailable", lambda: cls.why_unavailable(self, data))
 
+    def shared(self, data) -> int:
+        return len(_said(who, "shared_names", lambda: cls.shared_names(self, data)))
+
+    def shared_vcolumns(self, data, k):
+        out = _said(who, "shared_vcolumns", lambda: cls.shared_vcolumns(self, data, k))
+        return None if out is None else _array(who, "shared_vcolumns", out, (data.n_samples, 3, shared(self, data)))
+
+    def shared_scolumns(self, data):
+        out = _said(who, "shared_scolumns", lambda: cls.shared_scolumns(self, data))
+        return None if out is None else _array(who, "shared_scolumns", out, (data.n_samples, shared(self, data)))
+
     body: dict[str, Any] = {"user_class": cls, "__doc__": cls.__doc__, "__module__": cls.__module__,
                             "why_unavailable": why_unavailable}
     if cls.columns is not EffectTerm.columns:
@@ -74,4 +85,8 @@ def guarded(cls: type[EffectTerm], origin: str) -> type[EffectTerm]:
         body["correction"] = correction
     if cls.jacobian is not EffectTerm.jacobian:
         body["jacobian"] = jacobian
+    if cls.shared_vcolumns is not EffectTerm.shared_vcolumns:
+        body["shared_vcolumns"] = shared_vcolumns
+    if cls.shared_scolumns is not EffectTerm.shared_scolumns:
+        body["shared_scolumns"] = shared_scolumns
     return type(cls.__name__, (cls,), body)
