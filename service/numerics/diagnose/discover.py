@@ -342,7 +342,7 @@ def refine_loops(data: EffectData, base: FitResult, groups: list[Group]) -> list
                 tried[(width, n)] = at(width, n, d[nm.spans[i]])
             return tried[(width, n)][0]
 
-        grid = sorted({_odd_window(data, data.window_samples * r) for r in LOOP_WINDOWS})
+        grid = sorted({data.odd_window(data.window_samples * r) for r in LOOP_WINDOWS})
         for width in LOOP_SCALES:                                   # the sign's width: each of the library's
             j = int(np.argmin([rss_at(width, n) for n in grid]))
             lo, hi = grid[max(j - 1, 0)], grid[min(j + 1, len(grid) - 1)]
@@ -362,11 +362,6 @@ def refine_loops(data: EffectData, base: FitResult, groups: list[Group]) -> list
                 break
             out, best_rss, steps = trial, rss, d_i
     return out
-
-
-def _odd_window(data: EffectData, n: float) -> int:
-    """A Savitzky-Golay window of about n samples: odd, at least 5, at most a quarter of the run."""
-    return int(min(max(int(round(n)) | 1, 5), max(5, (data.n_samples // 4) | 1)))
 
 
 def _fit_groups(data: EffectData, base: FitResult, groups: list[Group], reference: np.ndarray,

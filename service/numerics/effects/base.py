@@ -131,10 +131,12 @@ class EffectData(Timed):
         return float(np.median(np.diff(self.t_s)))
 
     @property
-    def window_samples(self) -> int:
-        """Savitzky-Golay window in samples: odd, at least 5, about smooth_window_s long."""
-        w = int(round(self.smooth_window_s / self.dt_s)) | 1
-        return int(min(max(w, 5), max(5, (self.n_samples // 4) | 1)))
+    def window_samples(self) -> int:                 # about smooth_window_s long
+        return self.odd_window(self.smooth_window_s / self.dt_s)
+
+    def odd_window(self, n: float) -> int:
+        """A Savitzky-Golay window of about n samples: odd, at least 5, at most a quarter of the run."""
+        return int(min(max(int(round(n)) | 1, 5), max(5, (self.n_samples // 4) | 1)))
 
     @property
     def edge_samples(self) -> int:
@@ -348,9 +350,8 @@ class EffectTerm:
         return None
 
     def rules_out(self, parameters: Sequence[Any]) -> str | None:
-        """None if the fitted parameters (engine Parameter: name, value, stderr) are a shape this effect's physics
-        allows; else why not, in a few words a user reads as the verdict ("the offset came back: a transient, not
-        perming"). diagnose then does not call the effect significant, however much it gains."""
+        """None where the fitted parameters (read by `probe` and `key`) are a shape the physics allows, else why, as
+        the verdict says it ("the offset came back: a transient"): diagnose then calls it not significant."""
         return None
 
     def rules_out_over(self, parameters: Sequence[Any], span: Any) -> str | None:
@@ -377,10 +378,9 @@ class EffectTerm:
         return np.zeros(len(self.param_names(view)))
 
     def constants(self, view: ProbeView) -> dict[str, tuple[float, str]]:
-        """Fixed references the parameters are defined against (name -> (value, unit)), e.g. the
-        temperature the temperature coefficients are centred on; kept with the calibration, and reused
-        when it is applied to other data. They are held, not fitted: outputs show them as fixed with their
-        value ("fixed": true in a calibration's effect_params), never as undetermined."""
+        """Fixed references the parameters are defined against (name -> (value, unit)), e.g. the temperature the
+        coefficients are centred on: kept with the calibration and reused on other data; held, not fitted (outputs
+        show them as fixed with their value, "fixed": true in effect_params, never as undetermined)."""
         return {}
 
     def cached_columns(self, view: ProbeView) -> np.ndarray:
