@@ -4,12 +4,15 @@
    recording cut into the 20-sample blocks a live unit delivers, against the bare numerics
    (ICD parse + calibrate) of the same samples in the same run, and the floor: the parts of that replay no
    implementation with the same outputs can skip, each timed alone.
-2. Live latency from a frame written to the pty to its corrected Zenoh message received, p50 and
-   p99, and the service's CPU use, at 1 kHz with 4 probes.
+2. The live service (`fluxcal run` under a simulated unit on a pty) at 1, 2 and 5 kHz x 4 probes and 1 kHz x 8:
+   its CPU time (process CPU, all threads, and by thread) as a share of one core, per probe-sample and against the
+   bare numerics of the same samples timed in this process; latency from a frame written to the pty to its corrected
+   Zenoh message received, p50 and p99. Each case several times (min and median). With --profile, first one run
+   with the stages of the service's loop timed (bench/_stages.py): where each microsecond of a block goes.
 
-Run by hand:  .venv/bin/python bench/bench_service.py [--seconds 20]
+Run by hand, under the shared lock:  flock /tmp/fluxcal-heavy.lock .venv/bin/python bench/bench_service.py [--profile]
 (the replay runs with OPENBLAS_NUM_THREADS=1 unless set, as `fluxcal replay` does; the live service is
-started with the environment this was given)
+started with the environment this was given, as a user starts it)
 """
 
 from __future__ import annotations
@@ -20,54 +23,25 @@ _USER_BLAS_THREADS = os.environ.get("OPENBLAS_NUM_THREADS")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")        # before numpy loads: the replay CLI's setting
 
 import argparse
-import json
 import platform
-import signal
-import socket
-import subprocess
-import sys
 import tempfile
-import threading
 import time
-import tty
 from pathlib import Path
 
 import numpy as np
+from _live import config_text, identity, make_samples, probes
 from _machine import cpu_model
 
 from drivers.block import SampleBlock
 from drivers.icd import encode_serial, parse_serial
-from drivers.sim.config import load_sim_config
-from drivers.sim.unit import Unit
-from service.io.calfile import load_calibration, save_calibration
-from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from service.io.calfile import load_calibration
 
 N_PROBES, RATE = 4, 1000.0
-PROBES = [{"name": f"s{k + 1}", "position_m": p, "offset_nT": [100.0 * k, -50.0, 30.0], "noise_nT": 0.5}
-          for k, p in enumerate([[0.2, 0, 0], [0, 0.2, 0], [-0.2, 0, 0], [0, -0.2, 0]])]
+PROBES = probes(N_PROBES)
 
 
 def machine() -> str:
     return f"{cpu_model()}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}"
-
-
-def config_text(tmp: Path, source: str, port: int, initial: Path, block_ms: float | None = None) -> str:
-    lines = ['[unit]', 'name = "bench"', f'n_probes = {N_PROBES}'] + ([f'block_ms = {block_ms}'] if block_ms else []) + ['']
-    for p in PROBES:
-        lines += ['[[probes]]', f'name = "{p["name"]}"', f'position_m = {p["position_m"]}', '']
-    lines += [source, '', '[sim]', f'rate_hz = {RATE}', '[sim.reference]', 'enabled = false', '']
-    for p in PROBES:
-        lines += ['[[sim.probes]]'] + [f'{k} = {json.dumps(v)}' for k, v in p.items()] + ['']
-    lines += ['[estimator]', 'total_nT = 52500.0', '[calibration]', f'file = "{tmp / "cal.json"}"',
-              f'initial = "{initial}"', '[zenoh]', f'listen = ["tcp/127.0.0.1:{port}"]',
-              '[mcap]', f'dir = "{tmp / "rec"}"', '']
-    return "\n".join(lines)
-
-
-def make_samples(seconds: float):
-    cfg = load_sim_config({"rate_hz": RATE, "duration_s": seconds, "probes": PROBES})
-    unit = Unit(cfg)
-    return cfg, unit, unit.digitise(0, cfg.n_samples)
 
 
 def bench_replay(tmp: Path, seconds: float) -> None:
@@ -78,16 +52,14 @@ def bench_replay(tmp: Path, seconds: float) -> None:
     from service.wiring.config import config_from_dict
     from service.wiring.daemon import build_pipeline
 
-    cfg, unit, s = make_samples(seconds)
+    s = make_samples(seconds, RATE, PROBES)
     block = s.to_block()
     log = McapLogger(tmp / "rep", unit="bench", filename="in.mcap")
     for i in range(0, block.n_samples, 20):
         log.write_raw(block.slice(i, i + 20))
     log.close()
-    initial = tmp / "identity.json"
-    save_calibration(ArrayCalibration("ellipsoid", None, [ProbeCalibration(p["name"], np.zeros(3), np.eye(3))
-                                                          for p in PROBES]), initial)
-    fcfg = config_from_dict(tomllib.loads(config_text(tmp, '[source]\nkind = "sim"', 7447, initial)))
+    initial = identity(tmp, PROBES)
+    fcfg = config_from_dict(tomllib.loads(config_text(tmp, '[source]\nkind = "sim"', 7447, initial, PROBES, RATE)))
     start = load_calibration(initial)
     # replay path: MCAP decode -> pipeline (estimator, gate, correction) -> MCAP write; best of 3
     times, phases = [], []
@@ -216,97 +188,76 @@ def floor_parts(block: SampleBlock, t_bare: float) -> None:
           f"before the gate's checks that the same outputs need (above)")
 
 
-def cpu_seconds(pid: int) -> float:
-    with open(f"/proc/{pid}/stat") as f:
-        parts = f.read().rsplit(")", 1)[1].split()
-    return (int(parts[11]) + int(parts[12])) / os.sysconf("SC_CLK_TCK")
+def _stats(values) -> str:
+    v = sorted(values)
+    return f"{v[0]:.1f}" if len(v) == 1 else f"min {v[0]:.1f}, median {float(np.median(v)):.1f}"
 
 
-def bench_live(tmp: Path, seconds: float, block_ms: float | None = None) -> None:
-    from service.io.bus import BusClient, ZenohConfig
+def print_profile(run) -> None:
+    """Where the CPU time of one live block goes: the stages of the service's loop (thread CPU time, inclusive, and
+    each stage's own), and the process's threads (from /proc over the run)."""
+    st, blocks = run.stages, max(run.stages["blocks"], 1)
+    rows = {label: (ns, calls) for label, ns, calls in st["stages"]}
+    print(f"  profile of one live block ({run.n_probes} probes at {run.rate:.0f} Hz, {blocks} blocks of "
+          f"{run.rate * run.seconds / blocks:.1f} samples; thread CPU per block, us; own = the stage less those "
+          f"indented under it):")
+    for label, (ns, calls) in rows.items():
+        children = [lb for lb in rows if lb.startswith(label + "/") and "/" not in lb[len(label) + 1:]]
+        own = ns - sum(rows[c][0] for c in children)
+        depth = label.count("/")
+        name = label.rsplit("/", 1)[-1]
+        print(f"    {'  ' * depth}{name:<{44 - 2 * depth}} {ns / 1e3 / blocks:8.1f}"
+              + (f"  own {own / 1e3 / blocks:7.1f}" if children else " " * 13) + f"   {calls / blocks:6.2f} calls")
+    per = {k: v * 1e6 / blocks for k, v in run.groups.items()}
+    print("    threads (/proc schedstat): " + ", ".join(f"{k} {v:.0f}" for k, v in per.items())
+          + f"; all {run.cpu_s * 1e6 / blocks:.0f} us per block ({100 * run.core:.1f} % of a core with the timers)")
 
-    cfg, unit, s = make_samples(seconds + 10)
-    master, slave = os.openpty()
-    tty.setraw(master)
-    port_path = os.ttyname(slave)
-    with socket.socket() as sk:
-        sk.bind(("127.0.0.1", 0))
-        port = sk.getsockname()[1]
-    initial = tmp / "identity.json"
-    save_calibration(ArrayCalibration("ellipsoid", None, [ProbeCalibration(p["name"], np.zeros(3), np.eye(3))
-                                                          for p in PROBES]), initial)
-    src = (f'[source]\nkind = "serial"\nport = "{port_path}"\nn_probes = {N_PROBES}\nrate_hz = {RATE}')
-    cfg_path = tmp / "live.toml"
-    full = config_text(tmp, src, port, initial, block_ms)            # the serial unit is real here: no [sim] sections
-    cfg_path.write_text(full.split("\n[sim]")[0] + "\n[estimator]" + full.split("[estimator]", 1)[1])
-    prof = os.environ.get("FLUXCAL_PROFILE")
-    cmd = [sys.executable] + (["-m", "cProfile", "-o", prof] if prof else []) + ["-m", "service.wiring.cli", "run", "--config", str(cfg_path)]
-    env = dict(os.environ)
-    if _USER_BLAS_THREADS is None:
-        env.pop("OPENBLAS_NUM_THREADS", None)                  # the live service as a user starts it
-    proc = subprocess.Popen(cmd, env=env,
-                            stderr=subprocess.PIPE, text=True)
-    time.sleep(3.0)
-    client = BusClient(ZenohConfig.client(f"tcp/127.0.0.1:{port}"), "bench", streams=["corrected"])
-    frames = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
-    fl = len(frames) // len(s.seq_raw)
-    sent_at = np.zeros(len(s.seq_raw))
-    lat, lat_oldest = [], []
-    stop = threading.Event()
 
-    def receive():
-        while not stop.is_set():
-            msg = client.recv(timeout=0.2)
-            if msg is None:
-                continue
-            now = time.perf_counter()
-            seq, first = int(msg.value.seq[-1]), int(msg.value.seq[0])
-            if seq < len(sent_at) and sent_at[seq] > 0 and sent_at[first] > 0:
-                lat.append(now - sent_at[seq])
-                lat_oldest.append(now - sent_at[first])
+def bench_live(cases: list[tuple[float, int]], seconds: float, repeat: int, block_ms: float | None,
+               profile: bool) -> None:
+    from _live import live_run
 
-    th = threading.Thread(target=receive, daemon=True)
-    th.start()
-    n = int(seconds * RATE)
-    cpu0 = cpu_seconds(proc.pid)
-    t_start = time.perf_counter()
-    for i in range(n):
-        target = t_start + i / RATE
-        while time.perf_counter() < target:
-            time.sleep(0.0002)
-        os.write(master, frames[i * fl:(i + 1) * fl])
-        sent_at[i] = time.perf_counter()
-    wall = time.perf_counter() - t_start
-    cpu = cpu_seconds(proc.pid) - cpu0
-    time.sleep(1.0)
-    stop.set()
-    th.join()
-    client.close()
-    proc.send_signal(signal.SIGTERM)
-    proc.wait(20)
-    os.close(master)
-    a = np.array(lat[len(lat) // 10:]) * 1e3          # skip the first tenth (start-up)
-    b = np.array(lat_oldest[len(lat_oldest) // 10:]) * 1e3
-    print(f"live, {N_PROBES} probes at {RATE:.0f} Hz over a pty, block_ms {block_ms or 'default'}, {seconds:.0f} s: latency frame written -> "
-          f"corrected message received p50 {np.percentile(a, 50):.2f} ms, p99 {np.percentile(a, 99):.2f} ms "
-          f"({a.size} messages; newest frame of each block), oldest frame of each block p50 "
-          f"{np.percentile(b, 50):.2f} ms, p99 {np.percentile(b, 99):.2f} ms; service CPU {100 * cpu / wall:.1f} % "
-          f"of one core")
+    if profile:
+        print_profile(live_run(cases[0][0], cases[0][1], seconds, block_ms, _USER_BLAS_THREADS, profile=True))
+    base = None
+    for rate, n_probes in cases:
+        runs = [live_run(rate, n_probes, seconds, block_ms, _USER_BLAS_THREADS) for _ in range(repeat)]
+        core = [100 * r.core for r in runs]
+        us_ps = [r.cpu_s * 1e6 / r.probe_samples for r in runs]
+        ratio = [r.cpu_s / r.bare_s for r in runs]
+        groups = {k: [100 * r.groups[k] / r.wall_s for r in runs] for k in runs[0].groups}
+        p50 = [float(np.percentile(r.lat_ms, 50)) for r in runs]
+        p99 = [float(np.percentile(r.lat_ms, 99)) for r in runs]
+        p99o = [float(np.percentile(r.lat_oldest_ms, 99)) for r in runs]
+        if base is None:
+            base = float(np.median(core))
+        print(f"live, {n_probes} probes at {rate:.0f} Hz over a pty, block_ms {block_ms or 'default'}, {repeat} x "
+              f"{seconds:.0f} s: service CPU % of one core {_stats(core)} (all threads; "
+              + ", ".join(f"{k} {_stats(v)}" for k, v in groups.items())
+              + f"); {_stats(us_ps)} us per probe-sample, {_stats(ratio)} x the bare parse + calibrate of the same "
+              f"samples in this process ({runs[0].bare_s * 1e3:.1f} ms); median {float(np.median(core)) / base:.2f} x "
+              f"the first case's CPU. Latency frame written -> corrected message received, newest frame of each "
+              f"block: p50 {_stats(p50)} ms, p99 {_stats(p99)} ms; oldest frame p99 {_stats(p99o)} ms")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--seconds", type=float, default=30.0, help="of each live run")
+    ap.add_argument("--repeat", type=int, default=3, help="runs of each live case")
+    ap.add_argument("--cases", default="1000x4,2000x4,5000x4,1000x8",
+                    help="live cases, RATExPROBES, comma-separated (the first is the one profiled)")
+    ap.add_argument("--profile", action="store_true", help="first, one live run with the stages timed")
     ap.add_argument("--live-only", action="store_true", help="skip the replay benchmark")
     ap.add_argument("--replay-only", action="store_true", help="skip the live benchmark")
     ap.add_argument("--block-ms", type=float, default=None, help="[unit] block_ms of the live service (default: its default)")
     args = ap.parse_args()
+    cases = [(float(c.split("x")[0]), int(c.split("x")[1])) for c in args.cases.split(",")]
     print("machine:", machine())
     with tempfile.TemporaryDirectory() as d:
         if not args.live_only:
             bench_replay(Path(d), 60.0)
-        if not args.replay_only:
-            bench_live(Path(d), args.seconds, args.block_ms)
+    if not args.replay_only:
+        bench_live(cases, args.seconds, args.repeat, args.block_ms, args.profile)
 
 
 if __name__ == "__main__":
