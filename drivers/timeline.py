@@ -9,6 +9,10 @@ from .icd import RawFrames
 from .source import Counters
 
 
+#: the counter's and the clock's moduli less one, as a column for the (2, K) array of both
+_WRAP = np.array([[0xFFFF], [0xFFFFFFFF]], np.int64)
+
+
 def _steps(x: np.ndarray, before: int) -> np.ndarray:
     """x[i] - x[i - 1], with x[-1] = before (np.diff with prepend, without its cost on small blocks)."""
     d = np.empty_like(x)
@@ -62,6 +66,7 @@ class SerialTimeline:
         self._rx_last: float | None = None   # host time the last accepted frame came
         self._stale = 0                      # stale frames in a row, following on from each other
         self._stale_st: tuple[int, int] | None = None
+        self.contiguous = False              # the last block's frames each followed the one before by one count
 
     def period_us(self) -> float | None:
         """The unit's frame period from its own clock and counter since the start or the last restart."""
@@ -69,27 +74,39 @@ class SerialTimeline:
             return (self._T0 - self._run_T) / (self._S0 - self._run_S)
         return self._period_us
 
-    def order(self, frames: RawFrames, rx_time_s: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(keep (K,) bool, seq (M,) int64, t_us (M,) int64) for the M frames kept, in arrival order."""
+    def order(self, frames: RawFrames, rx_time_s: float | None = None) -> tuple[np.ndarray | None, np.ndarray,
+                                                                                    np.ndarray]:
+        """(keep (K,) bool, seq (M,) int64, t_us (M,) int64) for the M frames kept, in arrival order; keep is None
+        when every frame is kept, and then `contiguous` says whether each followed the one before by one count."""
         k = len(frames)
-        s = frames.seq.astype(np.int64)
-        t = frames.t_us.astype(np.int64)
+        self.contiguous = False
         p = self.period_us()
         if self._s0 is not None and p is not None:
-            ds = _steps(s, self._s0)
-            ds &= 0xFFFF
-            dt = _steps(t, self._t0)
-            dt &= 0xFFFFFFFF
-            fast = ds.min() >= 1 and ds.max() < 1 << 15 and dt.min() >= 1 and dt.max() < 16384 * p
-            if fast and s.min() < self.NEAR_SEQ and t.min() < self.NEAR_T_US:
+            # counter and clock as the rows of one array: each step below is one operation for both
+            st = np.empty((2, k), np.int64)
+            st[0], st[1] = frames.seq, frames.t_us
+            d = np.empty_like(st)
+            d[:, 0] = st[:, 0]
+            d[0, 0] -= self._s0
+            d[1, 0] -= self._t0
+            np.subtract(st[:, 1:], st[:, :-1], out=d[:, 1:])
+            d &= _WRAP                                        # steps modulo 2^16 (counter) and 2^32 (clock)
+            (ds_lo, dt_lo), (ds_hi, dt_hi) = d.min(axis=1).tolist(), d.max(axis=1).tolist()
+            fast = ds_lo >= 1 and ds_hi < 1 << 15 and dt_lo >= 1 and dt_hi < 16384 * p
+            s, t = st[0], st[1]
+            if fast and t.min() < self.NEAR_T_US and s.min() < self.NEAR_SEQ:      # (the clock is rarely near 0)
+                ds, dt = d[0], d[1]
                 near = (s < self.NEAR_SEQ) & (t < self.NEAR_T_US)
                 fast = not (near & (np.abs(dt - ds * p) > 0.5 * p + 1e-4 * dt)).any()
             if fast:                         # the common case: every frame steps forward
-                seq = self._S0 + np.cumsum(ds)
-                t_us = self._T0 + np.cumsum(dt)
+                np.cumsum(d, axis=1, out=d)
+                d[0] += self._S0
+                d[1] += self._T0
+                seq, t_us = d[0], d[1]
                 self._accept(frames, k - 1, int(seq[-1]), int(t_us[-1]), rx_time_s)
-                return np.ones(k, bool), seq, t_us
-        return self._one_by_one(frames, s, t, rx_time_s)
+                self.contiguous = ds_hi == 1
+                return None, seq, t_us
+        return self._one_by_one(frames, frames.seq.astype(np.int64), frames.t_us.astype(np.int64), rx_time_s)
 
     def _accept(self, frames: RawFrames, i: int, S: int, T: int, rx_time_s: float | None) -> None:
         self._s0, self._t0 = int(frames.seq[i]), int(frames.t_us[i])
