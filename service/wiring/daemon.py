@@ -230,6 +230,7 @@ class Daemon:
         while not self.stop.is_set():
             for cmd in bus.pending_commands():
                 self._apply_command(cmd, pipeline, sinks)
+            sinks.flush()                     # the last turn's messages go out together, before the wait for input
             block = link.read(source)         # None while the input is down: health still goes out
             if link.stopped:
                 break

@@ -1,11 +1,16 @@
 """The bus's sender thread: the only caller of `put()`, so a slow or frozen subscriber (Zenoh's BLOCK
-congestion control) holds back the sender, never the service's reading, recording and processing."""
+congestion control) holds back the sender, never the service's reading, recording and processing.
+
+Waking a thread costs tens of microseconds of CPU (two context switches and the GIL changing hands), more than
+the put itself: with `gather` the messages of one turn of the service's loop wait until `release()`, and the
+thread wakes once for them all, not once per message."""
 
 from __future__ import annotations
 
 import threading
 import time
 from collections import deque
+from collections.abc import Iterable
 
 import zenoh
 
@@ -29,6 +34,7 @@ class Sender:
         self._sending = False
         self._cond = threading.Condition()
         self._backlog_bytes = int(backlog_bytes)
+        self.gather = False               # True: put() only queues, release() wakes the thread
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._send_loop, daemon=True, name=thread_name)
         self._thread.start()
@@ -36,16 +42,29 @@ class Sender:
     def put(self, name: str, pub: zenoh.Publisher, payload: bytes) -> None:
         """Hand a message to the sender thread (counted as published_<name>). If the backlog is over its
         bound (subscribers that cannot keep up), the oldest waiting messages are dropped and counted."""
+        self.put_all(((name, pub, payload),))
+
+    def put_all(self, messages: Iterable[tuple[str, zenoh.Publisher, bytes]]) -> None:
+        """put() of several (name, publisher, payload) in order, taking the lock once."""
+        stats, outbox = self.stats, self._outbox
         with self._cond:
-            self._outbox.append((name, pub, payload))
-            self._outbox_bytes += len(payload)
-            while self._outbox_bytes > self._backlog_bytes and len(self._outbox) > 1:
-                _, _, old = self._outbox.popleft()
+            for message in messages:
+                outbox.append(message)
+                self._outbox_bytes += len(message[2])
+                stats[f"published_{message[0]}"] += 1
+            while self._outbox_bytes > self._backlog_bytes and len(outbox) > 1:
+                _, _, old = outbox.popleft()
                 self._outbox_bytes -= len(old)
-                self.stats["send_dropped"] += 1
-            self.stats[f"published_{name}"] += 1
-            if not self._sending:
-                self._cond.notify()      # wake the sender only when idle: one wake-up per block, not per message
+                stats["send_dropped"] += 1
+            if not (self.gather or self._sending):
+                self._cond.notify()      # wake the sender only when idle
+
+    def release(self) -> None:
+        """Wake the thread for the messages gathered (at most once: none when it is busy or nothing waits).
+        Gathered messages that nobody releases go anyway within the thread's half-second wait."""
+        with self._cond:
+            if self._outbox and not self._sending:
+                self._cond.notify()
 
     def _send_loop(self) -> None:
         """put() every message in order, taking what waits in one go; ends when stopping and nothing waits."""
@@ -77,6 +96,7 @@ class Sender:
         """Wait until every message handed over has been put (True) or `timeout` passed (False)."""
         deadline = time.monotonic() + timeout
         with self._cond:
+            self._cond.notify()          # gathered messages too
             while self._outbox or self._sending:
                 left = deadline - time.monotonic()
                 if left <= 0 or not self._thread.is_alive():

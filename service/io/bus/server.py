@@ -40,7 +40,7 @@ import zenoh
 
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError, DataError
-from service.io.encoding import encode_corrected, encode_raw
+from service.io.encoding import corrected_payload, probe_payloads, raw_payload
 from service.numerics.outputs import CorrectedBlock
 
 from .desk import COMMAND_WAIT_S, STATE_GRACE_S, Desk
@@ -149,9 +149,23 @@ class ServiceBus(SessionHolder):
 
     def _put(self, name: str, pub: zenoh.Publisher, payload: bytes) -> None:
         """Hand a message to the sender thread (service.io.bus.sender): counted, bounded, never blocking."""
+        self._put_all(((name, pub, payload),))
+
+    def _put_all(self, messages: Sequence[tuple[str, zenoh.Publisher, bytes]]) -> None:
         if self._closed:
-            raise BusError(f"publish on {self.keys.root}/{name} after the bus was closed")
-        self._sender.put(name, pub, payload)
+            raise BusError(f"publish on {self.keys.root}/{messages[0][0]} after the bus was closed")
+        self._sender.put_all(messages)
+
+    def gather_sends(self, on: bool = True) -> None:
+        """With `on`, what is published waits for `send()` (the service's loop calls it once per turn) and the
+        sender thread wakes once for all of it, not once per message (service.io.bus.sender)."""
+        if self._sender is not None:
+            self._sender.gather = on
+
+    def send(self) -> None:
+        """Send what was published since the last call (with gather_sends; otherwise it is on its way already)."""
+        if self._sender is not None:
+            self._sender.release()
 
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until every message handed to the bus has been put (True) or `timeout` passed (False)."""
@@ -159,29 +173,28 @@ class ServiceBus(SessionHolder):
 
     def publish_raw(self, block: SampleBlock) -> None:
         if block.n_samples:
-            self._put("raw", self._pubs["raw"], encode_raw(block))
+            self._put("raw", self._pubs["raw"], raw_payload(block))
 
     def publish_corrected(self, block: CorrectedBlock) -> None:
         """`corrected` (everything), and `diff`, `tensor`, `corrected/<probe>` when they exist."""
         if not block.n_samples:
             return
-        self._put("corrected", self._pubs["corrected"], encode_corrected(block))
+        out = [("corrected", self._pubs["corrected"], corrected_payload(block))]
         if block.diff_nT is not None:
-            self._put("diff", self._pubs["diff"], encode_series(block.t_s, block.seq, block.diff_nT, block.cal_id))
+            out.append(("diff", self._pubs["diff"], encode_series(block.t_s, block.seq, block.diff_nT, block.cal_id)))
         if block.tensor_nT_m is not None:
-            self._put("tensor", self._pubs["tensor"],
-                      encode_series(block.t_s, block.seq, block.tensor_nT_m, block.cal_id))
+            out.append(("tensor", self._pubs["tensor"],
+                        encode_series(block.t_s, block.seq, block.tensor_nT_m, block.cal_id)))
         if self.per_probe:
             names = self.probe_names or [f"s{k + 1}" for k in range(block.n_probes)]
             if len(names) != block.n_probes:
                 raise DataError(f"corrected block has {block.n_probes} probes, the bus knows {len(names)}: {names}")
-            for k, name in enumerate(names):
+            for name, payload in zip(names, probe_payloads(block)):
                 pub = self._probe_pubs.get(name)
                 if pub is None:
                     pub = self._probe_pubs[name] = self._declare_pub(self.keys.probe(name), STREAMS["corrected"])
-                one = CorrectedBlock(t_s=block.t_s, seq=block.seq, corrected_nT=block.corrected_nT[:, k:k + 1],
-                                     diff_nT=None, tensor_nT_m=None, center_nT=None, cal_id=block.cal_id)
-                self._put("corrected_probe", pub, encode_corrected(one))
+                out.append(("corrected_probe", pub, payload))
+        self._put_all(out)
 
     def publish_calibration(self, record: Mapping[str, Any]) -> None:
         """A calibration event (kind, seq, t_s, ..., "state": {...}) as JSON; kept for `state` queries."""
