@@ -17,8 +17,9 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-#: (stage label, "module:Class.method" or "module:function") in the order they are printed; a label's parent is the
-#: label before its last "/". Inclusive times: a parent's own time is its total minus its children's.
+#: (stage label, "module:Class.method" or "module:function", or several such separated by "|": the first that
+#: exists, so that one list times the code before and after a change) in the order they are printed; a label's
+#: parent is the label before its last "/". Inclusive times: a parent's own time is its total minus its children's.
 STAGES = (
     ("loop", "service.wiring.daemon:Daemon._loop"),
     ("loop/commands", "service.io.bus.server:ServiceBus.pending_commands"),
@@ -34,7 +35,8 @@ STAGES = (
     ("loop/pipeline/estimator", "service.wiring.pipeline:Pipeline._update_estimators"),
     ("loop/pipeline/gate", "service.wiring.pipeline:Pipeline._check_candidate"),
     ("loop/pipeline/correct", "service.wiring.pipeline:Pipeline._correct"),
-    ("loop/pipeline/error", "service.wiring.pipeline:block_error_rms"),
+    ("loop/pipeline/correct/products", "service.numerics.outputs:Derived.__call__|service.wiring.pipeline:products"),
+    ("loop/pipeline/error", "service.numerics.channels:BlockError.__call__|service.wiring.pipeline:block_error_rms"),
     ("loop/status", "service.wiring.status:StatusLog.block"),
     ("loop/corrected: recording", "service.wiring.sinks:McapSink.on_corrected"),
     ("loop/corrected: recording/10 Hz products", "service.io.foxglove_schemas:Products.corrected"),
@@ -58,11 +60,17 @@ class Timers:
         self.calls: dict[str, int] = defaultdict(int)
         self.thread = threading.get_ident()      # the service's thread (the stages run on it)
 
-    def wrap(self, label: str, target: str) -> None:
-        module_name, name = target.split(":")
-        module = importlib.import_module(module_name)
-        owner, attr = (getattr(module, name.split(".")[0]), name.split(".")[1]) if "." in name else (module, name)
-        inner = getattr(owner, attr)
+    def wrap(self, label: str, targets: str) -> None:
+        for target in targets.split("|"):
+            module_name, name = target.split(":")
+            module = importlib.import_module(module_name)
+            owner, attr = (getattr(module, name.split(".")[0], None), name.split(".")[1]) if "." in name \
+                else (module, name)
+            inner = getattr(owner, attr, None)
+            if inner is not None:
+                break
+        else:
+            return                                   # not in this version of the code: the stage reads 0
         ns, calls, clock = self.ns, self.calls, time.thread_time_ns
 
         def timed(*a, **k):
