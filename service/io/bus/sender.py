@@ -17,6 +17,9 @@ import zenoh
 #: a put that waits this long is counted as a stall (a subscriber that stopped taking data; zenoh closes its link
 #: after [zenoh] stall_close_ms)
 STALL_S = 0.1
+#: the sender takes the messages waiting in batches of about this many bytes (a turn's messages of a block or a
+#: few) under one lock; what waits beyond them can still be dropped, oldest first, when the backlog overflows
+BATCH_BYTES = 64 << 10
 
 
 class Sender:
@@ -79,18 +82,25 @@ class Sender:
                     self._cond.notify_all()
                     return
                 self._sending = True
-                name, pub, payload = self._outbox.popleft()
-                self._outbox_bytes -= len(payload)
-            t0 = time.monotonic()
-            try:
-                pub.put(payload)
-            except zenoh.ZError:
-                self.stats["publish_errors"] += 1
-            waited = time.monotonic() - t0
-            if waited >= STALL_S:         # a subscriber that takes nothing held every stream back this long
-                self.stats["send_stalls"] += 1
-                self.stats["send_stalled_ms"] += int(waited * 1000)
-                self.last_stall_s = waited
+                batch, size = [], 0
+                while self._outbox and (not batch or size < BATCH_BYTES):
+                    batch.append(self._outbox.popleft())
+                    size += len(batch[-1][2])
+                self._outbox_bytes -= size
+            for _name, pub, payload in batch:
+                self._put(pub, payload)
+
+    def _put(self, pub: zenoh.Publisher, payload: bytes) -> None:
+        t0 = time.monotonic()
+        try:
+            pub.put(payload)
+        except zenoh.ZError:
+            self.stats["publish_errors"] += 1
+        waited = time.monotonic() - t0
+        if waited >= STALL_S:         # a subscriber that takes nothing held every stream back this long
+            self.stats["send_stalls"] += 1
+            self.stats["send_stalled_ms"] += int(waited * 1000)
+            self.last_stall_s = waited
 
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until every message handed over has been put (True) or `timeout` passed (False)."""
