@@ -38,7 +38,8 @@ def probes(n: int) -> list[dict]:
 
 def config_text(tmp: Path, source: str, port: int, initial: Path, plist: list[dict], rate: float,
                 block_ms: float | None = None, sim: bool = True) -> str:
-    lines = ['[unit]', 'name = "bench"', f'n_probes = {len(plist)}'] + ([f'block_ms = {block_ms}'] if block_ms else []) + ['']
+    lines = ['[unit]', 'name = "bench"', f'n_probes = {len(plist)}']
+    lines += ([f'block_ms = {block_ms}'] if block_ms else []) + ['']
     for p in plist:
         lines += ['[[probes]]', f'name = "{p["name"]}"', f'position_m = {p["position_m"]}', '']
     lines += [source, '']

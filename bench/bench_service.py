@@ -26,6 +26,7 @@ import argparse
 import platform
 import tempfile
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -44,34 +45,42 @@ def machine() -> str:
     return f"{cpu_model()}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}"
 
 
-def bench_replay(tmp: Path, seconds: float) -> None:
+def bench_replay(tmp: Path, seconds: float, repeat: int) -> None:
     import tomllib
 
+    from service.io.recordings import files, writer
     from service.io.recordings.reader import read_recording
-    from service.io.recordings.writer import McapLogger
+    from service.wiring import pipeline as pipeline_mod
     from service.wiring.config import config_from_dict
     from service.wiring.daemon import build_pipeline
 
     s = make_samples(seconds, RATE, PROBES)
     block = s.to_block()
-    log = McapLogger(tmp / "rep", unit="bench", filename="in.mcap")
+    log = writer.McapLogger(tmp / "rep", unit="bench", filename="in.mcap")
     for i in range(0, block.n_samples, 20):
         log.write_raw(block.slice(i, i + 20))
     log.close()
     initial = identity(tmp, PROBES)
     fcfg = config_from_dict(tomllib.loads(config_text(tmp, '[source]\nkind = "sim"', 7447, initial, PROBES, RATE)))
     start = load_calibration(initial)
-    # replay path: MCAP decode -> pipeline (estimator, gate, correction) -> MCAP write; best of 3
+    # the parts of the replay, each call's wall time added to its part (the pipeline's and the writer's)
+    parts = {"gate": _timed(pipeline_mod.Pipeline, "_check_candidate"),
+             "estimator": _timed(pipeline_mod.Pipeline, "_update_estimators"),
+             "correction and products": _timed(pipeline_mod.Pipeline, "_correct"),
+             "chunks (lz4, CRC, file)": _timed(files.McapFiles, "finish", _timed(files.McapFiles, "flush")),
+             "10 Hz means": _timed(writer.Products, "corrected"), "their JSON": _timed(writer, "encode_json")}
+    # replay path: MCAP decode -> pipeline (estimator, gate, correction) -> MCAP write
     times, phases = [], []
-    for rep in range(3):
+    for rep in range(repeat):
+        for spent in parts.values():
+            spent.clear()
         t0 = time.perf_counter()
         rec = read_recording(tmp / "rep" / "in.mcap")
         whole = rec.raw                          # every raw sample, as `fluxcal replay` takes them
         t_decode = time.perf_counter() - t0
         pipe = build_pipeline(fcfg, start)      # corrected from the first sample, as a recording's initial event does
         t_pipe = time.perf_counter() - t0 - t_decode
-        checks = _timed(pipe, "_check_candidate")
-        out = McapLogger(tmp / "rep", unit="bench", filename=f"out{rep}.mcap")
+        out = writer.McapLogger(tmp / "rep", unit="bench", filename=f"out{rep}.mcap")
         for i in range(0, whole.n_samples, 20000):
             b = whole.slice(i, i + 20000)
             t1 = time.perf_counter()
@@ -82,36 +91,42 @@ def bench_replay(tmp: Path, seconds: float) -> None:
                 out.write_corrected(r.corrected)
         out.close()
         times.append(time.perf_counter() - t0)
-        phases.append((t_decode, t_pipe, times[-1] - t_decode - t_pipe, sum(checks), len(checks)))
+        phases.append((t_decode, t_pipe, times[-1] - t_decode - t_pipe,
+                       {k: (sum(v), len(v)) for k, v in parts.items()}))
     t_replay = min(times)
-    # bare numerics: parse the ICD bytes and apply a calibration, same samples
-    data = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
-    m = np.stack([np.eye(3)] * N_PROBES)
-    o = np.zeros((N_PROBES, 3))
-    bare = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        p = parse_serial(data, N_PROBES, final=True)
-        f = p.frames.counts * 0.001
-        np.einsum("pij,npj->npi", m, f - o[None])
-        bare.append(time.perf_counter() - t0)
-    t_bare = min(bare)
+    t_bare = bare_s(s)
     n = whole.n_samples * N_PROBES
     print(f"replay (MCAP decode + pipeline + MCAP write), {whole.n_samples} samples x {N_PROBES} probes: "
-          f"{n / t_replay:,.0f} probe-samples/s (best of 3; median {n / sorted(times)[1]:,.0f})")
+          f"{n / t_replay:,.0f} probe-samples/s (best of {repeat}; median {n / float(np.median(times)):,.0f})")
     print(f"bare parse + calibrate of the same samples:                         {n / t_bare:,.0f} probe-samples/s")
-    print(f"ratio replay / bare: {t_bare / t_replay:.3f} "
+    print(f"ratio replay / bare: best {t_bare / t_replay:.3f}, median {t_bare / float(np.median(times)):.3f} "
           f"(OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')})")
-    dec, pip, wri, chk, n_chk = phases[times.index(t_replay)]
-    print(f"  best run: MCAP decode {dec * 1e3:.0f} ms, pipeline {pip * 1e3:.0f} ms (of which the gate's {n_chk} checks "
-          f"{chk * 1e3:.0f} ms), MCAP write {wri * 1e3:.0f} ms; bare {t_bare * 1e3:.1f} ms")
+    dec, pip, wri, split = phases[times.index(t_replay)]
+    print(f"  best run: MCAP decode {dec * 1e3:.0f} ms, pipeline {pip * 1e3:.0f} ms, MCAP write {wri * 1e3:.0f} ms; "
+          f"bare {t_bare * 1e3:.1f} ms; of these: " + ", ".join(f"{k} {v * 1e3:.0f} ms ({c} calls)"
+                                                               for k, (v, c) in split.items()))
     floor_parts(block, t_bare)
 
 
-def _timed(obj, name: str) -> list[float]:
-    """Wrap obj.name (on the instance) to add each call's duration to the list returned."""
-    spent: list[float] = []
-    inner = getattr(obj, name)
+def bare_s(s) -> float:
+    """Wall seconds of the bare numerics of the samples: parse their ICD bytes in one go and apply a calibration
+    (best of 3)."""
+    data = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
+    m, o = np.stack([np.eye(3)] * N_PROBES), np.zeros((N_PROBES, 3))
+    bare = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        f = parse_serial(data, N_PROBES, final=True).frames.counts * 0.001
+        np.einsum("pij,npj->npi", m, f - o[None])
+        bare.append(time.perf_counter() - t0)
+    return min(bare)
+
+
+def _timed(owner, name: str, spent: list[float] | None = None) -> list[float]:
+    """Wrap owner.name (a class's method or a module's function) to add each call's wall time to the list
+    returned (`spent`, when given)."""
+    spent = [] if spent is None else spent
+    inner = getattr(owner, name)
 
     def wrapper(*a, **k):
         t0 = time.perf_counter()
@@ -120,7 +135,7 @@ def _timed(obj, name: str) -> list[float]:
         finally:
             spent.append(time.perf_counter() - t0)
 
-    setattr(obj, name, wrapper)
+    setattr(owner, name, wrapper)
     return spent
 
 
@@ -172,11 +187,16 @@ def floor_parts(block: SampleBlock, t_bare: float) -> None:
             for i in range(0, len(data), mb):
                 lz4.frame.compress(data[i:i + mb])
 
+    def crc() -> None:                               # each chunk's CRC, which the MCAP writer stores and readers check
+        for data in (raw_bytes, corrected_bytes):
+            for i in range(0, len(data), mb):
+                zlib.crc32(data[i:i + mb])
+
     pack = "lz4 compress of raw + corrected out"
     parts = {"lz4 decompress of the input": best(lambda: lz4.frame.decompress(packed)),
              "RLS normal equations": best(rls),
              "correction, differences, tensor": best(correct_all),
-             pack: best(compress)}
+             pack: best(compress), "CRC32 of the chunks": best(crc)}
     total = sum(parts.values())
     print("  floor, each part alone: " + ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in parts.items())
           + f"; sum {total * 1e3:.0f} ms against the {2e3 * t_bare:.0f} ms a 0.5x ratio allows "
@@ -186,6 +206,24 @@ def floor_parts(block: SampleBlock, t_bare: float) -> None:
     print(f"  spread perfectly over all {cores} cores (no part waiting for another): at best "
           f"{t_bare * cores / total:.2f}x, uncompressed {t_bare * cores / (total - parts[pack]):.2f}x, "
           f"before the gate's checks that the same outputs need (above)")
+    compression_choices(raw_bytes + corrected_bytes, best)
+
+
+def compression_choices(data: bytes, best) -> None:
+    """The logger's chunk size and compression by measurement: lz4 of the replay's output in chunks of 64 KiB to
+    4 MiB, and at its faster levels, with the size each leaves (best of 3)."""
+    import lz4.frame
+
+    def rate(size: int, level: int = 0) -> tuple[float, float]:
+        pieces = [data[i:i + size] for i in range(0, len(data), size)]
+        out: list[int] = []
+        t = best(lambda: out.append(sum(len(lz4.frame.compress(p, compression_level=level)) for p in pieces)))
+        return len(data) / t / 1e6, out[-1] / len(data)
+
+    sizes = ", ".join("{} KiB {:.0f} MB/s".format(k >> 10, rate(k)[0]) for k in (64 << 10, 256 << 10, 1 << 20, 4 << 20))
+    levels = ", ".join("level {} {:.0f} MB/s to {:.2f} of the size".format(lv, *rate(1 << 20, lv))
+                       for lv in (0, -1, -4))
+    print(f"  lz4 of the output by chunk size: {sizes}; by level (1 MiB chunks): {levels}")
 
 
 def _stats(values) -> str:
@@ -249,13 +287,14 @@ def main() -> None:
     ap.add_argument("--profile", action="store_true", help="first, one live run with the stages timed")
     ap.add_argument("--live-only", action="store_true", help="skip the replay benchmark")
     ap.add_argument("--replay-only", action="store_true", help="skip the live benchmark")
-    ap.add_argument("--block-ms", type=float, default=None, help="[unit] block_ms of the live service (default: its default)")
+    ap.add_argument("--block-ms", type=float, default=None,
+                    help="[unit] block_ms of the live service (default: its default)")
     args = ap.parse_args()
     cases = [(float(c.split("x")[0]), int(c.split("x")[1])) for c in args.cases.split(",")]
     print("machine:", machine())
     with tempfile.TemporaryDirectory() as d:
         if not args.live_only:
-            bench_replay(Path(d), 60.0)
+            bench_replay(Path(d), 60.0, args.repeat)
     if not args.replay_only:
         bench_live(cases, args.seconds, args.repeat, args.block_ms, args.profile)
 
