@@ -30,11 +30,10 @@ import zlib
 from pathlib import Path
 
 import numpy as np
-from _live import config_text, identity, make_samples, probes
+from _live import bare_seconds, config_text, identity, make_samples, probes
 from _machine import cpu_model
 
 from drivers.block import SampleBlock
-from drivers.icd import encode_serial, parse_serial
 from service.io.calfile import load_calibration
 
 N_PROBES, RATE = 4, 1000.0
@@ -94,7 +93,7 @@ def bench_replay(tmp: Path, seconds: float, repeat: int) -> None:
         phases.append((t_decode, t_pipe, times[-1] - t_decode - t_pipe,
                        {k: (sum(v), len(v)) for k, v in parts.items()}))
     t_replay = min(times)
-    t_bare = bare_s(s)
+    t_bare = bare_seconds(s, N_PROBES, time.perf_counter, runs=3)
     n = whole.n_samples * N_PROBES
     print(f"replay (MCAP decode + pipeline + MCAP write), {whole.n_samples} samples x {N_PROBES} probes: "
           f"{n / t_replay:,.0f} probe-samples/s (best of {repeat}; median {n / float(np.median(times)):,.0f})")
@@ -106,20 +105,6 @@ def bench_replay(tmp: Path, seconds: float, repeat: int) -> None:
           f"bare {t_bare * 1e3:.1f} ms; of these: " + ", ".join(f"{k} {v * 1e3:.0f} ms ({c} calls)"
                                                                for k, (v, c) in split.items()))
     floor_parts(block, t_bare)
-
-
-def bare_s(s) -> float:
-    """Wall seconds of the bare numerics of the samples: parse their ICD bytes in one go and apply a calibration
-    (best of 3)."""
-    data = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
-    m, o = np.stack([np.eye(3)] * N_PROBES), np.zeros((N_PROBES, 3))
-    bare = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        f = parse_serial(data, N_PROBES, final=True).frames.counts * 0.001
-        np.einsum("pij,npj->npi", m, f - o[None])
-        bare.append(time.perf_counter() - t0)
-    return min(bare)
 
 
 def _timed(owner, name: str, spent: list[float] | None = None) -> list[float]:
