@@ -218,3 +218,83 @@ def live_run(rate: float, n_probes: int, seconds: float, block_ms: float | None 
     run.lat_oldest_ms = np.array(lat_oldest[len(lat_oldest) // 10:]) * 1e3
     run.bare_s = bare_seconds(make_samples(seconds + 10, rate, plist, int(seconds * rate)), n_probes)
     return run
+
+
+def live_floor(rate: float, n_probes: int, seconds: float, block_ms: float = 8.0) -> tuple[float, float]:
+    """The per-block work no service with these outputs can skip, in a loop paced as the service's: wake every
+    block_ms, read what the port holds (a pty a feeder thread fills at the unit's rate), parse it, scale and
+    correct it with its differences and tensor, encode the raw and corrected blocks and the one-probe and series
+    messages, put the nine messages on Zenoh (a publisher each, no subscriber, no sender thread) and write two
+    messages to a chunked lz4 MCAP file. Returns (this loop's thread CPU per block, us; its share of one core)."""
+    import select
+    import zenoh
+    from mcap.writer import CompressionType, Writer
+
+    from drivers.assemble import scale_samples
+    from service.io.bus.keys import encode_series
+    from service.io.encoding import encode_corrected, encode_probes, encode_raw
+    from service.numerics.outputs import Derived
+
+    plist = probes(n_probes)
+    s = make_samples(seconds + 2, rate, plist)
+    frames = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
+    fl = len(frames) // len(s.seq_raw)
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    derive = Derived(np.array([p["position_m"] for p in plist], float), n_probes)
+    cols = (np.eye(3)[None, None, :, 0], np.eye(3)[None, None, :, 1], np.eye(3)[None, None, :, 2])
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    stop = threading.Event()
+
+    def feed() -> None:
+        t0, i, n = time.perf_counter(), 0, int(seconds * rate)
+        while i < n and not stop.is_set():
+            due = min(n, int((time.perf_counter() - t0) * rate) + 1)
+            if due > i:
+                os.write(master, frames[i * fl:due * fl])
+                i = due
+            time.sleep(0.0002)
+
+    with tempfile.TemporaryDirectory() as d, zenoh.open(conf) as session, open(Path(d) / "f.mcap", "wb") as fh:
+        pubs = [session.declare_publisher(f"floor/{k}") for k in range(5 + n_probes)]
+        w = Writer(fh, chunk_size=1 << 62, compression=CompressionType.LZ4)
+        w.start()
+        ch = [w.register_channel(f"/floor/{k}", "fluxcal", 0) for k in range(2)]
+        feeder = threading.Thread(target=feed, daemon=True)
+        feeder.start()
+        tail, blocks, cpu0, wall0, last_flush = b"", 0, time.thread_time(), time.perf_counter(), time.monotonic()
+        while feeder.is_alive():
+            if not select.select([slave], [], [], 0.05)[0]:
+                continue
+            time.sleep(block_ms / 1000.0)
+            buf = tail + os.read(slave, 1 << 16)
+            p = parse_serial(buf, n_probes)
+            tail = buf[p.consumed:]
+            f = p.frames
+            seq = f.seq.astype(np.int64)
+            block = scale_samples(seq, f.t_us / 1e6, f.counts, f.temp_raw, f.flags, lsb_nT=0.001)
+            d0 = block.field_nT - np.zeros((1, n_probes, 3))
+            c = d0[..., 0:1] * cols[0]
+            c += d0[..., 1:2] * cols[1]
+            c += d0[..., 2:3] * cols[2]
+            out = derive(block.t_s, block.seq, c, 1)
+            raw, cor = encode_raw(block), encode_corrected(out)
+            payloads = [raw, cor, encode_series(out.t_s, out.seq, out.diff_nT, 1),
+                        encode_series(out.t_s, out.seq, out.tensor_nT_m, 1), b"{}", *encode_probes(out)]
+            for pub, payload in zip(pubs, payloads):
+                pub.put(payload)
+            t_ns = int(block.t_s[0] * 1e9)
+            w.add_message(ch[0], log_time=t_ns, data=raw, publish_time=t_ns)
+            w.add_message(ch[1], log_time=t_ns, data=cor, publish_time=t_ns)
+            if time.monotonic() - last_flush >= 1.0:
+                w.flush()
+                last_flush = time.monotonic()
+            blocks += 1
+        cpu, wall = time.thread_time() - cpu0, time.perf_counter() - wall0
+        w.finish()
+        stop.set()
+    os.close(master)
+    os.close(slave)
+    return cpu / max(blocks, 1) * 1e6, cpu / wall

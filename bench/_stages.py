@@ -2,20 +2,25 @@
 
 bench_service.py --profile starts the service through this module (python bench/_stages.py OUT.json run --config
 ...): the named methods below are wrapped, at class level, to add the thread CPU time (CLOCK_THREAD_CPUTIME_ID,
-so not the wall clock, and not other threads' work) of each call to its stage; at exit the stages, their calls and
-their calls are written to OUT.json. The service is otherwise the one users start.
+so not the wall clock, and not other threads' work) of each call to its stage; at exit the stages and their calls
+are written to OUT.json. The service is otherwise the one users start.
 """
 
 from __future__ import annotations
 
-import atexit
-import importlib
-import json
-import sys
-import threading
-import time
-from collections import defaultdict
-from pathlib import Path
+import os
+
+# as `fluxcal run` sets it before numpy loads (service/wiring/commands/run.py): this module loads numpy first
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import atexit  # noqa: E402
+import importlib  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import threading  # noqa: E402
+import time  # noqa: E402
+from collections import defaultdict  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 #: (stage label, "module:Class.method" or "module:function", or several such separated by "|": the first that
 #: exists, so that one list times the code before and after a change) in the order they are printed; a label's

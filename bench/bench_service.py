@@ -238,7 +238,7 @@ def print_profile(run) -> None:
 
 def bench_live(cases: list[tuple[float, int]], seconds: float, repeat: int, block_ms: float | None,
                profile: bool) -> None:
-    from _live import live_run
+    from _live import live_floor, live_run
 
     if profile:
         print_profile(live_run(cases[0][0], cases[0][1], seconds, block_ms, _USER_BLAS_THREADS, profile=True))
@@ -254,13 +254,18 @@ def bench_live(cases: list[tuple[float, int]], seconds: float, repeat: int, bloc
         p99o = [float(np.percentile(r.lat_oldest_ms, 99)) for r in runs]
         if base is None:
             base = float(np.median(core))
+        floor_us, floor_core = live_floor(rate, n_probes, seconds, block_ms or 8.0)
         print(f"live, {n_probes} probes at {rate:.0f} Hz over a pty, block_ms {block_ms or 'default'}, {repeat} x "
               f"{seconds:.0f} s: service CPU % of one core {_stats(core)} (all threads; "
               + ", ".join(f"{k} {_stats(v)}" for k, v in groups.items())
               + f"); {_stats(us_ps)} us per probe-sample, {_stats(ratio)} x the bare parse + calibrate of the same "
               f"samples in this process ({runs[0].bare_s * 1e3:.1f} ms); median {float(np.median(core)) / base:.2f} x "
               f"the first case's CPU. Latency frame written -> corrected message received, newest frame of each "
-              f"block: p50 {_stats(p50)} ms, p99 {_stats(p99)} ms; oldest frame p99 {_stats(p99o)} ms")
+              f"block: p50 {_stats(p50)} ms, p99 {_stats(p99)} ms; oldest frame p99 {_stats(p99o)} ms. The floor: what "
+              f"no service with these outputs can skip (read, parse, scale, correct with differences and tensor, "
+              f"encode, nine Zenoh puts, two MCAP messages), in one thread paced as the service: {floor_us:.0f} us a "
+              f"block, {100 * floor_core:.1f} % of one core; the service "
+              f"{float(np.median(core)) / 100 / floor_core:.2f} x that")
 
 
 def main() -> None:
