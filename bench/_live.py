@@ -150,8 +150,9 @@ def _feed(master: int, frames: bytes, fl: int, n: int, rate: float, sent_at: np.
 
 
 def live_run(rate: float, n_probes: int, seconds: float, block_ms: float | None = None, blas_threads: str | None = None,
-             profile: bool = False) -> LiveRun:
-    """One run of the service; `blas_threads`: OPENBLAS_NUM_THREADS for it (None: unset, as a user starts it)."""
+             profile: bool = False, code: Path | None = None) -> LiveRun:
+    """One run of the service; `blas_threads`: OPENBLAS_NUM_THREADS for it (None: unset, as a user starts it);
+    `code`: a checkout whose service runs (another revision, for a comparison in one run), else this one's."""
     from service.io.bus import BusClient, ZenohConfig
 
     run = LiveRun(rate, n_probes, seconds, block_ms)
@@ -171,6 +172,8 @@ def live_run(rate: float, n_probes: int, seconds: float, block_ms: float | None 
         head = [str(BENCH / "_stages.py"), str(stages_out)] if profile else ["-m", "service.wiring.cli"]
         env = dict(os.environ)
         env.pop("OPENBLAS_NUM_THREADS", None)
+        if code is not None:
+            env["PYTHONPATH"] = str(code)
         if blas_threads is not None:
             env["OPENBLAS_NUM_THREADS"] = blas_threads
         proc = subprocess.Popen([sys.executable, *head, "run", "--config", str(cfg_path)], env=env,

@@ -268,6 +268,26 @@ def bench_live(cases: list[tuple[float, int]], seconds: float, repeat: int, bloc
               f"{float(np.median(core)) / 100 / floor_core:.2f} x that")
 
 
+def bench_against(code: Path, rate: float, n_probes: int, seconds: float, pairs: int, block_ms: float | None) -> None:
+    """The service of another checkout (`code`: main before a change) and this one's, run by turns in pairs, so that
+    what else the machine does weighs on both alike: each pair's CPU ratio, and latency."""
+    from _live import live_run
+
+    ratios, cores = [], {"other": [], "this": []}
+    p99 = {"other": [], "this": []}
+    for _ in range(pairs):
+        a = live_run(rate, n_probes, seconds, block_ms, _USER_BLAS_THREADS, code=code)
+        b = live_run(rate, n_probes, seconds, block_ms, _USER_BLAS_THREADS)
+        ratios.append(b.core / a.core)
+        for key, r in (("other", a), ("this", b)):
+            cores[key].append(100 * r.core)
+            p99[key].append(float(np.percentile(r.lat_ms, 99)))
+    print(f"live, {n_probes} probes at {rate:.0f} Hz, {pairs} pairs of {seconds:.0f} s runs by turns: service CPU % of "
+          f"one core {code}: {_stats(cores['other'])}; this checkout: {_stats(cores['this'])}; this / that in each "
+          f"pair: {_stats(ratios)} ({', '.join(f'{r:.2f}' for r in ratios)}); latency p99 (newest frame) "
+          f"{_stats(p99['other'])} against {_stats(p99['this'])} ms")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=30.0, help="of each live run")
@@ -275,6 +295,8 @@ def main() -> None:
     ap.add_argument("--cases", default="1000x4,2000x4,5000x4,1000x8",
                     help="live cases, RATExPROBES, comma-separated (the first is the one profiled)")
     ap.add_argument("--profile", action="store_true", help="first, one live run with the stages timed")
+    ap.add_argument("--against", type=Path, default=None, metavar="CHECKOUT",
+                    help="only: the first live case with this checkout's service and this one's by turns, in pairs")
     ap.add_argument("--live-only", action="store_true", help="skip the replay benchmark")
     ap.add_argument("--replay-only", action="store_true", help="skip the live benchmark")
     ap.add_argument("--block-ms", type=float, default=None,
@@ -282,6 +304,9 @@ def main() -> None:
     args = ap.parse_args()
     cases = [(float(c.split("x")[0]), int(c.split("x")[1])) for c in args.cases.split(",")]
     print("machine:", machine())
+    if args.against is not None:
+        bench_against(args.against, cases[0][0], cases[0][1], args.seconds, args.repeat, args.block_ms)
+        return
     with tempfile.TemporaryDirectory() as d:
         if not args.live_only:
             bench_replay(Path(d), 60.0, args.repeat)
