@@ -176,8 +176,9 @@ def live_run(rate: float, n_probes: int, seconds: float, block_ms: float | None 
             env["PYTHONPATH"] = str(code)
         if blas_threads is not None:
             env["OPENBLAS_NUM_THREADS"] = blas_threads
+        # (`python -m` looks in the working directory first: the other checkout's, for its service)
         proc = subprocess.Popen([sys.executable, *head, "run", "--config", str(cfg_path)], env=env,
-                                stderr=subprocess.PIPE, text=True)
+                                cwd=None if code is None else str(code), stderr=subprocess.PIPE, text=True)
         try:
             time.sleep(3.0)
             client = BusClient(ZenohConfig.client(f"tcp/127.0.0.1:{port}"), "bench", streams=["corrected"])
