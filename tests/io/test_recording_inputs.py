@@ -131,7 +131,7 @@ def test_patterns_group_one_runs_files_and_folders_list_what_they_skip(tmp_path)
     assert np.all([Path(p).exists() for p, _ in skipped])
 
 
-def test_every_format_fluxcal_reads_is_a_recording_of_a_folder_and_a_bag_is_one(tmp_path, monkeypatch):
+def test_every_format_fluxcal_reads_is_a_recording_of_a_folder_and_a_bag_is_one(tmp_path, monkeypatch, capsys):
     """Flight logs and ROS 2 bags are recordings of a folder (they were 'skipped ... not a recording', and a folder
     holding only a .ulg was refused); a bag's folder is one recording, its .db3 never one of its own; paths as
     the user named them, sent absolute; an item that names nothing is one line with its reason."""
@@ -153,6 +153,7 @@ def test_every_format_fluxcal_reads_is_a_recording_of_a_folder_and_a_bag_is_one(
     assert [(item, why.split(" (")[0]) for item, why in got.unreadable] == [
         ("nothere.csv", "no such file or folder"), ("empty", "holds no recording"), ("none-*.mcap", "matches no file")]
     assert not _is_fleet(["logs/bag"]) and _one("logs/bag", "fit") == "logs/bag" and _is_fleet(["logs"])
+    assert capsys.readouterr().err == ""                      # nothing of the bag said skipped
 
 
 def test_one_rotated_file_fitted_alone_says_it_is_part_of_a_run(rotated, capsys):
