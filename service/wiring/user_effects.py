@@ -57,6 +57,15 @@ def _load_class(spec: str) -> object:
     return cls
 
 
+def effect_spec_here(spec: str) -> str:
+    """An --effects item with its FILE.py made absolute from this process's working folder (a fleet's worker may
+    run in another); names and package.module:Class as they are."""
+    where, _, cls_name = spec.rpartition(":")
+    if not where.endswith(".py"):
+        return spec
+    return f"{Path(where).expanduser().absolute()}:{cls_name}"
+
+
 def resolve_effects(specs: list[str]) -> list[str]:
     """Effect names for the model: catalogue and registered names pass; FILE.py:Class and module:Class are
     loaded and registered first, each preceded by the catalogue effects its class says it was found `beside` (a
