@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 from drivers.errors import FluxcalError
 from service.numerics.effects.base import EffectData
@@ -249,7 +250,7 @@ def conclude(out: Discovery, data: EffectData, base: FitResult, base_ho: Heldout
         params = {t.name: [p for p in fit.parameters() if p.term == t.name] for t in fit.problem.terms
                   if isinstance(t, GroupTerm)}
         weak = [t.group for t in fit.problem.terms if isinstance(t, GroupTerm)
-                and _beyond_errors(params[t.name], p_level) is not None]
+                and _beyond_errors(params[t.name], p_level) is not None and not jointly_beyond(fit, t.name, p_level)]
         if weak:
             kept = [g for g in kept if g not in weak]
             if not kept:
@@ -276,6 +277,18 @@ def conclude(out: Discovery, data: EffectData, base: FitResult, base_ho: Heldout
     out.groups = ([read_group(t.group, t.name, params[t.name], fit) for t in fit.problem.terms
                    if isinstance(t, GroupTerm)] + [read_law_group(t, fit) for t in laws])
     return out
+
+
+def jointly_beyond(fit: FitResult, term: str, p_level: float) -> bool:
+    """Whether a group's parameters stand beyond their errors jointly, with their correlations (reading.covariance):
+    a spline of a column beside the catalogue's `column`, which holds the column's straight line, has each parameter
+    within its error (the line can go to either) while the curve stands far beyond them (a saturating coil: claimed
+    in 0 of 2 seeds where `column` was significant, by the parameters' errors alone)."""
+    values, cov = covariance(fit, term)
+    lam, vec = np.linalg.eigh(cov)
+    keep = lam > 1e-9 * max(float(lam[-1]), 1e-300)
+    z = vec[:, keep].T @ values
+    return bool(keep.any() and float(np.sum(z * z / lam[keep])) >= stats.chi2.isf(p_level, int(keep.sum())))
 
 
 def offset_alone(fit: FitResult) -> list[Group]:
