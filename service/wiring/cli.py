@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import signal
 import sys
 from typing import Sequence
@@ -76,6 +77,10 @@ def main(argv: Sequence[str] | None = None, *, install_signals: bool = True) -> 
         return int(command_module(args.command).main(args) or 0)
     except (ConfigError, DataError, CalibrationRefused) as e:
         print(f"fluxcal {args.command}: {e}", file=sys.stderr)
+        if getattr(args, "json", False):      # a script reads JSON on stdout whatever happened (docs/contracts.md)
+            from service.wiring.result import refusal
+
+            print(json.dumps(refusal(e, getattr(args, "data", None) or getattr(args, "file", None))), flush=True)
         return EXIT_USAGE
     except FluxcalError as e:
         print(f"fluxcal {args.command}: {e}", file=sys.stderr)

@@ -30,7 +30,7 @@ from typing import Any
 from drivers.errors import CalibrationRefused, ConfigError, DataError, FluxcalError
 from service.io.recordings.runs import expand_inputs
 
-from .result import Said
+from .result import Said, refusal
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,7 +72,7 @@ def run_one(job: Job) -> dict[str, Any]:
         result = module.execute(job.source, job.options, said, **kwargs)
         out.update(status=result.status, result=result.as_dict())
     except (ConfigError, DataError, CalibrationRefused) as e:
-        out.update(status=2, error=str(e))
+        out.update(status=2, error=str(e), refused=refusal(e, job.source)["refused"])
     except FluxcalError as e:
         out.update(status=1, error=str(e))
     except BaseException as e:                     # noqa: BLE001 - a recording's failure is its result

@@ -14,7 +14,6 @@ import numpy as np
 from drivers.errors import DataError, FluxcalError
 from service.io.calfile import save_calibration
 from service.io.recordings.labdata import LabData, keep_every
-from service.numerics.calib.coverage import coverage
 from service.numerics.usable import temperature_notes, usable_samples
 from service.wiring.coloured_fit import coloured_offsets, direction_offsets
 from service.wiring.commands.notes import check_output_file, check_output_folder
@@ -35,6 +34,7 @@ from service.wiring.fitting import (
     channel_sums,
     contract_json,
     fit_array,
+    judge_data,
     iter_residual_channels,
     rms,
     rms_all,
@@ -137,8 +137,9 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     data, source = prep.data, prep.source
     data, left_out = usable_data(data, uses_temperature=bool({"temperature", "thermal"} & set(opts.effects)))
     known_total = prep.total_nT
+    judged = judge_data(data, known_total, prep.total_source or "")    # the one determinacy gate, before any fit
     cal, total = fit_array(data, method=opts.method, align=opts.align, configured_total_nT=known_total,
-                           positions_m=prep.positions_m, progress=_progress)
+                           positions_m=prep.positions_m, progress=_progress, judged=judged)
     if prep.site is not None:
         total.source = f"the site ({prep.site.model})"
     if prep.track is not None:                    # the data's ref_total is the model along the track
@@ -176,7 +177,7 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     # coloured noise first: it changes the offsets' errors, which the warnings below compare with the offsets
     coloured = coloured_warnings(coloured_offsets(data, cal, total)) if not opts.effects else []
     coloured += direction_offsets(data, cal, total) if not opts.effects else []
-    coverages = [coverage(data.block.field_nT[:, k], centre_nT=p.offset_nT) for k, p in enumerate(cal.probes)]
+    coverages = [j.coverage for j in judged]             # about the gate's centre: the figures every command shows
     warnings = left_out + calibration_warnings(cal, coverages) + ([thinned] if thinned else []) + coloured
     warnings += [prep.config_warning] if prep.config_warning else []
     warnings += [prep.part_of_run] if prep.part_of_run else []
@@ -187,6 +188,7 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
         save_calibration(cal, opts.out)
         out.written.append(opts.out)
     result = contract_json(cal, channels, data.probe_names, coverages, warnings)
+    result["determinacy"] = [j.as_dict() for j in judged]
     if prep.origin == FROM_RECORDING:
         result["configuration"] = "recording"               # the total field and positions it stores were used
     if prep.site is not None:
