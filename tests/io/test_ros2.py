@@ -18,7 +18,8 @@ pytest.importorskip("rosbags", reason="the ROS 2 reader's optional package: pip 
 from drivers.errors import DataError
 from drivers.sim import Unit, load_sim_config
 from service.io.recordings.load import load_data
-from service.io.recordings.ros2 import Ros2Mapping, inspect_ros2
+from service.io.recordings.inspect import inspect_file
+from service.io.recordings.ros2 import Ros2Mapping
 from service.numerics.merge import (
     Q_NED_FROM_ENU,
     euler_from_quaternion,
@@ -250,7 +251,7 @@ def test_topics_chosen_by_options(same_data):
 
 def test_inspect_lists_topics_and_mapping(same_data, capsys):
     root, _ = same_data
-    i = inspect_ros2(root / "same.mcap")
+    i = inspect_file(root / "same.mcap")                      # the streams, then the one reading fit and diagnose use
     by = {s.name: s for s in i.streams}
     assert by["/mag1/field"].maps_to.startswith("probe s1") and by["/mag2/field"].maps_to.startswith("probe s2")
     assert by["/mag2/temperature"].maps_to == "s2_temp"

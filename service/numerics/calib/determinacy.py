@@ -145,6 +145,9 @@ def refuse_undetermined(judgements: Sequence[Determinacy], *, then: str = "") ->
             raise refused
 
 
+#: the share of directions seen about the judge's centre below which a field that is a field about zero but not about
+#: that centre is said as directions that do not place the centre (above it: a unit or a gain)
+WIDE_COVERAGE = 0.75
 #: a given total field further than this factor from the data's own size (median |raw - centre|) is not theirs: a
 #: sensor's scale factors are near 1 (plausible.CalibrationLimits.max_scale)
 SITE_RATIO_MAX = 2.0
@@ -154,7 +157,8 @@ def physical(j: Determinacy, raw_nT: np.ndarray, given_total_nT: Any = None, sou
     """The judgement `j` of (N, 3) raw samples, refused (problem and advice) where the field is physically absurd:
     with a reference (given_total_nT: per sample, or a constant; `source` says what it is) when the data's own size
     about the judge's centre is more than SITE_RATIO_MAX from it; without one, when the field the judge assumed lies
-    outside the Earth's (EARTH_RANGE_NT). A judgement already refused, or without a centre, is returned as it is."""
+    outside the Earth's (EARTH_RANGE_NT). The samples' size about zero says whether their unit is wrong or the
+    directions they span do not place the centre. A judgement already refused, or without a centre, is returned."""
     if not j.determined or j.centre_nT is None:
         return j
     raw = np.asarray(raw_nT, float)[:, None, :]
@@ -166,38 +170,32 @@ def physical(j: Determinacy, raw_nT: np.ndarray, given_total_nT: Any = None, sou
         ref = float(np.nanmedian(ref)) if ref.ndim else float(ref)
         if not np.isfinite(size) or size <= 0 or 1.0 / SITE_RATIO_MAX <= ref / size <= SITE_RATIO_MAX:
             return j
-        if 1.0 / SITE_RATIO_MAX <= ref / about_zero <= SITE_RATIO_MAX:
-            return _barely_turned(j, size, about_zero, f"the total field given ({ref:,.0f} nT, {source or 'given'})")
+        fits_zero = 1.0 / SITE_RATIO_MAX <= ref / max(about_zero, 1e-300) <= SITE_RATIO_MAX
+        given = f"the total field given ({ref:,.0f} nT, {source or 'given'})"
+        problem = (f"the data's field about their fitted centre is {size:,.0f} nT (median), {max(ref / size, size / ref):.3g} "
+                   f"times {'below' if ref > size else 'above'} {given}: the calibration would scale the sensor by "
+                   f"that factor, which no sensor's gain is (accepted within {SITE_RATIO_MAX:g} times)")
         guess = unit_guess(size)
-        problem = (f"the data's field about their fitted centre is {size:,.0f} nT (median), {ref / size:.3g} times "
-                   f"{'below' if ref > size else 'above'} the total field given ({ref:,.0f} nT, {source or 'given'}): "
-                   f"the calibration would scale the sensor by that factor, which no sensor's gain is (accepted "
-                   f"within {SITE_RATIO_MAX:g} times)")
-        advice = ((f"are the data in {guess}; the CSV contract is nT" if guess else
-                   "check the data's unit and scale (the CSV contract is nT) and that the compass is not in a "
-                   "platform's own field") + f"; or check the total field given ({source or 'given'})")
+        last = f"or check {given}"
     else:
         field = j.field_nT if j.field_nT is not None else size
         if lo <= field <= hi:
             return j
-        if lo <= about_zero <= hi:
-            return _barely_turned(j, field, about_zero, f"the Earth's {lo:,.0f}-{hi:,.0f} nT")
+        fits_zero = lo <= about_zero <= hi
+        problem = (f"with no reference field, the fit assumes a total field of {field:,.0f} nT (the calibrated sphere "
+                   f"has the raw ellipsoid's volume), outside the Earth's {lo:,.0f}-{hi:,.0f} nT: no magnetometer on "
+                   f"Earth reads that")
         guess = unit_guess(field)
-        problem = (f"with no reference field, the fit assumes a total field of {field:,.0f} nT (the calibrated "
-                   f"sphere has the raw ellipsoid's volume), outside the Earth's {lo:,.0f}-{hi:,.0f} nT: no "
-                   f"magnetometer on Earth reads that")
-        advice = ((f"are the data in {guess}; the CSV contract is nT" if guess else
-                   "the data's scale is not a field in nT (a gain, a unit, or a compass in a platform's own field)")
-                  + "; give the site's field (--site LAT,LON[,ALT], a ref_total column or estimator.total_nT) to "
-                    "have the fit scaled to it and checked against it")
-    return replace(j, problem=f"{problem}; {advice}", advice=advice)
-
-
-def _barely_turned(j: Determinacy, size: float, about_zero: float, what: str) -> Determinacy:
-    """The judgement refused for samples whose size about zero is a field (within `what`) but about the fitted
-    centre is not: the centre lies among samples that hardly turned, and the field they read is not a sphere's."""
-    problem = (f"the samples' field about the fitted centre is {size:,.0f} nT while they read {about_zero:,.0f} nT "
-               f"about zero ({what}): the directions they span are too few to place the centre (the probe hardly "
-               f"turned), so the calibration fitted to them is not determined")
-    advice = "turn the probe about at least two axes, so the field sweeps most directions"
+        last = ("or give the site's field (--site LAT,LON[,ALT], a ref_total column or estimator.total_nT) to have the "
+                "fit scaled to it and checked against it")
+    if fits_zero and j.coverage.fraction < WIDE_COVERAGE:
+        problem += (f", while the samples read {about_zero:,.0f} nT about zero: the directions they span do not place "
+                    f"the centre (one turn, or too small a part of the sphere)")
+        advice = "turn the probe about at least two axes, so the field sweeps most directions"
+    elif guess:
+        advice = f"are the data in {guess}; the CSV contract is nT"
+    else:
+        advice = ("the data's scale is not a field in nT: check the unit and the gain, and that the compass is not in "
+                  "a platform's own field")
+    advice = f"{advice}; {last}"
     return replace(j, problem=f"{problem}; {advice}", advice=advice)

@@ -171,6 +171,7 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     if sys.stderr.isatty():
         print("\r\033[K", end="", file=sys.stderr)
     before = uncalibrated_rms(data, total)
+    refuse_worse(cal, channels, before, total.source)
     cal.diagnostics.update({"rms_before_nT": dict(before),
                             "rms_after_nT": {k: rms(v) for k, v in channels.items()},
                             "total_field": total.source})
@@ -210,6 +211,26 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
             out.status = 1
     out.contract, out.summary, out.notes = result, "\n".join(text), said.notes
     return out
+
+
+def refuse_worse(cal, channels, before: dict[str, float], total_source: str) -> None:
+    """CalibrationRefused where the calibration makes a probe's scalar residual worse than the raw data's (a
+    calibration the data do not determine, or a total field that is not theirs), with what would help."""
+    from drivers.errors import CalibrationRefused
+
+    for p in cal.probes:
+        name = f"{p.name}.scalar"
+        after = rms(channels[name]) if name in channels else float("nan")
+        if name in before and np.isfinite(after) and after > before[name]:
+            against = "estimated" if total_source == "estimated" else f"from {total_source}"
+            reason = (f"{p.name}: the calibration makes the scalar residual worse than the raw data's "
+                      f"({before[name]:,.4g} -> {after:,.4g} nT RMS against the total field {against}): these data do "
+                      f"not determine it")
+            advice = ("turn the probe about at least two axes so the field sweeps most directions, and check that the "
+                      "total field given is the site's and the data are in nT")
+            refused = CalibrationRefused(f"{reason}; {advice}")
+            refused.reason, refused.advice = reason, advice
+            raise refused
 
 
 #: fewest samples left to fit once the unusable ones are left out (as the effects' fits need)
@@ -344,6 +365,10 @@ def _summary(data, cal, channels, before, total_source, result, coverages, origi
         lines.append("  offset nT  " + "  ".join(_fmt_pm(v, s) for v, s in zip(p.offset_nT, p.offset_se_nT)))
         for i in range(3):
             lines.append("  matrix     " + "  ".join(_fmt_pm(v, s, 5) for v, s in zip(p.matrix[i], p.matrix_se[i])))
+        if not (np.all(np.isfinite(p.offset_se_nT)) and np.all(np.isfinite(p.matrix_se))):
+            lines.append("  (± n/a: " + ("the fit with effects gives the effects' and the offsets' errors, not the "
+                                         "matrix's: `fit` without --effects gives them" if cal.effects else
+                                         "no standard error: these data do not determine it") + ")")
         for key, val in p.params.items():
             if key in ("offset_nT", "samples", "align") or not isinstance(val, dict):
                 continue
