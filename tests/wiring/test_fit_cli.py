@@ -31,7 +31,9 @@ def test_fit_json_matches_truth(gradiometer, capsys, method):
     assert main(["fit", str(path), "--method", method, "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out) == {"method", "align", "effects", "sensors", "differential_rms_nT", "rms_nT", "warnings",
-                        "effect_params"}
+                        "effect_params", "determinacy"}
+    assert [d["probe"] for d in out["determinacy"]] == [s["name"] for s in out["sensors"]]
+    assert all(d["determined"] and d["reason"] is None for d in out["determinacy"])
     assert out["effect_params"] == {}
     assert out["method"] == method and out["effects"] == []
     # what the text shows, in the JSON too (docs/contracts.md): standard errors, order, coverage

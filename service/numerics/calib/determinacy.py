@@ -10,7 +10,9 @@ the method that then calibrates them. Its fitted centre and frame give the field
     - one cone of directions (excitation.cone_of): the offset along its axis rests on the wobble;
     - offsets the fit's standard errors leave undetermined (a tenth of the field);
     - a fitted shape no sensor has (the judge's matrix conditioned beyond JUDGE_MAX_CONDITION);
-    - too small a share of the directions seen about the judge's centre (coverage.MIN_FRACTION, or the gate's own).
+    - too small a share of the directions seen about the judge's centre, where the caller sets one: the service's
+      gate (gate_coverage), which replaces a calibration in use unattended; a batch command fits what the directions
+      determine (the model order) and says what they miss, so it asks none (min_fraction 0).
 
     judge(raw_nT, total_nT, name=...) -> Determinacy     one probe
     judge_all(field_nT, total_nT, names) -> [Determinacy]
@@ -33,7 +35,7 @@ import numpy as np
 from drivers.errors import CalibrationRefused
 
 from ..field_scale import EARTH_RANGE_NT, median_field, unit_guess
-from .coverage import MIN_FRACTION, Coverage, coverage
+from .coverage import Coverage, coverage
 from .excitation import Cone
 from .quadric import MAX_CONDITION
 
@@ -86,7 +88,7 @@ def _split(problem: str) -> tuple[str, str]:
     return problem, ""
 
 
-def judge(raw_nT: np.ndarray, total_nT: Any = None, *, name: str = "s1", min_fraction: float = MIN_FRACTION,
+def judge(raw_nT: np.ndarray, total_nT: Any = None, *, name: str = "s1", min_fraction: float = 0.0,
           max_condition: float = MAX_CONDITION, core: Any = None) -> Determinacy:
     """Whether the (N, 3) raw samples of one probe determine a calibration against total_nT (per sample (N,), a
     constant, or None: estimated): the module docstring's tests, in that order. Rows with a NaN are left out (with
@@ -172,9 +174,11 @@ def physical(j: Determinacy, raw_nT: np.ndarray, given_total_nT: Any = None, sou
             return j
         fits_zero = 1.0 / SITE_RATIO_MAX <= ref / max(about_zero, 1e-300) <= SITE_RATIO_MAX
         given = f"the total field given ({ref:,.0f} nT, {source or 'given'})"
-        problem = (f"the data's field about their fitted centre is {size:,.0f} nT (median), {max(ref / size, size / ref):.3g} "
-                   f"times {'below' if ref > size else 'above'} {given}: the calibration would scale the sensor by "
-                   f"that factor, which no sensor's gain is (accepted within {SITE_RATIO_MAX:g} times)")
+        r = max(ref / size, size / ref)
+        problem = (f"the data's field about their fitted centre is {_nT(size)} nT (median), "
+                   f"{f'{r:,.0f}' if r >= 10 else f'{r:.2g}'} times {'below' if ref > size else 'above'} {given}: the "
+                   f"calibration would scale the sensor by that factor, which no sensor's gain is (accepted within "
+                   f"{SITE_RATIO_MAX:g} times)")
         guess = unit_guess(size)
         last = f"or check {given}"
     else:
@@ -182,7 +186,7 @@ def physical(j: Determinacy, raw_nT: np.ndarray, given_total_nT: Any = None, sou
         if lo <= field <= hi:
             return j
         fits_zero = lo <= about_zero <= hi
-        problem = (f"with no reference field, the fit assumes a total field of {field:,.0f} nT (the calibrated sphere "
+        problem = (f"with no reference field, the fit assumes a total field of {_nT(field)} nT (the calibrated sphere "
                    f"has the raw ellipsoid's volume), outside the Earth's {lo:,.0f}-{hi:,.0f} nT: no magnetometer on "
                    f"Earth reads that")
         guess = unit_guess(field)
@@ -199,3 +203,8 @@ def physical(j: Determinacy, raw_nT: np.ndarray, given_total_nT: Any = None, sou
                   "a platform's own field")
     advice = f"{advice}; {last}"
     return replace(j, problem=f"{problem}; {advice}", advice=advice)
+
+
+def _nT(x: float) -> str:
+    """A field as said: 12,563 from 1,000 up, else three figures (52.5)."""
+    return f"{x:,.0f}" if abs(x) >= 1000 else f"{x:.3g}"
