@@ -71,7 +71,7 @@ def test_fit_refuses_microtesla_data_naming_the_unit_with_or_without_a_total(tmp
     assert main(["fit", ut, "--json"]) == 2
     out, err = capsys.readouterr()
     refused = json.loads(out)["refused"]
-    assert "assumes a total field of 52 nT" in refused["reason"] and "outside the Earth's" in refused["reason"]
+    assert "assumes a total field of 52.5 nT" in refused["reason"] and "outside the Earth's" in refused["reason"]
     assert refused["advice"].startswith("are the data in µT? (x 1000: 52,") and refused["file"] == ut
     assert refused["reason"] in err and refused["advice"] in err
     cfg = tmp_path / "c.toml"
