@@ -110,7 +110,7 @@ class Gate:
             # the one determinacy gate (determinacy.judge), asked of the window's samples as fit asks it of a file's:
             # enough samples, not one plane, conditioned, not one cone, the share of directions; one verdict, one cone
             judged = judge(raw, ref, name=self.probe_names[k], min_fraction=self.coverage,
-                           max_condition=self.condition)
+                           max_condition=self.condition, maps=False)
             raw = raw[finite]
             covs.append(judged.coverage.fraction)
             conds.append(float(est.condition_))

@@ -386,6 +386,13 @@ def test_topics_chosen_on_the_command_line(same_data, capsys):
     out = json.loads(capsys.readouterr().out)
     alone = load_data(root / "same.mcap", mapping=Ros2Mapping(probes={"s1": "/mag2/field"}, imu=None))
     assert [s["name"] for s in out["sensors"]] == ["s1"] and alone.probe_names == ["s1"]
+    # inspect takes the same option (it was refused there while fit took it) and lists what fit took
+    assert main(["inspect", str(root / "same.mcap"), "--topics", "s1=/mag2/field,imu=none", "--json"]) == 0
+    seen = json.loads(capsys.readouterr().out)
+    assert seen["probes"] == ["s1"] and seen["samples"] == alone.block.n_samples
+    assert seen["verdict"] == out["determinacy"]
+    by = {s["name"]: s for s in seen["streams"]}
+    assert by["/mag2/field"]["maps_to"].startswith("probe s1") and not by["/mag1/field"]["maps_to"]
     assert main(["fit", str(root / "same.csv"), "--topics", "s1=/mag2/field"]) == 2
     assert "--topics: " in capsys.readouterr().err
     with pytest.raises(SystemExit):

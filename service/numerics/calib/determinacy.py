@@ -89,10 +89,11 @@ def _split(problem: str) -> tuple[str, str]:
 
 
 def judge(raw_nT: np.ndarray, total_nT: Any = None, *, name: str = "s1", min_fraction: float = 0.0,
-          max_condition: float = MAX_CONDITION, core: Any = None) -> Determinacy:
+          max_condition: float = MAX_CONDITION, core: Any = None, maps: bool = True) -> Determinacy:
     """Whether the (N, 3) raw samples of one probe determine a calibration against total_nT (per sample (N,), a
     constant, or None: estimated): the module docstring's tests, in that order. Rows with a NaN are left out (with
-    their reference). core: the judge's fit already made of these samples (ellipsoid.ellipsoid_core), not redone."""
+    their reference). core: the judge's fit already made of these samples (ellipsoid.ellipsoid_core), not redone;
+    maps: the coverage's text maps (the online gate, which shows none, asks without)."""
     from .ellipsoid import ellipsoid_core
     from .plausible import CalibrationLimits, matrix_problem
 
@@ -118,7 +119,7 @@ def judge(raw_nT: np.ndarray, total_nT: Any = None, *, name: str = "s1", min_fra
         if not problem and shape is not None:
             problem = (f"the fitted calibration is no sensor's (fails the {shape[0]} check: {shape[1]}): these data "
                        f"do not determine it")
-    cov = coverage(raw, centre_nT=centre, min_fraction=min_fraction, max_condition=max_condition)
+    cov = coverage(raw, centre_nT=centre, min_fraction=min_fraction, max_condition=max_condition, maps=maps)
     if not problem and not cov.usable:
         problem = cov.reason
     advice = _split(problem)[1] if problem else ""

@@ -42,6 +42,7 @@ from service.wiring.fitting import (
 )
 from service.wiring.prepare import FROM_RECORDING, Prepared, prepare
 from service.wiring.result import Result, Said, print_result, stderr_say
+from service.numerics.diagnose.text import reference_words
 from service.wiring.scale_notes import field_scale_notes
 
 HELP = CommandHelp("fit a calibration to lab data (CSV or MCAP)",
@@ -357,8 +358,7 @@ def _summary(data, cal, channels, before, total_source, result, coverages, origi
     b = data.block
     lines = [f"{data.path}: {b.n_samples} samples, {b.n_probes} probe(s), {b.t_s[-1] - b.t_s[0]:.1f} s; "
              f"method {cal.method}, align {cal.align or '-'}, effects {', '.join(cal.effects) or '-'}; "
-             + ("total field estimated from the data" if total_source == "estimated"
-              else f"total field from {total_source}")
+             + f"total field {reference_words(total_source)}"
              + (f"; {origin}" if origin == FROM_RECORDING else "")]
     for k, p in enumerate(cal.probes):
         lines.append(f"\n{p.name}")
