@@ -162,7 +162,8 @@ def test_an_older_ardupilot_log_runs_on_its_boot_clock_and_names_its_messages(ol
     import datetime as dt
     day = dt.datetime.fromtimestamp(seen["clock"]["t0_unix_s"], dt.timezone.utc).date()
     assert day == dt.date(2014, 12, 5)                                           # GPS week 1821, 471,293 s
-    assert_one_story(capsys, str(path))
+    assert [v["determined"] for v in seen["verdict"]] == [True, True]            # a tumble in the Earth's field
+    assert_one_story(capsys, str(path))                                          # fitted: one story, figure for figure
 
 
 def test_a_calibration_no_magnetometer_on_earth_gives_is_refused(tmp_path, capsys):
@@ -239,3 +240,19 @@ def test_the_refusals_docs_calibration_quotes_are_the_ones_fit_prints(name, star
     assert cli.main(["fit", str(path)]) == 2
     err = capsys.readouterr().err
     assert all(part.strip() in err for part in quote.split("…")), (quote, err)
+
+
+def test_a_calibration_that_leaves_the_residual_worse_than_the_raw_data_is_refused():
+    """pyulog's sample_px4_events.ulg left with exit 0 after its calibration took the residual from 581 to 17,037 nT:
+    a calibration a quarter worse than no calibration at all is refused, naming both figures and what would help;
+    one a hair above (an algebraic fit of data already calibrated) is not."""
+    from drivers.errors import CalibrationRefused
+    from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+    from service.wiring.commands.fit import refuse_worse
+
+    cal = ArrayCalibration("ellipsoid", None, [ProbeCalibration("s1", np.zeros(3), np.eye(3))])
+    with pytest.raises(CalibrationRefused) as e:
+        refuse_worse(cal, {"s1.scalar": np.full(10, 17_036.6)}, {"s1.scalar": 581.3}, "estimated")
+    assert "worse than the raw data's (581.3 -> 17,036.6 nT RMS against the total field estimated)" in str(e.value)
+    assert e.value.advice.startswith("turn the probe about at least two axes")
+    refuse_worse(cal, {"s1.scalar": np.full(10, 590.0)}, {"s1.scalar": 581.3}, "estimated")

@@ -44,7 +44,7 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused
 
-from .excitation import PLANARITY_MIN, band_problem, coverage_hint, excitation_problem, turn_cone, turn_problem  # noqa: F401,E501 (re-exported)
+from .excitation import PLANARITY_MIN, coverage_hint, excitation_problem, turn_cone  # noqa: F401 (re-exported)
 from .model import ProbeCalibration, named, scalar_rms, triangular_params
 from .order import (
     EXPANSIONS,
@@ -241,7 +241,7 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     Refuses (CalibrationRefused) data that cannot determine even the offsets: too few samples, all in
     one plane (a single-axis turn), field directions within a narrow cone about one axis (a turn with
     some wobble) where the model's misfit would move the offset along the axis by more than a percent of
-    the field (excitation.band_problem), a badly conditioned design, or offsets whose standard errors
+    the field (excitation.cone_of), a badly conditioned design, or offsets whose standard errors
     are a tenth of the field; the message names the missing directions and the motion that would fill them.
     noise_nT: the noise of |b| if known; standard errors then use it (see `solve_quadric`).
     errors: "time" (samples in time order): where the residual differs between stretches of time beyond its

@@ -95,13 +95,6 @@ def cone_of(corrected: np.ndarray, residual_rms: float, field: float) -> Cone | 
         f"{others[0]} or {others[1]} axis too"))
 
 
-def band_problem(corrected: np.ndarray, residual_rms: float, field: float) -> str:
-    """Why calibrated samples (N, 3) whose directions lie in a narrow cone-shaped band about one axis (a single-axis
-    turn with some wobble) do not fix the offset along it (cone_of's problem; "" where they do)."""
-    cone = cone_of(corrected, residual_rms, field)
-    return cone.problem if cone is not None else ""
-
-
 def missing_directions(raw: np.ndarray, cone_deg: float = 45.0) -> list[str]:
     """Probe axes (±x, ±y, ±z) no sampled field direction came within `cone_deg` of.
 
@@ -145,7 +138,7 @@ def coverage_hint(raw: np.ndarray, centre: np.ndarray | None = None) -> str:
             f"{' or '.join(turn_axes_for(missing))} axis")
 
 
-#: samples (evenly spaced) on which turn_problem asks its question: the cone of directions and the misfit's lever
+#: samples (evenly spaced) on which turn_cone asks its question: the cone of directions and the misfit's lever
 #: need a fair share of the record, not all of it (hours of data)
 TURN_ROWS = 200_000
 
@@ -165,10 +158,3 @@ def turn_cone(raw: np.ndarray, offset_nT: np.ndarray, matrix: np.ndarray, total_
         return None
     rms = residual_rms if residual_rms is not None else float(np.sqrt(np.mean((mag[ok] - f[ok]) ** 2)))
     return cone_of(corr[ok], rms, field if field is not None else float(np.mean(f[ok])))
-
-
-def turn_problem(raw: np.ndarray, offset_nT: np.ndarray, matrix: np.ndarray, total_nT=None, *,
-                 residual_rms: float | None = None, field: float | None = None) -> str:
-    """turn_cone's problem ("" where the directions spread wide enough)."""
-    cone = turn_cone(raw, offset_nT, matrix, total_nT, residual_rms=residual_rms, field=field)
-    return cone.problem if cone is not None else ""

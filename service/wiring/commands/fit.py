@@ -14,6 +14,7 @@ import numpy as np
 from drivers.errors import DataError, FluxcalError
 from service.io.calfile import save_calibration
 from service.io.recordings.labdata import LabData, keep_every
+from service.numerics.diagnose.text import reference_words
 from service.numerics.usable import temperature_notes, usable_samples
 from service.wiring.coloured_fit import coloured_offsets, direction_offsets
 from service.wiring.commands.notes import check_output_file, check_output_folder
@@ -34,15 +35,14 @@ from service.wiring.fitting import (
     channel_sums,
     contract_json,
     fit_array,
-    judge_data,
     iter_residual_channels,
+    judge_data,
     rms,
     rms_all,
     uncalibrated_rms,
 )
 from service.wiring.prepare import FROM_RECORDING, Prepared, prepare
 from service.wiring.result import Result, Said, print_result, stderr_say
-from service.numerics.diagnose.text import reference_words
 from service.wiring.scale_notes import field_scale_notes
 
 HELP = CommandHelp("fit a calibration to lab data (CSV or MCAP)",
@@ -214,18 +214,24 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     return out
 
 
+#: a calibration whose scalar residual is this many times the raw data's is refused: a fit minimises an algebraic
+#: residual, so data already calibrated may come out a few percent above their raw figure, never a quarter
+WORSE_FACTOR = 1.25
+
+
 def refuse_worse(cal, channels, before: dict[str, float], total_source: str) -> None:
-    """CalibrationRefused where the calibration makes a probe's scalar residual worse than the raw data's (a
-    calibration the data do not determine, or a total field that is not theirs), with what would help."""
+    """CalibrationRefused where the calibration makes a probe's scalar residual worse than the raw data's (beyond
+    WORSE_FACTOR: a calibration the data do not determine, or a total field that is not theirs), with what would
+    help."""
     from drivers.errors import CalibrationRefused
 
     for p in cal.probes:
         name = f"{p.name}.scalar"
         after = rms(channels[name]) if name in channels else float("nan")
-        if name in before and np.isfinite(after) and after > before[name]:
+        if name in before and np.isfinite(after) and after > WORSE_FACTOR * before[name]:
             against = "estimated" if total_source == "estimated" else f"from {total_source}"
             reason = (f"{p.name}: the calibration makes the scalar residual worse than the raw data's "
-                      f"({before[name]:,.4g} -> {after:,.4g} nT RMS against the total field {against}): these data do "
+                      f"({before[name]:,.1f} -> {after:,.1f} nT RMS against the total field {against}): these data do "
                       f"not determine it")
             advice = ("turn the probe about at least two axes so the field sweeps most directions, and check that the "
                       "total field given is the site's and the data are in nT")
