@@ -13,9 +13,10 @@ from drivers.errors import DataError
 from service.io.recordings.formats import Inspection, StreamInfo, detect_format, rate, refuse_pointer
 
 
-def inspect_file(path: str | Path, mapping: Any = None) -> Inspection:
+def inspect_file(path: str | Path, mapping: Any = None, *, read: bool = True) -> Inspection:
     """What the file at path holds (its streams, counts, rates) and how it would be mapped onto probes and columns;
-    DataError naming the file where it cannot be read."""
+    DataError naming the file where it cannot be read. read: the probes, columns, samples, duration and clock from
+    the one reader (as_read); False for a caller that reads the file itself (the inspect command, as fit does)."""
     p = Path(path)
     if not p.exists():
         raise DataError(f"{p}: no such file")
@@ -24,15 +25,15 @@ def inspect_file(path: str | Path, mapping: Any = None) -> Inspection:
     if fmt in ("ros2-mcap", "ros2-bag"):
         from service.io.recordings.ros2 import inspect_ros2
 
-        return as_read(inspect_ros2(p, mapping), p, mapping)
+        return as_read(inspect_ros2(p, mapping), p, mapping) if read else inspect_ros2(p, mapping)
     if fmt == "px4-ulog":
         from service.io.recordings.px4 import inspect_px4
 
-        return as_read(inspect_px4(p, mapping), p, mapping)
+        return as_read(inspect_px4(p, mapping), p, mapping) if read else inspect_px4(p, mapping)
     if fmt == "ardupilot-bin":
         from service.io.recordings.ardupilot import inspect_ardupilot
 
-        return as_read(inspect_ardupilot(p, mapping), p, mapping)
+        return as_read(inspect_ardupilot(p, mapping), p, mapping) if read else inspect_ardupilot(p, mapping)
     return _inspect_lab(p, fmt)
 
 

@@ -72,9 +72,7 @@ def inspect(args: Namespace) -> Inspection:
     from service.wiring.result import Said
 
     topics, mags = getattr(args, "topics", None), getattr(args, "mags", None)
-    i = inspect_file(args.file, log_mapping(args.file, topics, mags))
-    if i.fit_refuses:
-        return i
+    i = inspect_file(args.file, log_mapping(args.file, topics, mags), read=False)
     try:
         prep = prepare(args.file, Said("inspect"), config=getattr(args, "config", None),
                        site=getattr(args, "site", None), skip=getattr(args, "skip", None), topics=topics, mags=mags)
@@ -82,7 +80,8 @@ def inspect(args: Namespace) -> Inspection:
         i = replace(i, **reading(data))
         judged = judge_data(data, prep.total_nT, prep.total_source or "")
     except (DataError, CalibrationRefused) as e:
-        return replace(i, fit_refuses=str(e))
+        return replace(i, probes=[], columns=[], samples=0, fit_refuses=str(e),
+                       warnings=[w for w in i.warnings if "nothing to calibrate" not in w])
     return replace(i, verdict=[j.as_dict() for j in judged])
 
 
