@@ -58,7 +58,8 @@ def summary_json(command: str, results: list[dict[str, Any]], wall_s: float, whe
             "skipped": [{"path": p, "reason": why} for p, why in skipped or []],
             "results": [{"recording": r["recording"], "ok": r["ok"], "status": r["status"], "seconds": r["seconds"],
                          "peak_rss_mb": r.get("peak_rss_mb"), "read_warnings": warnings_of(r),
-                         **({"error": _why(r)} if not r["ok"] else {}), **figures(command, r),
+                         **({"error": _why(r)} if not r["ok"] else {}),
+                         **({"refused": r["refused"]} if r.get("refused") else {}), **figures(command, r),
                          **({"result": r["result"]} if r.get("result") is not None else {})} for r in results]}
 
 

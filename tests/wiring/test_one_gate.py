@@ -256,3 +256,20 @@ def test_a_calibration_that_leaves_the_residual_worse_than_the_raw_data_is_refus
     assert "worse than the raw data's (581.3 -> 17,036.6 nT RMS against the total field estimated)" in str(e.value)
     assert e.value.advice.startswith("turn the probe about at least two axes")
     refuse_worse(cal, {"s1.scalar": np.full(10, 590.0)}, {"s1.scalar": 581.3}, "estimated")
+
+
+def test_a_fleet_summary_carries_each_refusal_as_json(tmp_path, capsys):
+    """Several recordings: the one the gate refuses is reported with the same refusal object as `fit --json` of it
+    alone, beside its error (docs/contracts.md); the other is fitted."""
+    cone = _cone_world(tmp_path)
+    status, alone = run(capsys, "fit", str(cone))
+    assert_refusal(status, alone)
+    good = tmp_path / "good.csv"
+    assert cli.main(["simulate", "--config", str(Path(__file__).resolve().parents[2] / "configs" /
+                                                "sim-gradiometer.toml"), "--out", str(good)]) == 0
+    capsys.readouterr()
+    cli.main(["fit", str(cone), str(good), "--json"])
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    by = {Path(r["recording"]).name: r for r in summary["results"]}
+    assert by["cone.csv"]["refused"] == alone["refused"] and not by["cone.csv"]["ok"]
+    assert by["good.csv"]["ok"] and "refused" not in by["good.csv"]
