@@ -210,7 +210,11 @@ def test_every_refusal_prints_json_that_validates(tmp_path, capsys):
         assert ("no such file" in reason) or ("a Git LFS pointer, not a recording" in reason and "3843673" in reason)
     status, obj = run(capsys, "fit", str(cut))
     reason = assert_refusal(status, obj)
-    assert obj["refused"]["file"] == str(cut)
+    assert obj["refused"]["file"] == str(cut) and "cut short" in reason
+    with pytest.raises(SystemExit) as e:                  # a usage error: argparse's words, as JSON too
+        cli.main(["fit", str(cut), "--method", "nope", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert e.value.code == 2 and "argument --method: invalid choice: 'nope'" in assert_refusal(2, out)
 
 
 def test_the_service_gate_asks_the_same_judge(tmp_path):
