@@ -277,3 +277,19 @@ def test_a_fleet_summary_carries_each_refusal_as_json(tmp_path, capsys):
     by = {Path(r["recording"]).name: r for r in summary["results"]}
     assert by["cone.csv"]["refused"] == alone["refused"] and not by["cone.csv"]["ok"]
     assert by["good.csv"]["ok"] and "refused" not in by["good.csv"]
+
+
+def test_a_real_older_ardupilot_log_is_read_on_its_boot_clock(capsys):
+    """erlerobot's pxf/copter/5-12-2014/218.BIN (GPS TimeMS the time of week): 335 s on the log's own clock with its GPS
+    columns and the model along its track, dated 2014-12-05 (before: the GPS columns left out, 'a value at only 0 of
+    3,350 instants', and inspect's duration the GPS time of week's)."""
+    import datetime as dt
+
+    path = find("ardupilot_erlerobot_copter_218.BIN")
+    if path is None:
+        pytest.skip(f"not fetched; it comes from {SOURCES['ardupilot_erlerobot_copter_218.BIN']}")
+    status, seen = run(capsys, "inspect", str(path))
+    assert status == 0 and seen["duration_s"] == pytest.approx(334.8, abs=0.1) and seen["samples"] == 3298
+    assert {"lat_deg", "lon_deg", "alt_m", "ref_total"} <= set(seen["columns"])
+    assert dt.datetime.fromtimestamp(seen["clock"]["t0_unix_s"], dt.timezone.utc).date() == dt.date(2014, 12, 5)
+    assert not seen["verdict"][0]["determined"] and "one cone about z" in seen["verdict"][0]["reason"]
