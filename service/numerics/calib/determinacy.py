@@ -102,8 +102,8 @@ def judge(raw_nT: np.ndarray, total_nT: Any = None, *, name: str = "s1", min_fra
     total = total_nT
     if isinstance(total, np.ndarray) and total.ndim:
         ok &= np.isfinite(total)
-        total = total[ok]
-    raw = raw[ok]
+        total = total if ok.all() else total[ok]
+    raw = raw if ok.all() else raw[ok]                # no copy of hours of samples where every row is finite
     problem, cone, centre, field_nT = "", None, None, None
     if core is None:
         try:
