@@ -17,7 +17,7 @@ from drivers.block import SampleBlock
 from drivers.errors import CalibrationRefused, DataError
 from service.io.recordings.labdata import LabData
 from service.numerics.calib.alignment import align_probes
-from service.numerics.calib.determinacy import Determinacy, judge_all, physical, refuse_undetermined
+from service.numerics.calib.determinacy import Determinacy, judge_all, physical, refuse_undetermined, shape_problem
 from service.numerics.calib.ellipsoid import fit_ellipsoid
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 from service.numerics.channels import channel_names
@@ -170,26 +170,16 @@ def fit_array(data: LabData, *, method: str = "ellipsoid", align: str | None = N
     return cal, total
 
 
-#: the largest condition number of a fitted matrix taken as a sensor's: axes whose gains differ 5-fold (the real boards
-#: of ../shared/real-data: 1.2 to 2.2; a real flight's cone of directions fitted with the total estimated: 9.4)
-FIT_MAX_CONDITION = 5.0
-
-
 def _refuse_unphysical(cal: ArrayCalibration, data: LabData) -> None:
-    """A fitted matrix no sensor has (a mirror, a scale of 2.3 with 62 degrees of non-orthogonality) means the data do
-    not determine the shape: refused with what would (a real flight's cone of directions, with the total field
-    estimated, passed the cone check on its own garbage shape)."""
+    """A fitted matrix no sensor has (determinacy.shape_problem) from whichever method: refused with what would help
+    (a real flight's cone of directions, with the total field estimated, passed the cone check on its own garbage
+    shape)."""
     from service.numerics.calib.excitation import coverage_hint
-    from service.numerics.calib.plausible import CalibrationLimits, matrix_problem
 
-    # the overall scale is the data's unit (counts, µT, a gain set wrong: said by the field-scale warnings), not the
-    # sensor's: only the shape is judged, a condition up to FIT_MAX_CONDITION (real boards: 1.2-2.2)
-    limits = CalibrationLimits(max_condition=FIT_MAX_CONDITION, max_scale=float("inf"))
     for k, p in enumerate(cal.probes):
-        problem = matrix_problem(p.matrix, limits, keys=False)
-        if problem is not None:
-            raise CalibrationRefused(f"{data.probe_names[k]}: the fitted calibration is no sensor's (fails the "
-                                     f"{problem[0]} check: {problem[1]}): these data do not determine it; "
+        problem = shape_problem(p.matrix)
+        if problem:
+            raise CalibrationRefused(f"{data.probe_names[k]}: {problem}; "
                                      f"{coverage_hint(data.block.field_nT[:, k], p.offset_nT)}")
 
 

@@ -9,7 +9,7 @@ the method that then calibrates them. Its fitted centre and frame give the field
     - what the solve cannot fix: too few samples, one plane, a design conditioned beyond the limit, no ellipsoid;
     - one cone of directions (excitation.cone_of): the offset along its axis rests on the wobble;
     - offsets the fit's standard errors leave undetermined (a tenth of the field);
-    - a fitted shape no sensor has (the judge's matrix conditioned beyond JUDGE_MAX_CONDITION);
+    - a fitted shape no sensor has (shape_problem: the judge's matrix conditioned beyond MAX_SHAPE_CONDITION);
     - too small a share of the directions seen about the judge's centre, where the caller sets one: the service's
       gate (gate_coverage), which replaces a calibration in use unattended; a batch command fits what the directions
       determine (the model order) and says what they miss, so it asks none (min_fraction 0).
@@ -39,10 +39,22 @@ from .coverage import Coverage, coverage
 from .excitation import Cone
 from .quadric import MAX_CONDITION
 
-#: the largest condition number of the judge's fitted matrix taken as a sensor's: axes whose gains differ 5-fold
-#: (the real boards of ../shared/real-data: 1.2 to 2.2; a real flight's cone of directions fitted with the total
-#: estimated: 9.4)
-JUDGE_MAX_CONDITION = 5.0
+#: the largest condition number of a fitted matrix taken as a sensor's: axes whose gains differ 5-fold (the real
+#: boards of ../shared/real-data: 1.2 to 2.2; a real flight's cone of directions fitted with the total estimated: 9.4)
+MAX_SHAPE_CONDITION = 5.0
+
+
+def shape_problem(matrix: np.ndarray) -> str:
+    """Why a fitted matrix is no sensor's (a mirror, a scale of 2.3 with 62 degrees of non-orthogonality: the data do
+    not determine the shape), "" where it may be one. Only the shape is judged, a condition up to MAX_SHAPE_CONDITION:
+    the overall scale is the data's unit or the field's (physical says that). The gate asks it of its own fit, `fit`
+    of the calibration every method gives."""
+    from .plausible import CalibrationLimits, matrix_problem
+
+    found = matrix_problem(matrix, CalibrationLimits(max_condition=MAX_SHAPE_CONDITION, max_scale=float("inf")),
+                           keys=False)
+    return "" if found is None else (f"the fitted calibration is no sensor's (fails the {found[0]} check: {found[1]}): "
+                                     f"these data do not determine it")
 
 
 @dataclass(frozen=True)
@@ -95,7 +107,6 @@ def judge(raw_nT: np.ndarray, total_nT: Any = None, *, name: str = "s1", min_fra
     their reference). core: the judge's fit already made of these samples (ellipsoid.ellipsoid_core), not redone;
     maps: the coverage's text maps (the online gate, which shows none, asks without)."""
     from .ellipsoid import ellipsoid_core
-    from .plausible import CalibrationLimits, matrix_problem
 
     raw = np.asarray(raw_nT, float)
     ok = np.isfinite(raw).all(axis=1)
@@ -113,12 +124,7 @@ def judge(raw_nT: np.ndarray, total_nT: Any = None, *, name: str = "s1", min_fra
     if core is not None:
         cal = core.fit.calibration
         centre, cone, field_nT = cal.offset_nT, core.cone, float(np.sqrt(core.fit.f2_ref))
-        problem = core.problem()
-        shape = matrix_problem(cal.matrix, CalibrationLimits(max_condition=JUDGE_MAX_CONDITION,
-                                                             max_scale=float("inf")), keys=False)
-        if not problem and shape is not None:
-            problem = (f"the fitted calibration is no sensor's (fails the {shape[0]} check: {shape[1]}): these data "
-                       f"do not determine it")
+        problem = core.problem() or shape_problem(cal.matrix)
     cov = coverage(raw, centre_nT=centre, min_fraction=min_fraction, max_condition=max_condition, maps=maps)
     if not problem and not cov.usable:
         problem = cov.reason
