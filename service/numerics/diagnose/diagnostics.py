@@ -48,7 +48,17 @@ from .discover import discover as find_terms
 from .fits import heldout, try_candidate
 from .frames import frame_summary, frames
 from .result import N_BLOCKS, P_SIGNIFICANT, Candidate, Diagnosis, Progress
-from .signature import FLOOR_FACTOR, SHARED, Carried, borrowed_notes, describe, signature, verdict
+from .signature import (
+    FLOOR_FACTOR,
+    FOLLOWS,
+    SHARED,
+    Carried,
+    borrowed_notes,
+    channels_above,
+    describe,
+    signature,
+    verdict,
+)
 from .verdict import demote_nested, mark_indistinguishable, rank
 from .weak import heldout_weakness
 from .where import GROSS_RATIO, gross_stretch, stretch_ratio, where_it_fails, worst_segments
@@ -106,16 +116,20 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     tell(0.9, "comparing candidates")
     cands, stretch = _compare(ed, model, cur, cands, sig_cur, reference, weights, n_blocks, tell, notes)
 
-    # 5. the verdict in kinds, and what is left described (signature.py)
+    # 5. the verdict in kinds, per channel as well as over all, and what is left described (signature.py)
     best = next((c for c in cands if c.significant and c.fit is not None), None)
     carried = Carried.of(ed)
-    told = verdict(cur.rms_nT, noise_nT, best, _what_is_left(ed, best, sig_cur, noise, noise_nT), carried)
+    left_where, above = _left(ed, best, cur, cur_ho, where, noise)
+    told = verdict(cur.rms_nT, noise_nT, best, _what_is_left(ed, best, sig_cur, noise, noise_nT, left_where, above),
+                   carried, above)
 
-    # 6. beyond the catalogue: the library of terms the data allow (discover.py), where the catalogue leaves an excess
+    # 6. beyond the catalogue: the library of terms the data allow (discover.py), where the catalogue leaves an excess:
+    # a channel above its floor, a family of them, or a residual that still follows what the data carry
     found = None
     base_fit = best.fit if best is not None else cur
     if discover or (discover is None and (told["kind"] in ("unexplained", "partly explained")
-                                          or family_excess(base_fit, noise) >= DISCOVER_EXCESS)):
+                                          or family_excess(base_fit, noise) >= DISCOVER_EXCESS
+                                          or follows_observable(left_where))):
         tell(0.93, "discovery beyond the catalogue")
         found, told, cands = _beyond_catalogue(ed, model, cur, cur_ho, cands, told, sig_cur, carried, reference,
                                                weights, n_blocks, noise, noise_nT, tell)
@@ -169,15 +183,39 @@ def _compare(ed, model, cur, cands: list[Candidate], sig_cur: dict, reference, w
     return rank(cands), stretch
 
 
-def _what_is_left(ed, best, sig_cur: dict, noise: np.ndarray, noise_nT: float) -> dict:
-    """The signature of what the best candidate leaves (the model's own without one; nothing at the floor)."""
+def _what_is_left(ed, best, sig_cur: dict, noise: np.ndarray, noise_nT: float, where: list[dict],
+                  above: list[dict]) -> dict:
+    """The signature of what the best candidate leaves (the model's own without one; nothing where every channel is
+    at its floor)."""
     if best is None:
         return sig_cur
-    if best.rms_nT > FLOOR_FACTOR * noise_nT:
-        left = signature(best.fit, noise, where_it_fails(ed, best.fit, noise))
+    if best.rms_nT > FLOOR_FACTOR * noise_nT or above:
+        left = signature(best.fit, noise, where)
         left["frames"] = frame_summary(frames(ed, best.fit, noise))
         return left
     return {}
+
+
+def _left(ed: Any, best: Candidate | None, cur: Any, cur_ho: Any, where: list[dict],
+          noise: np.ndarray) -> tuple[list[dict], list[dict]]:
+    """(what the residual of the best model found follows (where.py), the channels it leaves above their own floor
+    on the held-out blocks (signature.channels_above))."""
+    if best is None:
+        return where, channels_above(cur, cur_ho.channel_rms_nT, noise, where)
+    left_where = where_it_fails(ed, best.fit, noise)
+    held = best.heldout_channels_nT if best.heldout_channels_nT is not None else best.fit.channels.rms_nT
+    return left_where, channels_above(best.fit, held, noise, left_where)
+
+
+#: observables a residual may follow that discovery's library builds from (time, a band, orientation and heading are
+#: no cause it can take: the catalogue's drift, lines, the linear calibration and platform have them)
+NOT_DISCOVERABLE = ("time", "frequency", "orientation", "heading")
+
+
+def follows_observable(where: list[dict]) -> bool:
+    """Whether a residual still follows something the data carry that discovery's library builds from, with a share
+    of FOLLOWS or more (a coil's current that `column` took in part: 0.58 of s1's scalar residual left)."""
+    return any(w["strength"] >= FOLLOWS and w["observable"] not in NOT_DISCOVERABLE for w in where)
 
 
 def _start(ed: Any, calibration: Any, fixed: bool, effects: Sequence[str], notes: list[str]):
@@ -403,9 +441,14 @@ def _beyond_catalogue(ed: Any, model: Model, cur: Any, cur_ho: Any, cands: list[
                 cands = rank(cands)
                 best = next((c for c in cands if c.significant and c.fit is not None), None)
     base = best.fit if best is not None else cur
-    sig0 = sig_cur if best is None else signature(base, noise, where_it_fails(ed, base, noise))
+    base_where = where_it_fails(ed, base, noise)
+    sig0 = sig_cur if best is None else signature(base, noise, base_where)
     sig0.setdefault("frames", frame_summary(frames(ed, base, noise)))
-    again_told = verdict(cur.rms_nT, noise_nT, best, sig0, carried)
+    if best is None or best.heldout_channels_nT is None:
+        above = channels_above(base, (heldout(base) if best is not None else cur_ho).channel_rms_nT, noise, base_where)
+    else:
+        above = channels_above(base, best.heldout_channels_nT, noise, base_where)
+    again_told = verdict(cur.rms_nT, noise_nT, best, sig0, carried, above)
     if again_told["kind"] in ("at the floor", "explained"):
         # the verdict is over all channels together; a family of them was not at its floor
         again_told.update(kind="unexplained" if best is None else "partly explained", left=describe(sig0, carried)[0],

@@ -326,7 +326,8 @@ class EffectTerm:
     (one line), `frame` and `linear`, and implement `param_names` and `columns` (linear terms) or
     `correction` and `jacobian` (non-linear terms). Shared parameters (one set for all probes) use
     `shared_names` with `shared_vcolumns` (corrected frame, per probe) or `shared_scolumns` (added to
-    the reference total field of every scalar channel)."""
+    the reference total field of every scalar channel); shared parameters that act non-linearly (a law whose
+    exponent all probes share) give `shared_vcorrection` and `shared_vjacobian` instead of `shared_vcolumns`."""
 
     name: ClassVar[str] = ""
     title: ClassVar[str] = ""
@@ -410,6 +411,21 @@ class EffectTerm:
     def shared_scolumns(self, data: EffectData) -> np.ndarray | None:
         """(N, m) regressors added to the reference total field in every scalar channel."""
         return None
+
+    def shared_vcorrection(self, data: EffectData, k: int, theta: np.ndarray) -> np.ndarray | None:
+        """(N, 3) the corrected-frame correction of probe k by the shared parameters theta, or None where they do not
+        act on it: shared_vcolumns @ theta for a linear term; a non-linear one (a law with a shared exponent) gives
+        it with shared_vjacobian."""
+        cols = self.shared_vcolumns(data, k)
+        return None if cols is None else cols @ theta
+
+    def shared_start_values(self, data: EffectData) -> np.ndarray:
+        """Where the fit starts the shared parameters: zero (a non-linear one may start elsewhere: an exponent)."""
+        return np.zeros(len(self.shared_names(data)))
+
+    def shared_vjacobian(self, data: EffectData, k: int, theta: np.ndarray) -> np.ndarray | None:
+        """(N, 3, m) d shared_vcorrection / d theta at theta (shared_vcolumns for a linear term)."""
+        return self.shared_vcolumns(data, k)
 
     # composition and printing
     def settings(self) -> dict[str, Any]:
