@@ -78,3 +78,18 @@ def test_the_checker_sees_a_disagreement():
     assert disagreements("a non-linear function of flap_deg, which the file logs (...); log the phase or speed of "
                          "what turns at that rate")
     assert not disagreements("it follows flap_deg in s2-s1.z (92 %); no logged column (heater_A) follows it")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("recording", ["grad3-flap.mcap", "grad3-pump.mcap", "grad1-hidden-effect.mcap"])
+def test_the_sample_recordings_diagnoses_tell_one_story(recording):
+    from pathlib import Path
+
+    from service.io.recordings.load import load_data
+    from service.numerics.diagnose import diagnose, summary_text
+
+    d = diagnose(load_data(Path(__file__).resolve().parents[2] / "recordings" / recording))
+    text = summary_text(d)
+    assert disagreements(text) == [], text
+    if recording == "grad3-flap.mcap":             # its lines of the flap's motion: the flap's shape, said so
+        assert "flap_deg's motion" in text and "no logged column (flap_deg" not in text, text

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 
-from drivers.errors import ConfigError
 from service.wiring import cli
 from service.wiring.fleet import expand_inputs, run_pool
 

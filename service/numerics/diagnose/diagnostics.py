@@ -61,7 +61,8 @@ from .signature import (
 )
 from .verdict import demote_nested, mark_indistinguishable, rank
 from .weak import heldout_weakness
-from .where import GROSS_RATIO, gross_stretch, stretch_ratio, where_it_fails, worst_segments
+from .stretch import demote_on_one_stretch, explains_stretch, stretch_advice
+from .where import gross_stretch, where_it_fails, worst_segments
 
 
 def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None, fix_linear: bool | None = None,
@@ -76,11 +77,8 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     check_linear(linear): asked of the refitted linear part before any candidate (a refusal costs the first fit
     only); where the calibration is held, of the refit made for comparison (a refusal is then said in the advice).
     discover: look for the missing term in the library beyond the catalogue (discover.py): None (the default) where
-    the catalogue leaves an excess (the verdict unexplained or partly explained), True always, False never."""
-    def tell(frac: float, msg: str) -> None:
-        if progress is not None:
-            progress(frac, msg)
-
+    the catalogue leaves an excess (_excess_left), True always, False never."""
+    tell = progress if progress is not None else (lambda frac, msg: None)
     ed = as_effect_data(data, total_nT=total_nT, positions_m=positions_m)
     notes = _data_notes(ed)
     fixed = (calibration is not None) if fix_linear is None else bool(fix_linear)
@@ -126,10 +124,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     # 6. beyond the catalogue: the library of terms the data allow (discover.py), where the catalogue leaves an excess:
     # a channel above its floor, a family of them, or a residual that still follows what the data carry
     found = None
-    base_fit = best.fit if best is not None else cur
-    if discover or (discover is None and (told["kind"] in ("unexplained", "partly explained")
-                                          or family_excess(base_fit, noise) >= DISCOVER_EXCESS
-                                          or follows_observable(left_where))):
+    if discover or (discover is None and _excess_left(told, best.fit if best is not None else cur, noise, left_where)):
         tell(0.93, "discovery beyond the catalogue")
         found, told, cands = _beyond_catalogue(ed, model, cur, cur_ho, cands, told, sig_cur, carried, reference,
                                                weights, n_blocks, noise, noise_nT, tell)
@@ -177,7 +172,7 @@ def _compare(ed, model, cur, cands: list[Candidate], sig_cur: dict, reference, w
     _demote_without_common_mode(cands, sig_cur.get("shared_fraction"))
     cands = rank(cands)
     stretch = gross_stretch(cur, 1.0 / weights)
-    notes += _demote_on_one_stretch(ed, model, cands, cur, stretch, reference, weights, n_blocks, tell)
+    notes += demote_on_one_stretch(ed, model, cands, cur, stretch, reference, weights, n_blocks, tell)
     cands = rank(cands)
     _beyond_the_best(ed, model, cands, reference, weights, n_blocks, tell)
     return rank(cands), stretch
@@ -205,6 +200,14 @@ def _left(ed: Any, best: Candidate | None, cur: Any, cur_ho: Any, where: list[di
     left_where = where_it_fails(ed, best.fit, noise)
     held = best.heldout_channels_nT if best.heldout_channels_nT is not None else best.fit.channels.rms_nT
     return left_where, channels_above(best.fit, held, noise, left_where)
+
+
+def _excess_left(told: dict[str, Any], fit: Any, noise: np.ndarray, where: list[dict]) -> bool:
+    """Whether the catalogue's best model leaves an excess discovery should look at: a channel above its floor (the
+    verdict unexplained or partly explained), a family of channels DISCOVER_EXCESS times its floor, or a residual that
+    still follows something the data carry."""
+    return (told["kind"] in ("unexplained", "partly explained") or family_excess(fit, noise) >= DISCOVER_EXCESS
+            or follows_observable(where))
 
 
 #: observables a residual may follow that discovery's library builds from (time, a band, orientation and heading are
@@ -301,8 +304,8 @@ def _last_advice(told: dict, notes: list[str], cur, best, found, weak, cands, re
                              f"of the same sensor from a fuller turn, held here, would tell")
                           + (f"; then: {told['advice']}" if told.get("advice") and
                              linear_refit > FLOOR_FACTOR * noise_nT else ""))
-    if stretch is not None and told["kind"] == "unexplained":
-        told["advice"] = _stretch_advice(stretch, told.get("advice"))
+    if stretch is not None and told["kind"] == "unexplained" and not explains_stretch(found, stretch, noise_nT, cur):
+        told["advice"] = stretch_advice(stretch, told.get("advice"))
 
 
 #: discovery runs by itself where the catalogue leaves an excess: the verdict unexplained or partly explained, or a
@@ -367,51 +370,6 @@ def _beyond_the_best(ed: Any, model: Model, cands: list[Candidate], reference: n
             c.refusal = f"nothing beyond {best.effect}"
             c.reason = (f"nothing beyond {best.effect}: beside it, {c.effect}'s held-out gain is "
                         f"{100 * again.gain:.1f} %")
-
-
-def _demote_on_one_stretch(ed: Any, model: Model, cands: list[Candidate], cur: Any, stretch: dict[str, Any] | None,
-                           reference: np.ndarray, weights: np.ndarray, n_blocks: int, tell: Any) -> list[str]:
-    """A gross disturbance in time (a vehicle or a magnet passing, a knock) pulls the least-squares fit everywhere,
-    and a flexible term that compensates for the pull can pass every block's test while following nothing real
-    (Magneto's test file, a 47-s stretch 4,000 nT off: crossfield 'significant' at 21 %, 8 % without it). A
-    significant candidate whose fit leaves the stretch the model leaves gross (where.gross_stretch) still gross is
-    judged again with the stretch left out, and stays significant only if it still is (one that explains the
-    stretch, as eddy a stretch of fast turning, is not asked). Returns a note when one was demoted."""
-    if stretch is None:
-        return []
-    noise = 1.0 / weights
-    demoted: list[str] = []
-    lo, hi = stretch["t_start_s"], stretch["t_end_s"]
-    rows = np.flatnonzero((ed.t_s < lo) | (ed.t_s > hi))
-    sub, ref, base = ed.subset(rows), reference[rows], None
-    for c in [c for c in cands if c.significant and c.fit is not None]:
-        left = stretch_ratio(c.fit, noise, lo, hi)
-        if not left >= GROSS_RATIO:
-            continue                                  # it explains the stretch (or there is nothing to say)
-        tell(0.96, f"trying {c.effect} without {lo:.1f}-{hi:.1f} s")
-        base = base or fit_model(sub, model, cur.state.linear, ref, weights, n_blocks=n_blocks)
-        again = try_candidate(sub, model, base, heldout(base), c.effect, ref, weights, residual_hints(base), n_blocks)
-        if again.significant:
-            continue
-        c.significant = False
-        c.refusal = "rests on one stretch"
-        c.reason = (f"rests on {lo:.1f}-{hi:.1f} s, which it leaves {left:.1f} x the rest's residual: "
-                    f"without that stretch its held-out gain is {100 * again.gain:.1f} %")
-        demoted.append(c.effect)
-    if not demoted:
-        return []
-    return [f"{lo:.1f}-{hi:.1f} s: the residual there is {stretch['ratio']:.1f} x the rest's and no term follows it (a "
-            f"disturbance in time: a vehicle or a magnet passing, a knock, a glitch); {' and '.join(demoted)} "
-            f"{'was' if len(demoted) == 1 else 'were'} significant only with it"]
-
-
-def _stretch_advice(stretch: dict[str, Any], advice: str | None) -> str:
-    """The gross stretch no term follows, first: its pull on the least-squares fit spreads over the whole record and
-    colours what the rest of the residual seems to follow."""
-    lo, hi = stretch["t_start_s"], stretch["t_end_s"]
-    return (f"first {lo:.1f}-{hi:.1f} s, where the residual is {stretch['ratio']:.1f} x the rest's: a disturbance in time "
-            f"(a vehicle or a magnet passing, a knock, a glitch) pulls the fit over the whole record; judge the rest "
-            f"without it (--skip {lo:.1f}-{hi:.1f})" + (f"; then: {advice}" if advice else ""))
 
 
 def _beyond_catalogue(ed: Any, model: Model, cur: Any, cur_ho: Any, cands: list[Candidate], told: dict[str, Any],

@@ -152,24 +152,7 @@ def read_group(g: Group, term: str, params: list[Parameter], fit: FitResult) -> 
                        f"({', '.join(f'{x:.3g}' for x in off['values'])}) +- "
                        f"({', '.join(f'{x:.2g}' for x in off['stderr'])}) nT{f.per} on the probe's x, y, z axes")
     elif g.kind == "matrix":
-        parts.update(matrix_parts(values, cov, fit.state.linear.matrix[g.probe]))
-        named = {p: parts[p] for p in MATRIX_PARTS}
-        big = max(float(np.max(np.abs(named[p]["values"]))) for p in MATRIX_PARTS)
-        sig = [p for p in sorted(MATRIX_PARTS, key=lambda p: -named[p]["wald"]) if named[p]["significant"]
-               and float(np.max(np.abs(named[p]["values"]))) >= PART_SHARE * big] or \
-            [max(named, key=lambda p: named[p]["wald"])]
-        bits = []
-        for p in sig:
-            v, se = np.asarray(named[p]["values"]), np.asarray(named[p]["stderr"])
-            u, frame = ("µrad", "platform") if p == "rotation" else ("ppm", "probe")
-            about = {"rotation": "about", "scale": "of", "non-orthogonality": "between"}[p]
-            labels = ("xy", "xz", "yz") if p == "non-orthogonality" else AXES
-            i = int(np.argmax(np.abs(v)))
-            bits.append(f"{p} {v[i]:.3g} +- {se[i]:.2g} {u}{f.per} {about} the {frame}'s {labels[i]} "
-                        f"({', '.join(f'{x:.3g}' for x in v)} {u}{f.per} on {', '.join(labels)})")
-        what = ("alignment to the others" if sig[0] == "rotation" and fit.problem.P > 1 else
-                "scale factors" if sig == ["scale"] else "matrix")
-        reading = f"{g.probe_name}'s {what} follow{'s' if what != 'scale factors' else ''} {src}: " + "; ".join(bits)
+        reading = _read_matrix(g, values, cov, fit, src, parts)
     elif g.kind in ("wave", "common wave"):
         c, s = values[:3], values[3:]
         if not g.common:
@@ -202,6 +185,31 @@ def read_group(g: Group, term: str, params: list[Parameter], fit: FitResult) -> 
                    f"({', '.join(f'{s:.2g}' for s in se)}) nT on the probe's x, y, z axes as the field along it rises "
                    f"or falls")
     return FoundGroup(g, term, params, reading, parts)
+
+
+def _read_matrix(g: Group, values: np.ndarray, cov: np.ndarray, fit: FitResult, src: str,
+                 parts: dict[str, Any]) -> str:
+    """A matrix group's reading: its significant parts (matrix_parts), the largest first; `parts` filled in."""
+    f = g.feature
+    parts.update(matrix_parts(values, cov, fit.state.linear.matrix[g.probe]))
+    named = {p: parts[p] for p in MATRIX_PARTS}
+    big = max(float(np.max(np.abs(named[p]["values"]))) for p in MATRIX_PARTS)
+    sig = [p for p in sorted(MATRIX_PARTS, key=lambda p: -named[p]["wald"]) if named[p]["significant"]
+           and float(np.max(np.abs(named[p]["values"]))) >= PART_SHARE * big] or \
+        [max(named, key=lambda p: named[p]["wald"])]
+    bits = []
+    for p in sig:
+        v, se = np.asarray(named[p]["values"]), np.asarray(named[p]["stderr"])
+        u, frame = ("µrad", "platform") if p == "rotation" else ("ppm", "probe")
+        about = {"rotation": "about", "scale": "of", "non-orthogonality": "between"}[p]
+        labels = ("xy", "xz", "yz") if p == "non-orthogonality" else AXES
+        i = int(np.argmax(np.abs(v)))
+        bits.append(f"{p} {v[i]:.3g} +- {se[i]:.2g} {u}{f.per} {about} the {frame}'s {labels[i]} "
+                    f"({', '.join(f'{x:.3g}' for x in v)} {u}{f.per} on {', '.join(labels)})")
+    what = ("alignment to the others" if sig[0] == "rotation" and fit.problem.P > 1 else
+            "scale factors" if sig == ["scale"] else "matrix")
+    reading = f"{g.probe_name}'s {what} follow{'s' if what != 'scale factors' else ''} {src}: " + "; ".join(bits)
+    return reading
 
 
 def _source(f: Any) -> str:

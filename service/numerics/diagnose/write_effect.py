@@ -18,7 +18,7 @@ from typing import Any, Sequence
 
 from .effect_code import HEADER, LAW_PARTS, SHARED_VIEW
 from .laws import LAW_CODE
-from .library import SHAPE_KINDS, Group
+from .library import Group
 
 def _ident(text: str) -> str:
     s = re.sub(r"\W+", "_", text).strip("_").lower() or "x"
@@ -180,7 +180,7 @@ def _shared(common: list[Group], laws: list[Group], names: dict[int, list[str]])
               "        \"\"\"(the corrections, the Jacobians) of the shared parameters at probe k.\"\"\"",
               "        parts = []"]
     if common:
-        lines += [f"        cols = self._common(data)",
+        lines += ["        cols = self._common(data)",
                   f"        parts.append((cols @ theta[:{n_common}], cols))"]
     at = n_common
     for i, size in enumerate(sizes):

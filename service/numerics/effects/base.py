@@ -31,6 +31,8 @@ from drivers.errors import ConfigError, DataError
 from service.numerics.channels import AXES  # noqa: F401 - the effect terms take the axes from here
 from service.numerics.usable import usable_samples
 
+from .attitude import quat_to_matrix, rx, ry, rz
+
 #: extra columns that carry the platform attitude, R = Rz(azimuth) Ry(pitch) Rx(heel), platform -> NED
 ATTITUDE_EULER = ("heel_deg", "pitch_deg", "azimuth_deg")
 ATTITUDE_QUATERNION = ("q_w", "q_x", "q_y", "q_z")
@@ -223,9 +225,9 @@ class EffectData(Timed):
             att = None
             if all(c in ex for c in ATTITUDE_EULER):
                 h, p, a = (np.radians(ex[c]) for c in ATTITUDE_EULER)
-                att = _rz(a) @ _ry(p) @ _rx(h)
+                att = rz(a) @ ry(p) @ rx(h)
             elif all(c in ex for c in ATTITUDE_QUATERNION):
-                att = _quat_to_matrix(*(ex[c] for c in ATTITUDE_QUATERNION))
+                att = quat_to_matrix(*(ex[c] for c in ATTITUDE_QUATERNION))
             self._cache[key] = att
         return self._cache[key]
 
@@ -249,30 +251,6 @@ class EffectData(Timed):
                           total_nT=self.total_nT, positions_m=self.positions_m,
                           extras={k: v[rows] for k, v in self.extras.items()},
                           smooth_window_s=self.smooth_window_s)
-
-
-def _rx(a: np.ndarray) -> np.ndarray:
-    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
-
-
-def _ry(a: np.ndarray) -> np.ndarray:
-    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
-
-
-def _rz(a: np.ndarray) -> np.ndarray:
-    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
-
-
-def _quat_to_matrix(w: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-    n = np.sqrt(w * w + x * x + y * y + z * z)
-    w, x, y, z = w / n, x / n, y / n, z / n
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
 
 
 #: ProbeView.cache keys that hold a term's references (temperature, time origin, step instants): they
