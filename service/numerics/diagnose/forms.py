@@ -23,6 +23,9 @@ from .shapes import basis_of
 
 #: iterations of the engine for a form (non-linear: a law's parameters move from their start)
 FORM_ITERATIONS = 12
+#: the forms are compared on at most this many rows spread evenly over the record (each a fit of the whole model); the
+#: one kept is fitted again on all of them
+FORM_ROWS = 20000
 #: a law whose start misfits the shape by more than this share of its variance is not fitted
 START_MISFIT = 0.5
 
@@ -123,14 +126,15 @@ def _starts(groups: list[Group], x: np.ndarray, stacked: np.ndarray, n_probes: i
 
 
 def _fit_form(data, base: FitResult, kept: list[Group], others: list[Group], terms: list[LawTerm], reference,
-              weights, n_blocks: int, hints, previous: Any) -> tuple[FitResult, Heldout] | None:
+              weights, n_blocks: int, hints, previous: Any, rows: np.ndarray | None = None) -> tuple[FitResult,
+                                                                                                     Heldout] | None:
     """The model, the groups `others` and the law terms fitted by the engine from `previous` (the groups' values by
-    name, each law from its start); None where the fit fails or diverges."""
+    name, each law from its start), on `rows` (all the base's where None); None where the fit fails or diverges."""
     model = base.model
     for t in _groupterms(others, kept) + terms:
         model = model + t
     pr = Problem(data, model, base.state.linear, reference, weights=weights, n_blocks=n_blocks, hints=hints,
-                 refs=[v.cache for v in base.problem.views])
+                 refs=[v.cache for v in base.problem.views], rows=base.problem.rows if rows is None else rows)
     try:
         fit = fit_problem(pr, pr.start_state(previous.linear, previous), max_iter=FORM_ITERATIONS)
     except (FluxcalError, np.linalg.LinAlgError, ValueError, FloatingPointError):
@@ -154,10 +158,15 @@ def choose_forms(data: Any, base: FitResult, kept: list[Group], fit: FitResult, 
         x = observable_values(data, shape[0].feature.recipe)
         ctx = context(x)
         probes, stacked = _curves(fit, shape, kept, x)
-        forms = [Form("per axis", None, fit, ho, sum(g.size for g in shape))]
+        rows = base.problem.rows
+        thin = None if rows.size <= FORM_ROWS else rows[::-(-rows.size // FORM_ROWS)]
+        per_axis = (fit, ho) if thin is None else _fit_form(data, base, kept, groups, laws, reference, weights,
+                                                            n_blocks, hints, fit.state, thin)
+        forms = [Form("per axis", None, *per_axis, sum(g.size for g in shape))]
         for label, term in _starts(shape, x, stacked, len(probes), ctx, unit_of(shape[0].feature.recipe), i):
             term.probes = probes
-            got = _fit_form(data, base, kept, others, laws + [term], reference, weights, n_blocks, hints, fit.state)
+            got = _fit_form(data, base, kept, others, laws + [term], reference, weights, n_blocks, hints, fit.state,
+                            thin)
             if got is not None:
                 forms.append(Form(label, term, got[0], got[1], term.start.size))
         best_sse = min(forms, key=lambda f: f.ho.sse_w.sum())
@@ -167,6 +176,13 @@ def choose_forms(data: Any, base: FitResult, kept: list[Group], fit: FitResult, 
                       "forms": [{"form": f.label, "parameters": f.n_params, "heldout_rms_nT": f.ho.rms_nT}
                                 for f in forms]})
         if chosen.term is not None:
+            if thin is not None:                        # chosen on a share of the rows: fitted on all from there
+                chosen.term.start = chosen.fit.state.shared[chosen.term.name].copy()
+                got = _fit_form(data, base, kept, others, laws + [chosen.term], reference, weights, n_blocks, hints,
+                                fit.state)
+                if got is None:
+                    continue
+                chosen.fit, chosen.ho = got
             laws.append(chosen.term)
             groups = others
             fit, ho = chosen.fit, chosen.ho
