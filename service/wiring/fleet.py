@@ -33,7 +33,7 @@ from typing import Any
 from drivers.errors import CalibrationRefused, ConfigError, DataError, FluxcalError
 from service.io.recordings.runs import expand_inputs, linked_run
 
-from .result import Said
+from .result import Said, refusal
 
 
 @dataclasses.dataclass(frozen=True)
@@ -113,7 +113,9 @@ def run_one(job: Job) -> dict[str, Any]:
             out.update(status=result.status, result=result.as_dict())
     except FluxcalError as e:
         kind = next(k for cls, k in FAILURES if isinstance(e, cls))
-        out.update(status=1 if kind == "failed" else 2, error=str(e), failure=kind)
+        out.update(status=1 if kind == "failed" else 2, error=str(e), failure=kind,
+                   **({"refused": refusal(e, job.source)["refused"]}
+                      if isinstance(e, (ConfigError, DataError, CalibrationRefused)) else {}))
     except BaseException as e:                     # noqa: BLE001 - a recording's failure is its result
         out.update(status=1, error=f"{type(e).__name__}: {e}", traceback=traceback.format_exc(limit=3),
                    failure="failed")

@@ -53,6 +53,7 @@ def _row_json(command: str, r: dict[str, Any]) -> dict[str, Any]:
             "status": r["status"], "seconds": r["seconds"], "peak_rss_mb": r.get("peak_rss_mb"),
             "host": r.get("host"), "fluxcal": r.get("fluxcal"), "read_warnings": warnings_of(r),
             **({"error": _why(r), "failure": r.get("failure", "failed")} if not r["ok"] else {}),
+            **({"refused": r["refused"]} if r.get("refused") else {}),
             **figures(command, r), **({"result": r["result"]} if r.get("result") is not None else {})}
 
 

@@ -99,6 +99,17 @@ class Result:
         return ""
 
 
+def refusal(error: BaseException, file: Any = None) -> dict[str, Any]:
+    """The JSON of a refusal (docs/contracts.md section 3): {"refused": {"reason", "advice", "file"}}. reason: why
+    (the error's own reason where it gives one apart, else its message); advice: what would help, or None where the
+    reason says it itself; file: the input refused (None: not one file)."""
+    reason = getattr(error, "reason", None) or str(error)
+    advice = getattr(error, "advice", None) or None
+    if isinstance(file, (list, tuple)):
+        file = file[0] if len(file) == 1 else None
+    return {"refused": {"reason": str(reason), "advice": advice, "file": None if file is None else str(file)}}
+
+
 def print_result(result: Result, as_json: bool) -> None:
     """A result on stdout: its JSON on one line, or its text for a person."""
     import json

@@ -44,7 +44,7 @@ def test_fit_takes_the_total_field_from_the_stored_configuration(capsys):
     # the 52,500 nT stored, not the 52,772 estimated: s1's x scale 0.97982, where estimating gave 0.98490 (0.5 %)
     assert stored["sensors"][0]["matrix"][0][0] == pytest.approx(0.97982, abs=2e-5)
     status, out, _ = run(["fit", LIVE], capsys)
-    assert "total field from config; configuration from the recording" in out.splitlines()[0]
+    assert "total field from the configuration; configuration from the recording" in out.splitlines()[0]
 
 
 def test_diagnose_takes_the_probe_positions_and_total_field_from_the_recording(capsys):

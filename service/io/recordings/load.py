@@ -27,11 +27,12 @@ def load_data(path: str | Path, *, max_samples: int | None = None, max_probe_sam
     samples x probes) within them (an MCAP's other samples are never held; a CSV's are parsed, then let go).
     LabData.every says k. mapping: the reader's options for another ecosystem's log (ros2.Ros2Mapping,
     px4.Px4Mapping, ardupilot.ArduPilotMapping; None: their defaults)."""
-    from .formats import detect_format
+    from .formats import detect_format, refuse_pointer
 
     p = Path(path)
     if not p.exists():
         raise DataError(f"{p}: no such file")
+    refuse_pointer(p)
     if not p.is_dir():
         refused = not_regular(p, p.stat().st_mode)     # a FIFO, a device (/dev/zero): before anything opens it
         if refused:

@@ -452,12 +452,4 @@ def inspect_ros2(path: str | Path, mapping: Ros2Mapping | None = None) -> Inspec
         ts = times.get(t, np.zeros(0, np.int64))
         streams.append(StreamInfo(t, topics[t], int(ts.size), rate((ts - ts[:1]) / 1e9), maps.get(t, ""),
                                   "" if t in maps or p is None else p.unused.get(t, "")))
-    span = [float(v.min()) / 1e9 for v in times.values() if v.size] + [float(v.max()) / 1e9 for v in times.values()
-                                                                      if v.size]
-    columns = []
-    if p is not None:
-        columns = ([f"{n}_temp" for n in p.temperatures] + (["heel_deg", "pitch_deg", "azimuth_deg"] if p.imu else [])
-                   + (["lat_deg", "lon_deg", "alt_m"] if p.navsatfix else [])
-                   + (["battery_current_a"] if p.battery else []))
-    return Inspection(str(path), detect_format(path), streams, list(p.probes) if p else [], columns, warnings,
-                      duration_s=(max(span) - min(span)) if span else None)
+    return Inspection(str(path), detect_format(path), streams, warnings=warnings)

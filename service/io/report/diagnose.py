@@ -18,7 +18,7 @@ import numpy as np
 
 from service.numerics.calib.sky import CalibrationSection
 from service.numerics.diagnose import DECIDES, Diagnosis, verdict_lines, verdict_word
-from service.numerics.diagnose.text import discovery_lines, gain_text
+from service.numerics.diagnose.text import discovery_lines, gain_text, reference_words
 
 from .calibration import section_figures, section_html
 from .page import CSS, NO_MATPLOTLIB, has_matplotlib, images, png, pyplot, write_page
@@ -364,7 +364,7 @@ def render_html(d: Diagnosis, figs: list[tuple[str, str, bytes]], title: str,
 {CSS}
 </style></head><body>
 <h1>{html.escape(title)}</h1>
-<p>Model: <b>{html.escape(d.model)}</b> (linear part {d.linear}; total field from {d.reference});
+<p>Model: <b>{html.escape(d.model)}</b> (linear part {d.linear}; total field {html.escape(reference_words(d.reference))});
 {d.n_samples} samples over {d.duration_s:.1f} s.</p>
 <p>Residual RMS <b>{d.rms_nT:.3f} nT</b> against a noise floor of {d.noise_nT:.3f} nT;
 held-out {d.heldout_rms_nT:.3f} nT.</p>

@@ -193,6 +193,14 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
                   block_log_ratio=cmp["lr_b"], fit=fit, heldout_channels_nT=ho.channel_rms_nT)
     c.significant = bool(c.p_value < P_SIGNIFICANT and c.gain >= MIN_GAIN and c.log_ratio > GAIN_SIGMAS * c.log_ratio_se
                          and c.n_params > 0)
+    floor = float(np.sqrt(np.mean((1.0 / np.asarray(weights, float)) ** 2)))
+    if c.significant and not cur.rms_nT > floor:   # nothing left to explain: a held-out gain there is no evidence
+        c.significant = False
+        c.refusal = "the model is at its noise floor"
+        c.reason = (f"the model's residual ({cur.rms_nT:.3g} nT) is not above its noise floor ({floor:.3g} nT): "
+                    f"nothing is left for an effect to explain, and a held-out error "
+                    f"({cur_ho.rms_nT:.3g} nT{' below the in-sample one' if cur_ho.rms_nT < cur.rms_nT else ''}) "
+                    f"is no evidence for one")
     wald = _beyond_errors(c.parameters) if c.significant else None
     if wald:                       # the gain is the noise's slow wander: its parameters are within their errors
         c.significant = False

@@ -35,12 +35,18 @@ def verdict_word(c: Candidate, weak: dict | None = None) -> str:
     return f"no: p >= {P_SIGNIFICANT:g}"
 
 
+def reference_words(reference: str) -> str:
+    """The total field a diagnosis compared with, in words: 'estimated from the data', 'from the ref_total column'."""
+    return {"estimated": "estimated from the data", "ref_total": "from the ref_total column",
+            "config": "from the configuration"}.get(reference, f"from {reference}")
+
+
 def summary_text(d: Diagnosis, data_name: str = "") -> str:
     """A readable summary of a Diagnosis for the terminal."""
     lines = []
     head = f"fluxcal diagnose {data_name}".rstrip()
     lines.append(head)
-    lines.append(f"  model: {d.model}   (linear part {d.linear}; total field from {d.reference})")
+    lines.append(f"  model: {d.model}   (linear part {d.linear}; total field {reference_words(d.reference)})")
     lines.append(f"  {d.n_samples} samples over {d.duration_s:.1f} s")
     ratio = d.rms_nT / d.noise_nT if d.noise_nT > 0 else float("inf")
     lines.append(f"  residual RMS {d.rms_nT:.3f} nT against a noise floor of {d.noise_nT:.3f} nT "

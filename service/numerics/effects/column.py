@@ -61,7 +61,9 @@ class Column(EffectTerm):
         return view.cache[key]
 
     def param_names(self, view: ProbeView) -> list[str]:
-        return [f"{view.name}.{a} nT per {c}{rate}" for c in self._cols(view) for rate in ("", "/s") for a in AXES]
+        # the rate's coefficient is in nT per (unit of the column per second): "nT per (battery_current_a/s)"
+        return [f"{view.name}.{a} nT per {f'({c}/s)' if rate else c}" for c in self._cols(view) for rate in (False, True)
+                for a in AXES]
 
     def columns(self, view: ProbeView) -> np.ndarray:
         t = view.data.t_s

@@ -158,23 +158,28 @@ def execute(source: str, opts: DiagnoseOptions, said: Said, *, progress: bool = 
 def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = True) -> DiagnoseResult:
     """The diagnosis of the prepared data (and its outputs, when asked): figures and notes as data. The data go one
     way: prepared (effect_input), diagnosed (service.numerics), written."""
-    from service.numerics.calib.excitation import refuse_one_cone
+    from service.numerics.calib.determinacy import refuse_undetermined
     from service.numerics.calib.track import follows_height_note
     from service.numerics.diagnose.diagnostics import diagnose
+    from service.wiring.commands.fit import usable_data
+    from service.wiring.fitting import judge_data
 
     limit = opts.max_samples
     budget = (f"--max-samples {limit:,}" if limit is not None
               else f"the default budget of {DIAGNOSE_PROBE_SAMPLES:,} probe-samples (--max-samples N; 0: all)")
+    # the one determinacy gate, asked as fit asks it of the same samples against the same reference (one verdict,
+    # one cone), before anything else is made of them
+    judged = judge_data(usable_data(prep.data)[0], prep.total_nT, prep.total_source or "")
+    then = ("; the linear calibration these data would refit is not determined, so no effect can be judged on top of "
+            "it (or hold one made from a fuller turn fixed: --calibration CAL.json)")
+    if prep.held is None:
+        refuse_undetermined(judged, then=then)        # before any fit: a refusal costs nothing more
     ready = effect_input(prep, said, budget=budget)
     data = ready.data
     bar = Progress(1.0, "diagnose", fraction=True) if progress else None
     try:
         result = diagnose(data, effects=list(opts.effects), calibration=prep.held, progress=bar,
-                          check_linear=lambda lin: refuse_one_cone(
-                              data.raw_nT, lin.offset_nT, lin.matrix, data.ref_total_nT, data.probe_names,
-                              then="; the linear calibration these data would refit is not determined, so no effect "
-                                   "can be judged on top of it (or hold one made from a fuller turn fixed: "
-                                   "--calibration CAL.json)"))
+                          check_linear=lambda lin: refuse_undetermined(judged, then=then))
     finally:
         if bar is not None:
             bar.close()

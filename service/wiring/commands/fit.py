@@ -14,7 +14,7 @@ import numpy as np
 from drivers.errors import DataError, FluxcalError
 from service.io.calfile import save_calibration
 from service.io.recordings.labdata import LabData, keep_every
-from service.numerics.calib.coverage import coverage
+from service.numerics.diagnose.text import reference_words
 from service.numerics.usable import temperature_notes, usable_samples
 from service.wiring.coloured_fit import coloured_offsets, direction_offsets
 from service.wiring.commands.notes import check_output_file, check_output_folder
@@ -38,6 +38,7 @@ from service.wiring.fitting import (
     contract_json,
     fit_array,
     iter_residual_channels,
+    judge_data,
     rms,
     rms_all,
     uncalibrated_rms,
@@ -139,8 +140,9 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     data, source = prep.data, prep.source
     data, left_out = usable_data(data, uses_temperature=bool({"temperature", "thermal"} & set(opts.effects)))
     known_total = prep.total_nT
+    judged = judge_data(data, known_total, prep.total_source or "")    # the one determinacy gate, before any fit
     cal, total = fit_array(data, method=opts.method, align=opts.align, configured_total_nT=known_total,
-                           positions_m=prep.positions_m, progress=_progress)
+                           positions_m=prep.positions_m, progress=_progress, judged=judged)
     if prep.site is not None:
         total.source = f"the site ({prep.site.model})"
     if prep.track is not None:                    # the data's ref_total is the model along the track
@@ -172,13 +174,14 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     if sys.stderr.isatty():
         print("\r\033[K", end="", file=sys.stderr)
     before = uncalibrated_rms(data, total)
+    refuse_worse(cal, channels, before, total.source)
     cal.diagnostics.update({"rms_before_nT": dict(before),
                             "rms_after_nT": {k: rms(v) for k, v in channels.items()},
                             "total_field": total.source})
     # coloured noise first: it changes the offsets' errors, which the warnings below compare with the offsets
     coloured = coloured_warnings(coloured_offsets(data, cal, total)) if not opts.effects else []
     coloured += direction_offsets(data, cal, total) if not opts.effects else []
-    coverages = [coverage(data.block.field_nT[:, k], centre_nT=p.offset_nT) for k, p in enumerate(cal.probes)]
+    coverages = [j.coverage for j in judged]             # about the gate's centre: the figures every command shows
     warnings = left_out + calibration_warnings(cal, coverages) + ([thinned] if thinned else []) + coloured
     warnings += [prep.config_warning] if prep.config_warning else []
     warnings += [prep.part_of_run] if prep.part_of_run else []
@@ -189,6 +192,7 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
         save_calibration(cal, opts.out)
         out.written.append(opts.out)
     result = contract_json(cal, channels, data.probe_names, coverages, warnings)
+    result["determinacy"] = [j.as_dict() for j in judged]
     if prep.origin == FROM_RECORDING:
         result["configuration"] = "recording"               # the total field and positions it stores were used
     if prep.site is not None:
@@ -210,6 +214,32 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
             out.status = 1
     out.contract, out.summary, out.notes = result, "\n".join(text), said.notes
     return out
+
+
+#: a calibration whose scalar residual is this many times the raw data's is refused: a fit minimises an algebraic
+#: residual, so data already calibrated may come out a few percent above their raw figure, never a quarter
+WORSE_FACTOR = 1.25
+
+
+def refuse_worse(cal, channels, before: dict[str, float], total_source: str) -> None:
+    """CalibrationRefused where the calibration makes a probe's scalar residual worse than the raw data's (beyond
+    WORSE_FACTOR: a calibration the data do not determine, or a total field that is not theirs), with what would
+    help."""
+    from drivers.errors import CalibrationRefused
+
+    for p in cal.probes:
+        name = f"{p.name}.scalar"
+        after = rms(channels[name]) if name in channels else float("nan")
+        if name in before and np.isfinite(after) and after > WORSE_FACTOR * before[name]:
+            against = "estimated" if total_source == "estimated" else f"from {total_source}"
+            reason = (f"{p.name}: the calibration makes the scalar residual worse than the raw data's "
+                      f"({before[name]:,.1f} -> {after:,.1f} nT RMS against the total field {against}): these data do "
+                      f"not determine it")
+            advice = ("turn the probe about at least two axes so the field sweeps most directions, and check that the "
+                      "total field given is the site's and the data are in nT")
+            refused = CalibrationRefused(f"{reason}; {advice}")
+            refused.reason, refused.advice = reason, advice
+            raise refused
 
 
 #: fewest samples left to fit once the unusable ones are left out (as the effects' fits need)
@@ -336,14 +366,17 @@ def _summary(data, cal, channels, before, total_source, result, coverages, origi
     b = data.block
     lines = [f"{data.path}: {b.n_samples} samples, {b.n_probes} probe(s), {b.t_s[-1] - b.t_s[0]:.1f} s; "
              f"method {cal.method}, align {cal.align or '-'}, effects {', '.join(cal.effects) or '-'}; "
-             + ("total field estimated from the data" if total_source == "estimated"
-              else f"total field from {total_source}")
+             + f"total field {reference_words(total_source)}"
              + (f"; {origin}" if origin == FROM_RECORDING else "")]
     for k, p in enumerate(cal.probes):
         lines.append(f"\n{p.name}")
         lines.append("  offset nT  " + "  ".join(_fmt_pm(v, s) for v, s in zip(p.offset_nT, p.offset_se_nT)))
         for i in range(3):
             lines.append("  matrix     " + "  ".join(_fmt_pm(v, s, 5) for v, s in zip(p.matrix[i], p.matrix_se[i])))
+        if not (np.all(np.isfinite(p.offset_se_nT)) and np.all(np.isfinite(p.matrix_se))):
+            lines.append("  (± n/a: " + ("the fit with effects gives the effects' and the offsets' errors, not the "
+                                         "matrix's: `fit` without --effects gives them" if cal.effects else
+                                         "no standard error: these data do not determine it") + ")")
         for key, val in p.params.items():
             if key in ("offset_nT", "samples", "align") or not isinstance(val, dict):
                 continue

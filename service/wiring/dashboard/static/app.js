@@ -264,10 +264,15 @@ function renderDiagnosis(d, kept) {
   ((d.discovery && d.discovery.shapes) || []).forEach((s, i) => window.fluxplot.drawShape($("shape-" + i), s));
 }
 
+// a counter of what arrived or was sent (bytes_received, frames_accepted, published_*) is not a fault: never red
+function counterIsThroughput(k) {
+  return /(^|_)(received|accepted)$/.test(k) || k.startsWith("published_") || k.startsWith("received");
+}
+
 function renderHealth(v) {
   const counters = (v.health && v.health.counters) || {};
   const bus = (v.health && v.health.bus) || {};
-  const good = (k) => k === "frames_accepted" || k.startsWith("published_") || k.startsWith("received");
+  const good = counterIsThroughput;
   $("health").innerHTML = "<tr><th>counter</th><th>value</th></tr>" + Object.entries(counters).concat(
     Object.entries(bus).filter(([k]) => /errors|dropped|refused|expired/.test(k)).map(([k, x]) => ["bus." + k, x])).map(([k, x]) =>
     `<tr><th>${esc(k)}</th><td class="${x && !good(k) ? "bad" : ""}">${esc(x)}</td></tr>`).join("");
