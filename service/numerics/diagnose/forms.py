@@ -19,7 +19,7 @@ from .laws import LAWS, LawTerm, context, start_law
 from .library import SHAPE_KINDS, Group, GroupTerm
 from .selection import _passes
 from .shape_reading import curve, observable_values
-from .shapes import basis_of
+from .shapes import basis_of, unit_of
 
 #: iterations of the engine for a form (non-linear: a law's parameters move from their start)
 FORM_ITERATIONS = 12
@@ -54,22 +54,6 @@ def shape_sets(kept: list[Group]) -> dict[tuple, list[Group]]:
         if g.kind in SHAPE_KINDS and g.feature.recipe.get("basis") == "spline":
             out.setdefault(observable_key(g), []).append(g)
     return out
-
-
-def unit_of(recipe: dict[str, Any]) -> str:
-    """The observable's unit for a law's parameters in it: degC for a temperature, the unit a column's name ends in
-    (flap_deg: deg, coil_A: A), else the column's name (x in units of it)."""
-    if recipe["source"] == "temperature":
-        return "degC"
-    if recipe["source"] == "ref_total":
-        return "nT"
-    if recipe["source"] == "angular rate":
-        return "deg/s"
-    name = recipe.get("column", "")
-    suffix = name.rsplit("_", 1)[-1] if "_" in name else ""
-    known = {"deg": "deg", "rad": "rad", "a": "A", "ma": "mA", "v": "V", "mv": "mV", "c": "degC", "degc": "degC",
-             "hz": "Hz", "rpm": "rpm", "m": "m", "mm": "mm", "s": "s", "pct": "%", "w": "W", "k": "K"}
-    return known.get(suffix.lower(), name)
 
 
 def _groupterms(groups: list[Group], kept: list[Group]) -> list[GroupTerm]:

@@ -12,7 +12,7 @@ import numpy as np
 
 from service.numerics.effects.base import AXES
 
-from .shapes import basis_of
+from .shapes import basis_of, unit_of
 
 #: points of the table a shape is read on, over the observable's range
 TABLE_POINTS = 9
@@ -89,7 +89,7 @@ def read_shape(g: Any, values: np.ndarray, cov: np.ndarray, fit: Any, source: st
                              "platform_frame_nT": shape.tolist(), "stderr_nT": se.tolist(),
                              "direction": u.tolist(), "direction_share": share,
                              "range_nT": [float(np.min(along)), float(np.max(along))]}
-    unit = f" {r['column']}" if r.get("source") == "column" else ""
+    unit = unit_of(r)
     if r["basis"] == "turn":
         cs = [values[a * 2 * r["harmonics"]:a * 2 * r["harmonics"] + 2] for a in range(3)]
         c, s = np.array([v[0] for v in cs]), np.array([v[1] for v in cs])
@@ -108,7 +108,7 @@ def read_shape(g: Any, values: np.ndarray, cov: np.ndarray, fit: Any, source: st
     reading = (f"{who} follows a smooth function of {source} (a spline of {r['functions']} functions): "
                f"{along.min():.3g} to {along.max():.3g} nT along the platform's "
                f"({', '.join(f'{v:.2f}' for v in u)}) ({100 * share:.0f} % of it along that one direction) over "
-               f"{source} {lo:.3g} to {hi:.3g}{unit}; per axis in the table of --json (parts)")
+               f"{source} {lo:.3g} to {hi:.3g} {unit}; per axis in the table of --json (parts)")
     return reading, parts
 
 

@@ -123,3 +123,19 @@ def basis_of(recipe: dict[str, Any], x: np.ndarray) -> np.ndarray:
     else:
         v = turn_values(x, float(recipe["radians_per_unit"]), int(recipe["harmonics"]))
     return v - np.asarray(recipe["centre"], float)
+
+
+def unit_of(recipe: dict[str, Any]) -> str:
+    """The observable's unit for a law's parameters in it: degC for a temperature, the unit a column's name ends in
+    (flap_deg: deg, coil_A: A), else the column's name (x in units of it)."""
+    if recipe["source"] == "temperature":
+        return "degC"
+    if recipe["source"] == "ref_total":
+        return "nT"
+    if recipe["source"] == "angular rate":
+        return "deg/s"
+    name = recipe.get("column", "")
+    suffix = name.rsplit("_", 1)[-1] if "_" in name else ""
+    known = {"deg": "deg", "rad": "rad", "a": "A", "ma": "mA", "v": "V", "mv": "mV", "c": "degC", "degc": "degC",
+             "hz": "Hz", "rpm": "rpm", "m": "m", "mm": "mm", "s": "s", "pct": "%", "w": "W", "k": "K"}
+    return known.get(suffix.lower(), name)
