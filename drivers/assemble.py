@@ -249,6 +249,7 @@ class CanAssembler:
         mine = probe >= 0
         probe, axis, value, seq, temp, rx = (x[mine] for x in (probe, axis, value, seq, temp, rx))
         self.counters.frames_accepted += int(probe.size)
+        self.counters.foreign_frames += int(mine.size - probe.size)      # other nodes' ids, or reserved ones
         u, restarts = self._unwrap(seq, rx)
 
         out: list[CanSamples] = []

@@ -20,7 +20,12 @@ class Counters:
     """Health counters every source keeps; they only ever grow."""
 
     frames_accepted: int = 0
-    crc_failures: int = 0
+    crc_failures: int = 0       # serial: frames failing their CRC (CAN controllers drop those themselves)
+    bad_frames: int = 0         # CAN: what the adapter could not make a frame of (a garbled SLCAN line)
+    wrong_length: int = 0       # CAN: frames with the unit's ids that are no classic 8-byte data frame
+    remote_frames: int = 0      # CAN: remote frames with the unit's ids (another node asking for them)
+    error_frames: int = 0       # CAN: error frames the interface reports
+    foreign_frames: int = 0     # CAN: frames of other nodes' (or reserved, or extended) ids, ignored: not a fault
     bytes_received: int = 0     # serial: every byte read from the port (fed to the framer)
     bytes_skipped: int = 0
     seq_gaps: int = 0           # number of gaps seen

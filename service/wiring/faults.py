@@ -4,6 +4,8 @@ it lasts (at most every `every_s`), a line when it ends, and a summary at stop. 
 channel as events with their counts (`health.faults`), where the dashboard shows them.
 
     crc           frames failing their CRC, with the share of frames that fail (bit errors on the line)
+    bad_frames, wrong_length, remote_frames, error_frames: what a CAN adapter or bus gave that is no frame of the
+                  unit's (CAN has no CRC failures: its controller drops those)
     no_decode     bytes arrive but no frame decodes for 2 s (a wrong baud rate, a wrong probe count)
     silence       nothing from the unit for `silence_s` (unit.silence_s), and when data come again
     gaps          samples missed in gaps of the unit's counter
@@ -47,6 +49,17 @@ class CountedKind:
 KINDS = (
     CountedKind("crc", "crc_failures", "CRC failures", "{n:,} frame(s) failed their CRC",
                 "bit errors on the line: check the cable, its screen and its length for the baud rate"),
+    CountedKind("bad_frames", "bad_frames", "bad CAN frames",
+                "{n:,} line(s) or frame(s) from the CAN adapter that are no frame, dropped",
+                "garbled on the adapter's serial link or by its firmware: check the USB cable and the adapter"),
+    CountedKind("wrong_length", "wrong_length", "CAN frames of a wrong length",
+                "{n:,} frame(s) with the unit's ids that are no 8-byte data frame, dropped",
+                "another node sends on the unit's ids, or the unit speaks another ICD version: check source.base_id"),
+    CountedKind("remote_frames", "remote_frames", "CAN remote frames",
+                "{n:,} remote frame(s) with the unit's ids, ignored",
+                "another node on the bus asks for the unit's ids"),
+    CountedKind("error_frames", "error_frames", "CAN error frames", "{n:,} error frame(s) reported by the interface",
+                "faults on the bus itself: check its termination, wiring and bitrate"),
     CountedKind("gaps", "samples_missed", "samples missed", "{n:,} sample(s) missed in gaps of the unit's counter"),
     CountedKind("can_incomplete", "can_incomplete", "CAN samples incomplete",
                 "{n:,} CAN sample(s) dropped, a frame of each never came"),
@@ -67,6 +80,9 @@ KINDS = (
                 "a subscriber that takes nothing for zenoh.stall_close_ms is disconnected so that it holds back no "
                 "other one; it reconnects and counts what it missed by seq (docs/zenoh.md)"),
 )
+
+#: counters whose growth means something arrived from the unit's port or bus, whatever it was
+ACTIVITY = ("crc_failures", "bad_frames", "wrong_length", "remote_frames", "error_frames", "foreign_frames")
 
 #: the counters behind `implausible`, said as its reasons
 IMPLAUSIBLE_REASONS = (("reserved_flags", "reserved flag bits"), ("beyond_full_scale", "axes beyond full scale"),
@@ -188,7 +204,7 @@ class FaultWatch:
         got_bytes, frames = d.get("bytes_received", 0), d.get("frames_accepted", 0)
         if self._last_activity is None:
             self._last_activity = now
-        if got_bytes > 0 or frames > 0 or d.get("crc_failures", 0) > 0:
+        if got_bytes > 0 or frames > 0 or any(d.get(k, 0) > 0 for k in ACTIVITY):
             if self._silent_since is not None:
                 self._event("silence", "end", self.silences,
                             f"silence ended: data from the unit again after about {_ago(now - self._silent_since)}")

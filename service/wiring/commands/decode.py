@@ -136,7 +136,8 @@ def execute(source: str, opts: DecodeOptions, said: Said) -> DecodeResult:
 def _counters_line(c: Counters, can_log: bool) -> str:
     parts = [f"frames accepted {c.frames_accepted}"]
     if can_log:
-        parts.append(f"malformed frames {c.crc_failures}")
+        parts += [f"wrong length {c.wrong_length}", f"remote frames {c.remote_frames}",
+                  f"other nodes' frames {c.foreign_frames}"]
     else:
         parts += [f"CRC failures {c.crc_failures}", f"bytes skipped {c.bytes_skipped}"]
     parts.append(f"sequence gaps {c.seq_gaps} ({c.samples_missed} samples missed)")
