@@ -31,9 +31,11 @@ class Counters:
     seq_gaps: int = 0           # number of gaps seen
     samples_missed: int = 0     # samples lost inside those gaps
     can_incomplete: int = 0     # CAN samples dropped because a frame never came
-    duplicates: int = 0         # frames repeating the last one bit for bit (CAN: a frame already held), dropped
-    seq_backsteps: int = 0      # frames whose counter or clock stepped back (stale), dropped
+    duplicates: int = 0         # frames repeating one received before bit for bit (CAN: a frame already held), dropped
+    seq_backsteps: int = 0      # frames whose counter or clock stepped back, no copy of one received (stale), dropped
     restarts: int = 0           # the unit restarted: counter and clock back near zero, followed on
+    clock_jumps: int = 0        # the unit's clock jumped while its counter ran on: time repaired from the counter
+    counter_jumps: int = 0      # the unit's counter jumped while its clock ran on: no sample counted missed
     saturated_axes: int = 0
     temp_invalid: int = 0
     implausible_samples: int = 0   # samples flagged implausible (FLAG_IMPLAUSIBLE): kept out of the estimator

@@ -57,7 +57,8 @@ def test_slcan_on_a_pty_counts_garbled_lines_and_keeps_the_samples(pty_port):
     """The adapter on a pty, read by CanSource through python-can's slcan interface (drivers.slcan): the samples
     between the garbage arrive whole, and each line is counted once as what it is."""
     port = pty_port()
-    src = CanSource(interface="slcan", channel=port.path, n_probes=2, rate_hz=RATE_HZ, bus_kwargs={"sleep_after_open": 0})
+    src = CanSource(interface="slcan", channel=port.path, n_probes=2, rate_hz=RATE_HZ,
+                    bus_kwargs={"sleep_after_open": 0})
     try:
         lines = good_lines(40)
         bad = ["t200F0000000000000000\r", "t2008ZZZZZZZZZZZZZZZZ\r", "t20\r", "\x07", "Q" * 500 + "\r"]
@@ -201,7 +202,8 @@ def test_a_fuzz_of_can_frames_against_a_running_service_is_counted_frame_for_fra
                 kind = rng.integers(6)
                 ident = int(rng.integers(0x1F0, 0x212))
                 if kind == 0:
-                    msg = can.Message(arbitration_id=ident, data=rng.bytes(int(rng.integers(0, 9))), is_extended_id=False)
+                    msg = can.Message(arbitration_id=ident, data=rng.bytes(int(rng.integers(0, 9))),
+                                      is_extended_id=False)
                 elif kind == 1:
                     msg = can.Message(arbitration_id=ident, is_remote_frame=True, dlc=int(rng.integers(9)),
                                       is_extended_id=False)
