@@ -19,6 +19,7 @@ import numpy as np
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError, DriverError, FluxcalError
 from drivers.source import Source, open_source
+from drivers.text import printable
 from service.io.calfile import save_calibration
 
 from .config import RATE_MISSING, FluxcalConfig
@@ -92,7 +93,9 @@ def _say(msg: str) -> None:
     read stderr has gone (`fluxcal run ... 2>&1 | head -3`, a closed terminal), the service goes on: the lines
     go to /dev/null from then on, and the health channel and the recording still say everything."""
     try:
-        print(f"fluxcal {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}: {msg}", file=sys.stderr, flush=True)
+        # a payload's or a peer's words inside a line never act on the terminal or make a line of their own
+        print(f"fluxcal {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}: {printable(msg)}", file=sys.stderr,
+              flush=True)
     except (OSError, ValueError):        # BrokenPipeError; ValueError: stderr closed
         stderr_gone()
 

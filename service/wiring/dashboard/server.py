@@ -40,6 +40,7 @@ from typing import Any
 from urllib.parse import parse_qs, urlparse
 
 from drivers.errors import FluxcalError
+from drivers.text import printable
 from service.io.bus import COMMANDS
 
 from .hub import Hub
@@ -371,8 +372,8 @@ class DashboardServer(ThreadingHTTPServer):
             self.refused[key] = self.refused.get(key, 0) + 1
             first = self.refused[key] == 1
         if first and self.say_refusals:
-            print(f"fluxcal dashboard: refused a request: {why[:200]} (further ones of this kind are counted in "
-                  f"/api/units)", file=sys.stderr, flush=True)
+            print(f"fluxcal dashboard: refused a request: {printable(why[:200])} (further ones of this kind are "
+                  f"counted in /api/units)", file=sys.stderr, flush=True)
 
     @property
     def url(self) -> str:
