@@ -5,7 +5,9 @@
      "effects": [...], "effect_params": {...}, "span": {"t0_s": ..., "t1_s": ..., "n_samples": ...},
      "probes": [{"name": "s1", "offset_nT": [3], "matrix": [[3]x3], "offset_se_nT": [3] (null = unknown),
                  "matrix_se": [[3]x3], "params": {...}}, ...],
-     "diagnostics": {...}}
+     "diagnostics": {...},
+     "unit": {"name": "grad1", "probes": {"s1": "<serial>", ...}}}     (optional: the unit it was made for; a
+                                                                        bare name is read as {"name": ...})
 
 Written atomically (temporary file, then rename). A file of another format or version, or a
 damaged one, is refused with a DataError naming the file and the problem.
@@ -64,6 +66,7 @@ def calibration_to_dict(cal: ArrayCalibration) -> dict[str, Any]:
                     "matrix_se": p.matrix_se, "params": p.params, "model_order": p.model_order,
                     "warnings": list(p.warnings)} for p in cal.probes],
         "diagnostics": cal.diagnostics,
+        **({"unit": cal.unit} if cal.unit else {}),
     })
 
 
@@ -219,6 +222,20 @@ def _total(v: Any, origin: str) -> float | None:
     return float(v)
 
 
+def _unit(v: Any, origin: str) -> dict[str, Any]:
+    """The unit a calibration was made for: "grad1", or {"name": "grad1", "probes": {"s1": "<serial>", ...}}."""
+    if v is None:
+        return {}
+    if isinstance(v, str):
+        v = {"name": v}
+    probes = v.get("probes", {}) if isinstance(v, dict) else None
+    if not isinstance(v, dict) or not isinstance(v.get("name", ""), str) or not isinstance(probes, dict) \
+            or not all(isinstance(k, str) and isinstance(s, str) for k, s in probes.items()):
+        raise DataError(f"{origin}: damaged calibration file (unit must be a unit's name, or {{\"name\": ..., "
+                        f"\"probes\": {{probe: serial}}}})")
+    return {"name": v.get("name", ""), "probes": dict(probes)} if probes else {"name": v.get("name", "")}
+
+
 def calibration_from_dict(d: Any, origin: str = "<calibration>") -> ArrayCalibration:
     """The ArrayCalibration of a parsed calibration file; DataError naming `origin` and the problem."""
     if not isinstance(d, dict) or d.get("format") != FORMAT:
@@ -262,7 +279,8 @@ def calibration_from_dict(d: Any, origin: str = "<calibration>") -> ArrayCalibra
             if not isinstance(d.get(k) or {}, dict):
                 raise DataError(f"{origin}: damaged calibration file ({k} must be an object)")
         span = d.get("span") or {}
-        return ArrayCalibration(method=str(d["method"]), align=align, probes=probes,
+        unit = _unit(d.get("unit"), origin)
+        return ArrayCalibration(method=str(d["method"]), align=align, probes=probes, unit=unit,
                                 total_nT=_total(d.get("total_nT"), origin), effects=list(effects),
                                 effect_params=dict(d.get("effect_params") or {}),
                                 diagnostics=dict(d.get("diagnostics") or {}),

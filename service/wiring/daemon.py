@@ -17,7 +17,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from drivers.block import SampleBlock
-from drivers.errors import ConfigError, DriverError, FluxcalError
+from drivers.errors import ConfigError, DataError, DriverError, FluxcalError
 from drivers.source import Source, open_source
 from drivers.text import printable
 from service.io.calfile import save_calibration
@@ -27,7 +27,8 @@ from .faults import FaultWatch
 from .input import BatchReader, RateCheck, Reconnecting
 from .pipeline import Pipeline, PipelineEvent
 from .sinks import BusSink, McapSink, Sink, Sinks, say_bus
-from .startcal import calibration_from_payload, initial_calibration, learned_on
+from .identity import judge_on_data
+from .startcal import calibration_from_payload, initial_calibration, stamp
 from .status import StatusLog
 
 
@@ -124,6 +125,9 @@ class Daemon:
         self.extra_sinks = list(sinks)
         self._reader = BatchReader(cfg.unit.block_ms, self.stop)
         self.processing_errors = 0            # blocks whose processing raised (their raw data are kept)
+        self.calibrations_refused = 0         # by apply, or the persisted one at start
+        self.persist_failures = 0             # saves of the calibration in use that failed
+        self._persist_said = ""               # the last such failure said (each new reason is said once)
         self._faults = FaultWatch(self.say, silence_s=cfg.unit.silence_s, every_s=cfg.unit.status_s)
         self._last_processing_say = -1e9
         self._rate = RateCheck(cfg, self.say)
@@ -134,7 +138,7 @@ class Daemon:
 
         cfg = self.cfg
         notes: list[str] = []                 # said once the source, the bus and the recording are open
-        pipeline = build_pipeline(cfg, initial_calibration(cfg, notes.append))
+        pipeline = build_pipeline(cfg, initial_calibration(cfg, notes.append, refused=self._calibration_refused))
         source = open_configured_source(cfg)
         sinks = Sinks([], self.say)           # the recording first: a raw block is kept before anything else
         bus = None
@@ -200,7 +204,8 @@ class Daemon:
         messages an output failed to take: all outputs', and each failing output's own (`output_failures.<name>`,
         where the dashboard's health table shows them beside the others; in the summary at stop too)."""
         return {**source.counters.as_dict(), "processing_errors": self.processing_errors,
-                "commands_refused": self._status.refused, "output_failures": sum(sinks.errors.values()),
+                "commands_refused": self._status.refused, "calibrations_refused": self.calibrations_refused,
+                "persist_failures": self.persist_failures, "output_failures": sum(sinks.errors.values()),
                 **{f"output_failures.{name}": n for name, n in sinks.errors.items() if n}}
 
     def _tick_health(self, source: Source, sinks: Sinks, bus, final: bool = False) -> None:
@@ -274,14 +279,40 @@ class Daemon:
         applied = ev.kind == "command" and ev.detail.get("name") == "apply"
         reset = ev.kind == "command" and ev.detail.get("name") == "reset"      # no longer held: persisted so
         if (ev.kind == "calibration" or applied or reset) and pipeline.calibration is not None:
-            try:
-                pipeline.calibration.diagnostics["learned_on"] = learned_on(self.cfg)
-                pipeline.calibration.diagnostics["applied"] = applied     # reloaded held, as it was
-                save_calibration(pipeline.calibration, self.cal_path)
-            except OSError as e:
-                self.say(f"could not persist the calibration to {self.cal_path}: {e}")
+            self._persist(pipeline.calibration, applied)
         if ev.kind in ("gate", "calibration"):
             self._status.gate(ev.kind == "calibration" or bool(ev.detail.get("usable")), ev.detail.get("reasons", []))
+
+    def _calibration_refused(self) -> None:
+        self.calibrations_refused += 1
+
+    def _persist(self, cal, applied: bool) -> None:
+        """Save the calibration in use (reloaded at the next start; held again if applied). A failure is counted
+        (health: persist_failures, said by FaultWatch with its running count and in the summary) and its reason
+        said once: not at every check of the gate."""
+        try:
+            stamp(cal, self.cfg, applied)
+            save_calibration(cal, self.cal_path)
+        except OSError as e:
+            self.persist_failures += 1
+            why = f"could not persist the calibration to {self.cal_path}: {e}"
+            if why != self._persist_said:
+                self._persist_said = why
+                self.say(f"{why}; it stays in use, but a restart would not reload it (health: persist_failures)")
+
+    def _calibration_to_apply(self, payload: Any, pipeline: Pipeline):
+        """apply's calibration: its content checked for this unit and physics (startcal), then judged on the service's
+        own data (identity.judge_on_data); a refusal counted among the calibrations refused."""
+        try:
+            cal = calibration_from_payload(payload, self.cfg)
+            try:
+                judge_on_data(cal, pipeline, self.cfg)
+            except DataError as e:
+                raise DataError(f"apply: {e}; nothing was applied") from None
+        except DataError:
+            self.calibrations_refused += 1
+            raise
+        return cal
 
     def _apply_command(self, cmd, pipeline: Pipeline, sinks: Sinks) -> None:
         """Apply one command between blocks and answer it. Whatever the payload, the answer is ok or a refusal
@@ -290,7 +321,7 @@ class Daemon:
         try:
             payload = cmd.payload
             if cmd.name == "apply":
-                payload = calibration_from_payload(payload, self.cfg)
+                payload = self._calibration_to_apply(payload, pipeline)
             ev = pipeline.command(cmd.name, payload, seq=seq, t_s=float("nan"))
             if cmd.name == "apply":
                 from service.io.calfile import calibration_to_dict

@@ -11,6 +11,9 @@ channel as events with their counts (`health.faults`), where the dashboard shows
     gaps          samples missed in gaps of the unit's counter
     can_incomplete, duplicates, backsteps, saturated, temp_invalid, implausible: as counted by the driver
     restarts      the unit restarted (counter and clock back near zero): said each time
+    clock_jumps, counter_jumps: the unit's clock (or counter) jumped while the other ran on: said each time
+    persist       saves of the calibration in use that failed (a restart would not reload it)
+    calibrations_refused, commands_refused: said where they happen; counted here, and in the summary at stop
     stalls        the bus waited for a subscriber that took nothing (the daemon adds bus.send_stalls)
     recording     write errors (a full disk): the messages dropped, running, and when recording resumes
 
@@ -44,6 +47,7 @@ class CountedKind:
     what: str                     # what {n} counts: "{n} frame(s) failed their CRC"
     advice: str = ""
     one_shot: bool = False        # said each time it counts (a restart), never "begins" or "ends"
+    quiet: bool = False           # said where it happens (a refused command): here only counted and summarised
 
 
 KINDS = (
@@ -82,6 +86,14 @@ KINDS = (
                 "{n:,} sample(s) with a good CRC but values no probe gives, kept out of the estimator"),
     CountedKind("saturated", "saturated_axes", "saturation", "{n:,} saturated axis reading(s), NaN"),
     CountedKind("temp_invalid", "temp_invalid", "temperature invalid", "{n:,} sample(s) flagged temperature-invalid"),
+    CountedKind("persist", "persist_failures", "calibration not persisted",
+                "{n:,} save(s) of the calibration in use failed",
+                "it is in use, but a restart would not reload it: check the folder of calibration.file"),
+    CountedKind("calibrations_refused", "calibrations_refused", "calibrations refused",
+                "{n:,} calibration(s) refused (by apply, or the persisted one at start), each said as it came",
+                quiet=True),
+    CountedKind("commands_refused", "commands_refused", "commands refused",
+                "{n:,} command(s) refused, each said as it came", quiet=True),
     CountedKind("stalls", "send_stalls", "a subscriber took nothing",
                 "the streams waited {n:,} time(s) for a subscriber that took nothing (health: bus.send_stalls)",
                 "a subscriber that takes nothing for zenoh.stall_close_ms is disconnected so that it holds back no "
@@ -250,6 +262,8 @@ class FaultWatch:
         value, grew = int(c[kind.counter]), d.get(kind.counter, 0)
         self.totals[kind.name] = value
         ep = self._episodes.get(kind.name)
+        if kind.quiet:
+            return
         if grew > 0 and kind.one_shot:
             self._event(kind.name, "event", value, f"{kind.label}: {kind.what.format(n=value)} ({kind.advice}; "
                                                    f"health: counters.{kind.counter})")

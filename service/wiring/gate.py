@@ -114,13 +114,8 @@ class Gate:
                                         max_condition=self.condition, maps=False)
             covs.append(cov.fraction)
             conds.append(float(est.condition_))
-            corr = p.apply(raw)
+            corr, rms = scalar_residual(p, window, k, ref)
             mag = np.linalg.norm(corr, axis=1)
-            if ref is None:
-                rms = float(np.std(mag))
-            else:
-                r = ref[np.isfinite(window.field_nT[:, k]).all(axis=1)] if isinstance(ref, np.ndarray) else ref
-                rms = float(np.sqrt(np.mean((mag - r) ** 2)))
             rmss.append(rms)
             name = self.probe_names[k]
             # one turn about one axis with some wobble: its offset along the axis rests on the wobble (as the
@@ -138,6 +133,18 @@ class Gate:
                 reasons.append(f"{name}: non-finite parameters")
         return GateResult(usable=not reasons, reasons=reasons, coverage=float(min(covs)),
                           condition=float(max(conds)), rms_nT=rmss)
+
+
+def scalar_residual(p, window: SampleBlock, k: int, ref: np.ndarray | float | None) -> tuple[np.ndarray, float]:
+    """Probe k's corrected vectors over the window (its finite samples) by calibration `p`, and the RMS of
+    |corrected| - the reference total (its spread about the mean without one): the gate's residual."""
+    ok = np.isfinite(window.field_nT[:, k]).all(axis=1)
+    corr = p.apply(window.field_nT[ok, k])
+    mag = np.linalg.norm(corr, axis=1)
+    if ref is None:
+        return corr, float(np.std(mag))
+    r = ref[ok] if isinstance(ref, np.ndarray) else ref
+    return corr, float(np.sqrt(np.mean((mag - r) ** 2)))
 
 
 def _span(ring: RingBuffer) -> tuple[float, float, int]:

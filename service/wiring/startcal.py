@@ -12,6 +12,7 @@ from service.io.calfile import load_calibration
 from service.numerics.calib.plausible import check_calibration
 
 from .config import FluxcalConfig
+from .identity import check_identity, unit_identity
 
 
 def learned_on(cfg: FluxcalConfig) -> dict[str, str]:
@@ -19,10 +20,23 @@ def learned_on(cfg: FluxcalConfig) -> dict[str, str]:
     return {"unit": cfg.unit.name, "source": str(getattr(cfg.source, "kind", "sim"))}
 
 
+def stamp(cal: Any, cfg: FluxcalConfig, applied: bool) -> None:
+    """Before the calibration in use persists: what it was learned on, whether it was applied (reloaded held), and
+    the unit it was made for (this one: anything else was refused on its way in)."""
+    cal.diagnostics["learned_on"] = learned_on(cfg)
+    cal.diagnostics["applied"] = applied
+    ours = unit_identity(cfg)
+    probes = {**(cal.unit.get("probes") or {}), **ours.get("probes", {})}
+    cal.unit = {"name": ours["name"], **({"probes": probes} if probes else {})}
+
+
 def check_for_unit(cal: Any, cfg: FluxcalConfig) -> None:
     """The one check a calibration passes before the service uses it, by `apply`, reload or calibration.initial:
-    this unit's probes and physics (service.numerics.calib.plausible), and no effect terms (the service takes
-    those by `add-effect`, refitted on its own window: from a file they would be silently dropped)."""
+    made for this unit (service.wiring.identity: its name, its probes' serial numbers), this unit's probes and
+    physics (service.numerics.calib.plausible), and no effect terms (the service takes those by `add-effect`,
+    refitted on its own window: from a file they would be silently dropped). `apply` is also judged on the data
+    (identity.judge_on_data), which only the running service has."""
+    check_identity(cal, cfg)
     if cal.effects:
         raise DataError(f"fails the effects check: the calibration carries effect terms ({', '.join(cal.effects)}) "
                         f"that the running service cannot take from a file; use a calibration fitted without "
@@ -31,9 +45,11 @@ def check_for_unit(cal: Any, cfg: FluxcalConfig) -> None:
     check_calibration(cal, cfg.probe_names, cfg.calibration.limits())
 
 
-def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None]) -> Any:
-    """calibration.initial if given (whatever it was learned on: naming it says so), else the persisted
-    calibration.file if it reads and was learned on this unit and source kind, else None (learn online)."""
+def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None],
+                        refused: Callable[[], None] = lambda: None) -> Any:
+    """calibration.initial if given (learned on another source kind: naming it says so; made for another unit:
+    refused), else the persisted calibration.file if it reads and was learned on this unit and source kind, else
+    None (learn online). `refused()` is called when a persisted calibration is not taken (the summary counts it)."""
     c = cfg.calibration
     if c.initial:
         try:
@@ -60,10 +76,12 @@ def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None]) -> Any:
             cal = load_calibration(path)
             check_for_unit(cal, cfg)
         except DataError as e:
+            refused()
             say(f"ignoring the persisted calibration: {e}; learning online")
         else:
             origin = cal.diagnostics.get("learned_on")
             if isinstance(origin, dict) and origin != learned_on(cfg):
+                refused()
                 say(f"ignoring the persisted calibration {path}: it was learned on unit {origin.get('unit')} from a "
                     f"{origin.get('source')} source, this is unit {cfg.unit.name} on {learned_on(cfg)['source']}; "
                     f"learning online (to start from it anyway: calibration.initial = \"{path}\")")
