@@ -41,6 +41,9 @@ class UnitConfig:
     status_s: float = spec(10.0, min=0.1, max=3600.0, doc="`fluxcal run` says a status line on stderr this often")
     silence_s: float = spec(5.0, min=0.5, max=86400.0,
                             doc="nothing from the unit for this long is said (console, health, dashboard), and its end")
+    duplicate: str = spec("refuse", choices=("refuse", "suffix"),
+                          doc="when another live service holds this unit's name on the Zenoh network: refuse to "
+                              "start, naming it, or serve as <name>-2, <name>-3, ...")
 
     def validate(self, path: str) -> None:
         if not _UNIT_NAME.match(self.name):

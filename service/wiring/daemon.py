@@ -59,6 +59,16 @@ def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:
     return pl
 
 
+def rename_unit(cfg: FluxcalConfig, name: str) -> None:
+    """Serve under another unit name (unit.duplicate = "suffix"): the calibration persists under it too when its
+    file was the default one, so two services never share one state file."""
+    kind = str(getattr(cfg.source, "kind", "sim"))
+    default = Path(cfg.calibration.file)
+    if default.name == f"{cfg.unit.name}-{kind}-cal.json":
+        cfg.calibration.file = str(default.with_name(f"{name}-{kind}-cal.json"))
+    cfg.unit.name = name
+
+
 def open_configured_source(cfg: FluxcalConfig) -> Source:
     kind = getattr(cfg.source, "kind", "sim")
     if kind == "sim":
@@ -144,7 +154,13 @@ class Daemon:
         bus = None
         try:
             bus = ServiceBus(cfg.zenoh, unit=cfg.unit.name, probe_names=cfg.probe_names,
-                             state_fn=lambda: self._state(pipeline, source, sinks))
+                             state_fn=lambda: self._state(pipeline, source, sinks), duplicate=cfg.unit.duplicate,
+                             config=cfg.path)
+            if bus.unit != cfg.unit.name:                  # unit.duplicate = "suffix": another holds the name
+                rename_unit(cfg, bus.unit)                 # ... and its state: what is reloaded is this name's
+                self.calibrations_refused, notes = 0, [bus.claim_note]
+                pipeline = build_pipeline(cfg, initial_calibration(cfg, notes.append,
+                                                                   refused=self._calibration_refused))
             open_outputs(sinks, cfg, pipeline.calibration, bus, notes.append, self.say, self.extra_sinks)
             for note in notes:
                 self.say(note)
@@ -211,7 +227,9 @@ class Daemon:
     def _tick_health(self, source: Source, sinks: Sinks, bus, final: bool = False) -> None:
         """The health counters and the faults to every sink; at stop (final), with the summary of the run said."""
         health = self._health(source, sinks)
-        counted = {**health, "send_stalls": int(getattr(bus, "stats", {}).get("send_stalls", 0))}
+        stats = getattr(bus, "stats", {})
+        counted = {**health, "send_stalls": int(stats.get("send_stalls", 0)),
+                   "duplicate_holders": int(stats.get("duplicate_holders", 0))}
         faults = self._faults.tick(counted, sinks.recording())
         if final:
             faults["summary"] = self._faults.summary(counted, sinks.recording(), outputs=sinks.errors)
@@ -257,6 +275,7 @@ class Daemon:
             if now - last_health >= 1.0:
                 last_health = now
                 self._status.bus_refusals(bus)
+                self._status.holders(bus)
                 self._tick_health(source, sinks, bus)
                 self._status.tick(pipeline.state())
 

@@ -94,6 +94,8 @@ KINDS = (
                 quiet=True),
     CountedKind("commands_refused", "commands_refused", "commands refused",
                 "{n:,} command(s) refused, each said as it came", quiet=True),
+    CountedKind("duplicate_holders", "duplicate_holders", "another service under this unit's name",
+                "{n:,} other service(s) announced this unit's name on the network", quiet=True),
     CountedKind("stalls", "send_stalls", "a subscriber took nothing",
                 "the streams waited {n:,} time(s) for a subscriber that took nothing (health: bus.send_stalls)",
                 "a subscriber that takes nothing for zenoh.stall_close_ms is disconnected so that it holds back no "

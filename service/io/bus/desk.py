@@ -31,8 +31,10 @@ class Desk:
 
     def __init__(self, keys: Keys, stats: dict[str, int], *, state_fn: Callable[[], Mapping[str, Any]] | None,
                  published_state: Callable[[], dict[str, Any]], probe_names: Sequence[str] | None,
-                 command_queue_size: int, command_wait_s: float, state_grace_s: float) -> None:
+                 command_queue_size: int, command_wait_s: float, state_grace_s: float,
+                 identity: Mapping[str, Any] | None = None) -> None:
         self.keys, self.unit, self.stats = keys, keys.unit, stats
+        self.identity = dict(identity or {})       # who this service is (claim.service_identity): in every state
         self.state_fn = state_fn
         self.probe_names = probe_names
         self._published_state = published_state
@@ -132,6 +134,8 @@ class Desk:
         else:
             st, age = dict(cache[1]), now - cache[0]
         st.setdefault("unit", self.unit)
+        if self.identity:
+            st["service"] = self.identity
         st["bus"] = dict(self.stats)
         st["time_unix_s"] = time.time()
         st["stale"] = True
@@ -161,6 +165,8 @@ class Desk:
         """What a `state` query answers: state_fn() (or the last calibration and health published) + identity."""
         st = dict(self.state_fn()) if self.state_fn is not None else self._published_state()
         st.setdefault("unit", self.unit)
+        if self.identity:
+            st["service"] = self.identity
         if self.probe_names is not None:
             st.setdefault("probe_names", self.probe_names)
         st["bus"] = dict(self.stats)

@@ -70,6 +70,8 @@ def main(args: Namespace) -> int:
         with BusClient(session, unit, streams=[]) as client:
             answer = (client.query_state(timeout=args.timeout) if args.verb == "state"
                       else client.command(args.verb, payload, timeout=args.timeout))
+    if answer.get("warning"):                     # several services answered: each took the command
+        print(printable(f"fluxcal command: WARNING: {answer['warning']}"), file=sys.stderr)
     if getattr(args, "json", False):
         print(json.dumps(answer))
     elif args.verb == "state":

@@ -243,7 +243,8 @@ function renderCommands(v) {
   $("command-log").innerHTML = (v.commands || []).slice().reverse().map(c =>
     `<li class="${c.ok ? "good" : "bad"}" data-command="${esc(c.command)}" data-ok="${c.ok}">` +
     `${new Date(c.time_unix_s * 1000).toLocaleTimeString()} ${esc(c.command)} ${esc(c.payload || "")}: ` +
-    `${c.ok ? "ok" : "refused: " + esc(c.error || "")} (${num(1000 * c.round_trip_s, 0)} ms)</li>`).join("");
+    `${c.ok ? "ok" : "refused: " + esc(c.error || "")} (${num(1000 * c.round_trip_s, 0)} ms)` +
+    `${c.warning ? " — WARNING: " + esc(c.warning) : ""}</li>`).join("");
 }
 
 function renderDiagnosis(d, kept) {
