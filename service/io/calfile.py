@@ -18,9 +18,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
-import os
 import re
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +26,7 @@ import numpy as np
 
 from drivers.errors import DataError
 from drivers.inputs import read_small
+from drivers.outputs import replacing
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 
 FORMAT = "fluxcal.calibration"
@@ -76,22 +75,8 @@ def save_calibration(cal: ArrayCalibration, path: str | Path) -> None:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(calibration_to_dict(cal), indent=1, allow_nan=False)
-    fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=p.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text + "\n")
-            f.flush()
-            os.fsync(f.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)     # as any file the user writes (mkstemp makes it 0600)
-        os.replace(tmp, p)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    with replacing(p, "w", fsync=True) as f:          # a link at the path replaced, never written through
+        f.write(text + "\n")
 
 
 #: the largest calibration file or payload read (one written by `fit --out` is a few kB; with effects tens of kB)
