@@ -17,18 +17,16 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from drivers.block import SampleBlock
-from drivers.errors import ConfigError, DataError, DriverError, FluxcalError
+from drivers.errors import ConfigError, DriverError, FluxcalError
 from drivers.source import Source, open_source
 from drivers.text import printable
-from service.io.calfile import save_calibration
 
 from .config import RATE_MISSING, FluxcalConfig
 from .faults import FaultWatch
 from .input import BatchReader, RateCheck, Reconnecting
 from .pipeline import Pipeline, PipelineEvent
 from .sinks import BusSink, McapSink, Sink, Sinks, say_bus
-from .identity import judge_on_data
-from .startcal import calibration_from_payload, initial_calibration, stamp
+from .startcal import Keeper, initial_calibration
 from .status import StatusLog
 
 
@@ -59,14 +57,20 @@ def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:
     return pl
 
 
-def rename_unit(cfg: FluxcalConfig, name: str) -> None:
-    """Serve under another unit name (unit.duplicate = "suffix"): the calibration persists under it too when its
-    file was the default one, so two services never share one state file."""
+#: the bus's counters FaultWatch says beside the source's
+BUS_COUNTED = ("send_stalls", "duplicate_holders")
+
+
+def renamed(cfg: FluxcalConfig, name: str, note: Callable[[str], None], keeper: Keeper) -> Pipeline:
+    """Serve under the name the bus took (unit.duplicate = "suffix"): the calibration persists under it too when its
+    file was the default one (two services never share one state file), and the pipeline starts from that name's."""
     kind = str(getattr(cfg.source, "kind", "sim"))
     default = Path(cfg.calibration.file)
     if default.name == f"{cfg.unit.name}-{kind}-cal.json":
         cfg.calibration.file = str(default.with_name(f"{name}-{kind}-cal.json"))
     cfg.unit.name = name
+    keeper.calibrations_refused = 0                 # what was refused was the other name's
+    return build_pipeline(cfg, initial_calibration(cfg, note, refused=keeper.refused))
 
 
 def open_configured_source(cfg: FluxcalConfig) -> Source:
@@ -104,9 +108,8 @@ def _say(msg: str) -> None:
     read stderr has gone (`fluxcal run ... 2>&1 | head -3`, a closed terminal), the service goes on: the lines
     go to /dev/null from then on, and the health channel and the recording still say everything."""
     try:
-        # a payload's or a peer's words inside a line never act on the terminal or make a line of their own
-        print(f"fluxcal {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}: {printable(msg)}", file=sys.stderr,
-              flush=True)
+        print(f"fluxcal {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}: {printable(msg)}",   # a payload's
+              file=sys.stderr, flush=True)        # or a peer's words never act on the terminal nor make lines
     except (OSError, ValueError):        # BrokenPipeError; ValueError: stderr closed
         stderr_gone()
 
@@ -131,13 +134,10 @@ class Daemon:
         self.cfg = cfg
         self.stop = stop or threading.Event()
         self.say = say or _say
-        self.cal_path = Path(cfg.calibration.file)
         self.extra_sinks = list(sinks)
         self._reader = BatchReader(cfg.unit.block_ms, self.stop)
         self.processing_errors = 0            # blocks whose processing raised (their raw data are kept)
-        self.calibrations_refused = 0         # by apply, or the persisted one at start
-        self.persist_failures = 0             # saves of the calibration in use that failed
-        self._persist_said = ""               # the last such failure said (each new reason is said once)
+        self.keeper = Keeper(cfg, self.say)   # the calibrations refused, and the saves of the one in use
         self._faults = FaultWatch(self.say, silence_s=cfg.unit.silence_s, every_s=cfg.unit.status_s)
         self._last_processing_say = -1e9
         self._rate = RateCheck(cfg, self.say)
@@ -148,7 +148,7 @@ class Daemon:
 
         cfg = self.cfg
         notes: list[str] = []                 # said once the source, the bus and the recording are open
-        pipeline = build_pipeline(cfg, initial_calibration(cfg, notes.append, refused=self._calibration_refused))
+        pipeline = build_pipeline(cfg, initial_calibration(cfg, notes.append, refused=self.keeper.refused))
         source = open_configured_source(cfg)
         sinks = Sinks([], self.say)           # the recording first: a raw block is kept before anything else
         bus = None
@@ -157,10 +157,8 @@ class Daemon:
                              state_fn=lambda: self._state(pipeline, source, sinks), duplicate=cfg.unit.duplicate,
                              config=cfg.path)
             if bus.unit != cfg.unit.name:                  # unit.duplicate = "suffix": another holds the name
-                rename_unit(cfg, bus.unit)                 # ... and its state: what is reloaded is this name's
-                self.calibrations_refused, notes = 0, [bus.claim_note]
-                pipeline = build_pipeline(cfg, initial_calibration(cfg, notes.append,
-                                                                   refused=self._calibration_refused))
+                notes = [bus.claim_note]
+                pipeline = renamed(cfg, bus.unit, notes.append, self.keeper)
             open_outputs(sinks, cfg, pipeline.calibration, bus, notes.append, self.say, self.extra_sinks)
             for note in notes:
                 self.say(note)
@@ -220,16 +218,14 @@ class Daemon:
         messages an output failed to take: all outputs', and each failing output's own (`output_failures.<name>`,
         where the dashboard's health table shows them beside the others; in the summary at stop too)."""
         return {**source.counters.as_dict(), "processing_errors": self.processing_errors,
-                "commands_refused": self._status.refused, "calibrations_refused": self.calibrations_refused,
-                "persist_failures": self.persist_failures, "output_failures": sum(sinks.errors.values()),
+                "commands_refused": self._status.refused, "output_failures": sum(sinks.errors.values()),
+                **self.keeper.counts(),
                 **{f"output_failures.{name}": n for name, n in sinks.errors.items() if n}}
 
     def _tick_health(self, source: Source, sinks: Sinks, bus, final: bool = False) -> None:
         """The health counters and the faults to every sink; at stop (final), with the summary of the run said."""
         health = self._health(source, sinks)
-        stats = getattr(bus, "stats", {})
-        counted = {**health, "send_stalls": int(stats.get("send_stalls", 0)),
-                   "duplicate_holders": int(stats.get("duplicate_holders", 0))}
+        counted = {**health, **{k: int(getattr(bus, "stats", {}).get(k, 0)) for k in BUS_COUNTED}}
         faults = self._faults.tick(counted, sinks.recording())
         if final:
             faults["summary"] = self._faults.summary(counted, sinks.recording(), outputs=sinks.errors)
@@ -298,40 +294,9 @@ class Daemon:
         applied = ev.kind == "command" and ev.detail.get("name") == "apply"
         reset = ev.kind == "command" and ev.detail.get("name") == "reset"      # no longer held: persisted so
         if (ev.kind == "calibration" or applied or reset) and pipeline.calibration is not None:
-            self._persist(pipeline.calibration, applied)
+            self.keeper.persist(pipeline.calibration, applied)
         if ev.kind in ("gate", "calibration"):
             self._status.gate(ev.kind == "calibration" or bool(ev.detail.get("usable")), ev.detail.get("reasons", []))
-
-    def _calibration_refused(self) -> None:
-        self.calibrations_refused += 1
-
-    def _persist(self, cal, applied: bool) -> None:
-        """Save the calibration in use (reloaded at the next start; held again if applied). A failure is counted
-        (health: persist_failures, said by FaultWatch with its running count and in the summary) and its reason
-        said once: not at every check of the gate."""
-        try:
-            stamp(cal, self.cfg, applied)
-            save_calibration(cal, self.cal_path)
-        except OSError as e:
-            self.persist_failures += 1
-            why = f"could not persist the calibration to {self.cal_path}: {e}"
-            if why != self._persist_said:
-                self._persist_said = why
-                self.say(f"{why}; it stays in use, but a restart would not reload it (health: persist_failures)")
-
-    def _calibration_to_apply(self, payload: Any, pipeline: Pipeline):
-        """apply's calibration: its content checked for this unit and physics (startcal), then judged on the service's
-        own data (identity.judge_on_data); a refusal counted among the calibrations refused."""
-        try:
-            cal = calibration_from_payload(payload, self.cfg)
-            try:
-                judge_on_data(cal, pipeline, self.cfg)
-            except DataError as e:
-                raise DataError(f"apply: {e}; nothing was applied") from None
-        except DataError:
-            self.calibrations_refused += 1
-            raise
-        return cal
 
     def _apply_command(self, cmd, pipeline: Pipeline, sinks: Sinks) -> None:
         """Apply one command between blocks and answer it. Whatever the payload, the answer is ok or a refusal
@@ -340,7 +305,7 @@ class Daemon:
         try:
             payload = cmd.payload
             if cmd.name == "apply":
-                payload = self._calibration_to_apply(payload, pipeline)
+                payload = self.keeper.to_apply(payload, pipeline)
             ev = pipeline.command(cmd.name, payload, seq=seq, t_s=float("nan"))
             if cmd.name == "apply":
                 from service.io.calfile import calibration_to_dict

@@ -8,11 +8,11 @@ from pathlib import Path
 from typing import Any, Callable
 
 from drivers.errors import ConfigError, DataError
-from service.io.calfile import load_calibration
+from service.io.calfile import load_calibration, save_calibration
 from service.numerics.calib.plausible import check_calibration
 
 from .config import FluxcalConfig
-from .identity import check_identity, unit_identity
+from .identity import check_identity, judge_on_data, unit_identity
 
 
 def learned_on(cfg: FluxcalConfig) -> dict[str, str]:
@@ -124,3 +124,49 @@ def calibration_from_payload(payload: Any, cfg: FluxcalConfig | None = None):
         except DataError as e:
             raise DataError(f"apply: {e}; nothing was applied") from None
     return cal
+
+
+class Keeper:
+    """The running service's calibrations beyond the pipeline: `apply`'s calibration checked (calibration_from_payload)
+    and judged on the service's own data (identity.judge_on_data), the one in use saved (stamp), and what was
+    refused or could not be saved counted (health: calibrations_refused, persist_failures; FaultWatch says them
+    with their counts and in the summary at stop). A save's failure is said once for each reason, not at every
+    check of the gate."""
+
+    def __init__(self, cfg: FluxcalConfig, say: Callable[[str], None]) -> None:
+        self.cfg, self.say = cfg, say
+        self.calibrations_refused = 0       # by apply, or the persisted one at start
+        self.persist_failures = 0
+        self._said = ""
+
+    def counts(self) -> dict[str, int]:
+        return {"calibrations_refused": self.calibrations_refused, "persist_failures": self.persist_failures}
+
+    def refused(self) -> None:
+        self.calibrations_refused += 1
+
+    def to_apply(self, payload: Any, pipeline: Any) -> Any:
+        """apply's calibration, or a DataError saying why not (counted)."""
+        try:
+            cal = calibration_from_payload(payload, self.cfg)
+            try:
+                judge_on_data(cal, pipeline, self.cfg)
+            except DataError as e:
+                raise DataError(f"apply: {e}; nothing was applied") from None
+        except DataError:
+            self.calibrations_refused += 1
+            raise
+        return cal
+
+    def persist(self, cal: Any, applied: bool) -> None:
+        """Save the calibration in use (reloaded at the next start; held again if applied)."""
+        path = Path(self.cfg.calibration.file)
+        try:
+            stamp(cal, self.cfg, applied)
+            save_calibration(cal, path)
+        except OSError as e:
+            self.persist_failures += 1
+            why = f"could not persist the calibration to {path}: {e}"
+            if why != self._said:
+                self._said = why
+                self.say(f"{why}; it stays in use, but a restart would not reload it (health: persist_failures)")

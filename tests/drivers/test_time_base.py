@@ -19,6 +19,9 @@ from drivers.assemble import CanAssembler, CanSamples, FrameAssembler, SeqGapCou
 from drivers.source import Counters
 from service.wiring.faults import FaultWatch
 
+#: what this file tests besides what it imports (tests/index.py: every module findable from its test)
+COVERS = ("drivers.can_unwrap",)
+
 PERIOD_US = 5000           # 200 Hz
 N = 2
 

@@ -99,3 +99,32 @@ def test_a_session_alone_sees_no_holder_quickly():
     with open_session(ZenohConfig(listen=[f"tcp/127.0.0.1:{free_port()}"])) as s:
         t0 = time.monotonic()
         assert claim_mod.holders(s, claim_mod.Keys("nobody")) == [] and time.monotonic() - t0 < 2.5
+
+
+def test_fluxcal_run_configured_to_take_a_suffix_serves_under_it(tmp_path):
+    import threading
+
+    from test_unit_identity import Service
+
+    from service.wiring.config import load_config
+    from service.wiring.daemon import Daemon
+
+    with ExitStack() as stack:
+        (tmp_path / "a").mkdir()
+        first = Service(tmp_path / "a", stack)
+        copy = Path(first.cfg.path).read_text().replace(
+            f'listen = ["{first.endpoint}"]', f'listen = ["tcp/127.0.0.1:{free_port()}"]').replace(
+            "connect = []", f'connect = ["{first.endpoint}"]').replace("[unit]\n", '[unit]\nduplicate = "suffix"\n')
+        (tmp_path / "copy.toml").write_text(copy)
+        said: list[str] = []
+        second = Daemon(load_config(tmp_path / "copy.toml"), say=said.append)
+        thread = threading.Thread(target=second.run, daemon=True)
+        thread.start()
+        stack.callback(lambda: (second.stop.set(), thread.join(20)))
+        deadline = time.monotonic() + 20
+        while not any(m.startswith("publishing on zenoh under fluxcal/grad1-2/") for m in said):
+            assert time.monotonic() < deadline and thread.is_alive(), said
+            time.sleep(0.05)
+        assert any("unit name 'grad1' is held on this network by fluxcal on host" in m and "serving as 'grad1-2'" in m
+                   for m in said), said
+        assert first.client.query_state(timeout=5.0)["unit"] == "grad1"

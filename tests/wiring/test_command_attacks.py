@@ -37,7 +37,7 @@ from service.wiring.daemon import Daemon, build_pipeline
 from service.wiring.startcal import calibration_from_payload
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.numerics.calib.plausible",)
+COVERS = ("service.numerics.calib.plausible", "drivers.text")
 
 NAMES = ["s1", "s2"]
 

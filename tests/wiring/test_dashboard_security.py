@@ -20,6 +20,9 @@ from test_watch import Publisher, corrected_block
 from drivers.block import SampleBlock
 from service.wiring.dashboard import DashboardServer, Hub
 
+#: what this file tests besides what it imports (tests/index.py: every module findable from its test)
+COVERS = ("service.wiring.dashboard.guard",)
+
 
 class RecordingUnit(Publisher):
     """The service stand-in of tests/wiring/test_watch.py that also takes commands: each one is recorded and answered ok,

@@ -213,12 +213,12 @@ def test_a_calibration_file_that_is_a_folder_is_refused_at_start_and_a_failed_sa
     def full(*a, **k):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr("service.wiring.daemon.save_calibration", full)
+    monkeypatch.setattr("service.wiring.startcal.save_calibration", full)
     for _ in range(3):
         cmd = _Cmd("apply", json.dumps(good_calibration()))
         daemon._apply_command(cmd, pipeline, Sinks([], said.append))
         assert cmd.answer["ok"] is True                             # in use; only its saving failed
-    assert len([m for m in said if "could not persist" in m]) == 1 and daemon.persist_failures == 3
+    assert len([m for m in said if "could not persist" in m]) == 1 and daemon.keeper.persist_failures == 3
     from service.wiring.faults import FaultWatch
 
     lines = FaultWatch(said.append).summary({"frames_accepted": 10, "persist_failures": 3,

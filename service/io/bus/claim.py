@@ -86,6 +86,27 @@ def free_name(session: zenoh.Session, unit: str, duplicate: str) -> tuple[str, s
                    f"unit its own name (unit.name), stop the other, or set unit.duplicate = \"suffix\"")
 
 
+def take_name(bus: Any, zenoh_cfg: Any, duplicate: str) -> None:
+    """Serve `bus` (a ServiceBus whose session is open) under its unit's name only if no other live service holds it:
+    free_name's answer, with the bus's session opened again for a new name (its access rules name the unit)."""
+    name, bus.claim_note = free_name(bus.session, bus.unit, duplicate)
+    if name == bus.unit:
+        return
+    if bus._own_session:
+        bus._release()
+        bus._hold(zenoh_cfg, name)
+    bus.unit, bus.keys = name, Keys(name)
+
+
+def other_holders(watch: "Watch | None", stats: dict[str, int]) -> list[str]:
+    """The zenoh ids of other live services announcing the name `watch` holds; stats["duplicate_holders"]: how
+    many appeared since it started."""
+    if watch is None:
+        return []
+    stats["duplicate_holders"] = watch.appeared
+    return watch.live_others()
+
+
 class Watch:
     """This service's holder token, and the other holders that appear while it runs (a liveliness subscriber whose
     callback only notes them: zenoh callbacks never block or call zenoh)."""

@@ -133,14 +133,7 @@ class Desk:
             age = None
         else:
             st, age = dict(cache[1]), now - cache[0]
-        st.setdefault("unit", self.unit)
-        if self.identity:
-            st["service"] = self.identity
-        st["bus"] = dict(self.stats)
-        st["time_unix_s"] = time.time()
-        st["stale"] = True
-        st["state_age_s"] = age
-        return st
+        return self._stamped(st, stale=True, age=age)
 
     # --- the service's thread ------------------------------------------------------------------
 
@@ -164,15 +157,17 @@ class Desk:
     def state(self) -> dict[str, Any]:
         """What a `state` query answers: state_fn() (or the last calibration and health published) + identity."""
         st = dict(self.state_fn()) if self.state_fn is not None else self._published_state()
+        if self.probe_names is not None:
+            st.setdefault("probe_names", self.probe_names)
+        return self._stamped(st, stale=False, age=0.0)
+
+    def _stamped(self, st: dict[str, Any], *, stale: bool, age: float | None) -> dict[str, Any]:
+        """A state with who answers it (the unit, this service: claim.service_identity), the bus's counters, when
+        and whether it is the last one computed (stale) and how old."""
         st.setdefault("unit", self.unit)
         if self.identity:
             st["service"] = self.identity
-        if self.probe_names is not None:
-            st.setdefault("probe_names", self.probe_names)
-        st["bus"] = dict(self.stats)
-        st["time_unix_s"] = time.time()
-        st["stale"] = False
-        st["state_age_s"] = 0.0
+        st.update(bus=dict(self.stats), time_unix_s=time.time(), stale=stale, state_age_s=age)
         return st
 
     def reply_state(self, q: zenoh.Query, st: dict[str, Any] | Exception) -> None:

@@ -71,9 +71,8 @@ class ServiceBus(SessionHolder):
                  express: bool | None = None, command_queue_size: int = 32,
                  command_wait_s: float = COMMAND_WAIT_S, state_grace_s: float = STATE_GRACE_S,
                  send_backlog_bytes: int = SEND_BACKLOG_BYTES, duplicate: str = "refuse", config: str = "") -> None:
-        """`duplicate`: what to do when another live service holds `unit` on the network ("refuse": BusError naming
-        it; "suffix": serve as unit-2, ... and say so in `claim_note`; service.io.bus.claim); `config`: the
-        configuration's path, said to another service that finds this one holding the name."""
+        """`duplicate`, `config`: when another live service holds `unit`, refuse or take a suffix (claim_note says
+        which), and the configuration's path said to one that finds this holding it (service.io.bus.claim)."""
         self.keys = Keys(unit)
         self.unit = unit
         self.claim_note = ""
@@ -102,7 +101,7 @@ class ServiceBus(SessionHolder):
         self._hold(zenoh_cfg, self.keys.unit)
         self._express = bool(express)
         try:
-            self._claim(zenoh_cfg, duplicate)
+            claim.take_name(self, zenoh_cfg, duplicate)
             self.identity = claim.service_identity(self.session, config)
             self._pubs = {name: self._declare_pub(self.keys.stream(name), s) for name, s in STREAMS.items()}
             for name in (self.probe_names or []) if self.per_probe else []:
@@ -121,23 +120,9 @@ class ServiceBus(SessionHolder):
             self.close()
             raise
 
-    def _claim(self, zenoh_cfg: Any, duplicate: str) -> None:
-        """Serve under the unit's name only if no other live service holds it (service.io.bus.claim)."""
-        name, self.claim_note = claim.free_name(self.session, self.unit, duplicate)
-        if name == self.unit:
-            return
-        if self._own_session:             # the session's access rules name the unit: opened again for the new name
-            self._release()
-            self._hold(zenoh_cfg, name)
-        self.unit, self.keys = name, Keys(name)
-
     def other_holders(self) -> list[str]:
-        """The zenoh ids of other live services that announce this unit's name (appeared since this one started);
-        the bus's stats count them (duplicate_holders)."""
-        if self._watch is None:
-            return []
-        self.stats["duplicate_holders"] = self._watch.appeared
-        return self._watch.live_others()
+        """The zenoh ids of other live services announcing this unit's name (stats: duplicate_holders)."""
+        return claim.other_holders(self._watch, self.stats)
 
     def _declare_pub(self, key: str, s: StreamSpec) -> zenoh.Publisher:
         pub = self.session.declare_publisher(
