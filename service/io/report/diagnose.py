@@ -166,6 +166,36 @@ def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
     candidates = _candidates_figure(plt, d)
     if candidates is not None:
         figs.append(candidates)
+    return figs + _shape_figures(plt, d)
+
+
+def _shape_figures(plt, d: Diagnosis) -> list[tuple[str, str, bytes]]:
+    """Each law discovery found: the partial residual against its observable (the residual with the law's field added
+    back, along its direction, in bins with their standard errors) and the law's field with its band of two standard
+    errors, per probe (shape_reading.partial_residual)."""
+    found = getattr(d, "discovery", None)
+    figs = []
+    for j, g in enumerate(g for g in (found.groups if found is not None and found.claimed else [])
+                          if g.parts.get("partial")):
+        fig, ax = plt.subplots(figsize=(7.5, 3.8))
+        for k, part in enumerate(g.parts["partial"]):
+            colour = f"C{k}"
+            ax.errorbar(part["x"], part["mean_nT"], yerr=part["stderr_nT"], fmt="o", ms=3, color=colour,
+                        label=f"{part['probe']}: residual + the law's field, along it")
+            law = np.asarray(part["law_nT"])
+            band = np.asarray(part["band_nT"])
+            ax.plot(part["grid"], law, "-", color=colour, label=f"{part['probe']}: {g.parts['law']} found")
+            ax.fill_between(part["grid"], law - band, law + band, color=colour, alpha=0.2)
+        unit = g.group.feature.unit
+        ax.set_xlabel(f"{g.group.feature.observable}" + (f" ({unit})" if unit and unit != g.group.feature.observable
+                                                          else ""))
+        ax.set_ylabel("field along the law's direction (nT)")
+        ax.set_title(f"{g.group.feature.observable}: {g.parts['law']} (band: 2 standard errors)")
+        ax.legend(loc="best", fontsize=8)
+        ax.grid(alpha=0.3)
+        figs.append((f"shape_{j + 1}.png", f"What discovery found of {g.group.feature.observable}: the partial "
+                     f"residual against it, and the {g.parts['law']} with its band", png(fig)))
+        plt.close(fig)
     return figs
 
 

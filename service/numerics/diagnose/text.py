@@ -128,11 +128,18 @@ def discovery_lines(d: Diagnosis) -> list[str]:
         return []
     out = ["", f"  beyond the catalogue (discovery: {f.tried} groups of {f.tried_params} parameters built from what "
                f"the data carry, chosen inside training blocks):"]
+    for hz, (col, how) in getattr(f, "harmonics", {}).items():
+        out.append(f"    the residual's line at {hz:.4g} Hz is {col}'s motion ({how}): {col}'s shapes take it, never a "
+                   f"wave of its own")
     if not f.claimed:
         out.append(f"    nothing claimed: {f.reason}")
         return out
     for g in f.groups:
         out.append(f"    {g.reading}")
+    for form in getattr(f, "forms", []):
+        tried = "; ".join(f"{t['form']} {t['parameters']}, {t['heldout_rms_nT']:.4g}" for t in form["forms"])
+        out.append(f"    the shape of {form['observable']} kept as {form['chosen']}, the smallest that no other form "
+                   f"predicts better on the held-out blocks (form, parameters, held-out nT: {tried})")
     out.append(f"    with {'it' if len(f.groups) == 1 else 'them'}: residual {f.rms_nT:.3f} nT, held-out "
                f"{f.heldout_rms_nT:.3f} nT (from {f.base_heldout_rms_nT:.3f}) against a {f.floor_nT:.3f} nT floor; "
                f"the search itself, every choice made without the block it predicts, takes {100 * f.cv_gain:.1f} % "

@@ -95,6 +95,12 @@ def register_effect(cls: object, origin: str = "") -> str:
         raise ConfigError(f"--effects: {where}{cls.__name__}.name = {name!r} is taken by "
                           f"{_ORIGIN.get(name, taken.__module__ + '.' + taken.__name__)} (allowed: a name not in "
                           f"{', '.join(known_effects())})")
+    beside = getattr(cls, "beside", ())
+    unknown = [b for b in beside if not isinstance(b, str) or b not in known_effects()] if isinstance(
+        beside, (tuple, list)) else [beside]
+    if unknown:
+        raise ConfigError(f"--effects: {where}{cls.__name__}.beside = {beside!r} is not allowed (allowed: a tuple of "
+                          f"effect names: {', '.join(known_effects())})")
     linear = cls.columns is not EffectTerm.columns
     nonlinear = cls.correction is not EffectTerm.correction and cls.jacobian is not EffectTerm.jacobian
     if not (linear or nonlinear or cls.shared_names is not EffectTerm.shared_names):

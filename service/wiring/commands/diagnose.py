@@ -29,7 +29,9 @@ from service.wiring.commands.options import (  # noqa: E402
     CONFIG_HELP,
     DATA_HELP,
     EFFECT_NAMES,
+    EFFECT_SPECS,
     OWN_EFFECT,
+    PATH,
     CommandHelp,
     data_options,
     effect_names,
@@ -76,16 +78,17 @@ def add_options(p: argparse.ArgumentParser) -> None:
 class DiagnoseOptions:
     """What `diagnose` is asked to do with one recording (the command line's options, or a fleet's)."""
 
-    effects: list[str] = field(default_factory=list)
-    calibration: str | None = None        # a calibration file held fixed
-    config: str | None = None
+    effects: list[str] = field(default_factory=list, metadata=EFFECT_SPECS)
+    calibration: str | None = field(default=None, metadata=PATH)  # a calibration file held fixed
+    config: str | None = field(default=None, metadata=PATH)
     site: str | None = None
     skip: list[tuple[float, float]] | None = None
     topics: dict[str, str | None] | None = None   # another ecosystem's log: what becomes what
     mags: tuple[int, ...] | None = None
     max_samples: int | None = None        # None: the default budget of probe-samples; 0: all
-    report: str | None = None             # the folder of an HTML report
-    write_effect: str | None = None       # where to write a discovered term as an effect module
+    report: str | None = field(default=None, metadata=PATH)  # the folder of an HTML report
+    # where to write a discovered term as an effect module
+    write_effect: str | None = field(default=None, metadata=PATH)
 
 
 @dataclass

@@ -23,8 +23,10 @@ from service.wiring.commands.options import (
     ALIGNS,
     CONFIG_HELP,
     DATA_HELP,
+    EFFECT_SPECS,
     EFFECTS_HELP,
     METHODS,
+    PATH,
     CommandHelp,
     data_options,
     effect_names,
@@ -78,14 +80,14 @@ class FitOptions:
 
     method: str = "ellipsoid"
     align: str | None = None
-    effects: list[str] = field(default_factory=list)
-    config: str | None = None
+    effects: list[str] = field(default_factory=list, metadata=EFFECT_SPECS)
+    config: str | None = field(default=None, metadata=PATH)
     site: str | None = None
     skip: list[tuple[float, float]] | None = None
     topics: dict[str, str | None] | None = None   # another ecosystem's log: what becomes what
     mags: tuple[int, ...] | None = None
-    out: str | None = None                # the calibration file to write
-    report: str | None = None             # the folder of an HTML report
+    out: str | None = field(default=None, metadata=PATH)  # the calibration file to write
+    report: str | None = field(default=None, metadata=PATH)  # the folder of an HTML report
 
 
 @dataclass

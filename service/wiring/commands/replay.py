@@ -38,7 +38,7 @@ from service.io.recordings.labdata import check_one_run
 from service.io.recordings.reader import read_recording
 from service.io.recordings.repair import repair_notes
 from service.wiring.commands.notes import check_output_file, check_output_folder
-from service.wiring.commands.options import CommandHelp, fleet_help, fleet_options
+from service.wiring.commands.options import PATH, CommandHelp, fleet_help, fleet_options
 from service.wiring.config import config_from_dict, load_config, rate_stated
 from service.wiring.daemon import build_pipeline
 from service.wiring.prepare import say_read_warnings
@@ -108,9 +108,10 @@ def _with_rate(raw: dict, recording: str, said: Said) -> dict:
 
 @dataclass
 class ReplayOptions:
-    config: str | None = None             # replay with this configuration (default: the one stored)
-    out: str | None = None                # also record the replay here
-    ros2_out: str | None = None           # also write the corrected vectors as a ROS 2 bag (a folder) here
+    config: str | None = field(default=None, metadata=PATH)  # replay with this configuration (default: the one stored)
+    out: str | None = field(default=None, metadata=PATH)  # also record the replay here
+    # also write the corrected vectors as a ROS 2 bag (a folder) here
+    ros2_out: str | None = field(default=None, metadata=PATH)
 
 
 @dataclass

@@ -264,8 +264,11 @@ function renderDiagnosis(d, kept) {
     (d.discovery ? `<p id="discovery">beyond the catalogue: ${esc(d.discovery.sentence || "")}` +
       (d.effect_module ? ` <a id="effect-download" href="/api/effect?unit=${encodeURIComponent(unit)}" ` +
         `download>write it as an effect of your own (.py)</a>` : "") + `</p>` : "") +
+    ((d.discovery && d.discovery.shapes) || []).map((s, i) =>
+      `<canvas class="shape" id="shape-${i}" data-observable="${esc(s.observable)}"></canvas>`).join("") +
     `<p class="muted" id="diagnosis-given">${esc(d.given || "")}</p>` +
     `<details><summary>full text (${d.n_samples} samples, ${num(d.duration_s, 0)} s)</summary><pre>${esc(d.text)}</pre></details>`;
+  ((d.discovery && d.discovery.shapes) || []).forEach((s, i) => window.fluxplot.drawShape($("shape-" + i), s));
 }
 
 function renderHealth(v) {
