@@ -49,6 +49,7 @@ FILE_COMMANDS = {
     "simulate --out csv": (lambda i, o: ["simulate", "--out", str(o / "s.csv")], ["s.csv", "s.truth.json"]),
     "simulate --out mcap": (lambda i, o: ["simulate", "--out", str(o / "s.mcap")], ["s.mcap", "s.truth.json"]),
     "simulate --out bin": (lambda i, o: ["simulate", "--out", str(o / "s.bin")], ["s.bin", "s.truth.json"]),
+    "simulate --out log": (lambda i, o: ["simulate", "--out", str(o / "s.log")], ["s.log", "s.truth.json"]),
     "decode --out csv": (lambda i, o: ["decode", str(i.capture), "--probes", "2", "--out", str(o / "d.csv")],
                          ["d.csv"]),
     "decode --out mcap": (lambda i, o: ["decode", str(i.capture), "--probes", "2", "--out", str(o / "d.mcap")],
@@ -74,6 +75,7 @@ FOLDER_COMMANDS = {
     "diagnose --report": lambda i, d: ["diagnose", str(i.csv), "--report", str(d)],
     "replay --ros2-out": lambda i, d: ["replay", str(SAMPLE), "--ros2-out", str(d)],
     "repair (a folder of files)": lambda i, d: ["repair", str(SAMPLE.parent), str(d)],
+    "fit of several --out": lambda i, d: ["fit", str(i.csv), str(SAMPLE), "--out", str(d)],
 }
 
 
