@@ -12,7 +12,11 @@ which is a process's maximum). Worlds:
 - bench_discovery_cost.py's: a tumble of 4 probes at 200 Hz with a temperature effect the catalogue explains and three
   logged columns, discovery forced on; the same with a heater coupled into s2 through a lag of 60 s (discovery runs by
   itself and claims);
-- a real recording (--real, default: $FLUXCAL_REAL_DATA/big_mag_25cols.csv): diagnose as a user runs it.
+- a simulated array of 50,000 rows with 25 logged columns that wander (tests/shape_worlds.py), and a real recording
+  (--real, default: ../shared/real-data/qmc5883l_suarez.csv, 19,745 rows) with 25 such columns added: diagnose as a
+  user runs it, discovery forced. No public recording of a real magnetometer with 50,000 rows and 25 columns was found (a search of
+  public repositories, 2026-12-06: the largest with 25 columns had 40,609 rows of a rocket's launch, the longest
+  magnetometer logs fewer columns).
 """
 
 from __future__ import annotations
@@ -31,20 +35,31 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 BASELINE = "9261922"          # main before issue 36 and 40 (stop 34's last commit)
+#: a recording as wide as a user's flight log: rows and logged columns (no public recording of a real magnetometer
+#: with 50,000 rows and 25 columns was found: the real one gets 25 wandering columns, the wide world is simulated)
+WIDE_ROWS = 50_000
+WIDE_COLUMNS = 25
 
 
-def one(world: str, samples: int, probes: int, real: str | None) -> dict:
+def one(world: str, samples: int, probes: int, real: str | None, worlds: str) -> dict:
     sys.path.insert(0, str(HERE))
-    sys.path.insert(0, str(ROOT / "tests"))
+    sys.path.insert(0, worlds)                     # this checkout's tests/: the worlds, whichever code runs them
     import numpy as np
 
     from service.numerics.diagnose import diagnose
 
     if world == "real":
+        from shape_worlds import wandering
+
         from service.io.recordings.load import load_data
         from service.numerics.engine import as_effect_data
 
-        data, discover = as_effect_data(load_data(real)), None
+        data, discover = as_effect_data(load_data(real)), True
+        data.extras.update(wandering(data.t_s, WIDE_COLUMNS, 7))
+    elif world == "wide":
+        from shape_worlds import shape_world
+
+        data, discover = shape_world(None, 5, n=WIDE_ROWS, wander=WIDE_COLUMNS - 6), True
     else:
         from bench_diagnose import world_data
         from discovery_worlds import _columns
@@ -88,8 +103,8 @@ def tree(rev: str, into: Path) -> Path:
 def run(code: Path, world: str, args: argparse.Namespace) -> dict:
     env = {**os.environ, "PYTHONPATH": str(code)}
     out = subprocess.run([sys.executable, str(code / "bench" / "bench_shape_cost.py"), "--one", world, "--samples",
-                          str(args.samples), "--probes", str(args.probes)] + (["--real", args.real] if args.real
-                                                                               else []),
+                          str(args.samples), "--probes", str(args.probes), "--worlds", str(ROOT / "tests")]
+                         + (["--real", args.real] if args.real else []),
                          env=env, capture_output=True, text=True, check=True, cwd=str(code))
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -100,17 +115,20 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=100_000)
     ap.add_argument("--probes", type=int, default=4)
     ap.add_argument("--real", default=None, help="a real recording (CSV, MCAP, log) to diagnose")
-    ap.add_argument("--one", choices=("explained", "coupled", "real"))
+    ap.add_argument("--one", choices=("explained", "coupled", "wide", "real"))
+    ap.add_argument("--worlds", default=str(ROOT / "tests"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:
-        print(json.dumps(one(args.one, args.samples, args.probes, args.real)))
+        print(json.dumps(one(args.one, args.samples, args.probes, args.real, args.worlds)))
         return
     from bench_diagnose import machine
 
     if args.real is None:
-        folder = os.environ.get("FLUXCAL_REAL_DATA", "")
-        candidate = Path(folder) / "big_mag_25cols.csv" if folder else None
-        args.real = str(candidate) if candidate is not None and candidate.is_file() else None
+        sys.path.insert(0, str(ROOT / "tests"))
+        from real_data import find
+
+        found = find("qmc5883l_suarez.csv")
+        args.real = str(found) if found is not None else None
     print(f"machine: {machine()}")
     print(f"baseline: {args.baseline}; this: {subprocess.run(['git', '-C', str(ROOT), 'rev-parse', '--short', 'HEAD'], capture_output=True, text=True).stdout.strip()} (work tree)")
     with tempfile.TemporaryDirectory() as tmp:
@@ -118,12 +136,14 @@ def main() -> None:
         # the baseline runs this very script (its tree may not have it), importing the baseline's service
         (old / "bench" / "bench_shape_cost.py").write_text(Path(__file__).read_text())
         worlds = [("explained", "catalogue-explained world, discovery forced"),
-                  ("coupled", "a heater coupled through a lag, discovery by itself")]
+                  ("coupled", "a heater coupled through a lag, discovery by itself"),
+                  ("wide", f"a simulated array of {WIDE_ROWS:,} rows with {WIDE_COLUMNS} logged columns, as a user runs "
+                           f"it, discovery forced")]
         if args.real:
-            worlds.append(("real", f"real recording {Path(args.real).name}"))
+            worlds.append(("real", f"the real recording {Path(args.real).name} with {WIDE_COLUMNS} logged columns "
+                                   f"(wandering) added, discovery forced"))
         else:
-            print("no real recording of 50,000 rows with 25 columns: give --real FILE (or $FLUXCAL_REAL_DATA/"
-                  "big_mag_25cols.csv)")
+            print("no real recording: give --real FILE (../shared/real-data/qmc5883l_suarez.csv by default)")
         for world, label in worlds:
             b, n = run(old, world, args), run(ROOT, world, args)
             assert b["code"] == str(old) and n["code"] == str(ROOT), (b["code"], n["code"])

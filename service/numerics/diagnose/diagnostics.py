@@ -117,14 +117,15 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     # 5. the verdict in kinds, per channel as well as over all, and what is left described (signature.py)
     best = next((c for c in cands if c.significant and c.fit is not None), None)
     carried = Carried.of(ed)
-    left_where, above = _left(ed, best, cur, cur_ho, where, noise)
+    left_where, above, held_above = _left(ed, best, cur, cur_ho, where, noise)
     told = verdict(cur.rms_nT, noise_nT, best, _what_is_left(ed, best, sig_cur, noise, noise_nT, left_where, above),
                    carried, above)
 
     # 6. beyond the catalogue: the library of terms the data allow (discover.py), where the catalogue leaves an excess:
     # a channel above its floor, a family of them, or a residual that still follows what the data carry
     found = None
-    if discover or (discover is None and _excess_left(told, best.fit if best is not None else cur, noise, left_where)):
+    if discover or (discover is None and (held_above or _excess_left(told, best.fit if best is not None else cur, noise,
+                                                                      left_where))):
         tell(0.93, "discovery beyond the catalogue")
         found, told, cands = _beyond_catalogue(ed, model, cur, cur_ho, cands, told, sig_cur, carried, reference,
                                                weights, n_blocks, noise, noise_nT, tell)
@@ -192,14 +193,15 @@ def _what_is_left(ed, best, sig_cur: dict, noise: np.ndarray, noise_nT: float, w
 
 
 def _left(ed: Any, best: Candidate | None, cur: Any, cur_ho: Any, where: list[dict],
-          noise: np.ndarray) -> tuple[list[dict], list[dict]]:
+          noise: np.ndarray) -> tuple[list[dict], list[dict], list[dict]]:
     """(what the residual of the best model found follows (where.py), the channels it leaves above their own floor
-    on the held-out blocks (signature.channels_above))."""
-    if best is None:
-        return where, channels_above(cur, cur_ho.channel_rms_nT, noise, where)
-    left_where = where_it_fails(ed, best.fit, noise)
-    held = best.heldout_channels_nT if best.heldout_channels_nT is not None else best.fit.channels.rms_nT
-    return left_where, channels_above(best.fit, held, noise, left_where)
+    (signature.channels_above: held out and in the fit, for the verdict; held out alone, for discovery))."""
+    fit, held, left_where = cur, cur_ho.channel_rms_nT, where
+    if best is not None:
+        fit, left_where = best.fit, where_it_fails(ed, best.fit, noise)
+        held = best.heldout_channels_nT if best.heldout_channels_nT is not None else best.fit.channels.rms_nT
+    return (left_where, channels_above(fit, held, noise, left_where),
+            channels_above(fit, held, noise, held_out_only=True))
 
 
 def _excess_left(told: dict[str, Any], fit: Any, noise: np.ndarray, where: list[dict]) -> bool:

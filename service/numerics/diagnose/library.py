@@ -405,17 +405,20 @@ def build_library(data: EffectData, fit: Any, noise: np.ndarray) -> Library:
     shapes: dict[int, list[Feature]] = {k: [] for k in range(data.n_probes)}     # smooth functions (shapes.py)
     for k, f in temperature_features(data):
         raw = f.values + f.recipe["centre"]
-        per_probe[k] += [f] + _low_passed(data, f, raw, taus)
-        shapes[k] += shape_features(f, raw)
+        lagged = _low_passed(data, f, raw, taus)
+        per_probe[k] += [f] + lagged
+        shapes[k] += shape_features(f, raw) + [s for g in lagged for s in shape_features(g, g.values + g.recipe["centre"])]
         if f.borrowed:
             borrowed[names[k]] = f.borrowed
     cols = usable_columns(data)
-    column_features, column_shapes = [], []
+    column_features, column_shapes, lag_shapes = [], [], []
     for c, v in cols.items():
         raw = column_values(data, c)
         f = Feature(c, c, c, "value", {"source": "column", "column": c, "centre": float(np.mean(raw))}, v)
-        column_features += [f] + _low_passed(data, f, raw, taus)
+        lagged = _low_passed(data, f, raw, taus)
+        column_features += [f] + lagged
         column_shapes += shape_features(f, raw)
+        lag_shapes += [s for g in lagged for s in shape_features(g, g.values + g.recipe["centre"])]
     shared += column_features
     t, tc = _centred((data.t_s - data.t_s[0]) / 3600.0)
     time_f = Feature("time", "time", "h", "value", {"source": "time", "centre": tc}, t)
@@ -436,7 +439,7 @@ def build_library(data: EffectData, fit: Any, noise: np.ndarray) -> Library:
         pname = names[k]
         for f in per_probe[k] + column_features + extra:
             groups += [Group(kind, k, pname, f) for kind in ("offset", "scale", "matrix")]
-        groups += [Group("shape", k, pname, f) for f in shapes[k] + column_shapes + extra_shapes]
+        groups += [Group("shape", k, pname, f) for f in shapes[k] + column_shapes + lag_shapes + extra_shapes]
         groups.append(Group("matrix", k, pname, time_f))
         groups += [Group("wave", k, pname, f) for f in waves]
         rate = data.rate(k)

@@ -245,14 +245,17 @@ def read_law_group(term: Any, fit: FitResult) -> FoundGroup:
     data = fit.problem.data
     values, _, _ = law_parameters(term, fit)
     r = term.recipe
-    obs = r.get("of", r.get("column", r["source"]))
+    name = r.get("of", r.get("column", r["source"]))                 # "heater_A low-passed 37 s", "s2_temp"
+    obs = {"temperature": f"{r.get('probe_name', data.probe_names[r.get('probe', 0)])}_temp", "column": r.get("column"),
+           "ref_total": "ref_total"}.get(r["source"], r["source"])
     names = [data.probe_names[k] for k in term.probes]
     recipe = {**r, "law": term.law.name if term.law else None, "reference": term.ctx, "probes": names,
               "values": [float(v) for v in values], "unit": term.unit, "fixed": term.fixed}
-    feature = Feature(obs, obs, term.unit, "law", recipe, np.zeros(data.n_samples), per_sample=term.per_sample)
+    feature = Feature(name, obs, term.unit, "law", recipe, np.zeros(data.n_samples), per_sample=term.per_sample)
     group = Group("law", term.probes[0] if len(term.probes) == 1 else None, ", ".join(names), feature)
     _, cov = covariance(fit, term.name)
-    reading, parts = read_law(term, fit, _source(Feature(obs, obs, term.unit, "value", r, np.zeros(1))), cov)
+    how = "low-passed" if "low_pass_s" in r else "value"              # a law of the observable through its lag
+    reading, parts = read_law(term, fit, _source(Feature(name, obs, term.unit, how, r, np.zeros(1))), cov)
     params = [p for p in fit.parameters() if p.term == term.name]
     return FoundGroup(group, term.name, params, reading, parts)
 

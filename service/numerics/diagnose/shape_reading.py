@@ -19,7 +19,17 @@ TABLE_POINTS = 9
 
 
 def observable_values(data: Any, recipe: dict[str, Any]) -> np.ndarray:
-    """(N,) the observable a feature's recipe follows, as the library took it (gaps filled)."""
+    """(N,) the observable a feature's recipe follows, as the library took it (gaps filled; through its first-order
+    lag where the recipe has one)."""
+    x = _raw_observable(data, recipe)
+    if "low_pass_s" in recipe:
+        from service.numerics.effects.thermal import low_pass
+
+        x = low_pass(data.t_s, x, float(recipe["low_pass_s"]))
+    return x
+
+
+def _raw_observable(data: Any, recipe: dict[str, Any]) -> np.ndarray:
     from service.numerics.effects.column import column_values
 
     src = recipe["source"]
@@ -140,13 +150,14 @@ def read_law(term: Any, fit: Any, source: str, cov: np.ndarray | None = None) ->
     u = u * np.sign(u[np.argmax(np.abs(u))])
     probe_names = [data.probe_names[k] for k in term.probes]
     angles = [float(np.degrees(np.arccos(np.clip(abs(a @ u) / max(np.linalg.norm(a), 1e-300), -1, 1)))) for a in amps]
-    # along u at each probe over the range: from its value at the low end to the high end, nT
-    moves = [(float(f[0] * (a @ u)), float(f[-1] * (a @ u))) for a in amps]
+    # along u at each probe over the range: from its value at the low end to the high end (through its extreme
+    # between them, where it turns), nT
+    moves = [(float(f[0] * (a @ u)), float(f[-1] * (a @ u)), _turn(f * (a @ u))) for a in amps]
     parts: dict[str, Any] = {"law": term.law.name if term.law else "shape", "probes": probe_names,
                              "field_nT": amps.tolist(), "field_stderr_nT": se[:n_amp].reshape(-1, 3).tolist(),
                              "direction": u.tolist(), "angle_to_direction_deg": angles, "reference": term.ctx["ref"],
                              "range": [lo, hi], "grid": grid.tolist(), "function": f.tolist(),
-                             "moves_nT": [list(m) for m in moves],
+                             "moves_nT": [[m[0], m[1]] for m in moves],
                              "parameters": {n: {"value": float(v), "stderr": None if not np.isfinite(e) else float(e)}
                                             for n, v, e in zip(names[n_amp:], values[n_amp:], se[n_amp:])}}
     if cov is not None:
@@ -154,14 +165,16 @@ def read_law(term: Any, fit: Any, source: str, cov: np.ndarray | None = None) ->
     unit = term.unit
 
     def move(i: int) -> str:
-        a, b = moves[i]
-        own = f"{probe_names[i]} from {a:.3g} to {b:.3g} nT"
+        a, b, via = moves[i]
+        own = f"{probe_names[i]} from {a:.3g}" + (f" through {via:.3g}" if via is not None else "") + f" to {b:.3g} nT"
         if i == main:
             return own
         return own + (f" ({sizes[i] / max(sizes[main], 1e-300):.2f} of {probe_names[main]}'s, "
                       f"{angles[i]:.0f} deg from its direction)")
+    # a lagged observable is long to say: x in the law, said once
+    x = "x" if " " in source else source
     head = (f"a field along the platform's {_vector_text(u)} that moves at {'; '.join(move(i) for i in range(len(moves)))} "
-            f"as {source} goes from {lo:.3g} to {hi:.3g} {unit}")
+            f"as {source if x == source else f'x = {source},'} goes from {lo:.3g} to {hi:.3g} {unit}")
     if term.law is None:
         return (f"{head}, following one smooth function of {source} that none of the laws takes (a spline of "
                 f"{term.n_law + 1} functions; its table in --json)"), parts
@@ -170,7 +183,6 @@ def read_law(term: Any, fit: Any, source: str, cov: np.ndarray | None = None) ->
     def pm(i: int) -> str:
         return f"{p[i]:.4g} +- {e[i]:.2g}" if np.isfinite(e[i]) else f"{p[i]:.4g} (undetermined)"
     ref = term.ctx["ref"]
-    x = source
     name = term.law.name
     if name == "distance power":
         closes = "closes" if p[0] > hi else "opens"
@@ -196,6 +208,13 @@ def read_law(term: Any, fit: Any, source: str, cov: np.ndarray | None = None) ->
 PARTIAL_BINS = 24
 #: ... on the samples where the law's direction stands at least this far along the field's (the cosine)
 ALONG = 0.5
+
+
+def _turn(along: np.ndarray) -> float | None:
+    """The extreme of a law's field over the grid where it lies between the ends (the law turns there), else None."""
+    i = int(np.argmax(np.abs(along - 0.5 * (along[0] + along[-1]))))
+    return float(along[i]) if 0 < i < along.size - 1 and not min(along[0], along[-1]) <= along[i] <= max(
+        along[0], along[-1]) else None
 
 
 def partial_residual(fit: Any, term: Any, values: np.ndarray, cov: np.ndarray) -> list[dict[str, Any]]:

@@ -26,6 +26,9 @@ from scipy.interpolate import BSpline
 
 #: the number of spline functions a shape group follows (each order its own group; nested knots)
 SHAPE_ORDERS = (4, 8)
+#: ... of an observable through a first-order lag (a core's temperature lagging the logged one, squared): the
+#: smaller order only (the lags multiply the library by their number)
+LAG_SHAPE_ORDERS = (4,)
 #: the degree of the splines
 SPLINE_DEGREE = 3
 #: an angle's harmonics: cos and sin of 1..K times the angle, each K its own group
@@ -89,13 +92,14 @@ def centred_columns(v: np.ndarray) -> tuple[np.ndarray, list[float]]:
 
 def shape_recipes(name: str, x: np.ndarray, base: dict[str, Any]) -> list[tuple[str, str, dict[str, Any],
                                                                                  np.ndarray]]:
-    """The shape features of one observable x (its values, gaps filled): (name, how, recipe, values (N, m)) for each
-    spline order and, for an angle, each turn order. `base`: the recipe of x itself (where it comes from)."""
+    """The shape features of one observable x (its values, gaps filled; through a lag where `base` says so): (name,
+    how, recipe, values (N, m)) for each spline order and, for an angle, each turn order. `base`: the recipe of x
+    itself (where it comes from)."""
     out = []
     if float(np.ptp(x)) <= 0:
         return out
     distinct = np.unique(x).size
-    for m in SHAPE_ORDERS:
+    for m in (LAG_SHAPE_ORDERS if "low_pass_s" in base else SHAPE_ORDERS):
         if distinct < 2 * (m + 1):                      # a switched column of few levels: nothing smooth to shape
             break
         knots = knots_for(x, m)
@@ -103,7 +107,7 @@ def shape_recipes(name: str, x: np.ndarray, base: dict[str, Any]) -> list[tuple[
         out.append((f"{name} shape ({m})", "shape",
                     {**base, "basis": "spline", "knots": [float(k) for k in knots], "degree": SPLINE_DEGREE,
                      "functions": m, "centre": centre}, vals))
-    per = angle_unit(name, x)
+    per = None if "low_pass_s" in base else angle_unit(name, x)
     if per is not None:
         for k in TURN_ORDERS:
             vals, centre = centred_columns(turn_values(x, per, k))

@@ -413,14 +413,15 @@ def borrowed_notes(data: Any) -> list[str]:
 
 
 def channels_above(fit: FitResult, heldout_nT: np.ndarray, noise: np.ndarray,
-                   where: list[dict[str, Any]] | None = None) -> list[dict[str, Any]]:
-    """The channels whose RMS stands above CHANNEL_FACTOR times their own floor held out and in the fit, furthest
-    first (held out), each with what its residual follows (where_it_fails, FOLLOWS and up): JSON-ready."""
+                   where: list[dict[str, Any]] | None = None, *, held_out_only: bool = False) -> list[dict[str, Any]]:
+    """The channels whose RMS stands above CHANNEL_FACTOR times their own floor held out and in the fit (held out
+    alone: what discovery looks at, which costs nothing where it finds nothing), furthest first (held out), each with
+    what its residual follows (where_it_fails, FOLLOWS and up): JSON-ready."""
     out = []
     for c, name in enumerate(fit.channels.names):
         ratio = float(heldout_nT[c] / noise[c]) if noise[c] > 0 else float("inf")
         fitted = float(fit.channels.rms_nT[c] / noise[c]) if noise[c] > 0 else float("inf")
-        if not (ratio > CHANNEL_FACTOR and fitted > CHANNEL_FACTOR):
+        if not (ratio > CHANNEL_FACTOR and (held_out_only or fitted > CHANNEL_FACTOR)):
             continue
         follows = [{"observable": w["observable"], "strength": w["strength"],
                     **({"band": w["band"]} if w.get("band") else {})}

@@ -62,7 +62,11 @@ def _feature_code(g: Group) -> tuple[str, list[str]]:
     if src == "temperature" and not r.get("probe_name"):
         r = {**r, "probe_name": f.observable.rsplit("_temp", 1)[0]}
     if "basis" in r:
-        return _basis_code(r, _observable_code(r, "view.data")), lines
+        raw = _observable_code(r, "view.data")
+        if "low_pass_s" in r:
+            lines.append(f"x = low_pass(view.data.t_s, {raw}, {r['low_pass_s']!r})       # a first-order lag, s")
+            raw = "x"
+        return _basis_code(r, raw), lines
     if src == "line":
         return f"2 * np.pi * {r['hz']!r} * view.data.t_s", lines
     if src == "sign of rate":
@@ -151,9 +155,14 @@ def _law_code(g: Group, i: int) -> list[str]:
                 f"    return phi[:, fixed] + phi[:, free] @ p, phi[:, free]\n")
     ctx = r["reference"]
     return (["", ""] + code.rstrip("\n").split("\n") + ["", "",
-            f"def x_law_{i}(data):", f"    return {_observable_code(r, 'data')}", "", "",
+            f"def x_law_{i}(data):", f"    return {_lagged(r, _observable_code(r, 'data'))}", "", "",
             f"LAW_{i} = {{\"probes\": {list(r['probes'])!r}, \"ref\": {float(ctx['ref'])!r}, "
             f"\"span\": {max(float(ctx['hi']) - float(ctx['lo']), 1e-12)!r}, \"start\": {list(r['values'])!r}}}"])
+
+
+def _lagged(r: dict[str, Any], raw: str) -> str:
+    """The observable through its first-order lag where the recipe has one."""
+    return f"low_pass(data.t_s, {raw}, {r['low_pass_s']!r})" if "low_pass_s" in r else raw
 
 
 def _param_names(g: Group, names: dict[int, list[str]]) -> list[str]:
