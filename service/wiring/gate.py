@@ -106,21 +106,13 @@ class Gate:
         ref = reference_total(window, self.total_nT)
         for k, (p, est) in enumerate(zip(cal.probes, estimators)):
             raw = window.field_nT[:, k]
-            finite = np.isfinite(raw).all(axis=1)
             # the one determinacy gate (determinacy.judge), asked of the window's samples as fit asks it of a file's:
             # enough samples, not one plane, conditioned, not one cone, the share of directions; one verdict, one cone
             judged = judge(raw, ref, name=self.probe_names[k], min_fraction=self.coverage,
                            max_condition=self.condition, maps=False)
-            raw = raw[finite]
             covs.append(judged.coverage.fraction)
             conds.append(float(est.condition_))
-            corr = p.apply(raw)
-            mag = np.linalg.norm(corr, axis=1)
-            if ref is None:
-                rms = float(np.std(mag))
-            else:
-                r = ref[finite] if isinstance(ref, np.ndarray) else ref
-                rms = float(np.sqrt(np.mean((mag - r) ** 2)))
+            _, rms = scalar_residual(p, window, k, ref)
             rmss.append(rms)
             name = self.probe_names[k]
             if not judged.determined:           # (a real hand turn was accepted 63,000 nT off before the cone test)
@@ -133,6 +125,18 @@ class Gate:
                 reasons.append(f"{name}: non-finite parameters")
         return GateResult(usable=not reasons, reasons=reasons, coverage=float(min(covs)),
                           condition=float(max(conds)), rms_nT=rmss)
+
+
+def scalar_residual(p, window: SampleBlock, k: int, ref: np.ndarray | float | None) -> tuple[np.ndarray, float]:
+    """Probe k's corrected vectors over the window (its finite samples) by calibration `p`, and the RMS of
+    |corrected| - the reference total (its spread about the mean without one): the gate's residual."""
+    ok = np.isfinite(window.field_nT[:, k]).all(axis=1)
+    corr = p.apply(window.field_nT[ok, k])
+    mag = np.linalg.norm(corr, axis=1)
+    if ref is None:
+        return corr, float(np.std(mag))
+    r = ref[ok] if isinstance(ref, np.ndarray) else ref
+    return corr, float(np.sqrt(np.mean((mag - r) ** 2)))
 
 
 def _span(ring: RingBuffer) -> tuple[float, float, int]:

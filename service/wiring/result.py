@@ -14,6 +14,8 @@ import sys
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from drivers.text import printable
+
 #: how loud a note is: said as "note: ...", "warning: ..." or "WARNING: ..."; "say" (what was done) and
 #: "error" (what failed: the exit status says so too) are said as they are, without a word before them
 LEVELS = ("note", "say", "warning", "loud", "error")
@@ -46,7 +48,7 @@ class Note:
 def stderr_say(command: str) -> Callable[[Note], None]:
     """The command line's `say`: each note on stderr as it comes."""
     def say(note: Note) -> None:
-        print(note.line(command), file=sys.stderr, flush=True)
+        print(printable(note.line(command)), file=sys.stderr, flush=True)      # a file's words never act
     return say
 
 

@@ -5,7 +5,6 @@ called SIGNIFICANT; worlds whose model is right (at the floor) likewise call not
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 from real_data import needs_real, real
 

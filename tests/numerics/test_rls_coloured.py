@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from real_data import needs_real, real, real_nT
+from real_data import needs_real, real_nT
 
 from service.io.recordings.load import load_data
 from service.wiring.cli import main

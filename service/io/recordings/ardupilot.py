@@ -27,7 +27,8 @@ from typing import Any
 import numpy as np
 
 from drivers.errors import DataError
-from service.io.recordings.formats import Inspection, StreamInfo, lab_data, missing_package, rate
+from drivers.inputs import check_head, magic
+from service.io.recordings.formats import DATAFLASH_HEAD, Inspection, StreamInfo, lab_data, missing_package, rate
 from service.io.recordings.labdata import LabData
 from service.numerics.merge import Series, merge, quaternion_from_euler
 
@@ -106,6 +107,7 @@ def _name(msg_type: str, msg: Any) -> str:
 def _read(path: Path, names: dict | None = None) -> dict[tuple[str, int], dict[str, list[float]]]:
     """Per (kind, instance): the fields fluxcal maps, as lists, in log order; names: filled with each one's name as
     the log has it (_name)."""
+    check_head(path, "an ArduPilot DataFlash log", _dataflash_head)    # garbage refused before pymavlink reads it
     try:
         from pymavlink import DFReader
     except ImportError:
@@ -136,6 +138,14 @@ def _read(path: Path, names: dict | None = None) -> dict[tuple[str, int], dict[s
     finally:
         r.close()
     return out
+
+
+def _dataflash_head(head: bytes, whole: bool) -> str | None:
+    """A DataFlash log begins with a FMT message (a3 95 80); a serial capture of fluxcal's ICD (a5 5a) is said."""
+    why = magic(DATAFLASH_HEAD, "a DataFlash log")(head, whole)
+    if why and head.startswith(b"\xa5\x5a"):
+        why += " (this looks like a serial capture of the unit's ICD frames: fluxcal decode FILE --probes N)"
+    return why
 
 
 def load_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None) -> LabData:

@@ -52,7 +52,7 @@ def detect_format(path: str | Path) -> str:
         head = b""
     if head.startswith(ULOG_MAGIC[:4]) or suffix == ".ulg":
         return "px4-ulog"
-    if head.startswith(DATAFLASH_HEAD) or suffix == ".bin" and head[:2] == DATAFLASH_HEAD[:2]:
+    if head.startswith(DATAFLASH_HEAD) or suffix == ".bin":        # its reader says when it is not one
         return "ardupilot-bin"
     if head.startswith(MCAP_MAGIC) or suffix == ".mcap":
         return "ros2-mcap" if mcap_is_ros2(p) else "fluxcal"

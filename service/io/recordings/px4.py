@@ -21,7 +21,8 @@ from typing import Any
 import numpy as np
 
 from drivers.errors import DataError
-from service.io.recordings.formats import Inspection, StreamInfo, lab_data, missing_package, rate
+from drivers.inputs import check_head, magic
+from service.io.recordings.formats import ULOG_MAGIC, Inspection, StreamInfo, lab_data, missing_package, rate
 from service.io.recordings.labdata import LabData
 from service.numerics.merge import Series, merge
 
@@ -46,6 +47,7 @@ class Px4Mapping:
 
 
 def _ulog(path: Path, only: Sequence[str] | None = WANTED):
+    check_head(path, "a PX4 ULog", magic(ULOG_MAGIC, "a ULog"))     # garbage refused before pyulog reads it
     try:
         from pyulog import ULog
     except ImportError:

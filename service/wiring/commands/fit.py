@@ -13,6 +13,7 @@ import numpy as np
 
 from drivers.errors import DataError, FluxcalError
 from service.io.calfile import save_calibration
+from service.wiring.identity import recording_identity
 from service.io.recordings.labdata import LabData, keep_every
 from service.numerics.diagnose.text import reference_words
 from service.numerics.usable import temperature_notes, usable_samples
@@ -187,6 +188,7 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     warnings += [prep.part_of_run] if prep.part_of_run else []
     warnings = scale + warnings
     cal.diagnostics["warnings"] = warnings
+    cal.unit = recording_identity(data.metadata)          # the unit a service recording says it was made by
     out = FitResult("fit", source)
     if opts.out:
         save_calibration(cal, opts.out)

@@ -33,7 +33,13 @@ function merge(h, rows) {
 function col(h, name) { const k = h ? h.columns.indexOf(name) : -1; return k > 0 ? h.cols[k - 1] : null; }
 function last(a) { for (let i = a.length - 1; i >= 0; i--) { if (a[i] !== null) { return a[i]; } } return null; }
 function num(x, d) { return x === null || x === undefined ? "–" : Number(x).toFixed(d === undefined ? 2 : d); }
-function esc(s) { return String(s).replace(/[&<>"]/g, c => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c])); }
+// text from the network shown, never interpreted: HTML's specials escaped, control characters as escapes (\n, \x1b)
+function esc(s) {
+  return String(s).replace(/[&<>"]/g, c => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]))
+    .replace(/[\x00-\x1f\x7f-\x9f\u061c\u200b-\u200f\u2028-\u202e\u2060-\u2069\ufeff]/g,
+      c => ({ "\n": "\\n", "\r": "\\r", "\t": "\\t" }[c] ||
+        (c.charCodeAt(0) < 256 ? "\\x" : "\\u") + c.charCodeAt(0).toString(16).padStart(c.charCodeAt(0) < 256 ? 2 : 4, "0")));
+}
 
 async function getJSON(url, init) {
   const r = await fetch(url, init);
@@ -237,7 +243,8 @@ function renderCommands(v) {
   $("command-log").innerHTML = (v.commands || []).slice().reverse().map(c =>
     `<li class="${c.ok ? "good" : "bad"}" data-command="${esc(c.command)}" data-ok="${c.ok}">` +
     `${new Date(c.time_unix_s * 1000).toLocaleTimeString()} ${esc(c.command)} ${esc(c.payload || "")}: ` +
-    `${c.ok ? "ok" : "refused: " + esc(c.error || "")} (${num(1000 * c.round_trip_s, 0)} ms)</li>`).join("");
+    `${c.ok ? "ok" : "refused: " + esc(c.error || "")} (${num(1000 * c.round_trip_s, 0)} ms)` +
+    `${c.warning ? " — WARNING: " + esc(c.warning) : ""}</li>`).join("");
 }
 
 function renderDiagnosis(d, kept) {
