@@ -120,7 +120,12 @@ def read(source: Any, *, config: str | None = None, site: str | None = None,
     docs/csv.md, or a LabData. config: a service configuration (the total field and the probe positions); site:
     'lat,lon,alt_m' for the World Magnetic Model's field; skip: (start, end) spans in s to leave out; topics, mags:
     another ecosystem's log, which topics or compasses become what; calibration: a calibration file to hold fixed in
-    a diagnosis. What reading says is in Data.notes (and handed to `said`)."""
+    a diagnosis. What reading says is in Data.notes (and handed to `said`).
+
+    >>> d = read("recordings/grad3-pump.mcap")
+    >>> d.field_nT.shape, round(float(d.t_s[-1] - d.t_s[0]), 2)
+    ((4000, 3, 3), 159.96)
+    """
     said = _said(said, "read")
     if isinstance(source, (str, Path)):
         prep = prepare(str(source), said, config=config, site=site, skip=skip, topics=topics, mags=mags,
@@ -140,6 +145,11 @@ def read_arrays(t_s: Any, field_nT: Any, *, temp_C: Any = None, columns: dict[st
                 config: str | None = None, site: str | None = None, said: Said | None = None) -> Data:
     """The data of arrays: t_s (N,) s, field_nT (N, 3) or (N, P, 3) nT, temp_C (N,) or (N, P) degC, columns: other
     logged columns by name (a current, ref_total ...). Read as the table of docs/csv.md they make, checked as a CSV is.
+
+    >>> t = np.arange(100) / 10.0
+    >>> d = read_arrays(t, np.tile([20000.0, 0.0, 45000.0], (100, 1)), columns={"heater_A": np.zeros(100)})
+    >>> d.probe_names, sorted(d.columns), d.to_dataframe().columns[:4].tolist()
+    (['s1'], ['heater_A'], ['t', 's1_x', 's1_y', 's1_z'])
     """
     t = np.asarray(t_s, dtype=np.float64)
     f = np.asarray(field_nT, dtype=np.float64)
@@ -193,7 +203,12 @@ def fit(data: Any, *, method: str = "ellipsoid", align: str | None = None, effec
         out: str | None = None, report: str | None = None, said: Said | None = None, **read_options: Any) -> Any:
     """Fit a calibration to `data` (a Data, or anything read() takes, with read()'s options): the FitResult the
     command `fluxcal fit` prints (`.text()`, `.to_dict()`, `.to_dataframe()`, `.calibration`). out: write the
-    calibration file; report: an HTML report's folder."""
+    calibration file; report: an HTML report's folder.
+
+    >>> r = fit("recordings/grad1-hidden-effect.mcap", effects=["temperature"])
+    >>> r.to_dict()["effects"], round(r.rms_nT, 3)
+    (['temperature'], 0.896)
+    """
     from service.wiring.commands import fit as command
 
     said = _said(said, "fit")
@@ -209,7 +224,12 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), report: str | None = Non
     missing, beyond the catalogue too: the DiagnoseResult `fluxcal diagnose` prints (`.diagnosis` holds every figure).
     write_effect: a .py file for what discovery found; report: an HTML report's folder; max_samples: the samples
     diagnosed at most (None: the command's budget of probe-samples); calibration: a calibration file whose linear
-    part is held fixed (with a path; read() takes it for Data); progress: a progress bar on stderr."""
+    part is held fixed (with a path; read() takes it for Data); progress: a progress bar on stderr.
+
+    >>> d = diagnose("recordings/grad1-hidden-effect.mcap")
+    >>> d.verdict["kind"], d.verdict["effect"]
+    ('explained', 'temperature')
+    """
     from service.wiring.commands import diagnose as command
 
     said = _said(said, "diagnose")
@@ -234,7 +254,12 @@ def _read_options(options: dict[str, Any]) -> dict[str, Any]:
 def replay(recording: str | Path, *, config: str | None = None, out: str | None = None, ros2_out: str | None = None,
            said: Said | None = None) -> Any:
     """Replay a recording through the pipeline of the service and compare with what it recorded live: the
-    ReplayResult `fluxcal replay` prints."""
+    ReplayResult `fluxcal replay` prints.
+
+    >>> r = replay("recordings/grad1-sim-30s.mcap")
+    >>> r.status, r.compared, r.identical
+    (0, 2000, 2000)
+    """
     from service.wiring.commands import replay as command
 
     return command.execute(str(recording), command.ReplayOptions(config=config, out=out, ros2_out=ros2_out),
@@ -243,7 +268,13 @@ def replay(recording: str | Path, *, config: str | None = None, out: str | None 
 
 def simulate(out: str | Path, *, config: str | None = None, said: Said | None = None) -> Any:
     """A simulated unit's data written to `out` (.csv, .mcap, a serial capture or a CAN log) and its truth beside
-    it: the SimulateResult `fluxcal simulate` gives; read(out) reads the data."""
+    it: the SimulateResult `fluxcal simulate` gives; read(out) reads the data.
+
+    >>> import os, tempfile
+    >>> out = os.path.join(tempfile.mkdtemp(), "grad.csv")
+    >>> simulate(out, config="configs/sim-gradiometer.toml").samples, read(out).probe_names
+    (12000, ['s1', 's2'])
+    """
     from service.wiring.commands import simulate as command
 
     return command.execute(command.SimulateOptions(out=str(out), config=config), _said(said, "simulate"))
