@@ -23,6 +23,7 @@ from .icd import (DEFAULT_CAN_BASE_ID, SATURATED_COUNTS, TEMP_LSB_C, RawFrames, 
                   frame_length, parse_serial)
 from .plausibility import Plausibility
 from .source import Counters
+from .can_unwrap import CanUnwrap
 from .timeline import SerialTimeline, _steps
 
 _SEQ_MODULUS = 1 << 16
@@ -211,13 +212,10 @@ class CanAssembler:
 
     Frames with foreign or reserved ids are ignored (the bus is shared). A frame for a sample
     already settled (released or given up), or for a slot of a pending sample already filled, is
-    ignored and counted in `duplicates`. seq is unwrapped frame by frame with the signed step
-    ((s - s_prev + 2^15) mod 2^16) - 2^15, so interleaving across a wrap is right. The unit restarting its
-    counter: a jump backwards by more than `restart_samples`, or (with `rate_hz`) a jump forwards to a counter
-    near zero (< restart_samples) that the receive times do not support (less than half its length in time).
-    It is counted in `restarts`, what is pending is settled, and seq goes on from the highest seen + 1 + the
-    new counter: the unwrapped seq (and t_s = seq / rate_hz) never goes back, and no sample is counted missed
-    that never existed.
+    ignored and counted in `duplicates`. seq is unwrapped by drivers.can_unwrap.CanUnwrap: across wraps and
+    restarts of the unit (counted in `restarts`), with the old run's frames that come after a restart's first
+    frame kept in the old run: the unwrapped seq (and t_s = seq / rate_hz) never goes back, and no sample is
+    counted missed that never existed.
     """
 
     def __init__(self, n_probes: int, *, base_id: int = DEFAULT_CAN_BASE_ID, window_samples: int = 32,
@@ -229,10 +227,8 @@ class CanAssembler:
         self.window_s = float(window_s)
         self.restart_samples = max(4 * self.window_samples, 1024)
         self.counters = counters if counters is not None else Counters()
-        self._last_raw: int | None = None
-        self._last_u = 0
-        self._top_u: int | None = None         # the highest unwrapped seq seen, and when it came
-        self._top_rx = -np.inf
+        self._unwrap = CanUnwrap(window_samples=self.window_samples, restart_samples=self.restart_samples,
+                                 rate_hz=rate_hz, counters=self.counters)
         self._max_seen: int | None = None
         self._done_upto: int | None = None     # every sample <= this was released or dropped
         self._clear_pending()
@@ -263,71 +259,14 @@ class CanAssembler:
         mine = probe >= 0
         probe, axis, value, seq, temp, rx = (x[mine] for x in (probe, axis, value, seq, temp, rx))
         self.counters.frames_accepted += int(probe.size)
-        u, restarts = self._unwrap(seq, rx)
-
-        out: list[CanSamples] = []
-        # at a restart of the unit's counter what is pending is settled, then assembly goes on
-        start = 0
-        for stop in restarts + [u.size]:
-            self._merge(u[start:stop], probe[start:stop], axis[start:stop], value[start:stop], temp[start:stop],
-                        rx[start:stop])
-            if stop < u.size:
-                out.append(self._release(now_s, final=True))
-            start = stop
-        out.append(self._release(now_s, final=False))
-        return CanSamples.concat(out, self.n_probes)
+        self.counters.foreign_frames += int(mine.size - probe.size)      # other nodes' ids, or reserved ones
+        u = self._unwrap(seq, rx)
+        self._merge(u, probe, axis, value, temp, rx)
+        return self._release(now_s, final=False)
 
     def flush(self) -> CanSamples:
         """End of input: release every complete sample, drop (and count) the incomplete ones."""
         return self._release(np.inf, final=True)
-
-    def _unwrap(self, seq: np.ndarray, rx: np.ndarray) -> tuple[np.ndarray, list[int]]:
-        """The unwrapped seq of each frame, and the indices where the unit restarted its counter."""
-        raw = seq.astype(np.int64)
-        if raw.size == 0:
-            return raw, []
-        prev = np.empty_like(raw)
-        prev[0] = raw[0] if self._last_raw is None else self._last_raw
-        prev[1:] = raw[:-1]
-        # signed step in (-2^15, 2^15]: d = ((s - s_prev + 2^15) mod 2^16) - 2^15
-        step = ((raw - prev + _SEQ_MODULUS // 2) % _SEQ_MODULUS) - _SEQ_MODULUS // 2
-        base = raw[0] if self._last_raw is None else self._last_u
-        u = base + np.cumsum(step)
-        restarts: list[int] = []
-        top = -np.inf if self._top_u is None else float(self._top_u)     # the highest so far, and when it came
-        top_rx = self._top_rx
-        i0 = 0
-        while i0 < u.size:                # restarts are rare: one pass over the rest for each
-            seg, seg_raw, seg_rx = u[i0:], raw[i0:], rx[i0:]
-            run_top = np.maximum.accumulate(np.maximum(seg, top))
-            prior = np.concatenate([[top], run_top[:-1]])                # the highest before each frame
-            back = seg < prior - self.restart_samples
-            if self.rate_hz:
-                # forward to a counter near zero, further than the receive time since the highest allows
-                new_top = np.where(seg > prior, np.arange(seg.size), -1)
-                last = np.concatenate([[-1], np.maximum.accumulate(new_top)[:-1]])
-                prior_rx = np.where(last >= 0, seg_rx[np.maximum(last, 0)], top_rx)
-                jump = seg - prior
-                back |= ((jump > self.restart_samples) & (seg_raw < self.restart_samples)
-                         & ((seg_rx - prior_rx) * self.rate_hz < 0.5 * jump))
-            hits = np.flatnonzero(back)
-            if not hits.size:
-                break
-            j = i0 + int(hits[0])
-            if j > i0:
-                k = i0 + int(np.argmax(u[i0:j]))
-                if u[k] > top:
-                    top, top_rx = float(u[k]), float(rx[k])
-            u[j:] += int(top) + 1 + int(raw[j]) - int(u[j])
-            restarts.append(j)
-            self.counters.restarts += 1
-            i0 = j
-        self._last_raw = int(raw[-1])
-        self._last_u = int(u[-1])
-        if self._top_u is None or int(u.max()) > self._top_u:
-            k = int(np.argmax(u))
-            self._top_u, self._top_rx = int(u[k]), float(rx[k])
-        return u, restarts
 
     def _merge(self, u: np.ndarray, probe: np.ndarray, axis: np.ndarray, value: np.ndarray,
                temp: np.ndarray, rx: np.ndarray) -> None:

@@ -77,23 +77,41 @@ def check_base_id(base_id: int, n_probes: int, key: str = "base_id") -> None:
                           f"{MAX_STANDARD_ID - 4 * n_probes + 1:#x}, ids up to base + 4n - 1 must fit 11 bits)")
 
 
-def _frames_from_messages(msgs: list[can.Message], lo: int, hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """(ids, payloads (M, 8), timestamps) of the ICD-shaped frames; plus how many frames in the
-    unit's id range [lo, hi] were not ICD-shaped (remote, not 8 bytes, FD)."""
+@dataclass
+class FrameKinds:
+    """How many frames of a batch were of each kind besides the ICD frames kept (Counters of the same names)."""
+
+    foreign_frames: int = 0       # other nodes' ids or an extended (29-bit) id: the bus is shared, not a fault
+    wrong_length: int = 0         # the unit's ids, but not a classic 8-byte data frame (another length, CAN FD)
+    remote_frames: int = 0        # the unit's ids as remote frames (another node asking for them)
+    error_frames: int = 0         # error frames the interface reports (a fault on the bus itself)
+
+    def add_to(self, counters: Counters) -> None:
+        for key, value in vars(self).items():
+            setattr(counters, key, getattr(counters, key) + value)
+
+
+def _frames_from_messages(msgs: list[can.Message], lo: int, hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                              FrameKinds]:
+    """(ids, payloads (M, 8), timestamps) of the ICD-shaped frames, and how many frames were of each other kind
+    (FrameKinds): every frame is one or the other."""
     ids, data, stamps = [], [], []
-    malformed = 0
+    kinds = FrameKinds()
     for m in msgs:
-        if m.is_error_frame or m.is_extended_id:
-            continue
-        if m.is_remote_frame or m.dlc != 8 or m.is_fd or len(m.data) != 8:
-            if lo <= m.arbitration_id <= hi:
-                malformed += 1
-            continue
-        ids.append(m.arbitration_id)
-        data.append(bytes(m.data))
-        stamps.append(m.timestamp)
+        if m.is_error_frame:
+            kinds.error_frames += 1
+        elif m.is_extended_id or not lo <= m.arbitration_id <= hi:
+            kinds.foreign_frames += 1
+        elif m.is_remote_frame:
+            kinds.remote_frames += 1
+        elif m.dlc != 8 or m.is_fd or len(m.data) != 8:
+            kinds.wrong_length += 1
+        else:
+            ids.append(m.arbitration_id)
+            data.append(bytes(m.data))
+            stamps.append(m.timestamp)
     payloads = np.frombuffer(b"".join(data), dtype=np.uint8).reshape(-1, 8)
-    return np.asarray(ids, dtype=np.int64), payloads, np.asarray(stamps, dtype=np.float64), malformed
+    return np.asarray(ids, dtype=np.int64), payloads, np.asarray(stamps, dtype=np.float64), kinds
 
 
 class CanSource(PortSource):
@@ -101,9 +119,11 @@ class CanSource(PortSource):
 
     Each read drains what the bus holds (bounded receive: `bus.recv` with a timeout, then without
     waiting, at most `max_batch` frames) and assembles the batch with numpy (drivers.assemble.
-    CanAssembler). Counters: frames_accepted (frames with the unit's ids), crc_failures (frames in
-    the unit's id range that are not ICD frames: remote, wrong length; the controller already
-    drops frames with a bad CRC), can_incomplete, seq_gaps, samples_missed, saturated_axes.
+    CanAssembler). Every frame received is counted once, by kind: frames_accepted (the unit's ICD frames),
+    foreign_frames (other nodes' ids), wrong_length, remote_frames and error_frames (FrameKinds), and bad_frames:
+    what the adapter could not make a frame of (a garbled SLCAN line, drivers.slcan; an exception of any other
+    interface's parser), never the service's end. The controller itself drops frames with a bad CRC, so CAN has
+    no CRC failures. Then can_incomplete, seq_gaps, samples_missed, saturated_axes as the assembler finds them.
     """
 
     def __init__(self, *, interface: str, channel: str, n_probes: int, rate_hz: float,
@@ -128,12 +148,19 @@ class CanSource(PortSource):
         self._gaps = SeqGapCounter()
         self._id_range = (self.base_id, self.base_id + 4 * n_probes - 1)
         self._bus: can.BusABC | None = None
+        self._bad_lines_seen = 0
         self._open()
 
     def _open(self) -> None:
         try:
-            self._bus = can.Bus(interface=self.interface, channel=self.channel, bitrate=self.bitrate,
-                                **self._bus_kwargs)
+            if self.interface == "slcan":          # python-can's slcan with a parser that never raises
+                from .slcan import SlcanBus
+
+                self._bus = SlcanBus(channel=self.channel, bitrate=self.bitrate, **self._bus_kwargs)
+            else:
+                self._bus = can.Bus(interface=self.interface, channel=self.channel, bitrate=self.bitrate,
+                                    **self._bus_kwargs)
+            self._bad_lines_seen = 0
         except (can.CanError, OSError, ValueError, ImportError) as e:
             self._bus = None
             raise DriverError(f"CAN bus {self.interface}:{self.channel}: cannot open ({e}); check the interface "
@@ -152,22 +179,32 @@ class CanSource(PortSource):
         if bus is None:
             raise DriverError(f"CAN bus {self.interface}:{self.channel}: not open (a previous read failed); "
                               f"call reopen()")
+        batch: list[can.Message] = []
         try:
-            first = bus.recv(timeout=wait_s)
-            if first is None:
-                return []
-            batch = [first]
-            while len(batch) < self.max_batch:
-                msg = bus.recv(timeout=0.0)
+            wait: float | None = wait_s
+            for _ in range(self.max_batch):   # frames, or garbled ones: a parser that always raises ends here too
+                try:
+                    msg = bus.recv(timeout=wait)
+                except (can.CanError, OSError):
+                    raise
+                except Exception:  # noqa: BLE001 - an interface's parser that raises on a garbled frame
+                    self.counters.bad_frames += 1
+                    wait = 0.0                      # the frames after it may be there already
+                    continue
                 if msg is None:
                     break
                 batch.append(msg)
-            return batch
+                wait = 0.0
         except (can.CanError, OSError) as e:
             # OSError covers pyserial's SerialException, which serial-based interfaces may let through
             self._drop()
             raise DriverError(f"CAN bus {self.interface}:{self.channel}: receive failed ({e}); the adapter was "
                               f"probably disconnected, call reopen() once it is back") from e
+        finally:
+            bad = getattr(bus, "bad_lines", 0)              # drivers.slcan counts the lines that are no frame
+            self.counters.bad_frames += bad - self._bad_lines_seen
+            self._bad_lines_seen = bad
+        return batch
 
     def _read_block(self, timeout: float | None) -> SampleBlock | None:
         deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
@@ -177,8 +214,8 @@ class CanSource(PortSource):
             wait = min(remaining, 0.1) if remaining is not None else 0.1
             msgs = self._receive(wait)
             now = time.monotonic()
-            ids, payloads, _, malformed = _frames_from_messages(msgs, *self._id_range)
-            self.counters.crc_failures += malformed
+            ids, payloads, _, kinds = _frames_from_messages(msgs, *self._id_range)
+            kinds.add_to(self.counters)
             samples = self._assembler.push(ids, payloads, now, now_s=now)
             if len(samples):
                 self._gaps.update(samples.seq, self.counters)
@@ -253,8 +290,8 @@ def read_can_log(path: str | Path, n_probes: int, *, base_id: int = DEFAULT_CAN_
 
 def _push_log_batch(assembler: CanAssembler, batch: list[can.Message], id_range: tuple[int, int],
                     counters: Counters) -> CanSamples:
-    ids, payloads, stamps, malformed = _frames_from_messages(batch, *id_range)
-    counters.crc_failures += malformed
+    ids, payloads, stamps, kinds = _frames_from_messages(batch, *id_range)
+    kinds.add_to(counters)
     return assembler.push(ids, payloads, stamps)
 
 

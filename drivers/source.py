@@ -20,15 +20,22 @@ class Counters:
     """Health counters every source keeps; they only ever grow."""
 
     frames_accepted: int = 0
-    crc_failures: int = 0
+    crc_failures: int = 0       # serial: frames failing their CRC (CAN controllers drop those themselves)
+    bad_frames: int = 0         # CAN: what the adapter could not make a frame of (a garbled SLCAN line)
+    wrong_length: int = 0       # CAN: frames with the unit's ids that are no classic 8-byte data frame
+    remote_frames: int = 0      # CAN: remote frames with the unit's ids (another node asking for them)
+    error_frames: int = 0       # CAN: error frames the interface reports
+    foreign_frames: int = 0     # CAN: frames of other nodes' (or reserved, or extended) ids, ignored: not a fault
     bytes_received: int = 0     # serial: every byte read from the port (fed to the framer)
     bytes_skipped: int = 0
     seq_gaps: int = 0           # number of gaps seen
     samples_missed: int = 0     # samples lost inside those gaps
     can_incomplete: int = 0     # CAN samples dropped because a frame never came
-    duplicates: int = 0         # frames repeating the last one bit for bit (CAN: a frame already held), dropped
-    seq_backsteps: int = 0      # frames whose counter or clock stepped back (stale), dropped
+    duplicates: int = 0         # frames repeating one received before bit for bit (CAN: a frame already held), dropped
+    seq_backsteps: int = 0      # frames whose counter or clock stepped back, no copy of one received (stale), dropped
     restarts: int = 0           # the unit restarted: counter and clock back near zero, followed on
+    clock_jumps: int = 0        # the unit's clock jumped while its counter ran on: time repaired from the counter
+    counter_jumps: int = 0      # the unit's counter jumped while its clock ran on: no sample counted missed
     saturated_axes: int = 0
     temp_invalid: int = 0
     implausible_samples: int = 0   # samples flagged implausible (FLAG_IMPLAUSIBLE): kept out of the estimator

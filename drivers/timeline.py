@@ -21,37 +21,117 @@ def _steps(x: np.ndarray, before: int) -> np.ndarray:
     return d
 
 
+def _tolerance(dt: np.ndarray | float, p: float) -> np.ndarray | float:
+    """How far a clock step may be from the counter's step times the period: half a period, plus 1e-4."""
+    return 0.5 * p + 1e-4 * dt
+
+
+class Jumps:
+    """The last jump of the counter and of the clock (the raw reading and the unwrapped value each left from): a
+    later jump back onto the line one left, within 64 frames, ends that jump rather than being another."""
+
+    def __init__(self) -> None:
+        self.counter: tuple[int, int] | None = None
+        self.clock: tuple[int, int] | None = None
+
+    def counter_rejoins(self, si: int, S: int, left: tuple[int, int]) -> bool:
+        """Whether a counter jump to raw si (seq S) rejoins the last one's line; notes this jump (from `left`)
+        if not."""
+        was, self.counter = self.counter, left
+        if was is None or S - was[1] > 64 or (si - was[0]) & 0xFFFF != (S - was[1]) & 0xFFFF:
+            return False
+        self.counter = None
+        return True
+
+    def on_clock_line(self, ti: int, T: int, p: float) -> bool:
+        """Whether clock reading ti at time T (us) is back on the line the clock's last jump left."""
+        was = self.clock
+        return was is not None and T - was[1] <= 64 * p and \
+            abs(((ti - was[0]) & 0xFFFFFFFF) - (T - was[1])) <= _tolerance(T - was[1], p)
+
+    def clock_rejoins(self, ti: int, T: int, p: float, left: tuple[int, int]) -> bool:
+        back = self.on_clock_line(ti, T, p)
+        self.clock = None if back else left
+        return back
+
+
+class FrameHistory:
+    """The last `size` frames accepted (raw counter, clock and content): a frame that steps back and equals one of
+    them bit for bit was sent again (a link that replays its buffer, a unit that resends), a duplicate; one that
+    equals none is stale. A ring of slices copied in (no per-frame Python on the common path)."""
+
+    def __init__(self, size: int = 4096) -> None:
+        self.size = size
+        self._n = 0                          # frames added so far
+        self._rows: tuple[np.ndarray, ...] | None = None      # raw counter, clock, counts, temperatures, flags
+
+    def add(self, frames: RawFrames, start: int = 0, stop: int | None = None) -> None:
+        cols = (frames.seq, frames.t_us, frames.counts, frames.temp_raw, frames.flags)
+        stop = len(frames) if stop is None else stop
+        start = max(start, stop - self.size)                        # at most the last `size` of them
+        k = stop - start
+        if k <= 0:
+            return
+        if self._rows is None:
+            self._rows = tuple(np.zeros((self.size, *c.shape[1:]), c.dtype) for c in cols)
+        at = self._n % self.size
+        first = min(k, self.size - at)
+        for ring, c in zip(self._rows, cols):
+            ring[at:at + first] = c[start:start + first]
+            if first < k:
+                ring[:k - first] = c[start + first:stop]
+        self._n += k
+
+    def holds(self, frames: RawFrames, i: int) -> bool:
+        if self._rows is None:
+            return False
+        filled = min(self._n, self.size)
+        seq, t, counts, temp, flags = (r[:filled] for r in self._rows)
+        hit = np.flatnonzero((seq == frames.seq[i]) & (t == frames.t_us[i]))
+        return any(np.array_equal(counts[j], frames.counts[i]) and np.array_equal(temp[j], frames.temp_raw[i])
+                   and flags[j] == frames.flags[i] for j in hit)
+
+
 class SerialTimeline:
     """Puts a unit's frames in time order from their counter (seq, uint16) and clock (t_us, uint32), so that
     what leaves the driver has seq and t_s strictly increasing, whatever the unit sends.
 
     Each frame is compared with the last frame accepted:
 
-      duplicate  bit for bit that frame (counter, clock, values, flags): dropped, counted in `duplicates`.
-      forward    clock and counter advanced: accepted. The counter's step is the one congruent to it mod 2^16
-                 that the clock supports at the unit's frame period (estimated from the frames since the start
+      duplicate  bit for bit that frame, or (stepping back) one of the last 4,096 frames accepted (FrameHistory:
+                 counter, clock and content): a frame sent again. Dropped, counted in `duplicates`.
+      forward    clock and counter advanced together: accepted. The counter's step is the one congruent to it mod
+                 2^16 that the clock supports at the unit's frame period (estimated from the frames since the start
                  or the last restart), so a loss longer than 65,536 frames is counted right; a step > 1 is a gap.
+      counter    the clock stepped a whole number k <= 16 of periods but the counter by something else: the counter
+      jump       jumped (a glitch), the clock ran on. Accepted k frames on, counted in `counter_jumps`; no sample is
+                 counted missed that the clock says never existed (before: a jump of 1,000 was 999 missed, or near
+                 zero a restart with thousands missed).
       restart    counter and clock both back near zero (seq < 4096 and t_us < 60 s), either further back than
                  1,024 frames or forward by a step the unit's period does not explain: the unit restarted.
                  Accepted and counted in `restarts`; seq goes on from the last frame's + 1 + the new counter
                  (the new run's earlier frames are a gap), time from the last frame's by the host's clock
                  across the restart (the unit's own clock restarted): no missed sample is made up, and time
-                 never goes back. (Before, a restart after more than 32,768 frames read as a wrap, with up to
-                 32,767 samples missed that never existed.)
+                 never goes back.
+      clock      the counter stepped forward (by less than 2^15; by at most 1,024 when the clock went back) but the
+      jump       clock by a step its period does not explain: the clock jumped, the counter ran on. Accepted, time
+                 repaired from the counter (the step times the period), counted in `clock_jumps`: no sample made up
+                 or lost (before: +1,000 s with the counter at +1 was 196,608 samples missed).
       stale      anything else: the counter or the clock stood still or stepped back. Dropped, counted in
                  `seq_backsteps`. After 8 such frames in a row, each following on from the one before, the
                  unit is taken to have jumped back and gone on from there: the 8th is accepted as a restart
                  (seq goes on from the last frame's + 1).
 
     A period is known after two frames; before it, forward steps are taken as they come. Blocks whose every
-    frame steps forward by less than half the counter's range, with no frame near zero on both counters that
-    the period does not explain, take one vectorised pass; others (rare: a fault) one Python step per frame.
+    frame steps forward by less than half the counter's range, clock and counter agreeing at the period, take one
+    vectorised pass; others (rare: a fault) one Python step per frame.
     """
 
     NEAR_SEQ = 4096              # a restarted unit's counter: below this
     NEAR_T_US = 60_000_000       # ... and its clock: below this (60 s after power-on)
     RESYNC_FRAMES = 8            # stale frames in a row, following on from each other, that are taken as a restart
     STALE_MAX = 1024             # a frame back near zero by more than this many frames is a restart, not stale
+    COUNTER_JUMP_FRAMES = 16     # a clock step of at most this many periods is the clock running on
 
     def __init__(self, counters: Counters) -> None:
         self.counters = counters
@@ -66,6 +146,8 @@ class SerialTimeline:
         self._rx_last: float | None = None   # host time the last accepted frame came
         self._stale = 0                      # stale frames in a row, following on from each other
         self._stale_st: tuple[int, int] | None = None
+        self.history = FrameHistory()
+        self.jumps = Jumps()
         self.contiguous = False              # the last block's frames each followed the one before by one count
 
     def period_us(self) -> float | None:
@@ -92,18 +174,16 @@ class SerialTimeline:
             np.subtract(st[:, 1:], st[:, :-1], out=d[:, 1:])
             d &= _WRAP                                        # steps modulo 2^16 (counter) and 2^32 (clock)
             (ds_lo, dt_lo), (ds_hi, dt_hi) = d.min(axis=1).tolist(), d.max(axis=1).tolist()
-            fast = ds_lo >= 1 and ds_hi < 1 << 15 and dt_lo >= 1 and dt_hi < 16384 * p
-            s, t = st[0], st[1]
-            if fast and t.min() < self.NEAR_T_US and s.min() < self.NEAR_SEQ:      # (the clock is rarely near 0)
-                ds, dt = d[0], d[1]
-                near = (s < self.NEAR_SEQ) & (t < self.NEAR_T_US)
-                fast = not (near & (np.abs(dt - ds * p) > 0.5 * p + 1e-4 * dt)).any()
-            if fast:                         # the common case: every frame steps forward
+            # the common case: every frame steps forward, its clock and counter agreeing at the period
+            if ds_lo >= 1 and ds_hi < 1 << 15 and dt_lo >= 1 and dt_hi < 16384 * p and (
+                    max(abs(dt_lo - p), abs(dt_hi - p)) <= _tolerance(dt_lo, p) if ds_hi == 1
+                    else not (np.abs(d[1] - d[0] * p) > _tolerance(d[1], p)).any()):
                 np.cumsum(d, axis=1, out=d)
                 d[0] += self._S0
                 d[1] += self._T0
                 seq, t_us = d[0], d[1]
                 self._accept(frames, k - 1, int(seq[-1]), int(t_us[-1]), rx_time_s)
+                self.history.add(frames)
                 self.contiguous = ds_hi == 1
                 return None, seq, t_us
         return self._one_by_one(frames, frames.seq.astype(np.int64), frames.t_us.astype(np.int64), rx_time_s)
@@ -129,6 +209,36 @@ class SerialTimeline:
         self._run_S, self._run_T = S, T
         return S, T
 
+    def _verdict(self, si: int, ti: int) -> tuple[str, int, int]:
+        """(verdict, counter step, clock step in us) of a frame against the last accepted (the class docstring)."""
+        ds_f = (si - self._s0) & 0xFFFF
+        dt_f = (ti - self._t0) & 0xFFFFFFFF
+        near = si < self.NEAR_SEQ and ti < self.NEAR_T_US
+        p = self.period_us()
+        if 0 < dt_f < 1 << 31:                           # the clock went forward
+            if not p:
+                return ("forward", ds_f, dt_f) if 1 <= ds_f < 1 << 15 else ("stale", 0, 0)
+            # the counter's step that the clock supports: d = ds_f + 65536 j nearest dt / p
+            ds = ds_f + (1 << 16) * max(0, int(round((dt_f / p - ds_f) / (1 << 16))))
+            if ds >= 1 and abs(dt_f - ds * p) <= _tolerance(dt_f, p):
+                return "forward", ds, dt_f
+            if 1 <= ds_f < 1 << 15 and self.jumps.on_clock_line(ti, self._T0 + int(round(ds_f * p)), p):
+                return "clock jump", ds_f, int(round(ds_f * p))          # the clock back on its line
+            k = int(round(dt_f / p))
+            if 1 <= k <= self.COUNTER_JUMP_FRAMES and abs(dt_f - k * p) <= _tolerance(dt_f, p):
+                return "counter jump", k, dt_f
+            if near:
+                return "restart", 0, 0
+            if 1 <= ds_f < 1 << 15:
+                return "clock jump", ds_f, int(round(ds_f * p))
+            return "stale", 0, 0
+        if p and 1 <= ds_f <= self.STALE_MAX:
+            return "clock jump", ds_f, int(round(ds_f * p))     # the clock stood still or went back, the counter on
+        if near and (((self._s0 - si) & 0xFFFF) > self.STALE_MAX
+                     or (p and ((self._t0 - ti) & 0xFFFFFFFF) > self.STALE_MAX * p)):
+            return "restart", 0, 0                       # back near zero, and further than a stale frame would be
+        return "stale", 0, 0
+
     def _one_by_one(self, frames: RawFrames, s: np.ndarray, t: np.ndarray,
                     rx_time_s: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         keep = np.zeros(len(frames), bool)
@@ -139,50 +249,41 @@ class SerialTimeline:
             if self._s0 is None:                             # the first frame: time and counter start here
                 self._accept(frames, i, si, ti, rx_time_s)
                 self._run_S, self._run_T = si, ti
-                keep[i] = True
-                seq_out.append(si)
-                t_out.append(ti)
-                continue
-            if (si == self._s0 and ti == self._t0 and self._last is not None
+                S, T = si, ti
+            elif (si == self._s0 and ti == self._t0 and self._last is not None
                     and self._last == (frames.counts[i].tobytes(), frames.temp_raw[i].tobytes(), int(frames.flags[i]))):
                 c.duplicates += 1
                 continue
-            ds_f = (si - self._s0) & 0xFFFF
-            dt_f = (ti - self._t0) & 0xFFFFFFFF
-            near = si < self.NEAR_SEQ and ti < self.NEAR_T_US
-            p = self.period_us()
-            verdict = "stale"
-            if 0 < dt_f < 1 << 31:                           # the clock went forward
-                ds = ds_f
-                consistent = None
-                if p:
-                    # the counter's step that the clock supports: d = ds_f + 65536 j nearest dt / p
-                    ds = ds_f + (1 << 16) * max(0, int(round((dt_f / p - ds_f) / (1 << 16))))
-                    consistent = ds >= 1 and abs(dt_f - ds * p) <= 0.5 * p + 1e-4 * dt_f
-                if near and consistent is False:
-                    verdict = "restart"
-                elif ds >= 1 and (consistent or ds_f < 1 << 15):
-                    verdict = "forward"
-            elif near and (((self._s0 - si) & 0xFFFF) > self.STALE_MAX
-                           or (p and ((self._t0 - ti) & 0xFFFFFFFF) > self.STALE_MAX * p)):
-                verdict = "restart"           # back near zero, and further than a stale frame would be
-            if verdict == "forward":
-                S, T = self._S0 + ds, self._T0 + dt_f
-                self._accept(frames, i, S, T, rx_time_s)
-            elif verdict == "restart":
-                S, T = self._restart(frames, i, si, rx_time_s)
             else:
-                c.seq_backsteps += 1
-                prev = self._stale_st
-                follows = prev is not None and 1 <= ((si - prev[0]) & 0xFFFF) <= 16 \
-                    and 0 < ((ti - prev[1]) & 0xFFFFFFFF) < 1 << 31
-                self._stale = self._stale + 1 if follows else 1
-                self._stale_st = (si, ti)
-                if self._stale < self.RESYNC_FRAMES:
+                verdict, ds, dt = self._verdict(si, ti)
+                if verdict == "restart":
+                    S, T = self._restart(frames, i, si, rx_time_s)
+                elif verdict != "stale":
+                    if verdict == "counter jump":
+                        # a jump back onto the line the counter left (one glitched frame, or a few) ends that jump
+                        left = (self._s0, self._S0)
+                        c.counter_jumps += 0 if self.jumps.counter_rejoins(si, self._S0 + ds, left) else 1
+                    elif verdict == "clock jump":
+                        c.clock_jumps += 0 if self.jumps.clock_rejoins(ti, self._T0 + dt, self.period_us() or 0.0,
+                                                                       (self._t0, self._T0)) else 1
+                    S, T = self._S0 + ds, self._T0 + dt
+                    self._accept(frames, i, S, T, rx_time_s)
+                elif self.history.holds(frames, i):          # a frame accepted before, sent again
+                    c.duplicates += 1
                     continue
-                c.seq_backsteps -= 1                         # this one is taken: a restart from here
-                S, T = self._restart(frames, i, 0, rx_time_s)  # (how many came before it is not known)
+                else:
+                    c.seq_backsteps += 1
+                    prev = self._stale_st
+                    follows = prev is not None and 1 <= ((si - prev[0]) & 0xFFFF) <= 16 \
+                        and 0 < ((ti - prev[1]) & 0xFFFFFFFF) < 1 << 31
+                    self._stale = self._stale + 1 if follows else 1
+                    self._stale_st = (si, ti)
+                    if self._stale < self.RESYNC_FRAMES:
+                        continue
+                    c.seq_backsteps -= 1                         # this one is taken: a restart from here
+                    S, T = self._restart(frames, i, 0, rx_time_s)  # (how many came before it is not known)
             keep[i] = True
             seq_out.append(S)
             t_out.append(T)
+            self.history.add(frames, i, i + 1)
         return keep, np.asarray(seq_out, np.int64), np.asarray(t_out, np.int64)

@@ -1,5 +1,5 @@
 """Helpers several test modules share: reading a source until it has given enough or all it has, writing
-blocks to a recording, and a recording refused."""
+blocks to a recording, a recording written again as the service rotates a long run, and a recording refused."""
 
 from __future__ import annotations
 
@@ -42,6 +42,28 @@ def write_raw(directory: Path, blocks: list[SampleBlock], **logger_kw: Any) -> M
         log.write_raw(b)
     log.close()
     return log
+
+
+def write_rotated(source: Path, folder: Path, unit: str = "grad1") -> list[Path]:
+    """A recording written again into `folder` as the service writes a long run: rotated into several files of
+    one run, with its stored configuration and arithmetic (its corrected stream was computed where it was made)."""
+    from service.io.recordings.reader import read_recording
+
+    rec = read_recording(source)
+    keep = {k: v for k, v in rec.metadata.items()
+            if k in ("n_probes", "lsb_nT", "probe_names", "positions_m", "config")}
+    log = McapLogger(folder, unit=unit, rotate_mb=0.12, chunk_size=16 << 10, metadata=keep, arithmetic=rec.arithmetic)
+    for ev in rec.events:
+        log.write_event(ev)
+    cor = iter(rec.corrected_blocks)
+    nxt = next(cor, None)
+    for b in rec.raw_blocks:
+        log.write_raw(b)
+        while nxt is not None and nxt.seq[-1] <= b.seq[-1]:
+            log.write_corrected(nxt)
+            nxt = next(cor, None)
+    log.close()
+    return sorted(folder.glob(f"{unit}-*.mcap"))
 
 
 def assert_refused(read: Callable[[Path], Any], path: Path, match: str) -> None:

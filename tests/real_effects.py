@@ -41,6 +41,30 @@ CASES = (
 )
 
 
+#: the cases whose effect is a smooth non-linear function of a logged column (issue 36, shape_worlds.py's laws on a
+#: real recording's noise), each sized by the same rule (size_for), and the columns they add
+SHAPE_CASES = (
+    ("hmc5883l_sensorfusion_sphere", "flap magnet", 575.0),
+    ("qmc5883l_suarez", "saturating coil", 1560.0),
+    ("imu_freeimucal", "flap magnet", 1150.0),
+)
+SHAPE_KINDS = ("flap magnet", "saturating coil")
+
+
+def _shape_columns(t: np.ndarray, seed: int) -> dict[str, np.ndarray]:
+    """A flap's angle (deg: two swings at frequencies scaled to the record, within +-30) and a coil's current (A:
+    switched and ramped 0-2), from the recording's own clock."""
+    rng = np.random.default_rng(seed + 4242)
+    s = t - t[0]
+    d = float(s[-1])
+    flap = 18.0 * np.sin(2 * np.pi * 11.3 * s / d + rng.uniform(0, 6.3)) + 11.0 * np.sin(
+        2 * np.pi * 36.7 * s / d + rng.uniform(0, 6.3))
+    edges = np.cumsum(rng.uniform(d / 60, d / 20, 400))
+    levels = rng.uniform(0.0, 2.0, edges.size + 1)
+    coil = levels[np.searchsorted(edges, s)]
+    return {"flap_deg": flap + 0.05 * rng.standard_normal(t.size), "coil_A": coil + 0.002 * rng.standard_normal(t.size)}
+
+
 def _columns(t: np.ndarray, seed: int) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     s = t - t[0]
@@ -58,9 +82,17 @@ def with_effect(data: EffectData, kind: str, size: float, seed: int = SEED) -> t
     """(the recording with the columns and the effect, the same with the columns only)."""
     t = data.t_s
     cols = _columns(t, seed)
+    if kind in SHAPE_KINDS:
+        cols.update(_shape_columns(t, seed))
     raw = data.raw_nT.copy()
     u = raw[:, 0] - np.median(raw[:, 0], axis=0)
-    if kind == "fan phase":
+    if kind == "flap magnet":                    # a magnet on the flap: the inverse cube of a closing distance
+        f = (83.4 / (83.4 - cols["flap_deg"])) ** 3
+        raw[:, 0] += size * np.outer(f - f.mean(), [0.61, -0.31, 0.73])
+    elif kind == "saturating coil":               # a coil's field saturating with its current
+        f = np.tanh(cols["coil_A"] / 0.6)
+        raw[:, 0] += size * np.outer(f - f.mean(), [0.61, -0.31, 0.73])
+    elif kind == "fan phase":
         f = cols["fan_hz"]
         phi = 2 * np.pi * np.concatenate([[0.0], np.cumsum(0.5 * (f[1:] + f[:-1]) * np.diff(t))]) + 0.3
         raw[:, 0] += size * np.column_stack([np.cos(phi), np.sin(phi), 0.5 * np.cos(phi)])
@@ -116,14 +148,14 @@ def size_for(data: EffectData, kind: str, target: float = GROWTH, seed: int = SE
 
 def missing() -> list[str]:
     """Why the cases cannot run here: one line per recording absent (real_data.absent), none where all are found."""
-    return [absent(f"{n}.csv") for n in sorted({n for n, _, _ in CASES}) if find(f"{n}.csv") is None]
+    return [absent(f"{n}.csv") for n in sorted({n for n, _, _ in CASES + SHAPE_CASES}) if find(f"{n}.csv") is None]
 
 
-def cases() -> Iterator[tuple[str, str, EffectData, EffectData]]:
+def cases(which: tuple = CASES) -> Iterator[tuple[str, str, EffectData, EffectData]]:
     from service.io.recordings.load import load_data
     from service.numerics.engine import as_effect_data
 
-    for name, kind, size in CASES:
+    for name, kind, size in which:
         data = as_effect_data(load_data(find(f"{name}.csv")))
         touched, control = with_effect(data, kind, size)
         yield name, kind, touched, control

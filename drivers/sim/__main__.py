@@ -18,6 +18,7 @@ from typing import Sequence
 
 from ..config import read_toml
 from ..errors import ConfigError, FluxcalError
+from ..outputs import replacing
 from .can_ports import SlcanEmitter
 from .config import GRADIOMETER, load_sim_config
 from .ports import PtyEmitter
@@ -55,7 +56,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     unit = Unit(cfg)
     if args.truth:
-        with open(args.truth, "w", encoding="utf-8") as f:
+        with replacing(args.truth, "w") as f:
             json.dump(unit.world.truth(), f, indent=1)
     cls = SlcanEmitter if args.slcan else PtyEmitter
     emitter = cls(unit, realtime=args.realtime, link_dir=args.link_dir, close_at_end=True)

@@ -10,7 +10,6 @@ index (world.ChunkedRandom), so any stretch of the run can be produced again, ex
 from __future__ import annotations
 
 import math
-import os
 import threading
 from dataclasses import dataclass
 from typing import Any
@@ -22,6 +21,7 @@ from ..block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock
 #: the flag bit the simulated unit sets for faults.reserved_flag_fraction (bits 3..7 are 0 in the ICD)
 FLAG_RESERVED_SIM = 0x08
 from ..icd import SATURATED_COUNTS, TEMP_LSB_C, encode_can, encode_serial, frame_length
+from ..outputs import replacing
 from .config import SimConfig
 from .streams import (STREAM_CAN, STREAM_GARBAGE, STREAM_GARBLE, STREAM_IMPLAUSIBLE, STREAM_SERIAL,
                       STREAM_TEMP_INVALID, STREAM_WIRE_REPEAT, ChunkedRandom)
@@ -216,10 +216,8 @@ class FaultRecord:
             arrays = {f"kind_{k}": i.all() for k, i in self._kinds.items()}
             garbage = self.garbage_bytes
         meta_arrays = {f"meta_{k}": np.int64(v) for k, v in meta.items()}
-        tmp = f"{path}.tmp-{os.getpid()}"             # whole or absent: a killed writer leaves no half file
-        with open(tmp, "wb") as f:
+        with replacing(path) as f:                     # whole or absent: a killed writer leaves no half file
             np.savez(f, garbage_bytes=np.int64(garbage), **arrays, **meta_arrays)
-        os.replace(tmp, path)
 
     @classmethod
     def load(cls, path: str) -> tuple["FaultRecord", dict[str, int]]:

@@ -5,7 +5,9 @@
      "effects": [...], "effect_params": {...}, "span": {"t0_s": ..., "t1_s": ..., "n_samples": ...},
      "probes": [{"name": "s1", "offset_nT": [3], "matrix": [[3]x3], "offset_se_nT": [3] (null = unknown),
                  "matrix_se": [[3]x3], "params": {...}}, ...],
-     "diagnostics": {...}}
+     "diagnostics": {...},
+     "unit": {"name": "grad1", "probes": {"s1": "<serial>", ...}}}     (optional: the unit it was made for; a
+                                                                        bare name is read as {"name": ...})
 
 Written atomically (temporary file, then rename). A file of another format or version, or a
 damaged one, is refused with a DataError naming the file and the problem.
@@ -16,9 +18,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
-import os
 import re
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +26,7 @@ import numpy as np
 
 from drivers.errors import DataError
 from drivers.inputs import read_small
+from drivers.outputs import replacing
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 
 FORMAT = "fluxcal.calibration"
@@ -64,6 +65,7 @@ def calibration_to_dict(cal: ArrayCalibration) -> dict[str, Any]:
                     "matrix_se": p.matrix_se, "params": p.params, "model_order": p.model_order,
                     "warnings": list(p.warnings)} for p in cal.probes],
         "diagnostics": cal.diagnostics,
+        **({"unit": cal.unit} if cal.unit else {}),
     })
 
 
@@ -73,22 +75,8 @@ def save_calibration(cal: ArrayCalibration, path: str | Path) -> None:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(calibration_to_dict(cal), indent=1, allow_nan=False)
-    fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=p.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text + "\n")
-            f.flush()
-            os.fsync(f.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)     # as any file the user writes (mkstemp makes it 0600)
-        os.replace(tmp, p)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    with replacing(p, "w", fsync=True) as f:          # a link at the path replaced, never written through
+        f.write(text + "\n")
 
 
 #: the largest calibration file or payload read (one written by `fit --out` is a few kB; with effects tens of kB)
@@ -219,6 +207,20 @@ def _total(v: Any, origin: str) -> float | None:
     return float(v)
 
 
+def _unit(v: Any, origin: str) -> dict[str, Any]:
+    """The unit a calibration was made for: "grad1", or {"name": "grad1", "probes": {"s1": "<serial>", ...}}."""
+    if v is None:
+        return {}
+    if isinstance(v, str):
+        v = {"name": v}
+    probes = v.get("probes", {}) if isinstance(v, dict) else None
+    if not isinstance(v, dict) or not isinstance(v.get("name", ""), str) or not isinstance(probes, dict) \
+            or not all(isinstance(k, str) and isinstance(s, str) for k, s in probes.items()):
+        raise DataError(f"{origin}: damaged calibration file (unit must be a unit's name, or {{\"name\": ..., "
+                        f"\"probes\": {{probe: serial}}}})")
+    return {"name": v.get("name", ""), "probes": dict(probes)} if probes else {"name": v.get("name", "")}
+
+
 def calibration_from_dict(d: Any, origin: str = "<calibration>") -> ArrayCalibration:
     """The ArrayCalibration of a parsed calibration file; DataError naming `origin` and the problem."""
     if not isinstance(d, dict) or d.get("format") != FORMAT:
@@ -262,7 +264,8 @@ def calibration_from_dict(d: Any, origin: str = "<calibration>") -> ArrayCalibra
             if not isinstance(d.get(k) or {}, dict):
                 raise DataError(f"{origin}: damaged calibration file ({k} must be an object)")
         span = d.get("span") or {}
-        return ArrayCalibration(method=str(d["method"]), align=align, probes=probes,
+        unit = _unit(d.get("unit"), origin)
+        return ArrayCalibration(method=str(d["method"]), align=align, probes=probes, unit=unit,
                                 total_nT=_total(d.get("total_nT"), origin), effects=list(effects),
                                 effect_params=dict(d.get("effect_params") or {}),
                                 diagnostics=dict(d.get("diagnostics") or {}),

@@ -18,6 +18,9 @@ import numpy as np
 PLAUSIBLE_NT = (1_000.0, 1_000_000.0)
 #: Earth's field at the surface, nT
 EARTH_NT = (22_000.0, 67_000.0)
+#: the Earth's field as a compass on a platform may read it, nT: the surface's 22,000-67,000 nT with a margin for the
+#: platform's own field; a calibration whose total field lies outside is no Earth's (determinacy.physical)
+EARTH_RANGE_NT = (20_000.0, 70_000.0)
 #: a given total field this many times the data's scale (or less than its inverse) is said loudly
 TOTAL_RATIO_LIMIT = 5.0
 #: units a lab file may be in, and nT per unit

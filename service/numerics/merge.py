@@ -183,6 +183,8 @@ def euler_from_quaternion(q: np.ndarray) -> np.ndarray:
     [[0.0, -0.0, 28.64789]]
     """
     q = np.asarray(q, np.float64)
+    big = np.max(np.abs(q), axis=1, keepdims=True)        # scaled first: a damaged log's 1e300 does not overflow
+    q = q / np.where(big > 0, big, 1.0)
     w, x, y, z = (q[:, i] / np.linalg.norm(q, axis=1) for i in range(4))
     r20 = 2 * (x * z - y * w)
     r21 = 2 * (y * z + x * w)

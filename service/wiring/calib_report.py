@@ -12,6 +12,7 @@ import numpy as np
 from service.numerics.calib.coverage import coverage
 from service.numerics.calib.param_table import effect_rows, probe_rows
 from service.numerics.calib.sky import CalibrationSection, probe_sky
+from service.numerics.diagnose.text import reference_words
 
 #: the median |raw| is taken over at most this many samples, evenly spaced (hours of data: no copy of them all)
 SCALE_ROWS = 100_000
@@ -66,7 +67,7 @@ def section_from_diagnosis(d: Any) -> CalibrationSection:
                             f"seen; {cov.advice()}")
     table += effect_rows(cal.effect_params)
     desc = (f"the linear part of {d.model}, {'refitted to these data' if refit else 'held fixed (--calibration)'}, "
-            f"with its effects; total field from {d.reference}; matrix standard errors are not given by this fit")
+            f"with its effects; total field {reference_words(d.reference)}; matrix standard errors are not given by this fit")
     return CalibrationSection("Linear calibration of the model compared", desc, skies, table, warnings)
 
 

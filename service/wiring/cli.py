@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import signal
 import sys
 from typing import Sequence
@@ -60,10 +61,36 @@ def _sigterm_to_keyboard_interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
+    """The parsed arguments; a usage error (exit status 2) of a command asked for --json is said on stderr as argparse
+    says it, and as the refusal JSON on stdout (docs/contracts.md), the input unknown (file null)."""
+    if "--json" not in argv:
+        return parser.parse_args(argv)
+    import contextlib
+    import io
+
+    said = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(said):
+            return parser.parse_args(argv)
+    except SystemExit as e:
+        text = said.getvalue()
+        sys.stderr.write(text)
+        if e.code == 2:
+            from service.wiring.result import refusal
+
+            lines = [ln for ln in text.strip().splitlines() if ln.strip()]
+            error = ConfigError(lines[-1].split(" error: ", 1)[-1] if lines else "usage error")
+            asked = next((a for a in argv if a in COMMANDS), "")
+            error.advice = f"`fluxcal {asked} --help` lists the options and what each allows".replace("  ", " ")
+            print(json.dumps(refusal(error, None)), flush=True)
+        raise
+
+
 def main(argv: Sequence[str] | None = None, *, install_signals: bool = True) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     asked = next((a for a in argv if not a.startswith("-")), None)
-    args = build_parser(asked if asked in COMMANDS else None).parse_args(argv)
+    args = _parse(build_parser(asked if asked in COMMANDS else None), argv)
     if install_signals:
         signal.signal(signal.SIGTERM, _sigterm_to_keyboard_interrupt)
     try:
@@ -76,6 +103,10 @@ def main(argv: Sequence[str] | None = None, *, install_signals: bool = True) -> 
         return int(command_module(args.command).main(args) or 0)
     except (ConfigError, DataError, CalibrationRefused) as e:
         print(f"fluxcal {args.command}: {e}", file=sys.stderr)
+        if getattr(args, "json", False):      # a script reads JSON on stdout whatever happened (docs/contracts.md)
+            from service.wiring.result import refusal
+
+            print(json.dumps(refusal(e, getattr(args, "data", None) or getattr(args, "file", None))), flush=True)
         return EXIT_USAGE
     except FluxcalError as e:
         print(f"fluxcal {args.command}: {e}", file=sys.stderr)

@@ -27,6 +27,7 @@ from drivers.errors import ConfigError
 from service.numerics.calib.site import site_from_text
 
 _UNIT_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+_SERIAL = re.compile(r"^[A-Za-z0-9_.:/+\-]{0,64}$")
 
 
 @dataclass
@@ -40,6 +41,9 @@ class UnitConfig:
     status_s: float = spec(10.0, min=0.1, max=3600.0, doc="`fluxcal run` says a status line on stderr this often")
     silence_s: float = spec(5.0, min=0.5, max=86400.0,
                             doc="nothing from the unit for this long is said (console, health, dashboard), and its end")
+    duplicate: str = spec("refuse", choices=("refuse", "suffix"),
+                          doc="when another live service holds this unit's name on the Zenoh network: refuse to "
+                              "start, naming it, or serve as <name>-2, <name>-3, ...")
 
     def validate(self, path: str) -> None:
         if not _UNIT_NAME.match(self.name):
@@ -50,6 +54,13 @@ class UnitConfig:
 class ProbeConfig:
     name: str = spec("")
     position_m: list[float] = spec([0.0, 0.0, 0.0], length=3, min=-100.0, max=100.0)
+    serial: str = spec("", doc="the probe's serial number: its calibrations carry it, and one made for another "
+                               "probe is refused (letters, digits and . _ - : / +)")
+
+    def validate(self, path: str) -> None:
+        if not _SERIAL.match(self.serial):
+            raise ConfigError(f"{path}.serial: {self.serial!r} is not allowed (allowed: up to 64 letters, digits "
+                              f"and . _ - : / +)")
 
 
 @dataclass
@@ -93,6 +104,10 @@ class CalibrationConfig:
                             doc="a calibration's matrix may scale the field by 1/max_scale to max_scale")
     min_total_nT: float = spec(1000.0, min=0.0, max=1e7, doc="smallest total field a calibration may name")
     max_total_nT: float = spec(200000.0, min=1.0, max=1e9, doc="largest total field a calibration may name")
+    max_offset_change_nT: float = spec(2000.0, min=1.0, max=1e9,
+                                       doc="before the service has seen estimator.min_samples to judge an applied "
+                                           "calibration on, one whose offsets differ from the calibration in use by "
+                                           "more than this is refused (another unit's probes); after, the data judge")
 
     def validate(self, path: str) -> None:
         if not self.min_total_nT < self.max_total_nT:
@@ -261,6 +276,7 @@ def load_config(path: str | Path, *, source_required: bool = True) -> FluxcalCon
         return os.path.normpath(base / p)          # absolute paths stay as they are
 
     cfg.calibration.file = here(cfg.calibration.file)
+    check_state_file(cfg.calibration.file, f"{path}: calibration.file")
     if cfg.calibration.initial:
         cfg.calibration.initial = here(cfg.calibration.initial)
     cfg.mcap.dir = here(cfg.mcap.dir)
@@ -273,6 +289,21 @@ def load_config(path: str | Path, *, source_required: bool = True) -> FluxcalCon
 
 
 SOURCE_KINDS = ("serial", "can", "sim", "replay")
+
+
+def check_state_file(file: str, key: str) -> None:
+    """Where the calibration in use persists must be a file's path: a folder there, or a file where a folder of
+    the path should be, is a ConfigError at start (it failed every save, said every 5 s, and the summary at stop
+    said no fault)."""
+    p = Path(file)
+    if p.is_dir():
+        raise ConfigError(f"{key}: {file!r} is a folder (allowed: a file's path, e.g. {str(p / 'cal.json')!r}; "
+                          f"the calibration in use persists there)")
+    for parent in p.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise ConfigError(f"{key}: {file!r} is not allowed: {str(parent)!r} is a file, not a folder")
+            break
 
 
 def require_source(raw: dict, path: str) -> None:

@@ -19,14 +19,14 @@ import numpy as np
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError, DriverError, FluxcalError
 from drivers.source import Source, open_source
-from service.io.calfile import save_calibration
+from drivers.text import printable
 
 from .config import RATE_MISSING, FluxcalConfig
 from .faults import FaultWatch
 from .input import BatchReader, RateCheck, Reconnecting
 from .pipeline import Pipeline, PipelineEvent
 from .sinks import BusSink, McapSink, Sink, Sinks, say_bus
-from .startcal import calibration_from_payload, initial_calibration, learned_on
+from .startcal import Keeper, initial_calibration
 from .status import StatusLog
 
 
@@ -55,6 +55,22 @@ def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:
     # a calibration applied by command stays until `reset`, across a restart (and in its replay) too
     pl.held = initial is not None and bool(initial.diagnostics.get("applied"))
     return pl
+
+
+#: the bus's counters FaultWatch says beside the source's
+BUS_COUNTED = ("send_stalls", "duplicate_holders")
+
+
+def renamed(cfg: FluxcalConfig, name: str, note: Callable[[str], None], keeper: Keeper) -> Pipeline:
+    """Serve under the name the bus took (unit.duplicate = "suffix"): the calibration persists under it too when its
+    file was the default one (two services never share one state file), and the pipeline starts from that name's."""
+    kind = str(getattr(cfg.source, "kind", "sim"))
+    default = Path(cfg.calibration.file)
+    if default.name == f"{cfg.unit.name}-{kind}-cal.json":
+        cfg.calibration.file = str(default.with_name(f"{name}-{kind}-cal.json"))
+    cfg.unit.name = name
+    keeper.calibrations_refused = 0                 # what was refused was the other name's
+    return build_pipeline(cfg, initial_calibration(cfg, note, refused=keeper.refused))
 
 
 def open_configured_source(cfg: FluxcalConfig) -> Source:
@@ -92,7 +108,8 @@ def _say(msg: str) -> None:
     read stderr has gone (`fluxcal run ... 2>&1 | head -3`, a closed terminal), the service goes on: the lines
     go to /dev/null from then on, and the health channel and the recording still say everything."""
     try:
-        print(f"fluxcal {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}: {msg}", file=sys.stderr, flush=True)
+        print(f"fluxcal {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}: {printable(msg)}",   # a payload's
+              file=sys.stderr, flush=True)        # or a peer's words never act on the terminal nor make lines
     except (OSError, ValueError):        # BrokenPipeError; ValueError: stderr closed
         stderr_gone()
 
@@ -117,10 +134,10 @@ class Daemon:
         self.cfg = cfg
         self.stop = stop or threading.Event()
         self.say = say or _say
-        self.cal_path = Path(cfg.calibration.file)
         self.extra_sinks = list(sinks)
         self._reader = BatchReader(cfg.unit.block_ms, self.stop)
         self.processing_errors = 0            # blocks whose processing raised (their raw data are kept)
+        self.keeper = Keeper(cfg, self.say)   # the calibrations refused, and the saves of the one in use
         self._faults = FaultWatch(self.say, silence_s=cfg.unit.silence_s, every_s=cfg.unit.status_s)
         self._last_processing_say = -1e9
         self._rate = RateCheck(cfg, self.say)
@@ -131,13 +148,17 @@ class Daemon:
 
         cfg = self.cfg
         notes: list[str] = []                 # said once the source, the bus and the recording are open
-        pipeline = build_pipeline(cfg, initial_calibration(cfg, notes.append))
+        pipeline = build_pipeline(cfg, initial_calibration(cfg, notes.append, refused=self.keeper.refused))
         source = open_configured_source(cfg)
         sinks = Sinks([], self.say)           # the recording first: a raw block is kept before anything else
         bus = None
         try:
             bus = ServiceBus(cfg.zenoh, unit=cfg.unit.name, probe_names=cfg.probe_names,
-                             state_fn=lambda: self._state(pipeline, source, sinks))
+                             state_fn=lambda: self._state(pipeline, source, sinks), duplicate=cfg.unit.duplicate,
+                             config=cfg.path)
+            if bus.unit != cfg.unit.name:                  # unit.duplicate = "suffix": another holds the name
+                notes = [bus.claim_note]
+                pipeline = renamed(cfg, bus.unit, notes.append, self.keeper)
             open_outputs(sinks, cfg, pipeline.calibration, bus, notes.append, self.say, self.extra_sinks)
             for note in notes:
                 self.say(note)
@@ -198,12 +219,13 @@ class Daemon:
         where the dashboard's health table shows them beside the others; in the summary at stop too)."""
         return {**source.counters.as_dict(), "processing_errors": self.processing_errors,
                 "commands_refused": self._status.refused, "output_failures": sum(sinks.errors.values()),
+                **self.keeper.counts(),
                 **{f"output_failures.{name}": n for name, n in sinks.errors.items() if n}}
 
     def _tick_health(self, source: Source, sinks: Sinks, bus, final: bool = False) -> None:
         """The health counters and the faults to every sink; at stop (final), with the summary of the run said."""
         health = self._health(source, sinks)
-        counted = {**health, "send_stalls": int(getattr(bus, "stats", {}).get("send_stalls", 0))}
+        counted = {**health, **{k: int(getattr(bus, "stats", {}).get(k, 0)) for k in BUS_COUNTED}}
         faults = self._faults.tick(counted, sinks.recording())
         if final:
             faults["summary"] = self._faults.summary(counted, sinks.recording(), outputs=sinks.errors)
@@ -249,6 +271,7 @@ class Daemon:
             if now - last_health >= 1.0:
                 last_health = now
                 self._status.bus_refusals(bus)
+                self._status.holders(bus)
                 self._tick_health(source, sinks, bus)
                 self._status.tick(pipeline.state())
 
@@ -272,12 +295,7 @@ class Daemon:
         applied = ev.kind == "command" and ev.detail.get("name") == "apply"
         reset = ev.kind == "command" and ev.detail.get("name") == "reset"      # no longer held: persisted so
         if (ev.kind == "calibration" or applied or reset) and pipeline.calibration is not None:
-            try:
-                pipeline.calibration.diagnostics["learned_on"] = learned_on(self.cfg)
-                pipeline.calibration.diagnostics["applied"] = applied     # reloaded held, as it was
-                save_calibration(pipeline.calibration, self.cal_path)
-            except OSError as e:
-                self.say(f"could not persist the calibration to {self.cal_path}: {e}")
+            self.keeper.persist(pipeline.calibration, applied)
         if ev.kind in ("gate", "calibration"):
             self._status.gate(ev.kind == "calibration" or bool(ev.detail.get("usable")), ev.detail.get("reasons", []))
 
@@ -288,7 +306,7 @@ class Daemon:
         try:
             payload = cmd.payload
             if cmd.name == "apply":
-                payload = calibration_from_payload(payload, self.cfg)
+                payload = self.keeper.to_apply(payload, pipeline)
             ev = pipeline.command(cmd.name, payload, seq=seq, t_s=float("nan"))
             if cmd.name == "apply":
                 from service.io.calfile import calibration_to_dict

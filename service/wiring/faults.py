@@ -4,11 +4,16 @@ it lasts (at most every `every_s`), a line when it ends, and a summary at stop. 
 channel as events with their counts (`health.faults`), where the dashboard shows them.
 
     crc           frames failing their CRC, with the share of frames that fail (bit errors on the line)
+    bad_frames, wrong_length, remote_frames, error_frames: what a CAN adapter or bus gave that is no frame of the
+                  unit's (CAN has no CRC failures: its controller drops those)
     no_decode     bytes arrive but no frame decodes for 2 s (a wrong baud rate, a wrong probe count)
     silence       nothing from the unit for `silence_s` (unit.silence_s), and when data come again
     gaps          samples missed in gaps of the unit's counter
     can_incomplete, duplicates, backsteps, saturated, temp_invalid, implausible: as counted by the driver
     restarts      the unit restarted (counter and clock back near zero): said each time
+    clock_jumps, counter_jumps: the unit's clock (or counter) jumped while the other ran on: said each time
+    persist       saves of the calibration in use that failed (a restart would not reload it)
+    calibrations_refused, commands_refused: said where they happen; counted here, and in the summary at stop
     stalls        the bus waited for a subscriber that took nothing (the daemon adds bus.send_stalls)
     recording     write errors (a full disk): the messages dropped, running, and when recording resumes
 
@@ -42,19 +47,38 @@ class CountedKind:
     what: str                     # what {n} counts: "{n} frame(s) failed their CRC"
     advice: str = ""
     one_shot: bool = False        # said each time it counts (a restart), never "begins" or "ends"
+    quiet: bool = False           # said where it happens (a refused command): here only counted and summarised
 
 
 KINDS = (
     CountedKind("crc", "crc_failures", "CRC failures", "{n:,} frame(s) failed their CRC",
                 "bit errors on the line: check the cable, its screen and its length for the baud rate"),
+    CountedKind("bad_frames", "bad_frames", "bad CAN frames",
+                "{n:,} line(s) or frame(s) from the CAN adapter that are no frame, dropped",
+                "garbled on the adapter's serial link or by its firmware: check the USB cable and the adapter"),
+    CountedKind("wrong_length", "wrong_length", "CAN frames of a wrong length",
+                "{n:,} frame(s) with the unit's ids that are no 8-byte data frame, dropped",
+                "another node sends on the unit's ids, or the unit speaks another ICD version: check source.base_id"),
+    CountedKind("remote_frames", "remote_frames", "CAN remote frames",
+                "{n:,} remote frame(s) with the unit's ids, ignored",
+                "another node on the bus asks for the unit's ids"),
+    CountedKind("error_frames", "error_frames", "CAN error frames", "{n:,} error frame(s) reported by the interface",
+                "faults on the bus itself: check its termination, wiring and bitrate"),
     CountedKind("gaps", "samples_missed", "samples missed", "{n:,} sample(s) missed in gaps of the unit's counter"),
     CountedKind("can_incomplete", "can_incomplete", "CAN samples incomplete",
                 "{n:,} CAN sample(s) dropped, a frame of each never came"),
     CountedKind("duplicates", "duplicates", "duplicate frames",
-                "{n:,} frame(s) repeating the one before bit for bit, dropped"),
+                "{n:,} frame(s) repeating one received before bit for bit, dropped",
+                "sent again by the unit or a link that replays its buffer"),
     CountedKind("backsteps", "seq_backsteps", "frames stepping back",
-                "{n:,} frame(s) whose counter or clock stepped back, dropped",
-                "a stale frame sent again, or a unit counter that jumped"),
+                "{n:,} frame(s) whose counter or clock stepped back, no copy of one received, dropped",
+                "a stale frame, or a unit counter that jumped back"),
+    CountedKind("clock_jumps", "clock_jumps", "unit clock jump",
+                "{n:,} jump(s) of the unit's clock while its counter ran on",
+                "time repaired from the counter at the unit's period: no sample lost or made up", one_shot=True),
+    CountedKind("counter_jumps", "counter_jumps", "unit counter jump",
+                "{n:,} jump(s) of the unit's counter while its clock ran on",
+                "followed by the clock: no sample counted missed that the clock says never existed", one_shot=True),
     CountedKind("restarts", "restarts", "unit restart",
                 "{n:,} restart(s) of the unit: its counter and clock went back near zero",
                 "followed: seq and time go on from the last sample's, no sample counted missed", one_shot=True),
@@ -62,11 +86,24 @@ KINDS = (
                 "{n:,} sample(s) with a good CRC but values no probe gives, kept out of the estimator"),
     CountedKind("saturated", "saturated_axes", "saturation", "{n:,} saturated axis reading(s), NaN"),
     CountedKind("temp_invalid", "temp_invalid", "temperature invalid", "{n:,} sample(s) flagged temperature-invalid"),
+    CountedKind("persist", "persist_failures", "calibration not persisted",
+                "{n:,} save(s) of the calibration in use failed",
+                "it is in use, but a restart would not reload it: check the folder of calibration.file"),
+    CountedKind("calibrations_refused", "calibrations_refused", "calibrations refused",
+                "{n:,} calibration(s) refused (by apply, or the persisted one at start), each said as it came",
+                quiet=True),
+    CountedKind("commands_refused", "commands_refused", "commands refused",
+                "{n:,} command(s) refused, each said as it came", quiet=True),
+    CountedKind("duplicate_holders", "duplicate_holders", "another service under this unit's name",
+                "{n:,} other service(s) announced this unit's name on the network", quiet=True),
     CountedKind("stalls", "send_stalls", "a subscriber took nothing",
                 "the streams waited {n:,} time(s) for a subscriber that took nothing (health: bus.send_stalls)",
                 "a subscriber that takes nothing for zenoh.stall_close_ms is disconnected so that it holds back no "
                 "other one; it reconnects and counts what it missed by seq (docs/zenoh.md)"),
 )
+
+#: counters whose growth means something arrived from the unit's port or bus, whatever it was
+ACTIVITY = ("crc_failures", "bad_frames", "wrong_length", "remote_frames", "error_frames", "foreign_frames")
 
 #: the counters behind `implausible`, said as its reasons
 IMPLAUSIBLE_REASONS = (("reserved_flags", "reserved flag bits"), ("beyond_full_scale", "axes beyond full scale"),
@@ -188,7 +225,7 @@ class FaultWatch:
         got_bytes, frames = d.get("bytes_received", 0), d.get("frames_accepted", 0)
         if self._last_activity is None:
             self._last_activity = now
-        if got_bytes > 0 or frames > 0 or d.get("crc_failures", 0) > 0:
+        if got_bytes > 0 or frames > 0 or any(d.get(k, 0) > 0 for k in ACTIVITY):
             if self._silent_since is not None:
                 self._event("silence", "end", self.silences,
                             f"silence ended: data from the unit again after about {_ago(now - self._silent_since)}")
@@ -227,6 +264,8 @@ class FaultWatch:
         value, grew = int(c[kind.counter]), d.get(kind.counter, 0)
         self.totals[kind.name] = value
         ep = self._episodes.get(kind.name)
+        if kind.quiet:
+            return
         if grew > 0 and kind.one_shot:
             self._event(kind.name, "event", value, f"{kind.label}: {kind.what.format(n=value)} ({kind.advice}; "
                                                    f"health: counters.{kind.counter})")

@@ -17,6 +17,7 @@ from drivers.block import SampleBlock
 from drivers.errors import CalibrationRefused, DataError
 from service.io.recordings.labdata import LabData
 from service.numerics.calib.alignment import align_probes
+from service.numerics.calib.determinacy import Determinacy, judge_all, physical, refuse_undetermined, shape_problem
 from service.numerics.calib.ellipsoid import fit_ellipsoid
 from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 from service.numerics.channels import channel_names
@@ -62,11 +63,12 @@ def _column(block: SampleBlock, names: tuple[str, ...], what: str) -> np.ndarray
 
 
 def fit_probe(method: str, raw: np.ndarray, total: TotalField, block: SampleBlock, name: str,
-              inclination_deg: float | None = None) -> ProbeCalibration:
-    """One probe's calibration in its own orthogonal frame."""
+              inclination_deg: float | None = None, core: Any = None) -> ProbeCalibration:
+    """One probe's calibration in its own orthogonal frame (core: the determinacy gate's ellipsoid fit of the same
+    samples, which the ellipsoid method finishes rather than redoes)."""
     if method == "ellipsoid":
         # the white-noise errors: coloured_fit adds the noise's wander and the directions' spread to them
-        return fit_ellipsoid(raw, total.values, name=name, errors="white").calibration
+        return fit_ellipsoid(raw, total.values, name=name, errors="white", core=core).calibration
     if method == "tmi":
         from service.numerics.calib.tmi import fit_tmi
 
@@ -121,13 +123,15 @@ def fit_rls(data: LabData, total: TotalField, *, forgetting: float = 1.0, align:
 
 def fit_array(data: LabData, *, method: str = "ellipsoid", align: str | None = None,
               configured_total_nT: float | None = None, positions_m: np.ndarray | None = None,
-              inclination_deg: float | None = None,
-              progress: Callable[[str], None] | None = None) -> tuple[ArrayCalibration, TotalField]:
-    """Every probe fitted by `method`, then aligned (arrays: regression by default)."""
+              inclination_deg: float | None = None, progress: Callable[[str], None] | None = None,
+              judged: list[Determinacy] | None = None) -> tuple[ArrayCalibration, TotalField]:
+    """Every probe fitted by `method`, then aligned (arrays: regression by default), once the determinacy gate
+    (judge_data; `judged`: its verdicts already asked) found every probe's samples determine a calibration."""
     b = data.block
-    _refuse_non_finite(data)
-    refuse_stuck(b.field_nT, data.probe_names)
     total = total_field(data, configured_total_nT)
+    judged = judged if judged is not None else judge_data(data, configured_total_nT)
+    if method != "sinefit":             # (a sine fit is made of one turn about a chosen axis, by design)
+        refuse_undetermined(judged)
     p = b.n_probes
     if align is None and p > 1:
         align = "regression"
@@ -137,7 +141,6 @@ def fit_array(data: LabData, *, method: str = "ellipsoid", align: str | None = N
         cal = fit_rls(data, total, align=align if align in ("rotation", "regression") else "rotation",
                       positions_m=positions_m)
         cal.total_nT = None if isinstance(total.values, np.ndarray) or total.values is None else float(total.values)
-        _refuse_one_cone(cal, data, total)
         _refuse_unphysical(cal, data)
         return cal, total
     probes = []
@@ -147,7 +150,8 @@ def fit_array(data: LabData, *, method: str = "ellipsoid", align: str | None = N
         if align == "regression" and k > 0:
             probes.append(None)                     # filled by the regression onto probe 1 below
             continue
-        probes.append(fit_probe(method, b.field_nT[:, k], total, b, data.probe_names[k], inclination_deg))
+        probes.append(fit_probe(method, b.field_nT[:, k], total, b, data.probe_names[k], inclination_deg,
+                                core=judged[k].fit))
     if align == "regression":
         probes = align_probes([probes[0]] * p, b.field_nT, method="regression")
         for k, pr in enumerate(probes):
@@ -162,42 +166,39 @@ def fit_array(data: LabData, *, method: str = "ellipsoid", align: str | None = N
     cal = ArrayCalibration(method=method, align=align, probes=probes,
                            total_nT=None if not isinstance(total.values, float) else total.values,
                            span=(float(b.t_s[0]), float(b.t_s[-1]), b.n_samples))
-    if method == "tmi":                   # (ellipsoid asks in fit_ellipsoid; sinefit and two-step are made of turns)
-        _refuse_one_cone(cal, data, total)
     _refuse_unphysical(cal, data)
     return cal, total
 
 
-#: the largest condition number of a fitted matrix taken as a sensor's: axes whose gains differ 5-fold (the real boards
-#: of ../shared/real-data: 1.2 to 2.2; a real flight's cone of directions fitted with the total estimated: 9.4)
-FIT_MAX_CONDITION = 5.0
-
-
 def _refuse_unphysical(cal: ArrayCalibration, data: LabData) -> None:
-    """A fitted matrix no sensor has (a mirror, a scale of 2.3 with 62 degrees of non-orthogonality) means the data do
-    not determine the shape: refused with what would (a real flight's cone of directions, with the total field
-    estimated, passed the cone check on its own garbage shape)."""
+    """A fitted matrix no sensor has (determinacy.shape_problem) from whichever method: refused with what would help
+    (a real flight's cone of directions, with the total field estimated, passed the cone check on its own garbage
+    shape)."""
     from service.numerics.calib.excitation import coverage_hint
-    from service.numerics.calib.plausible import CalibrationLimits, matrix_problem
 
-    # the overall scale is the data's unit (counts, µT, a gain set wrong: said by the field-scale warnings), not the
-    # sensor's: only the shape is judged, a condition up to FIT_MAX_CONDITION (real boards: 1.2-2.2)
-    limits = CalibrationLimits(max_condition=FIT_MAX_CONDITION, max_scale=float("inf"))
     for k, p in enumerate(cal.probes):
-        problem = matrix_problem(p.matrix, limits, keys=False)
-        if problem is not None:
-            raise CalibrationRefused(f"{data.probe_names[k]}: the fitted calibration is no sensor's (fails the "
-                                     f"{problem[0]} check: {problem[1]}): these data do not determine it; "
+        problem = shape_problem(p.matrix)
+        if problem:
+            raise CalibrationRefused(f"{data.probe_names[k]}: {problem}; "
                                      f"{coverage_hint(data.block.field_nT[:, k], p.offset_nT)}")
 
 
-def _refuse_one_cone(cal: ArrayCalibration, data: LabData, total: TotalField) -> None:
-    """The single-axis-turn refusal (excitation.refuse_one_cone) for the methods that fit the offsets without
-    asking it (tmi, rls)."""
-    from service.numerics.calib.excitation import refuse_one_cone
-
-    refuse_one_cone(data.block.field_nT, [p.offset_nT for p in cal.probes], [p.matrix for p in cal.probes],
-                    total.values, data.probe_names)
+def judge_data(data: LabData, configured_total_nT: float | None = None, total_source: str = "",
+               physical_check: bool = True) -> list[Determinacy]:
+    """The determinacy gate (service.numerics.calib.determinacy) of every probe of the data, against the total field
+    the fit takes (total_field): what fit of every method, diagnose and inspect ask alike; with physical_check, a field
+    that is neither the site's (the reference given; total_source says what it is) nor, without one, the Earth's, is
+    refused too (determinacy.physical). DataError first for samples that hold NaN, and for a probe that did not
+    measure."""
+    _refuse_non_finite(data)
+    field_nT = data.block.field_nT
+    refuse_stuck(field_nT, data.probe_names)
+    total = total_field(data, configured_total_nT)
+    judged = judge_all(field_nT, total.values, data.probe_names)
+    if not physical_check:
+        return judged
+    source = total_source or {"ref_total": "the ref_total column", "config": "configured"}.get(total.source, "")
+    return [physical(j, field_nT[:, k], total.values, source) for k, j in enumerate(judged)]
 
 
 def _refuse_non_finite(data: LabData) -> None:

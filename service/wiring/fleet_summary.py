@@ -48,55 +48,93 @@ def _status(r: dict[str, Any]) -> str:
     return ("ok" if r["ok"] else "FAILED") + (f", {n} warning{'s' if n > 1 else ''}" if n else "")
 
 
+def _row_json(command: str, r: dict[str, Any]) -> dict[str, Any]:
+    return {"recording": r["recording"], **({"path": r["path"]} if r.get("path") else {}), "ok": r["ok"],
+            "status": r["status"], "seconds": r["seconds"], "peak_rss_mb": r.get("peak_rss_mb"),
+            "host": r.get("host"), "fluxcal": r.get("fluxcal"), "read_warnings": warnings_of(r),
+            **({"error": _why(r), "failure": r.get("failure", "failed")} if not r["ok"] else {}),
+            **({"refused": r["refused"]} if r.get("refused") else {}),
+            **figures(command, r), **({"result": r["result"]} if r.get("result") is not None else {})}
+
+
 def summary_json(command: str, results: list[dict[str, Any]], wall_s: float, where: str,
-                 skipped: list[tuple[str, str]] | None = None) -> dict[str, Any]:
+                 skipped: list[tuple[str, str]] | None = None, fluxcal: str | None = None,
+                 workers: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """The summary for a script (docs/contracts.md): each recording's row, a failed one with its reason and the
+    kind of failure; the cluster's workers and their fluxcal, where it ran on one."""
     return {"command": command, "ran_on": where, "wall_s": round(wall_s, 3), "recordings": len(results),
             "failed": sum(not r["ok"] for r in results),
             "with_warnings": sum(bool(warnings_of(r)) for r in results),
             **({"fit_warned": sum(bool(figures(command, r).get("warnings")) for r in results)}
                if command == "fit" else {}),
             "skipped": [{"path": p, "reason": why} for p, why in skipped or []],
-            "results": [{"recording": r["recording"], "ok": r["ok"], "status": r["status"], "seconds": r["seconds"],
-                         "peak_rss_mb": r.get("peak_rss_mb"), "read_warnings": warnings_of(r),
-                         **({"error": _why(r)} if not r["ok"] else {}), **figures(command, r),
-                         **({"result": r["result"]} if r.get("result") is not None else {})} for r in results]}
+            "fluxcal": fluxcal, **({"workers": workers} if workers else {}),
+            "results": [_row_json(command, r) for r in results]}
+
+
+def _head(command: str) -> str:
+    if command == "fit":
+        return f"{'rms nT':>9} {'worst probe':>11} {'coverage':>8} {'warnings':>8}"
+    if command == "diagnose":
+        return f"{'verdict':<28} {'rms nT':>8} {'floor nT':>8}  significant"
+    return "replay"
+
+
+def _row(command: str, r: dict[str, Any], width: int, ok_width: int) -> str:
+    f = figures(command, r)
+    row = f"{r['recording']:<{width}}  {_status(r):<{ok_width}} {_num(r['seconds'], '.1f'):>7}  "
+    if not r["ok"] and not (command == "replay" and r["status"] == 1 and f.get("said")):
+        return row + _why(r)
+    if command == "fit":
+        return row + (f"{_num(f.get('rms_nT')):>9} {_num(f.get('worst_scalar_rms_nT')):>11} "
+                      f"{_num(f.get('min_coverage'), '.0%'):>8} {f.get('warnings', 0):>8}")
+    if command == "diagnose":
+        verdict = (f.get("verdict") or "-") + (f" by {f['effect']}" if f.get("effect") else "")
+        return row + (f"{verdict:<28} {_num(f.get('rms_nT')):>8} {_num(f.get('floor_nT')):>8}  "
+                      f"{', '.join(f.get('significant') or []) or '-'}")
+    return row + f.get("said", "")
+
+
+def _about_workers(results: list[dict[str, Any]], fluxcal: str | None,
+                   workers: list[dict[str, Any]] | None) -> list[str]:
+    """What a person needs to know of the cluster's workers: those with another fluxcal (given no recording), the
+    recordings a worker could not see, the recordings run by another fluxcal all the same (a worker that joined
+    later, when every worker with this version had gone)."""
+    lines = []
+    other = [w for w in workers or [] if not w["same"]]
+    if other:
+        lines.append(f"\nworkers with another fluxcal than this one ({fluxcal}): sent no recording; install fluxcal "
+                     f"{fluxcal} there")
+        lines += [f"  {w['address']} on {w['host']}: fluxcal {w['fluxcal']}" for w in other]
+    unseen = [r for r in results if r.get("failure") == "missing"]
+    if unseen:
+        hosts = ", ".join(sorted({r.get("host") or "?" for r in unseen}))
+        lines.append(f"\n{len(unseen)} recording(s) not found where the workers run ({hosts}): a worker reads the "
+                     f"path named here, made absolute, so the workers need the same files at the same paths (a "
+                     f"folder shared at the same mount point, or the files copied there)")
+    ran_other = [r["recording"] for r in results if fluxcal and r.get("fluxcal") not in (None, fluxcal)]
+    if ran_other:
+        lines.append(f"\n{len(ran_other)} recording(s) run by another fluxcal than this one ({fluxcal}): "
+                     + ", ".join(ran_other))
+    return lines
 
 
 def summary_table(command: str, results: list[dict[str, Any]], wall_s: float, where: str,
-                  skipped: list[tuple[str, str]] | None = None) -> str:
+                  skipped: list[tuple[str, str]] | None = None, fluxcal: str | None = None,
+                  workers: list[dict[str, Any]] | None = None) -> str:
     width = max([len("recording")] + [len(r["recording"]) for r in results])
     ok_width = max([6] + [len(_status(r)) for r in results])
-    lines = []
-    if command == "fit":
-        head = f"{'rms nT':>9} {'worst probe':>11} {'coverage':>8} {'warnings':>8}"
-    elif command == "diagnose":
-        head = f"{'verdict':<28} {'rms nT':>8} {'floor nT':>8}  significant"
-    else:
-        head = "replay"
-    lines.append(f"{'recording':<{width}}  {'ok':<{ok_width}} {'s':>7}  {head}")
-    for r in results:
-        f = figures(command, r)
-        row = f"{r['recording']:<{width}}  {_status(r):<{ok_width}} {_num(r['seconds'], '.1f'):>7}  "
-        if not r["ok"] and not (command == "replay" and r["status"] == 1 and f.get("said")):
-            row += _why(r)
-        elif command == "fit":
-            row += (f"{_num(f.get('rms_nT')):>9} {_num(f.get('worst_scalar_rms_nT')):>11} "
-                    f"{_num(f.get('min_coverage'), '.0%'):>8} {f.get('warnings', 0):>8}")
-        elif command == "diagnose":
-            verdict = (f.get("verdict") or "-") + (f" by {f['effect']}" if f.get("effect") else "")
-            row += (f"{verdict:<28} {_num(f.get('rms_nT')):>8} {_num(f.get('floor_nT')):>8}  "
-                    f"{', '.join(f.get('significant') or []) or '-'}")
-        else:
-            row += f.get("said", "")
-        lines.append(row)
+    lines = [f"{'recording':<{width}}  {'ok':<{ok_width}} {'s':>7}  {_head(command)}"]
+    lines += [_row(command, r, width, ok_width) for r in results]
     warned = [r for r in results if warnings_of(r)]
     if warned:
         lines.append("\nwarnings (said on stderr; each recording was used without what they name)")
-        lines += [f"  {w}" if w.startswith(r["recording"]) else f"  {r['recording']}: {w}"
-                  for r in warned for w in warnings_of(r)]
+        lines += [f"  {w}" if w.startswith((r["recording"], r.get("path") or r["recording"]))
+                  else f"  {r['recording']}: {w}" for r in warned for w in warnings_of(r)]
     if skipped:
         lines.append("\nskipped")
         lines += [f"  {p}: {why}" for p, why in skipped]
+    lines += _about_workers(results, fluxcal, workers)
     failed = sum(not r["ok"] for r in results)
     busy = sum(r["seconds"] or 0.0 for r in results)
     fit_warned = sum(bool(figures(command, r).get("warnings")) for r in results) if command == "fit" else 0

@@ -12,8 +12,7 @@ from drivers.block import SampleBlock
 from drivers.errors import CalibrationRefused, FluxcalError
 from drivers.ringbuffer import RingBuffer
 from service.numerics.calib import alignment
-from service.numerics.calib import coverage as coverage_mod
-from service.numerics.calib.excitation import band_problem
+from service.numerics.calib.determinacy import judge
 from service.numerics.calib.misfit import add_direction_spread, add_time_spread
 from service.numerics.calib.model import ArrayCalibration
 from service.numerics.calib.rls import RlsEllipsoid
@@ -107,29 +106,17 @@ class Gate:
         ref = reference_total(window, self.total_nT)
         for k, (p, est) in enumerate(zip(cal.probes, estimators)):
             raw = window.field_nT[:, k]
-            raw = raw[np.isfinite(raw).all(axis=1)]
-            # the directions seen about the candidate's own centre, judged as the batch fit judges them
-            # (enough samples, not one plane, conditioned, the share of directions): map, gate and advice agree
-            cov = coverage_mod.coverage(raw, centre_nT=p.offset_nT, min_fraction=self.coverage,
-                                        max_condition=self.condition, maps=False)
-            covs.append(cov.fraction)
+            # the one determinacy gate (determinacy.judge), asked of the window's samples as fit asks it of a file's:
+            # enough samples, not one plane, conditioned, not one cone, the share of directions; one verdict, one cone
+            judged = judge(raw, ref, name=self.probe_names[k], min_fraction=self.coverage,
+                           max_condition=self.condition, maps=False)
+            covs.append(judged.coverage.fraction)
             conds.append(float(est.condition_))
-            corr = p.apply(raw)
-            mag = np.linalg.norm(corr, axis=1)
-            if ref is None:
-                rms = float(np.std(mag))
-            else:
-                r = ref[np.isfinite(window.field_nT[:, k]).all(axis=1)] if isinstance(ref, np.ndarray) else ref
-                rms = float(np.sqrt(np.mean((mag - r) ** 2)))
+            _, rms = scalar_residual(p, window, k, ref)
             rmss.append(rms)
             name = self.probe_names[k]
-            # one turn about one axis with some wobble: its offset along the axis rests on the wobble (as the
-            # batch fit refuses it: excitation.band_problem); a real hand turn was accepted 63,000 nT off
-            turn = band_problem(corr, rms, float(np.mean(mag))) if np.isfinite(rms) else ""
-            if turn:
-                reasons.append(f"{name}: {turn}")
-            if not cov.usable:
-                reasons.append(f"{name}: {cov.reason}")
+            if not judged.determined:           # (a real hand turn was accepted 63,000 nT off before the cone test)
+                reasons.append(f"{name}: {judged.problem}")
             if not np.isfinite(conds[-1]) or conds[-1] > self.condition:
                 reasons.append(f"{name}: ill-conditioned fit (condition {conds[-1]:.3g})")
             if not np.isfinite(rms) or rms > self.rms_nT:
@@ -138,6 +125,18 @@ class Gate:
                 reasons.append(f"{name}: non-finite parameters")
         return GateResult(usable=not reasons, reasons=reasons, coverage=float(min(covs)),
                           condition=float(max(conds)), rms_nT=rmss)
+
+
+def scalar_residual(p, window: SampleBlock, k: int, ref: np.ndarray | float | None) -> tuple[np.ndarray, float]:
+    """Probe k's corrected vectors over the window (its finite samples) by calibration `p`, and the RMS of
+    |corrected| - the reference total (its spread about the mean without one): the gate's residual."""
+    ok = np.isfinite(window.field_nT[:, k]).all(axis=1)
+    corr = p.apply(window.field_nT[ok, k])
+    mag = np.linalg.norm(corr, axis=1)
+    if ref is None:
+        return corr, float(np.std(mag))
+    r = ref[ok] if isinstance(ref, np.ndarray) else ref
+    return corr, float(np.sqrt(np.mean((mag - r) ** 2)))
 
 
 def _span(ring: RingBuffer) -> tuple[float, float, int]:

@@ -14,6 +14,8 @@ import sys
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from drivers.text import printable
+
 #: how loud a note is: said as "note: ...", "warning: ..." or "WARNING: ..."; "say" (what was done) and
 #: "error" (what failed: the exit status says so too) are said as they are, without a word before them
 LEVELS = ("note", "say", "warning", "loud", "error")
@@ -46,7 +48,7 @@ class Note:
 def stderr_say(command: str) -> Callable[[Note], None]:
     """The command line's `say`: each note on stderr as it comes."""
     def say(note: Note) -> None:
-        print(note.line(command), file=sys.stderr, flush=True)
+        print(printable(note.line(command)), file=sys.stderr, flush=True)      # a file's words never act
     return say
 
 
@@ -97,6 +99,38 @@ class Result:
 
     def text(self) -> str:
         return ""
+
+    # in Python (service.wiring.api): the same figures as the command line's
+    def to_dict(self) -> dict[str, Any]:
+        """The command's JSON (docs/contracts.md), as a dict."""
+        return self.as_dict()
+
+    def to_dataframe(self) -> Any:
+        """The result's table as a pandas DataFrame (pandas needed): its parameters with standard errors."""
+        import pandas as pd
+
+        return pd.DataFrame(self.rows())
+
+    def rows(self) -> list[dict[str, Any]]:
+        """The result's table as rows (to_dataframe): none here; a command's result says its own."""
+        return []
+
+    def _repr_html_(self) -> str:
+        """A notebook's display: the table, the text as the command line prints it, and the notes."""
+        from service.io.report.notebook import result_html
+
+        return result_html(self)
+
+
+def refusal(error: BaseException, file: Any = None) -> dict[str, Any]:
+    """The JSON of a refusal (docs/contracts.md section 3): {"refused": {"reason", "advice", "file"}}. reason: why
+    (the error's own reason where it gives one apart, else its message); advice: what would help, or None where the
+    reason says it itself; file: the input refused (None: not one file)."""
+    reason = getattr(error, "reason", None) or str(error)
+    advice = getattr(error, "advice", None) or None
+    if isinstance(file, (list, tuple)):
+        file = file[0] if len(file) == 1 else None
+    return {"refused": {"reason": str(reason), "advice": advice, "file": None if file is None else str(file)}}
 
 
 def print_result(result: Result, as_json: bool) -> None:

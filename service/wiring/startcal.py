@@ -8,10 +8,11 @@ from pathlib import Path
 from typing import Any, Callable
 
 from drivers.errors import ConfigError, DataError
-from service.io.calfile import load_calibration
+from service.io.calfile import load_calibration, save_calibration
 from service.numerics.calib.plausible import check_calibration
 
 from .config import FluxcalConfig
+from .identity import check_identity, judge_on_data, unit_identity
 
 
 def learned_on(cfg: FluxcalConfig) -> dict[str, str]:
@@ -19,10 +20,23 @@ def learned_on(cfg: FluxcalConfig) -> dict[str, str]:
     return {"unit": cfg.unit.name, "source": str(getattr(cfg.source, "kind", "sim"))}
 
 
+def stamp(cal: Any, cfg: FluxcalConfig, applied: bool) -> None:
+    """Before the calibration in use persists: what it was learned on, whether it was applied (reloaded held), and
+    the unit it was made for (this one: anything else was refused on its way in)."""
+    cal.diagnostics["learned_on"] = learned_on(cfg)
+    cal.diagnostics["applied"] = applied
+    ours = unit_identity(cfg)
+    probes = {**(cal.unit.get("probes") or {}), **ours.get("probes", {})}
+    cal.unit = {"name": ours["name"], **({"probes": probes} if probes else {})}
+
+
 def check_for_unit(cal: Any, cfg: FluxcalConfig) -> None:
     """The one check a calibration passes before the service uses it, by `apply`, reload or calibration.initial:
-    this unit's probes and physics (service.numerics.calib.plausible), and no effect terms (the service takes
-    those by `add-effect`, refitted on its own window: from a file they would be silently dropped)."""
+    made for this unit (service.wiring.identity: its name, its probes' serial numbers), this unit's probes and
+    physics (service.numerics.calib.plausible), and no effect terms (the service takes those by `add-effect`,
+    refitted on its own window: from a file they would be silently dropped). `apply` is also judged on the data
+    (identity.judge_on_data), which only the running service has."""
+    check_identity(cal, cfg)
     if cal.effects:
         raise DataError(f"fails the effects check: the calibration carries effect terms ({', '.join(cal.effects)}) "
                         f"that the running service cannot take from a file; use a calibration fitted without "
@@ -31,9 +45,11 @@ def check_for_unit(cal: Any, cfg: FluxcalConfig) -> None:
     check_calibration(cal, cfg.probe_names, cfg.calibration.limits())
 
 
-def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None]) -> Any:
-    """calibration.initial if given (whatever it was learned on: naming it says so), else the persisted
-    calibration.file if it reads and was learned on this unit and source kind, else None (learn online)."""
+def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None],
+                        refused: Callable[[], None] = lambda: None) -> Any:
+    """calibration.initial if given (learned on another source kind: naming it says so; made for another unit:
+    refused), else the persisted calibration.file if it reads and was learned on this unit and source kind, else
+    None (learn online). `refused()` is called when a persisted calibration is not taken (the summary counts it)."""
     c = cfg.calibration
     if c.initial:
         try:
@@ -60,10 +76,12 @@ def initial_calibration(cfg: FluxcalConfig, say: Callable[[str], None]) -> Any:
             cal = load_calibration(path)
             check_for_unit(cal, cfg)
         except DataError as e:
+            refused()
             say(f"ignoring the persisted calibration: {e}; learning online")
         else:
             origin = cal.diagnostics.get("learned_on")
             if isinstance(origin, dict) and origin != learned_on(cfg):
+                refused()
                 say(f"ignoring the persisted calibration {path}: it was learned on unit {origin.get('unit')} from a "
                     f"{origin.get('source')} source, this is unit {cfg.unit.name} on {learned_on(cfg)['source']}; "
                     f"learning online (to start from it anyway: calibration.initial = \"{path}\")")
@@ -106,3 +124,49 @@ def calibration_from_payload(payload: Any, cfg: FluxcalConfig | None = None):
         except DataError as e:
             raise DataError(f"apply: {e}; nothing was applied") from None
     return cal
+
+
+class Keeper:
+    """The running service's calibrations beyond the pipeline: `apply`'s calibration checked (calibration_from_payload)
+    and judged on the service's own data (identity.judge_on_data), the one in use saved (stamp), and what was
+    refused or could not be saved counted (health: calibrations_refused, persist_failures; FaultWatch says them
+    with their counts and in the summary at stop). A save's failure is said once for each reason, not at every
+    check of the gate."""
+
+    def __init__(self, cfg: FluxcalConfig, say: Callable[[str], None]) -> None:
+        self.cfg, self.say = cfg, say
+        self.calibrations_refused = 0       # by apply, or the persisted one at start
+        self.persist_failures = 0
+        self._said = ""
+
+    def counts(self) -> dict[str, int]:
+        return {"calibrations_refused": self.calibrations_refused, "persist_failures": self.persist_failures}
+
+    def refused(self) -> None:
+        self.calibrations_refused += 1
+
+    def to_apply(self, payload: Any, pipeline: Any) -> Any:
+        """apply's calibration, or a DataError saying why not (counted)."""
+        try:
+            cal = calibration_from_payload(payload, self.cfg)
+            try:
+                judge_on_data(cal, pipeline, self.cfg)
+            except DataError as e:
+                raise DataError(f"apply: {e}; nothing was applied") from None
+        except DataError:
+            self.calibrations_refused += 1
+            raise
+        return cal
+
+    def persist(self, cal: Any, applied: bool) -> None:
+        """Save the calibration in use (reloaded at the next start; held again if applied)."""
+        path = Path(self.cfg.calibration.file)
+        try:
+            stamp(cal, self.cfg, applied)
+            save_calibration(cal, path)
+        except OSError as e:
+            self.persist_failures += 1
+            why = f"could not persist the calibration to {path}: {e}"
+            if why != self._said:
+                self._said = why
+                self.say(f"{why}; it stays in use, but a restart would not reload it (health: persist_failures)")

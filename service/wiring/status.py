@@ -25,6 +25,7 @@ class StatusLog:
         self._refusals_said: set[tuple[str, ...]] = set()  # refusals said while this calibration is in use
         self._bus_refused = 0             # the bus's refusals already said
         self.refused = 0                  # commands the service refused (health: commands_refused)
+        self._holders_said: set[str] = set()   # other services announcing this unit's name, said
 
     def block(self, n_samples: int, error: Mapping[str, float]) -> None:
         """A block processed: its samples, and its error per channel (an RMS over its n_samples)."""
@@ -74,6 +75,17 @@ class StatusLog:
             n, self._bus_refused = refused - self._bus_refused, refused
             self.say(f"{n} command(s) refused by the bus; the last: {getattr(bus, 'last_refused', '')} "
                      f"(state: bus.commands_refused)")
+
+    def holders(self, bus: Any) -> None:
+        """Another live service that announces this unit's name (they started at once, or one ignored the other):
+        said once for each, with what it costs (bus.duplicate_holders counts them)."""
+        for zid in getattr(bus, "other_holders", lambda: [])():
+            if zid not in self._holders_said:
+                self._holders_said.add(zid)
+                self.say(f"another service announces unit {getattr(bus, 'unit', '?')} on this Zenoh network (zenoh "
+                         f"id {zid}): the subscribers of fluxcal/{getattr(bus, 'unit', '?')}/... receive both "
+                         f"streams interleaved and both obey every command; stop one, or give it another unit.name "
+                         f"(health: bus.duplicate_holders)")
 
     def tick(self, state: Mapping[str, Any]) -> None:
         """The status line, when `every_s` has passed since the last one."""

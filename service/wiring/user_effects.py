@@ -57,12 +57,28 @@ def _load_class(spec: str) -> object:
     return cls
 
 
+def effect_spec_here(spec: str) -> str:
+    """An --effects item with its FILE.py made absolute from this process's working folder (a fleet's worker may
+    run in another); names and package.module:Class as they are."""
+    where, _, cls_name = spec.rpartition(":")
+    if not where.endswith(".py"):
+        return spec
+    return f"{Path(where).expanduser().absolute()}:{cls_name}"
+
+
 def resolve_effects(specs: list[str]) -> list[str]:
     """Effect names for the model: catalogue and registered names pass; FILE.py:Class and module:Class are
-    loaded and registered first."""
-    names = []
+    loaded and registered first, each preceded by the catalogue effects its class says it was found `beside` (a
+    module diagnose --write-effect wrote: it alone gives the figure it was written from); each name once."""
+    names: list[str] = []
     for spec in specs:
-        names.append(register_effect(_load_class(spec), spec) if ":" in spec else spec)
+        if ":" in spec:
+            name = register_effect(_load_class(spec), spec)
+            names += [b for b in getattr(known_effects()[name], "beside", ()) if b not in names]
+        else:
+            name = spec
+        if name not in names:
+            names.append(name)
     return names
 
 

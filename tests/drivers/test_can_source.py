@@ -203,7 +203,8 @@ def test_virtual_bus_loss_foreign_and_malformed_frames(icd_truth, virtual_channe
         assert np.array_equal(b.seq, truth.seq[expect])
         assert np.array_equal(b.field_nT, truth.counts[expect] * 0.001)
         c = src.counters
-        assert (c.can_incomplete, c.crc_failures) == (1, 2)
+        assert (c.can_incomplete, c.crc_failures) == (1, 0)          # CAN has no CRC failures: its controller's
+        assert (c.wrong_length, c.remote_frames, c.foreign_frames) == (1, 1, 2)   # each kind said as itself
         assert (c.seq_gaps, c.samples_missed) == (2, 4)
 
 

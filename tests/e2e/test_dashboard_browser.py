@@ -326,6 +326,9 @@ def test_a_read_only_dashboard_says_why_its_buttons_are_greyed(browser):
             body: JSON.stringify({ unit: "u1" }) }).then(r => r.json().then(b => [r.status, b.error]))""")
         assert answer[0] == 403 and "read-only" in answer[1]
         assert hub.view("u1", {})["diagnosis"]["status"] == "none" and unit.received == []
+        # text from the network is shown escaped, its control characters never acting (issue 38)
+        shown = page.evaluate("() => esc('s1\\ncommand apply: applied\\x1b[2J<b>\\u202e')")
+        assert shown == "s1\\ncommand apply: applied\\x1b[2J&lt;b&gt;\\u202e", shown
     finally:
         server.stop()
         hub.close()

@@ -44,7 +44,7 @@ def test_the_tutorial_runs_as_written(tmp_path, monkeypatch, capsys, clean_regis
     assert v["kind"] == "unexplained" and v["effect"] is None
     sig = v["signature"]
     # the keys docs/contracts.md documents
-    assert set(v) == {"kind", "effect", "rms_nT", "floor_nT", "left", "advice", "signature"}
+    assert set(v) == {"kind", "effect", "rms_nT", "floor_nT", "left", "advice", "signature", "channels_above"}
     assert set(sig) == {"scalar_rms_nT", "scalar_noise_nT", "shared_fraction", "difference_rms_nT",
                         "difference_noise_nT", "half_power_period_s", "spectral_slope", "line_hz", "probe_share",
                         "follows", "frames"}

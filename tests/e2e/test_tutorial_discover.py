@@ -24,7 +24,7 @@ def _commands() -> list[list[str]]:
 
 @pytest.mark.slow
 def test_the_discovery_tutorial_runs_as_written(tmp_path, monkeypatch, capsys, clean_registry):
-    cmds = _commands()
+    cmds = _commands()[:3]
     assert [c[0] for c in cmds] == ["diagnose", "fit", "command"]
     monkeypatch.chdir(tmp_path)
     for c in cmds:                                   # the recordings as the repository's root names them
@@ -89,3 +89,38 @@ def _service_and_dashboard(tmp_path: Path, effect: Path) -> tuple[float, float]:
         i += piece.n_samples
     assert before is not None, "the calibration never became usable"
     return float(before), float(view.windows()["error_rms_nT"]["s2.scalar"])
+
+
+@pytest.mark.slow
+def test_the_shape_section_runs_as_written_with_the_figures_it_quotes(tmp_path, monkeypatch, capsys, clean_registry):
+    """Section 5: diagnose finds the flap's magnet as a distance power at s2 and s1, writes it, and fit takes it
+    back alone with the same parameters; the figures the tutorial and docs/effects.md quote are the run's."""
+    cmds = _commands()[3:]
+    assert [c[0] for c in cmds] == ["diagnose", "fit"]
+    monkeypatch.chdir(tmp_path)
+    for c in cmds:
+        c[1:] = [str(ROOT / a) if a.startswith("recordings/") else a for a in c[1:]]
+    text = TUTORIAL.read_text()
+    capsys.readouterr()
+    assert main(cmds[0]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    section = " ".join(text[text.index("## 5."):].split())
+    for quote in (re.search(r"discovery: \d+ groups of \d+ parameters", section).group(0),
+                  "f1 + f2 of its lines at 0.05831, 0.1897 Hz", "s1 from -2.67 to 11.7 nT (0.15 of s2's",
+                  "(c / (c - flap_deg))^n with c = 82.46 +- 1.8 deg and n = 2.95 +- 0.096",
+                  "distance power 8, 0.7727"):
+        assert quote in section and quote in out, quote
+    assert "polynomial 7, 1.217" in out and "cubic 8, 0.8107" in out
+    assert "a quadratic (held-out 1.217 nT) and a cubic (0.8107 nT)" in section
+    for doc in ("effects.md", "diagnose.md"):
+        quoted = " ".join((ROOT / "docs" / doc).read_text().split())
+        assert "c = 82.46 +- 1.8 deg and n = 2.95 +- 0.096" in quoted and "s1 from -2.67 to 11.7 nT" in quoted, doc
+    written = (tmp_path / "found_flap.py").read_text()
+    assert "def law_1(x, p, ref, span)" in written and "'flap_deg c deg'" in written and "beside = ()" in written
+    assert main(cmds[1]) == 0
+    fitted = capsys.readouterr().out
+    for line in ("discovered   flap_deg c deg               82.4622 ± 1.76",
+                 "discovered   flap_deg n                   2.94968 ± 0.0958"):
+        assert line in fitted and line in text, line
+    assert re.search(r"s2\.scalar\s+329\.88\s+0\.607", fitted) and "from 329.88 nT, uncalibrated, to 0.607 nT" in text
+

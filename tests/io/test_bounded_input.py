@@ -335,3 +335,51 @@ def test_a_can_log_beyond_the_limits_is_refused(tmp_path, capsys, monkeypatch):
     size = big.stat().st_size
     assert f"big.log: {size:,} bytes is beyond the size limit for a CAN log, 1 MiB" in one_line(capsys.readouterr().err)
     assert not (tmp_path / "o.csv").exists()
+
+
+# --- garbage refused within its first piece, in every reader (issue 38, build 9) ------------------------------
+
+GARBAGE = {".csv": r"not a text file \(invalid start byte at byte 0\): not a lab CSV",
+           ".ulg": r"not a PX4 ULog: it begins [0-9a-f ]+, where a ULog begins 55 4c 6f 67 01 12 35",
+           ".BIN": r"not an ArduPilot DataFlash log: it begins [0-9a-f ]+, where a DataFlash log begins a3 95 80",
+           ".db3": r"not a rosbag2 SQLite file: it begins",
+           ".mcap": r"not an MCAP file \(starts with"}
+
+
+@pytest.mark.parametrize("suffix", list(GARBAGE))
+def test_a_garbage_file_is_refused_after_its_first_piece_in_every_reader(tmp_path, monkeypatch, suffix):
+    """24 MiB of random bytes (the first one not what any format begins with) named as each reader's input: refused
+    in one line after at most one piece (HEAD_BYTES) is read, the reader's library never given the file. Before, a
+    1 GB one as CSV was read whole, then decoded: 2.06 GB at the peak (bench/bench_garbage_input.py)."""
+    p = tmp_path / f"garbage{suffix}"
+    data = bytearray(np.random.default_rng(38).bytes(24 << 20))
+    data[0] = 0x9A
+    p.write_bytes(bytes(data))
+    if suffix == ".db3":
+        (tmp_path / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    reads: list[int] = []
+    real = inputs._read_chunk
+    monkeypatch.setattr(inputs, "_read_chunk", lambda f, n: reads.append(n) or real(f, n))
+    with pytest.raises(Exception) as e:
+        load_data(p)
+    assert re.search(GARBAGE[suffix], str(e.value)) and len(str(e.value).splitlines()) == 1, str(e.value)
+    assert sum(reads) <= inputs.HEAD_BYTES + 1, reads
+
+
+def test_a_csv_whose_rows_turn_to_garbage_is_refused_in_the_piece_where_they_do(tmp_path, monkeypatch):
+    good = ("\n".join([HEADER, *lab_rows(2000)]) + "\n").encode()
+    p = tmp_path / "half.csv"
+    p.write_bytes(good + b"\x9a" + np.random.default_rng(1).bytes(40 << 20))
+    reads: list[int] = []
+    real = inputs._read_chunk
+    monkeypatch.setattr(inputs, "_read_chunk", lambda f, n: reads.append(n) or real(f, n))
+    with pytest.raises(DataError, match=rf"not a text file \(invalid start byte at byte {len(good)}\)"):
+        load_csv(p)
+    assert len(reads) == 1                                        # its first piece holds the turn: no other read
+    # a header that is no CSV's, or rows that do not parse, are refused in the first piece too
+    for text, said in ((b"time,x\n1,2\n", "no 't' column"), (HEADER.encode() + b"\n0,1,2,x3\n", "'x3' is not a number")):
+        p.write_bytes(text + b"0,1,2,3\n" * (3 << 20))
+        reads.clear()
+        with pytest.raises(DataError, match=said):
+            load_csv(p)
+        assert len(reads) == 1

@@ -67,7 +67,9 @@ def test_write_is_atomic(tmp_path, cal, monkeypatch):
     def fail(src, dst):
         raise OSError("disk full")
 
-    monkeypatch.setattr(calfile.os, "replace", fail)
+    from drivers import outputs
+
+    monkeypatch.setattr(outputs.os, "replace", fail)                  # the one helper every writer goes through
     with pytest.raises(OSError, match="disk full"):
         save_calibration(cal, path)
     assert path.read_bytes() == before                        # the old file is intact

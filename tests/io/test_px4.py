@@ -7,6 +7,8 @@ has it (tests/real_data.py)."""
 from __future__ import annotations
 
 import json
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -147,6 +149,8 @@ def test_real_px4_log_end_to_end(capsys):
     err = capsys.readouterr().err
     assert "s1: 5 samples; the fit needs at least 10" in err       # one of the 6 a logger's hold, left out: said
     assert "s1: 1 of 6 samples (17%) repeat the previous one exactly" in err
+    quoted = re.search(r'`fit` says "([^"]+)"', (Path(__file__).parents[2] / "docs" / "px4.md").read_text()).group(1)
+    assert quoted in err                                               # docs/px4.md quotes what fit says
 
 
 @needs_real("px4_pyulog_sample.ulg")

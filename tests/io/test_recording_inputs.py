@@ -9,10 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import write_rotated
 
-from service.io.recordings.reader import read_recording
-from service.io.recordings.runs import expand_inputs
-from service.io.recordings.writer import McapLogger
+from service.io.recordings.runs import expand_inputs, linked_run
 from service.wiring import cli
 
 REPO = Path(__file__).resolve().parents[2]
@@ -29,21 +28,7 @@ def run(argv, capsys):
 def rotated(tmp_path_factory) -> Path:
     """LIVE written again as the service writes a long run: rotated into several files of one run."""
     d = tmp_path_factory.mktemp("rot")
-    rec = read_recording(LIVE)
-    keep = {k: v for k, v in rec.metadata.items() if k in ("n_probes", "lsb_nT", "probe_names", "positions_m", "config")}
-    # its corrected stream was computed where LIVE was made: the copy names that arithmetic (none: unknown)
-    log = McapLogger(d, unit="grad1", rotate_mb=0.12, chunk_size=16 << 10, metadata=keep, arithmetic=rec.arithmetic)
-    for ev in rec.events:
-        log.write_event(ev)
-    cor = iter(rec.corrected_blocks)
-    nxt = next(cor, None)
-    for b in rec.raw_blocks:
-        log.write_raw(b)
-        while nxt is not None and nxt.seq[-1] <= b.seq[-1]:
-            log.write_corrected(nxt)
-            nxt = next(cor, None)
-    log.close()
-    assert len(list(d.glob("grad1-*-000?.mcap"))) >= 3
+    assert len(write_rotated(LIVE, d)) >= 3
     return d
 
 
@@ -59,7 +44,7 @@ def test_fit_takes_the_total_field_from_the_stored_configuration(capsys):
     # the 52,500 nT stored, not the 52,772 estimated: s1's x scale 0.97982, where estimating gave 0.98490 (0.5 %)
     assert stored["sensors"][0]["matrix"][0][0] == pytest.approx(0.97982, abs=2e-5)
     status, out, _ = run(["fit", LIVE], capsys)
-    assert "total field from config; configuration from the recording" in out.splitlines()[0]
+    assert "total field from the configuration; configuration from the recording" in out.splitlines()[0]
 
 
 def test_diagnose_takes_the_probe_positions_and_total_field_from_the_recording(capsys):
@@ -128,20 +113,47 @@ def test_a_fleet_carries_the_lost_bytes_and_lists_what_it_skipped(tmp_path, caps
 
 def test_patterns_group_one_runs_files_and_folders_list_what_they_skip(tmp_path):
     for name in ("u-20261101T000000-0001.mcap", "u-20261101T001000-0002.mcap", "v-20261102T000000-0001.mcap",
-                 "notes.txt"):
+                 "notes.txt", "capture.bin"):
         (tmp_path / name).write_bytes(b"x")
     (tmp_path / "sub").mkdir()
-    links, skipped, labels = tmp_path / "links", [], {}
-    got = expand_inputs([str(tmp_path / "*.mcap")], links, skipped, labels)
-    assert len(got) == 2 and got[1] == str(tmp_path / "v-20261102T000000-0001.mcap")
-    assert sorted(f.name for f in Path(got[0]).iterdir()) == ["u-20261101T000000-0001.mcap",
-                                                             "u-20261101T001000-0002.mcap"]
-    assert labels[got[0]] == f"{tmp_path / 'u-20261101T000000-0001.mcap'} (+1 rotated)"
-    expand_inputs([str(tmp_path)], tmp_path / "links2", skipped)
+    got = expand_inputs([str(tmp_path / "*.mcap")])
+    run, v = got.recordings
+    assert v.path == str(tmp_path / "v-20261102T000000-0001.mcap") and v.parts == ()
+    assert run.parts == (str(tmp_path / "u-20261101T000000-0001.mcap"), str(tmp_path / "u-20261101T001000-0002.mcap"))
+    assert run.name == f"{tmp_path / 'u-20261101T000000-0001.mcap'} (+1 rotated)"
+    linked = linked_run(run.parts, tmp_path / "links")          # where the job runs: a folder of the run's files
+    assert sorted(f.name for f in linked.iterdir()) == ["u-20261101T000000-0001.mcap", "u-20261101T001000-0002.mcap"]
+    skipped = expand_inputs([str(tmp_path)]).skipped
     assert [(Path(p).name, why.split(":")[0]) for p, why in skipped] == [
-        ("links", "a folder inside a folder given"), ("notes.txt", "not a recording (allowed"),
-        ("sub", "a folder inside a folder given")]
+        ("capture.bin", "not a recording"), ("links", "a folder inside a folder given"),
+        ("notes.txt", "not a recording (allowed"), ("sub", "a folder inside a folder given")]
+    assert "a .bin that is no ArduPilot log" in skipped[0][1]
     assert np.all([Path(p).exists() for p, _ in skipped])
+
+
+def test_every_format_fluxcal_reads_is_a_recording_of_a_folder_and_a_bag_is_one(tmp_path, monkeypatch, capsys):
+    """Flight logs and ROS 2 bags are recordings of a folder (they were 'skipped ... not a recording', and a folder
+    holding only a .ulg was refused); a bag's folder is one recording, its .db3 never one of its own; paths as
+    the user named them, sent absolute; an item that names nothing is one line with its reason."""
+    from service.io.recordings.formats import DATAFLASH_HEAD
+    from service.wiring.fleet_cli import _is_fleet, _one
+
+    logs = tmp_path / "logs"
+    (logs / "bag").mkdir(parents=True)
+    (logs / "bag" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    (logs / "bag" / "bag_0.db3").write_bytes(b"x")
+    (logs / "flight.ulg").write_bytes(b"ULog")
+    (logs / "00000012.BIN").write_bytes(DATAFLASH_HEAD + b"x")
+    (tmp_path / "empty").mkdir()
+    monkeypatch.chdir(tmp_path)
+    got = expand_inputs(["logs", "logs/bag", "nothere.csv", "empty", "none-*.mcap"])
+    assert [(r.name, r.path) for r in got.recordings] == [
+        (f"logs/{n}", str(tmp_path / "logs" / n)) for n in ("00000012.BIN", "bag", "flight.ulg")]
+    assert got.skipped == []
+    assert [(item, why.split(" (")[0]) for item, why in got.unreadable] == [
+        ("nothere.csv", "no such file or folder"), ("empty", "holds no recording"), ("none-*.mcap", "matches no file")]
+    assert not _is_fleet(["logs/bag"]) and _one("logs/bag", "fit") == "logs/bag" and _is_fleet(["logs"])
+    assert capsys.readouterr().err == ""                      # nothing of the bag said skipped
 
 
 def test_one_rotated_file_fitted_alone_says_it_is_part_of_a_run(rotated, capsys):

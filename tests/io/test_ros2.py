@@ -18,7 +18,8 @@ pytest.importorskip("rosbags", reason="the ROS 2 reader's optional package: pip 
 from drivers.errors import DataError
 from drivers.sim import Unit, load_sim_config
 from service.io.recordings.load import load_data
-from service.io.recordings.ros2 import Ros2Mapping, inspect_ros2
+from service.io.recordings.inspect import inspect_file
+from service.io.recordings.ros2 import Ros2Mapping
 from service.numerics.merge import (
     Q_NED_FROM_ENU,
     euler_from_quaternion,
@@ -250,7 +251,7 @@ def test_topics_chosen_by_options(same_data):
 
 def test_inspect_lists_topics_and_mapping(same_data, capsys):
     root, _ = same_data
-    i = inspect_ros2(root / "same.mcap")
+    i = inspect_file(root / "same.mcap")                      # the streams, then the one reading fit and diagnose use
     by = {s.name: s for s in i.streams}
     assert by["/mag1/field"].maps_to.startswith("probe s1") and by["/mag2/field"].maps_to.startswith("probe s2")
     assert by["/mag2/temperature"].maps_to == "s2_temp"
@@ -385,6 +386,13 @@ def test_topics_chosen_on_the_command_line(same_data, capsys):
     out = json.loads(capsys.readouterr().out)
     alone = load_data(root / "same.mcap", mapping=Ros2Mapping(probes={"s1": "/mag2/field"}, imu=None))
     assert [s["name"] for s in out["sensors"]] == ["s1"] and alone.probe_names == ["s1"]
+    # inspect takes the same option (it was refused there while fit took it) and lists what fit took
+    assert main(["inspect", str(root / "same.mcap"), "--topics", "s1=/mag2/field,imu=none", "--json"]) == 0
+    seen = json.loads(capsys.readouterr().out)
+    assert seen["probes"] == ["s1"] and seen["samples"] == alone.block.n_samples
+    assert seen["verdict"] == out["determinacy"]
+    by = {s["name"]: s for s in seen["streams"]}
+    assert by["/mag2/field"]["maps_to"].startswith("probe s1") and not by["/mag1/field"]["maps_to"]
     assert main(["fit", str(root / "same.csv"), "--topics", "s1=/mag2/field"]) == 2
     assert "--topics: " in capsys.readouterr().err
     with pytest.raises(SystemExit):

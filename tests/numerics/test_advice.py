@@ -106,13 +106,14 @@ def test_the_issue_cases_are_told_what_the_data_carry():
 def test_the_wrappers_of_diagnose_ask_for_no_log():
     from types import SimpleNamespace
 
-    from service.numerics.diagnose.diagnostics import _stretch_advice, _weak_advice
+    from service.numerics.diagnose.diagnostics import _weak_advice
+    from service.numerics.diagnose.stretch import stretch_advice
 
     weak = {"reason": "the blocks are separate turns", "advice": "a recording that repeats its motion would decide"}
     cand = SimpleNamespace(testable=True, fit=object(), n_params=3, p_value=1e-9, bic_delta=-50.0, effect="column",
                            rms_nT=244.3)
     for advice in (_weak_advice(weak, [cand], None), _weak_advice(weak, [], "something"),
-                   _stretch_advice({"t_start_s": 1.0, "t_end_s": 2.0, "ratio": 4.0}, None)):
+                   stretch_advice({"t_start_s": 1.0, "t_end_s": 2.0, "ratio": 4.0}, None)):
         assert _asks(advice) == [], advice
     assert "column explains most" in _weak_advice(weak, [cand], None)
 

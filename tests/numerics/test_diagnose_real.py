@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from real_data import real
+from real_data import real, real_nT
 
 from service.wiring.cli import main
 
@@ -18,7 +18,7 @@ TURNS = {"hmc5883l_nliaudat": "z", "hmc5883l_sensorfusion_turn_x": "x", "hmc5883
 
 def _diagnose(name: str, capsys, *extra: str) -> dict:
     capsys.readouterr()
-    assert main(["diagnose", str(real(f"{name}.csv")), "--json", *extra]) == 0, capsys.readouterr().err
+    assert main(["diagnose", str(real_nT(f"{name}.csv")), "--json", *extra]) == 0, capsys.readouterr().err
     return json.loads(capsys.readouterr().out)
 
 

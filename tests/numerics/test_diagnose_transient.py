@@ -216,10 +216,10 @@ def test_each_probes_own_noise_is_not_called_a_field_of_the_site(seed):
 
 
 def test_a_candidate_significant_only_with_the_stretch_is_demoted_and_a_real_one_is_kept():
-    """The re-judging itself (diagnostics._demote_on_one_stretch), whatever made a candidate significant: a drift
+    """The re-judging itself (stretch.demote_on_one_stretch), whatever made a candidate significant: a drift
     taken as significant in a world with only a passing disturbance is judged again without the stretch and
     demoted, with the stretch named; a temperature coefficient that is real keeps its verdict."""
-    from service.numerics.diagnose.diagnostics import _demote_on_one_stretch
+    from service.numerics.diagnose.stretch import demote_on_one_stretch
     from service.numerics.diagnose.fits import heldout, try_candidate
     from service.numerics.effects import make_model
     from service.numerics.engine import fit_model, initial_linear, reference_total, residual_hints, start_weights
@@ -236,7 +236,7 @@ def test_a_candidate_significant_only_with_the_stretch_is_demoted_and_a_real_one
         assert stretch is not None and stretch["t_start_s"] <= BUMP[0] + 0.5 and stretch["t_end_s"] >= BUMP[1] - 0.5
         c = try_candidate(data, model, cur, heldout(cur), name, reference, weights, residual_hints(cur), 8)
         c.significant = True                     # as if the held-out test had passed it
-        notes = _demote_on_one_stretch(data, model, [c], cur, stretch, reference, weights, 8, lambda *a: None)
+        notes = demote_on_one_stretch(data, model, [c], cur, stretch, reference, weights, 8, lambda *a: None)
         if stays:
             assert c.significant and c.refusal is None and notes == []
         else:

@@ -126,20 +126,21 @@ def test_the_groups_found_written_as_an_effect_are_taken_back_and_give_the_same_
     path = tmp_path / "found.py"
     path.write_text(source)
     classes = effect_classes([g.group for g in f.groups])
-    names = resolve_effects([f"{path}:{c}" for c in classes])           # register_effect took them
-    assert names == (["discovered"] if len(classes) == 1 else ["discovered", "discovered-common"])
-    for name in names:
-        cls = known_effects()[name]
-        assert register_effect(cls) == name                           # again: the same class passes
-        term = cls()
-        assert term.frame == ("corrected" if f.groups[0].group.common else "raw")
-        assert term.per_sample == all(g.group.per_sample for g in f.groups)
+    assert classes == ["Discovered"]                                  # one class holds every group found
+    names = resolve_effects([f"{path}:Discovered"])                   # register_effect took it, with `beside`
     catalogue = [c.effect for c in d.candidates if c.significant]
-    again = diagnose(data, effects=catalogue + names, discover=False)
+    assert names == catalogue + ["discovered"], (names, catalogue)
+    cls = known_effects()["discovered"]
+    assert register_effect(cls) == "discovered"                       # again: the same class passes
+    term = cls()
+    assert term.frame == "raw" and term.per_sample == all(g.group.per_sample for g in f.groups)
+    # a group common to the probes: shared parameters, in the aligned frame; a probe's own: in its raw frame
+    assert bool(term.shared_names(data)) == any(g.group.common for g in f.groups)
+    again = diagnose(data, effects=names, discover=False)
     assert again.rms_nT == pytest.approx(f.rms_nT, rel=0.02)
     assert again.heldout_rms_nT == pytest.approx(f.heldout_rms_nT, rel=0.02)
     ours = {p.name: p for p in f.fit.parameters() if p.term.startswith("discovered-")}
-    theirs = {p.name: p.value for p in again.parameters if p.term in names}
+    theirs = {p.name: p.value for p in again.parameters if p.term == "discovered"}
     assert ours.keys() == theirs.keys()
     # the same values: within 0.1 %, or 1 % of their standard errors where they are near zero (an offset part of a
     # scale group where the world has none: 0.0113 against 0.0112 nT/V, errors of 0.1)

@@ -16,7 +16,8 @@ from service.numerics.engine import LinearCalibration, Parameter, fit_with_effec
 from service.numerics.noise import robust_noise
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.numerics.effects.crossfield", "service.numerics.effects.nonlinearity", "service.numerics.effects.platform", "service.numerics.effects.thermal", "service.numerics.engine.jacobian", "service.numerics.engine.residuals", "service.numerics.engine.state")
+COVERS = ("service.numerics.effects.crossfield", "service.numerics.effects.nonlinearity", "service.numerics.effects.platform", "service.numerics.effects.thermal", "service.numerics.engine.jacobian", "service.numerics.engine.residuals", "service.numerics.engine.state",
+          "service.numerics.effects.attitude")
 
 F_TOTAL = 52000.0
 

@@ -63,30 +63,33 @@ def test_a_given_total_far_from_the_data_is_said_loudly():
     assert loud == []
 
 
-def test_fit_warns_on_microtesla_data_and_loudly_with_a_configured_total(tmp_path, capsys):
+def test_fit_refuses_microtesla_data_naming_the_unit_with_or_without_a_total(tmp_path, capsys):
+    """Data in µT were fitted with a warning (no total: a total field of 52.5 'nT' assumed) or scaled 1,000 times to a
+    configured total, exit 0 both: no magnetometer on Earth gives that calibration. Refused now (issue 37), the unit
+    guess in the advice, in the text and in --json; the same data in nT are fitted."""
     ut = write_csv(tmp_path / "ut.csv", sphere() * 1e-3)
-    assert main(["fit", ut, "--json"]) == 0                           # a warning, not a refusal
+    assert main(["fit", ut, "--json"]) == 2
     out, err = capsys.readouterr()
-    line = [w for w in json.loads(out)["warnings"] if "implausible for nT" in w]
-    assert len(line) == 1 and "s1 52.5" in line[0] and "µT?" in line[0]
-    assert f"fluxcal fit: warning: {ut}: median |B| about the fitted centre: s1 52.5" in err and "WARNING" not in err
+    refused = json.loads(out)["refused"]
+    assert "assumes a total field of 52.5 nT" in refused["reason"] and "outside the Earth's" in refused["reason"]
+    assert refused["advice"].startswith("are the data in µT? (x 1000: 52,") and refused["file"] == ut
+    assert refused["reason"] in err and refused["advice"] in err
     cfg = tmp_path / "c.toml"
     cfg.write_text('[source]\nkind = "sim"\n[unit]\nn_probes = 1\n[estimator]\ntotal_nT = 52500.0\n'
                    '[[sim.probes]]\nnoise_nT = 0.5\n')
-    assert main(["fit", ut, "--config", str(cfg), "--json"]) == 0
-    out, err = capsys.readouterr()
-    assert f"fluxcal fit: WARNING: {ut}: the total field given (52,500 nT, configuration from {cfg}) is 1,000 " in err
-    assert "are the data in µT?" in err
-    assert sum("times the data's median |B|" in w for w in json.loads(out)["warnings"]) == 1
+    assert main(["fit", ut, "--config", str(cfg), "--json"]) == 2
+    refused = json.loads(capsys.readouterr().out)["refused"]
+    assert f"1,000 times below the total field given (52,500 nT, configuration from {cfg})" in refused["reason"]
+    assert "are the data in µT?" in refused["advice"]
     nt = write_csv(tmp_path / "nt.csv", sphere())
     assert main(["fit", nt, "--config", str(cfg)]) == 0
     out, err = capsys.readouterr()
     assert "median |B|" not in out + err
 
 
-def test_diagnose_warns_too(tmp_path, capsys):
+def test_diagnose_refuses_them_alike(tmp_path, capsys):
     ut = write_csv(tmp_path / "ut.csv", sphere(n=1500) * 1e-3)
-    assert main(["diagnose", ut, "--json"]) == 0
-    out, err = capsys.readouterr()
-    assert f"fluxcal diagnose: warning: {ut}: median |B| about a sphere fitted to them: s1 52.5" in err
-    assert any("implausible for nT" in n for n in json.loads(out)["notes"])
+    assert main(["fit", ut, "--json"]) == 2
+    fit = json.loads(capsys.readouterr().out)["refused"]
+    assert main(["diagnose", ut, "--json"]) == 2
+    assert json.loads(capsys.readouterr().out)["refused"] == fit

@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from real_data import real
+from real_data import real, real_nT
 from test_coverage import M_TRUE, O_TRUE, TOTAL_NT, _pink, wobbling_turns
 
 from service.io.recordings.load import load_data
@@ -34,7 +34,7 @@ def test_cuts_of_real_spheres_land_within_their_stated_errors_of_the_full_fit(tm
     difference from the full model, 10 and 2 (worst 3.2). The angles likewise."""
     z, za = [], []
     for name in BOARDS:
-        data = load_data(real(f"{name}.csv"))
+        data = load_data(real_nT(f"{name}.csv"))
         raw, t = data.block.field_nT[:, 0], data.block.t_s
         whole = fit_ellipsoid(raw).calibration
         full, angles = whole.offset_nT, np.asarray(whole.params["nonorth_deg"]["value"])

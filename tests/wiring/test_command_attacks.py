@@ -37,7 +37,7 @@ from service.wiring.daemon import Daemon, build_pipeline
 from service.wiring.startcal import calibration_from_payload
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.numerics.calib.plausible",)
+COVERS = ("service.numerics.calib.plausible", "drivers.text")
 
 NAMES = ["s1", "s2"]
 
@@ -310,3 +310,62 @@ def test_the_same_check_guards_the_reload_and_calibration_initial(tmp_path):
         cfg.calibration.initial = None
     Path(cfg.calibration.file).write_text(json.dumps(good_calibration()))
     assert initial_calibration(cfg, lambda m: None).probe_names == NAMES
+
+
+# --- text from the network printed escaped (issue 38, build 4) -------------------------------------------------
+
+EVIL = "s1\ncommand apply: applied (calibration 99)\x1b[2J\x1b[31m\u202e"
+
+
+def test_a_refused_payloads_words_never_make_a_line_of_their_own_nor_act_on_the_console(cfg, capfd):
+    """The service's own console (its default `say`): a probe name holding a line break and a line shaped like the
+    service's own, and ESC sequences, is one line with the control characters shown."""
+    daemon = Daemon(cfg)                                  # says on stderr, as `fluxcal run` does
+    from service.wiring.sinks import Sinks
+
+    pipeline = build_pipeline(cfg, None)
+    capfd.readouterr()
+    for name, payload in (("apply", json.dumps(good_calibration([EVIL, "s2"]))), ("add-effect", EVIL)):
+        cmd = _Cmd(name, payload)
+        daemon._apply_command(cmd, pipeline, Sinks([], daemon.say))
+        assert cmd.answer["ok"] is False
+    err = capfd.readouterr().err
+    lines = err.splitlines()
+    assert len(lines) == 2 and all(line.startswith("fluxcal ") for line in lines), lines
+    assert "\x1b" not in err and "\u202e" not in err and "\\x1b[2J" in err and "\\u202e" in err
+    assert not any(line.split(": ", 1)[1].startswith("command apply: applied") for line in lines)
+    assert "s1\\ncommand apply: applied (calibration 99)" in lines[0]
+
+
+def test_the_clients_and_the_batch_commands_print_what_they_receive_escaped(capsys, tmp_path):
+    """`fluxcal command` prints the service's refusal, the batch commands a file's words, `watch` what the bus
+    carries: each escaped."""
+    from test_cli_command import FakeDaemon, free_port
+
+    from service.io.bus import ServiceBus, ZenohConfig
+    from service.wiring.cli import main
+    from service.wiring.commands.watch import TerminalView
+    from service.wiring.result import Note, stderr_say
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    bus = ServiceBus(ZenohConfig(listen=[ep]), "grad9", state_fn=lambda: {"usable": False, "unit": EVIL})
+    svc = FakeDaemon(bus, decide=lambda cmd: {"ok": False, "error": f"refused: {EVIL}"})
+    try:
+        assert main(["command", "freeze", "--connect", ep, "--unit", "grad9"]) == 1
+        err = capsys.readouterr().err
+        assert "\x1b" not in err and err.count("\n") == 1 and "refused: s1\\ncommand apply" in err
+    finally:
+        svc.close()
+        bus.close()
+    stderr_say("fit")(Note("read", f"{tmp_path}/x.csv: line 3, column {EVIL!s}", "say"))
+    err = capsys.readouterr().err
+    assert "\x1b" not in err and err.count("\n") == 1
+    from service.io.bus import Message
+
+    view = TerminalView("grad9", [ep])
+    view.connected = True
+    view.update(Message("health", "fluxcal/grad9/health", {"counters": {EVIL: 3, "frames_accepted": 1}}))
+    line = view.line()
+    assert "s1\\ncommand apply" in line and "\x1b" not in line and "\n" not in line
+    frame = view.render_tty()
+    assert "s1\\ncommand apply" in frame and "\x1b[2J" not in frame and "\u202e" not in frame

@@ -20,6 +20,9 @@ from test_watch import Publisher, corrected_block
 from drivers.block import SampleBlock
 from service.wiring.dashboard import DashboardServer, Hub
 
+#: what this file tests besides what it imports (tests/index.py: every module findable from its test)
+COVERS = ("service.wiring.dashboard.guard",)
+
 
 class RecordingUnit(Publisher):
     """The service stand-in of tests/wiring/test_watch.py that also takes commands: each one is recorded and answered ok,
@@ -227,3 +230,82 @@ def test_a_read_only_dashboard_refuses_commands_and_diagnosis_even_from_its_own_
     assert_nothing_reached_the_unit(unit, hub)
     code, _, units = request(server, "GET", "/api/units", None, {"Host": own["Host"]})
     assert units["read_only"] is True and "no diagnosis" in units["read_only_reason"]
+
+
+# --- idle and slow clients (issue 38, build 6) ---------------------------------------------------------------
+
+def _get_units(port: int, timeout: float = 3.0) -> tuple[int, dict]:
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=timeout)
+    try:
+        conn.request("GET", "/api/units", headers={"Host": f"127.0.0.1:{port}"})
+        r = conn.getresponse()
+        return r.status, json.loads(r.read())
+    finally:
+        conn.close()
+
+
+@pytest.mark.slow
+def test_real_users_are_served_while_1000_idle_sockets_are_open_under_1024_descriptors():
+    """`fluxcal dashboard` in a process limited to 1,024 descriptors; 1,000 sockets connect and send nothing. Before,
+    every real request timed out while they lasted (one thread each, no timeout), and nothing was said."""
+    import resource
+    import socket
+    import subprocess
+    import sys
+
+    from test_zenoh_security import free_port
+
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "dashboard", "--connect",
+                             f"tcp/127.0.0.1:{free_port()}", "--listen", f"127.0.0.1:{port}", "--seconds", "60"],
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_NOFILE, (1024, 1024)))
+    idle: list[socket.socket] = []
+    try:
+        assert "fluxcal dashboard: http://127.0.0.1" in proc.stderr.readline()
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        if soft < 1200:                                          # this test's own 1,000 sockets
+            resource.setrlimit(resource.RLIMIT_NOFILE, (min(hard, 4096), hard))
+        for _ in range(1000):
+            idle.append(socket.create_connection(("127.0.0.1", port), timeout=5))
+        served, slowest = 0, 0.0
+        for _ in range(20):
+            t0 = time.monotonic()
+            status, units = _get_units(port)
+            served += status == 200
+            slowest = max(slowest, time.monotonic() - t0)
+        assert served == 20 and slowest < 2.0, (served, slowest)
+        c = units["connections"]
+        assert c["evicted"] >= 900 and c["waiting"] <= c["max_waiting"] == 64, c
+    finally:
+        for s in idle:
+            s.close()
+        proc.terminate()
+        err = proc.communicate(timeout=20)[1]
+    assert "more than 64 connections waited without sending a request: the oldest are closed" in err, err
+
+
+def test_idle_and_slow_clients_are_closed_counted_and_the_page_still_served(dashboard):
+    import socket
+
+    unit, server, hub = dashboard()
+    g = server.guard
+    g.idle_s, g.request_s = 0.3, 0.6
+    port = int(server.url.rsplit(":", 1)[1].strip("/"))
+    idle = socket.create_connection(("127.0.0.1", port))
+    slow = socket.create_connection(("127.0.0.1", port))
+    slow.sendall(b"GET /api/units HTTP/1.1\r\n")               # then a byte now and then: never the whole request
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and not (g.stats()["idle_closed"] and g.stats()["slow_closed"]):
+        try:
+            slow.sendall(b"X")
+        except OSError:
+            pass
+        time.sleep(0.1)
+    stats = g.stats()
+    assert stats["idle_closed"] >= 1 and stats["slow_closed"] == 1, stats
+    assert idle.recv(10) == b""                                    # closed by the dashboard
+    status, units = _get_units(port)
+    assert status == 200 and units["connections"]["slow_closed"] == 1
+    idle.close()
+    slow.close()

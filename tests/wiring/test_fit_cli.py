@@ -31,7 +31,9 @@ def test_fit_json_matches_truth(gradiometer, capsys, method):
     assert main(["fit", str(path), "--method", method, "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out) == {"method", "align", "effects", "sensors", "differential_rms_nT", "rms_nT", "warnings",
-                        "effect_params"}
+                        "effect_params", "determinacy"}
+    assert [d["probe"] for d in out["determinacy"]] == [s["name"] for s in out["sensors"]]
+    assert all(d["determined"] and d["reason"] is None for d in out["determinacy"])
     assert out["effect_params"] == {}
     assert out["method"] == method and out["effects"] == []
     # what the text shows, in the JSON too (docs/contracts.md): standard errors, order, coverage
@@ -186,3 +188,14 @@ def test_every_residual_is_printed_with_what_it_is(gradiometer, capsys):
     assert float(scalar[1]) == pytest.approx(np.mean(truth["sensors"][0]["noise_nT"]), rel=0.05)
     assert float(vector[1]) == pytest.approx(1.0, rel=0.05)
     assert "<probe>.scalar: the scalar residual" in text and "<probe>-s1.<axis>: the vector residual" in text
+
+
+def test_fit_with_effects_says_why_the_matrix_has_no_errors(capsys):
+    """`fit --effects` printed the matrix's standard errors as 'n/a' with no reason (new-user trial): the line after
+    the matrix says why, and where they are to be had; the header names the reference in words."""
+    assert main(["fit", "recordings/grad1-hidden-effect.mcap", "--effects", "temperature"]) == 0
+    out = capsys.readouterr().out
+    assert "± n/a" in out
+    assert "(± n/a: the fit with effects gives the effects' and the offsets' errors, not the matrix's: `fit` without " \
+           "--effects gives them)" in out
+    assert "total field from the ref_total column" in out.splitlines()[0]

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 
-from drivers.errors import ConfigError
 from service.wiring import cli
 from service.wiring.fleet import expand_inputs, run_pool
 
@@ -45,17 +44,15 @@ def test_folders_globs_and_runs_of_rotated_files_expand_to_recordings(tmp_path):
     for name in ("a.csv", "u-20261101T000000-0001.mcap", "u-20261101T001000-0002.mcap",
                  "u-20261102T000000-0001.mcap", "notes.txt", "single.mcap"):
         (tmp_path / name).write_bytes(b"x")
-    links = tmp_path / "links"
-    got = expand_inputs([str(tmp_path)], links)
-    assert got[0] == str(tmp_path / "a.csv")             # in name order
-    assert got[1] == str(tmp_path / "single.mcap")
-    run = Path(got[2])                                   # two rotated files of one run: a folder of links
-    assert run.parent == links and sorted(f.name for f in run.iterdir()) == [
+    got = expand_inputs([str(tmp_path)]).recordings
+    assert got[0].path == str(tmp_path / "a.csv")             # in name order
+    assert got[1].path == str(tmp_path / "single.mcap")
+    assert [Path(p).name for p in got[2].parts] == [           # two rotated files of one run: its parts
         "u-20261101T000000-0001.mcap", "u-20261101T001000-0002.mcap"]
-    assert got[3] == str(tmp_path / "u-20261102T000000-0001.mcap") and len(got) == 4
-    assert expand_inputs([str(tmp_path / "*.csv"), str(tmp_path / "a.csv")], links) == [str(tmp_path / "a.csv")]
-    with pytest.raises(ConfigError, match="matches no file"):
-        expand_inputs([str(tmp_path / "*.nothing")], links)
+    assert got[3].path == str(tmp_path / "u-20261102T000000-0001.mcap") and len(got) == 4
+    assert [r.path for r in expand_inputs([str(tmp_path / "*.csv"), str(tmp_path / "a.csv")]).recordings] == [
+        str(tmp_path / "a.csv")]
+    assert expand_inputs([str(tmp_path / "*.nothing")]).unreadable[0][1].startswith("matches no file")
 
 
 def test_each_recording_gets_the_shared_options_and_its_own_outputs():
@@ -66,6 +63,30 @@ def test_each_recording_gets_the_shared_options_and_its_own_outputs():
     job = job_for("fit", "survey/a.csv", shared, {"out": "cals", "report": "reports"})
     assert job.options == FitOptions(effects=["drift"], site="1,2,3", out="cals/a.cal.json", report="reports/a")
     assert job_for("replay", "x/u-0001.mcap", shared, {"out": "again"}).options.out == "again/u-0001.mcap"
+    from service.wiring.commands.replay import ReplayOptions
+
+    assert job_for("replay", "x/u-0001.mcap", ReplayOptions(), {"ros2_out": "bags"}).options.ros2_out == "bags/u-0001"
+
+
+def test_every_path_in_the_options_goes_to_the_workers_absolute(tmp_path, monkeypatch):
+    """--config, --calibration, --out, --report, --write-effect, --ros2-out and an effect's FILE.py are the user's
+    paths from where they typed them: a worker in another folder (or on another host) gets them absolute."""
+    from service.wiring.commands.diagnose import DiagnoseOptions
+    from service.wiring.commands.fit import FitOptions
+    from service.wiring.commands.replay import ReplayOptions
+    from service.wiring.fleet_cli import absolute_paths
+
+    monkeypatch.chdir(tmp_path)
+    fit = absolute_paths(FitOptions(config="site.toml", effects=["drift", "mine/eff.py:Sag", "pkg.mod:Sag"],
+                                    site="1,2,3", out="cals", report="../reports"))
+    assert fit == FitOptions(config=str(tmp_path / "site.toml"), site="1,2,3", out=str(tmp_path / "cals"),
+                             effects=["drift", f"{tmp_path / 'mine' / 'eff.py'}:Sag", "pkg.mod:Sag"],
+                             report=str(tmp_path.parent / "reports"))
+    diag = absolute_paths(DiagnoseOptions(calibration="c.json", write_effect="found.py", max_samples=10))
+    assert (diag.calibration, diag.write_effect, diag.max_samples) == (str(tmp_path / "c.json"),
+                                                                       str(tmp_path / "found.py"), 10)
+    assert absolute_paths(ReplayOptions(config="/etc/u.toml", ros2_out="bags")) == ReplayOptions(
+        config="/etc/u.toml", ros2_out=str(tmp_path / "bags"))
 
 
 def test_the_fleet_counts_warnings_as_data_whatever_their_wording(fleet_dir, monkeypatch, capsys):
@@ -154,43 +175,125 @@ def test_replay_of_several_recordings(tmp_path, capsys):
     assert "3 recording(s), 1 failed" in out
 
 
-@pytest.mark.slow
-def test_the_same_runs_go_to_a_dask_cluster(fleet_dir, capsys):
-    distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None, silence_logs=40) as cluster:
-        files = [str(fleet_dir / f"grad-{s}.csv") for s in (11, 12)] + [str(fleet_dir / "broken.csv")]
-        status = cli.main(["fit", *files, "--scheduler", cluster.scheduler_address, "--json"], install_signals=False)
-    summary = json.loads(capsys.readouterr().out)
-    assert status == 1 and summary["ran_on"].startswith("tcp://127.0.0.1")
-    by_name = {Path(r["recording"]).name: r for r in summary["results"]}
-    assert not by_name["broken.csv"]["ok"]
-    for seed in (11, 12):
-        assert cli.main(["fit", str(fleet_dir / f"grad-{seed}.csv"), "--json"], install_signals=False) == 0
-        assert by_name[f"grad-{seed}.csv"]["result"]["sensors"] == json.loads(capsys.readouterr().out)["sensors"]
-
-
 def test_a_recording_named_twice_runs_once(tmp_path, monkeypatch):
     """By its name and through its folder (or by a relative and an absolute path): one recording, one row."""
     for name in ("a.csv", "b.csv"):
         (tmp_path / name).write_bytes(b"x")
     monkeypatch.chdir(tmp_path)
-    got = expand_inputs(["a.csv", str(tmp_path), str(tmp_path / "b.csv")], tmp_path / "links")
-    assert [Path(g).resolve() for g in got] == [tmp_path / "a.csv", tmp_path / "b.csv"]
+    got = expand_inputs(["a.csv", str(tmp_path), str(tmp_path / "b.csv")]).recordings
+    assert [(r.name, r.path) for r in got] == [("a.csv", str(tmp_path / "a.csv")), (str(tmp_path / "b.csv"),
+                                                                                   str(tmp_path / "b.csv"))]
 
 
 def test_a_run_of_rotated_files_named_twice_runs_once(tmp_path):
     """A folder holding one run's files and a pattern matching the same files (or a folder of runs and a pattern
-    for one of them): one run each, never two link folders of the same files (the review's case)."""
+    for one of them): one run each, never two recordings of the same files (the review's case)."""
     one = tmp_path / "one"
     one.mkdir()
     for name in ("u-20261101T000000-0001.mcap", "u-20261101T001000-0002.mcap"):
         (one / name).write_bytes(b"x")
-    links = tmp_path / "links"
-    assert expand_inputs([str(one), str(one / "u-*.mcap")], links) == [str(one)]
+    assert [r.path for r in expand_inputs([str(one), str(one / "u-*.mcap")]).recordings] == [str(one)]
     many = tmp_path / "many"
     many.mkdir()
     for name in ("a-20261101T000000-0001.mcap", "a-20261101T001000-0002.mcap", "b-20261102T000000-0001.mcap"):
         (many / name).write_bytes(b"x")
-    got = expand_inputs([str(many), str(many / "a-*.mcap")], tmp_path / "links2")
-    assert len(got) == 2 and got[1] == str(many / "b-20261102T000000-0001.mcap")
+    got = expand_inputs([str(many), str(many / "a-*.mcap")]).recordings
+    assert len(got) == 2 and got[1].path == str(many / "b-20261102T000000-0001.mcap")
+
+
+def test_a_batch_goes_on_past_files_it_cannot_read_and_names_each(fleet_dir, tmp_path, capsys):
+    """Ten files, three of them unreadable (a ULog that is none, a cut MCAP, a CSV of text), and an item that names
+    nothing: the seven are fitted (each as alone), the three and the item are one line each with the reason, in
+    the table and in --json, and the exit status says some failed (it was 2, and nothing fitted)."""
+    batch, more = tmp_path / "batch", tmp_path / "more"
+    batch.mkdir()
+    more.mkdir()
+    good = sorted(fleet_dir.glob("grad-1*.csv"))
+    for k in range(7):
+        shutil.copy(good[k % 3], (batch if k < 5 else more) / f"g{k}.csv")
+    (batch / "flight.ulg").write_bytes(b"junk\n")
+    (batch / "cut.mcap").write_bytes((REPO / "recordings" / "grad1-sim-30s.mcap").read_bytes()[:3000])
+    (more / "text.csv").write_text("this is not data\n")
+    status = cli.main(["fit", str(batch), str(more / "*.csv"), str(tmp_path / "gone"), "--jobs", "2", "--json"],
+                      install_signals=False)
+    s = json.loads(capsys.readouterr().out)
+    assert status == 1 and s["recordings"] == 11 and s["failed"] == 4
+    by = {Path(r["recording"]).name: r for r in s["results"]}
+    assert sorted(n for n, r in by.items() if r["ok"]) == [f"g{k}.csv" for k in range(7)]
+    assert {n: by[n]["failure"] for n in ("flight.ulg", "cut.mcap", "text.csv", "gone")} == {
+        "flight.ulg": "data", "cut.mcap": "data", "text.csv": "data", "gone": "input"}
+    assert all(str(p) in by[p.name]["error"] for p in (batch / "flight.ulg", batch / "cut.mcap", more / "text.csv"))
+    assert "no such file or folder" in by["gone"]["error"] and by["gone"]["recording"] == str(tmp_path / "gone")
+    assert cli.main(["fit", str(batch / "g0.csv"), "--json"], install_signals=False) == 0
+    assert by["g0.csv"]["result"]["sensors"] == json.loads(capsys.readouterr().out)["sensors"]
+    status = cli.main(["fit", str(batch), str(more / "*.csv"), str(tmp_path / "gone"), "--jobs", "2"],
+                      install_signals=False)
+    table = capsys.readouterr().out
+    for name in ("flight.ulg", "cut.mcap", "text.csv", "gone"):
+        (row,) = [ln for ln in table.splitlines() if re.match(rf"\S*{re.escape(name)}\s", ln)]
+        assert " FAILED " in row and row.split("FAILED")[1].split(maxsplit=1)[1].strip()    # with its reason
+    assert "11 recording(s), 4 failed" in table
+
+
+def test_a_worker_that_cannot_see_a_recording_names_its_host_and_the_summary_says_what_workers_need(tmp_path):
+    """The fleet sends paths absolute; a worker on a host without the file says which host and which path, and the
+    summary says what the workers need (the same files at the same paths)."""
+    import socket
+
+    from service.wiring.commands.fit import FitOptions
+    from service.wiring.fleet import job_for, run_one
+    from service.wiring.fleet_summary import summary_json, summary_table
+
+    gone = str(tmp_path / "on-the-client-only.csv")
+    r = {**run_one(job_for("fit", gone, FitOptions(), {})), "recording": "on-the-client-only.csv"}
+    assert not r["ok"] and r["failure"] == "missing" and r["host"] == socket.gethostname()
+    assert r["error"] == f"{gone}: no such file on host {socket.gethostname()} (the workers need the same files at " \
+                         f"the same paths)"
+    workers = [{"address": "tcp://10.0.0.9:4000", "host": "node9", "fluxcal": "0.1.0", "same": True}]
+    table = summary_table("fit", [r], 1.0, "tcp://10.0.0.9:8786", [], "0.1.0", workers)
+    assert f"1 recording(s) not found where the workers run ({socket.gethostname()}): a worker reads the path " \
+           f"named here, made absolute, so the workers need the same files at the same paths" in table
+    assert summary_json("fit", [r], 1.0, "x", [], "0.1.0", workers)["results"][0]["failure"] == "missing"
+
+
+def test_jobs_kept_to_workers_that_all_left_fail_instead_of_waiting_for_ever(monkeypatch):
+    """Jobs kept to the workers with this fluxcal (another worker is there) would wait for ever once those have
+    all left the cluster: each fails, saying why; a job whose worker was lost fails alone."""
+    import distributed
+
+    from service.wiring.fleet import Job, _collect, fluxcal_version
+
+    class Lost:
+        def result(self):
+            raise OSError("worker lost")
+
+    class Cluster:
+        workers = {"tcp://10.0.0.9:4000": {}}
+
+        def scheduler_info(self):
+            return {"workers": self.workers}
+
+    lost, waiting = Lost(), object()
+    answers = iter([({lost}, {waiting}), TimeoutError, TimeoutError])
+
+    def wait(pending, timeout, return_when):               # the first answer, then nothing comes in `timeout`
+        assert return_when == "FIRST_COMPLETED" and timeout > 0
+        got = next(answers)                                # (a third wait would be waiting for ever)
+        if got is TimeoutError:
+            raise TimeoutError
+        return got
+
+    monkeypatch.setattr(distributed, "wait", wait)
+    jobs = {lost: Job("fit", "a.csv", None), waiting: Job("fit", "b.csv", None)}
+    got: list[dict] = []
+    cluster = Cluster()
+
+    def done(r):
+        got.append(r)
+        if len(got) == 1:                                  # the kept-to worker leaves after the first answer
+            cluster.workers = {"tcp://10.0.0.7:4000": {}}
+
+    _collect(cluster, jobs, ["tcp://10.0.0.9:4000"], done)
+    assert [(r["recording"], r["ok"]) for r in got] == [("a.csv", False), ("b.csv", False)]
+    assert got[0]["error"] == "on the cluster: OSError: worker lost"
+    assert got[1]["error"] == f"on the cluster: every worker with fluxcal {fluxcal_version()} left before it ran"

@@ -148,13 +148,14 @@ class BusClient(SessionHolder):
             yield m
 
     def _query(self, key: str, payload: str | None, timeout: float, parameters: str = "") -> Any:
-        kwargs: dict[str, Any] = {"timeout": float(timeout)}
+        # every service's answer, not one per key: two services under one name both answer on one key
+        kwargs: dict[str, Any] = {"timeout": float(timeout), "consolidation": zenoh.ConsolidationMode.NONE}
         if payload:
             kwargs["payload"] = payload.encode()
         replies = list(self.session.get(f"{key}?{parameters}" if parameters else key, **kwargs))
-        for r in replies:
-            if r.ok is not None:
-                return _decode_json(r.ok.payload.to_bytes())
+        oks = [r for r in replies if r.ok is not None]
+        if oks:
+            return self._answer(oks)
         for r in replies:
             err = r.err
             if err is not None:
@@ -169,6 +170,19 @@ class BusClient(SessionHolder):
         raise BusError(f"no answer from {key} within {timeout:g} s: is `fluxcal run` running for unit "
                        f"{self.unit!r} and reachable from here? (on a bus with access control, a certificate "
                        f"whose name is not granted this key gets no answer either: docs/security.md)")
+
+    def _answer(self, oks: list) -> Any:
+        """The first answer; when several services answered (two under one unit name: each took the query), said in
+        it: `answered_by`, each one's `answers`, and a `warning` a person reads."""
+        answer = _decode_json(oks[0].ok.payload.to_bytes())
+        repliers = {str(r.replier_id) if r.replier_id is not None else f"#{i}" for i, r in enumerate(oks)}
+        if len(repliers) > 1 and isinstance(answer, dict):
+            answer = {**answer, "answered_by": len(repliers),
+                      "answers": [_decode_json(r.ok.payload.to_bytes()) for r in oks],
+                      "warning": f"{len(repliers)} services answered for unit {self.unit!r} (zenoh ids "
+                                 f"{', '.join(sorted(repliers))}): each of them took this query; two services run "
+                                 f"under one unit name: stop one, or give it its own unit.name"}
+        return answer
 
     def query_state(self, timeout: float = 2.0) -> dict[str, Any]:
         """The service's current calibration and health (JSON object)."""

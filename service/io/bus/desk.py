@@ -31,8 +31,10 @@ class Desk:
 
     def __init__(self, keys: Keys, stats: dict[str, int], *, state_fn: Callable[[], Mapping[str, Any]] | None,
                  published_state: Callable[[], dict[str, Any]], probe_names: Sequence[str] | None,
-                 command_queue_size: int, command_wait_s: float, state_grace_s: float) -> None:
+                 command_queue_size: int, command_wait_s: float, state_grace_s: float,
+                 identity: Mapping[str, Any] | None = None) -> None:
         self.keys, self.unit, self.stats = keys, keys.unit, stats
+        self.identity = dict(identity or {})       # who this service is (claim.service_identity): in every state
         self.state_fn = state_fn
         self.probe_names = probe_names
         self._published_state = published_state
@@ -132,12 +134,7 @@ class Desk:
             age = None
         else:
             st, age = dict(cache[1]), now - cache[0]
-        st.setdefault("unit", self.unit)
-        st["bus"] = dict(self.stats)
-        st["time_unix_s"] = time.time()
-        st["stale"] = True
-        st["state_age_s"] = age
-        return st
+        return self._stamped(st, stale=True, age=age)
 
     # --- the service's thread ------------------------------------------------------------------
 
@@ -161,13 +158,17 @@ class Desk:
     def state(self) -> dict[str, Any]:
         """What a `state` query answers: state_fn() (or the last calibration and health published) + identity."""
         st = dict(self.state_fn()) if self.state_fn is not None else self._published_state()
-        st.setdefault("unit", self.unit)
         if self.probe_names is not None:
             st.setdefault("probe_names", self.probe_names)
-        st["bus"] = dict(self.stats)
-        st["time_unix_s"] = time.time()
-        st["stale"] = False
-        st["state_age_s"] = 0.0
+        return self._stamped(st, stale=False, age=0.0)
+
+    def _stamped(self, st: dict[str, Any], *, stale: bool, age: float | None) -> dict[str, Any]:
+        """A state with who answers it (the unit, this service: claim.service_identity), the bus's counters, when
+        and whether it is the last one computed (stale) and how old."""
+        st.setdefault("unit", self.unit)
+        if self.identity:
+            st["service"] = self.identity
+        st.update(bus=dict(self.stats), time_unix_s=time.time(), stale=stale, state_age_s=age)
         return st
 
     def reply_state(self, q: zenoh.Query, st: dict[str, Any] | Exception) -> None:

@@ -43,6 +43,7 @@ from drivers.errors import ConfigError, DataError
 from service.io.encoding import corrected_payload, probe_payloads, raw_payload
 from service.numerics.outputs import CorrectedBlock
 
+from . import claim
 from .desk import COMMAND_WAIT_S, STATE_GRACE_S, Desk
 from .keys import _KEY_CHUNK, COMMANDS, STREAMS, Command, Keys, StreamSpec, _json_bytes, encode_series
 from .sender import Sender
@@ -69,9 +70,12 @@ class ServiceBus(SessionHolder):
                  probe_names: Sequence[str] | None = None, per_probe: bool | None = None,
                  express: bool | None = None, command_queue_size: int = 32,
                  command_wait_s: float = COMMAND_WAIT_S, state_grace_s: float = STATE_GRACE_S,
-                 send_backlog_bytes: int = SEND_BACKLOG_BYTES) -> None:
+                 send_backlog_bytes: int = SEND_BACKLOG_BYTES, duplicate: str = "refuse", config: str = "") -> None:
+        """`duplicate`, `config`: when another live service holds `unit`, refuse or take a suffix (claim_note says
+        which), and the configuration's path said to one that finds this holding it (service.io.bus.claim)."""
         self.keys = Keys(unit)
         self.unit = unit
+        self.claim_note = ""
         self.probe_names = list(probe_names) if probe_names is not None else None
         for name in self.probe_names or []:
             if not _KEY_CHUNK.match(name):
@@ -80,7 +84,8 @@ class ServiceBus(SessionHolder):
         self.per_probe = per_probe if per_probe is not None else (cfg_obj.per_probe if cfg_obj else True)
         express = express if express is not None else (cfg_obj.express if cfg_obj else False)
         self.stats: dict[str, int] = {"commands_received": 0, "commands_refused": 0, "commands_expired": 0,
-                                      "state_queries": 0, "state_queries_stale": 0, "publish_errors": 0}
+                                      "state_queries": 0, "state_queries_stale": 0, "publish_errors": 0,
+                                      "duplicate_holders": 0}
         self.stats.update({f"published_{name}": 0 for name in STREAMS})
         self.stats["published_corrected_probe"] = 0
         self.stats["send_dropped"] = 0
@@ -92,24 +97,32 @@ class ServiceBus(SessionHolder):
         self._close_lock = threading.Lock()
         self._entities: list[Any] = []
         self._probe_pubs: dict[str, zenoh.Publisher] = {}
+        self._watch: claim.Watch | None = None
         self._hold(zenoh_cfg, self.keys.unit)
         self._express = bool(express)
         try:
+            claim.take_name(self, zenoh_cfg, duplicate)
+            self.identity = claim.service_identity(self.session, config)
             self._pubs = {name: self._declare_pub(self.keys.stream(name), s) for name, s in STREAMS.items()}
             for name in (self.probe_names or []) if self.per_probe else []:
                 self._probe_pubs[name] = self._declare_pub(self.keys.probe(name), STREAMS["corrected"])
             self._desk = Desk(self.keys, self.stats, state_fn=state_fn, published_state=self._published_state,
                               probe_names=self.probe_names, command_queue_size=command_queue_size,
-                              command_wait_s=command_wait_s, state_grace_s=state_grace_s)
+                              command_wait_s=command_wait_s, state_grace_s=state_grace_s, identity=self.identity)
             self._sender = Sender(self.stats, send_backlog_bytes, f"fluxcal-bus-{unit}-send")
             self._entities.append(self.session.declare_queryable(self.keys.state, self._desk.on_state_query))
             for name in COMMANDS:
                 self._entities.append(self.session.declare_queryable(self.keys.cmd(name),
                                                                       self._desk.command_callback(name)))
             self._token = self.session.liveliness().declare_token(self.keys.alive)
+            self._watch = claim.Watch(self.session, self.keys)
         except BaseException:
             self.close()
             raise
+
+    def other_holders(self) -> list[str]:
+        """The zenoh ids of other live services announcing this unit's name (stats: duplicate_holders)."""
+        return claim.other_holders(self._watch, self.stats)
 
     def _declare_pub(self, key: str, s: StreamSpec) -> zenoh.Publisher:
         pub = self.session.declare_publisher(
@@ -240,6 +253,8 @@ class ServiceBus(SessionHolder):
             self._sender.stop()                      # a subscriber frozen past the flush: counted, not sent
         if self._desk is not None:
             self._desk.close("the service is stopping")
+        if self._watch is not None:
+            self._watch.close()
         token = getattr(self, "_token", None)
         for ent in [token, *self._probe_pubs.values(), *reversed(self._entities)]:
             if ent is None:

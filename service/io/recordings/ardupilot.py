@@ -12,8 +12,10 @@
     BAT / CURR Curr      -> battery_current_a (instance 0), battery<i>_current_a (A; the older CURR, to 3.4, logs it as
                             an integer in hundredths of an ampere: scaled)
 
-On one time base by service.numerics.merge. The date comes from the GPS week and time of week where the log has
-a fix.
+On one time base by service.numerics.merge: the log's own clock (us since boot), never a GPS time; an older log's
+GPS message carries the GPS time of week in TimeMS (beside Week) and its boot time in T (ms), which is taken. The
+date comes from the GPS week and time of week where the log has a fix. Streams are named as the log names them
+(MAG2, CURR; MAG[1] where the message has an instance field).
 """
 
 from __future__ import annotations
@@ -25,7 +27,8 @@ from typing import Any
 import numpy as np
 
 from drivers.errors import DataError
-from service.io.recordings.formats import Inspection, StreamInfo, lab_data, missing_package, rate
+from drivers.inputs import check_head, magic
+from service.io.recordings.formats import DATAFLASH_HEAD, Inspection, StreamInfo, lab_data, missing_package, rate
 from service.io.recordings.labdata import LabData
 from service.numerics.merge import Series, merge, quaternion_from_euler
 
@@ -71,8 +74,40 @@ def _unit(msg: Any, field: str) -> float:
     return AMPERES_PER_INTEGER_CURR if i is not None and fmt.format[i] in "bBhHiI" else 1.0
 
 
-def _read(path: Path) -> dict[tuple[str, int], dict[str, list[float]]]:
-    """Per (kind, instance): the fields fluxcal maps, as lists, in log order."""
+def _boot_time_us(msg: Any) -> float:
+    """A message's instant on the log's own clock (us since boot): TimeUS, else TimeMS; an older GPS message's TimeMS
+    is the GPS time of week (beside Week), its boot time is T (ms)."""
+    t_us = getattr(msg, "TimeUS", None)
+    if t_us is not None:
+        return float(t_us)
+    if getattr(msg, "Week", None) is not None and getattr(msg, "T", None) is not None:
+        return float(msg.T) * 1000.0
+    return float(getattr(msg, "TimeMS", 0)) * 1000.0
+
+
+def _gps_time(msg: Any, field: str) -> float:
+    """GWk and GMS of a GPS message: an older log's Week and TimeMS (the GPS time of week, ms)."""
+    old = {"GWk": "Week", "GMS": "TimeMS"}
+    v = getattr(msg, field, None)
+    if v is None and getattr(msg, "TimeUS", None) is None:
+        v = getattr(msg, old[field], None)
+    return float(v) if v is not None else np.nan
+
+
+def _name(msg_type: str, msg: Any) -> str:
+    """How the format's documentation names a stream: the message's own name (MAG2, CURR), with its instance field's
+    value where it has one (MAG[1] from ArduPilot 4.0 on)."""
+    for f in ("I", "Inst", "Instance"):
+        v = getattr(msg, f, None)
+        if v is not None and not msg_type.startswith("ATT"):
+            return f"{msg_type}[{int(v)}]"
+    return msg_type
+
+
+def _read(path: Path, names: dict | None = None) -> dict[tuple[str, int], dict[str, list[float]]]:
+    """Per (kind, instance): the fields fluxcal maps, as lists, in log order; names: filled with each one's name as
+    the log has it (_name)."""
+    check_head(path, "an ArduPilot DataFlash log", _dataflash_head)    # garbage refused before pymavlink reads it
     try:
         from pymavlink import DFReader
     except ImportError:
@@ -93,16 +128,24 @@ def _read(path: Path) -> dict[tuple[str, int], dict[str, list[float]]]:
             want = fields.get(kind)
             if want is None:
                 continue
-            t_us = getattr(msg, "TimeUS", None)
-            if t_us is None:
-                t_us = getattr(msg, "TimeMS", 0) * 1000
             d = out.setdefault((kind, inst), {"t_us": []})
-            d["t_us"].append(float(t_us))
+            if names is not None and (kind, inst) not in names:
+                names[(kind, inst)] = _name(msg.get_type(), msg)
+            d["t_us"].append(_boot_time_us(msg))
             for f in want:
-                d.setdefault(f, []).append(float(getattr(msg, f, np.nan)) * _unit(msg, f))
+                v = _gps_time(msg, f) if f in ("GWk", "GMS") else float(getattr(msg, f, np.nan)) * _unit(msg, f)
+                d.setdefault(f, []).append(v)
     finally:
         r.close()
     return out
+
+
+def _dataflash_head(head: bytes, whole: bool) -> str | None:
+    """A DataFlash log begins with a FMT message (a3 95 80); a serial capture of fluxcal's ICD (a5 5a) is said."""
+    why = magic(DATAFLASH_HEAD, "a DataFlash log")(head, whole)
+    if why and head.startswith(b"\xa5\x5a"):
+        why += " (this looks like a serial capture of the unit's ICD frames: fluxcal decode FILE --probes N)"
+    return why
 
 
 def load_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None) -> LabData:
@@ -178,7 +221,8 @@ def load_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None) ->
 def inspect_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None) -> Inspection:
     """What a DataFlash log holds of the messages fluxcal maps (counts, rates) and how load_ardupilot would map it."""
     m = mapping or ArduPilotMapping()
-    data = _read(Path(path))
+    names: dict[tuple[str, int], str] = {}
+    data = _read(Path(path), names)
     mags = sorted(i for k, i in data if k == "MAG")
     chosen = list(m.mags) if m.mags is not None else mags
     streams = []
@@ -195,11 +239,7 @@ def inspect_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None)
             note = f"{int(np.count_nonzero(np.asarray(d['Status']) >= 3)):,} with a 3D fix; altitude above MSL"
         elif kind == "BAT" and m.currents:
             maps = "battery_current_a" if i == 0 else f"battery{i}_current_a"
-        streams.append(StreamInfo(f"{kind}[{i}]", kind, int(t.size), rate(t / 1e6), maps, note))
-    times = [t for d in data.values() for t in (min(d["t_us"]), max(d["t_us"]))]
+        name = names.get((kind, i), kind)
+        streams.append(StreamInfo(name, name.split("[")[0], int(t.size), rate(t / 1e6), maps, note))
     warnings = [] if mags else ["no MAG messages in the log: nothing to calibrate"]
-    columns = ([c for c in ("heel_deg", "pitch_deg", "azimuth_deg") if m.attitude and ("ATT", 0) in data]
-               + ([c for c in ("lat_deg", "lon_deg", "alt_m")] if m.position and ("GPS", 0) in data else [])
-               + [s.maps_to for s in streams if s.kind == "BAT" and s.maps_to])
-    return Inspection(str(path), "ardupilot-bin", streams, [f"s{k + 1}" for k in range(len(chosen))], columns,
-                      warnings, duration_s=(max(times) - min(times)) / 1e6 if times else None)
+    return Inspection(str(path), "ardupilot-bin", streams, warnings=warnings)

@@ -14,7 +14,7 @@ CSV's (docs/csv.md): s<k>_x/y/z in nT, s<k>_temp, heel_deg/pitch_deg/azimuth_deg
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +22,9 @@ from drivers.errors import DataError
 from service.io.recordings.labdata import LabData
 from service.numerics.merge import Merged
 
+#: a logged field value beyond this (in any axis, whatever the unit: a field of the Earth is 7e7 in pT) is a damaged
+#: record's, not a measurement
+DAMAGED_NT = 1e12
 #: the formats detect_format names, and what they are called in what is said
 FORMAT_NAMES = {"csv": "lab CSV", "fluxcal": "fluxcal recording (MCAP)", "ros2-mcap": "ROS 2 bag (MCAP, CDR)",
                 "ros2-bag": "ROS 2 bag (rosbag2 directory)", "px4-ulog": "PX4 flight log (ULog)",
@@ -49,11 +52,28 @@ def detect_format(path: str | Path) -> str:
         head = b""
     if head.startswith(ULOG_MAGIC[:4]) or suffix == ".ulg":
         return "px4-ulog"
-    if head.startswith(DATAFLASH_HEAD) or suffix == ".bin" and head[:2] == DATAFLASH_HEAD[:2]:
+    if head.startswith(DATAFLASH_HEAD) or suffix == ".bin":        # its reader says when it is not one
         return "ardupilot-bin"
     if head.startswith(MCAP_MAGIC) or suffix == ".mcap":
         return "ros2-mcap" if mcap_is_ros2(p) else "fluxcal"
     return "csv"
+
+
+#: the first line of a Git LFS pointer: a repository's stand-in for a file it did not fetch
+LFS_POINTER = b"version https://git-lfs.github.com/spec/"
+
+
+def refuse_pointer(path: str | Path) -> None:
+    """DataError for a Git LFS pointer given as a recording: the file it stands for was never fetched."""
+    p = Path(path)
+    if p.is_file() and p.stat().st_size < 1024:
+        with open(p, "rb") as f:
+            head = f.read(1024)
+        if head.startswith(LFS_POINTER):
+            size = next((ln.split()[1].decode(errors="replace") for ln in head.splitlines()
+                         if ln.startswith(b"size ") and len(ln.split()) > 1), "?")
+            raise DataError(f"{p}: a Git LFS pointer, not a recording: the file it stands for ({size} bytes) was never "
+                            f"fetched; run `git lfs pull` in its repository (or download the file itself)")
 
 
 def mcap_is_ros2(path: Path) -> bool:
@@ -106,6 +126,10 @@ class Inspection:
     columns: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     duration_s: float | None = None
+    samples: int | None = None       # the samples fit and diagnose take (one per instant of the time base)
+    clock: dict[str, Any] | None = None   # the time base: the log's own clock, and where its t = 0 lies in UNIX time
+    verdict: list[dict[str, Any]] = field(default_factory=list)   # each probe's determinacy (the commands' one gate)
+    fit_refuses: str | None = None   # why fit would refuse the file (nothing to calibrate), as fit says it
 
     @property
     def format_name(self) -> str:
@@ -132,11 +156,24 @@ def lab_data(merged: Merged, probe_names: list[str], path: str | Path, *, fmt: s
              origin_unix_s: float | None, notes: list[str] | None = None, warnings: list[str] | None = None) -> LabData:
     """The LabData of merged streams: t from the first kept instant; metadata says the format, each probe's and
     column's source, and where t = 0 lies in UNIX time when the log says (for the date of the reference field)."""
+    import numpy as np
+
+    block, lost = merged.block, []
+    damaged = ~(np.abs(block.field_nT) <= DAMAGED_NT).all(axis=2) & np.isfinite(block.field_nT).all(axis=2)
+    if damaged.any():                          # a flipped byte's 1e300: no unit gives that; NaN, as a lost sample
+        field_nT = block.field_nT.copy()
+        field_nT[damaged] = np.nan
+        block = block.__class__(t_s=block.t_s, seq=block.seq, field_nT=field_nT, temp_C=block.temp_C,
+                                flags=block.flags, extras=block.extras)
+        lost = [f"{probe_names[k]}: {int(np.count_nonzero(damaged[:, k])):,} sample(s) beyond ±{DAMAGED_NT:.0e} in "
+                f"some axis (no unit's field: a damaged record) left out" for k in range(damaged.shape[1])
+                if damaged[:, k].any()]
+        merged = replace(merged, block=block)
     meta = {"format": fmt, "sources": json.dumps(sources)}
     if origin_unix_s is not None:
         meta["t0_unix_s"] = repr(float(origin_unix_s) + merged.t0_s)
     return LabData(block=merged.block, probe_names=list(probe_names), path=str(path),
-                   warnings=list(warnings or []) + merged.warnings, metadata=meta,
+                   warnings=list(warnings or []) + merged.warnings + lost, metadata=meta,
                    notes=list(notes or []) + merged.notes)
 
 

@@ -5,6 +5,7 @@ Bad input is a DataError naming the file, line and column; nothing is guessed.
 
 from __future__ import annotations
 
+import codecs
 import math
 import re
 from dataclasses import dataclass, field
@@ -92,8 +93,9 @@ def keep_every(n: int, probes: int, max_samples: int | None, max_probe_samples: 
 def load_csv(path: str | Path) -> LabData:
     """Parse a lab CSV (docs/csv.md)."""
     p = Path(path)
-    # a regular file within the size and line limits, read in pieces (SIGTERM stops it): drivers.inputs
-    lines = read_text(p, "a lab CSV").splitlines()
+    # a regular file within the size and line limits, read in pieces (SIGTERM stops it), its first piece judged
+    # before the next is read (garbage refused within it, whatever its size): drivers.inputs
+    lines = read_text(p, "a lab CSV", head=_head_problem(p)).splitlines()
     comments: list[str] = []
     header_idx = _find_header(p, lines, comments)
     header = [h.strip() for h in lines[header_idx].split(",")]
@@ -101,7 +103,20 @@ def load_csv(path: str | Path) -> LabData:
     rows, lineno = _data_rows(p, lines, header_idx, comments)
     values = _parse_rows(p, header, rows, lineno)
     del rows, lines
+    return lab_table(p, header, values, lineno, comments)
 
+
+def lab_table(p: Path | str, header: list[str], values: np.ndarray, lineno: np.ndarray | None = None,
+              comments: list[str] | None = None) -> LabData:
+    """A lab CSV's columns (docs/csv.md: `header`, and `values` (N, columns) float) as LabData, checked as a CSV's
+    are: every reader of such a table (a file, a pandas DataFrame, arrays: service.wiring.api) goes through here, so
+    the same numbers give the same samples. lineno: each row's line in its file (for the messages), else 2, 3, ..."""
+    values = np.array(values, dtype=np.float64)            # a copy: the caller's table is never changed
+    lineno = np.arange(2, values.shape[0] + 2) if lineno is None else lineno
+    _check_header(p, header, 1)
+    if values.ndim != 2 or values.shape[1] != len(header) or values.shape[0] == 0:
+        raise DataError(f"{p}: expected a table of rows by the {len(header)} columns of its header, got the shape "
+                        f"{values.shape}")
     # a probe's axis or temperature may be NaN (or inf): saturated or invalid, left out by the fits and counted
     # there; any other column must be a number
     may_lack = np.array([bool(_PROBE_COL.match(h)) for h in header])
@@ -112,7 +127,31 @@ def load_csv(path: str | Path) -> LabData:
     _check_time_column(p, values[:, col["t"]], lineno)
     block, n_probes = _csv_block(header, values)
     return LabData(block=block, probe_names=[f"s{k + 1}" for k in range(n_probes)], path=str(p),
-                   comments=comments)
+                   comments=list(comments or []))
+
+
+def _head_problem(p: Path):
+    """The judge of a lab CSV's first piece (drivers.inputs.check_head): text, with the header and data rows a CSV
+    has (each refused as the whole file's reading would refuse it, naming the line and column)."""
+    def problem(head: bytes, whole: bool) -> str | None:
+        try:
+            text = codecs.getincrementaldecoder("utf-8-sig")().decode(head, final=whole)
+        except UnicodeDecodeError as e:
+            raise DataError(f"{p}: not a text file ({e.reason} at byte {e.start}): not a lab CSV") from None
+        lines = text.splitlines()
+        if not whole:
+            lines = lines[:-1]                          # the last line may go on beyond the head
+        if not whole and not any(ln.strip() and not ln.lstrip().startswith("#") for ln in lines):
+            return None                                 # only comments so far: the header comes later
+        i = _find_header(p, lines, [])
+        header = [h.strip() for h in lines[i].split(",")]
+        _check_header(p, header, i + 1)
+        rows = [(k, ln) for k, ln in enumerate(lines[i + 1:], start=i + 2) if ln.strip() and not ln.lstrip()
+                .startswith("#")]
+        if rows:
+            _parse_rows(p, header, [ln for _, ln in rows], np.array([k for k, _ in rows]))
+        return None
+    return problem
 
 
 def _find_header(p: Path, lines: list[str], comments: list[str]) -> int:

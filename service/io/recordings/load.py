@@ -27,22 +27,19 @@ def load_data(path: str | Path, *, max_samples: int | None = None, max_probe_sam
     samples x probes) within them (an MCAP's other samples are never held; a CSV's are parsed, then let go).
     LabData.every says k. mapping: the reader's options for another ecosystem's log (ros2.Ros2Mapping,
     px4.Px4Mapping, ardupilot.ArduPilotMapping; None: their defaults)."""
-    from .formats import detect_format
+    from .formats import detect_format, refuse_pointer
 
     p = Path(path)
     if not p.exists():
         raise DataError(f"{p}: no such file")
+    refuse_pointer(p)
     if not p.is_dir():
         refused = not_regular(p, p.stat().st_mode)     # a FIFO, a device (/dev/zero): before anything opens it
         if refused:
             raise refused
     fmt = detect_format(p)
     if fmt in ("ros2-mcap", "ros2-bag", "px4-ulog", "ardupilot-bin"):
-        lab = load_log(p, fmt, mapping)
-        n, probes = lab.block.n_samples, lab.block.n_probes
-        every = keep_every(n, probes, max_samples, max_probe_samples)
-        return replace(lab, n_read=n) if every == 1 else \
-            replace(lab, block=lab.block.rows(np.arange(0, n, every)), every=every, n_read=n)
+        return thinned(load_log(p, fmt, mapping), max_samples, max_probe_samples)
     if p.is_dir():
         check_one_run(p)
     if p.is_dir() or p.suffix.lower() == ".mcap" or fmt == "fluxcal":
@@ -54,12 +51,17 @@ def load_data(path: str | Path, *, max_samples: int | None = None, max_probe_sam
         check_time_increases(p, rec.raw)
         return LabData(block=rec.raw.without_implausible(), probe_names=names, path=str(p),
                        warnings=rec.report.warnings, every=rec.every, n_read=rec.n_read, metadata=dict(rec.metadata))
-    lab = load_csv(p)
+    return thinned(load_csv(p), max_samples, max_probe_samples)
+
+
+def thinned(lab: LabData, max_samples: int | None = None, max_probe_samples: int | None = None) -> LabData:
+    """The data read whole, with every k-th sample kept (keep_every: k the smallest within the limits; LabData.every
+    says k, n_read the samples read). A copy where k > 1; the same samples where k = 1."""
     n, probes = lab.block.n_samples, lab.block.n_probes
     every = keep_every(n, probes, max_samples, max_probe_samples)
     if every == 1:
-        return replace(lab, n_read=n)
-    return replace(lab, block=lab.block.rows(np.arange(0, n, every)), every=every, n_read=n)   # a copy
+        return replace(lab, n_read=n if lab.n_read is None else lab.n_read)
+    return replace(lab, block=lab.block.rows(np.arange(0, n, every)), every=every, n_read=n)
 
 
 def load_log(p: Path, fmt: str, mapping: Any = None) -> LabData:

@@ -21,7 +21,8 @@ from typing import Any
 import numpy as np
 
 from drivers.errors import DataError
-from service.io.recordings.formats import Inspection, StreamInfo, lab_data, missing_package, rate
+from drivers.inputs import check_head, magic
+from service.io.recordings.formats import ULOG_MAGIC, Inspection, StreamInfo, lab_data, missing_package, rate
 from service.io.recordings.labdata import LabData
 from service.numerics.merge import Series, merge
 
@@ -46,6 +47,7 @@ class Px4Mapping:
 
 
 def _ulog(path: Path, only: Sequence[str] | None = WANTED):
+    check_head(path, "a PX4 ULog", magic(ULOG_MAGIC, "a ULog"))     # garbage refused before pyulog reads it
     try:
         from pyulog import ULog
     except ImportError:
@@ -164,8 +166,11 @@ def load_px4(path: str | Path, mapping: Px4Mapping | None = None) -> LabData:
         older = _combined_mag(ulog)           # a PX4 before sensor_mag was logged: its one magnetometer
         mags = [older] if older is not None else []
     if not mags:
-        raise DataError(f"{path}: no sensor_mag in the log (its topics: "
-                        f"{', '.join(sorted({d.name for d in _ulog(Path(path), None).data_list}))}): nothing to "
+        topics = sorted({d.name for d in _ulog(Path(path), None).data_list})
+        if not topics:
+            raise DataError(f"{path}: no logged topic at all in its {Path(path).stat().st_size:,} bytes: the log is "
+                            f"cut short (it ends before its first data) or empty; copy it again from the vehicle")
+        raise DataError(f"{path}: no sensor_mag in the log (its topics: {', '.join(topics)}): nothing to "
                         f"calibrate (PX4 logs sensor_mag with SDLOG_PROFILE's default set)")
     t_all = [_time_us(d) for d in mags]
     origin = min(int(t.min()) for t in t_all if t.size)
@@ -246,6 +251,9 @@ def inspect_px4(path: str | Path, mapping: Px4Mapping | None = None) -> Inspecti
                 note = f"device {_device(d)}" + ("" if temp else "; no temperature logged")
             else:
                 note = "not in the mapping's mags"
+        elif d.name == "sensor_combined" and not mags and "magnetometer_ga[0]" in d.data:
+            maps = "probe s1 (magnetometer_ga[0..2], gauss x 1e5 = nT)"
+            note = "an older PX4's log: no sensor_mag; after PX4's own calibration"
         elif d.name == "vehicle_attitude" and d.multi_id == 0 and m.attitude:
             maps = "heel_deg, pitch_deg, azimuth_deg"
         elif gps is not None and d is gps and m.position:
@@ -257,13 +265,5 @@ def inspect_px4(path: str | Path, mapping: Px4Mapping | None = None) -> Inspecti
             note = "" if maps else "current_a not measured (-1)"
         name = d.name if d.multi_id == 0 and d.name != "sensor_mag" else f"{d.name}[{d.multi_id}]"
         streams.append(StreamInfo(name, d.name, int(t.size), rate((t - t[:1]) / 1e6), maps, note))
-    warnings = [] if mags else ["no sensor_mag in the log: nothing to calibrate"]
-    span = (ulog.last_timestamp - ulog.start_timestamp) / 1e6
-    columns = ([f"s{k + 1}_temp" for k, i in enumerate(chosen)
-                if m.temperatures and any(_temperature(d) is not None for d in _instances(ulog, "sensor_mag")
-                                          if d.multi_id == i)]
-               + (["heel_deg", "pitch_deg", "azimuth_deg"] if m.attitude and _instances(ulog, "vehicle_attitude")
-                  else []) + (["lat_deg", "lon_deg", "alt_m"] if m.position and gps is not None else [])
-               + list(currents))
-    return Inspection(str(path), "px4-ulog", streams, [f"s{k + 1}" for k in range(len(chosen))], columns, warnings,
-                      duration_s=span)
+    warnings = [] if mags or _combined_mag(ulog) is not None else ["no sensor_mag in the log: nothing to calibrate"]
+    return Inspection(str(path), "px4-ulog", streams, warnings=warnings)

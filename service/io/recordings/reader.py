@@ -71,6 +71,7 @@ class Recording:
     every: int = 1                 # read_samples(max_probe_samples=...): every k-th sample kept
     n_read: int | None = None      # the samples in the recording (before keeping every k-th)
     run_sizes: list[np.ndarray] | None = None    # per run, the samples of each message (None: a message per run)
+    health_at: list[int] = field(default_factory=list)   # per health message, the raw messages recorded before it
 
     @property
     def raw_blocks(self) -> list[SampleBlock]:
@@ -269,11 +270,13 @@ def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = 
     events: list[dict[str, Any]] = []
     cal: list[dict[str, Any]] = []
     health: list[dict[str, Any]] = []
+    health_at: list[int] = []                          # where each health message lies in the raw stream
+    n_raw = 0
     units: list[str] = []
     chosen = unit
     sinks: dict[str, Callable[[bytes], None]] = {
         "events": lambda d: events.append(decode_json(d)), "calibration": lambda d: cal.append(decode_json(d)),
-        "health": lambda d: health.append(decode_json(d))}
+        "health": lambda d: (health.append(decode_json(d)), health_at.append(n_raw))}
     for rec in iter_records(path, report, strict=strict):
         u = unit_of_topic(rec.topic)
         if u is None:
@@ -287,6 +290,7 @@ def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = 
         stream = rec.topic.rsplit("/", 1)[1]
         try:
             if rec.encoding == RAW_ENCODING:
+                n_raw += 1
                 raw += batches.add(rec.topic, rec.data)
             elif rec.encoding == CORRECTED_ENCODING:
                 cor.append(decode_corrected(rec.data))
@@ -297,7 +301,7 @@ def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = 
     runs = raw + batches.flush()
     _check_read(path, unit, units, bool(runs), {b.n_probes for b, _ in runs}, report)
     return Recording([b for b, _ in runs], cor, events, cal, report.metadata, report.files, report.truncated, health,
-                     chosen, report, run_sizes=[n for _, n in runs])
+                     chosen, report, run_sizes=[n for _, n in runs], health_at=health_at)
 
 
 class FluxcalDecoderFactory(DecoderFactory):

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from drivers.errors import RecordingError
 from drivers.mcap_source import HoleTracker, ReadReport, iter_file_records, recording_files, unit_of_topic
+from drivers.outputs import refuse_linked_folder, temp_beside
 from service.io.encoding import RAW_ENCODING
 
 #: the metadata record a repaired copy carries
@@ -60,6 +61,7 @@ def repair_recording(src: str | Path, dst: str | Path, *, compression: str = "lz
     files = recording_files(src)
     src_is_dir = Path(src).is_dir()
     out_dir = Path(dst) if src_is_dir else Path(dst).parent
+    refuse_linked_folder(out_dir, "repair: the destination")
     out_dir.mkdir(parents=True, exist_ok=True)
     report = ReadReport()
     for f in files:
@@ -77,11 +79,12 @@ def _repair_file(f: Path, target: Path, report: ReadReport, compression: str) ->
 
     from .writer import COMPRESSIONS
 
-    tmp = target.with_name(target.name + ".partial")
     report.files.append(str(f))
     first_hole, first_cut, cut_bytes = len(report.holes), len(report.truncated), report.truncated_bytes
     holes = HoleTracker(report)
+    tmp = None
     try:
+        tmp = temp_beside(target)                   # never a link planted at the name: renamed onto `target`
         with open(tmp, "wb") as fh:
             w = Writer(fh, compression=COMPRESSIONS[compression])
             started, earlier = _copy_records(f, w, report, holes)
@@ -93,7 +96,8 @@ def _repair_file(f: Path, target: Path, report: ReadReport, compression: str) ->
             w.finish()
         tmp.replace(target)
     except OSError as e:
-        tmp.unlink(missing_ok=True)
+        if tmp is not None:
+            tmp.unlink(missing_ok=True)
         raise RecordingError(f"{target}: cannot write the repaired file: {e}") from None
 
 

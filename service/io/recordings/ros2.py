@@ -30,7 +30,8 @@ from typing import Any
 import numpy as np
 
 from drivers.errors import DataError
-from service.io.recordings.formats import Inspection, StreamInfo, lab_data, missing_package, rate
+from drivers.inputs import check_head, magic
+from service.io.recordings.formats import MCAP_MAGIC, Inspection, StreamInfo, lab_data, missing_package, rate
 from service.io.recordings.labdata import LabData
 from service.numerics.merge import Series, merge, ned_from_enu_quaternion
 
@@ -289,10 +290,12 @@ def open_bag(path: str | Path) -> _Bag:
             raise DataError(f"{p}: a directory without metadata.yaml is not a rosbag2 bag")
         return _RosbagsBag(p)
     if p.suffix.lower() == ".db3":
+        check_head(p, "a rosbag2 SQLite file", magic(b"SQLite format 3\x00", "an SQLite database"))
         if not (p.parent / "metadata.yaml").is_file():
             raise DataError(f"{p}: a .db3 file without the metadata.yaml of its bag beside it: give the bag's "
                             f"directory (rosbag2 needs both)")
         return _RosbagsBag(p.parent)
+    check_head(p, "a ROS 2 bag (MCAP)", magic(MCAP_MAGIC, "an MCAP file"))   # garbage refused before it is read
     return _McapBag(p)
 
 
@@ -452,12 +455,4 @@ def inspect_ros2(path: str | Path, mapping: Ros2Mapping | None = None) -> Inspec
         ts = times.get(t, np.zeros(0, np.int64))
         streams.append(StreamInfo(t, topics[t], int(ts.size), rate((ts - ts[:1]) / 1e9), maps.get(t, ""),
                                   "" if t in maps or p is None else p.unused.get(t, "")))
-    span = [float(v.min()) / 1e9 for v in times.values() if v.size] + [float(v.max()) / 1e9 for v in times.values()
-                                                                      if v.size]
-    columns = []
-    if p is not None:
-        columns = ([f"{n}_temp" for n in p.temperatures] + (["heel_deg", "pitch_deg", "azimuth_deg"] if p.imu else [])
-                   + (["lat_deg", "lon_deg", "alt_m"] if p.navsatfix else [])
-                   + (["battery_current_a"] if p.battery else []))
-    return Inspection(str(path), detect_format(path), streams, list(p.probes) if p else [], columns, warnings,
-                      duration_s=(max(span) - min(span)) if span else None)
+    return Inspection(str(path), detect_format(path), streams, warnings=warnings)

@@ -21,6 +21,7 @@ import numpy as np
 
 from drivers.block import SampleBlock
 from drivers.errors import RecordingError
+from drivers.outputs import open_output, refuse_linked_folder, replacing
 from service.numerics.outputs import CorrectedBlock
 
 MAGNETIC_FIELD = "sensor_msgs/msg/MagneticField"
@@ -85,11 +86,12 @@ class Ros2BagWriter:
         from mcap.writer import Writer
 
         self.path = Path(self.path)
+        refuse_linked_folder(self.path, "ROS 2 bag")
         if self.path.exists() and any(self.path.iterdir()) if self.path.is_dir() else self.path.exists():
             raise RecordingError(f"{self.path}: exists already: a ROS 2 bag is written into a new directory")
         self.path.mkdir(parents=True, exist_ok=True)
         self.file_name = f"{self.path.name}_0.mcap"
-        self._f = open(self.path / self.file_name, "wb")
+        self._f = open_output(self.path / self.file_name, "xb", buffering=-1)    # a new bag's: nothing there
         self._w = Writer(self._f, chunk_size=self.chunk_size)
         self._w.start(profile="ros2", library="fluxcal")
         self._schema = self._w.register_schema(MAGNETIC_FIELD, "ros2msg", MAGNETIC_FIELD_DEF.encode())
@@ -146,7 +148,8 @@ class Ros2BagWriter:
             self._w.finish()
         finally:
             self._f.close()
-        (self.path / "metadata.yaml").write_text(self._metadata())
+        with replacing(self.path / "metadata.yaml", "w") as f:
+            f.write(self._metadata())
 
     def _metadata(self) -> str:
         """rosbag2's metadata.yaml, version 5 (what ROS 2 Humble writes and later versions read)."""

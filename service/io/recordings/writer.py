@@ -67,6 +67,7 @@ from typing import Any
 
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError
+from drivers.outputs import open_output
 from service.io.encoding import corrected_payload, encode_json, health_record, raw_payload
 from service.io.foxglove_schemas import Products
 from service.numerics.outputs import CorrectedBlock
@@ -81,7 +82,7 @@ _wall_ns = time.time_ns
 
 
 def _default_opener(path: Path, mode: str):
-    return open(path, mode, buffering=0)
+    return open_output(path, mode)          # never through a link planted at the path (drivers.outputs)
 
 
 class ChunkedLog:

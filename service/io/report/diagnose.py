@@ -18,7 +18,7 @@ import numpy as np
 
 from service.numerics.calib.sky import CalibrationSection
 from service.numerics.diagnose import DECIDES, Diagnosis, verdict_lines, verdict_word
-from service.numerics.diagnose.text import discovery_lines, gain_text
+from service.numerics.diagnose.text import discovery_lines, gain_text, reference_words
 
 from .calibration import section_figures, section_html
 from .page import CSS, NO_MATPLOTLIB, has_matplotlib, images, png, pyplot, write_page
@@ -166,6 +166,36 @@ def _figures(d: Diagnosis) -> list[tuple[str, str, bytes]]:
     candidates = _candidates_figure(plt, d)
     if candidates is not None:
         figs.append(candidates)
+    return figs + _shape_figures(plt, d)
+
+
+def _shape_figures(plt, d: Diagnosis) -> list[tuple[str, str, bytes]]:
+    """Each law discovery found: the partial residual against its observable (the residual with the law's field added
+    back, along its direction, in bins with their standard errors) and the law's field with its band of two standard
+    errors, per probe (shape_reading.partial_residual)."""
+    found = getattr(d, "discovery", None)
+    figs = []
+    for j, g in enumerate(g for g in (found.groups if found is not None and found.claimed else [])
+                          if g.parts.get("partial")):
+        fig, ax = plt.subplots(figsize=(7.5, 3.8))
+        for k, part in enumerate(g.parts["partial"]):
+            colour = f"C{k}"
+            ax.errorbar(part["x"], part["mean_nT"], yerr=part["stderr_nT"], fmt="o", ms=3, color=colour,
+                        label=f"{part['probe']}: residual + the law's field, along it")
+            law = np.asarray(part["law_nT"])
+            band = np.asarray(part["band_nT"])
+            ax.plot(part["grid"], law, "-", color=colour, label=f"{part['probe']}: {g.parts['law']} found")
+            ax.fill_between(part["grid"], law - band, law + band, color=colour, alpha=0.2)
+        unit = g.group.feature.unit
+        ax.set_xlabel(f"{g.group.feature.observable}" + (f" ({unit})" if unit and unit != g.group.feature.observable
+                                                          else ""))
+        ax.set_ylabel("field along the law's direction (nT)")
+        ax.set_title(f"{g.group.feature.observable}: {g.parts['law']} (band: 2 standard errors)")
+        ax.legend(loc="best", fontsize=8)
+        ax.grid(alpha=0.3)
+        figs.append((f"shape_{j + 1}.png", f"What discovery found of {g.group.feature.observable}: the partial "
+                     f"residual against it, and the {g.parts['law']} with its band", png(fig)))
+        plt.close(fig)
     return figs
 
 
@@ -334,7 +364,7 @@ def render_html(d: Diagnosis, figs: list[tuple[str, str, bytes]], title: str,
 {CSS}
 </style></head><body>
 <h1>{html.escape(title)}</h1>
-<p>Model: <b>{html.escape(d.model)}</b> (linear part {d.linear}; total field from {d.reference});
+<p>Model: <b>{html.escape(d.model)}</b> (linear part {d.linear}; total field {html.escape(reference_words(d.reference))});
 {d.n_samples} samples over {d.duration_s:.1f} s.</p>
 <p>Residual RMS <b>{d.rms_nT:.3f} nT</b> against a noise floor of {d.noise_nT:.3f} nT;
 held-out {d.heldout_rms_nT:.3f} nT.</p>

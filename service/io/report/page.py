@@ -7,11 +7,10 @@ from __future__ import annotations
 import base64
 import html
 import io
-import os
-import tempfile
 from pathlib import Path
 
 from drivers.errors import FluxcalError
+from drivers.outputs import refuse_linked_folder, replacing
 
 #: (file name, caption, PNG bytes)
 Figure = tuple[str, str, bytes]
@@ -66,15 +65,14 @@ def write_page(out_dir: str | Path, page: str, figs: list[Figure]) -> Path:
     """DIR/index.html and the PNG files beside it; index.html replaced in one step. DIR is made if missing, in a
     folder that must exist (the commands check it first: commands/notes.check_output_folder)."""
     out = Path(out_dir)
+    refuse_linked_folder(out, "report")
     try:
         out.mkdir(exist_ok=True)
-        for name, _, data in figs:
-            (out / name).write_bytes(data)
-        fd, tmp = tempfile.mkstemp(dir=out, prefix=".index-", suffix=".html")
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
+        for name, _, data in figs:                   # each replaced whole, never written through a link
+            with replacing(out / name) as f:
+                f.write(data)
+        with replacing(out / "index.html", "w") as f:
             f.write(page)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, out / "index.html")
     except OSError as e:
         raise FluxcalError(f"{out}: cannot write the report: {e.strerror or e}") from None
     return out / "index.html"

@@ -44,7 +44,7 @@ import numpy as np
 
 from drivers.errors import CalibrationRefused
 
-from .excitation import PLANARITY_MIN, band_problem, coverage_hint, excitation_problem, turn_problem  # noqa: F401 (re-exported)
+from .excitation import PLANARITY_MIN, coverage_hint, excitation_problem, turn_cone  # noqa: F401 (re-exported)
 from .model import ProbeCalibration, named, scalar_rms, triangular_params
 from .order import (
     EXPANSIONS,
@@ -229,7 +229,7 @@ def _propagate(theta: np.ndarray, cov: np.ndarray, scale: float, f2m: float,
 
 def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
                   max_condition: float = MAX_CONDITION, noise_nT: float | None = None,
-                  order: str = "auto", errors: str = "time") -> EllipsoidFit:
+                  order: str = "auto", errors: str = "time", core: EllipsoidCore | None = None) -> EllipsoidFit:
     """Fit offset and upper-triangular matrix to (N, 3) raw samples of one probe.
 
     total_nT: the reference total field per sample (N,), a constant, or None (unknown: the mean raw
@@ -241,35 +241,27 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     Refuses (CalibrationRefused) data that cannot determine even the offsets: too few samples, all in
     one plane (a single-axis turn), field directions within a narrow cone about one axis (a turn with
     some wobble) where the model's misfit would move the offset along the axis by more than a percent of
-    the field (excitation.band_problem), a badly conditioned design, or offsets whose standard errors
+    the field (excitation.cone_of), a badly conditioned design, or offsets whose standard errors
     are a tenth of the field; the message names the missing directions and the motion that would fill them.
     noise_nT: the noise of |b| if known; standard errors then use it (see `solve_quadric`).
     errors: "time" (samples in time order): where the residual differs between stretches of time beyond its
     noise (1/f noise, a misfit following the motion) the errors are at least those of leaving one stretch out
     (misfit.add_time_spread); "white": the white-noise errors alone, for a caller that adds its own (`fluxcal
     fit`'s coloured-noise and direction errors). theta_cov stays the white-noise one either way.
+    core: ellipsoid_core of the same samples, reference and order already made (the determinacy gate's), not redone.
     """
     if order != "auto" and order not in ORDERS:
         raise ValueError(f"order: {order!r} is not allowed (allowed: auto, {', '.join(ORDERS)})")
     if errors not in ("time", "white"):
         raise ValueError(f"errors: {errors!r} is not allowed (allowed: time, white)")
     raw = np.asarray(field_nT, float)
-    sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT, order=order)
-    fit, missing = _fit_result(sol, raw, name)
-    choice = sol.choice
-    while order == "auto" and missing and sol.order != ORDERS[-1]:
-        sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT,
-                            order=ORDERS[ORDERS.index(sol.order) + 1])
-        fit, missing = _fit_result(sol, raw, name)
-    problem = turn_problem(raw, fit.calibration.offset_nT, fit.calibration.matrix,
-                           residual_rms=fit.residual_rms_nT, field=float(np.sqrt(fit.f2_ref)))
+    if core is None:
+        core = ellipsoid_core(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT,
+                              order=order)
+    problem = core.problem()
     if problem:
         raise CalibrationRefused(f"{name}: {problem}")
-    if any(m.startswith("offset") for m in missing):
-        se = ", ".join(f"{v:.3g}" for v in fit.calibration.offset_se_nT)
-        raise CalibrationRefused(f"{name}: the samples do not determine even the offsets (standard errors {se} nT "
-                                 f"against a field of {float(np.sqrt(fit.f2_ref)):.6g} nT); "
-                                 f"{coverage_hint(raw, fit.calibration.offset_nT)}")
+    fit, sol, missing, choice = core.fit, core.solution, core.missing, core.fit.choice
     bias = []
     if order == "auto" and sol.order != "full":
         from .misfit import add_order_bias  # a reduced order's offsets can differ from the full model's
@@ -285,6 +277,49 @@ def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     fit.calibration.model_order = sol.order
     fit.calibration.warnings = list(fit.warnings)
     return fit
+
+
+@dataclass
+class EllipsoidCore:
+    """The ellipsoid fit of order `auto` (or as asked) before any refusal of what it leaves undetermined: the fit,
+    its solution, what its standard errors leave undetermined, and the cone its directions lie in. What
+    fit_ellipsoid refuses on, and the determinacy gate (determinacy.judge) reads its figures from."""
+
+    fit: EllipsoidFit
+    solution: QuadricSolution
+    missing: list[str]
+    cone: object = None                  # excitation.Cone of the fitted directions (None: fewer than three samples)
+    raw: np.ndarray | None = None
+
+    def problem(self) -> str:
+        """Why the fit does not determine the offsets ("" where it does): one cone of directions, or offsets whose
+        standard errors are a tenth of the field; with what would help."""
+        if self.cone is not None and self.cone.problem:
+            return self.cone.problem
+        if any(m.startswith("offset") for m in self.missing):
+            fit = self.fit
+            se = ", ".join(f"{v:.3g}" for v in fit.calibration.offset_se_nT)
+            return (f"the samples do not determine even the offsets (standard errors {se} nT against a field of "
+                    f"{float(np.sqrt(fit.f2_ref)):.6g} nT); {coverage_hint(self.raw, fit.calibration.offset_nT)}")
+        return ""
+
+
+def ellipsoid_core(field_nT: np.ndarray, total_nT=None, *, name: str = "s1", max_condition: float = MAX_CONDITION,
+                   noise_nT: float | None = None, order: str = "auto") -> EllipsoidCore:
+    """The fit of fit_ellipsoid up to its refusals of what the samples leave undetermined (EllipsoidCore); the
+    refusals of the solve itself (too few samples, one plane, conditioning, not an ellipsoid) are raised."""
+    raw = np.asarray(field_nT, float)
+    sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT, order=order)
+    fit, missing = _fit_result(sol, raw, name)
+    choice = sol.choice
+    while order == "auto" and missing and sol.order != ORDERS[-1]:
+        sol = solve_quadric(field_nT, total_nT, name=name, max_condition=max_condition, noise_nT=noise_nT,
+                            order=ORDERS[ORDERS.index(sol.order) + 1])
+        fit, missing = _fit_result(sol, raw, name)
+    fit.choice, fit.order = choice, sol.order
+    cone = turn_cone(raw, fit.calibration.offset_nT, fit.calibration.matrix, residual_rms=fit.residual_rms_nT,
+                     field=float(np.sqrt(fit.f2_ref)))
+    return EllipsoidCore(fit, sol, missing, cone, raw)
 
 
 def _fit_result(sol: QuadricSolution, raw: np.ndarray, name: str) -> tuple[EllipsoidFit, list[str]]:

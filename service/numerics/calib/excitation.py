@@ -3,6 +3,8 @@ field direction came near, and which turn would fill them. Used by refusals and 
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+
 import numpy as np
 
 #: out-of-plane spread / in-plane spread below which samples count as one plane (a single-axis turn)
@@ -45,30 +47,52 @@ def direction_band(directions: np.ndarray) -> tuple[float, np.ndarray]:
     return float(np.sqrt(3.0) * np.std(polar)), axis
 
 
-def band_problem(corrected: np.ndarray, residual_rms: float, field: float) -> str:
-    """Why calibrated samples (N, 3) whose directions lie in a narrow cone-shaped band about one axis (a
-    single-axis turn with some wobble) do not fix the offset along it, given the fit's residual RMS and the
-    field (same unit): "" if they spread wider than BAND_MIN_DEG or the misfit's lever on that offset stays
-    below LEVER_MAX of the field (nT). The batch fit and the online gate ask it alike."""
+@dataclass(frozen=True)
+class Cone:
+    """The cone the field directions (about a fitted centre, in the calibrated frame) lie in, and what the model's
+    misfit does to the offset along its axis: band_deg (direction_band), the axis, the directions' spread along it,
+    the misfit (residual RMS, nT), its lever on the axial offset (misfit / spread, nT) and the field; `problem` says
+    why the offset along the axis is not determined ("" where it is: a band wider than BAND_MIN_DEG, or a lever
+    within LEVER_MAX of the field)."""
+
+    band_deg: float
+    axis: tuple[float, float, float]
+    axis_name: str
+    spread: float
+    misfit_nT: float
+    lever_nT: float
+    field_nT: float
+    problem: str = ""
+
+    def as_dict(self) -> dict:
+        return {"band_deg": self.band_deg, "axis": list(self.axis), "axis_name": self.axis_name,
+                "spread": self.spread, "misfit_nT": self.misfit_nT, "lever_nT": self.lever_nT,
+                "field_nT": self.field_nT, "lever_share": self.lever_nT / self.field_nT if self.field_nT else None}
+
+
+def cone_of(corrected: np.ndarray, residual_rms: float, field: float) -> Cone | None:
+    """The Cone of calibrated samples (N, 3), given the fit's residual RMS and the field (same unit); None for fewer
+    than three samples. The batch fit, diagnose, inspect and the online gate ask it alike (determinacy.judge)."""
     c = np.asarray(corrected, float)
     if c.shape[0] < 3:
-        return ""
+        return None
     mag = np.linalg.norm(c, axis=1, keepdims=True)
     directions = c / np.where(mag > 0, mag, 1.0)
     band, normal = direction_band(directions)
-    if band >= BAND_MIN_DEG:
-        return ""
+    k = int(np.argmax(np.abs(normal)))
+    normal = normal * (np.sign(normal[k]) or 1.0)
+    axis = "xyz"[k] if abs(normal[k]) > 0.9 else "({:.2f}, {:.2f}, {:.2f})".format(*normal)
     spread = float(np.std(directions @ normal))
     lever = residual_rms / max(spread, 1e-12)
-    if not lever > LEVER_MAX * field:
-        return ""
-    k = int(np.argmax(np.abs(normal)))
-    axis = "xyz"[k] if abs(normal[k]) > 0.9 else "({:.2f}, {:.2f}, {:.2f})".format(*(normal * np.sign(normal[k])))
+    cone = Cone(band, tuple(float(x) for x in normal), axis, spread, float(residual_rms), float(lever), float(field))
+    if band >= BAND_MIN_DEG or not lever > LEVER_MAX * field:
+        return cone
     others = sorted(a for _, a in sorted(zip(np.abs(normal), "xyz"))[:2])
-    return (f"the field directions stay within ±{band:.1f}° of one cone about {axis} (a turn about {axis}): the "
-            f"offset along {axis} rests on that wobble, where the model's misfit ({residual_rms:.3g} nT RMS) moves it "
-            f"by about {lever:,.0f} nT, {lever / field:.0%} of the field (accepted up to {LEVER_MAX:.0%}); turn about the "
-            f"{others[0]} or {others[1]} axis too")
+    return replace(cone, problem=(
+        f"the field directions stay within ±{band:.1f}° of one cone about {axis} (a turn about {axis}): the "
+        f"offset along {axis} rests on that wobble, where the model's misfit ({residual_rms:.3g} nT RMS) moves it "
+        f"by about {lever:,.0f} nT, {lever / field:.0%} of the field (accepted up to {LEVER_MAX:.0%}); turn about the "
+        f"{others[0]} or {others[1]} axis too"))
 
 
 def missing_directions(raw: np.ndarray, cone_deg: float = 45.0) -> list[str]:
@@ -114,17 +138,16 @@ def coverage_hint(raw: np.ndarray, centre: np.ndarray | None = None) -> str:
             f"{' or '.join(turn_axes_for(missing))} axis")
 
 
-#: samples (evenly spaced) on which turn_problem asks its question: the cone of directions and the misfit's lever
+#: samples (evenly spaced) on which turn_cone asks its question: the cone of directions and the misfit's lever
 #: need a fair share of the record, not all of it (hours of data)
 TURN_ROWS = 200_000
 
 
-def turn_problem(raw: np.ndarray, offset_nT: np.ndarray, matrix: np.ndarray, total_nT=None, *,
-                 residual_rms: float | None = None, field: float | None = None) -> str:
-    """band_problem of a calibration (offset, matrix) over its raw samples (N, 3), on at most TURN_ROWS of them
-    evenly spaced: the residual RMS and the field from |M (r − o)| against total_nT (a number or (N,); None: the
-    mean magnitude), unless given (a fit's own). Rows holding NaN are left out. What fit_ellipsoid, the other
-    methods and diagnose ask alike; "" where the directions spread wide enough."""
+def turn_cone(raw: np.ndarray, offset_nT: np.ndarray, matrix: np.ndarray, total_nT=None, *,
+              residual_rms: float | None = None, field: float | None = None) -> Cone | None:
+    """cone_of a calibration (offset, matrix) over its raw samples (N, 3), on at most TURN_ROWS of them evenly
+    spaced: the residual RMS and the field from |M (r − o)| against total_nT (a number or (N,); None: the mean
+    magnitude), unless given (a fit's own). Rows holding NaN are left out; None where no row is left."""
     step = max(1, raw.shape[0] // TURN_ROWS)
     corr = (np.asarray(raw, float)[::step] - offset_nT) @ np.asarray(matrix, float).T
     mag = np.linalg.norm(corr, axis=1)
@@ -132,23 +155,6 @@ def turn_problem(raw: np.ndarray, offset_nT: np.ndarray, matrix: np.ndarray, tot
     f = t[::step] if t.ndim else np.full(mag.shape, float(t))
     ok = np.isfinite(mag) & np.isfinite(f)
     if not ok.any():
-        return ""
+        return None
     rms = residual_rms if residual_rms is not None else float(np.sqrt(np.mean((mag[ok] - f[ok]) ** 2)))
-    return band_problem(corr[ok], rms, field if field is not None else float(np.mean(f[ok])))
-
-
-def refuse_one_cone(raw_nT: np.ndarray, offsets_nT, matrices, total_nT, probe_names, *, then: str = "") -> None:
-    """Refuse (CalibrationRefused, naming the probe) offsets and matrices fitted to a single-axis turn of any probe
-    of `raw_nT` (N, P, 3): they are not determined along the turn's axis (turn_problem). `then`: what the refusal
-    costs, appended. fit asks it of the methods that do not ask it themselves (tmi, rls: real hand turns gave offsets
-    9,417 nT where the board's sphere says -643, with exit 0); diagnose as soon as it refits the linear part, before
-    any candidate (an effect found on top of an undetermined part would be that error: a real turn was 'explained
-    by crossfield')."""
-    from drivers.errors import CalibrationRefused
-
-    for k, name in enumerate(probe_names):
-        problem = turn_problem(raw_nT[:, k], offsets_nT[k], matrices[k], total_nT)
-        if problem:
-            refused = CalibrationRefused(f"{name}: {problem}{then}")
-            refused.problem = f"{name}: {problem}"            # what is not determined, for advice that quotes it
-            raise refused
+    return cone_of(corr[ok], rms, field if field is not None else float(np.mean(f[ok])))

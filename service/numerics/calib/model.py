@@ -107,6 +107,7 @@ class ArrayCalibration:
     diagnostics: free-form numbers a user needs to trust it (per probe scalar residual RMS before and
     after, condition numbers, coverage summary); see `scalar_residual_summary`.
     span: (t0_s, t1_s, n_samples) of the data the calibration came from.
+    unit: the unit (and its probes' serial numbers) the calibration was made for, as far as known.
     """
 
     method: str
@@ -117,6 +118,9 @@ class ArrayCalibration:
     effect_params: dict[str, Any] = field(default_factory=dict)
     diagnostics: dict[str, Any] = field(default_factory=dict)
     span: tuple[float, float, int] = (0.0, 0.0, 0)      # t0_s, t1_s, n_samples of the data it came from
+    #: the unit it was made for: {"name": "grad1", "probes": {"s1": "<serial>", ...}} ({}: not said); the service
+    #: refuses one made for another unit (service.wiring.identity)
+    unit: dict[str, Any] = field(default_factory=dict)
 
     @property
     def n_probes(self) -> int:

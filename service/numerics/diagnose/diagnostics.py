@@ -48,10 +48,21 @@ from .discover import discover as find_terms
 from .fits import heldout, try_candidate
 from .frames import frame_summary, frames
 from .result import N_BLOCKS, P_SIGNIFICANT, Candidate, Diagnosis, Progress
-from .signature import FLOOR_FACTOR, SHARED, Carried, borrowed_notes, describe, signature, verdict
+from .signature import (
+    FLOOR_FACTOR,
+    FOLLOWS,
+    SHARED,
+    Carried,
+    borrowed_notes,
+    channels_above,
+    describe,
+    signature,
+    verdict,
+)
 from .verdict import demote_nested, mark_indistinguishable, rank
 from .weak import heldout_weakness
-from .where import GROSS_RATIO, gross_stretch, stretch_ratio, where_it_fails, worst_segments
+from .stretch import demote_on_one_stretch, explains_stretch, stretch_advice
+from .where import gross_stretch, where_it_fails, worst_segments
 
 
 def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None, fix_linear: bool | None = None,
@@ -66,11 +77,8 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     check_linear(linear): asked of the refitted linear part before any candidate (a refusal costs the first fit
     only); where the calibration is held, of the refit made for comparison (a refusal is then said in the advice).
     discover: look for the missing term in the library beyond the catalogue (discover.py): None (the default) where
-    the catalogue leaves an excess (the verdict unexplained or partly explained), True always, False never."""
-    def tell(frac: float, msg: str) -> None:
-        if progress is not None:
-            progress(frac, msg)
-
+    the catalogue leaves an excess (_excess_left), True always, False never."""
+    tell = progress if progress is not None else (lambda frac, msg: None)
     ed = as_effect_data(data, total_nT=total_nT, positions_m=positions_m)
     notes = _data_notes(ed)
     fixed = (calibration is not None) if fix_linear is None else bool(fix_linear)
@@ -106,16 +114,18 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     tell(0.9, "comparing candidates")
     cands, stretch = _compare(ed, model, cur, cands, sig_cur, reference, weights, n_blocks, tell, notes)
 
-    # 5. the verdict in kinds, and what is left described (signature.py)
+    # 5. the verdict in kinds, per channel as well as over all, and what is left described (signature.py)
     best = next((c for c in cands if c.significant and c.fit is not None), None)
     carried = Carried.of(ed)
-    told = verdict(cur.rms_nT, noise_nT, best, _what_is_left(ed, best, sig_cur, noise, noise_nT), carried)
+    left_where, above, held_above = _left(ed, best, cur, cur_ho, where, noise)
+    told = verdict(cur.rms_nT, noise_nT, best, _what_is_left(ed, best, sig_cur, noise, noise_nT, left_where, above),
+                   carried, above)
 
-    # 6. beyond the catalogue: the library of terms the data allow (discover.py), where the catalogue leaves an excess
+    # 6. beyond the catalogue: the library of terms the data allow (discover.py), where the catalogue leaves an excess:
+    # a channel above its floor, a family of them, or a residual that still follows what the data carry
     found = None
-    base_fit = best.fit if best is not None else cur
-    if discover or (discover is None and (told["kind"] in ("unexplained", "partly explained")
-                                          or family_excess(base_fit, noise) >= DISCOVER_EXCESS)):
+    if discover or (discover is None and (held_above or _excess_left(told, best.fit if best is not None else cur, noise,
+                                                                      left_where))):
         tell(0.93, "discovery beyond the catalogue")
         found, told, cands = _beyond_catalogue(ed, model, cur, cur_ho, cands, told, sig_cur, carried, reference,
                                                weights, n_blocks, noise, noise_nT, tell)
@@ -163,21 +173,54 @@ def _compare(ed, model, cur, cands: list[Candidate], sig_cur: dict, reference, w
     _demote_without_common_mode(cands, sig_cur.get("shared_fraction"))
     cands = rank(cands)
     stretch = gross_stretch(cur, 1.0 / weights)
-    notes += _demote_on_one_stretch(ed, model, cands, cur, stretch, reference, weights, n_blocks, tell)
+    notes += demote_on_one_stretch(ed, model, cands, cur, stretch, reference, weights, n_blocks, tell)
     cands = rank(cands)
     _beyond_the_best(ed, model, cands, reference, weights, n_blocks, tell)
     return rank(cands), stretch
 
 
-def _what_is_left(ed, best, sig_cur: dict, noise: np.ndarray, noise_nT: float) -> dict:
-    """The signature of what the best candidate leaves (the model's own without one; nothing at the floor)."""
+def _what_is_left(ed, best, sig_cur: dict, noise: np.ndarray, noise_nT: float, where: list[dict],
+                  above: list[dict]) -> dict:
+    """The signature of what the best candidate leaves (the model's own without one; nothing where every channel is
+    at its floor)."""
     if best is None:
         return sig_cur
-    if best.rms_nT > FLOOR_FACTOR * noise_nT:
-        left = signature(best.fit, noise, where_it_fails(ed, best.fit, noise))
+    if best.rms_nT > FLOOR_FACTOR * noise_nT or above:
+        left = signature(best.fit, noise, where)
         left["frames"] = frame_summary(frames(ed, best.fit, noise))
         return left
     return {}
+
+
+def _left(ed: Any, best: Candidate | None, cur: Any, cur_ho: Any, where: list[dict],
+          noise: np.ndarray) -> tuple[list[dict], list[dict], list[dict]]:
+    """(what the residual of the best model found follows (where.py), the channels it leaves above their own floor
+    (signature.channels_above: held out and in the fit, for the verdict; held out alone, for discovery))."""
+    fit, held, left_where = cur, cur_ho.channel_rms_nT, where
+    if best is not None:
+        fit, left_where = best.fit, where_it_fails(ed, best.fit, noise)
+        held = best.heldout_channels_nT if best.heldout_channels_nT is not None else best.fit.channels.rms_nT
+    return (left_where, channels_above(fit, held, noise, left_where),
+            channels_above(fit, held, noise, held_out_only=True))
+
+
+def _excess_left(told: dict[str, Any], fit: Any, noise: np.ndarray, where: list[dict]) -> bool:
+    """Whether the catalogue's best model leaves an excess discovery should look at: a channel above its floor (the
+    verdict unexplained or partly explained), a family of channels DISCOVER_EXCESS times its floor, or a residual that
+    still follows something the data carry."""
+    return (told["kind"] in ("unexplained", "partly explained") or family_excess(fit, noise) >= DISCOVER_EXCESS
+            or follows_observable(where))
+
+
+#: observables a residual may follow that discovery's library builds from (time, a band, orientation and heading are
+#: no cause it can take: the catalogue's drift, lines, the linear calibration and platform have them)
+NOT_DISCOVERABLE = ("time", "frequency", "orientation", "heading")
+
+
+def follows_observable(where: list[dict]) -> bool:
+    """Whether a residual still follows something the data carry that discovery's library builds from, with a share
+    of FOLLOWS or more (a coil's current that `column` took in part: 0.58 of s1's scalar residual left)."""
+    return any(w["strength"] >= FOLLOWS and w["observable"] not in NOT_DISCOVERABLE for w in where)
 
 
 def _start(ed: Any, calibration: Any, fixed: bool, effects: Sequence[str], notes: list[str]):
@@ -263,8 +306,8 @@ def _last_advice(told: dict, notes: list[str], cur, best, found, weak, cands, re
                              f"of the same sensor from a fuller turn, held here, would tell")
                           + (f"; then: {told['advice']}" if told.get("advice") and
                              linear_refit > FLOOR_FACTOR * noise_nT else ""))
-    if stretch is not None and told["kind"] == "unexplained":
-        told["advice"] = _stretch_advice(stretch, told.get("advice"))
+    if stretch is not None and told["kind"] == "unexplained" and not explains_stretch(found, stretch, noise_nT, cur):
+        told["advice"] = stretch_advice(stretch, told.get("advice"))
 
 
 #: discovery runs by itself where the catalogue leaves an excess: the verdict unexplained or partly explained, or a
@@ -331,51 +374,6 @@ def _beyond_the_best(ed: Any, model: Model, cands: list[Candidate], reference: n
                         f"{100 * again.gain:.1f} %")
 
 
-def _demote_on_one_stretch(ed: Any, model: Model, cands: list[Candidate], cur: Any, stretch: dict[str, Any] | None,
-                           reference: np.ndarray, weights: np.ndarray, n_blocks: int, tell: Any) -> list[str]:
-    """A gross disturbance in time (a vehicle or a magnet passing, a knock) pulls the least-squares fit everywhere,
-    and a flexible term that compensates for the pull can pass every block's test while following nothing real
-    (Magneto's test file, a 47-s stretch 4,000 nT off: crossfield 'significant' at 21 %, 8 % without it). A
-    significant candidate whose fit leaves the stretch the model leaves gross (where.gross_stretch) still gross is
-    judged again with the stretch left out, and stays significant only if it still is (one that explains the
-    stretch, as eddy a stretch of fast turning, is not asked). Returns a note when one was demoted."""
-    if stretch is None:
-        return []
-    noise = 1.0 / weights
-    demoted: list[str] = []
-    lo, hi = stretch["t_start_s"], stretch["t_end_s"]
-    rows = np.flatnonzero((ed.t_s < lo) | (ed.t_s > hi))
-    sub, ref, base = ed.subset(rows), reference[rows], None
-    for c in [c for c in cands if c.significant and c.fit is not None]:
-        left = stretch_ratio(c.fit, noise, lo, hi)
-        if not left >= GROSS_RATIO:
-            continue                                  # it explains the stretch (or there is nothing to say)
-        tell(0.96, f"trying {c.effect} without {lo:.1f}-{hi:.1f} s")
-        base = base or fit_model(sub, model, cur.state.linear, ref, weights, n_blocks=n_blocks)
-        again = try_candidate(sub, model, base, heldout(base), c.effect, ref, weights, residual_hints(base), n_blocks)
-        if again.significant:
-            continue
-        c.significant = False
-        c.refusal = "rests on one stretch"
-        c.reason = (f"rests on {lo:.1f}-{hi:.1f} s, which it leaves {left:.1f} x the rest's residual: "
-                    f"without that stretch its held-out gain is {100 * again.gain:.1f} %")
-        demoted.append(c.effect)
-    if not demoted:
-        return []
-    return [f"{lo:.1f}-{hi:.1f} s: the residual there is {stretch['ratio']:.1f} x the rest's and no term follows it (a "
-            f"disturbance in time: a vehicle or a magnet passing, a knock, a glitch); {' and '.join(demoted)} "
-            f"{'was' if len(demoted) == 1 else 'were'} significant only with it"]
-
-
-def _stretch_advice(stretch: dict[str, Any], advice: str | None) -> str:
-    """The gross stretch no term follows, first: its pull on the least-squares fit spreads over the whole record and
-    colours what the rest of the residual seems to follow."""
-    lo, hi = stretch["t_start_s"], stretch["t_end_s"]
-    return (f"first {lo:.1f}-{hi:.1f} s, where the residual is {stretch['ratio']:.1f} x the rest's: a disturbance in time "
-            f"(a vehicle or a magnet passing, a knock, a glitch) pulls the fit over the whole record; judge the rest "
-            f"without it (--skip {lo:.1f}-{hi:.1f})" + (f"; then: {advice}" if advice else ""))
-
-
 def _beyond_catalogue(ed: Any, model: Model, cur: Any, cur_ho: Any, cands: list[Candidate], told: dict[str, Any],
                       sig_cur: dict[str, Any], carried: Carried, reference: np.ndarray, weights: np.ndarray,
                       n_blocks: int, noise: np.ndarray, noise_nT: float, tell: Any) -> tuple[Any, dict, list]:
@@ -386,6 +384,8 @@ def _beyond_catalogue(ed: Any, model: Model, cur: Any, cur_ho: Any, cands: list[
     base = best.fit if best is not None else cur
     found = find_terms(ed, base, heldout(base) if best is not None else cur_ho, reference, weights, n_blocks,
                        noise_nT, progress=lambda msg: tell(0.95, msg))
+    if not found.claimed and best is not None and best.effect == "column":
+        found = _instead_of_column(ed, best, cur, cur_ho, reference, weights, n_blocks, noise_nT, tell) or found
     if not found.claimed:
         return found, told, cands
     if best is not None:
@@ -403,9 +403,14 @@ def _beyond_catalogue(ed: Any, model: Model, cur: Any, cur_ho: Any, cands: list[
                 cands = rank(cands)
                 best = next((c for c in cands if c.significant and c.fit is not None), None)
     base = best.fit if best is not None else cur
-    sig0 = sig_cur if best is None else signature(base, noise, where_it_fails(ed, base, noise))
+    base_where = where_it_fails(ed, base, noise)
+    sig0 = sig_cur if best is None else signature(base, noise, base_where)
     sig0.setdefault("frames", frame_summary(frames(ed, base, noise)))
-    again_told = verdict(cur.rms_nT, noise_nT, best, sig0, carried)
+    if best is None or best.heldout_channels_nT is None:
+        above = channels_above(base, (heldout(base) if best is not None else cur_ho).channel_rms_nT, noise, base_where)
+    else:
+        above = channels_above(base, best.heldout_channels_nT, noise, base_where)
+    again_told = verdict(cur.rms_nT, noise_nT, best, sig0, carried, above)
     if again_told["kind"] in ("at the floor", "explained"):
         # the verdict is over all channels together; a family of them was not at its floor
         again_told.update(kind="unexplained" if best is None else "partly explained", left=describe(sig0, carried)[0],
@@ -418,6 +423,22 @@ def _beyond_catalogue(ed: Any, model: Model, cur: Any, cur_ho: Any, cands: list[
                  if found.heldout_rms_nT > FLOOR_FACTOR * noise_nT else None)
     again_told["advice"] = found.sentence() + (f"; beside it: {beside_it}" if beside_it else "")
     return found, again_told, cands
+
+
+def _instead_of_column(ed: Any, best: Candidate, cur: Any, cur_ho: Any, reference: np.ndarray, weights: np.ndarray,
+                       n_blocks: int, noise_nT: float, tell: Any) -> Any:
+    """Discovery beside the model without the catalogue's `column`, where beside it discovery found nothing: `column`
+    takes every logged column and its rate on every axis (30 parameters a probe for five columns), which discovery's
+    library holds one group at a time; where the groups it finds predict the held-out blocks at least as well with
+    fewer parameters, they are what the data show (a flap's field on an hour-long board that wanders: `column` left
+    1.15 times the untouched board's held-out error, the flap's own offset 1.08). The Discovery, or None."""
+    tell(0.96, "discovery beside the model without column")
+    alone = find_terms(ed, cur, cur_ho, reference, weights, n_blocks, noise_nT, progress=lambda msg: tell(0.96, msg))
+    if not alone.claimed:
+        return None
+    ours, theirs = heldout(alone.fit), heldout(best.fit)
+    fewer = alone.fit.rank - cur.rank < best.fit.rank - cur.rank
+    return alone if fewer and ours.sse_w.sum() <= theirs.sse_w.sum() else None
 
 
 def _weak_advice(weak: dict[str, Any], cands: list[Candidate], advice: str | None) -> str:

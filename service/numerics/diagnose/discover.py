@@ -35,11 +35,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 from drivers.errors import FluxcalError
 from service.numerics.effects.base import EffectData
 from service.numerics.engine import FitResult, Problem, residual_hints
 from service.numerics.jsonsafe import finite_or_none as _num
+from service.numerics.jsonsafe import json_safe as _plain
 
 from .fits import Heldout, _beyond_errors, _compare, _fit_beside, heldout
 from .library import (
@@ -55,14 +57,17 @@ from .library import (
     wave_features,
     wave_groups,
 )
-from .reading import FoundGroup, covariance, read_group, scale_parts
+from .forms import choose_forms
+from .reading import FoundGroup, covariance, read_group, read_law_group, scale_parts
 from .result import GAIN_SIGMAS, MIN_GAIN, P_SIGNIFICANT
 from .selection import (
     SHORTLIST,
     blocks_of,
     crossval,
     fit_all,
+    held_by,
     marginals,
+    nested_in,
     normals,
     prune,
     rss_of,
@@ -93,6 +98,12 @@ class Discovery:
     lines_hz: list[float] = field(default_factory=list)
     borrowed: dict[str, str] = field(default_factory=dict)
     fit: FitResult | None = field(default=None, repr=False)
+    #: the groups as the selection chose them, before a shape's form replaced its splines (forms.py)
+    chosen: list[Group] = field(default_factory=list, repr=False)
+    #: per claimed shape, the forms tried and the one kept (forms.choose_forms)
+    forms: list[dict[str, Any]] = field(default_factory=list)
+    #: the residual's lines that a logged column's motion makes (line Hz -> (column, how)): its shapes take them
+    harmonics: dict[float, tuple[str, str]] = field(default_factory=dict)
 
     @property
     def terms(self) -> list[str]:
@@ -116,7 +127,9 @@ class Discovery:
                 "rms_nT": _num(self.rms_nT), "heldout_rms_nT": _num(self.heldout_rms_nT), "gain": _num(self.gain),
                 "cv_gain": _num(self.cv_gain), "cv_log_ratio": _num(self.cv_log_ratio),
                 "cv_log_ratio_se": _num(self.cv_log_ratio_se), "reason": self.reason, "taus_s": list(self.taus_s),
-                "lines_hz": list(self.lines_hz), "borrowed": dict(self.borrowed), "sentence": self.sentence()}
+                "lines_hz": list(self.lines_hz), "borrowed": dict(self.borrowed), "forms": _plain(self.forms),
+                "harmonics": [{"line_hz": hz, "column": col, "how": how} for hz, (col, how) in self.harmonics.items()],
+                "sentence": self.sentence()}
 
 
 # --- discovery ------------------------------------------------------------------------------------------
@@ -134,7 +147,7 @@ def discover(data: EffectData, base: FitResult, base_ho: Heldout, reference: np.
     groups = list(lib.groups)
     out = Discovery(tried=len(groups), tried_params=lib.n_params, claimed=False, groups=[],
                     base_rms_nT=base.rms_nT, base_heldout_rms_nT=base_ho.rms_nT, floor_nT=floor_nT,
-                    taus_s=lib.taus_s, lines_hz=lib.lines_hz, borrowed=lib.borrowed)
+                    taus_s=lib.taus_s, lines_hz=lib.lines_hz, borrowed=lib.borrowed, harmonics=lib.harmonics)
     if not groups:
         out.reason = "the data carry nothing to build a group from"
         return out
@@ -151,10 +164,10 @@ def discover(data: EffectData, base: FitResult, base_ho: Heldout, reference: np.
                         or (i >= n_lib and owner[i - n_lib] == b)]) for b in range(k)]
     lists.append(shortlist(mg, list(range(k)), p_level, SHORTLIST, list(range(n_lib))))
     union = sorted(set().union(*lists))
-    # the offset group each scale group holds, which the selection takes instead where the scale adds nothing
-    held = {(g.probe, g.feature.name): i for i, g in enumerate(groups) if g.kind == "offset"}
-    union = sorted(set(union) | {held[(groups[i].probe, groups[i].feature.name)] for i in union
-                                 if groups[i].kind == "scale" and (groups[i].probe, groups[i].feature.name) in held})
+    # the smaller groups each holds (a scale group its offset, a spline the smaller spline and the value), which the
+    # selection takes instead where the larger adds nothing
+    nested = nested_in(groups)
+    union = sorted(set(union) | {j for i in union for j in held_by(nested, i)})
     if not union:
         out.reason = (f"no group's F-test beside the model reaches p < {p_level:.2g} (P_SIGNIFICANT over the "
                       f"{n_lib} groups tried)")
@@ -237,7 +250,7 @@ def conclude(out: Discovery, data: EffectData, base: FitResult, base_ho: Heldout
         params = {t.name: [p for p in fit.parameters() if p.term == t.name] for t in fit.problem.terms
                   if isinstance(t, GroupTerm)}
         weak = [t.group for t in fit.problem.terms if isinstance(t, GroupTerm)
-                and _beyond_errors(params[t.name], p_level) is not None]
+                and _beyond_errors(params[t.name], p_level) is not None and not jointly_beyond(fit, t.name, p_level)]
         if weak:
             kept = [g for g in kept if g not in weak]
             if not kept:
@@ -251,14 +264,31 @@ def conclude(out: Discovery, data: EffectData, base: FitResult, base_ho: Heldout
         if not plain:
             break
         kept = [Group("offset", g.probe, g.probe_name, g.feature) if g in plain else g for g in kept]
+    out.chosen = list(kept)
+    # a claimed shape in its form: one direction per probe times a function they share, a law where one takes it
+    fit, ho, _, laws, out.forms = choose_forms(data, base, kept, fit, ho, reference, weights, n_blocks, hints)
+    params = {t.name: [p for p in fit.parameters() if p.term == t.name] for t in fit.problem.terms
+              if isinstance(t, GroupTerm)}
     cmp = _compare(base, base_ho, fit, ho)
     out.claimed, out.reason = True, None
     out.fit = fit
     out.base_rms_nT, out.base_heldout_rms_nT = base.rms_nT, base_ho.rms_nT
     out.rms_nT, out.heldout_rms_nT, out.gain = fit.rms_nT, ho.rms_nT, cmp["gain"]
-    out.groups = [read_group(t.group, t.name, params[t.name], fit) for t in fit.problem.terms
-                  if isinstance(t, GroupTerm)]
+    out.groups = ([read_group(t.group, t.name, params[t.name], fit) for t in fit.problem.terms
+                   if isinstance(t, GroupTerm)] + [read_law_group(t, fit) for t in laws])
     return out
+
+
+def jointly_beyond(fit: FitResult, term: str, p_level: float) -> bool:
+    """Whether a group's parameters stand beyond their errors jointly, with their correlations (reading.covariance):
+    a spline of a column beside the catalogue's `column`, which holds the column's straight line, has each parameter
+    within its error (the line can go to either) while the curve stands far beyond them (a saturating coil: claimed
+    in 0 of 2 seeds where `column` was significant, by the parameters' errors alone)."""
+    values, cov = covariance(fit, term)
+    lam, vec = np.linalg.eigh(cov)
+    keep = lam > 1e-9 * max(float(lam[-1]), 1e-300)
+    z = vec[:, keep].T @ values
+    return bool(keep.any() and float(np.sum(z * z / lam[keep])) >= stats.chi2.isf(p_level, int(keep.sum())))
 
 
 def offset_alone(fit: FitResult) -> list[Group]:
@@ -277,7 +307,7 @@ def beside(found: Discovery, data: EffectData, base: FitResult, base_ho: Heldout
     from dataclasses import replace
 
     again = replace(found, groups=[], fit=None)
-    return conclude(again, data, base, base_ho, [g.group for g in found.groups], reference, weights, n_blocks,
+    return conclude(again, data, base, base_ho, list(found.chosen), reference, weights, n_blocks,
                     P_SIGNIFICANT / max(found.tried, 1))
 
 

@@ -28,13 +28,23 @@ from .result import ABSORBED, CANDIDATE_ITERATIONS, GAIN_SIGMAS, MIN_GAIN, P_SIG
 
 @dataclass
 class Heldout:
+    """The held-out residual of a fit, per time block: weighted and unweighted sums of squares, value counts, and
+    per block and channel the unweighted sum of squares (K, C)."""
+
     sse_w: np.ndarray
     sse: np.ndarray
     n: np.ndarray
+    sse_channels: np.ndarray
 
     @property
     def rms_nT(self) -> float:
         return float(np.sqrt(self.sse.sum() / self.n.sum()))
+
+    @property
+    def channel_rms_nT(self) -> np.ndarray:
+        """(C,) each channel's held-out RMS, nT."""
+        rows = self.n.sum() / max(self.sse_channels.shape[1], 1)
+        return np.sqrt(self.sse_channels.sum(0) / max(rows, 1.0))
 
     @property
     def mse_w(self) -> np.ndarray:
@@ -180,9 +190,17 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
     c = Candidate(effect=name, rms_nT=fit.rms_nT, heldout_rms_nT=ho.rms_nT, gain=cmp["gain"],
                   log_ratio=cmp["lr"], log_ratio_se=cmp["lr_se"], p_value=cmp["p"], bic_delta=cmp["bic"],
                   n_params=int(cmp["dp"]), parameters=[p for p in fit.parameters() if p.term == name],
-                  block_log_ratio=cmp["lr_b"], fit=fit)
+                  block_log_ratio=cmp["lr_b"], fit=fit, heldout_channels_nT=ho.channel_rms_nT)
     c.significant = bool(c.p_value < P_SIGNIFICANT and c.gain >= MIN_GAIN and c.log_ratio > GAIN_SIGMAS * c.log_ratio_se
                          and c.n_params > 0)
+    floor = float(np.sqrt(np.mean((1.0 / np.asarray(weights, float)) ** 2)))
+    if c.significant and not cur.rms_nT > floor:   # nothing left to explain: a held-out gain there is no evidence
+        c.significant = False
+        c.refusal = "the model is at its noise floor"
+        c.reason = (f"the model's residual ({cur.rms_nT:.3g} nT) is not above its noise floor ({floor:.3g} nT): "
+                    f"nothing is left for an effect to explain, and a held-out error "
+                    f"({cur_ho.rms_nT:.3g} nT{' below the in-sample one' if cur_ho.rms_nT < cur.rms_nT else ''}) "
+                    f"is no evidence for one")
     wald = _beyond_errors(c.parameters) if c.significant else None
     if wald:                       # the gain is the noise's slow wander: its parameters are within their errors
         c.significant = False
@@ -239,7 +257,7 @@ def crossfit_heldout(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldo
     from service.numerics.effects.hysteresis import BARRIER
 
     pr0 = cur.problem
-    sse_w, sse, cnt = cur_ho.sse_w.copy(), cur_ho.sse.copy(), cur_ho.n.copy()
+    sse_w, sse, cnt, per_channel = cur_ho.sse_w.copy(), cur_ho.sse.copy(), cur_ho.n.copy(), cur_ho.sse_channels.copy()
     for b, sl in enumerate(pr0.blocks):
         rows = pr0.rows[sl]
         masked = [r.copy() for r in hints[0]]
@@ -257,8 +275,8 @@ def crossfit_heldout(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldo
         except (FluxcalError, np.linalg.LinAlgError, ValueError):
             continue
         h = heldout(f)
-        sse_w[b], sse[b], cnt[b] = h.sse_w[b], h.sse[b], h.n[b]
-    return Heldout(sse_w, sse, cnt)
+        sse_w[b], sse[b], cnt[b], per_channel[b] = h.sse_w[b], h.sse[b], h.n[b], h.sse_channels[b]
+    return Heldout(sse_w, sse, cnt, per_channel)
 
 
 def _warm_start(pr: Problem, cur: FitResult) -> tuple[Any, Warm | None, Any, Any]:

@@ -42,10 +42,16 @@ from typing import Any
 import numpy as np
 
 from service.numerics.effects.base import AXES, EffectData, EffectTerm, ProbeView, axis_columns
-from service.numerics.effects.column import usable_columns
+from service.numerics.effects.column import column_values, usable_columns
 from service.numerics.effects.thermal import low_pass
 
+from .harmonics import column_lines, harmonic_lines, harmonic_source
+from .shapes import SHAPE_ORDERS, shape_recipes
 from .spectra import excess_spectra, spectral_lines
+
+#: the groups that follow a smooth function of an observable (shapes.py): a probe's, in its raw frame, and one common
+#: to all probes of an array, in the aligned frame
+SHAPE_KINDS = ("shape", "common shape")
 
 #: low-pass time constants: from a quarter of the record down by factors of 3, at most this many
 N_TAUS = 4
@@ -113,8 +119,27 @@ class Group:
 
     @property
     def size(self) -> int:
+        if self.kind in SHAPE_KINDS:
+            return 3 * self.feature.values.shape[1]
         return {"offset": 3, "scale": 6, "matrix": 9, "wave": 6, "loop": 3, "common offset": 3,
                 "common wave": 6}[self.kind]
+
+    @property
+    def holds(self) -> tuple[str, int | None, str] | None:
+        """(kind, probe, feature name) of the next smaller group this one holds, or None: a scale group its offset (the
+        offset and scale factors following x hold the offset alone), a spline of x the smaller spline of x, the
+        smallest spline of x the offset that follows x itself (a cubic spline reproduces x)."""
+        r = self.feature.recipe
+        if self.kind == "scale":
+            return "offset", self.probe, self.feature.name
+        if self.kind in SHAPE_KINDS and r.get("basis") == "spline":
+            smaller = [m for m in SHAPE_ORDERS if m < r["functions"]]
+            if smaller:
+                return self.kind, self.probe, self.feature.name.replace(f"({r['functions']})", f"({smaller[-1]})")
+            return ("common offset" if self.common else "offset"), self.probe, r["of"]
+        if self.kind in SHAPE_KINDS and r["harmonics"] > 1:
+            return self.kind, self.probe, self.feature.name.replace(f"({r['harmonics']})", f"({r['harmonics'] - 1})")
+        return None
 
     @property
     def slow(self) -> bool:
@@ -130,6 +155,8 @@ class Group:
             return [f"{p}.{f.name} [{a}{b}] ppm{f.per}" for a in AXES for b in AXES]
         if self.kind in ("wave", "common wave"):
             return [f"{p}.{f.name} {part} {a} nT" for part in ("cos", "sin") for a in AXES]
+        if self.kind in SHAPE_KINDS:
+            return [f"{p}.{f.name} b{j + 1} {a} nT" for a in AXES for j in range(f.values.shape[1])]
         return [f"{p}.{f.name} {a} nT" for a in AXES]                       # loop
 
     def columns(self, data: EffectData, offset_nT: np.ndarray, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
@@ -141,6 +168,12 @@ class Group:
             return axis_columns(np.repeat(v[:, None], 3, axis=1))
         if self.kind == "loop":
             return axis_columns(v)
+        if self.kind in SHAPE_KINDS:                                        # column a m + j: function j on axis a
+            m = v.shape[1]
+            out = np.zeros((n, 3, 3 * m))
+            for a in range(3):
+                out[:, a, a * m:(a + 1) * m] = v
+            return out
         if self.kind in ("wave", "common wave"):
             out = np.zeros((n, 3, 6))
             idx = np.arange(3)
@@ -241,7 +274,7 @@ def temperature_features(data: EffectData) -> list[tuple[int, Feature]]:
         borrowed = None if k in own else ", ".join(data.probe_names[j] for j in own)
         fname = f"{name}_temp" if borrowed is None else f"{name}_temp (the mean of {borrowed}'s)"
         out.append((k, Feature(fname, f"{name}_temp", "degC", "value",
-                               {"source": "temperature", "probe": k, "centre": centre}, values,
+                               {"source": "temperature", "probe": k, "probe_name": name, "centre": centre}, values,
                                borrowed=borrowed)))
     return out
 
@@ -267,6 +300,12 @@ def relagged(data: EffectData, f: Feature, tau_s: float) -> Feature:
     values, centre = _centred(low_pass(data.t_s, raw, tau_s))
     return Feature(f"{base} low-passed {tau_s:g} s", f.observable, f.unit, "low-passed",
                    {**r, "low_pass_s": tau_s, "centre": centre}, values, per_sample=False, borrowed=f.borrowed)
+
+
+def shape_features(f: Feature, raw: np.ndarray) -> list[Feature]:
+    """The shape features (shapes.py) of a value feature f whose values before centring are `raw`."""
+    return [Feature(name, f.observable, "", how, {**recipe, "of": f.name}, values, per_sample=f.per_sample,
+                    borrowed=f.borrowed) for name, how, recipe, values in shape_recipes(f.name, raw, f.recipe)]
 
 
 def _phase_scales(name: str) -> tuple[list[float], bool]:
@@ -322,7 +361,11 @@ def wave_features(data: EffectData, fit: Any, noise: np.ndarray,
     """The features the residual itself chooses: the phases of the columns whose band holds some of its excess
     power (phase_features) and its spectral lines. exclude: rows of the fit not looked at (a held-out block)."""
     spectra = excess_spectra(fit, noise, exclude)
-    lines = line_features(data, spectral_lines(fit, noise, exclude))
+    sources = column_lines(data)
+    # a line a logged column's own motion makes (a harmonic or a sum of its lines) is that column's shape, which the
+    # library holds: never a wave of its own (harmonics.py)
+    lines = line_features(data, [hz for hz in spectral_lines(fit, noise, exclude)
+                                 if harmonic_source(hz, sources, data.duration_s) is None])
     return phase_features(data, spectra, usable_columns(data)) + lines
 
 
@@ -344,6 +387,8 @@ class Library:
     taus_s: list[float]
     lines_hz: list[float]
     borrowed: dict[str, str]          # probe -> whose temperature it takes
+    #: the residual's lines a logged column's motion makes (line Hz -> (column, how)): its shapes take them
+    harmonics: dict[float, tuple[str, str]] = field(default_factory=dict)
 
     @property
     def n_params(self) -> int:
@@ -357,17 +402,23 @@ def build_library(data: EffectData, fit: Any, noise: np.ndarray) -> Library:
     per_probe: dict[int, list[Feature]] = {k: [] for k in range(data.n_probes)}
     shared: list[Feature] = []          # features of the platform: every probe may follow them
     borrowed = {}
+    shapes: dict[int, list[Feature]] = {k: [] for k in range(data.n_probes)}     # smooth functions (shapes.py)
     for k, f in temperature_features(data):
         raw = f.values + f.recipe["centre"]
-        per_probe[k] += [f] + _low_passed(data, f, raw, taus)
+        lagged = _low_passed(data, f, raw, taus)
+        per_probe[k] += [f] + lagged
+        shapes[k] += shape_features(f, raw) + [s for g in lagged for s in shape_features(g, g.values + g.recipe["centre"])]
         if f.borrowed:
             borrowed[names[k]] = f.borrowed
     cols = usable_columns(data)
-    column_features = []
+    column_features, column_shapes, lag_shapes = [], [], []
     for c, v in cols.items():
-        raw = v + float(np.nanmean(data.extras[c]))
+        raw = column_values(data, c)
         f = Feature(c, c, c, "value", {"source": "column", "column": c, "centre": float(np.mean(raw))}, v)
-        column_features += [f] + _low_passed(data, f, raw, taus)
+        lagged = _low_passed(data, f, raw, taus)
+        column_features += [f] + lagged
+        column_shapes += shape_features(f, raw)
+        lag_shapes += [s for g in lagged for s in shape_features(g, g.values + g.recipe["centre"])]
     shared += column_features
     t, tc = _centred((data.t_s - data.t_s[0]) / 3600.0)
     time_f = Feature("time", "time", "h", "value", {"source": "time", "centre": tc}, t)
@@ -380,6 +431,7 @@ def build_library(data: EffectData, fit: Any, noise: np.ndarray) -> Library:
         wv, wc = _centred(w)
         extra.append(Feature("angular rate", "angular rate", "deg/s", "value",
                              {"source": "angular rate", "centre": wc}, wv, per_sample=False))
+    extra_shapes = [g for f in extra for g in shape_features(f, f.values + f.recipe["centre"])]
     waves = wave_features(data, fit, noise)
 
     groups: list[Group] = []
@@ -387,6 +439,7 @@ def build_library(data: EffectData, fit: Any, noise: np.ndarray) -> Library:
         pname = names[k]
         for f in per_probe[k] + column_features + extra:
             groups += [Group(kind, k, pname, f) for kind in ("offset", "scale", "matrix")]
+        groups += [Group("shape", k, pname, f) for f in shapes[k] + column_shapes + lag_shapes + extra_shapes]
         groups.append(Group("matrix", k, pname, time_f))
         groups += [Group("wave", k, pname, f) for f in waves]
         rate = data.rate(k)
@@ -396,8 +449,10 @@ def build_library(data: EffectData, fit: Any, noise: np.ndarray) -> Library:
                 groups.append(Group("loop", k, pname, loop_feature(data, k, loop_label(s), scale)))
     if data.n_probes > 1:
         groups += [Group("common offset", None, "common", f) for f in shared]
+        groups += [Group("common shape", None, "common", f) for f in column_shapes]
         groups += [Group("common wave", None, "common", f) for f in waves]
-    return Library(groups, taus, [f.recipe["hz"] for f in waves if f.how == "line"], borrowed)
+    return Library(groups, taus, [f.recipe["hz"] for f in waves if f.how == "line"], borrowed,
+                   harmonic_lines(data, fit, noise))
 
 
 # --- a group as a term the engine fits ------------------------------------------------------------------

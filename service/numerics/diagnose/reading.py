@@ -16,7 +16,8 @@ from service.numerics.engine import FitResult, Parameter
 from service.numerics.jsonsafe import finite_or_none as _num
 from service.numerics.jsonsafe import json_safe as _plain
 
-from .library import Group
+from .library import SHAPE_KINDS, Group
+from .shape_reading import law_parameters, read_law, read_shape
 from .result import P_SIGNIFICANT
 
 
@@ -151,24 +152,7 @@ def read_group(g: Group, term: str, params: list[Parameter], fit: FitResult) -> 
                        f"({', '.join(f'{x:.3g}' for x in off['values'])}) +- "
                        f"({', '.join(f'{x:.2g}' for x in off['stderr'])}) nT{f.per} on the probe's x, y, z axes")
     elif g.kind == "matrix":
-        parts.update(matrix_parts(values, cov, fit.state.linear.matrix[g.probe]))
-        named = {p: parts[p] for p in MATRIX_PARTS}
-        big = max(float(np.max(np.abs(named[p]["values"]))) for p in MATRIX_PARTS)
-        sig = [p for p in sorted(MATRIX_PARTS, key=lambda p: -named[p]["wald"]) if named[p]["significant"]
-               and float(np.max(np.abs(named[p]["values"]))) >= PART_SHARE * big] or \
-            [max(named, key=lambda p: named[p]["wald"])]
-        bits = []
-        for p in sig:
-            v, se = np.asarray(named[p]["values"]), np.asarray(named[p]["stderr"])
-            u, frame = ("µrad", "platform") if p == "rotation" else ("ppm", "probe")
-            about = {"rotation": "about", "scale": "of", "non-orthogonality": "between"}[p]
-            labels = ("xy", "xz", "yz") if p == "non-orthogonality" else AXES
-            i = int(np.argmax(np.abs(v)))
-            bits.append(f"{p} {v[i]:.3g} +- {se[i]:.2g} {u}{f.per} {about} the {frame}'s {labels[i]} "
-                        f"({', '.join(f'{x:.3g}' for x in v)} {u}{f.per} on {', '.join(labels)})")
-        what = ("alignment to the others" if sig[0] == "rotation" and fit.problem.P > 1 else
-                "scale factors" if sig == ["scale"] else "matrix")
-        reading = f"{g.probe_name}'s {what} follow{'s' if what != 'scale factors' else ''} {src}: " + "; ".join(bits)
+        reading = _read_matrix(g, values, cov, fit, src, parts)
     elif g.kind in ("wave", "common wave"):
         c, s = values[:3], values[3:]
         if not g.common:
@@ -179,11 +163,14 @@ def read_group(g: Group, term: str, params: list[Parameter], fit: FitResult) -> 
         se = np.sqrt(np.diag(cov))
         parts["stderr_nT"] = se.tolist()
         at = (f"at the phase of {f.observable} ({f.recipe.get('unit')}, its time integral)" if f.how == "phase"
-              else f"periodic at {f.recipe['hz']:.4g} Hz (a line of the residual; no logged column follows it)")
+              else f"periodic at {f.recipe['hz']:.4g} Hz (a line of the residual that no logged column's motion makes)")
         head = f"a field {at} on {who}" if not g.common else f"a field common to all probes {at}"
         reading = (f"{head}: amplitudes ({', '.join(f'{x:.3g}' for x in amp)}) nT on the platform's x, y, z axes "
                    f"(+- {float(np.median(se)):.2g} nT each cosine and sine part)"
                    + (" (it shows in the scalar channels and cancels in the differences)" if g.common else ""))
+    elif g.kind in SHAPE_KINDS:
+        reading, more = read_shape(g, values, cov, fit, src)
+        parts.update(more)
     else:                                                              # loop
         se = np.sqrt(np.diag(cov))
         parts["step_nT"] = values.tolist()
@@ -198,6 +185,31 @@ def read_group(g: Group, term: str, params: list[Parameter], fit: FitResult) -> 
                    f"({', '.join(f'{s:.2g}' for s in se)}) nT on the probe's x, y, z axes as the field along it rises "
                    f"or falls")
     return FoundGroup(g, term, params, reading, parts)
+
+
+def _read_matrix(g: Group, values: np.ndarray, cov: np.ndarray, fit: FitResult, src: str,
+                 parts: dict[str, Any]) -> str:
+    """A matrix group's reading: its significant parts (matrix_parts), the largest first; `parts` filled in."""
+    f = g.feature
+    parts.update(matrix_parts(values, cov, fit.state.linear.matrix[g.probe]))
+    named = {p: parts[p] for p in MATRIX_PARTS}
+    big = max(float(np.max(np.abs(named[p]["values"]))) for p in MATRIX_PARTS)
+    sig = [p for p in sorted(MATRIX_PARTS, key=lambda p: -named[p]["wald"]) if named[p]["significant"]
+           and float(np.max(np.abs(named[p]["values"]))) >= PART_SHARE * big] or \
+        [max(named, key=lambda p: named[p]["wald"])]
+    bits = []
+    for p in sig:
+        v, se = np.asarray(named[p]["values"]), np.asarray(named[p]["stderr"])
+        u, frame = ("µrad", "platform") if p == "rotation" else ("ppm", "probe")
+        about = {"rotation": "about", "scale": "of", "non-orthogonality": "between"}[p]
+        labels = ("xy", "xz", "yz") if p == "non-orthogonality" else AXES
+        i = int(np.argmax(np.abs(v)))
+        bits.append(f"{p} {v[i]:.3g} +- {se[i]:.2g} {u}{f.per} {about} the {frame}'s {labels[i]} "
+                    f"({', '.join(f'{x:.3g}' for x in v)} {u}{f.per} on {', '.join(labels)})")
+    what = ("alignment to the others" if sig[0] == "rotation" and fit.problem.P > 1 else
+            "scale factors" if sig == ["scale"] else "matrix")
+    reading = f"{g.probe_name}'s {what} follow{'s' if what != 'scale factors' else ''} {src}: " + "; ".join(bits)
+    return reading
 
 
 def _source(f: Any) -> str:
@@ -223,3 +235,27 @@ def window_span_s(t_s: np.ndarray, n: int) -> float:
     t = np.asarray(t_s, float)
     n = int(min(max(n, 2), t.size))
     return float(np.median(t[n - 1:] - t[:t.size - n + 1]))
+
+
+def read_law_group(term: Any, fit: FitResult) -> FoundGroup:
+    """A law term (laws.LawTerm) as a found group of kind "law": its reading, and in its feature's recipe everything
+    the written effect needs to make it again (the law, its reference, the probes, the fitted values)."""
+    from .library import Feature
+
+    data = fit.problem.data
+    values, _, _ = law_parameters(term, fit)
+    r = term.recipe
+    name = r.get("of", r.get("column", r["source"]))                 # "heater_A low-passed 37 s", "s2_temp"
+    obs = {"temperature": f"{r.get('probe_name', data.probe_names[r.get('probe', 0)])}_temp", "column": r.get("column"),
+           "ref_total": "ref_total"}.get(r["source"], r["source"])
+    names = [data.probe_names[k] for k in term.probes]
+    recipe = {**r, "law": term.law.name if term.law else None, "reference": term.ctx, "probes": names,
+              "values": [float(v) for v in values], "unit": term.unit, "fixed": term.fixed}
+    feature = Feature(name, obs, term.unit, "law", recipe, np.zeros(data.n_samples), per_sample=term.per_sample)
+    group = Group("law", term.probes[0] if len(term.probes) == 1 else None, ", ".join(names), feature)
+    _, cov = covariance(fit, term.name)
+    how = "low-passed" if "low_pass_s" in r else "value"              # a law of the observable through its lag
+    reading, parts = read_law(term, fit, _source(Feature(name, obs, term.unit, how, r, np.zeros(1))), cov)
+    params = [p for p in fit.parameters() if p.term == term.name]
+    return FoundGroup(group, term.name, params, reading, parts)
+

@@ -65,6 +65,8 @@ class Candidate:
     parameters: list[Parameter] = field(default_factory=list)
     block_log_ratio: np.ndarray | None = field(default=None, repr=False)
     fit: FitResult | None = field(default=None, repr=False)
+    #: (C,) each channel's held-out RMS with the effect added, nT (None where it was not fitted)
+    heldout_channels_nT: np.ndarray | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"effect": self.effect, "rms_nT": _num(self.rms_nT), "significant": self.significant,

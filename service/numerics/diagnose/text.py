@@ -35,12 +35,18 @@ def verdict_word(c: Candidate, weak: dict | None = None) -> str:
     return f"no: p >= {P_SIGNIFICANT:g}"
 
 
+def reference_words(reference: str) -> str:
+    """The total field a diagnosis compared with, in words: 'estimated from the data', 'from the ref_total column'."""
+    return {"estimated": "estimated from the data", "ref_total": "from the ref_total column",
+            "config": "from the configuration"}.get(reference, f"from {reference}")
+
+
 def summary_text(d: Diagnosis, data_name: str = "") -> str:
     """A readable summary of a Diagnosis for the terminal."""
     lines = []
     head = f"fluxcal diagnose {data_name}".rstrip()
     lines.append(head)
-    lines.append(f"  model: {d.model}   (linear part {d.linear}; total field from {d.reference})")
+    lines.append(f"  model: {d.model}   (linear part {d.linear}; total field {reference_words(d.reference)})")
     lines.append(f"  {d.n_samples} samples over {d.duration_s:.1f} s")
     ratio = d.rms_nT / d.noise_nT if d.noise_nT > 0 else float("inf")
     lines.append(f"  residual RMS {d.rms_nT:.3f} nT against a noise floor of {d.noise_nT:.3f} nT "
@@ -128,11 +134,18 @@ def discovery_lines(d: Diagnosis) -> list[str]:
         return []
     out = ["", f"  beyond the catalogue (discovery: {f.tried} groups of {f.tried_params} parameters built from what "
                f"the data carry, chosen inside training blocks):"]
+    for hz, (col, how) in getattr(f, "harmonics", {}).items():
+        out.append(f"    the residual's line at {hz:.4g} Hz is {col}'s motion ({how}): {col}'s shapes take it, never a "
+                   f"wave of its own")
     if not f.claimed:
         out.append(f"    nothing claimed: {f.reason}")
         return out
     for g in f.groups:
         out.append(f"    {g.reading}")
+    for form in getattr(f, "forms", []):
+        tried = "; ".join(f"{t['form']} {t['parameters']}, {t['heldout_rms_nT']:.4g}" for t in form["forms"])
+        out.append(f"    the shape of {form['observable']} kept as {form['chosen']}, the smallest that no other form "
+                   f"predicts better on the held-out blocks (form, parameters, held-out nT: {tried})")
     out.append(f"    with {'it' if len(f.groups) == 1 else 'them'}: residual {f.rms_nT:.3f} nT, held-out "
                f"{f.heldout_rms_nT:.3f} nT (from {f.base_heldout_rms_nT:.3f}) against a {f.floor_nT:.3f} nT floor; "
                f"the search itself, every choice made without the block it predicts, takes {100 * f.cv_gain:.1f} % "

@@ -1,8 +1,11 @@
-"""The groups discovery found, written as an effect module of the user's own (docs/effects.md): the Python source
-of one EffectTerm class per frame (a probe's groups in its raw frame; groups common to all probes in the aligned
-frame, as shared parameters), with named parameters in physical units, `frame`, and `per_sample` where each sample's
-correction needs that sample alone. `--effects FILE.py:Discovered` takes it back unchanged, and fitted on the same
-data it gives the discovered error (the same regressors, computed the same way: tests/numerics/test_discover.py).
+"""The groups and laws discovery found, written as an effect module of the user's own (docs/effects.md): the Python
+source of one EffectTerm class that holds everything the discovered figure rests on: a probe's groups in its raw
+frame (per-probe parameters), groups common to all probes and laws in the aligned frame (shared parameters, a law's
+acting non-linearly: each probe's field in nT, then the law's own parameters in the observable's unit), and in
+`beside` the catalogue's effects it was found beside, which `--effects FILE.py:Discovered` brings with it. Named
+parameters in physical units, `frame`, and `per_sample` where each sample's correction needs that sample alone. Fitted
+on the same data it gives the discovered error (the same regressors and laws, computed the same way:
+tests/numerics/test_discover.py).
 
 Only text: the caller writes it where the user asked. Numerics only.
 """
@@ -13,85 +16,9 @@ import keyword
 import re
 from typing import Any, Sequence
 
+from .effect_code import HEADER, LAW_PARTS, SHARED_VIEW
+from .laws import LAW_CODE
 from .library import Group
-
-HEADER = '''"""{doc}"""
-
-import numpy as np
-
-from service.numerics.effects import EffectTerm
-{imports}
-
-def offset_columns(x):
-    """(N, 3, 3): x on each axis (nT per unit of x)."""
-    out = np.zeros((x.size, 3, 3))
-    idx = np.arange(3)
-    out[:, idx, idx] = x[:, None]
-    return out
-
-
-def matrix_columns(x, u):
-    """(N, 3, 9): 1e-6 x u_j on axis i (ppm per unit of x): the matrix follows x."""
-    out = np.zeros((x.size, 3, 9))
-    for i in range(3):
-        out[:, i, 3 * i:3 * i + 3] = 1e-6 * x[:, None] * u
-    return out
-
-
-def scale_columns(x, u):
-    """(N, 3, 6): x on each axis (nT per unit of x), then 1e-6 x u_i on axis i (ppm per unit of x): the offset and
-    the scale factors follow x."""
-    out = np.zeros((x.size, 3, 6))
-    idx = np.arange(3)
-    out[:, idx, idx] = x[:, None]
-    out[:, idx, 3 + idx] = 1e-6 * x[:, None] * u
-    return out
-
-
-def wave_columns(phase):
-    """(N, 3, 6): cos and sin of a phase on each axis (nT)."""
-    out = np.zeros((phase.size, 3, 6))
-    idx = np.arange(3)
-    out[:, idx, idx] = np.cos(phase)[:, None]
-    out[:, idx, 3 + idx] = np.sin(phase)[:, None]
-    return out
-
-
-def loop_columns(values):
-    """(N, 3, 3): a per-axis value on its own axis (nT)."""
-    out = np.zeros((values.shape[0], 3, 3))
-    idx = np.arange(3)
-    out[:, idx, idx] = values
-    return out
-
-
-def centred(view, key, x):
-    """x less its mean over the data the effect was fitted to (kept with the calibration: a `ref:` key)."""
-    key = "ref:" + key
-    if key not in view.cache:
-        view.cache[key] = float(np.mean(x))
-    return x - view.cache[key]
-
-
-def column(data, name):
-    """A logged column, gaps (NaN) filled by interpolation in time."""
-    x = np.asarray(data.extras[name], dtype=np.float64)
-    ok = np.isfinite(x)
-    return x if ok.all() else np.interp(data.t_s, data.t_s[ok], x[ok])
-
-
-def phase_of(t_s, x, cycles_per_unit):
-    """2 pi cycles_per_unit times the time integral of x from the first sample (trapezoids), rad."""
-    inc = 0.5 * (x[1:] + x[:-1]) * np.diff(t_s)
-    return 2 * np.pi * cycles_per_unit * np.concatenate([[0.0], np.cumsum(inc)])
-
-
-def angular_rate_deg_s(data):
-    """|w| of probe 1's field direction, deg/s."""
-    s, r = data.smooth(0), data.rate(0)
-    return np.degrees(np.linalg.norm(np.cross(s, r), axis=1) / np.sum(s * s, axis=1))
-'''
-
 
 def _ident(text: str) -> str:
     s = re.sub(r"\W+", "_", text).strip("_").lower() or "x"
@@ -100,26 +27,49 @@ def _ident(text: str) -> str:
     return s
 
 
+def _observable_code(r: dict[str, Any], data: str) -> str:
+    """The expression of the observable a recipe follows, its values before any centring, in terms of `data`."""
+    src = r["source"]
+    if src == "temperature":
+        probe = r.get("probe_name")
+        index = f"{data}.probe_names.index({probe!r})" if probe else repr(int(r["probe"]))
+        return f"{data}.temperature({index})"
+    if src == "column" or (src == "phase" and "column" in r):
+        return f"column({data}, {r['column']!r})"
+    if src == "time":
+        return f"{data}.t_s / 3600.0"
+    if src == "ref_total":
+        return f"{data}.ref_total_nT"
+    if src == "angular rate":
+        return f"angular_rate_deg_s({data})"
+    raise ValueError(f"recipe: {r!r} is not one the writer knows")
+
+
+def _basis_code(r: dict[str, Any], raw: str) -> str:
+    """A shape's basis (shapes.py) as the written module makes it."""
+    if r["basis"] == "spline":
+        return f"spline_basis({raw}, {[float(k) for k in r['knots']]!r}, {int(r['degree'])}, {list(r['centre'])!r})"
+    return (f"turn_basis({raw}, {float(r['radians_per_unit'])!r}, {int(r['harmonics'])}, "
+            f"{list(r['centre'])!r})")
+
+
 def _feature_code(g: Group) -> tuple[str, list[str]]:
     """(the expression of the group's feature in terms of `view`, the lines before it)."""
     f, r = g.feature, g.feature.recipe
     key = f"discovered:{f.name}"
     src = r["source"]
     lines: list[str] = []
-    if src == "temperature":
-        probe = g.feature.observable.rsplit("_temp", 1)[0]
-        raw = f"view.data.temperature(view.data.probe_names.index({probe!r}))"
-    elif src == "column" or (src == "phase" and "column" in r):
-        raw = f"column(view.data, {r['column']!r})"
-    elif src == "time":
-        raw = "view.data.t_s / 3600.0"
-    elif src == "ref_total":
-        raw = "view.data.ref_total_nT"
-    elif src == "angular rate":
-        raw = "angular_rate_deg_s(view.data)"
-    elif src == "line":
+    if src == "temperature" and not r.get("probe_name"):
+        r = {**r, "probe_name": f.observable.rsplit("_temp", 1)[0]}
+    if "basis" in r:
+        raw = _observable_code(r, "view.data")
+        if "low_pass_s" in r:
+            lines.append(f"x = low_pass(view.data.t_s, {raw}, {r['low_pass_s']!r})       # a first-order lag, s")
+            raw = "x"
+        return _basis_code(r, raw), lines
+    if src == "line":
         return f"2 * np.pi * {r['hz']!r} * view.data.t_s", lines
-    elif src == "sign of rate":
+    if src == "sign of rate":
         k = g.probe
         lines.append(f"scale = np.array({[float(x) for x in r['scale']]!r})       # nT/s: the sign's width per axis")
         window = r.get("window_samples")
@@ -136,8 +86,7 @@ def _feature_code(g: Group) -> tuple[str, list[str]]:
             over = "" if window is None else ", window"
             lines.append(f"    sign = np.tanh(view.data.derivative(less{over}) / scale)")
         return "sign", lines
-    else:
-        raise ValueError(f"recipe: {r!r} is not one the writer knows")
+    raw = _observable_code(r, "view.data")
     if src == "phase":
         return f"phase_of(view.data.t_s, {raw}, {r['cycles_per_unit']!r})       # {r.get('unit', '')}", lines
     if "low_pass_s" in r:
@@ -146,26 +95,29 @@ def _feature_code(g: Group) -> tuple[str, list[str]]:
     return f"centred(view, {key!r}, {raw})", lines
 
 
+BUILDERS = {"offset": "offset_columns({x})", "common offset": "offset_columns({x})",
+            "scale": "scale_columns({x}, view.centred_nT)", "matrix": "matrix_columns({x}, view.centred_nT)",
+            "wave": "wave_columns({x})", "common wave": "wave_columns({x})", "loop": "loop_columns({x})",
+            "shape": "shape_columns({x})", "common shape": "shape_columns({x})"}
+
+
 def _group_block(g: Group, indent: str) -> list[str]:
     expr, pre = _feature_code(g)
     borrowed = f" (borrowed: {g.feature.borrowed})" if g.feature.borrowed else ""
     out = [f"{indent}# {g.kind}: {g.feature.name}{borrowed}"]
     out += [indent + ln for ln in pre]
-    builder = {"offset": "offset_columns({x})", "common offset": "offset_columns({x})",
-               "scale": "scale_columns({x}, view.centred_nT)",
-               "matrix": "matrix_columns({x}, view.centred_nT)", "wave": "wave_columns({x})",
-               "common wave": "wave_columns({x})", "loop": "loop_columns({x})"}[g.kind]
-    out.append(f"{indent}parts.append({builder.format(x=expr)})")
+    out.append(f"{indent}parts.append({BUILDERS[g.kind].format(x=expr)})")
     return out
 
 
 def _why_unavailable(groups: Sequence[Group]) -> list[str]:
-    """The written class's why_unavailable: the columns, temperatures or reference its groups follow, said missing
-    where other data lack them (a KeyError deep in the fit before)."""
+    """The written class's why_unavailable: the columns, temperatures or reference its groups and laws follow, said
+    missing where other data lack them (a KeyError deep in the fit before)."""
     columns = sorted({g.feature.recipe["column"] for g in groups if "column" in g.feature.recipe})
     temperature = any(g.feature.recipe["source"] == "temperature" for g in groups)
     reference = any(g.feature.recipe["source"] == "ref_total" for g in groups)
-    if not (columns or temperature or reference):
+    probes = sorted({p for g in groups if g.kind == "law" for p in g.feature.recipe["probes"]})
+    if not (columns or temperature or reference or probes):
         return []
     out = ["    def why_unavailable(self, data):",
            "        \"\"\"What these data lack that the groups follow (None: nothing).\"\"\""]
@@ -180,111 +132,158 @@ def _why_unavailable(groups: Sequence[Group]) -> list[str]:
     if reference:
         out += ["        if data.ref_total_nT is None:",
                 "            return \"the data carry no reference total field, ref_total (this effect follows it)\""]
+    if probes:
+        out += [f"        gone = [p for p in {probes!r} if p not in data.probe_names]",
+                "        if gone:",
+                "            return f\"the data carry no probe {', '.join(gone)} (this effect's law acts on it)\""]
     return out + ["        return None", ""]
 
 
-def _names_code(g: Group) -> str:
-    return f"{g.param_names()!r}"
+def _law_code(g: Group, i: int) -> list[str]:
+    """A law's function (laws.LAW_CODE, or a free spline), named law_<i>, and what it follows, at module level."""
+    r = g.feature.recipe
+    if r["law"] is not None:
+        code = LAW_CODE[r["law"]].replace("def law(", f"def law_{i}(", 1)
+    else:
+        free = "[j for j in range(phi.shape[1]) if j != fixed]"
+        code = (f"def law_{i}(x, p, ref, span):\n"
+                f"    \"\"\"One smooth function of x that none of the laws takes: B-splines of x, the "
+                f"{int(r['fixed']) + 1}th held at one.\"\"\"\n"
+                f"    phi = {_basis_code(r, 'x')}\n"
+                f"    fixed = {int(r['fixed'])}\n"
+                f"    free = {free}\n"
+                f"    return phi[:, fixed] + phi[:, free] @ p, phi[:, free]\n")
+    ctx = r["reference"]
+    return (["", ""] + code.rstrip("\n").split("\n") + ["", "",
+            f"def x_law_{i}(data):", f"    return {_lagged(r, _observable_code(r, 'data'))}", "", "",
+            f"LAW_{i} = {{\"probes\": {list(r['probes'])!r}, \"ref\": {float(ctx['ref'])!r}, "
+            f"\"span\": {max(float(ctx['hi']) - float(ctx['lo']), 1e-12)!r}, \"start\": {list(r['values'])!r}}}"])
 
 
-def _class(groups: Sequence[Group], class_name: str, name: str, readings: dict[int, str]) -> list[str]:
-    common = groups[0].common
-    per_sample = all(g.per_sample for g in groups)
-    probes = sorted({g.probe_name for g in groups})
-    physical = "; ".join(readings.get(id(g), g.key) for g in groups)
-    doc = ("Groups common to all probes, in the aligned frame (shared parameters)." if common else
-           f"Groups of {', '.join(probes)}, each in its probe's raw frame (subtracted before its matrix).")
-    if len(physical) > 300:                                     # at a word, said as cut
-        physical = physical[:300].rsplit(" ", 1)[0] + " ..."
-    lines = ["", "", f"class {class_name}(EffectTerm):", f'    """{doc}"""', "",
-             f"    name = {name!r}", f"    title = {class_name!r}       # what reports call it: rename it with the class",
-             f"    physical = {physical!r}",
-             f"    frame = {'corrected' if common else 'raw'!r}",
-             f"    per_sample = {per_sample!r}" + ("" if per_sample else
-                                                   "       # a lag, a phase or a rate needs the samples before"), ""]
-    lines += _why_unavailable(groups)
+def _lagged(r: dict[str, Any], raw: str) -> str:
+    """The observable through its first-order lag where the recipe has one."""
+    return f"low_pass(data.t_s, {raw}, {r['low_pass_s']!r})" if "low_pass_s" in r else raw
+
+
+def _param_names(g: Group, names: dict[int, list[str]]) -> list[str]:
+    return names.get(id(g)) or g.param_names()
+
+
+def _shared(common: list[Group], laws: list[Group], names: dict[int, list[str]]) -> list[str]:
+    """The shared parameters of the class: the common groups (linear), then each law's (non-linear)."""
+    n_common = sum(g.size for g in common)
+    sizes = [len(g.feature.recipe["values"]) for g in laws]
+    lines = ["    def shared_names(self, data):", "        names = []"]
+    lines += [f"        names += {_param_names(g, names)!r}" for g in common + laws]
+    lines += ["        return names", "",
+              "    def shared_start_values(self, data):",
+              f"        return np.array([0.0] * {n_common}" + "".join(f" + LAW_{i + 1}['start']"
+                                                                for i in range(len(laws))) + ", dtype=float)", ""]
     if common:
-        lines += ["    def shared_names(self, data):", "        names = []"]
-        lines += [f"        names += {_names_code(g)}" for g in groups]
-        lines += ["        return names", "",
-                  "    def shared_vcolumns(self, data, k):",
-                  "        key = \"discovered:common columns\"",
-                  "        if key not in data._cache:",
-                  "            view = _Data(data)",
-                  "            parts = []"]
-        for g in groups:
+        lines += ["    def _common(self, data):", "        key = \"discovered:common columns\"",
+                  "        if key not in data._cache:", "            view = _Data(data)", "            parts = []"]
+        for g in common:
             lines += _group_block(g, "            ")
-        lines += ["            data._cache[key] = np.concatenate(parts, axis=2)", "        return data._cache[key]"]
-        return lines
-    lines += ["    def param_names(self, view):", "        names = []"]
-    for p in probes:
-        lines.append(f"        if view.name == {p!r}:")
-        lines += [f"            names += {_names_code(g)}" for g in groups if g.probe_name == p]
-    lines += ["        return names", "", "    def columns(self, view):", "        parts = []"]
-    for p in probes:
-        lines.append(f"        if view.name == {p!r}:")
-        for g in groups:
-            if g.probe_name == p:
-                lines += _group_block(g, "            ")
-    lines += ["        if not parts:", "            return np.zeros((view.data.n_samples, 3, 0))",
-              "        return np.concatenate(parts, axis=2)"]
+        lines += ["            data._cache[key] = np.concatenate(parts, axis=2)", "        return data._cache[key]", ""]
+    lines += ["    def _shared_parts(self, data, k, theta):",
+              "        \"\"\"(the corrections, the Jacobians) of the shared parameters at probe k.\"\"\"",
+              "        parts = []"]
+    if common:
+        lines += ["        cols = self._common(data)",
+                  f"        parts.append((cols @ theta[:{n_common}], cols))"]
+    at = n_common
+    for i, size in enumerate(sizes):
+        lines += [f"        law = LAW_{i + 1}",
+                  f"        parts.append(law_parts(data, k, theta[{at}:{at + size}], law['probes'], law_{i + 1}, "
+                  f"x_law_{i + 1}(data), law['ref'], law['span']))"]
+        at += size
+    lines += ["        return parts", "",
+              "    def shared_vcorrection(self, data, k, theta):",
+              "        return sum(c for c, _ in self._shared_parts(data, k, theta))", "",
+              "    def shared_vjacobian(self, data, k, theta):",
+              "        return np.concatenate([j for _, j in self._shared_parts(data, k, theta)], axis=2)"]
     return lines
 
 
-SHARED_VIEW = '''
-
-class _Data:
-    """What the common groups look at: the data, and their references (the means of the data fitted), kept on
-    the data under a `ref:` key, which travels with a fitted calibration to other data as a probe's do."""
-
-    def __init__(self, data):
-        self.data = data
-        self.cache = data._cache.setdefault("ref:discovered", {})      # a `ref:` key: kept with the calibration
-'''
+def _class(groups: Sequence[Group], class_name: str, name: str, readings: dict[int, str],
+           names: dict[int, list[str]], beside: Sequence[str]) -> list[str]:
+    own = [g for g in groups if not g.common and g.kind != "law"]
+    common = [g for g in groups if g.common and g.kind != "law"]
+    laws = [g for g in groups if g.kind == "law"]
+    per_sample = all(g.per_sample for g in groups)
+    probes = sorted({g.probe_name for g in own})
+    physical = "; ".join(readings.get(id(g), g.key) for g in groups)
+    doc = "; ".join(
+        ([f"groups of {', '.join(probes)}, each in its probe's raw frame (subtracted before its matrix)"] if own else [])
+        + (["groups common to all probes, in the aligned frame (shared parameters)"] if common else [])
+        + ([f"{len(laws)} law{'s' if len(laws) > 1 else ''} in the aligned frame (shared parameters, each probe's "
+            f"field in nT then the law's own)"] if laws else []))
+    if len(physical) > 300:                                     # at a word, said as cut
+        physical = physical[:300].rsplit(" ", 1)[0] + " ..."
+    lines = ["", "", f"class {class_name}(EffectTerm):", f'    """{doc[0].upper() + doc[1:]}."""', "",
+             f"    name = {name!r}", f"    title = {class_name!r}       # what reports call it: rename it with the class",
+             f"    physical = {physical!r}",
+             "    frame = 'raw'",
+             f"    per_sample = {per_sample!r}" + ("" if per_sample else
+                                                   "       # a lag, a phase or a rate needs the samples before"),
+             f"    #: the catalogue's effects it was found beside: --effects FILE.py:{class_name} brings them too",
+             f"    beside = {tuple(beside)!r}", ""]
+    lines += _why_unavailable(groups)
+    if own:
+        lines += ["    def param_names(self, view):", "        names = []"]
+        for p in probes:
+            lines.append(f"        if view.name == {p!r}:")
+            lines += [f"            names += {_param_names(g, names)!r}" for g in own if g.probe_name == p]
+        lines += ["        return names", "", "    def columns(self, view):", "        parts = []"]
+        for p in probes:
+            lines.append(f"        if view.name == {p!r}:")
+            for g in own:
+                if g.probe_name == p:
+                    lines += _group_block(g, "            ")
+        lines += ["        if not parts:", "            return np.zeros((view.data.n_samples, 3, 0))",
+                  "        return np.concatenate(parts, axis=2)", ""]
+    if common or laws:
+        lines += _shared(common, laws, names)
+    return lines
 
 
 def effect_classes(groups: Sequence[Group], class_name: str = "Discovered") -> list[str]:
-    """The class names effect_source writes for these groups: one per frame present."""
-    out = []
-    if any(not g.common for g in groups):
-        out.append(class_name)
-    if any(g.common for g in groups):
-        out.append(class_name + "Common" if out else class_name)
-    return out
+    """The class names effect_source writes for these groups: one, which holds them all."""
+    return [class_name]
 
 
 def effect_source(found: Any, class_name: str = "Discovered", name: str = "discovered", *,
-                  data_name: str = "") -> str:
-    """The Python source of an effect module holding the groups of `found` (a discover.Discovery, or a list of
-    library Groups): one class per frame (effect_classes), named `class_name` (and `class_name`Common), its
-    effect `name` (and `name`-common)."""
+                  data_name: str = "", beside: Sequence[str] | None = None) -> str:
+    """The Python source of an effect module holding the groups and laws of `found` (a discover.Discovery, or a list
+    of library Groups) in one class `class_name`, its effect `name`; `beside`: the catalogue's effects it was found
+    beside (a Discovery's own model's, where not given)."""
     if hasattr(found, "groups") and not isinstance(found, (list, tuple)):
         groups = [g.group for g in found.groups]
         readings = {id(g.group): g.reading for g in found.groups}
+        names = {id(g.group): [p.name for p in g.parameters] for g in found.groups if g.group.kind == "law"}
+        if beside is None and getattr(found, "fit", None) is not None:
+            beside = [e for e in found.fit.model.effects if not e.startswith("discovered-")]
     else:
-        groups, readings = list(found), {}
+        groups, readings, names = list(found), {}, {}
     if not groups:
         raise ValueError("effect_source: no group to write (discovery claimed nothing)")
-    own = [g for g in groups if not g.common]
-    common = [g for g in groups if g.common]
-    names = effect_classes(groups, class_name)
+    laws = [g for g in groups if g.kind == "law"]
     found_lines = "\n".join(f"  - {readings.get(id(g), g.key)}" for g in groups)
-    use = ", ".join(f"FILE.py:{c}" for c in names)
+    also = f" (it brings {', '.join(beside)}, which it was found beside)" if beside else ""
     doc = ("An effect written by fluxcal diagnose from what discovery found beyond the catalogue"
            + (f" in {data_name}" if data_name else "") + f":\n\n{found_lines}\n\n"
-           f"Give it back with --effects {use} (rename the class and `name` as you like; docs/effects.md).\n"
-           f"The references the parameters are centred on (the means of the data fitted) are kept with the\n"
-           f"calibration under `ref:` keys.")
-    imports = ("from service.numerics.effects.thermal import low_pass\n"
+           f"Give it back with --effects FILE.py:{class_name}{also}; rename the class and `name` as you\n"
+           f"like, replace a shape by a law of your own (docs/effects.md). The references the parameters are\n"
+           f"centred on (the means of the data fitted) are kept with the calibration under `ref:` keys.")
+    imports = ("from fluxcal.effects import low_pass\n"
                if any("low_pass_s" in g.feature.recipe for g in groups) else "")
     text = HEADER.format(doc=doc.replace('"""', "'''"), imports=imports)
     lines = [text.rstrip("\n")]
-    if own:
-        lines += _class(own, names[0], name, readings)
-    if common:
-        if own:
-            lines += _class(common, names[1], f"{name}-common", readings)
-        else:
-            lines += _class(common, names[0], name, readings)
+    if laws:
+        lines += LAW_PARTS.rstrip("\n").split("\n")
+        for i, g in enumerate(laws):
+            lines += _law_code(g, i + 1)
+    lines += _class(groups, class_name, name, readings, names, beside or ())
+    if any(g.common and g.kind != "law" for g in groups):
         lines += SHARED_VIEW.rstrip("\n").split("\n")
     return "\n".join(lines) + "\n"

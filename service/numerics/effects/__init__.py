@@ -95,6 +95,12 @@ def register_effect(cls: object, origin: str = "") -> str:
         raise ConfigError(f"--effects: {where}{cls.__name__}.name = {name!r} is taken by "
                           f"{_ORIGIN.get(name, taken.__module__ + '.' + taken.__name__)} (allowed: a name not in "
                           f"{', '.join(known_effects())})")
+    beside = getattr(cls, "beside", ())
+    unknown = [b for b in beside if not isinstance(b, str) or b not in known_effects()] if isinstance(
+        beside, (tuple, list)) else [beside]
+    if unknown:
+        raise ConfigError(f"--effects: {where}{cls.__name__}.beside = {beside!r} is not allowed (allowed: a tuple of "
+                          f"effect names: {', '.join(known_effects())})")
     linear = cls.columns is not EffectTerm.columns
     nonlinear = cls.correction is not EffectTerm.correction and cls.jacobian is not EffectTerm.jacobian
     if not (linear or nonlinear or cls.shared_names is not EffectTerm.shared_names):
@@ -103,6 +109,28 @@ def register_effect(cls: object, origin: str = "") -> str:
     _REGISTERED[name] = guarded(cls, origin)            # what it raises or returns wrong is said (guard.py)
     _ORIGIN[name] = origin or f"{cls.__module__}.{cls.__name__}"
     return name
+
+
+def unregister_effect(name: str) -> None:
+    """Take a user's effect out of the registry (a notebook's cell defines its class again after an edit: register
+    the new one after this). ConfigError for a catalogue effect or one not registered.
+
+    >>> class Once(EffectTerm):
+    ...     name = "once"
+    ...     def param_names(self, view):
+    ...         return []
+    ...     def columns(self, view):
+    ...         return None
+    >>> register_effect(Once), "once" in known_effects()
+    ('once', True)
+    >>> unregister_effect("once"); "once" in known_effects()
+    False
+    """
+    if name not in _REGISTERED:
+        why = "a catalogue effect" if name in EFFECTS else "not registered"
+        raise ConfigError(f"unregister_effect: {name!r} is {why} (registered: {', '.join(_REGISTERED) or 'none'})")
+    del _REGISTERED[name]
+    _ORIGIN.pop(name, None)
 
 
 def make_term(name: str) -> EffectTerm:
@@ -120,6 +148,6 @@ def make_model(names: Iterable[str], *, baseline: bool = True) -> Model:
     return Model(([Baseline()] if baseline else []) + terms)
 
 
-__all__ = ["EFFECTS", "known_effects", "effect_spec", "register_effect", "make_term", "make_model", "Baseline", "EffectData", "EffectTerm", "Model", "ProbeView",
+__all__ = ["EFFECTS", "known_effects", "effect_spec", "register_effect", "unregister_effect", "make_term", "make_model", "Baseline", "EffectData", "EffectTerm", "Model", "ProbeView",
            "Temperature", "ThermalLag", "Eddy", "Lag", "Nonlinearity", "Drift", "Gradient", "Crossfield", "Hysteresis",
            "Platform", "Column", "Ambient"]

@@ -31,6 +31,8 @@ from drivers.errors import ConfigError, DataError
 from service.numerics.channels import AXES  # noqa: F401 - the effect terms take the axes from here
 from service.numerics.usable import usable_samples
 
+from .attitude import quat_to_matrix, rx, ry, rz
+
 #: extra columns that carry the platform attitude, R = Rz(azimuth) Ry(pitch) Rx(heel), platform -> NED
 ATTITUDE_EULER = ("heel_deg", "pitch_deg", "azimuth_deg")
 ATTITUDE_QUATERNION = ("q_w", "q_x", "q_y", "q_z")
@@ -223,9 +225,9 @@ class EffectData(Timed):
             att = None
             if all(c in ex for c in ATTITUDE_EULER):
                 h, p, a = (np.radians(ex[c]) for c in ATTITUDE_EULER)
-                att = _rz(a) @ _ry(p) @ _rx(h)
+                att = rz(a) @ ry(p) @ rx(h)
             elif all(c in ex for c in ATTITUDE_QUATERNION):
-                att = _quat_to_matrix(*(ex[c] for c in ATTITUDE_QUATERNION))
+                att = quat_to_matrix(*(ex[c] for c in ATTITUDE_QUATERNION))
             self._cache[key] = att
         return self._cache[key]
 
@@ -249,30 +251,6 @@ class EffectData(Timed):
                           total_nT=self.total_nT, positions_m=self.positions_m,
                           extras={k: v[rows] for k, v in self.extras.items()},
                           smooth_window_s=self.smooth_window_s)
-
-
-def _rx(a: np.ndarray) -> np.ndarray:
-    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
-
-
-def _ry(a: np.ndarray) -> np.ndarray:
-    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
-
-
-def _rz(a: np.ndarray) -> np.ndarray:
-    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
-
-
-def _quat_to_matrix(w: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-    n = np.sqrt(w * w + x * x + y * y + z * z)
-    w, x, y, z = w / n, x / n, y / n, z / n
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
 
 
 #: ProbeView.cache keys that hold a term's references (temperature, time origin, step instants): they
@@ -326,7 +304,8 @@ class EffectTerm:
     (one line), `frame` and `linear`, and implement `param_names` and `columns` (linear terms) or
     `correction` and `jacobian` (non-linear terms). Shared parameters (one set for all probes) use
     `shared_names` with `shared_vcolumns` (corrected frame, per probe) or `shared_scolumns` (added to
-    the reference total field of every scalar channel)."""
+    the reference total field of every scalar channel); shared parameters that act non-linearly (a law whose
+    exponent all probes share) give `shared_vcorrection` and `shared_vjacobian` instead of `shared_vcolumns`."""
 
     name: ClassVar[str] = ""
     title: ClassVar[str] = ""
@@ -410,6 +389,21 @@ class EffectTerm:
     def shared_scolumns(self, data: EffectData) -> np.ndarray | None:
         """(N, m) regressors added to the reference total field in every scalar channel."""
         return None
+
+    def shared_vcorrection(self, data: EffectData, k: int, theta: np.ndarray) -> np.ndarray | None:
+        """(N, 3) the corrected-frame correction of probe k by the shared parameters theta, or None where they do not
+        act on it: shared_vcolumns @ theta for a linear term; a non-linear one (a law with a shared exponent) gives
+        it with shared_vjacobian."""
+        cols = self.shared_vcolumns(data, k)
+        return None if cols is None else cols @ theta
+
+    def shared_start_values(self, data: EffectData) -> np.ndarray:
+        """Where the fit starts the shared parameters: zero (a non-linear one may start elsewhere: an exponent)."""
+        return np.zeros(len(self.shared_names(data)))
+
+    def shared_vjacobian(self, data: EffectData, k: int, theta: np.ndarray) -> np.ndarray | None:
+        """(N, 3, m) d shared_vcorrection / d theta at theta (shared_vcolumns for a linear term)."""
+        return self.shared_vcolumns(data, k)
 
     # composition and printing
     def settings(self) -> dict[str, Any]:

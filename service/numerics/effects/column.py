@@ -16,17 +16,21 @@ import numpy as np
 from .base import AXES, EffectData, EffectTerm, ProbeView, axis_columns
 
 
+def column_values(data: EffectData, name: str) -> np.ndarray | None:
+    """(N,) a logged column's values, gaps (NaN) filled by interpolation in time; None with fewer than two values."""
+    v = np.asarray(data.extras[name], dtype=np.float64)
+    ok = np.isfinite(v)
+    if ok.sum() < 2:
+        return None
+    return v if ok.all() else np.interp(data.t_s, data.t_s[ok], v[ok])
+
+
 def usable_columns(data: EffectData) -> dict[str, np.ndarray]:
-    """Observable extra columns that change, gaps filled by interpolation, centred on their means."""
+    """Observable extra columns that change, gaps filled by interpolation (column_values), centred on their means."""
     out = {}
-    for name, v in data.observables().items():
-        v = np.asarray(v, dtype=np.float64)
-        ok = np.isfinite(v)
-        if ok.sum() < 2:
-            continue
-        if not ok.all():
-            v = np.interp(data.t_s, data.t_s[ok], v[ok])
-        if float(np.ptp(v)) <= 1e-12 * max(1.0, float(np.max(np.abs(v)))):
+    for name in data.observables():
+        v = column_values(data, name)
+        if v is None or float(np.ptp(v)) <= 1e-12 * max(1.0, float(np.max(np.abs(v)))):
             continue
         out[name] = v - v.mean()
     return out
@@ -57,7 +61,9 @@ class Column(EffectTerm):
         return view.cache[key]
 
     def param_names(self, view: ProbeView) -> list[str]:
-        return [f"{view.name}.{a} nT per {c}{rate}" for c in self._cols(view) for rate in ("", "/s") for a in AXES]
+        # the rate's coefficient is in nT per (unit of the column per second): "nT per (battery_current_a/s)"
+        return [f"{view.name}.{a} nT per {f'({c}/s)' if rate else c}" for c in self._cols(view) for rate in (False, True)
+                for a in AXES]
 
     def columns(self, view: ProbeView) -> np.ndarray:
         t = view.data.t_s

@@ -73,6 +73,14 @@ def guarded(cls: type[EffectTerm], origin: str) -> type[EffectTerm]:
         out = _said(who, "shared_vcolumns", lambda: cls.shared_vcolumns(self, data, k))
         return None if out is None else _array(who, "shared_vcolumns", out, (data.n_samples, 3, shared(self, data)))
 
+    def shared_vcorrection(self, data, k, theta):
+        out = _said(who, "shared_vcorrection", lambda: cls.shared_vcorrection(self, data, k, theta))
+        return None if out is None else _array(who, "shared_vcorrection", out, (data.n_samples, 3))
+
+    def shared_vjacobian(self, data, k, theta):
+        out = _said(who, "shared_vjacobian", lambda: cls.shared_vjacobian(self, data, k, theta))
+        return None if out is None else _array(who, "shared_vjacobian", out, (data.n_samples, 3, shared(self, data)))
+
     def shared_scolumns(self, data):
         out = _said(who, "shared_scolumns", lambda: cls.shared_scolumns(self, data))
         return None if out is None else _array(who, "shared_scolumns", out, (data.n_samples, shared(self, data)))
@@ -89,4 +97,8 @@ def guarded(cls: type[EffectTerm], origin: str) -> type[EffectTerm]:
         body["shared_vcolumns"] = shared_vcolumns
     if cls.shared_scolumns is not EffectTerm.shared_scolumns:
         body["shared_scolumns"] = shared_scolumns
+    if cls.shared_vcorrection is not EffectTerm.shared_vcorrection:
+        body["shared_vcorrection"] = shared_vcorrection
+    if cls.shared_vjacobian is not EffectTerm.shared_vjacobian:
+        body["shared_vjacobian"] = shared_vjacobian
     return type(cls.__name__, (cls,), body)

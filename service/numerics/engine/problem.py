@@ -102,12 +102,12 @@ class Problem:
             v0 = y @ st.linear.matrix[k].T
             v = v0.copy()
             for t in self.terms:
-                if t.frame == "corrected":
-                    if st.theta[t.name][k].size:
-                        v -= t.correction(view, st.theta[t.name][k], v0)
-                    cols = t.shared_vcolumns(self.data, k)
-                    if cols is not None:
-                        v -= cols @ st.shared[t.name]
+                if t.frame == "corrected" and st.theta[t.name][k].size:
+                    v -= t.correction(view, st.theta[t.name][k], v0)
+                if st.shared[t.name].size:                 # shared parameters act in the corrected frame
+                    corr = t.shared_vcorrection(self.data, k, st.shared[t.name])
+                    if corr is not None:
+                        v -= corr
             v0s.append(v0)
             vr = v[rows]
             vs.append(vr)
@@ -153,8 +153,9 @@ class Problem:
                 else:
                     src.append(s.term.jacobian(view, theta, ev.v0[s.k]))               # psi (N, 3, m)
             else:
+                theta = st.shared[s.term.name]
                 src.append(({k: c for k in range(self.P)
-                             if (c := s.term.shared_vcolumns(self.data, k)) is not None},
+                             if (c := s.term.shared_vjacobian(self.data, k, theta)) is not None},
                             s.term.shared_scolumns(self.data)))
         return _Jac(st, ev, src)
 

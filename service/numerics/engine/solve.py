@@ -259,24 +259,26 @@ class FitResult:
                                      s.keys[j] if s.keys else (j,)))
         return out
 
-    def heldout(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per block: weighted SSE, unweighted SSE (nT^2) and row count of the held-out residual,
-        each block predicted by the fit to the other blocks (one Gauss-Newton step from the full fit,
-        exact for the linearised problem)."""
+    def heldout(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per block: weighted SSE, unweighted SSE (nT^2) and value count of the held-out residual, and per block and
+        channel its unweighted SSE (K, C), each block predicted by the fit to the other blocks (one Gauss-Newton step
+        from the full fit, exact for the linearised problem)."""
         pr = self.problem
         r = self.channels.values
         w = pr.weights
         nb = len(pr.blocks)
         sse_w, sse, cnt = np.zeros(nb), np.zeros(nb), np.zeros(nb)
+        per_channel = np.zeros((nb, r.shape[1]))
         deltas = self.block_deltas() if pr.n_params else None
         for b, sl in enumerate(pr.blocks):
             rb = r[sl]
             if deltas is not None:
                 rb = rb + pr.apply(self.jac, self.ev, deltas[b], sl)
-            sse_w[b] = float(np.sum((rb * w) ** 2))
-            sse[b] = float(np.sum(rb ** 2))
+            per_channel[b] = np.einsum("nc,nc->c", rb, rb)
+            sse_w[b] = float(per_channel[b] @ w ** 2)
+            sse[b] = float(per_channel[b].sum())
             cnt[b] = rb.size
-        return sse_w, sse, cnt
+        return sse_w, sse, cnt, per_channel
 
 
 @dataclass

@@ -83,7 +83,7 @@ def start_state(data: EffectData, terms: Sequence[EffectTerm], views: Sequence[P
                 previous: State | None = None) -> State:
     """Effect parameters at zero (or as `previous` has them, where the shapes agree) beside `linear`."""
     theta = {t.name: [np.asarray(t.start_values(v), dtype=np.float64).copy() for v in views] for t in terms}
-    shared = {t.name: np.zeros(len(t.shared_names(data))) for t in terms}
+    shared = {t.name: np.asarray(t.shared_start_values(data), dtype=np.float64).copy() for t in terms}
     if previous is not None:
         for name, vals in previous.theta.items():
             if name in theta and all(a.shape == b.shape for a, b in zip(vals, theta[name])):

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from drivers.errors import ConfigError, DataError, FluxcalError
+from drivers.text import printable, printable_json
 from service.io.bus import COMMANDS, MAX_COMMAND_PAYLOAD_BYTES, BusClient, ZenohConfig, discover_units, open_session
 from service.io.calfile import calibration_from_json
 from service.wiring.commands.client import resolve
@@ -69,16 +70,18 @@ def main(args: Namespace) -> int:
         with BusClient(session, unit, streams=[]) as client:
             answer = (client.query_state(timeout=args.timeout) if args.verb == "state"
                       else client.command(args.verb, payload, timeout=args.timeout))
+    if answer.get("warning"):                     # several services answered: each took the command
+        print(printable(f"fluxcal command: WARNING: {answer['warning']}"), file=sys.stderr)
     if getattr(args, "json", False):
         print(json.dumps(answer))
     elif args.verb == "state":
-        print(state_text(answer))
+        print(state_text(printable_json(answer)))     # the service's words: shown, never acting on the terminal
     elif answer.get("ok", False):
         print(f"{args.verb}: done by unit {unit}" + (f"; calibration {answer['cal_id']} in use"
                                                      if answer.get("cal_id") else "; no calibration in use yet"))
     if args.verb != "state" and not answer.get("ok", False):
-        print(f"fluxcal command: {args.verb} not applied by unit {unit}: {answer.get('error', 'no reason given')}",
-              file=sys.stderr)
+        print(printable(f"fluxcal command: {args.verb} not applied by unit {unit}: "
+                        f"{answer.get('error', 'no reason given')}"), file=sys.stderr)
         return 1
     return 0
 

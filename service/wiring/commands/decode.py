@@ -19,7 +19,6 @@ import argparse
 import math
 import os
 import re
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
@@ -31,6 +30,7 @@ from drivers.block import SampleBlock
 from drivers.errors import ConfigError, DataError, FluxcalError
 from drivers.icd import MAX_PROBES, frame_length, parse_serial
 from drivers.inputs import check_size, not_regular, open_regular, scan_lines
+from drivers.outputs import temp_beside
 from drivers.source import Counters
 from service.wiring.commands.options import CommandHelp, int_auto
 from service.wiring.progress import Progress
@@ -136,7 +136,8 @@ def execute(source: str, opts: DecodeOptions, said: Said) -> DecodeResult:
 def _counters_line(c: Counters, can_log: bool) -> str:
     parts = [f"frames accepted {c.frames_accepted}"]
     if can_log:
-        parts.append(f"malformed frames {c.crc_failures}")
+        parts += [f"wrong length {c.wrong_length}", f"remote frames {c.remote_frames}",
+                  f"other nodes' frames {c.foreign_frames}"]
     else:
         parts += [f"CRC failures {c.crc_failures}", f"bytes skipped {c.bytes_skipped}"]
     parts.append(f"sequence gaps {c.seq_gaps} ({c.samples_missed} samples missed)")
@@ -212,9 +213,8 @@ class _AtomicFile:
 
     def __init__(self, path: Path, mode: str) -> None:
         self.path = path
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
-        self.tmp = Path(tmp)
-        self.file = os.fdopen(fd, mode)
+        self.tmp = temp_beside(path)                  # never a link planted at the name: renamed onto `path`
+        self.file = open(self.tmp, mode)
 
     def commit(self) -> None:
         self.file.flush()
@@ -292,7 +292,7 @@ def _write_mcap(out: Path, n: int, blocks: _Counted, capture: Path, opts: Decode
     from service.io.recordings.writer import write_recording
 
     unit = re.sub(r"[^A-Za-z0-9_\-]", "_", capture.stem)[:64] or "unit1"
-    tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
+    tmp = temp_beside(out)
     try:
         write_recording(tmp, blocks, unit=unit, probe_names=[f"s{k}" for k in range(1, n + 1)])
         if blocks.samples == 0:

@@ -13,8 +13,9 @@ import numpy as np
 
 from drivers.errors import DataError, FluxcalError
 from service.io.calfile import save_calibration
+from service.wiring.identity import recording_identity
 from service.io.recordings.labdata import LabData, keep_every
-from service.numerics.calib.coverage import coverage
+from service.numerics.diagnose.text import reference_words
 from service.numerics.usable import temperature_notes, usable_samples
 from service.wiring.coloured_fit import coloured_offsets, direction_offsets
 from service.wiring.commands.notes import check_output_file, check_output_folder
@@ -22,8 +23,10 @@ from service.wiring.commands.options import (
     ALIGNS,
     CONFIG_HELP,
     DATA_HELP,
+    EFFECT_SPECS,
     EFFECTS_HELP,
     METHODS,
+    PATH,
     CommandHelp,
     data_options,
     effect_names,
@@ -36,11 +39,12 @@ from service.wiring.fitting import (
     contract_json,
     fit_array,
     iter_residual_channels,
+    judge_data,
     rms,
     rms_all,
     uncalibrated_rms,
 )
-from service.wiring.prepare import FROM_RECORDING, Prepared, prepare
+from service.wiring.prepare import FROM_RECORDING, Prepared
 from service.wiring.result import Result, Said, print_result, stderr_say
 from service.wiring.scale_notes import field_scale_notes
 
@@ -77,14 +81,14 @@ class FitOptions:
 
     method: str = "ellipsoid"
     align: str | None = None
-    effects: list[str] = field(default_factory=list)
-    config: str | None = None
+    effects: list[str] = field(default_factory=list, metadata=EFFECT_SPECS)
+    config: str | None = field(default=None, metadata=PATH)
     site: str | None = None
     skip: list[tuple[float, float]] | None = None
     topics: dict[str, str | None] | None = None   # another ecosystem's log: what becomes what
     mags: tuple[int, ...] | None = None
-    out: str | None = None                # the calibration file to write
-    report: str | None = None             # the folder of an HTML report
+    out: str | None = field(default=None, metadata=PATH)  # the calibration file to write
+    report: str | None = field(default=None, metadata=PATH)  # the folder of an HTML report
 
 
 @dataclass
@@ -94,12 +98,37 @@ class FitResult(Result):
     contract: dict[str, Any] = field(default_factory=dict)
     summary: str = ""
     report: str | None = None             # the report written, if any
+    #: the calibration fitted (service.numerics.calib.model.ArrayCalibration): save(), apply() ... in Python
+    calibration: Any = field(default=None, repr=False)
 
     def as_dict(self) -> dict[str, Any]:
         return self.contract
 
     def text(self) -> str:
         return self.summary
+
+    @property
+    def rms_nT(self) -> float | None:
+        """The residual RMS over every channel after the calibration, nT."""
+        return self.contract.get("rms_nT")
+
+    def rows(self) -> list[dict[str, Any]]:
+        """Each fitted parameter with its standard error: every probe's offset and matrix, then the effects'."""
+        out = []
+        for s in self.contract.get("sensors", []):
+            for a, (v, e) in enumerate(zip(s["offset_nT"], s.get("offset_se_nT") or [None] * 3)):
+                out.append({"probe": s["name"], "parameter": f"offset {'xyz'[a]}", "value": v, "stderr": e,
+                            "unit": "nT"})
+            se = s.get("matrix_se") or [[None] * 3] * 3
+            for i in range(3):
+                for j in range(3):
+                    out.append({"probe": s["name"], "parameter": f"matrix [{'xyz'[i]}{'xyz'[j]}]",
+                                "value": s["matrix"][i][j], "stderr": se[i][j], "unit": ""})
+        for effect, params in (self.contract.get("effect_params") or {}).items():
+            for name, p in params.items():
+                out.append({"probe": None, "parameter": name, "value": p.get("value"), "stderr": p.get("stderr"),
+                            "unit": effect})
+        return out
 
 
 def main(args: Namespace) -> int:
@@ -118,7 +147,17 @@ def options(args: Namespace) -> FitOptions:
 
 
 def execute(source: str, opts: FitOptions, said: Said) -> FitResult:
-    """`fluxcal fit SOURCE`: its outputs checked before any work, the input prepared, the calibration fitted."""
+    """`fluxcal fit SOURCE`: the Python API's fit (service.wiring.api), with the command line's options."""
+    from service.wiring import api
+
+    return api.fit(source, method=opts.method, align=opts.align, effects=opts.effects, out=opts.out,
+                   report=opts.report, said=said, config=opts.config, site=opts.site, skip=opts.skip,
+                   topics=opts.topics, mags=opts.mags)
+
+
+def checked(opts: FitOptions, source: str | None) -> FitOptions:
+    """The options with the effects known (installed ones loaded, a user's file.py:Class registered) and the outputs
+    checked, before any work (source: the input, which no output may be)."""
     from service.wiring.user_effects import load_installed_effects, resolve_effects
 
     load_installed_effects()
@@ -127,9 +166,7 @@ def execute(source: str, opts: FitOptions, said: Said) -> FitResult:
         check_output_file(opts.out, example="cal.json", not_this=source)
     if opts.report:
         check_output_folder(opts.report, "--report")
-    prep = prepare(source, said, config=opts.config, site=opts.site, skip=opts.skip, topics=opts.topics,
-                   mags=opts.mags)
-    return run(prep, opts, said)
+    return opts
 
 
 def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
@@ -137,8 +174,9 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     data, source = prep.data, prep.source
     data, left_out = usable_data(data, uses_temperature=bool({"temperature", "thermal"} & set(opts.effects)))
     known_total = prep.total_nT
+    judged = judge_data(data, known_total, prep.total_source or "")    # the one determinacy gate, before any fit
     cal, total = fit_array(data, method=opts.method, align=opts.align, configured_total_nT=known_total,
-                           positions_m=prep.positions_m, progress=_progress)
+                           positions_m=prep.positions_m, progress=_progress, judged=judged)
     if prep.site is not None:
         total.source = f"the site ({prep.site.model})"
     if prep.track is not None:                    # the data's ref_total is the model along the track
@@ -170,23 +208,26 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     if sys.stderr.isatty():
         print("\r\033[K", end="", file=sys.stderr)
     before = uncalibrated_rms(data, total)
+    refuse_worse(cal, channels, before, total.source)
     cal.diagnostics.update({"rms_before_nT": dict(before),
                             "rms_after_nT": {k: rms(v) for k, v in channels.items()},
                             "total_field": total.source})
     # coloured noise first: it changes the offsets' errors, which the warnings below compare with the offsets
     coloured = coloured_warnings(coloured_offsets(data, cal, total)) if not opts.effects else []
     coloured += direction_offsets(data, cal, total) if not opts.effects else []
-    coverages = [coverage(data.block.field_nT[:, k], centre_nT=p.offset_nT) for k, p in enumerate(cal.probes)]
+    coverages = [j.coverage for j in judged]             # about the gate's centre: the figures every command shows
     warnings = left_out + calibration_warnings(cal, coverages) + ([thinned] if thinned else []) + coloured
     warnings += [prep.config_warning] if prep.config_warning else []
     warnings += [prep.part_of_run] if prep.part_of_run else []
     warnings = scale + warnings
     cal.diagnostics["warnings"] = warnings
+    cal.unit = recording_identity(data.metadata)          # the unit a service recording says it was made by
     out = FitResult("fit", source)
     if opts.out:
         save_calibration(cal, opts.out)
         out.written.append(opts.out)
     result = contract_json(cal, channels, data.probe_names, coverages, warnings)
+    result["determinacy"] = [j.as_dict() for j in judged]
     if prep.origin == FROM_RECORDING:
         result["configuration"] = "recording"               # the total field and positions it stores were used
     if prep.site is not None:
@@ -206,8 +247,34 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
         except (OSError, FluxcalError) as e:
             said("report", f"{opts.report}: the report could not be written: {e}")
             out.status = 1
-    out.contract, out.summary, out.notes = result, "\n".join(text), said.notes
+    out.contract, out.summary, out.notes, out.calibration = result, "\n".join(text), said.notes, cal
     return out
+
+
+#: a calibration whose scalar residual is this many times the raw data's is refused: a fit minimises an algebraic
+#: residual, so data already calibrated may come out a few percent above their raw figure, never a quarter
+WORSE_FACTOR = 1.25
+
+
+def refuse_worse(cal, channels, before: dict[str, float], total_source: str) -> None:
+    """CalibrationRefused where the calibration makes a probe's scalar residual worse than the raw data's (beyond
+    WORSE_FACTOR: a calibration the data do not determine, or a total field that is not theirs), with what would
+    help."""
+    from drivers.errors import CalibrationRefused
+
+    for p in cal.probes:
+        name = f"{p.name}.scalar"
+        after = rms(channels[name]) if name in channels else float("nan")
+        if name in before and np.isfinite(after) and after > WORSE_FACTOR * before[name]:
+            against = "estimated" if total_source == "estimated" else f"from {total_source}"
+            reason = (f"{p.name}: the calibration makes the scalar residual worse than the raw data's "
+                      f"({before[name]:,.1f} -> {after:,.1f} nT RMS against the total field {against}): these data do "
+                      f"not determine it")
+            advice = ("turn the probe about at least two axes so the field sweeps most directions, and check that the "
+                      "total field given is the site's and the data are in nT")
+            refused = CalibrationRefused(f"{reason}; {advice}")
+            refused.reason, refused.advice = reason, advice
+            raise refused
 
 
 #: fewest samples left to fit once the unusable ones are left out (as the effects' fits need)
@@ -334,14 +401,17 @@ def _summary(data, cal, channels, before, total_source, result, coverages, origi
     b = data.block
     lines = [f"{data.path}: {b.n_samples} samples, {b.n_probes} probe(s), {b.t_s[-1] - b.t_s[0]:.1f} s; "
              f"method {cal.method}, align {cal.align or '-'}, effects {', '.join(cal.effects) or '-'}; "
-             + ("total field estimated from the data" if total_source == "estimated"
-              else f"total field from {total_source}")
+             + f"total field {reference_words(total_source)}"
              + (f"; {origin}" if origin == FROM_RECORDING else "")]
     for k, p in enumerate(cal.probes):
         lines.append(f"\n{p.name}")
         lines.append("  offset nT  " + "  ".join(_fmt_pm(v, s) for v, s in zip(p.offset_nT, p.offset_se_nT)))
         for i in range(3):
             lines.append("  matrix     " + "  ".join(_fmt_pm(v, s, 5) for v, s in zip(p.matrix[i], p.matrix_se[i])))
+        if not (np.all(np.isfinite(p.offset_se_nT)) and np.all(np.isfinite(p.matrix_se))):
+            lines.append("  (± n/a: " + ("the fit with effects gives the effects' and the offsets' errors, not the "
+                                         "matrix's: `fit` without --effects gives them" if cal.effects else
+                                         "no standard error: these data do not determine it") + ")")
         for key, val in p.params.items():
             if key in ("offset_nT", "samples", "align") or not isinstance(val, dict):
                 continue

@@ -1,15 +1,19 @@
 """`fluxcal inspect FILE`: what a recording holds (a ROS 2 bag's topics, a PX4 or ArduPilot log's messages, a CSV's
-columns) and how fit and diagnose would map it, as text or JSON (service.io.recordings.inspect)."""
+columns) and how fit and diagnose would map it, as text or JSON (service.io.recordings.inspect): the probes, columns,
+samples, duration and clock of the one reading fit and diagnose use (service.wiring.prepare, with the same options),
+and each probe's verdict of the one determinacy gate they ask (service.numerics.calib.determinacy)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 from argparse import Namespace
+from dataclasses import replace
 
+from drivers.errors import CalibrationRefused, DataError
 from service.io.recordings.formats import Inspection
-from service.io.recordings.inspect import inspect_file
-from service.wiring.commands.options import CommandHelp
+from service.io.recordings.inspect import inspect_file, reading
+from service.wiring.commands.options import CONFIG_HELP, CommandHelp, data_options
 
 HELP = CommandHelp("list what a recording holds and how fit and diagnose would map it",
                    "  fluxcal inspect flight.ulg\n  fluxcal inspect robot_bag/ --json")
@@ -18,7 +22,19 @@ HELP = CommandHelp("list what a recording holds and how fit and diagnose would m
 def add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("file", metavar="FILE", help="a ROS 2 bag (.mcap, rosbag2 directory, .db3), a PX4 .ulg, an "
                                                 "ArduPilot .bin, a fluxcal .mcap or a lab .csv")
+    p.add_argument("--config", metavar="FILE", help=CONFIG_HELP)
+    data_options(p)
     p.add_argument("--json", action="store_true", help="the inspection as JSON")
+
+
+def _verdict_line(v: dict) -> str:
+    head = f"  {v['probe']}: "
+    if not v["determined"]:
+        return head + f"not determined: {v['reason']}"
+    cone = v.get("cone") or {}
+    return head + (f"determined ({v['samples']:,} samples; directions within ±{cone.get('band_deg', 0):.1f}° of a cone "
+                   f"about {cone.get('axis_name', '-')}, misfit {cone.get('misfit_nT', 0):.3g} nT, field "
+                   f"{v['field_nT']:,.0f} nT; {v['coverage']['fraction']:.0%} of directions seen)")
 
 
 def text(i: Inspection) -> str:
@@ -32,11 +48,44 @@ def text(i: Inspection) -> str:
                      + (f"  ({s.note})" if s.note else ""))
     lines.append(f"probes: {', '.join(i.probes) or 'none'}")
     lines.append(f"columns: {', '.join(i.columns) or 'none'}")
+    if i.samples is not None:
+        clock = i.clock or {}
+        t0 = clock.get("t0_unix_s")
+        lines.append(f"samples: {i.samples:,}" + (f" over {i.duration_s:.1f} s" if i.duration_s is not None else "")
+                     + (f"; t: {clock['t_s']}" if clock.get("t_s") else "")
+                     + (f", t = 0 at UNIX {t0:.3f} s" if t0 is not None else ", its date unknown" if clock else ""))
+    if i.fit_refuses:
+        lines.append(f"nothing to calibrate: {i.fit_refuses}")
+    if i.verdict:
+        lines.append("verdict (the gate fit and diagnose ask):")
+        lines += [_verdict_line(v) for v in i.verdict]
     lines += [f"warning: {x}" for x in i.warnings]
     return "\n".join(lines)
 
 
+def inspect(args: Namespace) -> Inspection:
+    """The file's streams, then what fit would take of it (prepare and usable_data, as fit does) and each probe's
+    verdict of the determinacy gate, with the total field fit would take."""
+    from service.wiring.commands.fit import usable_data
+    from service.wiring.fitting import judge_data
+    from service.wiring.prepare import log_mapping, prepare
+    from service.wiring.result import Said
+
+    topics, mags = getattr(args, "topics", None), getattr(args, "mags", None)
+    i = inspect_file(args.file, log_mapping(args.file, topics, mags), read=False)
+    try:
+        prep = prepare(args.file, Said("inspect"), config=getattr(args, "config", None),
+                       site=getattr(args, "site", None), skip=getattr(args, "skip", None), topics=topics, mags=mags)
+        data, _ = usable_data(prep.data)
+        i = replace(i, **reading(data))
+        judged = judge_data(data, prep.total_nT, prep.total_source or "")
+    except (DataError, CalibrationRefused) as e:
+        return replace(i, probes=[], columns=[], samples=0, fit_refuses=str(e),
+                       warnings=[w for w in i.warnings if "nothing to calibrate" not in w])
+    return replace(i, verdict=[j.as_dict() for j in judged])
+
+
 def main(args: Namespace) -> int:
-    i = inspect_file(args.file)
+    i = inspect(args)
     print(json.dumps(i.as_dict()) if getattr(args, "json", False) else text(i))
     return 0

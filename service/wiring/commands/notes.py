@@ -47,8 +47,10 @@ def check_output_folder(path: Any, flag: str) -> None:
     from pathlib import Path
 
     from drivers.errors import DataError
+    from drivers.outputs import refuse_linked_folder
 
     p = Path(path)
+    refuse_linked_folder(p, flag)
     if p.exists() and not p.is_dir():
         raise DataError(f"{flag} {p}: is a file; give a folder (made if missing, in a folder that exists)")
     parent = p.parent if str(p.parent) else Path(".")

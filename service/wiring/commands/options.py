@@ -13,6 +13,10 @@ ALIGNS = ("regression", "rotation", "pca")
 EFFECT_NAMES = ("temperature, thermal, eddy, lag, nonlinearity, drift, gradient, crossfield, hysteresis, platform, "
                 "column, ambient")
 SITE = "LAT,LON,ALT_M[,DATE]"
+#: the metadata of an options dataclass's field that names a file or folder, or holds --effects items (a fleet
+#: sends them to its workers absolute: fleet_cli.absolute_paths)
+PATH = {"names": "path"}
+EFFECT_SPECS = {"names": "effects"}
 
 DATA_HELP = ("a lab CSV or an MCAP recording of fluxcal. CSV columns: t (s), s1_x, s1_y, s1_z, s2_x, ... (nT); "
              "optional: s<k>_temp (degC, for temperature), ref_total (nT, a scalar reference: without it and "
@@ -118,7 +122,8 @@ def fleet_options(p: argparse.ArgumentParser) -> None:
                    help="several recordings: processes to run them on (default: one per core)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="several recordings: run them on this Dask distributed cluster instead, e.g. "
-                        "tcp://10.0.0.9:8786 (its workers need fluxcal installed)")
+                        "tcp://10.0.0.9:8786 (its scheduler and workers need this fluxcal version and the same "
+                        "files at the same paths: docs/cli.md)")
 
 
 def data_options(p: argparse.ArgumentParser) -> None:

@@ -33,11 +33,12 @@ import numpy as np
 from drivers.block import SampleBlock
 from drivers.errors import RecordingError
 from service.io.calfile import calibration_from_dict
+from service.io.recordings.gaps import RecorderGap, recorder_gaps
 from service.io.recordings.labdata import check_one_run
 from service.io.recordings.reader import read_recording
 from service.io.recordings.repair import repair_notes
 from service.wiring.commands.notes import check_output_file, check_output_folder
-from service.wiring.commands.options import CommandHelp, fleet_help, fleet_options
+from service.wiring.commands.options import PATH, CommandHelp, fleet_help, fleet_options
 from service.wiring.config import config_from_dict, load_config, rate_stated
 from service.wiring.daemon import build_pipeline
 from service.wiring.prepare import say_read_warnings
@@ -107,9 +108,10 @@ def _with_rate(raw: dict, recording: str, said: Said) -> dict:
 
 @dataclass
 class ReplayOptions:
-    config: str | None = None             # replay with this configuration (default: the one stored)
-    out: str | None = None                # also record the replay here
-    ros2_out: str | None = None           # also write the corrected vectors as a ROS 2 bag (a folder) here
+    config: str | None = field(default=None, metadata=PATH)  # replay with this configuration (default: the one stored)
+    out: str | None = field(default=None, metadata=PATH)  # also record the replay here
+    # also write the corrected vectors as a ROS 2 bag (a folder) here
+    ros2_out: str | None = field(default=None, metadata=PATH)
 
 
 @dataclass
@@ -383,10 +385,13 @@ def _compare(live_blocks, seqs, values, before: int | None = None) -> Compared:
 
 
 def _first_hole(rec, unit: str | None) -> tuple[int | None, list]:
-    """The first sample seq a hole took from `unit`'s raw stream (-1: the recording's start) and the holes."""
+    """The first sample seq `unit`'s raw stream lost (-1: the recording's start), to a hole (damage) or a recorder
+    gap (io/recordings/gaps: a full disk, from the recording's own health), and what lost them, said as each is."""
     holes = [h for h in rec.holes if h.seq_span(unit) is not None]
     firsts = [(-1 if h.seq_span(unit)[0] is None else h.seq_span(unit)[0]) for h in holes]
-    return (min(firsts) if firsts else None), holes
+    gaps = recorder_gaps(rec.raw_blocks, rec.health, rec.health_at)
+    firsts += [g.seq_before + 1 for g in gaps]
+    return (min(firsts) if firsts else None), [(h, h.describe(unit)) for h in holes] + [(g, g.describe()) for g in gaps]
 
 
 def _arithmetic_said(recorded: dict[str, str]) -> tuple[str, bool]:
@@ -413,13 +418,13 @@ def _verdict(out: ReplayResult, said: Said, rec, out_seq, cmp: Compared, cut: in
     continued = " (a continuation replayed alone: see above)" if later else ""
     samples = out.samples
     out.holes = len(holes)
-    for h in holes:
-        said("hole", h.describe(rec.unit), level="say")
+    for h, said_as in holes:
+        said("gap" if isinstance(h, RecorderGap) else "hole", said_as, level="say")
     if cut is not None:
         after = sum(int(np.count_nonzero(c.seq >= cut)) for c in rec.corrected_blocks)
-        said("hole", f"the live run's estimator saw the samples lost in the hole and the replay's did not, so the "
-                     f"replay cannot follow the live run past it: the {after} corrected sample(s) from seq "
-                     f"{max(cut, 0)} on are not compared; those before it are", level="say")
+        said("hole", f"the live run's estimator saw the samples the recording lost and the replay's did not, so the "
+                     f"replay cannot follow the live run past them: the {after} corrected sample(s) from seq "
+                     f"{max(cut, 0)} on are not compared; those before are", level="say")
     uncorrected = samples - sum(int(s.size) for s in out_seq)
     note = (f" ({uncorrected} earlier sample(s) have no corrected output, live or replayed: no calibration was "
             f"usable yet)" if uncorrected > 0 and cmp.n else "")

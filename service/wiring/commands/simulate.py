@@ -21,6 +21,7 @@ import numpy as np
 
 from drivers.config import load_section, read_toml
 from drivers.errors import ConfigError, DataError
+from drivers.outputs import temp_beside
 from drivers.sim.config import GRADIOMETER, SimConfig, load_sim_config
 from drivers.sim.unit import Unit
 from service.wiring.commands.options import CommandHelp
@@ -226,8 +227,9 @@ WRITERS = (".csv", ".mcap", ".bin", ".log")
 
 
 def _tmp(path: Path) -> Path:
-    # same suffix, so writers that look at it still see .csv / .mcap / .json
-    return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    # a new file under a name nobody could plant a link at; same suffix, so writers that look at it still see
+    # .csv / .mcap / .json
+    return temp_beside(path)
 
 
 def _mcap_writer(out: Path) -> Any:

@@ -26,6 +26,7 @@ import numpy as np
 import zenoh
 
 from drivers.errors import ConfigError
+from drivers.text import printable_json
 from service.io.bus import (
     BusClient,
     BusError,
@@ -122,7 +123,8 @@ class TerminalView:
         now = self.clock()
         self.last_msg_t = now
         self.n_messages += 1
-        v = msg.value
+        # what a peer sent is shown escaped: only this view's own codes act on the terminal
+        v = printable_json(msg.value) if isinstance(msg.value, dict) else msg.value
         if msg.stream in self._rates:
             q = self._rates[msg.stream]
             q.append((now, v.n_samples))
@@ -134,6 +136,7 @@ class TerminalView:
             self.update_state(v["state"])
 
     def update_state(self, st: dict[str, Any]) -> None:
+        st = printable_json(st)
         self.state = {**(self.state or {}), **st}
         names = st.get("probe_names") or [p.get("name") for p in st.get("probes") or [] if isinstance(p, dict)]
         if names and all(isinstance(n, str) for n in names):

@@ -5,11 +5,11 @@ result's `written`; a report that cannot be written costs the exit status, never
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 from drivers.errors import FluxcalError
+from drivers.outputs import replacing
 from service.wiring.result import Said
 
 
@@ -29,14 +29,8 @@ def write_discovered(out: Any, path: str, source: str, said: Said) -> None:
     kept = _keep_earlier(target, text)
     if kept is not None:
         said("write-effect", f"{target} held another module (your edits?): kept as {kept}", level="say")
-    fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".tmp", dir=target.parent or ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with replacing(target, "w") as f:               # a link at the path replaced, never written through
+        f.write(text)
     out.written.append(str(target))
     use = ",".join(f"{target}:{c}" for c in effect_classes([g.group for g in found.groups]))
     said("write-effect", f"the discovered term written to {target} as an effect of your own: rename it and give it "

@@ -256,8 +256,13 @@ def run_diagnosis(view: UnitView, unit: str, block: Any, names: list[str] | None
         view.diagnosis = {"status": "done", "finished_unix_s": time.time(), "n_samples": int(block.n_samples),
                           "duration_s": float(block.t_s[-1] - block.t_s[0]), "effects": effects,
                           "verdict": out.get("verdict"), "candidates": out.get("candidates"), "given": given,
-                          "discovery": None if found is None else {"claimed": bool(found.claimed),
-                                                                   "sentence": found.sentence()},
+                          "discovery": None if found is None else {
+                              "claimed": bool(found.claimed), "sentence": found.sentence(),
+                              # what the page draws of each law found (shape_reading.partial_residual)
+                              "shapes": [{"observable": g.group.feature.observable, "unit": g.group.feature.unit,
+                                          "law": g.parts.get("law"), "partial": g.parts["partial"]}
+                                         for g in (found.groups if found.claimed else [])
+                                         if g.parts.get("partial")]},
                           "effect_module": effect,
                           "text": summary_text(result, f"fluxcal/{unit}, last {block.n_samples} samples")}
     except (FluxcalError, ValueError, np.linalg.LinAlgError) as e:

@@ -4,7 +4,8 @@ internet), and a small JSON API the page polls. A page polls; a closed tab sends
     GET  /                      the page (it carries this server's session token, see below)
     GET  /static/<file>         its scripts and style
     GET  /api/units             {"connected", "endpoints", "units": [{"unit", "status", "status_text"}], "message",
-                                 "read_only"}
+                                 "read_only", "refused_requests", "connections" (guard.py: waiting, closed idle,
+                                 evicted at the cap, cut off slow)}
     GET  /api/calibration?unit=U  the calibration in use as a calibration file, which `apply` takes back
     GET  /api/effect?unit=U     the term the last diagnosis discovered, as an effect module (diagnose --write-effect)
     GET  /api/view?unit=U&series=N&raw=N&error=N
@@ -40,8 +41,10 @@ from typing import Any
 from urllib.parse import parse_qs, urlparse
 
 from drivers.errors import FluxcalError
+from drivers.text import printable
 from service.io.bus import COMMANDS
 
+from .guard import Guard
 from .hub import Hub
 
 _TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
@@ -101,7 +104,9 @@ class _Handler(BaseHTTPRequestHandler):
         pass
 
     def _send(self, status: int, body: bytes, ctype: str, extra: tuple[tuple[str, str], ...] = ()) -> None:
+        self.close_connection = True          # one request a connection: no worker waits on a kept-alive socket
         self.send_response(status)
+        self.send_header("Connection", "close")
         self.send_header("Content-Type", ctype)
         self.send_header("Content-Length", str(len(body)))
         self.send_header("Cache-Control", "no-store")
@@ -159,6 +164,7 @@ class _Handler(BaseHTTPRequestHandler):
         return None
 
     def do_GET(self) -> None:
+        self.server.guard.request_read(self.connection)      # the request is in: answered from here on
         why = self._host_refusal()
         if why is not None:
             self._refuse(403, why)
@@ -182,7 +188,7 @@ class _Handler(BaseHTTPRequestHandler):
             elif url.path == "/api/units":
                 self._json({**hub.units(), "read_only": self.server.read_only,
                             "read_only_reason": READ_ONLY_REASON if self.server.read_only else "",
-                            "refused_requests": dict(self.server.refused)})
+                            "refused_requests": dict(self.server.refused), "connections": self.server.guard.stats()})
             elif url.path == "/api/calibration":
                 self._download(q.get("unit", ""), lambda u: json.dumps(hub.calibration_file(u), indent=1),
                                "application/json", "{}-calibration.json")
@@ -214,6 +220,7 @@ class _Handler(BaseHTTPRequestHandler):
                                                        f"bytes refused (allowed: 0 to {MAX_BODY})")
             return None
         raw = self.rfile.read(n) if n else b"{}"
+        self.server.guard.request_read(self.connection)      # the whole request is in: answered from here on
         try:
             body = json.loads(raw)
         except (ValueError, RecursionError) as e:
@@ -338,9 +345,11 @@ def command_payload(name: str, payload: Any) -> tuple[str, str]:
 class DashboardServer(ThreadingHTTPServer):
     """Serves the page and the API for `hub` on (host, port); port 0 takes a free one (see `url`).
     `token` is this server's session token (a new random one by default); `refused` counts refused requests
-    by kind of reason (and with `say_refusals` the first of each kind is said on stderr)."""
+    by kind of reason (and with `say_refusals` the first of each kind is said on stderr). Its connections are
+    watched by a Guard (guard.py: idle and slow clients closed, a cap with a counter, one request each)."""
 
     daemon_threads = True
+    request_queue_size = 128          # a burst of connections waits in the kernel, not refused, while the guard takes them
 
     def __init__(self, hub: Hub, host: str = "127.0.0.1", port: int = 8090, read_only: bool = False,
                  token: str | None = None, say_refusals: bool = False) -> None:
@@ -356,6 +365,23 @@ class DashboardServer(ThreadingHTTPServer):
             self._names.add(host.lower())
         super().__init__((host, port), _Handler)
         self._thread: threading.Thread | None = None
+        self.guard = Guard(self, self._say if say_refusals else None)
+
+    @staticmethod
+    def _say(text: str) -> None:
+        print(f"fluxcal dashboard: {text}", file=sys.stderr, flush=True)
+
+    def serve_forever(self, poll_interval: float = 0.2) -> None:
+        self.guard.run(poll_interval)
+
+    def shutdown(self) -> None:
+        self.guard.stop()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(10)
+
+    def server_close(self) -> None:
+        super().server_close()
+        self.guard.close()
 
     def host_allowed(self, name: str) -> bool:
         """A Host name this server answers to: an IP address (a page cannot rebind a name to one), localhost,
@@ -371,8 +397,8 @@ class DashboardServer(ThreadingHTTPServer):
             self.refused[key] = self.refused.get(key, 0) + 1
             first = self.refused[key] == 1
         if first and self.say_refusals:
-            print(f"fluxcal dashboard: refused a request: {why[:200]} (further ones of this kind are counted in "
-                  f"/api/units)", file=sys.stderr, flush=True)
+            print(f"fluxcal dashboard: refused a request: {printable(why[:200])} (further ones of this kind are "
+                  f"counted in /api/units)", file=sys.stderr, flush=True)
 
     @property
     def url(self) -> str:

@@ -33,7 +33,13 @@ function merge(h, rows) {
 function col(h, name) { const k = h ? h.columns.indexOf(name) : -1; return k > 0 ? h.cols[k - 1] : null; }
 function last(a) { for (let i = a.length - 1; i >= 0; i--) { if (a[i] !== null) { return a[i]; } } return null; }
 function num(x, d) { return x === null || x === undefined ? "–" : Number(x).toFixed(d === undefined ? 2 : d); }
-function esc(s) { return String(s).replace(/[&<>"]/g, c => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c])); }
+// text from the network shown, never interpreted: HTML's specials escaped, control characters as escapes (\n, \x1b)
+function esc(s) {
+  return String(s).replace(/[&<>"]/g, c => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]))
+    .replace(/[\x00-\x1f\x7f-\x9f\u061c\u200b-\u200f\u2028-\u202e\u2060-\u2069\ufeff]/g,
+      c => ({ "\n": "\\n", "\r": "\\r", "\t": "\\t" }[c] ||
+        (c.charCodeAt(0) < 256 ? "\\x" : "\\u") + c.charCodeAt(0).toString(16).padStart(c.charCodeAt(0) < 256 ? 2 : 4, "0")));
+}
 
 async function getJSON(url, init) {
   const r = await fetch(url, init);
@@ -237,7 +243,8 @@ function renderCommands(v) {
   $("command-log").innerHTML = (v.commands || []).slice().reverse().map(c =>
     `<li class="${c.ok ? "good" : "bad"}" data-command="${esc(c.command)}" data-ok="${c.ok}">` +
     `${new Date(c.time_unix_s * 1000).toLocaleTimeString()} ${esc(c.command)} ${esc(c.payload || "")}: ` +
-    `${c.ok ? "ok" : "refused: " + esc(c.error || "")} (${num(1000 * c.round_trip_s, 0)} ms)</li>`).join("");
+    `${c.ok ? "ok" : "refused: " + esc(c.error || "")} (${num(1000 * c.round_trip_s, 0)} ms)` +
+    `${c.warning ? " — WARNING: " + esc(c.warning) : ""}</li>`).join("");
 }
 
 function renderDiagnosis(d, kept) {
@@ -257,14 +264,22 @@ function renderDiagnosis(d, kept) {
     (d.discovery ? `<p id="discovery">beyond the catalogue: ${esc(d.discovery.sentence || "")}` +
       (d.effect_module ? ` <a id="effect-download" href="/api/effect?unit=${encodeURIComponent(unit)}" ` +
         `download>write it as an effect of your own (.py)</a>` : "") + `</p>` : "") +
+    ((d.discovery && d.discovery.shapes) || []).map((s, i) =>
+      `<canvas class="shape" id="shape-${i}" data-observable="${esc(s.observable)}"></canvas>`).join("") +
     `<p class="muted" id="diagnosis-given">${esc(d.given || "")}</p>` +
     `<details><summary>full text (${d.n_samples} samples, ${num(d.duration_s, 0)} s)</summary><pre>${esc(d.text)}</pre></details>`;
+  ((d.discovery && d.discovery.shapes) || []).forEach((s, i) => window.fluxplot.drawShape($("shape-" + i), s));
+}
+
+// a counter of what arrived or was sent (bytes_received, frames_accepted, published_*) is not a fault: never red
+function counterIsThroughput(k) {
+  return /(^|_)(received|accepted)$/.test(k) || k.startsWith("published_") || k.startsWith("received");
 }
 
 function renderHealth(v) {
   const counters = (v.health && v.health.counters) || {};
   const bus = (v.health && v.health.bus) || {};
-  const good = (k) => k === "frames_accepted" || k.startsWith("published_") || k.startsWith("received");
+  const good = counterIsThroughput;
   $("health").innerHTML = "<tr><th>counter</th><th>value</th></tr>" + Object.entries(counters).concat(
     Object.entries(bus).filter(([k]) => /errors|dropped|refused|expired/.test(k)).map(([k, x]) => ["bus." + k, x])).map(([k, x]) =>
     `<tr><th>${esc(k)}</th><td class="${x && !good(k) ? "bad" : ""}">${esc(x)}</td></tr>`).join("");

@@ -161,5 +161,46 @@ function drawSphere(canvas, cov, probe) {
   }
 }
 
-window.fluxplot = { Chart, drawSphere, COLORS };
+// A shape discovery found: per probe, the partial residual in bins of the observable (points with their standard
+// errors) and the law's field along its direction with a band of two standard errors.
+function drawShape(canvas, shape) {
+  const dpr = window.devicePixelRatio || 1, w = canvas.clientWidth || 600, h = canvas.clientHeight || 220;
+  canvas.width = Math.round(w * dpr); canvas.height = Math.round(h * dpr);
+  const g = canvas.getContext("2d");
+  g.setTransform(dpr, 0, 0, dpr, 0, 0);
+  g.clearRect(0, 0, w, h);
+  const L = 64, R = 8, T = 20, B = 26, pw = w - L - R, ph = h - T - B;
+  let x0 = Infinity, x1 = -Infinity, y0 = Infinity, y1 = -Infinity;
+  for (const p of shape.partial) {
+    p.grid.forEach((x, i) => { x0 = Math.min(x0, x); x1 = Math.max(x1, x);
+      y0 = Math.min(y0, p.law_nT[i] - p.band_nT[i]); y1 = Math.max(y1, p.law_nT[i] + p.band_nT[i]); });
+    p.x.forEach((x, i) => { y0 = Math.min(y0, p.mean_nT[i] - p.stderr_nT[i]); y1 = Math.max(y1, p.mean_nT[i] + p.stderr_nT[i]); });
+  }
+  if (!(x1 > x0) || !(y1 > y0)) { return; }
+  const pad = (y1 - y0) * 0.06; y0 -= pad; y1 += pad;
+  const X = (v) => L + (v - x0) / (x1 - x0) * pw, Y = (v) => T + (1 - (v - y0) / (y1 - y0)) * ph;
+  g.font = "12px sans-serif"; g.fillStyle = "#222";
+  g.fillText(`${shape.observable}: ${shape.law} (field along its direction, nT; band: 2 standard errors)`, L, 13);
+  g.strokeStyle = "#ddd"; g.fillStyle = "#555"; g.lineWidth = 1;
+  for (const v of niceTicks(y0, y1, 4)) { g.beginPath(); g.moveTo(L, Y(v)); g.lineTo(L + pw, Y(v)); g.stroke(); g.fillText(fmt(v), 2, Y(v) + 4); }
+  for (const v of niceTicks(x0, x1, 6)) { g.beginPath(); g.moveTo(X(v), T); g.lineTo(X(v), T + ph); g.stroke(); g.fillText(fmt(v), X(v) - 10, h - 8); }
+  g.strokeStyle = "#999"; g.strokeRect(L, T, pw, ph);
+  shape.partial.forEach((p, k) => {
+    const colour = COLORS[k % COLORS.length];
+    g.fillStyle = colour; g.globalAlpha = 0.2; g.beginPath();
+    p.grid.forEach((x, i) => { const y = Y(p.law_nT[i] + p.band_nT[i]); if (i) { g.lineTo(X(x), y); } else { g.moveTo(X(x), y); } });
+    for (let i = p.grid.length - 1; i >= 0; i--) { g.lineTo(X(p.grid[i]), Y(p.law_nT[i] - p.band_nT[i])); }
+    g.fill(); g.globalAlpha = 1;
+    g.strokeStyle = colour; g.lineWidth = 1.5; g.beginPath();
+    p.grid.forEach((x, i) => { if (i) { g.lineTo(X(x), Y(p.law_nT[i])); } else { g.moveTo(X(x), Y(p.law_nT[i])); } });
+    g.stroke(); g.lineWidth = 1;
+    p.x.forEach((x, i) => {
+      g.beginPath(); g.moveTo(X(x), Y(p.mean_nT[i] - p.stderr_nT[i])); g.lineTo(X(x), Y(p.mean_nT[i] + p.stderr_nT[i])); g.stroke();
+      g.fillRect(X(x) - 2, Y(p.mean_nT[i]) - 2, 4, 4);
+    });
+    g.fillText(p.probe, L + 8 + 40 * k, T + 14);
+  });
+}
+
+window.fluxplot = { Chart, drawSphere, drawShape, COLORS };
 })();

@@ -1,0 +1,95 @@
+"""One diagnosis tells one story (issue 36): no two of its sentences disagree about an observable.
+
+- never "it follows X" (or "following X") beside "no logged column (..., X, ...) follows it";
+- never "log ..." for what is logged (test_advice.py holds every request to log), nor "log the phase or speed of what
+  turns at that rate" for a line that a logged column's own motion makes (2 f1, f1 + f2 of its lines): that line is
+  the column's shape;
+- over every branch of signature.describe, with every combination of what the data carry and of what the residual
+  follows, and on diagnoses of worlds whose residual is such a shape (test_shapes.py's)."""
+
+from __future__ import annotations
+
+import itertools
+import re
+
+import pytest
+from test_advice import BRANCHES, _follow, _sig
+
+from service.numerics.diagnose.signature import Carried, describe
+
+#: a logged angle that moves at two frequencies, and a line of the residual at 2 f1
+FLAP = ("flap_deg", (0.0583, 0.1896))
+
+
+def disagreements(text: str) -> list[str]:
+    """What one output says of an observable in two ways: followed and called unfollowed; a line made by a logged
+    column's motion sent to be logged."""
+    followed = set(re.findall(r"follows ([\w ]+?)(?: [0-9.]+-[0-9.]+ Hz)? in [\w.-]+ \(\d+ %\)", text))
+    followed |= set(re.findall(r"following ([\w ]+?)(?: [0-9.]+-[0-9.]+ Hz)? \d+ %", text))
+    followed = {f.removesuffix(" x field direction") for f in followed}
+    out = []
+    for group in re.findall(r"no logged column \(([^)]*)\) follows it", text):
+        named = {c.strip() for c in group.split(",")}
+        both = named & followed
+        if both:
+            out.append(f"{', '.join(sorted(both))} both followed and called unfollowed")
+    for col in re.findall(r"a non-linear function of (\w+), which the file logs", text):
+        if "log the phase or speed" in text:
+            out.append(f"a line of {col}'s motion sent to be logged")
+    return out
+
+
+CARRIED = [Carried(temperatures=t, columns=cols, reference=ref, probes=p, motion=motion, duration_s=600.0)
+           for t, cols, ref, p, motion in itertools.product(
+               [(), ("s1", "s2")], [(), ("heater_A", "flap_deg")], [False, True], [1, 3], [(), (FLAP,)])
+           if "flap_deg" in cols or not motion]
+
+STORIES = {
+    **BRANCHES,
+    "line of the angle's motion": _sig(line_hz=0.1166, follows=[_follow("flap_deg", 0.4)]),
+    "band of the angle's motion": _sig(follows=[{**_follow("frequency", 0.3, band="0.0571-0.118 Hz"),
+                                                  "band_hz": [0.0571, 0.118]}, _follow("flap_deg", 0.2)]),
+    "line beside a weakly followed column": _sig(line_hz=1.51, follows=[_follow("heater_A", 0.2)]),
+    "band beside a column through the field's direction": _sig(follows=[
+        {**_follow("frequency", 0.3, band="1.2-2.57 Hz"), "band_hz": [1.2, 2.57]},
+        _follow("heater_A x field direction", 0.2)]),
+}
+
+
+@pytest.mark.parametrize("story", sorted(STORIES))
+def test_no_two_sentences_of_a_description_disagree(story):
+    for carried in CARRIED:
+        what, advice = describe(dict(STORIES[story]), carried)
+        text = f"what is left: {what}\nwhat would explain it: {advice}"
+        assert disagreements(text) == [], (story, carried, text)
+
+
+def test_a_line_that_a_logged_angles_motion_makes_is_its_shape():
+    carried = Carried(columns=("heater_A", "flap_deg"), probes=3, motion=(FLAP,), duration_s=600.0)
+    for line in (0.1166, 0.2479, 0.1313):                       # 2 f1, f1 + f2, f2 - f1
+        _, advice = describe(_sig(line_hz=line), carried)
+        assert "non-linear function of flap_deg" in advice and "log the phase" not in advice, advice
+    _, advice = describe(_sig(line_hz=0.3), carried)            # no combination of its lines: something else
+    assert "flap_deg" in advice and "something periodic at 0.30 Hz" in advice, advice
+
+
+def test_the_checker_sees_a_disagreement():
+    assert disagreements("it follows flap_deg in s2-s1.z (92 %); no logged column (heater_A, flap_deg) follows it")
+    assert disagreements("a non-linear function of flap_deg, which the file logs (...); log the phase or speed of "
+                         "what turns at that rate")
+    assert not disagreements("it follows flap_deg in s2-s1.z (92 %); no logged column (heater_A) follows it")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("recording", ["grad3-flap.mcap", "grad3-pump.mcap", "grad1-hidden-effect.mcap"])
+def test_the_sample_recordings_diagnoses_tell_one_story(recording):
+    from pathlib import Path
+
+    from service.io.recordings.load import load_data
+    from service.numerics.diagnose import diagnose, summary_text
+
+    d = diagnose(load_data(Path(__file__).resolve().parents[2] / "recordings" / recording))
+    text = summary_text(d)
+    assert disagreements(text) == [], text
+    if recording == "grad3-flap.mcap":             # its lines of the flap's motion: the flap's shape, said so
+        assert "flap_deg's motion" in text and "no logged column (flap_deg" not in text, text
