@@ -4,12 +4,15 @@
    recording cut into the 20-sample blocks a live unit delivers, against the bare numerics
    (ICD parse + calibrate) of the same samples in the same run, and the floor: the parts of that replay no
    implementation with the same outputs can skip, each timed alone.
-2. Live latency from a frame written to the pty to its corrected Zenoh message received, p50 and
-   p99, and the service's CPU use, at 1 kHz with 4 probes.
+2. The live service (`fluxcal run` under a simulated unit on a pty) at 1, 2 and 5 kHz x 4 probes and 1 kHz x 8:
+   its CPU time (process CPU, all threads, and by thread) as a share of one core, per probe-sample and against the
+   bare numerics of the same samples timed in this process; latency from a frame written to the pty to its corrected
+   Zenoh message received, p50 and p99. Each case several times (min and median). With --profile, first one run
+   with the stages of the service's loop timed (bench/_stages.py): where each microsecond of a block goes.
 
-Run by hand:  .venv/bin/python bench/bench_service.py [--seconds 20]
+Run by hand, under the shared lock:  flock /tmp/fluxcal-heavy.lock .venv/bin/python bench/bench_service.py [--profile]
 (the replay runs with OPENBLAS_NUM_THREADS=1 unless set, as `fluxcal replay` does; the live service is
-started with the environment this was given)
+started with the environment this was given, as a user starts it)
 """
 
 from __future__ import annotations
@@ -20,86 +23,63 @@ _USER_BLAS_THREADS = os.environ.get("OPENBLAS_NUM_THREADS")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")        # before numpy loads: the replay CLI's setting
 
 import argparse
-import json
 import platform
-import signal
-import socket
-import subprocess
-import sys
 import tempfile
-import threading
 import time
-import tty
+import zlib
 from pathlib import Path
 
 import numpy as np
+from _live import bare_seconds, config_text, identity, make_samples, probes
 from _machine import cpu_model
 
 from drivers.block import SampleBlock
-from drivers.icd import encode_serial, parse_serial
-from drivers.sim.config import load_sim_config
-from drivers.sim.unit import Unit
-from service.io.calfile import load_calibration, save_calibration
-from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from service.io.calfile import load_calibration
 
 N_PROBES, RATE = 4, 1000.0
-PROBES = [{"name": f"s{k + 1}", "position_m": p, "offset_nT": [100.0 * k, -50.0, 30.0], "noise_nT": 0.5}
-          for k, p in enumerate([[0.2, 0, 0], [0, 0.2, 0], [-0.2, 0, 0], [0, -0.2, 0]])]
+PROBES = probes(N_PROBES)
 
 
 def machine() -> str:
     return f"{cpu_model()}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}"
 
 
-def config_text(tmp: Path, source: str, port: int, initial: Path, block_ms: float | None = None) -> str:
-    lines = ['[unit]', 'name = "bench"', f'n_probes = {N_PROBES}'] + ([f'block_ms = {block_ms}'] if block_ms else []) + ['']
-    for p in PROBES:
-        lines += ['[[probes]]', f'name = "{p["name"]}"', f'position_m = {p["position_m"]}', '']
-    lines += [source, '', '[sim]', f'rate_hz = {RATE}', '[sim.reference]', 'enabled = false', '']
-    for p in PROBES:
-        lines += ['[[sim.probes]]'] + [f'{k} = {json.dumps(v)}' for k, v in p.items()] + ['']
-    lines += ['[estimator]', 'total_nT = 52500.0', '[calibration]', f'file = "{tmp / "cal.json"}"',
-              f'initial = "{initial}"', '[zenoh]', f'listen = ["tcp/127.0.0.1:{port}"]',
-              '[mcap]', f'dir = "{tmp / "rec"}"', '']
-    return "\n".join(lines)
-
-
-def make_samples(seconds: float):
-    cfg = load_sim_config({"rate_hz": RATE, "duration_s": seconds, "probes": PROBES})
-    unit = Unit(cfg)
-    return cfg, unit, unit.digitise(0, cfg.n_samples)
-
-
-def bench_replay(tmp: Path, seconds: float) -> None:
+def bench_replay(tmp: Path, seconds: float, repeat: int) -> None:
     import tomllib
 
+    from service.io.recordings import files, writer
     from service.io.recordings.reader import read_recording
-    from service.io.recordings.writer import McapLogger
+    from service.wiring import pipeline as pipeline_mod
     from service.wiring.config import config_from_dict
     from service.wiring.daemon import build_pipeline
 
-    cfg, unit, s = make_samples(seconds)
+    s = make_samples(seconds, RATE, PROBES)
     block = s.to_block()
-    log = McapLogger(tmp / "rep", unit="bench", filename="in.mcap")
+    log = writer.McapLogger(tmp / "rep", unit="bench", filename="in.mcap")
     for i in range(0, block.n_samples, 20):
         log.write_raw(block.slice(i, i + 20))
     log.close()
-    initial = tmp / "identity.json"
-    save_calibration(ArrayCalibration("ellipsoid", None, [ProbeCalibration(p["name"], np.zeros(3), np.eye(3))
-                                                          for p in PROBES]), initial)
-    fcfg = config_from_dict(tomllib.loads(config_text(tmp, '[source]\nkind = "sim"', 7447, initial)))
+    initial = identity(tmp, PROBES)
+    fcfg = config_from_dict(tomllib.loads(config_text(tmp, '[source]\nkind = "sim"', 7447, initial, PROBES, RATE)))
     start = load_calibration(initial)
-    # replay path: MCAP decode -> pipeline (estimator, gate, correction) -> MCAP write; best of 3
+    # the parts of the replay, each call's wall time added to its part (the pipeline's and the writer's)
+    parts = {"gate": _timed(pipeline_mod.Pipeline, "_check_candidate"),
+             "estimator": _timed(pipeline_mod.Pipeline, "_update_estimators"),
+             "correction and products": _timed(pipeline_mod.Pipeline, "_correct"),
+             "chunks (lz4, CRC, file)": _timed(files.McapFiles, "finish", _timed(files.McapFiles, "flush")),
+             "10 Hz means": _timed(writer.Products, "corrected"), "their JSON": _timed(writer, "encode_json")}
+    # replay path: MCAP decode -> pipeline (estimator, gate, correction) -> MCAP write
     times, phases = [], []
-    for rep in range(3):
+    for rep in range(repeat):
+        for spent in parts.values():
+            spent.clear()
         t0 = time.perf_counter()
         rec = read_recording(tmp / "rep" / "in.mcap")
         whole = rec.raw                          # every raw sample, as `fluxcal replay` takes them
         t_decode = time.perf_counter() - t0
         pipe = build_pipeline(fcfg, start)      # corrected from the first sample, as a recording's initial event does
         t_pipe = time.perf_counter() - t0 - t_decode
-        checks = _timed(pipe, "_check_candidate")
-        out = McapLogger(tmp / "rep", unit="bench", filename=f"out{rep}.mcap")
+        out = writer.McapLogger(tmp / "rep", unit="bench", filename=f"out{rep}.mcap")
         for i in range(0, whole.n_samples, 20000):
             b = whole.slice(i, i + 20000)
             t1 = time.perf_counter()
@@ -110,36 +90,28 @@ def bench_replay(tmp: Path, seconds: float) -> None:
                 out.write_corrected(r.corrected)
         out.close()
         times.append(time.perf_counter() - t0)
-        phases.append((t_decode, t_pipe, times[-1] - t_decode - t_pipe, sum(checks), len(checks)))
+        phases.append((t_decode, t_pipe, times[-1] - t_decode - t_pipe,
+                       {k: (sum(v), len(v)) for k, v in parts.items()}))
     t_replay = min(times)
-    # bare numerics: parse the ICD bytes and apply a calibration, same samples
-    data = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
-    m = np.stack([np.eye(3)] * N_PROBES)
-    o = np.zeros((N_PROBES, 3))
-    bare = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        p = parse_serial(data, N_PROBES, final=True)
-        f = p.frames.counts * 0.001
-        np.einsum("pij,npj->npi", m, f - o[None])
-        bare.append(time.perf_counter() - t0)
-    t_bare = min(bare)
+    t_bare = bare_seconds(s, N_PROBES, time.perf_counter, runs=3)
     n = whole.n_samples * N_PROBES
     print(f"replay (MCAP decode + pipeline + MCAP write), {whole.n_samples} samples x {N_PROBES} probes: "
-          f"{n / t_replay:,.0f} probe-samples/s (best of 3; median {n / sorted(times)[1]:,.0f})")
+          f"{n / t_replay:,.0f} probe-samples/s (best of {repeat}; median {n / float(np.median(times)):,.0f})")
     print(f"bare parse + calibrate of the same samples:                         {n / t_bare:,.0f} probe-samples/s")
-    print(f"ratio replay / bare: {t_bare / t_replay:.3f} "
+    print(f"ratio replay / bare: best {t_bare / t_replay:.3f}, median {t_bare / float(np.median(times)):.3f} "
           f"(OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')})")
-    dec, pip, wri, chk, n_chk = phases[times.index(t_replay)]
-    print(f"  best run: MCAP decode {dec * 1e3:.0f} ms, pipeline {pip * 1e3:.0f} ms (of which the gate's {n_chk} checks "
-          f"{chk * 1e3:.0f} ms), MCAP write {wri * 1e3:.0f} ms; bare {t_bare * 1e3:.1f} ms")
+    dec, pip, wri, split = phases[times.index(t_replay)]
+    print(f"  best run: MCAP decode {dec * 1e3:.0f} ms, pipeline {pip * 1e3:.0f} ms, MCAP write {wri * 1e3:.0f} ms; "
+          f"bare {t_bare * 1e3:.1f} ms; of these: " + ", ".join(f"{k} {v * 1e3:.0f} ms ({c} calls)"
+                                                               for k, (v, c) in split.items()))
     floor_parts(block, t_bare)
 
 
-def _timed(obj, name: str) -> list[float]:
-    """Wrap obj.name (on the instance) to add each call's duration to the list returned."""
-    spent: list[float] = []
-    inner = getattr(obj, name)
+def _timed(owner, name: str, spent: list[float] | None = None) -> list[float]:
+    """Wrap owner.name (a class's method or a module's function) to add each call's wall time to the list
+    returned (`spent`, when given)."""
+    spent = [] if spent is None else spent
+    inner = getattr(owner, name)
 
     def wrapper(*a, **k):
         t0 = time.perf_counter()
@@ -148,7 +120,7 @@ def _timed(obj, name: str) -> list[float]:
         finally:
             spent.append(time.perf_counter() - t0)
 
-    setattr(obj, name, wrapper)
+    setattr(owner, name, wrapper)
     return spent
 
 
@@ -200,11 +172,16 @@ def floor_parts(block: SampleBlock, t_bare: float) -> None:
             for i in range(0, len(data), mb):
                 lz4.frame.compress(data[i:i + mb])
 
+    def crc() -> None:                               # each chunk's CRC, which the MCAP writer stores and readers check
+        for data in (raw_bytes, corrected_bytes):
+            for i in range(0, len(data), mb):
+                zlib.crc32(data[i:i + mb])
+
     pack = "lz4 compress of raw + corrected out"
     parts = {"lz4 decompress of the input": best(lambda: lz4.frame.decompress(packed)),
              "RLS normal equations": best(rls),
              "correction, differences, tensor": best(correct_all),
-             pack: best(compress)}
+             pack: best(compress), "CRC32 of the chunks": best(crc)}
     total = sum(parts.values())
     print("  floor, each part alone: " + ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in parts.items())
           + f"; sum {total * 1e3:.0f} ms against the {2e3 * t_bare:.0f} ms a 0.5x ratio allows "
@@ -214,99 +191,127 @@ def floor_parts(block: SampleBlock, t_bare: float) -> None:
     print(f"  spread perfectly over all {cores} cores (no part waiting for another): at best "
           f"{t_bare * cores / total:.2f}x, uncompressed {t_bare * cores / (total - parts[pack]):.2f}x, "
           f"before the gate's checks that the same outputs need (above)")
+    compression_choices(raw_bytes + corrected_bytes, best)
 
 
-def cpu_seconds(pid: int) -> float:
-    with open(f"/proc/{pid}/stat") as f:
-        parts = f.read().rsplit(")", 1)[1].split()
-    return (int(parts[11]) + int(parts[12])) / os.sysconf("SC_CLK_TCK")
+def compression_choices(data: bytes, best) -> None:
+    """The logger's chunk size and compression by measurement: lz4 of the replay's output in chunks of 64 KiB to
+    4 MiB, and at its faster levels, with the size each leaves (best of 3)."""
+    import lz4.frame
+
+    def rate(size: int, level: int = 0) -> tuple[float, float]:
+        pieces = [data[i:i + size] for i in range(0, len(data), size)]
+        out: list[int] = []
+        t = best(lambda: out.append(sum(len(lz4.frame.compress(p, compression_level=level)) for p in pieces)))
+        return len(data) / t / 1e6, out[-1] / len(data)
+
+    sizes = ", ".join("{} KiB {:.0f} MB/s".format(k >> 10, rate(k)[0]) for k in (64 << 10, 256 << 10, 1 << 20, 4 << 20))
+    levels = ", ".join("level {} {:.0f} MB/s to {:.2f} of the size".format(lv, *rate(1 << 20, lv))
+                       for lv in (0, -1, -4))
+    print(f"  lz4 of the output by chunk size: {sizes}; by level (1 MiB chunks): {levels}")
 
 
-def bench_live(tmp: Path, seconds: float, block_ms: float | None = None) -> None:
-    from service.io.bus import BusClient, ZenohConfig
+def _stats(values) -> str:
+    v = sorted(values)
+    return f"{v[0]:.1f}" if len(v) == 1 else f"min {v[0]:.1f}, median {float(np.median(v)):.1f}"
 
-    cfg, unit, s = make_samples(seconds + 10)
-    master, slave = os.openpty()
-    tty.setraw(master)
-    port_path = os.ttyname(slave)
-    with socket.socket() as sk:
-        sk.bind(("127.0.0.1", 0))
-        port = sk.getsockname()[1]
-    initial = tmp / "identity.json"
-    save_calibration(ArrayCalibration("ellipsoid", None, [ProbeCalibration(p["name"], np.zeros(3), np.eye(3))
-                                                          for p in PROBES]), initial)
-    src = (f'[source]\nkind = "serial"\nport = "{port_path}"\nn_probes = {N_PROBES}\nrate_hz = {RATE}')
-    cfg_path = tmp / "live.toml"
-    full = config_text(tmp, src, port, initial, block_ms)            # the serial unit is real here: no [sim] sections
-    cfg_path.write_text(full.split("\n[sim]")[0] + "\n[estimator]" + full.split("[estimator]", 1)[1])
-    prof = os.environ.get("FLUXCAL_PROFILE")
-    cmd = [sys.executable] + (["-m", "cProfile", "-o", prof] if prof else []) + ["-m", "service.wiring.cli", "run", "--config", str(cfg_path)]
-    env = dict(os.environ)
-    if _USER_BLAS_THREADS is None:
-        env.pop("OPENBLAS_NUM_THREADS", None)                  # the live service as a user starts it
-    proc = subprocess.Popen(cmd, env=env,
-                            stderr=subprocess.PIPE, text=True)
-    time.sleep(3.0)
-    client = BusClient(ZenohConfig.client(f"tcp/127.0.0.1:{port}"), "bench", streams=["corrected"])
-    frames = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
-    fl = len(frames) // len(s.seq_raw)
-    sent_at = np.zeros(len(s.seq_raw))
-    lat, lat_oldest = [], []
-    stop = threading.Event()
 
-    def receive():
-        while not stop.is_set():
-            msg = client.recv(timeout=0.2)
-            if msg is None:
-                continue
-            now = time.perf_counter()
-            seq, first = int(msg.value.seq[-1]), int(msg.value.seq[0])
-            if seq < len(sent_at) and sent_at[seq] > 0 and sent_at[first] > 0:
-                lat.append(now - sent_at[seq])
-                lat_oldest.append(now - sent_at[first])
+def print_profile(run) -> None:
+    """Where the CPU time of one live block goes: the stages of the service's loop (thread CPU time, inclusive, and
+    each stage's own), and the process's threads (from /proc over the run)."""
+    st, blocks = run.stages, max(run.stages["blocks"], 1)
+    rows = {label: (ns, calls) for label, ns, calls in st["stages"]}
+    print(f"  profile of one live block ({run.n_probes} probes at {run.rate:.0f} Hz, {blocks} blocks of "
+          f"{run.rate * run.seconds / blocks:.1f} samples; thread CPU per block, us; own = the stage less those "
+          f"indented under it):")
+    for label, (ns, calls) in rows.items():
+        children = [lb for lb in rows if lb.startswith(label + "/") and "/" not in lb[len(label) + 1:]]
+        own = ns - sum(rows[c][0] for c in children)
+        depth = label.count("/")
+        name = label.rsplit("/", 1)[-1]
+        print(f"    {'  ' * depth}{name:<{44 - 2 * depth}} {ns / 1e3 / blocks:8.1f}"
+              + (f"  own {own / 1e3 / blocks:7.1f}" if children else " " * 13) + f"   {calls / blocks:6.2f} calls")
+    per = {k: v * 1e6 / blocks for k, v in run.groups.items()}
+    print("    threads (/proc schedstat): " + ", ".join(f"{k} {v:.0f}" for k, v in per.items())
+          + f"; all {run.cpu_s * 1e6 / blocks:.0f} us per block ({100 * run.core:.1f} % of a core with the timers)")
 
-    th = threading.Thread(target=receive, daemon=True)
-    th.start()
-    n = int(seconds * RATE)
-    cpu0 = cpu_seconds(proc.pid)
-    t_start = time.perf_counter()
-    for i in range(n):
-        target = t_start + i / RATE
-        while time.perf_counter() < target:
-            time.sleep(0.0002)
-        os.write(master, frames[i * fl:(i + 1) * fl])
-        sent_at[i] = time.perf_counter()
-    wall = time.perf_counter() - t_start
-    cpu = cpu_seconds(proc.pid) - cpu0
-    time.sleep(1.0)
-    stop.set()
-    th.join()
-    client.close()
-    proc.send_signal(signal.SIGTERM)
-    proc.wait(20)
-    os.close(master)
-    a = np.array(lat[len(lat) // 10:]) * 1e3          # skip the first tenth (start-up)
-    b = np.array(lat_oldest[len(lat_oldest) // 10:]) * 1e3
-    print(f"live, {N_PROBES} probes at {RATE:.0f} Hz over a pty, block_ms {block_ms or 'default'}, {seconds:.0f} s: latency frame written -> "
-          f"corrected message received p50 {np.percentile(a, 50):.2f} ms, p99 {np.percentile(a, 99):.2f} ms "
-          f"({a.size} messages; newest frame of each block), oldest frame of each block p50 "
-          f"{np.percentile(b, 50):.2f} ms, p99 {np.percentile(b, 99):.2f} ms; service CPU {100 * cpu / wall:.1f} % "
-          f"of one core")
+
+def bench_live(cases: list[tuple[float, int]], seconds: float, repeat: int, block_ms: float | None,
+               profile: bool) -> None:
+    from _live import live_floor, live_run
+
+    if profile:
+        print_profile(live_run(cases[0][0], cases[0][1], seconds, block_ms, _USER_BLAS_THREADS, profile=True))
+    base = None
+    for rate, n_probes in cases:
+        runs = [live_run(rate, n_probes, seconds, block_ms, _USER_BLAS_THREADS) for _ in range(repeat)]
+        core = [100 * r.core for r in runs]
+        us_ps = [r.cpu_s * 1e6 / r.probe_samples for r in runs]
+        ratio = [r.cpu_s / r.bare_s for r in runs]
+        groups = {k: [100 * r.groups[k] / r.wall_s for r in runs] for k in runs[0].groups}
+        p50 = [float(np.percentile(r.lat_ms, 50)) for r in runs]
+        p99 = [float(np.percentile(r.lat_ms, 99)) for r in runs]
+        p99o = [float(np.percentile(r.lat_oldest_ms, 99)) for r in runs]
+        if base is None:
+            base = float(np.median(core))
+        floor_us, floor_core = live_floor(rate, n_probes, seconds, block_ms or 8.0)
+        print(f"live, {n_probes} probes at {rate:.0f} Hz over a pty, block_ms {block_ms or 'default'}, {repeat} x "
+              f"{seconds:.0f} s: service CPU % of one core {_stats(core)} (all threads; "
+              + ", ".join(f"{k} {_stats(v)}" for k, v in groups.items())
+              + f"); {_stats(us_ps)} us per probe-sample, {_stats(ratio)} x the bare parse + calibrate of the same "
+              f"samples in this process ({runs[0].bare_s * 1e3:.1f} ms); median {float(np.median(core)) / base:.2f} x "
+              f"the first case's CPU. Latency frame written -> corrected message received, newest frame of each "
+              f"block: p50 {_stats(p50)} ms, p99 {_stats(p99)} ms; oldest frame p99 {_stats(p99o)} ms. The floor: what "
+              f"no service with these outputs can skip (read, parse, scale, correct with differences and tensor, "
+              f"encode, nine Zenoh puts, two MCAP messages), in one thread paced as the service: {floor_us:.0f} us a "
+              f"block, {100 * floor_core:.1f} % of one core; the service "
+              f"{float(np.median(core)) / 100 / floor_core:.2f} x that")
+
+
+def bench_against(code: Path, rate: float, n_probes: int, seconds: float, pairs: int, block_ms: float | None) -> None:
+    """The service of another checkout (`code`: main before a change) and this one's, run by turns in pairs, so that
+    what else the machine does weighs on both alike: each pair's CPU ratio, and latency."""
+    from _live import live_run
+
+    ratios, cores = [], {"other": [], "this": []}
+    p99 = {"other": [], "this": []}
+    for _ in range(pairs):
+        a = live_run(rate, n_probes, seconds, block_ms, _USER_BLAS_THREADS, code=code)
+        b = live_run(rate, n_probes, seconds, block_ms, _USER_BLAS_THREADS)
+        ratios.append(b.core / a.core)
+        for key, r in (("other", a), ("this", b)):
+            cores[key].append(100 * r.core)
+            p99[key].append(float(np.percentile(r.lat_ms, 99)))
+    print(f"live, {n_probes} probes at {rate:.0f} Hz, {pairs} pairs of {seconds:.0f} s runs by turns: service CPU % of "
+          f"one core {code}: {_stats(cores['other'])}; this checkout: {_stats(cores['this'])}; this / that in each "
+          f"pair: {_stats(ratios)} ({', '.join(f'{r:.2f}' for r in ratios)}); latency p99 (newest frame) "
+          f"{_stats(p99['other'])} against {_stats(p99['this'])} ms")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--seconds", type=float, default=30.0, help="of each live run")
+    ap.add_argument("--repeat", type=int, default=3, help="runs of each live case")
+    ap.add_argument("--cases", default="1000x4,2000x4,5000x4,1000x8",
+                    help="live cases, RATExPROBES, comma-separated (the first is the one profiled)")
+    ap.add_argument("--profile", action="store_true", help="first, one live run with the stages timed")
+    ap.add_argument("--against", type=Path, default=None, metavar="CHECKOUT",
+                    help="only: the first live case with this checkout's service and this one's by turns, in pairs")
     ap.add_argument("--live-only", action="store_true", help="skip the replay benchmark")
     ap.add_argument("--replay-only", action="store_true", help="skip the live benchmark")
-    ap.add_argument("--block-ms", type=float, default=None, help="[unit] block_ms of the live service (default: its default)")
+    ap.add_argument("--block-ms", type=float, default=None,
+                    help="[unit] block_ms of the live service (default: its default)")
     args = ap.parse_args()
+    cases = [(float(c.split("x")[0]), int(c.split("x")[1])) for c in args.cases.split(",")]
     print("machine:", machine())
+    if args.against is not None:
+        bench_against(args.against, cases[0][0], cases[0][1], args.seconds, args.repeat, args.block_ms)
+        return
     with tempfile.TemporaryDirectory() as d:
         if not args.live_only:
-            bench_replay(Path(d), 60.0)
-        if not args.replay_only:
-            bench_live(Path(d), args.seconds, args.block_ms)
+            bench_replay(Path(d), 60.0, args.repeat)
+    if not args.replay_only:
+        bench_live(cases, args.seconds, args.repeat, args.block_ms, args.profile)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,7 @@ from .icd import (DEFAULT_CAN_BASE_ID, SATURATED_COUNTS, TEMP_LSB_C, RawFrames, 
 from .plausibility import Plausibility
 from .source import Counters
 from .can_unwrap import CanUnwrap
-from .timeline import SerialTimeline
+from .timeline import SerialTimeline, _steps
 
 _SEQ_MODULUS = 1 << 16
 
@@ -40,18 +40,27 @@ def scale_samples(seq: np.ndarray, t_s: np.ndarray, counts: np.ndarray, temp_raw
     implausible samples are flagged FLAG_IMPLAUSIBLE (their values kept) and counted.
     """
     counts = np.asarray(counts)
-    saturated = (counts == SATURATED_COUNTS[0]) | (counts == SATURATED_COUNTS[1])
     field_nT = counts * float(lsb_nT)                        # nT = counts x lsb_nT
     flags = np.asarray(flags, dtype=np.uint8)
-    temp_bad = (flags & FLAG_TEMP_INVALID) != 0
     temp_C = np.asarray(temp_raw) * TEMP_LSB_C                # degC = raw x 0.01
-    if plausibility is not None and counts.shape[0]:
-        flags = plausibility.flag(field_nT, saturated, counts, temp_C, temp_bad, flags, counters)
-    field_nT[saturated] = np.nan
-    temp_C[temp_bad] = np.nan
+    n = counts.shape[0]
+    # the usual block has no axis at a rail and no flag: two reductions say so, and no mask is made
+    lo, hi = (int(counts.min()), int(counts.max())) if counts.size else (0, 0)
+    railed = lo == SATURATED_COUNTS[1] or hi == SATURATED_COUNTS[0]
+    saturated = (counts == SATURATED_COUNTS[0]) | (counts == SATURATED_COUNTS[1]) if railed else None
+    flagged = bool(n) and bool(flags.any())
+    temp_bad = (flags & FLAG_TEMP_INVALID) != 0 if flagged else None
+    if plausibility is not None and n:
+        # the field's extremes are the counts' scaled (x lsb_nT > 0 rounds monotonically), element for element
+        flags = plausibility.flag(field_nT, saturated, counts, temp_C, temp_bad, flags, counters,
+                                  field_range_nT=(lo * float(lsb_nT), hi * float(lsb_nT)))
+    if saturated is not None:
+        field_nT[saturated] = np.nan
+    if temp_bad is not None:
+        temp_C[temp_bad] = np.nan
     if counters is not None:
-        counters.saturated_axes += int(np.count_nonzero(saturated))
-        counters.temp_invalid += int(np.count_nonzero(temp_bad))
+        counters.saturated_axes += 0 if saturated is None else int(np.count_nonzero(saturated))
+        counters.temp_invalid += 0 if temp_bad is None else int(np.count_nonzero(temp_bad))
     return SampleBlock(t_s=np.asarray(t_s, dtype=np.float64), seq=np.asarray(seq, dtype=np.int64),
                        field_nT=field_nT, temp_C=temp_C, flags=flags)
 
@@ -66,11 +75,13 @@ class SeqGapCounter:
     def update(self, seq: np.ndarray, counters: Counters) -> None:
         if seq.size == 0:
             return
-        steps = np.diff(seq, prepend=seq[0] if self.last is None else self.last)
+        steps = _steps(seq, int(seq[0]) if self.last is None else self.last)
+        self.last = int(seq[-1])
+        if steps.max() <= 1:              # the usual block: no gap, one reduction
+            return
         gaps = steps > 1
         counters.seq_gaps += int(np.count_nonzero(gaps))
         counters.samples_missed += int((steps[gaps] - 1).sum())
-        self.last = int(seq[-1])
 
 
 class SerialFramer:
@@ -135,12 +146,15 @@ class FrameAssembler:
             return SampleBlock.empty(self.n_probes)
         keep, seq, t_us = self._timeline.order(frames, rx_time_s)
         counts, temp_raw, flags = frames.counts, frames.temp_raw, frames.flags
-        if not keep.all():
+        if keep is not None and not keep.all():
             counts, temp_raw, flags = counts[keep], temp_raw[keep], flags[keep]
         # division, not x 1e-6: t_us / 1e6 is the double nearest the exact time, so printing
         # it with 6 decimals gives back the unit's microseconds exactly
         t_s = t_us / 1e6
-        self._gaps.update(seq, self.counters)
+        if self._timeline.contiguous and self._gaps.last is not None:
+            self._gaps.last = int(seq[-1])               # every step one count: no gap to count
+        else:
+            self._gaps.update(seq, self.counters)
         return scale_samples(seq, t_s, counts, temp_raw, flags, lsb_nT=self.lsb_nT, counters=self.counters,
                              plausibility=self.plausibility)
 

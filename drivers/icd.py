@@ -64,7 +64,7 @@ def _word_table() -> np.ndarray:
 
 
 CRC_TABLE_WORD = _word_table()
-# The parser reads words little-endian straight from the frame bytes. Keeping the register
+# The word loop reads words little-endian straight from the frame bytes. Keeping the register
 # byte-swapped, s = bswap(crc), the word step becomes s' = bswap(T16[bswap(s ^ w_le)]) = U[s ^ w_le]:
 # no per-word byte swap.
 _WORD_TABLE_SWAPPED = _bswap16(CRC_TABLE_WORD[_bswap16(np.arange(65536, dtype=np.intp))])
@@ -90,17 +90,49 @@ def crc16_rows(columns: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=None)
+def _crc_by_position(n_probes: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """The CRC of a frame as one table look-up per byte: for messages of one length m, CRC-16/CCITT-FALSE is
+    affine in the message's bits, crc(b) = crc(m zero bytes) ^ XOR_j T[j, b_j], where T[j, v] is the register that
+    byte v at position j leaves (initial register 0, every other byte 0): T[m-1] is the byte table and each
+    position before shifts one zero byte more through it. Returns T flattened (m * 256,), the offsets j * 256 to
+    add to the bytes, and crc(m zero bytes)."""
+    m = frame_length(n_probes) - 4                    # the CRC covers bytes 2 .. fl-3 (version to flags)
+    t = np.empty((m, 256), np.intp)
+    t[m - 1] = _CRC_TABLE_INTP
+    for j in range(m - 2, -1, -1):                    # one zero byte: c = (c << 8) ^ T[c >> 8]
+        t[j] = ((t[j + 1] << 8) & 0xFFFF) ^ _CRC_TABLE_INTP[t[j + 1] >> 8]
+    table = t.astype(np.uint16).reshape(-1)           # 2 bytes an entry: the table stays in the cache
+    table.flags.writeable = False
+    offsets = np.arange(m, dtype=np.intp) * 256
+    offsets.flags.writeable = False
+    return table, offsets, crc16_ccitt_false(bytes(m))
+
+
+#: candidate frames up to which the CRC is one look-up per byte in a table by position (a few whole-array
+#: operations, whatever the frame's length: a live port's blocks of a few frames); beyond it, two bytes per
+#: look-up in a loop over the frame's words (two operations per word, but half the look-ups, and no index array as
+#: large as the frames). Measured on 4-probe frames: 9 frames 3.5 against 36 us, 500 frames 52 against 59 us,
+#: 1,000 frames 99 against 89 us.
+_CRC_BY_BYTE_ROWS = 512
+
+
+def _crc_frames(rows: np.ndarray, n_probes: int) -> np.ndarray:
+    """CRC of candidate frames, one per row from byte 0: rows (K, W) uint8 with W >= frame length (an even W
+    keeps the word loop's reads aligned). Returns (K,) integers."""
+    if rows.shape[0] <= _CRC_BY_BYTE_ROWS:
+        table, offsets, zero = _crc_by_position(n_probes)
+        return np.bitwise_xor.reduce(table.take(rows[:, 2:2 + offsets.shape[0]] + offsets), axis=1) ^ zero
+    return _crc_by_word(rows, n_probes)
+
+
+@functools.lru_cache(maxsize=None)
 def _crc_after_header(n_probes: int) -> int:
     """The CRC register after the two header bytes every valid frame shares (version, n)."""
     return crc16_ccitt_false(bytes([VERSION, n_probes]))
 
 
-def _crc_frames(rows: np.ndarray, n_probes: int) -> np.ndarray:
-    """CRC of candidate frames whose version and n bytes are already known to be right.
-
-    rows: (K, W) uint8 with W even and W >= frame length, one frame per row from byte 0, so that
-    the little-endian words at even offsets are aligned. Returns (K,) intp.
-    """
+def _crc_by_word(rows: np.ndarray, n_probes: int) -> np.ndarray:
+    """_crc_frames, two bytes per look-up; the version and n bytes are known to be right."""
     fl = frame_length(n_probes)
     n_words = (fl - 7) // 2                  # bytes 4 .. fl-4 as words; byte fl-3 (flags) alone
     k = rows.shape[0]
@@ -119,6 +151,7 @@ def _crc_frames(rows: np.ndarray, n_probes: int) -> np.ndarray:
     return ((crc << 8) & 0xFFFF) ^ _CRC_TABLE_INTP[(crc >> 8) ^ rows[:, fl - 3]]
 
 
+@functools.lru_cache(maxsize=None)
 def frame_dtype(n_probes: int) -> np.dtype:
     """A packed numpy record matching one serial frame byte for byte."""
     return np.dtype([
@@ -128,17 +161,10 @@ def frame_dtype(n_probes: int) -> np.dtype:
     ])
 
 
-@functools.lru_cache(maxsize=None)
-def _padded_frame_dtype(n_probes: int) -> np.dtype:
-    """frame_dtype with one byte of padding, for the parser's even-width rows."""
-    base = frame_dtype(n_probes)
-    return np.dtype({"names": list(base.names), "formats": [base.fields[f][0] for f in base.names],
-                     "offsets": [base.fields[f][1] for f in base.names], "itemsize": base.itemsize + 1})
-
-
 @dataclass(frozen=True)
 class RawFrames:
-    """Integer contents of K frames, before unwrapping and scaling."""
+    """Integer contents of K frames, before unwrapping and scaling (parse_serial's: read-only views of the bytes
+    parsed, but flags)."""
 
     seq: np.ndarray        # (K,) uint16
     t_us: np.ndarray       # (K,) uint32
@@ -192,42 +218,17 @@ def parse_serial(buf: bytes | bytearray | memoryview | np.ndarray, n_probes: int
     a = np.frombuffer(buf, dtype=np.uint8) if not isinstance(buf, np.ndarray) else buf
     size = a.shape[0]
     fl = frame_length(n_probes)
-    if size >= 2:
-        starts = np.flatnonzero(a[:-1] == 0xA5)
-        sync = starts[a[starts + 1] == 0x5A]
+    found = _back_to_back(a, size, fl, n_probes)
+    if found is not None:
+        pos, rows, sync = found
+        failed = pos[:0]
     else:
-        sync = np.empty(0, np.intp)
-    complete = sync[:np.searchsorted(sync, size - fl, side="right")]   # sync + fl <= size
-    if complete.size:
-        header_ok = (a[complete + 2] == VERSION) & (a[complete + 3] == n_probes)
-        cand = complete[header_ok]
-        # rows one byte wider than a frame (even width), so the CRC can read aligned words
-        padded = np.empty(size + 1, np.uint8)
-        padded[:size] = a
-        padded[size] = 0
-        # every window of fl + 1 bytes as a strided view (no copy, and cheaper to make than
-        # sliding_window_view for the small buffers of a live port), then the candidates' rows copied
-        rows = np.ndarray((size - fl + 1, fl + 1), np.uint8, padded, 0, (1, 1))[cand]
-        crc_got = rows[:, fl - 2].astype(np.intp) | (rows[:, fl - 1].astype(np.intp) << 8)
-        crc_ok = _crc_frames(rows, n_probes) == crc_got
-        if crc_ok.all():
-            pos = cand
-        else:
-            pos = cand[crc_ok]
-            rows = rows[crc_ok]
-        if pos.size > 1 and np.any(np.diff(pos) < fl):
-            pos, keep = _resolve_overlaps(pos, fl)
-            rows = rows[keep]
-        failed = cand[~crc_ok]
-    else:
-        pos = np.empty(0, np.intp)
-        rows = np.empty((0, fl + 1), np.uint8)
-        failed = np.empty(0, np.intp)
+        pos, rows, failed, sync = _search(a, size, fl, n_probes)
     last_end = int(pos[-1]) + fl if pos.size else 0
 
     consumed = size
-    if not final:
-        pending = sync[(sync + fl > size) & (sync >= last_end)]
+    if not final and size:
+        pending = sync[(sync + fl > size) & (sync >= last_end)] if sync.size else sync
         if pending.size:
             # a pending start must agree with whatever header bytes have arrived
             c = pending
@@ -238,19 +239,76 @@ def parse_serial(buf: bytes | bytearray | memoryview | np.ndarray, n_probes: int
             ok[has_n] &= a[c[has_n] + 3] == n_probes
             if ok.any():
                 consumed = int(c[ok][0])
-        if consumed == size and size and a[-1] == 0xA5 and size - 1 >= last_end:
+        if consumed == size and size - 1 >= last_end and a[-1] == 0xA5:
             consumed = size - 1
 
-    failed = failed[failed < consumed]
+    if failed.size:
+        failed = failed[failed < consumed]
     if pos.size and failed.size:
         idx = np.searchsorted(pos, failed, side="right") - 1
         inside = (idx >= 0) & (failed < pos[np.maximum(idx, 0)] + fl)
         failed = failed[~inside]
-    rec = rows.view(_padded_frame_dtype(n_probes)).reshape(-1)
-    frames = RawFrames(seq=rec["seq"].copy(), t_us=rec["t_us"].copy(), counts=rec["counts"].copy(),
-                       temp_raw=rec["temp"].copy(), flags=rec["flags"].copy())
+    # the integer fields as views of the frames' bytes (the scaling makes new arrays of them); flags owned
+    rec = rows.view(frame_dtype(n_probes)).reshape(-1)
+    frames = RawFrames(seq=rec["seq"], t_us=rec["t_us"], counts=rec["counts"], temp_raw=rec["temp"],
+                       flags=rec["flags"].copy())
     return SerialParse(frames=frames, consumed=consumed, crc_failures=int(failed.size),
                        bytes_skipped=consumed - int(pos.size) * fl)
+
+
+def _sync_marks(a: np.ndarray, start: int = 0) -> np.ndarray:
+    """Positions (from `start` on) of every A5 5A in the buffer."""
+    tail = a[start:]
+    if tail.shape[0] < 2:
+        return np.empty(0, np.intp)
+    marks = np.flatnonzero(tail[:-1] == 0xA5)
+    return marks[tail[marks + 1] == 0x5A] + start
+
+
+def _back_to_back(a: np.ndarray, size: int, fl: int,
+                  n_probes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The usual buffer of a live port: intact frames one after another from its first byte, then at most the start
+    of the next. (positions, rows (K, fl), the sync marks after the last frame); None for any other buffer, which
+    the search over every sync mark (_search) parses. Both find the same frames in such a buffer: the earliest
+    intact frame wins where candidates overlap, so a sync mark inside a payload is never taken."""
+    k = size // fl
+    if not k or a.dtype != np.uint8 or not a.flags.c_contiguous:
+        return None
+    # each frame's first four bytes as one little-endian word: sync A5 5A, version, probe count
+    head = np.ndarray((k,), "<u4", a, 0, (fl,))
+    if not (head == 0xA5 | 0x5A << 8 | VERSION << 16 | n_probes << 24).all():
+        return None
+    rows = a[:k * fl].reshape(k, fl)
+    if not (_crc_frames(rows, n_probes) == np.ndarray((k,), "<u2", a, fl - 2, (fl,))).all():
+        return None
+    return np.arange(0, k * fl, fl), rows, _sync_marks(a, k * fl)
+
+
+def _search(a: np.ndarray, size: int, fl: int,
+            n_probes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every intact frame of the buffer, wherever it starts: (positions, rows (K, fl), positions of the
+    candidates whose CRC failed, every sync mark)."""
+    sync = _sync_marks(a)
+    complete = sync[:np.searchsorted(sync, size - fl, side="right")]   # sync + fl <= size
+    if not complete.size:
+        return np.empty(0, np.intp), np.empty((0, fl), np.uint8), np.empty(0, np.intp), sync
+    header_ok = (a[complete + 2] == VERSION) & (a[complete + 3] == n_probes)
+    cand = complete[header_ok]
+    # every window of fl bytes as a strided view (no copy, and cheaper to make than sliding_window_view for the
+    # small buffers of a live port), then the candidates' rows copied
+    whole = a if a.flags.c_contiguous else np.ascontiguousarray(a)
+    rows = np.ndarray((size - fl + 1, fl), np.uint8, whole, 0, (1, 1))[cand]
+    crc_got = rows[:, fl - 2].astype(np.intp) | (rows[:, fl - 1].astype(np.intp) << 8)
+    crc_ok = _crc_frames(rows, n_probes) == crc_got
+    if crc_ok.all():
+        pos = cand
+    else:
+        pos = cand[crc_ok]
+        rows = rows[crc_ok]
+    if pos.size > 1 and np.any(np.diff(pos) < fl):
+        pos, keep = _resolve_overlaps(pos, fl)
+        rows = rows[keep]
+    return pos, rows, cand[~crc_ok], sync
 
 
 def _resolve_overlaps(pos: np.ndarray, fl: int) -> tuple[np.ndarray, np.ndarray]:

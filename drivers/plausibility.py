@@ -30,17 +30,26 @@ class Plausibility:
     temp_min_C: float = -100.0
     temp_max_C: float = 200.0
 
-    def flag(self, field_nT: np.ndarray, saturated: np.ndarray, counts: np.ndarray, temp_C: np.ndarray,
-             temp_bad: np.ndarray, flags: np.ndarray, counters: Counters | None) -> np.ndarray:
-        """flags with FLAG_IMPLAUSIBLE set where a check fails (a new array only then); counts the reasons."""
-        zero = ~counts.any(axis=2)                                                 # (N, P)
-        high = max(-float(field_nT.min()), float(field_nT.max())) > self.full_scale_nT
+    def flag(self, field_nT: np.ndarray, saturated: np.ndarray | None, counts: np.ndarray, temp_C: np.ndarray,
+             temp_bad: np.ndarray | None, flags: np.ndarray, counters: Counters | None, *,
+             field_range_nT: tuple[float, float] | None = None) -> np.ndarray:
+        """flags with FLAG_IMPLAUSIBLE set where a check fails (a new array only then); counts the reasons.
+        saturated (N, P, 3) and temp_bad (N,): None when none is; field_range_nT: the field's least and
+        greatest value, when the caller knows them."""
+        lo, hi = field_range_nT if field_range_nT is not None else (float(field_nT.min()), float(field_nT.max()))
+        zero = not counts.any(axis=2).all()
+        high = max(-lo, hi) > self.full_scale_nT
         hot = float(temp_C.min()) < self.temp_min_C or float(temp_C.max()) > self.temp_max_C
-        if not (high or hot or zero.any() or (flags & FLAGS_RESERVED).any()):
+        if not (high or hot or zero or (flags & FLAGS_RESERVED).any()):
             return flags                       # the common case: a few reductions, no array of its own
+        zero = ~counts.any(axis=2)                                                 # (N, P)
         reserved = (flags & FLAGS_RESERVED) != 0                                   # (N,)
-        beyond = (np.abs(field_nT) > self.full_scale_nT) & ~saturated               # (N, P, 3)
-        temp_out = ~((temp_C >= self.temp_min_C) & (temp_C <= self.temp_max_C)) & ~temp_bad[:, None]
+        beyond = np.abs(field_nT) > self.full_scale_nT                             # (N, P, 3)
+        if saturated is not None:
+            beyond &= ~saturated
+        temp_out = ~((temp_C >= self.temp_min_C) & (temp_C <= self.temp_max_C))
+        if temp_bad is not None:
+            temp_out &= ~temp_bad[:, None]
         bad = reserved | beyond.any(axis=(1, 2)) | zero.any(axis=1) | temp_out.any(axis=1)
         if not bad.any():
             return flags

@@ -74,14 +74,17 @@ class RingBuffer:
         self.overwritten += lost
         # at most two slices: [head, c) then [0, rest)
         first = min(m, c - self._head)
+        head, wraps = self._head, m > first
         for dst, src in zip(self._arrays(), sources):
             if src is None:
-                dst[self._head:self._head + first] = np.nan
+                dst[head:head + first] = np.nan
                 dst[:m - first] = np.nan
                 continue
-            src = src[skip:]
-            dst[self._head:self._head + first] = src[:first]
-            dst[:m - first] = src[first:]
+            if skip:
+                src = src[skip:]
+            dst[head:head + first] = src if first == src.shape[0] else src[:first]
+            if wraps:
+                dst[:m - first] = src[first:]
         self._head = (self._head + m) % c
         self._size = min(c, self._size + m)
 

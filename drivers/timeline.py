@@ -9,6 +9,10 @@ from .icd import RawFrames
 from .source import Counters
 
 
+#: the counter's and the clock's moduli less one, as a column for the (2, K) array of both
+_WRAP = np.array([[0xFFFF], [0xFFFFFFFF]], np.int64)
+
+
 def _steps(x: np.ndarray, before: int) -> np.ndarray:
     """x[i] - x[i - 1], with x[-1] = before (np.diff with prepend, without its cost on small blocks)."""
     d = np.empty_like(x)
@@ -144,6 +148,7 @@ class SerialTimeline:
         self._stale_st: tuple[int, int] | None = None
         self.history = FrameHistory()
         self.jumps = Jumps()
+        self.contiguous = False              # the last block's frames each followed the one before by one count
 
     def period_us(self) -> float | None:
         """The unit's frame period from its own clock and counter since the start or the last restart."""
@@ -151,28 +156,37 @@ class SerialTimeline:
             return (self._T0 - self._run_T) / (self._S0 - self._run_S)
         return self._period_us
 
-    def order(self, frames: RawFrames, rx_time_s: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(keep (K,) bool, seq (M,) int64, t_us (M,) int64) for the M frames kept, in arrival order."""
+    def order(self, frames: RawFrames, rx_time_s: float | None = None) -> tuple[np.ndarray | None, np.ndarray,
+                                                                                    np.ndarray]:
+        """(keep (K,) bool, seq (M,) int64, t_us (M,) int64) for the M frames kept, in arrival order; keep is None
+        when every frame is kept, and then `contiguous` says whether each followed the one before by one count."""
         k = len(frames)
-        s = frames.seq.astype(np.int64)
-        t = frames.t_us.astype(np.int64)
+        self.contiguous = False
         p = self.period_us()
         if self._s0 is not None and p is not None:
-            ds = _steps(s, self._s0)
-            ds &= 0xFFFF
-            dt = _steps(t, self._t0)
-            dt &= 0xFFFFFFFF
-            ds_max, dt_min, dt_max = int(ds.max()), int(dt.min()), int(dt.max())
+            # counter and clock as the rows of one array: each step below is one operation for both
+            st = np.empty((2, k), np.int64)
+            st[0], st[1] = frames.seq, frames.t_us
+            d = np.empty_like(st)
+            d[:, 0] = st[:, 0]
+            d[0, 0] -= self._s0
+            d[1, 0] -= self._t0
+            np.subtract(st[:, 1:], st[:, :-1], out=d[:, 1:])
+            d &= _WRAP                                        # steps modulo 2^16 (counter) and 2^32 (clock)
+            (ds_lo, dt_lo), (ds_hi, dt_hi) = d.min(axis=1).tolist(), d.max(axis=1).tolist()
             # the common case: every frame steps forward, its clock and counter agreeing at the period
-            if ds.min() >= 1 and ds_max < 1 << 15 and dt_min >= 1 and dt_max < 16384 * p and (
-                    max(abs(dt_min - p), abs(dt_max - p)) <= _tolerance(dt_min, p) if ds_max == 1
-                    else not (np.abs(dt - ds * p) > _tolerance(dt, p)).any()):
-                seq = self._S0 + np.cumsum(ds)
-                t_us = self._T0 + np.cumsum(dt)
+            if ds_lo >= 1 and ds_hi < 1 << 15 and dt_lo >= 1 and dt_hi < 16384 * p and (
+                    max(abs(dt_lo - p), abs(dt_hi - p)) <= _tolerance(dt_lo, p) if ds_hi == 1
+                    else not (np.abs(d[1] - d[0] * p) > _tolerance(d[1], p)).any()):
+                np.cumsum(d, axis=1, out=d)
+                d[0] += self._S0
+                d[1] += self._T0
+                seq, t_us = d[0], d[1]
                 self._accept(frames, k - 1, int(seq[-1]), int(t_us[-1]), rx_time_s)
                 self.history.add(frames)
-                return np.ones(k, bool), seq, t_us
-        return self._one_by_one(frames, s, t, rx_time_s)
+                self.contiguous = ds_hi == 1
+                return None, seq, t_us
+        return self._one_by_one(frames, frames.seq.astype(np.int64), frames.t_us.astype(np.int64), rx_time_s)
 
     def _accept(self, frames: RawFrames, i: int, S: int, T: int, rx_time_s: float | None) -> None:
         self._s0, self._t0 = int(frames.seq[i]), int(frames.t_us[i])

@@ -33,7 +33,8 @@ from __future__ import annotations
 import json
 import math
 import struct
-from collections.abc import Mapping
+import weakref
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -64,6 +65,51 @@ def encode_corrected(block: CorrectedBlock) -> bytes:
         if a is not None:
             parts.append(np.ascontiguousarray(a, "<f8").tobytes())
     return b"".join(parts)
+
+
+def encode_probes(block: CorrectedBlock) -> list[bytes]:
+    """The block as one `fluxcal.corrected.v1` message per probe (P = 1, corrected_nT only: the bus's
+    `corrected/<probe>` streams), each the bytes encode_corrected gives that probe alone. Made in one pass over
+    the block: the P messages are rows of one array, cut apart at the end."""
+    n, p = block.n_samples, block.n_probes
+    rows = np.empty((p, _COR_HEAD.size + 40 * n), np.uint8)           # header, t_s, seq, corrected (N, 1, 3)
+    rows[:, :_COR_HEAD.size] = np.frombuffer(_COR_HEAD.pack(CORRECTED_MAGIC, 0, 1, n, int(block.cal_id)), np.uint8)
+    body = rows[:, _COR_HEAD.size:]
+    body[:, :8 * n] = np.ascontiguousarray(block.t_s, "<f8").view(np.uint8)
+    body[:, 8 * n:16 * n] = np.ascontiguousarray(block.seq, "<i8").view(np.uint8)
+    body[:, 16 * n:].reshape(p, n, 24)[:] = np.ascontiguousarray(block.corrected_nT, "<f8").view(np.uint8).reshape(
+        n, p, 24).transpose(1, 0, 2)
+    whole = rows.tobytes()
+    size = rows.shape[1]
+    return [whole[k * size:(k + 1) * size] for k in range(p)]
+
+
+class _Shared:
+    """An encoding of the last block asked for, kept while that block lives: the recording and the bus take the
+    same block one after the other and send the same bytes (one encoding per block, not one per output)."""
+
+    def __init__(self, encode: Callable[[Any], Any]) -> None:
+        self._encode = encode
+        self._last: tuple[weakref.ref, Any] | None = None
+
+    def __call__(self, block: Any) -> Any:
+        last = self._last
+        if last is not None and last[0]() is block:
+            return last[1]
+        data = self._encode(block)
+        self._last = (weakref.ref(block, self._forget), data)
+        return data
+
+    def _forget(self, ref: weakref.ref) -> None:
+        last = self._last
+        if last is not None and last[0] is ref:
+            self._last = None
+
+
+#: encode_raw, encode_corrected and encode_probes of a block, made once however many outputs send it
+raw_payload = _Shared(encode_raw)
+corrected_payload = _Shared(encode_corrected)
+probe_payloads = _Shared(encode_probes)
 
 
 def decode_corrected(data: bytes | memoryview) -> CorrectedBlock:
@@ -114,9 +160,22 @@ def json_ready(obj: Any) -> Any:
     return str(obj)
 
 
-def encode_json(record: Mapping[str, Any]) -> bytes:
-    """One JSON stream message: a compact UTF-8 JSON object, NaN as null."""
-    return json.dumps(json_ready(record), allow_nan=False, separators=(",", ":"), ensure_ascii=False).encode()
+def _refuse(obj: Any) -> Any:
+    raise TypeError(type(obj).__name__)
+
+
+def encode_json(record: Mapping[str, Any], *, ensure_ascii: bool = False) -> bytes:
+    """One JSON stream message: a compact UTF-8 JSON object, NaN as null. A plain dict of text keys whose values
+    are already finite JSON numbers, strings, lists and dicts (the service's own messages, many a second) is dumped
+    as it is: the same bytes, without json_ready's walk over every value; anything else (a NaN, an array, a numpy
+    number) goes through json_ready."""
+    if type(record) is dict:
+        try:
+            return json.dumps(record, allow_nan=False, separators=(",", ":"), ensure_ascii=ensure_ascii,
+                              default=_refuse).encode()
+        except (TypeError, ValueError):
+            pass
+    return json.dumps(json_ready(record), allow_nan=False, separators=(",", ":"), ensure_ascii=ensure_ascii).encode()
 
 
 def decode_json(data: bytes | str) -> dict[str, Any]:
@@ -174,5 +233,5 @@ HEALTH_SCHEMA: dict[str, Any] = {
 
 
 __all__ = ["RAW_ENCODING", "RAW_LAYOUT", "CORRECTED_ENCODING", "CORRECTED_LAYOUT", "encode_raw", "decode_raw",
-           "encode_corrected", "decode_corrected", "json_ready", "encode_json", "decode_json", "health_record",
+           "encode_corrected", "decode_corrected", "encode_probes", "raw_payload", "corrected_payload", "probe_payloads", "json_ready", "encode_json", "decode_json", "health_record",
            "calibration_record", "CALIBRATION_SCHEMA", "EVENT_SCHEMA", "HEALTH_SCHEMA"]

@@ -23,7 +23,6 @@ Field names are plain identifiers so Foxglove's plot panel can address every num
 
 from __future__ import annotations
 
-import json
 import re
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -33,7 +32,7 @@ import numpy as np
 from service.numerics.decimate import RmsMeans, VectorMeans
 from service.numerics.outputs import CorrectedBlock
 
-from .encoding import CALIBRATION_SCHEMA, EVENT_SCHEMA, HEALTH_SCHEMA, encode_json
+from .encoding import CALIBRATION_SCHEMA, EVENT_SCHEMA, HEALTH_SCHEMA
 
 _DRAFT = "https://json-schema.org/draft/2020-12/schema"
 _NUM = {"type": ["number", "null"]}
@@ -228,21 +227,3 @@ class Products:
         """The intervals being filled (at the end of a recording or a connection)."""
         return ([m for iv in self._means.flush() for m in self._interval(iv)]
                 + [("error", error_message(r)) for r in self._errors.flush()])
-
-
-def _refuse(obj: Any) -> Any:
-    raise TypeError(type(obj).__name__)
-
-
-def message_bytes(message: Mapping[str, Any]) -> bytes:
-    """The JSON payload of a message (NaN as null), as the logger writes it and the bridge sends it.
-    These messages are plain dicts with text keys: dumped as they are when every value is already a finite
-    JSON number, string or list (the same bytes as encode_json, without its walk over every value, ten a
-    second per stream); anything else (a NaN, an array) goes through encode_json."""
-    if type(message) is dict:
-        try:
-            return json.dumps(message, allow_nan=False, separators=(",", ":"), ensure_ascii=False,
-                              default=_refuse).encode()
-        except (TypeError, ValueError):
-            pass
-    return encode_json(message)

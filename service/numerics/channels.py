@@ -33,6 +33,8 @@ def _rms_over_rows(x: np.ndarray) -> np.ndarray:
     """RMS over axis 0 ignoring NaN (a saturated axis); NaN where a column has no finite value. The same
     arithmetic as np.nanmean, without its warning (and without a warnings context per block)."""
     ok = np.isfinite(x)
+    if ok.all():                      # the usual block: the same sums and quotient, without the masks
+        return np.sqrt(np.add.reduce(x * x, axis=0) / x.shape[0])
     n = ok.sum(axis=0)
     return np.sqrt(np.sum(np.where(ok, x * x, 0.0), axis=0) / np.where(n > 0, n, np.nan))
 
@@ -41,16 +43,28 @@ def block_error_rms(probe_names: Sequence[str], corrected: CorrectedBlock, refer
                     differences: bool = True) -> dict[str, float]:
     """The model-vs-measurement error of one block: RMS of each residual channel (channel_names) over
     its samples; scalar channels only with a reference total field, differences only when asked."""
-    if corrected.n_samples == 0:
-        return {}
-    out: dict[str, float] = {}
-    n_probes = len(probe_names)
-    names = channel_names(probe_names)                                # scalars, then differences
-    mag = np.linalg.norm(corrected.corrected_nT, axis=2)              # (N, P)
-    if reference_nT is not None:
-        res = mag - (reference_nT[:, None] if isinstance(reference_nT, np.ndarray) else reference_nT)
-        out.update(zip(names[:n_probes], map(float, _rms_over_rows(res))))
-    if corrected.diff_nT is not None and differences:
-        d = _rms_over_rows(corrected.diff_nT)                          # (P-1, 3)
-        out.update(zip(names[n_probes:], map(float, d.reshape(-1))))
-    return out
+    return BlockError(probe_names, differences=differences)(corrected, reference_nT)
+
+
+class BlockError:
+    """block_error_rms of one unit's blocks, one after another (its channels named once)."""
+
+    def __init__(self, probe_names: Sequence[str], *, differences: bool = True) -> None:
+        self.n_probes = len(probe_names)
+        self.names = channel_names(probe_names)                      # scalars, then differences
+        self.differences = differences
+
+    def __call__(self, corrected: CorrectedBlock, reference_nT: np.ndarray | float | None) -> dict[str, float]:
+        if corrected.n_samples == 0:
+            return {}
+        out: dict[str, float] = {}
+        names, n_probes = self.names, self.n_probes
+        if reference_nT is not None:
+            c = corrected.corrected_nT
+            mag = np.sqrt(np.add.reduce(c * c, axis=2))               # |B| (N, P), as np.linalg.norm(c, axis=2)
+            res = mag - (reference_nT[:, None] if isinstance(reference_nT, np.ndarray) else reference_nT)
+            out.update(zip(names[:n_probes], _rms_over_rows(res).tolist()))
+        if corrected.diff_nT is not None and self.differences:
+            d = _rms_over_rows(corrected.diff_nT)                      # (P-1, 3)
+            out.update(zip(names[n_probes:], d.reshape(-1).tolist()))
+        return out

@@ -81,15 +81,16 @@ class VectorMeans:
 
     @staticmethod
     def _sums(x: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
-        """Σ of the rows [start, end) of x (N, ...) for every interval, as ndarray.sum(axis=0) of each interval
-        alone sums them: row after row where a row holds several values, pairwise where it holds one."""
-        if x[0].size == 1:
-            return np.stack([x[a:b].sum(axis=0) for a, b in zip(starts, ends)])
-        length = ends - starts
+        """Σ of the rows [start, end) of x (N, ...) for every interval (consecutive: each ends where the next
+        starts), as ndarray.sum(axis=0) of each interval alone sums them: a run of intervals of one length n is one
+        view (k, n, ...) of x summed over its second axis, which sums each interval as that does (row after row
+        where a row holds several values, pairwise where it holds one), without copying x."""
         out = np.empty((len(starts),) + x.shape[1:], x.dtype)
-        for n in np.unique(length):                     # intervals of equal length (one or a few lengths)
-            k = np.flatnonzero(length == n)
-            out[k] = x[starts[k, None] + np.arange(n)].sum(axis=1)       # (K, n, ...): row after row, each K
+        length = ends - starts
+        runs = np.flatnonzero(np.diff(length)) + 1
+        for i, j in zip(np.r_[0, runs].tolist(), np.r_[runs, len(starts)].tolist()):
+            n, a = int(length[i]), int(starts[i])
+            out[i:j] = x[a:a + (j - i) * n].reshape((j - i, n) + x.shape[1:]).sum(axis=1)
         return out
 
     def _means(self, c: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -97,6 +98,9 @@ class VectorMeans:
         ok = np.isfinite(c)
         norm = np.sqrt(np.einsum("npk,npk->np", c, c))          # row by row: the same for any rows
         nok = np.isfinite(norm)
+        if ok.all() and nok.all():          # nothing to leave out: the same sums, over the interval's samples
+            n = (ends - starts)[:, None]
+            return self._sums(c, starts, ends) / n[..., None], self._sums(norm, starts, ends) / n
         with np.errstate(invalid="ignore", divide="ignore"):
             return (self._sums(np.where(ok, c, 0.0), starts, ends) / self._sums(ok.astype(np.int64), starts, ends),
                     self._sums(np.where(nok, norm, 0.0), starts, ends) / self._sums(nok.astype(np.int64), starts, ends))

@@ -41,14 +41,28 @@ def products(t_s: np.ndarray, seq: np.ndarray, corrected_nT: np.ndarray, positio
              cal_id: int) -> CorrectedBlock:
     """Everything the pipeline derives from corrected vectors (N, P, 3): each probe minus probe 1, the
     array centre, and with four or more positioned probes the gradient tensor."""
-    c = corrected_nT
-    n_probes = c.shape[1]
-    diff = c[:, 1:] - c[:, :1] if n_probes > 1 else None
-    center = c.mean(axis=1) if n_probes > 1 else None
-    tens = None
-    if positions_m is not None and n_probes >= 4:
-        from .calib.tensor import tensor_from_positions
+    return Derived(positions_m, corrected_nT.shape[1])(t_s, seq, corrected_nT, cal_id)
 
-        tens = tensor_from_positions(c, positions_m)
-    return CorrectedBlock(t_s=t_s, seq=seq, corrected_nT=c, diff_nT=diff, tensor_nT_m=tens, center_nT=center,
-                          cal_id=cal_id)
+
+class Derived:
+    """`products` for one array (P probes at positions_m, or None), block after block: what depends only on the
+    array (the tensor's D⁺) is computed once, the centre field once per block for the centre and the tensor."""
+
+    def __init__(self, positions_m: np.ndarray | None, n_probes: int) -> None:
+        from .calib.tensor import tensor_operator
+
+        self.n_probes = n_probes
+        self.tensor = None if positions_m is None or n_probes < 4 else tensor_operator(positions_m, n_probes)
+
+    def __call__(self, t_s: np.ndarray, seq: np.ndarray, c: np.ndarray, cal_id: int) -> CorrectedBlock:
+        from .calib.tensor import tensor_about_centre
+
+        diff = center = tens = None
+        if self.n_probes > 1:
+            diff = c[:, 1:] - c[:, :1]
+            center = np.add.reduce(c, axis=1)
+            center /= self.n_probes              # c.mean(axis=1): the sum over the probes, then / P
+            if self.tensor is not None:
+                tens = tensor_about_centre(c - center[:, None, :], *self.tensor)
+        return CorrectedBlock(t_s=t_s, seq=seq, corrected_nT=c, diff_nT=diff, tensor_nT_m=tens, center_nT=center,
+                              cal_id=cal_id)

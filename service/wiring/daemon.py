@@ -247,11 +247,11 @@ class Daemon:
     def _loop(self, source: Source, pipeline: Pipeline, sinks: Sinks) -> None:
         bus = next(s.bus for s in sinks.sinks if isinstance(s, BusSink))       # commands come from it too
         link = Reconnecting(self._reader, self.stop, self.say)
-        last_health = 0.0
-        announced = pipeline.calibration is not None
+        last_health, announced = 0.0, pipeline.calibration is not None
         while not self.stop.is_set():
             for cmd in bus.pending_commands():
                 self._apply_command(cmd, pipeline, sinks)
+            sinks.flush()                     # what waits (commands' events, health) goes out before the wait for input
             block = link.read(source)         # None while the input is down: health still goes out
             if link.stopped:
                 break
@@ -287,6 +287,7 @@ class Daemon:
             if ev.kind == "calibration" and not announced:
                 announced = True
                 self.say("calibration usable: corrected output is being published")
+        sinks.flush()                         # the block's messages go out together, before any later command's
         return announced
 
     def _on_event(self, ev: PipelineEvent, pipeline: Pipeline, sinks: Sinks) -> None:

@@ -25,8 +25,8 @@ from drivers.ringbuffer import RingBuffer
 from service.numerics.calib.model import ArrayCalibration
 from service.numerics.calib.rls import RlsEllipsoid
 from service.numerics.calib.rls_info import finite_rows
-from service.numerics.channels import block_error_rms
-from service.numerics.outputs import CorrectedBlock, products
+from service.numerics.channels import BlockError
+from service.numerics.outputs import CorrectedBlock, Derived
 
 from .gate import Gate, GateResult, reference_total
 from .live_effects import LiveEffects
@@ -49,10 +49,19 @@ class Processed:
     events: list[PipelineEvent]
 
 
-def _apply(m: np.ndarray, d: np.ndarray) -> np.ndarray:
+def _apply(m: tuple[np.ndarray, np.ndarray, np.ndarray], d: np.ndarray) -> np.ndarray:
     """b[n, p, i] = Σ_j m[p, i, j] d[n, p, j], element by element: the same rounding whatever N is
-    (a BLAS product may sum differently for different block sizes, and replay must equal live)."""
-    return d[..., 0:1] * m[None, :, :, 0] + d[..., 1:2] * m[None, :, :, 1] + d[..., 2:3] * m[None, :, :, 2]
+    (a BLAS product may sum differently for different block sizes, and replay must equal live). m: the columns
+    m[None, :, :, j] (_columns)."""
+    b = d[..., 0:1] * m[0]
+    b += d[..., 1:2] * m[1]
+    b += d[..., 2:3] * m[2]
+    return b
+
+
+def _columns(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The columns of the matrices (P, 3, 3) as _apply multiplies them, (1, P, 3, 1) each."""
+    return m[None, :, :, 0], m[None, :, :, 1], m[None, :, :, 2]
 
 
 def _join(pieces: list[CorrectedBlock]) -> CorrectedBlock | None:
@@ -70,12 +79,64 @@ def _join(pieces: list[CorrectedBlock]) -> CorrectedBlock | None:
                           tensor_nT_m=cat("tensor_nT_m"), center_nT=cat("center_nT"), cal_id=pieces[-1].cal_id)
 
 
+def _rows(block: SampleBlock, start: int, stop: int) -> SampleBlock:
+    """block.slice(start, stop), the block itself when that is all of it (the usual live block: no copy)."""
+    return block if start == 0 and stop == block.n_samples else block.slice(start, stop)
+
+
+def _reference_tail(block: SampleBlock, n: int, total_nT: float | None) -> np.ndarray | float | None:
+    """reference_total of the block's last n samples."""
+    ref = block.extras.get("ref_total")
+    return total_nT if ref is None else ref[ref.shape[0] - n:]
+
+
 #: an apply event's note (its presence also tells replay that the live run held the applied calibration)
 APPLIED_NOTE = ("in use until `reset`: the online estimate keeps learning and the gate judging it, but it does not "
                 "replace an applied calibration")
 
 
-class Pipeline:
+class _ChunkFeed:
+    """The estimators' side of the pipeline: samples gathered into fixed chunks of `chunk` samples, each full chunk
+    given to every probe's estimator at once (Pipeline's state: _buf_field, _buf_ref, _fill, _chunks, _rls)."""
+
+    chunk: int
+    total_nT: float | None
+    frozen: bool
+
+    def _buffer(self, seg: SampleBlock) -> bool:
+        """The segment into the chunk being filled (it ends at the chunk's end at most); a full chunk goes to the
+        estimators. Whether it did."""
+        fill, k = self._fill, seg.n_samples
+        self._buf_field[fill:fill + k] = seg.field_nT
+        ref = reference_total(seg, self.total_nT)
+        self._buf_ref[fill:fill + k] = ref if ref is not None else np.nan
+        self._fill += k
+        if self._fill < self.chunk:
+            return False
+        self._fill = 0
+        self._update_estimators(self._buf_field, self._buf_ref)
+        self._chunks += 1
+        return True
+
+    def flush_estimator(self) -> None:
+        """Feed a partly filled chunk to the estimator (end of a batch; the service never needs it)."""
+        if self._fill and not self.frozen:
+            self._update_estimators(self._buf_field[:self._fill], self._buf_ref[:self._fill])
+        self._fill = 0
+
+    def _update_estimators(self, field_nT: np.ndarray, ref: np.ndarray) -> None:
+        ok_rows = finite_rows(field_nT)                                   # (N, P)
+        have_ref = bool(np.isfinite(ref).all())
+        if ok_rows.all():       # every probe at once: bit for bit the per-probe updates below
+            self._rls.partial_fit(field_nT, total_nT=ref if have_ref else self.total_nT)
+            return
+        for k, est in enumerate(self._estimators):             # a probe's NaN rows dropped (RlsProbe)
+            rows = ok_rows[:, k]
+            if rows.any():
+                est.partial_fit(field_nT[rows, k], total_nT=ref[rows] if have_ref else self.total_nT)
+
+
+class Pipeline(_ChunkFeed):
     """Stateful block processor. `process(block)` is the only hot path."""
 
     CORRECT_BY_CHUNK = False          # True: correct chunk by chunk, as before the spans (the tests' reference)
@@ -104,6 +165,8 @@ class Pipeline:
         self.last_gate: GateResult | None = None
         self.next_seq = 0                 # seq of the first sample the next block will bring
         self.live = LiveEffects(n_probes, total_nT)
+        self._derive = Derived(self.positions_m, n_probes)        # differences, centre, tensor of each block
+        self._error = BlockError(self.probe_names, differences=self.positions_m is None)
         self.gate = Gate(probe_names=self.probe_names, align=align, min_samples=min_samples, coverage=gate_coverage,
                          condition=gate_condition, rms_nT=gate_rms_nT, total_nT=total_nT)
         self.reset()                      # the estimators, the chunk being filled, chunks since the last check
@@ -120,6 +183,7 @@ class Pipeline:
         m = np.stack([p.matrix for p in cal.probes])
         o = np.stack([p.offset_nT for p in cal.probes])
         self._matrices, self._offsets = m, o
+        self._columns, self._offset_rows = _columns(m), o[None]
 
     def reset(self) -> None:
         """Forget what the online estimators learned (the `reset` command)."""
@@ -167,42 +231,27 @@ class Pipeline:
         start = span = 0
         while start < n:
             stop = min(n, start + self.chunk - self._fill)       # up to the next chunk boundary
-            seg = block.slice(start, stop)
+            seg = _rows(block, start, stop)
             if by_chunk:
                 pieces.append(self._correct(seg))
             self.live.note_temperature(seg.temp_C)
             self.ring.append(seg)
-            if not self.frozen:
-                self._buf_field[self._fill:self._fill + stop - start] = seg.field_nT
-                ref = reference_total(seg, self.total_nT)
-                self._buf_ref[self._fill:self._fill + stop - start] = ref if ref is not None else np.nan
-                self._fill += stop - start
-                if self._fill == self.chunk:
-                    self._fill = 0
-                    self._update_estimators(self._buf_field, self._buf_ref)
-                    self._chunks += 1
-                    if self.check_every_chunks and self._chunks >= self.check_every_chunks:
-                        self._chunks = 0
-                        if not by_chunk:                          # with the calibration in use until here
-                            pieces.append(self._correct(block.slice(span, stop)))
-                            span = stop
-                        ev = self._check_candidate(int(seg.seq[-1]) + 1, float(seg.t_s[-1]))
-                        if ev is not None:
-                            events.append(ev)
+            if not self.frozen and self._buffer(seg):
+                if self.check_every_chunks and self._chunks >= self.check_every_chunks:
+                    self._chunks = 0
+                    if not by_chunk:                          # with the calibration in use until here
+                        pieces.append(self._correct(_rows(block, span, stop)))
+                        span = stop
+                    ev = self._check_candidate(int(seg.seq[-1]) + 1, float(seg.t_s[-1]))
+                    if ev is not None:
+                        events.append(ev)
             start = stop
         if not by_chunk and span < n:
-            pieces.append(self._correct(block.slice(span, n)))
+            pieces.append(self._correct(_rows(block, span, n)))
         corrected = _join([c for c in pieces if c is not None])
-        error = ({} if corrected is None else block_error_rms(
-            self.probe_names, corrected, reference_total(block.slice(n - corrected.n_samples, n), self.total_nT),
-            differences=self.positions_m is None))
+        error = {} if corrected is None else self._error(corrected, _reference_tail(block, corrected.n_samples,
+                                                                                    self.total_nT))
         return Processed(corrected=corrected, error=error, events=events)
-
-    def flush_estimator(self) -> None:
-        """Feed a partly filled chunk to the estimator (end of a batch; the service never needs it)."""
-        if self._fill and not self.frozen:
-            self._update_estimators(self._buf_field[:self._fill], self._buf_ref[:self._fill])
-        self._fill = 0
 
     def _correct(self, block: SampleBlock) -> CorrectedBlock | None:
         if self.calibration is None:
@@ -211,19 +260,8 @@ class Pipeline:
             c = self.live.correct(block, self._offsets)
         else:
             # b_k = M_k (raw_k - o_k) for every sample and probe at once
-            c = _apply(self._matrices, block.field_nT - self._offsets[None])
-        return products(block.t_s, block.seq, c, self.positions_m, self.cal_id)
-
-    def _update_estimators(self, field_nT: np.ndarray, ref: np.ndarray) -> None:
-        ok_rows = finite_rows(field_nT)                                   # (N, P)
-        have_ref = bool(np.isfinite(ref).all())
-        if ok_rows.all():       # every probe at once: bit for bit the per-probe updates below
-            self._rls.partial_fit(field_nT, total_nT=ref if have_ref else self.total_nT)
-            return
-        for k, est in enumerate(self._estimators):             # a probe's NaN rows dropped (RlsProbe)
-            rows = ok_rows[:, k]
-            if rows.any():
-                est.partial_fit(field_nT[rows, k], total_nT=ref[rows] if have_ref else self.total_nT)
+            c = _apply(self._columns, block.field_nT - self._offset_rows)
+        return self._derive(block.t_s, block.seq, c, self.cal_id)
 
     # --- the gate (gate.py) and live effects (live_effects.py) -------------------------------------
 

@@ -9,6 +9,8 @@ new output is one class (a test adds one that counts messages, without touching 
     on_event(record)            a calibration replaced, a gate refusal, a command applied: with the state after it
     on_command(record)          a command as applied, for replay to apply again at its seq
     on_health(counters, faults) the counters and the faults (about once a second, and once at stop)
+    on_flush()                  everything of this turn of the loop has been told: a sink that gathers its
+                                messages sends them now (the bus: one wake-up of its sender per block)
     status()                    what the sink says of itself (a recorder: files, errors, drops), or None
     close()
 """
@@ -16,6 +18,7 @@ new output is one class (a test adds one that counts messages, without touching 
 from __future__ import annotations
 
 import json
+import time
 from typing import Any, Callable, Mapping
 
 from drivers.block import SampleBlock
@@ -50,6 +53,9 @@ class Sink:
     def on_health(self, counters: Mapping[str, Any], faults: Mapping[str, Any] | None) -> None:
         pass
 
+    def on_flush(self) -> None:
+        pass
+
     def status(self) -> dict[str, Any] | None:
         return None
 
@@ -68,8 +74,6 @@ class Sinks:
         self._said_at: dict[str, float] = {}
 
     def _tell(self, method: str, *args: Any, **kwargs: Any) -> None:
-        import time
-
         for sink in self.sinks:
             try:
                 getattr(sink, method)(*args, **kwargs)
@@ -98,6 +102,9 @@ class Sinks:
 
     def health(self, counters: Mapping[str, Any], faults: Mapping[str, Any] | None) -> None:
         self._tell("on_health", counters, faults)
+
+    def flush(self) -> None:
+        self._tell("on_flush")
 
     def recording(self) -> dict[str, Any] | None:
         """The recorder's status (the first sink that has one), for the state and the fault watch."""
@@ -164,12 +171,13 @@ class McapSink(Sink):
 
 class BusSink(Sink):
     """The streams published on Zenoh (service.io.bus.ServiceBus); the bus also takes commands and state queries,
-    which the daemon reads from it directly."""
+    which the daemon reads from it directly. What a turn of the loop publishes goes out together at its on_flush."""
 
     name = "bus"
 
     def __init__(self, bus: Any) -> None:
         self.bus = bus
+        bus.gather_sends()
 
     def on_raw(self, block: SampleBlock) -> None:
         self.bus.publish_raw(block)
@@ -185,6 +193,9 @@ class BusSink(Sink):
 
     def on_health(self, counters: Mapping[str, Any], faults: Mapping[str, Any] | None) -> None:
         self.bus.publish_health(counters, faults=faults)
+
+    def on_flush(self) -> None:
+        self.bus.send()
 
     def close(self) -> None:
         self.bus.close()

@@ -121,6 +121,45 @@ def test_parser_matches_reference_on_damaged_streams(seed):
     assert p.bytes_skipped == len(data) - len(ref) * icd.frame_length(n)
 
 
+@pytest.mark.parametrize("k", [1, 9, 512, 513, 2000])
+def test_frame_crc_both_ways_equals_bytewise_crc(k):
+    """The parser's CRC of candidate frames: a table look-up per byte for a live port's few frames, a loop over
+    words for many (icd._CRC_BY_BYTE_ROWS); both equal the byte-wise CRC of every frame, for every probe count."""
+    rng = np.random.default_rng(k)
+    for n in (1, 4, 8):
+        fl = icd.frame_length(n)
+        rows = rng.integers(0, 256, (k, fl), dtype=np.uint8)
+        rows[:, 2], rows[:, 3] = icd.VERSION, n
+        want = [icd.crc16_ccitt_false(r[2:fl - 2].tobytes()) for r in rows]
+        assert icd._crc_frames(rows, n).tolist() == want
+        assert icd._crc_by_word(rows, n).tolist() == want
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_back_to_back_frames_parse_as_the_reference(seed):
+    """The live port's usual buffer, intact frames from its first byte and the start of the next (parsed by
+    _back_to_back), with sync marks inside payloads; and the same with one byte flipped (the search): both as the
+    frame-by-frame reference parser, the partial frame kept for later."""
+    rng = np.random.default_rng(200 + seed)
+    n = int(rng.integers(1, 9))
+    fl = icd.frame_length(n)
+    for k in (1, 2, 9, 40, 700):
+        counts = rng.integers(-2**31, 2**31, (k, n, 3), dtype=np.int64).astype(np.int32)
+        counts.view(np.uint8)[::3, 0, :4] = [0xA5, 0x5A, icd.VERSION, n]         # a false start in every third
+        buf = icd.encode_serial(rng.integers(0, 65536, k), rng.integers(0, 2**32, k), counts,
+                                rng.integers(-3000, 3000, (k, n)).astype(np.int16), np.zeros(k, np.uint8))
+        tail = buf[:int(rng.integers(1, fl))]
+        for data in (buf + tail, buf[:-3] + b"\x00\x01\x02", bytes([buf[0] ^ 0x10]) + buf[1:] + tail):
+            p = icd.parse_serial(data, n)
+            kept = data[p.consumed:]
+            assert parsed_tuples(p) == reference_parse(data[:p.consumed], n)
+            assert len(kept) < fl and (not kept or kept.startswith(b"\xa5"))
+            assert p.bytes_skipped == p.consumed - len(p.frames) * fl
+        whole = np.frombuffer(buf + tail, np.uint8)
+        assert icd._back_to_back(whole, whole.size, fl, n) is not None          # the intact buffer: the fast way
+        assert len(icd.parse_serial(buf + tail, n).frames) == k and icd.parse_serial(buf + tail, n).consumed == len(buf)
+
+
 def test_parser_keeps_an_incomplete_frame_for_later():
     buf = icd.encode_serial(np.arange(3), np.arange(3), np.ones((3, 2, 3), np.int32), np.ones((3, 2), np.int16),
                             np.zeros(3, np.uint8))

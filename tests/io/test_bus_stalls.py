@@ -95,3 +95,43 @@ def test_a_frozen_subscriber_holds_back_only_itself_and_counts_its_losses(tmp_pa
     # the frozen one was disconnected, came back, and knows exactly what it missed
     assert stopped["missed_raw_samples"] > 0 and stopped["raw_gaps"] >= 1, stopped
     assert stopped["samples"] + stopped["missed_raw_samples"] == seq, (stopped, seq)
+
+
+class _Publisher:
+    """What the sender calls: put(payload), recorded in order."""
+
+    def __init__(self, log: list) -> None:
+        self.log = log
+
+    def put(self, payload: bytes) -> None:
+        self.log.append(payload)
+
+
+def test_gathered_messages_go_together_in_order_and_the_oldest_beyond_the_bound_are_dropped():
+    """The service's loop gathers a turn's messages and releases them at once (one wake-up of the sender per
+    block); what nobody releases goes anyway after the sender's half-second wait; a backlog over its bound drops
+    the oldest, counted, whether the messages came one by one or together."""
+    from service.io.bus.sender import Sender
+
+    sent: list[bytes] = []
+    pub = _Publisher(sent)
+    stats = {"published_raw": 0, "published_corrected": 0, "send_dropped": 0, "publish_errors": 0}
+    s = Sender(stats, backlog_bytes=1000, thread_name="test-send")
+    try:
+        s.gather = True
+        s.put_all([("raw", pub, b"r1"), ("corrected", pub, b"c1")])
+        s.put("raw", pub, b"r2")
+        s.release()
+        assert s.flush(5.0) and sent == [b"r1", b"c1", b"r2"]
+        assert stats["published_raw"] == 2 and stats["published_corrected"] == 1
+        s.put("raw", pub, b"r3")                         # never released
+        deadline = time.monotonic() + 5.0
+        while len(sent) < 4 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert sent[-1] == b"r3"
+        s.put_all([("raw", pub, bytes([k]) * 400) for k in range(5)])   # 2,000 bytes against a bound of 1,000
+        assert stats["send_dropped"] == 3
+        s.release()
+        assert s.flush(5.0) and sent[-2:] == [bytes([3]) * 400, bytes([4]) * 400]
+    finally:
+        s.stop()

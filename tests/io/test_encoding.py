@@ -21,10 +21,13 @@ from service.io.encoding import (
     decode_json,
     decode_raw,
     encode_corrected,
+    corrected_payload,
     encode_json,
+    encode_probes,
     encode_raw,
     health_record,
     json_ready,
+    raw_payload,
 )
 from service.numerics.outputs import CorrectedBlock
 
@@ -212,6 +215,44 @@ def test_json_messages_are_strict_json_with_nan_as_null():
     h = health_record({"frames_accepted": np.int64(10), "crc_failures": 2}, {"dropped": 0})
     assert decode_json(encode_json(h)) == {"counters": {"frames_accepted": 10, "crc_failures": 2},
                                           "recording": {"dropped": 0}}
+
+
+@pytest.mark.parametrize("ensure_ascii", [False, True])
+def test_plain_messages_dump_as_the_walk_over_every_value_does(ensure_ascii):
+    """A plain dict of finite numbers, text and lists is dumped as it is, anything else walked (json_ready): the
+    bytes are those of the walk either way."""
+    plain = {"unit": "grad-é", "seq": 12, "t_s": 0.25, "rms_nT": {"s1.scalar": 0.5, "s2-s1.x": -0.0},
+             "flags": [True, None, 3], "x": (1.5, 2)}
+    tricky = [plain, {**plain, "t_s": float("nan")}, {**plain, "seq": np.int64(12)}, {"a": np.arange(3.0)},
+              {"inf": [float("inf")], "f": np.float64(0.1)}, {"s": "line\u2028sep"}]
+    for rec in tricky:
+        walked = json.dumps(json_ready(rec), allow_nan=False, separators=(",", ":"),
+                            ensure_ascii=ensure_ascii).encode()
+        assert encode_json(rec, ensure_ascii=ensure_ascii) == walked
+
+
+def test_one_probe_messages_are_each_probe_alone_and_outputs_share_one_encoding():
+    """encode_probes: the P messages of the bus's corrected/<probe> streams, each what encode_corrected gives that
+    probe alone; raw_payload and corrected_payload encode a block once for every output that sends it."""
+    import gc
+
+    rng = np.random.default_rng(3)
+    for n, p in ((9, 4), (1, 1), (0, 2), (40, 8)):
+        c = rng.normal(0, 3e4, (n, p, 3))
+        c.flat[: min(c.size, SPECIAL.size)] = SPECIAL[: min(c.size, SPECIAL.size)]
+        block = CorrectedBlock(t_s=1234.5 + np.arange(n) * 1e-3, seq=np.arange(n, dtype=np.int64) + 2**40,
+                               corrected_nT=c, diff_nT=None, tensor_nT_m=None, center_nT=None, cal_id=7)
+        alone = [encode_corrected(CorrectedBlock(t_s=block.t_s, seq=block.seq, corrected_nT=c[:, k:k + 1],
+                                                 diff_nT=None, tensor_nT_m=None, center_nT=None, cal_id=7))
+                 for k in range(p)]
+        assert encode_probes(block) == alone
+        first = corrected_payload(block)
+        assert first == encode_corrected(block) and corrected_payload(block) is first     # one encoding, shared
+    raw = raw_block()
+    assert raw_payload(raw) is raw_payload(raw) and raw_payload(raw) == encode_raw(raw)
+    del raw
+    gc.collect()
+    assert raw_payload._last is None                      # the block gone, its bytes are not kept
 
 
 @pytest.mark.parametrize("bad", [b"{not json", b"[1, 2]", b"\xff\xfe", b"3"])

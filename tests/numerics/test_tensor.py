@@ -116,3 +116,29 @@ def test_bad_geometry_is_a_config_error():
         tensor_from_positions(b, np.zeros((3, 3)))
     with pytest.raises(ValueError, match=r"expected shape \(N, 4, 3\)"):
         tensor_from_cross(np.zeros((2, 3, 3)), 0.4)
+
+
+@pytest.mark.parametrize("n_probes", [4, 5, 8])
+@pytest.mark.parametrize("planar", [True, False])
+def test_a_block_derives_what_its_samples_derive_one_by_one(n_probes, planar):
+    """Differences, centre and tensor of a block (outputs.Derived, the pipeline's) equal, bit for bit, those of
+    each of its samples alone and products' of the block: the same sums in the same order whatever the block's
+    length, so live blocks and replay's long ones agree; a NaN stays in its own sample."""
+    from service.numerics.outputs import Derived, products
+
+    rng = np.random.default_rng(n_probes + 10 * planar)
+    pos = rng.normal(0, 0.2, (n_probes, 3))
+    if planar:
+        pos[:, 2] = 0.0
+    c = 50000.0 * rng.normal(size=(1, n_probes, 3)) + rng.normal(0, 30, (40, n_probes, 3))
+    c[7, 1, 2] = np.nan
+    derive = Derived(pos, n_probes)
+    whole = derive(np.arange(40.0), np.arange(40), c, 3)
+    rows = [derive(np.arange(k, k + 1.0), np.arange(k, k + 1), c[k:k + 1], 3) for k in range(40)]
+    once = products(np.arange(40.0), np.arange(40), c, pos, 3)
+    for name in ("diff_nT", "center_nT", "tensor_nT_m"):
+        one_by_one = np.concatenate([getattr(r, name) for r in rows])
+        for got in (getattr(whole, name), getattr(once, name)):
+            assert np.array_equal(got.view(np.int64), one_by_one.view(np.int64)), name
+    assert np.isnan(whole.tensor_nT_m[7]).any() and np.isfinite(np.delete(whole.tensor_nT_m, 7, axis=0)).all()
+    assert np.array_equal(whole.center_nT, c.mean(axis=1), equal_nan=True)            # the mean of the probes

@@ -22,14 +22,17 @@ class Counting(Sink):
     def __init__(self) -> None:
         self.raw_samples = self.raw_blocks = self.corrected_samples = self.errors = self.health = 0
         self.events: list[str] = []
+        self.turns: list[str] = []            # raw, corrected and flush in the order told
         self.closed = False
 
     def on_raw(self, block) -> None:
         self.raw_blocks += 1
         self.raw_samples += block.n_samples
+        self.turns.append("raw")
 
     def on_corrected(self, block) -> None:
         self.corrected_samples += block.n_samples
+        self.turns.append("corrected")
 
     def on_error(self, rms_nT, *, seq, t_s, n) -> None:
         self.errors += 1
@@ -39,6 +42,9 @@ class Counting(Sink):
 
     def on_health(self, counters, faults) -> None:
         self.health += 1
+
+    def on_flush(self) -> None:
+        self.turns.append("flush")
 
     def close(self) -> None:
         self.closed = True
@@ -69,7 +75,10 @@ def test_a_new_output_is_one_class_told_what_the_recording_gets(tmp_path):
     assert counter.events.count("calibration") == sum(e.get("kind") == "calibration" for e in rec.calibration) >= 1
     assert len(counter.events) == len(rec.calibration)
     assert counter.errors > 0 and counter.health >= 1 and counter.closed
-
+    # each block's messages are flushed (the bus sends them together) before the next block is read
+    turns = "".join(t[0] for t in counter.turns)
+    assert turns.count("r") == counter.raw_blocks and turns.count("c") > 0
+    assert all("f" in between for between in turns.split("r")[1:-1])
 
 def test_a_failing_output_costs_only_itself(tmp_path):
     counter = Counting()

@@ -109,15 +109,16 @@ class Desk:
     # --- the bus's own thread: late answers (never a zenoh callback) ----------------------------
 
     def _watch_late(self) -> None:
-        while not self._stop.wait(0.02):
-            now = time.monotonic()
+        """Answer what waited too long; asleep until the first of it is due (a query or command queued wakes it)."""
+        while True:
             with self._cond:
-                late_q = [q for t, q in self._state_queries if now - t >= self.state_grace_s]
-                for _ in late_q:
-                    self._state_queries.popleft()         # oldest first: the late ones are at the front
-                expired = [c for c in self._commands if now >= c.expires_at]
-                for c in expired:
-                    self._commands.remove(c)
+                if self._stop.is_set():
+                    return
+                now = time.monotonic()
+                late_q, expired, wait = _take_late(self._state_queries, self._commands, self.state_grace_s, now)
+                if not (late_q or expired):
+                    self._cond.wait(wait)
+                    continue
             for q in late_q:
                 self.stats["state_queries_stale"] += 1
                 self.reply_state(q, self._stale_state(now))
@@ -212,11 +213,24 @@ class Desk:
             self._closed = True
             commands, self._commands = list(self._commands), deque()
             states, self._state_queries = [q for _, q in self._state_queries], deque()
+            self._stop.set()
             self._cond.notify_all()
-        self._stop.set()
         if self._watchdog is not threading.current_thread():
             self._watchdog.join(2.0)
         for cmd in commands:
             cmd.reply({"ok": False, "error": "the service is stopping; the command was not applied"})
         for q in states:                             # not state_fn(): the source may be closed already
             self.reply_state(q, BusError(why))
+
+
+def _take_late(queries: deque, commands: deque, grace_s: float, now: float) -> tuple[list, list, float]:
+    """The state queries older than grace_s and the commands past their wait, taken from their queues (oldest
+    first), and how long until the next of those left is due (at most 1 s)."""
+    late_q = [q for t, q in queries if now - t >= grace_s]
+    for _ in late_q:
+        queries.popleft()                             # oldest first: the late ones are at the front
+    expired = [c for c in commands if now >= c.expires_at]
+    for c in expired:
+        commands.remove(c)
+    due = [t + grace_s for t, _ in queries] + [c.expires_at for c in commands]
+    return late_q, expired, min(max(min(due, default=now + 1.0) - now, 0.001), 1.0)

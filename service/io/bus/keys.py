@@ -17,7 +17,7 @@ import numpy as np
 import zenoh
 
 from drivers.errors import ConfigError, DataError
-from service.io.encoding import decode_corrected, decode_raw, json_ready
+from service.io.encoding import decode_corrected, decode_raw, encode_json
 
 
 @dataclass(frozen=True)
@@ -74,7 +74,7 @@ def decode_series(data: bytes) -> Series:
 
 
 def _json_bytes(obj: Any) -> bytes:
-    return json.dumps(json_ready(obj), allow_nan=False, separators=(",", ":")).encode()
+    return encode_json(obj, ensure_ascii=True)
 
 
 _UNIT_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")

@@ -1,17 +1,25 @@
 """The bus's sender thread: the only caller of `put()`, so a slow or frozen subscriber (Zenoh's BLOCK
-congestion control) holds back the sender, never the service's reading, recording and processing."""
+congestion control) holds back the sender, never the service's reading, recording and processing.
+
+Waking a thread costs tens of microseconds of CPU (two context switches and the GIL changing hands), more than
+the put itself: with `gather` the messages of one turn of the service's loop wait until `release()`, and the
+thread wakes once for them all, not once per message."""
 
 from __future__ import annotations
 
 import threading
 import time
 from collections import deque
+from collections.abc import Iterable
 
 import zenoh
 
 #: a put that waits this long is counted as a stall (a subscriber that stopped taking data; zenoh closes its link
 #: after [zenoh] stall_close_ms)
 STALL_S = 0.1
+#: the sender takes the messages waiting in batches of about this many bytes (a turn's messages of a block or a
+#: few) under one lock; what waits beyond them can still be dropped, oldest first, when the backlog overflows
+BATCH_BYTES = 64 << 10
 
 
 class Sender:
@@ -29,6 +37,7 @@ class Sender:
         self._sending = False
         self._cond = threading.Condition()
         self._backlog_bytes = int(backlog_bytes)
+        self.gather = False               # True: put() only queues, release() wakes the thread
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._send_loop, daemon=True, name=thread_name)
         self._thread.start()
@@ -36,16 +45,29 @@ class Sender:
     def put(self, name: str, pub: zenoh.Publisher, payload: bytes) -> None:
         """Hand a message to the sender thread (counted as published_<name>). If the backlog is over its
         bound (subscribers that cannot keep up), the oldest waiting messages are dropped and counted."""
+        self.put_all(((name, pub, payload),))
+
+    def put_all(self, messages: Iterable[tuple[str, zenoh.Publisher, bytes]]) -> None:
+        """put() of several (name, publisher, payload) in order, taking the lock once."""
+        stats, outbox = self.stats, self._outbox
         with self._cond:
-            self._outbox.append((name, pub, payload))
-            self._outbox_bytes += len(payload)
-            while self._outbox_bytes > self._backlog_bytes and len(self._outbox) > 1:
-                _, _, old = self._outbox.popleft()
+            for message in messages:
+                outbox.append(message)
+                self._outbox_bytes += len(message[2])
+                stats[f"published_{message[0]}"] += 1
+            while self._outbox_bytes > self._backlog_bytes and len(outbox) > 1:
+                _, _, old = outbox.popleft()
                 self._outbox_bytes -= len(old)
-                self.stats["send_dropped"] += 1
-            self.stats[f"published_{name}"] += 1
-            if not self._sending:
-                self._cond.notify()      # wake the sender only when idle: one wake-up per block, not per message
+                stats["send_dropped"] += 1
+            if not (self.gather or self._sending):
+                self._cond.notify()      # wake the sender only when idle
+
+    def release(self) -> None:
+        """Wake the thread for the messages gathered (at most once: none when it is busy or nothing waits).
+        Gathered messages that nobody releases go anyway within the thread's half-second wait."""
+        with self._cond:
+            if self._outbox and not self._sending:
+                self._cond.notify()
 
     def _send_loop(self) -> None:
         """put() every message in order, taking what waits in one go; ends when stopping and nothing waits."""
@@ -60,23 +82,31 @@ class Sender:
                     self._cond.notify_all()
                     return
                 self._sending = True
-                name, pub, payload = self._outbox.popleft()
-                self._outbox_bytes -= len(payload)
-            t0 = time.monotonic()
-            try:
-                pub.put(payload)
-            except zenoh.ZError:
-                self.stats["publish_errors"] += 1
-            waited = time.monotonic() - t0
-            if waited >= STALL_S:         # a subscriber that takes nothing held every stream back this long
-                self.stats["send_stalls"] += 1
-                self.stats["send_stalled_ms"] += int(waited * 1000)
-                self.last_stall_s = waited
+                batch, size = [], 0
+                while self._outbox and (not batch or size < BATCH_BYTES):
+                    batch.append(self._outbox.popleft())
+                    size += len(batch[-1][2])
+                self._outbox_bytes -= size
+            for _name, pub, payload in batch:
+                self._put(pub, payload)
+
+    def _put(self, pub: zenoh.Publisher, payload: bytes) -> None:
+        t0 = time.monotonic()
+        try:
+            pub.put(payload)
+        except zenoh.ZError:
+            self.stats["publish_errors"] += 1
+        waited = time.monotonic() - t0
+        if waited >= STALL_S:         # a subscriber that takes nothing held every stream back this long
+            self.stats["send_stalls"] += 1
+            self.stats["send_stalled_ms"] += int(waited * 1000)
+            self.last_stall_s = waited
 
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until every message handed over has been put (True) or `timeout` passed (False)."""
         deadline = time.monotonic() + timeout
         with self._cond:
+            self._cond.notify()          # gathered messages too
             while self._outbox or self._sending:
                 left = deadline - time.monotonic()
                 if left <= 0 or not self._thread.is_alive():

@@ -40,7 +40,7 @@ import zenoh
 
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError, DataError
-from service.io.encoding import encode_corrected, encode_raw
+from service.io.encoding import corrected_payload, probe_payloads, raw_payload
 from service.numerics.outputs import CorrectedBlock
 
 from . import claim
@@ -51,6 +51,19 @@ from .settings import BusError, SessionHolder, ZenohConfig
 
 #: messages waiting for the bus's sender thread, at most (bytes); beyond it the oldest are dropped, counted
 SEND_BACKLOG_BYTES = 16 << 20
+
+
+def _new_stats() -> dict[str, int]:
+    """The bus's counters (health's "bus"), each at zero."""
+    return {"commands_received": 0, "commands_refused": 0, "commands_expired": 0, "state_queries": 0,
+            "state_queries_stale": 0, "publish_errors": 0, "duplicate_holders": 0,
+            **{f"published_{name}": 0 for name in STREAMS}, "published_corrected_probe": 0, "send_dropped": 0}
+
+
+def _check_key_segments(probe_names: Sequence[str]) -> None:
+    for name in probe_names:
+        if not _KEY_CHUNK.match(name):
+            raise ConfigError(f"probe name {name!r} cannot be a key segment (allowed: letters, digits, '_', '-', '.')")
 
 
 class ServiceBus(SessionHolder):
@@ -77,18 +90,11 @@ class ServiceBus(SessionHolder):
         self.unit = unit
         self.claim_note = ""
         self.probe_names = list(probe_names) if probe_names is not None else None
-        for name in self.probe_names or []:
-            if not _KEY_CHUNK.match(name):
-                raise ConfigError(f"probe name {name!r} cannot be a key segment (allowed: letters, digits, '_', '-', '.')")
+        _check_key_segments(self.probe_names or [])
         cfg_obj = zenoh_cfg if isinstance(zenoh_cfg, ZenohConfig) else None
         self.per_probe = per_probe if per_probe is not None else (cfg_obj.per_probe if cfg_obj else True)
         express = express if express is not None else (cfg_obj.express if cfg_obj else False)
-        self.stats: dict[str, int] = {"commands_received": 0, "commands_refused": 0, "commands_expired": 0,
-                                      "state_queries": 0, "state_queries_stale": 0, "publish_errors": 0,
-                                      "duplicate_holders": 0}
-        self.stats.update({f"published_{name}": 0 for name in STREAMS})
-        self.stats["published_corrected_probe"] = 0
-        self.stats["send_dropped"] = 0
+        self.stats = _new_stats()
         self._sender: Sender | None = None
         self._desk: Desk | None = None
         self._last_calibration: dict[str, Any] | None = None
@@ -160,11 +166,21 @@ class ServiceBus(SessionHolder):
 
     # --- publishing (the service's thread) -------------------------------------------------------
 
-    def _put(self, name: str, pub: zenoh.Publisher, payload: bytes) -> None:
-        """Hand a message to the sender thread (service.io.bus.sender): counted, bounded, never blocking."""
+    def _put(self, *messages: tuple[str, zenoh.Publisher, bytes]) -> None:
+        """(stream, publisher, payload) messages to the sender thread (bus.sender), together: never blocking."""
         if self._closed:
-            raise BusError(f"publish on {self.keys.root}/{name} after the bus was closed")
-        self._sender.put(name, pub, payload)
+            raise BusError(f"publish on {self.keys.root}/{messages[0][0]} after the bus was closed")
+        self._sender.put_all(messages)
+
+    def gather_sends(self, on: bool = True) -> None:
+        """With `on`, what is published waits for `send()` (once a turn): the sender wakes once for all of it."""
+        if self._sender is not None:
+            self._sender.gather = on
+
+    def send(self) -> None:
+        """Send what was published since the last call (with gather_sends; otherwise it is on its way already)."""
+        if self._sender is not None:
+            self._sender.release()
 
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until every message handed to the bus has been put (True) or `timeout` passed (False)."""
@@ -172,35 +188,32 @@ class ServiceBus(SessionHolder):
 
     def publish_raw(self, block: SampleBlock) -> None:
         if block.n_samples:
-            self._put("raw", self._pubs["raw"], encode_raw(block))
+            self._put(("raw", self._pubs["raw"], raw_payload(block)))
 
     def publish_corrected(self, block: CorrectedBlock) -> None:
         """`corrected` (everything), and `diff`, `tensor`, `corrected/<probe>` when they exist."""
         if not block.n_samples:
             return
-        self._put("corrected", self._pubs["corrected"], encode_corrected(block))
-        if block.diff_nT is not None:
-            self._put("diff", self._pubs["diff"], encode_series(block.t_s, block.seq, block.diff_nT, block.cal_id))
-        if block.tensor_nT_m is not None:
-            self._put("tensor", self._pubs["tensor"],
-                      encode_series(block.t_s, block.seq, block.tensor_nT_m, block.cal_id))
+        out = [("corrected", self._pubs["corrected"], corrected_payload(block))]
+        for name, series in (("diff", block.diff_nT), ("tensor", block.tensor_nT_m)):
+            if series is not None:
+                out.append((name, self._pubs[name], encode_series(block.t_s, block.seq, series, block.cal_id)))
         if self.per_probe:
             names = self.probe_names or [f"s{k + 1}" for k in range(block.n_probes)]
             if len(names) != block.n_probes:
                 raise DataError(f"corrected block has {block.n_probes} probes, the bus knows {len(names)}: {names}")
-            for k, name in enumerate(names):
+            for name, payload in zip(names, probe_payloads(block)):
                 pub = self._probe_pubs.get(name)
                 if pub is None:
                     pub = self._probe_pubs[name] = self._declare_pub(self.keys.probe(name), STREAMS["corrected"])
-                one = CorrectedBlock(t_s=block.t_s, seq=block.seq, corrected_nT=block.corrected_nT[:, k:k + 1],
-                                     diff_nT=None, tensor_nT_m=None, center_nT=None, cal_id=block.cal_id)
-                self._put("corrected_probe", pub, encode_corrected(one))
+                out.append(("corrected_probe", pub, payload))
+        self._put(*out)
 
     def publish_calibration(self, record: Mapping[str, Any]) -> None:
         """A calibration event (kind, seq, t_s, ..., "state": {...}) as JSON; kept for `state` queries."""
         self._last_calibration = dict(record)
-        self._put("calibration", self._pubs["calibration"],
-                  _json_bytes({**record, "unit": self.unit, "time_unix_s": time.time()}))
+        self._put(("calibration", self._pubs["calibration"],
+                   _json_bytes({**record, "unit": self.unit, "time_unix_s": time.time()})))
 
     def publish_health(self, counters: Mapping[str, Any], faults: Mapping[str, Any] | None = None) -> None:
         """{"counters": source counters, "bus": this bus's counters, "faults": the faults said} as JSON; may be
@@ -209,15 +222,15 @@ class ServiceBus(SessionHolder):
         if faults is not None:
             msg["faults"] = dict(faults)
         self._last_health = msg
-        self._put("health", self._pubs["health"], _json_bytes(msg))
+        self._put(("health", self._pubs["health"], _json_bytes(msg)))
 
     def publish_error(self, rms_nT: Mapping[str, float], *, seq: int | None = None, t_s: float | None = None,
                       n: int | None = None) -> None:
         """The model-vs-measurement error metric of a block of n samples from seq (unit time t_s),
         {"rms_nT": {channel: nT}}; may be dropped."""
-        self._put("error", self._pubs["error"], _json_bytes({"unit": self.unit, "time_unix_s": time.time(),
-                                                            "seq": seq, "t_s": t_s, "n": n,
-                                                            "rms_nT": dict(rms_nT)}))
+        self._put(("error", self._pubs["error"], _json_bytes({"unit": self.unit, "time_unix_s": time.time(),
+                                                             "seq": seq, "t_s": t_s, "n": n,
+                                                             "rms_nT": dict(rms_nT)})))
 
     def has_subscribers(self, stream: str) -> bool:
         """Whether any subscriber anywhere matches `stream` ("raw", ..., "corrected/<probe>"), e.g. to wait for

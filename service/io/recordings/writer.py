@@ -68,13 +68,8 @@ from typing import Any
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError
 from drivers.outputs import open_output
-from service.io.encoding import (
-    encode_corrected,
-    encode_json,
-    encode_raw,
-    health_record,
-)
-from service.io.foxglove_schemas import Products, message_bytes
+from service.io.encoding import corrected_payload, encode_json, health_record, raw_payload
+from service.io.foxglove_schemas import Products
 from service.numerics.outputs import CorrectedBlock
 
 from .files import COMPRESSIONS, McapFiles
@@ -186,13 +181,16 @@ class ChunkedLog:
     # --- writing ----------------------------------------------------------------------------------
 
     def _log_time(self, t_s: float | None) -> int:
+        """log_time of a message whose first sample is at unit time t_s (the last one's when t_s is unknown), and
+        that message's time becomes the last one's when t_s is known."""
         if t_s is None or not math.isfinite(t_s):
             if self._last_log_ns is not None:
                 return self._last_log_ns
             return _wall_ns()
         if self.epoch_ns is None:
             self.epoch_ns = _wall_ns() - round(t_s * 1e9)
-        return max(self.epoch_ns + round(t_s * 1e9), 0)
+        log_ns = self._last_log_ns = max(self.epoch_ns + round(t_s * 1e9), 0)
+        return log_ns
 
     def _write(self, stream: str, data: bytes, t_s: float | None) -> None:
         self.messages += 1
@@ -201,12 +199,11 @@ class ChunkedLog:
             self.last_error = "write after close"
             return
         log_ns = self._log_time(t_s)
-        if t_s is not None and math.isfinite(t_s):
-            self._last_log_ns = log_ns
-        self._rotate_if_due()
+        now = _monotonic()
+        self._rotate_if_due(now)
         files = self._files
         if files.writer is None:
-            if _monotonic() < self._retry_at or not self._open():
+            if now < self._retry_at or not self._open():
                 self.dropped += 1
                 return
         assert files.writer is not None
@@ -219,22 +216,20 @@ class ChunkedLog:
                                      sequence=seq)
             self._pending.append((stream, data, log_ns, pub_ns, seq))
             self._pending_bytes += len(data) + 40          # + the message record's header, about
-            self._flush_if_due()
+            self._flush_if_due(now)
         except OSError as e:
             self._fail(e)
 
-    def _flush_if_due(self) -> None:
-        if self._pending and (self._pending_bytes >= self.chunk_size
-                              or _monotonic() - self._last_flush >= self.flush_interval_s):
+    def _flush_if_due(self, now: float) -> None:
+        if self._pending and (self._pending_bytes >= self.chunk_size or now - self._last_flush >= self.flush_interval_s):
             self._flush()
 
-    def _rotate_if_due(self) -> None:
+    def _rotate_if_due(self, now: float) -> None:
         """Before a message: a file holds what arrived in [opened, opened + rotate_s) and about rotate_mb."""
         fh = self._files.fh
         if self._files.writer is None or fh is None or self.single_file:
             return
-        if (fh.pos + self._pending_bytes >= self.rotate_bytes
-                or _monotonic() - self._opened_at >= self.rotate_s):
+        if fh.pos + self._pending_bytes >= self.rotate_bytes or now - self._opened_at >= self.rotate_s:
             self._finish()
             if self._files.writer is None and not self._pending:     # finished cleanly (else: retried later)
                 self._open()
@@ -249,11 +244,12 @@ class ChunkedLog:
             if self._pending and _monotonic() >= self._retry_at:
                 self._open()
             return
+        now = _monotonic()
         try:
-            self._flush_if_due()
+            self._flush_if_due(now)
         except OSError as e:
             self._fail(e)
-        self._rotate_if_due()
+        self._rotate_if_due(now)
 
     def flush(self) -> None:
         """Write the unfinished chunk now (e.g. before a planned stop)."""
@@ -344,10 +340,10 @@ class McapLogger(ChunkedLog):
                          retry_s=retry_s, backlog_bytes=max(backlog_mb * 1e6, 2.0 * int(chunk_size)))
 
     def write_raw(self, block: SampleBlock) -> None:
-        self._write("raw", encode_raw(block), float(block.t_s[0]) if block.n_samples else None)
+        self._write("raw", raw_payload(block), float(block.t_s[0]) if block.n_samples else None)
 
     def write_corrected(self, block: CorrectedBlock) -> None:
-        self._write("corrected", encode_corrected(block), float(block.t_s[0]) if block.n_samples else None)
+        self._write("corrected", corrected_payload(block), float(block.t_s[0]) if block.n_samples else None)
         if self._products is not None:
             self._write_products(self._products.corrected(block))
 
@@ -359,7 +355,7 @@ class McapLogger(ChunkedLog):
     def _write_products(self, messages: list[tuple[str, dict[str, Any]]]) -> None:
         for stream, msg in messages:
             t = msg.get("t_s")
-            self._write(stream, message_bytes(msg), float(t) if isinstance(t, (int, float)) else None)
+            self._write(stream, encode_json(msg), float(t) if isinstance(t, (int, float)) else None)
 
     def _write_json(self, stream: str, record: dict[str, Any]) -> None:
         t = record.get("t_s")

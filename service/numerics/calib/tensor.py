@@ -64,17 +64,29 @@ def _geometry(shape: tuple[int, int], key: bytes) -> tuple[np.ndarray, bool]:
     return pinv, rank == 2
 
 
+def tensor_operator(positions_m: np.ndarray, n_probes: int) -> tuple[np.ndarray, bool]:
+    """(D⁺ (3, P) about the centroid, planar) of the probe positions (P, 3) in m, checked: what the tensor of every
+    block of one array needs, computed once."""
+    r = np.ascontiguousarray(positions_m, float)
+    if r.ndim != 2 or r.shape[1] != 3 or r.shape[0] != n_probes:
+        raise ConfigError(f"probes.position_m: expected ({n_probes}, 3) positions in m, got {r.shape}")
+    return _geometry(r.shape, r.tobytes())
+
+
 def tensor_from_positions(corrected_nT: np.ndarray, positions_m: np.ndarray) -> np.ndarray:
     """(N, P, 3) corrected fields at probe positions (P, 3) -> (N, 3, 3) tensor G (least squares)."""
-    r = np.ascontiguousarray(positions_m, float)
-    if r.ndim != 2 or r.shape[1] != 3 or r.shape[0] != corrected_nT.shape[1]:
-        raise ConfigError(f"probes.position_m: expected ({corrected_nT.shape[1]}, 3) positions in m, got {r.shape}")
-    pinv, planar = _geometry(r.shape, r.tobytes())                 # (3, P)
-    db = corrected_nT - corrected_nT.mean(axis=1, keepdims=True)
-    # G = D⁺ ΔB, summed probe by probe: the same rounding whatever the block length (replay = live)
-    g = pinv[None, :, 0, None] * db[:, None, 0, :]
-    for k in range(1, db.shape[1]):
-        g = g + pinv[None, :, k, None] * db[:, None, k, :]
+    pinv, planar = tensor_operator(positions_m, corrected_nT.shape[1])
+    return tensor_about_centre(corrected_nT - corrected_nT.mean(axis=1, keepdims=True), pinv, planar)
+
+
+def tensor_about_centre(db: np.ndarray, pinv: np.ndarray, planar: bool) -> np.ndarray:
+    """G = D⁺ ΔB from the fields about the array's mean field, db (N, P, 3), and tensor_operator's (D⁺, planar).
+    Summed probe by probe, in probe order (a reduction over the outer axis adds its rows one after another): the
+    same rounding whatever the block length (replay = live)."""
+    n, p = db.shape[0], db.shape[1]
+    terms = np.multiply(pinv.T[:, None, :, None], db.transpose(1, 0, 2)[:, :, None, :],
+                        out=np.empty((p, n, 3, 3)))           # (P, N, 3, 3) in C order: term k = D⁺[:, k] ΔB_k
+    g = np.add.reduce(terms, axis=0)                          # ((t_0 + t_1) + t_2) + ...
     if planar:
         _complete_planar(g)
     return g
@@ -82,9 +94,10 @@ def tensor_from_positions(corrected_nT: np.ndarray, positions_m: np.ndarray) -> 
 
 def _complete_planar(g: np.ndarray) -> None:
     """Row z of a planar (x-y) array's tensor from symmetry and zero trace, in place."""
-    g[:, 2, 0] = g[:, 0, 2]
-    g[:, 2, 1] = g[:, 1, 2]
-    g[:, 2, 2] = -(g[:, 0, 0] + g[:, 1, 1])
+    g[:, 2, :2] = g[:, :2, 2]                         # G[z, x] = G[x, z], G[z, y] = G[y, z]
+    zz = g[:, 2, 2]
+    np.add(g[:, 0, 0], g[:, 1, 1], out=zz)
+    np.negative(zz, out=zz)                           # G[z, z] = −(G[x, x] + G[y, y])
 
 
 def tensor_from_cross(corrected_nT: np.ndarray, baseline_m: float) -> np.ndarray:

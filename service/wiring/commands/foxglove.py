@@ -27,7 +27,8 @@ import zenoh
 
 from drivers.errors import ConfigError
 from service.io.bus import BusClient, BusError, Message, ZenohConfig, ZenohTlsConfig, discover_units, open_session
-from service.io.foxglove_schemas import PRODUCT_STREAMS, Products, error_message, json_channels, message_bytes
+from service.io.encoding import encode_json
+from service.io.foxglove_schemas import PRODUCT_STREAMS, Products, error_message, json_channels
 from service.wiring.commands.options import CommandHelp, client_options
 
 from .client import parse_listen, resolve_units
@@ -91,7 +92,7 @@ class UnitFeed:
         return self.last_log_ns
 
     def _log(self, stream: str, message: dict[str, Any]) -> None:
-        self.channels[stream].log(message_bytes(message), log_time=self._log_ns(message.get("t_s")))
+        self.channels[stream].log(encode_json(message), log_time=self._log_ns(message.get("t_s")))
         self.sent[stream] += 1
 
     def _restarted(self, t_s: Any) -> None:
