@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_can_garbage import LastHealth
+from test_recording import service_config
 
 from drivers.block import SampleBlock
 from drivers.config import spec
@@ -29,7 +31,6 @@ from service.io.recordings.reader import read_recording
 from service.wiring.cli import main
 from service.wiring.config import load_config
 from service.wiring.daemon import Daemon
-from service.wiring.sinks import Sink
 
 N_PROBES, RATE_HZ = 2, 100.0
 
@@ -230,16 +231,6 @@ def test_a_kind_declared_by_a_test_runs_through_fluxcal_run_counted_and_said_in_
     assert health["faults"]["totals"]["checksum"] == 6 and health["faults"]["totals"]["overruns"] == 1
 
 
-class LastHealth(Sink):
-    name = "test-health"
-
-    def __init__(self) -> None:
-        self.counters: dict = {}
-
-    def on_health(self, counters, faults) -> None:
-        self.counters = dict(counters)
-
-
 def test_a_protocol_declared_by_a_test_reads_a_serial_port_through_the_service(declared, tmp_path, pty_port):
     port = pty_port()
     text = (Path("configs/serial-example.toml").read_text()
@@ -288,8 +279,6 @@ def test_health_holds_the_sources_own_counters_and_says_its_faults_in_its_buss_w
     """The simulated unit through the serial driver (a pty) and through the CAN driver (a virtual bus): each health
     holds its own kind's counters and not the other's, and a restart is said as that bus can tell it (CAN carries no
     unit clock)."""
-    from test_recording import service_config
-
     text = (Path(service_config(tmp_path, run_s=3.0, realtime=False)).read_text()
             .replace('transport = "pty"', f'transport = "{transport}"')
             .replace("[sim.field]", "seq_start = 30000\n\n[sim.field]")      # a restart well back from the counter
