@@ -103,7 +103,7 @@ def test_an_installed_package_adds_a_kind_and_a_protocol(restored, monkeypatch):
 def test_a_sources_counters_are_its_declarations_and_no_other():
     words = source_kind("serial").words()
     c = Counters.of(words)
-    assert list(c.as_dict()) == list(words.names) and c.words is words and not any(c.as_dict().values())
+    assert list(c.as_dict()) == list(words.names) and c.words == words and not any(c.as_dict().values())
     c.crc_failures += 3
     with pytest.raises(AttributeError):
         c.bad_frames += 1                                           # a CAN counter: not the serial unit's
