@@ -19,7 +19,7 @@ import numpy as np
 
 from drivers.block import SampleBlock
 from drivers.sim import Unit, load_sim_config
-from service.io.recordings.writer import write_recording
+from fluxcal.recordings import write_recording
 
 C_DEG = 83.4
 POWER = 3.0

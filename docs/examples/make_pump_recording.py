@@ -16,7 +16,7 @@ import numpy as np
 
 from drivers.block import SampleBlock
 from drivers.sim import Unit, load_sim_config
-from service.io.recordings.writer import write_recording
+from fluxcal.recordings import write_recording
 
 PUMP_HZ = 1.5
 PUMP_NT = 4.0

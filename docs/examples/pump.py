@@ -10,7 +10,7 @@ tutorial docs/tutorial-own-effect.md:
 
 import numpy as np
 
-from service.numerics.effects import EffectTerm
+from fluxcal import EffectTerm
 
 
 class Pump(EffectTerm):

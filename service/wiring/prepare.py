@@ -90,9 +90,19 @@ def prepare(source: str, said: Said, *, config: str | None = None, site: str | N
     say_read_warnings(said, source, data.warnings, repairable=data.metadata.get("format") not in FOREIGN)
     for note in data.notes:                       # how another ecosystem's topics were matched into samples
         said("format", note, level="note")
-    data = skip_spans(said, source, data, skip)
+    return prepared_from(data, said, config=config, site=site, skip=skip, calibration=calibration, source=source)
+
+
+def prepared_from(data: LabData, said: Said, *, config: str | None = None, site: str | None = None,
+                  skip: Sequence[tuple[float, float]] | None = None, calibration: str | None = None,
+                  source: str | None = None) -> Prepared:
+    """The rest of prepare() on data already read (`source`: the file they came from, or None for a table in memory:
+    service.wiring.api): --skip's stretches, a logger's held samples, a rotated file given alone, the calibration
+    held, the geometry of --config or of the stored configuration, --site, the track."""
+    data = skip_spans(said, source or data.path, data, skip)
     data, holds = _without_holds(said, data)
-    part = part_of_run(said, source)
+    part = part_of_run(said, source) if source is not None else None
+    source = data.path if source is None else source
     n_probes = data.block.n_probes
     held, held_effects = held_calibration(calibration, n_probes) if calibration else (None, [])
     if config:

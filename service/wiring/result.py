@@ -100,6 +100,27 @@ class Result:
     def text(self) -> str:
         return ""
 
+    # in Python (service.wiring.api): the same figures as the command line's
+    def to_dict(self) -> dict[str, Any]:
+        """The command's JSON (docs/contracts.md), as a dict."""
+        return self.as_dict()
+
+    def to_dataframe(self) -> Any:
+        """The result's table as a pandas DataFrame (pandas needed): its parameters with standard errors."""
+        import pandas as pd
+
+        return pd.DataFrame(self.rows())
+
+    def rows(self) -> list[dict[str, Any]]:
+        """The result's table as rows (to_dataframe): none here; a command's result says its own."""
+        return []
+
+    def _repr_html_(self) -> str:
+        """A notebook's display: the table, the text as the command line prints it, and the notes."""
+        from service.io.report.notebook import result_html
+
+        return result_html(self)
+
 
 def refusal(error: BaseException, file: Any = None) -> dict[str, Any]:
     """The JSON of a refusal (docs/contracts.md section 3): {"refused": {"reason", "advice", "file"}}. reason: why

@@ -11,7 +11,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 MODULES = sorted(".".join(p.relative_to(ROOT).with_suffix("").parts)
-                 for pkg in ("service", "drivers") for p in (ROOT / pkg).rglob("*.py")
+                 for pkg in ("fluxcal", "service", "drivers") for p in (ROOT / pkg).rglob("*.py")
                  if ">>> " in p.read_text(encoding="utf-8"))
 
 

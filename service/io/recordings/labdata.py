@@ -103,7 +103,20 @@ def load_csv(path: str | Path) -> LabData:
     rows, lineno = _data_rows(p, lines, header_idx, comments)
     values = _parse_rows(p, header, rows, lineno)
     del rows, lines
+    return lab_table(p, header, values, lineno, comments)
 
+
+def lab_table(p: Path | str, header: list[str], values: np.ndarray, lineno: np.ndarray | None = None,
+              comments: list[str] | None = None) -> LabData:
+    """A lab CSV's columns (docs/csv.md: `header`, and `values` (N, columns) float) as LabData, checked as a CSV's
+    are: every reader of such a table (a file, a pandas DataFrame, arrays: service.wiring.api) goes through here, so
+    the same numbers give the same samples. lineno: each row's line in its file (for the messages), else 2, 3, ..."""
+    values = np.array(values, dtype=np.float64)            # a copy: the caller's table is never changed
+    lineno = np.arange(2, values.shape[0] + 2) if lineno is None else lineno
+    _check_header(p, header, 1)
+    if values.ndim != 2 or values.shape[1] != len(header) or values.shape[0] == 0:
+        raise DataError(f"{p}: expected a table of rows by the {len(header)} columns of its header, got the shape "
+                        f"{values.shape}")
     # a probe's axis or temperature may be NaN (or inf): saturated or invalid, left out by the fits and counted
     # there; any other column must be a number
     may_lack = np.array([bool(_PROBE_COL.match(h)) for h in header])
@@ -114,7 +127,7 @@ def load_csv(path: str | Path) -> LabData:
     _check_time_column(p, values[:, col["t"]], lineno)
     block, n_probes = _csv_block(header, values)
     return LabData(block=block, probe_names=[f"s{k + 1}" for k in range(n_probes)], path=str(p),
-                   comments=comments)
+                   comments=list(comments or []))
 
 
 def _head_problem(p: Path):

@@ -39,11 +39,7 @@ def load_data(path: str | Path, *, max_samples: int | None = None, max_probe_sam
             raise refused
     fmt = detect_format(p)
     if fmt in ("ros2-mcap", "ros2-bag", "px4-ulog", "ardupilot-bin"):
-        lab = load_log(p, fmt, mapping)
-        n, probes = lab.block.n_samples, lab.block.n_probes
-        every = keep_every(n, probes, max_samples, max_probe_samples)
-        return replace(lab, n_read=n) if every == 1 else \
-            replace(lab, block=lab.block.rows(np.arange(0, n, every)), every=every, n_read=n)
+        return thinned(load_log(p, fmt, mapping), max_samples, max_probe_samples)
     if p.is_dir():
         check_one_run(p)
     if p.is_dir() or p.suffix.lower() == ".mcap" or fmt == "fluxcal":
@@ -55,12 +51,17 @@ def load_data(path: str | Path, *, max_samples: int | None = None, max_probe_sam
         check_time_increases(p, rec.raw)
         return LabData(block=rec.raw.without_implausible(), probe_names=names, path=str(p),
                        warnings=rec.report.warnings, every=rec.every, n_read=rec.n_read, metadata=dict(rec.metadata))
-    lab = load_csv(p)
+    return thinned(load_csv(p), max_samples, max_probe_samples)
+
+
+def thinned(lab: LabData, max_samples: int | None = None, max_probe_samples: int | None = None) -> LabData:
+    """The data read whole, with every k-th sample kept (keep_every: k the smallest within the limits; LabData.every
+    says k, n_read the samples read). A copy where k > 1; the same samples where k = 1."""
     n, probes = lab.block.n_samples, lab.block.n_probes
     every = keep_every(n, probes, max_samples, max_probe_samples)
     if every == 1:
-        return replace(lab, n_read=n)
-    return replace(lab, block=lab.block.rows(np.arange(0, n, every)), every=every, n_read=n)   # a copy
+        return replace(lab, n_read=n if lab.n_read is None else lab.n_read)
+    return replace(lab, block=lab.block.rows(np.arange(0, n, every)), every=every, n_read=n)
 
 
 def load_log(p: Path, fmt: str, mapping: Any = None) -> LabData:

@@ -9,7 +9,7 @@ HEADER = '''"""{doc}"""
 
 import numpy as np
 
-from service.numerics.effects import EffectTerm
+from fluxcal.effects import EffectTerm
 {imports}
 
 def offset_columns(x):

@@ -120,7 +120,10 @@ def _fit_form(data, base: FitResult, kept: list[Group], others: list[Group], ter
     pr = Problem(data, model, base.state.linear, reference, weights=weights, n_blocks=n_blocks, hints=hints,
                  refs=[v.cache for v in base.problem.views], rows=base.problem.rows if rows is None else rows)
     try:
-        fit = fit_problem(pr, pr.start_state(previous.linear, previous), max_iter=FORM_ITERATIONS)
+        # a law's trial step may go far out (a power of a distance near its pole): its residual is then infinite,
+        # and the fit's line search takes a shorter step
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            fit = fit_problem(pr, pr.start_state(previous.linear, previous), max_iter=FORM_ITERATIONS)
     except (FluxcalError, np.linalg.LinAlgError, ValueError, FloatingPointError):
         return None
     if not np.isfinite(fit.rss_w):

@@ -275,7 +275,7 @@ def effect_source(found: Any, class_name: str = "Discovered", name: str = "disco
            f"Give it back with --effects FILE.py:{class_name}{also}; rename the class and `name` as you\n"
            f"like, replace a shape by a law of your own (docs/effects.md). The references the parameters are\n"
            f"centred on (the means of the data fitted) are kept with the calibration under `ref:` keys.")
-    imports = ("from service.numerics.effects.thermal import low_pass\n"
+    imports = ("from fluxcal.effects import low_pass\n"
                if any("low_pass_s" in g.feature.recipe for g in groups) else "")
     text = HEADER.format(doc=doc.replace('"""', "'''"), imports=imports)
     lines = [text.rstrip("\n")]

@@ -111,6 +111,28 @@ def register_effect(cls: object, origin: str = "") -> str:
     return name
 
 
+def unregister_effect(name: str) -> None:
+    """Take a user's effect out of the registry (a notebook's cell defines its class again after an edit: register
+    the new one after this). ConfigError for a catalogue effect or one not registered.
+
+    >>> class Once(EffectTerm):
+    ...     name = "once"
+    ...     def param_names(self, view):
+    ...         return []
+    ...     def columns(self, view):
+    ...         return None
+    >>> register_effect(Once), "once" in known_effects()
+    ('once', True)
+    >>> unregister_effect("once"); "once" in known_effects()
+    False
+    """
+    if name not in _REGISTERED:
+        why = "a catalogue effect" if name in EFFECTS else "not registered"
+        raise ConfigError(f"unregister_effect: {name!r} is {why} (registered: {', '.join(_REGISTERED) or 'none'})")
+    del _REGISTERED[name]
+    _ORIGIN.pop(name, None)
+
+
 def make_term(name: str) -> EffectTerm:
     """One term by name (catalogue or registered); ConfigError names the allowed ones."""
     cls = known_effects().get(name)
@@ -126,6 +148,6 @@ def make_model(names: Iterable[str], *, baseline: bool = True) -> Model:
     return Model(([Baseline()] if baseline else []) + terms)
 
 
-__all__ = ["EFFECTS", "known_effects", "effect_spec", "register_effect", "make_term", "make_model", "Baseline", "EffectData", "EffectTerm", "Model", "ProbeView",
+__all__ = ["EFFECTS", "known_effects", "effect_spec", "register_effect", "unregister_effect", "make_term", "make_model", "Baseline", "EffectData", "EffectTerm", "Model", "ProbeView",
            "Temperature", "ThermalLag", "Eddy", "Lag", "Nonlinearity", "Drift", "Gradient", "Crossfield", "Hysteresis",
            "Platform", "Column", "Ambient"]

@@ -41,7 +41,7 @@ from service.wiring.commands.options import (  # noqa: E402
 )
 from service.wiring.commands.written import write_diagnosis_report, write_discovered  # noqa: E402
 from service.wiring.fitting import NONLINEAR_PROBE_SAMPLES as DIAGNOSE_PROBE_SAMPLES  # noqa: E402
-from service.wiring.prepare import Prepared, effect_input, prepare  # noqa: E402
+from service.wiring.prepare import Prepared, effect_input  # noqa: E402
 from service.wiring.progress import Progress  # noqa: E402
 from service.wiring.result import Result, Said, print_result, stderr_say  # noqa: E402
 
@@ -107,6 +107,20 @@ class DiagnoseResult(Result):
 
         return summary_text(self.diagnosis, self.title) + (f"\n  report: {self.report}" if self.report else "")
 
+    @property
+    def verdict(self) -> dict[str, Any]:
+        """The verdict (docs/contracts.md): its kind, the effect, what is left and what would explain it."""
+        return self.diagnosis.verdict
+
+    def rows(self) -> list[dict[str, Any]]:
+        """Each candidate effect with its held-out figures and the verdict's word."""
+        from service.numerics.diagnose import verdict_word
+
+        return [{"effect": c.effect, "rms_nT": c.rms_nT, "heldout_rms_nT": c.heldout_rms_nT, "gain": c.gain,
+                 "p_value": c.p_value, "significant": c.significant,
+                 "verdict": verdict_word(c, self.diagnosis.heldout_weak) if c.testable else "not testable"}
+                for c in self.diagnosis.candidates]
+
 
 def main(args: argparse.Namespace) -> int:
     """The command line: the diagnosis as text, or JSON (--json); notes and progress on stderr as they come."""
@@ -124,8 +138,17 @@ def options(args: argparse.Namespace) -> DiagnoseOptions:
 
 
 def execute(source: str, opts: DiagnoseOptions, said: Said, *, progress: bool = True) -> DiagnoseResult:
-    """`fluxcal diagnose SOURCE`: the outputs checked before any work, the input prepared (with the calibration
-    held fixed, when given), the model's effects known, the diagnosis."""
+    """`fluxcal diagnose SOURCE`: the Python API's diagnose (service.wiring.api), with the command line's options."""
+    from service.wiring import api
+
+    return api.diagnose(source, effects=opts.effects, report=opts.report, write_effect=opts.write_effect,
+                        max_samples=opts.max_samples, calibration=opts.calibration, said=said, progress=progress,
+                        config=opts.config, site=opts.site, skip=opts.skip, topics=opts.topics, mags=opts.mags)
+
+
+def checked(opts: DiagnoseOptions, source: str | None) -> DiagnoseOptions:
+    """The options with the outputs checked and the model's effects known (installed ones loaded, a user's
+    file.py:Class registered), before any work (source: the input, which no output may be)."""
     from service.numerics.effects import known_effects
     from service.wiring.user_effects import load_installed_effects, resolve_effects
 
@@ -141,18 +164,27 @@ def execute(source: str, opts: DiagnoseOptions, said: Said, *, progress: bool = 
     if unknown:
         raise ConfigError(f"--effects: {', '.join(map(repr, unknown))} not an effect "
                           f"(allowed: {', '.join(known)}; or file.py:ClassName for one of your own)")
+    return opts
+
+
+def read_limits(opts: DiagnoseOptions) -> dict[str, int]:
+    """How many samples a diagnosis reads at most: --max-samples, else the default budget of probe-samples."""
     limit = opts.max_samples
-    prep = prepare(source, said, config=opts.config, site=opts.site, skip=opts.skip, topics=opts.topics,
-                   mags=opts.mags, calibration=opts.calibration,
-                   **({"max_probe_samples": DIAGNOSE_PROBE_SAMPLES} if limit is None else {"max_samples": limit}))
-    if prep.held is not None and not opts.effects:            # the model the file describes
-        missing = [e for e in prep.held_effects if e not in known]
-        if missing:
-            raise ConfigError(f"{opts.calibration}: names the effect(s) {', '.join(map(repr, missing))}, which "
-                              f"are neither in the catalogue nor installed: give them with --effects "
-                              f"file.py:ClassName")
-        opts = replace(opts, effects=list(prep.held_effects))
-    return run(prep, opts, said, progress=progress)
+    return {"max_probe_samples": DIAGNOSE_PROBE_SAMPLES} if limit is None else {"max_samples": limit}
+
+
+def with_held_effects(prep: Prepared, opts: DiagnoseOptions) -> DiagnoseOptions:
+    """The options with the model the held calibration's file describes, where no effects were given."""
+    from service.numerics.effects import known_effects
+
+    if prep.held is None or opts.effects:
+        return opts
+    missing = [e for e in prep.held_effects if e not in known_effects()]
+    if missing:
+        raise ConfigError(f"{opts.calibration}: names the effect(s) {', '.join(map(repr, missing))}, which "
+                          f"are neither in the catalogue nor installed: give them with --effects "
+                          f"file.py:ClassName")
+    return replace(opts, effects=list(prep.held_effects))
 
 
 def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = True) -> DiagnoseResult:

@@ -44,7 +44,7 @@ from service.wiring.fitting import (
     rms_all,
     uncalibrated_rms,
 )
-from service.wiring.prepare import FROM_RECORDING, Prepared, prepare
+from service.wiring.prepare import FROM_RECORDING, Prepared
 from service.wiring.result import Result, Said, print_result, stderr_say
 from service.wiring.scale_notes import field_scale_notes
 
@@ -98,12 +98,37 @@ class FitResult(Result):
     contract: dict[str, Any] = field(default_factory=dict)
     summary: str = ""
     report: str | None = None             # the report written, if any
+    #: the calibration fitted (service.numerics.calib.model.ArrayCalibration): save(), apply() ... in Python
+    calibration: Any = field(default=None, repr=False)
 
     def as_dict(self) -> dict[str, Any]:
         return self.contract
 
     def text(self) -> str:
         return self.summary
+
+    @property
+    def rms_nT(self) -> float | None:
+        """The residual RMS over every channel after the calibration, nT."""
+        return self.contract.get("rms_nT")
+
+    def rows(self) -> list[dict[str, Any]]:
+        """Each fitted parameter with its standard error: every probe's offset and matrix, then the effects'."""
+        out = []
+        for s in self.contract.get("sensors", []):
+            for a, (v, e) in enumerate(zip(s["offset_nT"], s.get("offset_se_nT") or [None] * 3)):
+                out.append({"probe": s["name"], "parameter": f"offset {'xyz'[a]}", "value": v, "stderr": e,
+                            "unit": "nT"})
+            se = s.get("matrix_se") or [[None] * 3] * 3
+            for i in range(3):
+                for j in range(3):
+                    out.append({"probe": s["name"], "parameter": f"matrix [{'xyz'[i]}{'xyz'[j]}]",
+                                "value": s["matrix"][i][j], "stderr": se[i][j], "unit": ""})
+        for effect, params in (self.contract.get("effect_params") or {}).items():
+            for name, p in params.items():
+                out.append({"probe": None, "parameter": name, "value": p.get("value"), "stderr": p.get("stderr"),
+                            "unit": effect})
+        return out
 
 
 def main(args: Namespace) -> int:
@@ -122,7 +147,17 @@ def options(args: Namespace) -> FitOptions:
 
 
 def execute(source: str, opts: FitOptions, said: Said) -> FitResult:
-    """`fluxcal fit SOURCE`: its outputs checked before any work, the input prepared, the calibration fitted."""
+    """`fluxcal fit SOURCE`: the Python API's fit (service.wiring.api), with the command line's options."""
+    from service.wiring import api
+
+    return api.fit(source, method=opts.method, align=opts.align, effects=opts.effects, out=opts.out,
+                   report=opts.report, said=said, config=opts.config, site=opts.site, skip=opts.skip,
+                   topics=opts.topics, mags=opts.mags)
+
+
+def checked(opts: FitOptions, source: str | None) -> FitOptions:
+    """The options with the effects known (installed ones loaded, a user's file.py:Class registered) and the outputs
+    checked, before any work (source: the input, which no output may be)."""
     from service.wiring.user_effects import load_installed_effects, resolve_effects
 
     load_installed_effects()
@@ -131,9 +166,7 @@ def execute(source: str, opts: FitOptions, said: Said) -> FitResult:
         check_output_file(opts.out, example="cal.json", not_this=source)
     if opts.report:
         check_output_folder(opts.report, "--report")
-    prep = prepare(source, said, config=opts.config, site=opts.site, skip=opts.skip, topics=opts.topics,
-                   mags=opts.mags)
-    return run(prep, opts, said)
+    return opts
 
 
 def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
@@ -214,7 +247,7 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
         except (OSError, FluxcalError) as e:
             said("report", f"{opts.report}: the report could not be written: {e}")
             out.status = 1
-    out.contract, out.summary, out.notes = result, "\n".join(text), said.notes
+    out.contract, out.summary, out.notes, out.calibration = result, "\n".join(text), said.notes, cal
     return out
 
 

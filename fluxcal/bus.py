@@ -1,0 +1,10 @@
+"""The service's streams and commands on Eclipse Zenoh from Python (docs/zenoh.md): a client of a running unit.
+
+>>> from fluxcal.bus import BusClient, ZenohConfig
+>>> ZenohConfig().mode
+'peer'
+"""
+
+from service.io.bus import BusClient, Message, ZenohConfig, discover_units
+
+__all__ = ["BusClient", "Message", "ZenohConfig", "discover_units"]

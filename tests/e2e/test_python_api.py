@@ -1,0 +1,91 @@
+"""`import fluxcal` (issue 39): the walk-through of docs/python.md runs as written; its Results are the command line's
+on the same data (the command line calls the same functions); a pandas DataFrame fits to the same parameters as the
+CSV written from it, to the last digit; arrays read as the table they make."""
+
+from __future__ import annotations
+
+import contextlib
+import doctest
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import fluxcal
+from service.wiring.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+#: what this file tests besides what it imports (tests/index.py)
+COVERS = ("service.wiring.api", "service.io.report.notebook")
+
+
+def cli_json(*argv: str) -> dict:
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        main(list(argv), install_signals=False)
+    return json.loads(out.getvalue().strip().splitlines()[-1])
+
+
+@pytest.mark.slow
+def test_the_walk_through_runs_as_written(monkeypatch, clean_registry):
+    monkeypatch.chdir(ROOT)
+    failures, tried = doctest.testfile(str(ROOT / "docs" / "python.md"), module_relative=False,
+                                       optionflags=doctest.NORMALIZE_WHITESPACE)
+    assert tried >= 20 and failures == 0
+
+
+@pytest.mark.slow
+def test_the_results_are_the_command_lines(monkeypatch):
+    monkeypatch.chdir(ROOT)
+    path = "recordings/grad1-hidden-effect.mcap"
+    data = fluxcal.read(path)
+    assert fluxcal.fit(data).to_dict() == cli_json("fit", path, "--json")
+    assert fluxcal.fit(data, effects=["temperature"]).to_dict() == cli_json("fit", path, "--effects", "temperature",
+                                                                            "--json")
+    api = fluxcal.diagnose(data).to_dict()
+    cli = cli_json("diagnose", path, "--json")
+    assert api["verdict"] == cli["verdict"] and api["candidates"] == cli["candidates"] and api["rms_nT"] == cli["rms_nT"]
+
+
+def test_a_dataframe_fits_as_the_csv_written_from_it(tmp_path):
+    pytest.importorskip("pandas")
+    rng = np.random.default_rng(3)
+    n = 3000
+    t = np.arange(n) / 20.0
+    a, b = 2 * np.pi * t / 37.0, 2 * np.pi * t / 11.0
+    direction = np.column_stack([np.cos(a) * np.cos(b), np.sin(a) * np.cos(b), np.sin(b)])
+    field = 50000.0 * direction @ np.diag([1.01, 0.99, 1.0]) + np.array([120.0, -80.0, 35.0])
+    field = field + rng.normal(0.0, 1.0, field.shape)
+    heater = (np.floor(t / 13.0) % 2) * 1.5
+    data = fluxcal.read_arrays(t, field, temp_C=20.0 + t / 100.0, columns={"heater_A": heater})
+    frame = data.to_dataframe()
+    path = tmp_path / "from-frame.csv"
+    frame.to_csv(path, index=False, float_format="%.17g")
+    by_frame, by_file = fluxcal.fit(frame), fluxcal.fit(str(path))
+    for key in ("sensors", "rms_nT", "effect_params", "determinacy"):
+        assert by_frame.to_dict()[key] == by_file.to_dict()[key], key
+    assert fluxcal.fit(data).to_dict()["sensors"] == by_file.to_dict()["sensors"]      # arrays: the same table
+    assert by_frame.rms_nT < 2.0
+
+
+def test_a_result_draws_itself_in_a_notebook():
+    pytest.importorskip("pandas")
+    data = fluxcal.read(str(ROOT / "recordings" / "grad1-sim-30s.mcap"))
+    result = fluxcal.fit(data)
+    page = result._repr_html_()
+    assert "<table>" in page and "offset x" in page and "<details>" in page
+    table = result.to_dataframe()
+    assert set(table.columns) >= {"probe", "parameter", "value", "stderr"} and len(table) == 2 * 12
+
+
+
+def test_an_option_of_read_given_to_fit_with_data_is_refused_and_named():
+    from drivers.errors import DataError
+
+    data = fluxcal.read(str(ROOT / "recordings" / "grad1-sim-30s.mcap"))
+    with pytest.raises(DataError, match="config: options of read"):
+        fluxcal.fit(data, config="configs/sim-gradiometer.toml")
+    with pytest.raises(TypeError, match="unexpected option"):
+        fluxcal.fit(data, methd="tmi")
