@@ -4,7 +4,7 @@ What is measured. The daemon of `fluxcal run` (service.wiring.daemon.Daemon: sou
 logger and Zenoh bus, with its reconnects; only tapped, not changed) reads the simulated unit: 4
 probes at 1 kHz, tumbling, ICD frames through a pseudo-terminal at full speed (not paced by the
 clock), so pyserial, the framer and the reconnect path are the real ones. The unit runs in its own
-process (`python -m drivers.sim --serial --fast --record F`), as a unit beside the service would, and
+process (`python -m drivers.sim --transport pty --fast --record F`), as a unit beside the service would, and
 the service reads its pty as a serial source; so the service's process holds only the service.
 (--sim-in-process runs the unit inside the service instead, as `fluxcal run` on a sim config does:
 then its memory counts too, less its fault record, which grows with every fault it injects.) The
@@ -207,8 +207,8 @@ class SimProcess:
         self.conf.write_text(toml_text("sim", {**sim_table(seconds), "duration_s": seconds}), encoding="utf-8")
         self.record_path = tmp / "sim-record.npz"
         root = Path(__file__).resolve().parents[1]
-        self.proc = subprocess.Popen([sys.executable, "-m", "drivers.sim", "--config", str(self.conf), "--serial",
-                                      "--fast", "--link-dir", str(tmp), "--record", str(self.record_path)],
+        self.proc = subprocess.Popen([sys.executable, "-m", "drivers.sim", "--config", str(self.conf), "--transport",
+                                      "pty", "--fast", "--link-dir", str(tmp), "--record", str(self.record_path)],
                                      cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                      preexec_fn=_end_with_parent)
         self.exit_code: int | None = None
@@ -689,14 +689,15 @@ def unit_outcome(probe: Probe, sim_proc: SimProcess | None) -> tuple[Any, Any, i
     emitted, its reconnects and whether its process ended well."""
     source = probe.source
     if sim_proc is None:
-        return source.record, source.inner._framer, int(source.emitter.next_index), source.emitter.reconnects, True
+        return (source.record, source.inner._decoder.framer, int(source.emitter.next_index), source.emitter.reconnects,
+                True)
     if sim_proc.exit_code is None:
         sim_proc.wait()
     sim_proc.load_record()
     if sim_proc.record is None:
         raise SystemExit(f"the simulated unit left no fault record (exit {sim_proc.exit_code}): "
                          f"{sim_proc.stderr.strip()}")
-    return (sim_proc.record, source._framer, sim_proc.meta["next_index"], sim_proc.meta["reconnects"],
+    return (sim_proc.record, source._decoder.framer, sim_proc.meta["next_index"], sim_proc.meta["reconnects"],
             sim_proc.exit_code == 0)
 
 
@@ -722,7 +723,7 @@ def soak(tmp: Path, seconds: float, args: argparse.Namespace) -> SoakRun:
         threading.Thread(target=end_when_delivered, args=(sim_proc, probe, daemon), daemon=True).start()
     rc, t_run = run_watched(daemon, sim_proc, seconds)
     tempfile.tempdir = None
-    counters = probe.source.counters.as_dict()
+    counters = {**probe.source.counters.as_dict(), **daemon._link.counts()}   # the source's, the input's losses
     record, framer, emitted, reconnects, sim_ok = unit_outcome(probe, sim_proc)
 
     # --- read the recording back; the bare pipeline over the same blocks ----------------------------

@@ -89,13 +89,14 @@ class SerialFramer:
 
     Keeps the unconsumed tail (at most one frame) between chunks and counts frames accepted,
     CRC failures and bytes skipped, so that at any time
-    frames_accepted x frame_length + bytes_skipped + pending_bytes == bytes_fed.
+    frames_accepted x frame_length + bytes_skipped + pending_bytes == bytes_fed
+    (the port counts the bytes it read: bytes_received).
     """
 
     def __init__(self, n_probes: int, counters: Counters | None = None) -> None:
         self.n_probes = n_probes
         self.frame_length = frame_length(n_probes)
-        self.counters = counters if counters is not None else Counters()
+        self.counters = counters if counters is not None else serial_icd_counters()
         self.bytes_fed = 0
         self._tail = b""
 
@@ -110,7 +111,6 @@ class SerialFramer:
         parsed = parse_serial(buf, self.n_probes, final=final)
         self._tail = buf[parsed.consumed:]
         c = self.counters
-        c.bytes_received += len(data)
         c.frames_accepted += len(parsed.frames)
         c.crc_failures += parsed.crc_failures
         c.bytes_skipped += parsed.bytes_skipped
@@ -135,7 +135,7 @@ class FrameAssembler:
                  plausibility: Plausibility | None = Plausibility()) -> None:
         self.n_probes = n_probes
         self.lsb_nT = float(lsb_nT)
-        self.counters = counters if counters is not None else Counters()
+        self.counters = counters if counters is not None else serial_icd_counters()
         self.plausibility = plausibility
         self._timeline = SerialTimeline(self.counters)
         self._gaps = SeqGapCounter()
@@ -157,6 +157,20 @@ class FrameAssembler:
             self._gaps.update(seq, self.counters)
         return scale_samples(seq, t_s, counts, temp_raw, flags, lsb_nT=self.lsb_nT, counters=self.counters,
                              plausibility=self.plausibility)
+
+
+def serial_icd_counters() -> Counters:
+    """The counters of a serial unit speaking the ICD (drivers/kinds/serial.py), all 0."""
+    from .kinds.serial import KIND
+
+    return Counters.of(KIND.words())
+
+
+def can_icd_counters() -> Counters:
+    """The counters of a CAN unit speaking the ICD (drivers/kinds/can.py), all 0."""
+    from .kinds.can import KIND
+
+    return Counters.of(KIND.words())
 
 
 @dataclass(frozen=True)
@@ -226,7 +240,7 @@ class CanAssembler:
         self.window_samples = int(window_samples)
         self.window_s = float(window_s)
         self.restart_samples = max(4 * self.window_samples, 1024)
-        self.counters = counters if counters is not None else Counters()
+        self.counters = counters if counters is not None else can_icd_counters()
         self._unwrap = CanUnwrap(window_samples=self.window_samples, restart_samples=self.restart_samples,
                                  rate_hz=rate_hz, counters=self.counters)
         self._max_seen: int | None = None

@@ -3,6 +3,7 @@ CAN log files (candump .log, .asc, .blf, .csv) assembled the same way for `fluxc
 
     [source]
     kind = "can"
+    protocol = "icd"             # how frames become samples (drivers/kinds/can.py declares the protocols)
     interface = "socketcan"      # any python-can interface: "virtual" (tests), "slcan" (USB-CAN on a tty)
     channel = "can0"             # "vcan0", "/dev/ttyACM0" for slcan, any name for virtual
     bitrate = 1000000
@@ -33,8 +34,11 @@ from .assemble import CanAssembler, CanSamples, SeqGapCounter
 from .plausibility import Plausibility, check_temp_range, plausibility_spec
 from .block import SampleBlock
 from .config import spec
+from .declare import ProtocolTable, resolve
 from .errors import ConfigError, DataError, DriverError
 from .icd import DEFAULT_CAN_BASE_ID, DEFAULT_LSB_NT, MAX_PROBES
+from .kinds.can import KIND
+from .registry import source_kind
 from .source import Counters, PortSource
 
 MAX_STANDARD_ID = 0x7FF
@@ -43,10 +47,9 @@ CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".csv")
 
 
 @dataclass(kw_only=True)
-class CanConfig:
-    """The [source] table for kind = "can" (keyword-only: required keys need no order)."""
+class CanConfig(ProtocolTable):
+    """The [source] table of the CAN kind (keyword-only: required keys need no order)."""
 
-    kind: str = spec("can", choices=("can",))
     interface: str = spec("socketcan", doc="python-can interface name: socketcan, slcan, virtual, ...")
     channel: str = spec(doc="can0, /dev/ttyACM0 (slcan), or a virtual channel name")
     bitrate: int = spec(1_000_000, min=10_000, max=1_000_000)
@@ -114,23 +117,52 @@ def _frames_from_messages(msgs: list[can.Message], lo: int, hi: int) -> tuple[np
     return np.asarray(ids, dtype=np.int64), payloads, np.asarray(stamps, dtype=np.float64), kinds
 
 
+class CanIcd:
+    """The CAN kind's ICD protocol (drivers/kinds/can.py): a batch of python-can messages -> the SampleBlock of the
+    samples it completes. Every message is counted once, by kind (FrameKinds, and frames_accepted); the samples
+    assembled (CanAssembler) are counted for gaps and scaled with t_s = seq / rate_hz (CAN has no unit clock)."""
+
+    def __init__(self, n_probes: int, *, rate_hz: float, lsb_nT: float, counters: Counters,
+                 base_id: int = DEFAULT_CAN_BASE_ID, window_samples: int = 32, window_s: float = 0.5,
+                 plausibility: Plausibility | None = Plausibility()) -> None:
+        self.rate_hz, self.lsb_nT, self.counters, self.plausibility = rate_hz, lsb_nT, counters, plausibility
+        self._assembler = CanAssembler(n_probes, base_id=base_id, window_samples=window_samples,
+                                       window_s=window_s, counters=counters, rate_hz=rate_hz)
+        self._gaps = SeqGapCounter()
+        self._id_range = (base_id, base_id + 4 * n_probes - 1)
+
+    def decode(self, msgs: list[can.Message], now_s: float) -> SampleBlock | None:
+        ids, payloads, _, kinds = _frames_from_messages(msgs, *self._id_range)
+        kinds.add_to(self.counters)
+        samples = self._assembler.push(ids, payloads, now_s, now_s=now_s)
+        if not len(samples):
+            return None
+        self._gaps.update(samples.seq, self.counters)
+        return samples.to_block(rate_hz=self.rate_hz, lsb_nT=self.lsb_nT, counters=self.counters,
+                                plausibility=self.plausibility)
+
+
 class CanSource(PortSource):
-    """SampleBlocks from ICD CAN frames on a python-can bus.
+    """SampleBlocks from a unit's frames on a python-can bus, by its protocol (the ICD's by default).
 
     Each read drains what the bus holds (bounded receive: `bus.recv` with a timeout, then without
-    waiting, at most `max_batch` frames) and assembles the batch with numpy (drivers.assemble.
-    CanAssembler). Every frame received is counted once, by kind: frames_accepted (the unit's ICD frames),
-    foreign_frames (other nodes' ids), wrong_length, remote_frames and error_frames (FrameKinds), and bad_frames:
-    what the adapter could not make a frame of (a garbled SLCAN line, drivers.slcan; an exception of any other
-    interface's parser), never the service's end. The controller itself drops frames with a bad CRC, so CAN has
-    no CRC failures. Then can_incomplete, seq_gaps, samples_missed, saturated_axes as the assembler finds them.
+    waiting, at most `max_batch` frames) and hands the batch to the protocol's decoder (`decode(messages, now_s)`,
+    CanIcd: assembled with numpy, drivers.assemble.CanAssembler). Every frame received is counted once, by kind:
+    frames_accepted (the unit's ICD frames), foreign_frames (other nodes' ids), wrong_length, remote_frames and
+    error_frames (FrameKinds), and bad_frames: what the adapter could not make a frame of (a garbled SLCAN line,
+    drivers.slcan; an exception of any other interface's parser), never the service's end. The controller itself
+    drops frames with a bad CRC, so CAN has no CRC failures. Then can_incomplete, seq_gaps, samples_missed,
+    saturated_axes as the assembler finds them.
     """
 
     def __init__(self, *, interface: str, channel: str, n_probes: int, rate_hz: float,
                  bitrate: int = 1_000_000, base_id: int = DEFAULT_CAN_BASE_ID, lsb_nT: float = DEFAULT_LSB_NT,
                  window_samples: int = 32, window_s: float = 0.5, max_batch: int = 4096,
-                 bus_kwargs: dict | None = None, plausibility: Plausibility | None = Plausibility()) -> None:
-        super().__init__(n_probes)
+                 bus_kwargs: dict | None = None, plausibility: Plausibility | None = Plausibility(),
+                 protocol: str = "") -> None:
+        kind = source_kind(KIND.name)              # as registered: with the protocols added to it
+        proto = kind.protocol(protocol)
+        super().__init__(n_probes, Counters.of(kind.words(proto.name)))
         check_base_id(base_id, n_probes, "source.base_id")
         if not rate_hz > 0:
             raise ConfigError(f"source.rate_hz: {rate_hz!r} is not allowed (allowed: > 0; CAN carries no unit "
@@ -142,11 +174,11 @@ class CanSource(PortSource):
         self.base_id, self.rate_hz, self.lsb_nT = int(base_id), float(rate_hz), float(lsb_nT)
         self.max_batch = int(max_batch)
         self._bus_kwargs = dict(bus_kwargs or {})
-        self.plausibility = plausibility
-        self._assembler = CanAssembler(n_probes, base_id=self.base_id, window_samples=window_samples,
-                                       window_s=window_s, counters=self.counters, rate_hz=self.rate_hz)
-        self._gaps = SeqGapCounter()
-        self._id_range = (self.base_id, self.base_id + 4 * n_probes - 1)
+        self.protocol = proto.name
+        self._decoder = resolve(proto.decoder)(n_probes, rate_hz=self.rate_hz, lsb_nT=self.lsb_nT,
+                                               counters=self.counters, base_id=self.base_id,
+                                               window_samples=window_samples, window_s=window_s,
+                                               plausibility=plausibility)
         self._bus: can.BusABC | None = None
         self._bad_lines_seen = 0
         self._open()
@@ -212,26 +244,21 @@ class CanSource(PortSource):
             remaining = None if deadline is None else max(deadline - time.monotonic(), 0.0)
             # wait in short steps when blocking, so incomplete samples still expire on a silent bus
             wait = min(remaining, 0.1) if remaining is not None else 0.1
-            msgs = self._receive(wait)
-            now = time.monotonic()
-            ids, payloads, _, kinds = _frames_from_messages(msgs, *self._id_range)
-            kinds.add_to(self.counters)
-            samples = self._assembler.push(ids, payloads, now, now_s=now)
-            if len(samples):
-                self._gaps.update(samples.seq, self.counters)
-                return samples.to_block(rate_hz=self.rate_hz, lsb_nT=self.lsb_nT, counters=self.counters,
-                                        plausibility=self.plausibility)
+            block = self._decoder.decode(self._receive(wait), time.monotonic())
+            if block is not None:
+                return block
             if deadline is not None and time.monotonic() >= deadline:
                 return None
 
     def __repr__(self) -> str:
-        return f"CanSource({self.interface!r}, {self.channel!r}, n_probes={self.n_probes}, base_id={self.base_id:#x})"
+        return (f"CanSource({self.interface!r}, {self.channel!r}, n_probes={self.n_probes}, base_id={self.base_id:#x}, "
+                f"protocol={self.protocol!r})")
 
 
 def open_source(config: CanConfig | None = None, **kwargs) -> CanSource:
-    """The "can" entry of drivers.source.SOURCES: from a CanConfig, keyword arguments
+    """The CAN kind's factory (drivers/kinds/can.py): from a CanConfig, keyword arguments
     (interface, channel, n_probes, rate_hz, bitrate, base_id, lsb_nT, window_samples, window_s,
-    max_batch, bus_kwargs), or a config with keyword overrides."""
+    max_batch, bus_kwargs, protocol), or a config with keyword overrides."""
     if config is None:
         kwargs.pop("kind", None)
         missing = [k for k in ("interface", "channel", "n_probes", "rate_hz") if k not in kwargs]
@@ -239,7 +266,7 @@ def open_source(config: CanConfig | None = None, **kwargs) -> CanSource:
             raise ConfigError(f"source: a CAN source needs {', '.join(missing)}")
         return CanSource(**kwargs)
     names = ("interface", "channel", "n_probes", "rate_hz", "bitrate", "base_id", "lsb_nT", "window_samples",
-             "window_s", "max_batch")
+             "window_s", "max_batch", "protocol")
     values = {k: getattr(config, k) for k in names}
     unknown = set(kwargs) - set(values) - {"bus_kwargs", "plausibility"}
     if unknown:
@@ -258,7 +285,7 @@ def read_can_log(path: str | Path, n_probes: int, *, base_id: int = DEFAULT_CAN_
 
     Raises DataError naming the file when it cannot be read."""
     p = Path(path)
-    counters = counters if counters is not None else Counters()
+    counters = counters if counters is not None else Counters.of(KIND.words())
     check_base_id(base_id, n_probes, "--base-id")
     suffix = p.suffix.lower()
     if suffix not in CAN_LOG_SUFFIXES:

@@ -1,4 +1,5 @@
-"""Reading fluxcal MCAP recordings: the "replay" Source, and the record reader shared with service.io.recordings.reader.
+"""Reading fluxcal MCAP recordings: replay's Source (drivers/kinds/replay.py), and the record reader shared with
+service.io.recordings.reader.
 
 A recording is one .mcap file or a directory of rotated files, read in name order (the logger's
 names `<unit>-<YYYYmmddTHHMMSS>-<NNNN>.mcap` sort in time order). Each file's records are read in file
@@ -37,7 +38,11 @@ from .encoding import RAW_ENCODING, decode_raw
 from .errors import DataError, RecordingError
 from .mcap_records import MCAP_MAGIC, Hole, HoleTracker, ReadReport
 from .mcap_scan import iter_file_records
-from .source import Source
+from .config import spec
+from .declare import SourceTable
+from .kinds.replay import KIND
+from .registry import source_kind
+from .source import Counters, Source
 
 log = logging.getLogger("fluxcal.replay")
 
@@ -180,7 +185,7 @@ class McapSource(Source):
         if self._next is None:
             raise RecordingError(f"{path}: no raw samples in this recording"
                                  + (f" ({'; '.join(self.report.warnings)})" if self.report.warnings else ""))
-        super().__init__(self._next.n_probes)
+        super().__init__(self._next.n_probes, Counters.of(source_kind(KIND.name).words()))
         self._gaps = SeqGapCounter()
         self._warn_new()
 
@@ -266,12 +271,21 @@ class McapSource(Source):
         super().close()
 
 
+@dataclass(kw_only=True)   # path has no default and follows kind's
+class ReplayConfig(SourceTable):
+    """The [source] table of replay (drivers/kinds/replay.py)."""
+
+    path: str = spec(doc="an MCAP file or a directory of rotated files")
+    rate_hz: float | None = spec(None, min=0.001, max=100_000.0,
+                                 doc="the recorded unit's sample rate, Hz (needed without a [sim] section)")
+
+
 def open_source(config: Any = None, *, path: str | Path | None = None, unit: str | None = None,
                 strict: bool = False, **_: Any) -> McapSource:
-    """The "replay" entry of drivers.source.SOURCES: open_source("replay", path=REC, unit=None).
+    """Replay's factory (drivers/kinds/replay.py): open_source("replay", path=REC, unit=None).
 
-    `config` may be the path itself or an object with a `.path` (the [source] section of kind
-    "replay"); `path=` wins. Other keyword arguments are accepted and ignored, so every source kind
+    `config` may be the path itself or an object with a `.path` (replay's [source] table, ReplayConfig);
+    `path=` wins. Other keyword arguments are accepted and ignored, so every source kind
     can be opened with the same call."""
     if path is None:
         path = config if isinstance(config, (str, Path)) else getattr(config, "path", None)
@@ -293,5 +307,6 @@ def metadata_json(report: ReadReport, key: str, default: Any = None, where: str 
         raise RecordingError(f"{where + ': ' if where else ''}metadata {key!r} is not JSON: {e}") from None
 
 
-__all__ = ["MCAP_MAGIC", "Hole", "McapRecord", "McapSource", "ReadReport", "RAW_ENCODING", "iter_file_records",
+__all__ = ["MCAP_MAGIC", "Hole", "McapRecord", "McapSource", "ReadReport", "RAW_ENCODING", "ReplayConfig",
+           "iter_file_records",
            "iter_raw_blocks", "iter_records", "metadata_json", "open_source", "recording_files", "unit_of_topic"]

@@ -2,6 +2,7 @@
 
     [source]
     kind = "serial"
+    protocol = "icd"             # how bytes become samples (drivers/kinds/serial.py declares the protocols)
     port = "/dev/ttyUSB0"        # or a pyserial URL: "socket://host:port", "rfc2217://...", "loop://"
     baudrate = 921600
     n_probes = 2                 # must equal unit.n_probes
@@ -14,6 +15,10 @@
 
 A pulled cable (or a closed pty) makes `read` raise DriverError; `reopen()` opens the same port
 again (a udev symlink that reappears works). The caller counts read_errors and reconnects.
+
+A protocol's decoder takes the bytes as they come: `feed(data, rx_time_s)` gives the SampleBlock of the frames
+they complete (None when none), `discard_tail()` forgets a partial frame when the port is reopened; it counts
+into the counters it is given (SerialIcd: the ICD's frames).
 """
 
 from __future__ import annotations
@@ -25,23 +30,25 @@ from dataclasses import dataclass
 
 import serial
 
-from .assemble import FrameAssembler, SerialFramer
+from .assemble import FrameAssembler, SerialFramer, serial_icd_counters
 from .plausibility import Plausibility, check_temp_range, plausibility_spec
 from .block import SampleBlock
 from .config import spec
+from .declare import ProtocolTable, resolve
 from .errors import ConfigError, DriverError
 from .icd import DEFAULT_LSB_NT, MAX_PROBES
-from .source import PortSource
+from .kinds.serial import KIND
+from .registry import source_kind
+from .source import Counters, PortSource
 
 #: most bytes taken from the port per read call (about 11 s of data at 921600 baud)
 MAX_READ_BYTES = 1 << 20
 
 
 @dataclass(kw_only=True)
-class SerialConfig:
-    """The [source] table for kind = "serial" (keyword-only: required keys need no order)."""
+class SerialConfig(ProtocolTable):
+    """The [source] table of the serial kind (keyword-only: required keys need no order)."""
 
-    kind: str = spec("serial", choices=("serial",))
     port: str = spec(doc="device path (/dev/ttyUSB0, /dev/pts/N) or pyserial URL (socket://host:port)")
     baudrate: int = spec(921600, min=1, max=100_000_000)
     n_probes: int = spec(min=1, max=MAX_PROBES, doc="probes per frame; must equal unit.n_probes")
@@ -59,17 +66,39 @@ class SerialConfig:
         check_temp_range(self.temp_min_C, self.temp_max_C, path or "source")
 
 
-class SerialSource(PortSource):
-    """SampleBlocks from ICD serial frames on a port.
+class SerialIcd:
+    """The serial kind's ICD protocol (drivers/kinds/serial.py): bytes as they come -> SampleBlocks, the tail of a
+    frame kept for the next bytes (SerialFramer, then FrameAssembler)."""
 
-    Reads what is available (waiting at most `read_timeout_s` at a time, never forever), keeps the
-    unconsumed tail of a frame for the next read, and counts frames accepted, CRC failures,
-    bytes skipped, seq gaps, saturated axes and invalid temperatures in `counters`.
+    def __init__(self, n_probes: int, *, lsb_nT: float, counters: Counters | None = None,
+                 plausibility: Plausibility | None = Plausibility()) -> None:
+        self.counters = counters if counters is not None else serial_icd_counters()
+        self.framer = SerialFramer(n_probes, self.counters)
+        self.assembler = FrameAssembler(n_probes, lsb_nT, self.counters, plausibility=plausibility)
+
+    def feed(self, data: bytes, rx_time_s: float | None = None) -> SampleBlock | None:
+        """The samples of the frames `data` completes (None when it completes none)."""
+        frames = self.framer.feed(data)
+        return self.assembler.block(frames, rx_time_s=rx_time_s) if len(frames) else None
+
+    def discard_tail(self) -> None:
+        self.framer.discard_tail()
+
+
+class SerialSource(PortSource):
+    """SampleBlocks from a unit's frames on a serial port, by its protocol (the ICD's by default).
+
+    Reads what is available (waiting at most `read_timeout_s` at a time, never forever) and counts it
+    (bytes_received); the protocol's decoder keeps the unconsumed tail of a frame for the next read and counts
+    what it finds (frames accepted, CRC failures, bytes skipped, ...) in `counters`.
     """
 
     def __init__(self, port: str, *, n_probes: int, baudrate: int = 921600, lsb_nT: float = DEFAULT_LSB_NT,
-                 read_timeout_s: float = 0.02, plausibility: Plausibility | None = Plausibility()) -> None:
-        super().__init__(n_probes)
+                 read_timeout_s: float = 0.02, plausibility: Plausibility | None = Plausibility(),
+                 protocol: str = "") -> None:
+        kind = source_kind(KIND.name)              # as registered: with the protocols added to it
+        proto = kind.protocol(protocol)
+        super().__init__(n_probes, Counters.of(kind.words(proto.name)))
         if not read_timeout_s > 0:
             # timeout=0 spins and None blocks forever (DEPENDENCIES.md)
             raise ConfigError(f"source.read_timeout_s: {read_timeout_s!r} is not allowed (allowed: > 0)")
@@ -80,8 +109,9 @@ class SerialSource(PortSource):
         self.baudrate = int(baudrate)
         self.lsb_nT = float(lsb_nT)
         self.read_timeout_s = float(read_timeout_s)
-        self._framer = SerialFramer(n_probes, self.counters)
-        self._assembler = FrameAssembler(n_probes, self.lsb_nT, self.counters, plausibility=plausibility)
+        self.protocol = proto.name
+        self._decoder = resolve(proto.decoder)(n_probes, lsb_nT=self.lsb_nT, counters=self.counters,
+                                               plausibility=plausibility)
         self._ser: serial.SerialBase | None = None
         self._open()
 
@@ -172,24 +202,26 @@ class SerialSource(PortSource):
             remaining = None if deadline is None else deadline - time.monotonic()
             data = self._pull(wait=remaining is None or remaining > 0)
             if data:
-                frames = self._framer.feed(data)
-                if len(frames):
-                    return self._assembler.block(frames, rx_time_s=time.monotonic())
+                self.counters.bytes_received += len(data)
+                block = self._decoder.feed(data, rx_time_s=time.monotonic())
+                if block is not None:
+                    return block
             if deadline is not None and time.monotonic() >= deadline:
                 return None
 
     def _before_reopen(self) -> None:
         """A partial frame from before is dropped (counted as skipped). Unwrapping continues, so samples
         lost meanwhile show up as a seq gap."""
-        self._framer.discard_tail()
+        self._decoder.discard_tail()
 
     def __repr__(self) -> str:
-        return f"SerialSource({self.port!r}, n_probes={self.n_probes}, baudrate={self.baudrate})"
+        return (f"SerialSource({self.port!r}, n_probes={self.n_probes}, baudrate={self.baudrate}, "
+                f"protocol={self.protocol!r})")
 
 
 def open_source(config: SerialConfig | None = None, **kwargs) -> SerialSource:
-    """The "serial" entry of drivers.source.SOURCES: from a SerialConfig, keyword arguments
-    (port, baudrate, n_probes, lsb_nT, read_timeout_s), or a config with keyword overrides. A config's
+    """The serial kind's factory (drivers/kinds/serial.py): from a SerialConfig, keyword arguments
+    (port, baudrate, n_probes, lsb_nT, read_timeout_s, protocol), or a config with keyword overrides. A config's
     rate_hz is the service's business (the driver takes time from the unit clock in each frame); as a
     keyword it is accepted and not used."""
     kwargs.pop("rate_hz", None)
@@ -198,7 +230,7 @@ def open_source(config: SerialConfig | None = None, **kwargs) -> SerialSource:
             raise ConfigError("source: a serial source needs port and n_probes")
         kwargs.pop("kind", None)
         return SerialSource(kwargs.pop("port"), **kwargs)
-    values = {k: getattr(config, k) for k in ("port", "baudrate", "n_probes", "lsb_nT", "read_timeout_s")}
+    values = {k: getattr(config, k) for k in ("port", "baudrate", "n_probes", "lsb_nT", "read_timeout_s", "protocol")}
     unknown = set(kwargs) - set(values) - {"plausibility"}
     if unknown:
         raise ConfigError(f"source: unknown serial option(s) {', '.join(sorted(unknown))} "

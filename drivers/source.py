@@ -1,53 +1,59 @@
-"""The one contract every input implements: a Source yields SampleBlocks and keeps counters.
+"""The one contract every input implements: a Source yields SampleBlocks and keeps the counters its declaration
+names.
 
-Serial, CAN, the simulated unit and MCAP replay are each one module implementing it, looked up
-by name in SOURCES and imported only when used (like python-can's interface registry).
+Each kind of input is one module implementing it, declared once in drivers/kinds/ (drivers.declare.SourceKind),
+looked up by name in drivers.registry and imported only when used (like python-can's interface registry).
 Subclasses implement `_read_block(timeout)`; `read` owns the timeout and the closed state.
 """
 
 from __future__ import annotations
 
-import importlib
+import functools
 from abc import ABC, abstractmethod
-from dataclasses import asdict, dataclass
 
 from .block import SampleBlock
+from .declare import Words, resolve
 from .errors import ConfigError, DriverError
 
 
-@dataclass
 class Counters:
-    """Health counters every source keeps; they only ever grow."""
+    """A source's health counters: the ones its declaration names (drivers.declare.Words, drivers/kinds/), each a
+    whole number that only grows, with the words said about each (`words`). Made per declaration as a class with
+    slots: adding to a counter costs what a plain attribute does, and one the declaration does not name is an
+    AttributeError where it is counted, never a number nobody sees."""
 
-    frames_accepted: int = 0
-    crc_failures: int = 0       # serial: frames failing their CRC (CAN controllers drop those themselves)
-    bad_frames: int = 0         # CAN: what the adapter could not make a frame of (a garbled SLCAN line)
-    wrong_length: int = 0       # CAN: frames with the unit's ids that are no classic 8-byte data frame
-    remote_frames: int = 0      # CAN: remote frames with the unit's ids (another node asking for them)
-    error_frames: int = 0       # CAN: error frames the interface reports
-    foreign_frames: int = 0     # CAN: frames of other nodes' (or reserved, or extended) ids, ignored: not a fault
-    bytes_received: int = 0     # serial: every byte read from the port (fed to the framer)
-    bytes_skipped: int = 0
-    seq_gaps: int = 0           # number of gaps seen
-    samples_missed: int = 0     # samples lost inside those gaps
-    can_incomplete: int = 0     # CAN samples dropped because a frame never came
-    duplicates: int = 0         # frames repeating one received before bit for bit (CAN: a frame already held), dropped
-    seq_backsteps: int = 0      # frames whose counter or clock stepped back, no copy of one received (stale), dropped
-    restarts: int = 0           # the unit restarted: counter and clock back near zero, followed on
-    clock_jumps: int = 0        # the unit's clock jumped while its counter ran on: time repaired from the counter
-    counter_jumps: int = 0      # the unit's counter jumped while its clock ran on: no sample counted missed
-    saturated_axes: int = 0
-    temp_invalid: int = 0
-    implausible_samples: int = 0   # samples flagged implausible (FLAG_IMPLAUSIBLE): kept out of the estimator
-    reserved_flags: int = 0        # ... of which: frames with flag bits the ICD says are 0
-    beyond_full_scale: int = 0     # ... axes beyond the configured full scale (not at a rail)
-    zero_vectors: int = 0          # ... probe vectors exactly (0, 0, 0)
-    temp_out_of_range: int = 0     # ... probe temperatures outside the configured range (not flagged invalid)
-    reconnects: int = 0
-    read_errors: int = 0
+    __slots__ = ()
+    words: Words = Words(())
+
+    def __init__(self) -> None:
+        for name in self.words.names:
+            setattr(self, name, 0)
+
+    @staticmethod
+    def of(words: Words) -> "Counters":
+        """New counters, all 0, of the input `words` declares."""
+        return _counters_class(words)()
 
     def as_dict(self) -> dict[str, int]:
-        return asdict(self)
+        return {name: getattr(self, name) for name in self.words.names}
+
+    def __repr__(self) -> str:
+        return f"Counters({', '.join(f'{k}={v}' for k, v in self.as_dict().items())})"
+
+    def __reduce__(self) -> tuple:
+        return _rebuilt, (self.words, self.as_dict())
+
+
+@functools.lru_cache(maxsize=None)
+def _counters_class(words: Words) -> type[Counters]:
+    return type("Counters", (Counters,), {"__slots__": words.names, "words": words})
+
+
+def _rebuilt(words: Words, values: dict[str, int]) -> Counters:
+    c = Counters.of(words)
+    for k, v in values.items():
+        setattr(c, k, v)
+    return c
 
 
 class Source(ABC):
@@ -56,11 +62,12 @@ class Source(ABC):
     n_probes: int
     counters: Counters
 
-    def __init__(self, n_probes: int) -> None:
+    def __init__(self, n_probes: int, counters: Counters | None = None) -> None:
+        """counters: the ones the source's declaration names (SourceKind.words); none by default."""
         if not 1 <= n_probes <= 8:
             raise ConfigError(f"n_probes: {n_probes!r} is not allowed (allowed: 1..8)")
         self.n_probes = n_probes
-        self.counters = Counters()
+        self.counters = counters if counters is not None else Counters.of(Words(()))
         self._closed = False
 
     def read(self, timeout: float | None = 0.1) -> SampleBlock | None:
@@ -126,20 +133,9 @@ class PortSource(Source):
         super().close()
 
 
-#: source kind -> "module:factory"; the factory takes (config, **kwargs) and returns a Source
-SOURCES: dict[str, str] = {
-    "serial": "drivers.serial_source:open_source",
-    "can": "drivers.can_source:open_source",
-    "sim": "drivers.sim.source:open_source",
-    "replay": "drivers.mcap_source:open_source",
-}
-
-
 def open_source(kind: str, *args, **kwargs) -> Source:
-    """Open a source by kind name, importing its module only now."""
-    try:
-        target = SOURCES[kind]
-    except KeyError:
-        raise ConfigError(f"source.kind: {kind!r} is not allowed (allowed: {', '.join(map(repr, SOURCES))})") from None
-    module, _, factory = target.partition(":")
-    return getattr(importlib.import_module(module), factory)(*args, **kwargs)
+    """Open a source by kind name (drivers.registry), importing its module only now: the kind's factory with these
+    arguments (its [source] table, or the keywords it takes)."""
+    from .registry import source_kind
+
+    return resolve(source_kind(kind).factory)(*args, **kwargs)

@@ -1,10 +1,11 @@
-"""Run the simulated unit on a pty for another process: `python -m drivers.sim --config F --serial`.
+"""Run the simulated unit on a port for another process: `python -m drivers.sim --config F --transport pty`.
 
-Prints the port path (a stable symlink, see drivers.sim.ports) on the first line of stdout, then
-streams until the run ends (duration_s), or until SIGINT/SIGTERM, and prints a one-line summary of
-what was sent and corrupted on stderr (--record FILE: the whole fault record, for a test or benchmark
-that checks every sample). --slcan speaks SLCAN instead (for python-can's slcan
-interface). Exit status 0, or 2 on a configuration error.
+--transport (required) names one of the transports the kinds declare that can serve another process
+(drivers.registry.transports(), docs/sources.md). Prints the port path (a stable
+symlink, see drivers.sim.ports) on the first line of stdout, then streams until the run ends (duration_s), or
+until SIGINT/SIGTERM, and prints a one-line summary of what was sent and corrupted on stderr (--record FILE: the
+whole fault record, for a test or benchmark that checks every sample). Exit status 0, or 2 on a configuration
+error.
 """
 
 from __future__ import annotations
@@ -17,11 +18,11 @@ import threading
 from typing import Sequence
 
 from ..config import read_toml
+from ..declare import resolve
 from ..errors import ConfigError, FluxcalError
 from ..outputs import replacing
-from .can_ports import SlcanEmitter
+from ..registry import transports
 from .config import GRADIOMETER, load_sim_config
-from .ports import PtyEmitter
 from .unit import Unit
 
 
@@ -29,9 +30,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m drivers.sim", description=__doc__.splitlines()[0],
                                 allow_abbrev=False)
     p.add_argument("--config", metavar="FILE", help="TOML with a [sim] section (default: the built-in gradiometer)")
-    how = p.add_mutually_exclusive_group()
-    how.add_argument("--serial", action="store_true", help="ICD serial frames on a pty (the default)")
-    how.add_argument("--slcan", action="store_true", help="ICD CAN frames through an SLCAN adapter on a pty")
+    ways = {t.name: t for _, t in transports() if t.process}
+    p.add_argument("--transport", choices=list(ways), required=True,
+                   help="how the unit reaches the other process: "
+                        + "; ".join(f"{name}: {t.doc}" for name, t in ways.items()))
     p.add_argument("--realtime", dest="realtime", action="store_true", default=None, help="pace by the wall clock")
     p.add_argument("--fast", dest="realtime", action="store_false", help="as fast as the reader reads")
     p.add_argument("--duration", type=float, metavar="S", help="override sim.duration_s (0: until stopped)")
@@ -58,11 +60,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.truth:
         with replacing(args.truth, "w") as f:
             json.dump(unit.world.truth(), f, indent=1)
-    cls = SlcanEmitter if args.slcan else PtyEmitter
-    emitter = cls(unit, realtime=args.realtime, link_dir=args.link_dir, close_at_end=True)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    emitter.start()
+    emitter, _, _ = resolve(ways[args.transport].link)(unit, realtime=args.realtime, link_dir=args.link_dir,
+                                                      close_at_end=True)
     print(emitter.path, flush=True)
     try:
         while not stop.is_set() and not emitter.done.wait(0.1):

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from .ports import Emitter, PtyEmitter
+from .ports import Emitter, PtyEmitter, unit_table
 from .unit import Unit
 
 _HEX = np.frombuffer(b"0123456789ABCDEF", dtype=np.uint8)
@@ -22,7 +22,7 @@ class CanEmitter(Emitter):
     in-process virtual bus "fluxcal-sim"). On a virtual bus a fast emitter waits until another bus has
     joined the channel (frames sent before then reach nobody). An outage is the bus falling silent."""
 
-    kind = "can"
+    label = "can-bus"
 
     def __init__(self, unit: Unit, *, bus: Any = None, interface: str = "virtual", channel: str = "fluxcal-sim",
                  **kwargs: Any) -> None:
@@ -102,7 +102,7 @@ class SlcanEmitter(PtyEmitter):
     host (acknowledged 'z'/'Z', counted, not forwarded); '\\r' acknowledges, BEL refuses. Frames flow
     only while the channel is open."""
 
-    kind = "slcan"
+    label = "slcan-adapter"
     serve_after_end = True
     VERSION = "V1013"
     SERIAL = "NSIM1"
@@ -188,3 +188,21 @@ class SlcanEmitter(PtyEmitter):
 
     def _drain(self, timeout_s: float) -> None:
         self._pty.drain(timeout_s, self._stop, self._service)
+
+
+def virtual_link(unit: Unit, *, realtime: bool | None = None, channel: str = "",
+                 **kwargs: Any) -> tuple[Emitter, dict[str, Any], dict]:
+    """The CAN kind's "can-virtual" transport (drivers/kinds/can.py): the unit's ICD frames on python-can's virtual
+    bus, and the CAN table that reads them (the emitter starts once the reader's bus has joined)."""
+    channel = channel or f"fluxcal-sim-{id(unit):x}"
+    emitter = CanEmitter(unit, realtime=realtime, interface="virtual", channel=channel, **kwargs)
+    return emitter, {**unit_table(unit), "interface": "virtual", "channel": channel, "bitrate": 1000000}, {}
+
+
+def slcan_link(unit: Unit, *, realtime: bool | None = None, **kwargs: Any) -> tuple[Emitter, dict[str, Any], dict]:
+    """The CAN kind's "slcan" transport: an SLCAN adapter on a pty carrying the unit's ICD frames, and the CAN
+    table that reads it through python-can's slcan interface."""
+    emitter = SlcanEmitter(unit, realtime=realtime, **kwargs).start()
+    table = {**unit_table(unit), "interface": "slcan", "channel": emitter.path, "bitrate": 1000000}
+    # python-can waits 2 s after opening an SLCAN tty for a real adapter to boot; ours is ready
+    return emitter, table, {"bus_kwargs": {"sleep_after_open": 0}}

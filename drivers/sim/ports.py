@@ -49,7 +49,7 @@ from .unit import FaultRecord, Unit
 class Emitter:
     """Base of the emitters: the pacing loop, outages, the thread. Subclasses provide the port."""
 
-    kind = "emitter"
+    label = "emitter"                    # in its thread's name and its errors
 
     def __init__(self, unit: Unit, *, realtime: bool | None = None, block_s: float = 0.02, start_index: int = 0,
                  record: FaultRecord | None = None, settle_s: float = 0.05, drain_timeout_s: float = 5.0,
@@ -96,7 +96,7 @@ class Emitter:
         if self._thread is not None:
             raise RuntimeError("emitter already started")
         self._open_port()
-        self._thread = threading.Thread(target=self._run, name=f"fluxcal-sim-{self.kind}", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=f"fluxcal-sim-{self.label}", daemon=True)
         self._thread.start()
         return self
 
@@ -104,7 +104,7 @@ class Emitter:
         """Wait until the run is over; True if it is. Raises the thread's error, if it had one."""
         finished = self.done.wait(timeout)
         if self.error is not None:
-            raise DriverError(f"simulated {self.kind} emitter failed: {self.error}") from self.error
+            raise DriverError(f"simulated {self.label} emitter failed: {self.error}") from self.error
         return finished
 
     def close(self) -> None:
@@ -370,7 +370,7 @@ class PtyEmitter(Emitter):
     >>> em.close()
     """
 
-    kind = "pty"
+    label = "serial-pty"
 
     def __init__(self, unit: Unit, *, link_dir: str | None = None, link_name: str = "serial", **kwargs: Any) -> None:
         super().__init__(unit, **kwargs)
@@ -409,4 +409,17 @@ class PtyEmitter(Emitter):
         self._pty.drain(timeout_s, self._stop)
 
 
-__all__ = ["Emitter", "PtyEmitter"]
+def unit_table(unit: Unit) -> dict[str, Any]:
+    """The [source] keys a kind's table may take from the simulated unit (a transport's link adds its own)."""
+    c = unit.config
+    return {"n_probes": c.n_probes, "lsb_nT": c.lsb_nT, "rate_hz": c.rate_hz, "base_id": c.can_base_id}
+
+
+def pty_link(unit: Unit, *, realtime: bool | None = None, **kwargs: Any) -> tuple[Emitter, dict[str, Any], dict]:
+    """The serial kind's "pty" transport (drivers/kinds/serial.py): the unit's ICD bytes on a pty, and the serial
+    table that reads them."""
+    emitter = PtyEmitter(unit, realtime=realtime, **kwargs).start()
+    return emitter, {**unit_table(unit), "port": emitter.path, "baudrate": 921600}, {}
+
+
+__all__ = ["Emitter", "PtyEmitter", "pty_link", "unit_table"]

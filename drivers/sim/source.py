@@ -1,32 +1,34 @@
-"""The simulated unit as a Source ("sim" in drivers.source.SOURCES).
+"""The simulated unit as a Source (its kind is declared in drivers/kinds/sim.py).
 
-transport "direct" (the default): SampleBlocks straight from the world, in process, exactly what a
+In process (its own transport, the default): SampleBlocks straight from the world, exactly what a
 decoder of the unit's frames would yield (NaN where saturated or temperature-invalid, t_s from the
 unit clock) plus extras["ref_total"] when the scalar reference is enabled. Wire faults do not apply
 (there is no wire); flagged samples do.
 
-transport "pty" / "can-virtual" / "slcan": the unit streams through an emitter (drivers.sim.ports)
-and the real serial or CAN source reads it, so the whole driver path runs; ref_total is not on the
-wire and is absent then.
+Through a transport another kind declares (drivers.registry.transports(): a pty, a CAN bus): the unit streams
+through that transport's emitter (drivers.sim.ports, can_ports) and the kind's real driver reads it, so the whole
+driver path runs, with that kind's counters; ref_total is not on the wire and is absent then.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import math
 import time
+from dataclasses import dataclass
 from typing import Any
 
 from ..block import FLAG_TEMP_INVALID, SampleBlock
-from ..config import load_section
+from ..config import spec
+from ..declare import SourceTable, resolve
 from ..errors import ConfigError
-from ..source import Source
+from ..kinds.sim import KIND
+from ..registry import source_kind
+from ..registry import transport as registry_transport
+from ..source import Counters, Source
 from .config import SimConfig
 from .unit import Unit
 from .world import World
-
-TRANSPORTS = ("direct", "pty", "can-virtual", "slcan")
 
 
 class SimSource(Source):
@@ -40,7 +42,7 @@ class SimSource(Source):
 
     def __init__(self, config: SimConfig, *, realtime: bool | None = None, block_s: float = 0.05,
                  max_block_s: float = 1.0, start_index: int = 0) -> None:
-        super().__init__(config.n_probes)
+        super().__init__(config.n_probes, Counters.of(source_kind(KIND.name).words()))
         self.config = config
         self.unit = Unit(config)
         self.world: World = self.unit.world
@@ -96,10 +98,9 @@ class EmitterSource(Source):
     """A real driver source reading the simulated unit through an emitter it owns (pty, CAN, SLCAN)."""
 
     def __init__(self, inner: Source, emitter: Any) -> None:
-        super().__init__(inner.n_probes)
+        super().__init__(inner.n_probes, inner.counters)     # one set of counters: the driver's, with its words
         self.inner = inner
         self.emitter = emitter
-        self.counters = inner.counters           # one set of counters: the driver's
         self._quiet_since: float | None = None
 
     @property
@@ -138,34 +139,36 @@ class EmitterSource(Source):
         super().close()
 
 
-def _driver_config(target: str, values: dict[str, Any]) -> Any:
-    """Build the serial/CAN driver's own config dataclass from the keys it has (the rest are dropped)."""
-    module, _, cls_name = target.partition(":")
-    cls = getattr(importlib.import_module(module), cls_name)
-    names = {f.name for f in dataclasses.fields(cls)}
-    try:
-        return load_section(cls, {k: v for k, v in values.items() if k in names}, "source")
-    except ConfigError as e:
-        raise ConfigError(f"source.transport: cannot configure the driver behind the simulated unit: {e}") from None
+@dataclass(kw_only=True)
+class SimSourceConfig(SourceTable):
+    """The [source] table of the simulated unit."""
+
+    transport: str = spec("", doc="how the simulated unit reaches the service: any simulator transport of "
+                                  "docs/sources.md (empty: the first, in process); another kind's is read by that "
+                                  "kind's driver, with its counters")
+    run_s: float = spec(0.0, min=0.0, max=1.0e9,
+                        doc="how long `fluxcal run` lets the simulated unit run; 0 = until stopped "
+                            "(`fluxcal simulate` uses sim.duration_s)")
+
+    def validate(self, path: str) -> None:
+        self.transport = registry_transport(self.transport or KIND.transports[0].name, f"{path}.transport")[1].name
 
 
-def open_source(config: Any, *, unit: Any = None, transport: str = "direct", realtime: bool | None = None,
+def open_source(config: Any, *, unit: Any = None, transport: str = "", realtime: bool | None = None,
                 block_s: float = 0.05, **kwargs: Any) -> Source:
     """Open the simulated unit as a Source.
 
     config: a SimConfig, or the whole service configuration (anything with a .sim SimConfig, and
     optionally .unit and .source.transport). unit: the [unit] section (n_probes and lsb_nT are checked
-    against the simulation). transport: "direct", "pty", "can-virtual" or "slcan". Other keyword
-    arguments go to the emitter (e.g. link_dir, channel)."""
+    against the simulation). transport: a name drivers.registry.transports() gives (empty: in process). Other
+    keyword arguments go to the transport's emitter (e.g. link_dir, channel)."""
     if not isinstance(config, SimConfig):
         full = config
         config = getattr(full, "sim", None)
         if not isinstance(config, SimConfig):
             raise ConfigError("sim: the configuration has no [sim] section for the simulated unit")
         unit = unit if unit is not None else getattr(full, "unit", None)
-        src_cfg = getattr(full, "source", None)
-        if transport == "direct" and src_cfg is not None:
-            transport = getattr(src_cfg, "transport", transport)
+        transport = transport or getattr(getattr(full, "source", None), "transport", "")
     if unit is not None:
         n = getattr(unit, "n_probes", config.n_probes)
         if n != config.n_probes:
@@ -174,42 +177,26 @@ def open_source(config: Any, *, unit: Any = None, transport: str = "direct", rea
         if not math.isclose(lsb, config.lsb_nT, rel_tol=1e-12):
             raise ConfigError(f"sim.lsb_nT: {config.lsb_nT!r} differs from unit.lsb_nT = {lsb!r}; "
                               f"the simulated unit and the driver must scale counts alike")
-    if transport not in TRANSPORTS:
-        raise ConfigError(f"source.transport: {transport!r} is not allowed (allowed: {', '.join(map(repr, TRANSPORTS))})")
-    if transport == "direct":
+    kind, way = registry_transport(transport or KIND.transports[0].name)
+    if way.link is None:
         return SimSource(config, realtime=realtime, block_s=block_s)
-
-    from ..source import open_source as open_driver
-    from .can_ports import CanEmitter, SlcanEmitter
-    from .ports import PtyEmitter
-
     u = Unit(config)
-    driver_kwargs: dict[str, Any] = {}
-    common = {"n_probes": config.n_probes, "lsb_nT": config.lsb_nT, "rate_hz": config.rate_hz,
-              "base_id": config.can_base_id}
-    if transport == "pty":
-        emitter = PtyEmitter(u, realtime=realtime, **kwargs).start()
-        values = {**common, "kind": "serial", "port": emitter.path, "baudrate": 921600}
-        target, kind = "drivers.serial_source:SerialConfig", "serial"
-    elif transport == "slcan":
-        emitter = SlcanEmitter(u, realtime=realtime, **kwargs).start()
-        values = {**common, "kind": "can", "interface": "slcan", "channel": emitter.path, "bitrate": 1000000}
-        target, kind = "drivers.can_source:CanConfig", "can"
-        # python-can waits 2 s after opening an SLCAN tty for a real adapter to boot; ours is ready
-        driver_kwargs["bus_kwargs"] = {"sleep_after_open": 0}
-    else:
-        channel = kwargs.pop("channel", f"fluxcal-sim-{id(u):x}")
-        emitter = CanEmitter(u, realtime=realtime, interface="virtual", channel=channel, **kwargs)
-        values = {**common, "kind": "can", "interface": "virtual", "channel": channel, "bitrate": 1000000}
-        target, kind = "drivers.can_source:CanConfig", "can"
+    emitter, table, options = resolve(way.link)(u, realtime=realtime, **kwargs)
     try:
-        inner = open_driver(kind, _driver_config(target, values), **driver_kwargs)
+        inner = kind.open_table(table, "source.transport", **options)
         if not emitter.done.is_set() and getattr(emitter, "_thread", None) is None:
-            emitter.start()               # the virtual bus: start once the reader's bus exists
+            emitter.start()               # a virtual bus: start once the reader's bus exists
     except BaseException:
         emitter.close()
         raise
     return EmitterSource(inner, emitter)
 
 
-__all__ = ["SimSource", "EmitterSource", "open_source", "TRANSPORTS"]
+def open_configured(cfg: Any) -> Source:
+    """The simulated unit of the service's configuration: its [sim] world for [source] run_s, through
+    [source] transport."""
+    sim = dataclasses.replace(cfg.sim, duration_s=cfg.source.run_s)
+    return open_source(sim, unit=cfg.unit, transport=cfg.source.transport)
+
+
+__all__ = ["SimSource", "EmitterSource", "SimSourceConfig", "open_source", "open_configured"]

@@ -2,7 +2,7 @@
 
     [unit]        name, n_probes, lsb_nT
     [[probes]]    name, position_m (platform frame; needed for tensor components)
-    [source]      kind = "sim" | "serial" | "can" | "replay" (required in a file), then that kind's keys
+    [source]      kind (required in a file: a kind drivers.registry declares, docs/sources.md), then its keys
     [sim]         the simulated unit's world (drivers.sim.config)
     [estimator]   the online estimator and its quality gate
     [calibration] where the calibration persists, and an optional one to start from
@@ -14,7 +14,6 @@ An error names the key, the value and what is allowed (drivers.config).
 
 from __future__ import annotations
 
-import importlib
 import math
 import os
 import re
@@ -24,6 +23,7 @@ from typing import Any
 
 from drivers.config import load_section, read_toml, spec
 from drivers.errors import ConfigError
+from drivers.registry import allowed, default_kind, source_kind
 from service.numerics.calib.site import site_from_text
 
 _UNIT_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
@@ -148,31 +148,6 @@ class Ros2Config:
     raw: bool = spec(False, doc="also write the raw (uncorrected) vectors, on topics of their own")
 
 
-@dataclass(kw_only=True)   # path has no default and follows kind's
-class ReplayConfig:
-    kind: str = spec("replay", choices=("replay",))
-    path: str = spec(doc="an MCAP file or a directory of rotated files")
-    rate_hz: float | None = spec(None, min=0.001, max=100_000.0,
-                                 doc="the recorded unit's sample rate, Hz (needed without a [sim] section)")
-
-
-@dataclass
-class SimSourceConfig:
-    kind: str = spec("sim", choices=("sim",))
-    transport: str = spec("direct", choices=("direct", "pty", "can-virtual", "slcan"),
-                          doc="direct: in-process; pty: ICD bytes through a pseudo-terminal; "
-                              "can-virtual / slcan: ICD CAN frames")
-    run_s: float = spec(0.0, min=0.0, max=1.0e9,
-                        doc="how long `fluxcal run` lets the simulated unit run; 0 = until stopped "
-                            "(`fluxcal simulate` uses sim.duration_s)")
-
-
-_SOURCE_CONFIGS = {
-    "serial": "drivers.serial_source:SerialConfig",
-    "can": "drivers.can_source:CanConfig",
-}
-
-
 @dataclass
 class FluxcalConfig:
     unit: UnitConfig
@@ -251,12 +226,16 @@ RATE_MISSING = ("source.rate_hz: missing (allowed: the unit's sample rate in Hz,
 
 
 def rate_stated(raw: dict) -> bool:
-    """Whether a raw configuration states its unit's sample rate where its source kind needs it: serial
-    and replay sources in source.rate_hz or a [sim] rate_hz (CAN requires its own; sim has a default)."""
+    """Whether a raw configuration states its unit's sample rate where its source kind needs it (its declaration's
+    needs_rate): in source.rate_hz or a [sim] rate_hz."""
     src, sim = raw.get("source"), raw.get("sim")
-    if not isinstance(src, dict) or src.get("kind") not in ("serial", "replay"):
+    try:
+        kind = source_kind(src.get("kind", default_kind().name) if isinstance(src, dict) else default_kind().name)
+    except ConfigError:
+        return True                     # an unknown kind is said where the [source] table is read
+    if not kind.needs_rate:
         return True
-    return "rate_hz" in src or (isinstance(sim, dict) and "rate_hz" in sim)
+    return (isinstance(src, dict) and "rate_hz" in src) or (isinstance(sim, dict) and "rate_hz" in sim)
 
 
 def load_config(path: str | Path, *, source_required: bool = True) -> FluxcalConfig:
@@ -281,14 +260,11 @@ def load_config(path: str | Path, *, source_required: bool = True) -> FluxcalCon
         cfg.calibration.initial = here(cfg.calibration.initial)
     cfg.mcap.dir = here(cfg.mcap.dir)
     cfg.ros2.dir = here(cfg.ros2.dir)
-    if getattr(cfg.source, "kind", "") == "replay":
-        cfg.source.path = here(cfg.source.path)
+    for key in source_kind(cfg.source.kind).path_keys:
+        setattr(cfg.source, key, here(getattr(cfg.source, key)))
     cfg.effects.plugins = [here(p.rpartition(":")[0]) + ":" + p.rpartition(":")[2] if p.rpartition(":")[0].endswith(".py")
                            else p for p in cfg.effects.plugins]
     return cfg
-
-
-SOURCE_KINDS = ("serial", "can", "sim", "replay")
 
 
 def check_state_file(file: str, key: str) -> None:
@@ -310,14 +286,14 @@ def require_source(raw: dict, path: str) -> None:
     """A configuration file must name its source: an emptied or cut file (or one missing its [source]) is an
     error, never a simulated unit publishing data on the default port. (A dict built in code, such as the
     configuration a recording stores, still defaults to the simulator: config_from_dict.)"""
-    allowed = ", ".join(f'"{k}"' for k in SOURCE_KINDS)
     src = raw.get("source")
     if isinstance(src, dict) and "kind" in src:
         return
     what = ("the file is empty" if not raw else
             "it has no [source] section" if src is None else "its [source] names no kind")
-    raise ConfigError(f"{path}: [source] kind is required (allowed: {allowed}): {what}; a configuration must say "
-                      f"where the data come from (kind = \"sim\" for the simulated unit, see configs/*.toml)")
+    raise ConfigError(f"{path}: [source] kind is required (allowed: {allowed()}): {what}; a configuration must say "
+                      f"where the data come from (kind = {default_kind().name!r} for {default_kind().doc}; see "
+                      f"configs/*.toml and docs/sources.md)")
 
 
 def require_content(raw: dict, path: str) -> None:
@@ -353,21 +329,12 @@ def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
         if len(set(names)) != len(names):
             raise ConfigError(f"probes: names must differ, got {names}")
 
-        src = raw.get("source", {"kind": "sim"})
+        src = raw.get("source", {"kind": default_kind().name})   # a recording's stored configuration of an older run
         if not isinstance(src, dict):
             raise ConfigError("source: expected a table")
-        kind = src.get("kind", "sim")
-        if not isinstance(kind, str):
-            raise ConfigError(f"source.kind: {kind!r} is not allowed (allowed: 'sim', 'serial', 'can', 'replay')")
-        if kind == "sim":
-            source = load_section(SimSourceConfig, src, "source")
-        elif kind == "replay":
-            source = load_section(ReplayConfig, src, "source")
-        elif kind in _SOURCE_CONFIGS:
-            module, _, cls = _SOURCE_CONFIGS[kind].partition(":")
-            source = load_section(getattr(importlib.import_module(module), cls), src, "source")
-        else:
-            raise ConfigError(f"source.kind: {kind!r} is not allowed (allowed: 'sim', 'serial', 'can', 'replay')")
+        decl = source_kind(src.get("kind", default_kind().name))
+        source = decl.load(src, "source")
+        kind = decl.name
         for attr in ("n_probes",):
             if hasattr(source, attr) and getattr(source, attr) != unit.n_probes:
                 raise ConfigError(f"source.{attr}: {getattr(source, attr)!r} differs from unit.n_probes = {unit.n_probes}")
@@ -375,7 +342,7 @@ def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
         if not rate_stated(raw):
             raise ConfigError(RATE_MISSING)
         sim = None
-        if "sim" in raw or kind == "sim":
+        if "sim" in raw or decl.runs_world:
             from drivers.sim.config import load_sim_config
 
             sim = load_sim_config(raw.get("sim", {}))

@@ -17,8 +17,9 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from drivers.block import SampleBlock
-from drivers.errors import ConfigError, DriverError, FluxcalError
-from drivers.source import Source, open_source
+from drivers.errors import ConfigError, FluxcalError
+from drivers.registry import source_kind
+from drivers.source import Source
 from drivers.text import printable
 
 from .config import RATE_MISSING, FluxcalConfig
@@ -64,7 +65,7 @@ BUS_COUNTED = ("send_stalls", "duplicate_holders")
 def renamed(cfg: FluxcalConfig, name: str, note: Callable[[str], None], keeper: Keeper) -> Pipeline:
     """Serve under the name the bus took (unit.duplicate = "suffix"): the calibration persists under it too when its
     file was the default one (two services never share one state file), and the pipeline starts from that name's."""
-    kind = str(getattr(cfg.source, "kind", "sim"))
+    kind = cfg.source.kind
     default = Path(cfg.calibration.file)
     if default.name == f"{cfg.unit.name}-{kind}-cal.json":
         cfg.calibration.file = str(default.with_name(f"{name}-{kind}-cal.json"))
@@ -74,19 +75,8 @@ def renamed(cfg: FluxcalConfig, name: str, note: Callable[[str], None], keeper: 
 
 
 def open_configured_source(cfg: FluxcalConfig) -> Source:
-    kind = getattr(cfg.source, "kind", "sim")
-    if kind == "sim":
-        import dataclasses
-
-        sim = dataclasses.replace(cfg.sim, duration_s=cfg.source.run_s)
-        return open_source("sim", sim, unit=cfg.unit, transport=cfg.source.transport)
-    if kind == "replay":
-        return open_source("replay", path=cfg.source.path)
-    try:
-        return open_source(kind, cfg.source)
-    except DriverError as e:                  # the key to change, before the driver's own words
-        keys = {"serial": "source.port", "can": "source.interface, source.channel"}.get(kind, "source")
-        raise DriverError(f"{keys}: {e}") from None
+    """The configured source, opened as its kind's declaration says (drivers/kinds/, drivers.registry)."""
+    return source_kind(cfg.source.kind).open(cfg)
 
 
 def open_outputs(sinks: Sinks, cfg: FluxcalConfig, calibration: Any, bus: Any, note: Callable[[str], None],
@@ -136,6 +126,7 @@ class Daemon:
         self.say = say or _say
         self.extra_sinks = list(sinks)
         self._reader = BatchReader(cfg.unit.block_ms, self.stop)
+        self._link = Reconnecting(self._reader, self.stop, self.say)   # counts the input's losses and returns
         self.processing_errors = 0            # blocks whose processing raised (their raw data are kept)
         self.keeper = Keeper(cfg, self.say)   # the calibrations refused, and the saves of the one in use
         self._faults = FaultWatch(self.say, silence_s=cfg.unit.silence_s, every_s=cfg.unit.status_s)
@@ -150,6 +141,7 @@ class Daemon:
         notes: list[str] = []                 # said once the source, the bus and the recording are open
         pipeline = build_pipeline(cfg, initial_calibration(cfg, notes.append, refused=self.keeper.refused))
         source = open_configured_source(cfg)
+        self._faults.words = source.counters.words        # what its counters are said in: its bus's words
         sinks = Sinks([], self.say)           # the recording first: a raw block is kept before anything else
         bus = None
         try:
@@ -179,9 +171,6 @@ class Daemon:
             self.say("stopped (the reason follows)" if failed else "stopped")
         return 0
 
-    def _check_rate(self, block: SampleBlock) -> None:
-        self._rate.check(block)
-
     @property
     def rate_checked(self) -> bool:
         """Whether the unit clock has been compared with the configured rate (input.RateCheck)."""
@@ -208,16 +197,18 @@ class Daemon:
         st = pipeline.state()
         st["health"] = self._health(source, sinks)
         st["faults"] = self._faults.health()
+        st["source"] = {"kind": self.cfg.source.kind, "protocol": getattr(self.cfg.source, "protocol", ""),
+                        "counters": source.counters.words.about()}         # what its health counters count
         recording = sinks.recording()
         if recording is not None:
             st["recording"] = recording
         return st
 
     def _health(self, source: Source, sinks: Sinks) -> dict[str, Any]:
-        """The health channel's counters: the source's, what the service refused or failed to process, and the
-        messages an output failed to take: all outputs', and each failing output's own (`output_failures.<name>`,
-        where the dashboard's health table shows them beside the others; in the summary at stop too)."""
-        return {**source.counters.as_dict(), "processing_errors": self.processing_errors,
+        """The health channel's counters: the source's own (its declaration's), the input's losses, what the service
+        refused or failed to process, and the messages an output failed to take: all outputs', and each failing
+        output's own (`output_failures.<name>`, shown beside the others by the dashboard and the summary at stop)."""
+        return {**source.counters.as_dict(), **self._link.counts(), "processing_errors": self.processing_errors,
                 "commands_refused": self._status.refused, "output_failures": sum(sinks.errors.values()),
                 **self.keeper.counts(),
                 **{f"output_failures.{name}": n for name, n in sinks.errors.items() if n}}
@@ -246,7 +237,7 @@ class Daemon:
 
     def _loop(self, source: Source, pipeline: Pipeline, sinks: Sinks) -> None:
         bus = next(s.bus for s in sinks.sinks if isinstance(s, BusSink))       # commands come from it too
-        link = Reconnecting(self._reader, self.stop, self.say)
+        link = self._link
         last_health, announced = 0.0, pipeline.calibration is not None
         while not self.stop.is_set():
             for cmd in bus.pending_commands():
@@ -261,7 +252,7 @@ class Daemon:
                     break
             else:
                 if not self.rate_checked:
-                    self._check_rate(block)
+                    self._rate.check(block)
                 sinks.raw(block)              # kept and published first: whatever happens to its processing
                 out = self._process(pipeline, block)     # None: failed, counted and said there
                 if out is not None:

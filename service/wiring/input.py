@@ -10,6 +10,7 @@ from typing import Callable
 
 from drivers.block import SampleBlock
 from drivers.errors import DriverError
+from drivers.registry import source_kind
 from drivers.source import Source
 
 from .config import FluxcalConfig
@@ -17,7 +18,7 @@ from .config import FluxcalConfig
 
 class Reconnecting:
     """Reads blocks (BatchReader) and, when the input is lost (a pulled cable, a closed pty), says so and reopens the
-    source with a backoff from 0.1 s doubling to 5 s, counting read_errors and reconnects in the source's counters.
+    source with a backoff from 0.1 s doubling to 5 s, counting read_errors and reconnects (whatever the source).
     `read` returns a block, or None while nothing came or the input is down; `stopped` turns True when the stop
     event came during a backoff."""
 
@@ -27,6 +28,12 @@ class Reconnecting:
         self.down_since: float | None = None  # monotonic time the input was lost, while it stays down
         self.attempts = 0
         self.stopped = False
+        self.read_errors = 0                  # times the input went down
+        self.reconnects = 0                   # ... and came back
+
+    def counts(self) -> dict[str, int]:
+        """The input's losses and returns, for the health counters."""
+        return {"read_errors": self.read_errors, "reconnects": self.reconnects}
 
     def read(self, source: Source) -> SampleBlock | None:
         if self.down_since is None:
@@ -34,7 +41,7 @@ class Reconnecting:
                 return self.reader.read(source)
             except DriverError as e:
                 self.say(f"input lost: {e}; reconnecting (backoff from {self.backoff:.1f} s)")
-                source.counters.read_errors += 1
+                self.read_errors += 1
                 self.down_since, self.attempts = time.monotonic(), 0
         if self.stop.wait(self.backoff):
             self.stopped = True
@@ -48,7 +55,7 @@ class Reconnecting:
                 self.say(f"input still down after {time.monotonic() - self.down_since:.0f} s and {self.attempts} "
                          f"attempts: {e}; retrying every {self.backoff:.0f} s")
         else:
-            source.counters.reconnects += 1
+            self.reconnects += 1
             self.say(f"input reconnected after {time.monotonic() - self.down_since:.1f} s")
             self.down_since, self.backoff = None, 0.1
         return None
@@ -118,8 +125,9 @@ class RateCheck:
     def __init__(self, cfg: FluxcalConfig, say: Callable[[str], None]) -> None:
         self.cfg, self.say = cfg, say
         self._seen: tuple[int, float] = (0, 0.0)       # samples (by seq) and unit-clock seconds seen
-        # the unit clock is compared with the configured rate once (CAN has no unit clock: t_s = seq / rate)
-        self.checked = getattr(cfg.source, "kind", "") == "can"
+        # the unit clock is compared with the configured rate once; an input whose time is no unit clock of its
+        # own (t_s = seq / rate, its kind's declaration says) has nothing to compare
+        self.checked = not source_kind(cfg.source.kind).clock(getattr(cfg.source, "protocol", ""))
 
     def check(self, block: SampleBlock) -> None:
 

@@ -17,7 +17,7 @@ from .identity import check_identity, judge_on_data, unit_identity
 
 def learned_on(cfg: FluxcalConfig) -> dict[str, str]:
     """What a calibration learned by this service is recorded as learned on: the unit and its source kind."""
-    return {"unit": cfg.unit.name, "source": str(getattr(cfg.source, "kind", "sim"))}
+    return {"unit": cfg.unit.name, "source": str(cfg.source.kind)}
 
 
 def stamp(cal: Any, cfg: FluxcalConfig, applied: bool) -> None:

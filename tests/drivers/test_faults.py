@@ -34,7 +34,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from drivers import icd
-from drivers.assemble import FrameAssembler, SerialFramer
+from drivers.assemble import FrameAssembler, SerialFramer, serial_icd_counters
 from drivers.block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock
 from drivers.can_source import CanSource
 from drivers.config import load_section
@@ -110,8 +110,8 @@ def test_serial_garbage_yields_exactly_the_intact_samples_and_counts_the_rest(ta
         with SerialSource(em.path, n_probes=2, lsb_nT=u.lsb_nT, read_timeout_s=0.01) as src:
             blocks = read_all(src, em)
             counters = src.counters
-            pending = src._framer.pending_bytes           # a partial frame's worth of bytes kept back
-            fed = src._framer.bytes_fed                   # everything pyserial handed over
+            pending = src._decoder.framer.pending_bytes   # a partial frame's worth of bytes kept back
+            fed = src._decoder.framer.bytes_fed           # everything pyserial handed over
     finally:
         em.close()
     rec = em.record
@@ -154,7 +154,7 @@ def test_serial_garbage_yields_exactly_the_intact_samples_and_counts_the_rest(ta
     assert 0.5 * damaged.size < counters.crc_failures <= damaged.size
     print(f"garbage {achieved:.4f} of {sent_bytes} bytes; samples {keep.size}/{n}; {counters}")
     assert (counters.seq_gaps, counters.samples_missed) == gaps_of(keep)
-    assert counters.read_errors == 0 and counters.reconnects == 0
+    assert counters.bytes_received == fed                 # every byte the port read, counted by the port
 
 
 # --- 2. CAN frames lost ----------------------------------------------------------------------------
@@ -278,7 +278,7 @@ def test_serial_seq_and_clock_wraps_with_frames_lost_across_them_stay_monotonic(
         assert (counters.seq_gaps, counters.samples_missed) == gaps_of(keep)
 
     # the framer fed segment by segment: block boundaries fall exactly on the wraps
-    counters = Counters()
+    counters = serial_icd_counters()
     framer, assembler = SerialFramer(2, counters), FrameAssembler(2, u.lsb_nT, counters)
     blocks = [assembler.block(framer.feed(seg)) for seg in segments] + [assembler.block(framer.finish())]
     check(SampleBlock.concat(blocks), counters)
@@ -312,7 +312,7 @@ def serial_blocks(u: Unit, counts: np.ndarray, temp_raw: np.ndarray, flags: np.n
     seq = (u.config.seq_start + np.arange(n)) & 0xFFFF
     t_us = (u.config.t_us_start + np.rint(np.arange(n) * (1e6 / u.rate_hz)).astype(np.int64)) & 0xFFFFFFFF
     data = icd.encode_serial(seq, t_us, counts, temp_raw, flags)
-    counters = Counters()
+    counters = serial_icd_counters()
     framer, assembler = SerialFramer(u.n_probes, counters), FrameAssembler(u.n_probes, u.lsb_nT, counters)
     blocks, i, k, fl = [], 0, 0, u.frame_length
     while i < n:

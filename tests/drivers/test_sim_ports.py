@@ -316,7 +316,7 @@ def test_runner_serves_another_process(tmp_path):
     cfg = tmp_path / "sim.toml"
     cfg.write_text('[sim]\nseed = 5\nrate_hz = 100.0\nduration_s = 1.0\n'
                    '[[sim.probes]]\nposition_m = [0.0, 0.0, 0.0]\nnoise_nT = 0.5\n')
-    proc = subprocess.Popen([sys.executable, "-m", "drivers.sim", "--config", str(cfg), "--serial", "--fast",
+    proc = subprocess.Popen([sys.executable, "-m", "drivers.sim", "--config", str(cfg), "--transport", "pty", "--fast",
                              "--truth", str(tmp_path / "truth.json"), "--record", str(tmp_path / "record.npz")], cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:

@@ -15,7 +15,9 @@ import numpy as np
 import pytest
 
 from drivers import icd
-from drivers.assemble import CanAssembler, CanSamples, FrameAssembler, SeqGapCounter, SerialFramer
+from drivers.assemble import (CanAssembler, CanSamples, FrameAssembler, SeqGapCounter, SerialFramer,
+                              can_icd_counters, serial_icd_counters)
+from drivers.registry import source_kind
 from drivers.source import Counters
 from service.wiring.faults import FaultWatch
 
@@ -36,7 +38,7 @@ def serial_wire(seq: np.ndarray, t_us: np.ndarray, seed: int = 0) -> tuple[bytes
 
 def through(wire: bytes, chunk_frames: int = 333):
     """The wire through the serial framer and assembler in chunks; (seq, t_s, field counts, counters)."""
-    c = Counters()
+    c = serial_icd_counters()
     framer, asm = SerialFramer(N, c), FrameAssembler(N, 0.001, c)
     step = chunk_frames * icd.frame_length(N)
     blocks = [asm.block(framer.feed(wire[i:i + step]), rx_time_s=i * 1e-7) for i in range(0, len(wire), step)]
@@ -131,7 +133,7 @@ def test_can_frames_of_the_old_run_after_a_restart_stay_in_it(batch, swap):
     for a in range(0, ids.size - swap, 7):
         order[[a, a + swap]] = order[[a + swap, a]]
     ids, payloads = ids[order], payloads[order]
-    c = Counters()
+    c = can_icd_counters()
     asm, gaps = CanAssembler(N, counters=c, rate_hz=200.0), SeqGapCounter()
     parts = []
     for j, a in enumerate(range(0, ids.size, batch)):
@@ -148,7 +150,7 @@ def test_can_frames_of_the_old_run_after_a_restart_stay_in_it(batch, swap):
 def test_clock_and_counter_jumps_are_said_as_what_they_are():
     said: list[str] = []
     clock = [0.0]
-    watch = FaultWatch(said.append, clock=lambda: clock[0], wall=lambda: 0.0)
+    watch = FaultWatch(said.append, words=source_kind("serial").words(), clock=lambda: clock[0], wall=lambda: 0.0)
     base = {"frames_accepted": 0, "samples_missed": 0, "restarts": 0, "clock_jumps": 0, "counter_jumps": 0}
     watch.tick(base)
     clock[0] = 1.0

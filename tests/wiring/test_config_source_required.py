@@ -14,7 +14,7 @@ from service.wiring.cli import main
 from service.wiring.config import config_from_dict, load_config, require_source
 
 ROOT = Path(__file__).resolve().parents[2]
-REQUIRED = '[source] kind is required (allowed: "serial", "can", "sim", "replay")'
+REQUIRED = "[source] kind is required (allowed: 'sim', 'can', 'replay', 'serial')"
 
 
 @pytest.mark.parametrize("text, what", [

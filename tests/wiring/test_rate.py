@@ -73,7 +73,7 @@ def test_the_daemon_says_once_when_the_unit_clock_disagrees_with_the_rate(actual
     d = Daemon(config_from_dict(serial_config(rate_hz=configured)), say=messages.append)
     for b in unit_blocks(actual, 12.0):
         if not d.rate_checked:
-            d._check_rate(b)
+            d._rate.check(b)
     assert d.rate_checked
     assert len(messages) == int(said)
     if said:
@@ -98,18 +98,18 @@ def test_gaps_between_blocks_never_enter_the_rate(dseq, dt):
     messages: list[str] = []
     d = Daemon(config_from_dict(serial_config(rate_hz=500.0)), say=messages.append)
     for b in unit_blocks(500.0, 3.0, seq0=40000):
-        d._check_rate(b)
+        d._rate.check(b)
     assert not d.rate_checked
     for b in shifted(unit_blocks(500.0, 3.0, seq0=40000 + 1500), dseq, 3.0 + dt):
         if not d.rate_checked:
-            d._check_rate(b)
+            d._rate.check(b)
     assert d.rate_checked and messages == []
 
 
 def test_a_clock_without_values_does_not_use_up_the_check():
     d = Daemon(config_from_dict(serial_config(rate_hz=500.0)), say=print)
     for b in unit_blocks(500.0, 10.0):
-        d._check_rate(SampleBlock(t_s=np.full(b.n_samples, np.nan), seq=b.seq, field_nT=b.field_nT,
+        d._rate.check(SampleBlock(t_s=np.full(b.n_samples, np.nan), seq=b.seq, field_nT=b.field_nT,
                                   temp_C=b.temp_C, flags=b.flags))
     assert not d.rate_checked
 

@@ -142,21 +142,12 @@ def _key_documented_above(text: str, key: str) -> bool:
                                   "can-example.toml"])
 def test_example_config_sections_validate(name):
     """Each section against the dataclass that reads it (the drivers' [source], the service's others)."""
-    from drivers.can_source import CanConfig
     from drivers.config import load_section
-    from drivers.serial_source import SerialConfig
-    from service.wiring.config import (
-        CalibrationConfig,
-        EstimatorConfig,
-        McapConfig,
-        ProbeConfig,
-        SimSourceConfig,
-        UnitConfig,
-    )
+    from drivers.registry import source_kind
+    from service.wiring.config import CalibrationConfig, EstimatorConfig, McapConfig, ProbeConfig, UnitConfig
 
     raw = tomllib.loads((CONFIGS / name).read_text())
-    source_cls = {"sim": SimSourceConfig, "serial": SerialConfig, "can": CanConfig}[raw["source"]["kind"]]
-    source = load_section(source_cls, raw["source"], "source")
+    source = load_section(source_kind(raw["source"]["kind"]).table_class(), raw["source"], "source")
     unit = load_section(UnitConfig, raw["unit"], "unit")
     for sec, cls in (("estimator", EstimatorConfig), ("calibration", CalibrationConfig), ("mcap", McapConfig)):
         load_section(cls, raw[sec], sec)

@@ -17,6 +17,27 @@ from service.io.bus import (
 
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 
+#: health counters of what arrived or was sent, by name: the service's own, and a service that does not say (the
+#: dashboard's page keeps the same rule, static/app.js counterIsThroughput)
+_FLOW = re.compile(r"(^|_)(received|accepted)$|^published_|^received")
+
+
+def counter_words(state: object) -> dict | None:
+    """The words of the source's own counters a state reply carries (source.counters), or None."""
+    source = state.get("source") if isinstance(state, dict) else None
+    return source.get("counters") if isinstance(source, dict) else None
+
+
+def is_flow(name: str, about: object = None) -> bool:
+    """Whether a health counter counts what arrived or was sent, never a loss however large: as the source's
+    declaration says (the state's source.counters, docs/zenoh.md), else by its name.
+
+    >>> is_flow("foreign_frames", {"foreign_frames": {"flow": True}}), is_flow("foreign_frames")
+    (True, False)
+    """
+    entry = about.get(name) if isinstance(about, dict) else None
+    return bool(entry.get("flow")) if isinstance(entry, dict) else bool(_FLOW.search(name))
+
 
 def dashboard_endpoints(zcfg: ZenohConfig) -> list[str]:
     """Where a dashboard on this host reaches a service configured with `zcfg`: its listen endpoints (a

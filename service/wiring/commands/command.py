@@ -20,7 +20,7 @@ from drivers.errors import ConfigError, DataError, FluxcalError
 from drivers.text import printable, printable_json
 from service.io.bus import COMMANDS, MAX_COMMAND_PAYLOAD_BYTES, BusClient, ZenohConfig, discover_units, open_session
 from service.io.calfile import calibration_from_json
-from service.wiring.commands.client import resolve
+from service.wiring.commands.client import counter_words, is_flow, resolve
 from service.wiring.commands.options import CommandHelp, connection_options
 
 VERBS = ("state", *COMMANDS)
@@ -179,11 +179,11 @@ def state_text(st: dict[str, Any]) -> str:
                              (f" {unit}" if unit else ""))
     health = st.get("health") or {}
     if health:
-        accepted = health.get("frames_accepted")
-        bad = {k: v for k, v in health.items() if k != "frames_accepted" and isinstance(v, (int, float)) and v}
-        lines.append(f"input: {_n(accepted, ',d') if isinstance(accepted, int) else 'n/a'} frames accepted; " +
-                     (", ".join(f"{k.replace('_', ' ')} {v:,}" for k, v in bad.items()) if bad
-                      else "no error counted"))
+        about = counter_words(st)                                 # what the source's own counters count
+        counted = {k: v for k, v in health.items() if isinstance(v, (int, float))}
+        flows = [f"{v:,} {k.replace('_', ' ')}" for k, v in counted.items() if is_flow(k, about)]
+        bad = [f"{k.replace('_', ' ')} {v:,}" for k, v in counted.items() if v and not is_flow(k, about)]
+        lines.append(f"input: {', '.join(flows) or 'n/a'}; {', '.join(bad) or 'no error counted'}")
     rec = st.get("recording")
     if rec:
         trouble = [f"{k} {rec[k]:,}" for k in ("dropped", "errors") if rec.get(k)]

@@ -25,7 +25,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from drivers.assemble import FrameAssembler, SerialFramer
+from drivers.assemble import FrameAssembler, SerialFramer, can_icd_counters, serial_icd_counters
 from drivers.block import SampleBlock
 from drivers.errors import ConfigError, DataError, FluxcalError
 from drivers.icd import MAX_PROBES, frame_length, parse_serial
@@ -113,7 +113,7 @@ def execute(source: str, opts: DecodeOptions, said: Said) -> DecodeResult:
     if not out.parent.resolve().is_dir():
         raise ConfigError(f"--out: directory {out.parent} does not exist")
 
-    counters = Counters()
+    counters = can_icd_counters() if opts.can else serial_icd_counters()
     if opts.can:
         from drivers.can_source import check_base_id
 
@@ -155,6 +155,7 @@ def _serial_blocks(capture: Path, n: int, lsb_nT: float, counters: Counters) -> 
     with f, progress:
         while True:
             chunk = f.read(CHUNK_BYTES)
+            counters.bytes_received += len(chunk)
             frames = framer.feed(chunk) if chunk else framer.finish()
             if len(frames):
                 yield assembler.block(frames)

@@ -37,7 +37,7 @@ from service.io.bus import (
     discover_units,
     open_session,
 )
-from service.wiring.commands.client import resolve
+from service.wiring.commands.client import counter_words, is_flow, resolve
 from service.wiring.commands.options import CommandHelp, connection_options
 
 TTY_PERIOD_S = 0.25            # redraw rate on a terminal (4 Hz)
@@ -244,8 +244,8 @@ class TerminalView:
             lines.append("")
             lines.append("error, rms nT: " + "  ".join(f"{k} {_num(v, '.3f')}" for k, v in rms.items()))
         if self.health:
-            counters = self.health.get("counters") or {}
-            txt = "  ".join(f"\x1b[31m{k} {v}\x1b[0m" if v and k not in ("frames_accepted",) else f"{k} {v}"
+            counters, about = self.health.get("counters") or {}, counter_words(self.state)
+            txt = "  ".join(f"\x1b[31m{k} {v}\x1b[0m" if v and not is_flow(k, about) else f"{k} {v}"
                             for k, v in counters.items() if isinstance(v, (int, float)))
             lines.append("")
             lines.append("health: " + txt)
@@ -287,9 +287,9 @@ class TerminalView:
         if self.error:
             parts.append("err " + " ".join(f"{k}={_num(v, '.3f')}" for k, v in (self.error.get("rms_nT") or {}).items()))
         if self.health:
-            counters = self.health.get("counters") or {}
+            counters, about = self.health.get("counters") or {}, counter_words(self.state)
             parts.append(" ".join(f"{k}={v}" for k, v in counters.items() if isinstance(v, (int, float)) and
-                                  (v or k == "frames_accepted")))
+                                  (v or is_flow(k, about))))
         return " | ".join(p for p in parts if p)
 
 

@@ -271,18 +271,25 @@ function renderDiagnosis(d, kept) {
   ((d.discovery && d.discovery.shapes) || []).forEach((s, i) => window.fluxplot.drawShape($("shape-" + i), s));
 }
 
-// a counter of what arrived or was sent (bytes_received, frames_accepted, published_*) is not a fault: never red
-function counterIsThroughput(k) {
+// a counter of what arrived or was sent (bytes_received, frames_accepted, published_*) is not a fault: never red.
+// The source's own counters say so themselves (state.source.counters: its kind's declaration, docs/sources.md);
+// the rule on names serves the service's counters and a service that does not say.
+function counterIsThroughput(k, about) {
+  if (about && about[k]) { return Boolean(about[k].flow); }
   return /(^|_)(received|accepted)$/.test(k) || k.startsWith("published_") || k.startsWith("received");
 }
 
 function renderHealth(v) {
   const counters = (v.health && v.health.counters) || {};
   const bus = (v.health && v.health.bus) || {};
-  const good = counterIsThroughput;
-  $("health").innerHTML = "<tr><th>counter</th><th>value</th></tr>" + Object.entries(counters).concat(
+  const source = (v.state && v.state.source) || {};
+  const about = source.counters || {};
+  const good = k => counterIsThroughput(k, about);
+  const title = k => (about[k] && about[k].doc) ? ` title="${esc(about[k].doc)}"` : "";
+  const head = source.kind ? `counter (${esc(source.kind)}${source.protocol ? ", " + esc(source.protocol) : ""})` : "counter";
+  $("health").innerHTML = `<tr><th>${head}</th><th>value</th></tr>` + Object.entries(counters).concat(
     Object.entries(bus).filter(([k]) => /errors|dropped|refused|expired/.test(k)).map(([k, x]) => ["bus." + k, x])).map(([k, x]) =>
-    `<tr><th>${esc(k)}</th><td class="${x && !good(k) ? "bad" : ""}">${esc(x)}</td></tr>`).join("");
+    `<tr><th${title(k)}>${esc(k)}</th><td class="${x && !good(k) ? "bad" : ""}">${esc(x)}</td></tr>`).join("");
   $("events").innerHTML = (v.events || []).slice().reverse().map(e => `<li>${esc(e.kind)} at seq ${esc(e.seq ?? "–")}` +
     (e.reasons && e.reasons.length ? ": " + esc(e.reasons.join("; ")) : "") + (e.command ? " " + esc(e.command) : "") + "</li>").join("");
 }
