@@ -35,12 +35,12 @@ from pathlib import Path
 import numpy as np
 from _machine import cpu_model
 
-from drivers.block import SampleBlock
-from drivers.icd import encode_serial, parse_serial
-from drivers.sim.config import load_sim_config
-from drivers.sim.unit import Unit
-from service.io.calfile import load_calibration, save_calibration
-from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.icd import encode_serial, parse_serial
+from fluxcal.drivers.sim.config import load_sim_config
+from fluxcal.drivers.sim.unit import Unit
+from fluxcal.service.io.calfile import load_calibration, save_calibration
+from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 
 N_PROBES, RATE = 4, 1000.0
 PROBES = [{"name": f"s{k + 1}", "position_m": p, "offset_nT": [100.0 * k, -50.0, 30.0], "noise_nT": 0.5}
@@ -73,10 +73,10 @@ def make_samples(seconds: float):
 def bench_replay(tmp: Path, seconds: float) -> None:
     import tomllib
 
-    from service.io.recordings.reader import read_recording
-    from service.io.recordings.writer import McapLogger
-    from service.wiring.config import config_from_dict
-    from service.wiring.daemon import build_pipeline
+    from fluxcal.service.io.recordings.reader import read_recording
+    from fluxcal.service.io.recordings.writer import McapLogger
+    from fluxcal.service.wiring.config import config_from_dict
+    from fluxcal.service.wiring.daemon import build_pipeline
 
     cfg, unit, s = make_samples(seconds)
     block = s.to_block()
@@ -159,10 +159,10 @@ def floor_parts(block: SampleBlock, t_bare: float) -> None:
     lz4 as the logger writes them. Their sum against the 2 x bare that a 0.5x ratio allows."""
     import lz4.frame
 
-    from drivers.encoding import encode_raw
-    from service.io.encoding import encode_corrected
-    from service.numerics.calib.rls import RlsEllipsoid
-    from service.numerics.outputs import products
+    from fluxcal.drivers.encoding import encode_raw
+    from fluxcal.service.io.encoding import encode_corrected
+    from fluxcal.service.numerics.calib.rls import RlsEllipsoid
+    from fluxcal.service.numerics.outputs import products
 
     def best(f, k: int = 3) -> float:
         ts = []
@@ -223,7 +223,7 @@ def cpu_seconds(pid: int) -> float:
 
 
 def bench_live(tmp: Path, seconds: float, block_ms: float | None = None) -> None:
-    from service.io.bus import BusClient, ZenohConfig
+    from fluxcal.service.io.bus import BusClient, ZenohConfig
 
     cfg, unit, s = make_samples(seconds + 10)
     master, slave = os.openpty()
@@ -240,7 +240,7 @@ def bench_live(tmp: Path, seconds: float, block_ms: float | None = None) -> None
     full = config_text(tmp, src, port, initial, block_ms)            # the serial unit is real here: no [sim] sections
     cfg_path.write_text(full.split("\n[sim]")[0] + "\n[estimator]" + full.split("[estimator]", 1)[1])
     prof = os.environ.get("FLUXCAL_PROFILE")
-    cmd = [sys.executable] + (["-m", "cProfile", "-o", prof] if prof else []) + ["-m", "service.wiring.cli", "run", "--config", str(cfg_path)]
+    cmd = [sys.executable] + (["-m", "cProfile", "-o", prof] if prof else []) + ["-m", "fluxcal.service.wiring.cli", "run", "--config", str(cfg_path)]
     env = dict(os.environ)
     if _USER_BLAS_THREADS is None:
         env.pop("OPENBLAS_NUM_THREADS", None)                  # the live service as a user starts it

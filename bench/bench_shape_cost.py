@@ -46,13 +46,13 @@ def one(world: str, samples: int, probes: int, real: str | None, worlds: str) ->
     sys.path.insert(0, worlds)                     # this checkout's tests/: the worlds, whichever code runs them
     import numpy as np
 
-    from service.numerics.diagnose import diagnose
+    from fluxcal.service.numerics.diagnose import diagnose
 
     if world == "real":
         from shape_worlds import wandering
 
-        from service.io.recordings.load import load_data
-        from service.numerics.engine import as_effect_data
+        from fluxcal.service.io.recordings.load import load_data
+        from fluxcal.service.numerics.engine import as_effect_data
 
         data, discover = as_effect_data(load_data(real)), True
         data.extras.update(wandering(data.t_s, WIDE_COLUMNS, 7))
@@ -70,7 +70,7 @@ def one(world: str, samples: int, probes: int, real: str | None, worlds: str) ->
         data.extras.update(cols)
         discover = True
         if world == "coupled":
-            from service.numerics.effects.thermal import low_pass
+            from fluxcal.service.numerics.effects.thermal import low_pass
 
             lag = low_pass(data.t_s, cols["heater_A"], 60.0)
             data.raw_nT[:, 1, :] += np.outer(lag - lag.mean(), [8.0, -6.0, 4.0])
@@ -80,9 +80,9 @@ def one(world: str, samples: int, probes: int, real: str | None, worlds: str) ->
     d = diagnose(data, discover=discover)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     f = d.discovery
-    import service
+    import fluxcal.service
 
-    return {"code": str(Path(service.__file__).parents[1]), "wall_s": wall, "cpu_s": cpu, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    return {"code": str(Path(fluxcal.service.__file__).parents[1]), "wall_s": wall, "cpu_s": cpu, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "before_mb": base_rss / 1024, "rows": int(data.n_samples), "columns": len(data.extras),
             "groups": None if f is None else f.tried, "params": None if f is None else f.tried_params,
             "claimed": None if f is None else f.claimed, "verdict": d.verdict["kind"]}

@@ -1,8 +1,8 @@
-"""Reading fluxcal MCAP recordings: the "replay" Source, and the record reader shared with service.io.recordings.reader.
+"""Reading fluxcal MCAP recordings: the "replay" Source, and the record reader shared with fluxcal.service.io.recordings.reader.
 
 A recording is one .mcap file or a directory of rotated files, read in name order (the logger's
 names `<unit>-<YYYYmmddTHHMMSS>-<NNNN>.mcap` sort in time order). Each file's records are read in file
-order by drivers.mcap_scan, which keeps going past what happened to the file and says it:
+order by fluxcal.drivers.mcap_scan, which keeps going past what happened to the file and says it:
 
     no footer, or a record cut short at the end     read to the last complete chunk; one line in
       (a killed writer)                             report.truncated per file
@@ -268,7 +268,7 @@ class McapSource(Source):
 
 def open_source(config: Any = None, *, path: str | Path | None = None, unit: str | None = None,
                 strict: bool = False, **_: Any) -> McapSource:
-    """The "replay" entry of drivers.source.SOURCES: open_source("replay", path=REC, unit=None).
+    """The "replay" entry of fluxcal.drivers.source.SOURCES: open_source("replay", path=REC, unit=None).
 
     `config` may be the path itself or an object with a `.path` (the [source] section of kind
     "replay"); `path=` wins. Other keyword arguments are accepted and ignored, so every source kind

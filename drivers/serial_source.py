@@ -26,11 +26,11 @@ from dataclasses import dataclass
 import serial
 
 from .assemble import FrameAssembler, SerialFramer
-from .plausibility import Plausibility, check_temp_range, plausibility_spec
 from .block import SampleBlock
 from .config import spec
 from .errors import ConfigError, DriverError
 from .icd import DEFAULT_LSB_NT, MAX_PROBES
+from .plausibility import Plausibility, check_temp_range, plausibility_spec
 from .source import PortSource
 
 #: most bytes taken from the port per read call (about 11 s of data at 921600 baud)
@@ -188,7 +188,7 @@ class SerialSource(PortSource):
 
 
 def open_source(config: SerialConfig | None = None, **kwargs) -> SerialSource:
-    """The "serial" entry of drivers.source.SOURCES: from a SerialConfig, keyword arguments
+    """The "serial" entry of fluxcal.drivers.source.SOURCES: from a SerialConfig, keyword arguments
     (port, baudrate, n_probes, lsb_nT, read_timeout_s), or a config with keyword overrides. A config's
     rate_hz is the service's business (the driver takes time from the unit clock in each frame); as a
     keyword it is accepted and not used."""

@@ -128,10 +128,10 @@ class PortSource(Source):
 
 #: source kind -> "module:factory"; the factory takes (config, **kwargs) and returns a Source
 SOURCES: dict[str, str] = {
-    "serial": "drivers.serial_source:open_source",
-    "can": "drivers.can_source:open_source",
-    "sim": "drivers.sim.source:open_source",
-    "replay": "drivers.mcap_source:open_source",
+    "serial": "fluxcal.drivers.serial_source:open_source",
+    "can": "fluxcal.drivers.can_source:open_source",
+    "sim": "fluxcal.drivers.sim.source:open_source",
+    "replay": "fluxcal.drivers.mcap_source:open_source",
 }
 
 

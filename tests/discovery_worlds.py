@@ -1,5 +1,5 @@
 """Worlds with an effect outside the catalogue, and effect-free controls, for discovery (issue 30): the simulated
-unit (drivers.sim) with a term added to its probes' outputs from what the world knows (the field in the platform
+unit (fluxcal.drivers.sim) with a term added to its probes' outputs from what the world knows (the field in the platform
 frame, each probe's transfer matrix, its temperature, the field's rate), and logged columns beside it.
 
 KINDS (each one physical effect the catalogue has no term for), with what the verdict must name:
@@ -26,9 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from drivers.sim import Unit, load_sim_config
-from service.numerics.effects.base import EffectData
-from service.numerics.effects.thermal import low_pass
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.service.numerics.effects.base import EffectData
+from fluxcal.service.numerics.effects.thermal import low_pass
 
 ROOT = Path(__file__).resolve().parents[1]
 F_TOTAL = 51500.0

@@ -1,5 +1,5 @@
 """Worlds whose missing term is a smooth, non-linear function of something the file logs (issue 36), for discovery
-of shape: the simulated unit (drivers.sim) with a field added at its probes from a logged column or the temperature
+of shape: the simulated unit (fluxcal.drivers.sim) with a field added at its probes from a logged column or the temperature
 through a law, and the decoy columns of tests/discovery_worlds.py beside it.
 
 SHAPES (each a law the catalogue and the linear library do not take; `LAWS` holds each one's truth):
@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 from discovery_worlds import F_TOTAL, TUMBLE, _columns, _probe
 
-from drivers.sim import Unit, load_sim_config
-from service.numerics.effects.base import EffectData
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.service.numerics.effects.base import EffectData
 
 SHAPES = ("flap magnet", "temperature square", "gimbal turn", "saturating coil", "exponential supply")
 #: per shape: (the observable, the probes that carry it, the law that made it (None: no law of the set; a field that

@@ -1,11 +1,11 @@
-"""The simulated unit as a Source ("sim" in drivers.source.SOURCES).
+"""The simulated unit as a Source ("sim" in fluxcal.drivers.source.SOURCES).
 
 transport "direct" (the default): SampleBlocks straight from the world, in process, exactly what a
 decoder of the unit's frames would yield (NaN where saturated or temperature-invalid, t_s from the
 unit clock) plus extras["ref_total"] when the scalar reference is enabled. Wire faults do not apply
 (there is no wire); flagged samples do.
 
-transport "pty" / "can-virtual" / "slcan": the unit streams through an emitter (drivers.sim.ports)
+transport "pty" / "can-virtual" / "slcan": the unit streams through an emitter (fluxcal.drivers.sim.ports)
 and the real serial or CAN source reads it, so the whole driver path runs; ref_total is not on the
 wire and is absent then.
 """
@@ -32,7 +32,7 @@ TRANSPORTS = ("direct", "pty", "can-virtual", "slcan")
 class SimSource(Source):
     """SampleBlocks from the simulated world, paced by the wall clock (realtime) or as fast as read.
 
-    >>> from drivers.sim.config import load_sim_config
+    >>> from fluxcal.drivers.sim.config import load_sim_config
     >>> src = SimSource(load_sim_config({"duration_s": 1.0, "rate_hz": 100.0}), block_s=0.5)
     >>> [len(src.read()), len(src.read()), src.read(), src.exhausted]
     [50, 50, None, True]
@@ -190,18 +190,18 @@ def open_source(config: Any, *, unit: Any = None, transport: str = "direct", rea
     if transport == "pty":
         emitter = PtyEmitter(u, realtime=realtime, **kwargs).start()
         values = {**common, "kind": "serial", "port": emitter.path, "baudrate": 921600}
-        target, kind = "drivers.serial_source:SerialConfig", "serial"
+        target, kind = "fluxcal.drivers.serial_source:SerialConfig", "serial"
     elif transport == "slcan":
         emitter = SlcanEmitter(u, realtime=realtime, **kwargs).start()
         values = {**common, "kind": "can", "interface": "slcan", "channel": emitter.path, "bitrate": 1000000}
-        target, kind = "drivers.can_source:CanConfig", "can"
+        target, kind = "fluxcal.drivers.can_source:CanConfig", "can"
         # python-can waits 2 s after opening an SLCAN tty for a real adapter to boot; ours is ready
         driver_kwargs["bus_kwargs"] = {"sleep_after_open": 0}
     else:
         channel = kwargs.pop("channel", f"fluxcal-sim-{id(u):x}")
         emitter = CanEmitter(u, realtime=realtime, interface="virtual", channel=channel, **kwargs)
         values = {**common, "kind": "can", "interface": "virtual", "channel": channel, "bitrate": 1000000}
-        target, kind = "drivers.can_source:CanConfig", "can"
+        target, kind = "fluxcal.drivers.can_source:CanConfig", "can"
     try:
         inner = open_driver(kind, _driver_config(target, values), **driver_kwargs)
         if not emitter.done.is_set() and getattr(emitter, "_thread", None) is None:

@@ -16,10 +16,10 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from drivers.block import SampleBlock
-from drivers.errors import ConfigError, DriverError, FluxcalError
-from drivers.source import Source, open_source
-from drivers.text import printable
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import ConfigError, DriverError, FluxcalError
+from fluxcal.drivers.source import Source, open_source
+from fluxcal.drivers.text import printable
 
 from .config import RATE_MISSING, FluxcalConfig
 from .faults import FaultWatch
@@ -31,7 +31,7 @@ from .status import StatusLog
 
 
 def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:
-    from service.wiring.user_effects import load_installed_effects, resolve_effects
+    from fluxcal.service.wiring.user_effects import load_installed_effects, resolve_effects
 
     # effects of your own, registered before anything (a recorded add-effect, a calibration) names them
     load_installed_effects()
@@ -94,7 +94,7 @@ def open_outputs(sinks: Sinks, cfg: FluxcalConfig, calibration: Any, bus: Any, n
     """The service's outputs into `sinks`, the recording first (a raw block is kept before anything else): each is
     among the sinks, and so closed with them, as soon as it is open, whichever opens next fails (the bus closes
     twice harmlessly)."""
-    from service.wiring.ros2_sink import Ros2BagSink
+    from fluxcal.service.wiring.ros2_sink import Ros2BagSink
 
     sinks.add(McapSink.open(cfg, calibration, note))
     sinks.add(BusSink(bus))
@@ -130,7 +130,7 @@ class Daemon:
 
     def __init__(self, cfg: FluxcalConfig, *, stop: threading.Event | None = None,
                  say: Callable[[str], None] | None = None, sinks: Sequence[Sink] = ()) -> None:
-        """`sinks`: outputs besides the recording and the bus (service.wiring.sinks.Sink), told after them."""
+        """`sinks`: outputs besides the recording and the bus (fluxcal.service.wiring.sinks.Sink), told after them."""
         self.cfg = cfg
         self.stop = stop or threading.Event()
         self.say = say or _say
@@ -144,7 +144,7 @@ class Daemon:
         self._status = StatusLog(self.say, cfg.unit.status_s)
 
     def run(self) -> int:
-        from service.io.bus import ServiceBus
+        from fluxcal.service.io.bus import ServiceBus
 
         cfg = self.cfg
         notes: list[str] = []                 # said once the source, the bus and the recording are open
@@ -308,7 +308,7 @@ class Daemon:
                 payload = self.keeper.to_apply(payload, pipeline)
             ev = pipeline.command(cmd.name, payload, seq=seq, t_s=float("nan"))
             if cmd.name == "apply":
-                from service.io.calfile import calibration_to_dict
+                from fluxcal.service.io.calfile import calibration_to_dict
 
                 ev.detail["calibration"] = calibration_to_dict(payload)
             sinks.command({"kind": "command", "seq": seq, **ev.detail})

@@ -8,9 +8,9 @@ import threading
 import time
 from typing import Callable
 
-from drivers.block import SampleBlock
-from drivers.errors import DriverError
-from drivers.source import Source
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import DriverError
+from fluxcal.drivers.source import Source
 
 from .config import FluxcalConfig
 

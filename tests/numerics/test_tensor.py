@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.errors import ConfigError
-from service.numerics.calib.tensor import (
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.numerics.calib.tensor import (
     center_field,
     cross_positions,
     differences,
@@ -17,7 +17,7 @@ from service.numerics.calib.tensor import (
     tensor_from_cross,
     tensor_from_positions,
 )
-from service.numerics.outputs import CorrectedBlock
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 
 def source_free_gradient(rng: np.random.Generator) -> np.ndarray:

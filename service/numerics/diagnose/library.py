@@ -41,9 +41,9 @@ from typing import Any
 
 import numpy as np
 
-from service.numerics.effects.base import AXES, EffectData, EffectTerm, ProbeView, axis_columns
-from service.numerics.effects.column import column_values, usable_columns
-from service.numerics.effects.thermal import low_pass
+from fluxcal.service.numerics.effects.base import AXES, EffectData, EffectTerm, ProbeView, axis_columns
+from fluxcal.service.numerics.effects.column import column_values, usable_columns
+from fluxcal.service.numerics.effects.thermal import low_pass
 
 from .harmonics import column_lines, harmonic_lines, harmonic_source
 from .shapes import SHAPE_ORDERS, shape_recipes

@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 from scipy import special, stats
 
-from service.numerics.effects.base import EffectData
-from service.numerics.engine import RANK_TOL, FitResult, solve_normal
-from service.numerics.engine.jacobian import block_jacobian, local_jacobian
+from fluxcal.service.numerics.effects.base import EffectData
+from fluxcal.service.numerics.engine import RANK_TOL, FitResult, solve_normal
+from fluxcal.service.numerics.engine.jacobian import block_jacobian, local_jacobian
 
 from .library import Group
 from .result import GAIN_SIGMAS, MIN_GAIN
