@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.icd import encode_serial, parse_serial
-from drivers.sim.config import load_sim_config
-from drivers.sim.unit import Unit
-from service.io.calfile import save_calibration
-from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from fluxcal.drivers.icd import encode_serial, parse_serial
+from fluxcal.drivers.sim.config import load_sim_config
+from fluxcal.drivers.sim.unit import Unit
+from fluxcal.service.io.calfile import save_calibration
+from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 
 BENCH = Path(__file__).resolve().parent
 #: probe positions: a cross in the plane for 4 probes, two crosses 0.2 m apart in z for 8
@@ -153,7 +153,7 @@ def live_run(rate: float, n_probes: int, seconds: float, block_ms: float | None 
              profile: bool = False, code: Path | None = None) -> LiveRun:
     """One run of the service; `blas_threads`: OPENBLAS_NUM_THREADS for it (None: unset, as a user starts it);
     `code`: a checkout whose service runs (another revision, for a comparison in one run), else this one's."""
-    from service.io.bus import BusClient, ZenohConfig
+    from fluxcal.service.io.bus import BusClient, ZenohConfig
 
     run = LiveRun(rate, n_probes, seconds, block_ms)
     plist = probes(n_probes)
@@ -169,7 +169,7 @@ def live_run(rate: float, n_probes: int, seconds: float, block_ms: float | None 
         cfg_path = tmp / "live.toml"
         cfg_path.write_text(config_text(tmp, src, port, identity(tmp, plist), plist, rate, block_ms, sim=False))
         stages_out = tmp / "stages.json"
-        head = [str(BENCH / "_stages.py"), str(stages_out)] if profile else ["-m", "service.wiring.cli"]
+        head = [str(BENCH / "_stages.py"), str(stages_out)] if profile else ["-m", "fluxcal.service.wiring.cli"]
         env = dict(os.environ)
         env.pop("OPENBLAS_NUM_THREADS", None)
         if code is not None:
@@ -231,13 +231,14 @@ def live_floor(rate: float, n_probes: int, seconds: float, block_ms: float = 8.0
     messages, put the nine messages on Zenoh (a publisher each, no subscriber, no sender thread) and write two
     messages to a chunked lz4 MCAP file. Returns (this loop's thread CPU per block, us; its share of one core)."""
     import select
+
     import zenoh
     from mcap.writer import CompressionType, Writer
 
-    from drivers.assemble import scale_samples
-    from service.io.bus.keys import encode_series
-    from service.io.encoding import encode_corrected, encode_probes, encode_raw
-    from service.numerics.outputs import Derived
+    from fluxcal.drivers.assemble import scale_samples
+    from fluxcal.service.io.bus.keys import encode_series
+    from fluxcal.service.io.encoding import encode_corrected, encode_probes, encode_raw
+    from fluxcal.service.numerics.outputs import Derived
 
     plist = probes(n_probes)
     s = make_samples(seconds + 2, rate, plist)

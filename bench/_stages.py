@@ -26,37 +26,37 @@ from pathlib import Path  # noqa: E402
 #: exists, so that one list times the code before and after a change) in the order they are printed; a label's
 #: parent is the label before its last "/". Inclusive times: a parent's own time is its total minus its children's.
 STAGES = (
-    ("loop", "service.wiring.daemon:Daemon._loop"),
-    ("loop/commands", "service.io.bus.server:ServiceBus.pending_commands"),
-    ("loop/read", "service.wiring.input:BatchReader.read"),
-    ("loop/read/port", "drivers.serial_source:SerialSource._pull"),
-    ("loop/read/parse", "drivers.assemble:SerialFramer.feed"),
-    ("loop/read/assemble", "drivers.assemble:FrameAssembler.block"),
-    ("loop/rate check", "service.wiring.daemon:Daemon._check_rate"),
-    ("loop/raw: recording", "service.wiring.sinks:McapSink.on_raw"),
-    ("loop/raw: bus", "service.wiring.sinks:BusSink.on_raw"),
-    ("loop/pipeline", "service.wiring.daemon:Daemon._process"),
-    ("loop/pipeline/ring", "drivers.ringbuffer:RingBuffer.append"),
-    ("loop/pipeline/estimator", "service.wiring.pipeline:Pipeline._update_estimators"),
-    ("loop/pipeline/gate", "service.wiring.pipeline:Pipeline._check_candidate"),
-    ("loop/pipeline/correct", "service.wiring.pipeline:Pipeline._correct"),
-    ("loop/pipeline/correct/products", "service.numerics.outputs:Derived.__call__|service.wiring.pipeline:products"),
-    ("loop/pipeline/error", "service.numerics.channels:BlockError.__call__|service.wiring.pipeline:block_error_rms"),
-    ("loop/status", "service.wiring.status:StatusLog.block"),
-    ("loop/corrected: recording", "service.wiring.sinks:McapSink.on_corrected"),
-    ("loop/corrected: recording/10 Hz products", "service.io.foxglove_schemas:Products.corrected"),
-    ("loop/corrected: bus", "service.wiring.sinks:BusSink.on_corrected"),
-    ("loop/error: recording", "service.wiring.sinks:McapSink.on_error"),
-    ("loop/error: bus", "service.wiring.sinks:BusSink.on_error"),
-    ("loop/events", "service.wiring.daemon:Daemon._on_event"),
-    ("loop/health (1 Hz)", "service.wiring.daemon:Daemon._tick_health"),
-    ("loop/status line (1 Hz)", "service.wiring.status:StatusLog.tick"),
-    ("loop/state (1 Hz)", "service.wiring.pipeline:Pipeline.state"),
+    ("loop", "fluxcal.service.wiring.daemon:Daemon._loop"),
+    ("loop/commands", "fluxcal.service.io.bus.server:ServiceBus.pending_commands"),
+    ("loop/read", "fluxcal.service.wiring.input:BatchReader.read"),
+    ("loop/read/port", "fluxcal.drivers.serial_source:SerialSource._pull"),
+    ("loop/read/parse", "fluxcal.drivers.assemble:SerialFramer.feed"),
+    ("loop/read/assemble", "fluxcal.drivers.assemble:FrameAssembler.block"),
+    ("loop/rate check", "fluxcal.service.wiring.daemon:Daemon._check_rate"),
+    ("loop/raw: recording", "fluxcal.service.wiring.sinks:McapSink.on_raw"),
+    ("loop/raw: bus", "fluxcal.service.wiring.sinks:BusSink.on_raw"),
+    ("loop/pipeline", "fluxcal.service.wiring.daemon:Daemon._process"),
+    ("loop/pipeline/ring", "fluxcal.drivers.ringbuffer:RingBuffer.append"),
+    ("loop/pipeline/estimator", "fluxcal.service.wiring.pipeline:Pipeline._update_estimators"),
+    ("loop/pipeline/gate", "fluxcal.service.wiring.pipeline:Pipeline._check_candidate"),
+    ("loop/pipeline/correct", "fluxcal.service.wiring.pipeline:Pipeline._correct"),
+    ("loop/pipeline/correct/products", "fluxcal.service.numerics.outputs:Derived.__call__|fluxcal.service.wiring.pipeline:products"),
+    ("loop/pipeline/error", "fluxcal.service.numerics.channels:BlockError.__call__|fluxcal.service.wiring.pipeline:block_error_rms"),
+    ("loop/status", "fluxcal.service.wiring.status:StatusLog.block"),
+    ("loop/corrected: recording", "fluxcal.service.wiring.sinks:McapSink.on_corrected"),
+    ("loop/corrected: recording/10 Hz products", "fluxcal.service.io.foxglove_schemas:Products.corrected"),
+    ("loop/corrected: bus", "fluxcal.service.wiring.sinks:BusSink.on_corrected"),
+    ("loop/error: recording", "fluxcal.service.wiring.sinks:McapSink.on_error"),
+    ("loop/error: bus", "fluxcal.service.wiring.sinks:BusSink.on_error"),
+    ("loop/events", "fluxcal.service.wiring.daemon:Daemon._on_event"),
+    ("loop/health (1 Hz)", "fluxcal.service.wiring.daemon:Daemon._tick_health"),
+    ("loop/status line (1 Hz)", "fluxcal.service.wiring.status:StatusLog.tick"),
+    ("loop/state (1 Hz)", "fluxcal.service.wiring.pipeline:Pipeline.state"),
 )
 #: the stage whose calls count the blocks
 BLOCK_STAGE = "loop/pipeline"
 #: recording chunks (lz4 and the file write): inside whichever stage wrote the message that filled one
-CHUNK = ("recording chunk (lz4 + write)", "service.io.recordings.writer:ChunkedLog._flush")
+CHUNK = ("recording chunk (lz4 + write)", "fluxcal.service.io.recordings.writer:ChunkedLog._flush")
 
 
 class Timers:
@@ -105,7 +105,7 @@ def main(out_path: str, argv: list[str]) -> int:
             "blocks": timers.calls[BLOCK_STAGE]}))
 
     atexit.register(dump)
-    from service.wiring.cli import main as cli_main
+    from fluxcal.service.wiring.cli import main as cli_main
     return cli_main(argv)
 
 

@@ -56,7 +56,7 @@ def config(tmp: Path, port: int) -> Path:
 
 def unit_now(port: int) -> float:
     """The unit time of the newest corrected sample on the bus, s."""
-    from service.io.bus import BusClient, ZenohConfig
+    from fluxcal.service.io.bus import BusClient, ZenohConfig
 
     with BusClient(ZenohConfig.client(f"tcp/127.0.0.1:{port}"), "cross1", streams=["corrected"], lossless=False) as c:
         msg = c.recv(timeout=5.0)
@@ -82,7 +82,7 @@ def main() -> None:
         tmp = Path(d)
         port = free_port()
         cfg = config(tmp, port)
-        svc = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "run", "--config", str(cfg)],
+        svc = subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", "run", "--config", str(cfg)],
                                stderr=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         time.sleep(20.0)                                       # start-up and the first calibration
         base, withd, dash_cpu, lags = [], [], [], []
@@ -93,7 +93,7 @@ def main() -> None:
                     "--disable-sync"])
                 for _ in range(args.pairs):
                     base.append(segment(svc, args.segment_s))
-                    dash = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "dashboard", "--connect",
+                    dash = subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", "dashboard", "--connect",
                                              f"tcp/127.0.0.1:{port}", "--listen", "127.0.0.1:0"],
                                             stderr=subprocess.PIPE, text=True)
                     url = re.search(r"http://\S+/", dash.stderr.readline()).group(0)

@@ -24,8 +24,8 @@ def machine() -> str:
 
 
 def world_data(n_samples: int, n_probes: int):
-    from drivers.sim import Unit, load_sim_config
-    from service.numerics.effects.base import EffectData
+    from fluxcal.drivers.sim import Unit, load_sim_config
+    from fluxcal.service.numerics.effects.base import EffectData
 
     rate = 200.0
     pos = [[0.2, 0, 0], [0, 0.2, 0], [-0.2, 0, 0], [0, -0.2, 0], [0, 0, 0.2], [0, 0, -0.2], [0.3, 0.3, 0],
@@ -59,8 +59,8 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=100_000)
     ap.add_argument("--probes", type=int, default=4)
     args = ap.parse_args()
-    from service.numerics.diagnose import diagnose
-    from service.numerics.engine import fit_with_effects
+    from fluxcal.service.numerics.diagnose import diagnose
+    from fluxcal.service.numerics.engine import fit_with_effects
 
     print(f"machine: {machine()}")
     t0 = time.perf_counter()
@@ -95,7 +95,7 @@ def main() -> None:
           f"{best.effect if best else None} -> {best.rms_nT if best else float('nan'):.3f} nT")
 
     # the other reading of "the full catalogue": every effect in the model at once
-    from service.numerics.effects import EFFECTS
+    from fluxcal.service.numerics.effects import EFFECTS
 
     usable = [name for name, cls in EFFECTS.items() if cls().why_unavailable(data) is None]
     t0 = time.perf_counter()

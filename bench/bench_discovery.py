@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from discovery_worlds import KINDS, config_world, named, world  # noqa: E402
 
-from service.numerics.diagnose import diagnose  # noqa: E402
+from fluxcal.service.numerics.diagnose import diagnose  # noqa: E402
 
 FLOOR = 1.3
 
@@ -111,8 +111,8 @@ def run_power(growths=(1.2, 1.3, 1.4, 1.5), seeds=range(1, 11)) -> None:
     from real_data import find
     from real_effects import CASES, missing, size_for, with_effect
 
-    from service.io.recordings.load import load_data
-    from service.numerics.engine import as_effect_data
+    from fluxcal.service.io.recordings.load import load_data
+    from fluxcal.service.numerics.engine import as_effect_data
 
     if missing():
         print("== power: " + "; ".join(missing()))

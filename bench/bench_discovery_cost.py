@@ -32,14 +32,14 @@ def one(samples: int, probes: int, discover: bool | None, coupled: str | None = 
     from bench_diagnose import world_data
     from discovery_worlds import _columns
 
-    from service.numerics.diagnose import diagnose
+    from fluxcal.service.numerics.diagnose import diagnose
 
     data = world_data(samples, probes)
     cols = _columns(data.t_s, np.random.default_rng(3))
     cols.pop("_noise")
     data.extras.update(cols)
     if coupled == "coupled":
-        from service.numerics.effects.thermal import low_pass
+        from fluxcal.service.numerics.effects.thermal import low_pass
 
         lag = low_pass(data.t_s, cols["heater_A"], 60.0)
         data.raw_nT[:, 1, :] += np.outer(lag - lag.mean(), [8.0, -6.0, 4.0])

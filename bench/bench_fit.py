@@ -21,10 +21,10 @@ from _machine import best_of, cpu_model
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from drivers.sim.config import load_sim_config  # noqa: E402
-from drivers.sim.world import World  # noqa: E402
-from service.numerics.calib.ellipsoid import fit_ellipsoid
-from service.numerics.calib.quadric import normalise, quadric_design
+from fluxcal.drivers.sim.config import load_sim_config  # noqa: E402
+from fluxcal.drivers.sim.world import World  # noqa: E402
+from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
+from fluxcal.service.numerics.calib.quadric import normalise, quadric_design
 
 
 def main() -> None:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from _machine import cpu_model
 
-from service.wiring import cli
+from fluxcal.service.wiring import cli
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -27,7 +27,7 @@ SUFFIXES = (".csv", ".mcap", ".ulg", ".BIN")
 def run(args: list[str]) -> tuple[int, float, str, float]:
     """(exit status, peak RSS in MiB, the last line on stderr, wall s) of `fluxcal ARGS` in a child process."""
     t0 = time.perf_counter()
-    p = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", *args], stdout=subprocess.DEVNULL,
+    p = subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", *args], stdout=subprocess.DEVNULL,
                          stderr=subprocess.PIPE, text=True)
     err = p.stderr.read()
     _, status, usage = os.wait4(p.pid, 0)

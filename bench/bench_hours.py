@@ -30,7 +30,7 @@ def run(argv: list[str], out: Path) -> tuple[float, float, dict]:
     """(wall s, peak RSS MB, its JSON) of `fluxcal ARGV --json` as a process of its own."""
     t0 = time.perf_counter()
     with open(out, "wb") as f:
-        proc = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", *argv], stdout=f,
+        proc = subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", *argv], stdout=f,
                                 stderr=subprocess.DEVNULL, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
         _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
@@ -46,7 +46,7 @@ def simulate(tmp: Path, seconds: float) -> tuple[Path, Path]:
     cfg = tmp / f"cross-{seconds:.0f}.toml"
     cfg.write_text(text)
     out = tmp / f"cross-{seconds:.0f}.mcap"
-    subprocess.run([sys.executable, "-m", "service.wiring.cli", "simulate", "--config", str(cfg), "--out", str(out)],
+    subprocess.run([sys.executable, "-m", "fluxcal.service.wiring.cli", "simulate", "--config", str(cfg), "--out", str(out)],
                    check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return out, cfg
 

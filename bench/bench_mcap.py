@@ -35,14 +35,14 @@ from _machine import cpu_model
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from drivers.block import SampleBlock  # noqa: E402
-from drivers.mcap_source import McapSource  # noqa: E402
-from drivers.sim.config import load_sim_config  # noqa: E402
-from drivers.sim.world import World  # noqa: E402
-from service.io.encoding import decode_raw, encode_raw  # noqa: E402
-from service.io.recordings.reader import read_recording, read_samples  # noqa: E402
-from service.io.recordings.writer import McapLogger  # noqa: E402
-from service.numerics.outputs import CorrectedBlock  # noqa: E402
+from fluxcal.drivers.block import SampleBlock  # noqa: E402
+from fluxcal.drivers.mcap_source import McapSource  # noqa: E402
+from fluxcal.drivers.sim.config import load_sim_config  # noqa: E402
+from fluxcal.drivers.sim.world import World  # noqa: E402
+from fluxcal.service.io.encoding import decode_raw, encode_raw  # noqa: E402
+from fluxcal.service.io.recordings.reader import read_recording, read_samples  # noqa: E402
+from fluxcal.service.io.recordings.writer import McapLogger  # noqa: E402
+from fluxcal.service.numerics.outputs import CorrectedBlock  # noqa: E402
 
 
 def make_blocks(seconds: float, block: int, n_probes: int = 4, rate_hz: float = 1000.0) -> list[SampleBlock]:

@@ -21,8 +21,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from drivers import icd  # noqa: E402
-from drivers.assemble import SerialFramer  # noqa: E402
+from fluxcal.drivers import icd  # noqa: E402
+from fluxcal.drivers.assemble import SerialFramer  # noqa: E402
 
 N_PROBES = 4
 

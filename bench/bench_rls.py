@@ -20,10 +20,10 @@ import platform  # noqa: E402
 import numpy as np
 from _machine import best_of, cpu_model  # noqa: E402
 
-from drivers.sim.config import load_sim_config  # noqa: E402
-from drivers.sim.world import World  # noqa: E402
-from service.numerics.calib.quadric import quadric_design, quadric_to_calibration
-from service.numerics.calib.rls import RlsEllipsoid  # noqa: E402
+from fluxcal.drivers.sim.config import load_sim_config  # noqa: E402
+from fluxcal.drivers.sim.world import World  # noqa: E402
+from fluxcal.service.numerics.calib.quadric import quadric_design, quadric_to_calibration
+from fluxcal.service.numerics.calib.rls import RlsEllipsoid  # noqa: E402
 
 LAMBDA = 0.9995
 TOTAL_NT = 52500.0

@@ -33,8 +33,8 @@ import numpy as np
 from _live import bare_seconds, config_text, identity, make_samples, probes
 from _machine import cpu_model
 
-from drivers.block import SampleBlock
-from service.io.calfile import load_calibration
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.service.io.calfile import load_calibration
 
 N_PROBES, RATE = 4, 1000.0
 PROBES = probes(N_PROBES)
@@ -47,11 +47,11 @@ def machine() -> str:
 def bench_replay(tmp: Path, seconds: float, repeat: int) -> None:
     import tomllib
 
-    from service.io.recordings import files, writer
-    from service.io.recordings.reader import read_recording
-    from service.wiring import pipeline as pipeline_mod
-    from service.wiring.config import config_from_dict
-    from service.wiring.daemon import build_pipeline
+    from fluxcal.service.io.recordings import files, writer
+    from fluxcal.service.io.recordings.reader import read_recording
+    from fluxcal.service.wiring import pipeline as pipeline_mod
+    from fluxcal.service.wiring.config import config_from_dict
+    from fluxcal.service.wiring.daemon import build_pipeline
 
     s = make_samples(seconds, RATE, PROBES)
     block = s.to_block()
@@ -131,10 +131,10 @@ def floor_parts(block: SampleBlock, t_bare: float) -> None:
     lz4 as the logger writes them. Their sum against the 2 x bare that a 0.5x ratio allows."""
     import lz4.frame
 
-    from drivers.encoding import encode_raw
-    from service.io.encoding import encode_corrected
-    from service.numerics.calib.rls import RlsEllipsoid
-    from service.numerics.outputs import products
+    from fluxcal.drivers.encoding import encode_raw
+    from fluxcal.service.io.encoding import encode_corrected
+    from fluxcal.service.numerics.calib.rls import RlsEllipsoid
+    from fluxcal.service.numerics.outputs import products
 
     def best(f, k: int = 3) -> float:
         ts = []

@@ -41,18 +41,44 @@ WIDE_ROWS = 50_000
 WIDE_COLUMNS = 25
 
 
+class _OldNames:
+    """A tree from before issue 39 has top-level `service` and `drivers`: its process imports them as
+    `fluxcal.service` and `fluxcal.drivers` (the same module objects), so that the worlds of this checkout's tests/
+    and this script, which use the package's names, run on the baseline's code alone."""
+
+    def find_spec(self, name, path=None, target=None):
+        import importlib.util
+
+        if name == "fluxcal" or name.startswith(("fluxcal.service", "fluxcal.drivers")):
+            return importlib.util.spec_from_loader(name, self, is_package=True)
+        return None
+
+    def create_module(self, spec):
+        import importlib
+        import types
+
+        if spec.name == "fluxcal":
+            return types.ModuleType("fluxcal")
+        return importlib.import_module(spec.name.removeprefix("fluxcal."))
+
+    def exec_module(self, module):
+        pass
+
+
 def one(world: str, samples: int, probes: int, real: str | None, worlds: str) -> dict:
+    if not (HERE.parent / "fluxcal" / "__init__.py").is_file():
+        sys.meta_path.insert(0, _OldNames())
     sys.path.insert(0, str(HERE))
     sys.path.insert(0, worlds)                     # this checkout's tests/: the worlds, whichever code runs them
     import numpy as np
 
-    from service.numerics.diagnose import diagnose
+    from fluxcal.service.numerics.diagnose import diagnose
 
     if world == "real":
         from shape_worlds import wandering
 
-        from service.io.recordings.load import load_data
-        from service.numerics.engine import as_effect_data
+        from fluxcal.service.io.recordings.load import load_data
+        from fluxcal.service.numerics.engine import as_effect_data
 
         data, discover = as_effect_data(load_data(real)), True
         data.extras.update(wandering(data.t_s, WIDE_COLUMNS, 7))
@@ -70,7 +96,7 @@ def one(world: str, samples: int, probes: int, real: str | None, worlds: str) ->
         data.extras.update(cols)
         discover = True
         if world == "coupled":
-            from service.numerics.effects.thermal import low_pass
+            from fluxcal.service.numerics.effects.thermal import low_pass
 
             lag = low_pass(data.t_s, cols["heater_A"], 60.0)
             data.raw_nT[:, 1, :] += np.outer(lag - lag.mean(), [8.0, -6.0, 4.0])
@@ -80,9 +106,7 @@ def one(world: str, samples: int, probes: int, real: str | None, worlds: str) ->
     d = diagnose(data, discover=discover)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     f = d.discovery
-    import service
-
-    return {"code": str(Path(service.__file__).parents[1]), "wall_s": wall, "cpu_s": cpu, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    return {"code": str(Path(sys.modules[diagnose.__module__].__file__).parents[3]), "wall_s": wall, "cpu_s": cpu, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "before_mb": base_rss / 1024, "rows": int(data.n_samples), "columns": len(data.extras),
             "groups": None if f is None else f.tried, "params": None if f is None else f.tried_params,
             "claimed": None if f is None else f.claimed, "verdict": d.verdict["kind"]}

@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from shape_worlds import LAWS, SHAPES, shape_world  # noqa: E402
 
-from service.numerics.diagnose import diagnose  # noqa: E402
+from fluxcal.service.numerics.diagnose import diagnose  # noqa: E402
 
 FLOOR = 1.3
 

@@ -1,10 +1,10 @@
 """Soak benchmark (not a test) of the running service under injected faults ("field hardening").
 
-What is measured. The daemon of `fluxcal run` (service.wiring.daemon.Daemon: source -> pipeline -> MCAP
+What is measured. The daemon of `fluxcal run` (fluxcal.service.wiring.daemon.Daemon: source -> pipeline -> MCAP
 logger and Zenoh bus, with its reconnects; only tapped, not changed) reads the simulated unit: 4
 probes at 1 kHz, tumbling, ICD frames through a pseudo-terminal at full speed (not paced by the
 clock), so pyserial, the framer and the reconnect path are the real ones. The unit runs in its own
-process (`python -m drivers.sim --transport pty --fast --record F`), as a unit beside the service would, and
+process (`python -m fluxcal.drivers.sim --transport pty --fast --record F`), as a unit beside the service would, and
 the service reads its pty as a serial source; so the service's process holds only the service.
 (--sim-in-process runs the unit inside the service instead, as `fluxcal run` on a sim config does:
 then its memory counts too, less its fault record, which grows with every fault it injects.) The
@@ -29,7 +29,7 @@ once the unit has sent its last sample and closed its port, and the service's in
 still for 3 s, the service is stopped; only then is the unit's fault record read. The counts are
 checked exactly: samples emitted == delivered intact + lost to the injected damage (the unit's
 FaultRecord); delivered == through the pipeline == in the MCAP recording (read back with
-service.io.recordings.reader) == received on Zenoh, sample for sample; the source's frame, gap and
+fluxcal.service.io.recordings.reader) == received on Zenoh, sample for sample; the source's frame, gap and
 skipped-byte counters against the record; and the recording replayed through a fresh pipeline
 gives the recorded output bit for bit. Each check prints PASS or FAIL; a FAIL makes the exit status
 1. The memory check counts only in runs of at least 3 x the warm-up (not with --quick).
@@ -64,7 +64,7 @@ from _machine import cpu_model
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from drivers.block import SampleBlock  # noqa: E402
+from fluxcal.drivers.block import SampleBlock  # noqa: E402
 
 N_PROBES, RATE = 4, 1000.0
 UNIT = "soak"
@@ -142,7 +142,7 @@ def toml_text(section: str, table: dict) -> str:
 def service_config(tmp: Path, seconds: float, port: int, rotate_mb: float, serial_port: str | None = None):
     """The service's configuration: with serial_port, it reads the simulated unit running in another
     process (as beside hardware); without, the unit runs inside the service (source kind "sim")."""
-    from service.wiring.config import config_from_dict
+    from fluxcal.service.wiring.config import config_from_dict
 
     if serial_port is None:
         source = {"kind": "sim", "transport": "pty", "run_s": seconds}
@@ -198,7 +198,7 @@ def stat_cpu_s(stat_path: str | None) -> float | None:
 
 
 class SimProcess:
-    """The simulated unit in its own process (python -m drivers.sim, as a test rig beside the service
+    """The simulated unit in its own process (python -m fluxcal.drivers.sim, as a test rig beside the service
     would be): the service's process then holds only the service. At the end the runner writes its
     whole fault record, which the checks need (read once the run is over)."""
 
@@ -207,7 +207,7 @@ class SimProcess:
         self.conf.write_text(toml_text("sim", {**sim_table(seconds), "duration_s": seconds}), encoding="utf-8")
         self.record_path = tmp / "sim-record.npz"
         root = Path(__file__).resolve().parents[1]
-        self.proc = subprocess.Popen([sys.executable, "-m", "drivers.sim", "--config", str(self.conf), "--transport",
+        self.proc = subprocess.Popen([sys.executable, "-m", "fluxcal.drivers.sim", "--config", str(self.conf), "--transport",
                                       "pty", "--fast", "--link-dir", str(tmp), "--record", str(self.record_path)],
                                      cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                      preexec_fn=_end_with_parent)
@@ -269,7 +269,7 @@ class SimProcess:
         process ~3 MB, which is the benchmark's, not the service's)."""
         self.stderr = self.proc.stderr.read()
         if self.record_path.exists():
-            from drivers.sim import FaultRecord
+            from fluxcal.drivers.sim import FaultRecord
 
             self.record, self.meta = FaultRecord.load(str(self.record_path))
 
@@ -415,7 +415,7 @@ class Probe:
 def subscriber_main(endpoint: str) -> None:
     """Counts raw and corrected samples received until stdin closes and the stream has been quiet 1 s;
     prints them as one JSON line."""
-    from service.io.bus import BusClient, ZenohConfig
+    from fluxcal.service.io.bus import BusClient, ZenohConfig
 
     client = BusClient(ZenohConfig.client(endpoint), UNIT, streams=["raw", "corrected"], lossless=True)
     counts = {"raw": 0, "raw_seq_sum": 0, "raw_msgs": 0, "corrected": 0, "corrected_seq_sum": 0}
@@ -469,8 +469,8 @@ class Subscriber:
 # --- the soak --------------------------------------------------------------------------------------------------
 
 def make_daemon(cfg, probe: Probe, subscriber_endpoint: str | None, messages: list[str]):
-    from service.wiring.daemon import Daemon
-    from service.wiring.sinks import BusSink, McapSink
+    from fluxcal.service.wiring.daemon import Daemon
+    from fluxcal.service.wiring.sinks import BusSink, McapSink
 
     class SoakDaemon(Daemon):
         """The daemon unchanged, plus taps on its parts (the loop is the daemon's own)."""
@@ -533,7 +533,7 @@ def end_when_delivered(sim: SimProcess, probe: Probe, daemon) -> None:
 def bare_pipeline(cfg, blocks: list[SampleBlock], runs: int = 2):
     """The pipeline alone (no source, MCAP or Zenoh) over the same blocks, best of `runs`: wall and
     CPU seconds, and its corrected output."""
-    from service.wiring.daemon import build_pipeline
+    from fluxcal.service.wiring.daemon import build_pipeline
 
     best, best_cpu, outs = float("inf"), float("inf"), []
     for _ in range(runs):
@@ -551,7 +551,7 @@ def bare_pipeline(cfg, blocks: list[SampleBlock], runs: int = 2):
 
 def same_output(a: list, b: list) -> bool:
     """Two lists of CorrectedBlocks hold the same samples, bit for bit (however they are cut)."""
-    from service.io.recordings.reader import concat_corrected
+    from fluxcal.service.io.recordings.reader import concat_corrected
 
     if not a or not b:
         return not a and not b
@@ -727,7 +727,7 @@ def soak(tmp: Path, seconds: float, args: argparse.Namespace) -> SoakRun:
     record, framer, emitted, reconnects, sim_ok = unit_outcome(probe, sim_proc)
 
     # --- read the recording back; the bare pipeline over the same blocks ----------------------------
-    from service.io.recordings.reader import read_recording
+    from fluxcal.service.io.recordings.reader import read_recording
 
     rec = read_recording(tmp / "rec")
     t_bare, cpu_bare, bare_out = bare_pipeline(cfg, rec.raw_blocks)

@@ -30,15 +30,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import zenoh  # noqa: E402
 
-from drivers.block import SampleBlock  # noqa: E402
-from service.io.bus import (  # noqa: E402
+from fluxcal.drivers.block import SampleBlock  # noqa: E402
+from fluxcal.service.io.bus import (  # noqa: E402
     BusClient,
     ServiceBus,
     ZenohConfig,
     open_session,
 )
-from service.io.encoding import encode_corrected, encode_raw  # noqa: E402
-from service.numerics.outputs import CorrectedBlock  # noqa: E402
+from fluxcal.service.io.encoding import encode_corrected, encode_raw  # noqa: E402
+from fluxcal.service.numerics.outputs import CorrectedBlock  # noqa: E402
 
 N_PROBES = 4
 UNIT = "bench"

@@ -19,11 +19,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock
-from .icd import (DEFAULT_CAN_BASE_ID, SATURATED_COUNTS, TEMP_LSB_C, RawFrames, decode_can,
-                  frame_length, parse_serial)
+from .can_unwrap import CanUnwrap
+from .icd import DEFAULT_CAN_BASE_ID, SATURATED_COUNTS, TEMP_LSB_C, RawFrames, decode_can, frame_length, parse_serial
 from .plausibility import Plausibility
 from .source import Counters
-from .can_unwrap import CanUnwrap
 from .timeline import SerialTimeline, _steps
 
 _SEQ_MODULUS = 1 << 16
@@ -226,7 +225,7 @@ class CanAssembler:
 
     Frames with foreign or reserved ids are ignored (the bus is shared). A frame for a sample
     already settled (released or given up), or for a slot of a pending sample already filled, is
-    ignored and counted in `duplicates`. seq is unwrapped by drivers.can_unwrap.CanUnwrap: across wraps and
+    ignored and counted in `duplicates`. seq is unwrapped by fluxcal.drivers.can_unwrap.CanUnwrap: across wraps and
     restarts of the unit (counted in `restarts`), with the old run's frames that come after a restart's first
     frame kept in the old run: the unwrapped seq (and t_s = seq / rate_hz) never goes back, and no sample is
     counted missed that never existed.

@@ -31,13 +31,13 @@ import can
 import numpy as np
 
 from .assemble import CanAssembler, CanSamples, SeqGapCounter
-from .plausibility import Plausibility, check_temp_range, plausibility_spec
 from .block import SampleBlock
 from .config import spec
 from .declare import ProtocolTable, resolve
 from .errors import ConfigError, DataError, DriverError
 from .icd import DEFAULT_CAN_BASE_ID, DEFAULT_LSB_NT, MAX_PROBES
 from .kinds.can import KIND
+from .plausibility import Plausibility, check_temp_range, plausibility_spec
 from .registry import source_kind
 from .source import Counters, PortSource
 
@@ -147,10 +147,10 @@ class CanSource(PortSource):
 
     Each read drains what the bus holds (bounded receive: `bus.recv` with a timeout, then without
     waiting, at most `max_batch` frames) and hands the batch to the protocol's decoder (`decode(messages, now_s)`,
-    CanIcd: assembled with numpy, drivers.assemble.CanAssembler). Every frame received is counted once, by kind:
+    CanIcd: assembled with numpy, fluxcal.drivers.assemble.CanAssembler). Every frame received is counted once, by kind:
     frames_accepted (the unit's ICD frames), foreign_frames (other nodes' ids), wrong_length, remote_frames and
     error_frames (FrameKinds), and bad_frames: what the adapter could not make a frame of (a garbled SLCAN line,
-    drivers.slcan; an exception of any other interface's parser), never the service's end. The controller itself
+    fluxcal.drivers.slcan; an exception of any other interface's parser), never the service's end. The controller itself
     drops frames with a bad CRC, so CAN has no CRC failures. Then can_incomplete, seq_gaps, samples_missed,
     saturated_axes as the assembler finds them.
     """
@@ -233,7 +233,7 @@ class CanSource(PortSource):
             raise DriverError(f"CAN bus {self.interface}:{self.channel}: receive failed ({e}); the adapter was "
                               f"probably disconnected, call reopen() once it is back") from e
         finally:
-            bad = getattr(bus, "bad_lines", 0)              # drivers.slcan counts the lines that are no frame
+            bad = getattr(bus, "bad_lines", 0)              # fluxcal.drivers.slcan counts the lines that are no frame
             self.counters.bad_frames += bad - self._bad_lines_seen
             self._bad_lines_seen = bad
         return batch

@@ -13,7 +13,7 @@ Declare bounds and choices with `spec`:
 >>> load_section(Serial, {"port": "x", "baud": 9600}, "source")
 Traceback (most recent call last):
 ...
-drivers.errors.ConfigError: source.baud: unknown key (allowed: port, baudrate)
+fluxcal.drivers.errors.ConfigError: source.baud: unknown key (allowed: port, baudrate)
 """
 
 from __future__ import annotations

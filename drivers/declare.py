@@ -1,7 +1,7 @@
 """What an input is, declared once: a source kind's [source] table, its factory, its clock and rate rules, the
 [source] keys the service names when its port will not open, the simulator's transports that feed it, its
 protocols, and its counters with the words the service says about each. The declarations of fluxcal's own kinds
-are the modules of drivers/kinds/; drivers.registry finds them (and those of installed packages and of code that
+are the modules of drivers/kinds/; fluxcal.drivers.registry finds them (and those of installed packages and of code that
 registers its own) and every other part of fluxcal reads them there: nothing else names a kind.
 
     SourceKind      one kind of input (a serial port, a CAN bus, ...): how its table is read and its source opened
@@ -106,8 +106,8 @@ class Words:
 @dataclass(frozen=True)
 class Protocol:
     """One way a kind's bytes or frames become the unit's samples. `decoder` is what the kind's source builds to
-    decode them: its interface is the kind's (drivers.serial_source.SerialSource: `feed(data, rx_time_s)` and
-    `discard_tail()`; drivers.can_source.CanSource: `decode(messages, now_s)`)."""
+    decode them: its interface is the kind's (fluxcal.drivers.serial_source.SerialSource: `feed(data, rx_time_s)` and
+    `discard_tail()`; fluxcal.drivers.can_source.CanSource: `decode(messages, now_s)`)."""
 
     name: str
     doc: str
@@ -127,7 +127,7 @@ class Transport:
     name: str
     doc: str
     link: Any = None
-    process: bool = False              # it can serve another process (`python -m drivers.sim --transport NAME`)
+    process: bool = False              # it can serve another process (`python -m fluxcal.drivers.sim --transport NAME`)
 
 
 @dataclass(kw_only=True)
@@ -149,7 +149,7 @@ class SourceKind:
     """One kind of input, everything about it in one place (the module docstring).
 
     config       its [source] table: a dataclass deriving SourceTable (ProtocolTable when it has protocols)
-    factory      factory(table, **options) -> Source (drivers.source.open_source(kind, ...) calls it)
+    factory      factory(table, **options) -> Source (fluxcal.drivers.source.open_source(kind, ...) calls it)
     opener       opener(configuration) -> Source, from the whole service configuration (its .source, .unit,
                  .sim); None: factory(configuration.source)
     counters     the kind's own counters (its port or bus), beside each protocol's
@@ -207,13 +207,13 @@ class SourceKind:
         cls = resolve(self.config)
         if not (dataclasses.is_dataclass(cls) and issubclass(cls, SourceTable)):
             raise ConfigError(f"source kind {self.name!r}: its config {cls!r} is no dataclass deriving "
-                              f"drivers.declare.SourceTable")
+                              f"fluxcal.drivers.declare.SourceTable")
         if self.protocols and not issubclass(cls, ProtocolTable):
             raise ConfigError(f"source kind {self.name!r} has protocols: its config must derive ProtocolTable")
         return cls
 
     def load(self, table: Any, path: str = "source") -> Any:
-        """Its [source] table read strictly (drivers.config.load_section), kind and protocol filled in."""
+        """Its [source] table read strictly (fluxcal.drivers.config.load_section), kind and protocol filled in."""
         obj = load_section(self.table_class(), table, path)
         obj.kind = self.name
         p = self.protocol(getattr(obj, "protocol", ""), f"{path}.protocol")

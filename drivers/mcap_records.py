@@ -1,5 +1,5 @@
 """The records of one MCAP file in file order, whatever happened to the file: a killed writer's cut tail, a
-damaged record in the middle, a hole where a chunk was lost. drivers.mcap_source reads recordings through it.
+damaged record in the middle, a hole where a chunk was lost. fluxcal.drivers.mcap_source reads recordings through it.
 
     a file with a footer and a chunk index    the index says where every chunk, metadata and attachment record
                                               starts and how long it is: a record whose header disagrees is
@@ -26,7 +26,6 @@ import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 RECORD_HEAD = 9                       # u8 opcode, u64 length

@@ -1,4 +1,4 @@
-"""One MCAP file's data-section records in file order, read past damage (drivers.mcap_records has the rules,
+"""One MCAP file's data-section records in file order, read past damage (fluxcal.drivers.mcap_records has the rules,
 the records and the report): by the summary's index where the file has one, else record by record,
 resynchronising on the next readable record after damage."""
 

@@ -1,9 +1,9 @@
 """Reading fluxcal MCAP recordings: replay's Source (drivers/kinds/replay.py), and the record reader shared with
-service.io.recordings.reader.
+fluxcal.service.io.recordings.reader.
 
 A recording is one .mcap file or a directory of rotated files, read in name order (the logger's
 names `<unit>-<YYYYmmddTHHMMSS>-<NNNN>.mcap` sort in time order). Each file's records are read in file
-order by drivers.mcap_scan, which keeps going past what happened to the file and says it:
+order by fluxcal.drivers.mcap_scan, which keeps going past what happened to the file and says it:
 
     no footer, or a record cut short at the end     read to the last complete chunk; one line in
       (a killed writer)                             report.truncated per file
@@ -34,13 +34,13 @@ import numpy as np
 
 from .assemble import SeqGapCounter
 from .block import FLAG_TEMP_INVALID, SampleBlock
-from .encoding import RAW_ENCODING, decode_raw
-from .errors import DataError, RecordingError
-from .mcap_records import MCAP_MAGIC, Hole, HoleTracker, ReadReport
-from .mcap_scan import iter_file_records
 from .config import spec
 from .declare import SourceTable
+from .encoding import RAW_ENCODING, decode_raw
+from .errors import DataError, RecordingError
 from .kinds.replay import KIND
+from .mcap_records import MCAP_MAGIC, Hole, HoleTracker, ReadReport
+from .mcap_scan import iter_file_records
 from .registry import source_kind
 from .source import Counters, Source
 

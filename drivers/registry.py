@@ -2,7 +2,7 @@
 `KIND`), those of installed packages (the entry-point group `fluxcal.sources`: a SourceKind, or a Protocol whose
 `kind` names the kind it adds to), and those code registers (`register_kind`, `register_protocol`: a test's fake
 bus, a user's script). Configuration, the daemon, the rate check, the fault watch, the simulator and the docs
-(docs/sources.md, `python -m drivers.registry`) read the kinds here; nothing else lists them.
+(docs/sources.md, `python -m fluxcal.drivers.registry`) read the kinds here; nothing else lists them.
 
     source_kind(name)       the declaration (a ConfigError naming source.kind and what is allowed)
     kinds()                 every declaration, the default kind first
@@ -64,7 +64,7 @@ def load_installed() -> list[str]:
             register_protocol(decl.kind, decl)
             added.append(f"{decl.kind}/{decl.name}")
         else:
-            raise ConfigError(f"entry point {GROUP} {ep.name} = {ep.value!r}: not a drivers.declare.SourceKind nor "
+            raise ConfigError(f"entry point {GROUP} {ep.name} = {ep.value!r}: not a fluxcal.drivers.declare.SourceKind nor "
                               f"a Protocol naming its kind")
     return added
 
@@ -95,7 +95,7 @@ def default_kind() -> SourceKind:
 def register_kind(decl: SourceKind, *, replace: bool = False) -> SourceKind:
     """Declare a kind of your own (docs/sources.md): its name then stands in [source] kind like fluxcal's own."""
     if not isinstance(decl, SourceKind):
-        raise ConfigError(f"register_kind: {decl!r} is no drivers.declare.SourceKind")
+        raise ConfigError(f"register_kind: {decl!r} is no fluxcal.drivers.declare.SourceKind")
     if not decl.name or not all(ch.isalnum() or ch in "-_" for ch in decl.name):
         raise ConfigError(f"register_kind: {decl.name!r} is not allowed (allowed: letters, digits, - and _)")
     _find()
@@ -185,7 +185,7 @@ def _counters(counted) -> list[str]:
 
 
 def markdown() -> str:
-    """Every kind declared, as docs/sources.md shows them (`python -m drivers.registry` prints it)."""
+    """Every kind declared, as docs/sources.md shows them (`python -m fluxcal.drivers.registry` prints it)."""
     out = []
     for k in kinds():
         out += [f"### `{k.name}`", "", k.doc[:1].upper() + k.doc[1:] + ".", ""]

@@ -2,7 +2,7 @@
 kept in preallocated arrays that never grow.
 
 >>> import numpy as np
->>> from drivers.block import SampleBlock
+>>> from fluxcal.drivers.block import SampleBlock
 >>> def blk(seqs):
 ...     n = len(seqs)
 ...     return SampleBlock(t_s=np.asarray(seqs, float), seq=np.asarray(seqs), field_nT=np.zeros((n, 1, 3)),

@@ -1,8 +1,8 @@
 """The one contract every input implements: a Source yields SampleBlocks and keeps the counters its declaration
 names.
 
-Each kind of input is one module implementing it, declared once in drivers/kinds/ (drivers.declare.SourceKind),
-looked up by name in drivers.registry and imported only when used (like python-can's interface registry).
+Each kind of input is one module implementing it, declared once in drivers/kinds/ (fluxcal.drivers.declare.SourceKind),
+looked up by name in fluxcal.drivers.registry and imported only when used (like python-can's interface registry).
 Subclasses implement `_read_block(timeout)`; `read` owns the timeout and the closed state.
 """
 
@@ -17,7 +17,7 @@ from .errors import ConfigError, DriverError
 
 
 class Counters:
-    """A source's health counters: the ones its declaration names (drivers.declare.Words, drivers/kinds/), each a
+    """A source's health counters: the ones its declaration names (fluxcal.drivers.declare.Words, drivers/kinds/), each a
     whole number that only grows, with the words said about each (`words`). Made per declaration as a class with
     slots: adding to a counter costs what a plain attribute does, and one the declaration does not name is an
     AttributeError where it is counted, never a number nobody sees."""
@@ -134,7 +134,7 @@ class PortSource(Source):
 
 
 def open_source(kind: str, *args, **kwargs) -> Source:
-    """Open a source by kind name (drivers.registry), importing its module only now: the kind's factory with these
+    """Open a source by kind name (fluxcal.drivers.registry), importing its module only now: the kind's factory with these
     arguments (its [source] table, or the keywords it takes)."""
     from .registry import source_kind
 

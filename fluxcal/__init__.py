@@ -38,10 +38,10 @@ True
 >>> fluxcal.unregister_effect("nothing-at-all")
 """
 
-from service.io.calfile import load_calibration, save_calibration
-from service.numerics.calib.model import ArrayCalibration
-from service.numerics.effects import EffectTerm, known_effects, register_effect, unregister_effect
-from service.wiring.api import Data, diagnose, fit, read, read_arrays, replay, simulate
+from fluxcal.service.io.calfile import load_calibration, save_calibration
+from fluxcal.service.numerics.calib.model import ArrayCalibration
+from fluxcal.service.numerics.effects import EffectTerm, known_effects, register_effect, unregister_effect
+from fluxcal.service.wiring.api import Data, diagnose, fit, read, read_arrays, replay, simulate
 
 __all__ = ["ArrayCalibration", "Data", "EffectTerm", "diagnose", "fit", "known_effects", "load_calibration", "read",
            "read_arrays", "register_effect", "replay", "save_calibration", "simulate", "unregister_effect"]

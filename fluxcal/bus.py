@@ -5,6 +5,6 @@
 'peer'
 """
 
-from service.io.bus import BusClient, Message, ZenohConfig, discover_units
+from fluxcal.service.io.bus import BusClient, Message, ZenohConfig, discover_units
 
 __all__ = ["BusClient", "Message", "ZenohConfig", "discover_units"]

@@ -5,9 +5,9 @@
 True
 """
 
-from service.numerics.effects import EffectTerm, known_effects, register_effect, unregister_effect
-from service.numerics.effects.base import EffectData, ProbeView, axis_columns
-from service.numerics.effects.thermal import low_pass
+from fluxcal.service.numerics.effects import EffectTerm, known_effects, register_effect, unregister_effect
+from fluxcal.service.numerics.effects.base import EffectData, ProbeView, axis_columns
+from fluxcal.service.numerics.effects.thermal import low_pass
 
 __all__ = ["EffectData", "EffectTerm", "ProbeView", "axis_columns", "known_effects", "low_pass", "register_effect",
            "unregister_effect"]

@@ -6,11 +6,11 @@ killed writer left without its footer, decode its channels with the mcap package
 2
 """
 
-from service.io.recordings.load import load_data
-from service.io.recordings.reader import FluxcalDecoderFactory, read_recording
-from service.io.recordings.repair import repair_recording
-from service.io.recordings.ros2 import Ros2Mapping
-from service.io.recordings.writer import write_recording
+from fluxcal.service.io.recordings.load import load_data
+from fluxcal.service.io.recordings.reader import FluxcalDecoderFactory, read_recording
+from fluxcal.service.io.recordings.repair import repair_recording
+from fluxcal.service.io.recordings.ros2 import Ros2Mapping
+from fluxcal.service.io.recordings.writer import write_recording
 
 __all__ = ["FluxcalDecoderFactory", "Ros2Mapping", "load_data", "read_recording", "repair_recording",
            "write_recording"]

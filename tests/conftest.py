@@ -26,7 +26,7 @@ from dataclasses import dataclass  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from drivers import icd  # noqa: E402
+from fluxcal.drivers import icd  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -119,7 +119,7 @@ def pty_port():
 def clean_registry():
     """The effect registry as it was before the test: effects a test registers (its own, a discovered one) leave
     with it."""
-    from service.numerics.effects import _REGISTERED
+    from fluxcal.service.numerics.effects import _REGISTERED
 
     before = dict(_REGISTERED)
     yield

@@ -1,5 +1,5 @@
 """Worlds with an effect outside the catalogue, and effect-free controls, for discovery (issue 30): the simulated
-unit (drivers.sim) with a term added to its probes' outputs from what the world knows (the field in the platform
+unit (fluxcal.drivers.sim) with a term added to its probes' outputs from what the world knows (the field in the platform
 frame, each probe's transfer matrix, its temperature, the field's rate), and logged columns beside it.
 
 KINDS (each one physical effect the catalogue has no term for), with what the verdict must name:
@@ -26,9 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from drivers.sim import Unit, load_sim_config
-from service.numerics.effects.base import EffectData
-from service.numerics.effects.thermal import low_pass
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.service.numerics.effects.base import EffectData
+from fluxcal.service.numerics.effects.thermal import low_pass
 
 ROOT = Path(__file__).resolve().parents[1]
 F_TOTAL = 51500.0
@@ -69,10 +69,9 @@ def _columns(t: np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:
             "_noise": rng.standard_normal((3, n))}
 
 
-def world(kind: str | None, seed: int, *, pink: float = 0.0, n: int = 12000, rate: float = 20.0,
-          n_probes: int = 3, scale: float = 1.0) -> EffectData:
-    """A world of `kind` (None: no effect), its seed and 1/f noise (nT/sqrt(Hz) per probe axis); scale multiplies
-    the effect's size."""
+def tumbling(seed: int, pink: float, n: int, rate: float, n_probes: int) -> tuple:
+    """The platform every world here tumbles: (probe tables, the simulated Unit, its block with the three columns
+    logged (each with its reading noise), the world's truth, the columns' true values)."""
     probes = [_probe(k, pink) for k in range(n_probes)]
     cfg = load_sim_config({
         "seed": seed, "rate_hz": rate, "duration_s": n / rate,
@@ -83,13 +82,19 @@ def world(kind: str | None, seed: int, *, pink: float = 0.0, n: int = 12000, rat
     unit = Unit(cfg)
     s = unit.digitise(0, n)
     block = s.to_block()
-    w = s.world
-    t = block.t_s
-    rng = np.random.default_rng(seed + 7919)
-    cols = _columns(t, rng)
+    cols = _columns(block.t_s, np.random.default_rng(seed + 7919))
     noise = cols.pop("_noise")
     for i, (name, v) in enumerate(cols.items()):
         block.extras[name] = v + {"heater_A": 0.01, "fan_hz": 0.001, "vbus_V": 0.002}[name] * noise[i]
+    return probes, unit, block, s.world, cols
+
+
+def world(kind: str | None, seed: int, *, pink: float = 0.0, n: int = 12000, rate: float = 20.0,
+          n_probes: int = 3, scale: float = 1.0) -> EffectData:
+    """A world of `kind` (None: no effect), its seed and 1/f noise (nT/sqrt(Hz) per probe axis); scale multiplies
+    the effect's size."""
+    probes, unit, block, w, cols = tumbling(seed, pink, n, rate, n_probes)
+    t = block.t_s
     fwd = unit.world.probes.forward_matrix                              # (P, 3, 3): raw - offset = F B_platform
     bp = w.field_platform_nT
     add = np.zeros_like(block.field_nT)

@@ -103,10 +103,10 @@ CURRENT_COUPLING_NT_A = np.array([30.0, -20.0, 12.0])
 
 
 def simulated_flight(n: int = 4000, rate_hz: float = 50.0, seed: int = 5, current: bool = True) -> dict:
-    """Two probes tumbling (drivers.sim) on a platform with a battery current whose field the first probe sees:
+    """Two probes tumbling (fluxcal.drivers.sim) on a platform with a battery current whose field the first probe sees:
     samples, attitude (Euler angles and quaternions, platform -> NED), a track, the current and the truth."""
-    from drivers.sim import Unit, load_sim_config
-    from service.numerics.merge import quaternion_from_euler
+    from fluxcal.drivers.sim import Unit, load_sim_config
+    from fluxcal.service.numerics.merge import quaternion_from_euler
 
     rng = np.random.default_rng(seed)
     probes = [{"position_m": [0.15 * k, 0.0, 0.0], "scale": (1 + 0.02 * rng.standard_normal(3)).tolist(),

@@ -9,9 +9,9 @@ from typing import Any, Callable
 
 import pytest
 
-from drivers.block import SampleBlock
-from drivers.errors import RecordingError
-from service.io.recordings.writer import McapLogger
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import RecordingError
+from fluxcal.service.io.recordings.writer import McapLogger
 
 
 def read_samples(src, k: int, timeout: float = 5.0) -> SampleBlock:
@@ -47,7 +47,7 @@ def write_raw(directory: Path, blocks: list[SampleBlock], **logger_kw: Any) -> M
 def write_rotated(source: Path, folder: Path, unit: str = "grad1") -> list[Path]:
     """A recording written again into `folder` as the service writes a long run: rotated into several files of
     one run, with its stored configuration and arithmetic (its corrected stream was computed where it was made)."""
-    from service.io.recordings.reader import read_recording
+    from fluxcal.service.io.recordings.reader import read_recording
 
     rec = read_recording(source)
     keep = {k: v for k, v in rec.metadata.items()

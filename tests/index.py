@@ -1,5 +1,5 @@
 """Which test files test which module: read from the tests' own imports (a name imported from a package counts for the
-module that defines it) and from the commands they run (`main(["fit", ...])` tests service.wiring.commands.fit).
+module that defines it) and from the commands they run (`main(["fit", ...])` tests fluxcal.service.wiring.commands.fit).
 `python tests/index.py` prints the table tests/README.md holds; tests/e2e/test_tests_mirror.py checks that it is
 up to date and that every module has a test."""
 
@@ -15,20 +15,28 @@ ROOT = Path(__file__).resolve().parents[1]
 WINGS = ("numerics", "io", "drivers", "wiring", "e2e")
 #: modules with no test of their own, and why
 UNTESTED = {
-    "service.recording": "a shim of three lines that points at service.io.recordings",
-    "service.zenoh_bus": "a shim of three lines that points at service.io.bus",
-    "drivers.sim.__main__": "`python -m drivers.sim`, the simulated unit as a process: started by the tests that "
-                            "run it (tests/drivers/test_sim_ports.py) through drivers.sim.ports",
+    "fluxcal.drivers.sim.__main__": "`python -m fluxcal.drivers.sim`, the simulated unit as a process: started by the tests that "
+                            "run it (tests/drivers/test_sim_ports.py) through fluxcal.drivers.sim.ports",
 }
+
+
+#: the repository's folders and the import packages they are (pyproject.toml's package-dir)
+PACKAGES = {"fluxcal": "fluxcal", "service": "fluxcal.service", "drivers": "fluxcal.drivers"}
+
+
+def module_name(path: Path) -> str:
+    """The dotted name a source file is imported by: service/io/bus/desk.py -> fluxcal.service.io.bus.desk."""
+    top, *rest = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join([PACKAGES[top], *rest])
 
 
 def source_modules() -> dict[str, Path]:
     out = {}
-    for top in ("service", "drivers"):
+    for top in PACKAGES:
         for p in sorted((ROOT / top).rglob("*.py")):
             if p.name == "__init__.py" or "__pycache__" in p.parts:
                 continue
-            out[".".join(p.relative_to(ROOT).with_suffix("").parts)] = p
+            out[module_name(p)] = p
     return out
 
 
@@ -66,7 +74,7 @@ def covered_by(test_file: Path, modules: dict[str, Path]) -> set[str]:
                 found.add(n.module)
             else:
                 for a in n.names:
-                    mod = _resolve(n.module, a.name, modules) if n.module.split(".")[0] in ("service", "drivers") \
+                    mod = _resolve(n.module, a.name, modules) if n.module.split(".")[0] == "fluxcal" \
                         else None
                     if mod:
                         found.add(mod)
@@ -75,7 +83,7 @@ def covered_by(test_file: Path, modules: dict[str, Path]) -> set[str]:
     for decl in re.findall(r"^COVERS = \(([^)]*)\)", text, flags=re.M):    # what a file declares it tests
         found |= {m for m in re.findall(r'"([a-z_.]+)"', decl) if m in modules}
     for cmd in re.findall(r"""(?:main|cli\.main|run)\(\s*\[\s*["']([a-z-]+)["']""", text):
-        mod = f"service.wiring.commands.{cmd.replace('-', '_')}"
+        mod = f"fluxcal.service.wiring.commands.{cmd.replace('-', '_')}"
         if mod in modules:
             found.add(mod)
     return found

@@ -29,9 +29,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service.numerics.calib.alignment import rotation_from_angles
-from service.numerics.calib.model import sensing_matrix, triangular_matrix
-from service.numerics.calib.tensor import cross_positions
+from fluxcal.service.numerics.calib.alignment import rotation_from_angles
+from fluxcal.service.numerics.calib.model import sensing_matrix, triangular_matrix
+from fluxcal.service.numerics.calib.tensor import cross_positions
 
 # --- [TwoFluxgate] ---------------------------------------------------------------------------------
 

@@ -14,8 +14,8 @@ from typing import Iterator
 import numpy as np
 from real_data import absent, find
 
-from service.numerics.effects.base import EffectData
-from service.numerics.effects.thermal import low_pass
+from fluxcal.service.numerics.effects.base import EffectData
+from fluxcal.service.numerics.effects.thermal import low_pass
 
 #: every case is sized by one rule: the model's held-out error (diagnose, the catalogue's model) grows by this factor
 #: over the untouched copy's, at the columns' seed (size_for)
@@ -122,7 +122,7 @@ def with_effect(data: EffectData, kind: str, size: float, seed: int = SEED) -> t
 
 def growth(data: EffectData, kind: str, size: float, seed: int = SEED) -> float:
     """The model's held-out error on the recording with the effect over its untouched copy's."""
-    from service.numerics.diagnose import diagnose
+    from fluxcal.service.numerics.diagnose import diagnose
 
     touched, control = with_effect(data, kind, size, seed)
     return (diagnose(touched, candidates=[], discover=False).heldout_rms_nT
@@ -152,8 +152,8 @@ def missing() -> list[str]:
 
 
 def cases(which: tuple = CASES) -> Iterator[tuple[str, str, EffectData, EffectData]]:
-    from service.io.recordings.load import load_data
-    from service.numerics.engine import as_effect_data
+    from fluxcal.service.io.recordings.load import load_data
+    from fluxcal.service.numerics.engine import as_effect_data
 
     for name, kind, size in which:
         data = as_effect_data(load_data(find(f"{name}.csv")))

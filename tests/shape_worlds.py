@@ -1,5 +1,5 @@
 """Worlds whose missing term is a smooth, non-linear function of something the file logs (issue 36), for discovery
-of shape: the simulated unit (drivers.sim) with a field added at its probes from a logged column or the temperature
+of shape: the simulated unit (fluxcal.drivers.sim) with a field added at its probes from a logged column or the temperature
 through a law, and the decoy columns of tests/discovery_worlds.py beside it.
 
 SHAPES (each a law the catalogue and the linear library do not take; `LAWS` holds each one's truth):
@@ -23,10 +23,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from discovery_worlds import F_TOTAL, TUMBLE, _columns, _probe
+from discovery_worlds import tumbling
 
-from drivers.sim import Unit, load_sim_config
-from service.numerics.effects.base import EffectData
+from fluxcal.service.numerics.effects.base import EffectData
 
 SHAPES = ("flap magnet", "temperature square", "gimbal turn", "saturating coil", "exponential supply")
 #: per shape: (the observable, the probes that carry it, the law that made it (None: no law of the set; a field that
@@ -88,23 +87,8 @@ def shape_world(kind: str | None, seed: int, *, pink: float = 0.0, n: int = 1200
                 n_probes: int = 3, scale: float = 1.0, wander: int = 0) -> EffectData:
     """A world of shape `kind` (None: no effect), its seed and 1/f noise (nT/sqrt(Hz) per probe axis); scale
     multiplies the effect's size; wander: wandering columns logged beside the decoys."""
-    probes = [_probe(k, pink) for k in range(n_probes)]
-    cfg = load_sim_config({
-        "seed": seed, "rate_hz": rate, "duration_s": n / rate,
-        "field": {"total_nT": F_TOTAL, "inclination_deg": 62.0, "declination_deg": -5.0},
-        "reference": {"enabled": True, "noise_nT": 0.05}, "motion": TUMBLE,
-        "temperature": {"start_C": 21.0, "ramp_C_per_h": 10.0, "amplitude_C": 4.0, "period_s": n / rate / 2.3},
-        "probes": probes})
-    unit = Unit(cfg)
-    s = unit.digitise(0, n)
-    block = s.to_block()
-    w = s.world
+    probes, unit, block, w, cols = tumbling(seed, pink, n, rate, n_probes)
     t = block.t_s
-    rng = np.random.default_rng(seed + 7919)
-    cols = _columns(t, rng)
-    noise = cols.pop("_noise")
-    for i, (name, v) in enumerate(cols.items()):
-        block.extras[name] = v + {"heater_A": 0.01, "fan_hz": 0.001, "vbus_V": 0.002}[name] * noise[i]
     more = np.random.default_rng(seed + 104729)
     flap, gimbal, coil = _flap(t, more), _gimbal(t, more), _coil(t, more)
     block.extras.update(flap_deg=flap + 0.05 * more.standard_normal(n), gimbal_deg=gimbal,

@@ -81,9 +81,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         port = free_port()
-        svc = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "run", "--config", str(config(tmp, port))],
+        svc = subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", "run", "--config", str(config(tmp, port))],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        dash = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "dashboard", "--connect",
+        dash = subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", "dashboard", "--connect",
                                  f"tcp/127.0.0.1:{port}", "--listen", "127.0.0.1:0"],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         try:

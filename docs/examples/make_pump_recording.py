@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.block import SampleBlock
-from drivers.sim import Unit, load_sim_config
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.sim import Unit, load_sim_config
 from fluxcal.recordings import write_recording
 
 PUMP_HZ = 1.5

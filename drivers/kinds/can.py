@@ -9,7 +9,7 @@ from ._icd import icd_samples
 ICD = Protocol(
     "icd", "the ICD's CAN frames: id = base_id + 4 x probe + axis, the axis's counts, the sample counter and the "
            "probe's temperature; no unit clock: t_s = seq / rate_hz",
-    decoder="drivers.can_source:CanIcd",
+    decoder="fluxcal.drivers.can_source:CanIcd",
     counters=(
         Counted("frames_accepted", "the unit's ICD frames", decoded=True, what="{n:,} frame(s) accepted"),
         Counted("wrong_length", "frames with the unit's ids that are no classic 8-byte data frame, dropped",
@@ -42,8 +42,8 @@ ICD = Protocol(
 
 KIND = SourceKind(
     "can", "the unit's frames on a CAN bus, through any python-can interface (socketcan, slcan, virtual, ...)",
-    config="drivers.can_source:CanConfig",
-    factory="drivers.can_source:open_source",
+    config="fluxcal.drivers.can_source:CanConfig",
+    factory="fluxcal.drivers.can_source:open_source",
     counters=(
         Counted("foreign_frames", "frames of other nodes' (or reserved, or extended) ids: the bus is shared, not a "
                                   "fault", arrival=True),
@@ -58,9 +58,9 @@ KIND = SourceKind(
     ),
     protocols=(ICD,),
     transports=(Transport("can-virtual", "the ICD's CAN frames on python-can's in-process virtual bus",
-                          link="drivers.sim.can_ports:virtual_link"),
+                          link="fluxcal.drivers.sim.can_ports:virtual_link"),
                 Transport("slcan", "the ICD's CAN frames as an SLCAN adapter's lines on a pseudo-terminal",
-                          link="drivers.sim.can_ports:slcan_link", process=True)),
+                          link="fluxcal.drivers.sim.can_ports:slcan_link", process=True)),
     port_keys=("source.interface", "source.channel"),
     unit_clock=False,
     needs_rate=True,

@@ -8,8 +8,8 @@ from ._icd import icd_samples, picked
 
 KIND = SourceKind(
     "replay", "a fluxcal MCAP recording (a file, or a folder of rotated files), its raw blocks as recorded",
-    config="drivers.mcap_source:ReplayConfig",
-    factory="drivers.mcap_source:open_source",
+    config="fluxcal.drivers.mcap_source:ReplayConfig",
+    factory="fluxcal.drivers.mcap_source:open_source",
     counters=(Counted("frames_accepted", "recorded samples read", decoded=True, what="{n:,} frame(s) accepted"),)
     + picked(icd_samples(""), "seq_gaps", "samples_missed", "saturated_axes", "temp_invalid"),
     path_keys=("path",),

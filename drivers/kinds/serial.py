@@ -8,7 +8,7 @@ from ._icd import icd_samples
 
 ICD = Protocol(
     "icd", "the ICD's binary frames: sync, version, probe count, counter, unit clock in us, counts, CRC-16",
-    decoder="drivers.serial_source:SerialIcd",
+    decoder="fluxcal.drivers.serial_source:SerialIcd",
     counters=(
         Counted("frames_accepted", "frames with a good CRC", decoded=True, what="{n:,} frame(s) accepted"),
         Counted("crc_failures", "frames failing their CRC (bit errors on the line)", fault="crc", label="CRC failures",
@@ -45,12 +45,12 @@ ICD = Protocol(
 
 KIND = SourceKind(
     "serial", "the unit's frames on a serial port: a device path (/dev/ttyUSB0, /dev/pts/N) or a pyserial URL",
-    config="drivers.serial_source:SerialConfig",
-    factory="drivers.serial_source:open_source",
+    config="fluxcal.drivers.serial_source:SerialConfig",
+    factory="fluxcal.drivers.serial_source:open_source",
     counters=(Counted("bytes_received", "every byte read from the port", arrival=True),),
     protocols=(ICD,),
     transports=(Transport("pty", "the ICD's bytes through a pseudo-terminal, read by this kind",
-                          link="drivers.sim.ports:pty_link", process=True),),
+                          link="fluxcal.drivers.sim.ports:pty_link", process=True),),
     port_keys=("source.port",),
     unit_clock=True,
     needs_rate=True,

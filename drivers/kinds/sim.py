@@ -8,9 +8,9 @@ from ._icd import icd_samples, picked
 
 KIND = SourceKind(
     "sim", "the simulated unit, its world in the [sim] section",
-    config="drivers.sim.source:SimSourceConfig",
-    factory="drivers.sim.source:open_source",
-    opener="drivers.sim.source:open_configured",
+    config="fluxcal.drivers.sim.source:SimSourceConfig",
+    factory="fluxcal.drivers.sim.source:open_source",
+    opener="fluxcal.drivers.sim.source:open_configured",
     counters=(Counted("frames_accepted", "samples the simulated unit gave (one frame each)", decoded=True,
                       what="{n:,} frame(s) accepted"),)
     + picked(icd_samples(""), "saturated_axes", "temp_invalid"),

@@ -1,8 +1,8 @@
-"""Run the simulated unit on a port for another process: `python -m drivers.sim --config F --transport pty`.
+"""Run the simulated unit on a port for another process: `python -m fluxcal.drivers.sim --config F --transport pty`.
 
 --transport (required) names one of the transports the kinds declare that can serve another process
-(drivers.registry.transports(), docs/sources.md). Prints the port path (a stable
-symlink, see drivers.sim.ports) on the first line of stdout, then streams until the run ends (duration_s), or
+(fluxcal.drivers.registry.transports(), docs/sources.md). Prints the port path (a stable
+symlink, see fluxcal.drivers.sim.ports) on the first line of stdout, then streams until the run ends (duration_s), or
 until SIGINT/SIGTERM, and prints a one-line summary of what was sent and corrupted on stderr (--record FILE: the
 whole fault record, for a test or benchmark that checks every sample). Exit status 0, or 2 on a configuration
 error.
@@ -27,7 +27,7 @@ from .unit import Unit
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m drivers.sim", description=__doc__.splitlines()[0],
+    p = argparse.ArgumentParser(prog="python -m fluxcal.drivers.sim", description=__doc__.splitlines()[0],
                                 allow_abbrev=False)
     p.add_argument("--config", metavar="FILE", help="TOML with a [sim] section (default: the built-in gradiometer)")
     ways = {t.name: t for _, t in transports() if t.process}
@@ -54,7 +54,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             table = {**table, "duration_s": args.duration}
         cfg = load_sim_config(table)
     except ConfigError as e:
-        print(f"drivers.sim: {e}", file=sys.stderr)
+        print(f"fluxcal.drivers.sim: {e}", file=sys.stderr)
         return 2
     unit = Unit(cfg)
     if args.truth:
@@ -72,14 +72,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         pass
     except FluxcalError as e:
-        print(f"drivers.sim: {e}", file=sys.stderr)
+        print(f"fluxcal.drivers.sim: {e}", file=sys.stderr)
         return 1
     finally:
         emitter.close()
     if args.record:
         emitter.record.save(args.record, start_index=emitter.start_index, next_index=emitter.next_index,
                             reconnects=emitter.reconnects, n_probes=cfg.n_probes)
-    print(f"drivers.sim: sent samples {emitter.start_index}..{emitter.next_index} of {cfg.n_probes} probes; "
+    print(f"fluxcal.drivers.sim: sent samples {emitter.start_index}..{emitter.next_index} of {cfg.n_probes} probes; "
           f"faults {json.dumps(emitter.record.as_dict())}", file=sys.stderr)
     return 0
 

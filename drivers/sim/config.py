@@ -1,7 +1,7 @@
 """The [sim] section: the simulated unit's world (field, motion, probes, effects, faults), validated.
 
 Every parameter is in physical units and named with its unit. `load_sim_config(table)` checks a
-TOML table strictly (drivers.config): an unknown key or a bad value is a ConfigError naming the key.
+TOML table strictly (fluxcal.drivers.config): an unknown key or a bad value is a ConfigError naming the key.
 
     [sim]                  seed, rate_hz, duration_s, realtime, speed, lsb_nT, range_nT, seq_start, t_us_start, can_base_id
     [sim.field]            total_nT, inclination_deg, declination_deg, gradient_nT_m, drift_nT_per_h  (NED)
@@ -19,7 +19,7 @@ TOML table strictly (drivers.config): an unknown key or a bad value is a ConfigE
 >>> load_sim_config({"probes": [{"scael": [1, 1, 1]}]})  # doctest: +ELLIPSIS
 Traceback (most recent call last):
 ...
-drivers.errors.ConfigError: sim.probes[0].scael: unknown key (allowed: name, position_m, scale, nonorth_deg, ...)
+fluxcal.drivers.errors.ConfigError: sim.probes[0].scael: unknown key (allowed: name, position_m, scale, nonorth_deg, ...)
 """
 
 from __future__ import annotations

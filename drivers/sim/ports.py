@@ -362,8 +362,8 @@ class _Pty:
 class PtyEmitter(Emitter):
     """The unit's serial output (ICD frames, with serial faults) on a pty; readers open `path`.
 
-    >>> from drivers.sim.config import load_sim_config
-    >>> from drivers.sim.unit import Unit
+    >>> from fluxcal.drivers.sim.config import load_sim_config
+    >>> from fluxcal.drivers.sim.unit import Unit
     >>> em = PtyEmitter(Unit(load_sim_config({"duration_s": 0.1})))
     >>> em.start().path.endswith("serial")
     True

@@ -5,8 +5,8 @@ decoder of the unit's frames would yield (NaN where saturated or temperature-inv
 unit clock) plus extras["ref_total"] when the scalar reference is enabled. Wire faults do not apply
 (there is no wire); flagged samples do.
 
-Through a transport another kind declares (drivers.registry.transports(): a pty, a CAN bus): the unit streams
-through that transport's emitter (drivers.sim.ports, can_ports) and the kind's real driver reads it, so the whole
+Through a transport another kind declares (fluxcal.drivers.registry.transports(): a pty, a CAN bus): the unit streams
+through that transport's emitter (fluxcal.drivers.sim.ports, can_ports) and the kind's real driver reads it, so the whole
 driver path runs, with that kind's counters; ref_total is not on the wire and is absent then.
 """
 
@@ -34,7 +34,7 @@ from .world import World
 class SimSource(Source):
     """SampleBlocks from the simulated world, paced by the wall clock (realtime) or as fast as read.
 
-    >>> from drivers.sim.config import load_sim_config
+    >>> from fluxcal.drivers.sim.config import load_sim_config
     >>> src = SimSource(load_sim_config({"duration_s": 1.0, "rate_hz": 100.0}), block_s=0.5)
     >>> [len(src.read()), len(src.read()), src.read(), src.exhausted]
     [50, 50, None, True]
@@ -160,7 +160,7 @@ def open_source(config: Any, *, unit: Any = None, transport: str = "", realtime:
 
     config: a SimConfig, or the whole service configuration (anything with a .sim SimConfig, and
     optionally .unit and .source.transport). unit: the [unit] section (n_probes and lsb_nT are checked
-    against the simulation). transport: a name drivers.registry.transports() gives (empty: in process). Other
+    against the simulation). transport: a name fluxcal.drivers.registry.transports() gives (empty: in process). Other
     keyword arguments go to the transport's emitter (e.g. link_dir, channel)."""
     if not isinstance(config, SimConfig):
         full = config

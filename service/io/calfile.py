@@ -24,10 +24,10 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import DataError
-from drivers.inputs import read_small
-from drivers.outputs import replacing
-from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from fluxcal.drivers.errors import DataError
+from fluxcal.drivers.inputs import read_small
+from fluxcal.drivers.outputs import replacing
+from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 
 FORMAT = "fluxcal.calibration"
 VERSION = 1

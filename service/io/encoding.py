@@ -39,9 +39,9 @@ from typing import Any
 
 import numpy as np
 
-from drivers.encoding import RAW_ENCODING, RAW_LAYOUT, check_magic, decode_raw, encode_raw, layout_text
-from drivers.errors import DataError
-from service.numerics.outputs import CorrectedBlock
+from fluxcal.drivers.encoding import RAW_ENCODING, RAW_LAYOUT, check_magic, decode_raw, encode_raw, layout_text
+from fluxcal.drivers.errors import DataError
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 CORRECTED_KIND = b"FXc"
 CORRECTED_REVISION = b"0"

@@ -4,7 +4,7 @@ blocks, error metrics and calibration records into those messages. Both writers 
 a live connection never differ.
 
 Streams (topic `/fluxcal/<unit>/<stream>`, MCAP message encoding "json", schema encoding "jsonschema"); the
-per-sample ones are means over 0.1 s of unit time (service.numerics.decimate), stamped with the unit time
+per-sample ones are means over 0.1 s of unit time (fluxcal.service.numerics.decimate), stamped with the unit time
 `t_s` of the interval's first sample:
 
     vectors  {t_s, seq, n, cal_id, <probe>: {x, y, z, total}, center: {...}}     nT; total = mean |B|
@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from service.numerics.decimate import RmsMeans, VectorMeans
-from service.numerics.outputs import CorrectedBlock
+from fluxcal.service.numerics.decimate import RmsMeans, VectorMeans
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 from .encoding import CALIBRATION_SCHEMA, EVENT_SCHEMA, HEALTH_SCHEMA
 

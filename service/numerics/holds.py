@@ -24,7 +24,7 @@ from typing import Sequence
 
 import numpy as np
 
-from drivers.block import SampleBlock
+from fluxcal.drivers.block import SampleBlock
 
 #: exact repeats are holds when they are more than this many times as many as chance gives
 CHANCE_FACTOR = 3.0

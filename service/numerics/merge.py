@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.block import SampleBlock
+from fluxcal.drivers.block import SampleBlock
 
 #: an auxiliary stream is interpolated across at most this many of its own median intervals (one lost sample
 #: passes; two in a row do not)
@@ -177,7 +177,7 @@ def quaternion_from_euler(heel_deg: np.ndarray, pitch_deg: np.ndarray, azimuth_d
 
 def euler_from_quaternion(q: np.ndarray) -> np.ndarray:
     """(n, 3) heel, pitch, azimuth in degrees of the platform -> NED attitudes q (n, 4) = (w, x, y, z), in fluxcal's
-    convention R = Rz(azimuth) Ry(pitch) Rx(heel) (service.numerics.effects.base.ATTITUDE_EULER).
+    convention R = Rz(azimuth) Ry(pitch) Rx(heel) (fluxcal.service.numerics.effects.base.ATTITUDE_EULER).
 
     >>> np.round(euler_from_quaternion(np.array([[np.cos(0.25), 0, 0, np.sin(0.25)]])), 6).tolist()
     [[0.0, -0.0, 28.64789]]

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.block import Timed
+from fluxcal.drivers.block import Timed
 
 
 @dataclass(frozen=True)

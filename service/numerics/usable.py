@@ -2,7 +2,7 @@
 scalar reference, never enters a fit as a number; what is left out is counted per probe and said.
 
 >>> import numpy as np
->>> from drivers.block import SampleBlock
+>>> from fluxcal.drivers.block import SampleBlock
 >>> f = np.ones((4, 2, 3)); f[1, 0, 2] = np.nan; f[2, 1, 0] = np.inf
 >>> b = SampleBlock(t_s=np.arange(4.0), seq=np.arange(4), field_nT=f, temp_C=np.zeros((4, 2)),
 ...                 flags=np.array([0, 1, 0, 0], np.uint8))
@@ -20,7 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
-from drivers.block import FLAG_SATURATED, SampleBlock
+from fluxcal.drivers.block import FLAG_SATURATED, SampleBlock
 
 
 @dataclass(frozen=True)
@@ -82,7 +82,7 @@ def refuse_stuck(field_nT: np.ndarray, probe_names: Sequence[str]) -> None:
     """DataError for a probe whose every sample (N, P, 3) is the same vector: the sensor did not measure (stuck, or
     not there). fit and diagnose ask it before fitting (a real ArduPilot log's compass, 784 identical rows, crashed
     diagnose and was called 'a single-axis turn' by fit)."""
-    from drivers.errors import DataError
+    from fluxcal.drivers.errors import DataError
 
     for k, name in enumerate(probe_names):
         raw = field_nT[:, k, :]

@@ -12,7 +12,7 @@ line is built on these functions (`fluxcal fit FILE` is `fit(FILE, ...)`), never
 
 Inputs: a path (a lab CSV, an MCAP recording, a ROS 2 bag, a PX4 ULog, an ArduPilot DataFlash log), a pandas
 DataFrame with the columns of docs/csv.md, or arrays (read_arrays). Every table goes through the one reader of lab
-tables (service.io.recordings.labdata.lab_table), so a DataFrame fits to the same parameters as the CSV written from
+tables (fluxcal.service.io.recordings.labdata.lab_table), so a DataFrame fits to the same parameters as the CSV written from
 it. Wiring: it joins the readers (I/O) and the commands' runs (which join the numerics).
 """
 
@@ -24,10 +24,10 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from drivers.errors import DataError
-from service.io.recordings.labdata import LabData, lab_table
-from service.wiring.prepare import Prepared, prepare
-from service.wiring.result import Said
+from fluxcal.drivers.errors import DataError
+from fluxcal.service.io.recordings.labdata import LabData, lab_table
+from fluxcal.service.wiring.prepare import Prepared, prepare
+from fluxcal.service.wiring.result import Said
 
 #: the options of read() (they choose what the data are): fit() and diagnose() take them only with a path
 READ_OPTIONS = ("config", "site", "skip", "topics", "mags")
@@ -175,7 +175,7 @@ def read_arrays(t_s: Any, field_nT: Any, *, temp_C: Any = None, columns: dict[st
 
 def _prepared_from(lab: LabData, said: Said, **options: Any) -> Prepared:
     """A Prepared of data already in memory, through prepare's own steps (prepare.prepared_from)."""
-    from service.wiring.prepare import prepared_from
+    from fluxcal.service.wiring.prepare import prepared_from
 
     return prepared_from(lab, said, **{k: v for k, v in options.items() if v is not None})
 
@@ -183,7 +183,7 @@ def _prepared_from(lab: LabData, said: Said, **options: Any) -> Prepared:
 def _input(data: Any, said: Said, read_options: dict[str, Any], **limits: Any) -> Prepared:
     """The Prepared a command runs on: a path read here (with the read options and the command's limits on the
     samples, kept as it reads), else the Data's own (the same limits applied to them)."""
-    from service.io.recordings.load import thinned
+    from fluxcal.service.io.recordings.load import thinned
 
     given = {k: v for k, v in read_options.items() if v is not None}
     if isinstance(data, (str, Path)):
@@ -209,7 +209,7 @@ def fit(data: Any, *, method: str = "ellipsoid", align: str | None = None, effec
     >>> r.to_dict()["effects"], round(r.rms_nT, 3)
     (['temperature'], 0.896)
     """
-    from service.wiring.commands import fit as command
+    from fluxcal.service.wiring.commands import fit as command
 
     said = _said(said, "fit")
     opts = command.FitOptions(method=method, align=align, effects=list(effects), out=out, report=report)
@@ -230,7 +230,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), report: str | None = Non
     >>> d.verdict["kind"], d.verdict["effect"]
     ('explained', 'temperature')
     """
-    from service.wiring.commands import diagnose as command
+    from fluxcal.service.wiring.commands import diagnose as command
 
     said = _said(said, "diagnose")
     source = str(data) if isinstance(data, (str, Path)) else None
@@ -260,7 +260,7 @@ def replay(recording: str | Path, *, config: str | None = None, out: str | None 
     >>> r.status, r.compared, r.identical
     (0, 2000, 2000)
     """
-    from service.wiring.commands import replay as command
+    from fluxcal.service.wiring.commands import replay as command
 
     return command.execute(str(recording), command.ReplayOptions(config=config, out=out, ros2_out=ros2_out),
                            _said(said, "replay"))
@@ -275,6 +275,6 @@ def simulate(out: str | Path, *, config: str | None = None, said: Said | None = 
     >>> simulate(out, config="configs/sim-gradiometer.toml").samples, read(out).probe_names
     (12000, ['s1', 's2'])
     """
-    from service.wiring.commands import simulate as command
+    from fluxcal.service.wiring.commands import simulate as command
 
     return command.execute(command.SimulateOptions(out=str(out), config=config), _said(said, "simulate"))

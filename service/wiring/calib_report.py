@@ -1,6 +1,6 @@
 """The calibration section of a report from what `fit` or `diagnose` computed: each probe's raw samples,
 fitted offset, scalar residual and coverage go to calib.sky, its parameters to calib.param_table; the
-drawing is service.io.report's.
+drawing is fluxcal.service.io.report's.
 """
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ from typing import Any
 
 import numpy as np
 
-from service.numerics.calib.coverage import coverage
-from service.numerics.calib.param_table import effect_rows, probe_rows
-from service.numerics.calib.sky import CalibrationSection, probe_sky
-from service.numerics.diagnose.text import reference_words
+from fluxcal.service.numerics.calib.coverage import coverage
+from fluxcal.service.numerics.calib.param_table import effect_rows, probe_rows
+from fluxcal.service.numerics.calib.sky import CalibrationSection, probe_sky
+from fluxcal.service.numerics.diagnose.text import reference_words
 
 #: the median |raw| is taken over at most this many samples, evenly spaced (hours of data: no copy of them all)
 SCALE_ROWS = 100_000
@@ -43,7 +43,7 @@ def section_from_fit(data: Any, cal: Any, channels: dict[str, np.ndarray], cover
 def section_from_diagnosis(d: Any) -> CalibrationSection:
     """`fluxcal diagnose`: the linear part of the model it compared (refitted, or held fixed from
     --calibration) with the effect parameters, and its residual."""
-    from service.numerics.engine.model_fit import effects_fit_from
+    from fluxcal.service.numerics.engine.model_fit import effects_fit_from
 
     fit = d.fit
     pr = fit.problem

@@ -1,7 +1,7 @@
 """The `fluxcal` command line (docs/contracts.md section 2): argument parsing and exit statuses.
 
-Each command is a module of service.wiring.commands that declares its own options and runs from `main(args)`; the
-parser is a loop over service.wiring.commands.COMMANDS, and only the module of the command that runs is imported.
+Each command is a module of fluxcal.service.wiring.commands that declares its own options and runs from `main(args)`; the
+parser is a loop over fluxcal.service.wiring.commands.COMMANDS, and only the module of the command that runs is imported.
 Exit status: 0 success, 2 bad input or usage, 1 any other failure; the message is one line on stderr that says
 what to do.
 """
@@ -15,8 +15,8 @@ import signal
 import sys
 from typing import Sequence
 
-from drivers.errors import CalibrationRefused, ConfigError, DataError, FluxcalError
-from service.wiring.commands import COMMANDS, FLEET_COMMANDS
+from fluxcal.drivers.errors import CalibrationRefused, ConfigError, DataError, FluxcalError
+from fluxcal.service.wiring.commands import COMMANDS, FLEET_COMMANDS
 
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
 
@@ -39,7 +39,7 @@ def _version() -> str:
 
 
 def command_module(name: str):
-    return importlib.import_module(f"service.wiring.commands.{name.replace('-', '_')}")
+    return importlib.import_module(f"fluxcal.service.wiring.commands.{name.replace('-', '_')}")
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
@@ -77,7 +77,7 @@ def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespa
         text = said.getvalue()
         sys.stderr.write(text)
         if e.code == 2:
-            from service.wiring.result import refusal
+            from fluxcal.service.wiring.result import refusal
 
             lines = [ln for ln in text.strip().splitlines() if ln.strip()]
             error = ConfigError(lines[-1].split(" error: ", 1)[-1] if lines else "usage error")
@@ -95,7 +95,7 @@ def main(argv: Sequence[str] | None = None, *, install_signals: bool = True) -> 
         signal.signal(signal.SIGTERM, _sigterm_to_keyboard_interrupt)
     try:
         if args.command in FLEET_COMMANDS:
-            from service.wiring.fleet_cli import dispatch
+            from fluxcal.service.wiring.fleet_cli import dispatch
 
             fleet = dispatch(args)
             if fleet is not None:
@@ -104,7 +104,7 @@ def main(argv: Sequence[str] | None = None, *, install_signals: bool = True) -> 
     except (ConfigError, DataError, CalibrationRefused) as e:
         print(f"fluxcal {args.command}: {e}", file=sys.stderr)
         if getattr(args, "json", False):      # a script reads JSON on stdout whatever happened (docs/contracts.md)
-            from service.wiring.result import refusal
+            from fluxcal.service.wiring.result import refusal
 
             print(json.dumps(refusal(e, getattr(args, "data", None) or getattr(args, "file", None))), flush=True)
         return EXIT_USAGE

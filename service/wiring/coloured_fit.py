@@ -1,6 +1,6 @@
 """`fluxcal fit`'s linear calibration under coloured noise: where a probe's residual is coloured (a power law
 above the white level at the record's own periods), its offsets' and matrix's standard errors gain the noise's
-wander within the record (service.numerics.calib.offset_noise), and what they cover is said."""
+wander within the record (fluxcal.service.numerics.calib.offset_noise), and what they cover is said."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from service.io.recordings.labdata import LabData
-from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from fluxcal.service.io.recordings.labdata import LabData
+from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 
 from .fitting import TotalField, residual_channels
 
@@ -21,7 +21,7 @@ SPECTRUM_ROWS = 200_000
 @dataclass(frozen=True)
 class ColouredNoise:
     """A probe whose residual is coloured at the record's own periods (a power law above the white level,
-    service.numerics.engine.coloured)."""
+    fluxcal.service.numerics.engine.coloured)."""
 
     probe: str
     alpha: float                  # the power law's spectral index
@@ -37,7 +37,7 @@ def coloured_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) ->
     regression-aligned probe's offsets also gain the reference probe's offset errors, which they inherit (taken as
     independent of the regression's own, though probe 1's noise is in both), on any record. The spectra over at
     most SPECTRUM_ROWS samples (every k-th: the power law is fitted from 16 cycles per record up)."""
-    from service.numerics.engine.coloured import FLICKER, MAX_GRID_FILL, MIN_CYCLES, sample_grid
+    from fluxcal.service.numerics.engine.coloured import FLICKER, MAX_GRID_FILL, MIN_CYCLES, sample_grid
 
     b = data.block
     if b.n_samples < 512:
@@ -94,7 +94,7 @@ def direction_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) -
     misfit.SAY, said.
     After coloured_offsets (the larger of the two stands); a regression-aligned probe's offsets are not an
     ellipsoid's, and keep theirs."""
-    from service.numerics.calib.misfit import add_spread, direction_jackknife
+    from fluxcal.service.numerics.calib.misfit import add_spread, direction_jackknife
 
     if cal.method not in ("ellipsoid", "rls", "tmi"):
         return []
@@ -157,7 +157,12 @@ def _set_offset_se(p: ProbeCalibration, se: np.ndarray) -> None:
 def _coloured_probe(cal: ArrayCalibration, k: int, raw: np.ndarray, names: list[str], regression: bool,
                     ctx: _Spectra) -> ColouredNoise | None:
     """Probe k's coloured-noise errors (in place), or None where its residual is white."""
-    from service.numerics.calib.offset_noise import ellipsoid_weights, record_se, regression_weights, wander_per_decade
+    from fluxcal.service.numerics.calib.offset_noise import (
+        ellipsoid_weights,
+        record_se,
+        regression_weights,
+        wander_per_decade,
+    )
 
     p = cal.probes[k]
     if regression:
@@ -210,7 +215,7 @@ def _add_in_variance(p: ProbeCalibration, key: str, extra: np.ndarray) -> None:
 def _say_sizes(p: ProbeCalibration) -> None:
     """The size warnings (calib.order.size_warnings) with the errors as they now stand: the fit said them with
     its white-noise ones."""
-    from service.numerics.calib.order import SIZE_WARNING, size_warnings
+    from fluxcal.service.numerics.calib.order import SIZE_WARNING, size_warnings
 
     p.warnings = [w for w in p.warnings if not w.endswith(SIZE_WARNING)] + size_warnings(p.name, p.params)
 
@@ -218,7 +223,7 @@ def _say_sizes(p: ProbeCalibration) -> None:
 def _law(y: np.ndarray, dt: float, duration: float) -> tuple[float, float, float] | None:
     """The power law of y's spectrum when it is coloured, extended at least as steeply as flicker noise
     (as the drift's errors, engine/coloured.py); None for white noise."""
-    from service.numerics.engine.coloured import FLICKER, is_coloured, power_law
+    from fluxcal.service.numerics.engine.coloured import FLICKER, is_coloured, power_law
 
     law = power_law(y, dt)
     if not is_coloured(law, duration):

@@ -2,14 +2,14 @@
 
     [unit]        name, n_probes, lsb_nT
     [[probes]]    name, position_m (platform frame; needed for tensor components)
-    [source]      kind (required in a file: a kind drivers.registry declares, docs/sources.md), then its keys
-    [sim]         the simulated unit's world (drivers.sim.config)
+    [source]      kind (required in a file: a kind fluxcal.drivers.registry declares, docs/sources.md), then its keys
+    [sim]         the simulated unit's world (fluxcal.drivers.sim.config)
     [estimator]   the online estimator and its quality gate
     [calibration] where the calibration persists, and an optional one to start from
-    [zenoh]       session mode and endpoints (service.io.bus.ZenohConfig)
+    [zenoh]       session mode and endpoints (fluxcal.service.io.bus.ZenohConfig)
     [mcap]        recording directory, rotation, chunking
 
-An error names the key, the value and what is allowed (drivers.config).
+An error names the key, the value and what is allowed (fluxcal.drivers.config).
 """
 
 from __future__ import annotations
@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from drivers.config import load_section, read_toml, spec
-from drivers.errors import ConfigError
-from drivers.registry import allowed, default_kind, source_kind
-from service.numerics.calib.site import site_from_text
+from fluxcal.drivers.config import load_section, read_toml, spec
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.drivers.registry import allowed, default_kind, source_kind
+from fluxcal.service.numerics.calib.site import site_from_text
 
 _UNIT_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 _SERIAL = re.compile(r"^[A-Za-z0-9_.:/+\-]{0,64}$")
@@ -97,7 +97,7 @@ class CalibrationConfig:
                              "directory); default state/<unit>-<source kind>-cal.json")
     initial: str | None = spec(None, doc="start from this calibration file instead of learning from scratch (even "
                                          "one learned on another unit or source: you say so by naming it)")
-    # what a calibration may be and still be applied, reloaded or started from (service.numerics.calib.plausible)
+    # what a calibration may be and still be applied, reloaded or started from (fluxcal.service.numerics.calib.plausible)
     max_offset_nT: float = spec(1e6, min=1.0, max=1e9, doc="largest offset a calibration may hold on any axis")
     max_condition: float = spec(10.0, min=1.0, max=1e6, doc="largest condition number of a calibration's matrix")
     max_scale: float = spec(2.0, min=1.0, max=100.0,
@@ -115,7 +115,7 @@ class CalibrationConfig:
                               f"{path}.max_total_nT = {self.max_total_nT!r})")
 
     def limits(self):
-        from service.numerics.calib.plausible import CalibrationLimits
+        from fluxcal.service.numerics.calib.plausible import CalibrationLimits
 
         return CalibrationLimits(max_offset_nT=self.max_offset_nT, max_condition=self.max_condition,
                                  max_scale=self.max_scale, min_total_nT=self.min_total_nT,
@@ -184,7 +184,7 @@ WINDOW_BUDGET_BYTES = 1 << 30
 
 
 def sample_bytes(n_probes: int) -> int:
-    """Bytes one sample of n_probes takes in the ring buffer (drivers.ringbuffer): t, seq, one extra such as
+    """Bytes one sample of n_probes takes in the ring buffer (fluxcal.drivers.ringbuffer): t, seq, one extra such as
     ref_total (8 each), flags (1), and per probe three axes and a temperature (8 each)."""
     return 25 + 32 * n_probes
 
@@ -343,7 +343,7 @@ def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
             raise ConfigError(RATE_MISSING)
         sim = None
         if "sim" in raw or decl.runs_world:
-            from drivers.sim.config import load_sim_config
+            from fluxcal.drivers.sim.config import load_sim_config
 
             sim = load_sim_config(raw.get("sim", {}))
             n_sim = len(sim.probes)
@@ -361,7 +361,7 @@ def config_from_dict(raw: dict, path: str = "<config>") -> FluxcalConfig:
         if not calibration.file:
             # one file per unit and source kind: a calibration learned on the simulator never meets hardware
             calibration.file = f"state/{unit.name}-{kind}-cal.json"
-        from service.io.bus import ZenohConfig
+        from fluxcal.service.io.bus import ZenohConfig
 
         zenoh_cfg = load_section(ZenohConfig, raw.get("zenoh", {}), "zenoh")
         mcap = load_section(McapConfig, raw.get("mcap", {}), "mcap")

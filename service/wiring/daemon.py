@@ -16,11 +16,11 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from drivers.block import SampleBlock
-from drivers.errors import ConfigError, FluxcalError
-from drivers.registry import source_kind
-from drivers.source import Source
-from drivers.text import printable
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import ConfigError, FluxcalError
+from fluxcal.drivers.registry import source_kind
+from fluxcal.drivers.source import Source
+from fluxcal.drivers.text import printable
 
 from .config import RATE_MISSING, FluxcalConfig
 from .faults import FaultWatch
@@ -32,7 +32,7 @@ from .status import StatusLog
 
 
 def build_pipeline(cfg: FluxcalConfig, initial=None) -> Pipeline:
-    from service.wiring.user_effects import load_installed_effects, resolve_effects
+    from fluxcal.service.wiring.user_effects import load_installed_effects, resolve_effects
 
     # effects of your own, registered before anything (a recorded add-effect, a calibration) names them
     load_installed_effects()
@@ -75,7 +75,7 @@ def renamed(cfg: FluxcalConfig, name: str, note: Callable[[str], None], keeper: 
 
 
 def open_configured_source(cfg: FluxcalConfig) -> Source:
-    """The configured source, opened as its kind's declaration says (drivers/kinds/, drivers.registry)."""
+    """The configured source, opened as its kind's declaration says (drivers/kinds/, fluxcal.drivers.registry)."""
     return source_kind(cfg.source.kind).open(cfg)
 
 
@@ -84,7 +84,7 @@ def open_outputs(sinks: Sinks, cfg: FluxcalConfig, calibration: Any, bus: Any, n
     """The service's outputs into `sinks`, the recording first (a raw block is kept before anything else): each is
     among the sinks, and so closed with them, as soon as it is open, whichever opens next fails (the bus closes
     twice harmlessly)."""
-    from service.wiring.ros2_sink import Ros2BagSink
+    from fluxcal.service.wiring.ros2_sink import Ros2BagSink
 
     sinks.add(McapSink.open(cfg, calibration, note))
     sinks.add(BusSink(bus))
@@ -120,7 +120,7 @@ class Daemon:
 
     def __init__(self, cfg: FluxcalConfig, *, stop: threading.Event | None = None,
                  say: Callable[[str], None] | None = None, sinks: Sequence[Sink] = ()) -> None:
-        """`sinks`: outputs besides the recording and the bus (service.wiring.sinks.Sink), told after them."""
+        """`sinks`: outputs besides the recording and the bus (fluxcal.service.wiring.sinks.Sink), told after them."""
         self.cfg = cfg
         self.stop = stop or threading.Event()
         self.say = say or _say
@@ -135,7 +135,7 @@ class Daemon:
         self._status = StatusLog(self.say, cfg.unit.status_s)
 
     def run(self) -> int:
-        from service.io.bus import ServiceBus
+        from fluxcal.service.io.bus import ServiceBus
 
         cfg = self.cfg
         notes: list[str] = []                 # said once the source, the bus and the recording are open
@@ -199,8 +199,7 @@ class Daemon:
         st["faults"] = self._faults.health()
         st["source"] = {"kind": self.cfg.source.kind, "protocol": getattr(self.cfg.source, "protocol", ""),
                         "counters": source.counters.words.about()}         # what its health counters count
-        recording = sinks.recording()
-        if recording is not None:
+        if (recording := sinks.recording()) is not None:
             st["recording"] = recording
         return st
 
@@ -283,10 +282,9 @@ class Daemon:
 
     def _on_event(self, ev: PipelineEvent, pipeline: Pipeline, sinks: Sinks) -> None:
         sinks.event({"kind": ev.kind, "seq": ev.seq, "t_s": ev.t_s, **ev.detail, "state": pipeline.state()})
-        applied = ev.kind == "command" and ev.detail.get("name") == "apply"
-        reset = ev.kind == "command" and ev.detail.get("name") == "reset"      # no longer held: persisted so
-        if (ev.kind == "calibration" or applied or reset) and pipeline.calibration is not None:
-            self.keeper.persist(pipeline.calibration, applied)
+        name = ev.detail.get("name") if ev.kind == "command" else None     # after a reset, no longer held: persisted
+        if (ev.kind == "calibration" or name in ("apply", "reset")) and pipeline.calibration is not None:
+            self.keeper.persist(pipeline.calibration, name == "apply")
         if ev.kind in ("gate", "calibration"):
             self._status.gate(ev.kind == "calibration" or bool(ev.detail.get("usable")), ev.detail.get("reasons", []))
 
@@ -300,7 +298,7 @@ class Daemon:
                 payload = self.keeper.to_apply(payload, pipeline)
             ev = pipeline.command(cmd.name, payload, seq=seq, t_s=float("nan"))
             if cmd.name == "apply":
-                from service.io.calfile import calibration_to_dict
+                from fluxcal.service.io.calfile import calibration_to_dict
 
                 ev.detail["calibration"] = calibration_to_dict(payload)
             sinks.command({"kind": "command", "seq": seq, **ev.detail})

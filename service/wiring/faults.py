@@ -4,11 +4,11 @@ it lasts (at most every `every_s`), a line when it ends, and a summary at stop. 
 channel as events with their counts (`health.faults`), where the dashboard shows them.
 
 The source's faults are said in its own bus's words: each counter its kind and protocol declare (drivers/kinds/,
-drivers.declare.Counted: its fault name, label, what {n} of it are, the advice, a share or the counters said
+fluxcal.drivers.declare.Counted: its fault name, label, what {n} of it are, the advice, a share or the counters said
 beside it) is said as it declares, and only those (`words`, the Counters' words of the source opened). Besides:
 
     no_decode     input arrives but nothing of the unit's decodes for 2 s (a wrong baud rate, a wrong base id),
-                  in the words the protocol declares (drivers.declare.NoDecode)
+                  in the words the protocol declares (fluxcal.drivers.declare.NoDecode)
     silence       nothing from the unit for `silence_s` (unit.silence_s), and when data come again
     persist       saves of the calibration in use that failed (a restart would not reload it)
     calibrations_refused, commands_refused: said where they happen; counted here, and in the summary at stop
@@ -27,7 +27,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from drivers.declare import Counted, Words
+from fluxcal.drivers.declare import Counted, Words
 
 #: input without a frame for this long is said (a stretch shorter than that is a partial frame, a glitch)
 NO_DECODE_S = 2.0

@@ -13,16 +13,22 @@ from typing import Any
 
 import numpy as np
 
-from drivers.block import SampleBlock
-from drivers.errors import CalibrationRefused, DataError
-from service.io.recordings.labdata import LabData
-from service.numerics.calib.alignment import align_probes
-from service.numerics.calib.determinacy import Determinacy, judge_all, physical, refuse_undetermined, shape_problem
-from service.numerics.calib.ellipsoid import fit_ellipsoid
-from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
-from service.numerics.channels import channel_names
-from service.numerics.jsonsafe import json_safe
-from service.numerics.usable import refuse_stuck
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import CalibrationRefused, DataError
+from fluxcal.service.io.recordings.labdata import LabData
+from fluxcal.service.numerics.calib.alignment import align_probes
+from fluxcal.service.numerics.calib.determinacy import (
+    Determinacy,
+    judge_all,
+    physical,
+    refuse_undetermined,
+    shape_problem,
+)
+from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
+from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from fluxcal.service.numerics.channels import channel_names
+from fluxcal.service.numerics.jsonsafe import json_safe
+from fluxcal.service.numerics.usable import refuse_stuck
 
 #: the probe-samples a nonlinear fit over every sample (diagnose's candidates, fit --effects) is given by default:
 #: a longer recording is thinned to every k-th sample, and the output says so. Such a fit holds about 3 kB per
@@ -70,19 +76,19 @@ def fit_probe(method: str, raw: np.ndarray, total: TotalField, block: SampleBloc
         # the white-noise errors: coloured_fit adds the noise's wander and the directions' spread to them
         return fit_ellipsoid(raw, total.values, name=name, errors="white", core=core).calibration
     if method == "tmi":
-        from service.numerics.calib.tmi import fit_tmi
+        from fluxcal.service.numerics.calib.tmi import fit_tmi
 
         if total.values is None:
             raise CalibrationRefused("tmi needs a scalar reference: a ref_total column or [estimator] total_nT")
         return fit_tmi(raw, total.values, name=name)
     if method == "sinefit":
-        from service.numerics.calib.sinefit import fit_sinefit
+        from fluxcal.service.numerics.calib.sinefit import fit_sinefit
 
         angle = np.radians(_column(block, ("angle_deg", "table_deg", "heading_deg"), "sinefit"))
         tv = None if total.values is None else float(np.mean(total.values))
         return fit_sinefit(angle, raw, inclination_deg=inclination_deg, total_nT=tv, t_s=block.t_s, name=name)
     if method == "two-step":
-        from service.numerics.calib.twostep import fit_two_step
+        from fluxcal.service.numerics.calib.twostep import fit_two_step
 
         turn = _column(block, ("turn", "turn_axis"), "two-step")
         turns = [raw[turn == k] for k in (0, 1, 2)]
@@ -159,7 +165,7 @@ def fit_array(data: LabData, *, method: str = "ellipsoid", align: str | None = N
     elif align == "rotation":
         probes = align_probes(probes, b.field_nT, method="rotation")
     elif align == "pca":
-        from service.numerics.calib.twostep import align_pca
+        from fluxcal.service.numerics.calib.twostep import align_pca
 
         turn = _column(b, ("turn", "turn_axis"), "align pca")
         probes = align_pca(probes, b.field_nT, turn)
@@ -174,7 +180,7 @@ def _refuse_unphysical(cal: ArrayCalibration, data: LabData) -> None:
     """A fitted matrix no sensor has (determinacy.shape_problem) from whichever method: refused with what would help
     (a real flight's cone of directions, with the total field estimated, passed the cone check on its own garbage
     shape)."""
-    from service.numerics.calib.excitation import coverage_hint
+    from fluxcal.service.numerics.calib.excitation import coverage_hint
 
     for k, p in enumerate(cal.probes):
         problem = shape_problem(p.matrix)
@@ -185,7 +191,7 @@ def _refuse_unphysical(cal: ArrayCalibration, data: LabData) -> None:
 
 def judge_data(data: LabData, configured_total_nT: float | None = None, total_source: str = "",
                physical_check: bool = True) -> list[Determinacy]:
-    """The determinacy gate (service.numerics.calib.determinacy) of every probe of the data, against the total field
+    """The determinacy gate (fluxcal.service.numerics.calib.determinacy) of every probe of the data, against the total field
     the fit takes (total_field): what fit of every method, diagnose and inspect ask alike; with physical_check, a field
     that is neither the site's (the reference given; total_source says what it is) nor, without one, the Earth's, is
     refused too (determinacy.physical). DataError first for samples that hold NaN, and for a probe that did not

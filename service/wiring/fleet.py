@@ -3,8 +3,8 @@ all cores (a process pool) or on a Dask cluster (`--scheduler ADDRESS`), with on
 of per-recording results and failures. A failing recording, even one whose worker dies, never stops the
 others.
 
-Each recording is one Job: the command's own `execute(source, options, said)` (service.wiring.commands.<name>)
-run in a worker, which ships back the Result's JSON and its notes as data (service.wiring.result); nothing
+Each recording is one Job: the command's own `execute(source, options, said)` (fluxcal.service.wiring.commands.<name>)
+run in a worker, which ships back the Result's JSON and its notes as data (fluxcal.service.wiring.result); nothing
 here parses what a command prints. Files a command writes go into the folder given by --out / --report, one
 per recording, named by the recording.
 """
@@ -30,8 +30,8 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from drivers.errors import CalibrationRefused, ConfigError, DataError, FluxcalError
-from service.io.recordings.runs import expand_inputs, linked_run
+from fluxcal.drivers.errors import CalibrationRefused, ConfigError, DataError, FluxcalError
+from fluxcal.service.io.recordings.runs import expand_inputs, linked_run
 
 from .result import Said, refusal
 
@@ -87,7 +87,7 @@ def _not_here(job: Job, host: str) -> str | None:
 
 
 def _execute(job: Job, said: Said) -> Any:
-    module = importlib.import_module(f"service.wiring.commands.{job.command}")
+    module = importlib.import_module(f"fluxcal.service.wiring.commands.{job.command}")
     kwargs = {"progress": False} if job.command == "diagnose" else {}
     if not job.parts:
         return module.execute(job.source, job.options, said, **kwargs)
@@ -139,9 +139,9 @@ def _context():
         ctx = get_context("forkserver")
     except ValueError:
         return get_context("spawn")
-    ctx.set_forkserver_preload(["service.wiring.fleet", "numpy", "scipy.linalg", "service.numerics.diagnose",
-                                "service.wiring.fitting", "service.wiring.commands.fit",
-                                "service.wiring.commands.diagnose", "service.wiring.commands.replay"])
+    ctx.set_forkserver_preload(["fluxcal.service.wiring.fleet", "numpy", "scipy.linalg", "fluxcal.service.numerics.diagnose",
+                                "fluxcal.service.wiring.fitting", "fluxcal.service.wiring.commands.fit",
+                                "fluxcal.service.wiring.commands.diagnose", "fluxcal.service.wiring.commands.replay"])
     return ctx
 
 

@@ -1,4 +1,4 @@
-"""How `fit`, `diagnose` and `replay` tell one recording from several, and hand several to service.wiring.fleet."""
+"""How `fit`, `diagnose` and `replay` tell one recording from several, and hand several to fluxcal.service.wiring.fleet."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from drivers.errors import ConfigError
-from service.io.recordings.runs import is_bag
-from service.io.recordings.runs import runs_in as _runs_in
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.io.recordings.runs import is_bag
+from fluxcal.service.io.recordings.runs import runs_in as _runs_in
 
 from .fleet import run_fleet
 
@@ -82,7 +82,7 @@ def dispatch(args: argparse.Namespace) -> int | None:
 
     from .progress import Progress
 
-    module = importlib.import_module(f"service.wiring.commands.{args.command}")
+    module = importlib.import_module(f"fluxcal.service.wiring.commands.{args.command}")
     options = absolute_paths(dataclasses.replace(module.options(args), **{key: None for key in outputs}))
     bar = Progress(1.0, f"{args.command} of several recordings", fraction=True)
     try:

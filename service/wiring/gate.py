@@ -8,14 +8,14 @@ from typing import Sequence
 
 import numpy as np
 
-from drivers.block import SampleBlock
-from drivers.errors import CalibrationRefused, FluxcalError
-from drivers.ringbuffer import RingBuffer
-from service.numerics.calib import alignment
-from service.numerics.calib.determinacy import judge
-from service.numerics.calib.misfit import add_direction_spread, add_time_spread
-from service.numerics.calib.model import ArrayCalibration
-from service.numerics.calib.rls import RlsEllipsoid
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import CalibrationRefused, FluxcalError
+from fluxcal.drivers.ringbuffer import RingBuffer
+from fluxcal.service.numerics.calib import alignment
+from fluxcal.service.numerics.calib.determinacy import judge
+from fluxcal.service.numerics.calib.misfit import add_direction_spread, add_time_spread
+from fluxcal.service.numerics.calib.model import ArrayCalibration
+from fluxcal.service.numerics.calib.rls import RlsEllipsoid
 
 
 @dataclass

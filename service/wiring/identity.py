@@ -1,4 +1,4 @@
-"""Whether a calibration may be this unit's, beyond its physics (service.numerics.calib.plausible): who it was made
+"""Whether a calibration may be this unit's, beyond its physics (fluxcal.service.numerics.calib.plausible): who it was made
 for, what this unit's calibrations have been, and what it does to this unit's own data.
 
     unit         the unit's name it carries ("unit", or the unit a service learned it on) is this one's
@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from service.numerics.calib.plausible import ImplausibleCalibration
+from fluxcal.service.numerics.calib.plausible import ImplausibleCalibration
 
 from .config import FluxcalConfig
 from .gate import reference_total, scalar_residual

@@ -8,10 +8,10 @@ import threading
 import time
 from typing import Callable
 
-from drivers.block import SampleBlock
-from drivers.errors import DriverError
-from drivers.registry import source_kind
-from drivers.source import Source
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import DriverError
+from fluxcal.drivers.registry import source_kind
+from fluxcal.drivers.source import Source
 
 from .config import FluxcalConfig
 

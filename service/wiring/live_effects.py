@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.block import SampleBlock
-from drivers.errors import FluxcalError
-from service.numerics.calib.model import ArrayCalibration
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import FluxcalError
+from fluxcal.service.numerics.calib.model import ArrayCalibration
 
 
 class LiveEffects:
@@ -19,14 +19,14 @@ class LiveEffects:
         effects of your own loaded at start from [effects] plugins that say so): they act sample by sample, so
         correcting block by block gives the same numbers however the input is cut (replay = live). Effects on
         dB/dt or time shifts (eddy, lag) need samples across block edges: fit them offline."""
-        from service.numerics.effects import known_effects
+        from fluxcal.service.numerics.effects import known_effects
 
         return [n for n, cls in known_effects().items() if getattr(cls, "per_sample", False)]
 
     def __init__(self, n_probes: int, total_nT: float | None) -> None:
         self.total_nT = total_nT
         self.names: list[str] = []        # effect terms in the calibration in use (added at runtime)
-        self.fit = None                   # their fit (service.numerics.engine.EffectsFit)
+        self.fit = None                   # their fit (fluxcal.service.numerics.engine.EffectsFit)
         self._last_temp_C = np.full(n_probes, np.nan)   # each probe's latest valid temperature
 
     def clear(self) -> None:
@@ -35,14 +35,14 @@ class LiveEffects:
     def add(self, name: str, window: SampleBlock, calibration: ArrayCalibration | None) -> ArrayCalibration:
         """The calibration refitted with one more effect over the window (the ring buffer); it corrects
         from now on. FluxcalError when it cannot be added, or the window's data do not show it."""
-        from service.numerics.engine import fit_with_effects
+        from fluxcal.service.numerics.engine import fit_with_effects
 
         allowed = self.allowed()
         if not isinstance(name, str) or len(name) > 64:       # the bus refuses these first; said short anyway
             shown = repr(name)[:40] + ("..." if len(repr(name)) > 40 else "")
             raise FluxcalError(f"add-effect: {shown} is not an effect name (allowed: {', '.join(allowed)})")
         if name not in allowed:
-            from service.numerics.effects import known_effects
+            from fluxcal.service.numerics.effects import known_effects
 
             offline = (f"; fit it offline with `fluxcal fit --effects {name}`" if name in known_effects() else
                        f"; {name!r} is not an effect at all (the catalogue: {', '.join(known_effects())}; effects "

@@ -19,14 +19,14 @@ from typing import Any
 
 import numpy as np
 
-from drivers.block import SampleBlock
-from drivers.errors import DataError, FluxcalError
-from drivers.ringbuffer import RingBuffer
-from service.numerics.calib.model import ArrayCalibration
-from service.numerics.calib.rls import RlsEllipsoid
-from service.numerics.calib.rls_info import finite_rows
-from service.numerics.channels import BlockError
-from service.numerics.outputs import CorrectedBlock, Derived
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import DataError, FluxcalError
+from fluxcal.drivers.ringbuffer import RingBuffer
+from fluxcal.service.numerics.calib.model import ArrayCalibration
+from fluxcal.service.numerics.calib.rls import RlsEllipsoid
+from fluxcal.service.numerics.calib.rls_info import finite_rows
+from fluxcal.service.numerics.channels import BlockError
+from fluxcal.service.numerics.outputs import CorrectedBlock, Derived
 
 from .gate import Gate, GateResult, reference_total
 from .live_effects import LiveEffects

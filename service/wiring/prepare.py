@@ -7,7 +7,7 @@ header line), --site's World Magnetic Model field, and the model along the track
 
 One semantics whichever command asks: the configuration's probe positions must be as many as the data's probes
 (ConfigError otherwise), positions all at one point tell no probes apart (None), --site's field replaces a
-configured total, and every note goes through `said` (service.wiring.result.Said) as data.
+configured total, and every note goes through `said` (fluxcal.service.wiring.result.Said) as data.
 """
 
 from __future__ import annotations
@@ -20,11 +20,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from drivers.config import load_section, read_toml
-from drivers.errors import ConfigError, DataError
-from service.io.recordings.labdata import LabData
-from service.io.recordings.load import load_data
-from service.numerics.calib.site import SiteField, site_from_text
+from fluxcal.drivers.config import load_section, read_toml
+from fluxcal.drivers.errors import ConfigError, DataError
+from fluxcal.service.io.recordings.labdata import LabData
+from fluxcal.service.io.recordings.load import load_data
+from fluxcal.service.numerics.calib.site import SiteField, site_from_text
 
 from .result import Said
 
@@ -44,7 +44,7 @@ class Prepared:
     part_of_run: str | None = None                # a rotated file given alone: what it is part of
     config_warning: str | None = None             # a stored configuration that could not be used, and why
     track: str | None = None                      # the model whose field along the track is the data's ref_total
-    holds: Any = None                             # service.numerics.holds.Holds: the logger's held samples left out
+    holds: Any = None                             # fluxcal.service.numerics.holds.Holds: the logger's held samples left out
     held: Any = None                              # a linear calibration to hold fixed (--calibration), or None
     held_effects: list[str] = field(default_factory=list)     # the effects the held calibration's file names
 
@@ -97,7 +97,7 @@ def prepared_from(data: LabData, said: Said, *, config: str | None = None, site:
                   skip: Sequence[tuple[float, float]] | None = None, calibration: str | None = None,
                   source: str | None = None) -> Prepared:
     """The rest of prepare() on data already read (`source`: the file they came from, or None for a table in memory:
-    service.wiring.api): --skip's stretches, a logger's held samples, a rotated file given alone, the calibration
+    fluxcal.service.wiring.api): --skip's stretches, a logger's held samples, a rotated file given alone, the calibration
     held, the geometry of --config or of the stored configuration, --site, the track."""
     data = skip_spans(said, source or data.path, data, skip)
     data, holds = _without_holds(said, data)
@@ -123,11 +123,11 @@ def prepared_from(data: LabData, said: Said, *, config: str | None = None, site:
 
 
 def held_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:
-    """A calibration file to hold fixed: the calibration file of `fit --out` (service.io.calfile), or the JSON of
+    """A calibration file to hold fixed: the calibration file of `fit --out` (fluxcal.service.io.calfile), or the JSON of
     `fit --json` (sensors with offset_nT and matrix). Returns the linear part and the effect names the file
     carries; DataError for a file that is neither."""
-    from service.io.calfile import calibration_from_json, parse_json, read_calibration_text
-    from service.numerics.engine import LinearCalibration
+    from fluxcal.service.io.calfile import calibration_from_json, parse_json, read_calibration_text
+    from fluxcal.service.numerics.engine import LinearCalibration
 
     p = Path(path)
     text = read_calibration_text(p)                       # bounded; DataError for what cannot be read
@@ -146,7 +146,7 @@ def held_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:
 
 @dataclass
 class EffectInput:
-    """The prepared data as the effect models take them (service.numerics.effects.base.EffectData), with the notes
+    """The prepared data as the effect models take them (fluxcal.service.numerics.effects.base.EffectData), with the notes
     a diagnosis says before its own: where the geometry came from, the data's scale, what thinning cost."""
 
     data: Any                                     # EffectData
@@ -158,8 +158,8 @@ def effect_input(prep: Prepared, said: Said, *, budget: str) -> EffectInput:
     """The prepared data let go of (Prepared.take_data) into EffectData, said: the thinning `budget` (the words
     of what limited the samples) imposed, and the data's scale against the total field given (field_scale_notes).
     The samples then live in the EffectData alone (hours of them)."""
-    from service.numerics.effects.base import EffectData
-    from service.wiring.scale_notes import field_scale_notes
+    from fluxcal.service.numerics.effects.base import EffectData
+    from fluxcal.service.wiring.scale_notes import field_scale_notes
 
     lab = prep.take_data()
     thinned = thinning(lab, budget)
@@ -199,7 +199,7 @@ def log_mapping(source: str, topics: dict[str, str | None] | None, mags: Sequenc
     ConfigError for an option the file's format does not take."""
     if not topics and not mags:
         return None
-    from service.io.recordings.formats import detect_format
+    from fluxcal.service.io.recordings.formats import detect_format
 
     fmt = detect_format(source)
     if topics and fmt not in ("ros2-mcap", "ros2-bag"):
@@ -207,7 +207,7 @@ def log_mapping(source: str, topics: dict[str, str | None] | None, mags: Sequenc
     if mags and fmt not in ("px4-ulog", "ardupilot-bin"):
         raise ConfigError(f"--mags: {source} is not a PX4 or ArduPilot log ({fmt})")
     if topics:
-        from service.io.recordings.ros2 import AUTO, Ros2Mapping
+        from fluxcal.service.io.recordings.ros2 import AUTO, Ros2Mapping
 
         probes = {k: v for k, v in topics.items() if k not in ("imu", "gps", "battery") and not k.startswith("temp.")}
         temps = {k[5:]: v for k, v in topics.items() if k.startswith("temp.") and v is not None}
@@ -215,10 +215,10 @@ def log_mapping(source: str, topics: dict[str, str | None] | None, mags: Sequenc
                            temperatures=temps or None, imu=topics.get("imu", AUTO),
                            navsatfix=topics.get("gps", AUTO), battery=topics.get("battery", AUTO))
     if fmt == "px4-ulog":
-        from service.io.recordings.px4 import Px4Mapping
+        from fluxcal.service.io.recordings.px4 import Px4Mapping
 
         return Px4Mapping(mags=tuple(mags))
-    from service.io.recordings.ardupilot import ArduPilotMapping
+    from fluxcal.service.io.recordings.ardupilot import ArduPilotMapping
 
     return ArduPilotMapping(mags=tuple(mags))
 
@@ -228,8 +228,8 @@ FOREIGN = ("ros2", "px4", "ardupilot")
 
 
 def _without_holds(said: Said, data: LabData) -> tuple[LabData, Any]:
-    """The data without the samples a logger repeated when no new one came (service.numerics.holds), said."""
-    from service.numerics.holds import without_holds
+    """The data without the samples a logger repeated when no new one came (fluxcal.service.numerics.holds), said."""
+    from fluxcal.service.numerics.holds import without_holds
 
     block, holds = without_holds(data.block, data.probe_names)
     for note in holds.notes:
@@ -239,8 +239,8 @@ def _without_holds(said: Said, data: LabData) -> tuple[LabData, Any]:
 
 def _along_the_track(said: Said, data: LabData, site: SiteField | None) -> tuple[LabData, str | None]:
     """Where the data carry a position (lat_deg, lon_deg, alt_m), the World Magnetic Model's field at every sample
-    (service.numerics.calib.track) as the reference: said, with what it replaces."""
-    from service.numerics.calib.track import track_reference
+    (fluxcal.service.numerics.calib.track) as the reference: said, with what it replaces."""
+    from fluxcal.service.numerics.calib.track import track_reference
 
     t0 = data.metadata.get("t0_unix_s")
     year = None
@@ -273,7 +273,7 @@ def geometry(raw: dict[str, Any], n_probes: int) -> tuple[np.ndarray | None, flo
     """Probe positions (P, 3) and the total field of a raw configuration. The sections used are validated
     strictly ([unit], [[probes]], [estimator], [sim]); the others need not describe a runnable source, but
     unknown section names are still errors (ConfigError, without the file's name)."""
-    from service.wiring.config import _SECTIONS, EstimatorConfig, ProbeConfig, UnitConfig
+    from fluxcal.service.wiring.config import _SECTIONS, EstimatorConfig, ProbeConfig, UnitConfig
 
     for key in raw:
         if key not in _SECTIONS:
@@ -290,7 +290,7 @@ def geometry(raw: dict[str, Any], n_probes: int) -> tuple[np.ndarray | None, flo
             raise ConfigError(f"probes: {len(probes)} [[probes]] tables but unit.n_probes = {unit.n_probes}")
         positions = np.array([p.position_m for p in probes], dtype=np.float64)
     elif "sim" in raw:
-        from drivers.sim.config import load_sim_config
+        from fluxcal.drivers.sim.config import load_sim_config
 
         positions = np.array([p.position_m for p in load_sim_config(raw["sim"]).probes], dtype=np.float64)
     if positions is not None and positions.shape[0] != n_probes:
@@ -328,7 +328,7 @@ def spread(positions_m: Any) -> np.ndarray | None:
 def config_geometry(path: str, n_probes: int) -> tuple[np.ndarray | None, float | None]:
     """Probe positions (P, 3) and the total field from a configuration file (geometry: the
     sections used validated strictly, unknown section names errors), naming the file in any error."""
-    from service.wiring.config import require_content
+    from fluxcal.service.wiring.config import require_content
 
     raw = read_toml(path)
     require_content(raw, path)
@@ -351,7 +351,7 @@ def say_read_warnings(said: Said, source: str, warnings: Sequence[str], repairab
 def part_of_run(said: Said, source: str) -> str | None:
     """A file the service rotated out of a longer run, given alone: said, with the folder that holds the whole run
     (fit and diagnose then use only this file's samples; replay says more, commands/replay.continuation)."""
-    from service.io.recordings.runs import runs_of
+    from fluxcal.service.io.recordings.runs import runs_of
 
     p = Path(source)
     if p.is_dir() or p.suffix != ".mcap":

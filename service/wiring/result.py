@@ -14,7 +14,7 @@ import sys
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from drivers.text import printable
+from fluxcal.drivers.text import printable
 
 #: how loud a note is: said as "note: ...", "warning: ..." or "WARNING: ..."; "say" (what was done) and
 #: "error" (what failed: the exit status says so too) are said as they are, without a word before them
@@ -100,7 +100,7 @@ class Result:
     def text(self) -> str:
         return ""
 
-    # in Python (service.wiring.api): the same figures as the command line's
+    # in Python (fluxcal.service.wiring.api): the same figures as the command line's
     def to_dict(self) -> dict[str, Any]:
         """The command's JSON (docs/contracts.md), as a dict."""
         return self.as_dict()
@@ -117,7 +117,7 @@ class Result:
 
     def _repr_html_(self) -> str:
         """A notebook's display: the table, the text as the command line prints it, and the notes."""
-        from service.io.report.notebook import result_html
+        from fluxcal.service.io.report.notebook import result_html
 
         return result_html(self)
 

@@ -1,5 +1,5 @@
 """The service's corrected (and, if asked, raw) vectors as a ROS 2 bag beside its own recording: a Sink
-(sinks.py) around service.io.recordings.ros2_writer.Ros2BagWriter, for the live service and `replay --out`.
+(sinks.py) around fluxcal.service.io.recordings.ros2_writer.Ros2BagWriter, for the live service and `replay --out`.
 
     sink = Ros2BagSink.open("run_ros2", unit=cfg.unit.name, probe_names=cfg.probe_names)
     ...                                   # the daemon (or replay) tells it on_raw / on_corrected
@@ -12,10 +12,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from drivers.block import SampleBlock
-from drivers.errors import ConfigError, RecordingError
-from service.io.recordings.ros2_writer import Ros2BagWriter
-from service.numerics.outputs import CorrectedBlock
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import ConfigError, RecordingError
+from fluxcal.service.io.recordings.ros2_writer import Ros2BagWriter
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 from .sinks import Sink
 

@@ -1,5 +1,5 @@
 """The data's scale said: data whose size is implausible for nT (µT, counts), and a given total field far off the
-data's scale (service.numerics.field_scale), for fit and for the input preparation of diagnose
+data's scale (fluxcal.service.numerics.field_scale), for fit and for the input preparation of diagnose
 (prepare.effect_input)."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ def field_scale_notes(said: Any, source: str, field_nT: Any, probe_names: Sequen
                       total_nT: Any = None, total_source: str = "", about: str = "the fitted centre") -> list[str]:
     """Data whose size is implausible for nT (µT, counts), and a given total field far off the data's scale, said
     (the latter loudly) whatever the output format; returns them, loud first, for the result's warnings."""
-    from service.numerics.field_scale import field_scale_warnings
+    from fluxcal.service.numerics.field_scale import field_scale_warnings
 
     if total_nT is not None and not isinstance(total_nT, (int, float)):
         finite = np.asarray(total_nT, dtype=np.float64)

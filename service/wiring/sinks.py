@@ -21,11 +21,11 @@ import json
 import time
 from typing import Any, Callable, Mapping
 
-from drivers.block import SampleBlock
-from drivers.errors import ConfigError
-from service.io.calfile import calibration_to_dict
-from service.io.recordings.writer import McapLogger
-from service.numerics.outputs import CorrectedBlock
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.io.calfile import calibration_to_dict
+from fluxcal.service.io.recordings.writer import McapLogger
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 from .config import FluxcalConfig
 
@@ -130,7 +130,7 @@ class Sinks:
 
 
 class McapSink(Sink):
-    """Raw and corrected streams, errors, events, commands and health to rotating MCAP files (service.io.recordings)."""
+    """Raw and corrected streams, errors, events, commands and health to rotating MCAP files (fluxcal.service.io.recordings)."""
 
     name = "recording"
 
@@ -170,7 +170,7 @@ class McapSink(Sink):
 
 
 class BusSink(Sink):
-    """The streams published on Zenoh (service.io.bus.ServiceBus); the bus also takes commands and state queries,
+    """The streams published on Zenoh (fluxcal.service.io.bus.ServiceBus); the bus also takes commands and state queries,
     which the daemon reads from it directly. What a turn of the loop publishes goes out together at its on_flush."""
 
     name = "bus"

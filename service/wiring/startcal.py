@@ -7,9 +7,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Callable
 
-from drivers.errors import ConfigError, DataError
-from service.io.calfile import load_calibration, save_calibration
-from service.numerics.calib.plausible import check_calibration
+from fluxcal.drivers.errors import ConfigError, DataError
+from fluxcal.service.io.calfile import load_calibration, save_calibration
+from fluxcal.service.numerics.calib.plausible import check_calibration
 
 from .config import FluxcalConfig
 from .identity import check_identity, judge_on_data, unit_identity
@@ -32,8 +32,8 @@ def stamp(cal: Any, cfg: FluxcalConfig, applied: bool) -> None:
 
 def check_for_unit(cal: Any, cfg: FluxcalConfig) -> None:
     """The one check a calibration passes before the service uses it, by `apply`, reload or calibration.initial:
-    made for this unit (service.wiring.identity: its name, its probes' serial numbers), this unit's probes and
-    physics (service.numerics.calib.plausible), and no effect terms (the service takes those by `add-effect`,
+    made for this unit (fluxcal.service.wiring.identity: its name, its probes' serial numbers), this unit's probes and
+    physics (fluxcal.service.numerics.calib.plausible), and no effect terms (the service takes those by `add-effect`,
     refitted on its own window: from a file they would be silently dropped). `apply` is also judged on the data
     (identity.judge_on_data), which only the running service has."""
     check_identity(cal, cfg)
@@ -97,9 +97,9 @@ def calibration_from_payload(payload: Any, cfg: FluxcalConfig | None = None):
     """The calibration an `apply` carries: its JSON content, never a path (a command from the network reads
     no file on this host: anything that is not a JSON object is refused before any filesystem access, with
     the same answer whether or not such a file exists). Bounded in size and depth; checked against this unit
-    and physics (service.numerics.calib.plausible) when `cfg` is given; effect terms are refused (the running
+    and physics (fluxcal.service.numerics.calib.plausible) when `cfg` is given; effect terms are refused (the running
     service takes effects by `add-effect`, refitted on its own window)."""
-    from service.io.calfile import MAX_CALIBRATION_BYTES, calibration_from_json, excerpt
+    from fluxcal.service.io.calfile import MAX_CALIBRATION_BYTES, calibration_from_json, excerpt
 
     if isinstance(payload, (bytes, bytearray)):
         try:

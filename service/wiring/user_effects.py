@@ -17,8 +17,8 @@ import sys
 from importlib.metadata import entry_points
 from pathlib import Path
 
-from drivers.errors import ConfigError
-from service.numerics.effects import known_effects, register_effect
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.numerics.effects import known_effects, register_effect
 
 GROUP = "fluxcal.effects"
 

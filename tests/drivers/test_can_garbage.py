@@ -19,14 +19,14 @@ import can
 import numpy as np
 import pytest
 
-from drivers import icd
-from drivers.can_source import CanSource
-from drivers.registry import source_kind
-from drivers.slcan import parse_line
-from service.wiring.config import load_config
-from service.wiring.daemon import Daemon
-from service.wiring.faults import FaultWatch
-from service.wiring.sinks import Sink
+from fluxcal.drivers import icd
+from fluxcal.drivers.can_source import CanSource
+from fluxcal.drivers.registry import source_kind
+from fluxcal.drivers.slcan import parse_line
+from fluxcal.service.wiring.config import load_config
+from fluxcal.service.wiring.daemon import Daemon
+from fluxcal.service.wiring.faults import FaultWatch
+from fluxcal.service.wiring.sinks import Sink
 
 RATE_HZ = 200.0
 #: the counters among which every frame or line received is counted exactly once
@@ -55,7 +55,7 @@ def test_the_red_teams_lines_are_counted_by_kind_never_raised():
 
 
 def test_slcan_on_a_pty_counts_garbled_lines_and_keeps_the_samples(pty_port):
-    """The adapter on a pty, read by CanSource through python-can's slcan interface (drivers.slcan): the samples
+    """The adapter on a pty, read by CanSource through python-can's slcan interface (fluxcal.drivers.slcan): the samples
     between the garbage arrive whole, and each line is counted once as what it is."""
     port = pty_port()
     src = CanSource(interface="slcan", channel=port.path, n_probes=2, rate_hz=RATE_HZ,

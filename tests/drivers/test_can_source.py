@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from helpers import read_samples
 
-from drivers.assemble import CanAssembler, CanSamples, can_icd_counters
-from drivers.can_source import CanConfig, CanSource, open_source
-from drivers.config import load_section
-from drivers.errors import ConfigError, DriverError
-from drivers.source import open_source as open_source_by_kind
+from fluxcal.drivers.assemble import CanAssembler, CanSamples, can_icd_counters
+from fluxcal.drivers.can_source import CanConfig, CanSource, open_source
+from fluxcal.drivers.config import load_section
+from fluxcal.drivers.errors import ConfigError, DriverError
+from fluxcal.drivers.source import open_source as open_source_by_kind
 
 RATE_HZ = 500.0
 
@@ -267,7 +267,7 @@ def test_slcan_over_a_pty(icd_truth, pty_port):
 
 
 def test_rate_estimate_from_log_timestamps():
-    from drivers.can_source import estimate_rate_hz
+    from fluxcal.drivers.can_source import estimate_rate_hz
 
     rng = np.random.default_rng(0)
     seq = np.arange(1000, 3000)

@@ -33,23 +33,23 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers import icd
-from drivers.assemble import FrameAssembler, SerialFramer, serial_icd_counters
-from drivers.block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock
-from drivers.can_source import CanSource
-from drivers.config import load_section
-from drivers.errors import FluxcalError, RecordingError
-from drivers.serial_source import SerialSource
-from drivers.sim import FaultRecord, Unit, load_sim_config
-from drivers.sim.can_ports import CanEmitter
-from drivers.sim.ports import PtyEmitter
-from drivers.source import Counters
-from service.io.bus import BusClient, ServiceBus, ZenohConfig, open_session
-from service.io.encoding import encode_raw
-from service.io.recordings.reader import read_recording, repair_recording
-from service.io.recordings.writer import McapLogger
-from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
-from service.wiring.pipeline import Pipeline
+from fluxcal.drivers import icd
+from fluxcal.drivers.assemble import FrameAssembler, SerialFramer, serial_icd_counters
+from fluxcal.drivers.block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock
+from fluxcal.drivers.can_source import CanSource
+from fluxcal.drivers.config import load_section
+from fluxcal.drivers.errors import FluxcalError, RecordingError
+from fluxcal.drivers.serial_source import SerialSource
+from fluxcal.drivers.sim import FaultRecord, Unit, load_sim_config
+from fluxcal.drivers.sim.can_ports import CanEmitter
+from fluxcal.drivers.sim.ports import PtyEmitter
+from fluxcal.drivers.source import Counters
+from fluxcal.service.io.bus import BusClient, ServiceBus, ZenohConfig, open_session
+from fluxcal.service.io.encoding import encode_raw
+from fluxcal.service.io.recordings.reader import read_recording, repair_recording
+from fluxcal.service.io.recordings.writer import McapLogger
+from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from fluxcal.service.wiring.pipeline import Pipeline
 
 
 def sim_unit(**sim) -> Unit:
@@ -700,7 +700,7 @@ def test_zenoh_router_closed_and_reopened_on_the_same_port_relays_again(unit_mod
 
 _FROZEN_CLIENT = """
 import sys, time
-from service.io.bus import BusClient, ZenohConfig
+from fluxcal.service.io.bus import BusClient, ZenohConfig
 with BusClient(ZenohConfig.client(sys.argv[1]), "grad1", streams=["raw"], lossless=True) as c:
     print("ready", flush=True)
     while True:

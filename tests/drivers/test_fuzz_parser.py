@@ -8,8 +8,8 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers import icd
-from drivers.assemble import SerialFramer
+from fluxcal.drivers import icd
+from fluxcal.drivers.assemble import SerialFramer
 
 
 def frame_bytes(rng: np.random.Generator, k: int, n: int) -> list[bytes]:

@@ -8,7 +8,7 @@ import struct
 import numpy as np
 import pytest
 
-from drivers import icd
+from fluxcal.drivers import icd
 
 VECTOR = bytes.fromhex("a55a01010100e8030000010000" "00ffffffff80f0fa02c40900c334")
 

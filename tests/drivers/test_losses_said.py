@@ -27,24 +27,24 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers import icd
-from drivers.assemble import FrameAssembler, SerialFramer, can_icd_counters, serial_icd_counters
-from drivers.block import FLAG_IMPLAUSIBLE, FLAG_TEMP_INVALID, SampleBlock
-from drivers.config import load_section
-from drivers.errors import ConfigError
-from drivers.plausibility import Plausibility
-from drivers.serial_source import SerialConfig
-from drivers.sim import FaultRecord, Unit, load_sim_config
-from drivers.sim.unit import FLAG_RESERVED_SIM
-from drivers.registry import source_kind
-from drivers.source import Counters
-from service.io.bus import Message
-from service.wiring.dashboard.view import UnitView
-from service.wiring.faults import FaultWatch
-from service.wiring.status import StatusLog
+from fluxcal.drivers import icd
+from fluxcal.drivers.assemble import FrameAssembler, SerialFramer, can_icd_counters, serial_icd_counters
+from fluxcal.drivers.block import FLAG_IMPLAUSIBLE, FLAG_TEMP_INVALID, SampleBlock
+from fluxcal.drivers.config import load_section
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.drivers.plausibility import Plausibility
+from fluxcal.drivers.registry import source_kind
+from fluxcal.drivers.serial_source import SerialConfig
+from fluxcal.drivers.sim import FaultRecord, Unit, load_sim_config
+from fluxcal.drivers.sim.unit import FLAG_RESERVED_SIM
+from fluxcal.drivers.source import Counters
+from fluxcal.service.io.bus import Message
+from fluxcal.service.wiring.dashboard.view import UnitView
+from fluxcal.service.wiring.faults import FaultWatch
+from fluxcal.service.wiring.status import StatusLog
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("drivers.timeline",)
+COVERS = ("fluxcal.drivers.timeline",)
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -152,7 +152,7 @@ def test_a_stale_run_that_goes_on_is_taken_as_a_restart_and_a_long_loss_is_count
 
 
 def test_can_frames_repeated_are_counted_and_a_restart_keeps_time_going(icd_truth):
-    from drivers.assemble import CanAssembler, CanSamples
+    from fluxcal.drivers.assemble import CanAssembler, CanSamples
 
     a, b = icd_truth(50, 2, seq0=40_000), icd_truth(50, 2, seed=1, seq0=0)
     (ia, pa), (ib, pb) = a.can_frames(), b.can_frames()
@@ -228,7 +228,7 @@ def test_plausibility_keys_are_validated_naming_key_value_and_what_is_allowed():
 def test_fit_refuses_a_recording_whose_time_goes_back(tmp_path, capsys):
     from helpers import write_raw
 
-    from service.wiring.cli import main
+    from fluxcal.service.wiring.cli import main
 
     u = unit(duration_s=8.0)
     b = u.digitise(0, u.n_samples).to_block()
@@ -403,8 +403,8 @@ def run_service(tmp_path: Path, sim: dict, *, realtime: bool, run_s: float, unit
     (made again from the same configuration: the truth)."""
     from test_recording import service_config
 
-    from service.wiring.config import load_config
-    from service.wiring.daemon import Daemon
+    from fluxcal.service.wiring.config import load_config
+    from fluxcal.service.wiring.daemon import Daemon
 
     text = open(service_config(tmp_path, run_s=run_s, realtime=realtime)).read()
     faults = sim.pop("faults", {})
@@ -444,8 +444,8 @@ def run_service(tmp_path: Path, sim: dict, *, realtime: bool, run_s: float, unit
 
 def recorded(rec_dir: Path) -> tuple[SampleBlock, list[dict], dict[str, list[int]]]:
     """The recording's raw samples, its health messages and each channel's log times."""
-    from drivers.mcap_source import iter_records
-    from service.io.recordings.reader import read_recording
+    from fluxcal.drivers.mcap_source import iter_records
+    from fluxcal.service.io.recordings.reader import read_recording
 
     rec = read_recording(rec_dir)
     times: dict[str, list[int]] = {}
@@ -538,7 +538,7 @@ def test_a_pty_unit_with_bit_errors_repeats_a_restart_and_absurd_values_is_said_
         assert counts == sorted(counts) and (counts[-1] if counts else 0) <= truth[key]
 
     # fit takes the recording (time increases), without the flagged samples
-    from service.io.recordings.load import load_data
+    from fluxcal.service.io.recordings.load import load_data
 
     data = load_data(rec_dir)
     assert np.isnan(data.block.field_nT[(data.block.flags & FLAG_IMPLAUSIBLE) != 0]).all()
@@ -583,7 +583,7 @@ def test_a_pty_unit_read_at_a_wrong_baud_rate_then_silent_is_said_with_its_ends(
 
 @pytest.mark.slow
 def test_a_full_disk_is_said_as_it_begins_with_its_running_count_when_it_ends_and_at_stop(tmp_path, monkeypatch):
-    import service.io.recordings.writer as sink
+    import fluxcal.service.io.recordings.writer as sink
 
     monkeypatch.setattr(sink, "_RETRY_S", 0.5)
     real_open = sink._default_opener
@@ -613,7 +613,7 @@ def test_a_full_disk_is_said_as_it_begins_with_its_running_count_when_it_ends_an
 
     threading.Thread(target=disk, daemon=True).start()
     said, rec_dir, _ = run_service(tmp_path, {"seed": 33}, realtime=True, run_s=10.0)
-    from drivers.mcap_source import iter_records
+    from fluxcal.drivers.mcap_source import iter_records
 
     health = [json.loads(r.data) for r in iter_records(rec_dir) if r.topic.endswith("/health")]
     final = health[-1]

@@ -18,12 +18,12 @@ import pytest
 from helpers import assert_refused
 from mcap.reader import make_reader
 
-from drivers.block import FLAG_TEMP_INVALID, SampleBlock
-from drivers.errors import ConfigError, DriverError, RecordingError
-from drivers.mcap_source import McapSource, iter_records
-from drivers.source import open_source
-from service.io.recordings.reader import read_recording, repair_recording
-from service.io.recordings.writer import McapLogger
+from fluxcal.drivers.block import FLAG_TEMP_INVALID, SampleBlock
+from fluxcal.drivers.errors import ConfigError, DriverError, RecordingError
+from fluxcal.drivers.mcap_source import McapSource, iter_records
+from fluxcal.drivers.source import open_source
+from fluxcal.service.io.recordings.reader import read_recording, repair_recording
+from fluxcal.service.io.recordings.writer import McapLogger
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -188,8 +188,8 @@ WRITER = textwrap.dedent("""
     import sys, time
     import numpy as np
     sys.path.insert(0, {root!r})
-    from drivers.block import SampleBlock
-    from service.io.recordings.writer import McapLogger
+    from fluxcal.drivers.block import SampleBlock
+    from fluxcal.service.io.recordings.writer import McapLogger
     log = McapLogger({out!r}, unit="u", flush_interval_s=0.2, metadata={{"probe_names": ["a", "b"]}})
     rng = np.random.default_rng(5)
     for i in range(100000):
@@ -272,8 +272,8 @@ def test_the_chunk_reader_gives_the_mcap_librarys_records(tmp_path):
     from mcap.records import Chunk
     from mcap.stream_reader import StreamReader, breakup_chunk
 
-    from drivers.mcap_records import chunk_records as _chunk_records
-    from service.io.recordings.writer import McapLogger
+    from fluxcal.drivers.mcap_records import chunk_records as _chunk_records
+    from fluxcal.service.io.recordings.writer import McapLogger
 
     for compression in ("lz4", "zstd", "none"):
         log = McapLogger(tmp_path, unit="u", filename=f"c-{compression}.mcap", compression=compression,
@@ -296,7 +296,7 @@ def test_the_chunk_reader_refuses_malformed_records_inside_a_chunk():
 
     from mcap.records import Chunk, Message
 
-    from drivers.mcap_records import chunk_records as _chunk_records
+    from fluxcal.drivers.mcap_records import chunk_records as _chunk_records
 
     def chunk(data: bytes) -> Chunk:
         return Chunk(compression="", data=data, message_start_time=0, message_end_time=0, uncompressed_crc=0,
@@ -315,9 +315,9 @@ def test_the_chunk_reader_refuses_malformed_records_inside_a_chunk():
 def test_whole_recordings_are_decoded_a_bounded_batch_at_a_time(tmp_path, monkeypatch):
     # read_recording and read_samples hold at most RAW_BATCH_BYTES of undecoded messages (a recording of large
     # messages, as `simulate` writes, was once held twice over: fit of an hour at 1 kHz x 4 peaked at 2.3 GB)
-    from drivers.encoding import encode_raw
-    from service.io.recordings import reader
-    from service.io.recordings.writer import McapLogger
+    from fluxcal.drivers.encoding import encode_raw
+    from fluxcal.service.io.recordings import reader
+    from fluxcal.service.io.recordings.writer import McapLogger
 
     bs = blocks(10, n=1000)
     log = McapLogger(tmp_path, unit="u", filename="big.mcap")

@@ -1,4 +1,4 @@
-"""The declarations of the kinds of input and where they are found (drivers.declare, drivers.registry, issue 41):
+"""The declarations of the kinds of input and where they are found (fluxcal.drivers.declare, fluxcal.drivers.registry, issue 41):
 a declaration that cannot stand is refused when it is registered, naming what is wrong; an installed package's
 entry point adds a kind or a protocol; a source's counters are exactly its declaration's; the simulator's
 transports come from the kinds that read them."""
@@ -13,17 +13,27 @@ from types import SimpleNamespace
 
 import pytest
 
-from drivers.config import spec
-from drivers.declare import Counted, Protocol, SourceKind, SourceTable, Transport, Words
-from drivers.errors import ConfigError
-from drivers.registry import (default_kind, forget_kind, forget_protocol, kinds, load_installed, register_kind,
-                              register_protocol, source_kind, transport, transports)
-from drivers.source import Counters
-from service.wiring.config import config_from_dict
+from fluxcal.drivers.config import spec
+from fluxcal.drivers.declare import Counted, Protocol, SourceKind, SourceTable, Transport, Words
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.drivers.registry import (
+    default_kind,
+    forget_kind,
+    forget_protocol,
+    kinds,
+    load_installed,
+    register_kind,
+    register_protocol,
+    source_kind,
+    transport,
+    transports,
+)
+from fluxcal.drivers.source import Counters
+from fluxcal.service.wiring.config import config_from_dict
 
 #: fluxcal's own declarations, found and read here (their words are said in tests/wiring/test_source_kinds.py)
-COVERS = ("drivers.kinds._icd", "drivers.kinds.can", "drivers.kinds.replay", "drivers.kinds.serial",
-          "drivers.kinds.sim")
+COVERS = ("fluxcal.drivers.kinds._icd", "fluxcal.drivers.kinds.can", "fluxcal.drivers.kinds.replay", "fluxcal.drivers.kinds.serial",
+          "fluxcal.drivers.kinds.sim")
 
 
 @dataclass(kw_only=True)
@@ -79,24 +89,24 @@ def test_a_declaration_that_cannot_stand_is_refused_naming_why(restored):
     with pytest.raises(ConfigError, match=r"source.protocol: 'icd' is not allowed \(allowed: none: source kind "
                                           r"'plain' has no protocols\)"):
         PLAIN.protocol("icd")
-    with pytest.raises(ConfigError, match=r"its config .* is no dataclass deriving drivers.declare.SourceTable"):
+    with pytest.raises(ConfigError, match=r"its config .* is no dataclass deriving fluxcal.drivers.declare.SourceTable"):
         register_kind(SourceKind("other", "x", config=dict, factory=print)).load({})
 
 
 def test_an_installed_package_adds_a_kind_and_a_protocol(restored, monkeypatch):
-    extra = Protocol("extra", "another way of framing", decoder="drivers.can_source:CanIcd", kind="can")
+    extra = Protocol("extra", "another way of framing", decoder="fluxcal.drivers.can_source:CanIcd", kind="can")
     points = [SimpleNamespace(name="plain", value="pkg:PLAIN", load=lambda: PLAIN),
               SimpleNamespace(name="extra", value="pkg:EXTRA", load=lambda: extra)]
-    monkeypatch.setattr("drivers.registry.entry_points", lambda group: points if group == "fluxcal.sources" else [])
+    monkeypatch.setattr("fluxcal.drivers.registry.entry_points", lambda group: points if group == "fluxcal.sources" else [])
     assert load_installed() == ["plain", "can/extra"] and load_installed() == ["plain", "can/extra"]
     cfg = config_from_dict({"unit": {"n_probes": 2}, "source": {"kind": "can", "protocol": "extra", "channel": "x",
                                                                 "n_probes": 2, "rate_hz": 100.0}})
     assert (cfg.source.kind, cfg.source.protocol, cfg.calibration.file) == ("can", "extra", "state/unit1-can-cal.json")
     assert config_from_dict({"source": {"kind": "plain"}}).source.rate_hz == 10.0
     bad = [SimpleNamespace(name="bad", value="pkg:BAD", load=lambda: "not a kind")]
-    monkeypatch.setattr("drivers.registry.entry_points", lambda group: bad)
+    monkeypatch.setattr("fluxcal.drivers.registry.entry_points", lambda group: bad)
     with pytest.raises(ConfigError, match=r"entry point fluxcal.sources bad = 'pkg:BAD': not a "
-                                          r"drivers.declare.SourceKind nor a Protocol naming its kind"):
+                                          r"fluxcal.drivers.declare.SourceKind nor a Protocol naming its kind"):
         load_installed()
 
 
@@ -114,8 +124,8 @@ def test_a_sources_counters_are_its_declarations_and_no_other():
 
 
 def test_the_simulators_transports_are_the_kinds_own(tmp_path):
-    """`python -m drivers.sim` serves the transports that can reach another process, by the name their kind gives."""
-    out = subprocess.run([sys.executable, "-m", "drivers.sim", "--help"], capture_output=True, text=True, timeout=60)
+    """`python -m fluxcal.drivers.sim` serves the transports that can reach another process, by the name their kind gives."""
+    out = subprocess.run([sys.executable, "-m", "fluxcal.drivers.sim", "--help"], capture_output=True, text=True, timeout=60)
     assert "--transport{slcan,pty}" in out.stdout.replace("\n", "").replace(" ", "")
     with pytest.raises(ConfigError, match=r"source.transport: 'usb' is not allowed"):
         config_from_dict({"source": {"kind": "sim", "transport": "usb"}})

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.block import SampleBlock
-from drivers.ringbuffer import RingBuffer
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.ringbuffer import RingBuffer
 
 
 def block(seq: np.ndarray, n_probes: int = 2, ref: bool = False) -> SampleBlock:

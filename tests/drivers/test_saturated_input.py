@@ -10,15 +10,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.block import FLAG_SATURATED, FLAG_TEMP_INVALID
-from drivers.sim import Unit
-from service.io.recordings.labdata import load_csv
-from service.io.recordings.reader import read_recording
-from service.wiring.cli import main as cli
-from service.wiring.commands.simulate import load_simulation
+from fluxcal.drivers.block import FLAG_SATURATED, FLAG_TEMP_INVALID
+from fluxcal.drivers.sim import Unit
+from fluxcal.service.io.recordings.labdata import load_csv
+from fluxcal.service.io.recordings.reader import read_recording
+from fluxcal.service.wiring.cli import main as cli
+from fluxcal.service.wiring.commands.simulate import load_simulation
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.numerics.usable",)
+COVERS = ("fluxcal.service.numerics.usable",)
 
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "sim-gradiometer.toml"
 
@@ -188,7 +188,7 @@ def test_a_simulated_mcap_cut_to_80_percent_keeps_most_samples(tmp_path, capsys)
 def test_non_finite_time_or_reference_is_still_refused(tmp_path, bad):
     p = tmp_path / "x.csv"
     p.write_text(f"t,s1_x,s1_y,s1_z,ref_total\n0,1,2,3,50000\n1,1,2,3,{bad}\n")
-    from drivers.errors import DataError
+    from fluxcal.drivers.errors import DataError
 
     with pytest.raises(DataError, match=r"line 3, column 'ref_total'.*only probe axes and temperatures may be NaN"):
         load_csv(p)

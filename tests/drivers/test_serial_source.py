@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 from helpers import read_samples
 
-from drivers import icd
-from drivers.block import FLAG_TEMP_INVALID, SampleBlock
-from drivers.config import load_section
-from drivers.errors import ConfigError, DriverError
-from drivers.serial_source import SerialConfig, SerialSource, open_source
-from drivers.source import open_source as open_source_by_kind
+from fluxcal.drivers import icd
+from fluxcal.drivers.block import FLAG_TEMP_INVALID, SampleBlock
+from fluxcal.drivers.config import load_section
+from fluxcal.drivers.errors import ConfigError, DriverError
+from fluxcal.drivers.serial_source import SerialConfig, SerialSource, open_source
+from fluxcal.drivers.source import open_source as open_source_by_kind
 
 LSB_NT = 0.001
 

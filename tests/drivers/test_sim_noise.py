@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.signal import welch
 
-from drivers.sim import Unit, load_sim_config
+from fluxcal.drivers.sim import Unit, load_sim_config
 
 
 def unit(seed: int, *, pink=0.0, variation=0.0, duration=2000.0, rate=50.0, reference=False) -> Unit:
@@ -72,8 +72,8 @@ def test_ambient_variation_is_common_to_all_probes_with_its_rms(seed):
 
 
 def test_thermal_lag_core_temperature_solves_its_equation():
-    from drivers.sim.config import TemperatureConfig
-    from drivers.sim.world import TemperatureProfile
+    from fluxcal.drivers.sim.config import TemperatureConfig
+    from fluxcal.drivers.sim.world import TemperatureProfile
 
     prof = TemperatureProfile(TemperatureConfig(start_C=20.0, ramp_C_per_h=30.0, amplitude_C=4.0, period_s=500.0))
     t = np.arange(0.0, 3000.0, 0.05)

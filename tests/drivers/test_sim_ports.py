@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 import serial
 
-from drivers.errors import ConfigError
-from drivers.icd import decode_can, frame_length, parse_serial
-from drivers.sim import FaultRecord, Unit, load_sim_config
-from drivers.sim.can_ports import CanEmitter, SlcanEmitter, slcan_lines
-from drivers.sim.ports import PtyEmitter
-from drivers.sim.source import SimSource
-from drivers.source import open_source
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.drivers.icd import decode_can, frame_length, parse_serial
+from fluxcal.drivers.sim import FaultRecord, Unit, load_sim_config
+from fluxcal.drivers.sim.can_ports import CanEmitter, SlcanEmitter, slcan_lines
+from fluxcal.drivers.sim.ports import PtyEmitter
+from fluxcal.drivers.sim.source import SimSource
+from fluxcal.drivers.source import open_source
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -316,7 +316,7 @@ def test_runner_serves_another_process(tmp_path):
     cfg = tmp_path / "sim.toml"
     cfg.write_text('[sim]\nseed = 5\nrate_hz = 100.0\nduration_s = 1.0\n'
                    '[[sim.probes]]\nposition_m = [0.0, 0.0, 0.0]\nnoise_nT = 0.5\n')
-    proc = subprocess.Popen([sys.executable, "-m", "drivers.sim", "--config", str(cfg), "--transport", "pty", "--fast",
+    proc = subprocess.Popen([sys.executable, "-m", "fluxcal.drivers.sim", "--config", str(cfg), "--transport", "pty", "--fast",
                              "--truth", str(tmp_path / "truth.json"), "--record", str(tmp_path / "record.npz")], cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
@@ -403,7 +403,7 @@ def test_fault_record_holds_indices_not_an_array_per_batch():
 def test_transports_through_the_real_drivers(transport):
     """The sim source over the wire: the serial/CAN driver yields exactly the world's samples, less those
     the fault record says were corrupted or dropped on purpose."""
-    from drivers.block import SampleBlock
+    from fluxcal.drivers.block import SampleBlock
 
     u = unit(duration_s=1.0, seq_start=65400,
              faults={"bitflip_fraction": 0.02, "garbage_fraction": 0.02, "can_drop_fraction": 0.01})

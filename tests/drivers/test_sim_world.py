@@ -9,11 +9,11 @@ import warnings
 import numpy as np
 import pytest
 
-from drivers.block import FLAG_SATURATED, FLAG_TEMP_INVALID
-from drivers.errors import ConfigError
-from drivers.sim import Unit, World, load_sim_config
-from drivers.sim.config import GRADIOMETER
-from drivers.sim.motion import (
+from fluxcal.drivers.block import FLAG_SATURATED, FLAG_TEMP_INVALID
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.drivers.sim import Unit, World, load_sim_config
+from fluxcal.drivers.sim.config import GRADIOMETER
+from fluxcal.drivers.sim.motion import (
     attitude_from_euler_deg,
     geomagnetic_field_nT,
     misalignment_matrix,
@@ -22,7 +22,7 @@ from drivers.sim.motion import (
 )
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("drivers.sim.physics",)
+COVERS = ("fluxcal.drivers.sim.physics",)
 
 F, INC, DEC = 50000.0, 62.0, -4.0
 

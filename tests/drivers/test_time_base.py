@@ -14,15 +14,22 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers import icd
-from drivers.assemble import (CanAssembler, CanSamples, FrameAssembler, SeqGapCounter, SerialFramer,
-                              can_icd_counters, serial_icd_counters)
-from drivers.registry import source_kind
-from drivers.source import Counters
-from service.wiring.faults import FaultWatch
+from fluxcal.drivers import icd
+from fluxcal.drivers.assemble import (
+    CanAssembler,
+    CanSamples,
+    FrameAssembler,
+    SeqGapCounter,
+    SerialFramer,
+    can_icd_counters,
+    serial_icd_counters,
+)
+from fluxcal.drivers.registry import source_kind
+from fluxcal.drivers.source import Counters
+from fluxcal.service.wiring.faults import FaultWatch
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("drivers.can_unwrap",)
+COVERS = ("fluxcal.drivers.can_unwrap",)
 
 PERIOD_US = 5000           # 200 Hz
 N = 2

@@ -46,7 +46,7 @@ pytestmark = pytest.mark.slow
 
 def start_dashboard(*argv: str) -> tuple[subprocess.Popen, str]:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "dashboard", "--listen", "127.0.0.1:0",
+    proc = subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", "dashboard", "--listen", "127.0.0.1:0",
                              "--seconds", "120", *argv], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
                             text=True, env=env)
     line = proc.stderr.readline()
@@ -96,7 +96,7 @@ def test_page_updates_shows_the_calibration_round_trips_commands_and_sees_the_un
     cfg = write_config(tmp_path, port)
     text = Path(cfg).read_text().replace("realtime = false", "realtime = true").replace("run_s = 40.0", "run_s = 90.0")
     Path(cfg).write_text(text)
-    svc = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "run", "--config", cfg],
+    svc = subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", "run", "--config", cfg],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
     dash, url = start_dashboard("--connect", f"tcp/127.0.0.1:{port}")
@@ -248,7 +248,7 @@ def test_a_page_of_another_origin_cannot_command_the_dashboard(tmp_path, browser
     the dashboard's own page still commands it."""
     from test_dashboard_security import RecordingUnit
 
-    from service.wiring.dashboard import DashboardServer, Hub
+    from fluxcal.service.wiring.dashboard import DashboardServer, Hub
 
     unit = RecordingUnit()
     hub = Hub([unit.ep], ["u1"]).start()
@@ -303,7 +303,7 @@ def test_a_read_only_dashboard_says_why_its_buttons_are_greyed(browser):
     """Issue 28: a read-only dashboard greyed its buttons without saying why. Issue 27: it refuses diagnose."""
     from test_dashboard_security import RecordingUnit
 
-    from service.wiring.dashboard import DashboardServer, Hub
+    from fluxcal.service.wiring.dashboard import DashboardServer, Hub
 
     unit = RecordingUnit()
     hub = Hub([unit.ep], ["u1"]).start()

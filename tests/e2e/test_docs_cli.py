@@ -14,7 +14,7 @@ FLUXCAL = Path(sys.executable).parent / "fluxcal"
 
 
 def help_text(*argv: str) -> str:
-    cmd = [str(FLUXCAL)] if FLUXCAL.exists() else [sys.executable, "-m", "service.wiring.cli"]
+    cmd = [str(FLUXCAL)] if FLUXCAL.exists() else [sys.executable, "-m", "fluxcal.service.wiring.cli"]
     out = subprocess.run([*cmd, *argv, "--help"], capture_output=True, text=True, timeout=60,
                          env=dict(os.environ, COLUMNS="200"))
     assert out.returncode == 0, out.stderr

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers import icd
+from fluxcal.drivers import icd
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -42,7 +42,7 @@ def test_the_zenoh_snippet_runs_against_a_service_that_started_from_a_saved_cali
 
     from test_watch import free_port
 
-    from service.io.bus import ServiceBus, ZenohConfig
+    from fluxcal.service.io.bus import ServiceBus, ZenohConfig
 
     text = (ROOT / "docs" / "zenoh.md").read_text()
     snippet = re.search(r"\n((?: {4}.*\n)+)", text[text.index("From Python:"):]).group(1)

@@ -17,15 +17,17 @@ MAX_CLASS_LINES = 200
 
 #: what each wing may not import (module name prefixes); drivers' sources talk to hardware and files
 FORBIDDEN = {
-    "numerics": ("service.io", "service.wiring", "zenoh", "mcap", "serial", "can",
-                 "drivers.source", "drivers.serial_source", "drivers.can_source", "drivers.mcap_source",
-                 "drivers.sim", "drivers.config", "matplotlib", "socket", "threading", "subprocess"),
-    "io": ("service.wiring",),
+    "numerics": ("fluxcal.service.io", "fluxcal.service.wiring", "zenoh", "mcap", "serial", "can",
+                 "fluxcal.drivers.source", "fluxcal.drivers.serial_source", "fluxcal.drivers.can_source", "fluxcal.drivers.mcap_source",
+                 "fluxcal.drivers.sim", "fluxcal.drivers.config", "matplotlib", "socket", "threading", "subprocess"),
+    "io": ("fluxcal.service.wiring",),
 }
 
 
 def _module_name(path: Path) -> str:
+    """service/io/bus/desk.py -> fluxcal.service.io.bus.desk (pyproject.toml maps the folders into fluxcal)."""
     parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    parts = ["fluxcal", *parts] if parts[0] in ("service", "drivers") else parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
@@ -44,7 +46,7 @@ def _imports(path: Path) -> list[tuple[int, str]]:
             else:
                 name = node.module or ""
             found.append((node.lineno, name))
-            # `from service.io import calfile` names a module in the import list
+            # `from fluxcal.service.io import calfile` names a module in the import list
             found += [(node.lineno, f"{name}.{alias.name}") for alias in node.names]
         elif (isinstance(node, ast.Call) and getattr(node.func, "attr", getattr(node.func, "id", "")) == "import_module"
               and node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
@@ -72,14 +74,25 @@ def test_the_rule_catches_a_forbidden_import(tmp_path, monkeypatch):
     fake = tmp_path / "service" / "numerics" / "calib"
     fake.mkdir(parents=True)
     (fake / "bad.py").write_text("from ...io.bus import BusClient\nimport importlib\n"
-                                 "importlib.import_module('service.wiring.daemon')\n")
+                                 "importlib.import_module('fluxcal.service.wiring.daemon')\n")
     monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
     monkeypatch.setattr(sys.modules[__name__], "SERVICE", tmp_path / "service")
     assert _violations("numerics") == [
-        "service/numerics/calib/bad.py:1 imports service.io.bus",
-        "service/numerics/calib/bad.py:1 imports service.io.bus.BusClient",
-        "service/numerics/calib/bad.py:3 imports service.wiring.daemon",
+        "service/numerics/calib/bad.py:1 imports fluxcal.service.io.bus",
+        "service/numerics/calib/bad.py:1 imports fluxcal.service.io.bus.BusClient",
+        "service/numerics/calib/bad.py:3 imports fluxcal.service.wiring.daemon",
     ]
+
+
+def test_no_code_imports_the_folders_as_top_level_packages():
+    """Installed, service/ and drivers/ are fluxcal.service and fluxcal.drivers (issue 39): a module, test, benchmark,
+    tool or example that imports `service` or `drivers` would work in a checkout run from its root and fail installed."""
+    bad = []
+    for top in ("fluxcal", "service", "drivers", "tests", "bench", "tools", "docs"):
+        for path in sorted((ROOT / top).rglob("*.py")):
+            bad += [f"{path.relative_to(ROOT)}:{line} imports {name}" for line, name in _imports(path)
+                    if name.split(".")[0] in ("service", "drivers")]
+    assert bad == []
 
 
 def _documented_exceptions() -> set[str]:

@@ -1,7 +1,7 @@
 """One home per input (issue 41): a source kind, its protocols, clock, simulator transports and counters are declared
 once, in drivers/kinds/, and nothing else in the package lists the kinds or the transports, compares a kind with a
 name, or defaults one by name; the example configurations name no list of them either; docs/sources.md shows what
-the declarations say. Before, the list of kinds was written out in seven places (drivers.source.SOURCES,
+the declarations say. Before, the list of kinds was written out in seven places (fluxcal.drivers.source.SOURCES,
 config._SOURCE_CONFIGS, config.SOURCE_KINDS, two "allowed: ..." messages, rate_stated's tuple, the daemon's port
 keys, RateCheck's kind == "can") and the transports twice."""
 
@@ -11,7 +11,7 @@ import ast
 import re
 from pathlib import Path
 
-from drivers.registry import kinds, markdown, transports
+from fluxcal.drivers.registry import kinds, markdown, transports
 
 ROOT = Path(__file__).resolve().parents[2]
 DECLARATIONS = ROOT / "drivers" / "kinds"
@@ -69,7 +69,7 @@ def test_no_code_names_a_kind_outside_its_declaration():
 def test_the_check_finds_the_lists_there_were():
     """The lines the house held before, each found."""
     before = {
-        'SOURCES = {"serial": "drivers.serial_source:open_source", "can": "drivers.can_source:open_source"}': "maps",
+        'SOURCES = {"serial": "fluxcal.drivers.serial_source:open_source", "can": "fluxcal.drivers.can_source:open_source"}': "maps",
         'SOURCE_KINDS = ("serial", "can", "sim", "replay")': "lists",
         "raise ConfigError(f\"source.kind: {kind!r} is not allowed (allowed: 'sim', 'serial', 'can', 'replay')\")":
             "says",
@@ -97,10 +97,10 @@ def test_the_example_configurations_list_no_kinds():
 
 def test_docs_sources_is_what_the_declarations_say():
     text = (ROOT / "docs" / "sources.md").read_text()
-    mark = "<!-- kinds: python -m drivers.registry -->\n"
+    mark = "<!-- kinds: python -m fluxcal.drivers.registry -->\n"
     start = text.index(mark) + len(mark)
     end = text.index("<!-- end of kinds -->")
-    assert text[start:end] == markdown(), "run `python -m drivers.registry` and paste it into docs/sources.md"
+    assert text[start:end] == markdown(), "run `python -m fluxcal.drivers.registry` and paste it into docs/sources.md"
 
 
 def test_the_architecture_says_where_each_new_thing_goes():

@@ -36,7 +36,7 @@ def run(argv: list[str]) -> dict:
     import contextlib
     import io
 
-    from service.wiring.cli import main
+    from fluxcal.service.wiring.cli import main
 
     out = io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
@@ -62,7 +62,7 @@ def _same(a, b, rel: float, path: str = "") -> list[str]:
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_the_outputs_are_the_golden_ones(name, monkeypatch):
-    from service.io.recordings.arithmetic import arithmetic_differences, machine_arithmetic
+    from fluxcal.service.io.recordings.arithmetic import arithmetic_differences, machine_arithmetic
 
     monkeypatch.chdir(ROOT)
     golden = json.loads((GOLDEN / f"{name}.json").read_text())
@@ -75,7 +75,7 @@ def test_the_outputs_are_the_golden_ones(name, monkeypatch):
 
 
 def write_golden() -> None:
-    from service.io.recordings.arithmetic import machine_arithmetic
+    from fluxcal.service.io.recordings.arithmetic import machine_arithmetic
 
     GOLDEN.mkdir(exist_ok=True)
     for name, argv in CASES.items():

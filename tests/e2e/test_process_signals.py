@@ -18,7 +18,7 @@ from mcap.reader import make_reader
 from test_recording import service_config
 from test_zenoh_security import free_port
 
-from service.io.bus import BusClient, ZenohConfig
+from fluxcal.service.io.bus import BusClient, ZenohConfig
 
 
 def _config(tmp_path: Path) -> tuple[str, str]:
@@ -32,7 +32,7 @@ def _config(tmp_path: Path) -> tuple[str, str]:
 
 
 def _start(cfg: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "run", "--config", cfg],
+    return subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", "run", "--config", cfg],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 

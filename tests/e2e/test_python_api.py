@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 import fluxcal
-from service.wiring.cli import main
+from fluxcal.service.wiring.cli import main
 
 ROOT = Path(__file__).resolve().parents[2]
 #: what this file tests besides what it imports (tests/index.py)
-COVERS = ("service.wiring.api", "service.io.report.notebook")
+COVERS = ("fluxcal.service.wiring.api", "fluxcal.service.io.report.notebook")
 
 
 def cli_json(*argv: str) -> dict:
@@ -82,7 +82,7 @@ def test_a_result_draws_itself_in_a_notebook():
 
 
 def test_an_option_of_read_given_to_fit_with_data_is_refused_and_named():
-    from drivers.errors import DataError
+    from fluxcal.drivers.errors import DataError
 
     data = fluxcal.read(str(ROOT / "recordings" / "grad1-sim-30s.mcap"))
     with pytest.raises(DataError, match="config: options of read"):

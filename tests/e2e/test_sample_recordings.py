@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from service.io.recordings.reader import read_recording
-from service.wiring.cli import main
+from fluxcal.service.io.recordings.reader import read_recording
+from fluxcal.service.wiring.cli import main
 
 
 def test_sample_recording_replays_within_the_rounding_tolerance_of_its_conditioning(capsys):

@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from service.io.bus import BusClient, ZenohConfig
+from fluxcal.service.io.bus import BusClient, ZenohConfig
 
 pytestmark = pytest.mark.slow
 
@@ -60,7 +60,7 @@ def write_config(tmp_path, port: int, transport: str = "pty") -> str:
 
 def run_service(cfg_path: str):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    return subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "run", "--config", cfg_path],
+    return subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", "run", "--config", cfg_path],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True)
 
 

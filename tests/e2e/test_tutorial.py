@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.numerics.effects import _REGISTERED
-from service.wiring.cli import main
+from fluxcal.service.numerics.effects import _REGISTERED
+from fluxcal.service.wiring.cli import main
 
 ROOT = Path(__file__).resolve().parents[2]
 TUTORIAL = ROOT / "docs" / "tutorial-own-effect.md"
@@ -106,9 +106,9 @@ def test_the_running_service_takes_the_pump_from_its_plugins(tmp_path, clean_reg
     """Section 4: a configuration naming the plugin, the pipeline of `fluxcal run` (build_pipeline), the
     recording fed block by block, `add-effect pump` once the calibration is usable: s2's error falls to its
     noise."""
-    from service.io.recordings.reader import read_recording
-    from service.wiring.config import load_config
-    from service.wiring.daemon import build_pipeline
+    from fluxcal.service.io.recordings.reader import read_recording
+    from fluxcal.service.wiring.config import load_config
+    from fluxcal.service.wiring.daemon import build_pipeline
 
     cfg_path = pump_config(tmp_path, f"{ROOT / 'docs' / 'examples' / 'pump.py'}:Pump")
     cfg = load_config(cfg_path)

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from test_tutorial import pump_config
 
-from service.wiring.cli import main
+from fluxcal.service.wiring.cli import main
 
 ROOT = Path(__file__).resolve().parents[2]
 TUTORIAL = ROOT / "docs" / "tutorial-discover.md"
@@ -64,11 +64,11 @@ def _service_and_dashboard(tmp_path: Path, effect: Path) -> tuple[float, float]:
     """The recording through the pipeline of `fluxcal run` (build_pipeline, the [effects] plugin named), block by
     block; `add-effect found-pump` once usable; each block's error message to the dashboard's view of the unit, whose
     10-s table is read just before the command and at the end."""
-    from service.io.bus import Message
-    from service.io.recordings.reader import read_recording
-    from service.wiring.config import load_config
-    from service.wiring.daemon import build_pipeline
-    from service.wiring.dashboard.view import UnitView
+    from fluxcal.service.io.bus import Message
+    from fluxcal.service.io.recordings.reader import read_recording
+    from fluxcal.service.wiring.config import load_config
+    from fluxcal.service.wiring.daemon import build_pipeline
+    from fluxcal.service.wiring.dashboard.view import UnitView
 
     cfg_path = pump_config(tmp_path, f"{effect}:FoundPump")
     pl = build_pipeline(load_config(cfg_path))

@@ -18,10 +18,10 @@ pytest.importorskip("pymavlink", reason="the ArduPilot reader's optional package
 from flightlogs import CURRENT_COUPLING_NT_A, simulated_flight, write_dataflash
 from real_data import needs_real, real
 
-from drivers.errors import DataError
-from service.io.recordings.ardupilot import ArduPilotMapping, inspect_ardupilot
-from service.io.recordings.load import load_data
-from service.wiring import cli
+from fluxcal.drivers.errors import DataError
+from fluxcal.service.io.recordings.ardupilot import ArduPilotMapping, inspect_ardupilot
+from fluxcal.service.io.recordings.load import load_data
+from fluxcal.service.wiring import cli
 
 BOOT_US = 30_000_000
 GPS_WEEK, GPS_MS_AT_BOOT = 2300, 200_000_000        # 2024-02-04 + 200,000 s

@@ -9,10 +9,10 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers.errors import ConfigError, DataError
-from service.io.calfile import calibration_from_json
-from service.io.recordings.labdata import load_csv
-from service.wiring.config import config_from_dict
+from fluxcal.drivers.errors import ConfigError, DataError
+from fluxcal.service.io.calfile import calibration_from_json
+from fluxcal.service.io.recordings.labdata import load_csv
+from fluxcal.service.wiring.config import config_from_dict
 
 SETTINGS = settings(max_examples=int(__import__("os").environ.get("FLUXCAL_PROPERTY_EXAMPLES", "150")), deadline=None,
                     derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])

@@ -15,16 +15,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import drivers.inputs as inputs
-from drivers.block import SampleBlock
-from drivers.config import MAX_CONFIG_BYTES, read_toml
-from drivers.errors import ConfigError, DataError
-from drivers.ringbuffer import RingBuffer
-from drivers.sim.config import MAX_RUN_SAMPLES, load_sim_config
-from service.io.recordings.labdata import MAX_MAGNITUDE, load_csv
-from service.io.recordings.load import load_data
-from service.wiring.cli import _sigterm_to_keyboard_interrupt, main
-from service.wiring.config import WINDOW_BUDGET_BYTES, config_from_dict, sample_bytes
+import fluxcal.drivers.inputs as inputs
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.config import MAX_CONFIG_BYTES, read_toml
+from fluxcal.drivers.errors import ConfigError, DataError
+from fluxcal.drivers.ringbuffer import RingBuffer
+from fluxcal.drivers.sim.config import MAX_RUN_SAMPLES, load_sim_config
+from fluxcal.service.io.recordings.labdata import MAX_MAGNITUDE, load_csv
+from fluxcal.service.io.recordings.load import load_data
+from fluxcal.service.wiring.cli import _sigterm_to_keyboard_interrupt, main
+from fluxcal.service.wiring.config import WINDOW_BUDGET_BYTES, config_from_dict, sample_bytes
 
 ROOT = Path(__file__).resolve().parents[2]
 HEADER = "t,s1_x,s1_y,s1_z"
@@ -38,7 +38,7 @@ def lab_rows(n: int, seed: int = 1) -> list[str]:
 
 def fluxcal(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     """The CLI as a user runs it; the timeout only guards against the hang this file is about."""
-    return subprocess.run([sys.executable, "-m", "service.wiring.cli", *args], cwd=cwd, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "fluxcal.service.wiring.cli", *args], cwd=cwd, capture_output=True,
                           text=True, timeout=60, env={**os.environ, "PYTHONPATH": str(ROOT)})
 
 
@@ -315,7 +315,7 @@ def test_a_simulated_run_is_bounded_in_samples():
 
 
 def test_the_example_configurations_are_within_the_bounds():
-    from service.wiring.config import load_config
+    from fluxcal.service.wiring.config import load_config
 
     for p in sorted((ROOT / "configs").glob("*.toml")):
         assert load_config(p).estimator.window_s > 0

@@ -20,15 +20,15 @@ import numpy as np
 import pytest
 from test_zenoh_security import free_port
 
-from drivers.block import SampleBlock
-from service.io.bus import ServiceBus, ZenohConfig
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.service.io.bus import ServiceBus, ZenohConfig
 
 SUBSCRIBER = """
 import json, os, sys, time
-from service.io.bus import BusClient, ZenohConfig
+from fluxcal.service.io.bus import BusClient, ZenohConfig
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.io.bus.sender",)
+COVERS = ("fluxcal.service.io.bus.sender",)
 ep, out = sys.argv[1], sys.argv[2]
 worst, samples, end = 0.0, 0, None
 with BusClient(ZenohConfig.client(ep), "u1", streams=["raw"]) as c:
@@ -111,7 +111,7 @@ def test_gathered_messages_go_together_in_order_and_the_oldest_beyond_the_bound_
     """The service's loop gathers a turn's messages and releases them at once (one wake-up of the sender per
     block); what nobody releases goes anyway after the sender's half-second wait; a backlog over its bound drops
     the oldest, counted, whether the messages came one by one or together."""
-    from service.io.bus.sender import Sender
+    from fluxcal.service.io.bus.sender import Sender
 
     sent: list[bytes] = []
     pub = _Publisher(sent)

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from paper_sims import paper001
 
-from drivers.errors import DataError
-from service.io import calfile
-from service.io.calfile import FORMAT, VERSION, load_calibration, save_calibration
-from service.numerics.calib.alignment import align_rotation
-from service.numerics.calib.model import ArrayCalibration, scalar_residual_summary
-from service.numerics.calib.tmi import fit_tmi
+from fluxcal.drivers.errors import DataError
+from fluxcal.service.io import calfile
+from fluxcal.service.io.calfile import FORMAT, VERSION, load_calibration, save_calibration
+from fluxcal.service.numerics.calib.alignment import align_rotation
+from fluxcal.service.numerics.calib.model import ArrayCalibration, scalar_residual_summary
+from fluxcal.service.numerics.calib.tmi import fit_tmi
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +67,7 @@ def test_write_is_atomic(tmp_path, cal, monkeypatch):
     def fail(src, dst):
         raise OSError("disk full")
 
-    from drivers import outputs
+    from fluxcal.drivers import outputs
 
     monkeypatch.setattr(outputs.os, "replace", fail)                  # the one helper every writer goes through
     with pytest.raises(OSError, match="disk full"):

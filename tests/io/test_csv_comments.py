@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.errors import DataError
-from service.io.recordings.labdata import load_csv
-from service.wiring.cli import main
+from fluxcal.drivers.errors import DataError
+from fluxcal.service.io.recordings.labdata import load_csv
+from fluxcal.service.wiring.cli import main
 
 HEADER = "t,s1_x,s1_y,s1_z,ref_total"
 

@@ -12,16 +12,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.block import SampleBlock
-from drivers.errors import DataError
-from service.io.encoding import (
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import DataError
+from fluxcal.service.io.encoding import (
     CORRECTED_LAYOUT,
     RAW_LAYOUT,
+    corrected_payload,
     decode_corrected,
     decode_json,
     decode_raw,
     encode_corrected,
-    corrected_payload,
     encode_json,
     encode_probes,
     encode_raw,
@@ -29,7 +29,7 @@ from service.io.encoding import (
     json_ready,
     raw_payload,
 )
-from service.numerics.outputs import CorrectedBlock
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 # bit patterns that a float conversion would change: quiet and signalling NaNs with payloads,
 # negative NaN, -0.0, infinities, the smallest subnormal
@@ -264,7 +264,7 @@ def test_malformed_json_messages_are_data_errors(bad):
 def test_runs_of_messages_decode_as_each_message_does_bit_for_bit():
     # runs broken by a change of samples per message, of probes, of extras, and by extras of the same
     # length under other names (the bytes of the header and the sizes agree there: the names must not)
-    from drivers.encoding import decode_raw_runs
+    from fluxcal.drivers.encoding import decode_raw_runs
 
     blocks = ([raw_block(20, 4, seed=k) for k in range(5)] + [raw_block(7, 4, seed=9)]
               + [raw_block(20, 4, seed=10 + k, extras=()) for k in range(3)]

@@ -23,11 +23,11 @@ import websockets
 from mcap.reader import make_reader
 from test_service_e2e import PROBES, TOTAL_NT, free_port, stop, write_config
 
-from drivers.errors import ConfigError
-from service.io.foxglove_schemas import TENSOR_FIELDS, Products, path_safe
-from service.io.recordings.reader import FluxcalDecoderFactory
-from service.numerics.outputs import products
-from service.wiring.commands.foxglove import parse_listen
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.io.foxglove_schemas import TENSOR_FIELDS, Products, path_safe
+from fluxcal.service.io.recordings.reader import FluxcalDecoderFactory
+from fluxcal.service.numerics.outputs import products
+from fluxcal.service.wiring.commands.foxglove import parse_listen
 
 pytestmark = pytest.mark.slow
 UNIT = "e2e"
@@ -51,7 +51,7 @@ def recorded(tmp_path_factory):
     lets the live test start calibrated."""
     tmp = tmp_path_factory.mktemp("fox")
     cfg = _config(tmp, free_port(), realtime=False, record=True)
-    out = subprocess.run([sys.executable, "-m", "service.wiring.cli", "run", "--config", cfg],
+    out = subprocess.run([sys.executable, "-m", "fluxcal.service.wiring.cli", "run", "--config", cfg],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stdout + out.stderr
     (path,) = sorted((tmp / "rec").glob("*.mcap"))
@@ -208,7 +208,7 @@ def test_live_bridge_serves_the_products_to_a_foxglove_protocol_client(recorded)
     tmp, _ = recorded
     port = free_port()
     cfg = _config(tmp, port, realtime=True, record=False)
-    bridge = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "foxglove", "--connect",
+    bridge = subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", "foxglove", "--connect",
                                f"tcp/127.0.0.1:{port}", "--unit", UNIT, "--listen", "127.0.0.1:0", "--seconds", "90"],
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     service = None
@@ -216,7 +216,7 @@ def test_live_bridge_serves_the_products_to_a_foxglove_protocol_client(recorded)
         err = _Lines(bridge.stderr)
         url = err.wait(r"(ws://127\.0\.0\.1:\d+)", 20).group(1)
         err.wait(r"cannot reach tcp/127\.0\.0\.1:%d" % port, 20)          # started before the unit: it says so
-        service = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "run", "--config", cfg],
+        service = subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", "run", "--config", cfg],
                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         err.wait(r"serving fluxcal/e2e", 30)
         topics = [f"/fluxcal/{UNIT}/{s}" for s in ("diff", "tensor", "error", "vectors")]

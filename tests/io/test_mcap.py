@@ -13,13 +13,13 @@ import pytest
 from helpers import drain
 from mcap.reader import make_reader
 
-import service.io.recordings.writer as sink
-from drivers.block import SampleBlock
-from drivers.errors import ConfigError, RecordingError
-from drivers.mcap_source import McapSource
-from drivers.source import open_source
-from service.io.recordings.reader import FluxcalDecoderFactory, read_recording, repair_recording
-from service.io.recordings.writer import McapLogger, write_recording
+import fluxcal.service.io.recordings.writer as sink
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import ConfigError, RecordingError
+from fluxcal.drivers.mcap_source import McapSource
+from fluxcal.drivers.source import open_source
+from fluxcal.service.io.recordings.reader import FluxcalDecoderFactory, read_recording, repair_recording
+from fluxcal.service.io.recordings.writer import McapLogger, write_recording
 
 RATE_HZ = 1000.0
 

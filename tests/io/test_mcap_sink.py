@@ -14,13 +14,13 @@ import pytest
 from helpers import write_raw
 from mcap.reader import make_reader
 
-import service.io.recordings.writer as sink
-from drivers.block import SampleBlock
-from drivers.errors import ConfigError, RecordingError
-from service.io.encoding import CORRECTED_LAYOUT, RAW_LAYOUT
-from service.io.recordings.reader import FluxcalDecoderFactory, read_recording
-from service.io.recordings.writer import McapLogger
-from service.numerics.outputs import CorrectedBlock
+import fluxcal.service.io.recordings.writer as sink
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import ConfigError, RecordingError
+from fluxcal.service.io.encoding import CORRECTED_LAYOUT, RAW_LAYOUT
+from fluxcal.service.io.recordings.reader import FluxcalDecoderFactory, read_recording
+from fluxcal.service.io.recordings.writer import McapLogger
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 RATE_HZ = 1000.0
 
@@ -166,7 +166,7 @@ def test_vectors_are_10_hz_means_per_probe_and_centre(tmp_path):
 
 
 def read_recording_json(path: Path, stream: str) -> list[dict]:
-    from drivers.mcap_source import iter_records
+    from fluxcal.drivers.mcap_source import iter_records
 
     return [json.loads(r.data) for r in iter_records(path) if r.topic.endswith("/" + stream)]
 

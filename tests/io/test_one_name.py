@@ -16,9 +16,9 @@ import pytest
 from test_zenoh_bus import FakeDaemon
 from test_zenoh_security import free_port
 
-from service.io.bus import BusClient, BusError, ServiceBus, ZenohConfig, open_session
-from service.io.bus import claim as claim_mod
-from service.wiring.status import StatusLog
+from fluxcal.service.io.bus import BusClient, BusError, ServiceBus, ZenohConfig, open_session
+from fluxcal.service.io.bus import claim as claim_mod
+from fluxcal.service.wiring.status import StatusLog
 
 
 def peers(stack: ExitStack) -> tuple[str, ZenohConfig, ZenohConfig]:
@@ -79,7 +79,7 @@ def test_fluxcal_run_under_a_held_name_exits_naming_the_holder(tmp_path, capsys)
     """The whole service: a second `fluxcal run` with a copied configuration, connected to the first."""
     from test_unit_identity import Service
 
-    from service.wiring.cli import main
+    from fluxcal.service.wiring.cli import main
 
     with ExitStack() as stack:
         (tmp_path / "a").mkdir()
@@ -106,8 +106,8 @@ def test_fluxcal_run_configured_to_take_a_suffix_serves_under_it(tmp_path):
 
     from test_unit_identity import Service
 
-    from service.wiring.config import load_config
-    from service.wiring.daemon import Daemon
+    from fluxcal.service.wiring.config import load_config
+    from fluxcal.service.wiring.daemon import Daemon
 
     with ExitStack() as stack:
         (tmp_path / "a").mkdir()

@@ -18,10 +18,10 @@ pytest.importorskip("pyulog", reason="the PX4 reader's optional package: pip ins
 from flightlogs import CURRENT_COUPLING_NT_A, simulated_flight, write_ulog
 from real_data import needs_real, real
 
-from drivers.errors import DataError
-from service.io.recordings.load import load_data
-from service.io.recordings.px4 import Px4Mapping, inspect_px4
-from service.wiring import cli
+from fluxcal.drivers.errors import DataError
+from fluxcal.service.io.recordings.load import load_data
+from fluxcal.service.io.recordings.px4 import Px4Mapping, inspect_px4
+from fluxcal.service.wiring import cli
 
 BOOT_US = 20_000_000                      # the log starts 20 s after boot
 UTC_AT_BOOT_US = 1_700_000_000_000_000    # 2023-11-14

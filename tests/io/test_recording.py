@@ -17,15 +17,15 @@ import numpy as np
 import pytest
 from helpers import assert_refused, drain, write_raw
 
-from drivers.block import SampleBlock
-from drivers.mcap_source import McapSource
-from drivers.sim.config import load_sim_config
-from drivers.sim.source import SimSource
-from drivers.sim.unit import FaultRecord, Unit
-from service.io.recordings.reader import read_recording, repair_recording
-from service.io.recordings.writer import McapLogger
-from service.numerics.outputs import CorrectedBlock
-from service.wiring.cli import main
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.mcap_source import McapSource
+from fluxcal.drivers.sim.config import load_sim_config
+from fluxcal.drivers.sim.source import SimSource
+from fluxcal.drivers.sim.unit import FaultRecord, Unit
+from fluxcal.service.io.recordings.reader import read_recording, repair_recording
+from fluxcal.service.io.recordings.writer import McapLogger
+from fluxcal.service.numerics.outputs import CorrectedBlock
+from fluxcal.service.wiring.cli import main
 
 
 def sim_blocks(seconds: float = 5.0, probes: int = 2) -> list[SampleBlock]:
@@ -112,7 +112,7 @@ class FlakyDisk:
 
 
 def test_full_disk_is_counted_never_raised_and_logging_resumes(tmp_path, monkeypatch):
-    import service.io.recordings.writer as sink
+    import fluxcal.service.io.recordings.writer as sink
 
     monkeypatch.setattr(sink, "_RETRY_S", 0.0)
     blocks = sim_blocks(10.0)
@@ -159,7 +159,7 @@ WRITER = textwrap.dedent("""
     import sys, time
     sys.path[:0] = [{root!r}, {root!r} + "/tests", {root!r} + "/tests/io"]
     from test_recording import sim_blocks
-    from service.io.recordings.writer import McapLogger
+    from fluxcal.service.io.recordings.writer import McapLogger
     blocks = sim_blocks(30.0)
     log = McapLogger({dir!r}, unit="u", flush_interval_s=0.05)
     for i, b in enumerate(blocks):
@@ -208,7 +208,7 @@ def test_service_records_every_intact_frame_and_replay_equals_live(tmp_path):
     rec = read_recording(tmp_path / "rec")
     got = np.concatenate([b.seq for b in rec.raw_blocks])
     # the truth: every sample of the run less those the unit corrupted on purpose
-    from service.wiring.config import load_config
+    from fluxcal.service.wiring.config import load_config
 
     cfg = load_config(cfg_path)
     unit = Unit(cfg.sim)
@@ -243,7 +243,7 @@ def test_service_reconnects_each_time_the_port_closes_and_counts_each_gap(tmp_pa
     big = gaps[gaps > 1]
     assert big.size == 3 and (big >= 100).all(), big                   # 0.5 s at 200 Hz, each, and no other
     assert seq[-1] >= 7 * 200                                          # and the run went on after the last
-    from drivers.mcap_source import iter_records
+    from fluxcal.drivers.mcap_source import iter_records
 
     health = [json.loads(r.data) for r in iter_records(tmp_path / "rec") if r.topic.endswith("/health")]
     last = health[-1]["counters"]
@@ -261,7 +261,7 @@ def test_service_killed_mid_run_leaves_a_readable_recording(tmp_path):
                 .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]'))
     cfg_path = tmp_path / "c.toml"
     cfg_path.write_text(cfg_text)                                     # real time, runs until stopped
-    proc = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "run", "--config", str(cfg_path)],
+    proc = subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", "run", "--config", str(cfg_path)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     # killed once the recording holds 600 samples (3 s at 200 Hz) on disk, however long a loaded machine took to
     # get there: no sample count from wall-clock time
@@ -284,7 +284,7 @@ def test_service_killed_mid_run_leaves_a_readable_recording(tmp_path):
 
 def _samples_on_disk(folder: Path) -> int:
     """The raw samples a running service's recording holds on disk so far (its complete chunks)."""
-    from drivers.errors import RecordingError
+    from fluxcal.drivers.errors import RecordingError
 
     if not list(folder.glob("*.mcap")):
         return 0
@@ -307,7 +307,7 @@ def test_calibration_persists_and_is_reloaded_at_start(tmp_path, capsys):
     first.write_text(base.replace('run_s = 0 ', 'run_s = 30'))
     assert main(["run", "--config", str(first)]) == 0
     assert "learning online" in capsys.readouterr().err and cal.exists()
-    from service.io.calfile import load_calibration
+    from fluxcal.service.io.calfile import load_calibration
 
     saved = load_calibration(cal)
     second = tmp_path / "second.toml"
@@ -325,7 +325,7 @@ def test_calibration_persists_and_is_reloaded_at_start(tmp_path, capsys):
 def test_a_block_whose_processing_fails_is_counted_and_its_raw_data_kept(tmp_path, capsys, monkeypatch):
     # a bug meeting data nobody foresaw: the third block's processing raises. The service says so once,
     # counts it, keeps that block's raw samples and carries on with the next block.
-    from service.wiring.pipeline import Pipeline
+    from fluxcal.service.wiring.pipeline import Pipeline
 
     cfg_path = service_config(tmp_path, run_s=6, realtime=False)
     real = Pipeline.process
@@ -361,7 +361,7 @@ def test_a_recording_directory_that_cannot_be_used_stops_the_start_with_the_key(
 
 def test_recording_trouble_during_a_run_is_said(tmp_path, capsys, monkeypatch):
     # the disk fills up a second into the run: the service says so (once a minute at most) and goes on
-    import service.io.recordings.writer as sink
+    import fluxcal.service.io.recordings.writer as sink
 
     cfg_path = service_config(tmp_path, run_s=4)
     t_full = time.monotonic() + 1.5
@@ -388,7 +388,7 @@ def test_recording_trouble_during_a_run_is_said(tmp_path, capsys, monkeypatch):
 
 def test_read_samples_gives_read_recordings_samples_in_one_pass_of_memory():
     """fit and diagnose read only the raw samples, into arrays of their final size: the same numbers."""
-    from service.io.recordings.reader import read_recording, read_samples
+    from fluxcal.service.io.recordings.reader import read_recording, read_samples
 
     for name in ("grad1-sim-30s.mcap", "grad1-hidden-effect.mcap", "grad3-pump.mcap"):
         path = Path(__file__).resolve().parents[2] / "recordings" / name

@@ -17,14 +17,14 @@ import pytest
 from helpers import drain
 from mcap.reader import make_reader
 
-from drivers.mcap_records import RECORD_HEAD, chunk_records, parse_chunk
-from drivers.mcap_source import McapSource
-from service.io.recordings.reader import read_recording, repair_recording
-from service.io.recordings.writer import McapLogger
-from service.wiring.cli import main
+from fluxcal.drivers.mcap_records import RECORD_HEAD, chunk_records, parse_chunk
+from fluxcal.drivers.mcap_source import McapSource
+from fluxcal.service.io.recordings.reader import read_recording, repair_recording
+from fluxcal.service.io.recordings.writer import McapLogger
+from fluxcal.service.wiring.cli import main
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.io.recordings.repair", "drivers.mcap_scan")
+COVERS = ("fluxcal.service.io.recordings.repair", "fluxcal.drivers.mcap_scan")
 
 SAMPLE = Path(__file__).resolve().parents[2] / "recordings" / "grad1-sim-30s.mcap"
 DAMAGES = ("bit 0", "bit 17", "bit 63", "minus 1000")

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from helpers import write_rotated
 
-from service.io.recordings.runs import expand_inputs, linked_run
-from service.wiring import cli
+from fluxcal.service.io.recordings.runs import expand_inputs, linked_run
+from fluxcal.service.wiring import cli
 
 REPO = Path(__file__).resolve().parents[2]
 LIVE = REPO / "recordings" / "grad1-sim-30s.mcap"        # `fluxcal run`: estimator.total_nT = 52500 stored
@@ -135,8 +135,8 @@ def test_every_format_fluxcal_reads_is_a_recording_of_a_folder_and_a_bag_is_one(
     """Flight logs and ROS 2 bags are recordings of a folder (they were 'skipped ... not a recording', and a folder
     holding only a .ulg was refused); a bag's folder is one recording, its .db3 never one of its own; paths as
     the user named them, sent absolute; an item that names nothing is one line with its reason."""
-    from service.io.recordings.formats import DATAFLASH_HEAD
-    from service.wiring.fleet_cli import _is_fleet, _one
+    from fluxcal.service.io.recordings.formats import DATAFLASH_HEAD
+    from fluxcal.service.wiring.fleet_cli import _is_fleet, _one
 
     logs = tmp_path / "logs"
     (logs / "bag").mkdir(parents=True)
@@ -159,8 +159,8 @@ def test_every_format_fluxcal_reads_is_a_recording_of_a_folder_and_a_bag_is_one(
 def test_one_rotated_file_fitted_alone_says_it_is_part_of_a_run(rotated, capsys):
     """fit and diagnose of one file of a rotated run use its samples alone; that is said first, naming the folder
     (these pieces, a few seconds each, are then refused on their own: too few directions)."""
-    from service.wiring.prepare import part_of_run
-    from service.wiring.result import Said
+    from fluxcal.service.wiring.prepare import part_of_run
+    from fluxcal.service.wiring.result import Said
 
     files = sorted(rotated.glob("*.mcap"))
     for k, f in enumerate(files[1:], 2):

@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.numerics.calib.sky import residual_by_direction, unvisited_directions
-from service.wiring import cli
+from fluxcal.service.numerics.calib.sky import residual_by_direction, unvisited_directions
+from fluxcal.service.wiring import cli
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.io.report.calibration", "service.io.report.page", "service.wiring.calib_report")
+COVERS = ("fluxcal.service.io.report.calibration", "fluxcal.service.io.report.page", "fluxcal.service.wiring.calib_report")
 
 ROOT = Path(__file__).resolve().parents[2]
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -108,8 +108,8 @@ def test_fit_report_offsets_match_the_truth_and_maps_are_images(tmp_path, capsys
 def test_fit_and_diagnose_reports_name_the_direction_never_visited(tmp_path, capsys, seed):
     csv, truth = simulate(tmp_path, TURNTABLE.format(seed=seed), "turn")
     # the premise, from the data and the true offset: -x-y-z is the one named direction left unvisited
-    from service.io.recordings.load import load_data
-    from service.numerics.calib.sky import nearest_angles_deg, unit_directions
+    from fluxcal.service.io.recordings.load import load_data
+    from fluxcal.service.numerics.calib.sky import nearest_angles_deg, unit_directions
 
     dirs = unit_directions(load_data(str(csv)).block.field_nT[:, 0], np.array(truth["sensors"][0]["offset_nT"]))
     corner = -np.ones((1, 3)) / np.sqrt(3.0)

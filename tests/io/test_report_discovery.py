@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from service.wiring.cli import main
+from fluxcal.service.wiring.cli import main
 
 ROOT = Path(__file__).resolve().parents[2]
 PUMP = ROOT / "recordings" / "grad3-pump.mcap"
@@ -31,9 +31,9 @@ def test_the_report_says_what_was_discovered_and_how_to_write_it(tmp_path, capsy
 
 
 def test_the_dashboard_offers_the_discovered_term_as_an_effect_module(tmp_path):
-    from service.wiring.dashboard.hub import discovered_effect
-    from service.wiring.dashboard.server import DashboardServer
-    from service.wiring.dashboard.view import UnitView
+    from fluxcal.service.wiring.dashboard.hub import discovered_effect
+    from fluxcal.service.wiring.dashboard.server import DashboardServer
+    from fluxcal.service.wiring.dashboard.view import UnitView
 
     view = UnitView("grad3")
     with pytest.raises(Exception, match="nothing to write"):

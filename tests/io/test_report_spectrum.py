@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.signal import butter, sosfiltfilt
 
-from service.numerics.diagnose.where import excess_spectrum
+from fluxcal.service.numerics.diagnose.where import excess_spectrum
 
 ROOT = Path(__file__).resolve().parents[2]
 PUMP = ROOT / "recordings" / "grad3-pump.mcap"
@@ -84,8 +84,8 @@ def test_the_report_draws_every_channel_and_shades_the_bands_the_text_names(tmp_
     pytest.importorskip("matplotlib")
     import json
 
-    from service.io.report import diagnose as report
-    from service.wiring import cli
+    from fluxcal.service.io.report import diagnose as report
+    from fluxcal.service.wiring import cli
 
     drawn: dict[str, object] = {}
     real_png = report.png

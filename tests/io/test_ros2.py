@@ -15,22 +15,22 @@ import pytest
 pytest.importorskip("mcap_ros2", reason="the ROS 2 reader's optional package: pip install 'fluxcal[ros2]'")
 pytest.importorskip("rosbags", reason="the ROS 2 reader's optional package: pip install 'fluxcal[ros2]'")
 
-from drivers.errors import DataError
-from drivers.sim import Unit, load_sim_config
-from service.io.recordings.load import load_data
-from service.io.recordings.inspect import inspect_file
-from service.io.recordings.ros2 import Ros2Mapping
-from service.numerics.merge import (
+from fluxcal.drivers.errors import DataError
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.service.io.recordings.inspect import inspect_file
+from fluxcal.service.io.recordings.load import load_data
+from fluxcal.service.io.recordings.ros2 import Ros2Mapping
+from fluxcal.service.numerics.merge import (
     Q_NED_FROM_ENU,
     euler_from_quaternion,
     ned_from_enu_quaternion,
     quaternion_from_euler,
     quaternion_product,
 )
-from service.wiring import cli
+from fluxcal.service.wiring import cli
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.io.recordings.inspect",)
+COVERS = ("fluxcal.service.io.recordings.inspect",)
 
 MAG, IMU, TEMP, NAV = ("sensor_msgs/msg/MagneticField", "sensor_msgs/msg/Imu", "sensor_msgs/msg/Temperature",
                        "sensor_msgs/msg/NavSatFix")
@@ -371,14 +371,14 @@ def test_a_damaged_bag_is_said_in_one_line_never_a_traceback(tmp_path, capsys):
 
 
 def test_fluxcal_recordings_are_not_taken_for_bags():
-    from service.io.recordings.formats import detect_format
+    from fluxcal.service.io.recordings.formats import detect_format
 
     assert detect_format("recordings/grad1-sim-30s.mcap") == "fluxcal"
 
 
 def test_topics_chosen_on_the_command_line(same_data, capsys):
     """--topics NAME=TOPIC,..: the same choice from the command line, and a refusal that names the option."""
-    from service.wiring.cli import main
+    from fluxcal.service.wiring.cli import main
 
     root, _ = same_data
     capsys.readouterr()

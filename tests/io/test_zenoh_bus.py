@@ -14,10 +14,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from drivers.block import SampleBlock
-from drivers.config import load_section
-from drivers.errors import ConfigError, DataError
-from service.io.bus import (
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.config import load_section
+from fluxcal.drivers.errors import ConfigError, DataError
+from fluxcal.service.io.bus import (
     BusClient,
     BusError,
     Keys,
@@ -29,10 +29,10 @@ from service.io.bus import (
     make_zenoh_config,
     open_session,
 )
-from service.numerics.outputs import CorrectedBlock
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.io.bus.desk", "service.io.bus.sender")
+COVERS = ("fluxcal.service.io.bus.desk", "fluxcal.service.io.bus.sender")
 
 
 def free_port() -> int:
@@ -163,7 +163,7 @@ def test_config_errors_name_key_value_and_what_is_allowed(table, message):
 
 
 def test_service_config_reads_the_zenoh_section():
-    from service.wiring.config import config_from_dict
+    from fluxcal.service.wiring.config import config_from_dict
 
     cfg = config_from_dict({"zenoh": {"mode": "peer", "listen": ["tcp/127.0.0.1:7999"]}}, "x.toml")
     assert isinstance(cfg.zenoh, ZenohConfig) and cfg.zenoh.listen == ["tcp/127.0.0.1:7999"]

@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 from certs import Authority
 
-from drivers.block import SampleBlock
-from drivers.config import load_section
-from drivers.errors import ConfigError
-from service.io.bus import (
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.config import load_section
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.io.bus import (
     BusClient,
     BusError,
     ServiceBus,
@@ -35,7 +35,7 @@ from service.io.bus import (
     make_zenoh_config,
     open_session,
 )
-from service.wiring.cli import main as cli_main
+from fluxcal.service.wiring.cli import main as cli_main
 
 UNIT = "grad1"
 
@@ -145,7 +145,7 @@ def test_a_dashboard_reads_streams_and_state_but_cannot_command_or_inject(site):
     received(ops, lambda: s.bus.publish_raw(block(next(seq))))          # the operator's link is up
     with open_session(ZenohConfig.client(s.endpoint, tls=s.tls("dashboard"))) as rogue_pub:
         fake = block(999_000, value=-7.0)
-        from service.io.encoding import encode_raw
+        from fluxcal.service.io.encoding import encode_raw
         for _ in range(5):
             rogue_pub.put(f"fluxcal/{UNIT}/raw", encode_raw(fake))
         time.sleep(0.3)
@@ -263,7 +263,7 @@ def test_the_web_dashboard_obeys_tls_and_access_control(site):
     import json
     import urllib.request
 
-    from service.wiring.dashboard import DashboardServer, Hub
+    from fluxcal.service.wiring.dashboard import DashboardServer, Hub
 
     s, stack = site
     publish_raw_blocks(s, stack)

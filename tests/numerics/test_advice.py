@@ -11,7 +11,7 @@ import re
 
 import pytest
 
-from service.numerics.diagnose.signature import LOG_ASKS, Carried, describe
+from fluxcal.service.numerics.diagnose.signature import LOG_ASKS, Carried, describe
 
 #: what each request asks for, and when the data carry it already
 CARRIED_BY = {
@@ -106,8 +106,8 @@ def test_the_issue_cases_are_told_what_the_data_carry():
 def test_the_wrappers_of_diagnose_ask_for_no_log():
     from types import SimpleNamespace
 
-    from service.numerics.diagnose.diagnostics import _weak_advice
-    from service.numerics.diagnose.stretch import stretch_advice
+    from fluxcal.service.numerics.diagnose.diagnostics import _weak_advice
+    from fluxcal.service.numerics.diagnose.stretch import stretch_advice
 
     weak = {"reason": "the blocks are separate turns", "advice": "a recording that repeats its motion would decide"}
     cand = SimpleNamespace(testable=True, fit=object(), n_params=3, p_value=1e-9, bic_delta=-50.0, effect="column",
@@ -121,8 +121,8 @@ def test_the_wrappers_of_diagnose_ask_for_no_log():
 def test_a_catalogue_term_asks_for_a_log_only_where_the_data_lack_it():
     import numpy as np
 
-    from service.numerics.effects import Ambient, Column
-    from service.numerics.effects.base import EffectData
+    from fluxcal.service.numerics.effects import Ambient, Column
+    from fluxcal.service.numerics.effects.base import EffectData
 
     n = 200
     data = EffectData(t_s=np.arange(n) * 0.1, raw_nT=np.ones((n, 2, 3)), temp_C=np.full((n, 2), np.nan),

@@ -8,19 +8,19 @@ import json
 import numpy as np
 import pytest
 
-from drivers.errors import CalibrationRefused, DataError
-from drivers.sim.config import load_sim_config
-from drivers.sim.world import World
-from service.io.calfile import load_calibration, save_calibration
-from service.numerics.calib.alignment import align_probes, angles_from_rotation, rotation_from_angles
-from service.numerics.calib.coverage import coverage
-from service.numerics.calib.ellipsoid import fit_ellipsoid
-from service.numerics.calib.model import ArrayCalibration
-from service.numerics.calib.rls import RlsEllipsoid
-from service.numerics.calib.tensor import invariants, tensor_cross, tensor_from_positions
+from fluxcal.drivers.errors import CalibrationRefused, DataError
+from fluxcal.drivers.sim.config import load_sim_config
+from fluxcal.drivers.sim.world import World
+from fluxcal.service.io.calfile import load_calibration, save_calibration
+from fluxcal.service.numerics.calib.alignment import align_probes, angles_from_rotation, rotation_from_angles
+from fluxcal.service.numerics.calib.coverage import coverage
+from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
+from fluxcal.service.numerics.calib.model import ArrayCalibration
+from fluxcal.service.numerics.calib.rls import RlsEllipsoid
+from fluxcal.service.numerics.calib.tensor import invariants, tensor_cross, tensor_from_positions
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.numerics.calib.order",)
+COVERS = ("fluxcal.service.numerics.calib.order",)
 
 PROBE = {"scale": [1.02, 0.98, 1.01], "nonorth_deg": [1.0, 2.0, -1.0], "misalign_deg": [2.0, 1.0, 3.0],
          "offset_nT": [200.0, -300.0, 100.0], "noise_nT": 1.0}
@@ -95,7 +95,7 @@ def test_block_update_equals_sample_by_sample():
     of one turn leave the offset ill-determined), so at most |B|·κ²·n·u nT of an offset. Measured on an AVX-512
     machine: Λ 4.0e-15 of its scaling (the bound 4.4e-13), offsets 0.0124 nT apart (the bound 3.8 nT); on an
     AVX2-only one 0.0126 nT, which the former atol of 1e-6 nT refused."""
-    from service.wiring.commands.replay import UNIT_ROUNDOFF, rounding_tolerance_nT
+    from fluxcal.service.wiring.commands.replay import UNIT_ROUNDOFF, rounding_tolerance_nT
 
     w, s = world(duration_s=20.0)
     raw, ref = s.raw_nT[:, 0], s.ref_total_nT

@@ -1,4 +1,4 @@
-"""The error metric of a block in the residual channels (service.numerics.channels), as the pipeline takes it
+"""The error metric of a block in the residual channels (fluxcal.service.numerics.channels), as the pipeline takes it
 block after block: each channel's RMS over the block's samples, a NaN (a saturated axis) left out of its own
 channel only."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.numerics.channels import BlockError, block_error_rms, channel_names
-from service.numerics.outputs import products
+from fluxcal.service.numerics.channels import BlockError, block_error_rms, channel_names
+from fluxcal.service.numerics.outputs import products
 
 
 @pytest.mark.parametrize("n_probes", [1, 2, 4])

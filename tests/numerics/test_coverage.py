@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.errors import CalibrationRefused
-from service.numerics.calib.coverage import BIN_LABELS, check_fit_data, coverage, turn_axes
-from service.numerics.calib.ellipsoid import fit_ellipsoid
+from fluxcal.drivers.errors import CalibrationRefused
+from fluxcal.service.numerics.calib.coverage import BIN_LABELS, check_fit_data, coverage, turn_axes
+from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
 
 TOTAL_NT = 50000.0
 M_TRUE = np.array([[1.02, 0.01, -0.005], [0.0, 0.98, 0.008], [0.0, 0.0, 1.01]])

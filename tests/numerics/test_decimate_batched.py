@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.numerics.decimate import VectorMeans
-from service.numerics.outputs import products
+from fluxcal.service.numerics.decimate import VectorMeans
+from fluxcal.service.numerics.outputs import products
 
 POSITIONS = np.array([[0.2, 0, 0], [0, 0.2, 0], [-0.2, 0, 0], [0, -0.2, 0]])
 

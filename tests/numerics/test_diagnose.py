@@ -1,4 +1,4 @@
-"""`diagnose` on simulated data with a hidden effect (drivers.sim knows every parameter): the effect is
+"""`diagnose` on simulated data with a hidden effect (fluxcal.drivers.sim knows every parameter): the effect is
 ranked first and significant, adding it brings the error to the noise floor; a control flags nothing;
 two hidden effects are found in two rounds; look-alikes are reported as indistinguishable with what
 would separate them; the command line, JSON contract and HTML report."""
@@ -11,15 +11,15 @@ import sys
 import numpy as np
 import pytest
 
-from drivers.block import SampleBlock
-from drivers.sim import Unit, load_sim_config
-from service.numerics.diagnose import diagnose, summary_text
-from service.numerics.effects import EFFECTS
-from service.numerics.effects.base import EffectData
-from service.wiring import cli
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.service.numerics.diagnose import diagnose, summary_text
+from fluxcal.service.numerics.effects import EFFECTS
+from fluxcal.service.numerics.effects.base import EffectData
+from fluxcal.service.wiring import cli
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.numerics.diagnose.verdict", "service.numerics.channels")
+COVERS = ("fluxcal.service.numerics.diagnose.verdict", "fluxcal.service.numerics.channels")
 
 F_TOTAL = 51500.0
 RMS_OVER_NOISE = 1.2            # "with it added, rms falls to within 20 % of the noise floor"
@@ -322,8 +322,8 @@ def test_report_without_matplotlib_says_how_to_get_it(tmp_path, monkeypatch, cap
 
 @pytest.mark.slow
 def test_calibration_file_from_fit_is_read_with_its_effects(tmp_path, capsys):
-    from service.io.calfile import save_calibration
-    from service.numerics.engine import fit_with_effects
+    from fluxcal.service.io.calfile import save_calibration
+    from fluxcal.service.numerics.engine import fit_with_effects
 
     probes, block = _small()
     data = data_of(block, probes)
@@ -406,7 +406,7 @@ def test_table_says_which_figure_decides_and_why_each_no():
     # a p-value of 0 and a large negative dBIC beside "no" must say which figure refused it (issue 16)
     from dataclasses import replace
 
-    from service.numerics.diagnose import GAIN_SIGMAS, Candidate, verdict_word
+    from fluxcal.service.numerics.diagnose import GAIN_SIGMAS, Candidate, verdict_word
     probes = [probe(0), probe(1)]
     d = diagnose(data_of(sim_block(probes, n=2000, rate=100.0, motion=TUMBLE, seed=11), probes),
                  candidates=["drift", "temperature"])

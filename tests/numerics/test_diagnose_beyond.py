@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 from test_diagnose import TUMBLE, data_of, probe
 
-from drivers.sim import Unit, load_sim_config
-from service.numerics.diagnose import diagnose, summary_text
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.service.numerics.diagnose import diagnose, summary_text
 
 F_TOTAL = 51500.0
 
@@ -56,7 +56,7 @@ def test_ambient_variation_is_explained_by_the_other_probes_not_by_a_confident_w
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_without_the_ambient_term_the_variation_is_unexplained_and_described(seed):
     # the catalogue less `ambient`: what a user sees for a cause the catalogue does not hold
-    from service.numerics.effects import known_effects
+    from fluxcal.service.numerics.effects import known_effects
 
     d = diagnose(world(seed, variation=5.0), total_nT=F_TOTAL,
                  candidates=[n for n in known_effects() if n != "ambient"])
@@ -174,7 +174,7 @@ def test_a_logged_current_coupled_into_a_probe_is_found_by_column_and_a_decoy_is
 
 def test_a_tie_of_any_shape_to_a_logged_column_is_measured():
     # the correlation ratio catches what a polynomial misses: an oscillation in the column's value
-    from service.numerics.diagnose.where import _eta2, _r2
+    from fluxcal.service.numerics.diagnose.where import _eta2, _r2
 
     rng = np.random.default_rng(5)
     x = rng.uniform(0, 1, 4000)

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from test_diagnose import TUMBLE, data_of, probe, sim_block
 
-import service.numerics.effects.hysteresis as hysteresis
-from service.numerics.diagnose import diagnose, summary_text
+import fluxcal.service.numerics.effects.hysteresis as hysteresis
+from fluxcal.service.numerics.diagnose import diagnose, summary_text
 
 #: test_perming_step's jump: a private forward model adds it to probe 2's offset at 61.7 s
 JUMP = np.array([6.0, -4.0, 3.0])
@@ -141,7 +141,7 @@ def test_a_perming_step_is_found_and_placed_in_every_one_of_ten_worlds():
     were placed, two misplaced by 8 and 11 s and one missed (and diagnose named drift there). Seeds 22 and 29
     place it 0.8 and 3.2 s late: there the jump is nearly square to the field direction, and the scalar
     residual does not see it until then."""
-    from service.numerics.engine import fit_with_effects
+    from fluxcal.service.numerics.engine import fit_with_effects
 
     for seed in range(20, 30):
         ef, _ = fit_with_effects(stepped(seed, wander=False), ["hysteresis"])
@@ -204,7 +204,7 @@ def test_a_refused_linear_part_costs_the_first_fit_only():
     full = diagnose(data, candidates=["drift"])
     assert np.allclose(seen[0], full.fit.state.linear.offset_nT)      # the very linear part the diagnosis refits
     # held: the check is asked of the refit made for comparison only, and its refusal is words, never the diagnosis'
-    from drivers.errors import CalibrationRefused
+    from fluxcal.drivers.errors import CalibrationRefused
 
     def refuse(lin):
         seen.append(np.array(lin.offset_nT))
@@ -218,7 +218,7 @@ def test_a_calibration_held_that_is_off_is_not_sent_to_a_refit_the_data_do_not_d
     """A real copter log held to the autopilot's calibration: 'refitting its linear part alone brings the residual
     from 6,382 to 1,888 nT (diagnose without --calibration, or fit again)', where diagnose without --calibration
     refuses those data (one cone). The refit's figure stays, with why it is not determined, never the advice."""
-    from drivers.errors import CalibrationRefused
+    from fluxcal.drivers.errors import CalibrationRefused
 
     data = data_of(sim_block([probe(0)], n=3000, rate=100.0, motion=TUMBLE, seed=43), [probe(0)])
     lin = diagnose(data, candidates=[]).fit.state.linear

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from test_diagnose import F_TOTAL, TUMBLE, data_of, probe, sim_block
 
-from drivers.sim import Unit, load_sim_config
-from service.numerics.diagnose import diagnose, summary_text
-from service.numerics.diagnose.frames import _rotation_part, frames
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.service.numerics.diagnose import diagnose, summary_text
+from fluxcal.service.numerics.diagnose.frames import _rotation_part, frames
 
 G = [[25.0, 6.0, -8.0], [6.0, -15.0, 5.0], [-8.0, 5.0, -10.0]]
 
@@ -45,7 +45,7 @@ def test_a_site_gradient_turns_with_the_platform_and_shows_per_earth_axis(seed, 
     assert "turns with the platform" in left and "gradient" in left, d.verdict
     assert json.loads(json.dumps(d.as_dict()))["frames"][3]["earth"]["rms_nT"]["north"] > 0
     if seed == 2:                                            # and the HTML report, with its plot
-        from service.io.report import write_report
+        from fluxcal.service.io.report import write_report
 
         page = write_report(d, tmp_path / "rep").read_text()
         assert "Per axis, in each frame" in page and "s3-s1.xyz" in page and "north" in page
@@ -89,7 +89,7 @@ def test_a_difference_along_one_direction_is_an_offset_only_where_the_platform_t
     """One platform direction with a changing size is an offset changing in time when the platform turned (a
     field of the site would have moved in its frame); on a platform that barely turned the two cannot be told
     apart, and the summary says so instead of excluding the site (review)."""
-    from service.numerics.diagnose.frames import frame_summary
+    from fluxcal.service.numerics.diagnose.frames import frame_summary
 
     entry = {"channels": "s2-s1.xyz", "kind": "difference",
              "platform": {"fixed_share": 0.02, "line_share": 0.95, "turned": True},

@@ -9,7 +9,7 @@ import json
 import pytest
 from real_data import real, real_nT
 
-from service.wiring.cli import main
+from fluxcal.service.wiring.cli import main
 
 NAMES = ["qmc5883l_suarez", "imu_freeimucal", "hmc5883l_sensorfusion_sphere"]
 TURNS = {"hmc5883l_nliaudat": "z", "hmc5883l_sensorfusion_turn_x": "x", "hmc5883l_sensorfusion_turn_y": "y",
@@ -28,7 +28,7 @@ def test_diagnose_runs_on_every_real_recording_and_describes_what_is_left(name, 
     d = _diagnose(name, capsys)
     v = d["verdict"]
     assert v["kind"] in ("at the floor", "explained", "partly explained", "unexplained")
-    from service.io.recordings.load import load_data
+    from fluxcal.service.io.recordings.load import load_data
 
     assert d["n_samples"] >= 0.9 * load_data(real(f"{name}.csv")).block.n_samples     # the samples are kept
     if v["kind"] in ("partly explained", "unexplained"):

@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.sim import Unit, load_sim_config
-from service.io.recordings.labdata import keep_every, load_csv
-from service.io.recordings.load import load_data
-from service.io.recordings.reader import read_recording, read_samples
-from service.numerics.diagnose import diagnose, summary_text
-from service.wiring import cli
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.service.io.recordings.labdata import keep_every, load_csv
+from fluxcal.service.io.recordings.load import load_data
+from fluxcal.service.io.recordings.reader import read_recording, read_samples
+from fluxcal.service.numerics.diagnose import diagnose, summary_text
+from fluxcal.service.wiring import cli
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_diagnose import TUMBLE, data_of, probe  # noqa: E402
@@ -158,7 +158,7 @@ def test_a_bad_max_samples_is_refused_with_what_is_allowed(bad, capsys):
 
 @pytest.mark.slow
 def test_fit_with_effects_beyond_the_budget_fits_them_on_one_sample_in_k(monkeypatch, capsys):
-    import service.wiring.commands.fit as fit_cmd
+    import fluxcal.service.wiring.commands.fit as fit_cmd
 
     rec = str(REPO / "recordings" / "grad1-hidden-effect.mcap")               # 24,000 samples of 2 probes
     assert cli.main(["fit", rec, "--effects", "temperature", "--json"]) == 0

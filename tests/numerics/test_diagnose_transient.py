@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from test_diagnose import F_TOTAL, TUMBLE, probe
 
-from drivers.sim import Unit, load_sim_config
-from service.numerics.diagnose import diagnose, summary_text
-from service.numerics.diagnose.where import GROSS_SHARE, gross_stretch
-from service.numerics.effects.base import EffectData
-from service.numerics.effects.hysteresis import Hysteresis
-from service.numerics.engine.solve import Parameter
-from service.wiring.cli import main
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.service.numerics.diagnose import diagnose, summary_text
+from fluxcal.service.numerics.diagnose.where import GROSS_SHARE, gross_stretch
+from fluxcal.service.numerics.effects.base import EffectData
+from fluxcal.service.numerics.effects.hysteresis import Hysteresis
+from fluxcal.service.numerics.engine.solve import Parameter
+from fluxcal.service.wiring.cli import main
 
 BUMP = (140.0, 148.0)             # s: where the disturbance is
 
@@ -146,7 +146,7 @@ def test_a_named_effect_whose_fit_stopped_early_is_said_not_final(monkeypatch):
     the verdict names then has figures that are not final, and the notes say so (a flight's platform field did)."""
     from test_diagnose import CASES, data_of, sim_block
 
-    import service.numerics.diagnose.fits as fits
+    import fluxcal.service.numerics.diagnose.fits as fits
 
     case = CASES["eddy"]
     data = data_of(sim_block(case["probes"], n=case["n"], rate=case["rate"], motion=case["motion"], seed=7),
@@ -219,10 +219,16 @@ def test_a_candidate_significant_only_with_the_stretch_is_demoted_and_a_real_one
     """The re-judging itself (stretch.demote_on_one_stretch), whatever made a candidate significant: a drift
     taken as significant in a world with only a passing disturbance is judged again without the stretch and
     demoted, with the stretch named; a temperature coefficient that is real keeps its verdict."""
-    from service.numerics.diagnose.stretch import demote_on_one_stretch
-    from service.numerics.diagnose.fits import heldout, try_candidate
-    from service.numerics.effects import make_model
-    from service.numerics.engine import fit_model, initial_linear, reference_total, residual_hints, start_weights
+    from fluxcal.service.numerics.diagnose.fits import heldout, try_candidate
+    from fluxcal.service.numerics.diagnose.stretch import demote_on_one_stretch
+    from fluxcal.service.numerics.effects import make_model
+    from fluxcal.service.numerics.engine import (
+        fit_model,
+        initial_linear,
+        reference_total,
+        residual_hints,
+        start_weights,
+    )
 
     for data, name, stays in ((world(31, 1000.0), "drift", False),
                               (world(32, 1000.0, effect={"temp_offset_nT_per_C": [25.0, -18.0, 10.0]}),
@@ -252,9 +258,9 @@ def test_skip_counts_each_sample_once_and_says_a_stretch_that_holds_none(tmp_pat
     t = np.arange(0.0, 100.0, 0.1)
     rows = np.column_stack([t, 20000 + np.cos(t), 30000 + np.sin(t), 40000 + 0 * t])
     np.savetxt(path, rows, delimiter=",", header="t,s1_x,s1_y,s1_z", comments="", fmt="%.4f")
-    from service.io.recordings.load import load_data
-    from service.wiring.prepare import skip_spans
-    from service.wiring.result import Said, stderr_say
+    from fluxcal.service.io.recordings.load import load_data
+    from fluxcal.service.wiring.prepare import skip_spans
+    from fluxcal.service.wiring.result import Said, stderr_say
 
     lab = skip_spans(Said("fit", stderr_say("fit")), str(path), load_data(path), [(10.0, 20.0), (15.0, 19.0)])
     err = capsys.readouterr().err

@@ -22,13 +22,13 @@ import numpy as np
 import pytest
 from discovery_worlds import F_TOTAL, named, world
 
-from service.numerics.diagnose import diagnose, summary_text
-from service.numerics.diagnose.write_effect import effect_classes, effect_source
-from service.numerics.effects import known_effects, register_effect
+from fluxcal.service.numerics.diagnose import diagnose, summary_text
+from fluxcal.service.numerics.diagnose.write_effect import effect_classes, effect_source
+from fluxcal.service.numerics.effects import known_effects, register_effect
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.numerics.diagnose.discover", "service.numerics.diagnose.selection",
-          "service.numerics.diagnose.weak", "service.numerics.diagnose.spectra")
+COVERS = ("fluxcal.service.numerics.diagnose.discover", "fluxcal.service.numerics.diagnose.selection",
+          "fluxcal.service.numerics.diagnose.weak", "fluxcal.service.numerics.diagnose.spectra")
 
 FLOOR = 1.3
 
@@ -111,7 +111,7 @@ def found_worlds():
 @pytest.mark.parametrize("kind", ["temperature rotation", "lagged heater", "common line", "supply scale", "core loop"])
 def test_the_groups_found_written_as_an_effect_are_taken_back_and_give_the_same_error(kind, found_worlds, tmp_path,
                                                                                      clean_registry):
-    from service.wiring.user_effects import resolve_effects
+    from fluxcal.service.wiring.user_effects import resolve_effects
 
     data, d = found_worlds[kind]
     f = d.discovery
@@ -149,7 +149,7 @@ def test_the_groups_found_written_as_an_effect_are_taken_back_and_give_the_same_
 
 
 def test_the_written_effect_says_what_it_is_and_is_refused_when_there_is_nothing():
-    from service.numerics.diagnose.library import Feature, Group
+    from fluxcal.service.numerics.diagnose.library import Feature, Group
 
     t = np.linspace(0, 10, 50)
     f = Feature("s2_temp", "s2_temp", "degC", "value", {"source": "temperature", "probe": 1, "centre": 0.0}, t)
@@ -196,7 +196,7 @@ def test_a_coupling_seen_only_through_the_field_direction_is_named():
 
 
 def test_a_gain_that_is_an_extrapolation_is_not_printed_as_a_percentage():
-    from service.numerics.diagnose.text import gain_text
+    from fluxcal.service.numerics.diagnose.text import gain_text
 
     assert gain_text(-947.88) == "<-100%" and gain_text(0.123) == " 12.3%"
     assert gain_text(0.5, {"reason": "separate turns"}) == "  weak"
@@ -208,8 +208,8 @@ def test_separate_turns_make_the_held_out_test_weak_and_it_says_what_would_decid
     to orientations no other block saw."""
     from test_diagnose import probe
 
-    from drivers.sim import Unit, load_sim_config
-    from service.numerics.effects.base import EffectData
+    from fluxcal.drivers.sim import Unit, load_sim_config
+    from fluxcal.service.numerics.effects.base import EffectData
 
     probes = [probe(0), probe(1)]
     cfg = load_sim_config({"seed": 3, "rate_hz": 50.0, "duration_s": 40.0,
@@ -233,9 +233,9 @@ def test_a_line_that_only_a_held_out_block_holds_is_hidden_from_that_folds_selec
     """The residual chooses the lines the library follows: a 20 nT field at 2.3 Hz in one of discovery's 16 blocks
     alone is a line of the whole residual, but the selection that holds that block out must not follow it (its own
     noise would have helped choose it); every other fold's training blocks show it."""
-    from service.numerics.diagnose.discover import fold_waves
-    from service.numerics.diagnose.library import build_library
-    from service.numerics.diagnose.selection import blocks_of
+    from fluxcal.service.numerics.diagnose.discover import fold_waves
+    from fluxcal.service.numerics.diagnose.library import build_library
+    from fluxcal.service.numerics.diagnose.selection import blocks_of
 
     data = world(None, 104)
     fit = diagnose(data, discover=False).fit
@@ -261,7 +261,7 @@ def test_the_f_tests_tail_holds_below_the_smallest_float():
     scipy's is finite, and going on beyond."""
     from scipy import special, stats
 
-    from service.numerics.diagnose.selection import DENORMAL_LOG, f_logsf, log_betainc
+    from fluxcal.service.numerics.diagnose.selection import DENORMAL_LOG, f_logsf, log_betainc
 
     for a in (1.5, 3.0, 50.0, 4000.0):
         for b in (1.5, 3.0, 4.5):
@@ -299,8 +299,8 @@ def test_an_effect_added_to_a_real_recording_is_found_and_its_untouched_copy_cla
     from real_data import real
     from real_effects import CASES, GROWTH, with_effect
 
-    from service.io.recordings.load import load_data
-    from service.numerics.engine import as_effect_data
+    from fluxcal.service.io.recordings.load import load_data
+    from fluxcal.service.numerics.engine import as_effect_data
 
     size = next(s for n, k, s in CASES if (n, k) == (name, kind))
     touched, control = with_effect(as_effect_data(load_data(real(f"{name}.csv"))), kind, size)
@@ -322,9 +322,9 @@ def test_an_offset_and_scale_whose_scale_factors_are_within_their_errors_is_clai
     from real_data import real
     from real_effects import size_for, with_effect
 
-    from service.io.recordings.load import load_data
-    from service.numerics.diagnose.reading import scale_parts
-    from service.numerics.engine import as_effect_data
+    from fluxcal.service.io.recordings.load import load_data
+    from fluxcal.service.numerics.diagnose.reading import scale_parts
+    from fluxcal.service.numerics.engine import as_effect_data
 
     data = as_effect_data(load_data(real("hmc5883l_sensorfusion_sphere.csv")))
     touched, control = with_effect(data, "lagged heater", size_for(data, "lagged heater", 1.4, 7, 1350.0), 7)
@@ -340,8 +340,8 @@ def test_an_offset_and_scale_whose_scale_factors_are_within_their_errors_is_clai
 def _heater_world(seed: int, heater_mean_A: float):
     """Two probes tumbling; a heater current (a slow random walk about heater_mean_A, logged) puts a field common to
     both, fixed in the platform frame: (30, -20, 10) nT per A."""
-    from drivers.sim import Unit, load_sim_config
-    from service.numerics.effects.base import EffectData
+    from fluxcal.drivers.sim import Unit, load_sim_config
+    from fluxcal.service.numerics.effects.base import EffectData
 
     cfg = load_sim_config({"seed": seed, "rate_hz": 50.0, "duration_s": 240.0,
                            "motion": {"kind": "tumble", "rate_deg_s": 30.0, "tumble_period_s": 9.0},
@@ -362,9 +362,9 @@ def test_a_written_common_effect_keeps_its_reference_on_other_data(seeds, tmp_pa
     heater runs 10 A higher: the coefficient stays referenced to the fitted data's mean (a `ref:` key that travels
     with the calibration, as a probe's references do), so the other recording is corrected to its noise. Centred
     again on the other data's own mean it was left 10 A x 37 nT/A off (review of stop 32)."""
-    from service.numerics.diagnose.library import Feature, Group
-    from service.numerics.engine import fit_with_effects
-    from service.wiring.user_effects import resolve_effects
+    from fluxcal.service.numerics.diagnose.library import Feature, Group
+    from fluxcal.service.numerics.engine import fit_with_effects
+    from fluxcal.service.wiring.user_effects import resolve_effects
 
     a, b = _heater_world(seeds[0], 1.0), _heater_world(seeds[1], 11.0)
     feature = Feature("heater_A", "heater_A", "heater_A", "value", {"source": "column", "column": "heater_A"},
@@ -390,9 +390,9 @@ def test_a_line_on_a_bursty_real_board_is_found_at_its_own_frequency():
     as the effects' errors take it."""
     from real_data import real
 
-    from service.io.recordings.load import load_data
-    from service.numerics.diagnose.spectra import spectral_lines
-    from service.numerics.engine import as_effect_data
+    from fluxcal.service.io.recordings.load import load_data
+    from fluxcal.service.numerics.diagnose.spectra import spectral_lines
+    from fluxcal.service.numerics.engine import as_effect_data
 
     data = as_effect_data(load_data(real("hmc5883l_sensorfusion_sphere.csv")))
     t = data.t_s - data.t_s[0]
@@ -411,8 +411,8 @@ def test_one_lag_is_read_as_one_lag_not_two_of_opposite_signs(seed):
     opposite signs, (8.63, -6.53, 4.28) +- 0.06 and (-0.63, 0.54, -0.27): the second was the first's correction on the
     time-constant grid, and stayed once the first was refined. Now each group kept passes the held-out rule beside
     the others once refined (selection.prune): one lag, its coefficients within 4 errors of the truth."""
-    from drivers.sim import Unit, load_sim_config
-    from service.numerics.effects.base import EffectData
+    from fluxcal.drivers.sim import Unit, load_sim_config
+    from fluxcal.service.numerics.effects.base import EffectData
 
     cfg = load_sim_config({"seed": seed, "rate_hz": 200.0, "duration_s": 180.0,
                            "motion": {"kind": "tumble", "rate_deg_s": 30.0, "tumble_period_s": 9.0},

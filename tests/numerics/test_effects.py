@@ -1,23 +1,33 @@
 """Effect terms: composition, names, and each term's parameters recovered from simulated data whose every
-parameter is known (drivers.sim), through `fit_with_effects`."""
+parameter is known (fluxcal.drivers.sim), through `fit_with_effects`."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from drivers.errors import CalibrationRefused, ConfigError, DataError
-from drivers.sim import Unit, load_sim_config
-from service.numerics.effects import EFFECTS, Baseline, Drift, Eddy, EffectData, Lag, Model, Temperature, make_model
-from service.numerics.effects.gradient import gradient_basis
-from service.numerics.effects.hysteresis import detect_steps
-from service.numerics.effects.platform import Platform
-from service.numerics.engine import LinearCalibration, Parameter, fit_with_effects
-from service.numerics.noise import robust_noise
+from fluxcal.drivers.errors import CalibrationRefused, ConfigError, DataError
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.service.numerics.effects import (
+    EFFECTS,
+    Baseline,
+    Drift,
+    Eddy,
+    EffectData,
+    Lag,
+    Model,
+    Temperature,
+    make_model,
+)
+from fluxcal.service.numerics.effects.gradient import gradient_basis
+from fluxcal.service.numerics.effects.hysteresis import detect_steps
+from fluxcal.service.numerics.effects.platform import Platform
+from fluxcal.service.numerics.engine import LinearCalibration, Parameter, fit_with_effects
+from fluxcal.service.numerics.noise import robust_noise
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.numerics.effects.crossfield", "service.numerics.effects.nonlinearity", "service.numerics.effects.platform", "service.numerics.effects.thermal", "service.numerics.engine.jacobian", "service.numerics.engine.residuals", "service.numerics.engine.state",
-          "service.numerics.effects.attitude")
+COVERS = ("fluxcal.service.numerics.effects.crossfield", "fluxcal.service.numerics.effects.nonlinearity", "fluxcal.service.numerics.effects.platform", "fluxcal.service.numerics.effects.thermal", "fluxcal.service.numerics.engine.jacobian", "fluxcal.service.numerics.engine.residuals", "fluxcal.service.numerics.engine.state",
+          "fluxcal.service.numerics.effects.attitude")
 
 F_TOTAL = 52000.0
 
@@ -326,8 +336,8 @@ def test_effect_data_drops_saturated_rows_and_reads_quaternions():
 
 
 def test_fit_with_effects_takes_and_returns_array_calibrations():
-    from service.numerics.calib.ellipsoid import fit_ellipsoid
-    from service.numerics.calib.model import ArrayCalibration
+    from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
+    from fluxcal.service.numerics.calib.model import ArrayCalibration
 
     beta = [2.0, -1.0, 0.5]
     data, truth, _ = sim([probe(temp_offset_nT_per_C=beta)], n=5000)
@@ -364,8 +374,8 @@ def test_a_column_logged_but_never_changing_is_named_not_asked_for():
     currents' of data that log one; it names the column and says it does not change."""
     import numpy as np
 
-    from service.numerics.effects.base import EffectData
-    from service.numerics.effects.column import Column
+    from fluxcal.service.numerics.effects.base import EffectData
+    from fluxcal.service.numerics.effects.column import Column
 
     n = 200
     d = EffectData(t_s=np.arange(n) * 0.1, raw_nT=np.ones((n, 1, 3)), temp_C=np.full((n, 1), np.nan),
@@ -381,8 +391,8 @@ def test_a_nonlinearity_that_folds_the_transfer_back_within_the_readings_is_rule
     """A real copter log's compass held to a poor calibration: the nonlinearity term fitted q = -2e-4 /nT over
     readings of +-20,000 nT and took the verdict ('partly explained'); its transfer r = u + q u^2 + c u^3 would fold
     back within those readings (slope 1 + 2 q u = -7 at 20,000 nT). A real fluxgate's stays within 1e-3 of 1."""
-    from service.numerics.effects import make_term
-    from service.numerics.effects.span import ReadingSpan
+    from fluxcal.service.numerics.effects import make_term
+    from fluxcal.service.numerics.effects.span import ReadingSpan
 
     term = make_term("nonlinearity")
     span = ReadingSpan(["s1"], np.array([[-20000.0, -15000.0, -3000.0]]), np.array([[21000.0, 14000.0, 2500.0]]))

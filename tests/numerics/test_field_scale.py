@@ -10,11 +10,11 @@ import json
 import numpy as np
 import pytest
 
-from service.numerics.field_scale import TOTAL_RATIO_LIMIT, field_scale_warnings, sphere_centre
-from service.wiring.cli import main
+from fluxcal.service.numerics.field_scale import TOTAL_RATIO_LIMIT, field_scale_warnings, sphere_centre
+from fluxcal.service.wiring.cli import main
 
 #: what this file tests besides what it imports (tests/index.py): the notes fit and diagnose say, through the CLI
-COVERS = ("service.wiring.scale_notes",)
+COVERS = ("fluxcal.service.wiring.scale_notes",)
 
 
 def sphere(n: int = 2000, radius: float = 52_500.0, offset=(250.0, -400.0, 120.0), seed: int = 3) -> np.ndarray:

@@ -8,8 +8,8 @@ from __future__ import annotations
 import pytest
 from real_data import needs_real, real
 
-from service.numerics.diagnose.diagnostics import diagnose
-from service.numerics.effects.base import EffectData
+from fluxcal.service.numerics.diagnose.diagnostics import diagnose
+from fluxcal.service.numerics.effects.base import EffectData
 
 ERLE = "ardupilot_erlerobot_erlebrain3.BIN"
 
@@ -18,7 +18,7 @@ ERLE = "ardupilot_erlerobot_erlebrain3.BIN"
 def test_nothing_is_significant_where_the_model_is_below_its_floor():
     """The log as diagnose's numerics see it once its linear part is refitted (the command's gate refuses that refit
     now: its total field, 18,118 nT, is no Earth's): nothing is called significant, and drift says why."""
-    from service.io.recordings.load import load_data
+    from fluxcal.service.io.recordings.load import load_data
 
     lab = load_data(real(ERLE))
     d = diagnose(EffectData.from_block(lab.block, lab.probe_names), discover=False)
@@ -32,7 +32,7 @@ def test_nothing_is_significant_where_the_model_is_below_its_floor():
 def test_a_world_at_its_floor_calls_nothing(seed):
     """A sphere turned under white noise with nothing but the linear calibration: the model is at its floor (its
     residual is the noise), and no candidate is SIGNIFICANT whatever its held-out figures."""
-    from drivers.sim import Unit, load_sim_config
+    from fluxcal.drivers.sim import Unit, load_sim_config
 
     cfg = load_sim_config({"seed": seed, "rate_hz": 20.0, "duration_s": 120.0,
                            "field": {"total_nT": 48_000.0, "inclination_deg": 63.0},

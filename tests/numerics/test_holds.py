@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from real_data import needs_real, real
 
-from drivers.block import SampleBlock
-from drivers.sim import Unit, load_sim_config
-from service.numerics.diagnose import diagnose
-from service.numerics.effects.base import EffectData
-from service.numerics.holds import find_holds, without_holds
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.service.numerics.diagnose import diagnose
+from fluxcal.service.numerics.effects.base import EffectData
+from fluxcal.service.numerics.holds import find_holds, without_holds
 
 
 def _tumbling(seed: int, pink: float) -> SampleBlock:
@@ -109,7 +109,7 @@ def test_a_coarse_sensors_holds_are_found(sigma):
 @needs_real("hmc5883l_sensorfusion_sphere.csv", "qmc5883l_suarez.csv")
 def test_real_bursty_board_repeats():
     """The HMC5883L board read in bursts faster than the sensor converts: 239 exact repeats of 8,190, 20 by chance."""
-    from service.io.recordings.load import load_data
+    from fluxcal.service.io.recordings.load import load_data
 
     lab = load_data(real("hmc5883l_sensorfusion_sphere.csv"))
     h = find_holds(lab.block.field_nT, lab.probe_names)
@@ -123,7 +123,7 @@ def test_a_sensor_that_never_changes_is_refused_not_a_crash(tmp_path, capsys):
     """A real ArduPilot log (erlerobot/logs pxf/copter/31-3-2015/83.BIN) logged one compass value 784 times (its
     offsets on a zero reading): counted as chance repeats of a coarse sensor, kept, and diagnose divided by a median
     field of zero. It says what the samples are now."""
-    from service.wiring.cli import main
+    from fluxcal.service.wiring.cli import main
 
     path = tmp_path / "stuck.csv"
     t = np.arange(800) * 0.1

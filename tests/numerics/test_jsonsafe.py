@@ -1,4 +1,4 @@
-"""service.numerics.jsonsafe: what the data do not determine leaves as null in JSON, never as NaN (which JSON does
+"""fluxcal.service.numerics.jsonsafe: what the data do not determine leaves as null in JSON, never as NaN (which JSON does
 not have) nor as a number; numpy's types leave as Python's."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from service.numerics.jsonsafe import finite_or_none, json_safe
+from fluxcal.service.numerics.jsonsafe import finite_or_none, json_safe
 
 
 def test_numbers_finite_or_null():

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from real_data import real
 
-from drivers.block import SampleBlock
-from drivers.sim.config import load_sim_config
-from drivers.sim.world import World
-from service.io.recordings.load import load_data
-from service.wiring.pipeline import Pipeline
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.sim.config import load_sim_config
+from fluxcal.drivers.sim.world import World
+from fluxcal.service.io.recordings.load import load_data
+from fluxcal.service.wiring.pipeline import Pipeline
 
 
 def _serve(block: SampleBlock, *, spread: bool, total_nT: float | None = None, check_every: int = 1000,
@@ -86,7 +86,7 @@ def test_the_services_offset_errors_under_1f_noise_and_white_noise():
 def test_the_services_spreads_are_of_fits_unconstrained_by_the_total_as_the_estimator_is(monkeypatch):
     """The online estimator takes a configured or logged total for its scale only: the fits left out in time and
     direction are unconstrained too (as `fit --method rls`'s errors), even with a total configured."""
-    import service.wiring.gate as gate
+    import fluxcal.service.wiring.gate as gate
 
     asked = []
     for name in ("add_time_spread", "add_direction_spread"):

@@ -10,10 +10,10 @@ import pytest
 from real_data import real, real_nT
 from test_coverage import M_TRUE, O_TRUE, TOTAL_NT, _pink, wobbling_turns
 
-from service.io.recordings.load import load_data
-from service.numerics.calib.ellipsoid import fit_ellipsoid
-from service.numerics.calib.misfit import direction_jackknife, time_jackknife
-from service.wiring import cli
+from fluxcal.service.io.recordings.load import load_data
+from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
+from fluxcal.service.numerics.calib.misfit import direction_jackknife, time_jackknife
+from fluxcal.service.wiring import cli
 
 BOARDS = ["qmc5883l_suarez", "imu_freeimucal", "hmc5883l_sensorfusion_sphere"]
 
@@ -130,8 +130,8 @@ def test_regions_the_fit_cannot_do_without_are_counted_and_said():
 
 
 def _lab(raw: np.ndarray):
-    from drivers.block import SampleBlock
-    from service.io.recordings.labdata import LabData
+    from fluxcal.drivers.block import SampleBlock
+    from fluxcal.service.io.recordings.labdata import LabData
 
     n = raw.shape[0]
     block = SampleBlock(t_s=np.arange(n) * 0.01, seq=np.arange(n), field_nT=raw[:, None, :],
@@ -147,9 +147,9 @@ def test_the_fit_step_says_the_errors_are_lower_bounds_and_keeps_a_rotated_matri
     rotated [1, 0] never raised); the offsets' errors are raised the same."""
     from scipy.spatial.transform import Rotation
 
-    from service.numerics.calib.model import ArrayCalibration
-    from service.wiring.coloured_fit import direction_offsets
-    from service.wiring.fitting import TotalField
+    from fluxcal.service.numerics.calib.model import ArrayCalibration
+    from fluxcal.service.wiring.coloured_fit import direction_offsets
+    from fluxcal.service.wiring.fitting import TotalField
 
     raw = _two_rings()
     fit = fit_ellipsoid(raw, TOTAL_NT, order="full")

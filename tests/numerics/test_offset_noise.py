@@ -7,11 +7,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.sim.streams import PinkNoise
-from service.numerics.calib.alignment import regression_calibration
-from service.numerics.calib.ellipsoid import fit_ellipsoid
-from service.numerics.calib.model import triangular_params
-from service.numerics.calib.offset_noise import ellipsoid_weights, record_se, regression_weights, wander_per_decade
+from fluxcal.drivers.sim.streams import PinkNoise
+from fluxcal.service.numerics.calib.alignment import regression_calibration
+from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
+from fluxcal.service.numerics.calib.model import triangular_params
+from fluxcal.service.numerics.calib.offset_noise import (
+    ellipsoid_weights,
+    record_se,
+    regression_weights,
+    wander_per_decade,
+)
 
 F = 50000.0
 
@@ -87,8 +92,8 @@ def _pair(n: int, pink: float, seed: int = 3):
     """test_stderr's pair of probes, n samples at 20 Hz, as `fit` sees it: (data, calibration, total field)."""
     from test_stderr import pair_unit
 
-    from service.io.recordings.labdata import LabData
-    from service.wiring.fitting import fit_array
+    from fluxcal.service.io.recordings.labdata import LabData
+    from fluxcal.service.wiring.fitting import fit_array
 
     unit = pair_unit(seed, pink)
     block = unit.digitise(0, n).to_block()
@@ -98,9 +103,9 @@ def _pair(n: int, pink: float, seed: int = 3):
 
 
 def test_a_failure_of_the_coloured_errors_keeps_the_white_ones_and_says_they_are_lower_bounds(monkeypatch):
-    from service.numerics.calib import offset_noise
-    from service.wiring.coloured_fit import coloured_offsets
-    from service.wiring.commands.fit import coloured_warnings
+    from fluxcal.service.numerics.calib import offset_noise
+    from fluxcal.service.wiring.coloured_fit import coloured_offsets
+    from fluxcal.service.wiring.commands.fit import coloured_warnings
 
     data, cal, total = _pair(18000, 0.3)
     white = cal.probes[0].offset_se_nT.copy()
@@ -120,8 +125,8 @@ def test_a_failure_of_the_coloured_errors_keeps_the_white_ones_and_says_they_are
 def test_a_regression_aligned_probe_inherits_the_reference_offset_errors_on_any_record():
     """Even where no spectrum can be taken (400 samples): probe 2's offset errors are the regression's and
     probe 1's carried over, -A^-1 M_1 delta o_1; where probe 1 has none (NaN), the regression's alone."""
-    from service.numerics.calib.alignment import regression_calibration
-    from service.wiring.coloured_fit import coloured_offsets
+    from fluxcal.service.numerics.calib.alignment import regression_calibration
+    from fluxcal.service.wiring.coloured_fit import coloured_offsets
 
     data, cal, total = _pair(400, 0.0)
     p1, p2 = cal.probes
@@ -142,8 +147,8 @@ def test_tmi_gets_the_errors_of_the_ellipsoid_fit_it_equals():
     """`fit --method tmi` is the ellipsoid fit with the total given: the same offsets and matrix (to 1e-9 here), so
     the same coloured-noise and direction errors. It kept the white-noise ones: on a flight's cabin fluxgate
     (MagNav, public) +-280 nT where the ellipsoid said +-2,200 and an attitude-based check lay 4-10 of them away."""
-    from service.wiring.coloured_fit import coloured_offsets, direction_offsets
-    from service.wiring.fitting import fit_array
+    from fluxcal.service.wiring.coloured_fit import coloured_offsets, direction_offsets
+    from fluxcal.service.wiring.fitting import fit_array
 
     data, ell, total = _pair(18000, 0.3)
     tmi, _ = fit_array(data, method="tmi")
@@ -165,9 +170,9 @@ def test_rls_errors_are_those_of_the_fit_it_equals_with_a_reference_column(monke
     flight (MagNav, public) +-709 nT for an offset whose own fit says +-7,388."""
     import dataclasses
 
-    from service.numerics.calib import misfit, offset_noise
-    from service.wiring.coloured_fit import coloured_offsets, direction_offsets
-    from service.wiring.fitting import fit_array
+    from fluxcal.service.numerics.calib import misfit, offset_noise
+    from fluxcal.service.wiring.coloured_fit import coloured_offsets, direction_offsets
+    from fluxcal.service.wiring.fitting import fit_array
 
     data, _, _ = _pair(18000, 0.3)
     b = data.block

@@ -15,7 +15,7 @@ import re
 import pytest
 from test_advice import BRANCHES, _follow, _sig
 
-from service.numerics.diagnose.signature import Carried, describe
+from fluxcal.service.numerics.diagnose.signature import Carried, describe
 
 #: a logged angle that moves at two frequencies, and a line of the residual at 2 f1
 FLAP = ("flap_deg", (0.0583, 0.1896))
@@ -85,8 +85,8 @@ def test_the_checker_sees_a_disagreement():
 def test_the_sample_recordings_diagnoses_tell_one_story(recording):
     from pathlib import Path
 
-    from service.io.recordings.load import load_data
-    from service.numerics.diagnose import diagnose, summary_text
+    from fluxcal.service.io.recordings.load import load_data
+    from fluxcal.service.numerics.diagnose import diagnose, summary_text
 
     d = diagnose(load_data(Path(__file__).resolve().parents[2] / "recordings" / recording))
     text = summary_text(d)

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from paper_sims import P000_TABLE3_AFTER, P000_TABLE3_BEFORE, P000_TOTAL_PRINTED_NT, paper000
 
-from drivers.errors import CalibrationRefused, DataError
-from service.numerics.calib.alignment import align_probes, align_regression, regression_calibration
-from service.numerics.calib.ellipsoid import fit_ellipsoid
-from service.numerics.calib.model import ArrayCalibration, unit_column_split
-from service.numerics.calib.quadric import triangular_factor
-from service.numerics.calib.tensor import differences
+from fluxcal.drivers.errors import CalibrationRefused, DataError
+from fluxcal.service.numerics.calib.alignment import align_probes, align_regression, regression_calibration
+from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
+from fluxcal.service.numerics.calib.model import ArrayCalibration, unit_column_split
+from fluxcal.service.numerics.calib.quadric import triangular_factor
+from fluxcal.service.numerics.calib.tensor import differences
 
 
 def calibrate(sim):

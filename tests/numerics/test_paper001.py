@@ -11,19 +11,19 @@ import numpy as np
 import pytest
 from paper_sims import P001_TABLE1, P001_TABLE2_BEFORE_NT, P001_TABLE3_RAD, P001_TABLE4_BEFORE, P001_TOTAL_NT, paper001
 
-from drivers.errors import CalibrationRefused, DataError
-from service.numerics.calib.alignment import (
+from fluxcal.drivers.errors import CalibrationRefused, DataError
+from fluxcal.service.numerics.calib.alignment import (
     align_rotation,
     angles_from_rotation,
     platform_calibration,
     platform_output,
     rotation_from_angles,
 )
-from service.numerics.calib.ellipsoid import fit_ellipsoid
-from service.numerics.calib.model import triangular_matrix, triangular_params
-from service.numerics.calib.quadric import triangular_factor
-from service.numerics.calib.tensor import measured_components, tensor_from_cross
-from service.numerics.calib.tmi import (
+from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
+from fluxcal.service.numerics.calib.model import triangular_matrix, triangular_params
+from fluxcal.service.numerics.calib.quadric import triangular_factor
+from fluxcal.service.numerics.calib.tensor import measured_components, tensor_from_cross
+from fluxcal.service.numerics.calib.tmi import (
     fit_tmi,
     fit_tmi_full,
     transformation_i_inverse,

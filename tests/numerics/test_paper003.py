@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from sims_003_004 import P003_CURVES, P003_TABLE1, paper003
 
-from drivers.errors import CalibrationRefused
-from service.numerics.calib.sinefit import fit_sine_nonorthogonality, fit_sinefit
+from fluxcal.drivers.errors import CalibrationRefused
+from fluxcal.service.numerics.calib.sinefit import fit_sine_nonorthogonality, fit_sinefit
 
 TRUTH = (1.5, 32.5, 1.7)
 
@@ -142,7 +142,7 @@ def test_fluxcal_fit_sinefit_from_a_lab_csv(tmp_path, capsys):
     # docs/csv.md, docs/cli.md: a lab CSV with the table angle in an 'angle_deg' column
     import json
 
-    from service.wiring.cli import main
+    from fluxcal.service.wiring.cli import main
 
     s = paper003(30, seed=0)
     path = tmp_path / "turntable.csv"

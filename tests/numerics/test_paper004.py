@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from sims_003_004 import P004_TOTAL_NT, attitude, heading_error_deg, paper004, tilt_compensated_heading_deg
 
-from drivers.errors import CalibrationRefused
-from service.numerics.calib.model import ProbeCalibration
-from service.numerics.calib.twostep import align_pca, fit_two_step, fit_two_step_full, orthogonality_correction
+from fluxcal.drivers.errors import CalibrationRefused
+from fluxcal.service.numerics.calib.model import ProbeCalibration
+from fluxcal.service.numerics.calib.twostep import align_pca, fit_two_step, fit_two_step_full, orthogonality_correction
 
 
 def fit(sim, **kw):
@@ -183,7 +183,7 @@ def test_fluxcal_fit_two_step_from_a_lab_csv(tmp_path, capsys):
     # `fit` uses the three turns for both steps (36 points)
     import json
 
-    from service.wiring.cli import main
+    from fluxcal.service.wiring.cli import main
 
     s = paper004(0)
     turn = np.full(len(s.raw_nT), -1)

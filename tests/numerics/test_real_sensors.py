@@ -19,19 +19,19 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from real_data import find, mend, real, real_nT
 
-from drivers.block import SampleBlock
-from drivers.errors import CalibrationRefused
-from service.io.recordings.load import load_data
-from service.numerics.calib.coverage import coverage
-from service.numerics.calib.ellipsoid import fit_ellipsoid
-from service.numerics.calib.model import triangular_matrix
-from service.numerics.calib.rls import RlsEllipsoid
-from service.numerics.calib.tmi import fit_tmi
-from service.numerics.calib.twostep import fit_two_step_full
-from service.wiring.pipeline import Pipeline
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import CalibrationRefused
+from fluxcal.service.io.recordings.load import load_data
+from fluxcal.service.numerics.calib.coverage import coverage
+from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
+from fluxcal.service.numerics.calib.model import triangular_matrix
+from fluxcal.service.numerics.calib.rls import RlsEllipsoid
+from fluxcal.service.numerics.calib.tmi import fit_tmi
+from fluxcal.service.numerics.calib.twostep import fit_two_step_full
+from fluxcal.service.wiring.pipeline import Pipeline
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.numerics.calib.excitation",)
+COVERS = ("fluxcal.service.numerics.calib.excitation",)
 
 ROOT = Path(__file__).resolve().parents[2]
 FULL_SPHERE = ["qmc5883l_suarez", "imu_freeimucal", "hmc5883l_sensorfusion_sphere"]
@@ -174,7 +174,7 @@ def test_any_offset_and_unit_give_the_same_calibration(seed, shift_fields, log_f
 
 
 def _run_fit(path: Path, *extra: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "service.wiring.cli", "fit", str(path), "--json", *extra],
+    return subprocess.run([sys.executable, "-m", "fluxcal.service.wiring.cli", "fit", str(path), "--json", *extra],
                           capture_output=True, text=True, cwd=ROOT, timeout=120)
 
 
@@ -251,7 +251,7 @@ def test_every_method_that_fits_the_offsets_refuses_a_real_single_axis_turn(meth
     """The cone refusal guarded the default method only: `fit --method tmi` gave turn_x's x offset 9,417 ± 590
     nT (the sphere: −643) and `--method rls` 9,417 ± 1,900, exit 0 and a calibration written (a user's trial).
     The same turns, and the nliaudat board's, are now refused by both; a full sphere is still fitted."""
-    from service.wiring.cli import main
+    from fluxcal.service.wiring.cli import main
 
     for name, axis in (("hmc5883l_sensorfusion_turn_x", "x"), ("hmc5883l_sensorfusion_turn_z", "z"),
                        ("hmc5883l_nliaudat", "z")):
@@ -388,9 +388,9 @@ def test_the_online_estimator_ignores_the_origin_and_unit(seed, shift_fields, lo
 
 def test_the_effects_fit_starts_and_ends_where_the_origin_does_not_matter():
     """The effects fit (its start: an ellipsoid per probe, aligned) moved with the data."""
-    from drivers.sim.config import load_sim_config
-    from drivers.sim.world import World
-    from service.numerics.engine import fit_with_effects
+    from fluxcal.drivers.sim.config import load_sim_config
+    from fluxcal.drivers.sim.world import World
+    from fluxcal.service.numerics.engine import fit_with_effects
 
     cfg = load_sim_config({"duration_s": 20.0, "rate_hz": 100.0, "seed": 3,
                            "probes": [{"offset_nT": [300.0, -100.0, 50.0]}, {"offset_nT": [-80.0, 40.0, 20.0]}]})

@@ -10,8 +10,8 @@ import json
 import numpy as np
 import pytest
 
-from drivers.sim import Unit, load_sim_config
-from service.wiring import cli
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.service.wiring import cli
 
 
 def _fit(capsys, path, *args):

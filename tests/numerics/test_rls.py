@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.errors import CalibrationRefused, DataError
-from service.numerics.calib.ellipsoid import fit_ellipsoid
-from service.numerics.calib.rls import RlsEllipsoid
+from fluxcal.drivers.errors import CalibrationRefused, DataError
+from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
+from fluxcal.service.numerics.calib.rls import RlsEllipsoid
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.numerics.calib.rls_info",)
+COVERS = ("fluxcal.service.numerics.calib.rls_info",)
 
 TOTAL_NT = 50000.0
 M_TRUE = np.array([[1.02, 0.01, -0.005], [0.0, 0.98, 0.008], [0.0, 0.0, 1.01]])   # corrected = M (raw − o)

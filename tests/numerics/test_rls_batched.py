@@ -8,12 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.block import SampleBlock
-from drivers.errors import CalibrationRefused
-from drivers.sim.config import load_sim_config
-from drivers.sim.unit import Unit
-from service.numerics.calib.rls import RlsEllipsoid
-from service.wiring.pipeline import Pipeline
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import CalibrationRefused
+from fluxcal.drivers.sim.config import load_sim_config
+from fluxcal.drivers.sim.unit import Unit
+from fluxcal.service.numerics.calib.rls import RlsEllipsoid
+from fluxcal.service.wiring.pipeline import Pipeline
 
 STATE = ("info", "eta", "y2", "weight", "n", "origin", "scale", "f2_ref", "assumed_total", "last_dir",
          "direction_centre")

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 from real_data import needs_real, real_nT
 
-from service.io.recordings.load import load_data
-from service.wiring.cli import main
-from service.wiring.coloured_fit import coloured_offsets
-from service.wiring.fitting import fit_array
+from fluxcal.service.io.recordings.load import load_data
+from fluxcal.service.wiring.cli import main
+from fluxcal.service.wiring.coloured_fit import coloured_offsets
+from fluxcal.service.wiring.fitting import fit_array
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -65,7 +65,7 @@ def test_rls_offsets_under_1_over_f_noise_gain_the_wander_within_the_record(tmp_
 @needs_real("qmc5883l_suarez.csv")
 def test_rls_and_the_batch_fit_state_the_same_errors_on_a_real_board():
     def fit(method: str) -> dict:
-        proc = subprocess.run([sys.executable, "-m", "service.wiring.cli", "fit", str(real_nT("qmc5883l_suarez.csv")),
+        proc = subprocess.run([sys.executable, "-m", "fluxcal.service.wiring.cli", "fit", str(real_nT("qmc5883l_suarez.csv")),
                                "--json", "--method", method], capture_output=True, text=True, cwd=ROOT, timeout=300,
                               check=False)
         assert proc.returncode == 0, proc.stderr

@@ -20,13 +20,13 @@ import numpy as np
 import pytest
 from shape_worlds import LAWS, shape_world
 
-from service.numerics.diagnose import diagnose, summary_text
-from service.numerics.diagnose.write_effect import effect_source
+from fluxcal.service.numerics.diagnose import diagnose, summary_text
+from fluxcal.service.numerics.diagnose.write_effect import effect_source
 
 #: what this file tests besides what it imports (tests/index.py)
-COVERS = ("service.numerics.diagnose.shapes", "service.numerics.diagnose.laws", "service.numerics.diagnose.forms",
-          "service.numerics.diagnose.shape_reading", "service.numerics.diagnose.harmonics",
-          "service.numerics.diagnose.effect_code")
+COVERS = ("fluxcal.service.numerics.diagnose.shapes", "fluxcal.service.numerics.diagnose.laws", "fluxcal.service.numerics.diagnose.forms",
+          "fluxcal.service.numerics.diagnose.shape_reading", "fluxcal.service.numerics.diagnose.harmonics",
+          "fluxcal.service.numerics.diagnose.effect_code")
 
 FLOOR = 1.3
 #: the worlds of the tests: 5,000 samples at 20 Hz, three probes (the bench sweeps 12,000)
@@ -117,8 +117,8 @@ def test_nothing_is_claimed_beside_twenty_wandering_columns(seed, pink):
 
 @pytest.mark.slow
 def test_the_law_written_as_an_effect_gives_the_figure_again_alone(found, tmp_path, clean_registry):
-    from service.numerics.effects import known_effects, register_effect
-    from service.wiring.user_effects import resolve_effects
+    from fluxcal.service.numerics.effects import known_effects, register_effect
+    from fluxcal.service.wiring.user_effects import resolve_effects
 
     data, d = found[("saturating coil", 0.0)]
     f = d.discovery
@@ -148,8 +148,8 @@ def test_a_shape_added_to_a_real_recording_is_found_and_its_untouched_copy_claim
     from real_data import real
     from real_effects import SHAPE_CASES, with_effect
 
-    from service.io.recordings.load import load_data
-    from service.numerics.engine import as_effect_data
+    from fluxcal.service.io.recordings.load import load_data
+    from fluxcal.service.numerics.engine import as_effect_data
 
     size = next(s for n, k, s in SHAPE_CASES if (n, k) == (name, kind))
     touched, control = with_effect(as_effect_data(load_data(real(f"{name}.csv"))), kind, size)

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.errors import ConfigError
-from service.numerics.calib.site import parse_site, site_field, site_from_text
-from service.wiring.config import config_from_dict
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.numerics.calib.site import parse_site, site_field, site_from_text
+from fluxcal.service.wiring.config import config_from_dict
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -67,7 +67,7 @@ def test_fit_takes_the_site_for_a_method_that_needs_a_total_field(tmp_path):
     path = tmp_path / "lab.csv"
     np.savetxt(path, np.column_stack([np.arange(2000) * 0.01, raw]), delimiter=",", header="t,s1_x,s1_y,s1_z",
                comments="")
-    run = [sys.executable, "-m", "service.wiring.cli", "fit", str(path), "--method", "tmi", "--json"]
+    run = [sys.executable, "-m", "fluxcal.service.wiring.cli", "fit", str(path), "--method", "tmi", "--json"]
     refused = subprocess.run(run, capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert refused.returncode == 2 and "tmi needs a scalar reference" in refused.stderr
     done = subprocess.run(run + ["--site", "80,0,0,2025.0"], capture_output=True, text=True, cwd=ROOT, timeout=120)

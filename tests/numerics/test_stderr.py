@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from test_diagnose import TUMBLE, data_of, probe
 
-from drivers.sim import Unit, load_sim_config
-from service.numerics.diagnose import diagnose, summary_text
-from service.numerics.engine import fit_with_effects
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.service.numerics.diagnose import diagnose, summary_text
+from fluxcal.service.numerics.engine import fit_with_effects
 
 TEMP = {"s1.x nT/degC": 2.0, "s1.y nT/degC": -1.5, "s1.z nT/degC": 1.0,
         "s2.x nT/degC": 0.0, "s2.y nT/degC": 0.0, "s2.z nT/degC": 0.0}
@@ -70,7 +70,7 @@ def test_under_one_over_f_noise_diagnose_says_where_the_drift_errors_come_from()
 def test_the_spectral_variance_of_a_trend_under_flicker_noise_matches_simulation():
     """The formula alone (engine/coloured.py): the slope of a line fitted to 1/f noise, 300 records drawn from
     a process 16 times as long, against the variance the spectrum gives."""
-    from service.numerics.engine.coloured import power_law, spectral_variance
+    from fluxcal.service.numerics.engine.coloured import power_law, spectral_variance
 
     rng = np.random.default_rng(0)
     n, dt = 4000, 0.05
@@ -103,7 +103,7 @@ def _fit_pair(seed: int, pink: float, tmp_path, capsys) -> tuple[dict, np.ndarra
 
     from test_diagnose import _write_csv
 
-    from service.wiring import cli
+    from fluxcal.service.wiring import cli
 
     unit = pair_unit(seed, pink)
     n = unit.config.n_samples
@@ -136,8 +136,8 @@ def test_fit_offsets_standard_errors_cover_the_record_truth_under_one_over_f_noi
     offset_noise.py), both probes' offsets (ellipsoid, regression) and probe 1's angles and scale factors within
     1.5 on six seeds (measured: offsets 0.86 and 1.03, shape 0.96 and 1.00), and the warning says what the
     figure covers and how far the offsets wander beyond the record."""
-    from service.numerics.calib.model import triangular_params
-    from service.numerics.calib.quadric import triangular_factor
+    from fluxcal.service.numerics.calib.model import triangular_params
+    from fluxcal.service.numerics.calib.quadric import triangular_factor
 
     z, z_shape = [], []
     for seed in range(6):
@@ -164,8 +164,8 @@ def test_fit_offsets_standard_errors_cover_the_record_truth_under_one_over_f_noi
 def test_fit_on_white_noise_keeps_the_white_noise_errors(seed, tmp_path, capsys):
     """White noise: no coloured warning, probe 1's (ellipsoid) errors the white-noise ones, and probe 2's
     (regression onto probe 1) those of the regression plus probe 1's offset errors, which it inherits."""
-    from service.numerics.calib.alignment import regression_calibration
-    from service.numerics.calib.ellipsoid import fit_ellipsoid
+    from fluxcal.service.numerics.calib.alignment import regression_calibration
+    from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
 
     out, truth = _fit_pair(seed, 0.0, tmp_path, capsys)
     assert not any("coloured" in w for w in out["warnings"]), out["warnings"]
@@ -251,7 +251,7 @@ def test_a_bursty_time_base_is_laid_out_in_the_samples_order_at_its_mean_interva
     """Bursts of samples 2-3 ms apart with 40-60 ms between them (a hobby board), and a pause of 5 s: the spectra are
     taken over the samples in their order, so the weights are laid out the same way, at the mean interval outside
     the pause, and the pause keeps its length."""
-    from service.numerics.engine.coloured import sample_grid
+    from fluxcal.service.numerics.engine.coloured import sample_grid
 
     rng = np.random.default_rng(3)
     steps = np.tile([0.002, 0.003, 0.002, 0.05], 500) + rng.uniform(0, 0.01, 2000) * np.tile([0, 0, 0, 1], 500)
@@ -275,9 +275,9 @@ def test_a_real_bursty_boards_errors_match_the_spread_over_random_heater_histori
     its frequencies, on the median interval, and carried below its band at -2.5)."""
     from real_data import real
 
-    from service.io.recordings.load import load_data
-    from service.numerics.effects.thermal import low_pass
-    from service.numerics.engine import as_effect_data
+    from fluxcal.service.io.recordings.load import load_data
+    from fluxcal.service.numerics.effects.thermal import low_pass
+    from fluxcal.service.numerics.engine import as_effect_data
 
     data = as_effect_data(load_data(real("hmc5883l_sensorfusion_sphere.csv")))
     s = data.t_s - data.t_s[0]
@@ -302,7 +302,7 @@ def test_under_a_random_walk_the_steep_law_is_kept_below_its_band_and_drift_is_n
     it). Under a random walk of the offsets it is not refuted: with the knee taken regardless, a drift's stated errors
     fell 2-4 fold (rms z 4.8, worst -18.5) and diagnose called a drift that is not there significant. Measured with
     the steep law kept: rms z 1.31 over six seeds."""
-    from service.numerics.engine.coloured import low_frequency_knee, sample_grid, welch_spectra
+    from fluxcal.service.numerics.engine.coloured import low_frequency_knee, sample_grid, welch_spectra
 
     z = []
     for seed in range(6):

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.errors import ConfigError
-from service.numerics.calib.tensor import (
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.numerics.calib.tensor import (
     center_field,
     cross_positions,
     differences,
@@ -17,7 +17,7 @@ from service.numerics.calib.tensor import (
     tensor_from_cross,
     tensor_from_positions,
 )
-from service.numerics.outputs import CorrectedBlock
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 
 def source_free_gradient(rng: np.random.Generator) -> np.ndarray:
@@ -124,7 +124,7 @@ def test_a_block_derives_what_its_samples_derive_one_by_one(n_probes, planar):
     """Differences, centre and tensor of a block (outputs.Derived, the pipeline's) equal, bit for bit, those of
     each of its samples alone and products' of the block: the same sums in the same order whatever the block's
     length, so live blocks and replay's long ones agree; a NaN stays in its own sample."""
-    from service.numerics.outputs import Derived, products
+    from fluxcal.service.numerics.outputs import Derived, products
 
     rng = np.random.default_rng(n_probes + 10 * planar)
     pos = rng.normal(0, 0.2, (n_probes, 3))

@@ -13,10 +13,10 @@ import pytest
 from pygeomag import GeoMag
 from pygeomag.wmm import wmm_2010, wmm_2015v2, wmm_2020, wmm_2025
 
-from drivers.block import SampleBlock
-from drivers.errors import DataError
-from drivers.sim import Unit, load_sim_config
-from service.numerics.calib.track import (
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import DataError
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.service.numerics.calib.track import (
     DIRECTION,
     decimal_years,
     follows_height_note,
@@ -24,7 +24,7 @@ from service.numerics.calib.track import (
     track_reference,
     wmm_field,
 )
-from service.wiring import cli
+from fluxcal.service.wiring import cli
 
 WITHIN_FLOOR = 1.3
 

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from shape_worlds import shape_world
 
-from service.numerics.diagnose import diagnose, summary_text
-from service.numerics.diagnose.fits import heldout
-from service.numerics.diagnose.signature import CHANNEL_FACTOR, CHANNELS_SAID
+from fluxcal.service.numerics.diagnose import diagnose, summary_text
+from fluxcal.service.numerics.diagnose.fits import heldout
+from fluxcal.service.numerics.diagnose.signature import CHANNEL_FACTOR, CHANNELS_SAID
 
 #: the worlds: 8,000 samples at 20 Hz, the effect 1.5 times shape_worlds' size (bench/bench_shapes.py --part channels
 #: runs ten such worlds: "partly explained" with the channels named in 9, the tenth's `column` held out loses)

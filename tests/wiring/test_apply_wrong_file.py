@@ -14,13 +14,13 @@ from test_recording import service_config
 from test_watch import free_port
 from test_zenoh_bus import FakeDaemon, wait_until
 
-from drivers.errors import DataError
-from service.io.bus import MAX_COMMAND_PAYLOAD_BYTES, BusClient, BusError, ServiceBus, ZenohConfig
-from service.io.calfile import load_calibration
-from service.wiring.cli import main
-from service.wiring.config import load_config
-from service.wiring.daemon import Daemon
-from service.wiring.startcal import calibration_from_payload
+from fluxcal.drivers.errors import DataError
+from fluxcal.service.io.bus import MAX_COMMAND_PAYLOAD_BYTES, BusClient, BusError, ServiceBus, ZenohConfig
+from fluxcal.service.io.calfile import load_calibration
+from fluxcal.service.wiring.cli import main
+from fluxcal.service.wiring.config import load_config
+from fluxcal.service.wiring.daemon import Daemon
+from fluxcal.service.wiring.startcal import calibration_from_payload
 
 HEADER = "t,s1_x,s1_y,s1_z,s2_x,s2_y,s2_z,s1_temp,s2_temp,ref_total,seq,flags\n"
 ROW = "0.005000,46000.174,-28171.471,1854.467,40316.566,-32362.920,1211.754,22.00,22.00,52500.0454,1,0\n"
@@ -118,7 +118,7 @@ def test_the_service_logs_a_short_line_and_counts_what_it_refused(tmp_path):
 def test_inline_calibration_json_is_never_taken_for_a_file_name():
     """A calibration's JSON text given inline is longer than a file name may be: asking whether it names a file
     raised OSError (File name too long) on Python 3.11, a traceback (the review's case)."""
-    from service.wiring.commands.command import _is_file
+    from fluxcal.service.wiring.commands.command import _is_file
 
     text = '{"format": "fluxcal-calibration", "probes": [' + ", ".join(["{}"] * 200) + "]}"
     assert len(text) > 300

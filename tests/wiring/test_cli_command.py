@@ -9,10 +9,10 @@ import numpy as np
 from test_watch import free_port
 from test_zenoh_bus import FakeDaemon
 
-from service.io.bus import ServiceBus, ZenohConfig
-from service.io.calfile import save_calibration
-from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
-from service.wiring.cli import main
+from fluxcal.service.io.bus import ServiceBus, ZenohConfig
+from fluxcal.service.io.calfile import save_calibration
+from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from fluxcal.service.wiring.cli import main
 
 
 def _as_the_daemon_does(cmd) -> dict:

@@ -7,9 +7,9 @@ import argparse
 
 import pytest
 
-from service.numerics.effects import EFFECTS
-from service.wiring import cli
-from service.wiring.fitting import ALIGNS, METHODS
+from fluxcal.service.numerics.effects import EFFECTS
+from fluxcal.service.wiring import cli
+from fluxcal.service.wiring.fitting import ALIGNS, METHODS
 
 
 def _subparsers() -> dict[str, argparse.ArgumentParser]:
@@ -35,7 +35,7 @@ def test_every_option_says_what_it_does_and_every_command_has_an_example(name):
 
 
 def test_the_help_names_what_the_code_allows():
-    from service.wiring.commands import options
+    from fluxcal.service.wiring.commands import options
 
     assert [e.strip() for e in options.EFFECT_NAMES.split(",")] == list(EFFECTS)
     assert options.METHODS == tuple(METHODS) and options.ALIGNS == tuple(ALIGNS)
@@ -43,7 +43,7 @@ def test_the_help_names_what_the_code_allows():
 
 def test_each_command_declares_its_options_and_the_list_names_it_as_the_command_does():
     """build_parser is a loop over the commands; the line `fluxcal --help` shows for each is its module's own."""
-    from service.wiring.commands import COMMANDS
+    from fluxcal.service.wiring.commands import COMMANDS
 
     for name, short in COMMANDS.items():
         module = cli.command_module(name)
@@ -52,10 +52,10 @@ def test_each_command_declares_its_options_and_the_list_names_it_as_the_command_
     import subprocess
     import sys
 
-    code = ("import sys; from service.wiring import cli; cli.build_parser('repair'); "
-            "print(sorted(m for m in sys.modules if m.startswith('service.wiring.commands.')))")
+    code = ("import sys; from fluxcal.service.wiring import cli; cli.build_parser('repair'); "
+            "print(sorted(m for m in sys.modules if m.startswith('fluxcal.service.wiring.commands.')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.strip() == "['service.wiring.commands.options', 'service.wiring.commands.repair']"
+    assert out.strip() == "['fluxcal.service.wiring.commands.options', 'fluxcal.service.wiring.commands.repair']"
 
 
 def test_version(capsys):

@@ -8,10 +8,10 @@ import json
 import numpy as np
 from helpers import write_raw
 
-from drivers.sim.config import load_sim_config
-from drivers.sim.source import SimSource
-from service.io.recordings.reader import read_recording
-from service.wiring.cli import main
+from fluxcal.drivers.sim.config import load_sim_config
+from fluxcal.drivers.sim.source import SimSource
+from fluxcal.service.io.recordings.reader import read_recording
+from fluxcal.service.wiring.cli import main
 
 
 def _cut_recording(tmp_path):

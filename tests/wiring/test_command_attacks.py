@@ -28,16 +28,16 @@ from hypothesis import strategies as st
 from test_recording import service_config
 from test_zenoh_security import free_port
 
-from drivers.errors import DataError
-from service.io.bus import BusClient, ZenohConfig, ZenohTlsConfig
-from service.io.calfile import calibration_to_dict, load_calibration
-from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
-from service.wiring.config import load_config
-from service.wiring.daemon import Daemon, build_pipeline
-from service.wiring.startcal import calibration_from_payload
+from fluxcal.drivers.errors import DataError
+from fluxcal.service.io.bus import BusClient, ZenohConfig, ZenohTlsConfig
+from fluxcal.service.io.calfile import calibration_to_dict, load_calibration
+from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from fluxcal.service.wiring.config import load_config
+from fluxcal.service.wiring.daemon import Daemon, build_pipeline
+from fluxcal.service.wiring.startcal import calibration_from_payload
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.numerics.calib.plausible", "drivers.text")
+COVERS = ("fluxcal.service.numerics.calib.plausible", "fluxcal.drivers.text")
 
 NAMES = ["s1", "s2"]
 
@@ -264,7 +264,7 @@ def test_fuzzing_the_handler_leaves_the_service_running_and_its_calibration_unch
     daemon = Daemon(cfg, say=lambda m: None)
     start = calibration_from_payload(json.dumps(good_calibration()), cfg)
     pipeline = build_pipeline(cfg, start)
-    from service.wiring.sinks import Sinks
+    from fluxcal.service.wiring.sinks import Sinks
 
     sinks = Sinks([], print)
     seen = {"n": 0, "ok": 0}
@@ -293,8 +293,8 @@ def test_fuzzing_the_handler_leaves_the_service_running_and_its_calibration_unch
 
 
 def test_the_same_check_guards_the_reload_and_calibration_initial(tmp_path):
-    from drivers.errors import ConfigError
-    from service.wiring.startcal import initial_calibration
+    from fluxcal.drivers.errors import ConfigError
+    from fluxcal.service.wiring.startcal import initial_calibration
 
     cfg = load_config(service_config(tmp_path, run_s=5))
     for case in ("a mirror (det -1)", "the two probes' entries swapped", "fitted with effects"):
@@ -321,7 +321,7 @@ def test_a_refused_payloads_words_never_make_a_line_of_their_own_nor_act_on_the_
     """The service's own console (its default `say`): a probe name holding a line break and a line shaped like the
     service's own, and ESC sequences, is one line with the control characters shown."""
     daemon = Daemon(cfg)                                  # says on stderr, as `fluxcal run` does
-    from service.wiring.sinks import Sinks
+    from fluxcal.service.wiring.sinks import Sinks
 
     pipeline = build_pipeline(cfg, None)
     capfd.readouterr()
@@ -342,10 +342,10 @@ def test_the_clients_and_the_batch_commands_print_what_they_receive_escaped(caps
     carries: each escaped."""
     from test_cli_command import FakeDaemon, free_port
 
-    from service.io.bus import ServiceBus, ZenohConfig
-    from service.wiring.cli import main
-    from service.wiring.commands.watch import TerminalView
-    from service.wiring.result import Note, stderr_say
+    from fluxcal.service.io.bus import ServiceBus, ZenohConfig
+    from fluxcal.service.wiring.cli import main
+    from fluxcal.service.wiring.commands.watch import TerminalView
+    from fluxcal.service.wiring.result import Note, stderr_say
 
     ep = f"tcp/127.0.0.1:{free_port()}"
     bus = ServiceBus(ZenohConfig(listen=[ep]), "grad9", state_fn=lambda: {"usable": False, "unit": EVIL})
@@ -360,7 +360,7 @@ def test_the_clients_and_the_batch_commands_print_what_they_receive_escaped(caps
     stderr_say("fit")(Note("read", f"{tmp_path}/x.csv: line 3, column {EVIL!s}", "say"))
     err = capsys.readouterr().err
     assert "\x1b" not in err and err.count("\n") == 1
-    from service.io.bus import Message
+    from fluxcal.service.io.bus import Message
 
     view = TerminalView("grad9", [ep])
     view.connected = True

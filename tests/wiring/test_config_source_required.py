@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.errors import ConfigError
-from service.wiring.cli import main
-from service.wiring.config import config_from_dict, load_config, require_source
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.wiring.cli import main
+from fluxcal.service.wiring.config import config_from_dict, load_config, require_source
 
 ROOT = Path(__file__).resolve().parents[2]
 REQUIRED = "[source] kind is required (allowed: 'sim', 'can', 'replay', 'serial')"

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
-from service.io.calfile import load_calibration, save_calibration
-from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
-from service.wiring.config import load_config
-from service.wiring.startcal import initial_calibration, learned_on
+from fluxcal.service.io.calfile import load_calibration, save_calibration
+from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from fluxcal.service.wiring.config import load_config
+from fluxcal.service.wiring.startcal import initial_calibration, learned_on
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -72,7 +72,7 @@ def test_a_calibration_learned_on_the_simulator_is_not_applied_to_hardware(tmp_p
 def test_a_missing_initial_calibration_or_serial_port_names_its_key(tmp_path, capsys):
     """A config that names a calibration file or a port that is not there: the key, then the reason (exit 2 for
     the file, 1 for the port: hardware), and no 'learning online' line before the error."""
-    from service.wiring.cli import main
+    from fluxcal.service.wiring.cli import main
 
     base = ('[unit]\nname = "grad1"\nn_probes = 1\n[source]\nkind = "serial"\nport = "{port}"\nn_probes = 1\n'
             'rate_hz = 200.0\n[calibration]\nfile = "state/cal.json"\n{initial}'
@@ -97,8 +97,8 @@ def test_a_missing_initial_calibration_or_serial_port_names_its_key(tmp_path, ca
 def test_an_applied_calibration_is_persisted_and_reloaded_held(tmp_path):
     """`apply` persists the calibration (it was kept only in memory) marked applied; a restart reloads it held,
     as it was (build_pipeline, which replay shares); `reset` persists it no longer held."""
-    from service.wiring.daemon import Daemon, build_pipeline
-    from service.wiring.sinks import Sinks
+    from fluxcal.service.wiring.daemon import Daemon, build_pipeline
+    from fluxcal.service.wiring.sinks import Sinks
 
     (tmp_path / "sim.toml").write_text('[unit]\nname = "grad1"\nn_probes = 1\n[source]\nkind = "sim"\n'
                                        '[sim]\nrate_hz = 100.0\n[[sim.probes]]\nname = "s1"\n'

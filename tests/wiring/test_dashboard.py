@@ -14,17 +14,17 @@ import numpy as np
 import pytest
 from test_watch import S1, S2, TENSOR, publisher  # noqa: F401 - the fixture
 
-from service.numerics.outputs import CorrectedBlock
-from service.wiring.dashboard import DashboardServer, Hub
-from service.wiring.dashboard.history import Floors, Ring
+from fluxcal.service.numerics.outputs import CorrectedBlock
+from fluxcal.service.wiring.dashboard import DashboardServer, Hub
+from fluxcal.service.wiring.dashboard.history import Floors, Ring
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_interval_means_equal_numpy_means_whatever_the_block_sizes(seed):
-    from service.io.bus import Message
-    from service.wiring.dashboard.view import UnitView
+    from fluxcal.service.io.bus import Message
+    from fluxcal.service.wiring.dashboard.view import UnitView
 
     rng = np.random.default_rng(seed)
     n, p = 3000, 2
@@ -163,8 +163,8 @@ def test_several_units_through_a_router_each_with_its_own_values():
 
     from test_watch import corrected_block, free_port
 
-    from drivers.config import load_section
-    from service.io.bus import ServiceBus, ZenohConfig, open_session
+    from fluxcal.drivers.config import load_section
+    from fluxcal.service.io.bus import ServiceBus, ZenohConfig, open_session
 
     router_ep = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(load_section(ZenohConfig, {"mode": "router", "listen": [router_ep]}, "zenoh"))
@@ -213,11 +213,11 @@ def test_several_units_through_a_router_each_with_its_own_values():
 def test_the_calibration_saved_from_the_dashboard_is_the_one_in_use():
     """'Save the calibration in use' wrote align null, total_nT null and an empty span where the service used
     rotation alignment and 52,500 nT; the state now carries them."""
-    from drivers.sim.config import load_sim_config
-    from drivers.sim.unit import Unit
-    from service.io.calfile import calibration_from_dict
-    from service.wiring.dashboard.hub import calibration_file
-    from service.wiring.pipeline import Pipeline
+    from fluxcal.drivers.sim.config import load_sim_config
+    from fluxcal.drivers.sim.unit import Unit
+    from fluxcal.service.io.calfile import calibration_from_dict
+    from fluxcal.service.wiring.dashboard.hub import calibration_file
+    from fluxcal.service.wiring.pipeline import Pipeline
 
     cfg = load_sim_config({"duration_s": 60.0, "probes": [{"position_m": [-0.25, 0, 0]},
                                                            {"position_m": [0.25, 0, 0], "offset_nT": [40, 0, 0]}]})
@@ -252,8 +252,8 @@ def test_difference_magnitude_in_a_uniform_field_is_the_norm_of_the_mean_compone
     components of its window, and in white noise within 20 % of the whole record's and of the truth. Under 1/f
     noise the 10-s mean itself wanders (0.33 to 0.91 nT for 0.61 nT over the minute in one seed here), as the
     plotted components do: no 10-s figure can follow the minute's mean there."""
-    from service.io.bus import Message
-    from service.wiring.dashboard.view import UnitView
+    from fluxcal.service.io.bus import Message
+    from fluxcal.service.wiring.dashboard.view import UnitView
 
     rng = np.random.default_rng(seed)
     rate, n = 200.0, 12_000                                      # 60 s
@@ -294,8 +294,8 @@ def test_difference_magnitude_in_a_uniform_field_is_the_norm_of_the_mean_compone
 
 def test_the_error_table_is_the_rms_over_the_last_10_s_and_one_noisy_block_does_not_flip_it():
     """Issue 28: the table showed one block's error, so the ratio to the floor flipped colour on one noisy block."""
-    from service.io.bus import Message
-    from service.wiring.dashboard.view import UnitView
+    from fluxcal.service.io.bus import Message
+    from fluxcal.service.wiring.dashboard.view import UnitView
 
     rng = np.random.default_rng(5)
     view = UnitView("u1")
@@ -322,8 +322,8 @@ def test_scale_in_the_dashboard_is_the_sensors_scale_as_fit_prints_it():
     matrix, whatever rotation the alignment put in it; checked against fit_ellipsoid's own figures."""
     from scipy.spatial.transform import Rotation
 
-    from service.numerics.calib.ellipsoid import fit_ellipsoid
-    from service.wiring.dashboard.view import UnitView, sensor_scales
+    from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
+    from fluxcal.service.wiring.dashboard.view import UnitView, sensor_scales
 
     rng = np.random.default_rng(7)
     u = rng.normal(size=(4000, 3))
@@ -356,10 +356,10 @@ def test_the_dashboards_diagnosis_takes_the_probe_positions_of_its_config():
     """Issue 28: the dashboard's diagnosis said gradient "needs the probe positions (--config ...)" though the
     dashboard was started with that configuration (`run --dashboard` starts it so): the positions and the total
     field of `fluxcal dashboard --config` now reach the diagnosis of that configuration's unit."""
-    from drivers.config import read_toml
-    from drivers.sim.config import load_sim_config
-    from drivers.sim.unit import Unit
-    from service.wiring.commands.dashboard import config_geometry
+    from fluxcal.drivers.config import read_toml
+    from fluxcal.drivers.sim.config import load_sim_config
+    from fluxcal.drivers.sim.unit import Unit
+    from fluxcal.service.wiring.commands.dashboard import config_geometry
 
     config = str(ROOT / "configs" / "sim-gradiometer.toml")
     sim = {**read_toml(config)["sim"], "duration_s": 20.0}
@@ -394,7 +394,7 @@ def test_throughput_counters_are_never_drawn_as_faults():
     import shutil
     import subprocess
 
-    from drivers.registry import source_kind
+    from fluxcal.drivers.registry import source_kind
 
     node = shutil.which("node")
     if node is None:

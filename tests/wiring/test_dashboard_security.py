@@ -17,11 +17,11 @@ import pytest
 from test_dashboard import page_token
 from test_watch import Publisher, corrected_block
 
-from drivers.block import SampleBlock
-from service.wiring.dashboard import DashboardServer, Hub
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.service.wiring.dashboard import DashboardServer, Hub
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.wiring.dashboard.guard",)
+COVERS = ("fluxcal.service.wiring.dashboard.guard",)
 
 
 class RecordingUnit(Publisher):
@@ -153,7 +153,7 @@ def test_requests_not_from_the_dashboards_own_page_change_nothing(dashboard):
     code, _, units = request(server, "GET", "/api/units", None, {"Host": host})
     assert code == 200 and sum(units["refused_requests"].values()) >= len(attempts) + 2 + 1 + 4
     # counted by kind, from a fixed set: the requests' own Hosts, types and origins are no keys (review, stop 32)
-    from service.wiring.dashboard.server import _REFUSAL_KINDS
+    from fluxcal.service.wiring.dashboard.server import _REFUSAL_KINDS
 
     kinds = {k for _, k in _REFUSAL_KINDS} | {"fetch site", "token", "payload", "other"}
     assert set(units["refused_requests"]) <= kinds, units["refused_requests"]
@@ -256,7 +256,7 @@ def test_real_users_are_served_while_1000_idle_sockets_are_open_under_1024_descr
     from test_zenoh_security import free_port
 
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "dashboard", "--connect",
+    proc = subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", "dashboard", "--connect",
                              f"tcp/127.0.0.1:{free_port()}", "--listen", f"127.0.0.1:{port}", "--seconds", "60"],
                             stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_NOFILE, (1024, 1024)))

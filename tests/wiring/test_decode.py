@@ -1,4 +1,4 @@
-"""`fluxcal decode` through service.wiring.cli.main: a serial capture that starts mid-frame with noise and
+"""`fluxcal decode` through fluxcal.service.wiring.cli.main: a serial capture that starts mid-frame with noise and
 CAN logs written by python-can give exactly the intact samples; bad input gives one line on
 stderr, exit status 2, and no output file."""
 
@@ -11,9 +11,9 @@ import can
 import numpy as np
 import pytest
 
-from drivers import icd
-from drivers.block import FLAG_TEMP_INVALID
-from service.wiring.cli import main
+from fluxcal.drivers import icd
+from fluxcal.drivers.block import FLAG_TEMP_INVALID
+from fluxcal.service.wiring.cli import main
 
 
 def read_csv(path: Path) -> tuple[list[str], np.ndarray]:
@@ -183,7 +183,7 @@ def test_mcap_output(tmp_path, capsys, icd_truth):
     rc, err = run(capsys, path, "--probes", 2, "--out", out)
     assert rc == 0, err
     assert "50 samples" in err and set(tmp_path.iterdir()) == {path, out}
-    from service.io.recordings.reader import read_recording
+    from fluxcal.service.io.recordings.reader import read_recording
 
     rec = read_recording(out)
     assert sum(b.n_samples for b in rec.raw_blocks) == 50 and rec.probe_names == ["s1", "s2"]

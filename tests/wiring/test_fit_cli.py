@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from service.io.calfile import load_calibration
-from service.wiring.cli import main
+from fluxcal.service.io.calfile import load_calibration
+from fluxcal.service.wiring.cli import main
 
 
 @pytest.fixture(scope="module")
@@ -147,7 +147,7 @@ def test_scale_is_the_sensors_scale_of_every_probe_in_text_json_and_the_file(gra
         assert np.all(np.abs(np.diag(np.array(s["matrix"])) - got_json) > 5e-3)
     # the dashboard's API: the same file applied to a unit shows the same figures as "sensor scale", whether it
     # reads params["scale"] or decomposes the matrix (a calibration learned online has no params)
-    from service.wiring.dashboard.view import UnitView
+    from fluxcal.service.wiring.dashboard.view import UnitView
 
     for keep_params in (True, False):
         view = UnitView("grad1")

@@ -7,7 +7,7 @@ import json
 import numpy as np
 from sims_003_004 import P003_ALPHA_DEG, P003_BETA_DEG, P003_GAMMA_DEG, paper003, paper004
 
-from service.wiring.cli import main
+from fluxcal.service.wiring.cli import main
 
 
 def test_sinefit_from_a_turntable_csv(tmp_path):

@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from service.wiring import cli
-from service.wiring.fleet import expand_inputs, run_pool
+from fluxcal.service.wiring import cli
+from fluxcal.service.wiring.fleet import expand_inputs, run_pool
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.wiring.fleet_cli",)
+COVERS = ("fluxcal.service.wiring.fleet_cli",)
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -56,14 +56,14 @@ def test_folders_globs_and_runs_of_rotated_files_expand_to_recordings(tmp_path):
 
 
 def test_each_recording_gets_the_shared_options_and_its_own_outputs():
-    from service.wiring.commands.fit import FitOptions
-    from service.wiring.fleet import job_for
+    from fluxcal.service.wiring.commands.fit import FitOptions
+    from fluxcal.service.wiring.fleet import job_for
 
     shared = FitOptions(effects=["drift"], site="1,2,3")
     job = job_for("fit", "survey/a.csv", shared, {"out": "cals", "report": "reports"})
     assert job.options == FitOptions(effects=["drift"], site="1,2,3", out="cals/a.cal.json", report="reports/a")
     assert job_for("replay", "x/u-0001.mcap", shared, {"out": "again"}).options.out == "again/u-0001.mcap"
-    from service.wiring.commands.replay import ReplayOptions
+    from fluxcal.service.wiring.commands.replay import ReplayOptions
 
     assert job_for("replay", "x/u-0001.mcap", ReplayOptions(), {"ros2_out": "bags"}).options.ros2_out == "bags/u-0001"
 
@@ -71,10 +71,10 @@ def test_each_recording_gets_the_shared_options_and_its_own_outputs():
 def test_every_path_in_the_options_goes_to_the_workers_absolute(tmp_path, monkeypatch):
     """--config, --calibration, --out, --report, --write-effect, --ros2-out and an effect's FILE.py are the user's
     paths from where they typed them: a worker in another folder (or on another host) gets them absolute."""
-    from service.wiring.commands.diagnose import DiagnoseOptions
-    from service.wiring.commands.fit import FitOptions
-    from service.wiring.commands.replay import ReplayOptions
-    from service.wiring.fleet_cli import absolute_paths
+    from fluxcal.service.wiring.commands.diagnose import DiagnoseOptions
+    from fluxcal.service.wiring.commands.fit import FitOptions
+    from fluxcal.service.wiring.commands.replay import ReplayOptions
+    from fluxcal.service.wiring.fleet_cli import absolute_paths
 
     monkeypatch.chdir(tmp_path)
     fit = absolute_paths(FitOptions(config="site.toml", effects=["drift", "mine/eff.py:Sag", "pkg.mod:Sag"],
@@ -92,7 +92,7 @@ def test_every_path_in_the_options_goes_to_the_workers_absolute(tmp_path, monkey
 def test_the_fleet_counts_warnings_as_data_whatever_their_wording(fleet_dir, monkeypatch, capsys):
     """The fleet read a recording's warnings with a regular expression over its stderr, so a change of wording
     changed a fleet's result; now the notes travel as data and are counted by level."""
-    import service.wiring.prepare as prepare
+    import fluxcal.service.wiring.prepare as prepare
 
     said = prepare.skip_spans
 
@@ -101,9 +101,9 @@ def test_the_fleet_counts_warnings_as_data_whatever_their_wording(fleet_dir, mon
         return said(said_, source, lab, spans)
 
     monkeypatch.setattr(prepare, "skip_spans", reworded)
-    from service.wiring.commands.fit import FitOptions
-    from service.wiring.fleet import job_for, run_one  # what each worker runs, here in-process
-    from service.wiring.fleet_summary import summary_json
+    from fluxcal.service.wiring.commands.fit import FitOptions
+    from fluxcal.service.wiring.fleet import job_for, run_one  # what each worker runs, here in-process
+    from fluxcal.service.wiring.fleet_summary import summary_json
 
     results = [run_one(job_for("fit", str(p), FitOptions(), {})) for p in sorted(fleet_dir.glob("grad-1*.csv"))]
     summary = summary_json("fit", results, 1.0, "here")
@@ -151,7 +151,7 @@ def die_or_answer(job) -> dict:
 
 
 def test_a_worker_that_dies_fails_only_its_own_recording():
-    from service.wiring.fleet import Job
+    from fluxcal.service.wiring.fleet import Job
 
     got = []
     jobs = [Job("fit", name, None) for name in ("a", "b", "die", "c", "d")]
@@ -240,9 +240,9 @@ def test_a_worker_that_cannot_see_a_recording_names_its_host_and_the_summary_say
     summary says what the workers need (the same files at the same paths)."""
     import socket
 
-    from service.wiring.commands.fit import FitOptions
-    from service.wiring.fleet import job_for, run_one
-    from service.wiring.fleet_summary import summary_json, summary_table
+    from fluxcal.service.wiring.commands.fit import FitOptions
+    from fluxcal.service.wiring.fleet import job_for, run_one
+    from fluxcal.service.wiring.fleet_summary import summary_json, summary_table
 
     gone = str(tmp_path / "on-the-client-only.csv")
     r = {**run_one(job_for("fit", gone, FitOptions(), {})), "recording": "on-the-client-only.csv"}
@@ -261,7 +261,7 @@ def test_jobs_kept_to_workers_that_all_left_fail_instead_of_waiting_for_ever(mon
     all left the cluster: each fails, saying why; a job whose worker was lost fails alone."""
     import distributed
 
-    from service.wiring.fleet import Job, _collect, fluxcal_version
+    from fluxcal.service.wiring.fleet import Job, _collect, fluxcal_version
 
     class Lost:
         def result(self):

@@ -18,11 +18,11 @@ import pytest
 from helpers import write_rotated
 from test_fleet import simulate
 
-from service.wiring import cli
-from service.wiring.fleet import fluxcal_version
+from fluxcal.service.wiring import cli
+from fluxcal.service.wiring.fleet import fluxcal_version
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.wiring.fleet_cli", "service.wiring.fleet_summary")
+COVERS = ("fluxcal.service.wiring.fleet_cli", "fluxcal.service.wiring.fleet_summary")
 
 REPO = Path(__file__).resolve().parents[2]
 LIVE = REPO / "recordings" / "grad1-sim-30s.mcap"

@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.errors import FluxcalError
-from drivers.sim.config import load_sim_config
-from drivers.sim.unit import Unit
-from service.numerics.calib.ellipsoid import fit_ellipsoid
-from service.numerics.calib.model import ArrayCalibration
-from service.wiring.pipeline import Pipeline
+from fluxcal.drivers.errors import FluxcalError
+from fluxcal.drivers.sim.config import load_sim_config
+from fluxcal.drivers.sim.unit import Unit
+from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
+from fluxcal.service.numerics.calib.model import ArrayCalibration
+from fluxcal.service.wiring.pipeline import Pipeline
 
 PROBE = {"offset_nT": [150.0, -80.0, 40.0], "noise_nT": 0.5, "temp_offset_nT_per_C": [3.0, -2.0, 1.5]}
 

@@ -7,12 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.block import SampleBlock
-from drivers.errors import CalibrationRefused
-from service.io.recordings.labdata import LabData
-from service.numerics.calib.alignment import align_regression, regression_calibration
-from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
-from service.wiring.fitting import TotalField, channel_sums, residual_channels, rms, rms_all, uncalibrated_rms
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import CalibrationRefused
+from fluxcal.service.io.recordings.labdata import LabData
+from fluxcal.service.numerics.calib.alignment import align_regression, regression_calibration
+from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from fluxcal.service.wiring.fitting import TotalField, channel_sums, residual_channels, rms, rms_all, uncalibrated_rms
 
 
 def pink(rng: np.random.Generator, n: int, sigma: float) -> np.ndarray:
@@ -109,7 +109,7 @@ def test_fit_gives_the_same_numbers_with_and_without_a_report(tmp_path, capsys):
     import json
     from pathlib import Path
 
-    from service.wiring import cli
+    from fluxcal.service.wiring import cli
 
     rec = str(Path(__file__).resolve().parents[2] / "recordings" / "grad1-sim-30s.mcap")
     assert cli.main(["fit", rec, "--json"]) == 0

@@ -19,9 +19,9 @@ import pytest
 from flightlogs import simulated_flight, write_dataflash
 from real_data import SOURCES, find
 
-from service.numerics.calib.determinacy import judge
-from service.numerics.field_scale import EARTH_RANGE_NT
-from service.wiring import cli
+from fluxcal.service.numerics.calib.determinacy import judge
+from fluxcal.service.numerics.field_scale import EARTH_RANGE_NT
+from fluxcal.service.wiring import cli
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 #: every flight log the tests know of (../shared/real-data's and the fetched ones)
@@ -170,7 +170,7 @@ def test_a_calibration_no_magnetometer_on_earth_gives_is_refused(tmp_path, capsy
     """Data in µT fitted with no reference assumed a total field of ~48 'nT' and left with exit 0; a total field given
     that is 59 times the data's size made the residual worse (581 -> 17,037 nT) with exit 0. Both refused, naming
     the reason and what would help, in the text and in --json."""
-    from drivers.sim import Unit, load_sim_config
+    from fluxcal.drivers.sim import Unit, load_sim_config
 
     cfg = load_sim_config({"seed": 4, "rate_hz": 20.0, "duration_s": 60.0,
                            "field": {"total_nT": 48_000.0, "inclination_deg": 63.0},
@@ -220,8 +220,8 @@ def test_every_refusal_prints_json_that_validates(tmp_path, capsys):
 def test_the_service_gate_asks_the_same_judge(tmp_path):
     """The online gate asks determinacy.judge of its window's samples: the same verdict and figures as fit's gate on
     those samples (here a cone: refused with the same sentence)."""
-    from service.wiring.fitting import judge_data
-    from service.io.recordings.load import load_data
+    from fluxcal.service.io.recordings.load import load_data
+    from fluxcal.service.wiring.fitting import judge_data
 
     data = load_data(_cone_world(tmp_path))
     ref = data.block.extras["ref_total"]
@@ -250,9 +250,9 @@ def test_a_calibration_that_leaves_the_residual_worse_than_the_raw_data_is_refus
     """pyulog's sample_px4_events.ulg left with exit 0 after its calibration took the residual from 581 to 17,037 nT:
     a calibration a quarter worse than no calibration at all is refused, naming both figures and what would help;
     one a hair above (an algebraic fit of data already calibrated) is not."""
-    from drivers.errors import CalibrationRefused
-    from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
-    from service.wiring.commands.fit import refuse_worse
+    from fluxcal.drivers.errors import CalibrationRefused
+    from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+    from fluxcal.service.wiring.commands.fit import refuse_worse
 
     cal = ArrayCalibration("ellipsoid", None, [ProbeCalibration("s1", np.zeros(3), np.eye(3))])
     with pytest.raises(CalibrationRefused) as e:

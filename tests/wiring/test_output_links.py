@@ -1,6 +1,6 @@
 """Outputs never follow a planted link (issue 38, build 5): over every command that writes, a symbolic link at the
 output's path pointing at a file of someone else's is replaced by the output, its target untouched; an output
-folder that is a link is refused before any work (exit 2, naming where it points). One helper (drivers.outputs)
+folder that is a link is refused before any work (exit 2, naming where it points). One helper (fluxcal.drivers.outputs)
 for all.
 
 Before: `replay --out LINK` wrote through a planted link and overwrote its target, and `--report LINKDIR` wrote into
@@ -16,8 +16,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from drivers.outputs import open_output, replacing
-from service.wiring.cli import main
+from fluxcal.drivers.outputs import open_output, replacing
+from fluxcal.service.wiring.cli import main
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "recordings" / "grad1-sim-30s.mcap"
@@ -92,10 +92,10 @@ def test_an_output_folder_that_is_a_link_is_refused_before_any_work(tmp_path, in
 
 
 def test_diagnose_write_effect_replaces_a_link(tmp_path):
-    from service.numerics.diagnose.library import Feature, Group
-    from service.wiring.commands.diagnose import DiagnoseResult
-    from service.wiring.commands.written import write_discovered
-    from service.wiring.result import Said
+    from fluxcal.service.numerics.diagnose.library import Feature, Group
+    from fluxcal.service.wiring.commands.diagnose import DiagnoseResult
+    from fluxcal.service.wiring.commands.written import write_discovered
+    from fluxcal.service.wiring.result import Said
 
     f = Feature("heater_A", "heater_A", "A", "value", {"source": "column", "column": "heater_A", "centre": 0.0},
                 np.linspace(0.0, 1.0, 50))

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from service.wiring.cli import main
+from fluxcal.service.wiring.cli import main
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.wiring.commands.notes",)
+COVERS = ("fluxcal.service.wiring.commands.notes",)
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "recordings" / "grad1-sim-30s.mcap"
@@ -50,7 +50,7 @@ def test_a_write_that_fails_later_is_said_without_a_traceback(tmp_path, capsys, 
     def full_disk(*args, **kwargs):
         raise OSError(28, "No space left on device", str(tmp_path / "cal.json"))
 
-    monkeypatch.setattr("service.wiring.commands.fit.save_calibration", full_disk)
+    monkeypatch.setattr("fluxcal.service.wiring.commands.fit.save_calibration", full_disk)
     assert main(["fit", str(csv), "--out", str(tmp_path / "cal.json")]) == 1
     err = capsys.readouterr().err
     assert f"fluxcal fit: {tmp_path / 'cal.json'}: No space left on device" in err and "Traceback" not in err
@@ -58,7 +58,7 @@ def test_a_write_that_fails_later_is_said_without_a_traceback(tmp_path, capsys, 
 
 def test_a_replay_whose_output_fails_says_so_and_fails(tmp_path, capsys, monkeypatch):
     """The recording logger never raises (a live service keeps running on a full disk); replay asks it."""
-    from service.io.recordings import files
+    from fluxcal.service.io.recordings import files
 
     def no_space(self, *args, **kwargs):
         raise OSError(28, "No space left on device")

@@ -5,19 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.block import SampleBlock
-from drivers.sim.config import load_sim_config
-from service.numerics.calib.ellipsoid import fit_ellipsoid
-from service.numerics.calib.model import ArrayCalibration
-from service.wiring.pipeline import Pipeline
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.sim.config import load_sim_config
+from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
+from fluxcal.service.numerics.calib.model import ArrayCalibration
+from fluxcal.service.wiring.pipeline import Pipeline
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.numerics.channels",)
+COVERS = ("fluxcal.service.numerics.channels",)
 
 
 def block_of(world_cfg: dict) -> SampleBlock:
     cfg = load_sim_config(world_cfg)
-    from drivers.sim.unit import Unit
+    from fluxcal.drivers.sim.unit import Unit
 
     return Unit(cfg).digitise(0, cfg.n_samples).to_block()
 

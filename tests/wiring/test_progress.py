@@ -8,9 +8,9 @@ import io
 import sys
 from pathlib import Path
 
-from service.wiring import progress as progress_mod
-from service.wiring.cli import main
-from service.wiring.progress import Progress
+from fluxcal.service.wiring import progress as progress_mod
+from fluxcal.service.wiring.cli import main
+from fluxcal.service.wiring.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -7,13 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.block import SampleBlock
-from drivers.errors import ConfigError
-from service.wiring.config import config_from_dict
-from service.wiring.daemon import Daemon, build_pipeline
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.wiring.config import config_from_dict
+from fluxcal.service.wiring.daemon import Daemon, build_pipeline
 
 #: what this file tests besides what it imports (tests/index.py: every module findable from its test)
-COVERS = ("service.wiring.input",)
+COVERS = ("fluxcal.service.wiring.input",)
 
 
 def serial_config(**source) -> dict:
@@ -125,11 +125,11 @@ def test_a_recording_from_before_the_rate_key_replays_as_its_live_run_did(tmp_pa
     does the same, so its output is still the live run's."""
     import json
 
-    from drivers.sim.config import load_sim_config
-    from drivers.sim.source import SimSource
-    from service.io.recordings.reader import concat_corrected, read_recording
-    from service.io.recordings.writer import McapLogger
-    from service.wiring.cli import main
+    from fluxcal.drivers.sim.config import load_sim_config
+    from fluxcal.drivers.sim.source import SimSource
+    from fluxcal.service.io.recordings.reader import concat_corrected, read_recording
+    from fluxcal.service.io.recordings.writer import McapLogger
+    from fluxcal.service.wiring.cli import main
 
     src = SimSource(load_sim_config({"duration_s": 20.0, "rate_hz": 200.0, "motion": {"kind": "tumble", "rate_deg_s": 40.0},
                                      "probes": [{}, {"offset_nT": [30, 0, 0]}]}),
@@ -164,8 +164,8 @@ def test_a_simulated_unit_paced_by_the_wall_clock_runs_at_its_speed(speed):
     # are the same ones, only their pace changes
     import time
 
-    from drivers.sim.config import load_sim_config
-    from drivers.sim.source import SimSource
+    from fluxcal.drivers.sim.config import load_sim_config
+    from fluxcal.drivers.sim.source import SimSource
 
     cfg = {"duration_s": 0.0, "rate_hz": 500.0, "realtime": True, "speed": speed, "probes": [{}]}
     src = SimSource(load_sim_config(cfg))

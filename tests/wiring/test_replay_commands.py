@@ -8,12 +8,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from service.io.calfile import calibration_to_dict
-from service.io.recordings.reader import read_recording
-from service.io.recordings.writer import McapLogger
-from service.wiring.cli import main
-from service.wiring.config import config_from_dict
-from service.wiring.daemon import build_pipeline
+from fluxcal.service.io.calfile import calibration_to_dict
+from fluxcal.service.io.recordings.reader import read_recording
+from fluxcal.service.io.recordings.writer import McapLogger
+from fluxcal.service.wiring.cli import main
+from fluxcal.service.wiring.config import config_from_dict
+from fluxcal.service.wiring.daemon import build_pipeline
 
 SAMPLE = Path(__file__).resolve().parents[2] / "recordings" / "grad1-sim-30s.mcap"
 
@@ -27,7 +27,7 @@ def _live_run_with_a_command(path: Path, commands=((2000, "freeze", None), (4000
     initial = None
     for ev in src.events:
         if ev.get("kind") == "initial" and ev.get("calibration"):
-            from service.io.calfile import calibration_from_dict
+            from fluxcal.service.io.calfile import calibration_from_dict
 
             initial = calibration_from_dict(ev["calibration"], "initial")
     pl = build_pipeline(cfg, initial)
@@ -91,7 +91,7 @@ def test_an_apply_replays_as_its_live_run_had_it_held_or_not(tmp_path, capsys):
     replays as its live run went, the next usable candidate replacing the applied one. Both bit for bit."""
     import numpy as np
 
-    from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+    from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 
     lab = ArrayCalibration("ellipsoid", "rotation", [ProbeCalibration(n, np.array([3.0, -2.0, 1.0]), np.eye(3))
                                                      for n in ("s1", "s2")])

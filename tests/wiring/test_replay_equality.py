@@ -17,13 +17,13 @@ from pathlib import Path
 
 import pytest
 
-from service.io.recordings.arithmetic import machine_arithmetic
-from service.io.recordings.reader import read_recording
-from service.io.recordings.writer import McapLogger
-from service.wiring.cli import main
-from service.wiring.commands.replay import UNIT_ROUNDOFF, rounding_tolerance_nT
-from service.wiring.config import config_from_dict
-from service.wiring.daemon import build_pipeline
+from fluxcal.service.io.recordings.arithmetic import machine_arithmetic
+from fluxcal.service.io.recordings.reader import read_recording
+from fluxcal.service.io.recordings.writer import McapLogger
+from fluxcal.service.wiring.cli import main
+from fluxcal.service.wiring.commands.replay import UNIT_ROUNDOFF, rounding_tolerance_nT
+from fluxcal.service.wiring.config import config_from_dict
+from fluxcal.service.wiring.daemon import build_pipeline
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "recordings" / "grad1-sim-30s.mcap"
@@ -131,7 +131,7 @@ def test_a_replay_with_avx512_switched_off_equals_one_made_with_it(tmp_path):
     without AVX-512 the two are the same arithmetic, and the replay is bit for bit."""
     live_run(tmp_path / "live.mcap")
     env = {**os.environ, "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR", "OPENBLAS_CORETYPE": "Haswell"}
-    run = subprocess.run([sys.executable, "-m", "service.wiring.cli", "replay", str(tmp_path / "live.mcap")],
+    run = subprocess.run([sys.executable, "-m", "fluxcal.service.wiring.cli", "replay", str(tmp_path / "live.mcap")],
                          capture_output=True, text=True, env=env, cwd=ROOT, timeout=120)
     assert run.returncode == 0, run.stdout + run.stderr
     n, identical = map(int, re.search(r"compared with the recording: (\d+), bit-identical: (\d+)", run.stdout).groups())

@@ -14,12 +14,12 @@ from pathlib import Path
 import pytest
 from test_recording import service_config
 
-from service.io.recordings import writer as writer_mod
-from service.io.recordings.gaps import recorder_gaps
-from service.io.recordings.reader import read_recording
-from service.wiring.cli import main
-from service.wiring.config import load_config
-from service.wiring.daemon import Daemon
+from fluxcal.service.io.recordings import writer as writer_mod
+from fluxcal.service.io.recordings.gaps import recorder_gaps
+from fluxcal.service.io.recordings.reader import read_recording
+from fluxcal.service.wiring.cli import main
+from fluxcal.service.wiring.config import load_config
+from fluxcal.service.wiring.daemon import Daemon
 
 DISK_FULL_S = (30.0, 45.0)         # of unit time: after the calibration is usable (about 15 s)
 
@@ -94,7 +94,7 @@ def test_a_unit_that_lost_samples_itself_is_no_recorder_gap():
     estimator did not see either; no health at all: nothing said."""
     import numpy as np
 
-    from drivers.block import SampleBlock
+    from fluxcal.drivers.block import SampleBlock
 
     def block(a, b):
         n = b - a

@@ -12,10 +12,10 @@ import pytest
 
 pytest.importorskip("rosbags", reason="rosbags checks the bag: pip install 'fluxcal[ros2]'")
 
-from drivers.errors import ConfigError
-from service.io.recordings.reader import read_recording
-from service.io.recordings.ros2_writer import Ros2BagWriter
-from service.wiring.ros2_sink import Ros2BagSink, replay_ros2_sink
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.io.recordings.reader import read_recording
+from fluxcal.service.io.recordings.ros2_writer import Ros2BagWriter
+from fluxcal.service.wiring.ros2_sink import Ros2BagSink, replay_ros2_sink
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -68,8 +68,8 @@ def test_replayed_corrected_vectors_read_back_by_rosbags(tmp_path):
         first = next(make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
             topics=["/fluxcal/grad1/s2/magnetic_field"]))
     assert first[3].magnetic_field.z == cor.corrected_nT[0, 1, 2] * 1e-9
-    from service.io.recordings.load import load_data
-    from service.io.recordings.ros2 import Ros2Mapping
+    from fluxcal.service.io.recordings.load import load_data
+    from fluxcal.service.io.recordings.ros2 import Ros2Mapping
 
     lab = load_data(tmp_path / "out", mapping=Ros2Mapping(probes={"s1": "/fluxcal/grad1/s1/magnetic_field",
                                                                   "s2": "/fluxcal/grad1/s2/magnetic_field"}))
@@ -106,7 +106,7 @@ def test_bad_places_and_bad_vectors(tmp_path):
     (tmp_path / "full" / "x").write_text("x")
     with pytest.raises(ConfigError, match="--ros2-out: .*full.*cannot write a ROS 2 bag there"):
         Ros2BagSink.open(tmp_path / "full", unit="u", probe_names=["s1"])
-    from drivers.block import SampleBlock
+    from fluxcal.drivers.block import SampleBlock
 
     w = Ros2BagWriter(tmp_path / "b", unit="u", probe_names=["s1"])
     f = np.ones((4, 1, 3)) * 1000.0
@@ -134,9 +134,9 @@ def test_the_configuration_turns_the_bag_on_and_replay_writes_one(tmp_path, caps
 
     from test_recording import service_config
 
-    from service.wiring.cli import main
-    from service.wiring.config import load_config
-    from service.wiring.daemon import Daemon
+    from fluxcal.service.wiring.cli import main
+    from fluxcal.service.wiring.config import load_config
+    from fluxcal.service.wiring.daemon import Daemon
 
     text = (Path(service_config(tmp_path, run_s=40, realtime=False)).read_text()
             .replace('transport = "pty"', 'transport = "direct"') + f'\n[ros2]\nenabled = true\ndir = "{tmp_path}/bags"\n')
@@ -167,7 +167,7 @@ def test_the_configuration_turns_the_bag_on_and_replay_writes_one(tmp_path, caps
 def test_replay_refuses_a_bag_it_cannot_write_before_any_work(tmp_path, capsys):
     """`replay --out o.mcap --ros2-out blocker/y` with blocker a file: exit 2 before anything is read or written (no
     o.mcap without a footer left behind)."""
-    from service.wiring.cli import main
+    from fluxcal.service.wiring.cli import main
 
     (tmp_path / "blocker").write_text("a file")
     rc = main(["replay", str(ROOT / "recordings" / "grad1-sim-30s.mcap"), "--out", str(tmp_path / "o.mcap"),

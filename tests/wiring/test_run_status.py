@@ -9,9 +9,9 @@ import time
 from test_recording import service_config
 from test_watch import free_port
 
-from service.io.bus import BusClient, ZenohConfig
-from service.wiring.config import load_config
-from service.wiring.daemon import Daemon
+from fluxcal.service.io.bus import BusClient, ZenohConfig
+from fluxcal.service.wiring.config import load_config
+from fluxcal.service.wiring.daemon import Daemon
 
 
 def test_run_says_status_gate_reasons_and_commands(tmp_path):
@@ -45,7 +45,7 @@ def test_run_says_status_gate_reasons_and_commands(tmp_path):
 def test_the_status_line_says_whose_coverage_it_gives():
     """The gate's figures are the latest check's, said as such: a user read 'calibration 6 in use, coverage 23 %'
     as the coverage of the calibration in use, beside a dashboard saying 38 %."""
-    from service.wiring.status import StatusLog
+    from fluxcal.service.wiring.status import StatusLog
 
     said: list[str] = []
     log = StatusLog(said.append, 0.0)

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.io.recordings.load import load_data
-from service.wiring.cli import main
+from fluxcal.service.io.recordings.load import load_data
+from fluxcal.service.wiring.cli import main
 
 TURNTABLE = """[unit]
 n_probes = 1

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.sim import Unit, load_sim_config
-from drivers.sim.config import GRADIOMETER
-from service.io.recordings.labdata import load_csv
-from service.wiring.cli import main as cli
+from fluxcal.drivers.sim import Unit, load_sim_config
+from fluxcal.drivers.sim.config import GRADIOMETER
+from fluxcal.service.io.recordings.labdata import load_csv
+from fluxcal.service.wiring.cli import main as cli
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"
@@ -103,7 +103,7 @@ def test_mcap_output(tmp_path, capsys):
     out = tmp_path / "grad.mcap"
     rc = cli(["simulate", "--out", str(out)])
     assert rc == 0 and out.exists() and (tmp_path / "grad.truth.json").exists()
-    from service.io.recordings.reader import read_recording
+    from fluxcal.service.io.recordings.reader import read_recording
 
     rec = read_recording(out)
     assert sum(b.n_samples for b in rec.raw_blocks) == 12000 and "ref_total" in rec.raw_blocks[0].extras
@@ -142,9 +142,9 @@ def _key_documented_above(text: str, key: str) -> bool:
                                   "can-example.toml"])
 def test_example_config_sections_validate(name):
     """Each section against the dataclass that reads it (the drivers' [source], the service's others)."""
-    from drivers.config import load_section
-    from drivers.registry import source_kind
-    from service.wiring.config import CalibrationConfig, EstimatorConfig, McapConfig, ProbeConfig, UnitConfig
+    from fluxcal.drivers.config import load_section
+    from fluxcal.drivers.registry import source_kind
+    from fluxcal.service.wiring.config import CalibrationConfig, EstimatorConfig, McapConfig, ProbeConfig, UnitConfig
 
     raw = tomllib.loads((CONFIGS / name).read_text())
     source = load_section(source_kind(raw["source"]["kind"]).table_class(), raw["source"], "source")
@@ -161,7 +161,7 @@ def test_example_config_sections_validate(name):
 
 def test_example_configs_pass_the_service_loader():
     """The whole file, every section, as `fluxcal run` reads it."""
-    from service.wiring.config import load_config
+    from fluxcal.service.wiring.config import load_config
 
     for name in ("sim-gradiometer.toml", "sim-cross.toml", "serial-example.toml", "can-example.toml"):
         cfg = load_config(CONFIGS / name)

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 from test_recording import service_config
 
-from service.io.recordings.reader import read_recording
-from service.wiring.config import load_config
-from service.wiring.daemon import Daemon
-from service.wiring.sinks import Sink
+from fluxcal.service.io.recordings.reader import read_recording
+from fluxcal.service.wiring.config import load_config
+from fluxcal.service.wiring.daemon import Daemon
+from fluxcal.service.wiring.sinks import Sink
 
 
 class Counting(Sink):
@@ -102,8 +102,8 @@ def test_a_failing_output_costs_only_itself(tmp_path):
 def test_a_replay_whose_output_fails_fails(tmp_path):
     """replay to an output that fails: exit status 1, and the verdict (the fleet table's column) is the failure, not
     the comparison's last line."""
-    from service.wiring.commands.replay import ReplayOptions, execute
-    from service.wiring.result import Said
+    from fluxcal.service.wiring.commands.replay import ReplayOptions, execute
+    from fluxcal.service.wiring.result import Said
 
     _run(tmp_path, [])
     out = execute(str(tmp_path / "rec"), ReplayOptions(), Said("replay"), sinks=[Broken()])
@@ -117,7 +117,7 @@ def test_an_output_that_cannot_open_leaves_the_recording_finished(tmp_path):
     recording it had opened already is closed with its footer, not left as a killed writer's."""
     import pytest
 
-    from drivers.errors import ConfigError
+    from fluxcal.drivers.errors import ConfigError
 
     (tmp_path / "blocker").write_text("a file, not a folder")
     text = (Path(service_config(tmp_path, run_s=5, realtime=False)).read_text()

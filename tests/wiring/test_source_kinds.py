@@ -1,5 +1,5 @@
 """A kind of input and a protocol added from a test module alone (issue 41): an in-memory fake bus ("membus") and
-an ASCII line per sample with an NMEA checksum ("fxg-line"), declared through drivers.registry with no edit of the
+an ASCII line per sample with an NMEA checksum ("fxg-line"), declared through fluxcal.drivers.registry with no edit of the
 package, then `fluxcal run --config` on them. The kind's [source] table is validated (the key, the value and what is
 allowed named as for fluxcal's own kinds), its source opened (a failure to open said with its port's key first),
 its clock checked against the configured rate, its counters in health (its own and the protocol's: no serial or CAN
@@ -20,17 +20,24 @@ import pytest
 from test_can_garbage import LastHealth
 from test_recording import service_config
 
-from drivers.block import SampleBlock
-from drivers.config import spec
-from drivers.declare import Counted, NoDecode, Protocol, ProtocolTable, SourceKind, resolve
-from drivers.errors import DriverError
-from drivers.registry import (allowed, forget_kind, forget_protocol, kinds, register_kind, register_protocol,
-                              source_kind)
-from drivers.source import Counters, Source
-from service.io.recordings.reader import read_recording
-from service.wiring.cli import main
-from service.wiring.config import load_config
-from service.wiring.daemon import Daemon
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.config import spec
+from fluxcal.drivers.declare import Counted, NoDecode, Protocol, ProtocolTable, SourceKind, resolve
+from fluxcal.drivers.errors import DriverError
+from fluxcal.drivers.registry import (
+    allowed,
+    forget_kind,
+    forget_protocol,
+    kinds,
+    register_kind,
+    register_protocol,
+    source_kind,
+)
+from fluxcal.drivers.source import Counters, Source
+from fluxcal.service.io.recordings.reader import read_recording
+from fluxcal.service.wiring.cli import main
+from fluxcal.service.wiring.config import load_config
+from fluxcal.service.wiring.daemon import Daemon
 
 N_PROBES, RATE_HZ = 2, 100.0
 
@@ -302,7 +309,7 @@ def test_command_state_says_what_arrives_apart_from_what_was_lost_as_the_source_
     """`fluxcal command state` called every counter but frames_accepted an error: a CAN unit's frames of other nodes
     (no fault: the bus is shared) and a serial unit's bytes were listed as errors. The state's source.counters say
     which count what arrives."""
-    from service.wiring.commands.command import state_text
+    from fluxcal.service.wiring.commands.command import state_text
 
     about = source_kind("can").words().about()
     st = {"unit": "g", "health": {"frames_accepted": 6000, "foreign_frames": 1234, "bad_frames": 3, "seq_gaps": 0,

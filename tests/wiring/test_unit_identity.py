@@ -22,14 +22,14 @@ from test_command_attacks import _Cmd, _set, good_calibration
 from test_recording import service_config
 from test_zenoh_security import free_port
 
-from drivers.errors import ConfigError, DataError
-from service.io.bus import BusClient, ZenohConfig
-from service.io.calfile import calibration_from_dict, load_calibration
-from service.wiring.config import load_config
-from service.wiring.daemon import Daemon, build_pipeline
-from service.wiring.identity import judge_on_data, recording_identity
-from service.wiring.sinks import Sinks
-from service.wiring.startcal import calibration_from_payload, initial_calibration
+from fluxcal.drivers.errors import ConfigError, DataError
+from fluxcal.service.io.bus import BusClient, ZenohConfig
+from fluxcal.service.io.calfile import calibration_from_dict, load_calibration
+from fluxcal.service.wiring.config import load_config
+from fluxcal.service.wiring.daemon import Daemon, build_pipeline
+from fluxcal.service.wiring.identity import judge_on_data, recording_identity
+from fluxcal.service.wiring.sinks import Sinks
+from fluxcal.service.wiring.startcal import calibration_from_payload, initial_calibration
 
 SERIALS = '\n[[probes]]\nname = "s1"\nposition_m = [-0.25, 0.0, 0.0]\nserial = "FG-1001"\n' \
           '\n[[probes]]\nname = "s2"\nposition_m = [0.25, 0.0, 0.0]\nserial = "FG-1002"\n'
@@ -71,7 +71,7 @@ def test_a_recordings_calibration_carries_the_unit_that_made_it(tmp_path):
     stored = {"unit": "grad1", "config": json.dumps({"probes": [{"name": "s1", "serial": "FG-1001"}, {"name": "s2"}]})}
     assert recording_identity(stored) == {"name": "grad1", "probes": {"s1": "FG-1001"}}
     assert recording_identity({}) == {}
-    from service.wiring.cli import main
+    from fluxcal.service.wiring.cli import main
 
     rec = Path(__file__).resolve().parents[2] / "recordings" / "grad1-sim-30s.mcap"
     assert main(["fit", str(rec), "--out", str(tmp_path / "cal.json")]) == 0
@@ -80,7 +80,7 @@ def test_a_recordings_calibration_carries_the_unit_that_made_it(tmp_path):
 
 def sim_blocks(cfg, seconds: float):
     """The configured simulated unit's samples, in blocks of 0.5 s."""
-    from drivers.sim import Unit
+    from fluxcal.drivers.sim import Unit
 
     u = Unit(cfg.sim)
     step = int(0.5 * cfg.sim.rate_hz)
@@ -100,7 +100,7 @@ def learned(tmp_path_factory):
 
 
 def shifted(cal, offset_nT: float):
-    from service.io.calfile import calibration_to_dict
+    from fluxcal.service.io.calfile import calibration_to_dict
 
     d = calibration_to_dict(cal)
     for p in d["probes"]:
@@ -180,7 +180,7 @@ def test_the_red_teams_foreign_calibration_is_refused_and_the_summary_says_so(tm
         own = calibration_from_dict({"format": "fluxcal.calibration", "version": 1, "method": "rls",
                                      "probes": st["probes"], "align": st["align"], "total_nT": st["total_nT"]})
         foreign = shifted(own, 5000.0)                                  # same probe names, no "unit" said
-        from service.io.calfile import calibration_to_dict
+        from fluxcal.service.io.calfile import calibration_to_dict
 
         answer = svc.client.command("apply", json.dumps(calibration_to_dict(foreign)), timeout=10.0)
         assert answer["ok"] is False and "fails the data check" in answer["error"], answer
@@ -212,13 +212,13 @@ def test_a_calibration_file_that_is_a_folder_is_refused_at_start_and_a_failed_sa
     def full(*a, **k):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr("service.wiring.startcal.save_calibration", full)
+    monkeypatch.setattr("fluxcal.service.wiring.startcal.save_calibration", full)
     for _ in range(3):
         cmd = _Cmd("apply", json.dumps(good_calibration()))
         daemon._apply_command(cmd, pipeline, Sinks([], said.append))
         assert cmd.answer["ok"] is True                             # in use; only its saving failed
     assert len([m for m in said if "could not persist" in m]) == 1 and daemon.keeper.persist_failures == 3
-    from service.wiring.faults import FaultWatch
+    from fluxcal.service.wiring.faults import FaultWatch
 
     lines = FaultWatch(said.append).summary({"frames_accepted": 10, "persist_failures": 3,
                                               "calibrations_refused": 0, "commands_refused": 0})

@@ -11,15 +11,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from drivers.errors import ConfigError
-from service.numerics.effects import EFFECTS, EffectTerm, known_effects
-from service.wiring import user_effects
-from service.wiring.cli import main
-from service.wiring.user_effects import load_installed_effects, resolve_effects
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.numerics.effects import EFFECTS, EffectTerm, known_effects
+from fluxcal.service.wiring import user_effects
+from fluxcal.service.wiring.cli import main
+from fluxcal.service.wiring.user_effects import load_installed_effects, resolve_effects
 
 GOOD = textwrap.dedent('''
     import numpy as np
-    from service.numerics.effects import EffectTerm
+    from fluxcal.service.numerics.effects import EffectTerm
 
     class Bump(EffectTerm):
         name = "bump"
@@ -52,12 +52,12 @@ def test_a_file_effect_is_registered_and_named(tmp_path):
 @pytest.mark.parametrize("text, cls, msg", [
     ("x = 1\n", "Bump", "defines no 'Bump'"),
     ("raise RuntimeError('broken on purpose')\n", "Bump", "RuntimeError: broken on purpose"),
-    ("class Bump:\n    name = 'bump'\n", "Bump", "subclass of service.numerics.effects.EffectTerm"),
-    ("from service.numerics.effects import EffectTerm\nclass Bump(EffectTerm):\n    name = 'Bad Name'\n",
+    ("class Bump:\n    name = 'bump'\n", "Bump", "subclass of fluxcal.service.numerics.effects.EffectTerm"),
+    ("from fluxcal.service.numerics.effects import EffectTerm\nclass Bump(EffectTerm):\n    name = 'Bad Name'\n",
      "Bump", "is not allowed"),
-    ("from service.numerics.effects import EffectTerm\nclass Bump(EffectTerm):\n    name = 'temperature'\n"
+    ("from fluxcal.service.numerics.effects import EffectTerm\nclass Bump(EffectTerm):\n    name = 'temperature'\n"
      "    def columns(self, view):\n        return None\n", "Bump", "is taken by"),
-    ("from service.numerics.effects import EffectTerm\nclass Bump(EffectTerm):\n    name = 'bump'\n",
+    ("from fluxcal.service.numerics.effects import EffectTerm\nclass Bump(EffectTerm):\n    name = 'bump'\n",
      "Bump", "defines neither columns()"),
 ])
 def test_a_bad_effect_is_refused_with_what_is_wrong(tmp_path, text, cls, msg):
@@ -96,7 +96,7 @@ def test_an_installed_effect_is_a_candidate_of_diagnose(monkeypatch):
     assert load_installed_effects() == ["wobble"]
     from test_diagnose import TUMBLE, data_of, probe, sim_block
 
-    from service.numerics.diagnose import diagnose
+    from fluxcal.service.numerics.diagnose import diagnose
 
     probes = [probe(0), probe(1)]
     d = diagnose(data_of(sim_block(probes, n=3000, rate=50.0, motion=TUMBLE, seed=2), probes))
@@ -147,9 +147,9 @@ def test_fit_with_a_file_effect_finds_its_step(tmp_path, capsys):
 
 
 def test_the_service_loads_the_plugins_its_configuration_names(tmp_path):
-    from service.wiring.config import load_config
-    from service.wiring.daemon import build_pipeline
-    from service.wiring.live_effects import LiveEffects
+    from fluxcal.service.wiring.config import load_config
+    from fluxcal.service.wiring.daemon import build_pipeline
+    from fluxcal.service.wiring.live_effects import LiveEffects
 
     (tmp_path / "fx").mkdir()
     (tmp_path / "fx" / "mine.py").write_text(GOOD.replace('name = "bump"', 'name = "bump"\n    per_sample = True'))
@@ -174,7 +174,7 @@ def test_the_service_loads_the_plugins_its_configuration_names(tmp_path):
 
 WARM = textwrap.dedent('''
     import numpy as np
-    from service.numerics.effects import EffectTerm
+    from fluxcal.service.numerics.effects import EffectTerm
 
     class Warm(EffectTerm):
         name = "warm"
@@ -199,8 +199,8 @@ def test_a_fixed_reference_is_printed_as_fixed_with_its_value(tmp_path, capsys):
     fixed, and says so in the text, the JSON, the calibration file and the report's table."""
     import json
 
-    from service.io.calfile import load_calibration
-    from service.numerics.calib.param_table import effect_rows
+    from fluxcal.service.io.calfile import load_calibration
+    from fluxcal.service.numerics.calib.param_table import effect_rows
 
     cfg = tmp_path / "warm.toml"
     cfg.write_text('[unit]\nn_probes = 1\n[sim]\nduration_s = 20\n[sim.temperature]\nstart_C = 18.5\n'
@@ -233,7 +233,7 @@ def test_a_fixed_reference_is_printed_as_fixed_with_its_value(tmp_path, capsys):
 
 BROKEN = textwrap.dedent('''
     import numpy as np
-    from service.numerics.effects import EffectTerm
+    from fluxcal.service.numerics.effects import EffectTerm
 
     class Broken(EffectTerm):
         name = "broken"
@@ -258,7 +258,7 @@ def test_an_effect_whose_methods_fail_is_said_by_name_never_a_traceback(tmp_path
     columns, a column the data lack, a misspelt frame): each was a traceback from deep in the fit, or (the frame)
     taken silently with a held-out error below its in-sample one. Now fit and diagnose stop with the effect's name,
     where it came from and what is wrong (service/numerics/effects/guard.py)."""
-    from service.numerics.effects.guard import FRAMES
+    from fluxcal.service.numerics.effects.guard import FRAMES
 
     assert FRAMES == ("raw", "corrected")
     f = tmp_path / "broken.py"
@@ -280,8 +280,8 @@ def test_a_written_effect_given_data_without_its_column_says_which(tmp_path, cap
     sys.path.insert(0, str(ROOT / "tests"))
     from discovery_worlds import world
 
-    from service.numerics.diagnose import diagnose
-    from service.numerics.diagnose.write_effect import effect_source
+    from fluxcal.service.numerics.diagnose import diagnose
+    from fluxcal.service.numerics.diagnose.write_effect import effect_source
 
     d = diagnose(world("lagged heater", 5))
     assert d.discovery.claimed
@@ -309,7 +309,7 @@ def test_advice_names_a_users_effect_as_the_command_line_takes_it(tmp_path, caps
 
 SHARED = textwrap.dedent('''
     import numpy as np
-    from service.numerics.effects import EffectTerm
+    from fluxcal.service.numerics.effects import EffectTerm
 
     class Common(EffectTerm):
         name = "common"

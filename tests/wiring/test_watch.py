@@ -16,12 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.block import SampleBlock
-from service.io.bus import Message, Series, ServiceBus, ZenohConfig
-from service.numerics.outputs import CorrectedBlock
-from service.wiring.cli import main as cli_main
-from service.wiring.commands.client import dashboard_endpoints
-from service.wiring.commands.watch import TerminalView
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.service.io.bus import Message, Series, ServiceBus, ZenohConfig
+from fluxcal.service.numerics.outputs import CorrectedBlock
+from fluxcal.service.wiring.cli import main as cli_main
+from fluxcal.service.wiring.commands.client import dashboard_endpoints
+from fluxcal.service.wiring.commands.watch import TerminalView
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -165,7 +165,7 @@ def test_watch_usage_errors_exit_2_with_a_message(argv, message, capsys):
 def test_watch_takes_endpoint_and_unit_from_the_service_config():
     import argparse
 
-    from service.wiring.commands.client import resolve as _resolve
+    from fluxcal.service.wiring.commands.client import resolve as _resolve
 
     args = argparse.Namespace(config=str(REPO / "configs" / "sim-gradiometer.toml"), connect=None, unit=None,
                               seconds=None)
@@ -222,7 +222,7 @@ def test_not_usable_yet_shows_the_gate_reasons_and_the_raw_vectors():
 def test_watch_process_stops_cleanly_on_sigterm(publisher):
     pub = publisher()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "watch", "--connect", pub.ep, "--unit", "u1"],
+    proc = subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", "watch", "--connect", pub.ep, "--unit", "u1"],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
         first = ""
@@ -244,7 +244,7 @@ def test_a_check_without_a_candidate_says_there_is_no_residual_yet():
     """After the service started from its saved calibration, the first check found the online estimate not yet
     determined and the view read "coverage - condition - residual [] nT": now it says what is there. The gate as
     `fluxcal run` gave it then (configs/sim-gradiometer.toml, a saved calibration, 2000 samples in)."""
-    from service.wiring.commands.command import state_text
+    from fluxcal.service.wiring.commands.command import state_text
 
     reason = ("s1: the online estimate is not determined yet (2000 samples, condition 782); keep rotating about "
               "several axes")

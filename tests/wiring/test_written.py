@@ -1,13 +1,13 @@
-"""What diagnose writes beside its result (service.wiring.commands.written): no effect module where discovery found
+"""What diagnose writes beside its result (fluxcal.service.wiring.commands.written): no effect module where discovery found
 nothing (said, exit status kept), and a report that cannot be written costs the exit status, never the diagnosis."""
 
 from __future__ import annotations
 
 from types import SimpleNamespace
 
-from service.wiring.commands.diagnose import DiagnoseResult
-from service.wiring.commands.written import write_diagnosis_report, write_discovered
-from service.wiring.result import Said
+from fluxcal.service.wiring.commands.diagnose import DiagnoseResult
+from fluxcal.service.wiring.commands.written import write_diagnosis_report, write_discovered
+from fluxcal.service.wiring.result import Said
 
 
 def _out(discovery=None) -> DiagnoseResult:
@@ -28,8 +28,8 @@ def test_no_module_is_written_where_discovery_claimed_nothing(tmp_path):
 
 
 def test_a_report_that_cannot_be_written_is_said_and_costs_the_status(tmp_path, monkeypatch):
-    import service.io.report as report
-    import service.wiring.calib_report as calib_report
+    import fluxcal.service.io.report as report
+    import fluxcal.service.wiring.calib_report as calib_report
 
     def full_disk(*args, **kwargs):
         raise OSError(28, "No space left on device")
@@ -53,7 +53,7 @@ def test_writing_the_module_again_keeps_what_the_user_edited(tmp_path):
     same text written again keeps nothing."""
     import numpy as np
 
-    from service.numerics.diagnose.library import Feature, Group
+    from fluxcal.service.numerics.diagnose.library import Feature, Group
 
     f = Feature("heater_A", "heater_A", "A", "value", {"source": "column", "column": "heater_A", "centre": 0.0},
                 np.linspace(0.0, 1.0, 50))

@@ -13,7 +13,7 @@ from typing import Any, Iterable, Iterator
 
 import zenoh
 
-from drivers.errors import ConfigError, DataError
+from fluxcal.drivers.errors import ConfigError, DataError
 
 from .keys import _KEY_CHUNK, COMMANDS, STREAMS, Keys, _decode_json
 from .settings import BusError, SessionHolder, ZenohConfig

@@ -16,8 +16,8 @@ from typing import Any, Callable, Mapping
 import numpy as np
 import zenoh
 
-from drivers.errors import ConfigError, DataError
-from service.io.encoding import decode_corrected, decode_raw, encode_json
+from fluxcal.drivers.errors import ConfigError, DataError
+from fluxcal.service.io.encoding import decode_corrected, decode_raw, encode_json
 
 
 @dataclass(frozen=True)

@@ -38,10 +38,10 @@ from typing import Any, Callable, Mapping, Sequence
 
 import zenoh
 
-from drivers.block import SampleBlock
-from drivers.errors import ConfigError, DataError
-from service.io.encoding import corrected_payload, probe_payloads, raw_payload
-from service.numerics.outputs import CorrectedBlock
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import ConfigError, DataError
+from fluxcal.service.io.encoding import corrected_payload, probe_payloads, raw_payload
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 from . import claim
 from .desk import COMMAND_WAIT_S, STATE_GRACE_S, Desk
@@ -85,7 +85,7 @@ class ServiceBus(SessionHolder):
                  command_wait_s: float = COMMAND_WAIT_S, state_grace_s: float = STATE_GRACE_S,
                  send_backlog_bytes: int = SEND_BACKLOG_BYTES, duplicate: str = "refuse", config: str = "") -> None:
         """`duplicate`, `config`: when another live service holds `unit`, refuse or take a suffix (claim_note says
-        which), and the configuration's path said to one that finds this holding it (service.io.bus.claim)."""
+        which), and the configuration's path said to one that finds this holding it (fluxcal.service.io.bus.claim)."""
         self.keys = Keys(unit)
         self.unit = unit
         self.claim_note = ""
@@ -137,7 +137,7 @@ class ServiceBus(SessionHolder):
         self._entities.append(pub)
         return pub
 
-    # --- the service's thread: commands and state (service.io.bus.desk) ---------------------------
+    # --- the service's thread: commands and state (fluxcal.service.io.bus.desk) ---------------------------
 
     def pending_commands(self) -> list[Command]:
         """Commands received since the last call, oldest first; answers pending `state` queries on the way.

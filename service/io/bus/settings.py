@@ -13,8 +13,8 @@ from typing import Any
 
 import zenoh
 
-from drivers.config import spec
-from drivers.errors import ConfigError, FluxcalError
+from fluxcal.drivers.config import spec
+from fluxcal.drivers.errors import ConfigError, FluxcalError
 
 from .keys import Keys
 

@@ -12,7 +12,7 @@
     BAT / CURR Curr      -> battery_current_a (instance 0), battery<i>_current_a (A; the older CURR, to 3.4, logs it as
                             an integer in hundredths of an ampere: scaled)
 
-On one time base by service.numerics.merge: the log's own clock (us since boot), never a GPS time; an older log's
+On one time base by fluxcal.service.numerics.merge: the log's own clock (us since boot), never a GPS time; an older log's
 GPS message carries the GPS time of week in TimeMS (beside Week) and its boot time in T (ms), which is taken. The
 date comes from the GPS week and time of week where the log has a fix. Streams are named as the log names them
 (MAG2, CURR; MAG[1] where the message has an instance field).
@@ -26,11 +26,18 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import DataError
-from drivers.inputs import check_head, magic
-from service.io.recordings.formats import DATAFLASH_HEAD, Inspection, StreamInfo, lab_data, missing_package, rate
-from service.io.recordings.labdata import LabData
-from service.numerics.merge import Series, merge, quaternion_from_euler
+from fluxcal.drivers.errors import DataError
+from fluxcal.drivers.inputs import check_head, magic
+from fluxcal.service.io.recordings.formats import (
+    DATAFLASH_HEAD,
+    Inspection,
+    StreamInfo,
+    lab_data,
+    missing_package,
+    rate,
+)
+from fluxcal.service.io.recordings.labdata import LabData
+from fluxcal.service.numerics.merge import Series, merge, quaternion_from_euler
 
 #: ArduPilot logs the field in milligauss
 NT_PER_MILLIGAUSS = 100.0

@@ -14,8 +14,8 @@ from typing import Any, Callable, Sequence
 
 from mcap.writer import CompressionType, Writer
 
-from service.io.encoding import CORRECTED_ENCODING, CORRECTED_LAYOUT, RAW_ENCODING, RAW_LAYOUT
-from service.io.foxglove_schemas import json_channels
+from fluxcal.service.io.encoding import CORRECTED_ENCODING, CORRECTED_LAYOUT, RAW_ENCODING, RAW_LAYOUT
+from fluxcal.service.io.foxglove_schemas import json_channels
 
 from .arithmetic import ARITHMETIC_RECORD, machine_arithmetic
 

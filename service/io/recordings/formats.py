@@ -8,7 +8,7 @@
 
 The readers (ros2.py, px4.py, ardupilot.py) return the same LabData as a lab CSV; the columns they give are the
 CSV's (docs/csv.md): s<k>_x/y/z in nT, s<k>_temp, heel_deg/pitch_deg/azimuth_deg, and lat_deg, lon_deg, alt_m
-(a track, for the reference field along it: service.numerics.calib.track), plus currents and other logged values.
+(a track, for the reference field along it: fluxcal.service.numerics.calib.track), plus currents and other logged values.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from drivers.errors import DataError
-from service.io.recordings.labdata import LabData
-from service.numerics.merge import Merged
+from fluxcal.drivers.errors import DataError
+from fluxcal.service.io.recordings.labdata import LabData
+from fluxcal.service.numerics.merge import Merged
 
 #: a logged field value beyond this (in any axis, whatever the unit: a field of the Earth is 7e7 in pT) is a damaged
 #: record's, not a measurement

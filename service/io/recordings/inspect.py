@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import DataError
-from service.io.recordings.formats import Inspection, StreamInfo, detect_format, rate, refuse_pointer
+from fluxcal.drivers.errors import DataError
+from fluxcal.service.io.recordings.formats import Inspection, StreamInfo, detect_format, rate, refuse_pointer
 
 
 def inspect_file(path: str | Path, mapping: Any = None, *, read: bool = True) -> Inspection:
@@ -23,15 +23,15 @@ def inspect_file(path: str | Path, mapping: Any = None, *, read: bool = True) ->
     refuse_pointer(p)
     fmt = detect_format(p)
     if fmt in ("ros2-mcap", "ros2-bag"):
-        from service.io.recordings.ros2 import inspect_ros2
+        from fluxcal.service.io.recordings.ros2 import inspect_ros2
 
         return as_read(inspect_ros2(p, mapping), p, mapping) if read else inspect_ros2(p, mapping)
     if fmt == "px4-ulog":
-        from service.io.recordings.px4 import inspect_px4
+        from fluxcal.service.io.recordings.px4 import inspect_px4
 
         return as_read(inspect_px4(p, mapping), p, mapping) if read else inspect_px4(p, mapping)
     if fmt == "ardupilot-bin":
-        from service.io.recordings.ardupilot import inspect_ardupilot
+        from fluxcal.service.io.recordings.ardupilot import inspect_ardupilot
 
         return as_read(inspect_ardupilot(p, mapping), p, mapping) if read else inspect_ardupilot(p, mapping)
     return _inspect_lab(p, fmt)
@@ -41,7 +41,7 @@ def as_read(i: Inspection, p: Path, mapping: Any) -> Inspection:
     """The inspection's probes, columns, samples, duration and clock as the one reader fit and diagnose use
     (load.load_data) gives them, never a second reading of the file; where that reader gives nothing to calibrate,
     none, and why (`fit_refuses`)."""
-    from service.io.recordings.load import load_data
+    from fluxcal.service.io.recordings.load import load_data
 
     try:
         lab = load_data(p, mapping=mapping)
@@ -67,7 +67,7 @@ def reading(lab: Any) -> dict[str, Any]:
 
 def _inspect_lab(p: Path, fmt: str) -> Inspection:
     """A lab CSV or a fluxcal recording: its probes and columns as load_data reads them."""
-    from service.io.recordings.load import load_data
+    from fluxcal.service.io.recordings.load import load_data
 
     lab = load_data(p)
     b = lab.block

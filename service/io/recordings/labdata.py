@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.block import FLAG_SATURATED, FLAG_TEMP_INVALID, FLAGS_RESERVED, SampleBlock
-from drivers.errors import DataError
-from drivers.inputs import read_text
+from fluxcal.drivers.block import FLAG_SATURATED, FLAG_TEMP_INVALID, FLAGS_RESERVED, SampleBlock
+from fluxcal.drivers.errors import DataError
+from fluxcal.drivers.inputs import read_text
 
 _PROBE_COL = re.compile(r"^s([1-9][0-9]*)_(x|y|z|temp)$")
 
@@ -94,7 +94,7 @@ def load_csv(path: str | Path) -> LabData:
     """Parse a lab CSV (docs/csv.md)."""
     p = Path(path)
     # a regular file within the size and line limits, read in pieces (SIGTERM stops it), its first piece judged
-    # before the next is read (garbage refused within it, whatever its size): drivers.inputs
+    # before the next is read (garbage refused within it, whatever its size): fluxcal.drivers.inputs
     lines = read_text(p, "a lab CSV", head=_head_problem(p)).splitlines()
     comments: list[str] = []
     header_idx = _find_header(p, lines, comments)
@@ -109,7 +109,7 @@ def load_csv(path: str | Path) -> LabData:
 def lab_table(p: Path | str, header: list[str], values: np.ndarray, lineno: np.ndarray | None = None,
               comments: list[str] | None = None) -> LabData:
     """A lab CSV's columns (docs/csv.md: `header`, and `values` (N, columns) float) as LabData, checked as a CSV's
-    are: every reader of such a table (a file, a pandas DataFrame, arrays: service.wiring.api) goes through here, so
+    are: every reader of such a table (a file, a pandas DataFrame, arrays: fluxcal.service.wiring.api) goes through here, so
     the same numbers give the same samples. lineno: each row's line in its file (for the messages), else 2, 3, ..."""
     values = np.array(values, dtype=np.float64)            # a copy: the caller's table is never changed
     lineno = np.arange(2, values.shape[0] + 2) if lineno is None else lineno
@@ -131,7 +131,7 @@ def lab_table(p: Path | str, header: list[str], values: np.ndarray, lineno: np.n
 
 
 def _head_problem(p: Path):
-    """The judge of a lab CSV's first piece (drivers.inputs.check_head): text, with the header and data rows a CSV
+    """The judge of a lab CSV's first piece (fluxcal.drivers.inputs.check_head): text, with the header and data rows a CSV
     has (each refused as the whole file's reading would refuse it, naming the line and column)."""
     def problem(head: bytes, whole: bool) -> str | None:
         try:

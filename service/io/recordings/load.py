@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import DataError
-from drivers.inputs import not_regular
+from fluxcal.drivers.errors import DataError
+from fluxcal.drivers.inputs import not_regular
 
 from .labdata import LabData, check_one_run, check_time_increases, keep_every, load_csv
 

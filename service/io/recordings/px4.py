@@ -8,7 +8,7 @@
                                       samples without a 3D fix left out
     battery_status[i].current_a    -> battery_current_a (instance 0), battery<i>_current_a (A; -1: not measured)
 
-On one time base by service.numerics.merge. The date comes from the GPS's UTC time where the log has a fix.
+On one time base by fluxcal.service.numerics.merge. The date comes from the GPS's UTC time where the log has a fix.
 """
 
 from __future__ import annotations
@@ -20,11 +20,11 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import DataError
-from drivers.inputs import check_head, magic
-from service.io.recordings.formats import ULOG_MAGIC, Inspection, StreamInfo, lab_data, missing_package, rate
-from service.io.recordings.labdata import LabData
-from service.numerics.merge import Series, merge
+from fluxcal.drivers.errors import DataError
+from fluxcal.drivers.inputs import check_head, magic
+from fluxcal.service.io.recordings.formats import ULOG_MAGIC, Inspection, StreamInfo, lab_data, missing_package, rate
+from fluxcal.service.io.recordings.labdata import LabData
+from fluxcal.service.numerics.merge import Series, merge
 
 #: PX4's sensor_mag is in gauss
 NT_PER_GAUSS = 1e5

@@ -7,7 +7,7 @@
     FluxcalDecoderFactory                          for mcap's own readers: make_reader(f,
                                                    decoder_factories=[FluxcalDecoderFactory()])
 
-Reading goes through drivers.mcap_source (streaming; a cut tail read to its last chunk, damage read past and
+Reading goes through fluxcal.drivers.mcap_source (streaming; a cut tail read to its last chunk, damage read past and
 said, what it lost a hole with its samples' span); files that are no recording raise RecordingError with
 the file and what is wrong.
 """
@@ -22,20 +22,20 @@ from typing import Any
 import numpy as np
 from mcap.decoder import DecoderFactory
 
-from drivers.block import SampleBlock
-from drivers.encoding import decode_raw_runs
-from drivers.errors import DataError, RecordingError
-from drivers.mcap_source import (
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.encoding import decode_raw_runs
+from fluxcal.drivers.errors import DataError, RecordingError
+from fluxcal.drivers.mcap_source import (
     Hole,
     ReadReport,
     iter_records,
     metadata_json,
     unit_of_topic,
 )
-from service.io.encoding import CORRECTED_ENCODING, RAW_ENCODING, decode_corrected, decode_json, decode_raw
-from service.io.recordings.labdata import keep_every
-from service.io.recordings.repair import repair_recording  # noqa: F401 - read and repair from one module, as before
-from service.numerics.outputs import CorrectedBlock
+from fluxcal.service.io.encoding import CORRECTED_ENCODING, RAW_ENCODING, decode_corrected, decode_json, decode_raw
+from fluxcal.service.io.recordings.labdata import keep_every
+from fluxcal.service.io.recordings.repair import repair_recording  # noqa: F401 - read and repair from one module, as before
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 
 def concat_corrected(blocks: list[CorrectedBlock]) -> CorrectedBlock:

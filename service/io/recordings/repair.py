@@ -6,10 +6,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from drivers.errors import RecordingError
-from drivers.mcap_source import HoleTracker, ReadReport, iter_file_records, recording_files, unit_of_topic
-from drivers.outputs import refuse_linked_folder, temp_beside
-from service.io.encoding import RAW_ENCODING
+from fluxcal.drivers.errors import RecordingError
+from fluxcal.drivers.mcap_source import HoleTracker, ReadReport, iter_file_records, recording_files, unit_of_topic
+from fluxcal.drivers.outputs import refuse_linked_folder, temp_beside
+from fluxcal.service.io.encoding import RAW_ENCODING
 
 #: the metadata record a repaired copy carries
 REPAIR_RECORD = "fluxcal.repair"

@@ -13,7 +13,7 @@
                                       (status < 0) or without an altitude are left out
     sensor_msgs/msg/BatteryState   -> battery_current_a (A; a current beside a compass is a platform effect)
 
-The streams are put on one time base by service.numerics.merge (the probe with the fewest samples gives the
+The streams are put on one time base by fluxcal.service.numerics.merge (the probe with the fewest samples gives the
 instants; other probes nearest within half an interval, one to one; the rest interpolated, never extrapolated).
 Ros2Mapping chooses the topics; `inspect_ros2(path)` lists what a bag holds and how it would be mapped.
 """
@@ -29,11 +29,11 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import DataError
-from drivers.inputs import check_head, magic
-from service.io.recordings.formats import MCAP_MAGIC, Inspection, StreamInfo, lab_data, missing_package, rate
-from service.io.recordings.labdata import LabData
-from service.numerics.merge import Series, merge, ned_from_enu_quaternion
+from fluxcal.drivers.errors import DataError
+from fluxcal.drivers.inputs import check_head, magic
+from fluxcal.service.io.recordings.formats import MCAP_MAGIC, Inspection, StreamInfo, lab_data, missing_package, rate
+from fluxcal.service.io.recordings.labdata import LabData
+from fluxcal.service.numerics.merge import Series, merge, ned_from_enu_quaternion
 
 MAGNETIC_FIELD = "sensor_msgs/msg/MagneticField"
 IMU = "sensor_msgs/msg/Imu"
@@ -430,7 +430,7 @@ def load_ros2(path: str | Path, mapping: Ros2Mapping | None = None) -> LabData:
 
 def inspect_ros2(path: str | Path, mapping: Ros2Mapping | None = None) -> Inspection:
     """What a ROS 2 bag holds (topics, types, counts, rates) and how load_ros2 would map it."""
-    from service.io.recordings.formats import detect_format
+    from fluxcal.service.io.recordings.formats import detect_format
 
     bag = open_bag(path)
     topics = bag.topics()

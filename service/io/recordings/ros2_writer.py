@@ -19,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from drivers.block import SampleBlock
-from drivers.errors import RecordingError
-from drivers.outputs import open_output, refuse_linked_folder, replacing
-from service.numerics.outputs import CorrectedBlock
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import RecordingError
+from fluxcal.drivers.outputs import open_output, refuse_linked_folder, replacing
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 MAGNETIC_FIELD = "sensor_msgs/msg/MagneticField"
 #: the message definition as rosbag2's MCAP storage stores it (ros2msg, dependencies after "====" lines)

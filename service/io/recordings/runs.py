@@ -12,7 +12,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from service.io.recordings.formats import DATAFLASH_HEAD
+from fluxcal.service.io.recordings.formats import DATAFLASH_HEAD
 
 _RUN_PART = re.compile(r"^(?P<stem>.+)-(?P<n>\d{4})\.mcap$")
 #: the files a folder's listing takes as recordings (as the readers tell them apart: formats.detect_format)

@@ -19,7 +19,7 @@ Channels (topic, MCAP message encoding, schema):
     /fluxcal/<unit>/health       json                  jsonschema: source counters and this logger's status
 
 The JSON channels Foxglove plots (vectors, diff, tensor, error, params) are built by
-service.io.foxglove_schemas, which the live bridge (`fluxcal foxglove`) uses too; the binary channels stay
+fluxcal.service.io.foxglove_schemas, which the live bridge (`fluxcal foxglove`) uses too; the binary channels stay
 the replay's exact record.
 
 Each file starts with a "fluxcal" metadata record (unit, stream encodings, file_index and what the
@@ -65,12 +65,12 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-from drivers.block import SampleBlock
-from drivers.errors import ConfigError
-from drivers.outputs import open_output
-from service.io.encoding import corrected_payload, encode_json, health_record, raw_payload
-from service.io.foxglove_schemas import Products
-from service.numerics.outputs import CorrectedBlock
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.drivers.outputs import open_output
+from fluxcal.service.io.encoding import corrected_payload, encode_json, health_record, raw_payload
+from fluxcal.service.io.foxglove_schemas import Products
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 from .files import COMPRESSIONS, McapFiles
 
@@ -82,7 +82,7 @@ _wall_ns = time.time_ns
 
 
 def _default_opener(path: Path, mode: str):
-    return open_output(path, mode)          # never through a link planted at the path (drivers.outputs)
+    return open_output(path, mode)          # never through a link planted at the path (fluxcal.drivers.outputs)
 
 
 class ChunkedLog:
@@ -114,7 +114,7 @@ class ChunkedLog:
         self._closed = False
         self._open()
 
-    # --- files (service.io.recordings.files) --------------------------------------------------------
+    # --- files (fluxcal.service.io.recordings.files) --------------------------------------------------------
 
     @property
     def files(self) -> list[str]:

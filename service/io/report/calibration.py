@@ -1,7 +1,7 @@
 """The calibration section of the HTML reports (`fit --report`, `diagnose --report`), and the page of
 `fit --report DIR` itself.
 
-It draws what service.numerics.calib.sky computed, nothing more: per probe the field directions the
+It draws what fluxcal.service.numerics.calib.sky computed, nothing more: per probe the field directions the
 data visited on an equal-area (Mollweide) map of the sensor frame with the unvisited directions
 circled, and the scalar residual |B_cal| − F binned over the same map; then the parameter table
 (calib.param_table) with standard errors and warnings. Without matplotlib the fit's page still has
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.numerics.calib.sky import CalibrationSection, ProbeSky
+from fluxcal.service.numerics.calib.sky import CalibrationSection, ProbeSky
 
 from .page import CSS, NO_MATPLOTLIB, Figure, has_matplotlib, images, png, pyplot, write_page
 

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from service.numerics.calib.sky import CalibrationSection
-from service.numerics.diagnose import DECIDES, Diagnosis, verdict_lines, verdict_word
-from service.numerics.diagnose.text import discovery_lines, gain_text, reference_words
+from fluxcal.service.numerics.calib.sky import CalibrationSection
+from fluxcal.service.numerics.diagnose import DECIDES, Diagnosis, verdict_lines, verdict_word
+from fluxcal.service.numerics.diagnose.text import discovery_lines, gain_text, reference_words
 
 from .calibration import section_figures, section_html
 from .page import CSS, NO_MATPLOTLIB, has_matplotlib, images, png, pyplot, write_page
@@ -67,7 +67,7 @@ def _spectrum_figure(plt, d: Diagnosis) -> tuple[str, str, bytes] | None:
     """The spectrum of every channel's residual against its white noise floor, one panel per group of channels,
     drawn from the numbers `where` names its bands from (numerics.diagnose.where.excess_spectrum: the periodogram
     in log-spaced bins), each band it names shaded in its channel's colour."""
-    from service.numerics.diagnose.where import excess_spectrum
+    from fluxcal.service.numerics.diagnose.where import excess_spectrum
 
     ch = d.fit.channels
     if ch.values.shape[0] < 256:

@@ -1,4 +1,4 @@
-"""A result in a notebook (`_repr_html_` of the Results of service.wiring.result): its table (the parameters with
+"""A result in a notebook (`_repr_html_` of the Results of fluxcal.service.wiring.result): its table (the parameters with
 standard errors, or the candidate effects), its verdict, the text the command line prints, its notes, and a plot of
 the residual per channel against its noise floor where matplotlib is installed. Only formatting: the figures are the
 result's own (its JSON, docs/contracts.md)."""

@@ -9,8 +9,8 @@ import html
 import io
 from pathlib import Path
 
-from drivers.errors import FluxcalError
-from drivers.outputs import refuse_linked_folder, replacing
+from fluxcal.drivers.errors import FluxcalError
+from fluxcal.drivers.outputs import refuse_linked_folder, replacing
 
 #: (file name, caption, PNG bytes)
 Figure = tuple[str, str, bytes]

@@ -4,7 +4,7 @@ model (ProbeCalibration, ArrayCalibration, the [FastRotation] triangular and [Tw
 parameterisations), ellipsoid ([TwoFluxgate], [TwoStep] step 1), tmi ([FastRotation] section 4), sinefit
 ([SineFit]), twostep ([TwoStep]), rls (the online estimator), alignment ([TwoFluxgate] regression,
 [FastRotation] rotation), tensor ([FastRotation]), coverage (what users need to trust a fit). The papers'
-keys are defined in docs/references.md. The calibration file is read and written in service.io.calfile.
+keys are defined in docs/references.md. The calibration file is read and written in fluxcal.service.io.calfile.
 """
 
 from .alignment import (

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.errors import CalibrationRefused, DataError
+from fluxcal.drivers.errors import CalibrationRefused, DataError
 
 from .excitation import PLANARITY_MIN, planarity
 from .model import ProbeCalibration, named, sensor_scale

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.errors import CalibrationRefused
+from fluxcal.drivers.errors import CalibrationRefused
 
 from .excitation import PLANARITY_MIN, planarity
 from .quadric import MAX_CONDITION, MIN_SAMPLES, gram_condition, normalise, quadric_design

@@ -32,7 +32,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from drivers.errors import CalibrationRefused
+from fluxcal.drivers.errors import CalibrationRefused
 
 from ..field_scale import EARTH_RANGE_NT, median_field, unit_guess
 from .coverage import Coverage, coverage

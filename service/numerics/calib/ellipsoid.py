@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.errors import CalibrationRefused
+from fluxcal.drivers.errors import CalibrationRefused
 
 from .excitation import PLANARITY_MIN, coverage_hint, excitation_problem, turn_cone  # noqa: F401 (re-exported)
 from .model import ProbeCalibration, named, scalar_rms, triangular_params

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import CalibrationRefused
+from fluxcal.drivers.errors import CalibrationRefused
 
 from .model import triangular_params_many
 from .order import EXPANSIONS

@@ -3,7 +3,7 @@
 `matrix` maps a probe's raw output (nT at nominal scale) to an orthogonal frame: the probe's own
 triangular frame after a single-probe fit ([FastRotation] eq. 12: upper-triangular, the z axis along the
 sensor's z winding, y in its y-z plane), or the common (platform / probe-1) frame after alignment.
-Effect terms (service.numerics.effects) add to this linear part; they are not applied here.
+Effect terms (fluxcal.service.numerics.effects) add to this linear part; they are not applied here.
 
 Two ways of naming the physics of a matrix live here too:
 
@@ -119,7 +119,7 @@ class ArrayCalibration:
     diagnostics: dict[str, Any] = field(default_factory=dict)
     span: tuple[float, float, int] = (0.0, 0.0, 0)      # t0_s, t1_s, n_samples of the data it came from
     #: the unit it was made for: {"name": "grad1", "probes": {"s1": "<serial>", ...}} ({}: not said); the service
-    #: refuses one made for another unit (service.wiring.identity)
+    #: refuses one made for another unit (fluxcal.service.wiring.identity)
     unit: dict[str, Any] = field(default_factory=dict)
 
     @property

@@ -25,7 +25,7 @@ from typing import Sequence
 
 import numpy as np
 
-from drivers.errors import DataError
+from fluxcal.drivers.errors import DataError
 
 
 @dataclass(frozen=True)

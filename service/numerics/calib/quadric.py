@@ -8,7 +8,7 @@ from typing import Callable
 
 import numpy as np
 
-from drivers.errors import DataError
+from fluxcal.drivers.errors import DataError
 
 N_GEOMETRY = 9
 N_PARAMS = 10

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.errors import CalibrationRefused, DataError, NotCalibratedError
+from fluxcal.drivers.errors import CalibrationRefused, DataError, NotCalibratedError
 
 from .model import ProbeCalibration, named
 from .quadric import N_GEOMETRY, N_PARAMS, jacobian_se_many, quadric_to_calibration, quadric_to_calibration_many

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
-from drivers.errors import DataError
+from fluxcal.drivers.errors import DataError
 
 from .quadric import N_GEOMETRY, normalise, quadric_design, quadric_to_calibration, unit_volume_total
 

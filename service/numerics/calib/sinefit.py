@@ -52,7 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from drivers.errors import CalibrationRefused
+from fluxcal.drivers.errors import CalibrationRefused
 
 from .model import ProbeCalibration, named
 from .quadric import finite_rows, jacobian_se

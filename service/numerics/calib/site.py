@@ -12,7 +12,7 @@ from __future__ import annotations
 import datetime as _dt
 from dataclasses import asdict, dataclass
 
-from drivers.errors import ConfigError
+from fluxcal.drivers.errors import ConfigError
 
 #: the altitudes the model is specified for, m (WMM: -1 km to 850 km)
 ALTITUDE_RANGE_M = (-1000.0, 850_000.0)

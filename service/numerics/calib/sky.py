@@ -195,7 +195,7 @@ def probe_sky(name: str, field_nT: np.ndarray, offset_nT: np.ndarray, residual_n
 
 @dataclass
 class CalibrationSection:
-    """Everything the calibration section of a report shows (service.io.report draws it)."""
+    """Everything the calibration section of a report shows (fluxcal.service.io.report draws it)."""
 
     heading: str                    # what the calibration is: "ellipsoid fit", "the linear part diagnose refitted"
     description: str                # method, alignment, effects, total field source

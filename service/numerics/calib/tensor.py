@@ -2,7 +2,7 @@
 
 Convention: G[i, j] = ∂B_j / ∂x_i ([FastRotation] eq. 1), in nT/m, platform frame, for corrected fields of
 shape (N, P, 3); every function is vectorised over N and returns the shapes of
-service.numerics.outputs.CorrectedBlock (diff (N, P−1, 3), tensor (N, 3, 3), centre (N, 3)).
+fluxcal.service.numerics.outputs.CorrectedBlock (diff (N, P−1, 3), tensor (N, 3, 3), centre (N, 3)).
 
 From P probes at positions r_k the field differences obey B_k − B_0 = Gᵀ (r_k − r_0) to first
 order; `tensor_from_positions` solves it by least squares about the centroid (B_0 the mean field,
@@ -21,7 +21,7 @@ import functools
 
 import numpy as np
 
-from drivers.errors import ConfigError
+from fluxcal.drivers.errors import ConfigError
 
 #: the six components a planar x-y array measures, as (row, column) of G, named as [FastRotation] Table 4 does:
 #: Bxx = (Bx1−Bx3)/d, Bxy = (Bx2−Bx4)/d, Bxz = (Bz1−Bz3)/d, Byx = (By1−By3)/d, Byy = (By2−By4)/d,

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.errors import CalibrationRefused
+from fluxcal.drivers.errors import CalibrationRefused
 
 from .ellipsoid import solve_quadric
 from .model import ProbeCalibration, named, triangular_params

@@ -23,8 +23,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from drivers.block import SampleBlock
-from drivers.errors import DataError
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import DataError
 
 #: the columns of a track (docs/csv.md) and those the reference along it adds
 POSITION = ("lat_deg", "lon_deg", "alt_m")
@@ -205,7 +205,7 @@ def track_reference(block: SampleBlock, *, t0_unix_s: float | None = None, year:
         yr = np.full(block.n_samples, float(year))
         when = f"the date given ({float(year):.2f})"
     else:
-        from service.numerics.calib.site import decimal_year
+        from fluxcal.service.numerics.calib.site import decimal_year
 
         yr = np.full(block.n_samples, decimal_year(_dt.date.today()))
         when = "today's date (the recording does not say its date: give one)"

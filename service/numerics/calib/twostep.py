@@ -35,7 +35,7 @@ from typing import Sequence
 
 import numpy as np
 
-from drivers.errors import CalibrationRefused, DataError
+from fluxcal.drivers.errors import CalibrationRefused, DataError
 
 from .ellipsoid import fit_ellipsoid
 from .model import ProbeCalibration, named

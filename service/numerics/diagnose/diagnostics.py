@@ -21,7 +21,7 @@ reports (docs/contracts.md):
   indistinguishable from that part of the model (e.g. a site gradient under turns about one axis
   looks like an offset). Each such entry says what motion or data would separate them.
 
-Numerics only: no file I/O (service.wiring.commands.diagnose and service.io.report do that).
+Numerics only: no file I/O (fluxcal.service.wiring.commands.diagnose and fluxcal.service.io.report do that).
 """
 
 from __future__ import annotations
@@ -30,9 +30,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from drivers.errors import CalibrationRefused
-from service.numerics.effects import Baseline, Model, known_effects, make_model, make_term
-from service.numerics.engine import (
+from fluxcal.drivers.errors import CalibrationRefused
+from fluxcal.service.numerics.effects import Baseline, Model, known_effects, make_model, make_term
+from fluxcal.service.numerics.engine import (
     LinearCalibration,
     as_effect_data,
     fit_model,
@@ -41,7 +41,7 @@ from service.numerics.engine import (
     residual_hints,
     start_weights,
 )
-from service.numerics.usable import refuse_stuck, temperature_notes
+from fluxcal.service.numerics.usable import refuse_stuck, temperature_notes
 
 from .discover import beside
 from .discover import discover as find_terms
@@ -59,9 +59,9 @@ from .signature import (
     signature,
     verdict,
 )
+from .stretch import demote_on_one_stretch, explains_stretch, stretch_advice
 from .verdict import demote_nested, mark_indistinguishable, rank
 from .weak import heldout_weakness
-from .stretch import demote_on_one_stretch, explains_stretch, stretch_advice
 from .where import gross_stretch, where_it_fails, worst_segments
 
 

@@ -37,13 +37,14 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from drivers.errors import FluxcalError
-from service.numerics.effects.base import EffectData
-from service.numerics.engine import FitResult, Problem, residual_hints
-from service.numerics.jsonsafe import finite_or_none as _num
-from service.numerics.jsonsafe import json_safe as _plain
+from fluxcal.drivers.errors import FluxcalError
+from fluxcal.service.numerics.effects.base import EffectData
+from fluxcal.service.numerics.engine import FitResult, Problem, residual_hints
+from fluxcal.service.numerics.jsonsafe import finite_or_none as _num
+from fluxcal.service.numerics.jsonsafe import json_safe as _plain
 
 from .fits import Heldout, _beyond_errors, _compare, _fit_beside, heldout
+from .forms import choose_forms
 from .library import (
     LOOP_SCALES,
     TAU_RATIO,
@@ -57,7 +58,6 @@ from .library import (
     wave_features,
     wave_groups,
 )
-from .forms import choose_forms
 from .reading import FoundGroup, covariance, read_group, read_law_group, scale_parts
 from .result import GAIN_SIGMAS, MIN_GAIN, P_SIGNIFICANT
 from .selection import (

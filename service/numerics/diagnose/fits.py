@@ -9,12 +9,12 @@ from typing import Any, Callable
 import numpy as np
 from scipy import stats
 
-from drivers.errors import FluxcalError
-from service.numerics.effects import Model, known_effects, make_term
-from service.numerics.effects.base import EffectData, EffectTerm
-from service.numerics.effects.hysteresis import no_step_reason
-from service.numerics.effects.span import ReadingSpan
-from service.numerics.engine import (
+from fluxcal.drivers.errors import FluxcalError
+from fluxcal.service.numerics.effects import Model, known_effects, make_term
+from fluxcal.service.numerics.effects.base import EffectData, EffectTerm
+from fluxcal.service.numerics.effects.hysteresis import no_step_reason
+from fluxcal.service.numerics.effects.span import ReadingSpan
+from fluxcal.service.numerics.engine import (
     RANK_TOL,
     FitResult,
     Problem,
@@ -254,7 +254,7 @@ def crossfit_heldout(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldo
     that predict well. A block with no step found outside it is predicted as the model predicts it. (Terms
     that only start from the residual, thermal's tau, or take another probe's residual at the same instant as
     their regressor, ambient, choose nothing there.)"""
-    from service.numerics.effects.hysteresis import BARRIER
+    from fluxcal.service.numerics.effects.hysteresis import BARRIER
 
     pr0 = cur.problem
     sse_w, sse, cnt, per_channel = cur_ho.sse_w.copy(), cur_ho.sse.copy(), cur_ho.n.copy(), cur_ho.sse_channels.copy()

@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import FluxcalError
-from service.numerics.engine import FitResult, Problem, fit_problem
+from fluxcal.drivers.errors import FluxcalError
+from fluxcal.service.numerics.engine import FitResult, Problem, fit_problem
 
 from .fits import Heldout, heldout
 from .laws import LAWS, LawTerm, context, start_law

@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from service.numerics.effects.base import EffectData
-from service.numerics.engine import FitResult
+from fluxcal.service.numerics.effects.base import EffectData
+from fluxcal.service.numerics.engine import FitResult
 
 AXES = ("x", "y", "z")
 NED = ("north", "east", "down")

@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from service.numerics.effects.base import EffectData
-from service.numerics.effects.column import usable_columns
+from fluxcal.service.numerics.effects.base import EffectData
+from fluxcal.service.numerics.effects.column import usable_columns
 
 from .spectra import spectral_lines
 

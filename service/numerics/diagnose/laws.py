@@ -26,10 +26,9 @@ from typing import Any, Callable
 import numpy as np
 from scipy.optimize import least_squares
 
-from service.numerics.effects.base import AXES, EffectData, EffectTerm
+from fluxcal.service.numerics.effects.base import AXES, EffectData, EffectTerm
 
 from .shapes import basis_of
-
 
 #: each law as the code of a function law(x, p, ref, span) -> (f, df/dp): f is the law less its value at the reference
 #: ref (span: the observable's range, for a scaled variable). One text serves the fit here and the effect module

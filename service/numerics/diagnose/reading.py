@@ -11,14 +11,14 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from service.numerics.effects.base import AXES
-from service.numerics.engine import FitResult, Parameter
-from service.numerics.jsonsafe import finite_or_none as _num
-from service.numerics.jsonsafe import json_safe as _plain
+from fluxcal.service.numerics.effects.base import AXES
+from fluxcal.service.numerics.engine import FitResult, Parameter
+from fluxcal.service.numerics.jsonsafe import finite_or_none as _num
+from fluxcal.service.numerics.jsonsafe import json_safe as _plain
 
 from .library import SHAPE_KINDS, Group
-from .shape_reading import law_parameters, read_law, read_shape
 from .result import P_SIGNIFICANT
+from .shape_reading import law_parameters, read_law, read_shape
 
 
 @dataclass

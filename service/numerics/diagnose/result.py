@@ -9,12 +9,12 @@ from typing import Any
 
 import numpy as np
 
-from service.numerics.engine import (
+from fluxcal.service.numerics.engine import (
     FitResult,
     Parameter,
 )
-from service.numerics.jsonsafe import finite_or_none as _num
-from service.numerics.jsonsafe import json_safe as _plain
+from fluxcal.service.numerics.jsonsafe import finite_or_none as _num
+from fluxcal.service.numerics.jsonsafe import json_safe as _plain
 
 P_SIGNIFICANT = 1e-3
 

@@ -8,11 +8,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import special, stats
+from scipy import special
 
-from service.numerics.effects.base import EffectData
-from service.numerics.engine import RANK_TOL, FitResult, solve_normal
-from service.numerics.engine.jacobian import block_jacobian, local_jacobian
+from fluxcal.service.numerics.effects.base import EffectData
+from fluxcal.service.numerics.engine import RANK_TOL, FitResult, solve_normal
+from fluxcal.service.numerics.engine.jacobian import block_jacobian, local_jacobian
 
 from .library import Group
 from .result import GAIN_SIGMAS, MIN_GAIN
@@ -283,7 +283,9 @@ def f_logsf(f: float, d1: float, d2: float) -> float:
     scale). The tail is I_x(d2/2, d1/2), x = d2 / (d2 + d1 f) (log_betainc)."""
     if not f > 0 or not np.isfinite(f):
         return 0.0 if not f > 0 else -np.inf
-    v = float(stats.f.logsf(f, d1, d2))
+    with np.errstate(divide="ignore"):                   # scipy.stats.f.logsf's own figure, without its checks
+        v = float(np.log(special.fdtrc(d1, d2, f)) if f > special.fdtri(d1, d2, 0.5)
+                  else np.log1p(-special.fdtr(d1, d2, f)))
     x = d2 / (d2 + d1 * f)
     if (np.isfinite(v) and v > DENORMAL_LOG) or not x < (0.5 * d2 + 1.0) / (0.5 * (d1 + d2) + 2.0):
         return v
@@ -340,13 +342,15 @@ def fit_all(nm: Normals) -> tuple[np.ndarray, float]:
 
 def heldout_sse(nm: Normals, idx: np.ndarray, train: list[int], test: list[int]) -> np.ndarray:
     """Weighted SSE of each test block predicted by the fit on the train blocks less that block (linearised)."""
-    a_t, g_t = nm.a[train].sum(0), nm.g[train].sum(0)
     out = np.zeros(len(test))
+    if idx.size == 0:
+        return nm.sse[test].astype(float)
+    a_i, g_i = nm.a[np.ix_(np.arange(nm.a.shape[0]), idx, idx)], nm.g[:, idx]     # the sub-system alone
+    a_t, g_t = a_i[train].sum(0), g_i[train].sum(0)
     for i, j in enumerate(test):
-        a, g = (a_t - nm.a[j], g_t - nm.g[j]) if j in train else (a_t, g_t)
-        d, _ = _solve(a, g, idx)
-        aj = nm.a[j][np.ix_(idx, idx)]
-        out[i] = nm.sse[j] + 2.0 * float(nm.g[j, idx] @ d) + float(d @ aj @ d)
+        a, g = (a_t - a_i[j], g_t - g_i[j]) if j in train else (a_t, g_t)
+        d = solve_normal(a, g)[0]
+        out[i] = nm.sse[j] + 2.0 * float(g_i[j] @ d) + float(d @ a_i[j] @ d)
     return out
 
 

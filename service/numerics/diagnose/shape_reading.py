@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from service.numerics.effects.base import AXES
+from fluxcal.service.numerics.effects.base import AXES
 
 from .shapes import basis_of, unit_of
 
@@ -23,14 +23,14 @@ def observable_values(data: Any, recipe: dict[str, Any]) -> np.ndarray:
     lag where the recipe has one)."""
     x = _raw_observable(data, recipe)
     if "low_pass_s" in recipe:
-        from service.numerics.effects.thermal import low_pass
+        from fluxcal.service.numerics.effects.thermal import low_pass
 
         x = low_pass(data.t_s, x, float(recipe["low_pass_s"]))
     return x
 
 
 def _raw_observable(data: Any, recipe: dict[str, Any]) -> np.ndarray:
-    from service.numerics.effects.column import column_values
+    from fluxcal.service.numerics.effects.column import column_values
 
     src = recipe["source"]
     if src == "temperature":

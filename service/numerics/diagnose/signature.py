@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from scipy.signal import welch
 
-from service.numerics.engine import FitResult
+from fluxcal.service.numerics.engine import FitResult
 
 from .harmonics import band_source, column_lines, harmonic_source
 
@@ -161,7 +161,7 @@ class Carried:
     @classmethod
     def of(cls, data: Any) -> "Carried":
         """From an EffectData."""
-        from service.numerics.effects.column import usable_columns
+        from fluxcal.service.numerics.effects.column import usable_columns
 
         own = tuple(n for k, n in enumerate(data.probe_names) if np.isfinite(data.temp_C[:, k]).sum() >= 2)
         borrowed = tuple(n for n in data.probe_names if n not in own) if own else ()

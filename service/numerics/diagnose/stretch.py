@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from service.numerics.effects import Model
-from service.numerics.engine import fit_model, residual_hints
+from fluxcal.service.numerics.effects import Model
+from fluxcal.service.numerics.engine import fit_model, residual_hints
 
 from .fits import heldout, try_candidate
 from .result import Candidate

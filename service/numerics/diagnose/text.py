@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from service.numerics.effects import effect_spec
+from fluxcal.service.numerics.effects import effect_spec
 
 from .result import GAIN_SIGMAS, MIN_GAIN, P_SIGNIFICANT, Candidate, Diagnosis
 

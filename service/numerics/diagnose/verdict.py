@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.numerics.effects import known_effects
-from service.numerics.engine import (
+from fluxcal.service.numerics.effects import known_effects
+from fluxcal.service.numerics.engine import (
     solve_normal,
 )
 

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from service.numerics.engine import FitResult
+from fluxcal.service.numerics.engine import FitResult
 
 CELL_DEG = 20.0
 MIN_VISITS = 3

@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from service.numerics.effects.base import EffectData
-from service.numerics.effects.thermal import low_pass
-from service.numerics.engine import (
+from fluxcal.service.numerics.effects.base import EffectData
+from fluxcal.service.numerics.effects.thermal import low_pass
+from fluxcal.service.numerics.engine import (
     FitResult,
 )
 

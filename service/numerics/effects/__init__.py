@@ -23,7 +23,7 @@ is the catalogue and the registered ones together.
 >>> make_model(["temprature"])
 Traceback (most recent call last):
 ...
-drivers.errors.ConfigError: --effects: 'temprature' is not an effect (allowed: temperature, thermal, eddy, \
+fluxcal.drivers.errors.ConfigError: --effects: 'temprature' is not an effect (allowed: temperature, thermal, eddy, \
 lag, nonlinearity, drift, gradient, crossfield, hysteresis, platform, column, ambient; or file.py:ClassName for \
 one of your own)
 """
@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from typing import Iterable
 
-from drivers.errors import ConfigError
+from fluxcal.drivers.errors import ConfigError
 
 from .ambient import Ambient
 from .base import Baseline, EffectData, EffectTerm, Model, ProbeView
@@ -83,7 +83,7 @@ def register_effect(cls: object, origin: str = "") -> str:
     cls = getattr(cls, "user_class", cls)               # a registered (guarded) class given again: the user's own
     if not (isinstance(cls, type) and issubclass(cls, EffectTerm)) or cls in (EffectTerm, Baseline):
         raise ConfigError(f"--effects: {where}{cls!r} is not an effect (allowed: a subclass of "
-                          f"service.numerics.effects.EffectTerm; docs/effects.md)")
+                          f"fluxcal.service.numerics.effects.EffectTerm; docs/effects.md)")
     name = getattr(cls, "name", "")
     if not name or not set(name) <= _NAME_CHARS or not name[0].isalpha():
         raise ConfigError(f"--effects: {where}{cls.__name__}.name = {name!r} is not allowed (allowed: a lower-case "

@@ -10,7 +10,7 @@ or, for effects that live outside the probe (platform fields, site gradient), in
 frame: corrected -= sum_j theta_j psi_j(data)                        (frame = "corrected").
 Terms compose with `+` in the manner of PySINDy feature libraries and lmfit models:
 
->>> from service.numerics.effects import Baseline, Temperature, Eddy
+>>> from fluxcal.service.numerics.effects import Baseline, Temperature, Eddy
 >>> model = Baseline() + Temperature() + Eddy()
 >>> str(model), model.effects
 ('Baseline + Temperature + Eddy', ['temperature', 'eddy'])
@@ -26,10 +26,10 @@ from typing import Any, ClassVar, Iterable, Sequence
 import numpy as np
 from scipy.signal import savgol_filter
 
-from drivers.block import SampleBlock, Timed
-from drivers.errors import ConfigError, DataError
-from service.numerics.channels import AXES  # noqa: F401 - the effect terms take the axes from here
-from service.numerics.usable import usable_samples
+from fluxcal.drivers.block import SampleBlock, Timed
+from fluxcal.drivers.errors import ConfigError, DataError
+from fluxcal.service.numerics.channels import AXES  # noqa: F401 - the effect terms take the axes from here
+from fluxcal.service.numerics.usable import usable_samples
 
 from .attitude import quat_to_matrix, rx, ry, rz
 
@@ -39,7 +39,7 @@ ATTITUDE_QUATERNION = ("q_w", "q_x", "q_y", "q_z")
 #: extra columns that are bookkeeping, not observables
 #: extra columns of a reference vector: the field at the platform origin in the platform frame, nT
 REF_VECTOR = ("ref_x", "ref_y", "ref_z")
-#: the model's field along a track, NED (service.numerics.calib.track): bookkeeping of the reference, not a logged value
+#: the model's field along a track, NED (fluxcal.service.numerics.calib.track): bookkeeping of the reference, not a logged value
 REF_DIRECTION = ("ref_north_nT", "ref_east_nT", "ref_down_nT")
 NOT_OBSERVABLES = frozenset({"ref_total", "seq", "flags", *ATTITUDE_EULER, *ATTITUDE_QUATERNION, *REF_VECTOR,
                              *REF_DIRECTION})
@@ -78,7 +78,7 @@ class EffectData(Timed):
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     smooth_window_s: float = 0.1
     dropped_rows: int = 0
-    #: what was left out and why, per probe (service.numerics.usable), for the notes
+    #: what was left out and why, per probe (fluxcal.service.numerics.usable), for the notes
     dropped_notes: list[str] = field(default_factory=list)
     _cache: dict[Any, Any] = field(default_factory=dict, repr=False)
 

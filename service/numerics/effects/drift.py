@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.errors import ConfigError
+from fluxcal.drivers.errors import ConfigError
 
 from .base import AXES, EffectData, EffectTerm, ProbeView, axis_columns
 

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import ConfigError, FluxcalError
+from fluxcal.drivers.errors import ConfigError, FluxcalError
 
 from .base import EffectTerm
 

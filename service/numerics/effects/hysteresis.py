@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.numerics.noise import robust_noise
+from fluxcal.service.numerics.noise import robust_noise
 
 from .base import AXES, EffectTerm, ProbeView
 

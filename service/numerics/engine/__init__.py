@@ -3,11 +3,11 @@
 Numerics only. The problem (problem.py: residual channels and their Jacobian, jacobian.py, accumulated
 per time block), the state and its parameter slots (state.py), the solve (solve.py: steps, standard
 errors, warm starts), starting values (start.py), and the public entry, `fit_with_effects`
-(model_fit.py). The diagnosis (service.numerics.diagnose) uses the names exported here.
+(model_fit.py). The diagnosis (fluxcal.service.numerics.diagnose) uses the names exported here.
 """
 
-from service.numerics.channels import channel_names
-from service.numerics.noise import channel_noise
+from fluxcal.service.numerics.channels import channel_names
+from fluxcal.service.numerics.noise import channel_noise
 
 from .linear import LinearCalibration
 from .model_fit import EffectsFit, fit_model, fit_with_effects, residual_hints

@@ -43,7 +43,7 @@ from scipy.fft import next_fast_len, rfft, rfftfreq
 from scipy.optimize import nnls
 from scipy.signal import welch
 
-from service.numerics.effects.base import GAP_FACTOR
+from fluxcal.service.numerics.effects.base import GAP_FACTOR
 
 #: the spectral index grid of the power law
 ALPHAS = np.round(np.arange(-2.5, 0.001, 0.05), 3)

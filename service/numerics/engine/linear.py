@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import DataError
+from fluxcal.drivers.errors import DataError
 
 
 @dataclass
@@ -23,7 +23,7 @@ class LinearCalibration:
 
     @classmethod
     def from_any(cls, cal: Any, n_probes: int) -> "LinearCalibration":
-        """From an ArrayCalibration (service.numerics.calib.model), a list of ProbeCalibration, a `fit --json`
+        """From an ArrayCalibration (fluxcal.service.numerics.calib.model), a list of ProbeCalibration, a `fit --json`
         dict (docs/contracts.md: sensors with offset_nT and matrix), or a LinearCalibration."""
         if isinstance(cal, LinearCalibration):
             return cal.copy()

@@ -8,9 +8,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from drivers.errors import CalibrationRefused
-from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
-from service.numerics.effects.base import REF_PREFIX, Baseline, EffectData, Model
+from fluxcal.drivers.errors import CalibrationRefused
+from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+from fluxcal.service.numerics.effects.base import REF_PREFIX, Baseline, EffectData, Model
 
 from .linear import LinearCalibration
 from .problem import Problem, as_effect_data, reference_total
@@ -40,7 +40,7 @@ class EffectsFit:
     total_nT: float | None = None
 
     def calibration(self) -> Any:
-        """A service.numerics.calib.model.ArrayCalibration: the linear part with offset standard errors, the
+        """A fluxcal.service.numerics.calib.model.ArrayCalibration: the linear part with offset standard errors, the
         effect names and `effect_params` {effect: {name: {"value", "se", "unit"}}} (a term's constants with
         "fixed": true: held at their value, not fitted), plus the fit's
         RMS in `diagnostics`."""
@@ -118,7 +118,7 @@ def fit_with_effects(data: Any, effects: Sequence[str] | Model, base_calibration
     data: EffectData, LabData or SampleBlock. effects: catalogue names or a Model. base_calibration: the
     starting linear calibration (ArrayCalibration, LinearCalibration, `fit --json` dict) or None to start
     from an ellipsoid per probe aligned to probe 1."""
-    from service.numerics.effects import make_model
+    from fluxcal.service.numerics.effects import make_model
 
     ed = as_effect_data(data, total_nT=total_nT, positions_m=positions_m)
     if isinstance(effects, Model):

@@ -24,10 +24,10 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from drivers.block import SampleBlock
-from drivers.errors import CalibrationRefused, DataError
-from service.numerics.channels import channel_names
-from service.numerics.effects.base import REF_PREFIX, EffectData, Model, ProbeView
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import CalibrationRefused, DataError
+from fluxcal.service.numerics.channels import channel_names
+from fluxcal.service.numerics.effects.base import REF_PREFIX, EffectData, Model, ProbeView
 
 from .jacobian import _chunks, _Jac, block_jacobian, local_jacobian
 from .linear import LinearCalibration
@@ -264,7 +264,7 @@ def reference_total(data: EffectData, linear: LinearCalibration | None = None) -
 
 def as_effect_data(data: Any, *, total_nT: float | None = None, positions_m: np.ndarray | None = None,
                    probe_names: Sequence[str] | None = None) -> EffectData:
-    """EffectData from EffectData, a LabData (service.io.recordings.labdata) or a SampleBlock."""
+    """EffectData from EffectData, a LabData (fluxcal.service.io.recordings.labdata) or a SampleBlock."""
     if isinstance(data, EffectData):
         if total_nT is not None:
             data.total_nT = total_nT

@@ -1,6 +1,6 @@
 """The residuals of one evaluation of a fit: the values of each residual channel on the fitted rows (Channels)
 and what an evaluation carries besides (_Eval). The channels' names have their one home in
-service.numerics.channels."""
+fluxcal.service.numerics.channels."""
 
 from __future__ import annotations
 

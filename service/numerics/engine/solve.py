@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from service.numerics.effects.base import Model
+from fluxcal.service.numerics.effects.base import Model
 
 from .jacobian import _Jac
 from .problem import Problem

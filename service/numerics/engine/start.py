@@ -7,12 +7,12 @@ import warnings
 
 import numpy as np
 
-from drivers.errors import CalibrationRefused
-from service.numerics.calib.ellipsoid import fit_ellipsoid
-from service.numerics.calib.quadric import algebraic_ellipsoid
-from service.numerics.effects.base import EffectData, Model
-from service.numerics.noise import channel_noise
-from service.numerics.usable import refuse_stuck
+from fluxcal.drivers.errors import CalibrationRefused
+from fluxcal.service.numerics.calib.ellipsoid import fit_ellipsoid
+from fluxcal.service.numerics.calib.quadric import algebraic_ellipsoid
+from fluxcal.service.numerics.effects.base import EffectData, Model
+from fluxcal.service.numerics.noise import channel_noise
+from fluxcal.service.numerics.usable import refuse_stuck
 
 from .linear import LinearCalibration
 from .problem import Problem
@@ -22,7 +22,7 @@ NOISE_FLOOR_NT = 1e-3
 
 
 def initial_linear(data: EffectData, reference_nT: np.ndarray | float | None) -> LinearCalibration:
-    """A starting linear calibration: an ellipsoid per probe (service.numerics.calib.ellipsoid), then each
+    """A starting linear calibration: an ellipsoid per probe (fluxcal.service.numerics.calib.ellipsoid), then each
     probe regressed onto probe 1 ([TwoFluxgate] eq. 10-16) for the alignment. Gauss-Newton refines it."""
     f_total = None if reference_nT is None else float(np.median(reference_nT))
     refuse_stuck(data.raw_nT, data.probe_names)

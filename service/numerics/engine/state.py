@@ -8,7 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
-from service.numerics.effects.base import AXES, EffectData, EffectTerm, ProbeView
+from fluxcal.service.numerics.effects.base import AXES, EffectData, EffectTerm, ProbeView
 
 from .linear import LinearCalibration
 

@@ -1,6 +1,6 @@
 """The commands of `fluxcal`, one module each. Every module declares its own options (`HELP`, `add_options(p)`) and
 runs from `main(args) -> int`; the batch commands (fit, diagnose, replay) also give `execute(source, options, said)
--> Result` (service.wiring.result), which the command line formats and a fleet ships.
+-> Result` (fluxcal.service.wiring.result), which the command line formats and a fleet ships.
 
 COMMANDS lists them in the order `fluxcal --help` shows them, with the line it shows for each (the module's
 `HELP.short`; tests/wiring/test_cli_help.py holds the two together): the command line imports only the module of the
@@ -22,5 +22,5 @@ COMMANDS: dict[str, str] = {
     "foxglove": "live bridge for the Foxglove app",
 }
 
-#: the commands that take several recordings (a fleet: service.wiring.fleet)
+#: the commands that take several recordings (a fleet: fluxcal.service.wiring.fleet)
 FLEET_COMMANDS = ("fit", "diagnose", "replay")

@@ -7,8 +7,8 @@ import argparse
 import math
 import re
 
-from drivers.errors import ConfigError
-from service.io.bus import (
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.io.bus import (
     DEFAULT_PORT,
     Keys,
     ZenohConfig,
@@ -60,7 +60,7 @@ def resolve(args: argparse.Namespace) -> tuple[list[str], str | None, ZenohTlsCo
     unit = getattr(args, "unit", None)
     tls = ZenohTlsConfig()
     if getattr(args, "config", None):
-        from service.wiring.config import load_config
+        from fluxcal.service.wiring.config import load_config
 
         cfg = load_config(args.config)
         endpoints = dashboard_endpoints(cfg.zenoh)

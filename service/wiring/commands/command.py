@@ -16,12 +16,19 @@ from argparse import Namespace
 from pathlib import Path
 from typing import Any
 
-from drivers.errors import ConfigError, DataError, FluxcalError
-from drivers.text import printable, printable_json
-from service.io.bus import COMMANDS, MAX_COMMAND_PAYLOAD_BYTES, BusClient, ZenohConfig, discover_units, open_session
-from service.io.calfile import calibration_from_json
-from service.wiring.commands.client import counter_words, is_flow, resolve
-from service.wiring.commands.options import CommandHelp, connection_options
+from fluxcal.drivers.errors import ConfigError, DataError, FluxcalError
+from fluxcal.drivers.text import printable, printable_json
+from fluxcal.service.io.bus import (
+    COMMANDS,
+    MAX_COMMAND_PAYLOAD_BYTES,
+    BusClient,
+    ZenohConfig,
+    discover_units,
+    open_session,
+)
+from fluxcal.service.io.calfile import calibration_from_json
+from fluxcal.service.wiring.commands.client import counter_words, is_flow, resolve
+from fluxcal.service.wiring.commands.options import CommandHelp, connection_options
 
 VERBS = ("state", *COMMANDS)
 

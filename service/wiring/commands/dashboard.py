@@ -1,4 +1,4 @@
-"""`fluxcal dashboard`: the web dashboard of running units (service.wiring.dashboard)."""
+"""`fluxcal dashboard`: the web dashboard of running units (fluxcal.service.wiring.dashboard)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import sys
 import time
 from typing import Any
 
-from drivers.errors import ConfigError
-from service.wiring.commands.client import parse_listen, resolve_units
-from service.wiring.commands.options import CommandHelp, client_options
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.wiring.commands.client import parse_listen, resolve_units
+from fluxcal.service.wiring.commands.options import CommandHelp, client_options
 
 HELP = CommandHelp("web dashboard of running units: live plots with history, coverage, "
                    "calibration, health, diagnosis and commands, served on this host",
@@ -47,10 +47,10 @@ def _open(url: str) -> None:
 def config_geometry(path: str) -> dict[str, Any]:
     """{unit name: Geometry} of a service configuration: its unit's probe positions and total field, which the
     dashboard's diagnosis needs as `fluxcal diagnose --config` does (a unit's state does not carry them)."""
-    from service.wiring.config import load_config
-    from service.wiring.dashboard.hub import Geometry
-    from service.wiring.prepare import config_geometry as read_geometry
-    from service.wiring.prepare import spread
+    from fluxcal.service.wiring.config import load_config
+    from fluxcal.service.wiring.dashboard.hub import Geometry
+    from fluxcal.service.wiring.prepare import config_geometry as read_geometry
+    from fluxcal.service.wiring.prepare import spread
 
     cfg = load_config(path)
     positions, total = read_geometry(path, cfg.unit.n_probes)
@@ -58,7 +58,7 @@ def config_geometry(path: str) -> dict[str, Any]:
 
 
 def main(args: argparse.Namespace) -> int:
-    from service.wiring.dashboard import DashboardServer, Hub
+    from fluxcal.service.wiring.dashboard import DashboardServer, Hub
 
     endpoints, units, tls = resolve_units(args)
     host, port = parse_listen(args.listen)

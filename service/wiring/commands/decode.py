@@ -10,7 +10,7 @@ written to a temporary file and renamed, so it is complete or absent. Counters g
 
 The capture must be a regular file (a FIFO or a device is refused before it is opened). A serial capture is
 streamed, so any size is read (Ctrl-C or SIGTERM stop it between pieces); a CAN log is held whole, so it has
-the size limit of drivers.inputs (FLUXCAL_MAX_INPUT_MB), and a text log the line-length limit.
+the size limit of fluxcal.drivers.inputs (FLUXCAL_MAX_INPUT_MB), and a text log the line-length limit.
 """
 
 from __future__ import annotations
@@ -25,16 +25,16 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from drivers.assemble import FrameAssembler, SerialFramer, can_icd_counters, serial_icd_counters
-from drivers.block import SampleBlock
-from drivers.errors import ConfigError, DataError, FluxcalError
-from drivers.icd import MAX_PROBES, frame_length, parse_serial
-from drivers.inputs import check_size, not_regular, open_regular, scan_lines
-from drivers.outputs import temp_beside
-from drivers.source import Counters
-from service.wiring.commands.options import CommandHelp, int_auto
-from service.wiring.progress import Progress
-from service.wiring.result import Result, Said, stderr_say
+from fluxcal.drivers.assemble import FrameAssembler, SerialFramer, can_icd_counters, serial_icd_counters
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import ConfigError, DataError, FluxcalError
+from fluxcal.drivers.icd import MAX_PROBES, frame_length, parse_serial
+from fluxcal.drivers.inputs import check_size, not_regular, open_regular, scan_lines
+from fluxcal.drivers.outputs import temp_beside
+from fluxcal.drivers.source import Counters
+from fluxcal.service.wiring.commands.options import CommandHelp, int_auto
+from fluxcal.service.wiring.progress import Progress
+from fluxcal.service.wiring.result import Result, Said, stderr_say
 
 CHUNK_BYTES = 4 << 20          # serial captures are read in 4 MiB pieces: any size fits in memory
 TEXT_CAN_LOGS = (".log", ".asc", ".csv")          # python-can's line-based formats (.blf is binary)
@@ -115,7 +115,7 @@ def execute(source: str, opts: DecodeOptions, said: Said) -> DecodeResult:
 
     counters = can_icd_counters() if opts.can else serial_icd_counters()
     if opts.can:
-        from drivers.can_source import check_base_id
+        from fluxcal.drivers.can_source import check_base_id
 
         check_base_id(opts.base_id, n, "--base-id")
         blocks, t_format = _can_blocks(capture, n, opts.base_id, opts.lsb_nT, counters, said), "%.9f"
@@ -166,8 +166,8 @@ def _serial_blocks(capture: Path, n: int, lsb_nT: float, counters: Counters) -> 
 
 def _can_blocks(capture: Path, n: int, base_id: int, lsb_nT: float, counters: Counters,
                 said: Said) -> Iterator[SampleBlock]:
-    from drivers.assemble import SeqGapCounter
-    from drivers.can_source import estimate_rate_hz, read_can_log
+    from fluxcal.drivers.assemble import SeqGapCounter
+    from fluxcal.drivers.can_source import estimate_rate_hz, read_can_log
 
     # a CAN log is held whole (its samples), and python-can reads a text log line by line: both bounded first
     check_size(capture, capture.stat().st_size, "a CAN log")
@@ -288,9 +288,9 @@ def _write_csv(out: Path, n: int, t_format: str, blocks: _Counted, capture: Path
 
 def _write_mcap(out: Path, n: int, blocks: _Counted, capture: Path, opts: DecodeOptions,
                 counters: Counters) -> None:
-    """Through service.io.recordings.writer.write_recording(path, blocks, unit=, probe_names=), the MCAP logger's
+    """Through fluxcal.service.io.recordings.writer.write_recording(path, blocks, unit=, probe_names=), the MCAP logger's
     whole-file entry point, into a temporary file renamed on success."""
-    from service.io.recordings.writer import write_recording
+    from fluxcal.service.io.recordings.writer import write_recording
 
     unit = re.sub(r"[^A-Za-z0-9_\-]", "_", capture.stem)[:64] or "unit1"
     tmp = temp_beside(out)

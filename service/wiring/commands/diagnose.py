@@ -1,7 +1,7 @@
 """`fluxcal diagnose DATA [--config FILE] [--calibration CAL.json] [--effects E,..] [--report DIR] [--json]`.
 
 Compares the model (a linear calibration plus the named effects) with the measurement, says where
-it fails and which catalogue effect is missing (service.numerics.diagnose). With --json, one JSON object
+it fails and which catalogue effect is missing (fluxcal.service.numerics.diagnose). With --json, one JSON object
 on stdout (docs/contracts.md); otherwise a readable summary. A progress bar goes to stderr when it is
 a terminal. --calibration holds that linear calibration fixed (the model compared is that file's linear part
 plus the effects: --effects, else those the file names, their parameters refitted); without it the
@@ -23,9 +23,9 @@ import sys  # noqa: E402
 from dataclasses import dataclass, field, replace  # noqa: E402
 from typing import Any  # noqa: E402
 
-from drivers.errors import ConfigError  # noqa: E402
-from service.wiring.commands.notes import check_output_file, check_output_folder  # noqa: E402
-from service.wiring.commands.options import (  # noqa: E402
+from fluxcal.drivers.errors import ConfigError  # noqa: E402
+from fluxcal.service.wiring.commands.notes import check_output_file, check_output_folder  # noqa: E402
+from fluxcal.service.wiring.commands.options import (  # noqa: E402
     CONFIG_HELP,
     DATA_HELP,
     EFFECT_NAMES,
@@ -39,11 +39,11 @@ from service.wiring.commands.options import (  # noqa: E402
     fleet_options,
     max_samples,
 )
-from service.wiring.commands.written import write_diagnosis_report, write_discovered  # noqa: E402
-from service.wiring.fitting import NONLINEAR_PROBE_SAMPLES as DIAGNOSE_PROBE_SAMPLES  # noqa: E402
-from service.wiring.prepare import Prepared, effect_input  # noqa: E402
-from service.wiring.progress import Progress  # noqa: E402
-from service.wiring.result import Result, Said, print_result, stderr_say  # noqa: E402
+from fluxcal.service.wiring.commands.written import write_diagnosis_report, write_discovered  # noqa: E402
+from fluxcal.service.wiring.fitting import NONLINEAR_PROBE_SAMPLES as DIAGNOSE_PROBE_SAMPLES  # noqa: E402
+from fluxcal.service.wiring.prepare import Prepared, effect_input  # noqa: E402
+from fluxcal.service.wiring.progress import Progress  # noqa: E402
+from fluxcal.service.wiring.result import Result, Said, print_result, stderr_say  # noqa: E402
 
 HELP = CommandHelp("compare model and measurement; find the missing effect",
                    "  fluxcal diagnose recordings/grad1-hidden-effect.mcap\n"
@@ -93,7 +93,7 @@ class DiagnoseOptions:
 
 @dataclass
 class DiagnoseResult(Result):
-    """A diagnosis (service.numerics.diagnose.Diagnosis) and how the command line shows it."""
+    """A diagnosis (fluxcal.service.numerics.diagnose.Diagnosis) and how the command line shows it."""
 
     diagnosis: Any = None
     title: str = ""                       # the source as the summary names it
@@ -103,7 +103,7 @@ class DiagnoseResult(Result):
         return self.diagnosis.as_dict()
 
     def text(self) -> str:
-        from service.numerics.diagnose import summary_text
+        from fluxcal.service.numerics.diagnose import summary_text
 
         return summary_text(self.diagnosis, self.title) + (f"\n  report: {self.report}" if self.report else "")
 
@@ -114,7 +114,7 @@ class DiagnoseResult(Result):
 
     def rows(self) -> list[dict[str, Any]]:
         """Each candidate effect with its held-out figures and the verdict's word."""
-        from service.numerics.diagnose import verdict_word
+        from fluxcal.service.numerics.diagnose import verdict_word
 
         return [{"effect": c.effect, "rms_nT": c.rms_nT, "heldout_rms_nT": c.heldout_rms_nT, "gain": c.gain,
                  "p_value": c.p_value, "significant": c.significant,
@@ -138,8 +138,8 @@ def options(args: argparse.Namespace) -> DiagnoseOptions:
 
 
 def execute(source: str, opts: DiagnoseOptions, said: Said, *, progress: bool = True) -> DiagnoseResult:
-    """`fluxcal diagnose SOURCE`: the Python API's diagnose (service.wiring.api), with the command line's options."""
-    from service.wiring import api
+    """`fluxcal diagnose SOURCE`: the Python API's diagnose (fluxcal.service.wiring.api), with the command line's options."""
+    from fluxcal.service.wiring import api
 
     return api.diagnose(source, effects=opts.effects, report=opts.report, write_effect=opts.write_effect,
                         max_samples=opts.max_samples, calibration=opts.calibration, said=said, progress=progress,
@@ -149,8 +149,8 @@ def execute(source: str, opts: DiagnoseOptions, said: Said, *, progress: bool = 
 def checked(opts: DiagnoseOptions, source: str | None) -> DiagnoseOptions:
     """The options with the outputs checked and the model's effects known (installed ones loaded, a user's
     file.py:Class registered), before any work (source: the input, which no output may be)."""
-    from service.numerics.effects import known_effects
-    from service.wiring.user_effects import load_installed_effects, resolve_effects
+    from fluxcal.service.numerics.effects import known_effects
+    from fluxcal.service.wiring.user_effects import load_installed_effects, resolve_effects
 
     if opts.report:
         check_output_folder(opts.report, "--report")          # before any work
@@ -175,7 +175,7 @@ def read_limits(opts: DiagnoseOptions) -> dict[str, int]:
 
 def with_held_effects(prep: Prepared, opts: DiagnoseOptions) -> DiagnoseOptions:
     """The options with the model the held calibration's file describes, where no effects were given."""
-    from service.numerics.effects import known_effects
+    from fluxcal.service.numerics.effects import known_effects
 
     if prep.held is None or opts.effects:
         return opts
@@ -189,12 +189,12 @@ def with_held_effects(prep: Prepared, opts: DiagnoseOptions) -> DiagnoseOptions:
 
 def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = True) -> DiagnoseResult:
     """The diagnosis of the prepared data (and its outputs, when asked): figures and notes as data. The data go one
-    way: prepared (effect_input), diagnosed (service.numerics), written."""
-    from service.numerics.calib.determinacy import refuse_undetermined
-    from service.numerics.calib.track import follows_height_note
-    from service.numerics.diagnose.diagnostics import diagnose
-    from service.wiring.commands.fit import usable_data
-    from service.wiring.fitting import judge_data
+    way: prepared (effect_input), diagnosed (fluxcal.service.numerics), written."""
+    from fluxcal.service.numerics.calib.determinacy import refuse_undetermined
+    from fluxcal.service.numerics.calib.track import follows_height_note
+    from fluxcal.service.numerics.diagnose.diagnostics import diagnose
+    from fluxcal.service.wiring.commands.fit import usable_data
+    from fluxcal.service.wiring.fitting import judge_data
 
     limit = opts.max_samples
     budget = (f"--max-samples {limit:,}" if limit is not None

@@ -11,15 +11,14 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import DataError, FluxcalError
-from service.io.calfile import save_calibration
-from service.wiring.identity import recording_identity
-from service.io.recordings.labdata import LabData, keep_every
-from service.numerics.diagnose.text import reference_words
-from service.numerics.usable import temperature_notes, usable_samples
-from service.wiring.coloured_fit import coloured_offsets, direction_offsets
-from service.wiring.commands.notes import check_output_file, check_output_folder
-from service.wiring.commands.options import (
+from fluxcal.drivers.errors import DataError, FluxcalError
+from fluxcal.service.io.calfile import save_calibration
+from fluxcal.service.io.recordings.labdata import LabData, keep_every
+from fluxcal.service.numerics.diagnose.text import reference_words
+from fluxcal.service.numerics.usable import temperature_notes, usable_samples
+from fluxcal.service.wiring.coloured_fit import coloured_offsets, direction_offsets
+from fluxcal.service.wiring.commands.notes import check_output_file, check_output_folder
+from fluxcal.service.wiring.commands.options import (
     ALIGNS,
     CONFIG_HELP,
     DATA_HELP,
@@ -33,7 +32,7 @@ from service.wiring.commands.options import (
     fleet_help,
     fleet_options,
 )
-from service.wiring.fitting import (
+from fluxcal.service.wiring.fitting import (
     NONLINEAR_PROBE_SAMPLES,
     channel_sums,
     contract_json,
@@ -44,9 +43,10 @@ from service.wiring.fitting import (
     rms_all,
     uncalibrated_rms,
 )
-from service.wiring.prepare import FROM_RECORDING, Prepared
-from service.wiring.result import Result, Said, print_result, stderr_say
-from service.wiring.scale_notes import field_scale_notes
+from fluxcal.service.wiring.identity import recording_identity
+from fluxcal.service.wiring.prepare import FROM_RECORDING, Prepared
+from fluxcal.service.wiring.result import Result, Said, print_result, stderr_say
+from fluxcal.service.wiring.scale_notes import field_scale_notes
 
 HELP = CommandHelp("fit a calibration to lab data (CSV or MCAP)",
                    "  fluxcal fit grad.csv --out cal.json\n  fluxcal fit board.csv --site 46.52,6.63,400 --json\n"
@@ -98,7 +98,7 @@ class FitResult(Result):
     contract: dict[str, Any] = field(default_factory=dict)
     summary: str = ""
     report: str | None = None             # the report written, if any
-    #: the calibration fitted (service.numerics.calib.model.ArrayCalibration): save(), apply() ... in Python
+    #: the calibration fitted (fluxcal.service.numerics.calib.model.ArrayCalibration): save(), apply() ... in Python
     calibration: Any = field(default=None, repr=False)
 
     def as_dict(self) -> dict[str, Any]:
@@ -147,8 +147,8 @@ def options(args: Namespace) -> FitOptions:
 
 
 def execute(source: str, opts: FitOptions, said: Said) -> FitResult:
-    """`fluxcal fit SOURCE`: the Python API's fit (service.wiring.api), with the command line's options."""
-    from service.wiring import api
+    """`fluxcal fit SOURCE`: the Python API's fit (fluxcal.service.wiring.api), with the command line's options."""
+    from fluxcal.service.wiring import api
 
     return api.fit(source, method=opts.method, align=opts.align, effects=opts.effects, out=opts.out,
                    report=opts.report, said=said, config=opts.config, site=opts.site, skip=opts.skip,
@@ -158,7 +158,7 @@ def execute(source: str, opts: FitOptions, said: Said) -> FitResult:
 def checked(opts: FitOptions, source: str | None) -> FitOptions:
     """The options with the effects known (installed ones loaded, a user's file.py:Class registered) and the outputs
     checked, before any work (source: the input, which no output may be)."""
-    from service.wiring.user_effects import load_installed_effects, resolve_effects
+    from fluxcal.service.wiring.user_effects import load_installed_effects, resolve_effects
 
     load_installed_effects()
     opts = replace(opts, effects=resolve_effects(opts.effects))
@@ -188,7 +188,7 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
                               total_source={"config": prep.origin or "configured", "ref_total": "the ref_total column"}
                               .get(total.source, total.source))
     if opts.effects:
-        from service.numerics.engine import fit_with_effects
+        from fluxcal.service.numerics.engine import fit_with_effects
 
         _progress(f"fitting effects {', '.join(opts.effects)}")
         report_data, thinned = effects_data(data)
@@ -260,7 +260,7 @@ def refuse_worse(cal, channels, before: dict[str, float], total_source: str) -> 
     """CalibrationRefused where the calibration makes a probe's scalar residual worse than the raw data's (beyond
     WORSE_FACTOR: a calibration the data do not determine, or a total field that is not theirs), with what would
     help."""
-    from drivers.errors import CalibrationRefused
+    from fluxcal.drivers.errors import CalibrationRefused
 
     for p in cal.probes:
         name = f"{p.name}.scalar"
@@ -336,8 +336,8 @@ def _write_report(folder: str, source: str, said: Said, data, cal, channels, cov
                   rows) -> Any:
     from pathlib import Path
 
-    from service.io.report import write_calibration_report
-    from service.wiring.calib_report import section_from_fit
+    from fluxcal.service.io.report import write_calibration_report
+    from fluxcal.service.wiring.calib_report import section_from_fit
 
     section = section_from_fit(data, cal, channels, coverages, warnings, total_source, rows)
     b = data.block

@@ -3,7 +3,7 @@ for the Foxglove app.
 
 Subscribes to running units over Zenoh like `fluxcal watch` (a client session, lossy: it never holds a unit
 back) and serves their products on a Foxglove WebSocket server (foxglove-sdk), on the same topics and with the
-same JSON schemas as the MCAP recording's Foxglove channels (service.io.foxglove_schemas builds both):
+same JSON schemas as the MCAP recording's Foxglove channels (fluxcal.service.io.foxglove_schemas builds both):
 `/fluxcal/<unit>/vectors`, `diff`, `tensor`, `error`, `params` (10 Hz means / per calibration record), and
 `calibration`, `health` as the unit publishes them. Several units at once: every unit named with --unit, or
 every unit found on the bus (new ones are picked up as they appear).
@@ -25,11 +25,19 @@ from typing import Any, TextIO
 import foxglove
 import zenoh
 
-from drivers.errors import ConfigError
-from service.io.bus import BusClient, BusError, Message, ZenohConfig, ZenohTlsConfig, discover_units, open_session
-from service.io.encoding import encode_json
-from service.io.foxglove_schemas import PRODUCT_STREAMS, Products, error_message, json_channels
-from service.wiring.commands.options import CommandHelp, client_options
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.service.io.bus import (
+    BusClient,
+    BusError,
+    Message,
+    ZenohConfig,
+    ZenohTlsConfig,
+    discover_units,
+    open_session,
+)
+from fluxcal.service.io.encoding import encode_json
+from fluxcal.service.io.foxglove_schemas import PRODUCT_STREAMS, Products, error_message, json_channels
+from fluxcal.service.wiring.commands.options import CommandHelp, client_options
 
 from .client import parse_listen, resolve_units
 

@@ -1,7 +1,7 @@
 """`fluxcal inspect FILE`: what a recording holds (a ROS 2 bag's topics, a PX4 or ArduPilot log's messages, a CSV's
-columns) and how fit and diagnose would map it, as text or JSON (service.io.recordings.inspect): the probes, columns,
-samples, duration and clock of the one reading fit and diagnose use (service.wiring.prepare, with the same options),
-and each probe's verdict of the one determinacy gate they ask (service.numerics.calib.determinacy)."""
+columns) and how fit and diagnose would map it, as text or JSON (fluxcal.service.io.recordings.inspect): the probes, columns,
+samples, duration and clock of the one reading fit and diagnose use (fluxcal.service.wiring.prepare, with the same options),
+and each probe's verdict of the one determinacy gate they ask (fluxcal.service.numerics.calib.determinacy)."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ import json
 from argparse import Namespace
 from dataclasses import replace
 
-from drivers.errors import CalibrationRefused, DataError
-from service.io.recordings.formats import Inspection
-from service.io.recordings.inspect import inspect_file, reading
-from service.wiring.commands.options import CONFIG_HELP, CommandHelp, data_options
+from fluxcal.drivers.errors import CalibrationRefused, DataError
+from fluxcal.service.io.recordings.formats import Inspection
+from fluxcal.service.io.recordings.inspect import inspect_file, reading
+from fluxcal.service.wiring.commands.options import CONFIG_HELP, CommandHelp, data_options
 
 HELP = CommandHelp("list what a recording holds and how fit and diagnose would map it",
                    "  fluxcal inspect flight.ulg\n  fluxcal inspect robot_bag/ --json")
@@ -66,10 +66,10 @@ def text(i: Inspection) -> str:
 def inspect(args: Namespace) -> Inspection:
     """The file's streams, then what fit would take of it (prepare and usable_data, as fit does) and each probe's
     verdict of the determinacy gate, with the total field fit would take."""
-    from service.wiring.commands.fit import usable_data
-    from service.wiring.fitting import judge_data
-    from service.wiring.prepare import log_mapping, prepare
-    from service.wiring.result import Said
+    from fluxcal.service.wiring.commands.fit import usable_data
+    from fluxcal.service.wiring.fitting import judge_data
+    from fluxcal.service.wiring.prepare import log_mapping, prepare
+    from fluxcal.service.wiring.result import Said
 
     topics, mags = getattr(args, "topics", None), getattr(args, "mags", None)
     i = inspect_file(args.file, log_mapping(args.file, topics, mags), read=False)

@@ -1,5 +1,5 @@
 """What the batch commands share besides the input preparation: outputs checked before any work, --skip's spans
-parsed (a field's scale is said by service.wiring.scale_notes)."""
+parsed (a field's scale is said by fluxcal.service.wiring.scale_notes)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ def check_output_file(path: Any, flag: str = "--out", *, suffixes: Sequence[str]
     import tempfile
     from pathlib import Path
 
-    from drivers.errors import DataError
+    from fluxcal.drivers.errors import DataError
 
     p = Path(path)
     if p.is_dir() or str(path).endswith(("/", os.sep)):
@@ -46,8 +46,8 @@ def check_output_folder(path: Any, flag: str) -> None:
     import tempfile
     from pathlib import Path
 
-    from drivers.errors import DataError
-    from drivers.outputs import refuse_linked_folder
+    from fluxcal.drivers.errors import DataError
+    from fluxcal.drivers.outputs import refuse_linked_folder
 
     p = Path(path)
     refuse_linked_folder(p, flag)

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 METHODS = ("ellipsoid", "tmi", "sinefit", "two-step", "rls")
 ALIGNS = ("regression", "rotation", "pca")
-#: the catalogue of effects (service.numerics.effects.EFFECTS), named here so --help needs no numerics import
+#: the catalogue of effects (fluxcal.service.numerics.effects.EFFECTS), named here so --help needs no numerics import
 EFFECT_NAMES = ("temperature, thermal, eddy, lag, nonlinearity, drift, gradient, crossfield, hysteresis, platform, "
                 "column, ambient")
 SITE = "LAT,LON,ALT_M[,DATE]"
@@ -67,7 +67,7 @@ def max_samples(text: str) -> int:
 
 
 def time_spans(text: str) -> list[tuple[float, float]]:
-    from service.wiring.commands.notes import parse_spans
+    from fluxcal.service.wiring.commands.notes import parse_spans
 
     return parse_spans(text)
 

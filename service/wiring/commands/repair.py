@@ -8,9 +8,9 @@ from argparse import Namespace
 from dataclasses import dataclass, field
 from typing import Any
 
-from service.io.recordings.reader import repair_recording
-from service.wiring.commands.options import CommandHelp
-from service.wiring.result import Result, Said, print_result, stderr_say
+from fluxcal.service.io.recordings.reader import repair_recording
+from fluxcal.service.wiring.commands.options import CommandHelp
+from fluxcal.service.wiring.result import Result, Said, print_result, stderr_say
 
 HELP = CommandHelp("copy a recording cut by a killed writer (or damaged) into a finished one",
                    "  fluxcal repair recordings/live/grad1-20261124T101500-0003.mcap fixed.mcap\n"

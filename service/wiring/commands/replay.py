@@ -30,21 +30,21 @@ from typing import Any
 
 import numpy as np
 
-from drivers.block import SampleBlock
-from drivers.errors import RecordingError
-from service.io.calfile import calibration_from_dict
-from service.io.recordings.gaps import RecorderGap, recorder_gaps
-from service.io.recordings.labdata import check_one_run
-from service.io.recordings.reader import read_recording
-from service.io.recordings.repair import repair_notes
-from service.wiring.commands.notes import check_output_file, check_output_folder
-from service.wiring.commands.options import PATH, CommandHelp, fleet_help, fleet_options
-from service.wiring.config import config_from_dict, load_config, rate_stated
-from service.wiring.daemon import build_pipeline
-from service.wiring.prepare import say_read_warnings
-from service.wiring.progress import Progress
-from service.wiring.result import Result, Said, print_result, stderr_say
-from service.wiring.sinks import McapSink, Sinks
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.drivers.errors import RecordingError
+from fluxcal.service.io.calfile import calibration_from_dict
+from fluxcal.service.io.recordings.gaps import RecorderGap, recorder_gaps
+from fluxcal.service.io.recordings.labdata import check_one_run
+from fluxcal.service.io.recordings.reader import read_recording
+from fluxcal.service.io.recordings.repair import repair_notes
+from fluxcal.service.wiring.commands.notes import check_output_file, check_output_folder
+from fluxcal.service.wiring.commands.options import PATH, CommandHelp, fleet_help, fleet_options
+from fluxcal.service.wiring.config import config_from_dict, load_config, rate_stated
+from fluxcal.service.wiring.daemon import build_pipeline
+from fluxcal.service.wiring.prepare import say_read_warnings
+from fluxcal.service.wiring.progress import Progress
+from fluxcal.service.wiring.result import Result, Said, print_result, stderr_say
+from fluxcal.service.wiring.sinks import McapSink, Sinks
 
 HELP = CommandHelp("run a recording through the same pipeline and compare with its output",
                    "  fluxcal replay recordings/grad1-sim-30s.mcap\n  fluxcal replay rec.mcap --out again.mcap",
@@ -163,7 +163,7 @@ def main(args: Namespace) -> int:
 
 def execute(source: str, opts: ReplayOptions, said: Said, *, sinks: list[Any] | None = None) -> ReplayResult:
     """`fluxcal replay SOURCE`: read, replay through the pipeline, compare with the live run. The replay goes to
-    `sinks` (service.wiring.sinks.Sink) as the live run went to the service's, and to a recording at opts.out."""
+    `sinks` (fluxcal.service.wiring.sinks.Sink) as the live run went to the service's, and to a recording at opts.out."""
     t_start = time.perf_counter()
     if opts.out:
         check_output_file(opts.out, suffixes=(".mcap",), not_this=source)     # before any work
@@ -193,7 +193,7 @@ def execute(source: str, opts: ReplayOptions, said: Said, *, sinks: list[Any] | 
         for sink in ([recording] if recording else []) + list(sinks or []):
             outputs.add(sink)
         if opts.ros2_out:
-            from service.wiring.ros2_sink import replay_ros2_sink
+            from fluxcal.service.wiring.ros2_sink import replay_ros2_sink
 
             outputs.add(replay_ros2_sink(opts.ros2_out, cfg, say=lambda m: said("output", m, level="say")))
         t0 = time.perf_counter()
@@ -307,7 +307,7 @@ def _initial_and_commands(rec) -> tuple[Any, dict, list[dict]]:
 def _recording(path: str, cfg, rec, initial_event: dict) -> McapSink:
     """The replay recorded at `path`, with the initial calibration and the commands, where they acted: what a
     replay of this copy needs."""
-    from service.io.recordings.writer import McapLogger
+    from fluxcal.service.io.recordings.writer import McapLogger
 
     out = Path(path)
     logger = McapLogger(out.parent, unit=cfg.unit.name, filename=out.name, rotate_mb=1e9, rotate_s=1e12,
@@ -396,7 +396,11 @@ def _first_hole(rec, unit: str | None) -> tuple[int | None, list]:
 
 def _arithmetic_said(recorded: dict[str, str]) -> tuple[str, bool]:
     """What replay says of the arithmetic the recording was made with, and whether it is this machine's."""
-    from service.io.recordings.arithmetic import another_instruction_set, arithmetic_differences, machine_arithmetic
+    from fluxcal.service.io.recordings.arithmetic import (
+        another_instruction_set,
+        arithmetic_differences,
+        machine_arithmetic,
+    )
 
     here = machine_arithmetic()
     diffs = arithmetic_differences(recorded, here)

@@ -18,10 +18,10 @@ import subprocess  # noqa: E402
 import sys  # noqa: E402
 from argparse import Namespace  # noqa: E402
 
-from drivers.errors import FluxcalError  # noqa: E402
-from service.wiring.commands.options import CommandHelp  # noqa: E402
-from service.wiring.config import load_config  # noqa: E402
-from service.wiring.daemon import Daemon  # noqa: E402
+from fluxcal.drivers.errors import FluxcalError  # noqa: E402
+from fluxcal.service.wiring.commands.options import CommandHelp  # noqa: E402
+from fluxcal.service.wiring.config import load_config  # noqa: E402
+from fluxcal.service.wiring.daemon import Daemon  # noqa: E402
 
 HELP = CommandHelp("run the service: source -> calibration -> Zenoh and MCAP",
                    "  fluxcal run --config configs/sim-gradiometer.toml   # saves to state/, records to "
@@ -45,7 +45,7 @@ def add_options(p: argparse.ArgumentParser) -> None:
 
 def start_dashboard(config: str, listen: str) -> subprocess.Popen:
     """`fluxcal dashboard --config CONFIG --listen LISTEN --open` as a child process; it says its address."""
-    from service.wiring.commands.client import parse_listen
+    from fluxcal.service.wiring.commands.client import parse_listen
 
     host, port = parse_listen(listen, "--dashboard")
     if port:                              # a port in use: said before the service starts, naming the option typed
@@ -58,7 +58,7 @@ def start_dashboard(config: str, listen: str) -> subprocess.Popen:
             why = os.strerror(e.errno) if e.errno else str(e)
             raise FluxcalError(f"--dashboard {listen}: cannot serve there ({why}): another dashboard or program "
                                f"holds the port; give another (--dashboard 127.0.0.1:0 picks a free one)") from None
-    return subprocess.Popen([sys.executable, "-m", "service.wiring.cli", "dashboard", "--config", config,
+    return subprocess.Popen([sys.executable, "-m", "fluxcal.service.wiring.cli", "dashboard", "--config", config,
                              "--listen", listen, "--open"], stdin=subprocess.DEVNULL)
 
 

@@ -2,7 +2,7 @@
 
 The CSV is the lab format of docs/csv.md (comments first, then t, s<k>_x/y/z, s<k>_temp,
 ref_total, seq, flags); the truth JSON beside it (FILE.truth.json) holds every parameter of the world,
-each probe's calibration matrix and offset included (drivers.sim.world.World.truth). Both files
+each probe's calibration matrix and offset included (fluxcal.drivers.sim.world.World.truth). Both files
 appear complete or not at all. Without --config the built-in gradiometer world is used
 (configs/sim-gradiometer.toml).
 """
@@ -19,14 +19,14 @@ from typing import Any
 
 import numpy as np
 
-from drivers.config import load_section, read_toml
-from drivers.errors import ConfigError, DataError
-from drivers.outputs import temp_beside
-from drivers.sim.config import GRADIOMETER, SimConfig, load_sim_config
-from drivers.sim.unit import Unit
-from service.wiring.commands.options import CommandHelp
-from service.wiring.progress import Progress
-from service.wiring.result import Result, Said, stderr_say
+from fluxcal.drivers.config import load_section, read_toml
+from fluxcal.drivers.errors import ConfigError, DataError
+from fluxcal.drivers.outputs import temp_beside
+from fluxcal.drivers.sim.config import GRADIOMETER, SimConfig, load_sim_config
+from fluxcal.drivers.sim.unit import Unit
+from fluxcal.service.wiring.commands.options import CommandHelp
+from fluxcal.service.wiring.progress import Progress
+from fluxcal.service.wiring.result import Result, Said, stderr_say
 
 BLOCK_SAMPLES = 100_000       # samples formatted per write: bounded memory for long runs
 DEFAULT_UNIT_NAME = "grad1"
@@ -97,7 +97,7 @@ def load_simulation(path: str | None) -> tuple[SimConfig, str]:
         raise ConfigError(f"{path}: no [sim] section: `fluxcal simulate` needs the simulated world "
                           f"(see configs/sim-gradiometer.toml)")
     try:
-        from service.wiring.config import config_from_dict
+        from fluxcal.service.wiring.config import config_from_dict
 
         cfg = config_from_dict(raw, str(path))             # every section, as `fluxcal run` checks it
         sim, unit = cfg.sim, cfg.unit
@@ -105,7 +105,7 @@ def load_simulation(path: str | None) -> tuple[SimConfig, str]:
         if not (e.name or "").startswith("service."):
             raise
         # a part of the service that validates another section is not installed: check ours
-        from service.wiring.config import UnitConfig
+        from fluxcal.service.wiring.config import UnitConfig
 
         try:
             unit = load_section(UnitConfig, raw.get("unit", {}), "unit")
@@ -233,8 +233,8 @@ def _tmp(path: Path) -> Path:
 
 
 def _mcap_writer(out: Path) -> Any:
-    """service.io.recordings.writer.write_recording(path, blocks, unit=, probe_names=, truth=), or a clear error."""
-    from service.io.recordings.writer import write_recording
+    """fluxcal.service.io.recordings.writer.write_recording(path, blocks, unit=, probe_names=, truth=), or a clear error."""
+    from fluxcal.service.io.recordings.writer import write_recording
 
     return write_recording
 
@@ -282,7 +282,7 @@ def main(args: Any) -> int:
 
 def execute(opts: SimulateOptions, said: Said) -> SimulateResult:
     """`fluxcal simulate`: a simulated unit's data and its truth, written atomically."""
-    from service.wiring.commands.notes import check_output_file
+    from fluxcal.service.wiring.commands.notes import check_output_file
 
     out = Path(opts.out)
     check_output_file(out, example="sim.csv")

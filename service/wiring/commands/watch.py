@@ -7,7 +7,7 @@ health counters, and the calibration state (usable?, coverage, quality). On a te
 in place with plain ANSI codes; when stdout is not a terminal (a log, a pipe, a test) it prints one
 line per second instead. It says so when nothing arrives, and waits for the service to come up.
 
-The view subscribes lossily (service.io.bus.BusClient(lossless=False)): it shows the newest
+The view subscribes lossily (fluxcal.service.io.bus.BusClient(lossless=False)): it shows the newest
 data and never holds the service back. Exit status: 0 after Ctrl-C / SIGTERM or after --seconds
 with data received; 1 if --seconds passed without any data.
 """
@@ -25,9 +25,9 @@ from typing import Any, Callable, TextIO
 import numpy as np
 import zenoh
 
-from drivers.errors import ConfigError
-from drivers.text import printable_json
-from service.io.bus import (
+from fluxcal.drivers.errors import ConfigError
+from fluxcal.drivers.text import printable_json
+from fluxcal.service.io.bus import (
     BusClient,
     BusError,
     Keys,
@@ -37,8 +37,8 @@ from service.io.bus import (
     discover_units,
     open_session,
 )
-from service.wiring.commands.client import counter_words, is_flow, resolve
-from service.wiring.commands.options import CommandHelp, connection_options
+from fluxcal.service.wiring.commands.client import counter_words, is_flow, resolve
+from fluxcal.service.wiring.commands.options import CommandHelp, connection_options
 
 TTY_PERIOD_S = 0.25            # redraw rate on a terminal (4 Hz)
 LINE_PERIOD_S = 1.0            # one line per second otherwise

@@ -1,4 +1,4 @@
-"""What `diagnose` writes beside its result (service.wiring.commands.diagnose): the term discovery found as an
+"""What `diagnose` writes beside its result (fluxcal.service.wiring.commands.diagnose): the term discovery found as an
 effect module of the user's own (--write-effect), and the HTML report (--report). Each is said, and counted in the
 result's `written`; a report that cannot be written costs the exit status, never the diagnosis."""
 
@@ -8,15 +8,15 @@ import os
 from pathlib import Path
 from typing import Any
 
-from drivers.errors import FluxcalError
-from drivers.outputs import replacing
-from service.wiring.result import Said
+from fluxcal.drivers.errors import FluxcalError
+from fluxcal.drivers.outputs import replacing
+from fluxcal.service.wiring.result import Said
 
 
 def write_discovered(out: Any, path: str, source: str, said: Said) -> None:
     """The terms discovery found, written as an effect module at `path` (atomically: a temporary file renamed), said
     with how to take it back; where it found none, no file, and that is said instead (the exit status stays 0)."""
-    from service.numerics.diagnose.write_effect import effect_classes, effect_source
+    from fluxcal.service.numerics.diagnose.write_effect import effect_classes, effect_source
 
     found = getattr(out.diagnosis, "discovery", None)
     if found is None or not found.claimed:
@@ -58,9 +58,9 @@ def write_diagnosis_report(out: Any, folder: str, said: Said) -> None:
     """The HTML report of the diagnosis `out` holds, in `folder` (checked before any work): its path in
     out.report and out.written; what it lacks (no matplotlib: no plots) said; one that cannot be written (a full
     disk) said, and the exit status 1."""
-    from service.io.report import write_report
-    from service.io.report.page import NO_MATPLOTLIB, has_matplotlib
-    from service.wiring.calib_report import section_from_diagnosis
+    from fluxcal.service.io.report import write_report
+    from fluxcal.service.io.report.page import NO_MATPLOTLIB, has_matplotlib
+    from fluxcal.service.wiring.calib_report import section_from_diagnosis
 
     result = out.diagnosis
     try:

@@ -1,5 +1,5 @@
 """What a dashboard keeps of a unit's streams: the interval means at 10 Hz of unit time that the recorder
-writes too (service.numerics.decimate) in bounded rings, noise floors, and the recent raw samples a
+writes too (fluxcal.service.numerics.decimate) in bounded rings, noise floors, and the recent raw samples a
 diagnosis needs. Everything here is updated block by block
 (numpy over the block, a Python step per 0.1-s interval at most), never sample by sample.
 """
@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from drivers.block import SampleBlock
-from service.numerics.noise import robust_noise
-from service.numerics.outputs import CorrectedBlock
+from fluxcal.drivers.block import SampleBlock
+from fluxcal.service.numerics.noise import robust_noise
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 #: interval of the plotted means, s of unit time
 PERIOD_S = 0.1
@@ -85,7 +85,7 @@ class WindowMeans:
 
 
 def corrected_columns(probe_names: list[str], rec: dict[str, Any]) -> list[str]:
-    """Column names of one interval of service.numerics.decimate.VectorMeans: <probe>.x/.y/.z/.total,
+    """Column names of one interval of fluxcal.service.numerics.decimate.VectorMeans: <probe>.x/.y/.z/.total,
     centre.*, <pk>-<p1>.x/.y/.z and <pk>-<p1>.norm (see `corrected_row`), G.<ij> and G.trace."""
     cols = [f"{p}.{a}" for p in probe_names for a in ("x", "y", "z", "total")]
     if rec["center"] is not None:
@@ -115,7 +115,7 @@ def corrected_row(rec: dict[str, Any], diff_norm: np.ndarray | None = None) -> n
 @dataclass
 class Floors:
     """Noise floor of each error channel, from the newest `window` samples of the corrected stream: the
-    robust white-noise sigma (service.numerics.noise) of each probe's |B| and of each difference axis."""
+    robust white-noise sigma (fluxcal.service.numerics.noise) of each probe's |B| and of each difference axis."""
 
     window: int = 2048
     recent: deque = field(default_factory=deque)

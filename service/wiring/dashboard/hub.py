@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from drivers.errors import ConfigError, FluxcalError
-from service.io.bus import BusClient, BusError, Keys, ZenohConfig, ZenohTlsConfig, discover_units, open_session
+from fluxcal.drivers.errors import ConfigError, FluxcalError
+from fluxcal.service.io.bus import BusClient, BusError, Keys, ZenohConfig, ZenohTlsConfig, discover_units, open_session
 
 from .view import UnitView
 
@@ -218,10 +218,10 @@ class Hub:
 
 def run_diagnosis(view: UnitView, unit: str, block: Any, names: list[str] | None, effects: list[str],
                   geometry: Geometry | None = None) -> None:
-    """A diagnosis of the kept raw samples (service.numerics.diagnose) with the unit's configured probe positions
+    """A diagnosis of the kept raw samples (fluxcal.service.numerics.diagnose) with the unit's configured probe positions
     and total field where the dashboard has them; its result or failure put in the view."""
-    from service.numerics.diagnose import diagnose, summary_text
-    from service.numerics.effects.base import EffectData
+    from fluxcal.service.numerics.diagnose import diagnose, summary_text
+    from fluxcal.service.numerics.effects.base import EffectData
 
     try:
         if block is None or block.n_samples < 200:
@@ -250,7 +250,7 @@ def run_diagnosis(view: UnitView, unit: str, block: Any, names: list[str] | None
         found = getattr(result, "discovery", None)
         effect = None
         if found is not None and found.claimed:
-            from service.numerics.diagnose.write_effect import effect_source
+            from fluxcal.service.numerics.diagnose.write_effect import effect_source
 
             effect = effect_source(found, data_name=f"fluxcal/{unit}, last {block.n_samples} samples")
         view.diagnosis = {"status": "done", "finished_unix_s": time.time(), "n_samples": int(block.n_samples),
@@ -278,10 +278,10 @@ def discovered_effect(view: UnitView) -> str:
 
 
 def calibration_file(unit: str, st: dict[str, Any]) -> dict[str, Any]:
-    """A unit's state as a calibration file (service.io.calfile); FluxcalError when it has no usable calibration
+    """A unit's state as a calibration file (fluxcal.service.io.calfile); FluxcalError when it has no usable calibration
     yet, or corrects effects whose parameters the state does not carry."""
-    from service.io.calfile import calibration_to_dict
-    from service.numerics.calib.model import ArrayCalibration, ProbeCalibration
+    from fluxcal.service.io.calfile import calibration_to_dict
+    from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibration
 
     if not st.get("usable") or not st.get("probes"):
         raise FluxcalError(f"fluxcal/{unit} has no usable calibration yet")

@@ -9,7 +9,7 @@ internet), and a small JSON API the page polls. A page polls; a closed tab sends
     GET  /api/calibration?unit=U  the calibration in use as a calibration file, which `apply` takes back
     GET  /api/effect?unit=U     the term the last diagnosis discovered, as an effect module (diagnose --write-effect)
     GET  /api/view?unit=U&series=N&raw=N&error=N
-                                one unit's view (service.wiring.dashboard.view.UnitView.view): the history
+                                one unit's view (fluxcal.service.wiring.dashboard.view.UnitView.view): the history
                                 rows after the numbers given, and the rest whole
     POST /api/command           {"unit", "command", "payload"} -> the unit's answer, as `fluxcal command`
     POST /api/diagnose          {"unit"} -> starts a diagnosis of the raw samples kept here
@@ -40,9 +40,9 @@ from importlib import resources
 from typing import Any
 from urllib.parse import parse_qs, urlparse
 
-from drivers.errors import FluxcalError
-from drivers.text import printable
-from service.io.bus import COMMANDS
+from fluxcal.drivers.errors import FluxcalError
+from fluxcal.drivers.text import printable
+from fluxcal.service.io.bus import COMMANDS
 
 from .guard import Guard
 from .hub import Hub
@@ -66,7 +66,7 @@ READ_ONLY_REASON = "this dashboard is read-only (started with --read-only): no c
 def _static(name: str) -> bytes | None:
     if "/" in name or name.startswith("."):
         return None
-    f = resources.files("service.wiring.dashboard").joinpath("static", name)
+    f = resources.files("fluxcal.service.wiring.dashboard").joinpath("static", name)
     return f.read_bytes() if f.is_file() else None
 
 

@@ -12,10 +12,10 @@ from typing import Any
 
 import numpy as np
 
-from service.io.bus import Message
-from service.numerics.calib.coverage import BIN_CENTRES, BIN_LABELS, coverage
-from service.numerics.decimate import RmsMeans, VectorMeans
-from service.numerics.outputs import CorrectedBlock
+from fluxcal.service.io.bus import Message
+from fluxcal.service.numerics.calib.coverage import BIN_CENTRES, BIN_LABELS, coverage
+from fluxcal.service.numerics.decimate import RmsMeans, VectorMeans
+from fluxcal.service.numerics.outputs import CorrectedBlock
 
 from .history import HISTORY, PERIOD_S, WINDOW_S, Floors, RawKeep, Ring, WindowMeans, corrected_columns, corrected_row
 
@@ -37,14 +37,14 @@ def _interval_start(t_s: float) -> float:
 def sensor_scales(probe: dict[str, Any]) -> tuple[list[float] | None, str]:
     """(the sensor's scale factor per axis, where it comes from) of one probe of a unit's state: "scale" means the
     sensor's (1.021 where it reads 2.1 % high), as `fit` prints it, never the correction matrix's diagonal (0.979).
-    The calibration's params["scale"] where it has one; else service.numerics.calib.model.sensor_scale of its
+    The calibration's params["scale"] where it has one; else fluxcal.service.numerics.calib.model.sensor_scale of its
     matrix (the row norms of M⁻¹, whatever rotation an alignment put in M).
 
     >>> m = [[1 / 1.021, 0.001, 0.0], [0.0, 1 / 0.99, 0.0], [0.0, 0.0, 1.0]]
     >>> [round(c, 4) for c in sensor_scales({"matrix": m})[0]], sensor_scales({"matrix": m})[1]
     ([1.021, 0.99, 1.0], 'from the matrix')
     """
-    from service.numerics.calib.model import sensor_scale
+    from fluxcal.service.numerics.calib.model import sensor_scale
 
     sc = (probe.get("params") or {}).get("scale")
     if isinstance(sc, dict) and np.size(sc.get("value")) == 3:
