@@ -24,10 +24,11 @@ UNTESTED = {
 PACKAGES = {"fluxcal": "fluxcal", "service": "fluxcal.service", "drivers": "fluxcal.drivers"}
 
 
-def module_name(path: Path) -> str:
-    """The dotted name a source file is imported by: service/io/bus/desk.py -> fluxcal.service.io.bus.desk."""
-    top, *rest = path.relative_to(ROOT).with_suffix("").parts
-    return ".".join([PACKAGES[top], *rest])
+def module_name(path: Path, root: Path = ROOT) -> str:
+    """The dotted name a source file under `root` is imported by: service/io/bus/desk.py ->
+    fluxcal.service.io.bus.desk (a package's __init__.py keeps its last part: ...bus.__init__)."""
+    top, *rest = path.relative_to(root).with_suffix("").parts
+    return ".".join([PACKAGES.get(top, top), *rest])
 
 
 def source_modules() -> dict[str, Path]:

@@ -7,14 +7,13 @@ import doctest
 import importlib
 from pathlib import Path
 
+import index
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 #: the public modules that re-export names, whose examples here are their tests (tests/index.py)
 COVERS = ("fluxcal.bus", "fluxcal.effects", "fluxcal.recordings")
-PACKAGES = {"fluxcal": "fluxcal", "service": "fluxcal.service", "drivers": "fluxcal.drivers"}    # pyproject's package-dir
-MODULES = sorted(".".join([PACKAGES[pkg], *p.relative_to(ROOT / pkg).with_suffix("").parts])
-                 for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")
+MODULES = sorted(index.module_name(p) for pkg in index.PACKAGES for p in (ROOT / pkg).rglob("*.py")
                  if ">>> " in p.read_text(encoding="utf-8"))
 
 

@@ -8,6 +8,7 @@ import re
 import sys
 from pathlib import Path
 
+import index
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -25,10 +26,7 @@ FORBIDDEN = {
 
 
 def _module_name(path: Path) -> str:
-    """service/io/bus/desk.py -> fluxcal.service.io.bus.desk (pyproject.toml maps the folders into fluxcal)."""
-    parts = list(path.relative_to(ROOT).with_suffix("").parts)
-    parts = ["fluxcal", *parts] if parts[0] in ("service", "drivers") else parts
-    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+    return index.module_name(path, ROOT).removesuffix(".__init__")
 
 
 def _imports(path: Path) -> list[tuple[int, str]]:
