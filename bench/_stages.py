@@ -44,7 +44,9 @@ STAGES = (
     ("loop/pipeline/error", "fluxcal.service.numerics.channels:BlockError.__call__|fluxcal.service.wiring.pipeline:block_error_rms"),
     ("loop/status", "fluxcal.service.wiring.status:StatusLog.block"),
     ("loop/corrected: recording", "fluxcal.service.wiring.sinks:McapSink.on_corrected"),
-    ("loop/corrected: recording/10 Hz products", "fluxcal.service.io.foxglove_schemas:Products.corrected"),
+    ("loop/recording: gathered messages", "fluxcal.service.wiring.sinks:McapSink.write_gathered"),
+    ("loop/recording: gathered messages/10 Hz products", "fluxcal.service.io.foxglove_schemas:Products.corrected"),
+    ("loop/bus: send", "fluxcal.service.wiring.sinks:BusSink.on_flush"),
     ("loop/corrected: bus", "fluxcal.service.wiring.sinks:BusSink.on_corrected"),
     ("loop/error: recording", "fluxcal.service.wiring.sinks:McapSink.on_error"),
     ("loop/error: bus", "fluxcal.service.wiring.sinks:BusSink.on_error"),
@@ -90,7 +92,7 @@ class Timers:
         if owner is not module:
             return
         for m in list(sys.modules.values()):     # a function imported by name elsewhere (pipeline's block_error_rms)
-            if getattr(m, "__name__", "").startswith("service.") and getattr(m, attr, None) is inner:
+            if getattr(m, "__name__", "").startswith("fluxcal.") and getattr(m, attr, None) is inner:
                 setattr(m, attr, timed)
 
 

@@ -129,6 +129,9 @@ class VectorMeans:
         ok = np.isfinite(c)
         norm = np.sqrt(np.einsum("npk,npk->np", c, c))          # |B| = sqrt(x^2 + y^2 + z^2), NaN if an axis is
         nok = np.isfinite(norm)
+        if ok.all() and nok.all():          # the usual interval: the same sums over every sample, without the masks
+            n = c.shape[0]
+            return c.sum(axis=0) / n, norm.sum(axis=0) / n
         with np.errstate(invalid="ignore", divide="ignore"):
             return (np.where(ok, c, 0.0).sum(axis=0) / ok.sum(axis=0),
                     np.where(nok, norm, 0.0).sum(axis=0) / nok.sum(axis=0))

@@ -36,6 +36,20 @@ class CorrectedBlock(Timed):
     cal_id: int
 
 
+def join_corrected(pieces: list[CorrectedBlock]) -> CorrectedBlock | None:
+    """One CorrectedBlock from consecutive pieces (cal_id: the one in use at the last piece), None from none."""
+    if not pieces:
+        return None
+    if len(pieces) == 1:
+        return pieces[0]
+
+    def cat(name: str):
+        arrays = [getattr(p, name) for p in pieces]
+        return None if any(a is None for a in arrays) else np.concatenate(arrays)
+
+    return CorrectedBlock(t_s=cat("t_s"), seq=cat("seq"), corrected_nT=cat("corrected_nT"), diff_nT=cat("diff_nT"),
+                          tensor_nT_m=cat("tensor_nT_m"), center_nT=cat("center_nT"), cal_id=pieces[-1].cal_id)
+
 
 def products(t_s: np.ndarray, seq: np.ndarray, corrected_nT: np.ndarray, positions_m: np.ndarray | None,
              cal_id: int) -> CorrectedBlock:

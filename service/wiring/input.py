@@ -72,6 +72,7 @@ class BatchReader:
     def __init__(self, block_ms: float, stop: threading.Event) -> None:
         self.block_ms, self.stop = block_ms, stop
         self._pending_error: DriverError | None = None
+        self._flowing = False             # the last read brought samples: the next block is surely on its way
 
     def _gather(self) -> bool:
         """Let the rest of the block arrive in the port's buffer; whether the stop came (then, or before)."""
@@ -87,6 +88,14 @@ class BatchReader:
         if self._pending_error is not None:
             e, self._pending_error = self._pending_error, None
             raise e
+        if self._flowing:
+            # samples came last time: gather the block and read it, without first asking whether input is there
+            # (one system call fewer a block); nothing there: wait for input as below
+            self._gather()
+            block = source.read(timeout=0.001)
+            self._flowing = block is not None
+            if block is not None:
+                return block
         ready = source.wait_readable(0.05)
         if ready is not None:
             if not ready:
@@ -94,7 +103,9 @@ class BatchReader:
             # input is there: let the rest of the block arrive in the port's buffer, then one read and one
             # parse (when stopping, still read what is there: nothing that arrived is lost)
             self._gather()
-            return source.read(timeout=0.001)
+            block = source.read(timeout=0.001)
+            self._flowing = block is not None
+            return block
         first = source.read(timeout=0.05)
         if first is None:
             return None

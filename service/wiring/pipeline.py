@@ -26,7 +26,7 @@ from fluxcal.service.numerics.calib.model import ArrayCalibration
 from fluxcal.service.numerics.calib.rls import RlsEllipsoid
 from fluxcal.service.numerics.calib.rls_info import finite_rows
 from fluxcal.service.numerics.channels import BlockError
-from fluxcal.service.numerics.outputs import CorrectedBlock, Derived
+from fluxcal.service.numerics.outputs import CorrectedBlock, Derived, join_corrected
 
 from .gate import Gate, GateResult, reference_total
 from .live_effects import LiveEffects
@@ -62,21 +62,6 @@ def _apply(m: tuple[np.ndarray, np.ndarray, np.ndarray], d: np.ndarray) -> np.nd
 def _columns(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The columns of the matrices (P, 3, 3) as _apply multiplies them, (1, P, 3, 1) each."""
     return m[None, :, :, 0], m[None, :, :, 1], m[None, :, :, 2]
-
-
-def _join(pieces: list[CorrectedBlock]) -> CorrectedBlock | None:
-    """One CorrectedBlock from consecutive pieces (cal_id: the one in use at the block's end)."""
-    if not pieces:
-        return None
-    if len(pieces) == 1:
-        return pieces[0]
-
-    def cat(name: str):
-        arrays = [getattr(p, name) for p in pieces]
-        return None if any(a is None for a in arrays) else np.concatenate(arrays)
-
-    return CorrectedBlock(t_s=cat("t_s"), seq=cat("seq"), corrected_nT=cat("corrected_nT"), diff_nT=cat("diff_nT"),
-                          tensor_nT_m=cat("tensor_nT_m"), center_nT=cat("center_nT"), cal_id=pieces[-1].cal_id)
 
 
 def _rows(block: SampleBlock, start: int, stop: int) -> SampleBlock:
@@ -248,7 +233,7 @@ class Pipeline(_ChunkFeed):
             start = stop
         if not by_chunk and span < n:
             pieces.append(self._correct(_rows(block, span, n)))
-        corrected = _join([c for c in pieces if c is not None])
+        corrected = join_corrected([c for c in pieces if c is not None])
         error = {} if corrected is None else self._error(corrected, _reference_tail(block, corrected.n_samples,
                                                                                     self.total_nT))
         return Processed(corrected=corrected, error=error, events=events)

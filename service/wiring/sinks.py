@@ -25,7 +25,7 @@ from fluxcal.drivers.block import SampleBlock
 from fluxcal.drivers.errors import ConfigError
 from fluxcal.service.io.calfile import calibration_to_dict
 from fluxcal.service.io.recordings.writer import McapLogger
-from fluxcal.service.numerics.outputs import CorrectedBlock
+from fluxcal.service.numerics.outputs import CorrectedBlock, join_corrected
 
 from .config import FluxcalConfig
 
@@ -72,8 +72,10 @@ class Sinks:
         self.say = say
         self.errors: dict[str, int] = {s.name: 0 for s in self.sinks}
         self._said_at: dict[str, float] = {}
+        self._told = False                # something was told since the last flush
 
     def _tell(self, method: str, *args: Any, **kwargs: Any) -> None:
+        self._told = True
         for sink in self.sinks:
             try:
                 getattr(sink, method)(*args, **kwargs)
@@ -104,7 +106,11 @@ class Sinks:
         self._tell("on_health", counters, faults)
 
     def flush(self) -> None:
-        self._tell("on_flush")
+        """The end of a turn: every sink told on_flush, when anything was told since the last (a turn that read
+        nothing and answered nothing costs no call)."""
+        if self._told:
+            self._tell("on_flush")
+            self._told = False
 
     def recording(self) -> dict[str, Any] | None:
         """The recorder's status (the first sink that has one), for the state and the fault watch."""
@@ -130,12 +136,27 @@ class Sinks:
 
 
 class McapSink(Sink):
-    """Raw and corrected streams, errors, events, commands and health to rotating MCAP files (fluxcal.service.io.recordings)."""
+    """Raw and corrected streams, errors, events, commands and health to rotating MCAP files (fluxcal.service.io.recordings).
+
+    The data streams are gathered: the blocks of about GATHER_S of unit time (and at most GATHER_WALL_S of the host
+    clock) go into one raw and one corrected message, with their error metrics, written before any other record
+    (an event, a command, health) and at close. A message costs the same whatever its samples, so the service's
+    thread pays once a tenth of a second what it paid every block; replay does not depend on how its input was cut
+    into messages (the pipeline's output does not depend on blocking). What is gathered waits in memory as the
+    unfinished chunk does (mcap.flush_s): a stop writes it, only a killed process loses it."""
 
     name = "recording"
+    #: unit time gathered into one raw and one corrected message, s (the 10 Hz products' interval)
+    GATHER_S = 0.1
+    #: host time the first gathered block waits at most, s (a slow unit's blocks are not held long)
+    GATHER_WALL_S = 0.25
 
     def __init__(self, logger: McapLogger) -> None:
         self.logger = logger
+        self._raw: list[SampleBlock] = []
+        self._corrected: list[CorrectedBlock] = []
+        self._errors: list[tuple[dict[str, float], int, float, int]] = []
+        self._since = 0.0                 # host monotonic time of the first block gathered
 
     @classmethod
     def open(cls, cfg: FluxcalConfig, calibration: Any, say: Callable[[str], None]) -> "McapSink | None":
@@ -145,28 +166,58 @@ class McapSink(Sink):
         return None if logger is None else cls(logger)
 
     def on_raw(self, block: SampleBlock) -> None:
-        self.logger.write_raw(block)
+        if not block.n_samples:
+            return
+        if not self._raw:
+            self._since = time.monotonic()
+        self._raw.append(block)
 
     def on_corrected(self, block: CorrectedBlock) -> None:
-        self.logger.write_corrected(block)
+        if self._corrected and block.cal_id != self._corrected[-1].cal_id:
+            self.write_gathered()             # one calibration per message (the 10 Hz means end at its change too)
+        self._corrected.append(block)
 
     def on_error(self, rms_nT: Mapping[str, float], *, seq: int, t_s: float, n: int) -> None:
-        self.logger.write_error(dict(rms_nT), seq=seq, t_s=t_s, n=n)
+        self._errors.append((dict(rms_nT), seq, t_s, n))
+
+    def on_flush(self) -> None:
+        """The end of a turn: the gathered blocks are written once they span GATHER_S (or waited GATHER_WALL_S)."""
+        raw = self._raw
+        if raw and (float(raw[-1].t_s[-1]) - float(raw[0].t_s[0]) >= self.GATHER_S
+                    or time.monotonic() - self._since >= self.GATHER_WALL_S):
+            self.write_gathered()
+
+    def write_gathered(self) -> None:
+        """What was gathered, as one raw and one corrected message and the error metrics, in that order."""
+        raw, corrected, errors = self._raw, self._corrected, self._errors
+        self._raw, self._corrected, self._errors = [], [], []
+        if raw:
+            self.logger.write_raw(raw[0] if len(raw) == 1 else SampleBlock.concat(raw))
+        if corrected:
+            self.logger.write_corrected(corrected[0] if len(corrected) == 1 else join_corrected(corrected))
+        for rms_nT, seq, t_s, n in errors:
+            self.logger.write_error(rms_nT, seq=seq, t_s=t_s, n=n)
 
     def on_event(self, record: Mapping[str, Any]) -> None:
+        self.write_gathered()
         self.logger.write_calibration(dict(record))
 
     def on_command(self, record: Mapping[str, Any]) -> None:
+        self.write_gathered()
         self.logger.write_event(dict(record))
 
     def on_health(self, counters: Mapping[str, Any], faults: Mapping[str, Any] | None) -> None:
+        self.write_gathered()
         self.logger.write_health(dict(counters), faults=None if faults is None else dict(faults))
 
     def status(self) -> dict[str, Any]:
         return self.logger.status()
 
     def close(self) -> None:
-        self.logger.close()
+        try:
+            self.write_gathered()
+        finally:
+            self.logger.close()
 
 
 class BusSink(Sink):

@@ -10,6 +10,9 @@ Key expressions, all under ``fluxcal/<unit>/`` (docs/zenoh.md has the full table
     calibration        JSON                    BLOCK  every calibration event and the state after it
     health             JSON                    DROP   source counters and the bus's own counters, ~1 Hz
     error              JSON                    DROP   model-vs-measurement rms_nT per channel, per block
+
+The data streams (HEARD_STREAMS and corrected/<probe>) are made and put only while some subscriber matches them;
+what nobody hears is counted (stats "unheard_<stream>"), not encoded.
     alive              liveliness token               present while the service runs
     state              queryable (JSON)               current calibration + health
     cmd/<name>         queryables (JSON reply)        freeze, unfreeze, reset, apply, add-effect
@@ -51,13 +54,18 @@ from .settings import BusError, SessionHolder, ZenohConfig
 
 #: messages waiting for the bus's sender thread, at most (bytes); beyond it the oldest are dropped, counted
 SEND_BACKLOG_BYTES = 16 << 20
+#: the data streams that are made only while a subscriber somewhere matches them (Zenoh's matching status): a
+#: message nobody hears costs its encoding, the sender thread's wake-up and Zenoh's routing, and goes nowhere. The
+#: calibration and health streams always go (rare, and the bus keeps the last of each for `state`)
+HEARD_STREAMS = ("raw", "corrected", "diff", "tensor", "error")
 
 
 def _new_stats() -> dict[str, int]:
     """The bus's counters (health's "bus"), each at zero."""
     return {"commands_received": 0, "commands_refused": 0, "commands_expired": 0, "state_queries": 0,
             "state_queries_stale": 0, "publish_errors": 0, "duplicate_holders": 0,
-            **{f"published_{name}": 0 for name in STREAMS}, "published_corrected_probe": 0, "send_dropped": 0}
+            **{f"published_{name}": 0 for name in STREAMS}, "published_corrected_probe": 0, "send_dropped": 0,
+            **{f"unheard_{name}": 0 for name in HEARD_STREAMS}, "unheard_corrected_probe": 0}
 
 
 def _check_key_segments(probe_names: Sequence[str]) -> None:
@@ -103,6 +111,7 @@ class ServiceBus(SessionHolder):
         self._close_lock = threading.Lock()
         self._entities: list[Any] = []
         self._probe_pubs: dict[str, zenoh.Publisher] = {}
+        self._heard: dict[str, bool] = {}   # data stream -> whether a subscriber anywhere matches it (_listen)
         self._watch: claim.Watch | None = None
         self._hold(zenoh_cfg, self.keys.unit)
         self._express = bool(express)
@@ -110,8 +119,10 @@ class ServiceBus(SessionHolder):
             claim.take_name(self, zenoh_cfg, duplicate)
             self.identity = claim.service_identity(self.session, config)
             self._pubs = {name: self._declare_pub(self.keys.stream(name), s) for name, s in STREAMS.items()}
+            for name in HEARD_STREAMS:
+                self._listen(name, self._pubs[name])
             for name in (self.probe_names or []) if self.per_probe else []:
-                self._probe_pubs[name] = self._declare_pub(self.keys.probe(name), STREAMS["corrected"])
+                self._probe_pubs[name] = self._declare_probe_pub(name)
             self._desk = Desk(self.keys, self.stats, state_fn=state_fn, published_state=self._published_state,
                               probe_names=self.probe_names, command_queue_size=command_queue_size,
                               command_wait_s=command_wait_s, state_grace_s=state_grace_s, identity=self.identity)
@@ -136,6 +147,28 @@ class ServiceBus(SessionHolder):
             congestion_control=zenoh.CongestionControl.BLOCK if s.lossless else zenoh.CongestionControl.DROP)
         self._entities.append(pub)
         return pub
+
+    def _declare_probe_pub(self, probe: str) -> zenoh.Publisher:
+        pub = self._probe_pubs[probe] = self._declare_pub(self.keys.probe(probe), STREAMS["corrected"])
+        self._listen(f"corrected/{probe}", pub)
+        return pub
+
+    def _listen(self, stream: str, pub: zenoh.Publisher) -> None:
+        """Keep `_heard[stream]` saying whether any subscriber matches `pub` (Zenoh's matching status, pushed by a
+        listener on its thread; the status read after the listener exists, so no change falls between)."""
+        def heard(status: zenoh.MatchingStatus) -> None:
+            self._heard[stream] = bool(status.matching)
+
+        self._entities.append(pub.declare_matching_listener(heard))
+        self._heard[stream] = bool(pub.matching_status.matching)
+
+    def _heard_on(self, stream: str) -> bool:
+        """Whether a subscriber matches the data stream; a message of one nobody hears is not made, and counted
+        (unheard_<stream>; unheard_corrected_probe for the one-probe streams)."""
+        if self._heard.get(stream, True):
+            return True
+        self.stats["unheard_corrected_probe" if stream.startswith("corrected/") else f"unheard_{stream}"] += 1
+        return False
 
     # --- the service's thread: commands and state (fluxcal.service.io.bus.desk) ---------------------------
 
@@ -187,27 +220,30 @@ class ServiceBus(SessionHolder):
         return self._sender.flush(timeout) if self._sender is not None else True
 
     def publish_raw(self, block: SampleBlock) -> None:
-        if block.n_samples:
+        if block.n_samples and self._heard_on("raw"):
             self._put(("raw", self._pubs["raw"], raw_payload(block)))
 
     def publish_corrected(self, block: CorrectedBlock) -> None:
         """`corrected` (everything), and `diff`, `tensor`, `corrected/<probe>` when they exist."""
         if not block.n_samples:
             return
-        out = [("corrected", self._pubs["corrected"], corrected_payload(block))]
+        out = [("corrected", self._pubs["corrected"], corrected_payload(block))] if self._heard_on("corrected") else []
         for name, series in (("diff", block.diff_nT), ("tensor", block.tensor_nT_m)):
-            if series is not None:
+            if series is not None and self._heard_on(name):
                 out.append((name, self._pubs[name], encode_series(block.t_s, block.seq, series, block.cal_id)))
         if self.per_probe:
             names = self.probe_names or [f"s{k + 1}" for k in range(block.n_probes)]
             if len(names) != block.n_probes:
                 raise DataError(f"corrected block has {block.n_probes} probes, the bus knows {len(names)}: {names}")
-            for name, payload in zip(names, probe_payloads(block)):
-                pub = self._probe_pubs.get(name)
-                if pub is None:
-                    pub = self._probe_pubs[name] = self._declare_pub(self.keys.probe(name), STREAMS["corrected"])
-                out.append(("corrected_probe", pub, payload))
-        self._put(*out)
+            for name in names:
+                if name not in self._probe_pubs:
+                    self._declare_probe_pub(name)
+            heard = [self._heard_on(f"corrected/{name}") for name in names]
+            if any(heard):
+                out += [("corrected_probe", self._probe_pubs[name], payload)
+                        for name, payload, h in zip(names, probe_payloads(block), heard) if h]
+        if out:
+            self._put(*out)
 
     def publish_calibration(self, record: Mapping[str, Any]) -> None:
         """A calibration event (kind, seq, t_s, ..., "state": {...}) as JSON; kept for `state` queries."""
@@ -228,13 +264,16 @@ class ServiceBus(SessionHolder):
                       n: int | None = None) -> None:
         """The model-vs-measurement error metric of a block of n samples from seq (unit time t_s),
         {"rms_nT": {channel: nT}}; may be dropped."""
-        self._put(("error", self._pubs["error"], _json_bytes({"unit": self.unit, "time_unix_s": time.time(),
-                                                             "seq": seq, "t_s": t_s, "n": n,
-                                                             "rms_nT": dict(rms_nT)})))
+        if self._heard_on("error"):
+            self._put(("error", self._pubs["error"], _json_bytes({"unit": self.unit, "time_unix_s": time.time(),
+                                                                 "seq": seq, "t_s": t_s, "n": n,
+                                                                 "rms_nT": dict(rms_nT)})))
 
     def has_subscribers(self, stream: str) -> bool:
         """Whether any subscriber anywhere matches `stream` ("raw", ..., "corrected/<probe>"), e.g. to wait for
-        a dashboard before a burst."""
+        a dashboard before a burst: for a data stream, as the bus knows it when it decides to send (_heard)."""
+        if stream in self._heard:
+            return self._heard[stream]
         pub = self._probe_pubs.get(stream[10:]) if stream.startswith("corrected/") else self._pubs[stream]
         return pub is not None and bool(pub.matching_status.matching)
 

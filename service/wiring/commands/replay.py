@@ -258,6 +258,7 @@ def _run_blocks(pipeline, cfg, blocks, commands: list[dict], outputs: Sinks):
                 outputs.corrected(result.corrected)
                 out_seq.append(result.corrected.seq)
                 out_vals.append(result.corrected.corrected_nT)
+            outputs.flush()                   # the end of the block's turn, as the service's loop ends it
             progress.to(samples)
     finally:
         progress.close()
