@@ -30,7 +30,7 @@ import zlib
 from pathlib import Path
 
 import numpy as np
-from _live import bare_seconds, config_text, identity, make_samples, probes
+from _live import SUBSCRIBED, bare_seconds, config_text, identity, make_samples, probes
 from _machine import cpu_model
 
 from fluxcal.drivers.block import SampleBlock
@@ -237,14 +237,15 @@ def print_profile(run) -> None:
 
 
 def bench_live(cases: list[tuple[float, int]], seconds: float, repeat: int, block_ms: float | None,
-               profile: bool) -> None:
+               profile: bool, subscribe: str = "corrected") -> None:
     from _live import live_floor, live_run
 
     if profile:
-        print_profile(live_run(cases[0][0], cases[0][1], seconds, block_ms, _USER_BLAS_THREADS, profile=True))
+        print_profile(live_run(cases[0][0], cases[0][1], seconds, block_ms, _USER_BLAS_THREADS, profile=True, subscribe=subscribe))
     base = None
     for rate, n_probes in cases:
-        runs = [live_run(rate, n_probes, seconds, block_ms, _USER_BLAS_THREADS) for _ in range(repeat)]
+        runs = [live_run(rate, n_probes, seconds, block_ms, _USER_BLAS_THREADS, subscribe=subscribe)
+                for _ in range(repeat)]
         core = [100 * r.core for r in runs]
         us_ps = [r.cpu_s * 1e6 / r.probe_samples for r in runs]
         ratio = [r.cpu_s / r.bare_s for r in runs]
@@ -255,7 +256,8 @@ def bench_live(cases: list[tuple[float, int]], seconds: float, repeat: int, bloc
         if base is None:
             base = float(np.median(core))
         floor_us, floor_core = live_floor(rate, n_probes, seconds, block_ms or 8.0)
-        print(f"live, {n_probes} probes at {rate:.0f} Hz over a pty, block_ms {block_ms or 'default'}, {repeat} x "
+        print(f"live, {n_probes} probes at {rate:.0f} Hz over a pty, block_ms {block_ms or 'default'}, heard: "
+              f"{', '.join(SUBSCRIBED[subscribe])}, {repeat} x "
               f"{seconds:.0f} s: service CPU % of one core {_stats(core)} (all threads; "
               + ", ".join(f"{k} {_stats(v)}" for k, v in groups.items())
               + f"); {_stats(us_ps)} us per probe-sample, {_stats(ratio)} x the bare parse + calibrate of the same "
@@ -268,7 +270,8 @@ def bench_live(cases: list[tuple[float, int]], seconds: float, repeat: int, bloc
               f"{float(np.median(core)) / 100 / floor_core:.2f} x that")
 
 
-def bench_against(code: Path, rate: float, n_probes: int, seconds: float, pairs: int, block_ms: float | None) -> None:
+def bench_against(code: Path, rate: float, n_probes: int, seconds: float, pairs: int, block_ms: float | None,
+                  subscribe: str = "corrected") -> None:
     """The service of another checkout (`code`: main before a change) and this one's, run by turns in pairs, so that
     what else the machine does weighs on both alike: each pair's CPU ratio, and latency."""
     from _live import live_run
@@ -276,13 +279,14 @@ def bench_against(code: Path, rate: float, n_probes: int, seconds: float, pairs:
     ratios, cores = [], {"other": [], "this": []}
     p99 = {"other": [], "this": []}
     for _ in range(pairs):
-        a = live_run(rate, n_probes, seconds, block_ms, _USER_BLAS_THREADS, code=code)
-        b = live_run(rate, n_probes, seconds, block_ms, _USER_BLAS_THREADS)
+        a = live_run(rate, n_probes, seconds, block_ms, _USER_BLAS_THREADS, code=code, subscribe=subscribe)
+        b = live_run(rate, n_probes, seconds, block_ms, _USER_BLAS_THREADS, subscribe=subscribe)
         ratios.append(b.core / a.core)
         for key, r in (("other", a), ("this", b)):
             cores[key].append(100 * r.core)
             p99[key].append(float(np.percentile(r.lat_ms, 99)))
-    print(f"live, {n_probes} probes at {rate:.0f} Hz, {pairs} pairs of {seconds:.0f} s runs by turns: service CPU % of "
+    print(f"live, {n_probes} probes at {rate:.0f} Hz, heard: {', '.join(SUBSCRIBED[subscribe])}, {pairs} pairs of "
+          f"{seconds:.0f} s runs by turns: service CPU % of "
           f"one core {code}: {_stats(cores['other'])}; this checkout: {_stats(cores['this'])}; this / that in each "
           f"pair: {_stats(ratios)} ({', '.join(f'{r:.2f}' for r in ratios)}); latency p99 (newest frame) "
           f"{_stats(p99['other'])} against {_stats(p99['this'])} ms")
@@ -299,19 +303,22 @@ def main() -> None:
                     help="only: the first live case with this checkout's service and this one's by turns, in pairs")
     ap.add_argument("--live-only", action="store_true", help="skip the replay benchmark")
     ap.add_argument("--replay-only", action="store_true", help="skip the live benchmark")
+    ap.add_argument("--subscribe", choices=sorted(SUBSCRIBED), default="corrected",
+                    help="what a client hears in the live runs: the corrected stream (timed), or every stream")
     ap.add_argument("--block-ms", type=float, default=None,
                     help="[unit] block_ms of the live service (default: its default)")
     args = ap.parse_args()
     cases = [(float(c.split("x")[0]), int(c.split("x")[1])) for c in args.cases.split(",")]
     print("machine:", machine())
     if args.against is not None:
-        bench_against(args.against, cases[0][0], cases[0][1], args.seconds, args.repeat, args.block_ms)
+        bench_against(args.against, cases[0][0], cases[0][1], args.seconds, args.repeat, args.block_ms,
+                      args.subscribe)
         return
     with tempfile.TemporaryDirectory() as d:
         if not args.live_only:
             bench_replay(Path(d), 60.0, args.repeat)
     if not args.replay_only:
-        bench_live(cases, args.seconds, args.repeat, args.block_ms, args.profile)
+        bench_live(cases, args.seconds, args.repeat, args.block_ms, args.profile, args.subscribe)
 
 
 if __name__ == "__main__":

@@ -142,6 +142,10 @@ class Desk:
         """Commands received since the last call, oldest first; answers pending `state` queries on the way.
 
         Call it from the service's loop between blocks; answer each command with `cmd.reply({...})`."""
+        cache = self._state_cache
+        if (not self._commands and not self._state_queries and cache is not None
+                and time.monotonic() - cache[0] < STATE_REFRESH_S):
+            return []                     # the usual turn: nothing came, the state is fresh (no lock taken)
         self.answer_state_queries()
         with self._cond:
             out = list(self._commands)

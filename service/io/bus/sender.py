@@ -7,6 +7,7 @@ thread wakes once for them all, not once per message."""
 
 from __future__ import annotations
 
+import queue
 import threading
 import time
 from collections import deque
@@ -25,7 +26,10 @@ BATCH_BYTES = 64 << 10
 class Sender:
     """An outbox of (stream name, publisher, payload) in order, bounded in bytes, and the thread that
     empties it. Beyond the bound the oldest waiting messages are dropped and counted (stats
-    "send_dropped"); every message handed over counts as "published_<name>"."""
+    "send_dropped"); every message handed over counts as "published_<name>".
+
+    The thread is woken by a token in a SimpleQueue (a wait and a wake-up in C, not threading.Condition's Python),
+    at most one token while it is not sending; `flush()` waits on a Condition of the same lock."""
 
     def __init__(self, stats: dict[str, int], backlog_bytes: int, thread_name: str) -> None:
         self.stats = stats
@@ -34,8 +38,12 @@ class Sender:
         self.last_stall_s = 0.0
         self._outbox: deque[tuple[str, zenoh.Publisher, bytes]] = deque()
         self._outbox_bytes = 0
-        self._sending = False
-        self._cond = threading.Condition()
+        self._sending = False             # the thread holds a batch (it looks at the outbox again before it waits)
+        self._woken = False               # a token waits for the thread
+        self._flushers = 0                # flush() calls waiting for the thread to go idle
+        self._lock = threading.Lock()
+        self._idle = threading.Condition(self._lock)
+        self._wake: queue.SimpleQueue[None] = queue.SimpleQueue()
         self._backlog_bytes = int(backlog_bytes)
         self.gather = False               # True: put() only queues, release() wakes the thread
         self._stop = threading.Event()
@@ -50,7 +58,7 @@ class Sender:
     def put_all(self, messages: Iterable[tuple[str, zenoh.Publisher, bytes]]) -> None:
         """put() of several (name, publisher, payload) in order, taking the lock once."""
         stats, outbox = self.stats, self._outbox
-        with self._cond:
+        with self._lock:
             for message in messages:
                 outbox.append(message)
                 self._outbox_bytes += len(message[2])
@@ -59,34 +67,49 @@ class Sender:
                 _, _, old = outbox.popleft()
                 self._outbox_bytes -= len(old)
                 stats["send_dropped"] += 1
-            if not (self.gather or self._sending):
-                self._cond.notify()      # wake the sender only when idle
+            wake = not (self.gather or self._sending or self._woken)
+            self._woken |= wake
+        if wake:
+            self._wake.put(None)          # wake the sender only when idle
 
     def release(self) -> None:
         """Wake the thread for the messages gathered (at most once: none when it is busy or nothing waits).
         Gathered messages that nobody releases go anyway within the thread's half-second wait."""
-        with self._cond:
-            if self._outbox and not self._sending:
-                self._cond.notify()
+        with self._lock:
+            wake = bool(self._outbox) and not (self._sending or self._woken)
+            self._woken |= wake
+        if wake:
+            self._wake.put(None)
+
+    def _take(self) -> list[tuple[str, zenoh.Publisher, bytes]] | None:
+        """The next batch of about BATCH_BYTES to put; [] when nothing waits (idle), None when stopped and empty."""
+        with self._lock:
+            self._woken = False
+            if not self._outbox:
+                self._sending = False
+                if self._flushers:
+                    self._idle.notify_all()       # flush() waits for this
+                return None if self._stop.is_set() else []
+            self._sending = True
+            batch, size = [], 0
+            while self._outbox and (not batch or size < BATCH_BYTES):
+                batch.append(self._outbox.popleft())
+                size += len(batch[-1][2])
+            self._outbox_bytes -= size
+            return batch
 
     def _send_loop(self) -> None:
         """put() every message in order, taking what waits in one go; ends when stopping and nothing waits."""
         while True:
-            with self._cond:
-                while not self._outbox and not self._stop.is_set():
-                    self._sending = False
-                    self._cond.notify_all()           # flush() waits for this
-                    self._cond.wait(0.5)
-                if not self._outbox:
-                    self._sending = False
-                    self._cond.notify_all()
-                    return
-                self._sending = True
-                batch, size = [], 0
-                while self._outbox and (not batch or size < BATCH_BYTES):
-                    batch.append(self._outbox.popleft())
-                    size += len(batch[-1][2])
-                self._outbox_bytes -= size
+            batch = self._take()
+            if batch is None:
+                return
+            if not batch:
+                try:
+                    self._wake.get(timeout=0.5)
+                except queue.Empty:
+                    pass
+                continue
             for _name, pub, payload in batch:
                 self._put(pub, payload)
 
@@ -105,22 +128,25 @@ class Sender:
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until every message handed over has been put (True) or `timeout` passed (False)."""
         deadline = time.monotonic() + timeout
-        with self._cond:
-            self._cond.notify()          # gathered messages too
-            while self._outbox or self._sending:
-                left = deadline - time.monotonic()
-                if left <= 0 or not self._thread.is_alive():
-                    return not (self._outbox or self._sending)
-                self._cond.wait(left)
+        self._wake.put(None)              # gathered messages too
+        with self._lock:
+            self._flushers += 1
+            try:
+                while self._outbox or self._sending:
+                    left = deadline - time.monotonic()
+                    if left <= 0 or not self._thread.is_alive():
+                        return not (self._outbox or self._sending)
+                    self._idle.wait(min(left, 0.5))
+            finally:
+                self._flushers -= 1
         return True
 
     def stop(self, timeout: float = 2.0) -> None:
         """End the thread; what still waits then (a subscriber frozen past the flush) is counted as dropped."""
         self._stop.set()
-        with self._cond:
-            self._cond.notify_all()
+        self._wake.put(None)
         if self._thread is not threading.current_thread():
             self._thread.join(timeout)
-        with self._cond:
+        with self._lock:
             self.stats["send_dropped"] += len(self._outbox)
             self._outbox.clear()
