@@ -23,6 +23,7 @@ into the counters it is given (SerialIcd: the ICD's frames).
 
 from __future__ import annotations
 
+import fcntl
 import os
 import select
 import time
@@ -43,6 +44,9 @@ from .source import Counters, PortSource
 
 #: most bytes taken from the port per read call (about 11 s of data at 921600 baud)
 MAX_READ_BYTES = 1 << 20
+#: bytes asked of a non-blocking port in its first read (a block of 8 ms at 921600 baud is about 740; below malloc's
+#: mmap threshold, so the buffer is no system call of its own)
+DIRECT_READ_BYTES = 1 << 16
 
 
 @dataclass(kw_only=True)
@@ -113,6 +117,7 @@ class SerialSource(PortSource):
         self._decoder = resolve(proto.decoder)(n_probes, lsb_nT=self.lsb_nT, counters=self.counters,
                                                plausibility=plausibility)
         self._ser: serial.SerialBase | None = None
+        self._fd: int | None = None       # a native port's descriptor when it is non-blocking (pyserial's own)
         self._open()
 
     def _open(self) -> None:
@@ -122,6 +127,12 @@ class SerialSource(PortSource):
             self._ser = None
             raise DriverError(f"serial port {self.port}: cannot open ({e}); check the device path or URL, "
                               f"that the adapter is plugged in and that no other program holds it") from e
+        fd = getattr(self._ser, "fd", None)
+        try:
+            self._fd = fd if isinstance(fd, int) and fd >= 0 and fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_NONBLOCK \
+                else None
+        except OSError:
+            self._fd = None
 
     def _fail(self, e: BaseException) -> DriverError:
         self._drop()
@@ -129,7 +140,7 @@ class SerialSource(PortSource):
                            f"disconnected, call reopen() once it is back")
 
     def _drop(self) -> None:
-        ser, self._ser = self._ser, None
+        ser, self._ser, self._fd = self._ser, None, None
         if ser is not None:
             try:
                 ser.close()
@@ -142,6 +153,17 @@ class SerialSource(PortSource):
         if ser is None:
             raise DriverError(f"serial port {self.port}: not open (a previous read failed); call reopen()")
         try:
+            if self._fd is not None:
+                # a non-blocking native port: one read(2) takes what is there, without asking first (an ioctl less)
+                try:
+                    now = os.read(self._fd, DIRECT_READ_BYTES)
+                except BlockingIOError:
+                    now = b""
+                if len(now) == DIRECT_READ_BYTES:            # more may wait: the rest as below
+                    return now + self._drain(ser, ser.in_waiting)
+                if now:
+                    return now
+                # nothing there (a tty may say so with 0 bytes, as a port whose other end went away does): ask as below
             data = b""
             waiting = ser.in_waiting
             if waiting == 0:
