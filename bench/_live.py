@@ -154,6 +154,23 @@ SUBSCRIBED = {"corrected": ("corrected",),
               "all": ("corrected", "raw", "diff", "tensor", "error", "health", "calibration", "corrected/<probe>")}
 
 
+def _python(code: Path | None) -> str:
+    """The interpreter that runs a checkout's service: another checkout's own environment where it has one (an
+    editable install maps the package to its own tree whatever PYTHONPATH says), else this one."""
+    return str(code / ".venv" / "bin" / "python") if code is not None and (code / ".venv").is_dir() else sys.executable
+
+
+def _other_client(port: int, subscribe: str, plist: list[dict]):
+    """The streams heard besides `corrected` (SUBSCRIBED), by a client that keeps the newest (it never holds the
+    service back); None when only `corrected` is."""
+    from fluxcal.service.io.bus import BusClient, ZenohConfig
+
+    if subscribe == "corrected":
+        return None
+    streams = [s for s in SUBSCRIBED[subscribe][1:] if "<" not in s] + [f"corrected/{p['name']}" for p in plist]
+    return BusClient(ZenohConfig.client(f"tcp/127.0.0.1:{port}"), "bench", lossless=False, streams=streams)
+
+
 def live_run(rate: float, n_probes: int, seconds: float, block_ms: float | None = None, blas_threads: str | None = None,
              profile: bool = False, code: Path | None = None, subscribe: str = "corrected") -> LiveRun:
     """One run of the service; `blas_threads`: OPENBLAS_NUM_THREADS for it (None: unset, as a user starts it);
@@ -182,20 +199,12 @@ def live_run(rate: float, n_probes: int, seconds: float, block_ms: float | None 
         if blas_threads is not None:
             env["OPENBLAS_NUM_THREADS"] = blas_threads
         # (`python -m` looks in the working directory first: the other checkout's, for its service)
-        # another checkout's service with its own environment where it has one (an editable install maps the package
-        # to its own tree whatever PYTHONPATH says), else this interpreter with that checkout first on the path
-        python = str(code / ".venv" / "bin" / "python") if code is not None and (code / ".venv").is_dir() \
-            else sys.executable
-        proc = subprocess.Popen([python, *head, "run", "--config", str(cfg_path)], env=env,
+        proc = subprocess.Popen([_python(code), *head, "run", "--config", str(cfg_path)], env=env,
                                 cwd=None if code is None else str(code), stderr=subprocess.PIPE, text=True)
         try:
             time.sleep(3.0)
             client = BusClient(ZenohConfig.client(f"tcp/127.0.0.1:{port}"), "bench", streams=["corrected"])
-            # the other streams heard by a second client that keeps the newest (it never holds the service back)
-            others = None if subscribe == "corrected" else BusClient(
-                ZenohConfig.client(f"tcp/127.0.0.1:{port}"), "bench", lossless=False,
-                streams=[s for s in SUBSCRIBED[subscribe][1:] if "<" not in s]
-                + [f"corrected/{p['name']}" for p in plist])
+            others = _other_client(port, subscribe, plist)
             frames = encode_serial(s.seq_raw, s.t_us_raw, s.counts, s.temp_raw, s.flags)
             fl = len(frames) // len(s.seq_raw)
             sent_at = np.zeros(len(s.seq_raw))

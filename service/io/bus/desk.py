@@ -35,11 +35,8 @@ class Desk:
                  identity: Mapping[str, Any] | None = None) -> None:
         self.keys, self.unit, self.stats = keys, keys.unit, stats
         self.identity = dict(identity or {})       # who this service is (claim.service_identity): in every state
-        self.state_fn = state_fn
-        self.probe_names = probe_names
-        self._published_state = published_state
-        self.command_wait_s = float(command_wait_s)
-        self.state_grace_s = float(state_grace_s)
+        self.state_fn, self.probe_names, self._published_state = state_fn, probe_names, published_state
+        self.command_wait_s, self.state_grace_s = float(command_wait_s), float(state_grace_s)
         # commands and state queries wait here for the service's thread; one lock, one condition
         self._cond = threading.Condition()
         self._commands: deque[Command] = deque()
@@ -142,10 +139,9 @@ class Desk:
         """Commands received since the last call, oldest first; answers pending `state` queries on the way.
 
         Call it from the service's loop between blocks; answer each command with `cmd.reply({...})`."""
-        cache = self._state_cache
-        if (not self._commands and not self._state_queries and cache is not None
-                and time.monotonic() - cache[0] < STATE_REFRESH_S):
-            return []                     # the usual turn: nothing came, the state is fresh (no lock taken)
+        cache = self._state_cache          # the usual turn: nothing came, the state is fresh (no lock taken)
+        if not (self._commands or self._state_queries) and cache and time.monotonic() - cache[0] < STATE_REFRESH_S:
+            return []
         self.answer_state_queries()
         with self._cond:
             out = list(self._commands)

@@ -48,16 +48,13 @@ from fluxcal.service.numerics.outputs import CorrectedBlock
 
 from . import claim
 from .desk import COMMAND_WAIT_S, STATE_GRACE_S, Desk
+from .heard import HEARD_STREAMS, Heard, unheard_stats
 from .keys import _KEY_CHUNK, COMMANDS, STREAMS, Command, Keys, StreamSpec, _json_bytes, encode_series
 from .sender import Sender
 from .settings import BusError, SessionHolder, ZenohConfig
 
 #: messages waiting for the bus's sender thread, at most (bytes); beyond it the oldest are dropped, counted
 SEND_BACKLOG_BYTES = 16 << 20
-#: the data streams that are made only while a subscriber somewhere matches them (Zenoh's matching status): a
-#: message nobody hears costs its encoding, the sender thread's wake-up and Zenoh's routing, and goes nowhere. The
-#: calibration and health streams always go (rare, and the bus keeps the last of each for `state`)
-HEARD_STREAMS = ("raw", "corrected", "diff", "tensor", "error")
 
 
 def _new_stats() -> dict[str, int]:
@@ -65,7 +62,7 @@ def _new_stats() -> dict[str, int]:
     return {"commands_received": 0, "commands_refused": 0, "commands_expired": 0, "state_queries": 0,
             "state_queries_stale": 0, "publish_errors": 0, "duplicate_holders": 0,
             **{f"published_{name}": 0 for name in STREAMS}, "published_corrected_probe": 0, "send_dropped": 0,
-            **{f"unheard_{name}": 0 for name in HEARD_STREAMS}, "unheard_corrected_probe": 0}
+            **unheard_stats()}
 
 
 def _check_key_segments(probe_names: Sequence[str]) -> None:
@@ -94,9 +91,7 @@ class ServiceBus(SessionHolder):
                  send_backlog_bytes: int = SEND_BACKLOG_BYTES, duplicate: str = "refuse", config: str = "") -> None:
         """`duplicate`, `config`: when another live service holds `unit`, refuse or take a suffix (claim_note says
         which), and the configuration's path said to one that finds this holding it (fluxcal.service.io.bus.claim)."""
-        self.keys = Keys(unit)
-        self.unit = unit
-        self.claim_note = ""
+        self.keys, self.unit, self.claim_note = Keys(unit), unit, ""
         self.probe_names = list(probe_names) if probe_names is not None else None
         _check_key_segments(self.probe_names or [])
         cfg_obj = zenoh_cfg if isinstance(zenoh_cfg, ZenohConfig) else None
@@ -107,11 +102,10 @@ class ServiceBus(SessionHolder):
         self._desk: Desk | None = None
         self._last_calibration: dict[str, Any] | None = None
         self._last_health: dict[str, Any] | None = None
-        self._closed = False
-        self._close_lock = threading.Lock()
+        self._closed, self._close_lock = False, threading.Lock()
         self._entities: list[Any] = []
         self._probe_pubs: dict[str, zenoh.Publisher] = {}
-        self._heard: dict[str, bool] = {}   # data stream -> whether a subscriber anywhere matches it (_listen)
+        self._heard = Heard(self.stats)     # whether a subscriber anywhere matches each data stream
         self._watch: claim.Watch | None = None
         self._hold(zenoh_cfg, self.keys.unit)
         self._express = bool(express)
@@ -119,18 +113,16 @@ class ServiceBus(SessionHolder):
             claim.take_name(self, zenoh_cfg, duplicate)
             self.identity = claim.service_identity(self.session, config)
             self._pubs = {name: self._declare_pub(self.keys.stream(name), s) for name, s in STREAMS.items()}
-            for name in HEARD_STREAMS:
-                self._listen(name, self._pubs[name])
+            self._entities += [self._heard.watch(name, self._pubs[name]) for name in HEARD_STREAMS]
             for name in (self.probe_names or []) if self.per_probe else []:
-                self._probe_pubs[name] = self._declare_probe_pub(name)
+                self._declare_probe_pub(name)
             self._desk = Desk(self.keys, self.stats, state_fn=state_fn, published_state=self._published_state,
                               probe_names=self.probe_names, command_queue_size=command_queue_size,
                               command_wait_s=command_wait_s, state_grace_s=state_grace_s, identity=self.identity)
             self._sender = Sender(self.stats, send_backlog_bytes, f"fluxcal-bus-{unit}-send")
             self._entities.append(self.session.declare_queryable(self.keys.state, self._desk.on_state_query))
-            for name in COMMANDS:
-                self._entities.append(self.session.declare_queryable(self.keys.cmd(name),
-                                                                      self._desk.command_callback(name)))
+            self._entities += [self.session.declare_queryable(self.keys.cmd(name), self._desk.command_callback(name))
+                               for name in COMMANDS]
             self._token = self.session.liveliness().declare_token(self.keys.alive)
             self._watch = claim.Watch(self.session, self.keys)
         except BaseException:
@@ -150,32 +142,14 @@ class ServiceBus(SessionHolder):
 
     def _declare_probe_pub(self, probe: str) -> zenoh.Publisher:
         pub = self._probe_pubs[probe] = self._declare_pub(self.keys.probe(probe), STREAMS["corrected"])
-        self._listen(f"corrected/{probe}", pub)
+        self._entities.append(self._heard.watch(f"corrected/{probe}", pub))
         return pub
-
-    def _listen(self, stream: str, pub: zenoh.Publisher) -> None:
-        """Keep `_heard[stream]` saying whether any subscriber matches `pub` (Zenoh's matching status, pushed by a
-        listener on its thread; the status read after the listener exists, so no change falls between)."""
-        def heard(status: zenoh.MatchingStatus) -> None:
-            self._heard[stream] = bool(status.matching)
-
-        self._entities.append(pub.declare_matching_listener(heard))
-        self._heard[stream] = bool(pub.matching_status.matching)
-
-    def _heard_on(self, stream: str) -> bool:
-        """Whether a subscriber matches the data stream; a message of one nobody hears is not made, and counted
-        (unheard_<stream>; unheard_corrected_probe for the one-probe streams)."""
-        if self._heard.get(stream, True):
-            return True
-        self.stats["unheard_corrected_probe" if stream.startswith("corrected/") else f"unheard_{stream}"] += 1
-        return False
 
     # --- the service's thread: commands and state (fluxcal.service.io.bus.desk) ---------------------------
 
     def pending_commands(self) -> list[Command]:
-        """Commands received since the last call, oldest first; answers pending `state` queries on the way.
-
-        Call it from the service's loop between blocks; answer each command with `cmd.reply({...})`."""
+        """Commands received since the last call, oldest first; answers pending `state` queries on the way. Call it
+        from the service's loop between blocks; answer each command with `cmd.reply({...})`."""
         return self._desk.pending_commands()
 
     def next_command(self, timeout: float | None = None) -> Command | None:
@@ -193,9 +167,7 @@ class ServiceBus(SessionHolder):
 
     def _published_state(self) -> dict[str, Any]:
         st = dict((self._last_calibration or {}).get("state") or {"usable": False})
-        if self._last_health is not None:
-            st["health"] = self._last_health.get("counters")
-        return st
+        return st if self._last_health is None else {**st, "health": self._last_health.get("counters")}
 
     # --- publishing (the service's thread) -------------------------------------------------------
 
@@ -220,28 +192,25 @@ class ServiceBus(SessionHolder):
         return self._sender.flush(timeout) if self._sender is not None else True
 
     def publish_raw(self, block: SampleBlock) -> None:
-        if block.n_samples and self._heard_on("raw"):
+        if block.n_samples and self._heard("raw"):
             self._put(("raw", self._pubs["raw"], raw_payload(block)))
 
     def publish_corrected(self, block: CorrectedBlock) -> None:
         """`corrected` (everything), and `diff`, `tensor`, `corrected/<probe>` when they exist."""
         if not block.n_samples:
             return
-        out = [("corrected", self._pubs["corrected"], corrected_payload(block))] if self._heard_on("corrected") else []
-        for name, series in (("diff", block.diff_nT), ("tensor", block.tensor_nT_m)):
-            if series is not None and self._heard_on(name):
-                out.append((name, self._pubs[name], encode_series(block.t_s, block.seq, series, block.cal_id)))
+        heard = self._heard
+        out = [("corrected", self._pubs["corrected"], corrected_payload(block))] if heard("corrected") else []
+        out += [(name, self._pubs[name], encode_series(block.t_s, block.seq, series, block.cal_id))
+                for name, series in (("diff", block.diff_nT), ("tensor", block.tensor_nT_m))
+                if series is not None and heard(name)]
         if self.per_probe:
             names = self.probe_names or [f"s{k + 1}" for k in range(block.n_probes)]
             if len(names) != block.n_probes:
                 raise DataError(f"corrected block has {block.n_probes} probes, the bus knows {len(names)}: {names}")
-            for name in names:
-                if name not in self._probe_pubs:
-                    self._declare_probe_pub(name)
-            heard = [self._heard_on(f"corrected/{name}") for name in names]
-            if any(heard):
-                out += [("corrected_probe", self._probe_pubs[name], payload)
-                        for name, payload, h in zip(names, probe_payloads(block), heard) if h]
+            pubs = [self._probe_pubs.get(name) or self._declare_probe_pub(name) for name in names]
+            if any(hear := [heard(f"corrected/{name}") for name in names]):
+                out += [("corrected_probe", pub, data) for pub, data, h in zip(pubs, probe_payloads(block), hear) if h]
         if out:
             self._put(*out)
 
@@ -264,16 +233,15 @@ class ServiceBus(SessionHolder):
                       n: int | None = None) -> None:
         """The model-vs-measurement error metric of a block of n samples from seq (unit time t_s),
         {"rms_nT": {channel: nT}}; may be dropped."""
-        if self._heard_on("error"):
-            self._put(("error", self._pubs["error"], _json_bytes({"unit": self.unit, "time_unix_s": time.time(),
-                                                                 "seq": seq, "t_s": t_s, "n": n,
-                                                                 "rms_nT": dict(rms_nT)})))
+        if self._heard("error"):
+            self._put(("error", self._pubs["error"], _json_bytes({"unit": self.unit, "time_unix_s": time.time(), "seq": seq,
+                                                                 "t_s": t_s, "n": n, "rms_nT": dict(rms_nT)})))
 
     def has_subscribers(self, stream: str) -> bool:
         """Whether any subscriber anywhere matches `stream` ("raw", ..., "corrected/<probe>"), e.g. to wait for
         a dashboard before a burst: for a data stream, as the bus knows it when it decides to send (_heard)."""
-        if stream in self._heard:
-            return self._heard[stream]
+        if (known := self._heard.known(stream)) is not None:
+            return known
         pub = self._probe_pubs.get(stream[10:]) if stream.startswith("corrected/") else self._pubs[stream]
         return pub is not None and bool(pub.matching_status.matching)
 
@@ -294,12 +262,10 @@ class ServiceBus(SessionHolder):
             self._desk.close("the service is stopping")
         if self._watch is not None:
             self._watch.close()
-        token = getattr(self, "_token", None)
-        for ent in [token, *self._probe_pubs.values(), *reversed(self._entities)]:
-            if ent is None:
-                continue
+        for ent in [getattr(self, "_token", None), *reversed(self._entities)]:    # a listener before its publisher
             try:
-                ent.undeclare()
+                if ent is not None:
+                    ent.undeclare()
             except zenoh.ZError:
                 pass
         self._entities.clear()
