@@ -38,12 +38,16 @@ Numerics only.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from scipy.fft import next_fast_len, rfft, rfftfreq
 from scipy.optimize import nnls
 from scipy.signal import welch
 
 from fluxcal.service.numerics.effects.base import GAP_FACTOR
+
+from .jacobian import _chunks
 
 #: the spectral index grid of the power law
 ALPHAS = np.round(np.arange(-2.5, 0.001, 0.05), 3)
@@ -198,13 +202,19 @@ FFT_VALUES = 1 << 22
 def spectral_variances(u: np.ndarray, grid: np.ndarray, models: list[tuple[float, float, float] | None],
                        dt: float, rho: np.ndarray | None = None, pad: int = 4, f_min: float = 0.0,
                        bins: int = WEIGHT_BINS, knee: tuple[float, float] | None = None) -> np.ndarray:
-    """spectral_variance of K parameters at once, weights u (N, K, C): (K,). The weights are laid out a row
-    per parameter and channel (contiguous rows: half the time of the FFT down columns), the power law taken
-    once for all, and for independent channels (rho None) only each channel's own power formed."""
-    n, k, c = u.shape
+    """spectral_variance of K parameters at once, weights u (N, K, C): (K,)."""
+    return row_variances(np.ascontiguousarray(np.moveaxis(u, 0, -1)), grid, models, dt, rho, pad, f_min, bins, knee)
+
+
+def row_variances(rows: np.ndarray, grid: np.ndarray, models: list[tuple[float, float, float] | None],
+                  dt: float, rho: np.ndarray | None = None, pad: int = 4, f_min: float = 0.0,
+                  bins: int = WEIGHT_BINS, knee: tuple[float, float] | None = None) -> np.ndarray:
+    """spectral_variances of weights laid out a row per parameter and channel, rows (K, C, N) contiguous (half the
+    time of the FFT down columns): the power law taken once for all, and for independent channels (rho None) only
+    each channel's own power formed."""
+    k, c, n = rows.shape
     known = [mo for mo in models if mo is not None]
     white = float(np.mean([mo[0] for mo in known])) if known else 0.0
-    rows = np.ascontiguousarray(np.moveaxis(u, 0, -1))        # (K, C, N)
     used = [j for j in range(c) if np.any(rows[:, j])]
     if not used:
         return np.zeros(k)
@@ -253,13 +263,17 @@ def _fft_size(grid: np.ndarray, bins: int, pad: int) -> tuple[int, int, int]:
 
 def _binned_rows(u: np.ndarray, grid: np.ndarray, dt: float, bins: int, pad: int
                  ) -> tuple[np.ndarray, np.ndarray, float]:
-    """binned_fft of weights laid out a row each, u (J, N): X is (J, F)."""
+    """binned_fft of weights laid out a row each, u (J, N): X is (J, F). Where every sample has its own bin (no
+    gap, no binning) the bins are the weights themselves (+ 0.0: as bincount's sums into zeros, -0.0 made 0.0)."""
     step, length, m = _fft_size(grid, bins, pad)
-    where = np.asarray(grid) // step
-    x = np.empty((u.shape[0], length))
-    for j in range(u.shape[0]):
-        x[j] = np.bincount(where, weights=u[j], minlength=length)
-    return rfftfreq(m, dt * step)[1:], rfft(x, n=m, axis=1)[:, 1:], m * dt * step
+    x = np.zeros((u.shape[0], m))                              # zero-padded to the FFT's length
+    if step == 1 and length == u.shape[1] and np.all(np.diff(grid) == 1):
+        np.add(u, 0.0, out=x[:, :length])
+    else:
+        where = np.asarray(grid) // step
+        for j in range(u.shape[0]):
+            x[j, :length] = np.bincount(where, weights=u[j], minlength=length)
+    return rfftfreq(m, dt * step)[1:], rfft(x, axis=1)[:, 1:], m * dt * step
 
 
 def binned_fft(u: np.ndarray, grid: np.ndarray, dt: float, bins: int = WEIGHT_BINS,
@@ -277,12 +291,13 @@ def binned_fft(u: np.ndarray, grid: np.ndarray, dt: float, bins: int = WEIGHT_BI
 KNEE_EVIDENCE = 10.0
 
 
-def low_frequency_knee(values: np.ndarray, dt: float, spectra: list) -> tuple[float, float] | None:
+def low_frequency_knee(values: np.ndarray, dt: float, spectra: list,
+                       laws: list | None = None) -> tuple[float, float] | None:
     """(f_k, FLICKER): carry laws steeper than flicker on below their band (MIN_CYCLES per record) at flicker's
     slope, where the residual `values` (N, C, the samples in order at step dt; `spectra` their welch_spectra) show
     it: at 1-2 cycles per record, each channel whose law is coloured and steeper than flicker holds KNEE_EVIDENCE
     times less power than that law carried on steeply. None: the steep law stands (it is not refuted, or no law
-    is steeper than flicker)."""
+    is steeper than flicker). laws: each channel's power_law on its spectrum, when already fitted."""
     from scipy.signal import periodogram
 
     n = values.shape[0]
@@ -291,7 +306,10 @@ def low_frequency_knee(values: np.ndarray, dt: float, spectra: list) -> tuple[fl
     low = slice(1, 3)                                     # 1 and 2 cycles per record
     steep = False
     for c in range(values.shape[1]):
-        law = power_law(values[:, c], dt, spectrum=spectra[c]) if spectra[c] is not None else None
+        if laws is not None:
+            law = laws[c]
+        else:
+            law = power_law(values[:, c], dt, spectrum=spectra[c]) if spectra[c] is not None else None
         if law is None or not is_coloured(law, duration) or law[2] >= FLICKER:
             continue
         steep = True
@@ -366,3 +384,90 @@ def pinv_columns(a: np.ndarray, idx: np.ndarray, rank_tol: float) -> np.ndarray:
     keep = lam > rank_tol * (lam[-1] if lam[-1] > 0 else 1.0)
     vk = vec[:, keep]
     return (vk @ (vk[idx].T / lam[keep][:, None])) / d[:, None] / d[idx][None, :]
+
+
+#: coloured_stderr maps parameter directions to the channels in passes of at most this many values (float64:
+#: directions x channels x rows; 160 MB)
+APPLY_VALUES = 20_000_000
+
+
+def coloured_stderr(fit: Any, idx: np.ndarray, rank_tol: float) -> np.ndarray | None:
+    """Standard errors of parameters idx of a fit (solve.FitResult) under a power-law model of the noise spectrum;
+    None when the noise is not coloured at the record's own period. With the offsets fitted, the model is per probe
+    axis (the channels' sensitivity to a probe's noise is minus their sensitivity to its offset); otherwise per
+    channel, with the channels' slow parts' correlation. The knee below the band (low_frequency_knee) is looked for
+    only where a law steeper than flicker is used: it changes no other."""
+    ch, pr = fit.channels, fit.problem
+    if ch.values.shape[0] < 512 or fit.jac is None:
+        return None
+    grid, dt = sample_grid(ch.t_s)
+    if grid[-1] + 1 > MAX_GRID_FILL * grid.size:
+        return None                                   # mostly gaps: the jackknife's errors stand
+    spectra = welch_spectra(ch.values, dt)
+    if looks_white(spectra, ch.values.shape[0] * dt):     # the length the spectra are taken over (gaps closed)
+        return None
+    cols = pinv_columns(fit.a_blocks.sum(0), idx, rank_tol)
+    offsets = [(sl.k, j) for sl in pr.slots if sl.kind == "offset" for j in range(sl.start, sl.stop)]
+    if len(offsets) == 3 * pr.P:
+        return _per_probe_axis(fit, cols, offsets, grid, dt, spectra)
+    return _per_channel(fit, cols, grid, dt, spectra)
+
+
+def _per_probe_axis(fit: Any, cols: np.ndarray, offsets: list[tuple[int, int]], grid: np.ndarray, dt: float,
+                    spectra: list) -> np.ndarray | None:
+    ch, pr = fit.channels, fit.problem
+    duration = ch.values.shape[0] * dt
+    units = np.zeros((pr.n_params, len(offsets)))
+    units[[j for _, j in offsets], np.arange(len(offsets))] = 1.0
+    sens = pr.apply(fit.jac, fit.ev, units)                                 # (N, C, 3P): per probe axis
+    gain = np.mean(sens ** 2, axis=0).reshape(ch.values.shape[1], pr.P, 3).sum(axis=2)
+    law = probe_power_laws(ch.values, dt, gain, spectra=spectra)
+    if law is None or not any(is_coloured((float(w), float(a), law[2]), duration) for w, a in zip(*law[:2])):
+        return None
+    if law[2] > FLICKER:
+        law = probe_power_laws(ch.values, dt, gain, alphas=np.array([FLICKER]), spectra=spectra) or law
+    w, a, alpha = law
+    knee = low_frequency_knee(ch.values, dt, spectra) if alpha < FLICKER else None     # below the band
+    models = [(float(w[k]), float(a[k]), alpha) for k, _ in offsets]
+    return np.sqrt(np.concatenate([row_variances(rows, grid, models, dt, knee=knee)
+                                   for rows in _weight_rows(fit, cols, sens)]))
+
+
+def _per_channel(fit: Any, cols: np.ndarray, grid: np.ndarray, dt: float, spectra: list) -> np.ndarray | None:
+    values = fit.channels.values
+    duration = values.shape[0] * dt
+    laws = [power_law(values[:, c], dt, spectrum=spectra[c]) for c in range(values.shape[1])]
+    if not any(is_coloured(m, duration) for m in laws):
+        return None
+    models = [power_law(values[:, c], dt, np.array([FLICKER]), spectrum=spectra[c]) or m
+              if m is not None and is_coloured(m, duration) and m[2] > FLICKER else m
+              for c, m in enumerate(laws)]
+    steep = any(m is not None and m[2] < FLICKER for m in models)
+    knee = low_frequency_knee(values, dt, spectra, laws) if steep else None            # below the band
+    rho = low_frequency_correlation(values)
+    return np.sqrt(np.concatenate([row_variances(rows, grid, models, dt, rho, f_min=1.0 / duration, knee=knee)
+                                   for rows in _weight_rows(fit, cols)]))
+
+
+def _weight_rows(fit: Any, cols: np.ndarray, sens: np.ndarray | None = None):
+    """The weighted channel weights of parameter directions cols (n_params, J), a row per direction and channel
+    (J', C, N) as row_variances takes them, or per direction and probe axis through the channels' sensitivities
+    to them, sens (N, C, 3P): (J', 3P, N). As many directions a pass as APPLY_VALUES allows, each pass built a
+    chunk of samples at a time into its layout (no copy of the whole pass in another)."""
+    pr = fit.problem
+    n, c = fit.channels.values.shape
+    width = c if sens is None else sens.shape[2]
+    per = max(1, APPLY_VALUES // (n * max(c, width)))
+    w2 = pr.weights ** 2
+    for lo in range(0, cols.shape[1], per):
+        d = cols[:, lo:lo + per]
+        rows = np.empty((d.shape[1], width, n))
+        at = 0
+        for sl in [c for b in pr.blocks for c in _chunks(b, pr.n_params)]:
+            u = pr.apply(fit.jac, fit.ev, d, sl)                                 # (m, C, J')
+            u *= w2[None, :, None]
+            m = u.shape[0]
+            rows[:, :, at:at + m] = (u.transpose(2, 1, 0) if sens is None
+                                     else np.matmul(u.transpose(0, 2, 1), sens[at:at + m]).transpose(1, 2, 0))
+            at += m
+        yield rows
