@@ -112,11 +112,10 @@ def probe_power_laws(values: np.ndarray, dt: float, gain: np.ndarray, alphas: np
     h2, hw = h * h, h * wt[None, :]
     s0, s1, s2 = h2.sum(axis=1), h2 @ fa, h2 @ (fa * fa)     # (C,), (C, A), (C, A)
     t0, t1 = hw.sum(axis=1), hw @ fa
+    coefs = _nnls_normals(*_law_normals(gain, s0, s1, s2, t0, t1))
     best, best_score = None, np.inf
     for i, alpha in enumerate(alphas):
-        coef = _nnls_normal(np.block([[gain.T @ (s0[:, None] * gain), gain.T @ (s1[:, i, None] * gain)],
-                                      [gain.T @ (s1[:, i, None] * gain), gain.T @ (s2[:, i, None] * gain)]]),
-                            np.concatenate([gain.T @ t0, gain.T @ t1[:, i]]))
+        coef = coefs[i]
         if alpha == 0.0:                 # f^0 = 1: the two columns are one; all of it is white (as nnls on the rows)
             coef = np.concatenate([coef[:p_n] + coef[p_n:], np.zeros(p_n)])
         model = np.einsum("ck,kf->cf", gain, coef[:p_n, None] + coef[p_n:, None] * fa[None, :, i])
@@ -128,18 +127,36 @@ def probe_power_laws(values: np.ndarray, dt: float, gain: np.ndarray, alphas: np
     return best
 
 
-def _nnls_normal(g: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """argmin over c >= 0 of c' g c - 2 b' c (the least squares whose normal equations are g c = b): nnls on
-    a square root of g, column-scaled, without its null space."""
-    d = np.sqrt(np.clip(np.diag(g), 0.0, None))
+def _law_normals(gain: np.ndarray, s0: np.ndarray, s1: np.ndarray, s2: np.ndarray, t0: np.ndarray,
+                 t1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """probe_power_laws' normal equations for every alpha: g (A, 2P, 2P) = [[G0, G1], [G1, G2]], G_j = gain' (s_j
+    gain), and b (A, 2P) = [gain' t0, gain' t1]; the parts that do not depend on alpha formed once."""
+    p_n, n_a = gain.shape[1], s1.shape[1]
+    g, b = np.empty((n_a, 2 * p_n, 2 * p_n)), np.empty((n_a, 2 * p_n))
+    g[:, :p_n, :p_n] = gain.T @ (s0[:, None] * gain)
+    b[:, :p_n] = gain.T @ t0
+    for i in range(n_a):
+        g[i, :p_n, p_n:] = g[i, p_n:, :p_n] = gain.T @ (s1[:, i, None] * gain)
+        g[i, p_n:, p_n:] = gain.T @ (s2[:, i, None] * gain)
+        b[i, p_n:] = gain.T @ t1[:, i]
+    return g, b
+
+
+def _nnls_normals(g: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """argmin over c >= 0 of c' g c - 2 b' c (the least squares whose normal equations are g c = b) for a stack of
+    problems g (A, m, m), b (A, m): nnls on a square root of each g, column-scaled, without its null space; the
+    eigen-decompositions taken at once (numpy's stacked eigh solves each matrix as it solves it alone)."""
+    d = np.sqrt(np.clip(np.einsum("aii->ai", g), 0.0, None))
     d[d <= 0] = 1.0
-    lam, vec = np.linalg.eigh(g / np.outer(d, d))
-    keep = lam > 1e-13 * max(lam[-1], 1e-300)
-    root = np.sqrt(lam[keep])
-    a = (vec[:, keep] * root).T                               # a' a = g scaled
-    y = (vec[:, keep].T @ (b / d)) / root
-    coef, _ = nnls(a, y)
-    return coef / d
+    lams, vecs = np.linalg.eigh(g / (d[:, :, None] * d[:, None, :]))
+    out = np.empty(b.shape)
+    for i, (lam, vec) in enumerate(zip(lams, vecs)):
+        keep = lam > 1e-13 * max(lam[-1], 1e-300)
+        root = np.sqrt(lam[keep])
+        a = (vec[:, keep] * root).T                               # a' a = g scaled
+        y = (vec[:, keep].T @ (b[i] / d[i])) / root
+        out[i] = nnls(a, y)[0] / d[i]
+    return out
 
 
 def looks_white(spectra: list, duration_s: float, margin: float = 1.2) -> bool:
