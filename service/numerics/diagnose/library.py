@@ -47,7 +47,7 @@ from fluxcal.service.numerics.effects.thermal import low_pass
 
 from .harmonics import column_lines, harmonic_lines, harmonic_source
 from .shapes import SHAPE_ORDERS, shape_recipes
-from .spectra import excess_spectra, spectral_lines
+from .spectra import excess_spectra, set_spectra, spectral_lines
 
 #: the groups that follow a smooth function of an observable (shapes.py): a probe's, in its raw frame, and one common
 #: to all probes of an array, in the aligned frame
@@ -367,13 +367,13 @@ def wave_features(data: EffectData, fit: Any, noise: np.ndarray,
                   exclude: tuple[int, int] | None = None) -> list[Feature]:
     """The features the residual itself chooses: the phases of the columns whose band holds some of its excess
     power (phase_features) and its spectral lines. exclude: rows of the fit not looked at (a held-out block)."""
-    spectra = excess_spectra(fit, noise, exclude)
+    spectra = set_spectra(fit, noise, exclude)
     sources = column_lines(data)
     # a line a logged column's own motion makes (a harmonic or a sum of its lines) is that column's shape, which the
     # library holds: never a wave of its own (harmonics.py)
-    lines = line_features(data, [hz for hz in spectral_lines(fit, noise, exclude)
+    lines = line_features(data, [hz for hz in spectral_lines(fit, noise, exclude, spectra)
                                  if harmonic_source(hz, sources, data.duration_s) is None])
-    return phase_features(data, spectra, usable_columns(data)) + lines
+    return phase_features(data, excess_spectra(fit, noise, exclude, spectra), usable_columns(data)) + lines
 
 
 def wave_groups(data: EffectData, waves: list[Feature]) -> list[Group]:

@@ -54,6 +54,8 @@ class Normals:
     n_model: int
     spans: list[slice]
     nested: list[int | None] = field(default_factory=list)    # per group, a smaller group it holds (nested_in)
+    #: heldout_sse's answers by (parameters, train blocks, test blocks): the selection asks a third of them again
+    memo: dict = field(default_factory=dict, repr=False, compare=False)
 
 
 def blocks_of(fit: FitResult, split: int = BLOCK_SPLIT) -> list[tuple[int, int]]:
@@ -341,7 +343,15 @@ def fit_all(nm: Normals) -> tuple[np.ndarray, float]:
 
 
 def heldout_sse(nm: Normals, idx: np.ndarray, train: list[int], test: list[int]) -> np.ndarray:
-    """Weighted SSE of each test block predicted by the fit on the train blocks less that block (linearised)."""
+    """Weighted SSE of each test block predicted by the fit on the train blocks less that block (linearised); each
+    answer worked out once per Normals."""
+    key = (idx.tobytes(), tuple(train), tuple(test))
+    if key not in nm.memo:
+        nm.memo[key] = _heldout_sse(nm, idx, train, test)
+    return nm.memo[key].copy()
+
+
+def _heldout_sse(nm: Normals, idx: np.ndarray, train: list[int], test: list[int]) -> np.ndarray:
     out = np.zeros(len(test))
     if idx.size == 0:
         return nm.sse[test].astype(float)

@@ -45,37 +45,46 @@ def series(fit: Any, noise: np.ndarray, exclude: tuple[int, int] | None = None) 
     return out
 
 
-def excess_spectra(fit: Any, noise: np.ndarray,
-                    exclude: tuple[int, int] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per set of series (series): (frequencies, excess power density over its white floor)."""
+def set_spectra(fit: Any, noise: np.ndarray, exclude: tuple[int, int] | None = None) -> tuple[list, list]:
+    """The sets of series (series) and each one's Welch spectrum summed over its series, (frequencies, power), on
+    segments of an eighth of the record (none under 256 samples): what excess_spectra and spectral_lines read, taken
+    once where both are wanted (library.wave_features)."""
     n = fit.channels.values.shape[0]
     if n < 256:
-        return []
+        return [], []
     dt = sample_grid(fit.channels.t_s)[1]          # the samples in order (bursty: mean interval)
     nper = int(2 ** np.floor(np.log2(n / 8)))
-    out = []
-    for x, white in series(fit, noise, exclude):
+    sets, out = series(fit, noise, exclude), []
+    for x, _ in sets:
         f, p = welch(x, fs=1.0 / dt, nperseg=nper, axis=0)
-        out.append((f[1:], np.clip(p[1:].sum(axis=1) - white, 0.0, None)))
-    return out
+        out.append((f, p.sum(axis=1)))
+    return sets, out
 
 
-def spectral_lines(fit: Any, noise: np.ndarray, exclude: tuple[int, int] | None = None) -> list[float]:
+def excess_spectra(fit: Any, noise: np.ndarray, exclude: tuple[int, int] | None = None,
+                   spectra: tuple[list, list] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per set of series (series): (frequencies, excess power density over its white floor). spectra: set_spectra's,
+    when already taken."""
+    sets, summed = spectra if spectra is not None else set_spectra(fit, noise, exclude)
+    return [(f[1:], np.clip(p[1:] - white, 0.0, None)) for (_, white), (f, p) in zip(sets, summed)]
+
+
+def spectral_lines(fit: Any, noise: np.ndarray, exclude: tuple[int, int] | None = None,
+                   spectra: tuple[list, list] | None = None) -> list[float]:
     """Frequencies (Hz) of the residual's spectral lines: Welch peaks (of the sets of series) standing
     LINE_FACTOR above the median of their neighbourhood and holding LINE_SHARE of a set's excess, strongest first
     (MAX_LINES), each refined on the residual to a fraction of a Welch bin (the largest summed periodogram
-    over a fine grid about it). exclude: rows of the fit not looked at (series)."""
+    over a fine grid about it). exclude: rows of the fit not looked at (series). spectra: set_spectra's, when
+    already taken."""
     t = fit.channels.t_s
     n = t.size
     if n < 512:
         return []
     dt = sample_grid(t)[1]
     nper = int(2 ** np.floor(np.log2(n / 8)))
-    sets = series(fit, noise, exclude)
+    sets, summed = spectra if spectra is not None else set_spectra(fit, noise, exclude)
     peaks: list[tuple[float, float, int]] = []
-    for c, (x, white) in enumerate(sets):
-        f, p = welch(x, fs=1.0 / dt, nperseg=nper, axis=0)
-        p = p.sum(axis=1)
+    for c, ((_, white), (f, p)) in enumerate(zip(sets, summed)):
         excess = np.clip(p - white, 0.0, None)
         tot = float(excess[1:].sum())
         if tot <= 0:

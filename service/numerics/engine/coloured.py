@@ -38,12 +38,16 @@ Numerics only.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from scipy.fft import next_fast_len, rfft, rfftfreq
 from scipy.optimize import nnls
 from scipy.signal import welch
 
 from fluxcal.service.numerics.effects.base import GAP_FACTOR
+
+from .jacobian import _chunks
 
 #: the spectral index grid of the power law
 ALPHAS = np.round(np.arange(-2.5, 0.001, 0.05), 3)
@@ -108,11 +112,10 @@ def probe_power_laws(values: np.ndarray, dt: float, gain: np.ndarray, alphas: np
     h2, hw = h * h, h * wt[None, :]
     s0, s1, s2 = h2.sum(axis=1), h2 @ fa, h2 @ (fa * fa)     # (C,), (C, A), (C, A)
     t0, t1 = hw.sum(axis=1), hw @ fa
+    coefs = _nnls_normals(*_law_normals(gain, s0, s1, s2, t0, t1))
     best, best_score = None, np.inf
     for i, alpha in enumerate(alphas):
-        coef = _nnls_normal(np.block([[gain.T @ (s0[:, None] * gain), gain.T @ (s1[:, i, None] * gain)],
-                                      [gain.T @ (s1[:, i, None] * gain), gain.T @ (s2[:, i, None] * gain)]]),
-                            np.concatenate([gain.T @ t0, gain.T @ t1[:, i]]))
+        coef = coefs[i]
         if alpha == 0.0:                 # f^0 = 1: the two columns are one; all of it is white (as nnls on the rows)
             coef = np.concatenate([coef[:p_n] + coef[p_n:], np.zeros(p_n)])
         model = np.einsum("ck,kf->cf", gain, coef[:p_n, None] + coef[p_n:, None] * fa[None, :, i])
@@ -124,18 +127,36 @@ def probe_power_laws(values: np.ndarray, dt: float, gain: np.ndarray, alphas: np
     return best
 
 
-def _nnls_normal(g: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """argmin over c >= 0 of c' g c - 2 b' c (the least squares whose normal equations are g c = b): nnls on
-    a square root of g, column-scaled, without its null space."""
-    d = np.sqrt(np.clip(np.diag(g), 0.0, None))
+def _law_normals(gain: np.ndarray, s0: np.ndarray, s1: np.ndarray, s2: np.ndarray, t0: np.ndarray,
+                 t1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """probe_power_laws' normal equations for every alpha: g (A, 2P, 2P) = [[G0, G1], [G1, G2]], G_j = gain' (s_j
+    gain), and b (A, 2P) = [gain' t0, gain' t1]; the parts that do not depend on alpha formed once."""
+    p_n, n_a = gain.shape[1], s1.shape[1]
+    g, b = np.empty((n_a, 2 * p_n, 2 * p_n)), np.empty((n_a, 2 * p_n))
+    g[:, :p_n, :p_n] = gain.T @ (s0[:, None] * gain)
+    b[:, :p_n] = gain.T @ t0
+    for i in range(n_a):
+        g[i, :p_n, p_n:] = g[i, p_n:, :p_n] = gain.T @ (s1[:, i, None] * gain)
+        g[i, p_n:, p_n:] = gain.T @ (s2[:, i, None] * gain)
+        b[i, p_n:] = gain.T @ t1[:, i]
+    return g, b
+
+
+def _nnls_normals(g: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """argmin over c >= 0 of c' g c - 2 b' c (the least squares whose normal equations are g c = b) for a stack of
+    problems g (A, m, m), b (A, m): nnls on a square root of each g, column-scaled, without its null space; the
+    eigen-decompositions taken at once (numpy's stacked eigh solves each matrix as it solves it alone)."""
+    d = np.sqrt(np.clip(np.einsum("aii->ai", g), 0.0, None))
     d[d <= 0] = 1.0
-    lam, vec = np.linalg.eigh(g / np.outer(d, d))
-    keep = lam > 1e-13 * max(lam[-1], 1e-300)
-    root = np.sqrt(lam[keep])
-    a = (vec[:, keep] * root).T                               # a' a = g scaled
-    y = (vec[:, keep].T @ (b / d)) / root
-    coef, _ = nnls(a, y)
-    return coef / d
+    lams, vecs = np.linalg.eigh(g / (d[:, :, None] * d[:, None, :]))
+    out = np.empty(b.shape)
+    for i, (lam, vec) in enumerate(zip(lams, vecs)):
+        keep = lam > 1e-13 * max(lam[-1], 1e-300)
+        root = np.sqrt(lam[keep])
+        a = (vec[:, keep] * root).T                               # a' a = g scaled
+        y = (vec[:, keep].T @ (b[i] / d[i])) / root
+        out[i] = nnls(a, y)[0] / d[i]
+    return out
 
 
 def looks_white(spectra: list, duration_s: float, margin: float = 1.2) -> bool:
@@ -198,13 +219,19 @@ FFT_VALUES = 1 << 22
 def spectral_variances(u: np.ndarray, grid: np.ndarray, models: list[tuple[float, float, float] | None],
                        dt: float, rho: np.ndarray | None = None, pad: int = 4, f_min: float = 0.0,
                        bins: int = WEIGHT_BINS, knee: tuple[float, float] | None = None) -> np.ndarray:
-    """spectral_variance of K parameters at once, weights u (N, K, C): (K,). The weights are laid out a row
-    per parameter and channel (contiguous rows: half the time of the FFT down columns), the power law taken
-    once for all, and for independent channels (rho None) only each channel's own power formed."""
-    n, k, c = u.shape
+    """spectral_variance of K parameters at once, weights u (N, K, C): (K,)."""
+    return row_variances(np.ascontiguousarray(np.moveaxis(u, 0, -1)), grid, models, dt, rho, pad, f_min, bins, knee)
+
+
+def row_variances(rows: np.ndarray, grid: np.ndarray, models: list[tuple[float, float, float] | None],
+                  dt: float, rho: np.ndarray | None = None, pad: int = 4, f_min: float = 0.0,
+                  bins: int = WEIGHT_BINS, knee: tuple[float, float] | None = None) -> np.ndarray:
+    """spectral_variances of weights laid out a row per parameter and channel, rows (K, C, N) contiguous (half the
+    time of the FFT down columns): the power law taken once for all, and for independent channels (rho None) only
+    each channel's own power formed."""
+    k, c, n = rows.shape
     known = [mo for mo in models if mo is not None]
     white = float(np.mean([mo[0] for mo in known])) if known else 0.0
-    rows = np.ascontiguousarray(np.moveaxis(u, 0, -1))        # (K, C, N)
     used = [j for j in range(c) if np.any(rows[:, j])]
     if not used:
         return np.zeros(k)
@@ -253,13 +280,17 @@ def _fft_size(grid: np.ndarray, bins: int, pad: int) -> tuple[int, int, int]:
 
 def _binned_rows(u: np.ndarray, grid: np.ndarray, dt: float, bins: int, pad: int
                  ) -> tuple[np.ndarray, np.ndarray, float]:
-    """binned_fft of weights laid out a row each, u (J, N): X is (J, F)."""
+    """binned_fft of weights laid out a row each, u (J, N): X is (J, F). Where every sample has its own bin (no
+    gap, no binning) the bins are the weights themselves (+ 0.0: as bincount's sums into zeros, -0.0 made 0.0)."""
     step, length, m = _fft_size(grid, bins, pad)
-    where = np.asarray(grid) // step
-    x = np.empty((u.shape[0], length))
-    for j in range(u.shape[0]):
-        x[j] = np.bincount(where, weights=u[j], minlength=length)
-    return rfftfreq(m, dt * step)[1:], rfft(x, n=m, axis=1)[:, 1:], m * dt * step
+    x = np.zeros((u.shape[0], m))                              # zero-padded to the FFT's length
+    if step == 1 and length == u.shape[1] and np.all(np.diff(grid) == 1):
+        np.add(u, 0.0, out=x[:, :length])
+    else:
+        where = np.asarray(grid) // step
+        for j in range(u.shape[0]):
+            x[j, :length] = np.bincount(where, weights=u[j], minlength=length)
+    return rfftfreq(m, dt * step)[1:], rfft(x, axis=1)[:, 1:], m * dt * step
 
 
 def binned_fft(u: np.ndarray, grid: np.ndarray, dt: float, bins: int = WEIGHT_BINS,
@@ -277,12 +308,13 @@ def binned_fft(u: np.ndarray, grid: np.ndarray, dt: float, bins: int = WEIGHT_BI
 KNEE_EVIDENCE = 10.0
 
 
-def low_frequency_knee(values: np.ndarray, dt: float, spectra: list) -> tuple[float, float] | None:
+def low_frequency_knee(values: np.ndarray, dt: float, spectra: list,
+                       laws: list | None = None) -> tuple[float, float] | None:
     """(f_k, FLICKER): carry laws steeper than flicker on below their band (MIN_CYCLES per record) at flicker's
     slope, where the residual `values` (N, C, the samples in order at step dt; `spectra` their welch_spectra) show
     it: at 1-2 cycles per record, each channel whose law is coloured and steeper than flicker holds KNEE_EVIDENCE
     times less power than that law carried on steeply. None: the steep law stands (it is not refuted, or no law
-    is steeper than flicker)."""
+    is steeper than flicker). laws: each channel's power_law on its spectrum, when already fitted."""
     from scipy.signal import periodogram
 
     n = values.shape[0]
@@ -291,7 +323,10 @@ def low_frequency_knee(values: np.ndarray, dt: float, spectra: list) -> tuple[fl
     low = slice(1, 3)                                     # 1 and 2 cycles per record
     steep = False
     for c in range(values.shape[1]):
-        law = power_law(values[:, c], dt, spectrum=spectra[c]) if spectra[c] is not None else None
+        if laws is not None:
+            law = laws[c]
+        else:
+            law = power_law(values[:, c], dt, spectrum=spectra[c]) if spectra[c] is not None else None
         if law is None or not is_coloured(law, duration) or law[2] >= FLICKER:
             continue
         steep = True
@@ -366,3 +401,90 @@ def pinv_columns(a: np.ndarray, idx: np.ndarray, rank_tol: float) -> np.ndarray:
     keep = lam > rank_tol * (lam[-1] if lam[-1] > 0 else 1.0)
     vk = vec[:, keep]
     return (vk @ (vk[idx].T / lam[keep][:, None])) / d[:, None] / d[idx][None, :]
+
+
+#: coloured_stderr maps parameter directions to the channels in passes of at most this many values (float64:
+#: directions x channels x rows; 160 MB)
+APPLY_VALUES = 20_000_000
+
+
+def coloured_stderr(fit: Any, idx: np.ndarray, rank_tol: float) -> np.ndarray | None:
+    """Standard errors of parameters idx of a fit (solve.FitResult) under a power-law model of the noise spectrum;
+    None when the noise is not coloured at the record's own period. With the offsets fitted, the model is per probe
+    axis (the channels' sensitivity to a probe's noise is minus their sensitivity to its offset); otherwise per
+    channel, with the channels' slow parts' correlation. The knee below the band (low_frequency_knee) is looked for
+    only where a law steeper than flicker is used: it changes no other."""
+    ch, pr = fit.channels, fit.problem
+    if ch.values.shape[0] < 512 or fit.jac is None:
+        return None
+    grid, dt = sample_grid(ch.t_s)
+    if grid[-1] + 1 > MAX_GRID_FILL * grid.size:
+        return None                                   # mostly gaps: the jackknife's errors stand
+    spectra = welch_spectra(ch.values, dt)
+    if looks_white(spectra, ch.values.shape[0] * dt):     # the length the spectra are taken over (gaps closed)
+        return None
+    cols = pinv_columns(fit.a_blocks.sum(0), idx, rank_tol)
+    offsets = [(sl.k, j) for sl in pr.slots if sl.kind == "offset" for j in range(sl.start, sl.stop)]
+    if len(offsets) == 3 * pr.P:
+        return _per_probe_axis(fit, cols, offsets, grid, dt, spectra)
+    return _per_channel(fit, cols, grid, dt, spectra)
+
+
+def _per_probe_axis(fit: Any, cols: np.ndarray, offsets: list[tuple[int, int]], grid: np.ndarray, dt: float,
+                    spectra: list) -> np.ndarray | None:
+    ch, pr = fit.channels, fit.problem
+    duration = ch.values.shape[0] * dt
+    units = np.zeros((pr.n_params, len(offsets)))
+    units[[j for _, j in offsets], np.arange(len(offsets))] = 1.0
+    sens = pr.apply(fit.jac, fit.ev, units)                                 # (N, C, 3P): per probe axis
+    gain = np.mean(sens ** 2, axis=0).reshape(ch.values.shape[1], pr.P, 3).sum(axis=2)
+    law = probe_power_laws(ch.values, dt, gain, spectra=spectra)
+    if law is None or not any(is_coloured((float(w), float(a), law[2]), duration) for w, a in zip(*law[:2])):
+        return None
+    if law[2] > FLICKER:
+        law = probe_power_laws(ch.values, dt, gain, alphas=np.array([FLICKER]), spectra=spectra) or law
+    w, a, alpha = law
+    knee = low_frequency_knee(ch.values, dt, spectra) if alpha < FLICKER else None     # below the band
+    models = [(float(w[k]), float(a[k]), alpha) for k, _ in offsets]
+    return np.sqrt(np.concatenate([row_variances(rows, grid, models, dt, knee=knee)
+                                   for rows in _weight_rows(fit, cols, sens)]))
+
+
+def _per_channel(fit: Any, cols: np.ndarray, grid: np.ndarray, dt: float, spectra: list) -> np.ndarray | None:
+    values = fit.channels.values
+    duration = values.shape[0] * dt
+    laws = [power_law(values[:, c], dt, spectrum=spectra[c]) for c in range(values.shape[1])]
+    if not any(is_coloured(m, duration) for m in laws):
+        return None
+    models = [power_law(values[:, c], dt, np.array([FLICKER]), spectrum=spectra[c]) or m
+              if m is not None and is_coloured(m, duration) and m[2] > FLICKER else m
+              for c, m in enumerate(laws)]
+    steep = any(m is not None and m[2] < FLICKER for m in models)
+    knee = low_frequency_knee(values, dt, spectra, laws) if steep else None            # below the band
+    rho = low_frequency_correlation(values)
+    return np.sqrt(np.concatenate([row_variances(rows, grid, models, dt, rho, f_min=1.0 / duration, knee=knee)
+                                   for rows in _weight_rows(fit, cols)]))
+
+
+def _weight_rows(fit: Any, cols: np.ndarray, sens: np.ndarray | None = None):
+    """The weighted channel weights of parameter directions cols (n_params, J), a row per direction and channel
+    (J', C, N) as row_variances takes them, or per direction and probe axis through the channels' sensitivities
+    to them, sens (N, C, 3P): (J', 3P, N). As many directions a pass as APPLY_VALUES allows, each pass built a
+    chunk of samples at a time into its layout (no copy of the whole pass in another)."""
+    pr = fit.problem
+    n, c = fit.channels.values.shape
+    width = c if sens is None else sens.shape[2]
+    per = max(1, APPLY_VALUES // (n * max(c, width)))
+    w2 = pr.weights ** 2
+    for lo in range(0, cols.shape[1], per):
+        d = cols[:, lo:lo + per]
+        rows = np.empty((d.shape[1], width, n))
+        at = 0
+        for sl in [c for b in pr.blocks for c in _chunks(b, pr.n_params)]:
+            u = pr.apply(fit.jac, fit.ev, d, sl)                                 # (m, C, J')
+            u *= w2[None, :, None]
+            m = u.shape[0]
+            rows[:, :, at:at + m] = (u.transpose(2, 1, 0) if sens is None
+                                     else np.matmul(u.transpose(0, 2, 1), sens[at:at + m]).transpose(1, 2, 0))
+            at += m
+        yield rows

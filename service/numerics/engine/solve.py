@@ -34,10 +34,6 @@ LINEARITY_SE = 0.1
 #: an iteration lowering the weighted RSS by less than this many s^2 ends the fit (flat directions only)
 RSS_TOL = 0.01
 
-#: coloured_stderr maps parameter directions to the channels in passes of at most this many values (float64:
-#: rows x channels x directions; 160 MB)
-APPLY_VALUES = 20_000_000
-
 
 def solve_normal(a: np.ndarray, g: np.ndarray, damping: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """delta = -(A + damping diag A)^+ g on the column-scaled system (Levenberg-Marquardt when damping > 0),
@@ -171,76 +167,11 @@ class FitResult:
         return out
 
     def coloured_stderr(self, idx: np.ndarray) -> np.ndarray | None:
-        """Standard errors of parameters idx under a power-law model of the noise spectrum (engine/coloured.py);
-        None when the noise is not coloured at the record's own period. With the offsets fitted, the model is
-        per probe axis (the channels' sensitivity to a probe's noise is minus their sensitivity to its
-        offset); otherwise per channel, with the channels' slow parts' correlation."""
-        from .coloured import (
-            FLICKER,
-            MAX_GRID_FILL,
-            is_coloured,
-            looks_white,
-            low_frequency_correlation,
-            low_frequency_knee,
-            pinv_columns,
-            power_law,
-            probe_power_laws,
-            sample_grid,
-            spectral_variances,
-            welch_spectra,
-        )
+        """Standard errors of parameters idx under a power-law model of the noise spectrum (coloured.coloured_stderr);
+        None when the noise is not coloured at the record's own period."""
+        from .coloured import coloured_stderr
 
-        ch, pr = self.channels, self.problem
-        if ch.values.shape[0] < 512 or self.jac is None:
-            return None
-        grid, dt = sample_grid(ch.t_s)
-        if grid[-1] + 1 > MAX_GRID_FILL * grid.size:
-            return None                                   # mostly gaps: the jackknife's errors stand
-        duration = ch.values.shape[0] * dt                # the length the spectra are taken over (gaps closed)
-        spectra = welch_spectra(ch.values, dt)
-        if looks_white(spectra, duration):
-            return None
-        knee = low_frequency_knee(ch.values, dt, spectra)    # below the band: flicker where the data show it
-        cols = pinv_columns(self.a_blocks.sum(0), idx, RANK_TOL)
-        w2 = pr.weights ** 2
-        offsets = [(sl.k, j) for sl in pr.slots if sl.kind == "offset" for j in range(sl.start, sl.stop)]
-        if len(offsets) == 3 * pr.P:
-            units = np.zeros((pr.n_params, len(offsets)))
-            units[[j for _, j in offsets], np.arange(len(offsets))] = 1.0
-            sens = pr.apply(self.jac, self.ev, units)                            # (N, C, 3P): per probe axis
-            gain = np.mean(sens ** 2, axis=0).reshape(ch.values.shape[1], pr.P, 3).sum(axis=2)
-            law = probe_power_laws(ch.values, dt, gain, spectra=spectra)
-            if law is None or not any(is_coloured((float(w), float(a), law[2]), duration) for w, a in zip(*law[:2])):
-                return None
-            if law[2] > FLICKER:
-                law = probe_power_laws(ch.values, dt, gain, alphas=np.array([FLICKER]), spectra=spectra) or law
-            w, a, alpha = law
-            models = [(float(w[k]), float(a[k]), alpha) for k, _ in offsets]
-            out = []
-            for u in self._weights(cols, w2, len(offsets)):
-                v = np.matmul(u.transpose(0, 2, 1), sens)                       # (N, K, 3P)
-                out.append(spectral_variances(v, grid, models, dt, knee=knee))
-            return np.sqrt(np.concatenate(out))
-        models = [power_law(ch.values[:, c], dt, spectrum=spectra[c]) for c in range(ch.values.shape[1])]
-        if not any(is_coloured(m, duration) for m in models):
-            return None
-        models = [power_law(ch.values[:, c], dt, np.array([FLICKER]), spectrum=spectra[c]) or m
-                  if m is not None and is_coloured(m, duration) and m[2] > FLICKER else m
-                  for c, m in enumerate(models)]
-        rho = low_frequency_correlation(ch.values)
-        return np.sqrt(np.concatenate([spectral_variances(u.transpose(0, 2, 1), grid, models, dt, rho,
-                                                          f_min=1.0 / duration, knee=knee)
-                                       for u in self._weights(cols, w2, 0)]))
-
-    def _weights(self, cols: np.ndarray, w2: np.ndarray, extra: int):
-        """The weighted channel weights (N, C, K) of parameter directions cols (n_params, J), K at a time: as
-        many as APPLY_VALUES allows beside `extra` values per row and direction."""
-        n, c = self.channels.values.shape
-        per = max(1, APPLY_VALUES // (n * max(c, extra)))
-        for lo in range(0, cols.shape[1], per):
-            u = self.problem.apply(self.jac, self.ev, cols[:, lo:lo + per])
-            u *= w2[None, :, None]
-            yield u
+        return coloured_stderr(self, idx, RANK_TOL)
 
     def parameters(self, *, effects_only: bool = True) -> list[Parameter]:
         out = []
