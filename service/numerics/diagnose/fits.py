@@ -189,8 +189,7 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
     cmp = _compare(cur, cur_ho, fit, ho)
     c = Candidate(effect=name, rms_nT=fit.rms_nT, heldout_rms_nT=ho.rms_nT, gain=cmp["gain"],
                   log_ratio=cmp["lr"], log_ratio_se=cmp["lr_se"], p_value=cmp["p"], bic_delta=cmp["bic"],
-                  n_params=int(cmp["dp"]), parameters=[p for p in fit.parameters() if p.term == name],
-                  block_log_ratio=cmp["lr_b"], fit=fit, heldout_channels_nT=ho.channel_rms_nT)
+                  n_params=int(cmp["dp"]), block_log_ratio=cmp["lr_b"], fit=fit, heldout_channels_nT=ho.channel_rms_nT)
     c.significant = bool(c.p_value < P_SIGNIFICANT and c.gain >= MIN_GAIN and c.log_ratio > GAIN_SIGMAS * c.log_ratio_se
                          and c.n_params > 0)
     floor = float(np.sqrt(np.mean((1.0 / np.asarray(weights, float)) ** 2)))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -62,11 +63,17 @@ class Candidate:
     n_params: int = 0                     # parameters the data determine
     indistinguishable_from: list[str] = field(default_factory=list)
     separate_by: str | None = None
-    parameters: list[Parameter] = field(default_factory=list)
     block_log_ratio: np.ndarray | None = field(default=None, repr=False)
     fit: FitResult | None = field(default=None, repr=False)
     #: (C,) each channel's held-out RMS with the effect added, nT (None where it was not fitted)
     heldout_channels_nT: np.ndarray | None = field(default=None, repr=False)
+
+    @cached_property
+    def parameters(self) -> list[Parameter]:
+        """The effect's own fitted parameters with their standard errors (none without a fit), worked out when first
+        read: their errors under coloured noise are most of a candidate's cost, and only the checks of a significant
+        candidate, or the output, read them."""
+        return [] if self.fit is None else [p for p in self.fit.parameters() if p.term == self.effect]
 
     def as_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"effect": self.effect, "rms_nT": _num(self.rms_nT), "significant": self.significant,
