@@ -63,12 +63,13 @@ from .quadric import (
     MIN_SAMPLES,
     as_total,
     finite_rows,
+    forward_steps,
     gram_condition,
-    jacobian_se,
     normalise,
     quadric_design,
     quadric_matrix,
     quadric_to_calibration,
+    se_from_steps,
     unit_volume_total,
 )
 
@@ -213,18 +214,23 @@ def _nine(theta: np.ndarray, order: str, use_delta: bool) -> np.ndarray:
     return geo if order == "full" else EXPANSIONS[order] @ geo
 
 
-def _propagate(theta: np.ndarray, cov: np.ndarray, scale: float, f2m: float,
-               center: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Standard errors of offset and matrix by a numerical Jacobian of θ -> (o, M)."""
-
-    def flat(t: np.ndarray) -> np.ndarray:
-        o, m = quadric_to_calibration(t, scale, f2m, center)
-        return np.concatenate([o, m.ravel()])
-
-    se = jacobian_se(flat, theta, cov)
-    if se is None:
-        return np.full(3, np.nan), np.full((3, 3), np.nan)
-    return se[:3], se[3:].reshape(3, 3)
+def _propagate(theta: np.ndarray, cov: np.ndarray, scale: float, f2m: float, center: np.ndarray,
+               base: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Standard errors of offset and matrix (NaN where the quadric stops being an ellipsoid near θ) and of the
+    six physical parameters (None there, or where a step's matrix has no triangular parameters), by forward
+    differences of θ -> (o, M) (quadric.jacobian_se's steps; `base`: (o, M) at θ), each step's calibration
+    worked out once for both."""
+    h, points = forward_steps(theta, cov)
+    try:
+        steps = [base] + [quadric_to_calibration(t, scale, f2m, center) for t in points[1:]]
+    except (np.linalg.LinAlgError, ValueError):
+        return np.full(3, np.nan), np.full((3, 3), np.nan), None
+    se = se_from_steps(np.stack([np.concatenate([o, m.ravel()]) for o, m in steps]), h, cov)
+    try:
+        phys = np.stack([np.concatenate(triangular_params(m)) for _, m in steps])
+    except (np.linalg.LinAlgError, ValueError):
+        return se[:3], se[3:].reshape(3, 3), None
+    return se[:3], se[3:].reshape(3, 3), se_from_steps(phys, h, cov)
 
 
 def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
@@ -331,15 +337,9 @@ def _fit_result(sol: QuadricSolution, raw: np.ndarray, name: str) -> tuple[Ellip
         raise CalibrationRefused(f"{name}: the fitted quadric is not an ellipsoid; the directions seen do not "
                                  f"determine one (or the field changed while the probe turned); "
                                  f"{coverage_hint(raw)}") from None
-    o_se, m_se = _propagate(theta, cov, scale, f2m, center)
+    phys = np.concatenate(triangular_params(matrix))
+    o_se, m_se, phys_se = _propagate(theta, cov, scale, f2m, center, (offset, matrix))
     rms = scalar_rms(raw, offset, matrix, sol.total_nT)
-
-    def physical(t: np.ndarray) -> np.ndarray:
-        angles, c = triangular_params(quadric_to_calibration(t, scale, f2m, center)[1])
-        return np.concatenate([angles, c])
-
-    phys = physical(theta)
-    phys_se = jacobian_se(physical, theta, cov)
     phys_se = np.full(6, np.nan) if phys_se is None else phys_se
     params = {"offset_nT": named(offset, o_se, "nT"),
               "nonorth_deg": named(phys[:3], phys_se[:3], "deg", names=["phi", "theta", "psi"],

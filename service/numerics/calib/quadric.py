@@ -160,13 +160,24 @@ def jacobian_se_many(func: Callable[[np.ndarray], np.ndarray], theta: np.ndarray
                      cov: np.ndarray) -> np.ndarray | None:
     """jacobian_se for a func that maps many θ (M, k) to their values (M, n) in one call: θ and its k
     forward steps evaluated together (None if func fails at any of them)."""
-    sd = np.sqrt(np.maximum(np.diag(cov), 0))
-    h = np.where(sd > 0, sd * 1e-2, np.abs(theta) * 1e-8 + 1e-12)
-    points = np.vstack([theta, theta + np.diag(h)])
+    h, points = forward_steps(theta, cov)
     try:
         vals = np.asarray(func(points), float)
     except (np.linalg.LinAlgError, ValueError):
         return None
+    return se_from_steps(vals, h, cov)
+
+
+def forward_steps(theta: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(h, points) of the forward-difference Jacobian: steps of 1 % of each θ's own standard error, and θ
+    (row 0) with its k forward steps (rows 1..k)."""
+    sd = np.sqrt(np.maximum(np.diag(cov), 0))
+    h = np.where(sd > 0, sd * 1e-2, np.abs(theta) * 1e-8 + 1e-12)
+    return h, np.vstack([theta, theta + np.diag(h)])
+
+
+def se_from_steps(vals: np.ndarray, h: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Standard errors of a function from its values (k + 1, n) at `forward_steps`' points."""
     jac = ((vals[1:] - vals[0]) / h[:, None]).T
     c = jac @ cov @ jac.T
     return np.sqrt(np.maximum(np.diag(c), 0))
