@@ -48,10 +48,8 @@ def bench_replay(tmp: Path, seconds: float, repeat: int) -> None:
     import tomllib
 
     from fluxcal.service.io.recordings import files, writer
-    from fluxcal.service.io.recordings.reader import read_recording
     from fluxcal.service.wiring import pipeline as pipeline_mod
     from fluxcal.service.wiring.config import config_from_dict
-    from fluxcal.service.wiring.daemon import build_pipeline
 
     s = make_samples(seconds, RATE, PROBES)
     block = s.to_block()
@@ -68,43 +66,59 @@ def bench_replay(tmp: Path, seconds: float, repeat: int) -> None:
              "correction and products": _timed(pipeline_mod.Pipeline, "_correct"),
              "chunks (lz4, CRC, file)": _timed(files.McapFiles, "finish", _timed(files.McapFiles, "flush")),
              "10 Hz means": _timed(writer.Products, "corrected"), "their JSON": _timed(writer, "encode_json")}
-    # replay path: MCAP decode -> pipeline (estimator, gate, correction) -> MCAP write
-    times, phases = [], []
+    # replay path: MCAP decode -> pipeline (estimator, gate, correction) -> MCAP write; in one process, then with
+    # the gate's checks worked out in a second (gate_ahead.py, as `fluxcal replay` does where that pays)
+    runs: dict[str, tuple[list[float], list]] = {"one process": ([], []), "gate ahead": ([], [])}
     for rep in range(repeat):
-        for spent in parts.values():
-            spent.clear()
-        t0 = time.perf_counter()
-        rec = read_recording(tmp / "rep" / "in.mcap")
-        whole = rec.raw                          # every raw sample, as `fluxcal replay` takes them
-        t_decode = time.perf_counter() - t0
-        pipe = build_pipeline(fcfg, start)      # corrected from the first sample, as a recording's initial event does
-        t_pipe = time.perf_counter() - t0 - t_decode
-        out = writer.McapLogger(tmp / "rep", unit="bench", filename=f"out{rep}.mcap")
-        for i in range(0, whole.n_samples, 20000):
-            b = whole.slice(i, i + 20000)
-            t1 = time.perf_counter()
-            r = pipe.process(b)
-            t_pipe += time.perf_counter() - t1
-            out.write_raw(b)
-            if r.corrected is not None:
-                out.write_corrected(r.corrected)
-        out.close()
-        times.append(time.perf_counter() - t0)
-        phases.append((t_decode, t_pipe, times[-1] - t_decode - t_pipe,
-                       {k: (sum(v), len(v)) for k, v in parts.items()}))
-    t_replay = min(times)
+        for mode, (times, phases) in runs.items():
+            for spent in parts.values():
+                spent.clear()
+            times.append(_replay_once(tmp, fcfg, start, f"out{rep}.mcap", ahead=mode == "gate ahead", split=phases))
+            phases[-1] = phases[-1] + ({k: (sum(v), len(v)) for k, v in parts.items()},)
     t_bare = bare_seconds(s, N_PROBES, time.perf_counter, runs=3)
-    n = whole.n_samples * N_PROBES
-    print(f"replay (MCAP decode + pipeline + MCAP write), {whole.n_samples} samples x {N_PROBES} probes: "
-          f"{n / t_replay:,.0f} probe-samples/s (best of {repeat}; median {n / float(np.median(times)):,.0f})")
-    print(f"bare parse + calibrate of the same samples:                         {n / t_bare:,.0f} probe-samples/s")
-    print(f"ratio replay / bare: best {t_bare / t_replay:.3f}, median {t_bare / float(np.median(times)):.3f} "
-          f"(OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')})")
-    dec, pip, wri, split = phases[times.index(t_replay)]
-    print(f"  best run: MCAP decode {dec * 1e3:.0f} ms, pipeline {pip * 1e3:.0f} ms, MCAP write {wri * 1e3:.0f} ms; "
-          f"bare {t_bare * 1e3:.1f} ms; of these: " + ", ".join(f"{k} {v * 1e3:.0f} ms ({c} calls)"
-                                                               for k, (v, c) in split.items()))
+    n = block.n_samples * N_PROBES
+    print(f"bare parse + calibrate of {block.n_samples} samples x {N_PROBES} probes: {n / t_bare:,.0f} probe-samples/s "
+          f"({t_bare * 1e3:.1f} ms)")
+    for mode, (times, phases) in runs.items():
+        t_replay = min(times)
+        print(f"replay (MCAP decode + pipeline + MCAP write), {mode}: {n / t_replay:,.0f} probe-samples/s (best of "
+              f"{repeat}; median {n / float(np.median(times)):,.0f}); ratio replay / bare: best {t_bare / t_replay:.3f}, "
+              f"median {t_bare / float(np.median(times)):.3f} (OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')})")
+        dec, pip, wri, split = phases[times.index(t_replay)]
+        print(f"  best run: MCAP decode {dec * 1e3:.0f} ms, pipeline {pip * 1e3:.0f} ms, MCAP write {wri * 1e3:.0f} ms; "
+              "of these: " + ", ".join(f"{k} {v * 1e3:.0f} ms ({c} calls)" for k, (v, c) in split.items()))
     floor_parts(block, t_bare)
+
+
+def _replay_once(tmp: Path, fcfg, start, out_name: str, *, ahead: bool, split: list) -> float:
+    """One replay of tmp/rep/in.mcap to out_name, timed; appends (decode, pipeline, write) seconds to `split`."""
+    from fluxcal.service.io.recordings import writer
+    from fluxcal.service.io.recordings.reader import read_recording
+    from fluxcal.service.wiring.daemon import build_pipeline
+    from fluxcal.service.wiring.gate_ahead import GateAhead
+
+    t0 = time.perf_counter()
+    whole = read_recording(tmp / "rep" / "in.mcap").raw     # every raw sample, as `fluxcal replay` takes them
+    t_decode = time.perf_counter() - t0
+    pipe = build_pipeline(fcfg, start)      # corrected from the first sample, as a recording's initial event does
+    blocks = [whole.slice(i, i + 20000) for i in range(0, whole.n_samples, 20000)]
+    second = GateAhead(pipe, lambda pl: [pl.process(b) for b in blocks]) if ahead else None
+    t_pipe = time.perf_counter() - t0 - t_decode
+    out = writer.McapLogger(tmp / "rep", unit="bench", filename=out_name)
+    for b in blocks:
+        t1 = time.perf_counter()
+        r = pipe.process(b)
+        t_pipe += time.perf_counter() - t1
+        out.write_raw(b)
+        if r.corrected is not None:
+            out.write_corrected(r.corrected)
+    out.close()
+    if second is not None:
+        assert second.fallback is None, second.fallback
+        second.close()
+    t = time.perf_counter() - t0
+    split.append((t_decode, t_pipe, t - t_decode - t_pipe))
+    return t
 
 
 def _timed(owner, name: str, spent: list[float] | None = None) -> list[float]:

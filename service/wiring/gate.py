@@ -36,6 +36,7 @@ class Gate:
         self.align, self.min_samples, self.total_nT = align, min_samples, total_nT
         self.coverage, self.condition, self.rms_nT = coverage, condition, rms_nT
         self.refusal: str | None = None   # why the last check found no candidate
+        self.asked = 0                      # estimators the last candidate() asked for a snapshot (each solved)
         # the candidate's errors at least the ring buffer's spread in time and direction (_add_spreads); off for
         # a caller that adds its own (`fit --method rls`: the coloured-noise and direction errors)
         self.spread_errors = True
@@ -59,11 +60,14 @@ class Gate:
     def candidate(self, estimators: Sequence[RlsEllipsoid], ring: RingBuffer) -> ArrayCalibration | None:
         """The online estimate, aligned over the ring buffer, or None if not yet determined (then
         `refusal` says why, once there are enough samples to ask)."""
-        self.refusal = None
+        self.refusal, self.asked = None, 0
         if any(est.n_samples_ < self.min_samples for est in estimators):
             return None
+        probes = []
         try:
-            probes = [est.snapshot(name=name) for est, name in zip(estimators, self.probe_names)]
+            for est, name in zip(estimators, self.probe_names):
+                self.asked += 1                 # the estimators solved: the snapshots taken, and the one refused
+                probes.append(est.snapshot(name=name))
         except (CalibrationRefused, FluxcalError) as e:
             self.refusal = str(e)
             return None

@@ -264,9 +264,14 @@ class RlsProbe:
     def n_samples_(self) -> int:
         return int(self.est._acc.n[self.j])
 
+    def solve(self) -> None:
+        """Solve this probe if it took samples since its last solve, as `snapshot` and every property do first (a
+        solve moves the anchor: a caller that replays another's checks solves where they did)."""
+        self.est._est.solve_probe(self.j)
+
     @property
     def condition_(self) -> float:
-        self.est._est.solve_probe(self.j)
+        self.solve()
         return float(self.est._est.condition[self.j])
 
     @property

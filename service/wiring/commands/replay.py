@@ -39,10 +39,10 @@ from fluxcal.service.io.recordings.reader import read_recording
 from fluxcal.service.io.recordings.repair import repair_notes
 from fluxcal.service.wiring.commands.notes import check_output_file, check_output_folder
 from fluxcal.service.wiring.commands.options import PATH, CommandHelp, fleet_help, fleet_options
+from fluxcal.service.wiring.commands.replay_run import run_blocks
 from fluxcal.service.wiring.config import config_from_dict, load_config, rate_stated
 from fluxcal.service.wiring.daemon import build_pipeline
 from fluxcal.service.wiring.prepare import say_read_warnings
-from fluxcal.service.wiring.progress import Progress
 from fluxcal.service.wiring.result import Result, Said, print_result, stderr_say
 from fluxcal.service.wiring.sinks import McapSink, Sinks
 
@@ -197,7 +197,7 @@ def execute(source: str, opts: ReplayOptions, said: Said, *, sinks: list[Any] | 
 
             outputs.add(replay_ros2_sink(opts.ros2_out, cfg, say=lambda m: said("output", m, level="say")))
         t0 = time.perf_counter()
-        samples, out_seq, out_vals, replaced = _run_blocks(pipeline, cfg, blocks, commands, outputs)
+        samples, out_seq, out_vals, replaced = run_blocks(pipeline, cfg, blocks, commands, outputs)
     finally:
         outputs.close()
     t_pipe = time.perf_counter() - t0
@@ -225,44 +225,6 @@ def execute(source: str, opts: ReplayOptions, said: Said, *, sinks: list[Any] | 
         out.status = 1
     out.notes = said.notes
     return out
-
-
-def _run_blocks(pipeline, cfg, blocks, commands: list[dict], outputs: Sinks):
-    """The blocks through the pipeline, each recorded command applied before the sample it was applied before live;
-    every block and its output to the outputs. Returns (samples, out_seq, out_vals, replaced): the corrected
-    output's seq and values, and the replay's calibrations (seq, cal_id, condition, kind)."""
-    progress = Progress(sum(b.n_samples for b in blocks), "replay")
-    samples, ci = 0, 0
-    out_seq, out_vals = [], []
-    replaced: list[tuple[int, int, float, str]] = []
-    try:
-        for block in blocks:
-            while ci < len(commands) and block.n_samples and commands[ci]["seq"] <= int(block.seq[0]):
-                c = commands[ci]
-                payload = (calibration_from_dict(c["calibration"]) if c.get("name") == "apply"
-                           else c.get("effect"))
-                ev = pipeline.command(c["name"], payload, seq=c["seq"], t_s=float("nan"))
-                if c.get("name") == "apply" and "note" not in c:
-                    pipeline.held = False     # recorded before applied calibrations were held: as that live run
-                if c.get("name") == "add-effect":   # refitted over the window: conditioned at most as the gate allows
-                    replaced.append((int(c["seq"]), int(ev.detail["cal_id"]), float(cfg.estimator.gate_condition),
-                                     "add-effect"))
-                outputs.command(c)
-                ci += 1
-            result = pipeline.process(block)
-            replaced += [(ev.seq, int(ev.detail["cal_id"]), float(ev.detail.get("condition", "nan")), ev.kind)
-                         for ev in result.events if ev.kind == "calibration"]
-            samples += block.n_samples
-            outputs.raw(block)
-            if result.corrected is not None:
-                outputs.corrected(result.corrected)
-                out_seq.append(result.corrected.seq)
-                out_vals.append(result.corrected.corrected_nT)
-            outputs.flush()                   # the end of the block's turn, as the service's loop ends it
-            progress.to(samples)
-    finally:
-        progress.close()
-    return samples, out_seq, out_vals, replaced
 
 
 def _recorded(recording: McapSink, path: str, out: ReplayResult, said: Said) -> bool:
