@@ -21,8 +21,10 @@ EARTH_NT = (22_000.0, 67_000.0)
 #: the Earth's field as a compass on a platform may read it, nT: the surface's 22,000-67,000 nT with a margin for the
 #: platform's own field; a calibration whose total field lies outside is no Earth's (determinacy.physical)
 EARTH_RANGE_NT = (20_000.0, 70_000.0)
-#: a given total field this many times the data's scale (or less than its inverse) is said loudly
-TOTAL_RATIO_LIMIT = 5.0
+#: a given total field this many times the data's scale (or less than its inverse) is said loudly: the calibration
+#: would give the sensor a gain this far from 1 on every axis, where a fluxgate's is within about 1 %; beyond
+#: determinacy.SITE_RATIO_MAX (2) the fits refuse it
+TOTAL_RATIO_LIMIT = 1.25
 #: units a lab file may be in, and nT per unit
 _UNITS = (("µT", 1e3), ("mG", 1e2), ("G", 1e5), ("mT", 1e6), ("T", 1e9), ("pT", 1e-3))
 
@@ -101,9 +103,11 @@ def field_scale_warnings(field_nT: np.ndarray, probe_names: Sequence[str],
         if not 1.0 / TOTAL_RATIO_LIMIT <= ratio <= TOTAL_RATIO_LIMIT:
             like = [u for u, n in _UNITS if abs(np.log10(ratio / n)) < np.log10(2.0)]   # the ratio near 1000: µT
             why = (f"are the data in {like[0]}? the CSV contract is nT" if like
-                   else "one of the two is in another unit, or wrong")
-            times = f"{ratio:,.0f}" if ratio >= 10 else f"{ratio:.2g}"
+                   else "the field given (the site, the configuration, the reference column) is wrong, or the "
+                        "data's unit or gain (lsb_nT)")
+            times = f"{ratio:,.0f}" if ratio >= 10 else f"{ratio:.3g}"
             loud.append(f"the total field given ({total_nT:,.0f} nT, {total_source}) is {times} times the data's "
-                        f"median |B| about {about} ({data_scale:.3g}): the calibration's matrix scales the data by "
-                        f"about {times} to meet it: {why}")
+                        f"median |B| about {about} ({data_scale:,.6g}): the calibration's matrix scales the data by "
+                        f"about {times} on every axis to meet it (its residuals too), a gain no magnetometer has "
+                        f"unless its unit is wrong: {why}")
     return warnings, loud

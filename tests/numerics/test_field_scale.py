@@ -1,7 +1,8 @@
 """Data in the wrong unit are said, not silently calibrated: a CSV in µT fitted as nT gave
 `total_nT_assumed 52.7722 nT` without a word, and with a configured total field of 52,500 nT a matrix of
 about 1000. fit and diagnose now warn (a warning, never a refusal), loudly when the total field given and
-the data's scale differ by more than TOTAL_RATIO_LIMIT."""
+the data's scale differ by more than TOTAL_RATIO_LIMIT (1.25: a total 1.9 times off, within the refusal's 2, was
+fitted without a word, the matrix giving every axis a gain of 1.9)."""
 
 from __future__ import annotations
 
@@ -58,9 +59,32 @@ def test_a_given_total_far_from_the_data_is_said_loudly():
     assert "are the data in µT? the CSV contract is nT" in loud[0]
     b = sphere()                                                      # nT data, a total 6 times too large
     _, loud = field_scale_warnings(b, ["s1"], total_nT=6 * 52_500.0, total_source="x")
-    assert len(loud) == 1 and "one of the two is in another unit, or wrong" in loud[0]
-    _, loud = field_scale_warnings(b, ["s1"], total_nT=0.9 * TOTAL_RATIO_LIMIT * 52_500.0, total_source="x")
-    assert loud == []
+    assert len(loud) == 1 and "the field given (the site, the configuration, the reference column) is wrong" in loud[0]
+    for ratio in (0.53, 1.3, 1.9, 1 / 1.3):                           # a wrong site or total, within the refusal's 2
+        _, loud = field_scale_warnings(b, ["s1"], total_nT=ratio * 52_500.0, total_source="x")
+        assert len(loud) == 1 and f"is {ratio:.3g} times the data's median |B|" in loud[0], loud
+        assert f"scales the data by about {ratio:.3g} on every axis" in loud[0]
+    for ratio in (1 / (0.95 * TOTAL_RATIO_LIMIT), 1.0, 1.02, 0.95 * TOTAL_RATIO_LIMIT):   # a gain a sensor can have
+        assert field_scale_warnings(b, ["s1"], total_nT=ratio * 52_500.0, total_source="x") == ([], [])
+
+
+def test_fit_with_a_wrong_total_within_the_refusal_says_the_gain_it_took(tmp_path, capsys):
+    """nT data, a configured total of 28,000 nT where the field is 52,500 nT: fitted (exit 0, within the refusal's 2
+    times), with scale factors of about 1.9 and the loud warning in the text, on stderr and in --json."""
+    data = write_csv(tmp_path / "nt.csv", sphere())
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[source]\nkind = "sim"\n[unit]\nn_probes = 1\n[estimator]\ntotal_nT = 28000.0\n'
+                   '[[sim.probes]]\nnoise_nT = 0.5\n')
+    assert main(["fit", data, "--config", str(cfg), "--json"]) == 0
+    out, err = capsys.readouterr()
+    got = json.loads(out)
+    loud = [w for w in got["warnings"] if "(28,000 nT," in w]
+    assert len(loud) == 1 and "is 0.533 times the data's median |B|" in loud[0], got["warnings"]
+    assert loud[0] in err
+    scale = got["sensors"][0]["params"]["scale"]["value"]
+    assert all(1.85 < c < 1.9 for c in scale), scale                  # 52,500 / 28,000 = 1.875
+    assert main(["fit", data, "--config", str(cfg)]) == 0
+    assert "is 0.533 times the data's median |B|" in capsys.readouterr().out
 
 
 def test_fit_refuses_microtesla_data_naming_the_unit_with_or_without_a_total(tmp_path, capsys):
