@@ -57,14 +57,10 @@ class LiveEffects:
         if data.n_samples < 200:
             raise FluxcalError(f"add-effect: only {data.n_samples} samples in the window; wait for more data")
         ef, _ = fit_with_effects(data, names, calibration, total_nT=self.total_nT)
-        params = [p for p in ef.parameters if p.term == name]
-        ratios = [abs(p.value) / p.stderr for p in params if p.stderr and p.stderr > 0]
-        if params and (len(ratios) < len(params) or max(ratios) < 3.0):
-            # an effect the data do not show would only add noise, and a drift would be extrapolated
-            worst = f"largest |value| / standard error {max(ratios):.1f}" if ratios else "not determined"
-            raise FluxcalError(f"add-effect: the {data.n_samples} samples in the window do not show {name}: none of "
-                               f"its {len(params)} parameters is 3 standard errors from zero ({worst}); not added. "
-                               f"`fluxcal diagnose` on the recording ranks what is missing")
+        why = ef.not_shown(name)
+        if why:
+            raise FluxcalError(f"add-effect: the {data.n_samples} samples in the window do not show {name}: {why}; "
+                               f"not added. `fluxcal diagnose` on the recording ranks what is missing")
         cal = ef.calibration()
         cal.method, cal.align = calibration.method, calibration.align
         self.fit = ef

@@ -23,10 +23,13 @@ COVERS = ("fluxcal.service.numerics.usable",)
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "sim-gradiometer.toml"
 
 
-def _faulty_config(tmp_path: Path, *, ramp_C_per_h: float = 0.0) -> Path:
+def _faulty_config(tmp_path: Path, *, ramp_C_per_h: float = 0.0, temp_nT_per_C: str = "") -> Path:
     """The built-in gradiometer with a 50,000 nT probe range (the 52,500 nT field saturates an axis near it)
-    and one sample in ten flagged temperature-invalid."""
+    and one sample in ten flagged temperature-invalid; temp_nT_per_C: probe s1's offset change with temperature
+    (a TOML list), where the temperature terms are to find one."""
     text = CONFIG.read_text()
+    if temp_nT_per_C:
+        text = text.replace("# temp_offset_nT_per_C = [0.0, 0.0, 0.0] ", f"temp_offset_nT_per_C = {temp_nT_per_C} ", 1)
     for old, new in (("# range_nT = 100000.0 ", "range_nT = 50000.0 "),
                      ("# temp_invalid_fraction = 0.0 ", "temp_invalid_fraction = 0.1 "),
                      ("ramp_C_per_h = 0.0 ", f"ramp_C_per_h = {ramp_C_per_h} "),
@@ -125,7 +128,9 @@ def test_mcap_fit_leaves_saturated_samples_out_like_diagnose(tmp_path, capsys):
 
 
 def test_invalid_temperatures_are_counted_for_the_temperature_terms_only(tmp_path, capsys):
-    cfg = _faulty_config(tmp_path, ramp_C_per_h=20.0)
+    # a temperature the data show (s1's offsets move 1.7 nT over the ramp's 0.33 degC): fit refuses an effect they
+    # do not show, as the service's add-effect does
+    cfg = _faulty_config(tmp_path, ramp_C_per_h=20.0, temp_nT_per_C="[5.0, -4.0, 3.0]")
     _, flags, _ = _truth_counts(cfg)
     out = tmp_path / "ramp.csv"
     assert cli(["simulate", "--config", str(cfg), "--out", str(out)]) == 0
@@ -135,7 +140,10 @@ def test_invalid_temperatures_are_counted_for_the_temperature_terms_only(tmp_pat
     result = _fit_json(out, capsys, "--effects", "temperature")
     assert (f"s1_temp: {invalid} samples without a valid temperature: the temperature terms take s1's "
             f"temperature there interpolated in time from the valid ones") in result["warnings"]
-    assert result["effect_params"]["temperature"]
+    coefficients = result["effect_params"]["temperature"]
+    for axis, want in zip("xyz", (5.0, -4.0, 3.0)):                 # the truth, within 4 standard errors
+        got = coefficients[f"s1.{axis} nT/degC"]
+        assert abs(got["value"] - want) < 4 * got["se"], (axis, got)
 
 
 def test_csv_flags_column_is_honoured_when_the_rails_are_numbers(tmp_path):

@@ -205,7 +205,9 @@ def test_a_fixed_reference_is_printed_as_fixed_with_its_value(tmp_path, capsys):
     cfg = tmp_path / "warm.toml"
     cfg.write_text('[unit]\nn_probes = 1\n[sim]\nduration_s = 20\n[sim.temperature]\nstart_C = 18.5\n'
                    'amplitude_C = 2.0\nperiod_s = 10.0\n[sim.motion]\nkind = "tumble"\nrate_deg_s = 30.0\n'
-                   '[sim.reference]\nenabled = true\n[[sim.probes]]\noffset_nT = [100.0, -50.0, 20.0]\n')
+                   '[sim.reference]\nenabled = true\n[[sim.probes]]\noffset_nT = [100.0, -50.0, 20.0]\n'
+                   'temp_offset_nT_per_C = [3.0, -2.0, 1.0]\n')            # what Warm describes: fit gives only
+                                                                             # an effect the data show
     csv = tmp_path / "warm.csv"
     assert main(["simulate", "--config", str(cfg), "--out", str(csv)]) == 0
     f = tmp_path / "warm.py"
@@ -217,10 +219,12 @@ def test_a_fixed_reference_is_printed_as_fixed_with_its_value(tmp_path, capsys):
     line = next(ln for ln in text.splitlines() if "s1 T0" in ln)
     t0 = float(line.split("s1 T0")[1].split()[0])
     assert abs(t0 - 18.5) < 0.3 and "(fixed: " in line and "undetermined" not in line       # the mean temperature
-    # the fitted coefficients keep their errors (the sim has no temperature effect: within 4 of them of zero)
-    for ln in (ln for ln in text.splitlines() if "nT/degC" in ln):
+    # the fitted coefficients keep their errors: the sim's, within 4 of them
+    lines = [ln for ln in text.splitlines() if "nT/degC" in ln]
+    assert len(lines) == 3, text
+    for ln, want in zip(lines, (3.0, -2.0, 1.0)):
         value, se = float(ln.split()[3]), float(ln.split()[5])
-        assert "±" in ln and abs(value) < 4 * se
+        assert "±" in ln and abs(value - want) < 4 * se, ln
     assert main(["fit", str(csv), "--effects", f"{f}:Warm", "--json"]) == 0
     entry = json.loads(capsys.readouterr().out)["effect_params"]["warm"]["s1 T0"]
     assert entry["fixed"] is True and entry["se"] is None and entry["value"] == pytest.approx(t0, abs=1e-5)
@@ -293,18 +297,42 @@ def test_a_written_effect_given_data_without_its_column_says_which(tmp_path, cap
     assert "effect 'discovered' cannot be fitted to these data: the data carry no heater_A column" in err, err
 
 
+def _with_a_bump(path: Path, step_nT: float) -> Path:
+    """The hidden-effect recording as a CSV (its temperatures and reference kept) with every axis stepped by
+    step_nT over its second half: what GOOD's Bump describes."""
+    from fluxcal.service.io.recordings.load import load_data
+
+    b = load_data(ROOT / "recordings" / "grad1-hidden-effect.mcap").block
+    field = b.field_nT.copy()
+    field[(b.t_s - b.t_s[0]) > 0.5 * (b.t_s[-1] - b.t_s[0])] += step_nT
+    cols = [b.t_s, *field.reshape(b.n_samples, -1).T, *b.temp_C.T, b.extras["ref_total"]]
+    names = ["t"] + [f"s{k}_{a}" for k in (1, 2) for a in "xyz"] + ["s1_temp", "s2_temp", "ref_total"]
+    np.savetxt(path, np.column_stack(cols), delimiter=",", header=",".join(names), comments="", fmt="%.6f")
+    return path
+
+
 def test_advice_names_a_users_effect_as_the_command_line_takes_it(tmp_path, capsys):
     """'try: --effects discovered,nonlinearity' exited 2 ('discovered' is not an effect) where the model held a
-    user's effect: the advice gives it as the file.py:Class it came as, so that it runs as written."""
+    user's effect: the advice gives it as the file.py:Class it came as, so that it runs as written. Only an effect
+    the data show: where they do not, fit refuses it, and the advice says so and leaves it out."""
     f = tmp_path / "mine.py"
     f.write_text(GOOD)
+    bumped = str(_with_a_bump(tmp_path / "bumped.csv", 40.0))
     capsys.readouterr()
-    assert main(["diagnose", str(ROOT / "recordings" / "grad1-hidden-effect.mcap"), "--effects", f"{f}:Bump"]) == 0
+    assert main(["diagnose", bumped, "--effects", f"{f}:Bump"]) == 0
     out = capsys.readouterr().out
     advice = next(ln for ln in out.splitlines() if "try: --effects" in ln)
     spec = advice.split("try: --effects ", 1)[1].split()[0]
     assert spec == f"{f}:Bump,temperature", advice
-    assert main(["fit", str(ROOT / "recordings" / "grad1-hidden-effect.mcap"), "--effects", spec]) == 0   # runs
+    assert main(["fit", bumped, "--effects", spec]) == 0                                      # runs
+    capsys.readouterr()
+    recording = str(ROOT / "recordings" / "grad1-hidden-effect.mcap")                          # no bump in it
+    assert main(["diagnose", recording, "--effects", f"{f}:Bump"]) == 0
+    out = capsys.readouterr().out
+    assert "  bump: these data do not show it (none of its 6 parameters is 3 standard errors" in out, out
+    assert "try: --effects temperature" in out
+    assert main(["fit", recording, "--effects", f"{f}:Bump"]) == 2                          # as the advice said
+    assert "do not show bump" in capsys.readouterr().err
 
 
 SHARED = textwrap.dedent('''

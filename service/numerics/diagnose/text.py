@@ -3,7 +3,10 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from fluxcal.service.numerics.effects import effect_spec
+from fluxcal.service.numerics.engine.model_fit import not_shown
 
 from .result import GAIN_SIGMAS, MIN_GAIN, P_SIGNIFICANT, Candidate, Diagnosis
 
@@ -161,7 +164,17 @@ def verdict_lines(d: Diagnosis) -> list[str]:
     if v is None:                                   # a Diagnosis made by hand, without a verdict
         return ["  no missing effect is significant" if best is None else f"  most likely missing: {best.effect}"]
     # as the command line takes them: a user's effect as the file.py:Class it was given as
-    try_it = "" if best is None else f"; try: --effects {','.join(map(effect_spec, d.effects + [best.effect]))}"
+    # only what the data show: fit refuses an effect they do not (model_fit.not_shown), so the advice leaves it out
+    unshown = {e: why for e in d.effects if (why := not_shown(d.parameters, e))}
+    kept = [e for e in d.effects if e not in unshown] + ([] if best is None else [best.effect])
+    try_it = "" if best is None else f"; try: --effects {','.join(map(effect_spec, kept))}"
+    said = [f"  {e}: these data do not show it ({why}): fit refuses it, and the advice leaves it out"
+            for e, why in unshown.items()]
+    return said + _verdict_lines(d, v, best, try_it)
+
+
+def _verdict_lines(d: Diagnosis, v: dict[str, Any], best: Candidate | None, try_it: str) -> list[str]:
+    """verdict_lines once the advice is formed."""
     if v["kind"] == "at the floor":
         return ["  no missing effect is significant: the model explains the data down to the noise"]
     alike = []

@@ -20,6 +20,10 @@ from .start import initial_linear, start_weights
 from .state import layout_slots
 
 
+#: an effect the data show has a parameter at least this many standard errors from zero (EffectsFit.not_shown)
+SHOWN_SIGMAS = 3.0
+
+
 @dataclass
 class EffectsFit:
     """A calibration with effect terms: the linear part (docs/contracts.md: corrected = matrix (raw - offset)
@@ -69,6 +73,27 @@ class EffectsFit:
                     out.append((t.name, name, float(value), unit))
         return out
 
+    def not_shown(self, name: str) -> str:
+        """Why the samples do not show effect `name` ("" where they do): `not_shown` of this fit's parameters."""
+        return not_shown(self.parameters, name)
+
+    def size_warnings(self) -> list[str]:
+        """Per effect, its parameters the data do not determine, and those whose standard error exceeds their size
+        (as calib.order.size_warnings says it of the offsets, scales and angles)."""
+        out = []
+        for term in self.effects:
+            params = [p for p in self.parameters if p.term == term]
+            idle = [p.name for p in params if p.stderr is None]
+            wide = [p for p in params if p.stderr is not None and np.isfinite(p.stderr) and p.stderr > abs(p.value)]
+            if idle:
+                out.append(f"{term}: {len(idle)} of its {len(params)} parameters are not determined by these data (held "
+                           f"at their start): {_some(idle)}")
+            if wide:
+                shown = [f"{p.name} = {p.value:.4g} ± {p.stderr:.2g}" for p in wide]
+                out.append(f"{term}: the standard errors of {len(wide)} of its {len(params)} parameters exceed their "
+                           f"size (these data do not determine them): {_some(shown)}")
+        return out
+
     def effect_parameters(self) -> dict[str, dict[str, float | None]]:
         """{"temperature": {"s1.x nT/degC": value, ...}, ...} and the same with standard errors."""
         out: dict[str, dict[str, float | None]] = {}
@@ -106,6 +131,27 @@ class EffectsFit:
         st = pr.start_state(lin, self.result.state)
         ev = pr.evaluate(st)
         return np.stack(ev.v, axis=1)
+
+
+def not_shown(parameters: Sequence[Parameter], name: str) -> str:
+    """Why the samples do not show effect `name` ("" where they do), said after "do not show <name>: ": none of
+    its parameters they determine lies SHOWN_SIGMAS standard errors from zero. An effect the data do not show only
+    adds noise, and a drift is extrapolated (tens of Earth fields an hour, fitted to 106 s of a real board): the
+    service refuses to add one, fit to give one, and diagnose to advise one. Parameters the data do not determine
+    stay at their start (no change along them) and are said by EffectsFit.size_warnings."""
+    params = [p for p in parameters if p.term == name]
+    ratios = [abs(p.value) / p.stderr for p in params if p.stderr is not None and p.stderr > 0]
+    if not params or (ratios and max(ratios) >= SHOWN_SIGMAS):
+        return ""
+    if not ratios:
+        return f"none of its {len(params)} parameters is determined by them"
+    return (f"none of its {len(params)} parameters is {SHOWN_SIGMAS:g} standard errors from zero (largest "
+            f"|value| / standard error {max(ratios):.1f})")
+
+
+def _some(items: list[str], n: int = 9) -> str:
+    """The first n items, comma-separated, and how many more."""
+    return ", ".join(items[:n]) + (f" and {len(items) - n} more" if len(items) > n else "")
 
 
 def fit_with_effects(data: Any, effects: Sequence[str] | Model, base_calibration: Any = None, *,

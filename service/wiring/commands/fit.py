@@ -188,18 +188,9 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
                               total_source={"config": prep.origin or "configured", "ref_total": "the ref_total column"}
                               .get(total.source, total.source))
     if opts.effects:
-        from fluxcal.service.numerics.engine import fit_with_effects
-
-        _progress(f"fitting effects {', '.join(opts.effects)}")
-        report_data, thinned = effects_data(data)
-        ef, _ = fit_with_effects(report_data, opts.effects, cal, total_nT=known_total, positions_m=prep.positions_m)
-        method, align = cal.method, cal.align
-        cal = ef.calibration()
-        cal.method, cal.align = method, align
-        channels = {name: values for name, values in ef.result.channels.as_dict().items()}
-        rows = ef.result.problem.rows                       # the channels cover the fitted rows only
+        cal, channels, rows, report_data, thinned, effect_sizes = _with_effects(data, cal, opts.effects, prep)
     else:
-        rows, report_data, thinned = None, data, None
+        rows, report_data, thinned, effect_sizes = None, data, None, []
         # each channel's sum of squares is enough, taken over chunks of rows (hours of data); the report bins
         # the scalar residuals over direction and needs those whole (not the 3 (P - 1) differences)
         channels = channel_sums(data, cal, total)
@@ -216,7 +207,8 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     coloured = coloured_warnings(coloured_offsets(data, cal, total)) if not opts.effects else []
     coloured += direction_offsets(data, cal, total) if not opts.effects else []
     coverages = [j.coverage for j in judged]             # about the gate's centre: the figures every command shows
-    warnings = left_out + calibration_warnings(cal, coverages) + ([thinned] if thinned else []) + coloured
+    warnings = (left_out + calibration_warnings(cal, coverages) + effect_sizes + ([thinned] if thinned else [])
+                + coloured)
     warnings += [prep.config_warning] if prep.config_warning else []
     warnings += [prep.part_of_run] if prep.part_of_run else []
     warnings = scale + warnings
@@ -272,6 +264,39 @@ def refuse_worse(cal, channels, before: dict[str, float], total_source: str) -> 
                       f"not determine it")
             advice = ("turn the probe about at least two axes so the field sweeps most directions, and check that the "
                       "total field given is the site's and the data are in nT")
+            refused = CalibrationRefused(f"{reason}; {advice}")
+            refused.reason, refused.advice = reason, advice
+            raise refused
+
+
+def _with_effects(data, cal, effects, prep: Prepared):
+    """The calibration with `effects` fitted over (a thinning of) the data, refused where the data do not show one:
+    (calibration, channels, rows fitted, the data fitted, the thinning said, the parameters not determined said)."""
+    from fluxcal.service.numerics.engine import fit_with_effects
+
+    _progress(f"fitting effects {', '.join(effects)}")
+    report_data, thinned = effects_data(data)
+    ef, _ = fit_with_effects(report_data, effects, cal, total_nT=prep.total_nT, positions_m=prep.positions_m)
+    refuse_not_shown(ef, effects, prep.source)
+    method, align = cal.method, cal.align
+    cal = ef.calibration()
+    cal.method, cal.align = method, align
+    channels = {name: values for name, values in ef.result.channels.as_dict().items()}
+    return cal, channels, ef.result.problem.rows, report_data, thinned, ef.size_warnings()
+
+
+def refuse_not_shown(ef, effects, source: str) -> None:
+    """CalibrationRefused where the data do not show an effect asked for (EffectsFit.not_shown: the service's
+    add-effect asks the same), with what would help."""
+    from fluxcal.drivers.errors import CalibrationRefused
+
+    for name in effects:
+        why = ef.not_shown(name)
+        if why:
+            n = ef.result.problem.data.n_samples
+            reason = f"the {n:,} samples do not show {name}: {why}"
+            advice = (f"fit without it (its values would be noise, and a calibration extrapolates them); "
+                      f"`fluxcal diagnose {source}` ranks what is missing")
             refused = CalibrationRefused(f"{reason}; {advice}")
             refused.reason, refused.advice = reason, advice
             raise refused
