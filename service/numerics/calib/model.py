@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from fluxcal.drivers.errors import DataError
+
 
 def _nan3() -> np.ndarray:
     return np.full(3, np.nan)
@@ -137,7 +139,17 @@ class ArrayCalibration:
         return np.stack([p.offset_nT for p in self.probes])
 
     def apply(self, field_nT: np.ndarray) -> np.ndarray:
-        """(N, P, 3) raw -> (N, P, 3) corrected, all probes at once."""
+        """(N, P, 3) raw -> (N, P, 3) corrected, all probes at once. A calibration with effect terms is refused: its
+        effects need the samples' times and temperatures, which a field alone does not carry (apply_linear gives
+        its linear part, knowingly; a fit's result corrects with the effects: FitResult.correct)."""
+        if self.effects:
+            raise DataError(f"this calibration holds effect terms ({', '.join(self.effects)}) that need the samples' "
+                            f"times and temperatures, not the field alone: correct with the fit's result "
+                            f"(result.correct(data)), or take its linear part knowingly with apply_linear(field_nT)")
+        return self.apply_linear(field_nT)
+
+    def apply_linear(self, field_nT: np.ndarray) -> np.ndarray:
+        """(N, P, 3) raw -> (N, P, 3) corrected by the linear part alone (M (raw - o)), whatever effects it holds."""
         f = np.asarray(field_nT, dtype=float)
         if f.ndim != 3 or f.shape[1] != self.n_probes or f.shape[2] != 3:
             raise ValueError(f"field_nT: expected shape (N, {self.n_probes}, 3), got {f.shape}")

@@ -100,6 +100,17 @@ class FitResult(Result):
     report: str | None = None             # the report written, if any
     #: the calibration fitted (fluxcal.service.numerics.calib.model.ArrayCalibration): save(), apply() ... in Python
     calibration: Any = field(default=None, repr=False)
+    #: the fit with its effects (engine.EffectsFit), where effects were fitted: `correct` applies them
+    effects_fit: Any = field(default=None, repr=False)
+
+    def correct(self, data: Any) -> np.ndarray:
+        """(N, P, 3) the field of `data` (what fluxcal.read gives, a LabData or a SampleBlock) corrected by this
+        calibration with its effects, which need the samples' times and temperatures (calibration.apply has the
+        field alone, and refuses a calibration with effects)."""
+        lab = getattr(data, "lab", data)
+        if self.effects_fit is not None:
+            return self.effects_fit.correct(lab)
+        return self.calibration.apply(getattr(lab, "block", lab).field_nT)
 
     def as_dict(self) -> dict[str, Any]:
         return self.contract
@@ -188,9 +199,9 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
                               total_source={"config": prep.origin or "configured", "ref_total": "the ref_total column"}
                               .get(total.source, total.source))
     if opts.effects:
-        cal, channels, rows, report_data, thinned, effect_sizes = _with_effects(data, cal, opts.effects, prep)
+        ef, cal, channels, rows, report_data, thinned, effect_sizes = _with_effects(data, cal, opts.effects, prep)
     else:
-        rows, report_data, thinned, effect_sizes = None, data, None, []
+        ef, rows, report_data, thinned, effect_sizes = None, None, data, None, []
         # each channel's sum of squares is enough, taken over chunks of rows (hours of data); the report bins
         # the scalar residuals over direction and needs those whole (not the 3 (P - 1) differences)
         channels = channel_sums(data, cal, total)
@@ -214,7 +225,7 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     warnings = scale + warnings
     cal.diagnostics["warnings"] = warnings
     cal.unit = recording_identity(data.metadata)          # the unit a service recording says it was made by
-    out = FitResult("fit", source)
+    out = FitResult("fit", source, effects_fit=ef)
     if opts.out:
         save_calibration(cal, opts.out)
         out.written.append(opts.out)
@@ -271,7 +282,8 @@ def refuse_worse(cal, channels, before: dict[str, float], total_source: str) -> 
 
 def _with_effects(data, cal, effects, prep: Prepared):
     """The calibration with `effects` fitted over (a thinning of) the data, refused where the data do not show one:
-    (calibration, channels, rows fitted, the data fitted, the thinning said, the parameters not determined said)."""
+    (the fit, its calibration, channels, rows fitted, the data fitted, the thinning said, the parameters not
+    determined said)."""
     from fluxcal.service.numerics.engine import fit_with_effects
 
     _progress(f"fitting effects {', '.join(effects)}")
@@ -282,7 +294,7 @@ def _with_effects(data, cal, effects, prep: Prepared):
     cal = ef.calibration()
     cal.method, cal.align = method, align
     channels = {name: values for name, values in ef.result.channels.as_dict().items()}
-    return cal, channels, ef.result.problem.rows, report_data, thinned, ef.size_warnings()
+    return ef, cal, channels, ef.result.problem.rows, report_data, thinned, ef.size_warnings()
 
 
 def refuse_not_shown(ef, effects, source: str) -> None:
