@@ -338,7 +338,7 @@ def _coloured_noise_notes(slope: float | None, effects: Sequence[str], duration_
     own periods (engine/coloured.py), the larger of the two."""
     if slope is None or slope > -0.5:
         return []
-    out = [f"the residual is coloured (spectrum ~ f^{slope:.1f}): standard errors come from the block jackknife "
+    out = [f"the residual is coloured (spectrum ~ f^{slope:.1f} across the band above its floor): standard errors come from the block jackknife "
            f"over time blocks, not from white-noise formulas, and each effect's from a power law fitted to each "
            f"probe's noise spectrum where that is larger"]
     if effects:

@@ -271,7 +271,7 @@ def _left_parts(sig: dict[str, Any], above: list[dict[str, Any]], scalar_up: boo
     elif period is not None:
         slow = f"half of its excess power at periods over {_period_text(period)}"
         if slope is not None:
-            slow += f", spectrum ~ f^{slope:.1f}"
+            slow += f", spectrum ~ f^{slope:.1f} across the band above its floor"
         parts.append(slow)
     if sig.get("frames"):
         parts.append(sig["frames"])

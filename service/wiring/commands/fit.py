@@ -340,8 +340,8 @@ def coloured_warnings(found) -> list[str]:
     """What coloured noise does to the linear calibration's standard errors, per probe (fitting.ColouredNoise)."""
     out = []
     for c in found:
-        head = (f"{c.probe}: the residual is coloured (a power law, spectrum ~ f^{c.alpha:.1f}, above the white noise "
-                f"at the record's own periods)")
+        head = (f"{c.probe}: the residual is coloured (a power law, spectrum ~ f^{c.alpha:.1f} at the record's "
+                f"longest periods, above the white noise)")
         if c.covered:
             out.append(f"{head}: the offsets' and matrix's standard errors include that wander within the record; "
                        f"if it is the sensor's noise (and not an effect the model lacks: see diagnose), the offsets "
