@@ -194,6 +194,11 @@ def test_gradient_needs_attitude_and_positions():
     data.positions_m = None
     with pytest.raises(CalibrationRefused, match="positions"):
         fit_with_effects(data, ["gradient"])
+    # both missing: both said at once (the advice sent a user to --config, and then to the attitude)
+    from fluxcal.service.numerics.effects.gradient import Gradient
+
+    why = Gradient().why_unavailable(data)
+    assert why.startswith("needs the probe positions (--config") and "and the platform attitude in the data" in why
 
 
 def test_crossfield_against_a_private_forward_model():

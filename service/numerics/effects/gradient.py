@@ -50,14 +50,15 @@ class Gradient(EffectTerm):
     }
 
     def why_unavailable(self, data: EffectData) -> str | None:
+        # everything missing said at once: advice that unlocks only the next blocker sends a user round twice
+        attitude = ("the platform attitude in the data (columns heel_deg, pitch_deg, azimuth_deg or q_w, q_x, q_y, q_z)"
+                    if data.attitude() is None else "")
         if data.positions_m is None:
-            return "needs the probe positions (--config with [[probes]] position_m)"
+            return "needs the probe positions (--config with [[probes]] position_m)" + (f" and {attitude}"
+                                                                                       if attitude else "")
         if not np.any(data.positions_m):
             return "every probe sits at the rotation centre: a site gradient does not show"
-        if data.attitude() is None:
-            return ("needs the platform attitude in the data (columns heel_deg, pitch_deg, azimuth_deg or "
-                    "q_w, q_x, q_y, q_z)")
-        return None
+        return f"needs {attitude}" if attitude else None
 
     def shared_names(self, data: EffectData) -> list[str]:
         return [f"gradient G{n} nT/m" for n in _NAMES]
