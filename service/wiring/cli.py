@@ -11,12 +11,14 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import re
 import signal
 import sys
 from typing import Sequence
 
 from fluxcal.drivers.errors import CalibrationRefused, ConfigError, DataError, FluxcalError
 from fluxcal.service.wiring.commands import COMMANDS, FLEET_COMMANDS
+from fluxcal.service.wiring.commands.options import SIGNED_VALUE_OPTIONS
 
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
 
@@ -87,8 +89,20 @@ def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespa
         raise
 
 
+def _signed_values_joined(argv: list[str]) -> list[str]:
+    """`--site -75,120` as `--site=-75,120`: argparse takes a value beginning with '-' for an option (unless it is a
+    plain number), so an option of SIGNED_VALUE_OPTIONS is joined to a value that begins with '-' and a digit."""
+    out: list[str] = []
+    for a in argv:
+        if out and out[-1] in SIGNED_VALUE_OPTIONS and re.match(r"-\.?\d", a):
+            out[-1] = f"{out[-1]}={a}"
+        else:
+            out.append(a)
+    return out
+
+
 def main(argv: Sequence[str] | None = None, *, install_signals: bool = True) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
+    argv = _signed_values_joined(list(sys.argv[1:] if argv is None else argv))
     asked = next((a for a in argv if not a.startswith("-")), None)
     args = _parse(build_parser(asked if asked in COMMANDS else None), argv)
     if install_signals:

@@ -1,0 +1,48 @@
+"""What a new user typed, taken as they meant it: a southern and western --site on every command that takes one (docs/cli.md)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from fluxcal.service.numerics.calib.site import site_field
+from fluxcal.service.wiring import cli
+
+
+def _sphere_csv(path, total_nT: float, n: int = 2000, seed: int = 0):
+    """A probe turned over the whole sphere in a field of total_nT, with a scale error and an offset, no ref_total."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    raw = total_nT * d * [1.01, 0.99, 1.02] + [120.0, -40.0, 300.0] + rng.normal(scale=1.0, size=d.shape)
+    np.savetxt(path, np.column_stack([np.arange(n) * 0.01, raw]), delimiter=",", header="t,s1_x,s1_y,s1_z",
+               comments="")
+    return path
+
+
+@pytest.mark.parametrize("site", ["-75,-120,0,2026.5", "-75,-120"])
+def test_a_southern_and_western_site_is_taken_as_its_value(tmp_path, capsys, site):
+    """`--site -75,-120` is the site's value, not an option argparse does not know: the fit is scaled to the model's
+    field there (the altitude left out: 0 m)."""
+    lat, lon = -75.0, -120.0
+    year = 2026.5 if site.count(",") == 3 else None
+    want = site_field(lat, lon, 0.0, year)
+    path = _sphere_csv(tmp_path / "south.csv", want.total_nT)
+    assert cli.main(["fit", str(path), "--site", site, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert (out["site"]["latitude_deg"], out["site"]["longitude_deg"], out["site"]["altitude_m"]) == (lat, lon, 0.0)
+    assert abs(out["site"]["total_nT"] - want.total_nT) < 0.5       # today's date may turn between the two
+    assert np.allclose(np.diag(out["sensors"][0]["matrix"]), [1 / 1.01, 1 / 0.99, 1 / 1.02], atol=2e-4)
+
+
+@pytest.mark.parametrize("command", ["fit", "diagnose", "inspect"])
+def test_every_command_that_takes_a_site_takes_a_negative_one(command):
+    parser = cli.build_parser(command)
+    for argv in (["--site", "-33.9,-70.6,500"], ["--site", "-.5,-0.5"], ["--site=-33.9,-70.6"]):
+        args = parser.parse_args(cli._signed_values_joined([command, "d.csv", *argv]))
+        assert args.site == argv[-1].removeprefix("--site="), argv
+    # a value that is no number after the '-' is left to argparse, which says what it expected
+    with pytest.raises(SystemExit):
+        parser.parse_args(cli._signed_values_joined([command, "d.csv", "--site", "--json"]))
