@@ -202,25 +202,41 @@ def log_mapping(source: str, topics: dict[str, str | None] | None, mags: Sequenc
     from fluxcal.service.io.recordings.formats import detect_format
 
     fmt = detect_format(source)
-    if topics and fmt not in ("ros2-mcap", "ros2-bag"):
-        raise ConfigError(f"--topics: {source} is not a ROS 2 bag ({fmt}): --topics names a bag's topics")
-    if mags and fmt not in ("px4-ulog", "ardupilot-bin"):
+    if topics and fmt not in ("ros2-mcap", "ros2-bag", *FLIGHT_LOGS):
+        raise ConfigError(f"--topics: {source} is not a ROS 2 bag, PX4 or ArduPilot log ({fmt}): --topics names "
+                          f"what such a log's streams become")
+    if mags and fmt not in FLIGHT_LOGS:
         raise ConfigError(f"--mags: {source} is not a PX4 or ArduPilot log ({fmt})")
-    if topics:
-        from fluxcal.service.io.recordings.ros2 import AUTO, Ros2Mapping
-
-        probes = {k: v for k, v in topics.items() if k not in ("imu", "gps", "battery") and not k.startswith("temp.")}
-        temps = {k[5:]: v for k, v in topics.items() if k.startswith("temp.") and v is not None}
-        return Ros2Mapping(probes={k: v for k, v in probes.items() if v is not None} or None,
-                           temperatures=temps or None, imu=topics.get("imu", AUTO),
-                           navsatfix=topics.get("gps", AUTO), battery=topics.get("battery", AUTO))
-    if fmt == "px4-ulog":
+    if fmt in FLIGHT_LOGS:
+        from fluxcal.service.io.recordings.ardupilot import ArduPilotMapping
         from fluxcal.service.io.recordings.px4 import Px4Mapping
 
-        return Px4Mapping(mags=tuple(mags))
-    from fluxcal.service.io.recordings.ardupilot import ArduPilotMapping
+        mapping = Px4Mapping if fmt == "px4-ulog" else ArduPilotMapping
+        return mapping(mags=tuple(mags) if mags else None, **_left_out(source, FLIGHT_LOGS[fmt], topics or {}))
+    from fluxcal.service.io.recordings.ros2 import AUTO, Ros2Mapping
 
-    return ArduPilotMapping(mags=tuple(mags))
+    probes = {k: v for k, v in topics.items() if k not in ("imu", "gps", "battery") and not k.startswith("temp.")}
+    temps = {k[5:]: v for k, v in topics.items() if k.startswith("temp.") and v is not None}
+    return Ros2Mapping(probes={k: v for k, v in probes.items() if v is not None} or None,
+                       temperatures=temps or None, imu=topics.get("imu", AUTO),
+                       navsatfix=topics.get("gps", AUTO), battery=topics.get("battery", AUTO))
+
+
+#: the flight logs' formats (their streams are messages, chosen by the reader) and their names for a person
+FLIGHT_LOGS = {"px4-ulog": "a PX4 log", "ardupilot-bin": "an ArduPilot log"}
+#: what `--topics NAME=none` leaves out of a flight log's mapping (its Px4Mapping or ArduPilotMapping switch)
+LEFT_OUT = {"imu": "attitude", "gps": "position", "battery": "currents"}
+
+
+def _left_out(source: str, what: str, topics: dict[str, str | None]) -> dict[str, bool]:
+    """The switches of a flight log's mapping that --topics turns off: only NAME=none of LEFT_OUT; ConfigError for
+    any other (a flight log has no topics to choose: its messages are read as docs/px4.md and docs/ardupilot.md say)."""
+    bad = [f"{k}={v or 'none'}" for k, v in topics.items() if k not in LEFT_OUT or v is not None]
+    if bad:
+        raise ConfigError(f"--topics: {', '.join(bad)} is not allowed for {source} ({what}: its streams are the "
+                          f"messages fluxcal reads, not topics to choose; allowed: imu=none, gps=none, battery=none, "
+                          f"each leaving that stream out; --mags chooses the compasses)")
+    return {LEFT_OUT[k]: False for k in topics}
 
 
 #: the formats of other ecosystems' logs (not fluxcal's recordings: `fluxcal repair` does not mend them)

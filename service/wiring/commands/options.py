@@ -76,10 +76,12 @@ def time_spans(text: str) -> list[tuple[float, float]]:
     return parse_spans(text)
 
 
-TOPICS_HELP = ("another ecosystem's log: which ROS 2 topics become what, comma-separated NAME=TOPIC: a probe "
+TOPICS_HELP = ("another ecosystem's log: which streams become what, comma-separated NAME=TOPIC. A ROS 2 bag: a probe "
                "(s1=/imu/mag), a probe's temperature (temp.s1=/imu/temperature), imu=, gps= (NavSatFix), battery= "
                "(BatteryState), each TOPIC or none (default: every MagneticField topic a probe, in topic order; the "
-               "others taken where there is one of their kind; `fluxcal inspect FILE` shows the mapping)")
+               "others taken where there is one of their kind). A PX4 or ArduPilot log: imu=none, gps=none, "
+               "battery=none leave out its attitude, position or battery current (and the rows they lack). "
+               "`fluxcal inspect FILE` shows the mapping")
 MAGS_HELP = ("a PX4 or ArduPilot log: the compass instances to take as probes, in order, e.g. 0,2 (default: every "
              "one)")
 
