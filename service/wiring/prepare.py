@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -104,9 +105,11 @@ def prepared_from(data: LabData, said: Said, *, config: str | None = None, site:
     part = part_of_run(said, source) if source is not None else None
     source = data.path if source is None else source
     n_probes = data.block.n_probes
-    held, held_effects = held_calibration(calibration, n_probes) if calibration else (None, [])
+    with refusing(calibration):
+        held, held_effects = held_calibration(calibration, n_probes) if calibration else (None, [])
     if config:
-        positions, total = config_geometry(config, n_probes)
+        with refusing(config):
+            positions, total = config_geometry(config, n_probes)
         origin, warning = f"configuration from {config}", None
     else:                                         # the configuration a service recording stores, said
         given = stored_config(data.metadata, str(source), n_probes)
@@ -120,6 +123,18 @@ def prepared_from(data: LabData, said: Said, *, config: str | None = None, site:
     return Prepared(source=str(source), data=data, positions_m=spread(positions), total_nT=total, origin=origin,
                     site=the_site, skipped=list(skip or []), part_of_run=part, config_warning=warning, track=track,
                     holds=holds, held=held, held_effects=held_effects)
+
+
+@contextmanager
+def refusing(path: str | None):
+    """A file given beside the data (--config, --calibration) that cannot be used refuses that file: the error's
+    `file` is it, and the refusal (result.refusal) names it, not the data."""
+    try:
+        yield
+    except (ConfigError, DataError) as e:
+        if path is not None:
+            e.file = str(path)
+        raise
 
 
 def held_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:

@@ -1,4 +1,6 @@
-"""What a new user typed, taken as they meant it: a southern and western --site on every command that takes one (docs/cli.md)."""
+"""What a new user typed, taken as they meant it or refused naming what was wrong: a southern and western --site on
+every command that takes one, a refusal naming the configuration or calibration file it is about (docs/cli.md,
+docs/contracts.md)."""
 
 from __future__ import annotations
 
@@ -46,3 +48,26 @@ def test_every_command_that_takes_a_site_takes_a_negative_one(command):
     # a value that is no number after the '-' is left to argparse, which says what it expected
     with pytest.raises(SystemExit):
         parser.parse_args(cli._signed_values_joined([command, "d.csv", "--site", "--json"]))
+
+
+@pytest.mark.parametrize("command", ["fit", "diagnose", "inspect"])
+def test_a_refused_configuration_or_calibration_is_the_refusals_file(tmp_path, capsys, command):
+    """`--json --config bad.toml` (a typo'd key, a file that is not there) refuses bad.toml, not the data beside it;
+    so does a calibration that is none (diagnose --calibration); bad data still refuse the data."""
+    data = _sphere_csv(tmp_path / "lab.csv", 50_000.0, n=200)
+    typo = tmp_path / "typo.toml"
+    typo.write_text("[estimator]\ntotl_nT = 50000.0\n")
+    cases = [(["--config", str(typo)], typo, "estimator.totl_nT: unknown key"),
+             (["--config", str(tmp_path / "gone.toml")], tmp_path / "gone.toml", "not found")]
+    if command == "diagnose":
+        cal = tmp_path / "cal.json"
+        cal.write_text("{}")
+        cases.append((["--calibration", str(cal)], cal, "not a fluxcal calibration file"))
+    for extra, file, why in cases:
+        assert cli.main([command, str(data), "--json", *extra]) == 2
+        refused = json.loads(capsys.readouterr().out)["refused"]
+        assert refused["file"] == str(file) and why in refused["reason"], refused
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,s1_x,s1_y\n0,1,2\n")
+    assert cli.main([command, str(bad), "--json", "--config", str(typo)]) == 2
+    assert json.loads(capsys.readouterr().out)["refused"]["file"] == str(bad)
