@@ -71,3 +71,22 @@ def test_a_refused_configuration_or_calibration_is_the_refusals_file(tmp_path, c
     bad.write_text("t,s1_x,s1_y\n0,1,2\n")
     assert cli.main([command, str(bad), "--json", "--config", str(typo)]) == 2
     assert json.loads(capsys.readouterr().out)["refused"]["file"] == str(bad)
+
+
+@pytest.mark.parametrize("toml, said", [
+    ("[estimator]\ntotal_nT = true", "estimator.total_nT: expected a number, got true"),
+    ("[[probes]]\nposition_m = [0.0, 0.0, false]", "probes[0].position_m[2]: expected a number, got false"),
+    ("[estimator]\ntotal_nT = [true, 1.5, 'x', 2026-07-02]",
+     "estimator.total_nT: expected a number, got [true, 1.5, 'x', 2026-07-02]"),
+    ("[estimator]\nalign = false", "estimator.align: expected a string, got false"),
+    ("[estimator]\ntotal_nT = 1979-05-27T07:32:00Z", "estimator.total_nT: expected a number, got 1979-05-27T07:32:00"),
+    ("[estimator]\ntotal_nT = nan", "estimator.total_nT: expected a finite number, got nan"),
+])
+def test_a_value_in_a_configuration_error_is_spelled_as_toml(tmp_path, capsys, toml, said):
+    """The value the error shows is the one the file holds, as TOML writes it (it said Python's `got True`)."""
+    data = _sphere_csv(tmp_path / "lab.csv", 50_000.0, n=200)
+    config = tmp_path / "c.toml"
+    config.write_text(toml + "\n")
+    assert cli.main(["fit", str(data), "--config", str(config)]) == 2
+    err = capsys.readouterr().err
+    assert f"{config}: {said}" in err and "True" not in err and "False" not in err
