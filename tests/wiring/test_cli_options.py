@@ -5,6 +5,8 @@ docs/contracts.md)."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 
 import numpy as np
 import pytest
@@ -90,3 +92,31 @@ def test_a_value_in_a_configuration_error_is_spelled_as_toml(tmp_path, capsys, t
     assert cli.main(["fit", str(data), "--config", str(config)]) == 2
     err = capsys.readouterr().err
     assert f"{config}: {said}" in err and "True" not in err and "False" not in err
+
+
+@pytest.mark.parametrize("command, sig, by", [("diagnose", signal.SIGINT, "Ctrl-C"), ("fit", signal.SIGTERM, "SIGTERM")])
+def test_an_interrupted_command_says_so_in_one_line(tmp_path, capsys, monkeypatch, command, sig, by):
+    """Ctrl-C (or SIGTERM) while diagnose read its data ended it with exit status 130 and not a word; now one line says
+    which signal stopped which command on which data. The signal is a real one, sent while the second piece of the
+    file is read."""
+    from fluxcal.drivers import inputs
+
+    data = _sphere_csv(tmp_path / "lab.csv", 50_000.0, n=6000)
+    monkeypatch.setattr(inputs, "CHUNK_BYTES", 64 << 10)
+    reads, read = [], inputs._read_chunk
+
+    def read_and_signal(f, n):
+        reads.append(n)
+        if len(reads) == 2:
+            os.kill(os.getpid(), sig)
+        return read(f, n)
+
+    monkeypatch.setattr(inputs, "_read_chunk", read_and_signal)
+    before = signal.getsignal(signal.SIGTERM)
+    try:
+        assert cli.main([command, str(data)]) == 130
+    finally:
+        signal.signal(signal.SIGTERM, before)
+    out, err = capsys.readouterr()
+    assert len(reads) == 2 and out == ""
+    assert err == f"fluxcal {command}: interrupted by {by} on {data} before it finished\n"
