@@ -21,7 +21,8 @@ SIGNED_VALUE_OPTIONS = ("--site",)
 PATH = {"names": "path"}
 EFFECT_SPECS = {"names": "effects"}
 
-DATA_HELP = ("a lab CSV or an MCAP recording of fluxcal. CSV columns: t (s), s1_x, s1_y, s1_z, s2_x, ... (nT); "
+DATA_HELP = ("a lab CSV, an MCAP recording of fluxcal, a PX4 log (.ulg), an ArduPilot log (.bin) or a ROS 2 bag "
+             "(.mcap, a rosbag2 directory, .db3; `fluxcal inspect FILE` shows what each stream becomes). CSV columns: t (s), s1_x, s1_y, s1_z, s2_x, ... (nT); "
              "optional: s<k>_temp (degC, for temperature), ref_total (nT, a scalar reference: without it and "
              "without --site or the config's total field, the total field is estimated and an overall scale "
              "cannot be seen), heel_deg, pitch_deg, azimuth_deg (attitude, for gradient), any other column "
