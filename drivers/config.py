@@ -19,6 +19,7 @@ fluxcal.drivers.errors.ConfigError: source.baud: unknown key (allowed: port, bau
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import math
 import tomllib
 import types
@@ -91,7 +92,17 @@ def load_section(cls: type, table: Any, path: str) -> Any:
 
 
 def _show(v: Any) -> str:
-    return repr(v) if not isinstance(v, dict) else "a table"
+    """A value as TOML spells it, as the user wrote it: true (not Python's True), [1, false], a date as 2026-07-02;
+    a string quoted, a table as "a table"."""
+    if isinstance(v, dict):
+        return "a table"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, list):
+        return f"[{', '.join(_show(x) for x in v)}]"
+    if isinstance(v, (datetime.date, datetime.time)):        # datetime.datetime is a date
+        return v.isoformat()
+    return repr(v)
 
 
 def _convert(tp: Any, value: Any, key: str, meta: Any) -> Any:
@@ -141,7 +152,7 @@ def _convert(tp: Any, value: Any, key: str, meta: Any) -> Any:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{key}: expected a number, got {_show(value)}")
         if not math.isfinite(value):
-            raise ConfigError(f"{key}: expected a finite number, got {value!r}")
+            raise ConfigError(f"{key}: expected a finite number, got {_show(value)}")
         _bounds(value, key, meta)
         return float(value)
     if tp is str:

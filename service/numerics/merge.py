@@ -21,6 +21,7 @@ Numerics only: no file is read here.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -199,10 +200,21 @@ def euler_from_quaternion(q: np.ndarray) -> np.ndarray:
 
 #: a column is taken only where its samples give a value at this share of the probes' instants, at least
 COLUMN_MIN_SHARE = 0.5
+#: the name each auxiliary stream has in every log's mapping, by the column it gives (`--topics NAME=none` leaves it
+#: out of a ROS 2 bag's, a PX4 log's or an ArduPilot log's mapping: docs/cli.md)
+MAPPING_NAMES = {"attitude": "imu", "lat_deg": "gps", "lon_deg": "gps", "alt_m": "gps"}
 
 
-def _columns_on(columns: dict[str, Series], t: np.ndarray, keep: np.ndarray, warnings: list[str]) -> dict:
-    """Each column interpolated at the instants t, `keep` narrowed to where it has a value. A column whose samples
+def mapping_name(col: str) -> str | None:
+    """The mapping's name of the stream that gives column `col` (battery1_current_a -> battery), None for another."""
+    head = col.split(" ")[0]
+    return "battery" if re.fullmatch(r"battery\d*_current_a", head) else MAPPING_NAMES.get(head)
+
+
+def _columns_on(columns: dict[str, Series], t: np.ndarray, keep: np.ndarray, warnings: list[str],
+                cuts: list[tuple[str, Series, np.ndarray]]) -> dict:
+    """Each column interpolated at the instants t, `keep` narrowed to where it has a value (each column's
+    (name, series, where it has a value) appended to `cuts`, said by _say_cuts). A column whose samples
     cover less than COLUMN_MIN_SHARE of the instants kept (a GPS logged on another clock, a stream that started
     late) is left out instead, not the probes' rows; said."""
     extras: dict[str, np.ndarray] = {}
@@ -213,7 +225,7 @@ def _columns_on(columns: dict[str, Series], t: np.ndarray, keep: np.ndarray, war
                             f"of {int(np.count_nonzero(keep)):,} instants of the probes: the column left out (not the "
                             f"rows: its samples cover less than {COLUMN_MIN_SHARE:.0%} of them)")
             continue
-        _say_cut(warnings, col, s, ok, keep)
+        cuts.append((col, s, ok))
         keep &= ok
         extras[col] = v
     return extras
@@ -260,14 +272,16 @@ def merge(probes: list[tuple[str, Series]], *, temperatures: dict[str, Series] |
                             f"instants of {names[base_k]}: those rows left out (the probes are compared sample by "
                             f"sample; a value is never borrowed from another instant)")
         keep &= got
-    extras = _columns_on(columns, t, keep, warnings)
+    matched, cuts = keep.copy(), []
+    extras = _columns_on(columns, t, keep, warnings, cuts)
     if attitude is not None:
         q, ok = interpolate(Series(attitude.t_s, continuous_quaternions(attitude.values), attitude.source), t)
-        _say_cut(warnings, "attitude (heel_deg, pitch_deg, azimuth_deg)", attitude, ok, keep)
+        cuts.append(("attitude (heel_deg, pitch_deg, azimuth_deg)", attitude, ok))
         keep &= ok
         e = np.full((n, 3), np.nan)
         e[ok] = euler_from_quaternion(q[ok])
         extras.update(heel_deg=e[:, 0], pitch_deg=e[:, 1], azimuth_deg=e[:, 2])
+    _say_cuts(warnings, cuts, matched)
     temp = np.full((n, len(probes)), np.nan)
     for name, s in temperatures.items():
         if name not in names:
@@ -293,7 +307,22 @@ def merge(probes: list[tuple[str, Series]], *, temperatures: dict[str, Series] |
     return Merged(block=block, t0_s=t0, warnings=warnings, notes=notes)
 
 
-def _say_cut(warnings: list[str], col: str, s: Series, ok: np.ndarray, keep: np.ndarray) -> None:
+def _say_cuts(warnings: list[str], cuts: list[tuple[str, Series, np.ndarray]], keep: np.ndarray) -> None:
+    """The rows each auxiliary stream cut (in the order they were taken, from the rows the probes matched: a row is
+    told once, by the first stream that lacks it), and what keeps them: every stream that lacks them left out."""
+    keep = keep.copy()
+    for k, (col, s, ok) in enumerate(cuts):
+        lost = ~ok & keep
+        also = [c for c, _, other in cuts[k + 1:] if (lost & ~other).any()]
+        every = all(not (lost & other).any() for c, _, other in cuts[k + 1:] if c in also)
+        _say_cut(warnings, col, s, ok, keep, also, every)
+        keep &= ok
+
+
+def _say_cut(warnings: list[str], col: str, s: Series, ok: np.ndarray, keep: np.ndarray, also: list[str],
+             every: bool = True) -> None:
+    """One stream's cut rows: where they lie, and the mapping's names that keep them (`also`: the columns of the
+    later streams that lack some of them too; `every`: each of those lacks every one of them)."""
     lost = int(np.count_nonzero(~ok & keep))
     if not lost:
         return
@@ -306,6 +335,11 @@ def _say_cut(warnings: list[str], col: str, s: Series, ok: np.ndarray, keep: np.
         where.append(f"{after:,} after its last")
     if lost - before - after:
         where.append(f"{lost - before - after:,} across gaps of more than {MAX_GAP_INTERVALS:g} of its intervals")
+    names = list(dict.fromkeys(mapping_name(c) for c in [col, *also]))
+    others = list(dict.fromkeys(c.split(" ")[0] for c in also if mapping_name(c) != mapping_name(col)))
+    which = (f"the stream and {', '.join(others)}, which {'lacks' if len(others) == 1 else 'lack'} "
+             f"{'them' if every else 'some of them'} too," if others else "the stream")
+    how = f" (--topics {','.join(f'{n}=none' for n in names)})" if None not in names else ""
     warnings.append(f"{col} ({s.source}, {s.n:,} samples): no value at {lost:,} rows ({', '.join(where)}): those rows "
-                    f"left out (interpolated only between two samples, never extrapolated; leave the stream out of "
-                    f"the mapping to keep them)")
+                    f"left out (interpolated only between two samples, never extrapolated; leave {which} out of "
+                    f"the mapping{how} to keep them)")

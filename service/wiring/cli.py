@@ -11,12 +11,14 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import re
 import signal
 import sys
 from typing import Sequence
 
 from fluxcal.drivers.errors import CalibrationRefused, ConfigError, DataError, FluxcalError
 from fluxcal.service.wiring.commands import COMMANDS, FLEET_COMMANDS
+from fluxcal.service.wiring.commands.options import SIGNED_VALUE_OPTIONS
 
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
 
@@ -58,7 +60,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 
 
 def _sigterm_to_keyboard_interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
+    raise KeyboardInterrupt("SIGTERM")          # Ctrl-C's has no argument: main says which stopped it
 
 
 def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
@@ -87,8 +89,31 @@ def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespa
         raise
 
 
+def _signed_values_joined(argv: list[str]) -> list[str]:
+    """`--site -75,120` as `--site=-75,120`: argparse takes a value beginning with '-' for an option (unless it is a
+    plain number), so an option of SIGNED_VALUE_OPTIONS is joined to a value that begins with '-' and a digit."""
+    out: list[str] = []
+    for a in argv:
+        if out and out[-1] in SIGNED_VALUE_OPTIONS and re.match(r"-\.?\d", a):
+            out[-1] = f"{out[-1]}={a}"
+        else:
+            out.append(a)
+    return out
+
+
+def _say_interrupted(args: argparse.Namespace, by: str) -> None:
+    """One line for a command stopped by Ctrl-C or SIGTERM (exit status 130): which, what it was working on."""
+    data = next((getattr(args, k) for k in ("data", "recording", "file", "capture") if getattr(args, k, None)), None)
+    data = data[0] if isinstance(data, list) and len(data) == 1 else data
+    on = "" if data is None else f" ({len(data)} recordings)" if isinstance(data, list) else f" on {data}"
+    try:
+        print(f"fluxcal {args.command}: interrupted by {by}{on} before it finished", file=sys.stderr, flush=True)
+    except (OSError, ValueError):                 # stderr gone with the terminal that sent the signal
+        pass
+
+
 def main(argv: Sequence[str] | None = None, *, install_signals: bool = True) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
+    argv = _signed_values_joined(list(sys.argv[1:] if argv is None else argv))
     asked = next((a for a in argv if not a.startswith("-")), None)
     args = _parse(build_parser(asked if asked in COMMANDS else None), argv)
     if install_signals:
@@ -111,7 +136,8 @@ def main(argv: Sequence[str] | None = None, *, install_signals: bool = True) -> 
     except FluxcalError as e:
         print(f"fluxcal {args.command}: {e}", file=sys.stderr)
         return EXIT_FAILURE
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
+        _say_interrupted(args, str(e) or "Ctrl-C")
         return 130
     except BrokenPipeError:
         return EXIT_FAILURE

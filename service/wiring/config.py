@@ -69,7 +69,7 @@ class EstimatorConfig:
     forgetting: float = spec(0.9995, min=0.9, max=1.0, doc="RLS forgetting factor per sample")
     total_nT: float | None = spec(None, min=1000.0, max=200000.0,
                                   doc="ambient total field; omit to use ref_total from the source or estimate it")
-    site: str | None = spec(None, doc="LAT,LON,ALT_M[,DATE]: the total field from the World Magnetic Model at the "
+    site: str | None = spec(None, doc="LAT,LON[,ALT_M[,DATE]]: the total field from the World Magnetic Model at the "
                                       "site, for a unit without a scalar magnetometer (instead of total_nT)")
     align: str = spec("rotation", choices=("rotation", "regression", "none"))
     min_samples: int = spec(2000, min=20, max=10**9)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -104,9 +105,11 @@ def prepared_from(data: LabData, said: Said, *, config: str | None = None, site:
     part = part_of_run(said, source) if source is not None else None
     source = data.path if source is None else source
     n_probes = data.block.n_probes
-    held, held_effects = held_calibration(calibration, n_probes) if calibration else (None, [])
+    with refusing(calibration):
+        held, held_effects = held_calibration(calibration, n_probes) if calibration else (None, [])
     if config:
-        positions, total = config_geometry(config, n_probes)
+        with refusing(config):
+            positions, total = config_geometry(config, n_probes)
         origin, warning = f"configuration from {config}", None
     else:                                         # the configuration a service recording stores, said
         given = stored_config(data.metadata, str(source), n_probes)
@@ -120,6 +123,18 @@ def prepared_from(data: LabData, said: Said, *, config: str | None = None, site:
     return Prepared(source=str(source), data=data, positions_m=spread(positions), total_nT=total, origin=origin,
                     site=the_site, skipped=list(skip or []), part_of_run=part, config_warning=warning, track=track,
                     holds=holds, held=held, held_effects=held_effects)
+
+
+@contextmanager
+def refusing(path: str | None):
+    """A file given beside the data (--config, --calibration) that cannot be used refuses that file: the error's
+    `file` is it, and the refusal (result.refusal) names it, not the data."""
+    try:
+        yield
+    except (ConfigError, DataError) as e:
+        if path is not None:
+            e.file = str(path)
+        raise
 
 
 def held_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:
@@ -202,25 +217,41 @@ def log_mapping(source: str, topics: dict[str, str | None] | None, mags: Sequenc
     from fluxcal.service.io.recordings.formats import detect_format
 
     fmt = detect_format(source)
-    if topics and fmt not in ("ros2-mcap", "ros2-bag"):
-        raise ConfigError(f"--topics: {source} is not a ROS 2 bag ({fmt}): --topics names a bag's topics")
-    if mags and fmt not in ("px4-ulog", "ardupilot-bin"):
+    if topics and fmt not in ("ros2-mcap", "ros2-bag", *FLIGHT_LOGS):
+        raise ConfigError(f"--topics: {source} is not a ROS 2 bag, PX4 or ArduPilot log ({fmt}): --topics names "
+                          f"what such a log's streams become")
+    if mags and fmt not in FLIGHT_LOGS:
         raise ConfigError(f"--mags: {source} is not a PX4 or ArduPilot log ({fmt})")
-    if topics:
-        from fluxcal.service.io.recordings.ros2 import AUTO, Ros2Mapping
-
-        probes = {k: v for k, v in topics.items() if k not in ("imu", "gps", "battery") and not k.startswith("temp.")}
-        temps = {k[5:]: v for k, v in topics.items() if k.startswith("temp.") and v is not None}
-        return Ros2Mapping(probes={k: v for k, v in probes.items() if v is not None} or None,
-                           temperatures=temps or None, imu=topics.get("imu", AUTO),
-                           navsatfix=topics.get("gps", AUTO), battery=topics.get("battery", AUTO))
-    if fmt == "px4-ulog":
+    if fmt in FLIGHT_LOGS:
+        from fluxcal.service.io.recordings.ardupilot import ArduPilotMapping
         from fluxcal.service.io.recordings.px4 import Px4Mapping
 
-        return Px4Mapping(mags=tuple(mags))
-    from fluxcal.service.io.recordings.ardupilot import ArduPilotMapping
+        mapping = Px4Mapping if fmt == "px4-ulog" else ArduPilotMapping
+        return mapping(mags=tuple(mags) if mags else None, **_left_out(source, FLIGHT_LOGS[fmt], topics or {}))
+    from fluxcal.service.io.recordings.ros2 import AUTO, Ros2Mapping
 
-    return ArduPilotMapping(mags=tuple(mags))
+    probes = {k: v for k, v in topics.items() if k not in ("imu", "gps", "battery") and not k.startswith("temp.")}
+    temps = {k[5:]: v for k, v in topics.items() if k.startswith("temp.") and v is not None}
+    return Ros2Mapping(probes={k: v for k, v in probes.items() if v is not None} or None,
+                       temperatures=temps or None, imu=topics.get("imu", AUTO),
+                       navsatfix=topics.get("gps", AUTO), battery=topics.get("battery", AUTO))
+
+
+#: the flight logs' formats (their streams are messages, chosen by the reader) and their names for a person
+FLIGHT_LOGS = {"px4-ulog": "a PX4 log", "ardupilot-bin": "an ArduPilot log"}
+#: what `--topics NAME=none` leaves out of a flight log's mapping (its Px4Mapping or ArduPilotMapping switch)
+LEFT_OUT = {"imu": "attitude", "gps": "position", "battery": "currents"}
+
+
+def _left_out(source: str, what: str, topics: dict[str, str | None]) -> dict[str, bool]:
+    """The switches of a flight log's mapping that --topics turns off: only NAME=none of LEFT_OUT; ConfigError for
+    any other (a flight log has no topics to choose: its messages are read as docs/px4.md and docs/ardupilot.md say)."""
+    bad = [f"{k}={v or 'none'}" for k, v in topics.items() if k not in LEFT_OUT or v is not None]
+    if bad:
+        raise ConfigError(f"--topics: {', '.join(bad)} is not allowed for {source} ({what}: its streams are the "
+                          f"messages fluxcal reads, not topics to choose; allowed: imu=none, gps=none, battery=none, "
+                          f"each leaving that stream out; --mags chooses the compasses)")
+    return {LEFT_OUT[k]: False for k in topics}
 
 
 #: the formats of other ecosystems' logs (not fluxcal's recordings: `fluxcal repair` does not mend them)

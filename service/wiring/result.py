@@ -125,8 +125,10 @@ class Result:
 def refusal(error: BaseException, file: Any = None) -> dict[str, Any]:
     """The JSON of a refusal (docs/contracts.md section 3): {"refused": {"reason", "advice", "file"}}. reason: why
     (the error's own reason where it gives one apart, else its message); advice: what would help, or None where the
-    reason says it itself; file: the input refused (None: not one file)."""
+    reason says it itself; file: the input refused (None: not one file), unless the error names its own (`error.file`:
+    a configuration or calibration given beside the data, prepare.refusing)."""
     reason = getattr(error, "reason", None) or str(error)
+    file = getattr(error, "file", None) or file
     advice = getattr(error, "advice", None) or None
     if isinstance(file, (list, tuple)):
         file = file[0] if len(file) == 1 else None

@@ -111,3 +111,25 @@ def test_a_calibration_with_effects_corrects_with_them_or_refuses():
     assert linear > 3 * scalar                               # what apply gave: the effects matter here
     plain = fluxcal.fit(data)                                 # without effects, correct is apply
     assert np.array_equal(plain.correct(data), plain.calibration.apply(data.lab.block.field_nT))
+
+
+def test_a_fluxcal_folder_in_the_working_folder_does_what_python_md_says(tmp_path):
+    """docs/python.md section 7: Python started beside a folder named fluxcal takes it for a namespace package when
+    fluxcal is an editable install (its import hook comes after the path's own search), and `fluxcal.fit` is missing;
+    started elsewhere, or with the package on the path (a strict editable or a regular install), it is the package."""
+    import subprocess
+    import sys
+
+    (tmp_path / "fluxcal").mkdir()
+    probe = ("import sys, fluxcal; hook = any(getattr(f, '__name__', '') == '_EditableFinder' for f in sys.meta_path); "
+             "print(hook, fluxcal.__file__ is not None, hasattr(fluxcal, 'fit'))")
+
+    def run(where: Path) -> list[str]:
+        out = subprocess.run([sys.executable, "-c", probe], cwd=where, capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0, out.stderr
+        return out.stdout.split()
+
+    hook, found, has_fit = run(tmp_path)
+    assert (found, has_fit) == (("False", "False") if hook == "True" else ("True", "True"))
+    assert run(tmp_path / "fluxcal")[1:] == ["True", "True"]
+    assert "AttributeError: module 'fluxcal' has no attribute 'fit'" in (ROOT / "docs/python.md").read_text()

@@ -143,6 +143,31 @@ def test_a_real_copter_flight_is_read_and_fitted_and_its_cone_said(capsys):
     assert "turn the probe about at least two axes" in err
 
 
+@needs_real(FLIGHT)
+def test_the_rows_a_stream_cuts_are_said_by_its_name_with_an_option_that_keeps_them(capsys):
+    """This flight's battery current and attitude lack the same 15 rows: the warning names the stream CURR as
+    inspect names it (it said BAT[0]), and both streams' --topics, which an ArduPilot log takes (it was refused:
+    'not a ROS 2 bag') and which keeps the rows."""
+    path = str(real(FLIGHT))
+    said = [w for w in load_data(path).warnings if "out of the mapping" in w]
+    assert said == [w for w in said if w.startswith("battery_current_a (CURR.Curr, 4,675 samples): no value at 15 "
+                                                    "rows")] and len(said) == 1
+    assert "leave the stream and attitude, which lacks them too, out of the mapping (--topics battery=none,imu=none)" \
+        in said[0]
+    capsys.readouterr()
+    assert cli.main(["inspect", path, "--json"]) == 0
+    streams = {s["name"]: s["maps_to"] for s in json.loads(capsys.readouterr().out)["streams"]}
+    assert streams["CURR"] == "battery_current_a" and "BAT" not in streams
+    assert cli.main(["inspect", path, "--topics", "battery=none", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["samples"] == 4660       # the attitude lacks them too: still cut
+    assert cli.main(["inspect", path, "--topics", "battery=none,imu=none", "--json"]) == 0
+    kept = json.loads(capsys.readouterr().out)
+    assert kept["samples"] == 4675 and kept["columns"] == []
+    assert {s["name"]: s["maps_to"] for s in kept["streams"]}["CURR"] == ""
+    assert cli.main(["fit", path, "--topics", "temp.s1=none"]) == 2
+    assert "allowed: imu=none, gps=none, battery=none" in capsys.readouterr().err
+
+
 @needs_real(STILL_CURRENT)
 def test_a_logged_current_that_never_changes_is_named_never_asked_for(capsys, tmp_path):
     """The battery monitor of this flight read 0 A throughout: diagnose said 'log the heater or motor currents' of

@@ -129,6 +129,32 @@ def test_mapping_and_inspect(flight, capsys):
     assert "PX4 flight log (ULog)" in capsys.readouterr().out
 
 
+def test_the_advice_on_cut_rows_is_an_option_that_keeps_them(flight, capsys):
+    """The GPS ends 9 rows before the compasses, the attitude begins 1 row after them and lacks the last of those 9:
+    each warning names its stream as inspect does and the --topics that keeps the rows, and --topics takes it for a
+    PX4 log (it was refused: 'not a ROS 2 bag'), keeping them."""
+    path, _ = flight
+    said = load_data(path).warnings
+    assert len(said) == 2
+    assert said[0].startswith("lat_deg (vehicle_gps_position (3D fix), 400 samples): no value at 9 rows")
+    assert "leave the stream and attitude, which lacks some of them too, out of the mapping (--topics gps=none," \
+           "imu=none) to keep them" in said[0]
+    assert said[1].startswith("attitude (heel_deg, pitch_deg, azimuth_deg) (vehicle_attitude q") and \
+        "out of the mapping (--topics imu=none) to keep them" in said[1]
+    capsys.readouterr()
+    assert cli.main(["inspect", str(path), "--json"]) == 0
+    whole = json.loads(capsys.readouterr().out)
+    assert cli.main(["inspect", str(path), "--topics", "gps=none,imu=none,battery=none", "--json"]) == 0
+    narrow = json.loads(capsys.readouterr().out)
+    assert narrow["samples"] == whole["samples"] + 10 and set(narrow["columns"]) == {"s1_temp", "s2_temp"}
+    assert {s["name"]: s["maps_to"] for s in narrow["streams"]}["battery_status"] == ""
+    assert cli.main(["inspect", str(path), "--topics", "gps=none", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["samples"] == whole["samples"] + 8
+    for wrong in ("battery=/battery", "s1=/mag"):
+        assert cli.main(["fit", str(path), "--topics", wrong]) == 2
+        assert f"--topics: {wrong} is not allowed for {path} (a PX4 log" in capsys.readouterr().err
+
+
 @needs_real("px4_sample_log_small.ulg")
 def test_real_px4_log_end_to_end(capsys):
     """A real flight (CubeOrange, 2021-04-21): two compasses logged at 1 Hz, two batteries, GPS. Read end to end:

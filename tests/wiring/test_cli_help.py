@@ -86,3 +86,29 @@ def test_the_help_answers_what_a_new_user_had_to_guess():
     assert "no unit clock" in dec and "--site" in dec
     watch = " ".join(subs["watch"].format_help().split())
     assert "cal=" in watch and "cov=" in watch and "not on a terminal" in watch
+
+
+def test_the_docs_list_every_command_every_reader_and_every_extra():
+    """docs/cli.md's list at the top omitted inspect; fit's and diagnose's DATA named CSV and MCAP only, while the
+    readers take PX4, ArduPilot and ROS 2 logs; install.md did not list their extras (pyproject.toml)."""
+    import re
+    import tomllib
+    from pathlib import Path
+
+    from fluxcal.service.wiring.commands import COMMANDS
+    from fluxcal.service.wiring.commands.options import DATA_HELP
+
+    root = Path(__file__).resolve().parents[2]
+    cli_md = (root / "docs/cli.md").read_text()
+    top = cli_md.split("\n## ", 1)[0]
+    listed = {name for names in re.findall(r"^    fluxcal ([a-z|-]+)", top, re.M) for name in names.split("|")}
+    assert set(COMMANDS) <= listed, set(COMMANDS) - listed
+    data_md = cli_md.split("## Data: DATA", 1)[1].split("\n## ", 1)[0]
+    for reader in ("CSV", "MCAP", "PX4", ".ulg", "ArduPilot", ".bin", "ROS 2 bag"):
+        assert reader in DATA_HELP and reader in data_md, reader
+    for name in ("fit", "diagnose"):
+        sub = _subparsers()[name]
+        assert next(a for a in sub._actions if a.dest == "data").help.startswith(DATA_HELP)
+    extras = tomllib.loads((root / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    install = (root / "docs/install.md").read_text()
+    assert all(f"'.[{extra}]'" in install for extra in extras), [e for e in extras if f"'.[{e}]'" not in install]

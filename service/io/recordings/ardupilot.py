@@ -158,7 +158,8 @@ def _dataflash_head(head: bytes, whole: bool) -> str | None:
 def load_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None) -> LabData:
     """An ArduPilot DataFlash log as LabData (module docstring)."""
     m = mapping or ArduPilotMapping()
-    data = _read(Path(path))
+    names: dict[tuple[str, int], str] = {}       # each stream as the log names it, and inspect and what is said
+    data = _read(Path(path), names)
     mags = sorted(i for k, i in data if k == "MAG")
     if m.mags is not None:
         missing = [i for i in m.mags if i not in mags]
@@ -178,8 +179,8 @@ def load_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None) ->
         d = data[("MAG", i)]
         name = f"s{k + 1}"
         v = np.column_stack([d[f] for f in ("MagX", "MagY", "MagZ")]) * NT_PER_MILLIGAUSS
-        probes.append((name, Series(s(d["t_us"]), v, f"MAG instance {i}")))
-        sources[name] = f"MAG[{i}]"
+        probes.append((name, Series(s(d["t_us"]), v, names[("MAG", i)])))
+        sources[name] = names[("MAG", i)]
         ofs = np.array([d[f"Ofs{a}"][-1] for a in "XYZ"]) * NT_PER_MILLIGAUSS
         if np.all(np.isfinite(ofs)):
             offsets.append(f"{name} {ofs[0]:.0f}, {ofs[1]:.0f}, {ofs[2]:.0f}")
@@ -189,8 +190,9 @@ def load_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None) ->
     attitude = None
     if m.attitude and ("ATT", 0) in data:
         a = data[("ATT", 0)]
-        attitude = Series(s(a["t_us"]), quaternion_from_euler(a["Roll"], a["Pitch"], a["Yaw"]), "ATT Roll, Pitch, Yaw")
-        sources.update(dict.fromkeys(("heel_deg", "pitch_deg", "azimuth_deg"), "ATT"))
+        attitude = Series(s(a["t_us"]), quaternion_from_euler(a["Roll"], a["Pitch"], a["Yaw"]),
+                          f"{names[('ATT', 0)]} Roll, Pitch, Yaw")
+        sources.update(dict.fromkeys(("heel_deg", "pitch_deg", "azimuth_deg"), names[("ATT", 0)]))
     offset = None
     gps = data.get(("GPS", 0))
     if gps is not None:
@@ -198,8 +200,8 @@ def load_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None) ->
         if m.position and ok.any():
             t = s(np.asarray(gps["t_us"])[ok])
             for col, f in (("lat_deg", "Lat"), ("lon_deg", "Lng"), ("alt_m", "Alt")):
-                columns[col] = Series(t, np.asarray(gps[f])[ok], f"GPS {f} (3D fix)")
-                sources[col] = f"GPS.{f}"
+                columns[col] = Series(t, np.asarray(gps[f])[ok], f"{names[('GPS', 0)]}.{f} (3D fix)")
+                sources[col] = f"{names[('GPS', 0)]}.{f}"
             notes.append("alt_m from GPS.Alt: above mean sea level (the geoid's undulation, up to about 100 m, is in "
                          "it)")
         wk, ms = np.asarray(gps["GWk"]), np.asarray(gps["GMS"])
@@ -213,8 +215,8 @@ def load_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None) ->
             if kind == "BAT" and np.isfinite(c).any():
                 col = "battery_current_a" if i == 0 else f"battery{i}_current_a"
                 ok = np.isfinite(c)
-                columns[col] = Series(s(np.asarray(d["t_us"])[ok]), c[ok], f"BAT[{i}].Curr")
-                sources[col] = f"BAT[{i}].Curr"
+                columns[col] = Series(s(np.asarray(d["t_us"])[ok]), c[ok], f"{names[(kind, i)]}.Curr")
+                sources[col] = f"{names[(kind, i)]}.Curr"
     try:
         merged = merge(probes, columns=columns, attitude=attitude)
     except ValueError as e:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import codecs
 import math
 import re
+import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -307,7 +308,8 @@ def _check_header(p: Path, header: list[str], line_no: int) -> None:
             raise DataError(f"{p}: line {line_no}: column {h!r} appears twice")
         seen.add(h)
     if "t" not in seen:
-        raise DataError(f"{p}: line {line_no}: no 't' column (time in seconds) in the header")
+        raise DataError(f"{p}: line {line_no}: no 't' column (time in seconds) in the header"
+                        + _other_delimiter(p, ",".join(header)))
     probes = sorted({int(m.group(1)) for h in header if (m := _PROBE_COL.match(h))})
     if not probes:
         raise DataError(f"{p}: line {line_no}: no probe columns (expected s1_x, s1_y, s1_z, ...)")
@@ -316,6 +318,29 @@ def _check_header(p: Path, header: list[str], line_no: int) -> None:
             if f"s{k}_{axis}" not in seen:
                 what = "probes must be numbered 1..N without gaps" if k not in probes else "missing axis"
                 raise DataError(f"{p}: line {line_no}: column 's{k}_{axis}' is missing ({what})")
+
+
+#: what a spreadsheet or LabVIEW writes between values in a locale with a decimal comma: how to say it, and how sed
+#: writes it
+OTHER_DELIMITERS = {";": ("';'", ";"), "\t": ("tabs", "\\t")}
+
+
+def _other_delimiter(p: Path, header_line: str) -> str:
+    """Why a header has no 't' column when it has one between ';' or tabs: what fluxcal reads and how to convert it
+    (never read as it is: beside ';' a ',' may be a decimal comma or a thousands separator, 1,234 being 1.234 or
+    1234, and a wrong guess would change every value without a word); '' for another header."""
+    d = next((d for d in OTHER_DELIMITERS if "t" in (h.strip() for h in header_line.split(d))), None)
+    if d is None:
+        return ""
+    said, sed = OTHER_DELIMITERS[d]
+    if str(p).startswith("<"):                       # a table in memory (fluxcal.read of a pandas DataFrame)
+        return (f": its column names are one name separated by {said}: read the file with sep={d!r} (and "
+                f"decimal=',' where its numbers have a decimal comma)")
+    into = f"{shlex.quote(str(p))} > {shlex.quote(str(p.with_name(p.stem + '-comma.csv')))}"
+    return (f": the file is separated by {said}, and fluxcal reads values separated by ',' with '.' as the decimal "
+            f"point (docs/csv.md). Export it so (a spreadsheet's list separator ',', decimal separator '.'), or "
+            f"convert it: `sed 's/{sed}/,/g' {into}` where its numbers have a decimal point, "
+            f"`sed 's/,/./g; s/{sed}/,/g' {into}` where they have a decimal comma (0,5)")
 
 
 def _locate_bad_value(p: Path, header: list[str], rows: list[str], lineno: np.ndarray) -> None:

@@ -138,14 +138,21 @@ def _temperature(d: Any) -> np.ndarray | None:
     return None if not np.any(np.isfinite(t) & (t != 0)) else t
 
 
-def _currents(ulog: Any) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def _stream_name(d: Any) -> str:
+    """How inspect names a topic instance (and what is said of it names it so): battery_status, battery_status[1],
+    sensor_mag[0]."""
+    return d.name if d.multi_id == 0 and d.name != "sensor_mag" else f"{d.name}[{d.multi_id}]"
+
+
+def _currents(ulog: Any) -> dict[str, tuple[np.ndarray, np.ndarray, str]]:
+    """Each battery_status instance's measured current_a by its column: (timestamp us, amperes, the stream's name)."""
     out = {}
     for d in _instances(ulog, "battery_status"):
         c = np.asarray(d.data.get("current_a", []), float)
         ok = np.isfinite(c) & (c != -1.0)                         # -1: not measured
         if ok.any():
             key = "battery_current_a" if d.multi_id == 0 else f"battery{d.multi_id}_current_a"
-            out[key] = (np.asarray(d.data["timestamp"], np.int64)[ok], c[ok])
+            out[key] = (np.asarray(d.data["timestamp"], np.int64)[ok], c[ok], _stream_name(d))
     return out
 
 
@@ -208,13 +215,13 @@ def load_px4(path: str | Path, mapping: Px4Mapping | None = None) -> LabData:
         t_us, pos, which = _position(gps)
         if t_us.size:
             for c, col in enumerate(("lat_deg", "lon_deg", "alt_m")):
-                columns[col] = Series(s(t_us), pos[:, c], f"{gps.name} (3D fix)")
-                sources[col] = gps.name
-            notes.append(f"alt_m from {gps.name}: {which}")
+                columns[col] = Series(s(t_us), pos[:, c], f"{_stream_name(gps)} (3D fix)")
+                sources[col] = _stream_name(gps)
+            notes.append(f"alt_m from {_stream_name(gps)}: {which}")
     if m.currents:
-        for col, (t_us, c) in _currents(ulog).items():
-            columns[col] = Series(s(t_us), c, f"battery_status {col}")
-            sources[col] = "battery_status.current_a"
+        for col, (t_us, c, stream) in _currents(ulog).items():
+            columns[col] = Series(s(t_us), c, f"{stream}.current_a")
+            sources[col] = f"{stream}.current_a"
     try:
         merged = merge(probes, temperatures=temps, columns=columns, attitude=attitude)
     except ValueError as e:
@@ -263,7 +270,6 @@ def inspect_px4(path: str | Path, mapping: Px4Mapping | None = None) -> Inspecti
             key = "battery_current_a" if d.multi_id == 0 else f"battery{d.multi_id}_current_a"
             maps = key if key in currents else ""
             note = "" if maps else "current_a not measured (-1)"
-        name = d.name if d.multi_id == 0 and d.name != "sensor_mag" else f"{d.name}[{d.multi_id}]"
-        streams.append(StreamInfo(name, d.name, int(t.size), rate((t - t[:1]) / 1e6), maps, note))
+        streams.append(StreamInfo(_stream_name(d), d.name, int(t.size), rate((t - t[:1]) / 1e6), maps, note))
     warnings = [] if mags or _combined_mag(ulog) is not None else ["no sensor_mag in the log: nothing to calibrate"]
     return Inspection(str(path), "px4-ulog", streams, warnings=warnings)

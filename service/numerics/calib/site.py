@@ -1,6 +1,6 @@
-"""The main geomagnetic field at a site from the World Magnetic Model (WMM2025, through pygeomag): the
-known total field that `tmi` needs, and that fixes the scale of an ellipsoid, without a scalar
-magnetometer at the site.
+"""The main geomagnetic field at a site from the World Magnetic Model (the model of the date's five years, WMM-2010
+to WMM-2025, from the coefficients pygeomag ships, evaluated as along a track: track.py): the known total field that
+`tmi` needs, and that fixes the scale of an ellipsoid, without a scalar magnetometer at the site.
 
 The model describes the core field only: crustal anomalies (tens to hundreds of nT, more near
 ore bodies or buildings) and the day's variation (tens of nT) are not in it, so a site figure is a
@@ -10,14 +10,14 @@ reference at the 0.1-1 % level, not a substitute for a scalar magnetometer at th
 from __future__ import annotations
 
 import datetime as _dt
+import math
 from dataclasses import asdict, dataclass
 
-from fluxcal.drivers.errors import ConfigError
+from fluxcal.drivers.errors import ConfigError, DataError
+from fluxcal.service.numerics.calib.track import ALTITUDE_RANGE_M, model_for, model_span, wmm_field
 
-#: the altitudes the model is specified for, m (WMM: -1 km to 850 km)
-ALTITUDE_RANGE_M = (-1000.0, 850_000.0)
-SITE_FORMAT = "LAT,LON,ALT_M[,DATE] (degrees north, degrees east, metres above the WGS84 ellipsoid, " \
-              "DATE as YYYY-MM-DD or a decimal year; today if left out)"
+SITE_FORMAT = "LAT,LON[,ALT_M[,DATE]] (degrees north, degrees east, metres above the WGS84 ellipsoid, 0 if left " \
+              "out; DATE as YYYY-MM-DD or a decimal year, today if left out)"
 
 
 @dataclass(frozen=True)
@@ -53,16 +53,18 @@ def decimal_year(when: _dt.date | _dt.datetime) -> float:
 
 
 def parse_site(text: str, key: str = "--site") -> tuple[float, float, float, float | None]:
-    """(lat, lon, alt_m, year or None) from "LAT,LON,ALT_M[,DATE]"; ConfigError naming the key otherwise."""
+    """(lat, lon, alt_m, year or None) from "LAT,LON[,ALT_M[,DATE]]"; ConfigError naming the key otherwise. The
+    altitude left out is 0 m: the main field changes by 0.01-0.03 nT a metre of height (-8 to -32 nT a km in
+    WMM-2025 at 30°S 60°W to 75°S 120°E), 0.03-0.06 % a km, within the model's own 0.1-1 % at a site."""
     parts = [p.strip() for p in str(text).split(",")]
 
     def bad(why: str) -> ConfigError:
         return ConfigError(f"{key}: {text!r} is not allowed ({why}; allowed: {SITE_FORMAT})")
 
-    if len(parts) not in (3, 4):
-        raise bad(f"{len(parts)} fields")
+    if len(parts) not in (2, 3, 4):
+        raise bad(f"{len(parts)} field{'s' if len(parts) != 1 else ''}")
     try:
-        lat, lon, alt = (float(p) for p in parts[:3])
+        lat, lon, alt = (float(p) for p in (parts + ["0"])[:3])
     except ValueError:
         raise bad("latitude, longitude and altitude must be numbers") from None
     if not -90.0 <= lat <= 90.0:
@@ -85,22 +87,23 @@ def parse_site(text: str, key: str = "--site") -> tuple[float, float, float, flo
 
 def site_field(latitude_deg: float, longitude_deg: float, altitude_m: float, year: float | None = None,
                *, key: str = "--site") -> SiteField:
-    """The WMM field at the site (year: decimal year, today when None). ConfigError outside the model's
-    five-year life, or when pygeomag is missing."""
-    try:
-        from pygeomag import GeoMag
-    except ImportError:                  # a declared dependency: only a broken install gets here
-        raise ConfigError(f"{key}: the site field needs the package pygeomag (pip install pygeomag)") from None
+    """The WMM field at the site (year: decimal year, today when None), from the model whose five-year life holds
+    the year (track.model_for: the same model a track of that date is given). ConfigError outside every model pygeomag
+    ships, saying what to give instead."""
     if year is None:
         year = decimal_year(_dt.date.today())
-    model = GeoMag()
     try:
-        r = model.calculate(glat=latitude_deg, glon=longitude_deg, alt=altitude_m / 1000.0, time=year)
-    except ValueError as e:
-        raise ConfigError(f"{key}: {year:.2f} is not allowed ({e}; allowed: the model's life, "
-                          f"{model.life_span[0]:.0f} to {model.life_span[1]:.0f})") from None
-    return SiteField(latitude_deg, longitude_deg, altitude_m, float(year), float(r.f), float(r.i), float(r.d),
-                     float(r.x), float(r.y), float(r.z), str(model.model))
+        epoch, name = model_for(float(year))
+    except DataError:
+        lo, hi = model_span()
+        raise ConfigError(f"{key}: the date {year:.2f} is not allowed (no World Magnetic Model pygeomag ships covers "
+                          f"it; allowed: {lo:.0f} to {hi:.0f}): give a date within those years, or "
+                          f"the total field itself (a ref_total column, or estimator.total_nT in --config)") from None
+    north, east, down = (float(c) for c in wmm_field(latitude_deg, longitude_deg, altitude_m, year, epoch=epoch))
+    horizontal = math.hypot(north, east)
+    return SiteField(latitude_deg, longitude_deg, altitude_m, float(year), math.hypot(horizontal, down),
+                     math.degrees(math.atan2(down, horizontal)), math.degrees(math.atan2(east, north)),
+                     north, east, down, name)
 
 
 def site_from_text(text: str, key: str = "--site") -> SiteField:

@@ -65,12 +65,17 @@ def _coefficients(epoch: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
     return g * snorm, h * snorm, dg * snorm, dh * snorm, k, str(name)
 
 
+def model_span() -> tuple[float, float]:
+    """The first and last decimal year of the models pygeomag ships (the first's epoch, the last's end of life)."""
+    return float(_models()[0][0][0]), float(_models()[-1][0][0]) + 5.0
+
+
 def model_for(year: float) -> tuple[float, str]:
     """(epoch, name) of the WMM whose five-year life holds `year`; DataError outside all of them."""
     for (ep, name, _), _ in reversed(_models()):
         if ep <= year <= ep + 5.0:
             return float(ep), str(name)
-    lo, hi = _models()[0][0][0], _models()[-1][0][0] + 5.0
+    lo, hi = model_span()
     raise DataError(f"the date {year:.2f} lies outside every World Magnetic Model pygeomag ships ({lo:.0f} to "
                     f"{hi:.0f}): no reference field along the track")
 

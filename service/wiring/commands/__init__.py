@@ -8,7 +8,7 @@ command it runs.
 """
 
 COMMANDS: dict[str, str] = {
-    "fit": "fit a calibration to lab data (CSV or MCAP)",
+    "fit": "fit a calibration to lab data (CSV, MCAP, a PX4 or ArduPilot log, a ROS 2 bag)",
     "diagnose": "compare model and measurement; find the missing effect",
     "run": "run the service: source -> calibration -> Zenoh and MCAP",
     "replay": "run a recording through the same pipeline and compare with its output",

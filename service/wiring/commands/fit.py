@@ -48,7 +48,7 @@ from fluxcal.service.wiring.prepare import FROM_RECORDING, Prepared
 from fluxcal.service.wiring.result import Result, Said, print_result, stderr_say
 from fluxcal.service.wiring.scale_notes import field_scale_notes
 
-HELP = CommandHelp("fit a calibration to lab data (CSV or MCAP)",
+HELP = CommandHelp("fit a calibration to lab data (CSV, MCAP, a PX4 or ArduPilot log, a ROS 2 bag)",
                    "  fluxcal fit grad.csv --out cal.json\n  fluxcal fit board.csv --site 46.52,6.63,400 --json\n"
                    "  fluxcal fit grad.csv --effects temperature,drift")
 

@@ -12,13 +12,17 @@ ALIGNS = ("regression", "rotation", "pca")
 #: the catalogue of effects (fluxcal.service.numerics.effects.EFFECTS), named here so --help needs no numerics import
 EFFECT_NAMES = ("temperature, thermal, eddy, lag, nonlinearity, drift, gradient, crossfield, hysteresis, platform, "
                 "column, ambient")
-SITE = "LAT,LON,ALT_M[,DATE]"
+SITE = "LAT,LON[,ALT_M[,DATE]]"
+#: the options whose value may begin with '-' and a digit without being a plain number (a southern or western site):
+#: argparse would take `--site -75,120` for a missing value, so the command line joins them (`--site=-75,120`)
+SIGNED_VALUE_OPTIONS = ("--site",)
 #: the metadata of an options dataclass's field that names a file or folder, or holds --effects items (a fleet
 #: sends them to its workers absolute: fleet_cli.absolute_paths)
 PATH = {"names": "path"}
 EFFECT_SPECS = {"names": "effects"}
 
-DATA_HELP = ("a lab CSV or an MCAP recording of fluxcal. CSV columns: t (s), s1_x, s1_y, s1_z, s2_x, ... (nT); "
+DATA_HELP = ("a lab CSV, an MCAP recording of fluxcal, a PX4 log (.ulg), an ArduPilot log (.bin) or a ROS 2 bag "
+             "(.mcap, a rosbag2 directory, .db3; `fluxcal inspect FILE` shows what each stream becomes). CSV columns: t (s), s1_x, s1_y, s1_z, s2_x, ... (nT); "
              "optional: s<k>_temp (degC, for temperature), ref_total (nT, a scalar reference: without it and "
              "without --site or the config's total field, the total field is estimated and an overall scale "
              "cannot be seen), heel_deg, pitch_deg, azimuth_deg (attitude, for gradient), any other column "
@@ -26,9 +30,10 @@ DATA_HELP = ("a lab CSV or an MCAP recording of fluxcal. CSV columns: t (s), s1_
 CONFIG_HELP = "a fluxcal TOML configuration (configs/ has examples): probe positions, total field, site"
 OWN_EFFECT = "or FILE.py:ClassName / package.module:ClassName for an effect of your own, docs/effects.md"
 EFFECTS_HELP = f"effect terms, comma-separated (allowed: {EFFECT_NAMES}; {OWN_EFFECT}); default: none"
-SITE_HELP = (f"the site as {SITE} (degrees north, degrees east, metres above the ellipsoid; DATE as "
-             f"YYYY-MM-DD, default today): the total field from the World Magnetic Model, when no ref_total "
-             f"was logged")
+SITE_HELP = (f"the site as {SITE} (degrees north, degrees east: negative south and west, e.g. -33.9,18.4; metres "
+             f"above the ellipsoid, 0 if left out: the field changes by about -0.01 to -0.03 nT a metre of height, "
+             f"0.06 %% a km at most, within the model's 0.1-1 %%; DATE as YYYY-MM-DD, 2010 to 2030, default today): "
+             f"the total field from the World Magnetic Model of that date, when no ref_total was logged")
 SKIP_HELP = ("leave out these stretches of time (seconds of the data's own time t, ends included; several: "
              "10-20,95.5-140): a disturbance no term follows, such as diagnose names")
 
@@ -72,10 +77,12 @@ def time_spans(text: str) -> list[tuple[float, float]]:
     return parse_spans(text)
 
 
-TOPICS_HELP = ("another ecosystem's log: which ROS 2 topics become what, comma-separated NAME=TOPIC: a probe "
+TOPICS_HELP = ("another ecosystem's log: which streams become what, comma-separated NAME=TOPIC. A ROS 2 bag: a probe "
                "(s1=/imu/mag), a probe's temperature (temp.s1=/imu/temperature), imu=, gps= (NavSatFix), battery= "
                "(BatteryState), each TOPIC or none (default: every MagneticField topic a probe, in topic order; the "
-               "others taken where there is one of their kind; `fluxcal inspect FILE` shows the mapping)")
+               "others taken where there is one of their kind). A PX4 or ArduPilot log: imu=none, gps=none, "
+               "battery=none leave out its attitude, position or battery current (and the rows they lack). "
+               "`fluxcal inspect FILE` shows the mapping")
 MAGS_HELP = ("a PX4 or ArduPilot log: the compass instances to take as probes, in order, e.g. 0,2 (default: every "
              "one)")
 
