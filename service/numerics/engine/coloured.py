@@ -43,7 +43,6 @@ from typing import Any
 import numpy as np
 from scipy.fft import next_fast_len, rfft, rfftfreq
 from scipy.optimize import nnls
-from scipy.signal import welch
 
 from fluxcal.service.numerics.effects.base import GAP_FACTOR
 
@@ -76,6 +75,8 @@ def _welch_bins(y: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray] | Non
     n = y.size
     if n < 512 or not dt > 0:
         return None
+    from scipy.signal import welch                      # here, not at import (a command's start)
+
     f, p = welch(y - y.mean(), fs=1.0 / dt, nperseg=int(2 ** np.floor(np.log2(n / 4))))
     return f[1:], p[1:]
 
