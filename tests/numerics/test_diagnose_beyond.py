@@ -20,6 +20,11 @@ from fluxcal.drivers.sim import Unit, load_sim_config
 from fluxcal.service.numerics.diagnose import diagnose, summary_text
 
 F_TOTAL = 51500.0
+#: samples of the worlds where the catalogue holds the cause (ambient, a hidden temperature): 16,000 (800 s), on which
+#: each figure keeps its margin (the error 1.90-2.42 times the floor before against 1.5, 1.002-1.042 after against
+#: 1.3, the gains within 3 % of 1, the coefficient 0.5 % of its 5 %, the cause first at 5.8-11 standard errors); the
+#: worlds without it keep world's 24,000: on 16,000 the ambient variation of seed 1 was taken as a significant drift
+N_HELD = 16000
 
 
 def world(seed: int, *, variation=0.0, pink=0.0, reference=False, extra=None, n=24000, rate=20.0, n_probes=3):
@@ -40,7 +45,7 @@ def world(seed: int, *, variation=0.0, pink=0.0, reference=False, extra=None, n=
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_ambient_variation_is_explained_by_the_other_probes_not_by_a_confident_wrong_name(seed):
-    data = world(seed, variation=5.0)
+    data = world(seed, variation=5.0, n=N_HELD)
     d = diagnose(data, total_nT=F_TOTAL)
     text = summary_text(d)
     assert d.rms_nT > 1.5 * d.noise_nT, text
@@ -98,7 +103,7 @@ def test_one_over_f_noise_alone_raises_no_alarm_and_is_called_the_probes_own(see
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2])
 def test_hidden_temperature_under_one_over_f_noise_is_explained_and_then_nothing_else(seed):
-    data = world(seed, pink=0.1, extra={"temp_offset_nT_per_C": [2.0, -1.5, 1.0]})
+    data = world(seed, pink=0.1, extra={"temp_offset_nT_per_C": [2.0, -1.5, 1.0]}, n=N_HELD)
     d = diagnose(data, total_nT=F_TOTAL)
     text = summary_text(d)
     assert d.candidates[0].effect == "temperature" and d.candidates[0].significant, text
@@ -193,7 +198,9 @@ def test_where_it_fails_names_a_column_tied_in_no_polynomial_way():
     valve = 0.5 + 0.5 * np.sin(2 * np.pi * t / 37.0)            # a valve cycling slowly, position 0..1
     block.extras["valve"] = valve
     block.field_nT[:, 1, 0] += 3.0 * np.cos(6 * np.pi * valve)
-    d = diagnose(data_of(block, probes), candidates=["column"])
+    # where-it-fails and the verdict's 'left' are read from the model's residual before discovery (which would run
+    # by itself here and change neither: both equal with and without it on this world and the two below)
+    d = diagnose(data_of(block, probes), candidates=["column"], discover=False)
     top = d.where[0]
     assert top["observable"] == "valve" and top["strength"] > 0.5, d.where[:4]
     assert "valve" in d.verdict["left"]
@@ -211,6 +218,6 @@ def test_where_it_fails_names_temperature_tied_in_no_polynomial_way(seed):
     temp = 20.0 + 5.0 * np.sin(2 * np.pi * t / 53.0)
     block.temp_C[:] = temp[:, None]
     block.field_nT[:, 1, 0] += 3.0 * np.cos(4 * np.pi * (temp - 15.0) / 10.0)
-    d = diagnose(data_of(block, probes), candidates=["temperature"])
+    d = diagnose(data_of(block, probes), candidates=["temperature"], discover=False)   # where: before discovery
     top = d.where[0]
     assert top["observable"] == "temperature" and top["channel"].startswith("s2") and top["strength"] > 0.5, d.where[:4]

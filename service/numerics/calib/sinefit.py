@@ -50,7 +50,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from fluxcal.drivers.errors import CalibrationRefused
 
@@ -131,6 +130,8 @@ def estimate_rate(t_s: np.ndarray, field_nT: np.ndarray) -> float:
         x = _sine_design(w * t)
         coef, *_ = np.linalg.lstsq(x, field_nT, rcond=None)
         return float(np.sum((field_nT - x @ coef) ** 2))
+
+    from scipy.optimize import minimize_scalar          # here, not at import (a command's start)
 
     # the first guess is biased by the skew of y (α) by at most a few percent
     res = minimize_scalar(rss, bounds=(0.9 * w0, 1.1 * w0) if w0 > 0 else (1.1 * w0, 0.9 * w0),

@@ -35,7 +35,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from fluxcal.drivers.errors import FluxcalError
 from fluxcal.service.numerics.effects.base import EffectData
@@ -284,6 +283,8 @@ def jointly_beyond(fit: FitResult, term: str, p_level: float) -> bool:
     a spline of a column beside the catalogue's `column`, which holds the column's straight line, has each parameter
     within its error (the line can go to either) while the curve stands far beyond them (a saturating coil: claimed
     in 0 of 2 seeds where `column` was significant, by the parameters' errors alone)."""
+    from scipy import stats                             # here, not at import (a command's start)
+
     values, cov = covariance(fit, term)
     lam, vec = np.linalg.eigh(cov)
     keep = lam > 1e-9 * max(float(lam[-1]), 1e-300)

@@ -7,7 +7,6 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
-from scipy import stats
 
 from fluxcal.drivers.errors import FluxcalError
 from fluxcal.service.numerics.effects import Model, known_effects, make_term
@@ -70,6 +69,8 @@ def _compare(base: FitResult, base_ho: Heldout, cand: FitResult, cand_ho: Heldou
     rss0, rss1 = base.rss_w, cand.rss_w
     dof = max(n - cand.rank, 1)
     if rss1 > 0 and rss0 > rss1:
+        from scipy import stats                         # here, not at import (a command's start)
+
         f = ((rss0 - rss1) / dp) / (rss1 / dof)
         p = float(stats.f.sf(f, dp, dof))
     else:
@@ -235,6 +236,8 @@ def _beyond_errors(parameters, p_level: float = P_SIGNIFICANT) -> str | None:
                   and p.stderr > 0 and np.isfinite(p.value)])
     if not z.size:
         return None
+    from scipy import stats                             # here, not at import (a command's start)
+
     wald, crit = float(np.sum(z ** 2)), float(stats.chi2.isf(p_level, z.size))
     one, one_crit = float(np.max(np.abs(z))), float(stats.norm.isf(p_level / (2 * z.size)))
     if wald >= crit or one >= one_crit:

@@ -25,7 +25,6 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from fluxcal.service.numerics.effects.base import AXES, EffectData, EffectTerm
 
@@ -179,6 +178,8 @@ def start_law(law: Law, x: np.ndarray, y: np.ndarray, ctx: dict) -> tuple[np.nda
         if not np.isfinite(den) or den <= 0:
             return np.full(x.size, 1e3)
         return (yc - f * float(f @ yc) / den) / scale
+    from scipy.optimize import least_squares            # here, not at import (a command's start)
+
     for p0 in law.starts(x, ctx):
         try:
             r = least_squares(resid, p0, method="lm", max_nfev=200 * (p0.size + 1))

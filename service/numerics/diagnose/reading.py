@@ -5,11 +5,11 @@ offset and scale into its two parts, a wave's amplitudes, a loop's steps; one se
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from fluxcal.service.numerics.effects.base import AXES
 from fluxcal.service.numerics.engine import FitResult, Parameter
@@ -52,6 +52,15 @@ def _wald(values: np.ndarray, cov: np.ndarray) -> float:
     keep = lam > 1e-12 * max(float(lam[-1]), 1e-300)
     z = vec[:, keep].T @ values
     return float(np.sum(z * z / lam[keep]))
+
+
+@functools.cache
+def _wald_critical() -> float:
+    """The threshold of a part's Wald statistic: the chi-square quantile of P_SIGNIFICANT on 3 degrees of freedom
+    (scipy.stats imported here, not at a command's start)."""
+    from scipy import stats
+
+    return stats.chi2.isf(P_SIGNIFICANT, 3)
 
 
 def covariance(fit: FitResult, term: str) -> tuple[np.ndarray, np.ndarray]:
@@ -103,7 +112,7 @@ def matrix_parts(values: np.ndarray, cov: np.ndarray, m: np.ndarray) -> dict[str
         v, c = t @ values, t @ cov @ t.T
         wald = _wald(v, c)
         out[part] = {"values": v.tolist(), "stderr": np.sqrt(np.clip(np.diag(c), 0.0, None)).tolist(), "wald": wald,
-                     "significant": bool(wald >= stats.chi2.isf(P_SIGNIFICANT, 3)),
+                     "significant": bool(wald >= _wald_critical()),
                      "frame": "platform" if part == "rotation" else "probe"}
     return out
 
@@ -116,7 +125,7 @@ def scale_parts(values: np.ndarray, cov: np.ndarray) -> dict[str, Any]:
         v, c = values[sl], cov[sl, sl]
         wald = _wald(v, c)
         out[part] = {"values": v.tolist(), "stderr": np.sqrt(np.clip(np.diag(c), 0.0, None)).tolist(), "wald": wald,
-                     "significant": bool(wald >= stats.chi2.isf(P_SIGNIFICANT, 3)), "frame": "probe"}
+                     "significant": bool(wald >= _wald_critical()), "frame": "probe"}
     return out
 
 

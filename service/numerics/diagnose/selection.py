@@ -8,7 +8,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import special
 
 from fluxcal.service.numerics.effects.base import EffectData
 from fluxcal.service.numerics.engine import RANK_TOL, FitResult, solve_normal
@@ -285,6 +284,8 @@ def f_logsf(f: float, d1: float, d2: float) -> float:
     scale). The tail is I_x(d2/2, d1/2), x = d2 / (d2 + d1 f) (log_betainc)."""
     if not f > 0 or not np.isfinite(f):
         return 0.0 if not f > 0 else -np.inf
+    from scipy import special                           # here, not at import (a command's start)
+
     with np.errstate(divide="ignore"):                   # scipy.stats.f.logsf's own figure, without its checks
         v = float(np.log(special.fdtrc(d1, d2, f)) if f > special.fdtri(d1, d2, 0.5)
                   else np.log1p(-special.fdtr(d1, d2, f)))
@@ -298,6 +299,8 @@ def log_betainc(a: float, b: float, x: float) -> float:
     """ln I_x(a, b), the regularised incomplete beta function, for x below (a + 1) / (a + b + 2), by its continued
     fraction (modified Lentz, as Numerical Recipes' betacf), where it converges: x^a (1 - x)^b / (a B(a, b)) times
     the fraction, taken in logarithms so that it holds far below the smallest float."""
+    from scipy import special
+
     tiny = 1e-300
     qab, qap, qam = a + b, a + 1.0, a - 1.0
     c, d = 1.0, 1.0 - qab * x / qap

@@ -22,7 +22,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.interpolate import BSpline
 
 #: the number of spline functions a shape group follows (each order its own group; nested knots)
 SHAPE_ORDERS = (4, 8)
@@ -55,6 +54,8 @@ def knots_for(x: np.ndarray, n_functions: int, degree: int = SPLINE_DEGREE) -> n
 def spline_values(x: np.ndarray, knots: np.ndarray, degree: int = SPLINE_DEGREE) -> np.ndarray:
     """(N, n) the B-splines of x on `knots` less the last one (their sum is one: the constant); x outside the knots'
     range is clipped to it (the shape's ends are held, never extrapolated as a cubic)."""
+    from scipy.interpolate import BSpline               # here, not at import (a command's start)
+
     lo, hi = float(knots[0]), float(knots[-1])
     z = np.clip(np.asarray(x, dtype=np.float64), lo, hi)
     basis = BSpline.design_matrix(z, knots, degree).toarray()

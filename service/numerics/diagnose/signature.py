@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.signal import welch
 
 from fluxcal.service.numerics.engine import FitResult
 
@@ -78,6 +77,8 @@ def _time_scale(t_s: np.ndarray, y: np.ndarray, noise: float) -> tuple[float | N
         return None, None, None
     dt = float(np.median(np.diff(t_s)))
     nper = int(2 ** np.floor(np.log2(n / 4)))
+    from scipy.signal import welch                      # here, not at import (a command's start)
+
     f, p = welch(y - y.mean(), fs=1.0 / dt, nperseg=nper)
     f, p = f[1:], p[1:]
     white = 2.0 * noise ** 2 * dt                         # one-sided density of the white floor

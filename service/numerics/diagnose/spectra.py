@@ -7,7 +7,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.signal import welch
 
 from fluxcal.service.numerics.engine.coloured import sample_grid
 
@@ -54,6 +53,8 @@ def set_spectra(fit: Any, noise: np.ndarray, exclude: tuple[int, int] | None = N
         return [], []
     dt = sample_grid(fit.channels.t_s)[1]          # the samples in order (bursty: mean interval)
     nper = int(2 ** np.floor(np.log2(n / 8)))
+    from scipy.signal import welch                      # here, not at import (a command's start)
+
     sets, out = series(fit, noise, exclude), []
     for x, _ in sets:
         f, p = welch(x, fs=1.0 / dt, nperseg=nper, axis=0)

@@ -18,7 +18,6 @@ channels change by g_k m_k and the differences between probes barely at all (a u
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import uniform_filter1d
 
 from .base import EffectData, EffectTerm, ProbeView
 
@@ -67,6 +66,8 @@ class Ambient(EffectTerm):
                 # the mean over the others that are known at each instant (rows off the fit are NaN: 0 there)
                 m = np.where(seen, stack, 0.0).sum(0) / np.maximum(seen.sum(0), 1)
                 w = max(1, int(round(SMOOTH_S / view.data.dt_s)))
+                from scipy.ndimage import uniform_filter1d      # here, not at import (a command's start)
+
                 view.cache[key] = uniform_filter1d(m, size=w, mode="nearest")
         return view.cache[key]
 

@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Iterable, Sequence
 
 import numpy as np
-from scipy.signal import savgol_filter
 
 from fluxcal.drivers.block import SampleBlock, Timed
 from fluxcal.drivers.errors import ConfigError, DataError
@@ -50,6 +49,12 @@ NOT_OBSERVABLES = frozenset({"ref_total", "seq", "flags", *ATTITUDE_EULER, *ATTI
 #: an interval this many times the typical one is a gap (EffectData.gap_s), and a time base whose 95th percentile
 #: interval is this many times its median is bursty (engine.coloured.sample_grid)
 GAP_FACTOR = 1.5
+
+
+def savgol_filter(*args: Any, **kwargs: Any) -> np.ndarray:
+    """scipy.signal's, imported when first asked: not at every `fluxcal` command's start (half of it)."""
+    from scipy.signal import savgol_filter as savgol
+    return savgol(*args, **kwargs)
 
 
 @dataclass

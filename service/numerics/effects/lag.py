@@ -14,8 +14,12 @@ reference (ref_x, ref_y, ref_z columns), and then every probe has one.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-from scipy.interpolate import CubicHermiteSpline
+
+if TYPE_CHECKING:
+    from scipy.interpolate import CubicHermiteSpline
 
 from .base import EffectData, EffectTerm, ProbeView
 
@@ -57,6 +61,8 @@ class Lag(EffectTerm):
     def _spline(self, view: ProbeView) -> CubicHermiteSpline:
         key = "lag:spline"
         if key not in view.cache:
+            from scipy.interpolate import CubicHermiteSpline      # here, not at import (a command's start)
+
             view.cache[key] = CubicHermiteSpline(view.data.t_s, view.data.smooth(view.k),
                                                  view.data.rate(view.k), axis=0, extrapolate=False)
         return view.cache[key]

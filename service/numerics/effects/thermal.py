@@ -16,7 +16,6 @@ fit moves tau on and counts it among the parameters.
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import lfilter
 
 from .base import AXES, EffectData, EffectTerm, ProbeView
 from .temperature import reference_temperature, temperature_columns, why_no_temperature
@@ -31,6 +30,8 @@ def low_pass(t_s: np.ndarray, values: np.ndarray, tau_s: float) -> np.ndarray:
     interpolated, then read back at t): one lfilter pass, no loop over samples."""
     if tau_s <= 0:
         return values.copy()
+    from scipy.signal import lfilter                    # here, not at import (a command's start)
+
     dt = float(np.median(np.diff(t_s)))
     grid = np.arange(t_s[0], t_s[-1] + 0.5 * dt, dt)
     uniform = grid.size == t_s.size and np.allclose(grid, t_s, rtol=0, atol=0.05 * dt)

@@ -41,9 +41,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.fft import next_fast_len, rfft, rfftfreq
-from scipy.optimize import nnls
-from scipy.signal import welch
 
 from fluxcal.service.numerics.effects.base import GAP_FACTOR
 
@@ -76,6 +73,8 @@ def _welch_bins(y: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray] | Non
     n = y.size
     if n < 512 or not dt > 0:
         return None
+    from scipy.signal import welch                      # here, not at import (a command's start)
+
     f, p = welch(y - y.mean(), fs=1.0 / dt, nperseg=int(2 ** np.floor(np.log2(n / 4))))
     return f[1:], p[1:]
 
@@ -146,6 +145,8 @@ def _nnls_normals(g: np.ndarray, b: np.ndarray) -> np.ndarray:
     """argmin over c >= 0 of c' g c - 2 b' c (the least squares whose normal equations are g c = b) for a stack of
     problems g (A, m, m), b (A, m): nnls on a square root of each g, column-scaled, without its null space; the
     eigen-decompositions taken at once (numpy's stacked eigh solves each matrix as it solves it alone)."""
+    from scipy.optimize import nnls                     # here, not at import (a command's start)
+
     d = np.sqrt(np.clip(np.einsum("aii->ai", g), 0.0, None))
     d[d <= 0] = 1.0
     lams, vecs = np.linalg.eigh(g / (d[:, :, None] * d[:, None, :]))
@@ -273,6 +274,8 @@ def row_variances(rows: np.ndarray, grid: np.ndarray, models: list[tuple[float, 
 
 def _fft_size(grid: np.ndarray, bins: int, pad: int) -> tuple[int, int, int]:
     """(step, bins used, FFT length) of binned_fft for positions `grid` (the last one the largest)."""
+    from scipy.fft import next_fast_len                 # here, not at import (a command's start)
+
     step = max(1, -(-(int(np.max(grid)) + 1) // bins))
     length = int(np.max(grid)) // step + 1
     return step, length, next_fast_len(pad * length)
@@ -290,6 +293,8 @@ def _binned_rows(u: np.ndarray, grid: np.ndarray, dt: float, bins: int, pad: int
         where = np.asarray(grid) // step
         for j in range(u.shape[0]):
             x[j, :length] = np.bincount(where, weights=u[j], minlength=length)
+    from scipy.fft import rfft, rfftfreq
+
     return rfftfreq(m, dt * step)[1:], rfft(x, axis=1)[:, 1:], m * dt * step
 
 
