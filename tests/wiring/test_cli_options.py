@@ -112,11 +112,14 @@ def test_an_interrupted_command_says_so_in_one_line(tmp_path, capsys, monkeypatc
         return read(f, n)
 
     monkeypatch.setattr(inputs, "_read_chunk", read_and_signal)
-    before = signal.getsignal(signal.SIGTERM)
+    before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
+    # Ctrl-C as a shell in the foreground delivers it: a test runner's worker may have inherited SIGINT ignored
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         assert cli.main([command, str(data)]) == 130
     finally:
-        signal.signal(signal.SIGTERM, before)
+        signal.signal(signal.SIGTERM, before[0])
+        signal.signal(signal.SIGINT, before[1])
     out, err = capsys.readouterr()
     assert len(reads) == 2 and out == ""
     assert err == f"fluxcal {command}: interrupted by {by} on {data} before it finished\n"

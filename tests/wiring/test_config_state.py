@@ -89,7 +89,13 @@ def test_a_missing_initial_calibration_or_serial_port_names_its_key(tmp_path, ca
     err = capsys.readouterr().err
     assert f"fluxcal run: calibration.initial: {tmp_path / 'state' / 'nope.json'}: calibration file not found" in err
     cfg.write_text(base.format(port="/dev/ttyNOPE0", initial="", zport=zport))
+    import signal
+
+    handlers = [signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)]
     assert main(["run", "--config", str(cfg)], install_signals=False) == 1
+    # the daemon's stop handlers are the process's own again: a caller in the same process keeps its Ctrl-C (a test
+    # after this one, interrupted by a real SIGINT, ran on to exit 0)
+    assert [signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)] == handlers
     err = capsys.readouterr().err
     assert "fluxcal run: source.port: serial port /dev/ttyNOPE0: cannot open" in err and "learning online" not in err
 

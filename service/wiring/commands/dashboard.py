@@ -89,8 +89,13 @@ def main(args: argparse.Namespace) -> int:
     finally:
         import signal
 
-        for sig in (signal.SIGINT, signal.SIGTERM):     # a second signal must not cut the closing short
-            signal.signal(sig, signal.SIG_IGN)
-        server.stop()
-        hub.close()
+        # a second signal must not cut the closing short; then the process's own handlers again (a caller in the
+        # same process, a test, would be left deaf to Ctrl-C)
+        before = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            server.stop()
+            hub.close()
+        finally:
+            for sig, handler in before.items():
+                signal.signal(sig, handler)
     return 0

@@ -72,11 +72,12 @@ def main(args: Namespace) -> int:
 
     # SIGHUP (the terminal or ssh session closed, or `kill -HUP`): a clean stop like SIGTERM, the recording
     # finished and the calibration persisted (docs/recording.md); there is no reload: restart to re-read the config
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, stop)
+    before = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:
         return daemon.run()
     finally:
+        for sig, handler in before.items():      # the process's own again (a caller in the same process: a test)
+            signal.signal(sig, handler)
         if dashboard is not None:
             dashboard.terminate()
             try:
