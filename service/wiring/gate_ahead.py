@@ -112,6 +112,7 @@ def _second(pipeline: Any, run: Callable[[Any], None], conn: Any) -> None:
     """The second process: the pipeline's copy through `run`, each check sent; what stops it is sent too."""
     try:
         pipeline.gate = _like(_SendingGate, pipeline.gate, conn)
+        pipeline.corrects = False       # the replay corrects; this copy only decides
         run(pipeline)
         conn.send(("end", None))
     except BaseException as e:          # (Ctrl-C too) the replay works out what did not come

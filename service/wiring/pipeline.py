@@ -145,6 +145,7 @@ class Pipeline(_ChunkFeed):
         self.ring = RingBuffer(capacity=window_samples, n_probes=n_probes)
         self.frozen = False
         self.held = False                 # a calibration applied by command: online candidates do not replace it
+        self.corrects = True              # False: estimators, gate and commands only (gate_ahead's second process)
         self.calibration: ArrayCalibration | None = None
         self.cal_id = 0
         self.last_gate: GateResult | None = None
@@ -239,7 +240,7 @@ class Pipeline(_ChunkFeed):
         return Processed(corrected=corrected, error=error, events=events)
 
     def _correct(self, block: SampleBlock) -> CorrectedBlock | None:
-        if self.calibration is None:
+        if self.calibration is None or not self.corrects:
             return None
         if self.live.fit is not None and block.n_samples:
             c = self.live.correct(block, self._offsets)
