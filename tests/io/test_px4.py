@@ -174,6 +174,8 @@ def test_real_px4_log_end_to_end(capsys):
     assert cli.main(["fit", str(path)]) == 2
     err = capsys.readouterr().err
     assert "s1: 5 samples; the fit needs at least 10" in err       # one of the 6 a logger's hold, left out: said
+    # the log's 319 samples of vehicle_magnetometer, PX4's output after its calibration: said, and why not taken
+    assert "sensor_mag holds 6, 6 sample(s) (the logging profile's rate) where vehicle_magnetometer holds 319" in err
     assert "s1: 1 of 6 samples (17%) repeat the previous one exactly" in err
     quoted = re.search(r'`fit` says "([^"]+)"', (Path(__file__).parents[2] / "docs" / "px4.md").read_text()).group(1)
     assert quoted in err                                               # docs/px4.md quotes what fit says

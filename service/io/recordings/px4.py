@@ -29,7 +29,7 @@ from fluxcal.service.numerics.merge import Series, merge
 #: PX4's sensor_mag is in gauss
 NT_PER_GAUSS = 1e5
 GPS_TOPICS = ("vehicle_gps_position", "sensor_gps")
-WANTED = ("sensor_mag", "sensor_combined", "vehicle_attitude", *GPS_TOPICS, "battery_status")
+WANTED = ("sensor_mag", "sensor_combined", "vehicle_magnetometer", "vehicle_attitude", *GPS_TOPICS, "battery_status")
 #: PX4's "no sample" in sensor_combined's relative timestamps
 RELATIVE_TIMESTAMP_INVALID = 0x7FFFFFFF
 
@@ -88,6 +88,26 @@ def _combined_mag(ulog: Any) -> _CombinedMag | None:
     take = np.flatnonzero(first)
     return _CombinedMag({"timestamp": t[take], **{a: np.asarray(d.data[f"magnetometer_ga[{i}]"], float)[take]
                                                   for i, a in enumerate("xyz")}})
+
+
+#: sensor_mag instances holding fewer samples than this each are said beside a vehicle_magnetometer holding more
+SPARSE_SAMPLES = 100
+
+
+def _sparse_note(ulog: Any, mags: Sequence[Any]) -> list[str]:
+    """Where every sensor_mag instance is sparse (SPARSE_SAMPLES: the logging profile's rate) while the log holds
+    vehicle_magnetometer at a higher rate: why that one is not taken, and what gives a calibration."""
+    counts = [int(_time_us(d).size) for d in mags]
+    if not counts or max(counts) >= SPARSE_SAMPLES:
+        return []
+    vm = [int(np.asarray(d.data["timestamp"]).size) for d in _instances(ulog, "vehicle_magnetometer")]
+    if not vm or max(vm) <= max(counts):
+        return []
+    said = (f"sensor_mag holds {', '.join(f'{c:,}' for c in counts)} sample(s) (the logging profile's rate) where "
+            f"vehicle_magnetometer holds {max(vm):,}: that one is not taken, being PX4's output after its own "
+            f"calibration and its choice among the compasses, not the raw field a calibration is fitted to; for a "
+            f"calibration flight log sensor_mag at its rate (SDLOG_PROFILE's high-rate sensors)")
+    return [said]
 
 
 def _gps(ulog: Any) -> Any | None:
@@ -187,6 +207,7 @@ def load_px4(path: str | Path, mapping: Px4Mapping | None = None) -> LabData:
 
     notes = ["sensor_mag: x, y, z taken in gauss (PX4's unit) and in the frame PX4 logs them (rotated to the "
              "board/body frame by CAL_MAGn_ROT), as raw as PX4 logs them (before its calibration)"]
+    notes += _sparse_note(ulog, mags) if older is None else []
     if older is not None:
         notes = ["sensor_combined.magnetometer_ga[0..2] (an older PX4's log: no sensor_mag) taken in gauss, each "
                  "magnetometer sample once at its own instant (the rows between two samples repeat the last one), "
