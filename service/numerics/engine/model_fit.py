@@ -86,8 +86,8 @@ class EffectsFit:
             idle = [p.name for p in params if p.stderr is None]
             wide = [p for p in params if p.stderr is not None and np.isfinite(p.stderr) and p.stderr > abs(p.value)]
             if idle:
-                out.append(f"{term}: {len(idle)} of its {len(params)} parameters are not determined by these data (held "
-                           f"at their start): {_some(idle)}")
+                out.append(f"{term}: {len(idle)} of its {len(params)} parameters are not determined by these data (no "
+                           f"standard error: their values are not measurements): {_some(idle)}")
             if wide:
                 shown = [f"{p.name} = {p.value:.4g} ± {p.stderr:.2g}" for p in wide]
                 out.append(f"{term}: the standard errors of {len(wide)} of its {len(params)} parameters exceed their "
@@ -138,7 +138,7 @@ def not_shown(parameters: Sequence[Parameter], name: str) -> str:
     its parameters they determine lies SHOWN_SIGMAS standard errors from zero. An effect the data do not show only
     adds noise, and a drift is extrapolated (tens of Earth fields an hour, fitted to 106 s of a real board): the
     service refuses to add one, fit to give one, and diagnose to advise one. Parameters the data do not determine
-    stay at their start (no change along them) and are said by EffectsFit.size_warnings."""
+    (no standard error: the solve moves them only along what the data fix) are said by EffectsFit.size_warnings."""
     params = [p for p in parameters if p.term == name]
     ratios = [abs(p.value) / p.stderr for p in params if p.stderr is not None and p.stderr > 0]
     if not params or (ratios and max(ratios) >= SHOWN_SIGMAS):
