@@ -168,8 +168,8 @@ def verdict_lines(d: Diagnosis) -> list[str]:
     unshown = {e: why for e in d.effects if (why := not_shown(d.parameters, e))}
     kept = [e for e in d.effects if e not in unshown] + ([] if best is None else [best.effect])
     try_it = "" if best is None else f"; try: --effects {','.join(map(effect_spec, kept))}"
-    said = [f"  {e}: these data do not show it ({why}): fit refuses it, and the advice leaves it out"
-            for e, why in unshown.items()]
+    left = ", and the advice leaves it out" if try_it else ""
+    said = [f"  {e}: these data do not show it ({why}): fit refuses it{left}" for e, why in unshown.items()]
     return said + _verdict_lines(d, v, best, try_it)
 
 
