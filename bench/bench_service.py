@@ -24,6 +24,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")        # before numpy loads: 
 
 import argparse
 import platform
+import resource
 import tempfile
 import time
 import zlib
@@ -84,9 +85,13 @@ def bench_replay(tmp: Path, seconds: float, repeat: int) -> None:
         print(f"replay (MCAP decode + pipeline + MCAP write), {mode}: {n / t_replay:,.0f} probe-samples/s (best of "
               f"{repeat}; median {n / float(np.median(times)):,.0f}); ratio replay / bare: best {t_bare / t_replay:.3f}, "
               f"median {t_bare / float(np.median(times)):.3f} (OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')})")
-        dec, pip, wri, split = phases[times.index(t_replay)]
+        dec, pip, wri, (own, kids), split = phases[times.index(t_replay)]
         print(f"  best run: MCAP decode {dec * 1e3:.0f} ms, pipeline {pip * 1e3:.0f} ms, MCAP write {wri * 1e3:.0f} ms; "
               "of these: " + ", ".join(f"{k} {v * 1e3:.0f} ms ({c} calls)" for k, (v, c) in split.items()))
+        cpus = [(o + c) for (*_, (o, c), _) in phases]
+        print(f"  CPU: the replay's process {own * 1e3:.0f} ms, the second process {kids * 1e3:.0f} ms (best run); "
+              f"both, median of the runs, {float(np.median(cpus)) * 1e3:.0f} ms: spread perfectly over "
+              f"{_cores()} cores at best {t_bare * _cores() / float(np.median(cpus)):.3f}x")
     floor_parts(block, t_bare)
 
 
@@ -97,6 +102,7 @@ def _replay_once(tmp: Path, fcfg, start, out_name: str, *, ahead: bool, split: l
     from fluxcal.service.wiring.daemon import build_pipeline
     from fluxcal.service.wiring.gate_ahead import GateAhead
 
+    own0, kids0 = _cpu(resource.RUSAGE_SELF), _cpu(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     whole = read_recording(tmp / "rep" / "in.mcap").raw     # every raw sample, as `fluxcal replay` takes them
     t_decode = time.perf_counter() - t0
@@ -113,12 +119,23 @@ def _replay_once(tmp: Path, fcfg, start, out_name: str, *, ahead: bool, split: l
         if r.corrected is not None:
             out.write_corrected(r.corrected)
     out.close()
+    t = time.perf_counter() - t0
     if second is not None:
         assert second.fallback is None, second.fallback
-        second.close()
-    t = time.perf_counter() - t0
-    split.append((t_decode, t_pipe, t - t_decode - t_pipe))
+        second.close()                  # joined: its CPU is counted among the children's
+    cpu = (_cpu(resource.RUSAGE_SELF) - own0, _cpu(resource.RUSAGE_CHILDREN) - kids0)
+    split.append((t_decode, t_pipe, t - t_decode - t_pipe, cpu))
     return t
+
+
+def _cpu(who: int) -> float:
+    """User + system CPU seconds of this process (all its threads) or of its joined children."""
+    r = resource.getrusage(who)
+    return r.ru_utime + r.ru_stime
+
+
+def _cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def _timed(owner, name: str, spent: list[float] | None = None) -> list[float]:
