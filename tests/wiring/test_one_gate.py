@@ -17,9 +17,9 @@ import jsonschema
 import numpy as np
 import pytest
 from flightlogs import simulated_flight, write_dataflash
-from real_data import SOURCES, find
+from real_data import SOURCES, find, needs_real, real
 
-from fluxcal.service.numerics.calib.determinacy import judge
+from fluxcal.service.numerics.calib.determinacy import SHELL_MAX, judge, physical, shell_thickness
 from fluxcal.service.numerics.field_scale import EARTH_RANGE_NT
 from fluxcal.service.wiring import cli
 
@@ -194,6 +194,61 @@ def test_a_calibration_no_magnetometer_on_earth_gives_is_refused(tmp_path, capsy
                header="t,s1_x,s1_y,s1_z,ref_total", comments="", fmt="%.6f")
     far = assert_refusal(*run(capsys, "fit", str(off)))
     assert "2.4 times above the total field given (20,000 nT, the ref_total column)" in far
+
+
+def _still_probe(seed: int, colour: str, about_nT: float, n: int = 600) -> np.ndarray:
+    """(n, 3) samples of a probe that never turned: one field of `about_nT` in a random direction, with a platform's
+    noise of 180-300 nT RMS on its axes, white or 1/f."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=3)
+    w = rng.normal(size=(n, 3))
+    if colour == "1/f":
+        f = np.fft.rfftfreq(n)
+        f[0] = f[1]
+        w = np.fft.irfft(np.fft.rfft(w, axis=0) / np.sqrt(f)[:, None], n, axis=0)
+    return about_nT * d / np.linalg.norm(d) + w / w.std(axis=0) * np.array([300.0, 180.0, 230.0])
+
+
+@pytest.mark.parametrize("colour", ["white", "1/f"])
+def test_a_probe_that_never_turned_is_said_as_such_not_as_a_unit(colour):
+    """A real 10-s PX4 log whose compass never turned was refused with "are the data in mG? (x 100: 52,879 nT)": the
+    judge fits a 500-nT ellipsoid to the noise and sees every direction about its centre, which lies inside the
+    cloud, so the verdict guessed a unit from the size of that ellipsoid. The samples lie on no one ellipsoid (their
+    RMS distance from it 38-45 % of its size, where a sensor turned in a steady field gives a few per cent): said so,
+    with the turns to make, and no unit guessed, whether the cloud reads an Earth's field about zero or not."""
+    for seed in range(3):
+        for about in (48_000.0, 117_000.0):
+            raw = _still_probe(seed, colour, about)
+            j = physical(judge(raw, None, name="s1"), raw)
+            assert not j.determined
+            assert shell_thickness(j, raw) > 3 * SHELL_MAX
+            assert "lie on no one ellipsoid" in j.problem and "? (x " not in j.problem, j.problem
+            said = re.search(r"the samples read ([\d,]+) nT about zero", j.problem)    # only where it is an Earth's
+            assert (said is not None) == (about == 48_000.0)
+            assert said is None or abs(float(said.group(1).replace(",", "")) - about) < 100.0
+            assert j.advice.startswith("turn the probe about at least two axes")
+    from fluxcal.drivers.sim import Unit, load_sim_config
+
+    # a tumble lies on its ellipsoid, in nT or in µT
+    cfg = load_sim_config({"seed": 4, "rate_hz": 20.0, "duration_s": 60.0,
+                           "field": {"total_nT": 48_000.0, "inclination_deg": 63.0},
+                           "motion": {"kind": "tumble", "rate_deg_s": 40.0, "tumble_period_s": 9.0},
+                           "probes": [{"offset_nT": [300.0, -200.0, 100.0], "noise_nT": 1.0}]})
+    tumble = Unit(cfg).digitise(0, cfg.n_samples).to_block().field_nT[:, 0]
+    for scale in (1.0, 1e-3):
+        j = judge(tumble * scale, None, name="s1")
+        assert shell_thickness(j, tumble * scale) < 0.01
+    j = physical(j, tumble * 1e-3)
+    assert "µT? (x 1000" in j.advice and "lie on no one ellipsoid" not in j.problem
+
+
+@needs_real("px4_pyulog_sample_appended_multiple.ulg")
+def test_a_real_log_whose_compass_never_turned_guesses_no_unit(capsys):
+    """The log the test above stands for: every command refuses it with the same words, none of them a unit."""
+    status, obj = run(capsys, "fit", str(real("px4_pyulog_sample_appended_multiple.ulg")))
+    reason = assert_refusal(status, obj)
+    assert "lie on no one ellipsoid" in reason and "mG?" not in reason + obj["refused"]["advice"]
+    assert assert_refusal(*run(capsys, "diagnose", str(real("px4_pyulog_sample_appended_multiple.ulg")))) == reason
 
 
 def test_every_refusal_prints_json_that_validates(tmp_path, capsys):

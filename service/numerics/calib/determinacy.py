@@ -18,11 +18,13 @@ the method that then calibrates them. Its fitted centre and frame give the field
     judge_all(field_nT, total_nT, names) -> [Determinacy]
     refuse_undetermined(judgements, then=...)             CalibrationRefused for the first probe not determined
     physical(judgement, raw_nT, given_total_nT, source)   the same verdict where the field it gives is no Earth's
+    shell_thickness(judgement, raw_nT)                    how far the samples lie from the judge's ellipsoid
 
 The estimators stay indifferent to the data's unit and origin; `physical` is what the commands that read files
 (fit, diagnose, inspect) add: a calibration whose total field is not the site's (a reference the data give: the
 model along their track, --site, a ref_total column, a configured field), or with none, not the Earth's
-(field_scale.EARTH_RANGE_NT), is refused with the unit the data's size suggests.
+(field_scale.EARTH_RANGE_NT), is refused with the unit the data's size suggests, or, where the samples lie on no one
+ellipsoid (SHELL_MAX) or read an Earth's field about zero and not about the centre, with the turns they lack.
 """
 
 from __future__ import annotations
@@ -157,6 +159,12 @@ def refuse_undetermined(judgements: Sequence[Determinacy], *, then: str = "") ->
 #: the share of directions seen about the judge's centre below which a field that is a field about zero but not about
 #: that centre is said as directions that do not place the centre (above it: a unit or a gain)
 WIDE_COVERAGE = 0.75
+#: the RMS distance of the samples from the judge's fitted ellipsoid, as a share of its size, above which they lie on
+#: no one ellipsoid: a cloud, not a shell, whatever share of directions its centre sees (measured 2026-12-07: the real
+#: boards of ../shared/real-data turned by hand and a tumbled copter's log 0.3-2.9 %; seven public flight logs whose
+#: compass hardly turned or turned in its platform's own field 13-36 %; one that never turned 44 %, every direction
+#: "seen" about a centre inside the cloud)
+SHELL_MAX = 0.1
 #: a given total field further than this factor from the data's own size (median |raw - centre|) is not theirs: a
 #: sensor's scale factors are near 1 (plausible.CalibrationLimits.max_scale)
 SITE_RATIO_MAX = 2.0
@@ -199,7 +207,15 @@ def physical(j: Determinacy, raw_nT: np.ndarray, given_total_nT: Any = None, sou
         guess = unit_guess(field)
         last = ("or give the site's field (--site LAT,LON[,ALT], a ref_total column or estimator.total_nT) to have the "
                 "fit scaled to it and checked against it")
-    if fits_zero and j.coverage.fraction < WIDE_COVERAGE:
+    thick = shell_thickness(j, raw[:, 0])
+    if thick is not None and thick > SHELL_MAX:       # the fitted size says nothing of the unit: no guess from it
+        problem += (f"{f', while the samples read {about_zero:,.0f} nT about zero and' if fits_zero else ', and the samples'}"
+                    f" lie on no one ellipsoid (their RMS distance from the fitted one is {thick:.0%} of its size; a "
+                    f"sensor turned in a steady field gives a few per cent): the probe hardly turned, or the field "
+                    f"about it changed as it turned (a platform's own field)")
+        advice = ("turn the probe about at least two axes, so the field sweeps most directions, away from what "
+                  "moves the field about it (motors, currents, iron that turns with it)")
+    elif fits_zero and j.coverage.fraction < WIDE_COVERAGE:
         problem += (f", while the samples read {about_zero:,.0f} nT about zero: the directions they span do not place "
                     f"the centre (one turn, or too small a part of the sphere)")
         advice = "turn the probe about at least two axes, so the field sweeps most directions"
@@ -210,6 +226,24 @@ def physical(j: Determinacy, raw_nT: np.ndarray, given_total_nT: Any = None, sou
                   "a platform's own field")
     advice = f"{advice}; {last}"
     return replace(j, problem=f"{problem}; {advice}", advice=advice)
+
+
+def shell_thickness(j: Determinacy, raw_nT: np.ndarray) -> float | None:
+    """The RMS distance of the (N, 3) raw samples from the judge's fitted ellipsoid, as a share of its size:
+    rms(|M (r - o)| / median - 1) of the judge's calibration; None where the judge made no fit. Free of the data's
+    unit and origin, and of the field the fit was scaled to."""
+    if j.fit is None:
+        return None
+    cal = j.fit.fit.calibration
+    raw = np.asarray(raw_nT, float)
+    mags = [np.linalg.norm((raw[a:a + 65_536] - cal.offset_nT) @ cal.matrix.T, axis=1)  # no (N, 3) temporaries
+            for a in range(0, raw.shape[0], 65_536)]
+    mag = np.concatenate(mags) if mags else np.empty(0)
+    mag = mag[np.isfinite(mag)]
+    mid = float(np.median(mag)) if mag.size else 0.0
+    if not mid > 0:
+        return None
+    return float(np.sqrt(np.mean((mag / mid - 1.0) ** 2)))
 
 
 def _nT(x: float) -> str:
