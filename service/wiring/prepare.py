@@ -227,7 +227,7 @@ def log_mapping(source: str, topics: dict[str, str | None] | None, mags: Sequenc
         from fluxcal.service.io.recordings.px4 import Px4Mapping
 
         mapping = Px4Mapping if fmt == "px4-ulog" else ArduPilotMapping
-        return mapping(mags=tuple(mags) if mags else None, **_left_out(source, FLIGHT_LOGS[fmt], topics or {}))
+        return mapping(mags=tuple(mags) if mags else None, **_flight_options(source, fmt, topics or {}))
     from fluxcal.service.io.recordings.ros2 import AUTO, Ros2Mapping
 
     probes = {k: v for k, v in topics.items() if k not in ("imu", "gps", "battery") and not k.startswith("temp.")}
@@ -243,15 +243,29 @@ FLIGHT_LOGS = {"px4-ulog": "a PX4 log", "ardupilot-bin": "an ArduPilot log"}
 LEFT_OUT = {"imu": "attitude", "gps": "position", "battery": "currents"}
 
 
-def _left_out(source: str, what: str, topics: dict[str, str | None]) -> dict[str, bool]:
-    """The switches of a flight log's mapping that --topics turns off: only NAME=none of LEFT_OUT; ConfigError for
-    any other (a flight log has no topics to choose: its messages are read as docs/px4.md and docs/ardupilot.md say)."""
-    bad = [f"{k}={v or 'none'}" for k, v in topics.items() if k not in LEFT_OUT or v is not None]
+#: a PX4 log's topics `--topics mag=TOPIC` may take the probes from (px4.COMPASS_TOPICS; sensor_mag by default)
+PX4_MAG = "mag"
+
+
+def _flight_options(source: str, fmt: str, topics: dict[str, str | None]) -> dict[str, Any]:
+    """The options of a flight log's mapping that --topics sets: NAME=none of LEFT_OUT turns that stream off, and a
+    PX4 log's mag=TOPIC chooses the topic its probes come from; ConfigError for any other (a flight log's messages are
+    read as docs/px4.md and docs/ardupilot.md say)."""
+    from fluxcal.service.io.recordings.px4 import COMPASS_TOPICS
+
+    px4 = fmt == "px4-ulog"
+    mag = topics.get(PX4_MAG) if px4 else None
+    bad = [f"{k}={v or 'none'}" for k, v in topics.items()
+           if not (k in LEFT_OUT and v is None) and not (px4 and k == PX4_MAG and v in COMPASS_TOPICS)]
     if bad:
-        raise ConfigError(f"--topics: {', '.join(bad)} is not allowed for {source} ({what}: its streams are the "
-                          f"messages fluxcal reads, not topics to choose; allowed: imu=none, gps=none, battery=none, "
-                          f"each leaving that stream out; --mags chooses the compasses)")
-    return {LEFT_OUT[k]: False for k in topics}
+        also = f", mag={' or mag='.join(COMPASS_TOPICS)} the topic the probes come from" if px4 else ""
+        raise ConfigError(f"--topics: {', '.join(bad)} is not allowed for {source} ({FLIGHT_LOGS[fmt]}: its streams "
+                          f"are the messages fluxcal reads, not topics to choose; allowed: imu=none, gps=none, "
+                          f"battery=none, each leaving that stream out{also}; --mags chooses the compasses)")
+    out: dict[str, Any] = {LEFT_OUT[k]: False for k in topics if k in LEFT_OUT}
+    if mag is not None:
+        out["compass"] = mag
+    return out
 
 
 #: the formats of other ecosystems' logs (not fluxcal's recordings: `fluxcal repair` does not mend them)

@@ -155,6 +155,49 @@ def test_the_advice_on_cut_rows_is_an_option_that_keeps_them(flight, capsys):
         assert f"--topics: {wrong} is not allowed for {path} (a PX4 log" in capsys.readouterr().err
 
 
+#: what PX4's own calibration left on the second compass in the simulated vehicle_magnetometer, nT
+LEFT_BY_PX4_NT = np.array([120.0, -75.0, 40.0])
+
+
+def test_vehicle_magnetometer_taken_only_when_asked_one_compass_and_calibration(tmp_path, capsys):
+    """A log whose sensor_mag is sparse while vehicle_magnetometer is rich could only be refused: vehicle_magnetometer
+    is PX4's output after its own calibration, which a fit must not take for the raw field unasked. Asked for
+    (`--topics mag=vehicle_magnetometer`), it is the probe, said as PX4's output, and a fit finds what PX4's
+    calibration left (LEFT_BY_PX4_NT). PX4 switched to another compass for the last quarter: those samples are left
+    out and said (one probe is one compass under one calibration)."""
+    d = simulated_flight()
+    n = d["t_s"].size
+    us = BOOT_US + np.round(d["t_s"] * 1e6).astype(np.int64)
+    vm = (d["field_nT"][:, 1] - d["offsets_nT"][1] + LEFT_BY_PX4_NT) / 1e5           # gauss, PX4's offsets out
+    device = np.where(np.arange(n) < 3 * n // 4, 0x30001, 0x30002)
+    topics = _ulog_topics(d) + [("vehicle_magnetometer", 0,
+                                 [("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("uint32_t", "device_id"),
+                                  ("float[3]", "magnetometer_ga"), ("uint8_t", "calibration_count")],
+                                 {"timestamp": us + 400, "timestamp_sample": us + 300, "device_id": device,
+                                  "magnetometer_ga": vm, "calibration_count": np.ones(n)})]
+    path = tmp_path / "vm.ulg"
+    write_ulog(path, topics, info={"sys_name": "PX4"})
+    assert load_data(path).probe_names == ["s1", "s2"]                            # unasked: sensor_mag, as before
+    lab = load_data(path, mapping=Px4Mapping(compass="vehicle_magnetometer"))
+    assert lab.probe_names == ["s1"] and json.loads(lab.metadata["sources"])["s1"] == "vehicle_magnetometer[0]"
+    assert any("PX4's output after its own calibration" in note for note in lab.notes)
+    assert 2_950 <= lab.block.n_samples <= 3_000                                  # the first compass's samples alone
+    said = " ".join(lab.warnings)                                                 # samples left out: a warning
+    assert "the 3,000 samples of device 0x30001 calibration 1 taken, 1,000 of device 0x30002 calibration 1 left " \
+           "out" in said
+    by = {st.name: st for st in inspect_px4(path, Px4Mapping(compass="vehicle_magnetometer")).streams}
+    assert by["vehicle_magnetometer"].maps_to.startswith("probe s1") and by["sensor_mag[0]"].maps_to == ""
+    capsys.readouterr()
+    assert cli.main(["fit", str(path), "--topics", "mag=vehicle_magnetometer", "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert "PX4's output after its own calibration" in err and "on top of PX4's, not the sensor's own" in err
+    s1 = json.loads(out)["sensors"][0]
+    for got, se, want in zip(s1["offset_nT"], s1["offset_se_nT"], LEFT_BY_PX4_NT):
+        assert abs(got - want) < max(4 * se, 5.0), (got, se, want)
+    assert cli.main(["fit", str(path), "--topics", "mag=vehicle_attitude"]) == 2
+    assert "mag=sensor_mag or mag=vehicle_magnetometer the topic the probes come from" in capsys.readouterr().err
+
+
 @needs_real("px4_sample_log_small.ulg")
 def test_real_px4_log_end_to_end(capsys):
     """A real flight (CubeOrange, 2021-04-21): two compasses logged at 1 Hz, two batteries, GPS. Read end to end:

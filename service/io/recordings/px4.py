@@ -3,6 +3,10 @@
     sensor_mag (every instance)    -> a probe s1, s2, ... (instance order): x, y, z in gauss x 1e5 = nT (PX4's unit
                                       for sensor_mag), at timestamp_sample (else timestamp), us since boot;
                                       its temperature -> s<k>_temp where the log has one (not all 0 or NaN)
+    vehicle_magnetometer           -> the probes instead, only when asked (Px4Mapping.compass; `--topics
+                                      mag=vehicle_magnetometer`): magnetometer_ga[0..2], PX4's output after its own
+                                      calibration, each instance's samples of its most frequent compass and
+                                      calibration (device_id, calibration_count), the others left out and said
     vehicle_attitude q[0..3]       -> heel_deg, pitch_deg, azimuth_deg (PX4's q: FRD body -> NED, as fluxcal's)
     vehicle_gps_position/sensor_gps-> lat_deg, lon_deg, alt_m (above the ellipsoid where logged, else MSL: said);
                                       samples without a 3D fix left out
@@ -34,16 +38,21 @@ WANTED = ("sensor_mag", "sensor_combined", "vehicle_magnetometer", "vehicle_atti
 RELATIVE_TIMESTAMP_INVALID = 0x7FFFFFFF
 
 
+#: the topics a PX4 log's probes may come from: the raw field (the default), or PX4's output after its calibration
+COMPASS_TOPICS = ("sensor_mag", "vehicle_magnetometer")
+
+
 @dataclass(frozen=True)
 class Px4Mapping:
-    """Which streams become what. mags: the sensor_mag instances to take as probes, in order (None: every one);
-    the others on or off."""
+    """Which streams become what. compass: the topic the probes come from (COMPASS_TOPICS); mags: its instances to take
+    as probes, in order (None: every one); the others on or off."""
 
     mags: Sequence[int] | None = None
     attitude: bool = True
     position: bool = True
     currents: bool = True
     temperatures: bool = True
+    compass: str = "sensor_mag"
 
 
 def _ulog(path: Path, only: Sequence[str] | None = WANTED):
@@ -90,6 +99,38 @@ def _combined_mag(ulog: Any) -> _CombinedMag | None:
                                                   for i, a in enumerate("xyz")}})
 
 
+@dataclass(frozen=True)
+class _VehicleMag:
+    """One vehicle_magnetometer instance as a probe: magnetometer_ga[0..2] (gauss) of the samples of its most frequent
+    (device_id, calibration_count), PX4's compass and calibration; `left_out` says what else it held."""
+
+    data: dict
+    multi_id: int
+    left_out: str = ""
+    name: str = "vehicle_magnetometer"
+
+
+def _vehicle_mag(d: Any) -> _VehicleMag:
+    x = d.data
+    n = len(x["timestamp"])
+    keys = np.column_stack([np.asarray(x.get(k, np.zeros(n)), np.int64) for k in ("device_id", "calibration_count")])
+    runs, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    best = int(np.argmax(counts))
+    keep = np.flatnonzero(inverse.ravel() == best)
+    left_out = ""
+    if keep.size < n:
+        others = ", ".join(f"{c:,} of device {int(r[0]):#x} calibration {int(r[1])}"
+                           for r, c in zip(runs, counts) if not np.array_equal(r, runs[best]))
+        left_out = (f"vehicle_magnetometer[{d.multi_id}]: PX4 changed compass or calibration during the log: the "
+                    f"{keep.size:,} samples of device {int(runs[best][0]):#x} calibration {int(runs[best][1])} taken, "
+                    f"{others} left out (one probe is one compass under one calibration)")
+    data = {k: np.asarray(x[k])[keep] for k in ("timestamp", "timestamp_sample") if k in x}
+    data.update({a: np.asarray(x[f"magnetometer_ga[{i}]"], float)[keep] for i, a in enumerate("xyz")})
+    if "device_id" in x:
+        data["device_id"] = np.asarray(x["device_id"])[keep]
+    return _VehicleMag(data, d.multi_id, left_out)
+
+
 #: sensor_mag instances holding fewer samples than this each are said beside a vehicle_magnetometer holding more
 SPARSE_SAMPLES = 100
 
@@ -106,7 +147,9 @@ def _sparse_note(ulog: Any, mags: Sequence[Any]) -> list[str]:
     said = (f"sensor_mag holds {', '.join(f'{c:,}' for c in counts)} sample(s) (the logging profile's rate) where "
             f"vehicle_magnetometer holds {max(vm):,}: that one is not taken, being PX4's output after its own "
             f"calibration and its choice among the compasses, not the raw field a calibration is fitted to; for a "
-            f"calibration flight log sensor_mag at its rate (SDLOG_PROFILE's high-rate sensors)")
+            f"calibration flight log sensor_mag at its rate (SDLOG_PROFILE's high-rate sensors), or take "
+            f"vehicle_magnetometer knowingly (--topics mag=vehicle_magnetometer): a fit then calibrates what PX4's "
+            f"own calibration left")
     return [said]
 
 
@@ -179,15 +222,24 @@ def _currents(ulog: Any) -> dict[str, tuple[np.ndarray, np.ndarray, str]]:
 def load_px4(path: str | Path, mapping: Px4Mapping | None = None) -> LabData:
     """A PX4 ULog as LabData (module docstring)."""
     m = mapping or Px4Mapping()
+    if m.compass not in COMPASS_TOPICS:
+        raise DataError(f"compass: {m.compass!r} is not a topic a PX4 log's probes come from (allowed: "
+                        f"{', '.join(COMPASS_TOPICS)})")
     ulog = _ulog(Path(path))
-    mags = _instances(ulog, "sensor_mag")
+    mags = _instances(ulog, m.compass)
     if m.mags is not None:
         have = {d.multi_id: d for d in mags}
         missing = [i for i in m.mags if i not in have]
         if missing:
-            raise DataError(f"mags: instance(s) {missing} not in {path} (its sensor_mag instances: "
+            raise DataError(f"mags: instance(s) {missing} not in {path} (its {m.compass} instances: "
                             f"{sorted(have) or 'none'})")
         mags = [have[i] for i in m.mags]
+    processed = m.compass == "vehicle_magnetometer"
+    if processed and not mags:
+        raise DataError(f"{path}: no vehicle_magnetometer in the log (asked by --topics mag=vehicle_magnetometer); "
+                        f"its sensor_mag holds the raw field (the default)")
+    if processed:
+        mags = [_vehicle_mag(d) for d in mags]
     older = None
     if not mags and m.mags in (None, (0,), [0]):
         older = _combined_mag(ulog)           # a PX4 before sensor_mag was logged: its one magnetometer
@@ -207,7 +259,12 @@ def load_px4(path: str | Path, mapping: Px4Mapping | None = None) -> LabData:
 
     notes = ["sensor_mag: x, y, z taken in gauss (PX4's unit) and in the frame PX4 logs them (rotated to the "
              "board/body frame by CAL_MAGn_ROT), as raw as PX4 logs them (before its calibration)"]
-    notes += _sparse_note(ulog, mags) if older is None else []
+    notes += _sparse_note(ulog, mags) if older is None and not processed else []
+    if processed:
+        notes = ["vehicle_magnetometer.magnetometer_ga[0..2] taken as the probes (--topics mag=vehicle_magnetometer), "
+                 "in gauss and in the body frame: PX4's output after its own calibration (CAL_MAGn_*: its offsets, "
+                 "scales and rotation taken out) and its choice among the compasses, so a fit calibrates what that "
+                 "calibration left: its offsets and matrix are on top of PX4's, not the sensor's own"]
     if older is not None:
         notes = ["sensor_combined.magnetometer_ga[0..2] (an older PX4's log: no sensor_mag) taken in gauss, each "
                  "magnetometer sample once at its own instant (the rows between two samples repeat the last one), "
@@ -216,9 +273,9 @@ def load_px4(path: str | Path, mapping: Px4Mapping | None = None) -> LabData:
     for k, (d, t) in enumerate(zip(mags, t_all)):
         name = f"s{k + 1}"
         v = np.column_stack([np.asarray(d.data[a], float) for a in "xyz"]) * NT_PER_GAUSS
-        what = d.name if isinstance(d, _CombinedMag) else f"sensor_mag[{d.multi_id}] device {_device(d)}"
+        what = d.name if isinstance(d, _CombinedMag) else f"{d.name}[{d.multi_id}] device {_device(d)}"
         probes.append((name, Series(s(t), v, what)))
-        sources[name] = d.name if isinstance(d, _CombinedMag) else f"sensor_mag[{d.multi_id}]"
+        sources[name] = d.name if isinstance(d, _CombinedMag) else f"{d.name}[{d.multi_id}]"
         temp = _temperature(d) if m.temperatures else None
         if temp is not None:
             temps[name] = Series(s(t), temp, f"sensor_mag[{d.multi_id}].temperature")
@@ -251,7 +308,8 @@ def load_px4(path: str | Path, mapping: Px4Mapping | None = None) -> LabData:
     if offset is None:
         notes.append("no GPS UTC time in the log: the date of the flight is unknown")
     return lab_data(merged, [n for n, _ in probes], path, fmt="px4", sources=sources,
-                    origin_unix_s=None if offset is None else offset + origin / 1e6, notes=notes)
+                    origin_unix_s=None if offset is None else offset + origin / 1e6, notes=notes,
+                    warnings=[d.left_out for d in mags if getattr(d, "left_out", "")])
 
 
 def _device(d: Any) -> str:
@@ -263,7 +321,7 @@ def inspect_px4(path: str | Path, mapping: Px4Mapping | None = None) -> Inspecti
     """What a ULog holds (every topic instance, counts, rates) and how load_px4 would map it."""
     m = mapping or Px4Mapping()
     ulog = _ulog(Path(path), None)
-    mags = [d.multi_id for d in _instances(ulog, "sensor_mag")]
+    mags = [d.multi_id for d in _instances(ulog, m.compass)]
     chosen = list(m.mags) if m.mags is not None else mags
     gps = _gps(ulog)
     currents = _currents(ulog) if m.currents else {}
@@ -271,7 +329,15 @@ def inspect_px4(path: str | Path, mapping: Px4Mapping | None = None) -> Inspecti
     for d in sorted(ulog.data_list, key=lambda d: (d.name, d.multi_id)):
         t = np.asarray(d.data["timestamp"], np.int64)
         maps, note = "", ""
-        if d.name == "sensor_mag":
+        if d.name == m.compass == "vehicle_magnetometer":
+            if d.multi_id in chosen:
+                maps = f"probe s{chosen.index(d.multi_id) + 1} (magnetometer_ga[0..2], gauss x 1e5 = nT)"
+                note = "after PX4's own calibration (--topics mag=vehicle_magnetometer)"
+            else:
+                note = "not in the mapping's mags"
+        elif d.name == "sensor_mag" and m.compass == "vehicle_magnetometer":
+            note = "not taken: --topics mag=vehicle_magnetometer"
+        elif d.name == "sensor_mag":
             if d.multi_id in chosen:
                 k = chosen.index(d.multi_id) + 1
                 temp = _temperature(d) is not None and m.temperatures
@@ -279,7 +345,7 @@ def inspect_px4(path: str | Path, mapping: Px4Mapping | None = None) -> Inspecti
                 note = f"device {_device(d)}" + ("" if temp else "; no temperature logged")
             else:
                 note = "not in the mapping's mags"
-        elif d.name == "sensor_combined" and not mags and "magnetometer_ga[0]" in d.data:
+        elif d.name == "sensor_combined" and m.compass == "sensor_mag" and not mags and "magnetometer_ga[0]" in d.data:
             maps = "probe s1 (magnetometer_ga[0..2], gauss x 1e5 = nT)"
             note = "an older PX4's log: no sensor_mag; after PX4's own calibration"
         elif d.name == "vehicle_attitude" and d.multi_id == 0 and m.attitude:
@@ -292,5 +358,6 @@ def inspect_px4(path: str | Path, mapping: Px4Mapping | None = None) -> Inspecti
             maps = key if key in currents else ""
             note = "" if maps else "current_a not measured (-1)"
         streams.append(StreamInfo(_stream_name(d), d.name, int(t.size), rate((t - t[:1]) / 1e6), maps, note))
-    warnings = [] if mags or _combined_mag(ulog) is not None else ["no sensor_mag in the log: nothing to calibrate"]
+    warnings = [] if mags or (m.compass == "sensor_mag" and _combined_mag(ulog) is not None) else \
+        [f"no {m.compass} in the log: nothing to calibrate"]
     return Inspection(str(path), "px4-ulog", streams, warnings=warnings)

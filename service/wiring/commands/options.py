@@ -81,7 +81,9 @@ TOPICS_HELP = ("another ecosystem's log: which streams become what, comma-separa
                "(s1=/imu/mag), a probe's temperature (temp.s1=/imu/temperature), imu=, gps= (NavSatFix), battery= "
                "(BatteryState), each TOPIC or none (default: every MagneticField topic a probe, in topic order; the "
                "others taken where there is one of their kind). A PX4 or ArduPilot log: imu=none, gps=none, "
-               "battery=none leave out its attitude, position or battery current (and the rows they lack). "
+               "battery=none leave out its attitude, position or battery current (and the rows they lack); a PX4 "
+               "log's mag=vehicle_magnetometer takes the probes from PX4's output after its own calibration "
+               "instead of sensor_mag. "
                "`fluxcal inspect FILE` shows the mapping")
 MAGS_HELP = ("a PX4 or ArduPilot log: the compass instances to take as probes, in order, e.g. 0,2 (default: every "
              "one)")
