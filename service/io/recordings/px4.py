@@ -222,35 +222,9 @@ def _currents(ulog: Any) -> dict[str, tuple[np.ndarray, np.ndarray, str]]:
 def load_px4(path: str | Path, mapping: Px4Mapping | None = None) -> LabData:
     """A PX4 ULog as LabData (module docstring)."""
     m = mapping or Px4Mapping()
-    if m.compass not in COMPASS_TOPICS:
-        raise DataError(f"compass: {m.compass!r} is not a topic a PX4 log's probes come from (allowed: "
-                        f"{', '.join(COMPASS_TOPICS)})")
     ulog = _ulog(Path(path))
-    mags = _instances(ulog, m.compass)
-    if m.mags is not None:
-        have = {d.multi_id: d for d in mags}
-        missing = [i for i in m.mags if i not in have]
-        if missing:
-            raise DataError(f"mags: instance(s) {missing} not in {path} (its {m.compass} instances: "
-                            f"{sorted(have) or 'none'})")
-        mags = [have[i] for i in m.mags]
+    mags, older = _compasses(ulog, m, Path(path))
     processed = m.compass == "vehicle_magnetometer"
-    if processed and not mags:
-        raise DataError(f"{path}: no vehicle_magnetometer in the log (asked by --topics mag=vehicle_magnetometer); "
-                        f"its sensor_mag holds the raw field (the default)")
-    if processed:
-        mags = [_vehicle_mag(d) for d in mags]
-    older = None
-    if not mags and m.mags in (None, (0,), [0]):
-        older = _combined_mag(ulog)           # a PX4 before sensor_mag was logged: its one magnetometer
-        mags = [older] if older is not None else []
-    if not mags:
-        topics = sorted({d.name for d in _ulog(Path(path), None).data_list})
-        if not topics:
-            raise DataError(f"{path}: no logged topic at all in its {Path(path).stat().st_size:,} bytes: the log is "
-                            f"cut short (it ends before its first data) or empty; copy it again from the vehicle")
-        raise DataError(f"{path}: no sensor_mag in the log (its topics: {', '.join(topics)}): nothing to "
-                        f"calibrate (PX4 logs sensor_mag with SDLOG_PROFILE's default set)")
     t_all = [_time_us(d) for d in mags]
     origin = min(int(t.min()) for t in t_all if t.size)
 
@@ -310,6 +284,40 @@ def load_px4(path: str | Path, mapping: Px4Mapping | None = None) -> LabData:
     return lab_data(merged, [n for n, _ in probes], path, fmt="px4", sources=sources,
                     origin_unix_s=None if offset is None else offset + origin / 1e6, notes=notes,
                     warnings=[d.left_out for d in mags if getattr(d, "left_out", "")])
+
+
+def _compasses(ulog: Any, m: Px4Mapping, path: Path) -> tuple[list[Any], _CombinedMag | None]:
+    """The instances the probes come from (the mapping's compass topic and mags; an older PX4's sensor_combined where
+    the log has no sensor_mag) and that older magnetometer, if taken; DataError where there is none."""
+    if m.compass not in COMPASS_TOPICS:
+        raise DataError(f"compass: {m.compass!r} is not a topic a PX4 log's probes come from (allowed: "
+                        f"{', '.join(COMPASS_TOPICS)})")
+    mags = _instances(ulog, m.compass)
+    if m.mags is not None:
+        have = {d.multi_id: d for d in mags}
+        missing = [i for i in m.mags if i not in have]
+        if missing:
+            raise DataError(f"mags: instance(s) {missing} not in {path} (its {m.compass} instances: "
+                            f"{sorted(have) or 'none'})")
+        mags = [have[i] for i in m.mags]
+    processed = m.compass == "vehicle_magnetometer"
+    if processed and not mags:
+        raise DataError(f"{path}: no vehicle_magnetometer in the log (asked by --topics mag=vehicle_magnetometer); "
+                        f"its sensor_mag holds the raw field (the default)")
+    if processed:
+        mags = [_vehicle_mag(d) for d in mags]
+    older = None
+    if not mags and m.mags in (None, (0,), [0]):
+        older = _combined_mag(ulog)           # a PX4 before sensor_mag was logged: its one magnetometer
+        mags = [older] if older is not None else []
+    if not mags:
+        topics = sorted({d.name for d in _ulog(Path(path), None).data_list})
+        if not topics:
+            raise DataError(f"{path}: no logged topic at all in its {Path(path).stat().st_size:,} bytes: the log is "
+                            f"cut short (it ends before its first data) or empty; copy it again from the vehicle")
+        raise DataError(f"{path}: no sensor_mag in the log (its topics: {', '.join(topics)}): nothing to "
+                        f"calibrate (PX4 logs sensor_mag with SDLOG_PROFILE's default set)")
+    return mags, older
 
 
 def _device(d: Any) -> str:
