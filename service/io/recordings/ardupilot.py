@@ -28,6 +28,13 @@ import numpy as np
 
 from fluxcal.drivers.errors import DataError
 from fluxcal.drivers.inputs import check_head, magic
+from fluxcal.service.io.recordings.damage import (
+    damage_said,
+    damage_warning,
+    dataflash_cut,
+    library_output,
+    skipped_bytes,
+)
 from fluxcal.service.io.recordings.formats import (
     DATAFLASH_HEAD,
     Inspection,
@@ -111,9 +118,18 @@ def _name(msg_type: str, msg: Any) -> str:
     return msg_type
 
 
-def _read(path: Path, names: dict | None = None) -> dict[tuple[str, int], dict[str, list[float]]]:
-    """Per (kind, instance): the fields fluxcal maps, as lists, in log order; names: filled with each one's name as
-    the log has it (_name)."""
+def _read(path: Path, names: dict | None = None) -> tuple[dict[tuple[str, int], dict[str, list[float]]], str, bool]:
+    """Per (kind, instance): the fields fluxcal maps, as lists, in log order; what is wrong with a damaged or cut log
+    (damage.damage_said; "" where it is whole: what pymavlink prints is kept off the output); whether the log
+    defines a compass message (its FMT). names: filled with each one's name as the log has it (_name)."""
+    with library_output() as printed:
+        out, cut, defines_mag = _messages(path, names)
+    return out, damage_said(cut=cut, skipped=skipped_bytes(printed)), defines_mag
+
+
+def _messages(path: Path, names: dict | None) -> tuple[dict[tuple[str, int], dict[str, list[float]]], int, bool]:
+    """_read's messages, the bytes missing from the log's last message (damage.dataflash_cut) and whether a compass
+    message is defined."""
     check_head(path, "an ArduPilot DataFlash log", _dataflash_head)    # garbage refused before pymavlink reads it
     try:
         from pymavlink import DFReader
@@ -142,9 +158,11 @@ def _read(path: Path, names: dict | None = None) -> dict[tuple[str, int], dict[s
             for f in want:
                 v = _gps_time(msg, f) if f in ("GWk", "GMS") else float(getattr(msg, f, np.nan)) * _unit(msg, f)
                 d.setdefault(f, []).append(v)
+        cut = dataflash_cut(r)
+        defines_mag = any(str(getattr(f, "name", "")).startswith("MAG") for f in r.formats.values())
     finally:
         r.close()
-    return out
+    return out, cut, defines_mag
 
 
 def _dataflash_head(head: bytes, whole: bool) -> str | None:
@@ -159,7 +177,7 @@ def load_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None) ->
     """An ArduPilot DataFlash log as LabData (module docstring)."""
     m = mapping or ArduPilotMapping()
     names: dict[tuple[str, int], str] = {}       # each stream as the log names it, and inspect and what is said
-    data = _read(Path(path), names)
+    data, damaged, defines_mag = _read(Path(path), names)
     mags = sorted(i for k, i in data if k == "MAG")
     if m.mags is not None:
         missing = [i for i in m.mags if i not in mags]
@@ -167,7 +185,10 @@ def load_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None) ->
             raise DataError(f"mags: compass instance(s) {missing} not in {path} (its instances: {mags or 'none'})")
         mags = list(m.mags)
     if not mags:
-        raise DataError(f"{path}: no MAG messages in the log: nothing to calibrate (LOG_BITMASK must log compass)")
+        why = (f"the log is {damaged}, before it defined its compass message: copy it again from the vehicle"
+               if damaged and not defines_mag else
+               "LOG_BITMASK must log compass" + (f"; the log is also {damaged}" if damaged else ""))
+        raise DataError(f"{path}: no MAG messages in the log: nothing to calibrate ({why})")
     origin = min(min(data[("MAG", i)]["t_us"]) for i in mags)
 
     def s(t_us: list[float] | np.ndarray) -> np.ndarray:
@@ -224,14 +245,15 @@ def load_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None) ->
     if offset is None:
         notes.append("no GPS time in the log: the date of the flight is unknown")
     return lab_data(merged, [n for n, _ in probes], path, fmt="ardupilot", sources=sources,
-                    origin_unix_s=None if offset is None else offset + origin / 1e6, notes=notes)
+                    origin_unix_s=None if offset is None else offset + origin / 1e6, notes=notes,
+                    warnings=damage_warning(path, damaged))
 
 
 def inspect_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None) -> Inspection:
     """What a DataFlash log holds of the messages fluxcal maps (counts, rates) and how load_ardupilot would map it."""
     m = mapping or ArduPilotMapping()
     names: dict[tuple[str, int], str] = {}
-    data = _read(Path(path), names)
+    data, damaged, _ = _read(Path(path), names)
     mags = sorted(i for k, i in data if k == "MAG")
     chosen = list(m.mags) if m.mags is not None else mags
     streams = []
@@ -250,5 +272,5 @@ def inspect_ardupilot(path: str | Path, mapping: ArduPilotMapping | None = None)
             maps = "battery_current_a" if i == 0 else f"battery{i}_current_a"
         name = names.get((kind, i), kind)
         streams.append(StreamInfo(name, name.split("[")[0], int(t.size), rate(t / 1e6), maps, note))
-    warnings = [] if mags else ["no MAG messages in the log: nothing to calibrate"]
+    warnings = damage_warning(path, damaged) + ([] if mags else ["no MAG messages in the log: nothing to calibrate"])
     return Inspection(str(path), "ardupilot-bin", streams, warnings=warnings)

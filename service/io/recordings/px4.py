@@ -26,6 +26,7 @@ import numpy as np
 
 from fluxcal.drivers.errors import DataError
 from fluxcal.drivers.inputs import check_head, magic
+from fluxcal.service.io.recordings.damage import damage_note, library_output, ulog_walk
 from fluxcal.service.io.recordings.formats import ULOG_MAGIC, Inspection, StreamInfo, lab_data, missing_package, rate
 from fluxcal.service.io.recordings.labdata import LabData
 from fluxcal.service.numerics.merge import Series, merge
@@ -55,16 +56,29 @@ class Px4Mapping:
     compass: str = "sensor_mag"
 
 
-def _ulog(path: Path, only: Sequence[str] | None = WANTED):
+def _ulog(path: Path, only: Sequence[str] | None = WANTED) -> tuple[Any, list[str]]:
+    """The ULog read by pyulog (what it prints kept off the output) and the warning of a damaged or cut log."""
     check_head(path, "a PX4 ULog", magic(ULOG_MAGIC, "a ULog"))     # garbage refused before pyulog reads it
     try:
         from pyulog import ULog
     except ImportError:
         raise missing_package("pyulog", "px4", "a PX4 log (ULog)") from None
     try:
-        return ULog(str(path), list(only) if only is not None else None)
+        with library_output():
+            ulog = ULog(str(path), list(only) if only is not None else None)
     except Exception as e:  # noqa: BLE001 - pyulog raises bare exceptions on a damaged file
         raise DataError(f"{path}: not a readable PX4 ULog ({type(e).__name__}: {e})") from None
+    cut, at = ulog_walk(path)
+    return ulog, damage_note(path, cut=cut, corrupt=bool(ulog.file_corruption), at=at) + _dropouts(ulog)
+
+
+def _dropouts(ulog: Any) -> list[str]:
+    """What the logger itself says it lost (its dropout messages: the storage did not keep up)."""
+    lost = [int(getattr(d, "duration", 0)) for d in getattr(ulog, "dropouts", []) or []]
+    if not lost:
+        return []
+    return [f"the logger dropped data {len(lost):,} time(s), {sum(lost):,} ms in all (PX4's dropouts: its storage did "
+            f"not keep up); the samples in them are lost"]
 
 
 def _time_us(d: Any) -> np.ndarray:
@@ -222,7 +236,7 @@ def _currents(ulog: Any) -> dict[str, tuple[np.ndarray, np.ndarray, str]]:
 def load_px4(path: str | Path, mapping: Px4Mapping | None = None) -> LabData:
     """A PX4 ULog as LabData (module docstring)."""
     m = mapping or Px4Mapping()
-    ulog = _ulog(Path(path))
+    ulog, damaged = _ulog(Path(path))
     mags, older = _compasses(ulog, m, Path(path))
     processed = m.compass == "vehicle_magnetometer"
     t_all = [_time_us(d) for d in mags]
@@ -283,7 +297,7 @@ def load_px4(path: str | Path, mapping: Px4Mapping | None = None) -> LabData:
         notes.append("no GPS UTC time in the log: the date of the flight is unknown")
     return lab_data(merged, [n for n, _ in probes], path, fmt="px4", sources=sources,
                     origin_unix_s=None if offset is None else offset + origin / 1e6, notes=notes,
-                    warnings=[d.left_out for d in mags if getattr(d, "left_out", "")])
+                    warnings=damaged + [d.left_out for d in mags if getattr(d, "left_out", "")])
 
 
 def _compasses(ulog: Any, m: Px4Mapping, path: Path) -> tuple[list[Any], _CombinedMag | None]:
@@ -311,7 +325,7 @@ def _compasses(ulog: Any, m: Px4Mapping, path: Path) -> tuple[list[Any], _Combin
         older = _combined_mag(ulog)           # a PX4 before sensor_mag was logged: its one magnetometer
         mags = [older] if older is not None else []
     if not mags:
-        topics = sorted({d.name for d in _ulog(Path(path), None).data_list})
+        topics = sorted({d.name for d in _ulog(Path(path), None)[0].data_list})
         if not topics:
             raise DataError(f"{path}: no logged topic at all in its {Path(path).stat().st_size:,} bytes: the log is "
                             f"cut short (it ends before its first data) or empty; copy it again from the vehicle")
@@ -328,7 +342,7 @@ def _device(d: Any) -> str:
 def inspect_px4(path: str | Path, mapping: Px4Mapping | None = None) -> Inspection:
     """What a ULog holds (every topic instance, counts, rates) and how load_px4 would map it."""
     m = mapping or Px4Mapping()
-    ulog = _ulog(Path(path), None)
+    ulog, damaged = _ulog(Path(path), None)
     mags = [d.multi_id for d in _instances(ulog, m.compass)]
     chosen = list(m.mags) if m.mags is not None else mags
     gps = _gps(ulog)
@@ -366,6 +380,6 @@ def inspect_px4(path: str | Path, mapping: Px4Mapping | None = None) -> Inspecti
             maps = key if key in currents else ""
             note = "" if maps else "current_a not measured (-1)"
         streams.append(StreamInfo(_stream_name(d), d.name, int(t.size), rate((t - t[:1]) / 1e6), maps, note))
-    warnings = [] if mags or (m.compass == "sensor_mag" and _combined_mag(ulog) is not None) else \
-        [f"no {m.compass} in the log: nothing to calibrate"]
+    warnings = damaged + ([] if mags or (m.compass == "sensor_mag" and _combined_mag(ulog) is not None) else
+                          [f"no {m.compass} in the log: nothing to calibrate"])
     return Inspection(str(path), "px4-ulog", streams, warnings=warnings)
