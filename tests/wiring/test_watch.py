@@ -200,6 +200,39 @@ def test_terminal_frame_redraws_in_place_with_every_panel():
     assert "no data from fluxcal/u1 for 10 s — the service has stopped" in dash.render_tty()
 
 
+def test_a_pulled_cable_is_said_while_the_service_still_speaks():
+    """The unit's cable pulled for 72 s: watch went back every 5 s to the last field values as if they were live and
+    never said more than "no data ... for 4 s", because the service's health and calibration messages, which go on,
+    reset its clock. Silence is now timed from the samples, and the faults the service says are active are shown; the
+    dashboard says the same sentence (commands.client.flow)."""
+    from fluxcal.service.wiring.dashboard.view import UnitView
+
+    now = [100.0]
+    views = [TerminalView("u1", ["tcp/127.0.0.1:7447"], clock=lambda: now[0]), UnitView("u1", clock=lambda: now[0])]
+    views[0].connected = True
+    for v in views:
+        v.update(Message("corrected", "fluxcal/u1/corrected", corrected_block(0)))
+    assert views[0].waiting_message() is None and views[1].status()[0] == "live"
+    silence = {"kind": "silence", "phase": "begin", "n": 7,
+               "text": "silence: no data from the unit for 5.0 s (unit.silence_s = 5): is it powered, connected and "
+                       "sending?"}
+    for _ in range(72):                                 # a health message a second, no samples
+        now[0] += 1.0
+        health = {"counters": {"frames_accepted": 10}, "faults": {"active": ["silence"] if now[0] > 105 else [],
+                                                                  "events": [silence] if now[0] > 105 else []}}
+        for v in views:
+            v.update(Message("health", "fluxcal/u1/health", health))
+    said = views[0].waiting_message()
+    assert said.startswith("no samples from fluxcal/u1 for 72 s: the service runs, its input is silent (silence: "
+                           "no data from the unit for 5.0 s"), said
+    assert views[0].line().endswith(said) and "s1=[" not in views[0].line()         # no stale vectors as if live
+    assert views[1].status() == ("silent", said)
+    views[0].alive = views[1].alive = False
+    now[0] += 10.0
+    assert "no data from fluxcal/u1 for 82 s — the service has stopped" in views[0].waiting_message()
+    assert views[1].status()[0] == "stopped"
+
+
 def test_not_usable_yet_shows_the_gate_reasons_and_the_raw_vectors():
     dash = TerminalView("u1", ["tcp/127.0.0.1:7447"])
     dash.connected = True
@@ -257,7 +290,7 @@ def test_a_check_without_a_candidate_says_there_is_no_residual_yet():
     assert "[]" not in text and "coverage -" not in text and "condition -" not in text
     assert "no residual yet: the online estimate has no candidate since the start or the last reset" in text
     assert f"gate: {reason}" in text                  # why, though the saved calibration is in use
-    dash.last_msg_t = dash.clock()                      # data flow: the one-line view shows the state
+    dash.last_msg_t = dash.last_data_t = dash.clock()   # data flow: the one-line view shows the state
     assert dash.line().endswith("| cal=usable no-candidate-yet") and "cov=" not in dash.line()
     said = state_text({**st, "unit": "u1"})
     assert "no candidate to judge, so no residual yet" in said and "[]" not in said and "None" not in said

@@ -116,3 +116,44 @@ def parse_listen(text: str, flag: str = "--listen") -> tuple[str, int]:
         raise ConfigError(f"{flag}: {text!r} is not allowed (allowed: HOST:PORT, e.g. 127.0.0.1:8090; port 0: "
                           f"a free one)")
     return m.group(1) or m.group(3), port
+
+
+#: a viewer's streams that carry samples: their silence is the input's, whatever else the service still sends
+DATA_STREAMS = ("raw", "corrected")
+#: nothing heard for this long: say so
+STALE_S = 3.0
+
+
+def active_faults(health: object) -> str:
+    """The faults the service says are going on (its health's faults.active), each with its newest event's words."""
+    faults = health.get("faults") if isinstance(health, dict) else None
+    if not isinstance(faults, dict):
+        return ""
+    active = [a for a in faults.get("active") or [] if isinstance(a, str)]
+    events = [e for e in faults.get("events") or [] if isinstance(e, dict)]
+    said = []
+    for kind in active:
+        newest = next((e for e in reversed(events) if e.get("kind") == kind and e.get("phase") != "end"), None)
+        said.append(str(newest["text"]) if newest and newest.get("text") else kind)
+    return "; ".join(said)
+
+
+def flow(unit: object, now: float, last_msg_t: float | None, last_data_t: float | None, alive: bool | None,
+         health: object = None) -> tuple[str, str]:
+    """(kind, sentence) of what a viewer hears from a unit: "live" (its samples arrive), "silent" (none for STALE_S:
+    where the service is still heard, its input is silent, and its active faults are said), "stopped" (its liveliness
+    token is gone), "waiting" (never heard). The timing is the samples' (DATA_STREAMS): health and calibration
+    messages go on while the input is silent."""
+    if last_data_t is not None and now - last_data_t <= STALE_S:
+        return "live", f"receiving from fluxcal/{unit}"
+    since = "yet" if last_data_t is None else f"for {now - last_data_t:.0f} s"
+    if alive is False:
+        return "stopped", (f"no data from fluxcal/{unit} {since} — the service has stopped (its liveliness token is "
+                           f"gone)")
+    if last_msg_t is None:
+        return "waiting", f"no data from fluxcal/{unit} yet"
+    if now - last_msg_t <= STALE_S:
+        faults = active_faults(health)
+        return "silent", (f"no samples from fluxcal/{unit} {since}: the service runs, its input is silent"
+                          + (f" ({faults})" if faults else ""))
+    return "silent", f"no data from fluxcal/{unit} for {now - last_msg_t:.0f} s"

@@ -37,12 +37,11 @@ from fluxcal.service.io.bus import (
     discover_units,
     open_session,
 )
-from fluxcal.service.wiring.commands.client import counter_words, is_flow, resolve
+from fluxcal.service.wiring.commands.client import DATA_STREAMS, counter_words, flow, is_flow, resolve
 from fluxcal.service.wiring.commands.options import CommandHelp, connection_options
 
 TTY_PERIOD_S = 0.25            # redraw rate on a terminal (4 Hz)
 LINE_PERIOD_S = 1.0            # one line per second otherwise
-STALE_S = 3.0                  # no message for this long: say that nothing arrives
 STATE_EVERY_S = 2.0            # how often the calibration state is queried
 STREAMS = ("raw", "corrected", "diff", "tensor", "calibration", "health", "error")
 
@@ -103,6 +102,7 @@ class TerminalView:
         self.connected = False
         self.alive: bool | None = None
         self.last_msg_t: float | None = None
+        self.last_data_t: float | None = None     # the newest samples (DATA_STREAMS): what says the input flows
         self.n_messages = 0
         self.raw = None
         self.corrected = None
@@ -122,6 +122,8 @@ class TerminalView:
     def update(self, msg: Message) -> None:
         now = self.clock()
         self.last_msg_t = now
+        if msg.stream in DATA_STREAMS:
+            self.last_data_t = now
         self.n_messages += 1
         # what a peer sent is shown escaped: only this view's own codes act on the terminal
         v = printable_json(msg.value) if isinstance(msg.value, dict) else msg.value
@@ -168,16 +170,13 @@ class TerminalView:
                        "service's certificate name the host?" if self.secure else ""))
         if self.unit is None:
             return f"no fluxcal unit visible via {where} yet — is `fluxcal run` running? (or give --unit)"
-        now = self.clock()
         if self.last_msg_t is None:
             return (f"no data from fluxcal/{self.unit} yet — is `fluxcal run` running and listening on "
                     f"{where}?" + (" (no such unit is alive there)" if self.alive is False else "")
                     + (" On a secured bus, also: is this certificate's name among the unit's [zenoh.access] "
                        "readers?" if self.secure else ""))
-        elif now - self.last_msg_t > STALE_S:
-            gone = " — the service has stopped (its liveliness token is gone)" if self.alive is False else ""
-            return f"no data from fluxcal/{self.unit} for {now - self.last_msg_t:.0f} s{gone}"
-        return None
+        kind, sentence = flow(self.unit, self.clock(), self.last_msg_t, self.last_data_t, self.alive, self.health)
+        return None if kind == "live" else sentence
 
     def calibration_summary(self) -> str:
         st = self.state

@@ -17,10 +17,10 @@ from fluxcal.service.numerics.calib.coverage import BIN_CENTRES, BIN_LABELS, cov
 from fluxcal.service.numerics.decimate import RmsMeans, VectorMeans
 from fluxcal.service.numerics.outputs import CorrectedBlock
 
+from ..commands.client import DATA_STREAMS, flow
 from .history import HISTORY, PERIOD_S, WINDOW_S, Floors, RawKeep, Ring, WindowMeans, corrected_columns, corrected_row
 
 #: a unit that sent nothing for this long is shown as silent
-STALE_S = 3.0
 #: field directions kept for the coverage sphere (10 Hz means: ten minutes)
 COVERAGE_POINTS = 6000
 #: directions of the trail drawn on the sphere
@@ -75,6 +75,7 @@ class UnitView:
         self.clock = clock
         self.alive: bool | None = None
         self.last_msg_t: float | None = None
+        self.last_data_t: float | None = None     # the newest samples (DATA_STREAMS): what says the input flows
         self.n_messages = 0
         self.probe_names: list[str] = []
         self.means = VectorMeans(PERIOD_S)
@@ -107,6 +108,8 @@ class UnitView:
 
     def update(self, msg: Message) -> None:
         self.last_msg_t = self.clock()
+        if msg.stream in DATA_STREAMS:
+            self.last_data_t = self.last_msg_t
         self.n_messages += 1
         v = msg.value
         if msg.stream == "corrected":
@@ -202,16 +205,9 @@ class UnitView:
     # --- what the page reads --------------------------------------------------------------------
 
     def status(self) -> tuple[str, str]:
-        """(kind, sentence): live, silent (alive, no data), stopped (token gone), waiting (never heard)."""
-        now = self.clock()
-        if self.last_msg_t is not None and now - self.last_msg_t <= STALE_S:
-            return "live", f"receiving from fluxcal/{self.unit}"
-        if self.alive is False:
-            return ("stopped", f"fluxcal/{self.unit} is not running (no liveliness token)"
-                    + ("" if self.last_msg_t is None else f"; last data {now - self.last_msg_t:.0f} s ago"))
-        if self.last_msg_t is None:
-            return "waiting", f"no data from fluxcal/{self.unit} yet"
-        return "silent", f"no data from fluxcal/{self.unit} for {now - self.last_msg_t:.0f} s"
+        """(kind, sentence): live, silent (the service heard, its samples not: the active faults said), stopped (token
+        gone), waiting (never heard); as `fluxcal watch` says it (commands.client.flow)."""
+        return flow(self.unit, self.clock(), self.last_msg_t, self.last_data_t, self.alive, self.health)
 
     def coverage_view(self, every_s: float = 2.0) -> dict[str, Any] | None:
         """Per probe: the 26 direction bins' counts, the share seen, what is missing and which turn fills it;
