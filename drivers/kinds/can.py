@@ -29,7 +29,9 @@ ICD = Protocol(
                 advice="sent twice by the unit or a gateway, or a late copy"),
         Counted("restarts", "the unit restarted: its sample counter back near zero, followed on", fault="restarts",
                 label="unit restart", what="{n:,} restart(s) of the unit: its sample counter went back near zero",
-                advice="followed: seq and time go on from the last sample's, no sample counted missed", one_shot=True),
+                advice="followed: seq and time go on from the last sample's; the samples the unit sent before the first "
+                       "one received are counted missed (its new counter says how many), none that never existed",
+                one_shot=True),
     ) + icd_samples("whose frames came whole", flags="; none on CAN: its frames carry no flags byte"),
     no_decode=NoDecode(
         "frames",

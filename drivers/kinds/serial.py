@@ -25,7 +25,9 @@ ICD = Protocol(
                 advice="a stale frame, or a unit counter that jumped back"),
         Counted("restarts", "the unit restarted: counter and clock back near zero, followed on", fault="restarts",
                 label="unit restart", what="{n:,} restart(s) of the unit: its counter and clock went back near zero",
-                advice="followed: seq and time go on from the last sample's, no sample counted missed", one_shot=True),
+                advice="followed: seq and time go on from the last sample's; the samples the unit sent before the first "
+                       "one received are counted missed (its new counter says how many), none that never existed",
+                one_shot=True),
         Counted("clock_jumps", "the unit's clock jumped while its counter ran on: time repaired from the counter",
                 fault="clock_jumps", label="unit clock jump",
                 what="{n:,} jump(s) of the unit's clock while its counter ran on",
