@@ -86,8 +86,9 @@ MAX_JSON_DEPTH = 16
 
 
 def load_calibration(path: str | Path) -> ArrayCalibration:
-    """Read a calibration file; DataError naming the file and the problem (missing, not a regular file, too
-    large, another format or version, not JSON, a missing key, a wrong shape, a NaN)."""
+    """Read a calibration file (`fit --out`'s, or `fit --json`'s report of a fit without effects); DataError naming
+    the file and the problem (missing, not a regular file, too large, another format or version, not JSON, a missing
+    key, a wrong shape, a NaN)."""
     return calibration_from_json(read_calibration_text(path), origin=str(Path(path)))
 
 
@@ -221,8 +222,32 @@ def _unit(v: Any, origin: str) -> dict[str, Any]:
     return {"name": v.get("name", ""), "probes": dict(probes)} if probes else {"name": v.get("name", "")}
 
 
+def is_report(d: Any) -> bool:
+    """Whether parsed JSON is `fluxcal fit --json`'s report (sensors, no "format"), not a calibration file."""
+    return isinstance(d, dict) and "format" not in d and isinstance(d.get("sensors"), list)
+
+
+def calibration_from_report(d: dict, origin: str = "<calibration>", *, linear_part: bool = False) -> ArrayCalibration:
+    """The calibration a `fluxcal fit --json` report carries (docs/contracts.md: its sensors' names, offsets,
+    matrices and their errors), checked as a calibration file is. Its effects' parameters are reported, not stored as
+    a calibration applies them: a report with effects is refused unless `linear_part` (the linear part alone asked
+    for, as `diagnose --calibration` holds it), where the effects are left out."""
+    effects = d.get("effects") or []
+    if effects and not linear_part:
+        raise DataError(f"{origin}: the `fluxcal fit --json` report of a fit with effects ({', '.join(map(str, effects))}"
+                        f"): its effect parameters are reported, not stored as a calibration applies them; write the "
+                        f"calibration with `fluxcal fit ... --out FILE`")
+    keys = ("name", "offset_nT", "matrix", "offset_se_nT", "matrix_se", "params", "model_order")
+    probes = [{k: s.get(k) for k in keys} if isinstance(s, dict) else s for s in d["sensors"]]
+    return calibration_from_dict({"format": FORMAT, "version": VERSION, "method": d.get("method") or "fit",
+                                  "align": d.get("align"), "probes": probes}, origin)
+
+
 def calibration_from_dict(d: Any, origin: str = "<calibration>") -> ArrayCalibration:
-    """The ArrayCalibration of a parsed calibration file; DataError naming `origin` and the problem."""
+    """The ArrayCalibration of a parsed calibration file, or of `fit --json`'s report (calibration_from_report);
+    DataError naming `origin` and the problem."""
+    if is_report(d):
+        return calibration_from_report(d, origin)
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise DataError(f"{origin}: not a fluxcal calibration file (expected \"format\": \"{FORMAT}\")")
     if d.get("version") != VERSION:

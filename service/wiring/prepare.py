@@ -139,24 +139,25 @@ def refusing(path: str | None):
 
 def held_calibration(path: str, n_probes: int) -> tuple[Any, list[str]]:
     """A calibration file to hold fixed: the calibration file of `fit --out` (fluxcal.service.io.calfile), or the JSON of
-    `fit --json` (sensors with offset_nT and matrix). Returns the linear part and the effect names the file
-    carries; DataError for a file that is neither."""
-    from fluxcal.service.io.calfile import calibration_from_json, parse_json, read_calibration_text
+    `fit --json`, read and checked as `load_calibration` reads it. Returns the linear part and the names of the effects
+    the file carries (a report's effects too: only the linear part is held); DataError for a file that is neither."""
+    from fluxcal.service.io.calfile import (
+        calibration_from_json,
+        calibration_from_report,
+        is_report,
+        parse_json,
+        read_calibration_text,
+    )
     from fluxcal.service.numerics.engine import LinearCalibration
 
     p = Path(path)
     text = read_calibration_text(p)                       # bounded; DataError for what cannot be read
-    try:
-        cal = calibration_from_json(text, origin=str(p))
-        return LinearCalibration.from_any(cal, n_probes), list(cal.effects)
-    except DataError as e:
-        first_error = e                                   # perhaps `fit --json` output: try that below
-    try:
-        obj = parse_json(text, str(p))
-        effects = list(obj.get("effects") or []) if isinstance(obj, dict) else []
-        return LinearCalibration.from_any(obj, n_probes), effects
-    except (DataError, TypeError, ValueError, AttributeError):
-        raise first_error from None
+    obj = parse_json(text, str(p)) if text.lstrip().startswith("{") else None
+    if is_report(obj):
+        cal = calibration_from_report(obj, str(p), linear_part=True)
+        return LinearCalibration.from_any(cal, n_probes), [str(e) for e in obj.get("effects") or []]
+    cal = calibration_from_json(text, origin=str(p))
+    return LinearCalibration.from_any(cal, n_probes), list(cal.effects)
 
 
 @dataclass

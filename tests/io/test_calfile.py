@@ -124,3 +124,40 @@ def test_truncated_nan_and_missing_files_are_refused(tmp_path, cal):
     (tmp_path / "bin.json").write_bytes(b"\xff\xfe\x00garbage")
     with pytest.raises(DataError, match="bin.json"):
         load_calibration(tmp_path / "bin.json")
+
+
+def test_a_fit_json_report_reads_as_its_calibration_file_does(tmp_path, capsys):
+    """`fluxcal.load_calibration` (and `command apply`) refused the JSON of `fit --json`, which `diagnose --calibration`
+    takes: one file, two answers. Now both read it through one conversion, checked as a calibration file is: the same
+    offsets and matrix as `fit --out` writes of the same fit (a real HMC5883L sphere); a report of a fit with effects
+    is refused where the whole calibration is applied, and gives its linear part where only that is held."""
+    from real_data import real
+
+    from fluxcal.service.wiring.cli import main
+    from fluxcal.service.wiring.prepare import held_calibration
+
+    csv = real("hmc5883l_sensorfusion_sphere.csv")
+    out = tmp_path / "cal.json"
+    assert main(["fit", str(csv), "--json", "--out", str(out)]) == 0
+    report = tmp_path / "report.json"
+    report.write_text(capsys.readouterr().out)
+    from_report, from_file = load_calibration(report), load_calibration(out)
+    assert [p.name for p in from_report.probes] == [p.name for p in from_file.probes] == ["s1"]
+    for a, b in zip(from_report.probes, from_file.probes):
+        np.testing.assert_allclose(a.offset_nT, b.offset_nT, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(a.matrix, b.matrix, rtol=1e-12, atol=1e-15)
+    linear, effects = held_calibration(str(report), 1)
+    np.testing.assert_allclose(linear.offset_nT[0], from_file.probes[0].offset_nT, rtol=1e-12)
+    assert effects == []
+    obj = json.loads(report.read_text())
+    with_effects = tmp_path / "effects.json"
+    with_effects.write_text(json.dumps({**obj, "effects": ["temperature"]}))
+    with pytest.raises(DataError, match=r"report of a fit with effects \(temperature\).*--out FILE"):
+        load_calibration(with_effects)
+    assert held_calibration(str(with_effects), 1)[1] == ["temperature"]
+    bad = tmp_path / "bad.json"
+    obj["sensors"][0]["offset_nT"] = [1.0, None, 2.0]
+    bad.write_text(json.dumps(obj))
+    for read in (load_calibration, lambda p: held_calibration(str(p), 1)):
+        with pytest.raises(DataError, match=r"probes\[0\]\.offset_nT: holds non-finite values"):
+            read(bad)
