@@ -237,8 +237,10 @@ def calibration_from_report(d: dict, origin: str = "<calibration>", *, linear_pa
         raise DataError(f"{origin}: the `fluxcal fit --json` report of a fit with effects ({', '.join(map(str, effects))}"
                         f"): its effect parameters are reported, not stored as a calibration applies them; write the "
                         f"calibration with `fluxcal fit ... --out FILE`")
+    unknown = {"offset_se_nT": [None] * 3, "matrix_se": [[None] * 3] * 3}     # a report written by hand has none
     keys = ("name", "offset_nT", "matrix", "offset_se_nT", "matrix_se", "params", "model_order")
-    probes = [{k: s.get(k) for k in keys} if isinstance(s, dict) else s for s in d["sensors"]]
+    probes = [{k: s[k] if s.get(k) is not None else unknown.get(k) for k in keys} if isinstance(s, dict) else s
+              for s in d["sensors"]]
     return calibration_from_dict({"format": FORMAT, "version": VERSION, "method": d.get("method") or "fit",
                                   "align": d.get("align"), "probes": probes}, origin)
 

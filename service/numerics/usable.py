@@ -88,9 +88,12 @@ def refuse_stuck(field_nT: np.ndarray, probe_names: Sequence[str]) -> None:
         raw = field_nT[:, k, :]
         if raw.shape[0] and not np.ptp(raw, axis=0).any():
             v = ", ".join(f"{x:.6g}" for x in raw[0])
+            others = [n for n in probe_names if n != name]
+            what = ("leave its columns out (a PX4 or ArduPilot log: --mags with the other compasses' instances)"
+                    if others else "the file holds no other probe: check that the sensor is powered, connected and "
+                                   "enabled")
             raise DataError(f"{name}: all {raw.shape[0]:,} samples are the same vector ({v} nT): the sensor did not "
-                            f"measure (stuck, or not there); nothing to calibrate: leave its columns out (a PX4 or "
-                           f"ArduPilot log: --mags with the instances that measure)")
+                            f"measure (stuck, or not there); nothing to calibrate: {what}")
 
 
 def temperature_notes(block: SampleBlock | np.ndarray, probe_names: Sequence[str]) -> list[str]:

@@ -136,3 +136,16 @@ def test_a_sensor_that_never_changes_is_refused_not_a_crash(tmp_path, capsys):
         err = capsys.readouterr().err
         assert "s1: all 800 samples are the same vector (-3600, 100, -5600 nT): the sensor did not measure" in err
         assert "turn" not in err
+        assert "the file holds no other probe" in err and "--mags" not in err     # no other compass to choose
+    capsys.readouterr()
+    assert main(["inspect", str(path), "--json"]) == 0          # what was read is said beside the refusal
+    seen = json.loads(capsys.readouterr().out)
+    assert seen["samples"] == 800 and seen["fit_refuses"].startswith("s1: all 800 samples are the same vector")
+    two = tmp_path / "two.csv"                                   # a working probe beside the stuck one
+    rng = np.random.default_rng(1)
+    moving = rng.normal(size=(800, 3)) * 20000.0
+    two.write_text("t,s1_x,s1_y,s1_z,s2_x,s2_y,s2_z\n" + "".join(
+        f"{x:.1f},-3600,100,-5600,{m[0]:.1f},{m[1]:.1f},{m[2]:.1f}\n" for x, m in zip(t, moving)))
+    assert main(["fit", str(two)]) == 2
+    assert "leave its columns out (a PX4 or ArduPilot log: --mags with the other compasses' instances)" in \
+        capsys.readouterr().err

@@ -73,15 +73,18 @@ def inspect(args: Namespace) -> Inspection:
 
     topics, mags = getattr(args, "topics", None), getattr(args, "mags", None)
     i = inspect_file(args.file, log_mapping(args.file, topics, mags), read=False)
+    read = False
     try:
         prep = prepare(args.file, Said("inspect"), config=getattr(args, "config", None),
                        site=getattr(args, "site", None), skip=getattr(args, "skip", None), topics=topics, mags=mags)
         data, _ = usable_data(prep.data)
-        i = replace(i, **reading(data))
+        i, read = replace(i, **reading(data)), True
         judged = judge_data(data, prep.total_nT, prep.total_source or "")
     except (DataError, CalibrationRefused) as e:
-        return replace(i, probes=[], columns=[], samples=0, fit_refuses=str(e),
-                       warnings=[w for w in i.warnings if "nothing to calibrate" not in w])
+        # what was read stays said (its samples, duration, clock): the refusal is of a calibration from them
+        left = {} if read else {"probes": [], "columns": [], "samples": 0}
+        return replace(i, fit_refuses=str(e), warnings=[w for w in i.warnings if "nothing to calibrate" not in w],
+                       **left)
     return replace(i, verdict=[j.as_dict() for j in judged])
 
 
