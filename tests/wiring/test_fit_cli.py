@@ -174,13 +174,15 @@ def test_every_residual_is_printed_with_what_it_is(gradiometer, capsys):
     out = json.loads(capsys.readouterr().out)
     s1, s2 = out["sensors"]
     assert "residual_rms_nT" not in text
-    scalar = re.search(r"\ns1\n.*?^  residual +([\d.]+) nT RMS: the scalar residual \|corrected\| − total field",
-                       text, flags=re.S | re.M)
+    # the scalar residual once, in the table (a real board's fit with the total estimated printed 245.266 in the
+    # probe's block, against its own assumed total, and 245.248 in the table: now the table's alone)
+    assert not re.search(r"^  residual .*the scalar residual", text, flags=re.M), text
+    scalar = re.search(r"^  s1\.scalar +[\d.]+ +([\d.]+)$", text, flags=re.M)
     vector = re.search(r"\ns2\n.*?^  residual +([\d.]+) nT RMS: the vector residual against the aligned reference, "
                        r"corrected s2 − corrected s1", text, flags=re.S | re.M)
     assert scalar and vector, text
-    assert float(scalar[1]) == pytest.approx(s1["params"]["residual_rms_nT"]["value"], rel=1e-5)
-    assert float(scalar[1]) == pytest.approx(s1["scalar_rms_nT"], rel=1e-5)
+    assert float(scalar[1]) == pytest.approx(s1["params"]["residual_rms_nT"]["value"], rel=1e-3)   # a total given
+    assert float(scalar[1]) == pytest.approx(s1["scalar_rms_nT"], abs=5e-4)              # printed to 3 decimals
     assert float(vector[1]) == pytest.approx(s2["params"]["vector_residual_rms_nT"]["value"], rel=1e-5)
     # the vector residual is the RMS over s2-s1's three axes, which the table lists: one set of numbers
     axes = [float(re.search(rf"^  s2-s1\.{a} +[\d.]+ +([\d.]+)$", text, flags=re.M)[1]) for a in "xyz"]

@@ -452,6 +452,8 @@ def _summary(data, cal, channels, before, total_source, result, coverages, origi
         for key, val in p.params.items():
             if key in ("offset_nT", "samples", "align") or not isinstance(val, dict):
                 continue
+            if key == "residual_rms_nT" and f"{p.name}.scalar" in channels:
+                continue            # the table below gives it, against the total field the command reports: one figure
             if key in _RESIDUALS:
                 what = _RESIDUALS[key].format(probe=p.name, ref=cal.probes[0].name)
                 lines.append(f"  {'residual':10s} {_fmt_param(val.get('value'), val.get('se'))} nT RMS: {what}")
