@@ -199,7 +199,15 @@ def _input(data: Any, said: Said, read_options: dict[str, Any], **limits: Any) -
     return prep
 
 
-def fit(data: Any, *, method: str = "ellipsoid", align: str | None = None, effects: Sequence[str] = (),
+def _effects(effects: Sequence[str] | str) -> list[str]:
+    """The effects asked for: a list of names, or one text of them as --effects takes it ("temperature,drift": a
+    text is not split into its letters)."""
+    if isinstance(effects, str):
+        return [e.strip() for e in effects.split(",") if e.strip()]
+    return list(effects)
+
+
+def fit(data: Any, *, method: str = "ellipsoid", align: str | None = None, effects: Sequence[str] | str = (),
         out: str | None = None, report: str | None = None, said: Said | None = None, **read_options: Any) -> Any:
     """Fit a calibration to `data` (a Data, or anything read() takes, with read()'s options): the FitResult the
     command `fluxcal fit` prints (`.text()`, `.to_dict()`, `.to_dataframe()`, `.calibration`). out: write the
@@ -212,12 +220,12 @@ def fit(data: Any, *, method: str = "ellipsoid", align: str | None = None, effec
     from fluxcal.service.wiring.commands import fit as command
 
     said = _said(said, "fit")
-    opts = command.FitOptions(method=method, align=align, effects=list(effects), out=out, report=report)
+    opts = command.FitOptions(method=method, align=align, effects=_effects(effects), out=out, report=report)
     opts = command.checked(opts, str(data) if isinstance(data, (str, Path)) else None)
     return command.run(_input(data, said, _read_options(read_options)), opts, said)
 
 
-def diagnose(data: Any, *, effects: Sequence[str] = (), report: str | None = None, write_effect: str | None = None,
+def diagnose(data: Any, *, effects: Sequence[str] | str = (), report: str | None = None, write_effect: str | None = None,
              max_samples: int | None = None, calibration: str | None = None, said: Said | None = None,
              progress: bool = False, **read_options: Any) -> Any:
     """Compare the model (the linear calibration and `effects`) with `data`, find where it fails and which effect is
@@ -236,7 +244,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), report: str | None = Non
     source = str(data) if isinstance(data, (str, Path)) else None
     if source is None and calibration is not None:
         raise DataError("calibration: an option of read(), which makes the data: give it there")
-    opts = command.checked(command.DiagnoseOptions(effects=list(effects), calibration=calibration, report=report,
+    opts = command.checked(command.DiagnoseOptions(effects=_effects(effects), calibration=calibration, report=report,
                                                    write_effect=write_effect, max_samples=max_samples), source)
     prep = _input(data, said, {**_read_options(read_options), "calibration": calibration},
                   **command.read_limits(opts))

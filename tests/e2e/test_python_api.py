@@ -111,6 +111,13 @@ def test_a_calibration_with_effects_corrects_with_them_or_refuses():
     assert linear > 3 * scalar                               # what apply gave: the effects matter here
     plain = fluxcal.fit(data)                                 # without effects, correct is apply
     assert np.array_equal(plain.correct(data), plain.calibration.apply(data.lab.block.field_nT))
+    # a new user's two slips: effects as one text (it was split into letters: "'t' is not an effect"), and a
+    # field of one sample's shape (a bare ValueError): the text taken as --effects takes it, the shape said typed
+    assert fluxcal.fit(data, effects="temperature").to_dict() == r.to_dict()
+    from fluxcal.drivers.errors import FluxcalError
+
+    with pytest.raises(FluxcalError, match=r"expected shape \(N, 2, 3\) \(samples, probes, axes\), got \(2, 3\)"):
+        plain.calibration.apply(data.lab.block.field_nT[0])
 
 
 def test_a_fluxcal_folder_in_the_working_folder_does_what_python_md_says(tmp_path):

@@ -152,7 +152,7 @@ class ArrayCalibration:
         """(N, P, 3) raw -> (N, P, 3) corrected by the linear part alone (M (raw - o)), whatever effects it holds."""
         f = np.asarray(field_nT, dtype=float)
         if f.ndim != 3 or f.shape[1] != self.n_probes or f.shape[2] != 3:
-            raise ValueError(f"field_nT: expected shape (N, {self.n_probes}, 3), got {f.shape}")
+            raise DataError(f"field_nT: expected shape (N, {self.n_probes}, 3) (samples, probes, axes), got {f.shape}")
         # b_k = M_k (raw_k - o_k)
         return np.einsum("pij,npj->npi", self.matrices(), f - self.offsets()[None])
 
