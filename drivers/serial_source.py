@@ -136,8 +136,8 @@ class SerialSource(PortSource):
 
     def _fail(self, e: BaseException) -> DriverError:
         self._drop()
-        return DriverError(f"serial port {self.port}: read failed ({e}); the cable or adapter was probably "
-                           f"disconnected, call reopen() once it is back")
+        return DriverError(f"serial port {self.port}: read failed ({e}): the cable or adapter was probably "
+                           f"disconnected")
 
     def _drop(self) -> None:
         ser, self._ser, self._fd = self._ser, None, None
@@ -151,7 +151,7 @@ class SerialSource(PortSource):
         """What the port has now; with `wait`, first wait up to read_timeout_s for a byte."""
         ser = self._ser
         if ser is None:
-            raise DriverError(f"serial port {self.port}: not open (a previous read failed); call reopen()")
+            raise DriverError(f"serial port {self.port}: not open (a previous read failed; reopen() opens it again)")
         try:
             if self._fd is not None:
                 # a non-blocking native port: one read(2) takes what is there, without asking first (an ioctl less)
@@ -208,7 +208,7 @@ class SerialSource(PortSource):
     def wait_readable(self, timeout: float) -> bool | None:
         ser = self._ser
         if ser is None:
-            raise DriverError(f"serial port {self.port}: not open (a previous read failed); call reopen()")
+            raise DriverError(f"serial port {self.port}: not open (a previous read failed; reopen() opens it again)")
         fileno = getattr(ser, "fileno", None)
         if fileno is None:
             return None                   # URL handlers (socket://, loop://): tell by reading

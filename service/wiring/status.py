@@ -18,6 +18,7 @@ class StatusLog:
         self.say, self.every_s = say, float(every_s)
         self._since = time.monotonic()
         self._samples = 0
+        self._last_samples = self._since         # when samples last came (monotonic), for a silent input's line
         self._err_sq: dict[str, float] = {}       # per channel: sum of n x rms^2 over the interval's blocks
         self._err_n: dict[str, int] = {}          # ... and of n
         self._reasons: tuple[str, ...] | None = ()
@@ -30,6 +31,8 @@ class StatusLog:
     def block(self, n_samples: int, error: Mapping[str, float]) -> None:
         """A block processed: its samples, and its error per channel (an RMS over its n_samples)."""
         self._samples += n_samples
+        if n_samples:
+            self._last_samples = time.monotonic()
         for ch, rms in error.items():
             if isinstance(rms, (int, float)) and math.isfinite(rms):
                 # the interval's RMS: sqrt(sum n_i rms_i^2 / sum n_i) over its blocks
@@ -104,7 +107,7 @@ class StatusLog:
         err = ", ".join(f"{k} {math.sqrt(self._err_sq[k] / self._err_n[k]):.3g}"
                         for k in list(self._err_sq)[:4] if self._err_n[k])
         n_err = max(self._err_n.values(), default=0)
-        self._since, self._samples = now, 0
+        got, self._since, self._samples = self._samples, now, 0
         self._err_sq, self._err_n = {}, {}
         gate = state.get("gate") or {}
         if state.get("usable"):
@@ -118,5 +121,9 @@ class StatusLog:
             where += f"; latest check {verdict}" + (
                 f": coverage {cov:.0%} of its window, condition {gate.get('condition', math.nan):.3g}"
                 if isinstance(cov, (int, float)) and math.isfinite(cov) else "")
+        if not got and now - self._last_samples >= self.every_s:
+            quiet = now - self._last_samples
+            since = time.strftime("%H:%M:%S", time.localtime(time.time() - quiet))
+            where = f"no samples for {quiet:,.0f} s (since {since}): the input is silent; {where}"
         self.say(f"status: {rate:,.0f} samples/s; {where}"
                  + (f"; error rms nT over the last {span:.0f} s ({n_err:,} samples): {err}" if err else ""))

@@ -55,3 +55,27 @@ def test_the_status_line_says_whose_coverage_it_gives():
     assert said and ("calibration 6 in use (applied: held until reset); latest check refused: coverage 23% of its "
                      "window, condition 12.5; error rms nT over the last ") in said[-1], said
     assert said[-1].endswith("s (200 samples): s1.scalar 0.61"), said
+
+
+def test_the_status_line_says_a_silent_input(monkeypatch):
+    """With the cable pulled the status line said '0 samples/s; calibration 18 in use; latest check passed' for 70 s
+    (a new user): it now says since when no samples came."""
+    from fluxcal.service.wiring import status
+
+    clock = [1000.0]
+    monkeypatch.setattr(status.time, "monotonic", lambda: clock[0])
+    said: list[str] = []
+    log = status.StatusLog(said.append, 10.0)
+    log.block(100, {})
+    clock[0] += 10.0
+    log.tick({"usable": True, "cal_id": 18, "gate": {"usable": True}})
+    assert said[-1].startswith("status: 10 samples/s; calibration 18 in use") and "silent" not in said[-1]
+    for _ in range(7):                                   # 80 s since the last samples (at the first block)
+        clock[0] += 10.0
+        log.tick({"usable": True, "cal_id": 18, "gate": {"usable": True}})
+    assert said[-1].startswith("status: 0 samples/s; no samples for 80 s (since "), said[-1]
+    assert "): the input is silent; calibration 18 in use; latest check passed" in said[-1]
+    log.block(50, {})                                    # it comes back
+    clock[0] += 10.0
+    log.tick({"usable": True, "cal_id": 18, "gate": {"usable": True}})
+    assert "silent" not in said[-1]
