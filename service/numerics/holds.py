@@ -71,7 +71,8 @@ def find_holds(field_nT: np.ndarray, probe_names: Sequence[str]) -> Holds:
         counts[name], chance[name] = m, expected
         if m and m > CHANCE_FACTOR * expected:
             held[1:, k] = whole
-            notes.append(f"{name}: {m:,} of {n:,} samples ({m / n:.0%}) repeat the previous one exactly, all three "
+            share = f"{m / n:.0%}" if m / n >= 0.01 else f"{m / n:.1%}" if m / n >= 0.001 else "under 0.1%"
+            notes.append(f"{name}: {m:,} of {n:,} samples ({share}) repeat the previous one exactly, all three "
                          f"axes (a logger's hold: {expected:.3g} expected by chance from how often each axis repeats): "
                          f"left out of the noise floor, the fits and the spectra")
         elif m:

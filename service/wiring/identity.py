@@ -98,6 +98,6 @@ def judge_on_data(cal: Any, pipeline: Any, cfg: FluxcalConfig) -> str:
             span = window.t_s[-1] - window.t_s[0] if window.n_samples else 0.0
             used = f"the calibration in use leaves {now:.3g} nT, " if now is not None else ""
             raise ImplausibleCalibration("data", f"{probe.name}: on this unit's last {span:.0f} s of data it leaves a "
-                                                 f"residual of {rms:.4g} nT rms ({used}the gate accepts at most "
+                                                 f"residual of {f'{rms:,.0f}' if rms >= 1000 else f'{rms:.4g}'} nT rms ({used}the gate accepts at most "
                                                  f"{gate.rms_nT:g} nT: estimator.gate_rms_nT): not this unit's")
     return f"judged on the last {len(ring)} samples"
