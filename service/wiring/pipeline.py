@@ -22,7 +22,7 @@ import numpy as np
 from fluxcal.drivers.block import SampleBlock
 from fluxcal.drivers.errors import DataError, FluxcalError
 from fluxcal.drivers.ringbuffer import RingBuffer
-from fluxcal.service.numerics.calib.model import ArrayCalibration
+from fluxcal.service.numerics.calib.model import ArrayCalibration, apply_columns, matrix_columns
 from fluxcal.service.numerics.calib.rls import RlsEllipsoid
 from fluxcal.service.numerics.calib.rls_info import finite_rows
 from fluxcal.service.numerics.channels import BlockError
@@ -47,21 +47,6 @@ class Processed:
     corrected: CorrectedBlock | None
     error: dict[str, float]           # model-vs-measurement metric of this block, per channel, nT
     events: list[PipelineEvent]
-
-
-def _apply(m: tuple[np.ndarray, np.ndarray, np.ndarray], d: np.ndarray) -> np.ndarray:
-    """b[n, p, i] = Σ_j m[p, i, j] d[n, p, j], element by element: the same rounding whatever N is
-    (a BLAS product may sum differently for different block sizes, and replay must equal live). m: the columns
-    m[None, :, :, j] (_columns)."""
-    b = d[..., 0:1] * m[0]
-    b += d[..., 1:2] * m[1]
-    b += d[..., 2:3] * m[2]
-    return b
-
-
-def _columns(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The columns of the matrices (P, 3, 3) as _apply multiplies them, (1, P, 3, 1) each."""
-    return m[None, :, :, 0], m[None, :, :, 1], m[None, :, :, 2]
 
 
 def _rows(block: SampleBlock, start: int, stop: int) -> SampleBlock:
@@ -169,7 +154,7 @@ class Pipeline(_ChunkFeed):
         m = np.stack([p.matrix for p in cal.probes])
         o = np.stack([p.offset_nT for p in cal.probes])
         self._matrices, self._offsets = m, o
-        self._columns, self._offset_rows = _columns(m), o[None]
+        self._columns, self._offset_rows = matrix_columns(m), o[None]
 
     def reset(self) -> None:
         """Forget what the online estimators learned (the `reset` command)."""
@@ -246,7 +231,7 @@ class Pipeline(_ChunkFeed):
             c = self.live.correct(block, self._offsets)
         else:
             # b_k = M_k (raw_k - o_k) for every sample and probe at once
-            c = _apply(self._columns, block.field_nT - self._offset_rows)
+            c = apply_columns(self._columns, block.field_nT - self._offset_rows)
         return self._derive(block.t_s, block.seq, c, self.cal_id)
 
     # --- the gate (gate.py) and live effects (live_effects.py) -------------------------------------

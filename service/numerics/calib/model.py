@@ -153,8 +153,23 @@ class ArrayCalibration:
         f = np.asarray(field_nT, dtype=float)
         if f.ndim != 3 or f.shape[1] != self.n_probes or f.shape[2] != 3:
             raise DataError(f"field_nT: expected shape (N, {self.n_probes}, 3) (samples, probes, axes), got {f.shape}")
-        # b_k = M_k (raw_k - o_k)
-        return np.einsum("pij,npj->npi", self.matrices(), f - self.offsets()[None])
+        # b_k = M_k (raw_k - o_k), rounded as the service's pipeline rounds it, whatever the arrays' layout
+        return apply_columns(matrix_columns(self.matrices()), f - self.offsets()[None])
+
+
+def apply_columns(m: tuple[np.ndarray, np.ndarray, np.ndarray], d: np.ndarray) -> np.ndarray:
+    """b[n, p, i] = Σ_j M[p, i, j] d[n, p, j], element by element in the order j = 0, 1, 2: the same rounding whatever
+    N is and however the arrays lie in memory (a BLAS product or einsum may sum differently for other block sizes
+    or strides, and replay must equal live, a loaded calibration the one in memory). m: matrix_columns(M)."""
+    b = d[..., 0:1] * m[0]
+    b += d[..., 1:2] * m[1]
+    b += d[..., 2:3] * m[2]
+    return b
+
+
+def matrix_columns(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The columns of the matrices (P, 3, 3) as apply_columns multiplies them, (1, P, 3) each."""
+    return m[None, :, :, 0], m[None, :, :, 1], m[None, :, :, 2]
 
 
 def scalar_residual_summary(cal: ArrayCalibration, raw_nT: np.ndarray,
