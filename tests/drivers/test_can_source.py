@@ -5,6 +5,8 @@ a pty (python-can's slcan interface opens the pty slave; the test speaks SLCAN o
 from __future__ import annotations
 
 import os
+import select
+import time
 import uuid
 
 import can
@@ -250,8 +252,11 @@ def test_slcan_over_a_pty(icd_truth, pty_port):
     src = CanSource(interface="slcan", channel=port.path, n_probes=n, rate_hz=RATE_HZ,
                     bus_kwargs={"sleep_after_open": 0})
     try:
-        setup = os.read(port.master, 100)                   # the adapter is told 1 Mbit/s, then opened
-        assert b"S8\r" in setup and setup.endswith(b"O\r")
+        setup, deadline = b"", time.monotonic() + 5.0        # the adapter is told 1 Mbit/s, then opened
+        while not setup.endswith(b"O\r") and time.monotonic() < deadline:    # in several writes: read them all
+            if select.select([port.master], [], [], 0.1)[0]:
+                setup += os.read(port.master, 100)
+        assert b"S8\r" in setup and setup.endswith(b"O\r"), setup
         port.write(slcan_bytes(ids, payloads), chunk=512)
         b = read_samples(src, len(truth))
         assert np.array_equal(b.seq, truth.seq) and np.array_equal(b.field_nT, truth.counts * 0.001)

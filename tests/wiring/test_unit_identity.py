@@ -118,7 +118,7 @@ def test_the_data_refuse_another_units_calibration_by_the_gates_figures(learned)
         judge_on_data(shifted(own, 5000.0), pipeline, cfg)
     msg = str(e.value)
     assert msg.startswith("fails the data check: s1: on this unit's last ") and "estimator.gate_rms_nT" in msg
-    figures = [float(x) for x in __import__("re").findall(r"([\d.]+) nT", msg)[:2]]
+    figures = [float(x.replace(",", "")) for x in __import__("re").findall(r"([\d,.]+) nT", msg)[:2]]
     assert figures[0] > 1000 and figures[1] < 5          # the candidate's residual, the one in use's
 
 

@@ -59,6 +59,9 @@ def library_output() -> Iterator[list[str]]:
             with contextlib.redirect_stdout(py_out), contextlib.redirect_stderr(py_err):
                 yield lines
         finally:
+            for stream in (sys.__stdout__, sys.__stderr__):     # a library holding the process's own streams
+                with contextlib.suppress(Exception):
+                    stream.flush()
             _flush_c_stdio()
             for fd, keep in saved:
                 os.dup2(keep, fd)

@@ -37,7 +37,7 @@ from fluxcal.service.io.bus import (
     discover_units,
     open_session,
 )
-from fluxcal.service.wiring.commands.client import DATA_STREAMS, counter_words, flow, is_flow, resolve
+from fluxcal.service.wiring.commands.client import DATA_STREAMS, STALE_S, counter_words, flow, is_flow, resolve
 from fluxcal.service.wiring.commands.options import CommandHelp, connection_options
 
 TTY_PERIOD_S = 0.25            # redraw rate on a terminal (4 Hz)
@@ -178,6 +178,10 @@ class TerminalView:
         kind, sentence = flow(self.unit, self.clock(), self.last_msg_t, self.last_data_t, self.alive, self.health)
         return None if kind == "live" else sentence
 
+    def _heard(self) -> bool:
+        """Whether the service itself is heard now (any of its messages), whatever its input does."""
+        return self.connected and self.last_msg_t is not None and self.clock() - self.last_msg_t <= STALE_S
+
     def calibration_summary(self) -> str:
         st = self.state
         if not st:
@@ -218,7 +222,8 @@ class TerminalView:
         lines.append("")
         c = self.corrected
         if c is not None and c.n_samples:
-            lines.append(f"{'corrected':<12}{'Bx nT':>11}{'By nT':>11}{'Bz nT':>11}{'|B| nT':>12}   cal_id {c.cal_id}")
+            lines.append(f"{'corrected':<12}{'Bx nT':>11}{'By nT':>11}{'Bz nT':>11}{'|B| nT':>12}   cal_id {c.cal_id}"
+                         + ("   (the last samples, not live)" if waiting else ""))
             for name, v in zip(self._names(c.n_probes), c.corrected_nT[-1]):
                 lines.append(f"{name:<12}{_vec(v)} {float(np.linalg.norm(v)):11.1f}")
             if c.center_nT is not None:
@@ -260,7 +265,7 @@ class TerminalView:
         """One line (non-terminal mode)."""
         t = self.clock() - self.t_start
         waiting = self.waiting_message()
-        if waiting:
+        if waiting and not self._heard():
             return f"{t:6.1f}s {waiting}"
         st = self.state or {}
         gate = st.get("gate") or {}
@@ -269,21 +274,23 @@ class TerminalView:
                  + (f" cov={_num(gate.get('coverage'), '.2f')}" if _judged(gate) else
                     " no-candidate-yet" if gate else "")
                  + (f" state-age={_num(st.get('state_age_s'), '.0f')}s" if st.get("stale") else "")]
-        c = self.corrected
+        c = None if waiting else self.corrected          # samples not arriving: no old vectors shown as live
         if c is not None and c.n_samples:
             for name, v in zip(self._names(c.n_probes), c.corrected_nT[-1]):
                 parts.append(f"{name}={_vec_short(v)} |B|={float(np.linalg.norm(v)):.1f}")
-        elif self.raw is not None and self.raw.n_samples:
+        elif self.raw is not None and self.raw.n_samples and not waiting:
             for name, v in zip(self._names(self.raw.n_probes), self.raw.field_nT[-1]):
                 parts.append(f"raw {name}={_vec_short(v)}")
-        if self.diff is not None and self.diff.values.size:
+        if self.diff is not None and self.diff.values.size and not waiting:
             names = self._names(self.diff.values.shape[1] + 1)
             for k, d in enumerate(self.diff.values[-1]):
                 parts.append(f"{names[k + 1]}-{names[0]}={_vec_short(d)}")
-        if self.tensor is not None and self.tensor.values.size:
+        if self.tensor is not None and self.tensor.values.size and not waiting:
             g = self.tensor.values[-1]
             parts.append("G=[" + ", ".join(f"{x:+.2f}" for x in g.ravel()) + "] nT/m")
-        if self.error:
+        if waiting:
+            parts.append(waiting)
+        if self.error and not waiting:
             parts.append("err " + " ".join(f"{k}={_num(v, '.3f')}" for k, v in (self.error.get("rms_nT") or {}).items()))
         if self.health:
             counters, about = self.health.get("counters") or {}, counter_words(self.state)
