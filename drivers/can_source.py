@@ -209,8 +209,8 @@ class CanSource(PortSource):
     def _receive(self, wait_s: float | None) -> list[can.Message]:
         bus = self._bus
         if bus is None:
-            raise DriverError(f"CAN bus {self.interface}:{self.channel}: not open (a previous read failed); "
-                              f"call reopen()")
+            raise DriverError(f"CAN bus {self.interface}:{self.channel}: not open (a previous read failed; reopen() "
+                              f"opens it again)")
         batch: list[can.Message] = []
         try:
             wait: float | None = wait_s
@@ -230,8 +230,8 @@ class CanSource(PortSource):
         except (can.CanError, OSError) as e:
             # OSError covers pyserial's SerialException, which serial-based interfaces may let through
             self._drop()
-            raise DriverError(f"CAN bus {self.interface}:{self.channel}: receive failed ({e}); the adapter was "
-                              f"probably disconnected, call reopen() once it is back") from e
+            raise DriverError(f"CAN bus {self.interface}:{self.channel}: receive failed ({e}): the adapter was "
+                              f"probably disconnected") from e
         finally:
             bad = getattr(bus, "bad_lines", 0)              # fluxcal.drivers.slcan counts the lines that are no frame
             self.counters.bad_frames += bad - self._bad_lines_seen

@@ -23,7 +23,8 @@ ICD = Protocol(
                 advice="another node on the bus asks for the unit's ids", arrival=True),
         Counted("can_incomplete", "samples dropped because a frame of theirs never came (source.window_samples, "
                                   "window_s)", fault="can_incomplete", label="CAN samples incomplete",
-                what="{n:,} CAN sample(s) dropped, a frame of each never came"),
+                what="{n:,} CAN sample(s) dropped, a frame of each never came (each is also one of the samples "
+                     "missed, not a loss beside them)"),
         Counted("duplicates", "frames for a sample already held or settled, dropped", fault="duplicates",
                 label="duplicate CAN frames", what="{n:,} frame(s) for a sample already held or settled, dropped",
                 advice="sent twice by the unit or a gateway, or a late copy"),
