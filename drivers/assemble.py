@@ -147,6 +147,10 @@ class FrameAssembler:
         counts, temp_raw, flags = frames.counts, frames.temp_raw, frames.flags
         if keep is not None and not keep.all():
             counts, temp_raw, flags = counts[keep], temp_raw[keep], flags[keep]
+        held = self._timeline.carried                       # frames of earlier blocks a restart confirmed now
+        if held is not None:
+            counts, temp_raw, flags = (np.concatenate([held.counts, counts]), np.concatenate([held.temp_raw, temp_raw]),
+                                       np.concatenate([held.flags, flags]))
         # division, not x 1e-6: t_us / 1e6 is the double nearest the exact time, so printing
         # it with 6 decimals gives back the unit's microseconds exactly
         t_s = t_us / 1e6

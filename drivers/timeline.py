@@ -3,11 +3,12 @@ counted, a unit restart told from a counter wrap (both counter and clock back ne
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .icd import RawFrames
 from .source import Counters
-
 
 #: the counter's and the clock's moduli less one, as a column for the (2, K) array of both
 _WRAP = np.array([[0xFFFF], [0xFFFFFFFF]], np.int64)
@@ -24,6 +25,28 @@ def _steps(x: np.ndarray, before: int) -> np.ndarray:
 def _tolerance(dt: np.ndarray | float, p: float) -> np.ndarray | float:
     """How far a clock step may be from the counter's step times the period: half a period, plus 1e-4."""
     return 0.5 * p + 1e-4 * dt
+
+
+@dataclass(frozen=True)
+class _Held:
+    """A held stale frame: a one-row copy, the block it came from and its index there."""
+
+    frame: RawFrames
+    source: RawFrames
+    index: int
+
+
+def _row(frames: RawFrames, i: int, si: int, ti: int) -> _Held:
+    one = RawFrames(seq=np.array([si], np.uint16), t_us=np.array([ti], np.uint32),
+                    counts=frames.counts[i:i + 1].copy(), temp_raw=frames.temp_raw[i:i + 1].copy(),
+                    flags=frames.flags[i:i + 1].copy())
+    return _Held(one, frames, i)
+
+
+def _rows(held: list[RawFrames]) -> RawFrames:
+    """Frames joined in order."""
+    return RawFrames(*(np.concatenate([getattr(h, f) for h in held]) for f in ("seq", "t_us", "counts", "temp_raw",
+                                                                               "flags")))
 
 
 class Jumps:
@@ -117,10 +140,14 @@ class SerialTimeline:
       jump       clock by a step its period does not explain: the clock jumped, the counter ran on. Accepted, time
                  repaired from the counter (the step times the period), counted in `clock_jumps`: no sample made up
                  or lost (before: +1,000 s with the counter at +1 was 196,608 samples missed).
-      stale      anything else: the counter or the clock stood still or stepped back. Dropped, counted in
-                 `seq_backsteps`. After 8 such frames in a row, each following on from the one before, the
-                 unit is taken to have jumped back and gone on from there: the 8th is accepted as a restart
-                 (seq goes on from the last frame's + 1).
+      stale      anything else: the counter or the clock stood still or stepped back. Held, and counted in
+                 `seq_backsteps`; dropped when a frame comes on the line they left. After 8 such frames in a row,
+                 each following on from the one before, the unit is taken to have jumped back and gone on from
+                 there (a restart soon after another, a counter glitch that stays): the held frames are accepted
+                 as a restart from the first of them (not counted stale: given with the block that confirms them,
+                 `carried`), seq going on from the last frame's + 1, plus its counter where it is back near zero
+                 (the new run's frames before it, lost). Before, the 7 held ones were dropped: a unit restarting
+                 3 s after a restart lost them, counted as stale frames and never as missed.
 
     A period is known after two frames; before it, forward steps are taken as they come. Blocks whose every
     frame steps forward by less than half the counter's range, clock and counter agreeing at the period, take one
@@ -146,6 +173,8 @@ class SerialTimeline:
         self._rx_last: float | None = None   # host time the last accepted frame came
         self._stale = 0                      # stale frames in a row, following on from each other
         self._stale_st: tuple[int, int] | None = None
+        self._held: list[_Held] = []         # ... held, each a one-row copy, in case they are a restart
+        self.carried: RawFrames | None = None    # held frames of earlier blocks accepted with this one (first)
         self.history = FrameHistory()
         self.jumps = Jumps()
         self.contiguous = False              # the last block's frames each followed the one before by one count
@@ -162,6 +191,7 @@ class SerialTimeline:
         when every frame is kept, and then `contiguous` says whether each followed the one before by one count."""
         k = len(frames)
         self.contiguous = False
+        self.carried = None
         p = self.period_us()
         if self._s0 is not None and p is not None:
             # counter and clock as the rows of one array: each step below is one operation for both
@@ -193,7 +223,7 @@ class SerialTimeline:
         self._S0, self._T0 = S, T
         self._last = (frames.counts[i].tobytes(), frames.temp_raw[i].tobytes(), int(frames.flags[i]))
         self._rx_last = rx_time_s
-        self._stale, self._stale_st = 0, None
+        self._stale, self._stale_st, self._held = 0, None, []
 
     def _restart(self, frames: RawFrames, i: int, s: int, rx_time_s: float | None) -> tuple[int, int]:
         """Accept frame i as the first after a restart; s: the new run's frames before it (lost), if known."""
@@ -278,12 +308,44 @@ class SerialTimeline:
                         and 0 < ((ti - prev[1]) & 0xFFFFFFFF) < 1 << 31
                     self._stale = self._stale + 1 if follows else 1
                     self._stale_st = (si, ti)
+                    self._held = (self._held if follows else []) + [_row(frames, i, si, ti)]
                     if self._stale < self.RESYNC_FRAMES:
                         continue
-                    c.seq_backsteps -= 1                         # this one is taken: a restart from here
-                    S, T = self._restart(frames, i, 0, rx_time_s)  # (how many came before it is not known)
+                    S, T = self._resync(frames, keep, seq_out, t_out, rx_time_s)
             keep[i] = True
             seq_out.append(S)
             t_out.append(T)
             self.history.add(frames, i, i + 1)
         return keep, np.asarray(seq_out, np.int64), np.asarray(t_out, np.int64)
+
+    def _resync(self, frames: RawFrames, keep: np.ndarray, seq_out: list[int], t_out: list[int],
+                rx_time_s: float | None) -> tuple[int, int]:
+        """The held stale run taken as a restart from its first frame (the class docstring): each held frame
+        accepted, those of earlier blocks as `carried` (before this block's), those of this block kept; returns
+        (seq, t) of the last, this block's frame that confirmed them."""
+        held, self._held = self._held, []
+        self.counters.seq_backsteps -= len(held)           # not stale: the unit's frames after a jump back
+        first = held[0].frame
+        s0, t0 = int(first.seq[0]), int(first.t_us[0])
+        near = s0 < self.NEAR_SEQ and t0 < self.NEAR_T_US   # back near zero: its counter says what came before
+        S, T = self._restart(first, 0, s0 if near else 0, rx_time_s)
+        rows = [(S, T)]
+        for h in held[1:]:
+            ds = (int(h.frame.seq[0]) - int(self._s0)) & 0xFFFF
+            dt = (int(h.frame.t_us[0]) - int(self._t0)) & 0xFFFFFFFF
+            S, T = S + ds, T + dt
+            self._accept(h.frame, 0, S, T, rx_time_s)
+            rows.append((S, T))
+        before = held[:-1]                                  # the last is this frame: the caller keeps it
+        for h in before:
+            self.history.add(h.frame)
+        earlier = [k for k, h in enumerate(before) if h.source is not frames]
+        if earlier:
+            self.carried = _rows([held[k].frame for k in earlier])
+            seq_out[:0], t_out[:0] = [rows[k][0] for k in earlier], [rows[k][1] for k in earlier]
+        for k, h in enumerate(before):
+            if h.source is frames:
+                keep[h.index] = True
+                seq_out.append(rows[k][0])
+                t_out.append(rows[k][1])
+        return S, T
