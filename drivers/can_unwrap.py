@@ -3,7 +3,8 @@ across a restart of the unit, with the frames of the old run that still come aft
 (frames of neighbouring samples interleave on the bus) put back into the old run.
 
 Frame by frame the signed step ((s - s_prev + 2^15) mod 2^16) - 2^15, so interleaving across a wrap is right. A
-restart: a jump backwards by more than `restart_samples`, or (with `rate_hz`) a jump forwards to a counter near zero
+restart: a jump backwards by more than `restart_samples`, or by more than 4 windows to a counter below 4 windows (the
+unit started again soon after its last start), or (with `rate_hz`) a jump forwards to a counter near zero
 (< restart_samples) that the receive times do not support (less than half its length in time). It is counted in
 `restarts` once, and seq goes on from the highest seen + 1 + the new counter (no sample is counted missed that never
 existed). A frame after it whose counter is within `window_samples` of the old run's highest (and far from the new
@@ -80,6 +81,9 @@ class CanUnwrap:
         run_top = np.maximum.accumulate(np.maximum(seg, top))
         prior = np.concatenate([[top], run_top[:-1]])             # the highest before each frame
         back = seg < prior - self.restart_samples
+        # back by more than a few windows to a counter near zero: the unit started again, however soon after its last
+        # start (a restart 3 s after a restart, 600 samples at 200 Hz, was read as that many duplicates: lost)
+        back |= (seg < prior - 4 * self.window) & (raw[i0:] < 4 * self.window)
         if self.rate_hz:
             # forward to a counter near zero, further than the receive time since the highest allows
             new_top = np.where(seg > prior, np.arange(seg.size), -1)

@@ -183,6 +183,30 @@ def test_can_frames_repeated_are_counted_and_a_restart_keeps_time_going(icd_trut
     assert np.array_equal(got.counts, np.concatenate([a.counts, b.counts]))
 
 
+@pytest.mark.parametrize("window", [8, 32])
+def test_a_can_unit_restarting_soon_after_a_restart_loses_nothing(icd_truth, window):
+    """A CAN unit restarting 3 s after a restart (600 samples at 200 Hz, back by less than restart_samples): its
+    frames were read as 3,588 duplicates and dropped, and everything after was stamped 3 s early (a field trial).
+    Now the second restart is one, and every sample is released once, in order, time going on."""
+    from fluxcal.drivers.assemble import CanAssembler, CanSamples
+
+    runs = [icd_truth(300, 2, seq0=40_000), icd_truth(600, 2, seed=1, seq0=0), icd_truth(300, 2, seed=2, seq0=0)]
+    c = can_icd_counters()
+    asm = CanAssembler(2, window_samples=window, counters=c, rate_hz=200.0)
+    parts, t = [], 10.0
+    for run in runs:
+        ids, pay = run.can_frames()
+        per = 6                                                # frames of one sample (2 probes x 3 axes)
+        for a in range(0, ids.size, 5 * per):                  # 5 samples a batch, 25 ms apart
+            parts.append(asm.push(ids[a:a + 5 * per], pay[a:a + 5 * per], t))
+            t += 0.025
+    parts.append(asm.flush())
+    got = CanSamples.concat(parts, 2)
+    assert (c.restarts, c.duplicates, c.can_incomplete) == (2, 0, 0)
+    assert np.array_equal(got.counts, np.concatenate([r.counts for r in runs]))      # all 1,200, once, in order
+    assert np.all(np.diff(got.seq) == 1)                        # nothing counted missed, time never back
+
+
 # --- plausibility ------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("seed", [7, 8])
