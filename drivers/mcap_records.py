@@ -127,6 +127,7 @@ class ReadReport:
     time: dict[str, str] = field(default_factory=dict)      # the "fluxcal.time" metadata record (log_time rule)
     arithmetic: dict[str, str] = field(default_factory=dict)  # "fluxcal.arithmetic": the machine's, when written
     repaired: dict[str, str] = field(default_factory=dict)  # "fluxcal.repair": a repaired copy's record of its cut
+    recorder_gaps: list[str] = field(default_factory=list)  # one line per gap the recorder itself left (a full disk)
 
     @property
     def problems(self) -> list[str]:
@@ -138,8 +139,9 @@ class ReadReport:
 
     @property
     def warnings(self) -> list[str]:
-        """The problems, then the holes (the samples lost, found now or recorded by a repair)."""
-        return self.problems + [h.describe() for h in self.holes]
+        """The problems, then the holes (the samples lost, found now or recorded by a repair), then the recorder's
+        gaps (service/io/recordings/gaps.py: found from the recording's own health)."""
+        return self.problems + [h.describe() for h in self.holes] + list(self.recorder_gaps)
 
 
 def raw_span(data: bytes) -> tuple[int, float, int, float] | None:

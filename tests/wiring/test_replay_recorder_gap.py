@@ -76,6 +76,24 @@ def test_the_gap_is_found_from_the_recordings_own_health_and_sequence(gapped):
     assert "No space left on device" in g.describe()
 
 
+def test_every_command_reading_the_recording_says_the_gap_in_the_same_words(gapped, capsys):
+    """Only replay said the gap: inspect gave the recording's samples over its span (136 Hz for a 200 Hz unit) and
+    fit nothing (a field trial). Both readers (read_recording, read_samples) find it from the same messages, so
+    inspect, fit and diagnose say it as replay does."""
+    from fluxcal.service.io.recordings.reader import read_samples
+
+    rec_dir, _ = gapped
+    whole, samples = read_recording(rec_dir), read_samples(rec_dir)
+    assert len(whole.gaps) == len(samples.gaps) == 1 and whole.gaps == samples.gaps
+    said = whole.gaps[0].describe()
+    assert said in whole.warnings and said in samples.warnings
+    for command in (["inspect"], ["fit"], ["diagnose", "--max-samples", "20000"]):
+        capsys.readouterr()
+        main([*command, str(rec_dir)])
+        out, err = capsys.readouterr()
+        assert said in out + err, (command, out[-400:], err[-800:])
+
+
 def test_replay_says_the_gap_compares_what_both_have_and_exits_0(gapped, capsys):
     rec_dir, _ = gapped
     assert main(["replay", str(rec_dir)]) == 0

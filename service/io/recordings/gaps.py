@@ -51,14 +51,33 @@ def _health_figures(h: dict[str, Any]) -> tuple[int, int, str]:
 def recorder_gaps(raw_blocks: list, health: list[dict[str, Any]], health_at: list[int]) -> list[RecorderGap]:
     """The recorder gaps of one unit's recording: `raw_blocks` its raw messages in order, `health` its health
     messages and `health_at` how many raw messages were recorded before each (Recording.health_at)."""
-    if not health or len(health) != len(health_at) or len(raw_blocks) < 2:
+    spans = np.array([(b.seq[0], b.seq[-1], b.t_s[0], b.t_s[-1]) if b.n_samples else (np.nan,) * 4
+                      for b in raw_blocks], float).reshape(-1, 4)
+    return gaps_between(spans, health, health_at)
+
+
+def message_spans(block: Any, sizes: np.ndarray) -> np.ndarray:
+    """(M, 4) first seq, last seq, first t, last t of each of the M messages a decoded run holds (`sizes`: the
+    samples of each; NaN for an empty one); what gaps_between needs, without the samples."""
+    ends = np.cumsum(np.asarray(sizes, np.int64))
+    starts = ends - np.asarray(sizes, np.int64)
+    full = ends > starts
+    out = np.full((len(sizes), 4), np.nan)
+    s, e = starts[full], ends[full] - 1
+    out[full] = np.column_stack([block.seq[s], block.seq[e], block.t_s[s], block.t_s[e]])
+    return out
+
+
+def gaps_between(spans: np.ndarray, health: list[dict[str, Any]], health_at: list[int]) -> list[RecorderGap]:
+    """recorder_gaps of messages given by their spans ((M, 4) float: first seq, last seq, first t, last t; NaN for
+    an empty message): a reader that does not hold the messages' samples (read_samples) asks the same question."""
+    if not health or len(health) != len(health_at) or len(spans) < 2:
         return []
     figures = [_health_figures(h) for h in health]
     at = np.asarray(health_at)
-    firsts = np.array([int(b.seq[0]) if b.n_samples else -1 for b in raw_blocks])
-    lasts = np.array([int(b.seq[-1]) if b.n_samples else -1 for b in raw_blocks])
+    firsts, lasts = spans[:, 0], spans[:, 1]
     gaps = []
-    for i in np.flatnonzero((firsts[1:] > lasts[:-1] + 1) & (lasts[:-1] >= 0)):   # message i, then a jump to i + 1
+    for i in np.flatnonzero(firsts[1:] > lasts[:-1] + 1):       # message i, then a jump to i + 1 (NaN: never)
         before = np.flatnonzero(at <= i + 1)          # health recorded before message i + 1 arrived
         after = np.flatnonzero(at > i + 1)            # ... and after it
         if not after.size:
@@ -67,7 +86,6 @@ def recorder_gaps(raw_blocks: list, health: list[dict[str, Any]], health_at: lis
         d1, m1, why = figures[int(after[0])]
         missing = int(firsts[i + 1] - lasts[i] - 1)
         if d1 > d0 and missing > m1 - m0:
-            b0, b1 = raw_blocks[i], raw_blocks[i + 1]
-            gaps.append(RecorderGap(int(lasts[i]), int(firsts[i + 1]), float(b0.t_s[-1]), float(b1.t_s[0]),
+            gaps.append(RecorderGap(int(lasts[i]), int(firsts[i + 1]), float(spans[i, 3]), float(spans[i + 1, 2]),
                                     max(0, m1 - m0), d1 - d0, why))
     return gaps

@@ -14,6 +14,7 @@ the file and what is wrong.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +34,7 @@ from fluxcal.drivers.mcap_source import (
     unit_of_topic,
 )
 from fluxcal.service.io.encoding import CORRECTED_ENCODING, RAW_ENCODING, decode_corrected, decode_json, decode_raw
+from fluxcal.service.io.recordings.gaps import gaps_between, message_spans
 from fluxcal.service.io.recordings.labdata import keep_every
 from fluxcal.service.io.recordings.repair import repair_recording  # noqa: F401 - read and repair from one module, as before
 from fluxcal.service.numerics.outputs import CorrectedBlock
@@ -72,6 +74,7 @@ class Recording:
     n_read: int | None = None      # the samples in the recording (before keeping every k-th)
     run_sizes: list[np.ndarray] | None = None    # per run, the samples of each message (None: a message per run)
     health_at: list[int] = field(default_factory=list)   # per health message, the raw messages recorded before it
+    gaps: list = field(default_factory=list)     # where the recorder itself lost raw samples (gaps.RecorderGap)
 
     @property
     def raw_blocks(self) -> list[SampleBlock]:
@@ -154,12 +157,15 @@ def read_samples(path: str | Path, *, unit: str | None = None, strict: bool = Fa
     Recording.every says k (1: all kept)."""
     report = ReadReport()
     chosen, units, n, probes, extras = unit, [], 0, set(), None
-    for topic, b in _raw_runs(path, report, strict, unit, units):
+    health: dict[str, tuple[list, list]] = {}
+    spans: list[np.ndarray] = []
+    for topic, b in _raw_runs(path, report, strict, unit, units, health, spans):
         chosen = unit_of_topic(topic)
         n += b.n_samples
         probes.add(b.n_probes)
         extras = set(b.extras) if extras is None else extras & set(b.extras)
     _check_read(path, unit, units, n > 0, probes, report)
+    gaps = _gaps_said(report, spans, *health.get(chosen or "", ([], [])))
     p = probes.pop()
     every = keep_every(n, p, max_samples, max_probe_samples)
     m = -(-n // every)                                       # rows 0, every, 2 every, ... of the recording
@@ -183,12 +189,14 @@ def read_samples(path: str | Path, *, unit: str | None = None, strict: bool = Fa
         raise RecordingError(f"{path}: changed while it was read ({n} samples, then {at})")
     block = SampleBlock(t_s=t, seq=seq, field_nT=fld, temp_C=temp, flags=flags, extras=ext)
     return Recording([block], [], [], [], report.metadata, report.files, report.truncated, [], chosen, report,
-                     every=every, n_read=n)
+                     every=every, n_read=n, gaps=gaps)
 
 
-def _chosen_raw(path: str | Path, report: ReadReport, strict: bool, unit: str | None, units: list[str]):
-    """The raw records of `unit` (None: of the first unit with raw samples); every unit seen goes into `units`."""
-    chosen = unit
+def _chosen_raw(path: str | Path, report: ReadReport, strict: bool, unit: str | None, units: list[str],
+                health: dict[str, tuple[list, list]] | None = None):
+    """The raw records of `unit` (None: of the first unit with raw samples); every unit seen goes into `units`;
+    `health`, where given, gets each unit's health messages and the raw messages of that unit recorded before each."""
+    chosen, n_raw = unit, {}
     for rec in iter_records(path, report, strict=strict):
         u = unit_of_topic(rec.topic)
         if u is None:
@@ -197,8 +205,15 @@ def _chosen_raw(path: str | Path, report: ReadReport, strict: bool, unit: str | 
             units.append(u)
         if chosen is None and rec.encoding == RAW_ENCODING:
             chosen = u
-        if rec.encoding == RAW_ENCODING and u == chosen:
-            yield rec
+        if rec.encoding == RAW_ENCODING:
+            n_raw[u] = n_raw.get(u, 0) + 1
+            if u == chosen:
+                yield rec
+        elif health is not None and rec.topic.endswith("/health"):
+            with contextlib.suppress(DataError):                # a damaged health message says nothing of gaps
+                got = health.setdefault(u, ([], []))
+                got[0].append(decode_json(rec.data))
+                got[1].append(n_raw.get(u, 0))
 
 
 #: raw messages decoded together (decode_raw_runs), at most so many and so many bytes: what is held undecoded
@@ -234,14 +249,27 @@ class _RawBatches:
             raise RecordingError(f"{self.path}: {self.topic}: damaged message: {e}") from None
 
 
-def _raw_runs(path: str | Path, report: ReadReport, strict: bool, unit: str | None, units: list[str]):
-    """(topic, block) of the raw samples of `unit` (as _chosen_raw), decoded in batches (_RawBatches)."""
+def _raw_runs(path: str | Path, report: ReadReport, strict: bool, unit: str | None, units: list[str],
+              health: dict[str, tuple[list, list]] | None = None, spans: list | None = None):
+    """(topic, block) of the raw samples of `unit` (as _chosen_raw), decoded in batches (_RawBatches); `spans`,
+    where given, gets each message's first and last seq and time (gaps.message_spans)."""
     batches = _RawBatches(path)
-    for rec in _chosen_raw(path, report, strict, unit, units):
-        for b, _ in batches.add(rec.topic, rec.data):
+    for rec in _chosen_raw(path, report, strict, unit, units, health):
+        for b, sizes in batches.add(rec.topic, rec.data):
+            if spans is not None:
+                spans.append(message_spans(b, sizes))
             yield rec.topic, b
-    for b, _ in batches.flush():
+    for b, sizes in batches.flush():
+        if spans is not None:
+            spans.append(message_spans(b, sizes))
         yield batches.topic, b
+
+
+def _gaps_said(report: ReadReport, spans: list, health: list, health_at: list) -> list:
+    """The recorder's gaps (gaps.gaps_between), each said among the reading's warnings, as every command reads it."""
+    found = gaps_between(np.concatenate(spans) if spans else np.empty((0, 4)), health, health_at)
+    report.recorder_gaps += [g.describe() for g in found]
+    return found
 
 
 def _check_read(path: str | Path, unit: str | None, units: list[str], any_raw: bool, probes: set[int],
@@ -300,8 +328,9 @@ def read_recording(path: str | Path, *, unit: str | None = None, strict: bool = 
             raise RecordingError(f"{path}: {rec.topic}: damaged message: {e}") from None
     runs = raw + batches.flush()
     _check_read(path, unit, units, bool(runs), {b.n_probes for b, _ in runs}, report)
+    gaps = _gaps_said(report, [message_spans(b, n) for b, n in runs], health, health_at)
     return Recording([b for b, _ in runs], cor, events, cal, report.metadata, report.files, report.truncated, health,
-                     chosen, report, run_sizes=[n for _, n in runs], health_at=health_at)
+                     chosen, report, run_sizes=[n for _, n in runs], health_at=health_at, gaps=gaps)
 
 
 class FluxcalDecoderFactory(DecoderFactory):

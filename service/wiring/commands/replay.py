@@ -33,7 +33,7 @@ import numpy as np
 from fluxcal.drivers.block import SampleBlock
 from fluxcal.drivers.errors import RecordingError
 from fluxcal.service.io.calfile import calibration_from_dict
-from fluxcal.service.io.recordings.gaps import RecorderGap, recorder_gaps
+from fluxcal.service.io.recordings.gaps import RecorderGap
 from fluxcal.service.io.recordings.labdata import check_one_run
 from fluxcal.service.io.recordings.reader import read_recording
 from fluxcal.service.io.recordings.repair import repair_notes
@@ -352,7 +352,7 @@ def _first_hole(rec, unit: str | None) -> tuple[int | None, list]:
     gap (io/recordings/gaps: a full disk, from the recording's own health), and what lost them, said as each is."""
     holes = [h for h in rec.holes if h.seq_span(unit) is not None]
     firsts = [(-1 if h.seq_span(unit)[0] is None else h.seq_span(unit)[0]) for h in holes]
-    gaps = recorder_gaps(rec.raw_blocks, rec.health, rec.health_at)
+    gaps = rec.gaps                                    # found as the recording was read (io/recordings/gaps)
     firsts += [g.seq_before + 1 for g in gaps]
     return (min(firsts) if firsts else None), [(h, h.describe(unit)) for h in holes] + [(g, g.describe()) for g in gaps]
 
