@@ -134,6 +134,29 @@ def test_full_disk_is_counted_never_raised_and_logging_resumes(tmp_path, monkeyp
     assert log.status()["dropped"] >= 1                               # what could not be written is counted
 
 
+def test_a_recording_folder_deleted_while_written_is_counted_and_said(tmp_path):
+    """`rm -rf` of the recording folder 6 s into a run: the open file and its data were gone, the folder quietly
+    made again at the next rotation, and the summary said "no loss and no fault seen" (a field trial). The deletion
+    is found at the next chunk: what the file held is counted dropped and said, and recording goes on."""
+    import shutil
+
+    blocks = sim_blocks(10.0)
+    folder = tmp_path / "rec"
+    log = McapLogger(folder, unit="u", flush_interval_s=0.0)
+    for b in blocks[:20]:
+        log.write_raw(b)
+    shutil.rmtree(folder)                                            # the folder and the file in it
+    for b in blocks[20:]:
+        log.write_raw(b)
+    log.close()
+    st = log.status()
+    assert st["errors"] >= 1 and "was deleted while it was written" in st["last_error"], st
+    assert 19 <= st["dropped"] <= 20                                 # the messages the deleted file held
+    got = np.concatenate([b.seq for b in read_recording(folder).raw_blocks])
+    assert np.array_equal(got, np.concatenate([b.seq for b in blocks[20:]]))   # everything after it is there
+    assert all(Path(f).exists() for f in log.files)                  # the lost file is not listed as written
+
+
 def test_damaged_and_foreign_files_are_refused_clearly(tmp_path):
     (tmp_path / "x.mcap").write_bytes(b"hello, this is not an MCAP file")
     assert_refused(read_recording, tmp_path / "x.mcap", "not an MCAP file")

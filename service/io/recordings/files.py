@@ -188,6 +188,15 @@ class McapFiles:
         if self.fsync:
             os.fsync(self.fh.fileno())
 
+    def deleted(self) -> bool:
+        """Whether the open file was deleted while it was written (its folder or it removed: it has no name left)."""
+        if self.fh is None:
+            return False
+        try:
+            return os.fstat(self.fh.fileno()).st_nlink == 0
+        except (OSError, AttributeError, ValueError):
+            return False
+
     def close_finished(self) -> None:
         assert self.fh is not None
         self.file_base = self.bytes_written

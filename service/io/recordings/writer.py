@@ -57,6 +57,7 @@ Not thread-safe (neither is mcap's Writer): one thread feeds a logger.
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import re
@@ -164,6 +165,8 @@ class ChunkedLog:
         self._last_flush = _monotonic()
 
     def _flush(self) -> None:
+        if self._deleted():                 # asked once a chunk (a second or a MiB), not per message
+            return
         self._files.flush()
         self._chunk_done()
 
@@ -173,10 +176,26 @@ class ChunkedLog:
             return
         try:
             self._files.finish()
+            if self._deleted():
+                return
             self._chunk_done()
             self._files.close_finished()
         except OSError as e:
             self._fail(e)
+
+    def _deleted(self) -> bool:
+        """Whether the open file was deleted while it was written (its folder removed): then what went into it is
+        lost, counted in `dropped` and said as the recorder's error; the unwritten messages go to the next file."""
+        if not self._files.deleted():
+            return False
+        lost, path = self._files.file_messages, self._files.files[-1] if self._files.files else "the file"
+        self.dropped += lost
+        self._fail(OSError(errno.ENOENT, f"{path} was deleted while it was written: the {lost:,} message(s) in it "
+                                         f"are lost"))
+        if self._files.files and self._files.files[-1] == path:
+            self._files.files.pop()
+        self._retry_at = _monotonic()       # no disk fault to wait out: the next message opens a new file
+        return True
 
     # --- writing ----------------------------------------------------------------------------------
 
@@ -245,6 +264,8 @@ class ChunkedLog:
                 self._open()
             return
         now = _monotonic()
+        if self._deleted():
+            return
         try:
             self._flush_if_due(now)
         except OSError as e:
