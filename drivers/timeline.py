@@ -1,5 +1,36 @@
 """The serial unit's frames put in order by their counter and clock: duplicates and stale frames dropped and
-counted, a unit restart told from a counter wrap (both counter and clock back near zero)."""
+counted, a unit restart told from a counter wrap (both counter and clock back near zero).
+
+Each frame is compared with the last frame accepted:
+
+  duplicate  bit for bit that frame, or (stepping back) one of the last 4,096 frames accepted (FrameHistory:
+             counter, clock and content): a frame sent again. Dropped, counted in `duplicates`.
+  forward    clock and counter advanced together: accepted. The counter's step is the one congruent to it mod
+             2^16 that the clock supports at the unit's frame period (estimated from the frames since the start
+             or the last restart), so a loss longer than 65,536 frames is counted right; a step > 1 is a gap.
+  counter    the clock stepped a whole number k <= 16 of periods but the counter by something else: the counter
+  jump       jumped (a glitch), the clock ran on. Accepted k frames on, counted in `counter_jumps`; no sample is
+             counted missed that the clock says never existed (before: a jump of 1,000 was 999 missed, or near
+             zero a restart with thousands missed).
+  restart    counter and clock both back near zero (seq < 4096 and t_us < 60 s), either further back than
+             1,024 frames or forward by a step the unit's period does not explain: the unit restarted.
+             Accepted and counted in `restarts`; seq goes on from the last frame's + 1 + the new counter
+             (the new run's earlier frames are a gap), time from the last frame's by the host's clock
+             across the restart (the unit's own clock restarted): no missed sample is made up, and time
+             never goes back.
+  clock      the counter stepped forward (by less than 2^15; by at most 1,024 when the clock went back) but the
+  jump       clock by a step its period does not explain: the clock jumped, the counter ran on. Accepted, time
+             repaired from the counter (the step times the period), counted in `clock_jumps`: no sample made up
+             or lost (before: +1,000 s with the counter at +1 was 196,608 samples missed).
+  stale      anything else: the counter or the clock stood still or stepped back. Held, and counted in
+             `seq_backsteps`; dropped when a frame comes on the line they left. After 8 such frames in a row,
+             each following on from the one before, the unit is taken to have jumped back and gone on from
+             there (a restart soon after another, a counter glitch that stays): the held frames are accepted
+             as a restart from the first of them (not counted stale: given with the block that confirms them,
+             `carried`), seq going on from the last frame's + 1, plus its counter where it is back near zero
+             (the new run's frames before it, lost). Before, the 7 held ones were dropped: a unit restarting
+             3 s after a restart lost them, counted as stale frames and never as missed.
+"""
 
 from __future__ import annotations
 
@@ -119,35 +150,7 @@ class SerialTimeline:
     """Puts a unit's frames in time order from their counter (seq, uint16) and clock (t_us, uint32), so that
     what leaves the driver has seq and t_s strictly increasing, whatever the unit sends.
 
-    Each frame is compared with the last frame accepted:
-
-      duplicate  bit for bit that frame, or (stepping back) one of the last 4,096 frames accepted (FrameHistory:
-                 counter, clock and content): a frame sent again. Dropped, counted in `duplicates`.
-      forward    clock and counter advanced together: accepted. The counter's step is the one congruent to it mod
-                 2^16 that the clock supports at the unit's frame period (estimated from the frames since the start
-                 or the last restart), so a loss longer than 65,536 frames is counted right; a step > 1 is a gap.
-      counter    the clock stepped a whole number k <= 16 of periods but the counter by something else: the counter
-      jump       jumped (a glitch), the clock ran on. Accepted k frames on, counted in `counter_jumps`; no sample is
-                 counted missed that the clock says never existed (before: a jump of 1,000 was 999 missed, or near
-                 zero a restart with thousands missed).
-      restart    counter and clock both back near zero (seq < 4096 and t_us < 60 s), either further back than
-                 1,024 frames or forward by a step the unit's period does not explain: the unit restarted.
-                 Accepted and counted in `restarts`; seq goes on from the last frame's + 1 + the new counter
-                 (the new run's earlier frames are a gap), time from the last frame's by the host's clock
-                 across the restart (the unit's own clock restarted): no missed sample is made up, and time
-                 never goes back.
-      clock      the counter stepped forward (by less than 2^15; by at most 1,024 when the clock went back) but the
-      jump       clock by a step its period does not explain: the clock jumped, the counter ran on. Accepted, time
-                 repaired from the counter (the step times the period), counted in `clock_jumps`: no sample made up
-                 or lost (before: +1,000 s with the counter at +1 was 196,608 samples missed).
-      stale      anything else: the counter or the clock stood still or stepped back. Held, and counted in
-                 `seq_backsteps`; dropped when a frame comes on the line they left. After 8 such frames in a row,
-                 each following on from the one before, the unit is taken to have jumped back and gone on from
-                 there (a restart soon after another, a counter glitch that stays): the held frames are accepted
-                 as a restart from the first of them (not counted stale: given with the block that confirms them,
-                 `carried`), seq going on from the last frame's + 1, plus its counter where it is back near zero
-                 (the new run's frames before it, lost). Before, the 7 held ones were dropped: a unit restarting
-                 3 s after a restart lost them, counted as stale frames and never as missed.
+    Each frame is compared with the last frame accepted, as the module docstring's table says.
 
     A period is known after two frames; before it, forward steps are taken as they come. Blocks whose every
     frame steps forward by less than half the counter's range, clock and counter agreeing at the period, take one
@@ -311,41 +314,42 @@ class SerialTimeline:
                     self._held = (self._held if follows else []) + [_row(frames, i, si, ti)]
                     if self._stale < self.RESYNC_FRAMES:
                         continue
-                    S, T = self._resync(frames, keep, seq_out, t_out, rx_time_s)
+                    S, T = _resync(self, frames, keep, seq_out, t_out, rx_time_s)
             keep[i] = True
             seq_out.append(S)
             t_out.append(T)
             self.history.add(frames, i, i + 1)
         return keep, np.asarray(seq_out, np.int64), np.asarray(t_out, np.int64)
 
-    def _resync(self, frames: RawFrames, keep: np.ndarray, seq_out: list[int], t_out: list[int],
-                rx_time_s: float | None) -> tuple[int, int]:
-        """The held stale run taken as a restart from its first frame (the class docstring): each held frame
-        accepted, those of earlier blocks as `carried` (before this block's), those of this block kept; returns
-        (seq, t) of the last, this block's frame that confirmed them."""
-        held, self._held = self._held, []
-        self.counters.seq_backsteps -= len(held)           # not stale: the unit's frames after a jump back
-        first = held[0].frame
-        s0, t0 = int(first.seq[0]), int(first.t_us[0])
-        near = s0 < self.NEAR_SEQ and t0 < self.NEAR_T_US   # back near zero: its counter says what came before
-        S, T = self._restart(first, 0, s0 if near else 0, rx_time_s)
-        rows = [(S, T)]
-        for h in held[1:]:
-            ds = (int(h.frame.seq[0]) - int(self._s0)) & 0xFFFF
-            dt = (int(h.frame.t_us[0]) - int(self._t0)) & 0xFFFFFFFF
-            S, T = S + ds, T + dt
-            self._accept(h.frame, 0, S, T, rx_time_s)
-            rows.append((S, T))
-        before = held[:-1]                                  # the last is this frame: the caller keeps it
-        for h in before:
-            self.history.add(h.frame)
-        earlier = [k for k, h in enumerate(before) if h.source is not frames]
-        if earlier:
-            self.carried = _rows([held[k].frame for k in earlier])
-            seq_out[:0], t_out[:0] = [rows[k][0] for k in earlier], [rows[k][1] for k in earlier]
-        for k, h in enumerate(before):
-            if h.source is frames:
-                keep[h.index] = True
-                seq_out.append(rows[k][0])
-                t_out.append(rows[k][1])
-        return S, T
+
+def _resync(tl: SerialTimeline, frames: RawFrames, keep: np.ndarray, seq_out: list[int], t_out: list[int],
+            rx_time_s: float | None) -> tuple[int, int]:
+    """tl's held stale run taken as a restart from its first frame (the module docstring): each held frame
+    accepted, those of earlier blocks as `carried` (before this block's), those of this block kept; returns
+    (seq, t) of the last, this block's frame that confirmed them."""
+    held, tl._held = tl._held, []
+    tl.counters.seq_backsteps -= len(held)           # not stale: the unit's frames after a jump back
+    first = held[0].frame
+    s0, t0 = int(first.seq[0]), int(first.t_us[0])
+    near = s0 < tl.NEAR_SEQ and t0 < tl.NEAR_T_US   # back near zero: its counter says what came before
+    S, T = tl._restart(first, 0, s0 if near else 0, rx_time_s)
+    rows = [(S, T)]
+    for h in held[1:]:
+        ds = (int(h.frame.seq[0]) - int(tl._s0)) & 0xFFFF
+        dt = (int(h.frame.t_us[0]) - int(tl._t0)) & 0xFFFFFFFF
+        S, T = S + ds, T + dt
+        tl._accept(h.frame, 0, S, T, rx_time_s)
+        rows.append((S, T))
+    before = held[:-1]                                  # the last is this frame: the caller keeps it
+    for h in before:
+        tl.history.add(h.frame)
+    earlier = [k for k, h in enumerate(before) if h.source is not frames]
+    if earlier:
+        tl.carried = _rows([held[k].frame for k in earlier])
+        seq_out[:0], t_out[:0] = [rows[k][0] for k in earlier], [rows[k][1] for k in earlier]
+    for k, h in enumerate(before):
+        if h.source is frames:
+            keep[h.index] = True
+            seq_out.append(rows[k][0])
+            t_out.append(rows[k][1])
+    return S, T

@@ -65,6 +65,15 @@ class _CountingFile:
         self.f.close()
 
 
+class FileDeleted(OSError):
+    """The open file was deleted while it was written: `lost` messages that were in it are gone."""
+
+    def __init__(self, path: str, lost: int) -> None:
+        super().__init__(errno.ENOENT, f"{path} was deleted while it was written: the {lost:,} message(s) in it are "
+                                       f"lost")
+        self.lost = lost
+
+
 class McapFiles:
     """The file series of one logger (see the module docstring). `open()` raises OSError, leaving no
     file behind that never got its header; `fail()` cuts the open file back and closes it."""
@@ -85,6 +94,7 @@ class McapFiles:
         self.file_base = 0                 # bytes_written before the current file
         self.file_messages = 0             # messages flushed into the current file
         self.time_written = False
+        self.gone = False                  # the open file was found deleted (_check_deleted)
         self._file_index = 0
 
     def _candidate(self, wall_ns: int) -> tuple[Path, str]:
@@ -175,8 +185,9 @@ class McapFiles:
         self.bytes_written = self.file_base + self.fh.pos
 
     def flush(self) -> None:
-        """End the chunk (mcap >= 1.6 flushes the stream too); fsync if asked. OSError passes."""
+        """End the chunk (mcap >= 1.6 flushes the stream too); fsync if asked. OSError passes (FileDeleted too)."""
         assert self.writer is not None and self.fh is not None
+        self._check_deleted()
         self.writer.flush()
         if self.fsync:
             os.fsync(self.fh.fileno())
@@ -184,18 +195,21 @@ class McapFiles:
     def finish(self) -> None:
         """Footer and index, then close: the file is complete. OSError passes (call `fail`)."""
         assert self.writer is not None and self.fh is not None
+        self._check_deleted()
         self.writer.finish()
         if self.fsync:
             os.fsync(self.fh.fileno())
 
-    def deleted(self) -> bool:
-        """Whether the open file was deleted while it was written (its folder or it removed: it has no name left)."""
-        if self.fh is None:
-            return False
+    def _check_deleted(self) -> None:
+        """FileDeleted where the open file was deleted while it was written (its folder or it removed: it has no name
+        left): the messages in it are lost. Asked once a chunk."""
         try:
-            return os.fstat(self.fh.fileno()).st_nlink == 0
+            gone = self.fh is not None and os.fstat(self.fh.fileno()).st_nlink == 0
         except (OSError, AttributeError, ValueError):
-            return False
+            gone = False
+        if gone and self.files:
+            self.gone = True                 # fail() then takes it off the files written
+            raise FileDeleted(self.files[-1], self.file_messages)
 
     def close_finished(self) -> None:
         assert self.fh is not None
@@ -220,7 +234,10 @@ class McapFiles:
             fh.close()
         except OSError:
             pass
-        if self.file_messages == 0 and self.files:
+        if self.gone:
+            self.files.pop()                 # deleted while written: not among the files written
+            self.gone = False
+        elif self.file_messages == 0 and self.files:
             try:
                 Path(self.files[-1]).unlink()
                 self.files.pop()

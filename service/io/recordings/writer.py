@@ -57,7 +57,6 @@ Not thread-safe (neither is mcap's Writer): one thread feeds a logger.
 
 from __future__ import annotations
 
-import errno
 import json
 import math
 import re
@@ -73,7 +72,7 @@ from fluxcal.service.io.encoding import corrected_payload, encode_json, health_r
 from fluxcal.service.io.foxglove_schemas import Products
 from fluxcal.service.numerics.outputs import CorrectedBlock
 
-from .files import COMPRESSIONS, McapFiles
+from .files import COMPRESSIONS, FileDeleted, McapFiles
 
 STREAMS = ("raw", "corrected", "vectors", "diff", "tensor", "error", "params", "calibration", "events", "health")
 _UNIT_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
@@ -143,7 +142,10 @@ class ChunkedLog:
         self.errors += 1
         self.last_error = f"{type(e).__name__}: {e}"
         self.last_error_wall_s = _wall_ns() / 1e9
-        self._retry_at = _monotonic() + (_RETRY_S if self.retry_s is None else self.retry_s)
+        self.dropped += getattr(e, "lost", 0)          # a file deleted while written: what it held
+        # no disk fault to wait out after a deletion: the next message opens a new file
+        self._retry_at = _monotonic() + (0.0 if isinstance(e, FileDeleted) else _RETRY_S if self.retry_s is None
+                                         else self.retry_s)
 
     def _fail(self, e: OSError) -> None:
         """A write failed: cut the file back to its last complete chunk and close it; keep the pending
@@ -165,8 +167,6 @@ class ChunkedLog:
         self._last_flush = _monotonic()
 
     def _flush(self) -> None:
-        if self._deleted():                 # asked once a chunk (a second or a MiB), not per message
-            return
         self._files.flush()
         self._chunk_done()
 
@@ -176,26 +176,10 @@ class ChunkedLog:
             return
         try:
             self._files.finish()
-            if self._deleted():
-                return
             self._chunk_done()
             self._files.close_finished()
         except OSError as e:
             self._fail(e)
-
-    def _deleted(self) -> bool:
-        """Whether the open file was deleted while it was written (its folder removed): then what went into it is
-        lost, counted in `dropped` and said as the recorder's error; the unwritten messages go to the next file."""
-        if not self._files.deleted():
-            return False
-        lost, path = self._files.file_messages, self._files.files[-1] if self._files.files else "the file"
-        self.dropped += lost
-        self._fail(OSError(errno.ENOENT, f"{path} was deleted while it was written: the {lost:,} message(s) in it "
-                                         f"are lost"))
-        if self._files.files and self._files.files[-1] == path:
-            self._files.files.pop()
-        self._retry_at = _monotonic()       # no disk fault to wait out: the next message opens a new file
-        return True
 
     # --- writing ----------------------------------------------------------------------------------
 
@@ -264,8 +248,6 @@ class ChunkedLog:
                 self._open()
             return
         now = _monotonic()
-        if self._deleted():
-            return
         try:
             self._flush_if_due(now)
         except OSError as e:

@@ -220,29 +220,7 @@ class TerminalView:
                      f"samples/s, {self.n_messages} messages")
         lines.append(self.calibration_summary())
         lines.append("")
-        c = self.corrected
-        if c is not None and c.n_samples:
-            lines.append(f"{'corrected':<12}{'Bx nT':>11}{'By nT':>11}{'Bz nT':>11}{'|B| nT':>12}   cal_id {c.cal_id}"
-                         + ("   (the last samples, not live)" if waiting else ""))
-            for name, v in zip(self._names(c.n_probes), c.corrected_nT[-1]):
-                lines.append(f"{name:<12}{_vec(v)} {float(np.linalg.norm(v)):11.1f}")
-            if c.center_nT is not None:
-                lines.append(f"{'centre':<12}{_vec(c.center_nT[-1])} {float(np.linalg.norm(c.center_nT[-1])):11.1f}")
-        elif self.raw is not None and self.raw.n_samples:
-            lines.append(f"{'raw (uncal.)':<12}{'x nT':>11}{'y nT':>11}{'z nT':>11}{'|B| nT':>12}")
-            for name, v in zip(self._names(self.raw.n_probes), self.raw.field_nT[-1]):
-                lines.append(f"{name:<12}{_vec(v)} {float(np.linalg.norm(v)):11.1f}")
-        if self.diff is not None and self.diff.values.size:
-            names = self._names(self.diff.values.shape[1] + 1)
-            lines.append("")
-            for k, d in enumerate(self.diff.values[-1]):
-                lines.append(f"{names[k + 1] + '-' + names[0]:<12}{_vec(d)} {float(np.linalg.norm(d)):11.2f}  nT")
-        if self.tensor is not None and self.tensor.values.size:
-            g = self.tensor.values[-1]
-            lines.append("")
-            lines.append("tensor G[i,j] = dB_j/dx_i, nT/m   trace %+.2f" % float(np.trace(g)))
-            for i, ax in enumerate("xyz"):
-                lines.append(f"  d/d{ax}      " + " ".join(f"{x:+10.2f}" for x in g[i]))
+        lines += _field_panels(self, stale=bool(waiting))
         if self.error:
             rms = self.error.get("rms_nT") or {}
             lines.append("")
@@ -297,6 +275,36 @@ class TerminalView:
             parts.append(" ".join(f"{k}={v}" for k, v in counters.items() if isinstance(v, (int, float)) and
                                   (v or is_flow(k, about))))
         return " | ".join(p for p in parts if p)
+
+
+def _field_panels(view: TerminalView, stale: bool) -> list[str]:
+    """The terminal view's newest vectors (corrected, else raw), differences and tensor; `stale`: the samples are not
+    arriving, so the vectors are marked as the last ones."""
+    lines: list[str] = []
+    c = view.corrected
+    if c is not None and c.n_samples:
+        lines.append(f"{'corrected':<12}{'Bx nT':>11}{'By nT':>11}{'Bz nT':>11}{'|B| nT':>12}   cal_id {c.cal_id}"
+                     + ("   (the last samples, not live)" if stale else ""))
+        for name, v in zip(view._names(c.n_probes), c.corrected_nT[-1]):
+            lines.append(f"{name:<12}{_vec(v)} {float(np.linalg.norm(v)):11.1f}")
+        if c.center_nT is not None:
+            lines.append(f"{'centre':<12}{_vec(c.center_nT[-1])} {float(np.linalg.norm(c.center_nT[-1])):11.1f}")
+    elif view.raw is not None and view.raw.n_samples:
+        lines.append(f"{'raw (uncal.)':<12}{'x nT':>11}{'y nT':>11}{'z nT':>11}{'|B| nT':>12}")
+        for name, v in zip(view._names(view.raw.n_probes), view.raw.field_nT[-1]):
+            lines.append(f"{name:<12}{_vec(v)} {float(np.linalg.norm(v)):11.1f}")
+    if view.diff is not None and view.diff.values.size:
+        names = view._names(view.diff.values.shape[1] + 1)
+        lines.append("")
+        for k, d in enumerate(view.diff.values[-1]):
+            lines.append(f"{names[k + 1] + '-' + names[0]:<12}{_vec(d)} {float(np.linalg.norm(d)):11.2f}  nT")
+    if view.tensor is not None and view.tensor.values.size:
+        g = view.tensor.values[-1]
+        lines.append("")
+        lines.append("tensor G[i,j] = dB_j/dx_i, nT/m   trace %+.2f" % float(np.trace(g)))
+        for i, ax in enumerate("xyz"):
+            lines.append(f"  d/d{ax}      " + " ".join(f"{x:+10.2f}" for x in g[i]))
+    return lines
 
 
 class _StateQuery:
