@@ -277,7 +277,7 @@ class CanAssembler:
         probe, axis, value, seq, temp, rx = (x[mine] for x in (probe, axis, value, seq, temp, rx))
         self.counters.frames_accepted += int(probe.size)
         self.counters.foreign_frames += int(mine.size - probe.size)      # other nodes' ids, or reserved ones
-        u = self._unwrap(seq, rx)
+        u = self._unwrap(seq, rx, self._done_upto)
         self._merge(u, probe, axis, value, temp, rx)
         return self._release(now_s, final=False)
 

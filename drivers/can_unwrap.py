@@ -3,8 +3,8 @@ across a restart of the unit, with the frames of the old run that still come aft
 (frames of neighbouring samples interleave on the bus) put back into the old run.
 
 Frame by frame the signed step ((s - s_prev + 2^15) mod 2^16) - 2^15, so interleaving across a wrap is right. A
-restart: a jump backwards by more than `restart_samples`, or by more than 4 windows to a counter below 4 windows (the
-unit started again soon after its last start), or (with `rate_hz`) a jump forwards to a counter near zero
+restart: a jump backwards by more than `restart_samples`, or by more than 2 windows to a counter below 2 windows (the
+unit started again soon after its last start: no interleaving goes back that far), or (with `rate_hz`) a jump forwards to a counter near zero
 (< restart_samples) that the receive times do not support (less than half its length in time). It is counted in
 `restarts` once, and seq goes on from the highest seen + 1 + the new counter (no sample is counted missed that never
 existed). A frame after it whose counter is within `window_samples` of the old run's highest (and far from the new
@@ -35,8 +35,11 @@ class CanUnwrap:
         self._top: tuple[float, int, float] = (-np.inf, 0, -np.inf)   # the highest seq seen: seq, raw, receive time
         self._old: tuple[int, int, int, int] | None = None   # the run before the last restart: its highest raw and
         #                                                      seq, the highest seq kept for it, the new run's start
+        self._settled: int | None = None                # every sample up to this one released or given up
 
-    def __call__(self, seq: np.ndarray, rx: np.ndarray) -> np.ndarray:
+    def __call__(self, seq: np.ndarray, rx: np.ndarray, settled: int | None = None) -> np.ndarray:
+        """seq unwrapped; `settled`: the assembler's last sample released or given up (every one up to it)."""
+        self._settled = settled
         raw = seq.astype(np.int64)
         if raw.size == 0:
             return raw
@@ -65,13 +68,18 @@ class CanUnwrap:
         return u
 
     def _stragglers(self, raw: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Which of these frames belong to the run before the last restart; their u set to its numbering."""
+        """Which of these frames belong to the run before the last restart; their u set to its numbering. Only frames
+        whose sample is still being assembled (after `settled`) can be: a run that restarted again soon reaches the
+        old run's last counters when those samples are long released, and its frames are its own (31 samples of such
+        a run were taken for the old run's and dropped as duplicates)."""
         if self._old is None:
             return np.zeros(raw.size, bool)
         top_raw, top_u, kept_u, start_u = self._old
         d_old = _signed(raw - top_raw)
         near_new = np.abs(u - start_u) <= 4 * self.window
         old = (np.abs(d_old) <= self.window) & (top_u + d_old <= kept_u) & ~(near_new & (u >= start_u))
+        if self._settled is not None:
+            old &= top_u + d_old > self._settled
         u[old] = top_u + d_old[old]
         return old
 
@@ -81,9 +89,9 @@ class CanUnwrap:
         run_top = np.maximum.accumulate(np.maximum(seg, top))
         prior = np.concatenate([[top], run_top[:-1]])             # the highest before each frame
         back = seg < prior - self.restart_samples
-        # back by more than a few windows to a counter near zero: the unit started again, however soon after its last
+        # back by more than 2 windows to a counter near zero: the unit started again, however soon after its last
         # start (a restart 3 s after a restart, 600 samples at 200 Hz, was read as that many duplicates: lost)
-        back |= (seg < prior - 4 * self.window) & (raw[i0:] < 4 * self.window)
+        back |= (seg < prior - 2 * self.window) & (raw[i0:] < 2 * self.window)
         if self.rate_hz:
             # forward to a counter near zero, further than the receive time since the highest allows
             new_top = np.where(seg > prior, np.arange(seg.size), -1)
