@@ -93,3 +93,16 @@ def test_the_sample_recordings_diagnoses_tell_one_story(recording):
     assert disagreements(text) == [], text
     if recording == "grad3-flap.mcap":             # its lines of the flap's motion: the flap's shape, said so
         assert "flap_deg's motion" in text and "no logged column (flap_deg" not in text, text
+
+
+def test_a_band_the_columns_lines_reach_by_chance_is_no_function_of_it():
+    """A real board with an uncoupled servo column logged was advised "a non-linear function of servo_deg" because
+    combinations of the column's lines fell in the residual's band (an octave wide: often, by chance), while the
+    residual followed the column by 9 % (a field trial). The band is that column's shape only where the residual
+    follows the column too (where it fails: FOLLOWS and up)."""
+    carried = Carried(columns=("heater_A", "flap_deg"), probes=3, motion=(FLAP,), duration_s=600.0)
+    band = {**_follow("frequency", 0.3, band="0.0571-0.118 Hz"), "band_hz": [0.0571, 0.118]}
+    _, advice = describe(_sig(follows=[band]), carried)
+    assert "non-linear function of flap_deg" not in advice and "narrow-band disturbance" in advice, advice
+    _, advice = describe(_sig(follows=[band, _follow("flap_deg x field direction", 0.2)]), carried)
+    assert "non-linear function of flap_deg" in advice, advice

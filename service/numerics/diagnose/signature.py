@@ -372,6 +372,14 @@ _ADVICE = {
 }
 
 
+def _followed(col: str, follows: list[dict[str, Any]]) -> bool:
+    """Whether the residual follows column `col` (where it fails: its correlation ratio over bins of the column, which
+    any function of it shows, or the column times the field direction): a band that only holds combinations of the
+    column's lines, as a band an octave wide often does by chance, is no evidence of a function of it (a real board
+    with an uncoupled servo column logged was advised "a non-linear function of servo_deg", which explained 9 %)."""
+    return any(f["observable"] in (col, f"{col} x field direction") and f["strength"] >= FOLLOWS for f in follows)
+
+
 def _shape_advice(col: str, why: str) -> str:
     """A residual that a logged column's motion makes (its lines' harmonics and sums): a non-linear function of it."""
     return (f"a non-linear function of {col}, which the file logs ({why}): a field that follows {col} through a "
@@ -385,7 +393,7 @@ def _follows_advice(top: dict[str, Any], carried: "Carried | None" = None,
     obs = top["observable"]
     if obs == "frequency":
         made = carried.harmonic(band_hz=top.get("band_hz")) if top.get("band_hz") else None
-        if made is not None:
+        if made is not None and _followed(made[0], follows or [top]):
             return _shape_advice(made[0], f"the band {top.get('band', '')} holds {made[1]}")
         unfollowed = carried.unfollowed({f["observable"] for f in follows or [top]})
         logged = f" ({unfollowed})" if unfollowed else ""
