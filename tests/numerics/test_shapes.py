@@ -160,3 +160,28 @@ def test_a_shape_added_to_a_real_recording_is_found_and_its_untouched_copy_claim
     column = "flap_deg" if kind == "flap magnet" else "coil_A"
     assert f is not None and f.claimed and any(g.group.feature.observable == column for g in f.groups), summary_text(d1)
     assert f.heldout_rms_nT <= 1.1 * d0.heldout_rms_nT, summary_text(d1)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_columns_lines_and_the_residuals_scale_are_read_at_their_frequencies_on_a_bursty_time_base(seed):
+    """A real hand-turned board's samples come 2-58 ms apart (median 3.3 ms, mean 13 ms): its spectra were read on
+    the median interval, so a logged servo's lines at 0.031 and 0.083 Hz were said at 0.126 and 0.335 Hz, and the
+    residual's band and time scale 4 times off (a field trial). They are read on the interval the coloured errors
+    take (engine.coloured.sample_grid: a bursty time base's mean), within 3 %."""
+    from fluxcal.service.numerics.diagnose.harmonics import motion_lines
+    from fluxcal.service.numerics.diagnose.signature import _time_scale
+
+    rng = np.random.default_rng(seed)
+    dt = np.exp(rng.uniform(np.log(0.002), np.log(0.058), 8000))         # 2-58 ms, log-uniform: bursty
+    t = np.concatenate([[0.0], np.cumsum(dt)])
+    servo = 20 * np.sin(2 * np.pi * 0.031 * t) + 10 * np.sin(2 * np.pi * 0.083 * t + 1)
+    lines = sorted(motion_lines(t, servo)[:2])
+    assert lines == pytest.approx([0.031, 0.083], rel=0.03), lines
+    resid = 50 * np.sin(2 * np.pi * 0.2 * t) + rng.normal(0, 1, t.size)        # half its power beyond 5 s
+    period = _time_scale(t, resid, 1.0)[0]
+    steady_t = np.arange(t.size) * np.mean(dt)                            # the same samples, evenly spaced
+    assert period == pytest.approx(_time_scale(steady_t, resid, 1.0)[0], rel=0.01)
+    assert 4.5 < period < 6.0, period                                     # on the median interval: about 1.4 s
+    steady = np.arange(8001) * 0.005                                      # a steady time base: as before, bit for bit
+    assert motion_lines(steady, np.sin(2 * np.pi * 0.031 * steady)) == motion_lines(
+        steady, np.sin(2 * np.pi * 0.031 * steady))

@@ -68,11 +68,12 @@ def _spectrum_figure(plt, d: Diagnosis) -> tuple[str, str, bytes] | None:
     drawn from the numbers `where` names its bands from (numerics.diagnose.where.excess_spectrum: the periodogram
     in log-spaced bins), each band it names shaded in its channel's colour."""
     from fluxcal.service.numerics.diagnose.where import excess_spectrum
+    from fluxcal.service.numerics.engine.coloured import sample_grid
 
     ch = d.fit.channels
     if ch.values.shape[0] < 256:
         return None
-    dt = d.fit.problem.data.dt_s
+    dt = sample_grid(ch.t_s)[1]                # the interval where_it_fails took its bands on
     bands = {w["channel"]: w for w in d.where if w["observable"] == "frequency" and w.get("band_hz")}
     groups = _spectrum_groups(list(ch.names))
     cols = 1 if len(groups) == 1 else 2

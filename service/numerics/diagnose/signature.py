@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from fluxcal.service.numerics.engine import FitResult
+from fluxcal.service.numerics.engine.coloured import sample_grid
 
 from .harmonics import band_source, column_lines, harmonic_source
 
@@ -70,12 +71,12 @@ LINE_BINS = 2
 
 def _time_scale(t_s: np.ndarray, y: np.ndarray, noise: float) -> tuple[float | None, float | None, float | None]:
     """(period in s above which half of the excess power lies, spectral slope, frequency of a spectral line
-    or None) of a residual, from a Welch spectrum on its median sample interval (gaps are closed up: fine
-    for a description)."""
+    or None) of a residual, from a Welch spectrum on the interval of engine.coloured.sample_grid (a steady time
+    base's median, a bursty one's mean: on the median a real board's bursty record read 4 times too high)."""
     n = y.size
     if n < 256:
         return None, None, None
-    dt = float(np.median(np.diff(t_s)))
+    dt = sample_grid(t_s)[1]
     nper = int(2 ** np.floor(np.log2(n / 4)))
     from scipy.signal import welch                      # here, not at import (a command's start)
 

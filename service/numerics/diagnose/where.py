@@ -14,6 +14,7 @@ from fluxcal.service.numerics.effects.thermal import low_pass
 from fluxcal.service.numerics.engine import (
     FitResult,
 )
+from fluxcal.service.numerics.engine.coloured import sample_grid
 
 WHERE_MAX_ROWS = 20000
 LAGS_S = (60.0, 300.0)      # delayed temperatures tried: first-order lags of a minute and of five
@@ -247,6 +248,7 @@ def where_it_fails(data: EffectData, fit: FitResult, noise_nT: np.ndarray, *, to
     rows = np.arange(0, m, stride)
     obs = observables(data, fit, rows)
     vals = fit.channels.values
+    step = sample_grid(fit.channels.t_s)[1]      # the spectra's interval: a bursty time base's mean, as everywhere
     out = []
     for c, name in enumerate(fit.channels.names):
         y = vals[rows, c]
@@ -257,7 +259,7 @@ def where_it_fails(data: EffectData, fit: FitResult, noise_nT: np.ndarray, *, to
                 s = max(s, _eta2(y, x(c)))
             if s >= min_strength:
                 out.append({"channel": name, "observable": oname, "strength": s})
-        s, band, edges = _band_excess(vals[:, c], data.dt_s, float(noise_nT[c]))
+        s, band, edges = _band_excess(vals[:, c], step, float(noise_nT[c]))
         if s >= min_strength:
             out.append({"channel": name, "observable": "frequency", "strength": s, "band": band,
                         "band_hz": list(edges)})
