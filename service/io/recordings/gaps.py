@@ -51,9 +51,8 @@ def _health_figures(h: dict[str, Any]) -> tuple[int, int, str]:
 def recorder_gaps(raw_blocks: list, health: list[dict[str, Any]], health_at: list[int]) -> list[RecorderGap]:
     """The recorder gaps of one unit's recording: `raw_blocks` its raw messages in order, `health` its health
     messages and `health_at` how many raw messages were recorded before each (Recording.health_at)."""
-    spans = np.array([(b.seq[0], b.seq[-1], b.t_s[0], b.t_s[-1]) if b.n_samples else (np.nan,) * 4
-                      for b in raw_blocks], float).reshape(-1, 4)
-    return gaps_between(spans, health, health_at)
+    spans = [message_spans(b, [b.n_samples]) for b in raw_blocks]
+    return gaps_between(np.concatenate(spans) if spans else np.empty((0, 4)), health, health_at)
 
 
 def message_spans(block: Any, sizes: np.ndarray) -> np.ndarray:

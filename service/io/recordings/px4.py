@@ -69,16 +69,16 @@ def _ulog(path: Path, only: Sequence[str] | None = WANTED) -> tuple[Any, list[st
     except Exception as e:  # noqa: BLE001 - pyulog raises bare exceptions on a damaged file
         raise DataError(f"{path}: not a readable PX4 ULog ({type(e).__name__}: {e})") from None
     cut, at = ulog_walk(path)
-    return ulog, damage_note(path, cut=cut, corrupt=bool(ulog.file_corruption), at=at) + _dropouts(ulog)
+    return ulog, damage_note(path, cut=cut, corrupt=bool(ulog.file_corruption), at=at) + _dropouts(path, ulog)
 
 
-def _dropouts(ulog: Any) -> list[str]:
+def _dropouts(path: Path, ulog: Any) -> list[str]:
     """What the logger itself says it lost (its dropout messages: the storage did not keep up)."""
     lost = [int(getattr(d, "duration", 0)) for d in getattr(ulog, "dropouts", []) or []]
     if not lost:
         return []
-    return [f"the logger dropped data {len(lost):,} time(s), {sum(lost):,} ms in all (PX4's dropouts: its storage did "
-            f"not keep up); the samples in them are lost"]
+    return [f"{path}: the logger dropped data {len(lost):,} time(s), {sum(lost):,} ms in all (PX4's dropouts: its "
+            f"storage did not keep up); the samples in them are lost"]
 
 
 def _time_us(d: Any) -> np.ndarray:

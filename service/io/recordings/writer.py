@@ -142,10 +142,9 @@ class ChunkedLog:
         self.errors += 1
         self.last_error = f"{type(e).__name__}: {e}"
         self.last_error_wall_s = _wall_ns() / 1e9
-        self.dropped += getattr(e, "lost", 0)          # a file deleted while written: what it held
-        # no disk fault to wait out after a deletion: the next message opens a new file
-        self._retry_at = _monotonic() + (0.0 if isinstance(e, FileDeleted) else _RETRY_S if self.retry_s is None
-                                         else self.retry_s)
+        deleted = isinstance(e, FileDeleted)            # what the deleted file held is lost; no disk fault to wait
+        self.dropped += e.lost if deleted else 0        # out: the next message opens a new file
+        self._retry_at = _monotonic() + (0.0 if deleted else _RETRY_S if self.retry_s is None else self.retry_s)
 
     def _fail(self, e: OSError) -> None:
         """A write failed: cut the file back to its last complete chunk and close it; keep the pending

@@ -114,7 +114,7 @@ class Discovery:
             return f"discovery tried {self.tried} groups beyond the catalogue and claims none: {self.reason}"
         found = "; ".join(g.reading for g in self.groups)
         alike = [f"{f['observable']}'s {f['chosen']} from {' or '.join(f['alike'])}" for f in self.forms
-                 if f.get("alike") and f["chosen"] not in ("per axis", "shape")]
+                 if f.get("alike")]
         if alike:                                   # one story with the forms' line: no law is singled out
             found += (f" (the held-out blocks do not tell {'; '.join(alike)}: the form's parameters are its own, not "
                       f"a law these data single out)")

@@ -161,7 +161,8 @@ def choose_forms(data: Any, base: FitResult, kept: list[Group], fit: FitResult, 
                       if f is best_sse or not _passes(f.ho.sse_w, best_sse.ho.sse_w, f.ho.n)[0])
         # the other laws the held-out blocks do not tell from the best (the free forms are no rival: a law they do
         # not beat has caught the shape): the chosen law's parameters are then its own, not a law the data single out
-        alike = [f.label for f in forms if f is not chosen and f.term is not None and f.label != "shape"
+        law = chosen.term is not None and chosen.label != "shape"
+        alike = [f.label for f in forms if law and f is not chosen and f.term is not None and f.label != "shape"
                  and (f is best_sse or not _passes(f.ho.sse_w, best_sse.ho.sse_w, f.ho.n)[0])]
         tried.append({"observable": shape[0].feature.observable, "chosen": chosen.label, "alike": alike,
                       "forms": [{"form": f.label, "parameters": f.n_params, "heldout_rms_nT": f.ho.rms_nT}

@@ -151,7 +151,7 @@ def discovery_lines(d: Diagnosis) -> list[str]:
         out.append(f"    the shape of {form['observable']} kept as {form['chosen']}, the smallest that no other form "
                    f"predicts better on the held-out blocks (form, parameters, held-out nT: {tried})"
                    + (f"; they do not tell it from {' or '.join(alike)}: its parameters are those of this form, not a "
-                      f"law these data single out" if alike and form["chosen"] not in ("per axis", "shape") else ""))
+                      f"law these data single out" if alike else ""))
     out.append(f"    with {'it' if len(f.groups) == 1 else 'them'}: residual {f.rms_nT:.3f} nT, held-out "
                f"{f.heldout_rms_nT:.3f} nT (from {f.base_heldout_rms_nT:.3f}) against a {f.floor_nT:.3f} nT floor; "
                f"the search itself, every choice made without the block it predicts, takes {100 * f.cv_gain:.1f} % "

@@ -178,6 +178,27 @@ class TerminalView:
         kind, sentence = flow(self.unit, self.clock(), self.last_msg_t, self.last_data_t, self.alive, self.health)
         return None if kind == "live" else sentence
 
+    def _sample_parts(self) -> list[str]:
+        """The one-line view's newest vectors (corrected, else raw), differences, tensor and error."""
+        parts: list[str] = []
+        c = self.corrected
+        if c is not None and c.n_samples:
+            for name, v in zip(self._names(c.n_probes), c.corrected_nT[-1]):
+                parts.append(f"{name}={_vec_short(v)} |B|={float(np.linalg.norm(v)):.1f}")
+        elif self.raw is not None and self.raw.n_samples:
+            for name, v in zip(self._names(self.raw.n_probes), self.raw.field_nT[-1]):
+                parts.append(f"raw {name}={_vec_short(v)}")
+        if self.diff is not None and self.diff.values.size:
+            names = self._names(self.diff.values.shape[1] + 1)
+            for k, d in enumerate(self.diff.values[-1]):
+                parts.append(f"{names[k + 1]}-{names[0]}={_vec_short(d)}")
+        if self.tensor is not None and self.tensor.values.size:
+            g = self.tensor.values[-1]
+            parts.append("G=[" + ", ".join(f"{x:+.2f}" for x in g.ravel()) + "] nT/m")
+        if self.error:
+            parts.append("err " + " ".join(f"{k}={_num(v, '.3f')}" for k, v in (self.error.get("rms_nT") or {}).items()))
+        return parts
+
     def _heard(self) -> bool:
         """Whether the service itself is heard now (any of its messages), whatever its input does."""
         return self.connected and self.last_msg_t is not None and self.clock() - self.last_msg_t <= STALE_S
@@ -252,24 +273,7 @@ class TerminalView:
                  + (f" cov={_num(gate.get('coverage'), '.2f')}" if _judged(gate) else
                     " no-candidate-yet" if gate else "")
                  + (f" state-age={_num(st.get('state_age_s'), '.0f')}s" if st.get("stale") else "")]
-        c = None if waiting else self.corrected          # samples not arriving: no old vectors shown as live
-        if c is not None and c.n_samples:
-            for name, v in zip(self._names(c.n_probes), c.corrected_nT[-1]):
-                parts.append(f"{name}={_vec_short(v)} |B|={float(np.linalg.norm(v)):.1f}")
-        elif self.raw is not None and self.raw.n_samples and not waiting:
-            for name, v in zip(self._names(self.raw.n_probes), self.raw.field_nT[-1]):
-                parts.append(f"raw {name}={_vec_short(v)}")
-        if self.diff is not None and self.diff.values.size and not waiting:
-            names = self._names(self.diff.values.shape[1] + 1)
-            for k, d in enumerate(self.diff.values[-1]):
-                parts.append(f"{names[k + 1]}-{names[0]}={_vec_short(d)}")
-        if self.tensor is not None and self.tensor.values.size and not waiting:
-            g = self.tensor.values[-1]
-            parts.append("G=[" + ", ".join(f"{x:+.2f}" for x in g.ravel()) + "] nT/m")
-        if waiting:
-            parts.append(waiting)
-        if self.error and not waiting:
-            parts.append("err " + " ".join(f"{k}={_num(v, '.3f')}" for k, v in (self.error.get("rms_nT") or {}).items()))
+        parts += [waiting] if waiting else self._sample_parts()    # samples not arriving: no old vectors as live
         if self.health:
             counters, about = self.health.get("counters") or {}, counter_words(self.state)
             parts.append(" ".join(f"{k}={v}" for k, v in counters.items() if isinstance(v, (int, float)) and
