@@ -222,6 +222,8 @@ def test_a_probe_that_never_turned_is_said_as_such_not_as_a_unit(colour):
             j = physical(judge(raw, None, name="s1"), raw)
             assert not j.determined
             assert shell_thickness(j, raw) > 3 * SHELL_MAX
+            moved = raw * 1e-3 + np.array([500.0, -300.0, 20.0])           # another unit and origin: the same figure
+            assert shell_thickness(judge(moved, None), moved) == pytest.approx(shell_thickness(j, raw), rel=1e-9)
             assert "lie on no one ellipsoid" in j.problem and "? (x " not in j.problem, j.problem
             said = re.search(r"the samples read ([\d,]+) nT about zero", j.problem)    # only where it is an Earth's
             assert (said is not None) == (about == 48_000.0)
