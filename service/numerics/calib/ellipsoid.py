@@ -45,7 +45,7 @@ import numpy as np
 from fluxcal.drivers.errors import CalibrationRefused
 
 from .excitation import PLANARITY_MIN, coverage_hint, excitation_problem, turn_cone  # noqa: F401 (re-exported)
-from .model import ProbeCalibration, named, scalar_rms, triangular_params
+from .model import ProbeCalibration, named, scalar_rms, triangular_params, triangular_params_many
 from .order import (
     EXPANSIONS,
     FIXED,
@@ -69,6 +69,7 @@ from .quadric import (
     quadric_design,
     quadric_matrix,
     quadric_to_calibration,
+    quadric_to_calibration_many,
     se_from_steps,
     unit_volume_total,
 )
@@ -151,7 +152,7 @@ def solve_quadric(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",
     choice = None
     if order == "auto":
         choice = choose_order(normals, raw, f, known,
-                              lambda t, f2: quadric_to_calibration(t, scale, f2, center))
+                              lambda t, f2: quadric_to_calibration_many(t, scale, f2, center))
         order = choice.order if choice is not None else "full"
     t = EXPANSIONS[order]
     g, r = t.T @ g9 @ t, t.T @ r9
@@ -222,15 +223,16 @@ def _propagate(theta: np.ndarray, cov: np.ndarray, scale: float, f2m: float, cen
     worked out once for both."""
     h, points = forward_steps(theta, cov)
     try:
-        steps = [base] + [quadric_to_calibration(t, scale, f2m, center) for t in points[1:]]
+        offsets, matrices = quadric_to_calibration_many(points[1:], scale, f2m, center)
     except (np.linalg.LinAlgError, ValueError):
         return np.full(3, np.nan), np.full((3, 3), np.nan), None
-    se = se_from_steps(np.stack([np.concatenate([o, m.ravel()]) for o, m in steps]), h, cov)
+    offsets, matrices = np.concatenate([base[0][None], offsets]), np.concatenate([base[1][None], matrices])
+    se = se_from_steps(np.concatenate([offsets, matrices.reshape(-1, 9)], axis=1), h, cov)
     try:
-        phys = np.stack([np.concatenate(triangular_params(m)) for _, m in steps])
+        angles, scales = triangular_params_many(matrices)
     except (np.linalg.LinAlgError, ValueError):
         return se[:3], se[3:].reshape(3, 3), None
-    return se[:3], se[3:].reshape(3, 3), se_from_steps(phys, h, cov)
+    return se[:3], se[3:].reshape(3, 3), se_from_steps(np.concatenate([angles, scales], axis=1), h, cov)
 
 
 def fit_ellipsoid(field_nT: np.ndarray, total_nT=None, *, name: str = "s1",

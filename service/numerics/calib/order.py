@@ -107,31 +107,33 @@ def sub_chunks(a: int, b: int) -> list[tuple[int, int]]:
 def heldout_rms(normals: tuple[np.ndarray, list, list], raw: np.ndarray, total: np.ndarray, known: bool,
                 order: str, calibrate) -> float:
     """RMS of |M(r − o)| − F on each block, fitted on the other blocks (normals: `block_normals` of the
-    nine-term design of the centred, scaled samples; calibrate(θ₉, f2_ref) -> (offset, matrix), raising
-    LinAlgError when the quadric is not an ellipsoid). An unknown F is the fold's unit_volume_total."""
+    nine-term design of the centred, scaled samples; calibrate(θ₉ (K, 9), f2_ref (K,)) -> (offsets (K, 3),
+    matrices (K, 3, 3)), every fold at once, raising LinAlgError when a quadric is not an ellipsoid). An unknown F
+    is the fold's unit_volume_total."""
     edges, grams9, rhs9 = normals
     t = EXPANSIONS[order]
-    grams = [t.T @ g @ t for g in grams9]
-    rhs = [t.T @ r for r in rhs9]
-    g_all, r_all = sum(grams), sum(rhs)
+    grams = t.T @ np.stack(grams9) @ t                       # (K, k, k): each fold's block, then its complement
+    rhs = np.stack(rhs9) @ t
+    g, r = grams.sum(axis=0) - grams, rhs.sum(axis=0) - rhs
+    col = np.sqrt(np.maximum(np.diagonal(g, axis1=1, axis2=2), 1e-300))
     n = raw.shape[0]
-    f2_sum = float(np.sum(total ** 2)) if known else 0.0
+    sizes = np.diff(edges)
+    if known:                                   # the training rows' mean F²
+        held_f2 = np.array([float(np.sum(total[a:b] ** 2)) for a, b in zip(edges[:-1], edges[1:])])
+        f2 = (float(np.sum(total ** 2)) - held_f2) / (n - sizes)
+    else:                                       # the unit-volume convention of an unknown field
+        f2 = np.ones(len(sizes))
+    try:
+        scaled = np.linalg.solve(g / (col[:, :, None] * col[:, None, :]), (r / col)[..., None])[..., 0]
+        offsets, matrices = calibrate((scaled / col) @ t.T, f2)
+        unit = None if known else np.linalg.det(matrices) ** (-1.0 / 3.0)   # each fold's unit-volume field
+        if unit is not None:
+            matrices = matrices * unit[:, None, None]
+    except np.linalg.LinAlgError:
+        return float("inf")
     sq = 0.0
-    for i, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
-        g, r = g_all - grams[i], r_all - rhs[i]
-        col = np.sqrt(np.maximum(np.diag(g), 1e-300))
-        try:
-            theta = t @ (np.linalg.solve(g / np.outer(col, col), r / col) / col)
-            # the training rows' mean F², or the unit-volume convention of an unknown field
-            f2 = (f2_sum - float(np.sum(total[a:b] ** 2))) / (n - (b - a)) if known else 1.0
-            offset, matrix = calibrate(theta, f2)
-            held = total[a:b]
-            if not known:
-                f = float(np.linalg.det(matrix) ** (-1.0 / 3.0))
-                matrix, held = matrix * f, np.full(b - a, f)
-        except np.linalg.LinAlgError:
-            return float("inf")
-        resid = np.linalg.norm((raw[a:b] - offset) @ matrix.T, axis=1) - held
+    for i, (a, b) in enumerate(zip(edges[:-1], edges[1:])):       # a block at a time: no (N, 3, 3) gathers
+        resid = np.linalg.norm((raw[a:b] - offsets[i]) @ matrices[i].T, axis=1) - (total[a:b] if unit is None else unit[i])
         sq += float(resid @ resid)
     return float(np.sqrt(sq / n))
 
