@@ -191,10 +191,12 @@ def test_a_law_the_held_out_blocks_do_not_single_out_is_said_as_one_form_among_o
     """A servo-driven distance power (power 3) added to a real board was read as "a polynomial of degree 2, x0 =
     -20.58 +- 3.2 deg", a vertex the truth does not have, while the distance power predicted the held-out blocks within
     1.6 % (a field trial). Where other laws are not significantly worse than the best, both the forms' line and the
-    verdict's sentence say that its parameters are the form's own; where none is, nothing more is said."""
+    group's own reading (the JSON's, and so the verdict's sentence) say that its parameters are the form's own, with
+    none of the law's physics read into them; where none is, nothing more is said."""
     from types import SimpleNamespace
 
     from fluxcal.service.numerics.diagnose.discover import Discovery
+    from fluxcal.service.numerics.diagnose.shape_reading import as_form
     from fluxcal.service.numerics.diagnose.text import discovery_lines
 
     forms = [{"observable": "servo_deg", "chosen": "polynomial", "alike": ["distance power", "exponential"],
@@ -205,7 +207,16 @@ def test_a_law_the_held_out_blocks_do_not_single_out_is_said_as_one_form_among_o
                        base_heldout_rms_nT=1100.0, floor_nT=140.0, rms_nT=270.0, heldout_rms_nT=275.0, forms=forms)
     lines = "\n".join(discovery_lines(SimpleNamespace(discovery=found)))
     assert "they do not tell it from distance power or exponential: its parameters are those of this form" in lines
-    assert ("(the held-out blocks do not tell servo_deg's polynomial from distance power or exponential: the form's "
-            "parameters are its own, not a law these data single out)") in found.sentence()
     forms[0]["alike"] = []
-    assert "do not tell" not in "\n".join(discovery_lines(SimpleNamespace(discovery=found))) + found.sentence()
+    assert "do not tell" not in "\n".join(discovery_lines(SimpleNamespace(discovery=found)))
+    # the group's own reading says it (the JSON's reading, the group's line and the verdict's sentence alike): the
+    # form's parameters, and none of the physics the law would read into them
+    law = ("as a polynomial of degree 2, (servo_deg - x0)^2 with x0 = -20.58 +- 3.2 deg: a quadratic in servo_deg "
+           "about x0")
+    said = as_form(law, ["distance power", "exponential"])
+    assert said == ("as a polynomial of degree 2, (servo_deg - x0)^2 with x0 = -20.58 +- 3.2 deg (the held-out blocks "
+                    "do not tell it from distance power or exponential: these are the form's parameters, not a law "
+                    "these data single out)")
+    assert as_form(law, []) == law
+    group.reading = f"a field that moves as servo_deg goes, {said}"
+    assert group.reading in found.sentence() and found.sentence().count("single out") == 1

@@ -112,12 +112,7 @@ class Discovery:
         """The finding in one sentence (for the verdict), or why nothing is claimed."""
         if not self.claimed:
             return f"discovery tried {self.tried} groups beyond the catalogue and claims none: {self.reason}"
-        found = "; ".join(g.reading for g in self.groups)
-        alike = [f"{f['observable']}'s {f['chosen']} from {' or '.join(f['alike'])}" for f in self.forms
-                 if f.get("alike")]
-        if alike:                                   # one story with the forms' line: no law is singled out
-            found += (f" (the held-out blocks do not tell {'; '.join(alike)}: the form's parameters are its own, not "
-                      f"a law these data single out)")
+        found = "; ".join(g.reading for g in self.groups)   # a law not singled out says so in its own reading
         return (f"discovered beyond the catalogue: {found}; with {'it' if len(self.groups) == 1 else 'them'} the "
                 f"held-out error falls from {self.base_heldout_rms_nT:.3f} to {self.heldout_rms_nT:.3f} nT against a "
                 f"{self.floor_nT:.3f} nT floor (the search itself, every choice made without the block it predicts, "

@@ -168,6 +168,7 @@ def choose_forms(data: Any, base: FitResult, kept: list[Group], fit: FitResult, 
                       "forms": [{"form": f.label, "parameters": f.n_params, "heldout_rms_nT": f.ho.rms_nT}
                                 for f in forms]})
         if chosen.term is not None:
+            chosen.term.alike = list(alike)
             if thin is not None:                        # chosen on a share of the rows: fitted on all from there
                 chosen.term.start = chosen.fit.state.shared[chosen.term.name].copy()
                 got = _fit_form(data, base, kept, others, laws + [chosen.term], reference, weights, n_blocks, hints,

@@ -222,6 +222,9 @@ class LawTerm(EffectTerm):
         self.unit = unit
         self.fixed = fixed                                          # a free spline: its coefficient held at one
         self.per_sample = recipe.get("source") != "angular rate"     # type: ignore[misc]
+        #: the other laws the held-out blocks do not tell from this one (forms.choose_forms): its parameters are then
+        #: the form's, not a law these data single out, and its reading says so
+        self.alike: list[str] = []
 
     @property
     def n_law(self) -> int:

@@ -201,7 +201,19 @@ def read_law(term: Any, fit: Any, source: str, cov: np.ndarray | None = None) ->
     else:
         law = (f"as a shifted saturation, tanh(({x} - x0) / s) with x0 = {pm(0)} {unit} and s = {pm(1)} {unit}: it "
                f"saturates about x0")
-    return f"{head}, {law}", parts
+    alike = list(getattr(term, "alike", []) or [])
+    if alike:
+        parts["alike"] = alike
+    return f"{head}, {as_form(law, alike)}", parts
+
+
+def as_form(law: str, alike: list[str]) -> str:
+    """A law's clause as read, where the held-out blocks tell no other law from it (`alike`): its parameters as the
+    form's own, and no physics read into them (one story with the forms' line and the verdict)."""
+    if not alike:
+        return law
+    return (f"{law.split(': ')[0]} (the held-out blocks do not tell it from {' or '.join(alike)}: these are the form's "
+            f"parameters, not a law these data single out)")
 
 
 #: the partial residual is read in this many bins of the observable (quantiles)
