@@ -34,14 +34,15 @@ def test_the_tutorial_runs_as_written(tmp_path, monkeypatch, capsys, clean_regis
     monkeypatch.chdir(ROOT)
     cmds = _commands()
     assert [c[0] for c in cmds] == ["diagnose", "diagnose", "fit"]
-    # 1. unexplained, with the signature of what is left
+    # 1. no catalogue effect; explained beyond the catalogue, with the signature of what the catalogue leaves
     assert main(cmds[0] + ["--json"]) == 0
     import json
 
     d = json.loads(capsys.readouterr().out)
     assert not any(c["significant"] for c in d["candidates"])
     v = d["verdict"]
-    assert v["kind"] == "unexplained" and v["effect"] is None
+    assert v["kind"] == "explained beyond the catalogue" and v["effect"] is None
+    assert v["rms_nT"] == pytest.approx(d["discovery"]["rms_nT"]) and v["channels_above"] == []
     sig = v["signature"]
     # the keys docs/contracts.md documents
     assert set(v) == {"kind", "effect", "rms_nT", "floor_nT", "left", "advice", "signature", "channels_above"}

@@ -330,6 +330,18 @@ def ellipsoid_core(field_nT: np.ndarray, total_nT=None, *, name: str = "s1", max
     return EllipsoidCore(fit, sol, missing, cone, raw)
 
 
+def assumed_total(raw_nT: np.ndarray) -> float | None:
+    """The total field, nT, a fit with none given assumes for these (N, 3) samples (their rows with a NaN left out): the
+    one at which the calibrated sphere has the raw ellipsoid's volume (unit_volume_total) of the judge's fit
+    (ellipsoid_core, order auto), as `fit` reports it (total_nT_assumed); None where the samples fit no ellipsoid."""
+    raw = np.asarray(raw_nT, float)
+    raw = raw[np.isfinite(raw).all(axis=1)]
+    try:
+        return float(np.sqrt(ellipsoid_core(raw).fit.f2_ref))
+    except (CalibrationRefused, np.linalg.LinAlgError, ValueError):
+        return None
+
+
 def _fit_result(sol: QuadricSolution, raw: np.ndarray, name: str) -> tuple[EllipsoidFit, list[str]]:
     """The calibration, its named parameters and standard errors, and what they leave undetermined."""
     theta, cov, scale, f2m, center = sol.theta, sol.theta_cov, sol.scale, sol.f2_ref, sol.center

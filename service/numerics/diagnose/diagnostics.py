@@ -39,6 +39,7 @@ from fluxcal.service.numerics.engine import (
     initial_linear,
     reference_total,
     residual_hints,
+    scaled_to,
     start_weights,
 )
 from fluxcal.service.numerics.usable import refuse_stuck, temperature_notes
@@ -49,6 +50,7 @@ from .fits import heldout, try_candidate
 from .frames import frame_summary, frames
 from .result import N_BLOCKS, P_SIGNIFICANT, Candidate, Diagnosis, Progress
 from .signature import (
+    CHANNEL_FACTOR,
     FLOOR_FACTOR,
     FOLLOWS,
     SHARED,
@@ -233,10 +235,14 @@ def _start(ed: Any, calibration: Any, fixed: bool, effects: Sequence[str], notes
     else:
         ref0 = ed.ref_total_nT if ed.ref_total_nT is not None else ed.total_nT
         linear = initial_linear(ed, ref0)
-    reference, ref_kind = reference_total(ed, linear)
+    reference, ref_kind = reference_total(ed, linear, held=fixed)
+    if ref_kind == "estimated" and not fixed:
+        linear = scaled_to(linear, ed, reference)
     if ref_kind == "estimated":
-        notes.append("no ref_total and no total field in --config: the total field is estimated "
-                     "(an overall scale error cannot be seen)")
+        how = (f"the median |corrected| of {ed.probe_names[0]} by the calibration held" if fixed else
+               f"as fit assumes it: the calibrated sphere has the volume of {ed.probe_names[0]}'s raw ellipsoid")
+        notes.append(f"no ref_total and no total field in --config: the total field is estimated, "
+                     f"{float(reference[0]):,.1f} nT, {how} (an overall scale error cannot be seen)")
     weights = start_weights(ed, linear, reference)
     model = make_model(list(effects), baseline=not fixed)
     for t in model.effect_terms:
@@ -285,6 +291,10 @@ def _last_advice(told: dict, notes: list[str], cur, best, found, weak, cands, re
     off (refit: the residual of the linear part refitted, and why these data do not determine it, or None), a
     disturbance in time."""
     linear_refit, refit_refused = refit
+    if weak is None and found is not None and found.claimed and _at_floor(found, noise_nT):
+        # one story: what discovery found takes every channel to its floor, so the headline says so (it said
+        # "unexplained" above a finding that explained it); `left` stays what the catalogue leaves, which it takes
+        told.update(kind="explained beyond the catalogue", rms_nT=found.rms_nT, channels_above=[])
     if weak is not None:
         notes.append(f"the held-out test is weak here: {weak['reason']}; {weak['advice']}")
         if found is not None and found.claimed:
@@ -308,6 +318,16 @@ def _last_advice(told: dict, notes: list[str], cur, best, found, weak, cands, re
                              linear_refit > FLOOR_FACTOR * noise_nT else ""))
     if stretch is not None and told["kind"] == "unexplained" and not explains_stretch(found, stretch, noise_nT, cur):
         told["advice"] = stretch_advice(stretch, told.get("advice"))
+
+
+def _at_floor(found: Any, noise_nT: float) -> bool:
+    """Whether the terms discovery claims explain the data down to their noise, as the catalogue's "explained" asks:
+    the held-out error within FLOOR_FACTOR of the floor, every channel within CHANNEL_FACTOR of its own in the fit."""
+    fit = found.fit
+    if fit is None or found.heldout_rms_nT is None or found.heldout_rms_nT > FLOOR_FACTOR * noise_nT:
+        return False
+    noise = 1.0 / fit.problem.weights
+    return bool(np.all(fit.channels.rms_nT <= CHANNEL_FACTOR * noise))
 
 
 #: discovery runs by itself where the catalogue leaves an excess: the verdict unexplained or partly explained, or a

@@ -11,11 +11,11 @@ from fluxcal.service.numerics.noise import channel_noise
 
 from .linear import LinearCalibration
 from .model_fit import EffectsFit, fit_model, fit_with_effects, residual_hints
-from .problem import Problem, as_effect_data, reference_total
+from .problem import Problem, as_effect_data, reference_total, scaled_to
 from .residuals import Channels
 from .solve import RANK_TOL, FitResult, Parameter, Warm, fit_problem, solve_normal, warm_from
 from .start import initial_linear, start_weights
 
 __all__ = ["Channels", "EffectsFit", "FitResult", "LinearCalibration", "Parameter", "Problem", "RANK_TOL", "Warm",
            "as_effect_data", "channel_names", "channel_noise", "fit_model", "fit_problem", "fit_with_effects",
-           "initial_linear", "reference_total", "residual_hints", "solve_normal", "start_weights", "warm_from"]
+           "initial_linear", "reference_total", "residual_hints", "scaled_to", "solve_normal", "start_weights", "warm_from"]

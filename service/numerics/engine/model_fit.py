@@ -13,7 +13,7 @@ from fluxcal.service.numerics.calib.model import ArrayCalibration, ProbeCalibrat
 from fluxcal.service.numerics.effects.base import REF_PREFIX, Baseline, EffectData, Model
 
 from .linear import LinearCalibration
-from .problem import Problem, as_effect_data, reference_total
+from .problem import Problem, as_effect_data, reference_total, scaled_to
 from .residuals import Channels
 from .solve import FitResult, Parameter, fit_problem
 from .start import initial_linear, start_weights
@@ -182,7 +182,9 @@ def fit_with_effects(data: Any, effects: Sequence[str] | Model, base_calibration
         linear = initial_linear(ed, ref0)
     else:
         linear = LinearCalibration.from_any(base_calibration, ed.n_probes)
-    reference, kind = reference_total(ed, linear)
+    reference, kind = reference_total(ed, linear, held=fix_linear and base_calibration is not None)
+    if kind == "estimated" and not fix_linear:
+        linear = scaled_to(linear, ed, reference)
     weights = start_weights(ed, linear, reference)
     res = fit_model(ed, model, linear, reference, weights, n_blocks=n_blocks, progress=progress)
     out = effects_fit_from(res, kind)

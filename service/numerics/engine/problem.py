@@ -249,9 +249,15 @@ class Problem:
         return float(np.einsum("nc,nc->c", r, r) @ self.weights ** 2)
 
 
-def reference_total(data: EffectData, linear: LinearCalibration | None = None) -> tuple[np.ndarray, str]:
-    """The total field each scalar channel is compared with: ref_total, the configured total, or the
-    median |corrected| of probe 1 (estimated); and which of the three it is."""
+def reference_total(data: EffectData, linear: LinearCalibration | None = None, *,
+                    held: bool = False) -> tuple[np.ndarray, str]:
+    """The total field each scalar channel is compared with: ref_total, the configured total, or one estimated from
+    the data; and which of the three it is. Estimated, it is the field `fit` assumes (ellipsoid.assumed_total: the one
+    at which probe 1's calibrated sphere has the volume of its raw ellipsoid), so that every command gives the same
+    residual in nT for the same samples; with the linear part `held` fixed, or where the samples fit no ellipsoid,
+    the median |corrected| of probe 1 by `linear` (a calibration held keeps its own scale)."""
+    from fluxcal.service.numerics.calib.ellipsoid import assumed_total
+
     if data.ref_total_nT is not None:
         return data.ref_total_nT, "ref_total"
     if data.total_nT is not None:
@@ -259,7 +265,19 @@ def reference_total(data: EffectData, linear: LinearCalibration | None = None) -
     if linear is None:
         raise CalibrationRefused("no total field: give ref_total in the data, a total in --config, or a start")
     v = (data.raw_nT[:, 0, :] - linear.offset_nT[0]) @ linear.matrix[0].T
-    return np.full(data.n_samples, float(np.median(np.linalg.norm(v, axis=1)))), "estimated"
+    size = float(np.nanmedian(np.linalg.norm(v, axis=1)))
+    estimated = None if held else assumed_total(data.raw_nT[:, 0, :])
+    return np.full(data.n_samples, size if estimated is None else estimated), "estimated"
+
+
+def scaled_to(linear: LinearCalibration, data: EffectData, reference: np.ndarray) -> LinearCalibration:
+    """The start `linear` with every probe's matrix scaled by one factor, so that probe 1's median |corrected| is the
+    reference's median: the fit then starts where an estimated total field puts the scale (the probes' alignment
+    kept)."""
+    v = (data.raw_nT[:, 0, :] - linear.offset_nT[0]) @ linear.matrix[0].T
+    size = float(np.nanmedian(np.linalg.norm(v, axis=1)))
+    factor = float(np.median(reference)) / size if np.isfinite(size) and size > 0 else 1.0
+    return LinearCalibration(linear.offset_nT.copy(), linear.matrix * factor)
 
 
 def as_effect_data(data: Any, *, total_nT: float | None = None, positions_m: np.ndarray | None = None,
