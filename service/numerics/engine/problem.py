@@ -264,18 +264,21 @@ def reference_total(data: EffectData, linear: LinearCalibration | None = None, *
         return np.full(data.n_samples, float(data.total_nT)), "config"
     if linear is None:
         raise CalibrationRefused("no total field: give ref_total in the data, a total in --config, or a start")
-    v = (data.raw_nT[:, 0, :] - linear.offset_nT[0]) @ linear.matrix[0].T
-    size = float(np.nanmedian(np.linalg.norm(v, axis=1)))
     estimated = None if held else assumed_total(data.raw_nT[:, 0, :])
-    return np.full(data.n_samples, size if estimated is None else estimated), "estimated"
+    return np.full(data.n_samples, _size(data, linear) if estimated is None else estimated), "estimated"
+
+
+def _size(data: EffectData, linear: LinearCalibration) -> float:
+    """The median |corrected| of probe 1 by `linear`, nT."""
+    v = (data.raw_nT[:, 0, :] - linear.offset_nT[0]) @ linear.matrix[0].T
+    return float(np.nanmedian(np.linalg.norm(v, axis=1)))
 
 
 def scaled_to(linear: LinearCalibration, data: EffectData, reference: np.ndarray) -> LinearCalibration:
     """The start `linear` with every probe's matrix scaled by one factor, so that probe 1's median |corrected| is the
     reference's median: the fit then starts where an estimated total field puts the scale (the probes' alignment
     kept)."""
-    v = (data.raw_nT[:, 0, :] - linear.offset_nT[0]) @ linear.matrix[0].T
-    size = float(np.nanmedian(np.linalg.norm(v, axis=1)))
+    size = _size(data, linear)
     factor = float(np.median(reference)) / size if np.isfinite(size) and size > 0 else 1.0
     return LinearCalibration(linear.offset_nT.copy(), linear.matrix * factor)
 
