@@ -75,7 +75,7 @@ def find_holds(field_nT: np.ndarray, probe_names: Sequence[str]) -> Holds:
             notes.append(f"{name}: {m:,} of {n:,} samples ({share}) repeat the previous one exactly, all three "
                          f"axes (a logger's hold: {expected:.3g} expected by chance from how often each axis repeats): "
                          f"left out of the noise floor, the fits and the spectra")
-        elif m:
+        elif m and m < pairs:        # (a probe whose every sample repeats did not measure: usable.refuse_stuck says)
             notes.append(f"{name}: {m:,} exact repeats of the previous sample, about as many as the sensor's "
                          f"resolution gives by chance ({expected:.3g}): kept as measurements")
     if held.any() and p > 1:

@@ -79,7 +79,12 @@ def fit_probe(method: str, raw: np.ndarray, total: TotalField, block: SampleBloc
         from fluxcal.service.numerics.calib.tmi import fit_tmi
 
         if total.values is None:
-            raise CalibrationRefused("tmi needs a scalar reference: a ref_total column or [estimator] total_nT")
+            reason = "tmi needs a scalar reference of the total field, and these data give none"
+            advice = ("give one: a ref_total column, the site (--site LAT,LON[,ALT_M[,DATE]]: the field model's total "
+                      "there) or [estimator] total_nT in --config; or fit with --method ellipsoid, which estimates it")
+            refused = CalibrationRefused(f"{reason}: {advice}")
+            refused.reason, refused.advice = reason, advice
+            raise refused
         return fit_tmi(raw, total.values, name=name)
     if method == "sinefit":
         from fluxcal.service.numerics.calib.sinefit import fit_sinefit

@@ -137,6 +137,7 @@ def test_a_sensor_that_never_changes_is_refused_not_a_crash(tmp_path, capsys):
         assert "s1: all 800 samples are the same vector (-3600, 100, -5600 nT): the sensor did not measure" in err
         assert "turn" not in err
         assert "the file holds no other probe" in err and "--mags" not in err     # no other compass to choose
+        assert "kept as measurements" not in err         # one story: not 'chance repeats', then 'did not measure'
     capsys.readouterr()
     assert main(["inspect", str(path), "--json"]) == 0          # what was read is said beside the refusal
     seen = json.loads(capsys.readouterr().out)

@@ -106,6 +106,7 @@ def test_fit_takes_the_site_for_a_method_that_needs_a_total_field(tmp_path):
     run = [sys.executable, "-m", "fluxcal.service.wiring.cli", "fit", str(path), "--method", "tmi", "--json"]
     refused = subprocess.run(run, capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert refused.returncode == 2 and "tmi needs a scalar reference" in refused.stderr
+    assert "--site LAT,LON" in refused.stderr          # the way out it needs, said where it is refused
     done = subprocess.run(run + ["--site", "80,0,0,2025.0"], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert done.returncode == 0, done.stderr
     out = json.loads(done.stdout)

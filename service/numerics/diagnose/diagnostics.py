@@ -134,7 +134,8 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
         best = next((c for c in cands if c.significant and c.fit is not None), None)
 
     weak = _weakness(cur, cur_ho, best, found)
-    _last_advice(told, notes, cur, best, found, weak, cands, (linear_refit, refit_refused), noise_nT, stretch)
+    _last_advice(told, notes, cur, best, found, weak, cands, (linear_refit, refit_refused), noise_nT, stretch,
+                 carried)
     notes += _coloured_noise_notes(sig_cur.get("spectral_slope"), model.effects, ed.duration_s)
 
     tell(1.0, "done")
@@ -236,10 +237,14 @@ def _start(ed: Any, calibration: Any, fixed: bool, effects: Sequence[str], notes
         ref0 = ed.ref_total_nT if ed.ref_total_nT is not None else ed.total_nT
         linear = initial_linear(ed, ref0)
     reference, ref_kind = reference_total(ed, linear, held=fixed)
+    made_for = linear.assumed_total_nT if fixed else None
+    if ref_kind == "estimated" and made_for is not None:      # the field the calibration held was made for
+        reference = np.full(ed.n_samples, made_for)
     if ref_kind == "estimated" and not fixed:
         linear = scaled_to(linear, ed, reference)
     if ref_kind == "estimated":
-        how = (f"the median |corrected| of {ed.probe_names[0]} by the calibration held" if fixed else
+        how = ("the field the calibration held assumed (its total_nT_assumed)" if made_for is not None else
+               f"the median |corrected| of {ed.probe_names[0]} by the calibration held" if fixed else
                f"as fit assumes it: the calibrated sphere has the volume of {ed.probe_names[0]}'s raw ellipsoid")
         notes.append(f"no ref_total and no total field in --config: the total field is estimated, "
                      f"{float(reference[0]):,.1f} nT, {how} (an overall scale error cannot be seen)")
@@ -286,15 +291,18 @@ def _weakness(cur: Any, cur_ho: Any, best: Candidate | None, found: Any) -> dict
 
 
 def _last_advice(told: dict, notes: list[str], cur, best, found, weak, cands, refit: tuple, noise_nT: float,
-                 stretch) -> None:
+                 stretch, carried: Carried) -> None:
     """What the verdict and the notes say last: a weak held-out test, a fit stopped early, a calibration held that is
     off (refit: the residual of the linear part refitted, and why these data do not determine it, or None), a
     disturbance in time."""
     linear_refit, refit_refused = refit
     if weak is None and found is not None and found.claimed and _at_floor(found, noise_nT):
         # one story: what discovery found takes every channel to its floor, so the headline says so (it said
-        # "unexplained" above a finding that explained it); `left` stays what the catalogue leaves, which it takes
-        told.update(kind="explained beyond the catalogue", rms_nT=found.rms_nT, channels_above=[])
+        # "unexplained" above a finding that explained it); `left` stays what the catalogue leaves, which it takes,
+        # without the frames' guesses at what moves it (a field of the site, or each probe's noise): the finding says
+        told.update(kind="explained beyond the catalogue", rms_nT=found.rms_nT, channels_above=[],
+                    left=describe({**(told.get("signature") or {}), "frames": None,
+                                   "channels_above": told.get("channels_above") or []}, carried)[0])
     if weak is not None:
         notes.append(f"the held-out test is weak here: {weak['reason']}; {weak['advice']}")
         if found is not None and found.claimed:

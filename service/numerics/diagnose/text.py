@@ -191,15 +191,19 @@ def _verdict_lines(d: Diagnosis, v: dict[str, Any], best: Candidate | None, try_
         return [f"  explained by {best.effect}: adding it brings the residual from {d.rms_nT:.3f} to "
                 f"{best.rms_nT:.3f} nT, the noise floor is {d.noise_nT:.3f} nT{try_it}"] + alike
     if v["kind"] == "explained beyond the catalogue":
-        head = (f"no catalogue effect explains the residual ({d.rms_nT:.3f} nT against a {d.noise_nT:.3f} nT floor)"
-                if best is None else f"{best.effect} brings the residual from {d.rms_nT:.3f} to {best.rms_nT:.3f} nT "
-                                     f"against a {d.noise_nT:.3f} nT floor, and no other catalogue effect adds to it")
-        return ([f"  explained beyond the catalogue: {head}; what discovery found takes every channel to its floor"]
+        head = (f"what discovery found takes the residual ({d.rms_nT:.3f} nT) to its {d.noise_nT:.3f} nT floor, and "
+                f"no catalogue effect adds to it" if best is None else
+                f"{best.effect} brings the residual from {d.rms_nT:.3f} to {best.rms_nT:.3f} nT, and what discovery "
+                f"found beside it takes it to its {d.noise_nT:.3f} nT floor")
+        return ([f"  explained beyond the catalogue: {head}; every channel is within its own floor"]
                 + ([f"  what the catalogue leaves: {v['left']}"] if v.get("left") else [])
                 + [f"  what explains it: {v['advice']}"] + alike)
     if v["kind"] == "partly explained":
         head = (f"  partly explained by {best.effect}: adding it brings the residual from {d.rms_nT:.3f} to "
                 f"{best.rms_nT:.3f} nT against a {d.noise_nT:.3f} nT floor{try_it}")
+    elif d.heldout_weak is not None:        # no more than the data determine: nothing found, and nothing ruled out
+        head = (f"  unexplained: the held-out test cannot judge these data, so no catalogue effect is found "
+                f"significant and none is ruled out ({d.rms_nT:.3f} nT against a {d.noise_nT:.3f} nT floor)")
     else:
         head = (f"  unexplained: no catalogue effect explains the rest of the residual significantly "
                 f"({d.rms_nT:.3f} nT against a {d.noise_nT:.3f} nT floor)")

@@ -17,9 +17,12 @@ class LinearCalibration:
 
     offset_nT: np.ndarray      # (P, 3)
     matrix: np.ndarray         # (P, 3, 3)
+    #: the total field the calibration was made for where it was made without one (its first probe's
+    #: total_nT_assumed: `fit` of an estimated field), nT; None otherwise
+    assumed_total_nT: float | None = None
 
     def copy(self) -> "LinearCalibration":
-        return LinearCalibration(self.offset_nT.copy(), self.matrix.copy())
+        return LinearCalibration(self.offset_nT.copy(), self.matrix.copy(), self.assumed_total_nT)
 
     @classmethod
     def from_any(cls, cal: Any, n_probes: int) -> "LinearCalibration":
@@ -43,6 +46,7 @@ class LinearCalibration:
         if len(probes) != n_probes:
             raise DataError(f"calibration: it has {len(probes)} probes, the data have {n_probes}")
         off, mat = [], []
+        assumed = _assumed_total(probes[0]) if probes else None
         for p in probes:
             get = p.get if isinstance(p, dict) else (lambda k, _p=p: getattr(_p, k, None))
             o, m = get("offset_nT"), get("matrix")
@@ -50,4 +54,12 @@ class LinearCalibration:
                 raise DataError("calibration: a probe entry lacks offset_nT or matrix")
             off.append(np.asarray(o, dtype=np.float64).reshape(3))
             mat.append(np.asarray(m, dtype=np.float64).reshape(3, 3))
-        return cls(np.array(off), np.array(mat))
+        return cls(np.array(off), np.array(mat), assumed)
+
+
+def _assumed_total(probe: Any) -> float | None:
+    """A probe calibration's total_nT_assumed (its params, object or `fit --json` dict), nT, or None."""
+    params = probe.get("params") if isinstance(probe, dict) else getattr(probe, "params", None)
+    value = params.get("total_nT_assumed") if isinstance(params, dict) else None
+    value = value.get("value") if isinstance(value, dict) else None
+    return float(value) if isinstance(value, (int, float)) and np.isfinite(value) and value > 0 else None

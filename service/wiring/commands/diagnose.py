@@ -217,7 +217,10 @@ def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = T
             bar.close()
     if ready.thinned is not None:
         result.thinned = ready.thinned
-    result.notes[0:0] = ready.notes               # data not in nT first: every figure after it is in their unit
+    # what reading the file lost or left out, said as it came (in the JSON too), then data not in nT: every figure
+    # after it is in their unit
+    read = [n.text for n in said.warnings if n.text not in ready.notes and n.text not in result.notes]
+    result.notes[0:0] = read + ready.notes
     height = follows_height_note(result.where, track_used=prep.track is not None)
     if height:
         result.notes.append(height)

@@ -223,6 +223,9 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     warnings += [prep.config_warning] if prep.config_warning else []
     warnings += [prep.part_of_run] if prep.part_of_run else []
     warnings = scale + warnings
+    # what reading the file lost or left out (a logger's holds, a gap, a cut message), said as it came: in the JSON
+    # too, where a program reads it (nothing left out silently)
+    warnings = [n.text for n in said.warnings if n.text not in warnings] + warnings
     cal.diagnostics["warnings"] = warnings
     cal.unit = recording_identity(data.metadata)          # the unit a service recording says it was made by
     out = FitResult("fit", source, effects_fit=ef)
