@@ -13,6 +13,7 @@ import itertools
 import re
 
 import pytest
+from real_data import needs_real, real
 from test_advice import BRANCHES, _follow, _sig
 
 from fluxcal.service.numerics.diagnose.signature import Carried, describe
@@ -41,6 +42,8 @@ def disagreements(text: str) -> list[str]:
         if float(ho) <= 1.3 * float(floor) and re.search(r"^\s*(unexplained|partly explained)", text, re.M):
             out.append(f"a finding at its floor ({ho} against {floor} nT) under a headline that calls the data not "
                        f"explained")
+    if "note: the held-out test is weak here" in text and "explains the rest of the residual significantly" in text:
+        out.append("a verdict the held-out test cannot judge said as if it had judged it")
     return out
 
 
@@ -104,6 +107,19 @@ def test_the_sample_recordings_diagnoses_tell_one_story(recording):
     if recording in ("grad3-flap.mcap", "grad3-pump.mcap"):     # what discovery found takes them to their floor
         assert d.verdict["kind"] == "explained beyond the catalogue", d.verdict
         assert "explained beyond the catalogue: what discovery found takes the residual" in text, text
+
+
+@needs_real("hmc5883l_sensorfusion_sphere.csv")
+def test_a_board_the_held_out_test_cannot_judge_is_not_called_unexplained_as_if_judged():
+    """A hand-turned board of 106 s: every candidate 'undecided: the held-out test is weak here' under a headline that
+    said no catalogue effect explains the residual significantly; it now says the test cannot judge these data."""
+    from fluxcal.service.io.recordings.load import load_data
+    from fluxcal.service.numerics.diagnose import diagnose, summary_text
+
+    d = diagnose(load_data(real("hmc5883l_sensorfusion_sphere.csv")), discover=False)
+    text = summary_text(d)
+    assert d.heldout_weak is not None and disagreements(text) == [], text
+    assert "unexplained: the held-out test cannot judge these data" in text
 
 
 def test_a_band_the_columns_lines_reach_by_chance_is_no_function_of_it():

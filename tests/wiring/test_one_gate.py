@@ -399,3 +399,45 @@ def test_real_boards_get_one_residual_from_fit_and_diagnose(name, capsys):
     status, diag = run(capsys, "diagnose", path)
     assert status == 0, diag
     assert diag["rms_nT"] == pytest.approx(fit["rms_nT"], rel=2e-3)
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_a_calibration_held_keeps_the_field_it_was_made_for(tmp_path, capsys, seed):
+    """fit's calibration of a file with no reference field, held by diagnose: the field it assumed (total_nT_assumed)
+    is the one its residual is taken against (it was the median |corrected|, 0.03-0.1 % off), and refitting its linear
+    part would give what diagnose without it gives."""
+    path = str(_uneven_turns(tmp_path, seed, "white"))
+    cal = tmp_path / "cal.json"
+    status, fit = run(capsys, "fit", path, "--out", str(cal))
+    assert status == 0, fit
+    assumed = fit["sensors"][0]["params"]["total_nT_assumed"]["value"]
+    status, held = run(capsys, "diagnose", path, "--calibration", str(cal))
+    assert status == 0, held
+    note = next(n for n in held["notes"] if "the total field is estimated" in n)
+    assert f"{assumed:,.1f} nT, the field the calibration held assumed" in note
+    status, plain = run(capsys, "diagnose", path)
+    assert status == 0, plain
+    capsys.readouterr()
+    assert cli.main(["diagnose", path, "--calibration", str(cal)]) == 0
+    would = float(re.search(r"refitting the linear part would give ([0-9.]+) nT", capsys.readouterr().out).group(1))
+    assert would == pytest.approx(plain["rms_nT"], rel=2e-3)
+
+
+def test_what_reading_left_out_is_in_the_json_of_fit_and_diagnose(tmp_path, capsys):
+    """A logger's holds left out of the fits were said on stderr alone: a program reading --json never saw them."""
+    rng = np.random.default_rng(7)
+    n = 3000
+    u = rng.normal(size=(n, 3))
+    raw = 48_000.0 * u / np.linalg.norm(u, axis=1)[:, None] + [300.0, -200.0, 100.0] + rng.normal(0, 2.0, (n, 3))
+    held = rng.choice(np.arange(1, n), 150, replace=False)
+    raw[held] = raw[held - 1]                                     # the logger repeated the sample before
+    path = tmp_path / "holds.csv"
+    np.savetxt(path, np.column_stack([np.arange(n) * 0.05, raw, np.full(n, 48_000.0)]), delimiter=",",
+               header="t,s1_x,s1_y,s1_z,ref_total", comments="", fmt="%.3f")
+    status, fit = run(capsys, "fit", str(path))
+    assert status == 0, fit
+    said = [w for w in fit["warnings"] if "repeat the previous one exactly" in w]
+    assert len(said) == 1 and said[0].startswith("s1: ")
+    status, diag = run(capsys, "diagnose", str(path))
+    assert status == 0, diag
+    assert said[0] in diag["notes"]
