@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -114,3 +115,11 @@ def test_fit_takes_the_site_for_a_method_that_needs_a_total_field(tmp_path):
     scale = np.diag(np.asarray(out["sensors"][0]["matrix"]))
     assert np.allclose(scale, [1 / 1.01, 1 / 0.99, 1 / 1.02], atol=2e-4)
     assert out["sensors"][0]["scalar_rms_nT"] < 1.5
+    # diagnose of the same file at the same site says where its total field came from as fit does
+    diag = subprocess.run([sys.executable, "-m", "fluxcal.service.wiring.cli", "diagnose", str(path), "--site",
+                           "80,0,0,2025.0"], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    fitted = subprocess.run(run[:-3] + ["--site", "80,0,0,2025.0"], capture_output=True, text=True, cwd=ROOT,
+                            timeout=120)
+    assert diag.returncode == 0 and fitted.returncode == 0, diag.stderr + fitted.stderr
+    said = re.search(r"total field from (the site \([^)]*\))", fitted.stdout).group(1)
+    assert said.startswith("the site (WMM") and f"total field from {said})" in diag.stdout, diag.stdout

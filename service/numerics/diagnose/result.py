@@ -101,7 +101,7 @@ class Diagnosis:
     effects: list[str]
     model: str
     linear: str                           # "refit" or "fixed"
-    reference: str                        # "ref_total", "config" or "estimated"
+    reference: str                        # "ref_total", "config", "estimated" or "the site (WMM-2025)"
     rms_nT: float
     noise_nT: float
     channel_names: list[str]

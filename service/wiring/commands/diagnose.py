@@ -217,6 +217,8 @@ def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = T
             bar.close()
     if ready.thinned is not None:
         result.thinned = ready.thinned
+    if prep.site is not None and result.reference == "config":     # the total is the site's: said as fit says it
+        result.reference = f"the site ({prep.site.model})"
     # what reading the file lost or left out, said as it came (in the JSON too), then data not in nT: every figure
     # after it is in their unit
     read = [n.text for n in said.warnings if n.text not in ready.notes and n.text not in result.notes]
