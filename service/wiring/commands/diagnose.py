@@ -193,7 +193,7 @@ def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = T
     from fluxcal.service.numerics.calib.determinacy import refuse_undetermined
     from fluxcal.service.numerics.calib.track import follows_height_note
     from fluxcal.service.numerics.diagnose.diagnostics import diagnose
-    from fluxcal.service.wiring.commands.fit import usable_data
+    from fluxcal.service.wiring.commands.fit import CARRIED, usable_data
     from fluxcal.service.wiring.fitting import judge_data
 
     limit = opts.max_samples
@@ -221,7 +221,7 @@ def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = T
         result.reference = f"the site ({prep.site.model})"
     # what reading the file lost or left out, said as it came (in the JSON too), then data not in nT: every figure
     # after it is in their unit
-    read = [n.text for n in said.warnings if n.text not in ready.notes and n.text not in result.notes]
+    read = [n.text for n in said.warnings if n.kind not in CARRIED and n.text not in ready.notes + result.notes]
     result.notes[0:0] = read + ready.notes
     height = follows_height_note(result.where, track_used=prep.track is not None)
     if height:

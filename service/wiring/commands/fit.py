@@ -180,6 +180,11 @@ def checked(opts: FitOptions, source: str | None) -> FitOptions:
     return opts
 
 
+#: the kinds of what was said that the warnings carry in their own words already (the data's scale, the configuration,
+#: a part of a run)
+CARRIED = ("field-scale", "config", "part-of-run")
+
+
 def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     """The calibration of the prepared data (and its files, when asked): figures and notes as data."""
     data, source = prep.data, prep.source
@@ -225,7 +230,7 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     warnings = scale + warnings
     # what reading the file lost or left out (a logger's holds, a gap, a cut message), said as it came: in the JSON
     # too, where a program reads it (nothing left out silently)
-    warnings = [n.text for n in said.warnings if n.text not in warnings] + warnings
+    warnings = [n.text for n in said.warnings if n.kind not in CARRIED and n.text not in warnings] + warnings
     cal.diagnostics["warnings"] = warnings
     cal.unit = recording_identity(data.metadata)          # the unit a service recording says it was made by
     out = FitResult("fit", source, effects_fit=ef)
