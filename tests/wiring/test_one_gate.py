@@ -441,3 +441,25 @@ def test_what_reading_left_out_is_in_the_json_of_fit_and_diagnose(tmp_path, caps
     status, diag = run(capsys, "diagnose", str(path))
     assert status == 0, diag
     assert said[0] in diag["notes"]
+
+
+def test_diagnose_says_the_samples_its_residuals_are_taken_over(tmp_path, capsys):
+    """diagnose's residuals leave out the rows near the record's ends and its gaps in time (every candidate's lags and
+    rates need their neighbours): a real board's 3,900 samples were residuals over 3,421, said nowhere, beside fit's
+    figure over all of them."""
+    rng = np.random.default_rng(11)
+    n = 4000
+    u = rng.normal(size=(n, 3))
+    raw = 48_000.0 * u / np.linalg.norm(u, axis=1)[:, None] + [300.0, -200.0, 100.0] + rng.normal(0, 2.0, (n, 3))
+    t = np.arange(n) * 0.05
+    t[n // 2:] += 30.0                                                    # the logger stopped for 30 s
+    path = tmp_path / "gap.csv"
+    np.savetxt(path, np.column_stack([t, raw, np.full(n, 48_000.0)]), delimiter=",",
+               header="t,s1_x,s1_y,s1_z,ref_total", comments="", fmt="%.3f")
+    status, diag = run(capsys, "diagnose", str(path))
+    assert status == 0, diag
+    assert diag["n_samples"] == n and 0.8 * n < diag["n_fitted"] < n
+    capsys.readouterr()
+    assert cli.main(["diagnose", str(path)]) == 0
+    assert f"{n} samples over" in (out := capsys.readouterr().out)
+    assert f"the residuals over the {diag['n_fitted']} away from the record's ends and its gaps in time" in out

@@ -129,6 +129,13 @@ class Diagnosis:
     heldout_weak: dict[str, Any] | None = None
 
     @property
+    def n_fitted(self) -> int | None:
+        """The samples the residuals are taken over: away from the record's ends and its gaps in time, the rows every
+        candidate's terms (lags, rates) are fitted on; None where that is every sample."""
+        rows = getattr(getattr(self.fit, "problem", None), "rows", None)
+        return None if rows is None or rows.size == self.n_samples else int(rows.size)
+
+    @property
     def best(self) -> Candidate | None:
         """The first significant candidate, if any."""
         return next((c for c in self.candidates if c.significant), None)
@@ -154,6 +161,8 @@ class Diagnosis:
             "notes": list(self.notes),
             "verdict": _plain(self.verdict),
         }
+        if self.n_fitted is not None:
+            d["n_fitted"] = self.n_fitted
         if self.linear_refit_rms_nT is not None:
             d["linear_refit_rms_nT"] = _num(self.linear_refit_rms_nT)
         if self.linear_refit_refused is not None:

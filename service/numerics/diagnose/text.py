@@ -50,7 +50,9 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
     head = f"fluxcal diagnose {data_name}".rstrip()
     lines.append(head)
     lines.append(f"  model: {d.model}   (linear part {d.linear}; total field {reference_words(d.reference)})")
-    lines.append(f"  {d.n_samples} samples over {d.duration_s:.1f} s")
+    lines.append(f"  {d.n_samples} samples over {d.duration_s:.1f} s" + (
+        "" if d.n_fitted is None else f"; the residuals over the {d.n_fitted} away from the record's ends and its "
+                                      f"gaps in time (the rows every candidate's terms are fitted on)"))
     ratio = d.rms_nT / d.noise_nT if d.noise_nT > 0 else float("inf")
     lines.append(f"  residual RMS {d.rms_nT:.3f} nT against a noise floor of {d.noise_nT:.3f} nT "
                  f"({ratio:.2f} x noise); held-out {d.heldout_rms_nT:.3f} nT")
