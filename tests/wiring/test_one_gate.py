@@ -424,7 +424,8 @@ def test_a_calibration_held_keeps_the_field_it_was_made_for(tmp_path, capsys, se
 
 
 def test_what_reading_left_out_is_in_the_json_of_fit_and_diagnose(tmp_path, capsys):
-    """A logger's holds left out of the fits were said on stderr alone: a program reading --json never saw them."""
+    """A logger's holds left out of the fits were said on stderr alone (by inspect, not at all): a program reading
+    --json never saw them."""
     rng = np.random.default_rng(7)
     n = 3000
     u = rng.normal(size=(n, 3))
@@ -441,6 +442,8 @@ def test_what_reading_left_out_is_in_the_json_of_fit_and_diagnose(tmp_path, caps
     status, diag = run(capsys, "diagnose", str(path))
     assert status == 0, diag
     assert said[0] in diag["notes"]
+    status, seen = run(capsys, "inspect", str(path))              # and inspect, where count and samples differ
+    assert status == 0 and said[0] in seen["warnings"], seen["warnings"]
 
 
 def test_diagnose_says_the_samples_its_residuals_are_taken_over(tmp_path, capsys):

@@ -74,11 +74,14 @@ def inspect(args: Namespace) -> Inspection:
     topics, mags = getattr(args, "topics", None), getattr(args, "mags", None)
     i = inspect_file(args.file, log_mapping(args.file, topics, mags), read=False)
     read = False
+    said = Said("inspect")
     try:
-        prep = prepare(args.file, Said("inspect"), config=getattr(args, "config", None),
+        prep = prepare(args.file, said, config=getattr(args, "config", None),
                        site=getattr(args, "site", None), skip=getattr(args, "skip", None), topics=topics, mags=mags)
-        data, _ = usable_data(prep.data)
-        i, read = replace(i, **reading(data)), True
+        data, left_out = usable_data(prep.data)
+        # what the reading fit and diagnose share left out (a logger's holds, a gap), as they say it
+        lost = [w for w in [n.text for n in said.warnings] + left_out if w not in i.warnings]
+        i, read = replace(i, **reading(data), warnings=i.warnings + lost), True
         judged = judge_data(data, prep.total_nT, prep.total_source or "")
     except (DataError, CalibrationRefused) as e:
         # what was read stays said (its samples, duration, clock): the refusal is of a calibration from them
