@@ -64,7 +64,7 @@ class Prepared:
         if self.track is not None:
             return self.total_source or "given"
         if self.site is not None:
-            return "the site"
+            return f"the site ({self.site.model})"                   # as fit says it
         return self.origin or "given"
 
     @property
@@ -170,7 +170,7 @@ class EffectInput:
     thinned: dict[str, Any] | None = None         # `thinning`'s figures, None when every sample was kept
 
 
-def effect_input(prep: Prepared, said: Said, *, budget: str) -> EffectInput:
+def effect_input(prep: Prepared, said: Said, *, budget: str, centres_nT: Any = None) -> EffectInput:
     """The prepared data let go of (Prepared.take_data) into EffectData, said: the thinning `budget` (the words
     of what limited the samples) imposed, and the data's scale against the total field given (field_scale_notes).
     The samples then live in the EffectData alone (hours of them)."""
@@ -185,7 +185,9 @@ def effect_input(prep: Prepared, said: Said, *, budget: str) -> EffectInput:
     data = EffectData.from_block(lab.block, lab.probe_names, total_nT=total, positions_m=positions)
     del lab
     ref = data.ref_total_nT                       # the reference the fits use before a configured total
-    scale = field_scale_notes(said, prep.source, data.raw_nT, data.probe_names, about="a sphere fitted to them",
+    # the data's size about the determinacy gate's centres (`centres_nT`), as fit says it; else about a sphere
+    scale = field_scale_notes(said, prep.source, data.raw_nT, data.probe_names, centres_nT=centres_nT,
+                              about="a sphere fitted to them" if centres_nT is None else "the fitted centre",
                               total_nT=ref if ref is not None else total,
                               total_source=prep.given_total_source if ref is None or prep.track is not None
                               else "the ref_total column")

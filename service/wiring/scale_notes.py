@@ -27,4 +27,12 @@ def field_scale_notes(said: Any, source: str, field_nT: Any, probe_names: Sequen
     return loud + warnings
 
 
-__all__ = ["field_scale_notes"]
+def total_words(prep: Any, source: str) -> str:
+    """The total field fit takes, in the words fit, diagnose and inspect say it with: the site or the track (the
+    prepared data's `total_source`), the configuration, the ref_total column; `source`: total_field's."""
+    if prep.site is not None or prep.track is not None:
+        return prep.total_source
+    return {"config": prep.origin or "configured", "ref_total": "the ref_total column"}.get(source, source)
+
+
+__all__ = ["field_scale_notes", "total_words"]

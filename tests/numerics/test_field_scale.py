@@ -117,3 +117,22 @@ def test_diagnose_refuses_them_alike(tmp_path, capsys):
     fit = json.loads(capsys.readouterr().out)["refused"]
     assert main(["diagnose", ut, "--json"]) == 2
     assert json.loads(capsys.readouterr().out)["refused"] == fit
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_fit_diagnose_and_inspect_say_the_datas_scale_in_one_sentence(tmp_path, capsys, seed):
+    """A site whose field is 1.4 times the data's: fit said the data's median |B| about its calibration's offset and
+    'the site (WMM-2015v2)', diagnose about a sphere of its own and 'the site' (two figures, two sources), inspect
+    nothing. Now each says it about the determinacy gate's centre, in the same words."""
+    data = write_csv(tmp_path / "off.csv", sphere(radius=37_000.0, seed=seed))
+    site = ["--site", "40,-75,0,2015-01-01"]                     # about 51,800 nT there (WMM-2015)
+    said = []
+    for command in ("fit", "diagnose", "inspect"):
+        capsys.readouterr()
+        assert main([command, data, *site]) == 0
+        out, err = capsys.readouterr()
+        found = {line.split("the total field given ", 1)[1] for line in (out + err).splitlines()
+                 if "the total field given (" in line}
+        assert len(found) == 1, (command, found)
+        said.append(found.pop())
+    assert said[0] == said[1] == said[2], said
+    assert "the site (WMM-2015" in said[0] and "about the fitted centre (37,0" in said[0]

@@ -206,7 +206,8 @@ def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = T
             "it (or hold one made from a fuller turn fixed: --calibration CAL.json)")
     if prep.held is None:
         refuse_undetermined(judged, then=then)        # before any fit: a refusal costs nothing more
-    ready = effect_input(prep, said, budget=budget)
+    centres = [j.centre_nT for j in judged]          # the gate's centres: the data's size said as fit says it
+    ready = effect_input(prep, said, budget=budget, centres_nT=None if any(c is None for c in centres) else centres)
     data = ready.data
     bar = Progress(1.0, "diagnose", fraction=True) if progress else None
     try:

@@ -46,7 +46,7 @@ from fluxcal.service.wiring.fitting import (
 from fluxcal.service.wiring.identity import recording_identity
 from fluxcal.service.wiring.prepare import FROM_RECORDING, Prepared
 from fluxcal.service.wiring.result import Result, Said, print_result, stderr_say
-from fluxcal.service.wiring.scale_notes import field_scale_notes
+from fluxcal.service.wiring.scale_notes import field_scale_notes, total_words
 
 HELP = CommandHelp("fit a calibration to lab data (CSV, MCAP, a PX4 or ArduPilot log, a ROS 2 bag)",
                    "  fluxcal fit grad.csv --out cal.json\n  fluxcal fit board.csv --site 46.52,6.63,400 --json\n"
@@ -199,10 +199,10 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
         total.source = prep.total_source
     # data in µT (or counts) fit without complaint; said here, before anything is reported in "nT"
     scale = field_scale_notes(said, source, data.block.field_nT, data.probe_names,
-                              centres_nT=[p.offset_nT for p in cal.probes],
+                              centres_nT=[p.offset_nT if j.centre_nT is None else j.centre_nT   # the gate's, as
+                                          for j, p in zip(judged, cal.probes)],                # diagnose says it
                               total_nT=None if total.source == "estimated" else total.values,
-                              total_source={"config": prep.origin or "configured", "ref_total": "the ref_total column"}
-                              .get(total.source, total.source))
+                              total_source=total_words(prep, total.source))
     if opts.effects:
         ef, cal, channels, rows, report_data, thinned, effect_sizes = _with_effects(data, cal, opts.effects, prep)
     else:

@@ -67,9 +67,10 @@ def inspect(args: Namespace) -> Inspection:
     """The file's streams, then what fit would take of it (prepare and usable_data, as fit does) and each probe's
     verdict of the determinacy gate, with the total field fit would take."""
     from fluxcal.service.wiring.commands.fit import usable_data
-    from fluxcal.service.wiring.fitting import judge_data
+    from fluxcal.service.wiring.fitting import judge_data, total_field
     from fluxcal.service.wiring.prepare import log_mapping, prepare
     from fluxcal.service.wiring.result import Said
+    from fluxcal.service.wiring.scale_notes import field_scale_notes, total_words
 
     topics, mags = getattr(args, "topics", None), getattr(args, "mags", None)
     i = inspect_file(args.file, log_mapping(args.file, topics, mags), read=False)
@@ -83,6 +84,15 @@ def inspect(args: Namespace) -> Inspection:
         lost = [w for w in [n.text for n in said.warnings] + left_out if w not in i.warnings]
         i, read = replace(i, **reading(data), warnings=i.warnings + lost), True
         judged = judge_data(data, prep.total_nT, prep.total_source or "")
+        total = total_field(data, prep.total_nT)            # the data's scale against it, as fit says it
+        scale = field_scale_notes(said, prep.source, data.block.field_nT, data.probe_names,
+                                  centres_nT=[j.centre_nT for j in judged] if all(j.centre_nT is not None
+                                                                                  for j in judged) else None,
+                                  about="the fitted centre" if all(j.centre_nT is not None for j in judged)
+                                  else "a sphere fitted to them",
+                                  total_nT=None if total.source == "estimated" else total.values,
+                                  total_source=total_words(prep, total.source))
+        i = replace(i, warnings=i.warnings + [w for w in scale if w not in i.warnings])
     except (DataError, CalibrationRefused) as e:
         # what was read stays said (its samples, duration, clock): the refusal is of a calibration from them
         left = {} if read else {"probes": [], "columns": [], "samples": 0}
