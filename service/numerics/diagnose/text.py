@@ -91,7 +91,8 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
     lines.append(DECIDES)
     if d.heldout_weak:              # a SIGNIFICANT effect also stands beyond its parameters' errors: said so, one story
         either = ("the gains alone decide nothing, and an effect called SIGNIFICANT below also stands beyond its "
-                  "parameters' own errors" if any(c.significant for c in d.candidates) else "the gains are not a verdict")
+                  "parameters' own errors" if any(c.significant for c in d.candidates)
+                  else "the gains are not a verdict")
         lines.append(f"    the held-out test is weak here: {d.heldout_weak['reason']}: {either}")
     lines.append("    effect         rms if added  held-out   gain     p-value   dBIC       verdict")
     for c in d.candidates:
