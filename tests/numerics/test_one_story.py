@@ -133,3 +133,33 @@ def test_a_band_the_columns_lines_reach_by_chance_is_no_function_of_it():
     assert "non-linear function of flap_deg" not in advice and "narrow-band disturbance" in advice, advice
     _, advice = describe(_sig(follows=[band, _follow("flap_deg x field direction", 0.2)]), carried)
     assert "non-linear function of flap_deg" in advice, advice
+
+
+@pytest.mark.slow
+def test_two_effects_the_verdicts_tell_apart_are_not_called_indistinguishable(tmp_path, capsys):
+    """fit's own calibration of the hidden-effect recording held by diagnose (a field user's trial): "thermal and
+    temperature are indistinguishable with these data" beside thermal SIGNIFICANT and temperature refused within its
+    errors. Where a later check tells two such candidates apart, the sentence says that instead."""
+    import json
+    from pathlib import Path
+
+    from fluxcal.service.wiring.cli import main
+
+    rec = str(Path(__file__).resolve().parents[2] / "recordings" / "grad1-hidden-effect.mcap")
+    cal = tmp_path / "cal.json"
+    assert main(["fit", rec, "--out", str(cal)]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", rec, "--calibration", str(cal), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert main(["diagnose", rec, "--calibration", str(cal)]) == 0
+    text = capsys.readouterr().out
+    by = {c["effect"]: c for c in d["candidates"]}
+    pairs = {frozenset((c["effect"], o)) for c in d["candidates"] for o in c.get("indistinguishable_from") or []
+             if o in by}
+    assert pairs, "the world no longer pairs two candidates: the test needs another"
+    for pair in pairs:
+        a, b = sorted(pair)
+        told_apart = by[a]["significant"] != by[b]["significant"]
+        said = [ln for ln in text.splitlines() if f" {a} and {b} " in f" {ln} " or f" {b} and {a} " in f" {ln} "]
+        assert len(said) == 1, said
+        assert ("are indistinguishable" in said[0]) != told_apart, said[0]

@@ -104,6 +104,7 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
         lines.append(f"    {c.effect:<14} {c.rms_nT:10.3f} nT {c.heldout_rms_nT:8.3f}   {gain}  "
                      f"{c.p_value:9.2g}  {c.bic_delta:9.1f}   {verdict}")
     told: set[frozenset] = set()
+    by = {c.effect: c for c in d.candidates}
     for c in d.candidates:
         for other in c.indistinguishable_from:
             key = frozenset((c.effect, other))
@@ -114,6 +115,12 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
                 what = "the probe offsets" if other == "offset" else (
                     "the linear calibration" if other == "baseline" else f"the {other} term already in the model")
                 lines.append(f"  {c.effect} cannot be told apart from {what} with these data: {c.separate_by}.")
+            elif (o := by.get(other)) is not None and o.significant != c.significant and (o.refusal or c.refusal):
+                # one story: the held-out blocks do not tell them apart, a later check did; said as that
+                kept, out = (c, o) if c.significant else (o, c)
+                lines.append(f"  {c.effect} and {other} predict the held-out blocks alike (equal held-out gain, "
+                             f"collinear regressors); {out.effect} is refused ({out.refusal}), {kept.effect} is not: "
+                             f"{c.separate_by}.")
             else:
                 lines.append(f"  {c.effect} and {other} are indistinguishable with these data (equal held-out gain, "
                              f"collinear regressors): {c.separate_by}.")
