@@ -113,6 +113,38 @@ def test_watch_prints_the_live_vectors_once_a_second_when_not_a_terminal(publish
     assert re.search(r"frames_accepted=\d+ crc_failures=3", last) and "seq_gaps" not in last
 
 
+def test_watch_json_prints_what_the_view_shows_as_data_once_a_second(publisher, capsys):
+    """`watch --json`: JSON lines a program reads (trials asked for it: `command state --json` has no vectors)."""
+    import json
+
+    pub = publisher()
+    status = cli_main(["watch", "--connect", pub.ep, "--unit", "u1", "--seconds", "1.7", "--json"])
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert status == 0 and len(lines) == 2
+    rec = json.loads(lines[-1])
+    assert rec["unit"] == "u1" and rec["status"] is None and rec["messages"] > 0
+    assert [p["name"] for p in rec["probes"]] == ["s1", "s2"]
+    assert rec["probes"][0]["corrected_nT"] == S1.tolist()
+    assert rec["probes"][1]["total_nT"] == pytest.approx(float(np.linalg.norm(S2)))
+    assert rec["differences"] == {"s2-s1": [1.0, 2.0, 3.0]} and rec["tensor_nT_m"] == TENSOR.tolist()
+    assert rec["calibration"]["usable"] is True and rec["calibration"]["coverage"] == 0.83
+    assert rec["error_rms_nT"]["s1.scalar"] == pytest.approx(0.71) and rec["counters"]["crc_failures"] == 3
+
+
+def test_watch_json_leaves_the_last_vectors_out_while_samples_do_not_arrive():
+    from fluxcal.service.wiring.commands.watch import view_record
+
+    now = [100.0]
+    dash = TerminalView("u1", ["tcp/127.0.0.1:7447"], clock=lambda: now[0])
+    dash.connected = True
+    dash.update(Message("corrected", "fluxcal/u1/corrected", corrected_block(0)))
+    assert view_record(dash)["status"] is None and "probes" in view_record(dash)
+    now[0] += 10.0                                          # the stream stops
+    dash.alive = False
+    rec = view_record(dash)
+    assert "no data from fluxcal/u1 for 10 s" in rec["status"] and "probes" not in rec
+
+
 def test_watch_finds_the_only_running_unit_without_unit(publisher, capsys):
     pub = publisher(unit="auto7")
     assert cli_main(["watch", "--connect", pub.ep, "--seconds", "1.7"]) == 0

@@ -103,6 +103,20 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
         gain = gain_text(c.gain, d.heldout_weak)
         lines.append(f"    {c.effect:<14} {c.rms_nT:10.3f} nT {c.heldout_rms_nT:8.3f}   {gain}  "
                      f"{c.p_value:9.2g}  {c.bic_delta:9.1f}   {verdict}")
+    lines += _alike_lines(d)
+    lines += discovery_lines(d)
+    lines.append("")
+    lines += verdict_lines(d)
+    for n in d.notes:
+        lines.append(f"  note: {n}")
+    return "\n".join(lines)
+
+
+
+def _alike_lines(d: Diagnosis) -> list[str]:
+    """The candidates the held-out blocks do not tell apart: from the model's own terms, from each other, or from each
+    other where a later check does (then said as that)."""
+    out: list[str] = []
     told: set[frozenset] = set()
     by = {c.effect: c for c in d.candidates}
     for c in d.candidates:
@@ -114,22 +128,17 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
             if other in ("offset", "baseline") or other in d.effects:
                 what = "the probe offsets" if other == "offset" else (
                     "the linear calibration" if other == "baseline" else f"the {other} term already in the model")
-                lines.append(f"  {c.effect} cannot be told apart from {what} with these data: {c.separate_by}.")
+                out.append(f"  {c.effect} cannot be told apart from {what} with these data: {c.separate_by}.")
             elif (o := by.get(other)) is not None and o.significant != c.significant and (o.refusal or c.refusal):
                 # one story: the held-out blocks do not tell them apart, a later check did; said as that
-                kept, out = (c, o) if c.significant else (o, c)
-                lines.append(f"  {c.effect} and {other} predict the held-out blocks alike (equal held-out gain, "
-                             f"collinear regressors); {out.effect} is refused ({out.refusal}), {kept.effect} is not: "
-                             f"{c.separate_by}.")
+                kept, refused = (c, o) if c.significant else (o, c)
+                out.append(f"  {c.effect} and {other} predict the held-out blocks alike (equal held-out gain, "
+                           f"collinear regressors); {refused.effect} is refused ({refused.refusal}), {kept.effect} is "
+                           f"not: {c.separate_by}.")
             else:
-                lines.append(f"  {c.effect} and {other} are indistinguishable with these data (equal held-out gain, "
-                             f"collinear regressors): {c.separate_by}.")
-    lines += discovery_lines(d)
-    lines.append("")
-    lines += verdict_lines(d)
-    for n in d.notes:
-        lines.append(f"  note: {n}")
-    return "\n".join(lines)
+                out.append(f"  {c.effect} and {other} are indistinguishable with these data (equal held-out gain, "
+                           f"collinear regressors): {c.separate_by}.")
+    return out
 
 
 def gain_text(gain: float, weak: dict | None = None) -> str:

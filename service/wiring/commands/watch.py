@@ -56,6 +56,8 @@ def add_options(p: argparse.ArgumentParser) -> None:
     connection_options(p, "terminal view")
     p.add_argument("--unit", metavar="NAME", help="the unit to watch (default: the first one found)")
     p.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")
+    p.add_argument("--json", action="store_true", help="one JSON object a second (JSON lines): what the view shows, "
+                                                       "as data")
 
 
 def _vec(v: np.ndarray, width: int = 10) -> str:
@@ -281,6 +283,36 @@ class TerminalView:
         return " | ".join(p for p in parts if p)
 
 
+def view_record(view: TerminalView) -> dict[str, Any]:
+    """What the one-line view shows, as data (--json): whether samples flow (`status`: why not, else null), the newest
+    vectors (corrected, else raw; left out while samples do not arrive, as the line leaves them out), differences,
+    tensor, error, the calibration state and the counters."""
+    waiting = view.waiting_message()
+    st, rec = view.state or {}, {"t_s": round(view.clock() - view.t_start, 3), "unit": view.unit,
+                                 "status": waiting, "messages": view.n_messages}
+    gate = st.get("gate") or {}
+    rec["calibration"] = {"usable": st.get("usable"), "cal_id": st.get("cal_id"), "stale": bool(st.get("stale")),
+                          **({k: gate.get(k) for k in ("coverage", "condition", "rms_nT")} if _judged(gate) else {}),
+                          "reasons": list(gate.get("reasons") or [])} if st else None
+    rec["counters"] = dict((view.health or {}).get("counters") or {})
+    if waiting is None:
+        c, raw = view.corrected, view.raw
+        if c is not None and c.n_samples:
+            rec["probes"] = [{"name": n, "corrected_nT": v.tolist(), "total_nT": float(np.linalg.norm(v))}
+                             for n, v in zip(view._names(c.n_probes), c.corrected_nT[-1])]
+        elif raw is not None and raw.n_samples:
+            rec["probes"] = [{"name": n, "raw_nT": v.tolist()} for n, v in zip(view._names(raw.n_probes),
+                                                                                raw.field_nT[-1])]
+        if view.diff is not None and view.diff.values.size:
+            names = view._names(view.diff.values.shape[1] + 1)
+            rec["differences"] = {f"{names[k + 1]}-{names[0]}": d.tolist() for k, d in enumerate(view.diff.values[-1])}
+        if view.tensor is not None and view.tensor.values.size:
+            rec["tensor_nT_m"] = view.tensor.values[-1].tolist()
+        if view.error:
+            rec["error_rms_nT"] = dict(view.error.get("rms_nT") or {})
+    return rec
+
+
 def _field_panels(view: TerminalView, stale: bool) -> list[str]:
     """The terminal view's newest vectors (corrected, else raw), differences and tensor; `stale`: the samples are not
     arriving, so the vectors are marked as the last ones."""
@@ -411,9 +443,9 @@ class _Link:
 
 
 def run(endpoints: list[str], unit: str | None, seconds: float | None, out: TextIO, *,
-        tty: bool | None = None, tls: ZenohTlsConfig | None = None) -> int:
-    """The watch's loop; returns the exit status."""
-    tty = out.isatty() if tty is None else tty
+        tty: bool | None = None, tls: ZenohTlsConfig | None = None, as_json: bool = False) -> int:
+    """The watch's loop; returns the exit status. as_json: one JSON object a second (view_record), never redrawn."""
+    tty = False if as_json else out.isatty() if tty is None else tty
     period = TTY_PERIOD_S if tty else LINE_PERIOD_S
     start = time.monotonic()
     deadline = None if seconds is None else start + seconds
@@ -427,7 +459,8 @@ def run(endpoints: list[str], unit: str | None, seconds: float | None, out: Text
             link.poll(time.monotonic())
             now = time.monotonic()
             if now >= next_frame:
-                out.write(view.render_tty() if tty else view.line() + "\n")
+                out.write(view.render_tty() if tty else (json.dumps(view_record(view)) if as_json else view.line())
+                          + ("" if tty else "\n"))
                 out.flush()
                 next_frame = now + period
             link.wait(min(next_frame, deadline if deadline is not None else next_frame) - time.monotonic())
@@ -443,7 +476,7 @@ def run(endpoints: list[str], unit: str | None, seconds: float | None, out: Text
 
 def main(args: argparse.Namespace) -> int:
     endpoints, unit, tls = resolve(args)
-    status = run(endpoints, unit, args.seconds, sys.stdout, tls=tls)
+    status = run(endpoints, unit, args.seconds, sys.stdout, tls=tls, as_json=getattr(args, "json", False))
     if status:
         where = f"fluxcal/{unit}" if unit else "any fluxcal unit"
         print(f"fluxcal watch: nothing received from {where} via {', '.join(endpoints)} in {args.seconds:g} s",
