@@ -82,11 +82,13 @@ def unit_guess(scale: float) -> str:
 
 def field_scale_warnings(field_nT: np.ndarray, probe_names: Sequence[str],
                          centres_nT: Sequence[np.ndarray] | None = None, total_nT: float | None = None,
-                         total_source: str = "", about: str = "the fitted centre") -> tuple[list[str], list[str]]:
+                         total_source: str = "") -> tuple[list[str], list[str]]:
     """(warnings, loud): probes whose median |B| about the centre is implausible for nT, said with what the
     data look like; loud: a given total field more than TOTAL_RATIO_LIMIT times off the data's scale (the
-    calibration's matrix would take that factor). Never a refusal: a shielded lab may be right."""
+    calibration's matrix would take that factor). Never a refusal: a shielded lab may be right. Without
+    `centres_nT` (the fitted centres), about a sphere fitted to each probe's samples, and said so."""
     med = median_field(field_nT, centres_nT)
+    about = "the fitted centre" if centres_nT is not None else "a sphere fitted to them"
     warnings, loud = [], []
     bad = [k for k, m in enumerate(med) if np.isfinite(m) and not PLAUSIBLE_NT[0] <= m <= PLAUSIBLE_NT[1]]
     if bad:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -210,6 +210,13 @@ def judge_data(data: LabData, configured_total_nT: float | None = None, total_so
         return judged
     source = total_source or {"ref_total": "the ref_total column", "config": "configured"}.get(total.source, "")
     return [physical(j, field_nT[:, k], total.values, source) for k, j in enumerate(judged)]
+
+
+def gate_centres(judged: Sequence[Determinacy]) -> list[np.ndarray] | None:
+    """Every probe's centre as the determinacy gate fitted it (the data's size is said about these by fit, diagnose
+    and inspect alike), or None where the gate fitted none for some probe."""
+    centres = [j.centre_nT for j in judged]
+    return None if any(c is None for c in centres) else centres
 
 
 def _refuse_non_finite(data: LabData) -> None:

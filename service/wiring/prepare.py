@@ -187,7 +187,6 @@ def effect_input(prep: Prepared, said: Said, *, budget: str, centres_nT: Any = N
     ref = data.ref_total_nT                       # the reference the fits use before a configured total
     # the data's size about the determinacy gate's centres (`centres_nT`), as fit says it; else about a sphere
     scale = field_scale_notes(said, prep.source, data.raw_nT, data.probe_names, centres_nT=centres_nT,
-                              about="a sphere fitted to them" if centres_nT is None else "the fitted centre",
                               total_nT=ref if ref is not None else total,
                               total_source=prep.given_total_source if ref is None or prep.track is not None
                               else "the ref_total column")

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 from fluxcal.drivers.text import printable
 
@@ -72,6 +72,16 @@ class Said:
     @property
     def warnings(self) -> list[Note]:
         return [n for n in self.notes if n.is_warning]
+
+    def lost_in_reading(self, besides: Sequence[str] = ()) -> list[str]:
+        """The warnings said so far (what reading lost or left out: a logger's holds, a gap, a cut message), for a
+        result's JSON, but those a command carries in its own words (CARRIED) and those in `besides`."""
+        return [n.text for n in self.warnings if n.kind not in CARRIED and n.text not in besides]
+
+
+#: the kinds of what was said that a command's result carries in its own words already (the data's scale, the
+#: configuration, a part of a run)
+CARRIED = ("field-scale", "config", "part-of-run")
 
 
 @dataclass

@@ -211,12 +211,12 @@ def test_a_law_the_held_out_blocks_do_not_single_out_is_said_as_one_form_among_o
     assert "do not tell" not in "\n".join(discovery_lines(SimpleNamespace(discovery=found)))
     # the group's own reading says it (the JSON's reading, the group's line and the verdict's sentence alike): the
     # form's parameters, and none of the physics the law would read into them
-    law = ("as a polynomial of degree 2, (servo_deg - x0)^2 with x0 = -20.58 +- 3.2 deg: a quadratic in servo_deg "
-           "about x0")
-    said = as_form(law, ["distance power", "exponential"])
+    formula = "as a polynomial of degree 2, (servo_deg - x0)^2 with x0 = -20.58 +- 3.2 deg"
+    physics = "a quadratic in servo_deg about x0"
+    said = as_form(formula, physics, ["distance power", "exponential"])
     assert said == ("as a polynomial of degree 2, (servo_deg - x0)^2 with x0 = -20.58 +- 3.2 deg (the held-out blocks "
                     "do not tell it from distance power or exponential: these are the form's parameters, not a law "
                     "these data single out)")
-    assert as_form(law, []) == law
+    assert as_form(formula, physics, []) == f"{formula}: {physics}"
     group.reading = f"a field that moves as servo_deg goes, {said}"
     assert group.reading in found.sentence() and found.sentence().count("single out") == 1

@@ -237,14 +237,11 @@ def _start(ed: Any, calibration: Any, fixed: bool, effects: Sequence[str], notes
         ref0 = ed.ref_total_nT if ed.ref_total_nT is not None else ed.total_nT
         linear = initial_linear(ed, ref0)
     reference, ref_kind = reference_total(ed, linear, held=fixed)
-    made_for = linear.assumed_total_nT if fixed else None
-    if ref_kind == "estimated" and made_for is not None:      # the field the calibration held was made for
-        reference = np.full(ed.n_samples, made_for)
     if ref_kind == "estimated" and not fixed:
         linear = scaled_to(linear, ed, reference)
     if ref_kind == "estimated":
-        how = ("the field the calibration held assumed (its total_nT_assumed)" if made_for is not None else
-               f"the median |corrected| of {ed.probe_names[0]} by the calibration held" if fixed else
+        how = ("the field the calibration held assumed (its total_nT_assumed)" if fixed and linear.assumed_total_nT
+               else f"the median |corrected| of {ed.probe_names[0]} by the calibration held" if fixed else
                f"as fit assumes it: the calibrated sphere has the volume of {ed.probe_names[0]}'s raw ellipsoid")
         notes.append(f"no ref_total and no total field in --config: the total field is estimated, "
                      f"{float(reference[0]):,.1f} nT, {how} (an overall scale error cannot be seen)")

@@ -187,33 +187,33 @@ def read_law(term: Any, fit: Any, source: str, cov: np.ndarray | None = None) ->
     if name == "distance power":
         closes = "closes" if p[0] > hi else "opens"
         ratio = f"c / (c - {x})" if ref == 0 else f"(c - {ref:g}) / (c - {x})"
-        law = (f"as a distance power, ({ratio})^n with c = {pm(0)} {unit} and n = {pm(1)}: a source whose distance "
-               f"{closes} as {x} rises, its field as the power {p[1]:.2g} of the distance")
+        law = (f"as a distance power, ({ratio})^n with c = {pm(0)} {unit} and n = {pm(1)}",
+               f"a source whose distance {closes} as {x} rises, its field as the power {p[1]:.2g} of the distance")
     elif name == "polynomial":
-        law = f"as a polynomial of degree 2, ({x} - x0)^2 with x0 = {pm(0)} {unit}: a quadratic in {x} about x0"
+        law = (f"as a polynomial of degree 2, ({x} - x0)^2 with x0 = {pm(0)} {unit}", f"a quadratic in {x} about x0")
     elif name == "cubic":
         law = (f"as a cubic, z + b2 z^2 + b3 z^3 with z = ({x} - {ref:g}) / {hi - lo:.3g} {unit}, b2 = {pm(0)} and "
-               f"b3 = {pm(1)}: a polynomial of degree 3 in {x}")
+               f"b3 = {pm(1)}", f"a polynomial of degree 3 in {x}")
     elif name == "exponential":
-        law = f"as an exponential, exp(({x} - {ref:g}) / s) with s = {pm(0)} {unit}"
+        law = (f"as an exponential, exp(({x} - {ref:g}) / s) with s = {pm(0)} {unit}", "")
     elif name == "saturation":
-        law = f"as a saturation, tanh({x} / s) with s = {pm(0)} {unit}: it saturates as {x} grows from zero"
+        law = (f"as a saturation, tanh({x} / s) with s = {pm(0)} {unit}", f"it saturates as {x} grows from zero")
     else:
-        law = (f"as a shifted saturation, tanh(({x} - x0) / s) with x0 = {pm(0)} {unit} and s = {pm(1)} {unit}: it "
-               f"saturates about x0")
-    alike = list(getattr(term, "alike", []) or [])
+        law = (f"as a shifted saturation, tanh(({x} - x0) / s) with x0 = {pm(0)} {unit} and s = {pm(1)} {unit}",
+               "it saturates about x0")
+    if term.alike:
+        parts["alike"] = list(term.alike)
+    return f"{head}, {as_form(*law, term.alike)}", parts
+
+
+def as_form(formula: str, physics: str, alike: list[str]) -> str:
+    """A law's clause as read: its formula with the fitted parameters, then what that law means (`physics`); where the
+    held-out blocks tell no other law from it (`alike`), its parameters as the form's own and no physics read into
+    them (one story with the forms' line and the verdict)."""
     if alike:
-        parts["alike"] = alike
-    return f"{head}, {as_form(law, alike)}", parts
-
-
-def as_form(law: str, alike: list[str]) -> str:
-    """A law's clause as read, where the held-out blocks tell no other law from it (`alike`): its parameters as the
-    form's own, and no physics read into them (one story with the forms' line and the verdict)."""
-    if not alike:
-        return law
-    return (f"{law.split(': ')[0]} (the held-out blocks do not tell it from {' or '.join(alike)}: these are the form's "
-            f"parameters, not a law these data single out)")
+        return (f"{formula} (the held-out blocks do not tell it from {' or '.join(alike)}: these are the form's "
+                f"parameters, not a law these data single out)")
+    return f"{formula}: {physics}" if physics else formula
 
 
 #: the partial residual is read in this many bins of the observable (quantiles)

@@ -112,7 +112,6 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
     return "\n".join(lines)
 
 
-
 def _alike_lines(d: Diagnosis) -> list[str]:
     """The candidates the held-out blocks do not tell apart: from the model's own terms, from each other, or from each
     other where a later check does (then said as that)."""

@@ -254,8 +254,9 @@ def reference_total(data: EffectData, linear: LinearCalibration | None = None, *
     """The total field each scalar channel is compared with: ref_total, the configured total, or one estimated from
     the data; and which of the three it is. Estimated, it is the field `fit` assumes (ellipsoid.assumed_total: the one
     at which probe 1's calibrated sphere has the volume of its raw ellipsoid), so that every command gives the same
-    residual in nT for the same samples; with the linear part `held` fixed, or where the samples fit no ellipsoid,
-    the median |corrected| of probe 1 by `linear` (a calibration held keeps its own scale)."""
+    residual in nT for the same samples. With the linear part `held` fixed, the field it was made for (its
+    assumed_total_nT: a calibration held keeps its own scale), else, as where the samples fit no ellipsoid, the median
+    |corrected| of probe 1 by `linear`."""
     from fluxcal.service.numerics.calib.ellipsoid import assumed_total
 
     if data.ref_total_nT is not None:
@@ -264,7 +265,7 @@ def reference_total(data: EffectData, linear: LinearCalibration | None = None, *
         return np.full(data.n_samples, float(data.total_nT)), "config"
     if linear is None:
         raise CalibrationRefused("no total field: give ref_total in the data, a total in --config, or a start")
-    estimated = None if held else assumed_total(data.raw_nT[:, 0, :])
+    estimated = linear.assumed_total_nT if held else assumed_total(data.raw_nT[:, 0, :])
     return np.full(data.n_samples, _size(data, linear) if estimated is None else estimated), "estimated"
 
 

@@ -193,8 +193,8 @@ def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = T
     from fluxcal.service.numerics.calib.determinacy import refuse_undetermined
     from fluxcal.service.numerics.calib.track import follows_height_note
     from fluxcal.service.numerics.diagnose.diagnostics import diagnose
-    from fluxcal.service.wiring.commands.fit import CARRIED, usable_data
-    from fluxcal.service.wiring.fitting import judge_data
+    from fluxcal.service.wiring.commands.fit import usable_data
+    from fluxcal.service.wiring.fitting import gate_centres, judge_data
 
     limit = opts.max_samples
     budget = (f"--max-samples {limit:,}" if limit is not None
@@ -206,8 +206,7 @@ def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = T
             "it (or hold one made from a fuller turn fixed: --calibration CAL.json)")
     if prep.held is None:
         refuse_undetermined(judged, then=then)        # before any fit: a refusal costs nothing more
-    centres = [j.centre_nT for j in judged]          # the gate's centres: the data's size said as fit says it
-    ready = effect_input(prep, said, budget=budget, centres_nT=None if any(c is None for c in centres) else centres)
+    ready = effect_input(prep, said, budget=budget, centres_nT=gate_centres(judged))   # the data's size as fit says
     data = ready.data
     bar = Progress(1.0, "diagnose", fraction=True) if progress else None
     try:
@@ -222,8 +221,7 @@ def run(prep: Prepared, opts: DiagnoseOptions, said: Said, *, progress: bool = T
         result.reference = f"the site ({prep.site.model})"
     # what reading the file lost or left out, said as it came (in the JSON too), then data not in nT: every figure
     # after it is in their unit
-    read = [n.text for n in said.warnings if n.kind not in CARRIED and n.text not in ready.notes + result.notes]
-    result.notes[0:0] = read + ready.notes
+    result.notes[0:0] = said.lost_in_reading(besides=ready.notes + result.notes) + ready.notes
     height = follows_height_note(result.where, track_used=prep.track is not None)
     if height:
         result.notes.append(height)

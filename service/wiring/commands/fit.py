@@ -46,7 +46,7 @@ from fluxcal.service.wiring.fitting import (
 from fluxcal.service.wiring.identity import recording_identity
 from fluxcal.service.wiring.prepare import FROM_RECORDING, Prepared
 from fluxcal.service.wiring.result import Result, Said, print_result, stderr_say
-from fluxcal.service.wiring.scale_notes import field_scale_notes, total_words
+from fluxcal.service.wiring.scale_notes import data_scale_notes
 
 HELP = CommandHelp("fit a calibration to lab data (CSV, MCAP, a PX4 or ArduPilot log, a ROS 2 bag)",
                    "  fluxcal fit grad.csv --out cal.json\n  fluxcal fit board.csv --site 46.52,6.63,400 --json\n"
@@ -180,11 +180,6 @@ def checked(opts: FitOptions, source: str | None) -> FitOptions:
     return opts
 
 
-#: the kinds of what was said that the warnings carry in their own words already (the data's scale, the configuration,
-#: a part of a run)
-CARRIED = ("field-scale", "config", "part-of-run")
-
-
 def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     """The calibration of the prepared data (and its files, when asked): figures and notes as data."""
     data, source = prep.data, prep.source
@@ -193,16 +188,10 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     judged = judge_data(data, known_total, prep.total_source or "")    # the one determinacy gate, before any fit
     cal, total = fit_array(data, method=opts.method, align=opts.align, configured_total_nT=known_total,
                            positions_m=prep.positions_m, progress=_progress, judged=judged)
-    if prep.site is not None:
-        total.source = f"the site ({prep.site.model})"
-    if prep.track is not None:                    # the data's ref_total is the model along the track
+    if prep.site is not None or prep.track is not None:    # the site's field, or the model along the track
         total.source = prep.total_source
     # data in µT (or counts) fit without complaint; said here, before anything is reported in "nT"
-    scale = field_scale_notes(said, source, data.block.field_nT, data.probe_names,
-                              centres_nT=[p.offset_nT if j.centre_nT is None else j.centre_nT   # the gate's, as
-                                          for j, p in zip(judged, cal.probes)],                # diagnose says it
-                              total_nT=None if total.source == "estimated" else total.values,
-                              total_source=total_words(prep, total.source))
+    scale = data_scale_notes(said, prep, data, judged)     # as diagnose and inspect say it
     if opts.effects:
         ef, cal, channels, rows, report_data, thinned, effect_sizes = _with_effects(data, cal, opts.effects, prep)
     else:
@@ -230,7 +219,7 @@ def run(prep: Prepared, opts: FitOptions, said: Said) -> FitResult:
     warnings = scale + warnings
     # what reading the file lost or left out (a logger's holds, a gap, a cut message), said as it came: in the JSON
     # too, where a program reads it (nothing left out silently)
-    warnings = [n.text for n in said.warnings if n.kind not in CARRIED and n.text not in warnings] + warnings
+    warnings = said.lost_in_reading(besides=warnings) + warnings
     cal.diagnostics["warnings"] = warnings
     cal.unit = recording_identity(data.metadata)          # the unit a service recording says it was made by
     out = FitResult("fit", source, effects_fit=ef)

@@ -67,10 +67,10 @@ def inspect(args: Namespace) -> Inspection:
     """The file's streams, then what fit would take of it (prepare and usable_data, as fit does) and each probe's
     verdict of the determinacy gate, with the total field fit would take."""
     from fluxcal.service.wiring.commands.fit import usable_data
-    from fluxcal.service.wiring.fitting import judge_data, total_field
+    from fluxcal.service.wiring.fitting import judge_data
     from fluxcal.service.wiring.prepare import log_mapping, prepare
     from fluxcal.service.wiring.result import Said
-    from fluxcal.service.wiring.scale_notes import field_scale_notes, total_words
+    from fluxcal.service.wiring.scale_notes import data_scale_notes
 
     topics, mags = getattr(args, "topics", None), getattr(args, "mags", None)
     i = inspect_file(args.file, log_mapping(args.file, topics, mags), read=False)
@@ -81,17 +81,11 @@ def inspect(args: Namespace) -> Inspection:
                        site=getattr(args, "site", None), skip=getattr(args, "skip", None), topics=topics, mags=mags)
         data, left_out = usable_data(prep.data)
         # what the reading fit and diagnose share left out (a logger's holds, a gap), as they say it
-        lost = [w for w in [n.text for n in said.warnings] + left_out if w not in i.warnings]
+        carried = [w for w in (prep.config_warning, prep.part_of_run) if w]       # as fit carries them
+        lost = [w for w in said.lost_in_reading(besides=i.warnings) + left_out + carried if w not in i.warnings]
         i, read = replace(i, **reading(data), warnings=i.warnings + lost), True
         judged = judge_data(data, prep.total_nT, prep.total_source or "")
-        total = total_field(data, prep.total_nT)            # the data's scale against it, as fit says it
-        scale = field_scale_notes(said, prep.source, data.block.field_nT, data.probe_names,
-                                  centres_nT=[j.centre_nT for j in judged] if all(j.centre_nT is not None
-                                                                                  for j in judged) else None,
-                                  about="the fitted centre" if all(j.centre_nT is not None for j in judged)
-                                  else "a sphere fitted to them",
-                                  total_nT=None if total.source == "estimated" else total.values,
-                                  total_source=total_words(prep, total.source))
+        scale = data_scale_notes(said, prep, data, judged)             # the data's scale, as fit says it
         i = replace(i, warnings=i.warnings + [w for w in scale if w not in i.warnings])
     except (DataError, CalibrationRefused) as e:
         # what was read stays said (its samples, duration, clock): the refusal is of a calibration from them
