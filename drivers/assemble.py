@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .block import FLAG_SATURATED, FLAG_TEMP_INVALID, SampleBlock
+from .can_settled import SettledFrames, earlier_in_batch_differs, slot_differs
 from .can_unwrap import CanUnwrap
 from .icd import DEFAULT_CAN_BASE_ID, SATURATED_COUNTS, TEMP_LSB_C, RawFrames, decode_can, frame_length, parse_serial
 from .plausibility import Plausibility
@@ -229,7 +230,9 @@ class CanAssembler:
 
     Frames with foreign or reserved ids are ignored (the bus is shared). A frame for a sample
     already settled (released or given up), or for a slot of a pending sample already filled, is
-    ignored and counted in `duplicates`. seq is unwrapped by fluxcal.drivers.can_unwrap.CanUnwrap: across wraps and
+    ignored and counted in `duplicates`, unless it steps back to a counter near zero with another
+    value than the slot holds: the unit started again (can_settled keeps the last 4 windows' frames
+    to compare). seq is unwrapped by fluxcal.drivers.can_unwrap.CanUnwrap: across wraps and
     restarts of the unit (counted in `restarts`), with the old run's frames that come after a restart's first
     frame kept in the old run: the unwrapped seq (and t_s = seq / rate_hz) never goes back, and no sample is
     counted missed that never existed.
@@ -245,9 +248,10 @@ class CanAssembler:
         self.restart_samples = max(4 * self.window_samples, 1024)
         self.counters = counters if counters is not None else can_icd_counters()
         self._unwrap = CanUnwrap(window_samples=self.window_samples, restart_samples=self.restart_samples,
-                                 rate_hz=rate_hz, counters=self.counters)
+                                 rate_hz=rate_hz, counters=self.counters, frames_per_sample=3 * n_probes)
         self._max_seen: int | None = None
         self._done_upto: int | None = None     # every sample <= this was released or dropped
+        self._settled = SettledFrames(n_probes, 4 * self.window_samples)   # their frames, to tell a repeat
         self._clear_pending()
 
     def _clear_pending(self) -> None:
@@ -277,7 +281,16 @@ class CanAssembler:
         probe, axis, value, seq, temp, rx = (x[mine] for x in (probe, axis, value, seq, temp, rx))
         self.counters.frames_accepted += int(probe.size)
         self.counters.foreign_frames += int(mine.size - probe.size)      # other nodes' ids, or reserved ones
-        u = self._unwrap(seq, rx, self._done_upto)
+
+        def differs(u: np.ndarray, idx: np.ndarray) -> np.ndarray:
+            """Frames idx (numbered u) on a slot settled, held or earlier in this batch with another value."""
+            args = (u[idx], probe[idx], axis[idx], value[idx], temp[idx])
+            s = self._settled
+            return (slot_differs(*args, s.seq, s.value, s.temp, s.have)
+                    | slot_differs(*args, self._p_seq, self._p_counts, self._p_temp, self._p_have)
+                    | earlier_in_batch_differs(u, probe, axis, value, temp, idx, self.n_probes))
+
+        u = self._unwrap(seq, rx, self._done_upto, differs)
         self._merge(u, probe, axis, value, temp, rx)
         return self._release(now_s, final=False)
 
@@ -335,6 +348,7 @@ class CanAssembler:
         self.counters.can_incomplete += int(np.count_nonzero(expired))
         settled = emit | expired
         if settled.any():
+            self._settled.add(seqs[settled], self._p_counts[settled], self._p_temp[settled], self._p_have[settled])
             top = int(seqs[settled].max())
             self._done_upto = top if self._done_upto is None else max(self._done_upto, top)
         out = CanSamples(seq=seqs[emit], counts=self._p_counts[emit],

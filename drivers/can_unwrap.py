@@ -5,7 +5,9 @@ across a restart of the unit, with the frames of the old run that still come aft
 Frame by frame the signed step ((s - s_prev + 2^15) mod 2^16) - 2^15, so interleaving across a wrap is right. A
 restart: a jump backwards by more than `restart_samples`, or by more than 2 windows to a counter below 2 windows (the
 unit started again soon after its last start: no interleaving goes back that far), or (with `rate_hz`) a jump forwards to a counter near zero
-(< restart_samples) that the receive times do not support (less than half its length in time). It is counted in
+(< restart_samples) that the receive times do not support (less than half its length in time), or back to a counter
+near zero whose slot already holds another value (`differs`, from the assembler: can_settled; a frame sent again is
+bit for bit the same; the unit restarting within two windows of its last start). It is counted in
 `restarts` once, and seq goes on from the highest seen + 1 + the new counter (no sample is counted missed that never
 existed). A frame after it whose counter is within `window_samples` of the old run's highest (and far from the new
 run's) is a straggler of the old run: it keeps the old run's numbering, and completes its sample. Before, each
@@ -14,9 +16,14 @@ straggler after a restart was read as one more restart, with tens of thousands o
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from .source import Counters
+
+#: differs(u, idx) -> (len(idx),) bool: which frames idx, numbered u, land on a slot already filled with another value
+Differs = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 _MOD = 1 << 16
 
@@ -29,17 +36,22 @@ def _signed(d: np.ndarray | int) -> np.ndarray | int:
 class CanUnwrap:
     """See the module docstring. Call with each batch's counters and receive times, in arrival order."""
 
-    def __init__(self, *, window_samples: int, restart_samples: int, rate_hz: float | None, counters: Counters) -> None:
+    def __init__(self, *, window_samples: int, restart_samples: int, rate_hz: float | None, counters: Counters,
+                 frames_per_sample: int = 1) -> None:
         self.window, self.restart_samples, self.rate_hz, self.counters = window_samples, restart_samples, rate_hz, counters
+        self.frames_per_sample = max(int(frames_per_sample), 1)
         self._last: tuple[int, int] | None = None      # the last frame of the current run: raw counter, seq
         self._top: tuple[float, int, float] = (-np.inf, 0, -np.inf)   # the highest seq seen: seq, raw, receive time
         self._old: tuple[int, int, int, int] | None = None   # the run before the last restart: its highest raw and
         #                                                      seq, the highest seq kept for it, the new run's start
         self._settled: int | None = None                # every sample up to this one released or given up
+        self._differs: Differs | None = None
 
-    def __call__(self, seq: np.ndarray, rx: np.ndarray, settled: int | None = None) -> np.ndarray:
-        """seq unwrapped; `settled`: the assembler's last sample released or given up (every one up to it)."""
-        self._settled = settled
+    def __call__(self, seq: np.ndarray, rx: np.ndarray, settled: int | None = None,
+                 differs: Differs | None = None) -> np.ndarray:
+        """seq unwrapped; `settled`: the assembler's last sample released or given up (every one up to it);
+        `differs`: which frames land on a slot already filled with another value (see the module docstring)."""
+        self._settled, self._differs = settled, differs
         raw = seq.astype(np.int64)
         if raw.size == 0:
             return raw
@@ -100,6 +112,11 @@ class CanUnwrap:
             jump = seg - prior
             back |= ((jump > self.restart_samples) & (raw[i0:] < self.restart_samples)
                      & ((rx[i0:] - prior_rx) * self.rate_hz < 0.5 * jump))
+        if self._differs is not None:
+            # back to a counter near zero, on a slot already filled with another value: a new run, however soon
+            near = np.flatnonzero((seg <= prior) & (raw[i0:] < 2 * self.window) & ~back & ~old[i0:])
+            if near.size:
+                back[near[self._differs(u, i0 + near)]] = True
         hits = np.flatnonzero(back & ~old[i0:])
         return None if not hits.size else i0 + int(hits[0])
 
@@ -111,8 +128,13 @@ class CanUnwrap:
             if u[k] > self._top[0]:
                 self._top = (float(u[k]), int(raw[k]), float(rx[k]))
         top_u, top_raw = int(self._top[0]), self._top[1]
-        # the old run's samples not seen yet but close behind its frames here (interleaved): room kept for them
-        rest = np.flatnonzero(np.abs(_signed(raw[j:] - top_raw)) <= self.window) + j
+        # the old run's samples not seen yet but close behind its frames here (interleaved): room kept for them. A
+        # frame the new run could have reached by its place in the batch (a sample's frames each) is the new run's: a
+        # run that started again soon reaches the old run's last counters within the batch (room kept for them
+        # stepped the time on for samples that never were)
+        later = np.arange(raw.size - j)
+        reach = raw[j] + later // self.frames_per_sample + self.window
+        rest = np.flatnonzero((np.abs(_signed(raw[j:] - top_raw)) <= self.window) & (raw[j:] > reach)) + j
         ahead = int(max(0, _signed(raw[rest] - top_raw).max())) if rest.size else 0
         kept_u = top_u + min(ahead, self.window)
         start = kept_u + 1 + int(raw[j])

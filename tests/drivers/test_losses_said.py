@@ -208,23 +208,48 @@ def test_a_can_unit_restarting_soon_after_a_restart_loses_nothing(icd_truth, win
 
 
 @pytest.mark.parametrize("window", [8, 32])
-@pytest.mark.parametrize("restarts", [[2.0, 2.4], [2.0, 2.8], [1.0, 1.7, 2.3, 6.0]])
-def test_the_simulated_units_restarts_on_can_lose_nothing(window, restarts):
-    """The simulated unit's own CAN frames, restarting 0.4 to 4 s apart (80 to 800 samples at 200 Hz; more than 2
-    windows): every sample released once, in order, each restart counted. Restarting again before its run passed
-    the last run's counters, the new run's frames were once taken as the old run's late frames (31 samples lost)."""
+@pytest.mark.parametrize(("restarts", "batch"), [([2.0, 2.4], 5), ([2.0, 2.8], 5), ([1.0, 1.7, 2.3, 6.0], 5),
+                                                 ([2.0, 2.05], 1), ([2.0, 2.05], 5), ([2.0, 2.2], 50),
+                                                 ([2.0, 2.005], 5), ([1.0, 1.01, 1.03, 2.0], 50)])
+def test_the_simulated_units_restarts_on_can_lose_nothing(window, restarts, batch):
+    """The simulated unit's own CAN frames, restarting 5 ms to 4 s apart (1 to 800 samples at 200 Hz), received
+    frame by frame or in batches of 5 or 50 samples: every sample released once, in order, each restart counted,
+    time never stepped. Restarting again before its run passed the last run's counters, the new run's frames were
+    once taken as the old run's late frames (31 samples lost); restarting within two windows of its last start,
+    as repeats of samples released (0.05 s apart: 10 of 800 lost, counted as duplicates), and within one batch,
+    room was kept for old samples that never were (the time stepped 45 ms on)."""
     from fluxcal.drivers.assemble import CanAssembler, CanSamples
 
     u = unit(rate_hz=200.0, duration_s=8.0, faults={"restart_at_s": restarts})
     c = can_icd_counters()
     asm = CanAssembler(2, window_samples=window, counters=c, rate_hz=200.0)
     parts = []
-    for a in range(0, u.n_samples, 5):                     # 5 samples a batch, received as the unit sends them
-        ids, payloads, _ = u.can_frames(a, min(a + 5, u.n_samples))
+    for a in range(0, u.n_samples, batch):                 # received as the unit sends them
+        ids, payloads, _ = u.can_frames(a, min(a + batch, u.n_samples))
         parts.append(asm.push(ids, payloads, 10.0 + a / 200.0))
     got = CanSamples.concat([*parts, asm.flush()], 2)
     assert (c.restarts, c.duplicates, c.can_incomplete) == (len(restarts), 0, 0)
     np.testing.assert_array_equal(got.counts, u.digitise(0, u.n_samples).counts)
+    assert np.all(np.diff(got.seq) == 1)
+
+
+def test_a_can_frame_sent_again_near_a_wrap_is_a_repeat_and_another_value_there_a_restart(icd_truth):
+    """Just after the counter wraps, frames stepping back to counters near zero: sent again bit for bit, each is a
+    repeat (dropped, counted); with other values (the unit started again 7 samples after the wrap), a restart, and
+    none of the new run is lost."""
+    from fluxcal.drivers.assemble import CanAssembler, CanSamples
+
+    a, b = icd_truth(12, 2, seq0=65_531), icd_truth(40, 2, seed=1, seq0=0)      # a: 65,531 ... 65,535, 0 ... 6
+    (ia, pa), (ib, pb) = a.can_frames(), b.can_frames()
+    per = 6
+    c = can_icd_counters()
+    asm = CanAssembler(2, window_samples=8, counters=c, rate_hz=200.0)
+    parts = [asm.push(ia, pa, 1.0), asm.push(ia[5 * per:8 * per], pa[5 * per:8 * per], 1.01)]   # counters 0-2 again
+    assert (c.duplicates, c.restarts) == (3 * per, 0)
+    parts += [asm.push(ib[:3 * per], pb[:3 * per], 1.02), asm.push(ib[3 * per:], pb[3 * per:], 1.03), asm.flush()]
+    got = CanSamples.concat(parts, 2)
+    assert (c.duplicates, c.restarts, c.can_incomplete) == (3 * per, 1, 0)
+    assert np.array_equal(got.counts, np.concatenate([a.counts, b.counts]))       # all 52, once, in order
     assert np.all(np.diff(got.seq) == 1)
 
 
