@@ -22,7 +22,7 @@ class SettledFrames:
         self.have = np.zeros((0, n_probes, 3), bool)
 
     def add(self, seq: np.ndarray, value: np.ndarray, temp: np.ndarray, have: np.ndarray) -> None:
-        """Samples settled now (in seq order, after those held): the newest `keep` seqs are kept."""
+        """Samples settled now (in seq order, after those held): those within `keep` of the newest are kept."""
         if not seq.size:
             return
         self.seq, self.value, self.temp, self.have = (

@@ -166,3 +166,26 @@ def test_clock_and_counter_jumps_are_said_as_what_they_are():
     assert "unit clock jump: 1 jump(s) of the unit's clock while its counter ran on" in text
     assert "unit counter jump: 1 jump(s) of the unit's counter while its clock ran on" in text
     assert "missed" not in text.replace("counted missed", "") and "restart" not in text
+
+
+def test_what_a_can_slot_holds_tells_a_repeat_from_another_value():
+    """can_settled: the newest `keep` settled samples kept; a frame on a filled slot with another value or
+    temperature differs, the same frame or an empty slot does not; in a batch, against the slot's first frame."""
+    from fluxcal.drivers.can_settled import SettledFrames, earlier_in_batch_differs, slot_differs
+
+    s = SettledFrames(1, keep=3)
+    value = np.arange(5 * 3, dtype=np.int32).reshape(5, 1, 3)
+    have = np.ones((5, 1, 3), bool)
+    have[4, 0, 2] = False                                          # sample 14's z never came
+    s.add(np.arange(10, 15), value, np.full((5, 1, 3), 7, np.int16), have)
+    assert s.seq.tolist() == [11, 12, 13, 14]                      # 10 is more than `keep` behind the newest (14)
+    u = np.array([10, 12, 12, 12, 14, 20])
+    probe, axis = np.zeros(6, int), np.array([0, 0, 1, 2, 2, 0])
+    val = np.array([0, 6, 99, 8, 99, 1], np.int32)                 # 12: x the same, y another value, z the same
+    temp = np.array([7, 7, 7, 9, 7, 7], np.int16)                  # ... but z another temperature
+    got = slot_differs(u, probe, axis, val, temp, s.seq, s.value, s.temp, s.have)
+    assert got.tolist() == [False, False, True, True, False, False]   # 10 not held, 14's z empty, 20 not yet
+    u2 = np.array([5, 5, 5, 6])
+    d = earlier_in_batch_differs(u2, np.zeros(4, int), np.zeros(4, int), np.array([1, 1, 2, 3]), np.zeros(4, int),
+                                 np.arange(4), 1)
+    assert d.tolist() == [False, False, True, False]
