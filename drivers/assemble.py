@@ -285,8 +285,7 @@ class CanAssembler:
         def differs(u: np.ndarray, idx: np.ndarray) -> np.ndarray:
             """Frames idx (numbered u) on a slot settled, held or earlier in this batch with another value."""
             args = (u[idx], probe[idx], axis[idx], value[idx], temp[idx])
-            s = self._settled
-            return (slot_differs(*args, s.seq, s.value, s.temp, s.have)
+            return (slot_differs(*args, *self._settled.held())
                     | slot_differs(*args, self._p_seq, self._p_counts, self._p_temp, self._p_have)
                     | earlier_in_batch_differs(u, probe, axis, value, temp, idx, self.n_probes))
 

@@ -12,26 +12,33 @@ import numpy as np
 
 
 class SettledFrames:
-    """The last `keep` settled samples' frames: seq (K,), value and temperature (K, n, 3), and which slots came."""
+    """The last `keep` settled samples' frames: seq (K,), value and temperature (K, n, 3), and which slots came.
+    Kept as the releases came (a list, O(1) a release), joined only when asked (a frame stepping back near zero)."""
 
     def __init__(self, n_probes: int, keep: int) -> None:
         self.n, self.keep = n_probes, int(keep)
-        self.seq = np.empty(0, np.int64)
-        self.value = np.zeros((0, n_probes, 3), np.int32)
-        self.temp = np.zeros((0, n_probes, 3), np.int16)
-        self.have = np.zeros((0, n_probes, 3), bool)
+        self._parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
 
     def add(self, seq: np.ndarray, value: np.ndarray, temp: np.ndarray, have: np.ndarray) -> None:
         """Samples settled now (in seq order, after those held): those within `keep` of the newest are kept."""
         if not seq.size:
             return
-        self.seq, self.value, self.temp, self.have = (
-            np.concatenate([a, b]) for a, b in ((self.seq, seq), (self.value, value), (self.temp, temp),
-                                                (self.have, have)))
-        old = self.seq < self.seq.max() - self.keep
-        if old.any():
-            self.seq, self.value, self.temp, self.have = (x[~old] for x in (self.seq, self.value, self.temp,
-                                                                             self.have))
+        self._parts.append((seq, value, temp, have))
+        newest = int(seq[-1])
+        while len(self._parts) > 1 and int(self._parts[0][0][-1]) < newest - self.keep:
+            self._parts.pop(0)
+
+    def held(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(seq, value, temp, have) of the samples kept, in seq order."""
+        if not self._parts:
+            n = self.n
+            return (np.empty(0, np.int64), np.zeros((0, n, 3), np.int32), np.zeros((0, n, 3), np.int16),
+                    np.zeros((0, n, 3), bool))
+        if len(self._parts) > 1:
+            self._parts = [tuple(np.concatenate(x) for x in zip(*self._parts))]   # type: ignore[list-item]
+        seq, value, temp, have = self._parts[0]
+        keep = seq >= int(seq[-1]) - self.keep
+        return seq[keep], value[keep], temp[keep], have[keep]
 
 
 def slot_differs(u: np.ndarray, probe: np.ndarray, axis: np.ndarray, value: np.ndarray, temp: np.ndarray,

@@ -112,9 +112,10 @@ class CanUnwrap:
             jump = seg - prior
             back |= ((jump > self.restart_samples) & (raw[i0:] < self.restart_samples)
                      & ((rx[i0:] - prior_rx) * self.rate_hz < 0.5 * jump))
-        if self._differs is not None:
+        small = raw[i0:] < 2 * self.window
+        if self._differs is not None and small.any():
             # back to a counter near zero, on a slot already filled with another value: a new run, however soon
-            near = np.flatnonzero((seg <= prior) & (raw[i0:] < 2 * self.window) & ~back & ~old[i0:])
+            near = np.flatnonzero((seg <= prior) & small & ~back & ~old[i0:])
             if near.size:
                 back[near[self._differs(u, i0 + near)]] = True
         hits = np.flatnonzero(back & ~old[i0:])

@@ -178,12 +178,14 @@ def test_what_a_can_slot_holds_tells_a_repeat_from_another_value():
     have = np.ones((5, 1, 3), bool)
     have[4, 0, 2] = False                                          # sample 14's z never came
     s.add(np.arange(10, 15), value, np.full((5, 1, 3), 7, np.int16), have)
-    assert s.seq.tolist() == [11, 12, 13, 14]                      # 10 is more than `keep` behind the newest (14)
+    s.add(np.arange(15, 16), value[:1] + 100, np.full((1, 1, 3), 7, np.int16), np.ones((1, 1, 3), bool))
+    held = s.held()
+    assert held[0].tolist() == [12, 13, 14, 15]                   # 10, 11 more than `keep` behind the newest (15)
     u = np.array([10, 12, 12, 12, 14, 20])
     probe, axis = np.zeros(6, int), np.array([0, 0, 1, 2, 2, 0])
     val = np.array([0, 6, 99, 8, 99, 1], np.int32)                 # 12: x the same, y another value, z the same
     temp = np.array([7, 7, 7, 9, 7, 7], np.int16)                  # ... but z another temperature
-    got = slot_differs(u, probe, axis, val, temp, s.seq, s.value, s.temp, s.have)
+    got = slot_differs(u, probe, axis, val, temp, *held)
     assert got.tolist() == [False, False, True, True, False, False]   # 10 not held, 14's z empty, 20 not yet
     u2 = np.array([5, 5, 5, 6])
     d = earlier_in_batch_differs(u2, np.zeros(4, int), np.zeros(4, int), np.array([1, 1, 2, 3]), np.zeros(4, int),
