@@ -163,3 +163,20 @@ def test_two_effects_the_verdicts_tell_apart_are_not_called_indistinguishable(tm
         said = [ln for ln in text.splitlines() if f" {a} and {b} " in f" {ln} " or f" {b} and {a} " in f" {ln} "]
         assert len(said) == 1, said
         assert ("are indistinguishable" in said[0]) != told_apart, said[0]
+    # a candidate that contains another (thermal: temperature at tau = 0) and predicts the held-out blocks worse is
+    # no finding, whatever the verdict on the one it contains (thermal was SIGNIFICANT here, 2.383 against 2.259 nT,
+    # on a fit that had not converged, beside temperature refused within its errors of zero)
+    from fluxcal.service.numerics.effects import known_effects
+
+    nested = [(c, by[inner]) for c in d["candidates"]
+              for inner in getattr(known_effects().get(c["effect"]), "nests", ()) if inner in by and by[inner]["testable"]]
+    assert nested, "the world no longer tries a candidate that contains another: the test needs another"
+    for outer, inner in nested:
+        if outer["heldout_rms_nT"] >= inner["heldout_rms_nT"]:
+            assert not outer["significant"], (outer["effect"], outer["heldout_rms_nT"], inner["heldout_rms_nT"])
+    # what discovery finds of a catalogue term refused as a whole (a probe's offset following its own temperature,
+    # where temperature, every probe's offset and scale, stood within its errors) says that the catalogue holds it
+    found = d["verdict"].get("discovery") or d.get("discovery") or {}
+    own = [g for g in found.get("groups") or [] if g["kind"] == "offset" and g["feature"] == f"{g['probe']}_temp"]
+    assert own and not by["temperature"]["significant"], "the world no longer finds a part of a refused catalogue term"
+    assert "the offset part of the catalogue's temperature term, for s1 alone" in text

@@ -202,7 +202,8 @@ def test_a_law_the_held_out_blocks_do_not_single_out_is_said_as_one_form_among_o
     forms = [{"observable": "servo_deg", "chosen": "polynomial", "alike": ["distance power", "exponential"],
               "forms": [{"form": "polynomial", "parameters": 4, "heldout_rms_nT": 275.0},
                         {"form": "distance power", "parameters": 5, "heldout_rms_nT": 279.3}]}]
-    group = SimpleNamespace(reading="a field that moves as servo_deg goes, as a polynomial of degree 2", term="g")
+    group = SimpleNamespace(reading="a field that moves as servo_deg goes, as a polynomial of degree 2", term="g",
+                            group=SimpleNamespace(kind="shape"))
     found = Discovery(tried=10, tried_params=90, claimed=True, groups=[group], base_rms_nT=900.0,
                        base_heldout_rms_nT=1100.0, floor_nT=140.0, rms_nT=270.0, heldout_rms_nT=275.0, forms=forms)
     lines = "\n".join(discovery_lines(SimpleNamespace(discovery=found)))

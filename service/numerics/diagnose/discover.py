@@ -112,7 +112,8 @@ class Discovery:
         """The finding in one sentence (for the verdict), or why nothing is claimed."""
         if not self.claimed:
             return f"discovery tried {self.tried} groups beyond the catalogue and claims none: {self.reason}"
-        found = "; ".join(g.reading for g in self.groups)   # a law not singled out says so in its own reading
+        # a law not singled out says so in its own reading; a part of a catalogue term says whose
+        found = "; ".join(" ".join(filter(None, (g.reading, catalogue_part(g.group)))) for g in self.groups)
         return (f"discovered beyond the catalogue: {found}; with {'it' if len(self.groups) == 1 else 'them'} the "
                 f"held-out error falls from {self.base_heldout_rms_nT:.3f} to {self.heldout_rms_nT:.3f} nT against a "
                 f"{self.floor_nT:.3f} nT floor (the search itself, every choice made without the block it predicts, "
@@ -129,6 +130,24 @@ class Discovery:
                 "lines_hz": list(self.lines_hz), "borrowed": dict(self.borrowed), "forms": _plain(self.forms),
                 "harmonics": [{"line_hz": hz, "column": col, "how": how} for hz, (col, how) in self.harmonics.items()],
                 "sentence": self.sentence()}
+
+
+def catalogue_part(g: Group) -> str:
+    """Words for a group that is part of a catalogue term (a probe's offset, or offset and scale, following its own
+    temperature: the temperature term's; following it low-passed: thermal's), else "". Found beside the catalogue,
+    whose candidates were tried first, such a part stands where the whole term (every probe's offset and scale) did
+    not: its reading said that the catalogue holds it, beside "temperature: within its errors of zero"."""
+    if g.kind not in ("offset", "scale"):
+        return ""
+    f = g.feature
+    if f.recipe.get("source") != "temperature" or f.recipe.get("probe") != g.probe or f.borrowed:
+        return ""
+    term = {"value": "temperature", "low-passed": "thermal"}.get(f.how)
+    if term is None:
+        return ""
+    part = "offset" if g.kind == "offset" else "offset and scale"
+    return (f"(the {part} part of the catalogue's {term} term, for {g.probe_name} alone: the whole term, every "
+            f"probe's offset and scale, is judged in the candidates above)")
 
 
 # --- discovery ------------------------------------------------------------------------------------------
