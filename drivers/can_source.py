@@ -137,6 +137,15 @@ class CanIcd:
         samples = self._assembler.push(ids, payloads, now_s, now_s=now_s)
         if not len(samples):
             return None
+        return self._block(samples)
+
+    def finish(self) -> SampleBlock | None:
+        """The end of input: every sample the assembler holds, the complete ones released (those waiting behind an
+        incomplete one too) and the incomplete ones counted (can_incomplete); None when it held none complete."""
+        samples = self._assembler.flush()
+        return self._block(samples) if len(samples) else None
+
+    def _block(self, samples: CanSamples) -> SampleBlock:
         self._gaps.update(samples.seq, self.counters)
         return samples.to_block(rate_hz=self.rate_hz, lsb_nT=self.lsb_nT, counters=self.counters,
                                 plausibility=self.plausibility)
@@ -249,6 +258,23 @@ class CanSource(PortSource):
                 return block
             if deadline is not None and time.monotonic() >= deadline:
                 return None
+
+    def drain(self) -> SampleBlock | None:
+        """At the service's stop: the frames the bus still holds, then every sample the assembler holds (complete
+        ones released, those behind an incomplete one too; incomplete ones counted). Held samples were lost
+        uncounted at a stop, and when the adapter had gone away before it (30 of 3,386 in a field trial)."""
+        parts = []
+        if self._bus is not None:
+            try:
+                block = self._decoder.decode(self._receive(0.0), time.monotonic())
+            except DriverError:
+                block = None                        # the adapter is gone: what it held is gone with it
+            if block is not None:
+                parts.append(block)
+        last = self._decoder.finish()
+        if last is not None:
+            parts.append(last)
+        return None if not parts else parts[0] if len(parts) == 1 else SampleBlock.concat(parts)
 
     def __repr__(self) -> str:
         return (f"CanSource({self.interface!r}, {self.channel!r}, n_probes={self.n_probes}, base_id={self.base_id:#x}, "

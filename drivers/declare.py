@@ -107,7 +107,8 @@ class Words:
 class Protocol:
     """One way a kind's bytes or frames become the unit's samples. `decoder` is what the kind's source builds to
     decode them: its interface is the kind's (fluxcal.drivers.serial_source.SerialSource: `feed(data, rx_time_s)` and
-    `discard_tail()`; fluxcal.drivers.can_source.CanSource: `decode(messages, now_s)`)."""
+    `discard_tail()`; fluxcal.drivers.can_source.CanSource: `decode(messages, now_s)` and `finish()`, what it holds
+    at the end of input)."""
 
     name: str
     doc: str

@@ -96,6 +96,11 @@ class Source(ABC):
         """True for finite sources (files) once every sample has been read."""
         return False
 
+    def drain(self) -> SampleBlock | None:
+        """At the end of reading (the service stops): what the source still holds that no more input will complete,
+        released as it is, and what cannot be released counted; None when it holds nothing (the default)."""
+        return None
+
     def close(self) -> None:
         self._closed = True
 

@@ -250,13 +250,7 @@ class Daemon:
                     self.say("source exhausted")
                     break
             else:
-                if not self.rate_checked:
-                    self._rate.check(block)
-                sinks.raw(block)              # kept and published first: whatever happens to its processing
-                out = self._process(pipeline, block)     # None: failed, counted and said there
-                if out is not None:
-                    self._status.block(block.n_samples, out.error)
-                    announced = self._emit(out, pipeline, sinks, announced)
+                announced = self._take(block, pipeline, sinks, announced)
             now = time.monotonic()
             if now - last_health >= 1.0:
                 last_health = now
@@ -264,6 +258,22 @@ class Daemon:
                 self._status.holders(bus)
                 self._tick_health(source, sinks, bus)
                 self._status.tick(pipeline.state())
+
+        held = source.drain()                 # what the source holds that no more input completes: not lost
+        if held is not None:
+            self._take(held, pipeline, sinks, announced)
+
+    def _take(self, block: SampleBlock, pipeline: Pipeline, sinks: Sinks, announced: bool) -> bool:
+        """One block read: recorded and published raw first, then processed and its outputs emitted; returns whether
+        usability was announced."""
+        if not self.rate_checked:
+            self._rate.check(block)
+        sinks.raw(block)                      # kept and published first: whatever happens to its processing
+        out = self._process(pipeline, block)  # None: failed, counted and said there
+        if out is not None:
+            self._status.block(block.n_samples, out.error)
+            announced = self._emit(out, pipeline, sinks, announced)
+        return announced
 
     def _emit(self, out, pipeline: Pipeline, sinks: Sinks, announced: bool) -> bool:
         """Record and publish what processing a block gave; returns whether usability was announced."""

@@ -14,6 +14,7 @@ import threading
 import time
 import uuid
 from pathlib import Path
+from typing import Sequence
 
 import can
 import numpy as np
@@ -112,8 +113,22 @@ class LastHealth(Sink):
         self.counters = dict(counters)
 
 
-def can_service(tmp_path: Path, interface: str, channel: str) -> tuple[Daemon, LastHealth, threading.Thread, list]:
+class Samples(Sink):
+    """Keeps the seqs of the raw samples the service took."""
+
+    name = "test-samples"
+
+    def __init__(self) -> None:
+        self.seq: list[int] = []
+
+    def on_raw(self, block) -> None:
+        self.seq += block.seq.tolist()
+
+
+def can_service(tmp_path: Path, interface: str, channel: str, *, sinks: Sequence[Sink] = (),
+                window_s: float = 0.5) -> tuple[Daemon, LastHealth, threading.Thread, list]:
     text = (Path("configs/can-example.toml").read_text()
+            .replace("[source]\n", f"[source]\nwindow_s = {window_s}\n")
             .replace('interface = "socketcan"', f'interface = "{interface}"')
             .replace('channel = "can0"', f'channel = "{channel}"')
             .replace('listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/127.0.0.1:0"]')
@@ -122,7 +137,7 @@ def can_service(tmp_path: Path, interface: str, channel: str) -> tuple[Daemon, L
     (tmp_path / "can.toml").write_text(text)
     health = LastHealth()
     said: list[str] = []
-    daemon = Daemon(load_config(tmp_path / "can.toml"), say=said.append, sinks=[health])
+    daemon = Daemon(load_config(tmp_path / "can.toml"), say=said.append, sinks=[health, *sinks])
     result: list = []
 
     def run() -> None:
@@ -231,3 +246,29 @@ def test_a_fuzz_of_can_frames_against_a_running_service_is_counted_frame_for_fra
     assert sum(c[k] for k in KINDS) == sent, {k: c[k] for k in KINDS}
     assert min(c[k] for k in KINDS if k != "bad_frames") > 100 and "crc_failures" not in c
 
+
+
+def test_a_stopping_service_releases_the_samples_its_can_assembler_holds(tmp_path):
+    """At the service's stop, the complete samples waiting behind an incomplete one are taken (recorded, published,
+    processed) and the incomplete one counted: none lost uncounted (a field trial lost 30 of 3,386 at a stop that
+    followed an adapter gone away)."""
+    channel = f"held-{uuid.uuid4().hex}"
+    good = [parse_line(line) for line in good_lines(40, seed=5)]
+    del good[20 * 6 + 3]                                  # sample 20 lacks a frame: 21-39 wait behind it
+    taken = Samples()
+    with can.Bus(interface="virtual", channel=channel) as tx:
+        daemon, health, thread, result = can_service(tmp_path, "virtual", channel, sinks=[taken], window_s=60.0)
+        try:
+            for msg in good:
+                tx.send(msg)
+            deadline = time.monotonic() + 15
+            while health.counters.get("frames_accepted", 0) < len(good) or len(taken.seq) < 20:
+                assert time.monotonic() < deadline and thread.is_alive(), (health.counters, result)
+                time.sleep(0.1)
+            assert len(taken.seq) == 20 and health.counters.get("can_incomplete", 0) == 0    # the rest held
+        finally:
+            daemon.stop.set()
+            thread.join(20)
+    assert result == [0], result
+    assert taken.seq == [s for s in range(40) if s != 20]
+    assert health.counters["can_incomplete"] == 1

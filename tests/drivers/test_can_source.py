@@ -222,6 +222,28 @@ def test_incomplete_sample_expires_on_a_silent_bus(icd_truth, virtual_channel):
         assert src.counters.can_incomplete == 1
 
 
+def test_what_the_assembler_holds_at_the_end_is_released_or_counted(icd_truth, virtual_channel):
+    """drain() at the end of reading: the complete samples waiting behind an incomplete one come out, the incomplete
+    one is counted; before, the service's stop lost them uncounted (30 samples of a field trial)."""
+    truth = icd_truth(6, 2)
+    ids, payloads = truth.can_frames()
+    keep = np.ones(ids.size, bool)
+    keep[2 * 6 + 5] = False                             # sample 2 lacks one frame; 3, 4, 5 wait behind it
+    with can.Bus(interface="virtual", channel=virtual_channel) as tx, \
+            CanSource(interface="virtual", channel=virtual_channel, n_probes=2, rate_hz=RATE_HZ,
+                      window_samples=100, window_s=60.0) as src:
+        send(tx, ids[keep][:-6], payloads[keep][:-6])   # sample 5's frames still on the bus at the end
+        b = src.read(timeout=0.5)
+        assert b.seq.tolist() == truth.seq[:2].tolist()
+        assert src.read(timeout=0.05) is None and src.counters.can_incomplete == 0     # held, not yet given up
+        send(tx, ids[keep][-6:], payloads[keep][-6:])
+        time.sleep(0.05)
+        held = src.drain()
+        assert held.seq.tolist() == truth.seq[3:].tolist()
+        assert np.array_equal(held.field_nT, truth.counts[3:] * 0.001)
+        assert src.counters.can_incomplete == 1 and src.drain() is None
+
+
 def test_can_config_and_factories(virtual_channel):
     table = {"kind": "can", "interface": "virtual", "channel": virtual_channel, "n_probes": 2, "rate_hz": 250.0}
     cfg = load_section(CanConfig, table, "source")
