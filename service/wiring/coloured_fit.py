@@ -37,7 +37,8 @@ def coloured_offsets(data: LabData, cal: ArrayCalibration, total: TotalField) ->
     regression-aligned probe's offsets also gain the reference probe's offset errors, which they inherit (taken as
     independent of the regression's own, though probe 1's noise is in both), on any record. The spectra over at
     most SPECTRUM_ROWS samples (every k-th: the power law is fitted from 16 cycles per record up)."""
-    from fluxcal.service.numerics.engine.coloured import FLICKER, MAX_GRID_FILL, MIN_CYCLES, sample_grid
+    from fluxcal.service.numerics.effects.timebase import MAX_GRID_FILL, sample_grid
+    from fluxcal.service.numerics.engine.coloured import FLICKER, MIN_CYCLES
 
     b = data.block
     if b.n_samples < 512:

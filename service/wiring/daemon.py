@@ -115,6 +115,31 @@ def stderr_gone() -> None:
         sys.stderr = open(os.devnull, "w")      # noqa: SIM115 - stays open for the process's life
 
 
+class Processing:
+    """pipeline.process, but an error in it (a bug meeting data nobody foresaw) costs that block's corrected output,
+    never the service: it is counted (`errors`, the health's processing_errors), said (at most every 10 s, with the
+    first sample's seq) and the next block is processed. Replay meets the same error at the same block."""
+
+    def __init__(self, say: Callable[[str], None]) -> None:
+        self.say = say
+        self.errors = 0                       # blocks whose processing raised (their raw data are kept)
+        self._last_say = -1e9
+
+    def __call__(self, pipeline: Pipeline, block: SampleBlock):
+        try:
+            return pipeline.process(block)
+        except Exception as e:          # noqa: BLE001 - a long-running service must outlive one bad block
+            self.errors += 1
+            now = time.monotonic()
+            if now - self._last_say >= 10.0:
+                self._last_say = now
+                seq0 = int(block.seq[0]) if block.n_samples else -1
+                self.say(f"processing failed for the block from seq {seq0} ({block.n_samples} samples): "
+                         f"{type(e).__name__}: {e}; its raw samples are recorded, its corrected output is "
+                         f"lost; {self.errors} such block(s) so far (health: processing_errors)")
+            return None
+
+
 class Daemon:
     """`fluxcal run`: wires a source, the pipeline and the sinks (the MCAP recording, the Zenoh bus, any others)."""
 
@@ -127,10 +152,9 @@ class Daemon:
         self.extra_sinks = list(sinks)
         self._reader = BatchReader(cfg.unit.block_ms, self.stop)
         self._link = Reconnecting(self._reader, self.stop, self.say)   # counts the input's losses and returns
-        self.processing_errors = 0            # blocks whose processing raised (their raw data are kept)
+        self._process = Processing(self.say)  # a block whose processing raises costs its output only
         self.keeper = Keeper(cfg, self.say)   # the calibrations refused, and the saves of the one in use
         self._faults = FaultWatch(self.say, silence_s=cfg.unit.silence_s, every_s=cfg.unit.status_s)
-        self._last_processing_say = -1e9
         self._rate = RateCheck(cfg, self.say)
         self._status = StatusLog(self.say, cfg.unit.status_s)
 
@@ -176,23 +200,6 @@ class Daemon:
         """Whether the unit clock has been compared with the configured rate (input.RateCheck)."""
         return self._rate.checked
 
-    def _process(self, pipeline: Pipeline, block: SampleBlock):
-        """pipeline.process, but an error in it (a bug meeting data nobody foresaw) costs that block's
-        corrected output, never the service: it is counted, said (at most every 10 s, with the first
-        sample's seq) and the next block is processed. Replay meets the same error at the same block."""
-        try:
-            return pipeline.process(block)
-        except Exception as e:          # noqa: BLE001 - a long-running service must outlive one bad block
-            self.processing_errors += 1
-            now = time.monotonic()
-            if now - self._last_processing_say >= 10.0:
-                self._last_processing_say = now
-                seq0 = int(block.seq[0]) if block.n_samples else -1
-                self.say(f"processing failed for the block from seq {seq0} ({block.n_samples} samples): "
-                         f"{type(e).__name__}: {e}; its raw samples are recorded, its corrected output is "
-                         f"lost; {self.processing_errors} such block(s) so far (health: processing_errors)")
-            return None
-
     def _state(self, pipeline: Pipeline, source: Source, sinks: Sinks) -> dict[str, Any]:
         st = pipeline.state()
         st["health"] = self._health(source, sinks)
@@ -207,7 +214,7 @@ class Daemon:
         """The health channel's counters: the source's own (its declaration's), the input's losses, what the service
         refused or failed to process, and the messages an output failed to take: all outputs', and each failing
         output's own (`output_failures.<name>`, shown beside the others by the dashboard and the summary at stop)."""
-        return {**source.counters.as_dict(), **self._link.counts(), "processing_errors": self.processing_errors,
+        return {**source.counters.as_dict(), **self._link.counts(), "processing_errors": self._process.errors,
                 "commands_refused": self._status.refused, "output_failures": sum(sinks.errors.values()),
                 **self.keeper.counts(),
                 **{f"output_failures.{name}": n for name, n in sinks.errors.items() if n}}

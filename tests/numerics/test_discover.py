@@ -394,7 +394,7 @@ def test_a_written_common_effect_keeps_its_reference_on_other_data(seeds, tmp_pa
 def test_a_line_on_a_bursty_real_board_is_found_at_its_own_frequency():
     """The hand-turned sensorfusion board sends bursts of samples 2-3 ms apart with 20-60 ms between them (median
     interval 3.3 ms, mean 13 ms): its residual's spectra, taken over the samples in their order, were read on the
-    median interval, and a 3.0 Hz field was a line at 12.39 Hz. On the mean interval (engine.coloured.sample_grid),
+    median interval, and a 3.0 Hz field was a line at 12.39 Hz. On the mean interval (effects.timebase.sample_grid),
     as the effects' errors take it."""
     from real_data import real
 

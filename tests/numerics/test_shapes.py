@@ -167,7 +167,7 @@ def test_a_columns_lines_and_the_residuals_scale_are_read_at_their_frequencies_o
     """A real hand-turned board's samples come 2-58 ms apart (median 3.3 ms, mean 13 ms): its spectra were read on
     the median interval, so a logged servo's lines at 0.031 and 0.083 Hz were said at 0.126 and 0.335 Hz, and the
     residual's band and time scale 4 times off (a field trial). They are read on the interval the coloured errors
-    take (engine.coloured.sample_grid: a bursty time base's mean), within 3 %."""
+    take (effects.timebase.sample_grid: a bursty time base's mean), within 3 %."""
     from fluxcal.service.numerics.diagnose.harmonics import motion_lines
     from fluxcal.service.numerics.diagnose.signature import _time_scale
 

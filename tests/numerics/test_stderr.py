@@ -251,7 +251,7 @@ def test_a_bursty_time_base_is_laid_out_in_the_samples_order_at_its_mean_interva
     """Bursts of samples 2-3 ms apart with 40-60 ms between them (a hobby board), and a pause of 5 s: the spectra are
     taken over the samples in their order, so the weights are laid out the same way, at the mean interval outside
     the pause, and the pause keeps its length."""
-    from fluxcal.service.numerics.engine.coloured import sample_grid
+    from fluxcal.service.numerics.effects.timebase import sample_grid
 
     rng = np.random.default_rng(3)
     steps = np.tile([0.002, 0.003, 0.002, 0.05], 500) + rng.uniform(0, 0.01, 2000) * np.tile([0, 0, 0, 1], 500)
@@ -302,7 +302,8 @@ def test_under_a_random_walk_the_steep_law_is_kept_below_its_band_and_drift_is_n
     it). Under a random walk of the offsets it is not refuted: with the knee taken regardless, a drift's stated errors
     fell 2-4 fold (rms z 4.8, worst -18.5) and diagnose called a drift that is not there significant. Measured with
     the steep law kept: rms z 1.31 over six seeds."""
-    from fluxcal.service.numerics.engine.coloured import low_frequency_knee, sample_grid, welch_spectra
+    from fluxcal.service.numerics.effects.timebase import sample_grid
+    from fluxcal.service.numerics.engine.coloured import low_frequency_knee, welch_spectra
 
     z = []
     for seed in range(6):

@@ -392,13 +392,19 @@ def test_fit_and_diagnose_give_one_residual_with_the_total_estimated(tmp_path, c
 @needs_real("hmc5883l_sensorfusion_sphere.csv", "imu_freeimucal.csv")
 @pytest.mark.parametrize("name", ["hmc5883l_sensorfusion_sphere.csv", "imu_freeimucal.csv"])
 def test_real_boards_get_one_residual_from_fit_and_diagnose(name, capsys):
-    """The real boards of the third trial: 245.248 against 249.945 nT and 511.654 against 506.269 before."""
+    """The real boards of the third trial: 245.248 against 249.945 nT and 511.654 against 506.269 before, each
+    command assuming its own total field. Now both assume fit's (as printed), and diagnose's residual differs from
+    fit's only by its refit of the linear part, a least-squares refinement of the same calibration: never above
+    fit's (but for the few rows at the ends it leaves out), and within 1 % below it (freeIMUCal: 509.327 against
+    511.654 nT, over 3,890 of its 3,900 rows since its held samples' holes are bridged, 3,421 before)."""
     path = str(real(name))
     status, fit = run(capsys, "fit", path)
     assert status == 0, fit
     status, diag = run(capsys, "diagnose", path)
     assert status == 0, diag
-    assert diag["rms_nT"] == pytest.approx(fit["rms_nT"], rel=2e-3)
+    assumed = fit["sensors"][0]["params"]["total_nT_assumed"]["value"]
+    assert any(f"the total field is estimated, {assumed:,.1f} nT, as fit assumes it" in n for n in diag["notes"])
+    assert 0.99 * fit["rms_nT"] <= diag["rms_nT"] <= 1.001 * fit["rms_nT"], (diag["rms_nT"], fit["rms_nT"])
 
 
 @pytest.mark.parametrize("seed", [4, 5])

@@ -68,7 +68,7 @@ def _spectrum_figure(plt, d: Diagnosis) -> tuple[str, str, bytes] | None:
     drawn from the numbers `where` names its bands from (numerics.diagnose.where.excess_spectrum: the periodogram
     in log-spaced bins), each band it names shaded in its channel's colour."""
     from fluxcal.service.numerics.diagnose.where import excess_spectrum
-    from fluxcal.service.numerics.engine.coloured import sample_grid
+    from fluxcal.service.numerics.effects.timebase import sample_grid
 
     ch = d.fit.channels
     if ch.values.shape[0] < 256:

@@ -14,7 +14,7 @@ import numpy as np
 
 from fluxcal.service.numerics.effects.base import EffectData
 from fluxcal.service.numerics.effects.column import usable_columns
-from fluxcal.service.numerics.engine.coloured import sample_grid
+from fluxcal.service.numerics.effects.timebase import sample_grid
 
 from .spectra import spectral_lines
 
@@ -35,7 +35,7 @@ def motion_lines(t_s: np.ndarray, x: np.ndarray) -> list[float]:
     n = x.size
     if n < 64:
         return []
-    dt = sample_grid(t_s)[1]                         # a bursty time base: its mean interval (engine.coloured)
+    dt = sample_grid(t_s)[1]                         # a bursty time base: its mean interval (effects.timebase)
     y = x - np.polyval(np.polyfit(t_s - t_s[0], x, 1), t_s - t_s[0])
     p = np.abs(np.fft.rfft(y * np.hanning(n))) ** 2
     f = np.fft.rfftfreq(n, dt)

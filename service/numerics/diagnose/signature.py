@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from fluxcal.service.numerics.engine import FitResult
-from fluxcal.service.numerics.engine.coloured import sample_grid
+from fluxcal.service.numerics.effects.timebase import sample_grid
 
 from .harmonics import band_source, column_lines, harmonic_source
 
@@ -71,7 +71,7 @@ LINE_BINS = 2
 
 def _time_scale(t_s: np.ndarray, y: np.ndarray, noise: float) -> tuple[float | None, float | None, float | None]:
     """(period in s above which half of the excess power lies, spectral slope, frequency of a spectral line
-    or None) of a residual, from a Welch spectrum on the interval of engine.coloured.sample_grid (a steady time
+    or None) of a residual, from a Welch spectrum on the interval of effects.timebase.sample_grid (a steady time
     base's median, a bursty one's mean: on the median a real board's bursty record read 4 times too high)."""
     n = y.size
     if n < 256:

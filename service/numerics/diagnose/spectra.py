@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from fluxcal.service.numerics.engine.coloured import sample_grid
+from fluxcal.service.numerics.effects.timebase import sample_grid
 
 #: a spectral line: a Welch bin this many times the median of its neighbourhood, holding this share of a channel's
 #: excess power; at most MAX_LINES lines

@@ -31,6 +31,7 @@ from fluxcal.service.numerics.channels import AXES  # noqa: F401 - the effect te
 from fluxcal.service.numerics.usable import usable_samples
 
 from .attitude import quat_to_matrix, rx, ry, rz
+from .timebase import TimeBase
 
 #: extra columns that carry the platform attitude, R = Rz(azimuth) Ry(pitch) Rx(heel), platform -> NED
 ATTITUDE_EULER = ("heel_deg", "pitch_deg", "azimuth_deg")
@@ -45,10 +46,6 @@ NOT_OBSERVABLES = frozenset({"ref_total", "seq", "flags", *ATTITUDE_EULER, *ATTI
 
 
 # --- the data every term looks at -------------------------------------------------------------------
-
-#: an interval this many times the typical one is a gap (EffectData.gap_s), and a time base whose 95th percentile
-#: interval is this many times its median is bursty (engine.coloured.sample_grid)
-GAP_FACTOR = 1.5
 
 
 def savgol_filter(*args: Any, **kwargs: Any) -> np.ndarray:
@@ -151,12 +148,12 @@ class EffectData(Timed):
         return self.window_samples
 
     @property
-    def gap_s(self) -> float:
-        """An interval longer than this is a gap: GAP_FACTOR times the typical interval, where the typical one is the
-        median for a steady time base and the 95th percentile for a bursty one (a hobby board sending bursts
-        of samples 2 ms apart with 20-60 ms between bursts: those pauses are its rhythm, not gaps)."""
-        d = np.diff(self.t_s)
-        return GAP_FACTOR * max(float(np.median(d)), float(np.percentile(d, 95)))
+    def time_base(self) -> TimeBase:
+        """Steady or bursty, its gaps (gap_s: a hole of a few samples in a steady one is bridged, a bursty board's
+        pauses are its rhythm), and the samples' slots on a uniform grid (effects.timebase)."""
+        if "time base" not in self._cache:
+            self._cache["time base"] = TimeBase.of(self.t_s)
+        return self._cache["time base"]
 
     def valid_rows(self) -> np.ndarray:
         """Rows used for fitting: away from the ends and from gaps in time (gap_s)."""
@@ -166,7 +163,7 @@ class EffectData(Timed):
             ok = np.ones(n, bool)
             ok[:e] = False
             ok[n - e:] = False
-            gaps = np.flatnonzero(np.diff(self.t_s) > self.gap_s)
+            gaps = np.flatnonzero(np.diff(self.t_s) > self.time_base.gap_s)
             for g in gaps:                                   # a loop over gaps, not samples
                 ok[max(0, g - e + 1):g + e + 1] = False
             self._cache[key] = np.flatnonzero(ok)
@@ -181,9 +178,8 @@ class EffectData(Timed):
         """(N, 3) probe k's raw output smoothed by a quadratic Savitzky-Golay filter (noise removed,
         motion kept: the window is short against a turn)."""
         key = ("smooth", k)
-        if key not in self._cache:
-            self._cache[key] = savgol_filter(self.raw_nT[:, k, :], self.window_samples, 2, axis=0,
-                                             mode="interp")
+        if key not in self._cache:                # samples missing from a steady grid: on the grid (as derivative)
+            self._cache[key] = self.time_base.filtered(self.raw_nT[:, k, :], self.window_samples)
         return self._cache[key]
 
     def rate(self, k: int) -> np.ndarray:
@@ -197,6 +193,8 @@ class EffectData(Timed):
         """d x/dt of a series x (N, ...) over `window` samples (odd; None: window_samples), as rate() takes a probe's:
         the Savitzky-Golay derivative on a uniform time base, else the gradient of the smoothed series."""
         w = self.window_samples if window is None else int(window)
+        if self.time_base.holes:      # samples missing from a steady grid: on the grid, the holes interpolated
+            return self.time_base.filtered(x, w, deriv=1)
         if self._uniform():
             return savgol_filter(x, w, 2, deriv=1, delta=self.dt_s, axis=0, mode="interp")
         return np.gradient(savgol_filter(x, w, 2, axis=0, mode="interp"), self.t_s, axis=0)

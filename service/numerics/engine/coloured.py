@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from fluxcal.service.numerics.effects.base import GAP_FACTOR
+from fluxcal.service.numerics.effects.timebase import MAX_GRID_FILL, sample_grid
 
 from .jacobian import _chunks
 
@@ -364,37 +364,6 @@ def low_frequency_correlation(values: np.ndarray, blocks: int = 32) -> np.ndarra
     sd[sd <= 0] = 1.0
     z = (means - means.mean(0)) / sd
     return z.T @ z / nb
-
-
-#: a record whose gaps make its time grid longer than this many times its samples gets no spectral errors (the
-#: FFT would be as long as the gaps; the block jackknife stays)
-MAX_GRID_FILL = 8
-
-
-#: a time base is bursty where the 95th percentile of its intervals is this many times their median (as
-#: EffectData.gap_s: a hobby board sending bursts of samples 2 ms apart with 20-60 ms between them)
-BURSTY = GAP_FACTOR
-
-
-def sample_grid(t_s: np.ndarray) -> tuple[np.ndarray, float]:
-    """(positions on a uniform grid, its step) for sample times t_s, laid out as the residual's spectra are taken
-    (welch_spectra: over the samples in their order). A steady time base: its median interval, a gap held as its
-    length. A bursty one: the samples in their order at their mean interval, a gap (an interval over BURSTY times
-    the 95th percentile) held as its length; the bursts' rhythm is far faster than the periods the power law
-    serves. On the median interval a bursty record's spectra were read at 4 times their frequencies and over a
-    quarter of its duration (a real hand-turned board of 106 s, 8,190 samples 2-58 ms apart: an offset that
-    follows a logged heater got 7,600 nT/A for an error whose spread over 60 random heater histories is 281)."""
-    t = np.asarray(t_s, float)
-    if t.size < 2:
-        return np.zeros(t.size, np.int64), 1.0
-    d = np.diff(t)
-    med, p95 = float(np.median(d)), float(np.percentile(d, 95))
-    if p95 <= BURSTY * med:
-        return np.rint((t - t[0]) / med).astype(np.int64), med
-    gap = d > BURSTY * p95
-    step = float(np.mean(d[~gap])) if np.any(~gap) else med
-    inc = np.where(gap, np.maximum(np.rint(d / step), 1.0), 1.0).astype(np.int64)
-    return np.concatenate([[0], np.cumsum(inc)]), step
 
 
 def pinv_columns(a: np.ndarray, idx: np.ndarray, rank_tol: float) -> np.ndarray:
