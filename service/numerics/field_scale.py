@@ -23,8 +23,12 @@ EARTH_NT = (22_000.0, 67_000.0)
 EARTH_RANGE_NT = (20_000.0, 70_000.0)
 #: a given total field this many times the data's scale (or less than its inverse) is said loudly: the calibration
 #: would give the sensor a gain this far from 1 on every axis, where a fluxgate's is within about 1 %; beyond
-#: determinacy.SITE_RATIO_MAX (2) the fits refuse it
+#: SITE_RATIO_MAX the fits refuse it (a unit or gain setting that far off is no calibration's to take)
 TOTAL_RATIO_LIMIT = 1.25
+#: a given total field further than this factor from the data's own size (median |raw - centre|) is not theirs:
+#: the fits refuse it (determinacy.physical); within it, a logger's gain setting off by a step (a MEMS part's gain
+#: steps differ 1.1-1.5 times) is taken into the matrix, said loudly above TOTAL_RATIO_LIMIT
+SITE_RATIO_MAX = 2.0
 #: units a lab file may be in, and nT per unit
 _UNITS = (("µT", 1e3), ("mG", 1e2), ("G", 1e5), ("mT", 1e6), ("T", 1e9), ("pT", 1e-3))
 
@@ -110,6 +114,8 @@ def field_scale_warnings(field_nT: np.ndarray, probe_names: Sequence[str],
             times = f"{ratio:,.0f}" if ratio >= 10 else f"{ratio:.3g}"
             loud.append(f"the total field given ({total_nT:,.0f} nT, {total_source}) is {times} times the data's "
                         f"median |B| about {about} ({data_scale:,.6g}): the calibration's matrix scales the data by "
-                        f"about {times} on every axis to meet it (its residuals too), a gain no magnetometer has "
-                        f"unless its unit is wrong: {why}")
+                        f"about {times} on every axis to meet it (its residuals too), where a sensor's own gain is "
+                        f"within a few % of its data sheet: the factor is the data's unit or gain setting, or the "
+                        f"field given is wrong ({why}); the calibration is made with the factor in its matrix "
+                        f"(refused beyond {SITE_RATIO_MAX:g} times): check which before using it")
     return warnings, loud

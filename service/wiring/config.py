@@ -68,7 +68,8 @@ class EstimatorConfig:
     method: str = spec("rls", choices=("rls",))
     forgetting: float = spec(0.9995, min=0.9, max=1.0, doc="RLS forgetting factor per sample")
     total_nT: float | None = spec(None, min=1000.0, max=200000.0,
-                                  doc="ambient total field; omit to use ref_total from the source or estimate it")
+                                  doc="ambient total field (a coil system's too: up to 200,000 nT, where the Earth's "
+                                      "is 22,000-67,000); omit to use ref_total from the source or estimate it")
     site: str | None = spec(None, doc="LAT,LON[,ALT_M[,DATE]]: the total field from the World Magnetic Model at the "
                                       "site, for a unit without a scalar magnetometer (instead of total_nT)")
     align: str = spec("rotation", choices=("rotation", "regression", "none"))

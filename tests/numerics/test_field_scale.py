@@ -64,6 +64,10 @@ def test_a_given_total_far_from_the_data_is_said_loudly():
         _, loud = field_scale_warnings(b, ["s1"], total_nT=ratio * 52_500.0, total_source="x")
         assert len(loud) == 1 and f"is {ratio:.3g} times the data's median |B|" in loud[0], loud
         assert f"scales the data by about {ratio:.3g} on every axis" in loud[0]
+        # what it says is what is done: the calibration is made with the factor (a field trial read "a gain no
+        # magnetometer has" above a calibration written with exit 0)
+        assert "the calibration is made with the factor in its matrix (refused beyond 2 times)" in loud[0]
+        assert "no magnetometer" not in loud[0]
     for ratio in (1 / (0.95 * TOTAL_RATIO_LIMIT), 1.0, 1.02, 0.95 * TOTAL_RATIO_LIMIT):   # a gain a sensor can have
         assert field_scale_warnings(b, ["s1"], total_nT=ratio * 52_500.0, total_source="x") == ([], [])
 

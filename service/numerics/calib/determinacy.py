@@ -36,7 +36,7 @@ import numpy as np
 
 from fluxcal.drivers.errors import CalibrationRefused
 
-from ..field_scale import EARTH_RANGE_NT, median_field, unit_guess
+from ..field_scale import EARTH_RANGE_NT, SITE_RATIO_MAX, median_field, unit_guess
 from .coverage import Coverage, coverage
 from .excitation import Cone
 from .quadric import MAX_CONDITION
@@ -165,9 +165,6 @@ WIDE_COVERAGE = 0.75
 #: compass hardly turned or turned in its platform's own field 13-36 %; one that never turned 44 %, every direction
 #: "seen" about a centre inside the cloud)
 SHELL_MAX = 0.1
-#: a given total field further than this factor from the data's own size (median |raw - centre|) is not theirs: a
-#: sensor's scale factors are near 1 (plausible.CalibrationLimits.max_scale)
-SITE_RATIO_MAX = 2.0
 
 
 def physical(j: Determinacy, raw_nT: np.ndarray, given_total_nT: Any = None, source: str = "") -> Determinacy:
