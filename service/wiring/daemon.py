@@ -223,7 +223,7 @@ class Daemon:
         """The health counters and the faults to every sink; at stop (final), with the summary of the run said."""
         health = self._health(source, sinks)
         counted = {**health, **{k: int(getattr(bus, "stats", {}).get(k, 0)) for k in BUS_COUNTED}}
-        faults = self._faults.tick(counted, sinks.recording())
+        faults = self._faults.tick(counted, sinks.recording(), self._link.down_why)
         if final:
             faults["summary"] = self._faults.summary(counted, sinks.recording(), outputs=sinks.errors)
             for line in faults["summary"]:

@@ -10,6 +10,8 @@ beside it) is said as it declares, and only those (`words`, the Counters' words 
     no_decode     input arrives but nothing of the unit's decodes for 2 s (a wrong baud rate, a wrong base id),
                   in the words the protocol declares (fluxcal.drivers.declare.NoDecode)
     silence       nothing from the unit for `silence_s` (unit.silence_s), and when data come again
+    input_lost    the port or bus is down while the service reconnects (said on the console as it happens, by the
+                  reader: input.Reconnecting; here its state, and its events for the health channel)
     persist       saves of the calibration in use that failed (a restart would not reload it)
     calibrations_refused, commands_refused: said where they happen; counted here, and in the summary at stop
     stalls        the bus waited for a subscriber that took nothing (the daemon adds bus.send_stalls)
@@ -119,22 +121,12 @@ class RecordingWatch:
                 ep.said_at, ep.said_value = now, dropped
 
 
-class FaultWatch:
-    """Decides what to say about losses and faults from counters, at each `tick`; keeps the health field.
-    words: the source's counters and their words (its Counters' `words`; the daemon sets them once it is open)."""
+class InputWatch:
+    """The input's states: silence (nothing at all arrives for `silence_s`), input that decodes into no frame of the
+    unit's, and the input's loss while the service reconnects; each said (by `event`) as it begins and ends."""
 
-    def __init__(self, say: Callable[[str], None], *, words: Words = Words(()), silence_s: float = 5.0,
-                 every_s: float = 10.0, clock: Callable[[], float] = time.monotonic,
-                 wall: Callable[[], float] = time.time) -> None:
-        self.say, self.silence_s, self.every_s = say, float(silence_s), float(every_s)
-        self.words = words
-        self.clock, self.wall = clock, wall
-        self._prev: dict[str, int] = {}
-        self._prev_t: float | None = clock()  # the first tick compares with the start: nothing counted yet
-        self._episodes: dict[str, _Episode] = {}
-        self.events: deque[dict[str, Any]] = deque(maxlen=HEALTH_EVENTS)
-        self.n_events = 0
-        self.totals: dict[str, int] = {}
+    def __init__(self, event: Callable[..., None], silence_s: float) -> None:
+        self._event, self.silence_s = event, silence_s
         self._last_activity: float | None = None   # silence counts from the first tick: a unit that never sends is said
         self._silent_since: float | None = None
         self.silences = 0
@@ -143,41 +135,18 @@ class FaultWatch:
         self._nd_said = False
         self.no_decode = 0                    # stretches said
         self.no_decode_input = 0              # input in them (bytes, frames: as the protocol's NoDecode says)
-        self.recording = RecordingWatch(self._event, self.every_s)
+        self._down: tuple[str, float] | None = None       # the input's loss while it lasts: why, since when
 
-    # --- saying ---------------------------------------------------------------------------------------
+    @property
+    def started(self) -> bool:
+        return self._last_activity is not None
 
-    def _event(self, kind: str, phase: str, count: int, text: str) -> None:
-        self.say(text)
-        self.n_events += 1
-        self.events.append({"n": self.n_events, "kind": kind, "phase": phase, "count": int(count), "text": text,
-                            "time_unix_s": self.wall()})
+    def active(self) -> list[str]:
+        return ((["input_lost"] if self._down is not None else []) + (["silence"] if self._silent_since is not None
+                else []) + (["no_decode"] if self._nd_said else []))
 
-    def _said(self) -> tuple[Counted, ...]:
-        """The counters said: the source's faults, then the service's."""
-        return tuple(k for k in self.words.counted + SERVICE if k.fault)
-
-    # --- the tick ----------------------------------------------------------------------------------------
-
-    def tick(self, counters: Mapping[str, int], recording: Mapping[str, Any] | None = None) -> dict[str, Any]:
-        """Compare with the last tick, say what began, goes on or ended; returns the health field."""
-        now = self.clock()
-        dt = now - self._prev_t if self._prev_t is not None else None
-        prev = self._prev or {}
-        delta = {k: int(v) - int(prev.get(k, 0)) for k, v in counters.items()}
-        self._input(delta, now)
-        for kind in self._said():
-            if kind.name in counters:
-                self._counted(kind, counters, delta, now, dt)
-        if recording is not None:
-            self.recording.tick(recording, now)
-            self.totals["recording_dropped"] = self.recording.dropped
-        self._prev, self._prev_t = {k: int(v) for k, v in counters.items()}, now
-        return self.health()
-
-    def _input(self, d: Mapping[str, int], now: float) -> None:
+    def tick(self, w: Words, d: Mapping[str, int], now: float, prev_t: float | None) -> None:
         """Silence (nothing at all arrives) and input that decodes into no frame of the unit's."""
-        w = self.words
         frames = sum(d.get(k, 0) for k in w.decoded)
         arrived = sum(d.get(k, 0) for k in w.arrival if k not in w.decoded)
         if self._last_activity is None:
@@ -200,7 +169,7 @@ class FaultWatch:
             return
         if arrived > 0 and frames == 0:
             if self._nd_since is None:
-                self._nd_since, self._nd_input = (self._prev_t if self._prev_t is not None else now), 0
+                self._nd_since, self._nd_input = (prev_t if prev_t is not None else now), 0
             self._nd_input += arrived
             if not self._nd_said and now - self._nd_since >= NO_DECODE_S:
                 self._nd_said = True
@@ -215,6 +184,71 @@ class FaultWatch:
                 self._event("no_decode", "end", self._nd_input,
                             f"{nd.label} ended: " + nd.end.format(n=self._nd_input, t=_ago(now - self._nd_since)))
             self._nd_since, self._nd_said = None, False
+
+    def lost(self, why: str | None, times: int, now: float) -> None:
+        """The input's loss as a fault going on: while a reconnect is awaited the port's failure is what a viewer
+        hears, not the faults that were counted before it (a field trial's watch blamed "CAN samples incomplete"
+        while the adapter was gone). Said on the console by the reader as it happens: recorded here only."""
+        if why is not None and self._down is None:
+            self._down = (why, now)
+            self._event("input_lost", "begin", times, f"input lost: {why}; reconnecting", say=False)
+        elif why is None and self._down is not None:
+            self._event("input_lost", "end", times, f"input back after about {_ago(now - self._down[1])}", say=False)
+            self._down = None
+
+
+class FaultWatch:
+    """Decides what to say about losses and faults from counters, at each `tick`; keeps the health field.
+    words: the source's counters and their words (its Counters' `words`; the daemon sets them once it is open)."""
+
+    def __init__(self, say: Callable[[str], None], *, words: Words = Words(()), silence_s: float = 5.0,
+                 every_s: float = 10.0, clock: Callable[[], float] = time.monotonic,
+                 wall: Callable[[], float] = time.time) -> None:
+        self.say, self.silence_s, self.every_s = say, float(silence_s), float(every_s)
+        self.words = words
+        self.clock, self.wall = clock, wall
+        self._prev: dict[str, int] = {}
+        self._prev_t: float | None = clock()  # the first tick compares with the start: nothing counted yet
+        self._episodes: dict[str, _Episode] = {}
+        self.events: deque[dict[str, Any]] = deque(maxlen=HEALTH_EVENTS)
+        self.n_events = 0
+        self.totals: dict[str, int] = {}
+        self.input = InputWatch(self._event, self.silence_s)
+        self.recording = RecordingWatch(self._event, self.every_s)
+
+    # --- saying ---------------------------------------------------------------------------------------
+
+    def _event(self, kind: str, phase: str, count: int, text: str, *, say: bool = True) -> None:
+        if say:
+            self.say(text)
+        self.n_events += 1
+        self.events.append({"n": self.n_events, "kind": kind, "phase": phase, "count": int(count), "text": text,
+                            "time_unix_s": self.wall()})
+
+    def _said(self) -> tuple[Counted, ...]:
+        """The counters said: the source's faults, then the service's."""
+        return tuple(k for k in self.words.counted + SERVICE if k.fault)
+
+    # --- the tick ----------------------------------------------------------------------------------------
+
+    def tick(self, counters: Mapping[str, int], recording: Mapping[str, Any] | None = None,
+             input_lost: str | None = None) -> dict[str, Any]:
+        """Compare with the last tick, say what began, goes on or ended; returns the health field. input_lost: why
+        the input is down, while it is (None while it is up)."""
+        now = self.clock()
+        self.input.lost(input_lost, int(counters.get("read_errors", 0)), now)
+        dt = now - self._prev_t if self._prev_t is not None else None
+        prev = self._prev or {}
+        delta = {k: int(v) - int(prev.get(k, 0)) for k, v in counters.items()}
+        self.input.tick(self.words, delta, now, self._prev_t)
+        for kind in self._said():
+            if kind.name in counters:
+                self._counted(kind, counters, delta, now, dt)
+        if recording is not None:
+            self.recording.tick(recording, now)
+            self.totals["recording_dropped"] = self.recording.dropped
+        self._prev, self._prev_t = {k: int(v) for k, v in counters.items()}, now
+        return self.health()
 
     def _counted(self, kind: Counted, c: Mapping[str, int], d: Mapping[str, int], now: float,
                  dt: float | None) -> None:
@@ -267,25 +301,22 @@ class FaultWatch:
     @property
     def started(self) -> bool:
         """Whether a tick has come: the service's loop ran."""
-        return self._last_activity is not None
+        return self.input.started
 
     def active(self) -> list[str]:
         """The faults going on now."""
-        out = list(self._episodes)
-        if self._silent_since is not None:
-            out.append("silence")
-        if self._nd_said:
-            out.append("no_decode")
+        now = self.input.active()          # the input's loss first: while it lasts it is what a viewer hears
+        out = [a for a in now if a == "input_lost"] + list(self._episodes) + [a for a in now if a != "input_lost"]
         if self.recording.active:
             out.append("recording")
         return out
 
     def health(self) -> dict[str, Any]:
         """health.faults: what is going on, every kind's total, and the newest events (numbered, with counts)."""
-        totals = {**self.totals, "silence": self.silences, "no_decode": self.no_decode,
+        totals = {**self.totals, "silence": self.input.silences, "no_decode": self.input.no_decode,
                   "recording_troubles": self.recording.troubles}
         if self.words.no_decode is not None:
-            totals[f"no_decode_{self.words.no_decode.arrives}"] = self.no_decode_input
+            totals[f"no_decode_{self.words.no_decode.arrives}"] = self.input.no_decode_input
         return {"active": self.active(), "totals": totals, "n_events": self.n_events, "events": list(self.events)}
 
     def summary(self, counters: Mapping[str, int], recording: Mapping[str, Any] | None = None,
@@ -295,11 +326,12 @@ class FaultWatch:
         c = {k: int(v) for k, v in counters.items()}
         lines = [f"{kind.label}: {kind.what.format(n=c[kind.name])}{self._detail(kind, c, {})}"
                  for kind in self._said() if c.get(kind.name, 0)]
-        if self.silences:
-            lines.append(f"silence: the unit was silent {self.silences} time(s) for {self.silence_s:g} s or more")
-        if self.no_decode and self.words.no_decode is not None:
+        inp = self.input
+        if inp.silences:
+            lines.append(f"silence: the unit was silent {inp.silences} time(s) for {self.silence_s:g} s or more")
+        if inp.no_decode and self.words.no_decode is not None:
             nd = self.words.no_decode
-            lines.append(f"{nd.label}: " + nd.total.format(k=self.no_decode, n=self.no_decode_input))
+            lines.append(f"{nd.label}: " + nd.total.format(k=inp.no_decode, n=inp.no_decode_input))
         if c.get("read_errors", 0):
             lines.append(f"port failures: the input went down {c['read_errors']:,} time(s), {c.get('reconnects', 0):,} "
                          f"reconnect(s)")

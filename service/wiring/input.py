@@ -26,6 +26,7 @@ class Reconnecting:
         self.reader, self.stop, self.say = reader, stop, say
         self.backoff = 0.1
         self.down_since: float | None = None  # monotonic time the input was lost, while it stays down
+        self.down_why: str | None = None      # ... and why (the source's error), while it stays down
         self.attempts = 0
         self.stopped = False
         self.read_errors = 0                  # times the input went down
@@ -42,7 +43,7 @@ class Reconnecting:
             except DriverError as e:
                 self.say(f"input lost: {e}; reconnecting (backoff from {self.backoff:.1f} s)")
                 self.read_errors += 1
-                self.down_since, self.attempts = time.monotonic(), 0
+                self.down_since, self.down_why, self.attempts = time.monotonic(), str(e), 0
         if self.stop.wait(self.backoff):
             self.stopped = True
             return None
@@ -57,7 +58,7 @@ class Reconnecting:
         else:
             self.reconnects += 1
             self.say(f"input reconnected after {time.monotonic() - self.down_since:.1f} s")
-            self.down_since, self.backoff = None, 0.1
+            self.down_since, self.down_why, self.backoff = None, None, 0.1
         return None
 
 

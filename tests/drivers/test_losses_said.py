@@ -715,3 +715,31 @@ def test_a_full_disk_is_said_as_it_begins_with_its_running_count_when_it_ends_an
     # messages written while the disk was full never reach the file: the dashboard sees the end and the summary
     assert rec_events and rec_events[-1]["phase"] == "end" and rec_events[-1]["count"] == dropped
     assert f"summary: recording: {dropped:,} message(s) dropped" in "\n".join(dash["summary"])
+
+
+def test_an_input_lost_is_the_fault_going_on_until_it_is_back():
+    """The adapter gone while the service reconnects: "input lost" is an active fault, first among them, with the
+    reader's reason, in the health events (said on the console once, by the reader) until the input is back. A field
+    trial's watch said only the faults counted before the loss ("CAN samples incomplete") while the adapter was gone."""
+    from fluxcal.service.wiring.commands.client import active_faults
+
+    clock, said = Clock(), []
+    fw = FaultWatch(said.append, words=source_kind("can").words(), silence_s=5.0, clock=clock, wall=lambda: 1.7e9)
+    c = {"frames_accepted": 0, "can_incomplete": 0, "read_errors": 0}
+    clock.t += 1.0
+    fw.tick({**c, "frames_accepted": 600, "can_incomplete": 4})
+    why = "CAN bus slcan:/dev/x: receive failed (device gone): the adapter was probably disconnected"
+    clock.t += 1.0
+    health = fw.tick({**c, "frames_accepted": 600, "can_incomplete": 4, "read_errors": 1}, input_lost=why)
+    assert health["active"] == ["input_lost", "can_incomplete"]
+    assert active_faults({"faults": health}).startswith(f"input lost: {why}; reconnecting; ")
+    assert not any("input lost" in s for s in said)                     # the reader said it as it happened
+    for _ in range(8):                                                  # down for 8 s: silence joins it, later
+        clock.t += 1.0
+        health = fw.tick({**c, "frames_accepted": 600, "can_incomplete": 4, "read_errors": 1}, input_lost=why)
+    assert health["active"] == ["input_lost", "silence"]
+    clock.t += 1.0
+    health = fw.tick({**c, "frames_accepted": 660, "can_incomplete": 4, "read_errors": 1})
+    assert health["active"] == [] and health["events"][-1]["text"].startswith("silence ended")
+    assert [e["text"] for e in health["events"] if e["kind"] == "input_lost"] == [
+        f"input lost: {why}; reconnecting", "input back after about 9.0 s"]
