@@ -171,3 +171,20 @@ def test_one_rotated_file_fitted_alone_says_it_is_part_of_a_run(rotated, capsys)
     capsys.readouterr()
     status, out, err = run(["fit", rotated, "--json"], capsys)
     assert status == 0 and "of one run the service rotated" not in err
+
+
+def test_inspect_says_the_time_the_commands_and_skip_take(tmp_path, capsys):
+    """A recording whose time does not start at its first sample (a unit's clock 5 s in): inspect said "t: seconds
+    from the first sample" where fit's --skip and diagnose's segments take the unit's own time (a field trial
+    planned a --skip from it and cut the wrong stretch). It now gives the time as the commands take it."""
+    text = (REPO / "configs" / "sim-gradiometer.toml").read_text().replace("duration_s = 60.0", "duration_s = 10.0")
+    (tmp_path / "sim.toml").write_text(text.replace("[sim]\n", "[sim]\nt_us_start = 5000000\n"))
+    csv = tmp_path / "late.csv"
+    assert run(["simulate", "--config", tmp_path / "sim.toml", "--out", csv], capsys)[0] == 0
+    status, out, _ = run(["inspect", csv, "--json"], capsys)
+    clock = json.loads(out)["clock"]["t_s"]
+    assert status == 0 and clock == "seconds of the data's own time, 5-14.995 s (--skip takes these)", clock
+    _, _, err = run(["fit", csv, "--skip", "5-6", "--json"], capsys)                  # its first second, as said
+    assert "--skip left out 201 of 2,000 samples (5-6 s: 201)" in err, err
+    status, out, _ = run(["inspect", LIVE, "--json"], capsys)                          # a recording from 0: as before
+    assert json.loads(out)["clock"]["t_s"] == "seconds from the first sample"

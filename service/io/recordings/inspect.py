@@ -58,8 +58,12 @@ def reading(lab: Any) -> dict[str, Any]:
     t = b.t_s
     temps = [f"{n}_temp" for k, n in enumerate(lab.probe_names) if np.isfinite(b.temp_C[:, k]).any()]
     t0 = lab.metadata.get("t0_unix_s")
-    clock = {"t_s": "seconds from the first sample, on the log's own clock" if lab.metadata.get("format") in
-             ("px4", "ardupilot", "ros2") else "seconds from the first sample",
+    own = ", on the log's own clock" if lab.metadata.get("format") in ("px4", "ardupilot", "ros2") else ""
+    # what --skip and the commands' times are in: said as it is (a recording's t is its unit's clock, which does not
+    # start at its first sample: "from the first sample" sent a --skip to the wrong stretch)
+    first = float(t[0]) if t.size else 0.0
+    clock = {"t_s": f"seconds from the first sample{own}" if first == 0.0 else
+             f"seconds of the data's own time{own}, {first:g}-{float(t[-1]):g} s (--skip takes these)",
              "t0_unix_s": float(t0) if t0 is not None else None}
     return {"probes": list(lab.probe_names), "columns": temps + sorted(b.extras), "samples": int(b.n_samples),
             "duration_s": float(t[-1] - t[0]) if t.size else None, "clock": clock}
