@@ -117,6 +117,21 @@ def test_public_log_end_to_end():
     assert {"heel_deg", "battery_current_a", "alt_m"} <= set(lab.block.extras)
 
 
+@needs_real("ardupilot_pymavlink_test.BIN")
+def test_inspect_says_no_scale_of_samples_the_gate_does_not_take(capsys):
+    """6 samples over 0.5 s determine no probe: inspect guessed the data's unit from a sphere through them ("s1 161:
+    implausible for nT ... mG?") above a stream table that says milligauss x 100 = nT, and gave the same size as 1,343
+    in another warning; fit, refused by the same gate, said neither. Now inspect says the data's scale where fit
+    would: once the gate takes every probe."""
+    path = str(real("ardupilot_pymavlink_test.BIN"))
+    assert cli.main(["inspect", path, "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["verdict"] and not any(v["determined"] for v in d["verdict"])
+    assert not [w for w in d["warnings"] if "median |B|" in w], d["warnings"]
+    assert cli.main(["fit", path]) == 2
+    assert "median |B|" not in capsys.readouterr().err
+
+
 FLIGHT = "ardupilot_erlerobot_pxf_copter.BIN"
 STILL_CURRENT = "ardupilot_erlerobot_erlebrain3.BIN"
 
