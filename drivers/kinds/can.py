@@ -11,7 +11,7 @@ ICD = Protocol(
            "probe's temperature; no unit clock: t_s = seq / rate_hz",
     decoder="fluxcal.drivers.can_source:CanIcd",
     counters=(
-        Counted("frames_accepted", "the unit's ICD frames", decoded=True, what="{n:,} frame(s) accepted"),
+        Counted("frames_accepted", "the unit's ICD frames", decoded=True, what="{n:,} frame(s) of the unit's"),
         Counted("wrong_length", "frames with the unit's ids that are no classic 8-byte data frame, dropped",
                 fault="wrong_length", label="CAN frames of a wrong length",
                 what="{n:,} frame(s) with the unit's ids that are no 8-byte data frame, dropped",

@@ -10,7 +10,7 @@ ICD = Protocol(
     "icd", "the ICD's binary frames: sync, version, probe count, counter, unit clock in us, counts, CRC-16",
     decoder="fluxcal.drivers.serial_source:SerialIcd",
     counters=(
-        Counted("frames_accepted", "frames with a good CRC", decoded=True, what="{n:,} frame(s) accepted"),
+        Counted("frames_accepted", "frames with a good CRC", decoded=True, what="{n:,} frame(s) with a good CRC"),
         Counted("crc_failures", "frames failing their CRC (bit errors on the line)", fault="crc", label="CRC failures",
                 what="{n:,} frame(s) failed their CRC",
                 advice="bit errors on the line: check the cable, its screen and its length for the baud rate",

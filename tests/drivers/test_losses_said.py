@@ -417,14 +417,14 @@ def test_fault_watch_says_begin_running_count_end_and_summary_from_the_counters(
 
     # the summary at stop: every kind with its total
     lines = fw.summary(c, rec)
-    assert lines[0] == "summary at stop: 4,288 frame(s) accepted; 7 kind(s) of loss or fault:"
+    assert lines[0] == "summary at stop: 4,288 frame(s) with a good CRC; 7 kind(s) of loss or fault:"
     assert "summary: CRC failures: 2,112 frame(s) failed their CRC (33% of the frames)" in lines
     assert "summary: samples missed: 1,400 sample(s) missed in gaps of the unit's counter (1 gap(s))" in lines
     assert "summary: recording: 2,571 message(s) dropped, 4 write error(s) in 1 stretch(es) of trouble" in lines
     assert "summary: silence: the unit was silent 1 time(s) for 5 s or more" in lines
     assert "summary: no frame decodes: 1 stretch(es) of bytes that decoded into no frame (27,000 bytes)" in lines
     quiet = FaultWatch(said.append, words=source_kind("serial").words(), clock=Clock())
-    assert quiet.summary({"frames_accepted": 12345}) == ["summary at stop: 12,345 frame(s) accepted; no loss and no "
+    assert quiet.summary({"frames_accepted": 12345}) == ["summary at stop: 12,345 frame(s) with a good CRC; no loss and no "
                                                          "fault seen"]
 
     # the dashboard's view: every event once, in order, with its count, however the health messages overlap
