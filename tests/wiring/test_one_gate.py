@@ -472,3 +472,29 @@ def test_diagnose_says_the_samples_its_residuals_are_taken_over(tmp_path, capsys
     assert cli.main(["diagnose", str(path)]) == 0
     assert f"{n} samples over" in (out := capsys.readouterr().out)
     assert f"the residuals over the {diag['n_fitted']} away from the record's ends and its gaps in time" in out
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_cloud_that_reads_an_earths_field_is_no_calibration(tmp_path, capsys, seed):
+    """Pure noise of 10,000 nT per axis (a field of about 17,000-22,000 nT, inside the Earth's range) was calibrated
+    with exit 0 and a residual of 6,663 nT (a field trial through `fluxcal.fit`). Samples that lie on no one
+    ellipsoid are refused whatever field they read, by fit, diagnose and inspect alike; a sphere turned in a steady
+    field with the same number of samples and 1/f noise is not."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(1000) * 0.05
+    cloud = rng.normal(size=(1000, 3)) * 1e4
+    u = rng.normal(size=(1000, 3))
+    sphere = 50_000.0 * u / np.linalg.norm(u, axis=1, keepdims=True) + [300.0, -200.0, 100.0]
+    sphere += np.cumsum(rng.normal(size=(1000, 3)), axis=0) * 0.5                  # a random walk: 1/f-like
+    for name, field in (("cloud", cloud), ("sphere", sphere)):
+        path = tmp_path / f"{name}.csv"
+        np.savetxt(path, np.column_stack([t, field]), delimiter=",", header="t,s1_x,s1_y,s1_z", comments="")
+        refused = []
+        for command in ("fit", "diagnose"):
+            status, obj = run(capsys, command, str(path))
+            refused.append(status == 2 and "lie on no one ellipsoid" in obj["refused"]["reason"])
+        status, seen = run(capsys, "inspect", str(path))
+        refused.append(not seen["verdict"][0]["determined"] and "lie on no one ellipsoid" in seen["verdict"][0]["reason"])
+        assert refused == ([True] * 3 if name == "cloud" else [False] * 3), (name, refused)
+    j = judge(cloud, None)
+    assert shell_thickness(j, cloud) > SHELL_MAX and physical(j, cloud).problem

@@ -172,9 +172,11 @@ def physical(j: Determinacy, raw_nT: np.ndarray, given_total_nT: Any = None, sou
     with a reference (given_total_nT: per sample, or a constant; `source` says what it is) when the data's own size
     about the judge's centre is more than SITE_RATIO_MAX from it; without one, when the field the judge assumed lies
     outside the Earth's (EARTH_RANGE_NT). The samples' size about zero says whether their unit is wrong or the
-    directions they span do not place the centre. A judgement already refused, or without a centre, is returned."""
+    directions they span do not place the centre. A field in range is refused all the same where the samples lie on
+    no one ellipsoid (a cloud: `cloud`). A judgement already refused, or without a centre, is returned."""
     if not j.determined or j.centre_nT is None:
         return j
+    thick = shell_thickness(j, raw_nT)
     raw = np.asarray(raw_nT, float)[:, None, :]
     size = float(median_field(raw, [j.centre_nT])[0])
     about_zero = float(median_field(raw, [np.zeros(3)])[0])          # what the data read before any offset
@@ -183,7 +185,7 @@ def physical(j: Determinacy, raw_nT: np.ndarray, given_total_nT: Any = None, sou
         ref = np.asarray(given_total_nT, float)
         ref = float(np.nanmedian(ref)) if ref.ndim else float(ref)
         if not np.isfinite(size) or size <= 0 or 1.0 / SITE_RATIO_MAX <= ref / size <= SITE_RATIO_MAX:
-            return j
+            return cloud(j, thick)
         fits_zero = 1.0 / SITE_RATIO_MAX <= ref / max(about_zero, 1e-300) <= SITE_RATIO_MAX
         given = f"the total field given ({ref:,.0f} nT, {source or 'given'})"
         r = max(ref / size, size / ref)
@@ -196,7 +198,7 @@ def physical(j: Determinacy, raw_nT: np.ndarray, given_total_nT: Any = None, sou
     else:
         field = j.field_nT if j.field_nT is not None else size
         if lo <= field <= hi:
-            return j
+            return cloud(j, thick)
         fits_zero = lo <= about_zero <= hi
         problem = (f"with no reference field, the fit assumes a total field of {_nT(field)} nT (the calibrated sphere "
                    f"has the raw ellipsoid's volume), outside the Earth's {lo:,.0f}-{hi:,.0f} nT: no magnetometer on "
@@ -204,7 +206,6 @@ def physical(j: Determinacy, raw_nT: np.ndarray, given_total_nT: Any = None, sou
         guess = unit_guess(field)
         last = ("or give the site's field (--site LAT,LON[,ALT], a ref_total column or estimator.total_nT) to have the "
                 "fit scaled to it and checked against it")
-    thick = shell_thickness(j, raw[:, 0])
     if thick is not None and thick > SHELL_MAX:       # the fitted size says nothing of the unit: no guess from it
         problem += (f"{f', while the samples read {about_zero:,.0f} nT about zero and' if fits_zero else ', and the samples'}"
                     f" lie on no one ellipsoid (their RMS distance from the fitted one is {thick:.0%} of its size; a "
@@ -222,6 +223,20 @@ def physical(j: Determinacy, raw_nT: np.ndarray, given_total_nT: Any = None, sou
         advice = ("the data's scale is not a field in nT: check the unit and the gain, and that the compass is not in "
                   "a platform's own field")
     advice = f"{advice}; {last}"
+    return replace(j, problem=f"{problem}; {advice}", advice=advice)
+
+
+def cloud(j: Determinacy, thick: float | None) -> Determinacy:
+    """The judgement `j`, refused where its samples lie on no one ellipsoid (their shell thickness above SHELL_MAX),
+    whatever field they read: a calibration that leaves a tenth of the field as residual is no magnetometer's (a
+    cloud of pure noise of 17,000 nT about zero was calibrated with exit 0, a residual of 6,663 nT)."""
+    if thick is None or thick <= SHELL_MAX:
+        return j
+    problem = (f"the samples lie on no one ellipsoid (their RMS distance from the fitted one is {thick:.0%} of its "
+               f"size; a sensor turned in a steady field gives a few per cent): the probe hardly turned, or the field "
+               f"about it changed as it turned (a platform's own field), or the data are no magnetometer's")
+    advice = ("turn the probe about at least two axes, so the field sweeps most directions, away from what moves the "
+              "field about it (motors, currents, iron that turns with it)")
     return replace(j, problem=f"{problem}; {advice}", advice=advice)
 
 
