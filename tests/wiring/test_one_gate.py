@@ -494,7 +494,8 @@ def test_a_cloud_that_reads_an_earths_field_is_no_calibration(tmp_path, capsys, 
             status, obj = run(capsys, command, str(path))
             refused.append(status == 2 and "lie on no one ellipsoid" in obj["refused"]["reason"])
         status, seen = run(capsys, "inspect", str(path))
-        refused.append(not seen["verdict"][0]["determined"] and "lie on no one ellipsoid" in seen["verdict"][0]["reason"])
+        verdict = seen["verdict"][0]
+        refused.append(not verdict["determined"] and "lie on no one ellipsoid" in verdict["reason"])
         assert refused == ([True] * 3 if name == "cloud" else [False] * 3), (name, refused)
     j = judge(cloud, None)
     assert shell_thickness(j, cloud) > SHELL_MAX and physical(j, cloud).problem
