@@ -220,3 +220,28 @@ def test_an_effect_a_real_board_does_not_show_is_refused_as_the_service_refuses_
     assert main(["fit", recording, "--effects", "temperature", "--json"]) == 0
     said = [w for w in json.loads(capsys.readouterr().out)["warnings"] if w.startswith("temperature: ")]
     assert len(said) == 1 and "the standard errors of 9 of its 12 parameters exceed their size" in said[0], said
+
+
+def test_a_temperature_borrowed_from_another_probe_is_said_by_fit_as_by_diagnose(tmp_path, capsys):
+    """A probe whose temperature column holds no value takes the other probes' mean in the temperature terms: diagnose
+    said so, `fit --effects temperature` fitted s1's coefficient on s2's temperature without a word (a field trial,
+    through `fluxcal.fit` as from the command line). fit now says it in the same words, and its Python result's
+    warnings are the ones it prints."""
+    import fluxcal
+
+    rec = Path(__file__).resolve().parents[2] / "recordings" / "grad1-hidden-effect.mcap"
+    frame = fluxcal.read(str(rec)).to_dataframe()
+    frame["s1_temp"] = np.nan
+    path = tmp_path / "no_s1_temp.csv"
+    frame.to_csv(path, index=False, na_rep="nan")
+    said = ("s1 has no temperature of its own: the temperature terms take the mean of s2's (borrowed); a coefficient "
+            "fitted for s1 is a coefficient on its temperature")
+    assert main(["fit", str(path), "--effects", "temperature", "--json"]) == 0
+    assert said in json.loads(capsys.readouterr().out)["warnings"]
+    result = fluxcal.fit(frame, effects=["temperature"])
+    assert said in [w.text for w in result.warnings]
+    assert [w.text for w in result.warnings][-len(result.to_dict()["warnings"]):] == result.to_dict()["warnings"]
+    assert main(["diagnose", str(path), "--json"]) == 0
+    assert said in json.loads(capsys.readouterr().out)["notes"]
+    assert main(["fit", str(path), "--json"]) == 0                    # no temperature term: nothing borrowed to say
+    assert said not in json.loads(capsys.readouterr().out)["warnings"]

@@ -32,6 +32,7 @@ import numpy as np
 
 from fluxcal.drivers.errors import CalibrationRefused
 from fluxcal.service.numerics.effects import Baseline, Model, known_effects, make_model, make_term
+from fluxcal.service.numerics.effects.temperature import borrowed_notes
 from fluxcal.service.numerics.engine import (
     LinearCalibration,
     as_effect_data,
@@ -55,7 +56,6 @@ from .signature import (
     FOLLOWS,
     SHARED,
     Carried,
-    borrowed_notes,
     channels_above,
     describe,
     signature,
@@ -155,7 +155,7 @@ def _data_notes(ed: Any) -> list[str]:
     if ed.dropped_rows:
         notes += ed.dropped_notes or [f"{ed.dropped_rows} samples with a saturated axis (NaN) left out"]
     notes += temperature_notes(ed.temp_C, ed.probe_names)        # the temperature terms are among those tested
-    return notes + borrowed_notes(ed)
+    return notes + borrowed_notes(ed.temp_C, ed.probe_names)
 
 
 def _where(ed, fit, noise: np.ndarray) -> tuple[list, dict, Any]:

@@ -43,6 +43,7 @@ import numpy as np
 
 from fluxcal.service.numerics.effects.base import AXES, EffectData, EffectTerm, ProbeView, axis_columns
 from fluxcal.service.numerics.effects.column import column_values, usable_columns
+from fluxcal.service.numerics.effects.temperature import borrowed_from
 from fluxcal.service.numerics.effects.thermal import low_pass
 
 from .harmonics import column_lines, harmonic_lines, harmonic_source
@@ -265,13 +266,12 @@ def temperature_features(data: EffectData) -> list[tuple[int, Feature]]:
     if not data.has_temperature():
         return []
     out = []
-    own = [k for k in range(data.n_probes) if np.isfinite(data.temp_C[:, k]).sum() >= 2]
     for k, name in enumerate(data.probe_names):
         t = data.temperature(k)
         if t is None or float(np.ptp(t)) <= 1e-6:
             continue
         values, centre = _centred(t)
-        borrowed = None if k in own else ", ".join(data.probe_names[j] for j in own)
+        borrowed = borrowed_from(data.temp_C, data.probe_names, k)
         fname = f"{name}_temp" if borrowed is None else f"{name}_temp (the mean of {borrowed}'s)"
         out.append((k, Feature(fname, f"{name}_temp", "degC", "value",
                                {"source": "temperature", "probe": k, "probe_name": name, "centre": centre}, values,

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from fluxcal.service.numerics.effects.base import AXES
+from fluxcal.service.numerics.effects.temperature import borrowed_from
 from fluxcal.service.numerics.engine import FitResult, Parameter
 from fluxcal.service.numerics.jsonsafe import finite_or_none as _num
 from fluxcal.service.numerics.jsonsafe import json_safe as _plain
@@ -264,7 +265,12 @@ def read_law_group(term: Any, fit: FitResult) -> FoundGroup:
     group = Group("law", term.probes[0] if len(term.probes) == 1 else None, ", ".join(names), feature)
     _, cov = covariance(fit, term.name)
     how = "low-passed" if "low_pass_s" in r else "value"              # a law of the observable through its lag
-    reading, parts = read_law(term, fit, _source(Feature(name, obs, term.unit, how, r, np.zeros(1))), cov)
+    # a probe's temperature taken from the others is said as theirs (it was said as its own column, empty)
+    borrowed = (borrowed_from(data.temp_C, data.probe_names, int(r.get("probe", 0)))
+                if r["source"] == "temperature" else None)
+    said = name if borrowed is None or "(the mean of" in name else f"{name} (the mean of {borrowed}'s)"
+    reading, parts = read_law(term, fit, _source(Feature(said, obs, term.unit, how, r, np.zeros(1), borrowed=borrowed)),
+                              cov)
     params = [p for p in fit.parameters() if p.term == term.name]
     return FoundGroup(group, term.name, params, reading, parts)
 

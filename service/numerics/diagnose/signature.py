@@ -27,8 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from fluxcal.service.numerics.engine import FitResult
 from fluxcal.service.numerics.effects.timebase import sample_grid
+from fluxcal.service.numerics.engine import FitResult
 
 from .harmonics import band_source, column_lines, harmonic_source
 
@@ -410,16 +410,6 @@ def _follows_advice(top: dict[str, Any], carried: "Carried | None" = None,
                 f"term takes as it is: an effect of your own on {col} (docs/effects.md)")
     return _ADVICE.get(obs, f"a coupling of {obs} (a column of the data) that no catalogue term takes: an effect of "
                             f"your own on that column (docs/effects.md)")
-
-
-def borrowed_notes(data: Any) -> list[str]:
-    """A probe without a temperature of its own takes the others' mean in every temperature term: say so."""
-    own = [n for k, n in enumerate(data.probe_names) if np.isfinite(data.temp_C[:, k]).sum() >= 2]
-    if not own:
-        return []
-    return [f"{n} has no temperature of its own: the temperature terms take the mean of {', '.join(own)}'s "
-            f"(borrowed); a coefficient fitted for {n} is a coefficient on {'their' if len(own) > 1 else 'its'} "
-            f"temperature" for n in data.probe_names if n not in own]
 
 
 def channels_above(fit: FitResult, heldout_nT: np.ndarray, noise: np.ndarray,

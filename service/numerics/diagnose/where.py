@@ -11,10 +11,8 @@ import numpy as np
 
 from fluxcal.service.numerics.effects.base import EffectData
 from fluxcal.service.numerics.effects.thermal import low_pass
-from fluxcal.service.numerics.engine import (
-    FitResult,
-)
 from fluxcal.service.numerics.effects.timebase import sample_grid
+from fluxcal.service.numerics.engine import FitResult
 
 WHERE_MAX_ROWS = 20000
 LAGS_S = (60.0, 300.0)      # delayed temperatures tried: first-order lags of a minute and of five

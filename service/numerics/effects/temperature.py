@@ -23,6 +23,27 @@ def why_no_temperature(data: EffectData) -> str | None:
     return None
 
 
+def borrowed_from(temp_C: np.ndarray, probe_names: list[str], k: int) -> str | None:
+    """Whose temperature probe k takes (EffectData.temperature: the mean of the probes with one of their own; temp_C
+    (N, P)), or None where it has its own."""
+    own = [j for j in range(len(probe_names)) if np.isfinite(temp_C[:, j]).sum() >= 2]
+    return None if k in own or not own else ", ".join(probe_names[j] for j in own)
+
+
+def borrowed_notes(temp_C: np.ndarray, probe_names: list[str]) -> list[str]:
+    """A probe without a temperature of its own takes the others' mean in every temperature term: said so by every
+    command that fits one (diagnose always; fit with a temperature term, which said nothing and fitted s1's
+    coefficient on s2's temperature as if it were s1's)."""
+    notes = []
+    for k, n in enumerate(probe_names):
+        whose = borrowed_from(temp_C, probe_names, k)
+        if whose is not None:
+            notes.append(f"{n} has no temperature of its own: the temperature terms take the mean of {whose}'s "
+                         f"(borrowed); a coefficient fitted for {n} is a coefficient on "
+                         f"{'their' if ', ' in whose else 'its'} temperature")
+    return notes
+
+
 def reference_temperature(view: ProbeView, key: str) -> float:
     """The temperature coefficients are centred on: the mean of the data fitted, kept in the view under `key`
     (a `ref:` key), so applying the calibration to other data uses the same reference."""

@@ -15,6 +15,7 @@ from fluxcal.drivers.errors import DataError, FluxcalError
 from fluxcal.service.io.calfile import save_calibration
 from fluxcal.service.io.recordings.labdata import LabData, keep_every
 from fluxcal.service.numerics.diagnose.text import reference_words
+from fluxcal.service.numerics.effects.temperature import borrowed_notes
 from fluxcal.service.numerics.usable import temperature_notes, usable_samples
 from fluxcal.service.wiring.coloured_fit import coloured_offsets, direction_offsets
 from fluxcal.service.wiring.commands.notes import check_output_file, check_output_folder
@@ -45,7 +46,7 @@ from fluxcal.service.wiring.fitting import (
 )
 from fluxcal.service.wiring.identity import recording_identity
 from fluxcal.service.wiring.prepare import FROM_RECORDING, Prepared
-from fluxcal.service.wiring.result import Result, Said, print_result, stderr_say
+from fluxcal.service.wiring.result import Note, Result, Said, print_result, stderr_say
 from fluxcal.service.wiring.scale_notes import data_scale_notes
 
 HELP = CommandHelp("fit a calibration to lab data (CSV, MCAP, a PX4 or ArduPilot log, a ROS 2 bag)",
@@ -117,6 +118,14 @@ class FitResult(Result):
 
     def text(self) -> str:
         return self.summary
+
+    @property
+    def warnings(self) -> list[Note]:
+        """The warnings `fluxcal fit` says: those said as the data were read and fitted, then the fit's own (coverage,
+        standard errors, what reading left out, a temperature borrowed), as its JSON's `warnings` holds them."""
+        said = super().warnings
+        texts = {n.text for n in said}
+        return said + [Note("fit", w, "warning") for w in self.contract.get("warnings", []) if w not in texts]
 
     @property
     def rms_nT(self) -> float | None:
@@ -328,8 +337,8 @@ def usable_data(data: LabData, *, uses_temperature: bool = False) -> tuple[LabDa
             raise DataError(f"{data.path}: only {kept} of {b.n_samples} samples are usable ({'; '.join(u.notes)}): "
                             f"too few to fit (at least {MIN_USABLE_SAMPLES})")
         data = replace(data, block=b.rows(u.keep))
-    if uses_temperature:
-        notes += temperature_notes(data.block, data.probe_names)
+    if uses_temperature:       # as diagnose says them: invalid temperatures, and a probe's borrowed from others
+        notes += temperature_notes(data.block, data.probe_names) + borrowed_notes(data.block.temp_C, data.probe_names)
     return data, notes
 
 
