@@ -58,6 +58,7 @@ from .signature import (
     Carried,
     channels_above,
     describe,
+    rest_is_flicker,
     signature,
     verdict,
 )
@@ -293,7 +294,8 @@ def _last_advice(told: dict, notes: list[str], cur, best, found, weak, cands, re
     off (refit: the residual of the linear part refitted, and why these data do not determine it, or None), a
     disturbance in time."""
     linear_refit, refit_refused = refit
-    if weak is None and found is not None and found.claimed and _at_floor(found, noise_nT):
+    if weak is None and found is not None and found.claimed and (_at_floor(found, noise_nT)
+                                                                  or told.get("rest") == "flicker"):
         # one story: what discovery found takes every channel to its floor, so the headline says so (it said
         # "unexplained" above a finding that explained it); `left` stays what the catalogue leaves, which it takes,
         # without the frames' guesses at what moves it (a field of the site, or each probe's noise): the finding says
@@ -444,9 +446,12 @@ def _beyond_catalogue(ed: Any, model: Model, cur: Any, cur_ho: Any, cands: list[
         again_told["linear_refit_nT"] = told["linear_refit_nT"]
     # beside the finding: what the residual with the groups found still follows (from the residual without them,
     # it named the very column the groups follow)
-    beside_it = (describe(signature(found.fit, noise, where_it_fails(ed, found.fit, noise)), carried)[1]
-                 if found.heldout_rms_nT > FLOOR_FACTOR * noise_nT else None)
+    sig_found = (signature(found.fit, noise, where_it_fails(ed, found.fit, noise))
+                 if not _at_floor(found, noise_nT) else None)
+    beside_it = describe(sig_found, carried)[1] if sig_found is not None else None
     again_told["advice"] = found.sentence() + (f"; beside it: {beside_it}" if beside_it else "")
+    if sig_found is not None and rest_is_flicker(sig_found, carried):
+        again_told["rest"] = "flicker"       # what the finding leaves is the probes' own slow noise: no missing effect
     return found, again_told, cands
 
 

@@ -285,6 +285,16 @@ def _left_parts(sig: dict[str, Any], above: list[dict[str, Any]], scalar_up: boo
     return parts
 
 
+#: what would explain a residual that is each probe's own slow noise
+FLICKER = ("each probe's own slow noise (flicker, spectrum about 1/f): not a missing effect; it limits slow terms "
+           "(drift, temperature) and sets the real floor")
+
+
+def rest_is_flicker(sig: dict[str, Any], carried: "Carried | bool") -> bool:
+    """Whether describe() says of this signature that it is each probe's own slow noise (no missing effect)."""
+    return describe(sig, carried)[1] == FLICKER
+
+
 def _advice(sig: dict[str, Any], carried: Carried, diff_up: bool) -> str:
     """What would explain it: a strong tie to something the data carry first, then a line, a shared or own wander
     (time is no cause: any slow change follows it; whether the change is shared decides first)."""
@@ -311,8 +321,7 @@ def _advice(sig: dict[str, Any], carried: Carried, diff_up: bool) -> str:
                            "let the other probes measure it (--effects ambient)")))
     elif shared is not None and shared <= OWN and slope is not None and -1.6 <= slope <= -0.5 and not (
             follows and follows[0]["strength"] >= 2 * FOLLOWS):
-        advice = ("each probe's own slow noise (flicker, spectrum about 1/f): not a missing effect; it limits "
-                  "slow terms (drift, temperature) and sets the real floor")
+        advice = FLICKER
     elif follows and follows[0]["observable"] == "time":
         advice = _time_advice(shared, sig.get("probe_share") or {}, carried)
     elif follows:

@@ -215,7 +215,13 @@ def _verdict_lines(d: Diagnosis, v: dict[str, Any], best: Candidate | None, try_
                 f"no catalogue effect adds to it" if best is None else
                 f"{best.effect} brings the residual from {d.rms_nT:.3f} to {best.rms_nT:.3f} nT, and what discovery "
                 f"found beside it takes it to its {d.noise_nT:.3f} nT floor")
-        return ([f"  explained beyond the catalogue: {head}; every channel is within its own floor"]
+        if v.get("rest") == "flicker":      # what the finding leaves is the probes' own slow noise, above white
+            head = (f"what discovery found{'' if best is None else f' beside {best.effect}'} takes the residual "
+                    f"({d.rms_nT:.3f} nT) to {v['rms_nT']:.3f} nT; the rest is each probe's own slow noise (flicker, "
+                    f"spectrum about 1/f) above its {d.noise_nT:.3f} nT white floor, not a missing effect")
+        else:
+            head += "; every channel is within its own floor"
+        return ([f"  explained beyond the catalogue: {head}"]
                 + ([f"  what the catalogue leaves: {v['left']}"] if v.get("left") else [])
                 + [f"  what explains it: {v['advice']}"] + alike)
     if v["kind"] == "partly explained":
