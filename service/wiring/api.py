@@ -161,13 +161,20 @@ def read_arrays(t_s: Any, field_nT: Any, *, temp_C: Any = None, columns: dict[st
     for k in range(f.shape[1]):
         header += [f"s{k + 1}_{a}" for a in "xyz"]
         cols += [f[:, k, a] for a in range(3)]
+    n, p = t.shape[0], f.shape[1]
     if temp_C is not None:
-        temps = np.asarray(temp_C, dtype=np.float64).reshape(t.shape[0], -1)
+        temps = np.asarray(temp_C, dtype=np.float64)
+        if temps.shape not in ((n,), (n, p)):
+            raise DataError(f"read_arrays: temp_C: expected shape (N={n},) or (N, P={p}), got {temps.shape}")
+        temps = temps.reshape(n, -1)
         header += [f"s{k + 1}_temp" for k in range(temps.shape[1])]
         cols += [temps[:, k] for k in range(temps.shape[1])]
     for name, values in (columns or {}).items():
+        v = np.asarray(values, dtype=np.float64)
+        if v.shape != (n,):
+            raise DataError(f"read_arrays: columns[{str(name)!r}]: expected shape (N={n},), got {v.shape}")
         header.append(str(name))
-        cols.append(np.asarray(values, dtype=np.float64))
+        cols.append(v)
     lab = lab_table("<arrays>", header, np.column_stack(cols))
     said = _said(said, "read")
     return Data(_prepared_from(lab, said, config=config, site=site), said.notes)

@@ -81,6 +81,20 @@ def test_a_result_draws_itself_in_a_notebook():
 
 
 
+def test_arrays_of_the_wrong_length_are_refused_and_named():
+    """read_arrays checked field_nT's shape only: a temperature or a column of another length gave numpy's own
+    errors (a field trial). Each is named with the shape it needs."""
+    from fluxcal.drivers.errors import DataError
+
+    t, field = np.arange(100) / 10.0, np.tile([20000.0, 0.0, 45000.0], (100, 1))
+    for kwargs, said in (({"temp_C": np.ones(5)}, "temp_C: expected shape (N=100,) or (N, P=1), got (5,)"),
+                         ({"columns": {"heater_A": np.ones(3)}},
+                          "columns['heater_A']: expected shape (N=100,), got (3,)")):
+        with pytest.raises(DataError) as e:
+            fluxcal.read_arrays(t, field, **kwargs)
+        assert said in str(e.value)
+
+
 def test_an_option_of_read_given_to_fit_with_data_is_refused_and_named():
     from fluxcal.drivers.errors import DataError
 

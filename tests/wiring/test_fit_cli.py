@@ -88,6 +88,19 @@ def test_fit_bad_csv_names_line_and_column(tmp_path, capsys):
     assert "line 4" in err and "'s1_y'" in err and "oops" in err
 
 
+def test_a_blank_cell_says_how_a_missing_value_is_written(tmp_path, capsys):
+    """pandas' to_csv writes a missing value as an empty cell, which the CSV contract does not read: said with what to
+    write (nan, where the column may miss a value), where it said only "'' is not a number" (a field trial)."""
+    p = tmp_path / "blank.csv"
+    p.write_text("t,s1_x,s1_y,s1_z,s1_temp,heater_A\n0,1,2,3,,0.5\n")
+    assert main(["fit", str(p)]) == 2
+    assert ("line 2, column 's1_temp': '' is not a number: a missing value is written nan, where it may be one (a "
+            "probe's axis or temperature; pandas: to_csv(na_rep='nan'))") in capsys.readouterr().err
+    p.write_text("t,s1_x,s1_y,s1_z,s1_temp,heater_A\n0,1,2,3,20,\n")
+    assert main(["fit", str(p)]) == 2
+    assert "column 'heater_A': '' is not a number: this column takes no missing value" in capsys.readouterr().err
+
+
 def test_fit_row_with_another_delimiter_says_so(tmp_path, capsys):
     p = tmp_path / "semi.csv"
     p.write_text("t,s1_x,s1_y,s1_z\n0,1,2,3\n1;1;2;3\n")

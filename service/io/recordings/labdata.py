@@ -358,7 +358,12 @@ def _locate_bad_value(p: Path, header: list[str], rows: list[str], lineno: np.nd
             try:
                 v = float(cell)
             except ValueError:
-                raise DataError(f"{p}: line {lineno[r]}, column {header[c]!r}: {cell.strip()!r} is not a number") \
-                    from None
+                blank = ""
+                if not cell.strip():                # a table writer's missing value (pandas' to_csv writes '')
+                    blank = (": a missing value is written nan, where it may be one (a probe's axis or temperature; "
+                             "pandas: to_csv(na_rep='nan'))" if _PROBE_COL.match(header[c]) else
+                             ": this column takes no missing value (docs/csv.md)")
+                raise DataError(f"{p}: line {lineno[r]}, column {header[c]!r}: {cell.strip()!r} is not a number"
+                                f"{blank}") from None
             if not math.isfinite(v) and not _PROBE_COL.match(header[c]):      # a probe's axis or temperature: NaN
                 raise DataError(f"{p}: line {lineno[r]}, column {header[c]!r}: {cell.strip()!r} is not a finite number")
