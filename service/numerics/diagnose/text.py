@@ -134,6 +134,11 @@ def _alike_lines(d: Diagnosis) -> list[str]:
                 out.append(f"  {c.effect} and {other} predict the held-out blocks alike (equal held-out gain, "
                            f"collinear regressors); {refused.effect} is refused ({refused.refusal}), {kept.effect} is "
                            f"not: {c.separate_by}.")
+            elif o is not None and not o.significant and not c.significant and o.refusal and c.refusal:
+                # neither is kept: how to tell them apart is no advice for these data (both refused beside a finding)
+                out.append(f"  {c.effect} and {other} are indistinguishable with these data (equal held-out gain, "
+                           f"collinear regressors), and neither is kept ({c.effect}: {c.refusal}; {other}: "
+                           f"{o.refusal}).")
             else:
                 out.append(f"  {c.effect} and {other} are indistinguishable with these data (equal held-out gain, "
                            f"collinear regressors): {c.separate_by}.")
