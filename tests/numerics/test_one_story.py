@@ -172,7 +172,8 @@ def test_two_effects_the_verdicts_tell_apart_are_not_called_indistinguishable(tm
     from fluxcal.service.numerics.effects import known_effects
 
     nested = [(c, by[inner]) for c in d["candidates"]
-              for inner in getattr(known_effects().get(c["effect"]), "nests", ()) if inner in by and by[inner]["testable"]]
+              for inner in getattr(known_effects().get(c["effect"]), "nests", ())
+              if inner in by and by[inner]["testable"]]
     assert nested, "the world no longer tries a candidate that contains another: the test needs another"
     for outer, inner in nested:
         if outer["heldout_rms_nT"] >= inner["heldout_rms_nT"]:
