@@ -16,8 +16,20 @@ PUMP = ROOT / "recordings" / "grad3-pump.mcap"
 
 
 @pytest.mark.slow
-def test_the_report_says_what_was_discovered_and_how_to_write_it(tmp_path, capsys):
+def test_the_report_says_what_was_discovered_and_how_to_write_it(tmp_path, capsys, monkeypatch):
+    from matplotlib.axes import Axes
+
+    bars, bar = [], Axes.bar
+
+    def told(self, *args, **kwargs):                  # the bars drawn, by label
+        bars.append(kwargs.get("label"))
+        return bar(self, *args, **kwargs)
+    monkeypatch.setattr(Axes, "bar", told)
     assert main(["diagnose", str(PUMP), "--report", str(tmp_path / "rep"), "--json"]) == 0
+    # the error per channel after what explains it: discovery's finding (the plot drew "before" alone, under a
+    # caption that said "before and after": a field trial)
+    i = bars.index("before")
+    assert bars[i:i + 3] == ["before", "after + what discovery found", "noise floor"], bars
     d = json.loads(capsys.readouterr().out)
     assert d["discovery"]["claimed"]
     page = (tmp_path / "rep" / "index.html").read_text()

@@ -247,14 +247,24 @@ def _channels_figure(plt, d: Diagnosis) -> tuple[str, str, bytes]:
     """The RMS of each channel before and after the best candidate, against its noise floor (log scale)."""
     from matplotlib.ticker import ScalarFormatter
 
-    best = d.best
+    best, found = d.best, getattr(d, "discovery", None)
     names = d.channel_names
     fig, ax = plt.subplots(figsize=(7.5, 3.4))
     xs = np.arange(len(names))
     wbar = 0.28
     ax.bar(xs - wbar, d.channel_rms_nT, wbar, label="before")
-    if best is not None:
-        ax.bar(xs, best.fit.channels.rms_nT, wbar, label=f"after + {best.effect}")
+    # after: what explains it, the catalogue's best and what discovery found beside it (the plot drew "before" alone
+    # where discovery explained the data)
+    after = None
+    if found is not None and found.claimed and found.fit is not None:
+        after = (found.fit.channels.rms_nT, "after + what discovery found" if best is None else
+                 f"after + {best.effect} and what discovery found")
+    elif best is not None:
+        after = (best.fit.channels.rms_nT, f"after + {best.effect}")
+    if after is not None and len(after[0]) == len(names):
+        ax.bar(xs, after[0], wbar, label=after[1])
+    else:
+        after = None
     ax.bar(xs + wbar, d.channel_noise_nT, wbar, label="noise floor", color="0.6")
     ax.set_xticks(xs, names, rotation=30, ha="right", fontsize=8)
     ax.set_ylabel("RMS (nT)")
@@ -264,7 +274,8 @@ def _channels_figure(plt, d: Diagnosis) -> tuple[str, str, bytes]:
     ax.grid(alpha=0.3, axis="y")
     data = png(fig)
     plt.close(fig)
-    return ("channels.png", "Error per channel before and after, against the noise floor", data)
+    return ("channels.png", "Error per channel before and after, against the noise floor" if after is not None else
+            "Error per channel, against the noise floor (nothing explains it)", data)
 
 
 def _time_figure(plt, d: Diagnosis, sel: np.ndarray) -> tuple[str, str, bytes]:
