@@ -88,7 +88,6 @@ class TimeBase:
         grid = np.stack([np.interp(slots, pos, flat[:, c]) for c in range(flat.shape[1])], axis=1)
         return f(grid.reshape((slots.size,) + x.shape[1:]))[pos]
 
-
     def filtered(self, x: np.ndarray, window: int, deriv: int = 0) -> np.ndarray:
         """The quadratic Savitzky-Golay filter of x (N, ...) along time over `window` samples (deriv 1: d/dt), on
         the uniform grid where samples are missing from it, else on the samples as they are."""
