@@ -876,9 +876,7 @@ def check_counts(run: SoakRun, mem: Memory, results: list[bool]) -> None:
         ok = sub is not None and sub["corrected"] == probe.n_corrected and sub["corrected_seq_sum"] == probe.cor_seq_sum
         check(results, ok, f"received on Zenoh (corrected) {sub['corrected'] if sub else '-'} == pipeline "
                            f"{probe.n_corrected}, same seq checksum")
-    if hasattr(run.daemon, "processing_errors"):
-        check(results, run.daemon.processing_errors == 0,
-              f"blocks whose processing failed: {run.daemon.processing_errors}")
+    check(results, run.daemon._process.errors == 0, f"blocks whose processing failed: {run.daemon._process.errors}")
     check(results, same_output(run.bare_out, run.rec.corrected_blocks),
           "the bare pipeline over the recorded raw blocks reproduces the recorded corrected output bit for bit")
     check(results, mem.growth_end <= 5.0 and mem.growth_max <= 5.0,

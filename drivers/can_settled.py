@@ -18,14 +18,16 @@ class SettledFrames:
     def __init__(self, n_probes: int, keep: int) -> None:
         self.n, self.keep = n_probes, int(keep)
         self._parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._newest: int | None = None
 
     def add(self, seq: np.ndarray, value: np.ndarray, temp: np.ndarray, have: np.ndarray) -> None:
-        """Samples settled now (in seq order, after those held): those within `keep` of the newest are kept."""
+        """Samples settled now: those within `keep` of the newest are kept (in seq order when asked: held())."""
         if not seq.size:
             return
         self._parts.append((seq, value, temp, have))
-        newest = int(seq[-1])
-        while len(self._parts) > 1 and int(self._parts[0][0][-1]) < newest - self.keep:
+        top = int(seq.max())
+        self._newest = top if self._newest is None else max(self._newest, top)
+        while len(self._parts) > 1 and int(self._parts[0][0].max()) < self._newest - self.keep:
             self._parts.pop(0)
 
     def held(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -35,9 +37,11 @@ class SettledFrames:
             return (np.empty(0, np.int64), np.zeros((0, n, 3), np.int32), np.zeros((0, n, 3), np.int16),
                     np.zeros((0, n, 3), bool))
         if len(self._parts) > 1:
-            self._parts = [tuple(np.concatenate(x) for x in zip(*self._parts))]   # type: ignore[list-item]
+            joined = [np.concatenate(x) for x in zip(*self._parts)]
+            order = np.argsort(joined[0], kind="stable")   # a sample given up by time above one still waiting
+            self._parts = [tuple(x[order] for x in joined)]   # type: ignore[list-item]
         seq, value, temp, have = self._parts[0]
-        keep = seq >= int(seq[-1]) - self.keep
+        keep = seq >= int(seq.max()) - self.keep
         return seq[keep], value[keep], temp[keep], have[keep]
 
 

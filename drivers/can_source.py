@@ -188,6 +188,11 @@ class CanSource(PortSource):
                                                counters=self.counters, base_id=self.base_id,
                                                window_samples=window_samples, window_s=window_s,
                                                plausibility=plausibility)
+        for method in ("decode", "finish"):           # the CAN kind's decoder interface (declare.Protocol)
+            if not callable(getattr(self._decoder, method, None)):
+                raise ConfigError(f"source.protocol: {proto.name!r}: its decoder has no {method}() (a CAN protocol's "
+                                  f"decoder takes decode(messages, now_s) and gives what it holds at the stop with "
+                                  f"finish(): docs/sources.md)")
         self._bus: can.BusABC | None = None
         self._bad_lines_seen = 0
         self._open()

@@ -12,7 +12,7 @@ KIND = SourceKind(
     factory="fluxcal.drivers.sim.source:open_source",
     opener="fluxcal.drivers.sim.source:open_configured",
     counters=(Counted("frames_accepted", "samples the simulated unit gave (one frame each)", decoded=True,
-                      what="{n:,} frame(s) accepted"),)
+                      what="{n:,} sample(s) the simulated unit gave"),)
     + picked(icd_samples(""), "saturated_axes", "temp_invalid"),
     transports=(Transport("direct", "the simulated unit's samples in process: no wire, no wire faults"),),
     unit_clock=True,

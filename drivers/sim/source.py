@@ -108,6 +108,10 @@ class EmitterSource(Source):
         """The emitter's FaultRecord: what was corrupted on purpose."""
         return self.emitter.record
 
+    def drain(self) -> SampleBlock | None:
+        """What the driver holds at the end (a CAN assembler's samples: released or counted)."""
+        return self.inner.drain()
+
     #: after the emitter's last sample, this long without data means the run is over (the CAN
     #: assembler may hold samples up to its window_s behind an incomplete one)
     QUIET_AFTER_END_S = 1.0

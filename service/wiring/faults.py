@@ -157,7 +157,9 @@ class InputWatch:
                             f"silence ended: data from the unit again after about {_ago(now - self._silent_since)}")
                 self._silent_since = None
             self._last_activity = now
-        elif self._silent_since is None and now - self._last_activity >= self.silence_s:
+        elif self._silent_since is None and self._down is None and now - self._last_activity >= self.silence_s:
+            # (not while the input is lost: the reader said why nothing comes, and asking whether the unit is powered
+            # would send the user to the wrong end)
             self._silent_since = self._last_activity
             self.silences += 1
             self._event("silence", "begin", self.silences,

@@ -306,3 +306,27 @@ def test_rate_estimate_from_log_timestamps():
     one = CanSamples(seq=seq[:1], counts=np.zeros((1, 1, 3), np.int32), temp_raw=np.zeros((1, 1), np.int16),
                      rx_time_s=np.zeros(1))
     assert estimate_rate_hz(one) is None
+
+
+class _NoFinish:
+    """A CAN protocol's decoder written before finish() was part of the interface."""
+
+    def __init__(self, n_probes, **kwargs) -> None:
+        pass
+
+    def decode(self, messages, now_s):
+        return None
+
+
+def test_a_can_protocol_without_finish_is_refused_as_the_source_opens(virtual_channel):
+    """drain() at the stop asks the decoder finish(): a protocol without one raised AttributeError at every stop (a
+    review), past the service's loop. It is refused as the source opens, with the method named."""
+    from fluxcal.drivers.declare import Protocol
+    from fluxcal.drivers.registry import forget_protocol, register_protocol
+
+    register_protocol("can", Protocol("old-style", "a decoder without finish()", decoder=_NoFinish, kind="can"))
+    try:
+        with pytest.raises(ConfigError, match=r"'old-style': its decoder has no finish\(\)"):
+            CanSource(interface="virtual", channel=virtual_channel, n_probes=1, rate_hz=RATE_HZ, protocol="old-style")
+    finally:
+        forget_protocol("can", "old-style")

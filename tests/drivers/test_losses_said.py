@@ -734,12 +734,12 @@ def test_an_input_lost_is_the_fault_going_on_until_it_is_back():
     assert health["active"] == ["input_lost", "can_incomplete"]
     assert active_faults({"faults": health}).startswith(f"input lost: {why}; reconnecting; ")
     assert not any("input lost" in s for s in said)                     # the reader said it as it happened
-    for _ in range(8):                                                  # down for 8 s: silence joins it, later
+    for _ in range(8):                # down for 8 s: no silence said beside it (is the unit powered? the port is gone)
         clock.t += 1.0
         health = fw.tick({**c, "frames_accepted": 600, "can_incomplete": 4, "read_errors": 1}, input_lost=why)
-    assert health["active"] == ["input_lost", "silence"]
+    assert health["active"] == ["input_lost"] and not any(e["kind"] == "silence" for e in health["events"])
     clock.t += 1.0
     health = fw.tick({**c, "frames_accepted": 660, "can_incomplete": 4, "read_errors": 1})
-    assert health["active"] == [] and health["events"][-1]["text"].startswith("silence ended")
+    assert health["active"] == []
     assert [e["text"] for e in health["events"] if e["kind"] == "input_lost"] == [
         f"input lost: {why}; reconnecting", "input back after about 9.0 s"]

@@ -244,7 +244,8 @@ def _where_figures(plt, d: Diagnosis, sel: np.ndarray) -> list[tuple[str, str, b
 
 
 def _channels_figure(plt, d: Diagnosis) -> tuple[str, str, bytes]:
-    """The RMS of each channel before and after the best candidate, against its noise floor (log scale)."""
+    """The RMS of each channel before and after what explains it (the best candidate, discovery's finding), against
+    its noise floor (log scale)."""
     from matplotlib.ticker import ScalarFormatter
 
     best, found = d.best, getattr(d, "discovery", None)
@@ -275,7 +276,7 @@ def _channels_figure(plt, d: Diagnosis) -> tuple[str, str, bytes]:
     data = png(fig)
     plt.close(fig)
     return ("channels.png", "Error per channel before and after, against the noise floor" if after is not None else
-            "Error per channel, against the noise floor (nothing explains it)", data)
+            "Error per channel, against the noise floor", data)
 
 
 def _time_figure(plt, d: Diagnosis, sel: np.ndarray) -> tuple[str, str, bytes]:

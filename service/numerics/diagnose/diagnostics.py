@@ -302,6 +302,8 @@ def _last_advice(told: dict, notes: list[str], cur, best, found, weak, cands, re
         told.update(kind="explained beyond the catalogue", rms_nT=found.rms_nT, channels_above=[],
                     left=describe({**(told.get("signature") or {}), "frames": None,
                                    "channels_above": told.get("channels_above") or []}, carried)[0])
+    if told.get("kind") != "explained beyond the catalogue":
+        told.pop("rest", None)              # said with that headline only (the held-out test weak: it stays unjudged)
     if weak is not None:
         notes.append(f"the held-out test is weak here: {weak['reason']}; {weak['advice']}")
         if found is not None and found.claimed:

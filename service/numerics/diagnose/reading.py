@@ -268,7 +268,7 @@ def read_law_group(term: Any, fit: FitResult) -> FoundGroup:
     # a probe's temperature taken from the others is said as theirs (it was said as its own column, empty)
     borrowed = (borrowed_from(data.temp_C, data.probe_names, int(r.get("probe", 0)))
                 if r["source"] == "temperature" else None)
-    said = name if borrowed is None or "(the mean of" in name else f"{name} (the mean of {borrowed}'s)"
+    said = name if borrowed is None or "of" in r else f"{name} (the mean of {borrowed}'s)"   # "of": a feature's name
     reading, parts = read_law(term, fit, _source(Feature(said, obs, term.unit, how, r, np.zeros(1), borrowed=borrowed)),
                               cov)
     params = [p for p in fit.parameters() if p.term == term.name]

@@ -56,7 +56,9 @@ class TimeBase:
         k = d / med
         n = np.rint(k)
         whole = (n >= 1) & (np.abs(k - n) <= WHOLE)
-        rhythm = np.where(whole & (k > GAP_FACTOR), med, d)      # a hole of whole steps: one step of the rhythm
+        # a hole of a few whole steps (one a grid bridges) is one step of the rhythm; a longer pause is the rhythm's
+        # own (a hobby board's pauses between bursts, whole by chance where its stamps are rounded to the ms)
+        rhythm = np.where(whole & (k > GAP_FACTOR) & (k <= BRIDGE + 0.5), med, d)
         steady = float(np.percentile(rhythm, 95)) <= GAP_FACTOR * med
         positions = None
         if steady and bool(np.all(whole | (k > BRIDGE + 0.5))):
