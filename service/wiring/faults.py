@@ -307,8 +307,8 @@ class FaultWatch:
 
     def active(self) -> list[str]:
         """The faults going on now."""
-        now = self.input.active()          # the input's loss first: while it lasts it is what a viewer hears
-        out = [a for a in now if a == "input_lost"] + list(self._episodes) + [a for a in now if a != "input_lost"]
+        inp = self.input.active()          # the input's loss first: while it lasts it is what a viewer hears
+        out = [a for a in inp if a == "input_lost"] + list(self._episodes) + [a for a in inp if a != "input_lost"]
         if self.recording.active:
             out.append("recording")
         return out

@@ -29,8 +29,13 @@ def field_scale_notes(said: Any, source: str, field_nT: Any, probe_names: Sequen
 
 def data_scale_notes(said: Any, prep: Any, data: Any, judged: Sequence[Any]) -> list[str]:
     """field_scale_notes of the prepared `data` (a LabData) as fit, diagnose and inspect say them: the data's size about
-    the determinacy gate's centres (`judged`), against the total field fit takes, named in total_words."""
+    the determinacy gate's centres (`judged`), against the total field fit takes, named in total_words; nothing until
+    the gate takes every probe (of samples that determine nothing, a sphere through 6 of them gave two sizes and a
+    unit guessed from each: fit, refused first, said neither)."""
     from fluxcal.service.wiring.fitting import gate_centres, total_field
+
+    if not all(j.determined for j in judged):
+        return []
 
     total = total_field(data, prep.total_nT)
     return field_scale_notes(said, prep.source, data.block.field_nT, data.probe_names, centres_nT=gate_centres(judged),

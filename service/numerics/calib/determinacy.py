@@ -208,11 +208,8 @@ def physical(j: Determinacy, raw_nT: np.ndarray, given_total_nT: Any = None, sou
                 "fit scaled to it and checked against it")
     if thick is not None and thick > SHELL_MAX:       # the fitted size says nothing of the unit: no guess from it
         problem += (f"{f', while the samples read {about_zero:,.0f} nT about zero and' if fits_zero else ', and the samples'}"
-                    f" lie on no one ellipsoid (their RMS distance from the fitted one is {thick:.0%} of its size; a "
-                    f"sensor turned in a steady field gives a few per cent): the probe hardly turned, or the field "
-                    f"about it changed as it turned (a platform's own field)")
-        advice = ("turn the probe about at least two axes, so the field sweeps most directions, away from what "
-                  "moves the field about it (motors, currents, iron that turns with it)")
+                    f" {_on_no_ellipsoid(thick)}")
+        advice = CLOUD_ADVICE
     elif fits_zero and j.coverage.fraction < WIDE_COVERAGE:
         problem += (f", while the samples read {about_zero:,.0f} nT about zero: the directions they span do not place "
                     f"the centre (one turn, or too small a part of the sphere)")
@@ -232,12 +229,20 @@ def cloud(j: Determinacy, thick: float | None) -> Determinacy:
     cloud of pure noise of 17,000 nT about zero was calibrated with exit 0, a residual of 6,663 nT)."""
     if thick is None or thick <= SHELL_MAX:
         return j
-    problem = (f"the samples lie on no one ellipsoid (their RMS distance from the fitted one is {thick:.0%} of its "
-               f"size; a sensor turned in a steady field gives a few per cent): the probe hardly turned, or the field "
-               f"about it changed as it turned (a platform's own field), or the data are no magnetometer's")
-    advice = ("turn the probe about at least two axes, so the field sweeps most directions, away from what moves the "
-              "field about it (motors, currents, iron that turns with it)")
-    return replace(j, problem=f"{problem}; {advice}", advice=advice)
+    problem = f"the samples {_on_no_ellipsoid(thick)}, or the data are no magnetometer's"
+    return replace(j, problem=f"{problem}; {CLOUD_ADVICE}", advice=CLOUD_ADVICE)
+
+
+#: what helps samples that lie on no one ellipsoid
+CLOUD_ADVICE = ("turn the probe about at least two axes, so the field sweeps most directions, away from what moves the "
+                "field about it (motors, currents, iron that turns with it)")
+
+
+def _on_no_ellipsoid(thick: float) -> str:
+    """The words for samples of shell thickness `thick` (above SHELL_MAX), after "the samples"."""
+    return (f"lie on no one ellipsoid (their RMS distance from the fitted one is {thick:.0%} of its size; a sensor "
+            f"turned in a steady field gives a few per cent): the probe hardly turned, or the field about it changed "
+            f"as it turned (a platform's own field)")
 
 
 def shell_thickness(j: Determinacy, raw_nT: np.ndarray) -> float | None:

@@ -85,11 +85,8 @@ def inspect(args: Namespace) -> Inspection:
         lost = [w for w in said.lost_in_reading(besides=i.warnings) + left_out + carried if w not in i.warnings]
         i, read = replace(i, **reading(data), warnings=i.warnings + lost), True
         judged = judge_data(data, prep.total_nT, prep.total_source or "")
-        if all(j.determined for j in judged):
-            # the data's scale, as fit says it: about the gate's centres, once the gate took every probe (of samples
-            # that determine nothing, a sphere through 6 of them gave two sizes and a unit guessed from each)
-            scale = data_scale_notes(said, prep, data, judged)
-            i = replace(i, warnings=i.warnings + [w for w in scale if w not in i.warnings])
+        scale = data_scale_notes(said, prep, data, judged)             # the data's scale, as fit says it
+        i = replace(i, warnings=i.warnings + [w for w in scale if w not in i.warnings])
     except (DataError, CalibrationRefused) as e:
         # what was read stays said (its samples, duration, clock): the refusal is of a calibration from them
         left = {} if read else {"probes": [], "columns": [], "samples": 0}
