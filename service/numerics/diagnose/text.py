@@ -67,7 +67,8 @@ def summary_text(d: Diagnosis, data_name: str = "") -> str:
         lines.append("")
         lines.append("  fitted effect parameters (value +- standard error):")
         for p in d.parameters[:PARAMETER_LINES]:
-            se = "undetermined by these data" if p.stderr is None else f"+- {p.stderr:.4g}"
+            se = (f"at its floor: {p.at_floor}" if p.at_floor else "undetermined by these data" if p.stderr is None
+                  else f"+- {p.stderr:.4g}")
             lines.append(f"    {p.name:<30} {p.value:12.5g} {se}")
         if len(d.parameters) > PARAMETER_LINES:
             lines.append(f"    ... {len(d.parameters) - PARAMETER_LINES} more in --json")

@@ -326,6 +326,8 @@ class EffectTerm:
     per_sample: ClassVar[bool] = False
     #: other catalogue name -> what motion or data tells the two apart
     separation: ClassVar[dict[str, str]] = {}
+    #: index in param_names -> (the lowest value the physics allows, why): the fit holds it there (engine/solve.py)
+    floors: ClassVar[dict[int, tuple[float, str]]] = {}
 
     def why_unavailable(self, data: EffectData) -> str | None:
         """None if the term can be fitted to these data, else the reason (and what would help)."""

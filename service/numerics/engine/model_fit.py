@@ -52,7 +52,8 @@ class EffectsFit:
                   for k, n in enumerate(self.probe_names)]
         effect_params: dict[str, Any] = {}
         for p in self.parameters:
-            effect_params.setdefault(p.term, {})[p.name] = {"value": p.value, "se": p.stderr, "unit": p.unit}
+            effect_params.setdefault(p.term, {})[p.name] = ({"value": p.value, "se": p.stderr, "unit": p.unit}
+                                                            | ({"at_floor": p.at_floor} if p.at_floor else {}))
         for term, name, value, unit in self.constants():
             effect_params.setdefault(term, {})[name] = {"value": value, "se": None, "unit": unit, "fixed": True,
                                                         "note": "reference the parameters are defined against"}
@@ -79,15 +80,23 @@ class EffectsFit:
 
     def size_warnings(self) -> list[str]:
         """Per effect, its parameters the data do not determine, and those whose standard error exceeds their size
-        (as calib.order.size_warnings says it of the offsets, scales and angles)."""
+        (as calib.order.size_warnings says it of the offsets, scales and angles); first, a fit that stopped before
+        it converged (its parameters printed ± errors as if they were the minimum's)."""
         out = []
+        if not self.result.converged:
+            out.append(f"the fit with {', '.join(self.effects)} stopped after {self.result.iterations} iterations, "
+                       f"before it converged: its parameters are not the best these data give, nor their errors final")
         for term in self.effects:
             params = [p for p in self.parameters if p.term == term]
-            idle = [p.name for p in params if p.stderr is None]
+            idle = [p.name for p in params if p.stderr is None and not p.at_floor]
+            held = [p for p in params if p.at_floor]
             wide = [p for p in params if p.stderr is not None and np.isfinite(p.stderr) and p.stderr > abs(p.value)]
             if idle:
                 out.append(f"{term}: {len(idle)} of its {len(params)} parameters are not determined by these data (no "
                            f"standard error: their values are not measurements): {_some(idle)}")
+            if held:
+                out.append(f"{term}: {_some([p.name for p in held])} held at {held[0].value:g} {held[0].unit}, the "
+                           f"lowest value it can take, where these data ask for less ({held[0].at_floor})")
             if wide:
                 shown = [f"{p.name} = {p.value:.4g} ± {p.stderr:.2g}" for p in wide]
                 out.append(f"{term}: the standard errors of {len(wide)} of its {len(params)} parameters exceed their "

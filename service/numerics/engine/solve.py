@@ -66,6 +66,7 @@ class Parameter:
     term: str
     probe: str | None = None          # the probe it belongs to (None: shared, or the baseline's)
     key: tuple = ()                   # what it is, as its term's param_keys say: the term reads this, never the name
+    at_floor: str | None = None       # held at the lowest value its physics allows: why (EffectTerm.floors)
 
     @property
     def unit(self) -> str:
@@ -78,7 +79,8 @@ class Parameter:
         return last if (" " in self.name and (last == "s" or "nT" in last or "/" in last)) else ""
 
     def as_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "value": self.value, "stderr": self.stderr, "unit": self.unit}
+        out = {"name": self.name, "value": self.value, "stderr": self.stderr, "unit": self.unit}
+        return out | ({"at_floor": self.at_floor} if self.at_floor else {})
 
 
 @dataclass
@@ -101,6 +103,7 @@ class FitResult:
     jac: Any = field(repr=False, default=None)
     ev: Any = field(repr=False, default=None)
     _deltas: Any = field(repr=False, default=None, compare=False)
+    at_floor: Any = None              # (p,) bool: held at its floor, out of the normal equations (None: none)
 
     @property
     def model(self) -> Model:
@@ -185,9 +188,10 @@ class FitResult:
                 i = s.start + j
                 val = self.values[i]
                 se = None if self.undetermined[i] else float(robust[i])
+                held = self.at_floor is not None and self.at_floor[i]
                 out.append(Parameter(name, float(val), se, s.term.name if s.term is not None else "baseline",
                                      None if s.k is None else self.problem.data.probe_names[s.k],
-                                     s.keys[j] if s.keys else (j,)))
+                                     s.keys[j] if s.keys else (j,), s.term.floors[j][1] if held else None))
         return out
 
     def heldout(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -240,6 +244,8 @@ def warm_from(base: FitResult, pr: Problem) -> Warm | None:
         g[:, m] = base.g_blocks
     known = np.zeros(p, bool)
     known[m] = True
+    if base.at_floor is not None:
+        known[m[base.at_floor]] = False           # held out of the base's equations: assembled again
     return Warm(a, g, known)
 
 
@@ -250,6 +256,8 @@ def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float =
     linearisation assembles only the rows of the parameters warm does not know. ev0, jac0: the residuals
     and Jacobian at `start` when the caller has them already."""
     st = start
+    lo = pr.floors()
+    lo = lo if np.isfinite(lo).any() else None        # a parameter the physics bounds below: held at its floor
     ev = pr.evaluate(st) if ev0 is None else ev0
     rss = pr.weighted_rss(ev)
     n_rows = pr.M * pr.C
@@ -266,7 +274,11 @@ def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float =
         if pr.n_params == 0:
             converged = True
             break
-        delta, cov, undet, rank = solve_normal(a_b.sum(0), g_b.sum(0))
+        a_s, g_s = a_b.sum(0), g_b.sum(0)
+        delta, cov, undet, rank = solve_normal(a_s, g_s)
+        room = None if lo is None else lo - _flatten(pr, st)
+        if room is not None:
+            a_s, g_s, delta = _held_at_floors(a_s, g_s, delta, room)
         s2 = max(rss / max(n_rows - rank, 1), 1e-300)
         se = np.sqrt(np.clip(cov * s2, 0, None))
         small = not np.any(np.abs(delta)[~undet] > tol_se * se[~undet])
@@ -276,12 +288,14 @@ def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float =
                 st, ev, rss, g_b = _take_last_step(pr, st, ev, rss, delta, a_b, g_b)
             break
         it += 1
-        step = _descent_step(pr, st, rss, a_b, g_b, delta)
+        step = _descent_step(pr, st, rss, a_s, g_s, delta, room)
         if step is None:
             converged = True                                  # no descent left: at the minimum
             break
         delta, damping, trial, ev_t, rss_t = step
         predicted = rss + float(g_b.sum(0) @ delta)           # rss - g^T A^+ g of the linearised problem
+        if room is not None:                                  # a step stopped at a floor is not A^+ g
+            predicted += float(g_b.sum(0) @ delta + delta @ a_b.sum(0) @ delta)
         # the excess of the actual over the predicted RSS bounds how far the step is from the minimum:
         # excess = d^T A d for a parameter error d, i.e. sqrt(excess / s2) standard errors
         linear_enough = damping == 0 and abs(rss_t - predicted) <= LINEARITY_SE ** 2 * s2
@@ -299,12 +313,21 @@ def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float =
             break
         if progress is not None:
             progress(f"iteration {it}")
-    s2 = rss / max(n_rows - rank, 1)
     values = _flatten(pr, st)
+    held = None if lo is None else values <= lo + 1e-12 * np.maximum(1.0, np.abs(np.nan_to_num(lo, neginf=0.0)))
+    held = held if held is not None and held.any() else None
+    if held is not None:
+        # at its floor with the data asking for less: out of the normal equations (its error is not a measurement)
+        a_b, g_b = a_b.copy(), g_b.copy()
+        a_b[:, held, :] = 0.0
+        a_b[:, :, held] = 0.0
+        g_b[:, held] = 0.0
+        _, cov, undet, rank = solve_normal(a_b.sum(0), g_b.sum(0))
+    s2 = rss / max(n_rows - rank, 1)
     chans = Channels(pr.channel_names, ev.channel_matrix(), pr.data.t_s[pr.rows], pr.rows)
     return FitResult(problem=pr, state=st, channels=chans, values=values,
                      stderr=np.sqrt(np.clip(cov * s2, 0, None)), undetermined=undet, rank=rank, rss_w=rss,
-                     iterations=it, converged=converged, a_blocks=a_b, g_blocks=g_b, jac=jac, ev=ev)
+                     iterations=it, converged=converged, a_blocks=a_b, g_blocks=g_b, jac=jac, ev=ev, at_floor=held)
 
 
 def _assemble(pr: Problem, jac: _Jac, ev: _Eval, warm: Warm | None) -> tuple[np.ndarray, np.ndarray]:
@@ -331,16 +354,33 @@ def _take_last_step(pr: Problem, st: State, ev: _Eval, rss: float, delta: np.nda
     return st, ev, rss, g_b
 
 
-def _descent_step(pr: Problem, st: State, rss: float, a_b: np.ndarray, g_b: np.ndarray,
-                  delta: np.ndarray) -> tuple[np.ndarray, float, State, _Eval, float] | None:
+def _held_at_floors(a: np.ndarray, g: np.ndarray, delta: np.ndarray,
+                    room: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The normal equations and step with the parameters at their floor that the step would take lower held
+    there (out of the equations, the others solved without them), and every other step stopped at its floor:
+    (a, g, delta). `room`: how far each parameter may go down (0 at its floor)."""
+    held = (room >= 0.0) & (delta < room)
+    if held.any():
+        a, g = a.copy(), g.copy()
+        a[held, :] = 0.0
+        a[:, held] = 0.0
+        g[held] = 0.0
+        delta = solve_normal(a, g)[0]
+    return a, g, np.maximum(delta, room)
+
+
+def _descent_step(pr: Problem, st: State, rss: float, a: np.ndarray, g: np.ndarray, delta: np.ndarray,
+                  room: np.ndarray | None = None) -> tuple[np.ndarray, float, State, _Eval, float] | None:
     """A step that does not raise the RSS: the Gauss-Newton `delta`, else (Levenberg-Marquardt) one retried
     shorter and turned towards the gradient, up to ten times; (step, damping, state, residuals, RSS) or None
-    when none descends (the fit is at the minimum)."""
+    when none descends (the fit is at the minimum). a, g: the summed normal equations; `room`: how far each
+    parameter may go down (its floor)."""
     damping = 0.0
     for _ in range(10):
         # a step that does not lower the RSS (a badly determined direction taken too far) is retried damped
         if damping > 0:
-            delta, *_ = solve_normal(a_b.sum(0), g_b.sum(0), damping)
+            delta, *_ = solve_normal(a, g, damping)
+            delta = delta if room is None else np.maximum(delta, room)
         trial = pr.update(st, delta)
         ev_t = pr.evaluate(trial)
         rss_t = pr.weighted_rss(ev_t)

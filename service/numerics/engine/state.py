@@ -79,6 +79,17 @@ def layout_slots(data: EffectData, terms: Sequence[EffectTerm], views: Sequence[
     return slots
 
 
+def floor_vector(slots: Sequence[_Slot]) -> np.ndarray:
+    """Per parameter the lowest value its term's physics allows (EffectTerm.floors), -inf where none."""
+    lo = np.full(slots[-1].stop if slots else 0, -np.inf)
+    for s in slots:
+        if s.kind == "term":
+            for j, (value, _why) in s.term.floors.items():
+                if j < s.size:
+                    lo[s.start + j] = value
+    return lo
+
+
 def start_state(data: EffectData, terms: Sequence[EffectTerm], views: Sequence[ProbeView], linear: LinearCalibration,
                 previous: State | None = None) -> State:
     """Effect parameters at zero (or as `previous` has them, where the shapes agree) beside `linear`."""

@@ -411,6 +411,8 @@ def _fmt_effect_param(v: dict) -> str:
     unit, se = v.get("unit", ""), v.get("se")
     if v.get("fixed"):
         return f"{v['value']:.6g} {unit} (fixed: {v.get('note') or 'held at this value, not fitted'})"
+    if v.get("at_floor"):
+        return f"{v['value']:.6g} {unit} (at its floor: {v['at_floor']})"
     if se is not None:
         return f"{v['value']:.6g} ± {se:.3g} {unit}"
     return f"{v['value']:.6g} {unit} (undetermined: the data do not determine it)"
