@@ -16,7 +16,7 @@ import numpy as np
 from fluxcal.drivers.block import SampleBlock
 from fluxcal.drivers.errors import CalibrationRefused, DataError
 from fluxcal.service.io.recordings.labdata import LabData
-from fluxcal.service.numerics.calib.alignment import align_probes
+from fluxcal.service.numerics.calib.alignment import align_probes, borrowed_errors
 from fluxcal.service.numerics.calib.determinacy import (
     Determinacy,
     judge_all,
@@ -167,6 +167,11 @@ def fit_array(data: LabData, *, method: str = "ellipsoid", align: str | None = N
         probes = align_probes([probes[0]] * p, b.field_nT, method="regression")
         for k, pr in enumerate(probes):
             pr.name = data.probe_names[k]
+        own = [None if j.fit is None else (j.fit.fit.calibration.offset_nT, j.fit.fit.calibration.matrix)
+               for j in judged]
+        per_sample = None if total.values is None else total.per_sample(b.n_samples)
+        for k, words in borrowed_errors(probes, own, b.field_nT, per_sample).items():
+            probes[k].warnings.append(words)
     elif align == "rotation":
         probes = align_probes(probes, b.field_nT, method="rotation")
     elif align == "pca":

@@ -258,3 +258,25 @@ def test_a_temperature_borrowed_from_another_probe_is_said_by_fit_as_by_diagnose
     assert said in json.loads(capsys.readouterr().out)["notes"]
     assert main(["fit", str(path), "--json"]) == 0                    # no temperature term: nothing borrowed to say
     assert said not in json.loads(capsys.readouterr().out)["warnings"]
+
+
+def _fit_json(capsys, *args):
+    assert main(["fit", *args, "--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_a_probe_aligned_by_regression_is_told_what_it_took_from_the_reference(gradiometer, capsys):
+    """grad3-flap: a flap's magnet closes on s2, and on s1 at 0.15 of it. Aligned by regression onto s1, the clean s3
+    follows s1's corrected vector and takes on what s1's calibration lacks: its scalar residual grows from what its
+    own fit leaves (rotation keeps that calibration: the same figure) by 1.24 times. Said, with the way out; s2's
+    error is its own (1.02 times: not said); a clean simulated gradiometer says nothing of it."""
+    flap = "recordings/grad3-flap.mcap"
+    rot = {s["name"]: s["scalar_rms_nT"] for s in _fit_json(capsys, flap, "--align", "rotation")["sensors"]}
+    reg = _fit_json(capsys, flap)
+    said = [w for w in reg["warnings"] if "by regression, its scalar residual" in w]
+    assert len(said) == 1 and said[0].startswith("s3: aligned to s1 by regression"), said
+    s3 = {s["name"]: s["scalar_rms_nT"] for s in reg["sensors"]}["s3"]
+    assert f"its scalar residual is {s3:.3f} nT where its own fit leaves {rot['s3']:.3f}" in said[0]
+    assert s3 / rot["s3"] > 1.2 and "--align rotation keeps s3's own calibration" in said[0]
+    grad = _fit_json(capsys, str(gradiometer[0]))
+    assert not [w for w in grad["warnings"] if "by regression, its scalar residual" in w]
