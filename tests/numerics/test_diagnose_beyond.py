@@ -19,6 +19,9 @@ from test_diagnose import TUMBLE, data_of, probe
 from fluxcal.drivers.sim import Unit, load_sim_config
 from fluxcal.service.numerics.diagnose import diagnose, summary_text
 
+#: discovery beside the catalogue's best, and the verdict said again (diagnose's step 6)
+COVERS = ("fluxcal.service.numerics.diagnose.beyond",)
+
 F_TOTAL = 51500.0
 #: samples of the worlds where the catalogue holds the cause (ambient, a hidden temperature): 16,000 (800 s), on which
 #: each figure keeps its margin (the error 1.90-2.42 times the floor before against 1.5, 1.002-1.042 after against

@@ -45,20 +45,17 @@ from fluxcal.service.numerics.engine import (
 )
 from fluxcal.service.numerics.usable import refuse_stuck, temperature_notes
 
-from .discover import beside
-from .discover import discover as find_terms
+from .beyond import at_floor, beyond_catalogue
 from .fits import heldout, try_candidate
 from .frames import frame_summary, frames
 from .result import N_BLOCKS, P_SIGNIFICANT, Candidate, Diagnosis, Progress
 from .signature import (
-    CHANNEL_FACTOR,
     FLOOR_FACTOR,
     FOLLOWS,
     SHARED,
     Carried,
     channels_above,
     describe,
-    rest_is_flicker,
     signature,
     verdict,
 )
@@ -130,7 +127,7 @@ def diagnose(data: Any, *, effects: Sequence[str] = (), calibration: Any = None,
     if discover or (discover is None and (held_above or _excess_left(told, best.fit if best is not None else cur, noise,
                                                                       left_where))):
         tell(0.93, "discovery beyond the catalogue")
-        found, told, cands = _beyond_catalogue(ed, model, cur, cur_ho, cands, told, sig_cur, carried, reference,
+        found, told, cands = beyond_catalogue(ed, model, cur, cur_ho, cands, told, sig_cur, carried, reference,
                                                weights, n_blocks, noise, noise_nT, tell)
         best = next((c for c in cands if c.significant and c.fit is not None), None)
 
@@ -294,7 +291,7 @@ def _last_advice(told: dict, notes: list[str], cur, best, found, weak, cands, re
     off (refit: the residual of the linear part refitted, and why these data do not determine it, or None), a
     disturbance in time."""
     linear_refit, refit_refused = refit
-    if weak is None and found is not None and found.claimed and (_at_floor(found, noise_nT)
+    if weak is None and found is not None and found.claimed and (at_floor(found, noise_nT)
                                                                   or told.get("rest") == "flicker"):
         # one story: what discovery found takes every channel to its floor, so the headline says so (it said
         # "unexplained" above a finding that explained it); `left` stays what the catalogue leaves, which it takes,
@@ -327,16 +324,6 @@ def _last_advice(told: dict, notes: list[str], cur, best, found, weak, cands, re
                              linear_refit > FLOOR_FACTOR * noise_nT else ""))
     if stretch is not None and told["kind"] == "unexplained" and not explains_stretch(found, stretch, noise_nT, cur):
         told["advice"] = stretch_advice(stretch, told.get("advice"))
-
-
-def _at_floor(found: Any, noise_nT: float) -> bool:
-    """Whether the terms discovery claims explain the data down to their noise, as the catalogue's "explained" asks:
-    the held-out error within FLOOR_FACTOR of the floor, every channel within CHANNEL_FACTOR of its own in the fit."""
-    fit = found.fit
-    if fit is None or found.heldout_rms_nT is None or found.heldout_rms_nT > FLOOR_FACTOR * noise_nT:
-        return False
-    noise = 1.0 / fit.problem.weights
-    return bool(np.all(fit.channels.rms_nT <= CHANNEL_FACTOR * noise))
 
 
 #: discovery runs by itself where the catalogue leaves an excess: the verdict unexplained or partly explained, or a
@@ -401,76 +388,6 @@ def _beyond_the_best(ed: Any, model: Model, cands: list[Candidate], reference: n
             c.refusal = f"nothing beyond {best.effect}"
             c.reason = (f"nothing beyond {best.effect}: beside it, {c.effect}'s held-out gain is "
                         f"{100 * again.gain:.1f} %")
-
-
-def _beyond_catalogue(ed: Any, model: Model, cur: Any, cur_ho: Any, cands: list[Candidate], told: dict[str, Any],
-                      sig_cur: dict[str, Any], carried: Carried, reference: np.ndarray, weights: np.ndarray,
-                      n_blocks: int, noise: np.ndarray, noise_nT: float, tell: Any) -> tuple[Any, dict, list]:
-    """Discovery beside the model and the catalogue's best effect (if any); where it claims, the catalogue's best
-    judged again beside the groups found (kept only where it still adds, as two catalogue effects are), and the
-    verdict said again with the finding as its advice. Returns (the Discovery, the verdict, the candidates)."""
-    best = next((c for c in cands if c.significant and c.fit is not None), None)
-    base = best.fit if best is not None else cur
-    found = find_terms(ed, base, heldout(base) if best is not None else cur_ho, reference, weights, n_blocks,
-                       noise_nT, progress=lambda msg: tell(0.95, msg))
-    if not found.claimed and best is not None and best.effect == "column":
-        found = _instead_of_column(ed, best, cur, cur_ho, reference, weights, n_blocks, noise_nT, tell) or found
-    if not found.claimed:
-        return found, told, cands
-    if best is not None:
-        tell(0.97, f"{best.effect} beside what discovery found")
-        alone = beside(found, ed, cur, cur_ho, reference, weights, n_blocks)
-        if alone.claimed:
-            again = try_candidate(ed, alone.fit.model, alone.fit, heldout(alone.fit), best.effect, reference, weights,
-                                  residual_hints(alone.fit), n_blocks)
-            if not again.significant:
-                best.significant = False
-                best.refusal = "nothing beyond the discovered"
-                best.reason = (f"nothing beyond what discovery found: beside it, {best.effect}'s held-out gain is "
-                               f"{100 * again.gain:.1f} %")
-                found = alone
-                cands = rank(cands)
-                best = next((c for c in cands if c.significant and c.fit is not None), None)
-    base = best.fit if best is not None else cur
-    base_where = where_it_fails(ed, base, noise)
-    sig0 = sig_cur if best is None else signature(base, noise, base_where)
-    sig0.setdefault("frames", frame_summary(frames(ed, base, noise)))
-    if best is None or best.heldout_channels_nT is None:
-        above = channels_above(base, (heldout(base) if best is not None else cur_ho).channel_rms_nT, noise, base_where)
-    else:
-        above = channels_above(base, best.heldout_channels_nT, noise, base_where)
-    again_told = verdict(cur.rms_nT, noise_nT, best, sig0, carried, above)
-    if again_told["kind"] in ("at the floor", "explained"):
-        # the verdict is over all channels together; a family of them was not at its floor
-        again_told.update(kind="unexplained" if best is None else "partly explained", left=describe(sig0, carried)[0],
-                          advice=None, signature=sig0)
-    if told.get("linear_refit_nT") is not None:
-        again_told["linear_refit_nT"] = told["linear_refit_nT"]
-    # beside the finding: what the residual with the groups found still follows (from the residual without them,
-    # it named the very column the groups follow)
-    sig_found = (signature(found.fit, noise, where_it_fails(ed, found.fit, noise))
-                 if not _at_floor(found, noise_nT) else None)
-    beside_it = describe(sig_found, carried)[1] if sig_found is not None else None
-    again_told["advice"] = found.sentence() + (f"; beside it: {beside_it}" if beside_it else "")
-    if sig_found is not None and rest_is_flicker(sig_found, carried):
-        again_told["rest"] = "flicker"       # what the finding leaves is the probes' own slow noise: no missing effect
-    return found, again_told, cands
-
-
-def _instead_of_column(ed: Any, best: Candidate, cur: Any, cur_ho: Any, reference: np.ndarray, weights: np.ndarray,
-                       n_blocks: int, noise_nT: float, tell: Any) -> Any:
-    """Discovery beside the model without the catalogue's `column`, where beside it discovery found nothing: `column`
-    takes every logged column and its rate on every axis (30 parameters a probe for five columns), which discovery's
-    library holds one group at a time; where the groups it finds predict the held-out blocks at least as well with
-    fewer parameters, they are what the data show (a flap's field on an hour-long board that wanders: `column` left
-    1.15 times the untouched board's held-out error, the flap's own offset 1.08). The Discovery, or None."""
-    tell(0.96, "discovery beside the model without column")
-    alone = find_terms(ed, cur, cur_ho, reference, weights, n_blocks, noise_nT, progress=lambda msg: tell(0.96, msg))
-    if not alone.claimed:
-        return None
-    ours, theirs = heldout(alone.fit), heldout(best.fit)
-    fewer = alone.fit.rank - cur.rank < best.fit.rank - cur.rank
-    return alone if fewer and ours.sse_w.sum() <= theirs.sse_w.sum() else None
 
 
 def _weak_advice(weak: dict[str, Any], cands: list[Candidate], advice: str | None) -> str:

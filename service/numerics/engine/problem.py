@@ -32,7 +32,7 @@ from fluxcal.service.numerics.effects.base import REF_PREFIX, EffectData, Model,
 from .jacobian import _chunks, _Jac, block_jacobian, local_jacobian
 from .linear import LinearCalibration
 from .residuals import _Eval
-from .state import State, floor_vector, layout_slots, start_state, update_state
+from .state import State, layout_slots, start_state, update_state
 
 
 def make_views(data: EffectData, bind: LinearCalibration, hints: Any, refs: list[dict] | None) -> list[ProbeView]:
@@ -83,11 +83,6 @@ class Problem:
 
     def update(self, st: State, delta: np.ndarray) -> State:
         return update_state(self.slots, st, delta)
-
-    def floors(self) -> np.ndarray:
-        """(n_params,) the lowest value each parameter's physics allows, -inf where none."""
-        return floor_vector(self.slots)
-
     def param_names(self) -> list[str]:
         return [n for s in self.slots for n in s.names]
 

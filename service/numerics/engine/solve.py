@@ -15,7 +15,7 @@ from fluxcal.service.numerics.effects.base import Model
 from .jacobian import _Jac
 from .problem import Problem
 from .residuals import Channels, _Eval
-from .state import State
+from .state import State, floor_vector
 
 #: eigenvalues of the column-scaled normal matrix below this fraction of the largest are a null space: a
 #: direction in which the columns are collinear to R^2 > 1 - 1e-7. Measured: directions the data cannot
@@ -256,7 +256,7 @@ def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float =
     linearisation assembles only the rows of the parameters warm does not know. ev0, jac0: the residuals
     and Jacobian at `start` when the caller has them already."""
     st = start
-    lo = pr.floors()
+    lo = floor_vector(pr.slots)
     lo = lo if np.isfinite(lo).any() else None        # a parameter the physics bounds below: held at its floor
     ev = pr.evaluate(st) if ev0 is None else ev0
     rss = pr.weighted_rss(ev)
