@@ -134,7 +134,9 @@ def read(source: Any, *, config: str | None = None, site: str | None = None,
     if isinstance(source, LabData):
         lab = source
     elif hasattr(source, "columns") and hasattr(source, "to_numpy"):        # a pandas DataFrame
-        lab = lab_table("<DataFrame>", [str(c).strip() for c in source.columns], source.to_numpy(dtype=np.float64))
+        names = [_name("read", c) for c in source.columns]
+        lab = lab_table("<DataFrame>", names, np.column_stack([_numbers("read", f"column {n!r}", source[c].to_numpy())
+                                                               for n, c in zip(names, source.columns)]))
     else:
         raise DataError(f"read: expected a path, a pandas DataFrame or LabData, got {type(source).__name__} (for "
                         f"arrays: read_arrays)")
@@ -151,8 +153,8 @@ def read_arrays(t_s: Any, field_nT: Any, *, temp_C: Any = None, columns: dict[st
     >>> d.probe_names, sorted(d.columns), d.to_dataframe().columns[:4].tolist()
     (['s1'], ['heater_A'], ['t', 's1_x', 's1_y', 's1_z'])
     """
-    t = np.asarray(t_s, dtype=np.float64)
-    f = np.asarray(field_nT, dtype=np.float64)
+    t = _numbers("read_arrays", "t_s", t_s)
+    f = _numbers("read_arrays", "field_nT", field_nT)
     f = f[:, None, :] if f.ndim == 2 else f
     if f.ndim != 3 or f.shape[2] != 3 or f.shape[0] != t.shape[0]:
         raise DataError(f"read_arrays: field_nT: expected shape (N={t.shape[0]}, 3) or (N, P, 3), got "
@@ -163,21 +165,52 @@ def read_arrays(t_s: Any, field_nT: Any, *, temp_C: Any = None, columns: dict[st
         cols += [f[:, k, a] for a in range(3)]
     n, p = t.shape[0], f.shape[1]
     if temp_C is not None:
-        temps = np.asarray(temp_C, dtype=np.float64)
+        temps = _numbers("read_arrays", "temp_C", temp_C)
         if temps.shape not in ((n,), (n, p)):
             raise DataError(f"read_arrays: temp_C: expected shape (N={n},) or (N, P={p}), got {temps.shape}")
         temps = temps.reshape(n, -1)
         header += [f"s{k + 1}_temp" for k in range(temps.shape[1])]
         cols += [temps[:, k] for k in range(temps.shape[1])]
     for name, values in (columns or {}).items():
-        v = np.asarray(values, dtype=np.float64)
+        name = _name("read_arrays", name)
+        v = _numbers("read_arrays", f"columns[{name!r}]", values)
         if v.shape != (n,):
-            raise DataError(f"read_arrays: columns[{str(name)!r}]: expected shape (N={n},), got {v.shape}")
-        header.append(str(name))
+            raise DataError(f"read_arrays: columns[{name!r}]: expected shape (N={n},), got {v.shape}")
+        header.append(name)
         cols.append(v)
     lab = lab_table("<arrays>", header, np.column_stack(cols))
     said = _said(said, "read")
     return Data(_prepared_from(lab, said, config=config, site=site), said.notes)
+
+
+def _numbers(who: str, what: str, values: Any) -> np.ndarray:
+    """values as float64, or a DataError naming what and its first value that is no number (numpy's and pandas' own
+    error named neither: "could not convert string to float: 'hover'")."""
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        flat = np.asarray(values, dtype=object).ravel()
+        bad = next((i for i, v in enumerate(flat) if not _is_number(v)), 0)
+        raise DataError(f"{who}: {what}: {flat[bad]!r} (row {bad + 1}) is not a number; a table's columns are numbers "
+                        f"(docs/csv.md): leave text out (DataFrame.select_dtypes('number')) or map it to numbers "
+                        f"first") from None
+
+
+def _is_number(v: Any) -> bool:
+    try:
+        float(v)
+        return True
+    except (TypeError, ValueError):
+        return False
+
+
+def _name(who: str, name: Any) -> str:
+    """A column's name as a CSV header can hold it (the table is the one docs/csv.md reads), else a DataError."""
+    text = str(name).strip()
+    if not text or any(c in text for c in ',"\n\r'):
+        raise DataError(f"{who}: column name {text!r}: a column's name is not empty and holds no comma, quote or line "
+                        f"break (it is a CSV header, docs/csv.md)")
+    return text
 
 
 def _prepared_from(lab: LabData, said: Said, **options: Any) -> Prepared:

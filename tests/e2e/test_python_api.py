@@ -95,6 +95,26 @@ def test_arrays_of_the_wrong_length_are_refused_and_named():
         assert said in str(e.value)
 
 
+def test_text_in_a_table_and_a_name_no_csv_holds_are_refused_and_named():
+    """A DataFrame or column holding text ended in pandas' or numpy's own ValueError ("could not convert string to
+    float: 'hover'"), naming neither the column nor the row, where `fluxcal fit` names both; a column named with a
+    comma was taken, though no CSV header can hold it (a field trial). Both are named now."""
+    pd = pytest.importorskip("pandas")
+    from fluxcal.drivers.errors import DataError
+
+    t, field = np.arange(100) / 10.0, np.tile([20000.0, 0.0, 45000.0], (100, 1))
+    mode = np.array(["hover"] * 100, dtype=object)
+    mode[:3] = [1.0, 2.0, 3.0]
+    frame = pd.DataFrame({"t": t, "s1_x": field[:, 0], "s1_y": field[:, 1], "s1_z": field[:, 2], "mode": mode})
+    with pytest.raises(DataError, match=r"^read: column 'mode': 'hover' \(row 4\) is not a number"):
+        fluxcal.read(frame)
+    assert fluxcal.read(frame.drop(columns="mode")).probe_names == ["s1"]
+    with pytest.raises(DataError, match=r"^read_arrays: columns\['mode'\]: 'hover' \(row 4\) is not a number"):
+        fluxcal.read_arrays(t, field, columns={"mode": mode})
+    with pytest.raises(DataError, match=r"column name 's1 x,y': a column's name is not empty and holds no comma"):
+        fluxcal.read_arrays(t, field, columns={"s1 x,y": np.zeros(100)})
+
+
 def test_an_option_of_read_given_to_fit_with_data_is_refused_and_named():
     from fluxcal.drivers.errors import DataError
 

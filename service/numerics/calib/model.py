@@ -143,8 +143,8 @@ class ArrayCalibration:
         effects need the samples' times and temperatures, which a field alone does not carry (apply_linear gives
         its linear part, knowingly; a fit's result corrects with the effects: FitResult.correct)."""
         if self.effects:
-            raise DataError(f"this calibration holds effect terms ({', '.join(self.effects)}) that need the samples' "
-                            f"times and temperatures, not the field alone: correct with the fit's result "
+            raise DataError(f"this calibration holds effect terms ({', '.join(self.effects)}) that read more than the "
+                            f"field (the samples' times, temperatures or logged columns): correct with the fit's result "
                             f"(result.correct(data)), or take its linear part knowingly with apply_linear(field_nT)")
         return self.apply_linear(field_nT)
 

@@ -106,8 +106,8 @@ class FitResult(Result):
 
     def correct(self, data: Any) -> np.ndarray:
         """(N, P, 3) the field of `data` (what fluxcal.read gives, a LabData or a SampleBlock) corrected by this
-        calibration with its effects, which need the samples' times and temperatures (calibration.apply has the
-        field alone, and refuses a calibration with effects)."""
+        calibration with its effects, which read the samples' times, temperatures or logged columns (calibration.apply
+        has the field alone, and refuses a calibration with effects)."""
         lab = getattr(data, "lab", data)
         if self.effects_fit is not None:
             return self.effects_fit.correct(lab)
