@@ -356,7 +356,7 @@ def test_fit_with_effects_takes_and_returns_array_calibrations():
     # the linear part: matrix (raw - offset) has the true field's magnitude
     corr = cal.apply_linear(data.raw_nT)
     assert np.median(np.abs(np.linalg.norm(corr[:, 0], axis=1) - data.ref_total_nT)) < 20.0
-    with pytest.raises(DataError, match=r"holds effect terms \(temperature\) that need the samples' times"):
+    with pytest.raises(DataError, match=r"holds effect terms \(temperature\) that read more than the field"):
         cal.apply(data.raw_nT)                     # the field alone cannot carry its effects: never dropped silently
     assert np.all(np.isfinite(cal.probes[0].offset_se_nT))
     assert fit.as_dict()["effect_parameters"][0]["unit"] == "nT/degC"
