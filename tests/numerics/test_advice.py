@@ -103,6 +103,25 @@ def test_the_issue_cases_are_told_what_the_data_carry():
     assert "log it" not in advice and "fan_hz" in advice
 
 
+def test_a_band_is_no_cause_where_the_probe_turns_at_its_rates_or_a_logged_column_follows():
+    """A residual band where the field the probe reads varies most is at the rates it turns: a misfit of its direction,
+    not something turning near it (a hand-turned board's gyros logged, it was asked to log the phase of what turns);
+    a logged column the residual follows nearly as well is named first (a servo's magnet, 45 % through the field's
+    direction beside a band at 48 %); a band that holds little of the turning and no column is a disturbance."""
+    gyros = Carried(columns=("gyro_x", "gyro_y", "gyro_z"), probes=1)
+    band = {**_follow("frequency", 0.31, band="0.0933-0.186 Hz"), "band_hz": [0.0933, 0.186]}
+    _, advice = describe(_sig(follows=[{**band, "turning_share": 0.32}]), gyros)
+    assert advice.startswith("a misfit at the rates the probe turns (0.0933-0.186 Hz holds 32 % of the variation")
+    assert _asks(advice) == [], advice
+    _, advice = describe(_sig(follows=[{**band, "turning_share": 0.05}]), gyros)
+    assert advice.startswith("a narrow-band disturbance at 0.0933-0.186 Hz")
+    servo = Carried(columns=("servo_deg", "gyro_x"), probes=1)
+    for strength, named in ((0.45, True), (0.2, False)):
+        follows = [{**band, "strength": 0.48, "turning_share": 0.25}, _follow("servo_deg x field direction", strength)]
+        _, advice = describe(_sig(follows=follows), servo)
+        assert advice.startswith("a coupling of servo_deg seen through the field's direction") == named, advice
+
+
 def test_the_wrappers_of_diagnose_ask_for_no_log():
     from types import SimpleNamespace
 

@@ -66,6 +66,20 @@ def test_the_bursty_recording_keeps_its_samples(capsys):
 
 
 @pytest.mark.slow
+def test_a_band_at_the_rates_the_board_turns_is_a_misfit_that_follows_its_direction(capsys):
+    """The hand-turned sphere's residual is strongest at 0.09-0.19 Hz, where the field the board reads changes as it is
+    turned: it was advised as 'a narrow-band disturbance (something turning near the probe)' with a request to log
+    the phase of what turns, though its gyros are logged (two field trials). The band's share of the field's own
+    variation says it is the turning's."""
+    d = _diagnose("hmc5883l_sensorfusion_sphere", capsys)
+    band = next(w for w in d["where"] if w["observable"] == "frequency")
+    assert band["turning_share"] >= 0.3, band
+    advice = d["verdict"]["advice"]
+    assert "a misfit at the rates the probe turns" in advice and "it follows the direction the probe points" in advice
+    assert "narrow-band disturbance" not in advice and "log the phase" not in advice, advice
+
+
+@pytest.mark.slow
 def test_an_hour_long_recording_whose_residual_follows_time_says_so(capsys):
     d = _diagnose("imu_freeimucal", capsys)
     v = d["verdict"]

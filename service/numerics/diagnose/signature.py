@@ -133,7 +133,8 @@ def signature(fit: FitResult, noise: np.ndarray, where: list[dict[str, Any]] | N
     for w in where or []:                      # strongest first; one entry per observable
         if w["strength"] >= FOLLOWS and w["observable"] not in seen:
             seen[w["observable"]] = {"observable": w["observable"], "channel": w["channel"], "strength": w["strength"],
-                                     **({"band": w["band"], "band_hz": w.get("band_hz")} if w.get("band") else {})}
+                                     **({"band": w["band"], "band_hz": w.get("band_hz"),
+                                         "turning_share": w.get("turning_share")} if w.get("band") else {})}
     out["follows"] = list(seen.values())[:3]
     return out
 
@@ -325,7 +326,15 @@ def _advice(sig: dict[str, Any], carried: Carried, diff_up: bool) -> str:
     elif follows and follows[0]["observable"] == "time":
         advice = _time_advice(shared, sig.get("probe_share") or {}, carried)
     elif follows:
-        advice = _follows_advice(follows[0], carried, follows)
+        # a band or a time is no cause: a logged column the residual follows nearly as well (half as well or more) is
+        # named first (a servo's magnet on a hand-turned board, followed 45 % through the field's direction beside a
+        # band at 48 %, was advised to log the phase of something turning)
+        made = carried.harmonic(band_hz=follows[0].get("band_hz")) if follows[0].get("band_hz") else None
+        logged = [f for f in follows if f["observable"] in carried.columns
+                  or f["observable"].endswith(" x field direction")]
+        cause = follows[0] if made is not None and _followed(made[0], follows) else next(
+            (f for f in logged if f["strength"] >= 0.5 * follows[0]["strength"]), follows[0])
+        advice = _follows_advice(cause, carried, follows)
     else:
         carry = [w for w, on in (("temperatures", carried.temperature), ("a reference", carried.reference),
                                  (f"columns ({carried.logged()})", bool(carried.columns))) if on]
@@ -382,6 +391,11 @@ _ADVICE = {
 }
 
 
+#: a residual band that holds at least this share of the variation of the field the probe reads is at the rates the
+#: probe turns (hand-turned real boards: 40-60 %), no disturbance near it (where.band_share)
+TURNING_SHARE = 0.3
+
+
 def _followed(col: str, follows: list[dict[str, Any]]) -> bool:
     """Whether the residual follows column `col` (where it fails: its correlation ratio over bins of the column, which
     any function of it shows, or the column times the field direction): a band that only holds combinations of the
@@ -405,6 +419,12 @@ def _follows_advice(top: dict[str, Any], carried: "Carried | None" = None,
         made = carried.harmonic(band_hz=top.get("band_hz")) if top.get("band_hz") else None
         if made is not None and _followed(made[0], follows or [top]):
             return _shape_advice(made[0], f"the band {top.get('band', '')} holds {made[1]}")
+        if (top.get("turning_share") or 0.0) >= TURNING_SHARE:
+            return (f"a misfit at the rates the probe turns ({top.get('band', 'one band')} holds "
+                    f"{100 * top['turning_share']:.0f} % of the variation of the field it reads): it follows the "
+                    f"direction the probe points, not something turning near it (an effect of the field's direction, "
+                    f"as nonlinearity, crossfield and hysteresis are, or a shape the calibration's order cannot take); "
+                    f"turn through the same directions at another rate to tell a direction from a rate")
         unfollowed = carried.unfollowed({f["observable"] for f in follows or [top]})
         logged = f" ({unfollowed})" if unfollowed else ""
         return (f"a narrow-band disturbance at {top.get('band', 'one band')} (something turning, vibrating or "

@@ -235,6 +235,19 @@ def _band_excess(y: np.ndarray, dt: float, noise: float) -> tuple[float, str, tu
     return float(np.clip(ex.share, 0.0, 1.0)), ex.band, ex.band_hz
 
 
+def band_share(x: np.ndarray, dt: float, band_hz: tuple[float, float]) -> float:
+    """The fraction of the variation of x (N, 3), about its mean, at frequencies within band_hz: the field a probe
+    reads changes at the rates the probe turns, so a residual band that holds much of it is the turning's."""
+    x = np.asarray(x, dtype=np.float64)
+    x = x[np.all(np.isfinite(x), axis=1)]
+    if x.shape[0] < 8:
+        return 0.0
+    power = (np.abs(np.fft.rfft(x - x.mean(0), axis=0)) ** 2).sum(1)
+    f = np.fft.rfftfreq(x.shape[0], dt)
+    total = float(power[1:].sum())
+    return float(power[(f >= band_hz[0]) & (f <= band_hz[1])].sum() / total) if total > 0 else 0.0
+
+
 def where_it_fails(data: EffectData, fit: FitResult, noise_nT: np.ndarray, *, top: int = 30,
                    min_strength: float = 0.05) -> list[dict[str, Any]]:
     """(channel, observable, strength) sorted strongest first; strength = explained variance fraction (adjusted
@@ -259,8 +272,9 @@ def where_it_fails(data: EffectData, fit: FitResult, noise_nT: np.ndarray, *, to
                 out.append({"channel": name, "observable": oname, "strength": s})
         s, band, edges = _band_excess(vals[:, c], step, float(noise_nT[c]))
         if s >= min_strength:
+            field = data.raw_nT[pr.rows, pr.channel_probe(c)[1]]
             out.append({"channel": name, "observable": "frequency", "strength": s, "band": band,
-                        "band_hz": list(edges)})
+                        "band_hz": list(edges), "turning_share": band_share(field, step, edges)})
     out.sort(key=lambda d: -d["strength"])
     return out[:top]
 
