@@ -369,6 +369,28 @@ def test_malformed_commands_are_refused_at_once_and_never_reach_the_service(stac
     assert daemon.seen == [] and bus.stats["commands_refused"] == 2
 
 
+def test_a_wildcard_query_reads_state_and_runs_no_command(stack):
+    """One get of fluxcal/** (what a zenoh browser sends) ran reset, freeze and unfreeze in whatever order they came,
+    and left the service frozen (a field trial). A command runs only when asked by its own key; the state answers."""
+    import zenoh
+
+    cfg, ep = peer_cfg()
+    bus = stack.enter_context(ServiceBus(cfg, "u1", state_fn=lambda: {"unit": "u1"}))
+    daemon = FakeDaemon(bus)
+    stack.callback(daemon.close)
+    client = stack.enter_context(BusClient(ZenohConfig.client(ep), "u1", streams=[]))
+    for wild in ("fluxcal/**", "fluxcal/u1/cmd/*", "fluxcal/*/cmd/freeze"):
+        replies = list(client.session.get(wild, timeout=2.0, consolidation=zenoh.ConsolidationMode.NONE))
+        oks = [json.loads(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
+        errs = [json.loads(r.err.payload.to_bytes()) for r in replies if r.err is not None]
+        assert all("command" not in o for o in oks), (wild, oks)
+        assert errs and all(e["ok"] is False and "a command runs only when asked by its own key" in e["error"]
+                            for e in errs), (wild, errs)
+    time.sleep(0.1)
+    assert daemon.seen == []
+    assert client.command("freeze")["applied"] == "freeze"          # its own key still runs it
+
+
 def test_a_command_nobody_takes_is_withdrawn_unapplied_and_a_full_queue_says_busy(stack):
     cfg, ep = peer_cfg()
     bus = stack.enter_context(ServiceBus(cfg, "u1", command_queue_size=1))

@@ -68,6 +68,10 @@ class Desk:
             self.stats["commands_received"] += 1
             if self._closed:
                 return self._refuse(query, name, "the service is stopping")
+            asked_key = str(query.key_expr)
+            if asked_key != key:                # a wildcard that reaches every key (a browser's get of fluxcal/**)
+                return self._refuse(query, name, f"a command runs only when asked by its own key ({key}); "
+                                                 f"{asked_key[:120]!r} reaches more than one: nothing was done")
             raw = query.payload.to_bytes() if query.payload is not None else b""
             if len(raw) > MAX_COMMAND_PAYLOAD_BYTES:
                 return self._refuse(query, name, f"payload of {len(raw):,} bytes is too large (at most "
