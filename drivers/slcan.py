@@ -25,6 +25,10 @@ from can.util import CAN_FD_DLC
 
 #: the longest line a frame takes: 'D' + 8 id + 1 len + 128 data + 4 time stamp
 MAX_LINE = 1 + 8 + 1 + 2 * 64 + 4
+#: frames read before the bus holds to the adapter's one form, with time stamps or without (the form most of them
+#: had): an adapter sends one or the other, so a line of the other form is garbled (four characters doubled in a
+#: stamp-less stream read as data and a stamp: a probe's temperature of 59.5 degC recorded where 22.0 was sent)
+STAMP_LOCK_FRAMES = 16
 _HEX = re.compile(r"[0-9A-Fa-f]*")
 #: first letter -> (id digits, extended, remote, FD, bitrate switch)
 _KINDS = {"t": (3, False, False, False, False), "T": (8, True, False, False, False),
@@ -65,12 +69,24 @@ def parse_line(line: str) -> can.Message | None:
                        timestamp=time.time())
 
 
+def stamped_line(line: str, msg: can.Message) -> bool:
+    """Whether the line of frame `msg` (parse_line's) ends in a time stamp.
+
+    >>> line = "t2018DEADBEEF000000001234"
+    >>> stamped_line(line, parse_line(line)), stamped_line(line[:-4], parse_line(line[:-4]))
+    (True, False)
+    """
+    data_chars = 0 if msg.is_remote_frame else 2 * msg.dlc
+    return len(line.rstrip("\r")) == 2 + (8 if msg.is_extended_id else 3) + data_chars + 4
+
+
 class SlcanBus(slcanBus):
     """python-can's slcan interface, reading with `parse_line` (see the module docstring); `bad_lines` counts
     the lines that are no frame."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         self.bad_lines = 0
+        self._forms = [0, 0]             # frames read without and with a time stamp, until STAMP_LOCK_FRAMES
         self._line = bytearray()
         self._overlong = False           # the line being read passed MAX_LINE: dropped up to its end
         super().__init__(*args, **kwargs)
@@ -112,6 +128,12 @@ class SlcanBus(slcanBus):
         if not line or line == "\r":          # nothing, or the adapter's OK to a command
             return None, False
         msg = parse_line(line) if line.endswith("\r") else None       # \a: the adapter's error bell
+        if msg is not None:
+            stamped = int(stamped_line(line, msg))
+            if sum(self._forms) < STAMP_LOCK_FRAMES:
+                self._forms[stamped] += 1
+            elif self._forms[stamped] < self._forms[1 - stamped]:
+                msg = None                       # the other form than the adapter's: garbled
         if msg is None:
             self.bad_lines += 1
         return msg, False

@@ -83,6 +83,38 @@ def test_slcan_on_a_pty_counts_garbled_lines_and_keeps_the_samples(pty_port):
         src.close()
 
 
+@pytest.mark.parametrize("stamps", [False, True])
+def test_slcan_lines_of_the_other_form_than_the_adapters_are_garbled_not_data(pty_port, stamps):
+    """An adapter sends time stamps or not. Four characters doubled in a stamp-less line read as the data and a time
+    stamp: 117 samples of a field trial got a probe temperature of 20.0-59.5 degC where 22.0 was sent, with every
+    counter at zero. After the first frames the bus holds to the adapter's form: a line of the other is garbled,
+    counted, and no sample takes its value."""
+    port = pty_port()
+    src = CanSource(interface="slcan", channel=port.path, n_probes=2, rate_hz=RATE_HZ,
+                    bus_kwargs={"sleep_after_open": 0})
+    try:
+        lines = [ln[:-1] + ("0A0B\r" if stamps else "\r") for ln in good_lines(40)]
+        doubled = {}
+        for k in range(30, 70, 7):            # frames past the first 16: four characters of the data doubled
+            body = lines[k][:-1]
+            doubled[k] = body[:9] + body[9:13] * 2 + body[13:] + "\r"
+        wire = [doubled.get(k, ln) for k, ln in enumerate(lines)]
+        port.write("".join(wire).encode("latin-1"), chunk=97)
+        got = []
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and src.counters.frames_accepted + src.counters.bad_frames < len(wire):
+            b = src.read(timeout=0.2)
+            if b is not None:
+                got.append(b)
+        c = src.counters
+        assert (c.bad_frames, c.frames_accepted) == (len(doubled), len(lines) - len(doubled))
+        if got:
+            temps = np.concatenate([b.temp_C for b in got])
+            assert np.all(temps[np.isfinite(temps)] == temps[np.isfinite(temps)].flat[0])      # none took a garbled value
+    finally:
+        src.close()
+
+
 def test_can_faults_are_said_in_the_buss_own_words():
     said: list[str] = []
     clock = [0.0]
