@@ -110,7 +110,8 @@ def test_slcan_lines_of_the_other_form_than_the_adapters_are_garbled_not_data(pt
         assert (c.bad_frames, c.frames_accepted) == (len(doubled), len(lines) - len(doubled))
         if got:
             temps = np.concatenate([b.temp_C for b in got])
-            assert np.all(temps[np.isfinite(temps)] == temps[np.isfinite(temps)].flat[0])      # none took a garbled value
+            ok = temps[np.isfinite(temps)]
+            assert np.all(ok == ok.flat[0])                      # none took a garbled value
     finally:
         src.close()
 
