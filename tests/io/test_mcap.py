@@ -104,6 +104,32 @@ def test_rotation_by_age_replays_in_order_without_loss_or_duplicates(tmp_path, m
     assert log.status()["files"] == len(names) and log.status()["errors"] == 0
 
 
+def test_a_host_clock_stepped_back_mid_run_keeps_the_run_in_order(tmp_path, monkeypatch):
+    """A time sync stepped the host's clock back two hours during a run: its rotated files were named at 11:08 where
+    its first was 13:08, sorted before it, and the run replayed as two, the continuation failing alone (a field
+    trial). Every file of a run now carries its first file's time: one run, in order, every block once."""
+    from fluxcal.service.io.recordings import writer
+
+    clock, wall = [0.0], [1_796_648_880.0e9]
+    monkeypatch.setattr(sink, "_monotonic", lambda: clock[0])
+    monkeypatch.setattr(writer, "_wall_ns", lambda: int(wall[0]))
+    want = blocks(60)
+    log = McapLogger(tmp_path, unit="u1", rotate_s=1.0, flush_interval_s=0.25)
+    for k, b in enumerate(want):
+        log.write_raw(b)
+        clock[0] += 0.05
+        wall[0] += 0.05e9 if k != 25 else -7200e9                  # two hours back in the middle of the run
+    log.close()
+    names = [p.name for p in sorted(tmp_path.glob("*.mcap"))]
+    assert len(names) >= 3 and len({n.rsplit("-", 1)[0] for n in names}) == 1, names
+    assert all(n.endswith(f"-{k + 1:04d}.mcap") for k, n in enumerate(names))
+    from fluxcal.service.io.recordings.runs import runs_in
+
+    assert [len(r) for r in runs_in(tmp_path)] == [len(names)]
+    got = drain(McapSource(tmp_path))
+    assert len(got) == 60 and all(same_block(g, w) for g, w in zip(got, want))
+
+
 def test_a_file_cut_anywhere_reads_up_to_its_last_complete_chunk(tmp_path):
     want = blocks(50)
     log = McapLogger(tmp_path / "full.mcap", unit="u1", flush_interval_s=0.0)   # a chunk per message

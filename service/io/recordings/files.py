@@ -96,6 +96,7 @@ class McapFiles:
         self.time_written = False
         self.gone = False                  # the open file was found deleted (_check_deleted)
         self._file_index = 0
+        self._run_stamp: str | None = None   # the first file's UTC time: every file of the run carries it
 
     def _candidate(self, wall_ns: int) -> tuple[Path, str]:
         self._file_index += 1
@@ -104,8 +105,11 @@ class McapFiles:
             if self._file_index == 1:
                 return self.path, "wb"
             return self.path.with_name(f"{self.path.stem}_{self._file_index:04d}{self.path.suffix}"), "xb"
-        stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime(wall_ns / 1e9))
-        return self.dir / f"{self.unit}-{stamp}-{self._file_index:04d}.mcap", "xb"
+        # one stamp per run, so its files sort in their order whatever the host clock does (stepped back two hours by
+        # a time sync, the rotated files sorted before the first, and the run replayed as two)
+        if self._run_stamp is None or self._file_index == 1:
+            self._run_stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime(wall_ns / 1e9))
+        return self.dir / f"{self.unit}-{self._run_stamp}-{self._file_index:04d}.mcap", "xb"
 
     def open(self, wall_ns: int, pending: Sequence[tuple[str, bytes, int, int, int]], epoch_ns: int | None) -> None:
         """Open the next file, write its header (and the time record when `epoch_ns` is given), then the
