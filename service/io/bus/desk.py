@@ -68,10 +68,8 @@ class Desk:
             self.stats["commands_received"] += 1
             if self._closed:
                 return self._refuse(query, name, "the service is stopping")
-            asked_key = str(query.key_expr)
-            if asked_key != key:                # a wildcard that reaches every key (a browser's get of fluxcal/**)
-                return self._refuse(query, name, f"a command runs only when asked by its own key ({key}); "
-                                                 f"{asked_key[:120]!r} reaches more than one: nothing was done")
+            if str(query.key_expr) != key:      # a wildcard that reaches every key (a browser's get of fluxcal/**)
+                return self._refuse(query, name, _not_its_own(str(query.key_expr), key))
             raw = query.payload.to_bytes() if query.payload is not None else b""
             if len(raw) > MAX_COMMAND_PAYLOAD_BYTES:
                 return self._refuse(query, name, f"payload of {len(raw):,} bytes is too large (at most "
@@ -238,3 +236,9 @@ def _take_late(queries: deque, commands: deque, grace_s: float, now: float) -> t
         commands.remove(c)
     due = [t + grace_s for t, _ in queries] + [c.expires_at for c in commands]
     return late_q, expired, min(max(min(due, default=now + 1.0) - now, 0.001), 1.0)
+
+
+def _not_its_own(asked: str, key: str) -> str:
+    """Why a command asked by a wider key expression than its own is refused (nothing is done)."""
+    return (f"a command runs only when asked by its own key ({key}); {asked[:120]!r} reaches more than one: nothing "
+            f"was done")
