@@ -130,6 +130,29 @@ class Gate:
         return GateResult(usable=not reasons, reasons=reasons, coverage=float(min(covs)),
                           condition=float(max(conds)), rms_nT=rmss)
 
+    def fails_on_data(self, cal: ArrayCalibration, ring: RingBuffer, in_use: ArrayCalibration | None = None) -> str:
+        """"" where `cal` leaves on the ring's window a residual the gate accepts, or not far above what the calibration
+        in use leaves (DATA_JUMP times); else why, naming the probe: the data check of identity.judge_on_data, and of
+        the calibration a service starts from once it has the samples to judge it on."""
+        window = self.window(ring)
+        ref = reference_total(window, self.total_nT)
+        for k, probe in enumerate(cal.probes):
+            _, rms = scalar_residual(probe, window, k, ref)
+            now = scalar_residual(in_use.probes[k], window, k, ref)[1] if in_use is not None else None
+            if not np.isfinite(rms) or (rms > self.rms_nT and (now is None or rms > DATA_JUMP * now)):
+                span = window.t_s[-1] - window.t_s[0] if window.n_samples else 0.0
+                used = f"the calibration in use leaves {now:.3g} nT, " if now is not None else ""
+                shown = f"{rms:,.0f}" if rms >= 1000 else f"{rms:.4g}"
+                return (f"{probe.name}: on this unit's last {span:.0f} s of data it leaves a residual of {shown} nT "
+                        f"rms ({used}the gate accepts at most {self.rms_nT:g} nT: estimator.gate_rms_nT): not this "
+                        f"unit's")
+        return ""
+
+
+#: a calibration that leaves more than this times the residual of the one in use (and more than the gate allows) is
+#: refused on the data (Gate.fails_on_data)
+DATA_JUMP = 4.0
+
 
 def scalar_residual(p, window: SampleBlock, k: int, ref: np.ndarray | float | None) -> tuple[np.ndarray, float]:
     """Probe k's corrected vectors over the window (its finite samples) by calibration `p`, and the RMS of

@@ -23,11 +23,6 @@ import numpy as np
 from fluxcal.service.numerics.calib.plausible import ImplausibleCalibration
 
 from .config import FluxcalConfig
-from .gate import reference_total, scalar_residual
-
-#: a calibration that leaves more than this times the residual of the one in use (and more than the gate allows) is
-#: refused on the data
-DATA_JUMP = 4.0
 
 
 def unit_identity(cfg: FluxcalConfig) -> dict[str, Any]:
@@ -89,15 +84,7 @@ def judge_on_data(cal: Any, pipeline: Any, cfg: FluxcalConfig) -> str:
                                              f"service has {len(ring)} of the {cfg.estimator.min_samples} samples "
                                              f"it judges a calibration on: apply it again once it has them")
         return f"not judged on data yet ({len(ring)} of the {cfg.estimator.min_samples} samples needed)"
-    window = gate.window(ring)
-    ref = reference_total(window, pipeline.total_nT)
-    for k, probe in enumerate(cal.probes):
-        _, rms = scalar_residual(probe, window, k, ref)
-        now = scalar_residual(in_use.probes[k], window, k, ref)[1] if in_use is not None else None
-        if not np.isfinite(rms) or (rms > gate.rms_nT and (now is None or rms > DATA_JUMP * now)):
-            span = window.t_s[-1] - window.t_s[0] if window.n_samples else 0.0
-            used = f"the calibration in use leaves {now:.3g} nT, " if now is not None else ""
-            raise ImplausibleCalibration("data", f"{probe.name}: on this unit's last {span:.0f} s of data it leaves a "
-                                                 f"residual of {f'{rms:,.0f}' if rms >= 1000 else f'{rms:.4g}'} nT rms ({used}the gate accepts at most "
-                                                 f"{gate.rms_nT:g} nT: estimator.gate_rms_nT): not this unit's")
+    why = gate.fails_on_data(cal, ring, in_use)
+    if why:
+        raise ImplausibleCalibration("data", why)
     return f"judged on the last {len(ring)} samples"

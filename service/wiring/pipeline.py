@@ -141,6 +141,9 @@ class Pipeline(_ChunkFeed):
         self.gate = Gate(probe_names=self.probe_names, align=align, min_samples=min_samples, coverage=gate_coverage,
                          condition=gate_condition, rms_nT=gate_rms_nT, total_nT=total_nT)
         self.reset()                      # the estimators, the chunk being filled, chunks since the last check
+        # a calibration not judged on this unit's data (the one started from, one applied before there were samples
+        # to judge it on) is judged once there are: another unit's was used for good on a static platform
+        self.on_trial = initial is not None
         if initial is not None:
             self.set_calibration(initial)
 
@@ -179,6 +182,7 @@ class Pipeline(_ChunkFeed):
             self.live.clear()
             self.set_calibration(payload)
             self.held = True              # it stays: the online estimate keeps learning, the gate judging it
+            self.on_trial = len(self.ring) < self.gate.min_samples
         elif name == "add-effect":
             self.add_effect(str(payload or "").strip())
         else:
@@ -261,6 +265,9 @@ class Pipeline(_ChunkFeed):
         self.set_calibration(self.live.add(name, self.ring.view(), self.calibration))
 
     def _check_candidate(self, seq: int, t_s: float) -> PipelineEvent | None:
+        dropped = _on_trial(self, seq, t_s)
+        if dropped is not None:
+            return dropped
         cand = self.candidate()
         if cand is None:
             if self.gate.refusal is None:
@@ -282,6 +289,23 @@ class Pipeline(_ChunkFeed):
     def state(self) -> dict[str, Any]:
         """The calibration state for publishing (JSON-ready)."""
         return _state(self)
+
+
+def _on_trial(pl: Pipeline, seq: int, t_s: float) -> PipelineEvent | None:
+    """The calibration in use judged on the unit's data once, where it was not yet and now can be (Pipeline.on_trial):
+    the gate's event of its drop, or None (kept, or not yet judged). Dropped, the corrected output stops until the gate
+    accepts a candidate: another unit's calibration reloaded on a static platform corrected with errors of 5,000 nT
+    for a whole run, said usable (a field trial)."""
+    if not (pl.on_trial and pl.calibration is not None and len(pl.ring) >= pl.gate.min_samples):
+        return None
+    pl.on_trial = False
+    why = pl.gate.fails_on_data(pl.calibration, pl.ring)
+    if not why:
+        return None
+    why = f"the calibration in use, not judged on this unit's data until now, fails the data check: {why}"
+    pl.calibration, pl.held = None, False
+    pl.last_gate = GateResult(False, [why], float("nan"), float("nan"), [])
+    return PipelineEvent("gate", seq, t_s, {"usable": False, "reasons": [why], "dropped": pl.cal_id})
 
 
 def _state(pl: Pipeline) -> dict[str, Any]:
