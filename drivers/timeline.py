@@ -12,8 +12,9 @@ Each frame is compared with the last frame accepted:
   jump       jumped (a glitch), the clock ran on. Accepted k frames on, counted in `counter_jumps`; no sample is
              counted missed that the clock says never existed (before: a jump of 1,000 was 999 missed, or near
              zero a restart with thousands missed).
-  restart    counter and clock both back near zero (seq < 4096 and t_us < 60 s), either further back than
-             1,024 frames or forward by a step the unit's period does not explain: the unit restarted.
+  restart    counter and clock both back near zero (seq < 4096 and t_us < 60 s, and no more frames than the host's
+             time since the unit was last heard holds), either further back than 1,024 frames or forward by a step
+             the unit's period does not explain: the unit restarted.
              Accepted and counted in `restarts`; seq goes on from the last frame's + 1 + the new counter
              (the new run's earlier frames are a gap), time from the last frame's by the host's clock
              across the restart (the unit's own clock restarted): no missed sample is made up, and time
@@ -21,7 +22,8 @@ Each frame is compared with the last frame accepted:
   clock      the counter stepped forward (by less than 2^15; by at most 1,024 when the clock went back) but the
   jump       clock by a step its period does not explain: the clock jumped, the counter ran on. Accepted, time
              repaired from the counter (the step times the period), counted in `clock_jumps`: no sample made up
-             or lost (before: +1,000 s with the counter at +1 was 196,608 samples missed).
+             or lost (before: +1,000 s with the counter at +1 was 196,608 samples missed). A clock that stands
+             still frame after frame is one jump until it runs again.
   stale      anything else: the counter or the clock stood still or stepped back. Held, and counted in
              `seq_backsteps`; dropped when a frame comes on the line they left. After 8 such frames in a row,
              each following on from the one before, the unit is taken to have jumped back and gone on from
@@ -162,6 +164,10 @@ class SerialTimeline:
     RESYNC_FRAMES = 8            # stale frames in a row, following on from each other, that are taken as a restart
     STALE_MAX = 1024             # a frame back near zero by more than this many frames is a restart, not stale
     COUNTER_JUMP_FRAMES = 16     # a clock step of at most this many periods is the clock running on
+    #: how much later or earlier than their time a unit's frames may reach the reader (an OS buffer, an adapter's
+    #: latency, a block read late): a counter beyond what the host time since the last frame holds, with this, is
+    #: no restart and no run-on of this unit (_host_allows)
+    RX_SLACK_S = 0.5
 
     def __init__(self, counters: Counters) -> None:
         self.counters = counters
@@ -242,11 +248,21 @@ class SerialTimeline:
         self._run_S, self._run_T = S, T
         return S, T
 
-    def _verdict(self, si: int, ti: int) -> tuple[str, int, int]:
+    def _host_allows(self, frames: int, rx_time_s: float | None) -> bool:
+        """Whether the host time since the last accepted frame holds `frames` of the unit's periods (unknown: yes): a
+        unit restarted cannot have counted more frames than the time since it was last heard holds, nor a counter
+        run on further (a clock frozen 2 s in a unit's first minute was a restart with 2,400 samples missed, frames
+        sent without a pause)."""
+        p = self.period_us()
+        if rx_time_s is None or self._rx_last is None or not p:
+            return True
+        return frames * p * 1e-6 <= rx_time_s - self._rx_last + self.RX_SLACK_S
+
+    def _verdict(self, si: int, ti: int, rx_time_s: float | None = None) -> tuple[str, int, int]:
         """(verdict, counter step, clock step in us) of a frame against the last accepted (the class docstring)."""
         ds_f = (si - self._s0) & 0xFFFF
         dt_f = (ti - self._t0) & 0xFFFFFFFF
-        near = si < self.NEAR_SEQ and ti < self.NEAR_T_US
+        near = si < self.NEAR_SEQ and ti < self.NEAR_T_US and self._host_allows(si, rx_time_s)
         p = self.period_us()
         if 0 < dt_f < 1 << 31:                           # the clock went forward
             if not p:
@@ -262,7 +278,7 @@ class SerialTimeline:
                 return "counter jump", k, dt_f
             if near:
                 return "restart", 0, 0
-            if 1 <= ds_f < 1 << 15:
+            if 1 <= ds_f < 1 << 15 and self._host_allows(ds_f, rx_time_s):
                 return "clock jump", ds_f, int(round(ds_f * p))
             return "stale", 0, 0
         if p and 1 <= ds_f <= self.STALE_MAX:
@@ -288,7 +304,7 @@ class SerialTimeline:
                 c.duplicates += 1
                 continue
             else:
-                verdict, ds, dt = self._verdict(si, ti)
+                verdict, ds, dt = self._verdict(si, ti, rx_time_s)
                 if verdict == "restart":
                     S, T = self._restart(frames, i, si, rx_time_s)
                 elif verdict != "stale":
@@ -297,8 +313,11 @@ class SerialTimeline:
                         left = (self._s0, self._S0)
                         c.counter_jumps += 0 if self.jumps.counter_rejoins(si, self._S0 + ds, left) else 1
                     elif verdict == "clock jump":
-                        c.clock_jumps += 0 if self.jumps.clock_rejoins(ti, self._T0 + dt, self.period_us() or 0.0,
-                                                                       (self._t0, self._T0)) else 1
+                        # a clock that stands still frame after frame is the one jump it began (a freeze of 2 s
+                        # was 400 jumps), until it runs again
+                        still = ti == self._t0 and self.jumps.clock is not None
+                        c.clock_jumps += 0 if still or self.jumps.clock_rejoins(
+                            ti, self._T0 + dt, self.period_us() or 0.0, (self._t0, self._T0)) else 1
                     S, T = self._S0 + ds, self._T0 + dt
                     self._accept(frames, i, S, T, rx_time_s)
                 elif self.history.holds(frames, i):          # a frame accepted before, sent again
@@ -331,7 +350,8 @@ def _resync(tl: SerialTimeline, frames: RawFrames, keep: np.ndarray, seq_out: li
     tl.counters.seq_backsteps -= len(held)           # not stale: the unit's frames after a jump back
     first = held[0].frame
     s0, t0 = int(first.seq[0]), int(first.t_us[0])
-    near = s0 < tl.NEAR_SEQ and t0 < tl.NEAR_T_US   # back near zero: its counter says what came before
+    # back near zero, in no more frames than the host time since the last one holds: its counter says what came before
+    near = s0 < tl.NEAR_SEQ and t0 < tl.NEAR_T_US and tl._host_allows(s0, rx_time_s)
     S, T = tl._restart(first, 0, s0 if near else 0, rx_time_s)
     rows = [(S, T)]
     for h in held[1:]:

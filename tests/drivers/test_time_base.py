@@ -43,12 +43,16 @@ def serial_wire(seq: np.ndarray, t_us: np.ndarray, seed: int = 0) -> tuple[bytes
     return wire, counts
 
 
-def through(wire: bytes, chunk_frames: int = 333):
-    """The wire through the serial framer and assembler in chunks; (seq, t_s, field counts, counters)."""
+def through(wire: bytes, chunk_frames: int = 333, paced: bool = False):
+    """The wire through the serial framer and assembler in chunks; (seq, t_s, field counts, counters). paced: each
+    chunk read by the host when its last frame was sent, at the unit's rate (else all at once)."""
     c = serial_icd_counters()
     framer, asm = SerialFramer(N, c), FrameAssembler(N, 0.001, c)
-    step = chunk_frames * icd.frame_length(N)
-    blocks = [asm.block(framer.feed(wire[i:i + step]), rx_time_s=i * 1e-7) for i in range(0, len(wire), step)]
+    fl = icd.frame_length(N)
+    step = chunk_frames * fl
+    blocks = [asm.block(framer.feed(wire[i:i + step]),
+                        rx_time_s=(i + step) // fl * PERIOD_US * 1e-6 if paced else i * 1e-7)
+              for i in range(0, len(wire), step)]
     blocks = [b for b in blocks if b.n_samples]
     return (np.concatenate([b.seq for b in blocks]), np.concatenate([b.t_s for b in blocks]),
             np.concatenate([b.field_nT for b in blocks]), c)
@@ -110,6 +114,26 @@ def test_replayed_frames_are_duplicates_by_counter_and_content():
     other, _ = serial_wire(50_000 + i[1400:1403], 100_000_000 + i[1400:1403] * PERIOD_US, seed=9)
     _, _, _, c = through(wire[:1500 * fl] + other + wire[1500 * fl:])
     assert nonzero(c) == {"seq_backsteps": 3}
+
+
+@pytest.mark.parametrize("chunk", [2, 333])
+def test_in_a_units_first_minute_a_clock_freeze_or_a_jump_back_is_no_restart_and_misses_nothing(chunk):
+    """In a unit's first minute its counter and clock are 'near zero', where a frame whose clock did not follow its
+    counter read as a restart: a clock frozen 2 s was a restart with 2,400 samples missed, and counter and clock
+    both back 1,000 frames one with 999 missed, every frame having come, without a pause (a field trial). A unit
+    restarted cannot have counted more frames than the host's time since it was last heard holds."""
+    i = np.arange(3000)
+    t = 500_000 + i * PERIOD_US
+    t[1500:1900] = t[1499]                                   # the clock frozen for 400 frames (2 s), then on
+    seq, t_s, _, c = through(serial_wire(100 + i, t)[0], chunk, paced=True)
+    assert nonzero(c) == {"clock_jumps": 2}, nonzero(c)          # frozen, then on again: not 401
+    assert np.all(np.diff(seq) == 1) and seq.size == i.size and np.all(np.diff(t_s) > 0)
+    s, t = 100 + i, 500_000 + i * PERIOD_US
+    s[1500:] -= 1000
+    t[1500:] -= 1000 * PERIOD_US                             # both back 1,000 frames together, and on from there
+    seq, t_s, _, c = through(serial_wire(s, t)[0], chunk, paced=True)
+    assert np.all(np.diff(seq) == 1) and seq.size == i.size and np.all(np.diff(t_s) > 0), nonzero(c)
+    assert "samples_missed" not in nonzero(c)
 
 
 def test_a_restart_is_one_restart():
