@@ -264,7 +264,7 @@ class Daemon:
                 self._status.bus_refusals(bus)
                 self._status.holders(bus)
                 self._tick_health(source, sinks, bus)
-                self._status.tick(pipeline.state())
+                self._status.tick(pipeline.state(), self._faults.active())
 
         held = source.drain()                 # what the source holds that no more input completes: not lost
         if held is not None:

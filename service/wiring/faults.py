@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -352,3 +352,13 @@ class FaultWatch:
         if not lines:
             return [head + "; no loss and no fault seen"]
         return [head + f"; {len(lines)} kind(s) of loss or fault:"] + [f"summary: {x}" for x in lines]
+
+
+def no_samples_words(active: Sequence[str]) -> str:
+    """What the input does while no sample comes, from the faults going on (FaultWatch.active): the status line and
+    `watch` said "the input is silent" while 10 kB/s of another probe count's frames arrived (a field trial)."""
+    if "input_lost" in active:
+        return "the input is lost (reconnecting)"
+    if "no_decode" in active:
+        return "the input arrives but decodes into no frame of the unit's"
+    return "the input is silent"

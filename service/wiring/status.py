@@ -8,7 +8,9 @@ from __future__ import annotations
 import math
 import re
 import time
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
+
+from .faults import no_samples_words
 
 
 class StatusLog:
@@ -90,8 +92,8 @@ class StatusLog:
                          f"streams interleaved and both obey every command; stop one, or give it another unit.name "
                          f"(health: bus.duplicate_holders)")
 
-    def tick(self, state: Mapping[str, Any]) -> None:
-        """The status line, when `every_s` has passed since the last one."""
+    def tick(self, state: Mapping[str, Any], active: Sequence[str] = ()) -> None:
+        """The status line, when `every_s` has passed since the last one (active: the faults going on)."""
         now = time.monotonic()
         if state.get("usable"):
             in_use = (True, state.get("cal_id"))
@@ -124,6 +126,6 @@ class StatusLog:
         if not got and now - self._last_samples >= self.every_s:
             quiet = now - self._last_samples
             since = time.strftime("%H:%M:%S", time.localtime(time.time() - quiet))
-            where = f"no samples for {quiet:,.0f} s (since {since}): the input is silent; {where}"
+            where = f"no samples for {quiet:,.0f} s (since {since}): {no_samples_words(active)}; {where}"
         self.say(f"status: {rate:,.0f} samples/s; {where}"
                  + (f"; error rms nT over the last {span:.0f} s ({n_err:,} samples): {err}" if err else ""))

@@ -75,6 +75,12 @@ def test_the_status_line_says_a_silent_input(monkeypatch):
         log.tick({"usable": True, "cal_id": 18, "gate": {"usable": True}})
     assert said[-1].startswith("status: 0 samples/s; no samples for 80 s (since "), said[-1]
     assert "): the input is silent; calibration 18 in use; latest check passed" in said[-1]
+    clock[0] += 10.0                                     # bytes arrive that decode into no frame: not silent
+    log.tick({"usable": True, "cal_id": 18, "gate": {"usable": True}}, ["no_decode"])
+    assert "): the input arrives but decodes into no frame of the unit's; calibration 18" in said[-1], said[-1]
+    clock[0] += 10.0
+    log.tick({"usable": True, "cal_id": 18, "gate": {"usable": True}}, ["input_lost"])
+    assert "): the input is lost (reconnecting); calibration 18" in said[-1], said[-1]
     log.block(50, {})                                    # it comes back
     clock[0] += 10.0
     log.tick({"usable": True, "cal_id": 18, "gate": {"usable": True}})

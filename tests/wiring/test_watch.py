@@ -259,6 +259,14 @@ def test_a_pulled_cable_is_said_while_the_service_still_speaks():
                            "no data from the unit for 5.0 s"), said
     assert said in views[0].line() and "s1=[" not in views[0].line()             # no stale vectors as if live
     assert views[1].status() == ("silent", said)
+    # bytes arrive that decode into no frame (another probe count's): not "silent", which it said beside the fault
+    undecoded = {"kind": "no_decode", "phase": "begin", "n": 20_000, "text": "bytes arrive but no frame decodes"}
+    for v in views:
+        v.update(Message("health", "fluxcal/u1/health", {"counters": {"frames_accepted": 10},
+                                                          "faults": {"active": ["no_decode"], "events": [undecoded]}}))
+    said = views[0].waiting_message()
+    assert "the service runs, its input arrives but decodes into no frame of the unit's (bytes arrive" in said, said
+    assert "silent" not in said
     views[0].alive = views[1].alive = False
     now[0] += 10.0
     assert "no data from fluxcal/u1 for 82 s — the service has stopped" in views[0].waiting_message()

@@ -14,6 +14,7 @@ from fluxcal.service.io.bus import (
     ZenohConfig,
     ZenohTlsConfig,
 )
+from fluxcal.service.wiring.faults import no_samples_words
 
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 
@@ -124,12 +125,18 @@ DATA_STREAMS = ("raw", "corrected")
 STALE_S = 3.0
 
 
+def _active(health: object) -> list[str]:
+    """The names of the faults the service says are going on (its health's faults.active)."""
+    faults = health.get("faults") if isinstance(health, dict) else None
+    return [a for a in faults.get("active") or [] if isinstance(a, str)] if isinstance(faults, dict) else []
+
+
 def active_faults(health: object) -> str:
     """The faults the service says are going on (its health's faults.active), each with its newest event's words."""
     faults = health.get("faults") if isinstance(health, dict) else None
     if not isinstance(faults, dict):
         return ""
-    active = [a for a in faults.get("active") or [] if isinstance(a, str)]
+    active = _active(health)
     events = [e for e in faults.get("events") or [] if isinstance(e, dict)]
     said = []
     for kind in active:
@@ -154,6 +161,7 @@ def flow(unit: object, now: float, last_msg_t: float | None, last_data_t: float 
         return "waiting", f"no data from fluxcal/{unit} yet"
     if now - last_msg_t <= STALE_S:
         faults = active_faults(health)
-        return "silent", (f"no samples from fluxcal/{unit} {since}: the service runs, its input is silent"
+        return "silent", (f"no samples from fluxcal/{unit} {since}: the service runs, "
+                          f"{no_samples_words(_active(health)).replace('the input', 'its input')}"
                           + (f" ({faults})" if faults else ""))
     return "silent", f"no data from fluxcal/{unit} for {now - last_msg_t:.0f} s"
