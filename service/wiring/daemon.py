@@ -169,6 +169,7 @@ class Daemon:
         sinks = Sinks([], self.say)           # the recording first: a raw block is kept before anything else
         bus = None
         try:
+            self.keeper.claim()               # calibration.file is this service's while it runs
             bus = ServiceBus(cfg.zenoh, unit=cfg.unit.name, probe_names=cfg.probe_names,
                              state_fn=lambda: self._state(pipeline, source, sinks), duplicate=cfg.unit.duplicate,
                              config=cfg.path)
@@ -186,7 +187,7 @@ class Daemon:
             raise
         finally:
             self._summary(source, sinks)
-            for closer in (source.close, sinks.close, getattr(bus, "close", None)):
+            for closer in (source.close, sinks.close, getattr(bus, "close", None), self.keeper.release):
                 if closer is not None:
                     try:
                         closer()

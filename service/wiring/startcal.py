@@ -4,6 +4,7 @@ before the service uses it (apply, reload, calibration.initial)."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any, Callable
 
@@ -138,9 +139,44 @@ class Keeper:
         self.calibrations_refused = 0       # by apply, or the persisted one at start
         self.persist_failures = 0
         self._said = ""
+        self._lock: Any = None              # calibration.file's lock while the service runs (claim)
 
     def counts(self) -> dict[str, int]:
         return {"calibrations_refused": self.calibrations_refused, "persist_failures": self.persist_failures}
+
+    def claim(self) -> None:
+        """Hold calibration.file for this service while it runs (a lock beside it), or ConfigError where another
+        running service holds it: two services given one file reloaded each other's calibration at their restart,
+        or overwrote it, without a word (a field trial). Where no lock can be taken (a read-only folder), none is:
+        the saves say what fails."""
+        import fcntl
+
+        path = Path(self.cfg.calibration.file)
+        lock = path.with_name(path.name + ".lock")
+        try:
+            lock.parent.mkdir(parents=True, exist_ok=True)
+            fh = open(lock, "a+")
+        except OSError:
+            return
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            fh.seek(0)
+            holder = fh.read(200).strip() or "another process"
+            fh.close()
+            raise ConfigError(f"calibration.file = {str(path)!r} is held by another running service ({holder}): "
+                              f"give each service its own calibration.file") from None
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"unit {self.cfg.unit.name}, process {os.getpid()}")
+        fh.flush()
+        self._lock = fh
+
+    def release(self) -> None:
+        """Let calibration.file go (the service stops)."""
+        fh, self._lock = self._lock, None
+        if fh is not None:
+            fh.close()
 
     def refused(self) -> None:
         self.calibrations_refused += 1

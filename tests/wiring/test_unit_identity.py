@@ -162,6 +162,25 @@ def test_a_calibration_started_from_or_applied_before_any_data_is_judged_on_them
     assert len(run(bare)[0]) == 1 and bare.calibration is None and not bare.held
 
 
+def test_two_services_given_one_calibration_file_are_told_so_at_start(tmp_path):
+    """Two services given one calibration.file reloaded each other's calibration at their restart, or overwrote each
+    other's (a field trial). The file is held by the service that runs; a second is refused at its start, naming the
+    key, the file and who holds it; once the first stops, it may start."""
+    from fluxcal.service.wiring.startcal import Keeper
+
+    cfg = config(tmp_path)
+    first, second = Keeper(cfg, print), Keeper(cfg, print)
+    first.claim()
+    with pytest.raises(ConfigError) as e:
+        second.claim()
+    said = str(e.value)
+    assert said.startswith(f"calibration.file = {cfg.calibration.file!r} is held by another running service (unit "
+                           f"grad1, process ") and "give each service its own calibration.file" in said
+    first.release()
+    second.claim()
+    second.release()
+
+
 class Service:
     """`fluxcal run` on the simulated unit, as fast as it can read (no pacing), listening on a free port."""
 
