@@ -12,7 +12,7 @@ from fluxcal.drivers.block import SampleBlock
 from fluxcal.drivers.errors import CalibrationRefused, FluxcalError
 from fluxcal.drivers.ringbuffer import RingBuffer
 from fluxcal.service.numerics.calib import alignment
-from fluxcal.service.numerics.calib.determinacy import judge
+from fluxcal.service.numerics.calib.determinacy import judge, physical
 from fluxcal.service.numerics.calib.misfit import add_direction_spread, add_time_spread
 from fluxcal.service.numerics.calib.model import ArrayCalibration
 from fluxcal.service.numerics.calib.rls import RlsEllipsoid
@@ -111,9 +111,12 @@ class Gate:
         for k, (p, est) in enumerate(zip(cal.probes, estimators)):
             raw = window.field_nT[:, k]
             # the one determinacy gate (determinacy.judge), asked of the window's samples as fit asks it of a file's:
-            # enough samples, not one plane, conditioned, not one cone, the share of directions; one verdict, one cone
-            judged = judge(raw, ref, name=self.probe_names[k], min_fraction=self.coverage,
-                           max_condition=self.condition, maps=False)
+            # enough samples, not one plane, conditioned, not one cone, the share of directions; one verdict, one cone;
+            # and as fit, inspect and diagnose ask it, physical: a field no magnetometer reads, samples on no one
+            # ellipsoid (a static platform's noise, 100 % of the directions "seen" about a centre inside it)
+            judged = physical(judge(raw, ref, name=self.probe_names[k], min_fraction=self.coverage,
+                                    max_condition=self.condition, maps=False), raw, ref,
+                              "the ref_total column" if isinstance(ref, np.ndarray) else "estimator.total_nT")
             covs.append(judged.coverage.fraction)
             conds.append(float(est.condition_))
             _, rms = scalar_residual(p, window, k, ref)

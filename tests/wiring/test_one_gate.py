@@ -287,6 +287,27 @@ def test_the_service_gate_asks_the_same_judge(tmp_path):
     assert ours.problem == theirs.problem and ours.cone == theirs.cone and not ours.determined
 
 
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_service_gate_says_a_probe_that_never_turned_as_inspect_does(seed):
+    """On a static platform the service's gate said 'coverage 100 % of the 26 direction bins; condition 1.65' and
+    refused on the residual alone, with no word of turning, where inspect said the probe hardly turned (a field
+    trial): the gate asked the judge without its physical check. It asks it whole now, as fit, inspect and diagnose."""
+    from fluxcal.drivers.sim import Unit, load_sim_config
+    from fluxcal.service.wiring.pipeline import Pipeline
+
+    cfg = load_sim_config({"seed": seed, "rate_hz": 50.0, "duration_s": 60.0, "field": {"total_nT": 50_000.0},
+                           "motion": {"kind": "static"},
+                           "probes": [{"offset_nT": [300.0, -200.0, 100.0], "noise_nT": 1.0},
+                                      {"offset_nT": [-100.0, 50.0, 250.0], "noise_nT": 1.0}]})
+    block = Unit(cfg).digitise(0, cfg.n_samples).to_block()
+    pl = Pipeline(n_probes=2, probe_names=["s1", "s2"], positions_m=None, total_nT=50_000.0, min_samples=1000,
+                  check_every_samples=500)
+    reasons = [r for ev in pl.process(block).events if ev.kind == "gate" for r in ev.detail["reasons"]]
+    for probe in ("s1", "s2"):
+        said = [r for r in reasons if r.startswith(f"{probe}: ") and "lie on no one ellipsoid" in r]
+        assert said and "turn the probe about at least two axes" in said[0], reasons
+
+
 @pytest.mark.parametrize("name, start", [("hmc5883l_nliaudat.csv", '"s1: the field directions stay within ±8.1°'),
                                          ("hmc5883l_sensorfusion_turn_x.csv", '"within ±5.6° of one cone about x')])
 def test_the_refusals_docs_calibration_quotes_are_the_ones_fit_prints(name, start, capsys):
