@@ -205,7 +205,9 @@ LOG_ASKS = {
     "reference": "log a reference magnetometer (a ref_total column)",
     "second probe": "log a second probe or a reference magnetometer",
     "phase": "log the phase or speed of what turns at that rate",
-    "column": "log what might follow it (a current, a voltage, a speed)",
+    # "else": beside the columns the data carry, which it follows no more than by chance (a heater's current logged,
+    # it read as asking to log a current)
+    "column": "log what else might follow it (a current, a voltage, a speed)",
 }
 
 
