@@ -29,6 +29,8 @@ class StatusLog:
         self._bus_refused = 0             # the bus's refusals already said
         self.refused = 0                  # commands the service refused (health: commands_refused)
         self._holders_said: set[str] = set()   # other services announcing this unit's name, said
+        self._commands_said = 0           # command lines said since the last status line
+        self._unsaid: list[int] = [0, 0]  # ... and beyond COMMAND_LINES: applied, refused (said at the next one)
 
     def block(self, n_samples: int, error: Mapping[str, float]) -> None:
         """A block processed: its samples, and its error per channel (an RMS over its n_samples)."""
@@ -63,12 +65,20 @@ class StatusLog:
             self.say(f"quality gate: the latest candidate was refused; the calibration{cal} in use stays: "
                      + "; ".join(reasons))
 
+    #: command lines said between two status lines; the rest are counted and said with the next (500 commands in
+    #: 5 s were 500 lines: a field trial)
+    COMMAND_LINES = 10
+
     def command(self, name: str, payload: Any, answer: Mapping[str, Any]) -> None:
         what = name + (f" {str(payload)[:64]}" if payload and name != "apply" else "")
+        self.refused += 0 if answer.get("ok") else 1
+        self._commands_said += 1
+        if self._commands_said > self.COMMAND_LINES:
+            self._unsaid[0 if answer.get("ok") else 1] += 1
+            return
         if answer.get("ok"):
             self.say(f"command {what}: applied (calibration {answer.get('cal_id')})")
         else:
-            self.refused += 1
             why = str(answer.get("error"))
             self.say(f"command {what}: refused: {why if len(why) <= 400 else why[:400] + ' ...'}")
 
@@ -110,6 +120,10 @@ class StatusLog:
                         for k in list(self._err_sq)[:4] if self._err_n[k])
         n_err = max(self._err_n.values(), default=0)
         got, self._since, self._samples = self._samples, now, 0
+        if sum(self._unsaid):
+            self.say(f"{sum(self._unsaid):,} more command(s) since the last status line, not said one by one: "
+                     f"{self._unsaid[0]:,} applied, {self._unsaid[1]:,} refused (state: commands_refused)")
+        self._commands_said, self._unsaid = 0, [0, 0]
         self._err_sq, self._err_n = {}, {}
         gate = state.get("gate") or {}
         if state.get("usable"):

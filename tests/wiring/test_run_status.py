@@ -85,3 +85,23 @@ def test_the_status_line_says_a_silent_input(monkeypatch):
     clock[0] += 10.0
     log.tick({"usable": True, "cal_id": 18, "gate": {"usable": True}})
     assert "silent" not in said[-1]
+
+
+def test_a_flood_of_commands_is_said_in_ten_lines_and_a_count(monkeypatch):
+    """500 commands in 5 s were 500 console lines (a field trial): ten are said one by one between two status lines,
+    the rest counted and said with the next, applied and refused apart; the refusals are all counted."""
+    from fluxcal.service.wiring import status
+
+    clock = [1000.0]
+    monkeypatch.setattr(status.time, "monotonic", lambda: clock[0])
+    said: list[str] = []
+    log = status.StatusLog(said.append, 10.0)
+    for k in range(500):
+        log.command("freeze", "", {"ok": True, "cal_id": 3} if k % 2 else {"ok": False, "error": "busy"})
+    assert len(said) == status.StatusLog.COMMAND_LINES and log.refused == 250
+    clock[0] += 10.0
+    log.tick({"usable": True, "cal_id": 3})
+    assert said[-2] == ("490 more command(s) since the last status line, not said one by one: 245 applied, 245 "
+                        "refused (state: commands_refused)")
+    log.command("unfreeze", "", {"ok": True, "cal_id": 3})
+    assert said[-1] == "command unfreeze: applied (calibration 3)"            # a new interval: said again
