@@ -67,10 +67,8 @@ def beyond_catalogue(ed: Any, model: Model, cur: Any, cur_ho: Any, cands: list[C
                               residual_hints(alone.fit), n_blocks)
         if again.significant:
             break
-        best.significant = False
-        best.refusal = "nothing beyond the discovered"
-        best.reason = (f"nothing beyond what discovery found: beside it, {best.effect}'s held-out gain is "
-                       f"{100 * again.gain:.1f} %")
+        best.refuse("nothing beyond the discovered", f"nothing beyond what discovery found: beside it, {best.effect}'s "
+                                                     f"held-out gain is {100 * again.gain:.1f} %")
         found = alone
         cands = rank(cands)
         best = next((c for c in cands if c.significant and c.fit is not None), None)

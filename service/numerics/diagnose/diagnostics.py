@@ -384,10 +384,8 @@ def _beyond_the_best(ed: Any, model: Model, cands: list[Candidate], reference: n
         tell(0.95, f"trying {c.effect} beside {best.effect}")
         again = try_candidate(ed, with_best, best.fit, ho, c.effect, reference, weights, hints, n_blocks)
         if not again.significant:
-            c.significant = False
-            c.refusal = f"nothing beyond {best.effect}"
-            c.reason = (f"nothing beyond {best.effect}: beside it, {c.effect}'s held-out gain is "
-                        f"{100 * again.gain:.1f} %")
+            c.refuse(f"nothing beyond {best.effect}", f"nothing beyond {best.effect}: beside it, {c.effect}'s held-out "
+                                                      f"gain is {100 * again.gain:.1f} %")
 
 
 def _weak_advice(weak: dict[str, Any], cands: list[Candidate], advice: str | None) -> str:
@@ -407,8 +405,8 @@ def _demote_without_common_mode(cands: list[Candidate], shared: float | None) ->
     for c in cands:
         cls = known_effects().get(c.effect)
         if c.significant and getattr(cls, "needs_common_mode", False) and (shared is None or shared < SHARED):
-            c.significant = False
-            c.refusal = "not common to the probes"
-            c.reason = (f"no change common to the probes: {0 if shared is None else 100 * shared:.0f} % of the "
-                        f"residual's excess is shared (a change of the site's field would be common to all)")
+            c.refuse("not common to the probes", f"no change common to the probes: "
+                                                 f"{0 if shared is None else 100 * shared:.0f} % of the residual's "
+                                                 f"excess is shared (a change of the site's field would be common to "
+                                                 f"all)")
 

@@ -195,31 +195,24 @@ def try_candidate(ed: EffectData, model: Model, cur: FitResult, cur_ho: Heldout,
                          and c.n_params > 0)
     floor = float(np.sqrt(np.mean((1.0 / np.asarray(weights, float)) ** 2)))
     if c.significant and not cur.rms_nT > floor:   # nothing left to explain: a held-out gain there is no evidence
-        c.significant = False
-        c.refusal = "the model is at its noise floor"
-        c.reason = (f"the model's residual ({cur.rms_nT:.3g} nT) is not above its noise floor ({floor:.3g} nT): "
-                    f"nothing is left for an effect to explain, and a held-out error "
-                    f"({cur_ho.rms_nT:.3g} nT{' below the in-sample one' if cur_ho.rms_nT < cur.rms_nT else ''}) "
-                    f"is no evidence for one")
+        c.refuse("the model is at its noise floor",
+                 f"the model's residual ({cur.rms_nT:.3g} nT) is not above its noise floor ({floor:.3g} nT): nothing "
+                 f"is left for an effect to explain, and a held-out error "
+                 f"({cur_ho.rms_nT:.3g} nT{' below the in-sample one' if cur_ho.rms_nT < cur.rms_nT else ''}) is "
+                 f"no evidence for one")
     wald = _beyond_errors(c.parameters) if c.significant else None
     if wald:                       # the gain is the noise's slow wander: its parameters are within their errors
-        c.significant = False
-        c.refusal = "within its errors of zero"
-        c.reason = wald
+        c.refuse("within its errors of zero", wald)
     ruled_out = ((term.rules_out(c.parameters)
                   or term.rules_out_over(c.parameters, ReadingSpan.of(ed, fit.state.linear.offset_nT)))
                  if c.significant else None)
     if ruled_out:                  # a shape the effect's physics does not take (perming that came back)
-        c.significant = False
-        c.refusal = "its physics rules it out"
-        c.reason = ruled_out
+        c.refuse("its physics rules it out", ruled_out)
     absorbed = _absorbed_by(fit, name)
     if absorbed:
         c.indistinguishable_from = absorbed
         c.separate_by = _separation(name, absorbed[0])
-        c.significant = False
-        c.reason = f"the model's {absorbed[0]} spans its regressors in these data"
-        c.refusal = f"the model's {absorbed[0]} spans it"
+        c.refuse(f"the model's {absorbed[0]} spans it", f"the model's {absorbed[0]} spans its regressors in these data")
     return c
 
 

@@ -75,6 +75,10 @@ class Candidate:
         candidate, or the output, read them."""
         return [] if self.fit is None else [p for p in self.fit.parameters() if p.term == self.effect]
 
+    def refuse(self, refusal: str, reason: str) -> None:
+        """Not significant after all, for a later check: the verdict column's few words and the whole reason."""
+        self.significant, self.refusal, self.reason = False, refusal, reason
+
     def as_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"effect": self.effect, "rms_nT": _num(self.rms_nT), "significant": self.significant,
                              "heldout_rms_nT": _num(self.heldout_rms_nT), "heldout_gain": _num(self.gain),

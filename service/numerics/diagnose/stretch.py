@@ -40,10 +40,9 @@ def demote_on_one_stretch(ed: Any, model: Model, cands: list[Candidate], cur: An
         again = try_candidate(sub, model, base, heldout(base), c.effect, ref, weights, residual_hints(base), n_blocks)
         if again.significant:
             continue
-        c.significant = False
-        c.refusal = "rests on one stretch"
-        c.reason = (f"rests on {lo:.1f}-{hi:.1f} s, which it leaves {left:.1f} x the rest's residual: "
-                    f"without that stretch its held-out gain is {100 * again.gain:.1f} %")
+        c.refuse("rests on one stretch", f"rests on {lo:.1f}-{hi:.1f} s, which it leaves {left:.1f} x the rest's "
+                                         f"residual: without that stretch its held-out gain is "
+                                         f"{100 * again.gain:.1f} %")
         demoted.append(c.effect)
     if not demoted:
         return []

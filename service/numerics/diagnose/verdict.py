@@ -82,10 +82,9 @@ def demote_nested(cands: list[Candidate]) -> None:
             se = float(diff.std(ddof=1) / np.sqrt(diff.size)) if diff.size > 1 else float("inf")
             gain = 1.0 - (c.heldout_rms_nT / b.heldout_rms_nT) ** 2 if b.heldout_rms_nT > 0 else 0.0
             if not (gain >= MIN_GAIN and float(diff.mean()) > GAIN_SIGMAS * se):
-                c.significant = False
-                c.refusal = f"not better than {inner}"
-                c.reason = (f"no better than {inner}, which it contains, on the held-out blocks "
-                            f"({c.heldout_rms_nT:.3f} against {b.heldout_rms_nT:.3f} nT)")
+                c.refuse(f"not better than {inner}", f"no better than {inner}, which it contains, on the held-out "
+                                                     f"blocks ({c.heldout_rms_nT:.3f} against "
+                                                     f"{b.heldout_rms_nT:.3f} nT)")
 
 
 def rank(cands: list[Candidate]) -> list[Candidate]:
