@@ -303,10 +303,9 @@ class Daemon:
         name = ev.detail.get("name") if ev.kind == "command" else None     # after a reset, no longer held: persisted
         if (ev.kind == "calibration" or name in ("apply", "reset")) and pipeline.calibration is not None:
             self.keeper.persist(pipeline.calibration, name == "apply")
-        if ev.detail.get("dropped"):                  # the calibration started from is not this unit's: said, counted
-            self.keeper.refused()
-            self.say(f"{ev.detail['reasons'][0]}; dropped: no corrected output until the gate accepts one learned "
-                     f"online (health: calibrations_refused)")
+        if ev.kind == "data check":                   # the calibration started from fails it: said, counted
+            self.keeper.doubted += 1
+            self.say(f"{ev.detail['reasons'][0]} (health: calibrations_doubted)")
         if ev.kind in ("gate", "calibration"):
             self._status.gate(ev.kind == "calibration" or bool(ev.detail.get("usable")), ev.detail.get("reasons", []))
 

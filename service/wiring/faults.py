@@ -47,6 +47,11 @@ SERVICE = (
             fault="calibrations_refused", label="calibrations refused",
             what="{n:,} calibration(s) refused (by apply, or the persisted one at start), each said as it came",
             quiet=True),
+    Counted("calibrations_doubted", "calibrations in use that failed the data check once the data came",
+            fault="calibrations_doubted", label="calibration in use doubted",
+            what="{n:,} calibration(s) in use, started from or applied before any data, failed the data check on "
+                 "the unit's data: another unit's or far off, or the total field given is",
+            advice="`fluxcal command reset` learns anew, `apply` gives another; check estimator.total_nT"),
     Counted("commands_refused", "commands the service refused", fault="commands_refused", label="commands refused",
             what="{n:,} command(s) refused, each said as it came", quiet=True),
     Counted("duplicate_holders", "other services announcing this unit's name", fault="duplicate_holders",

@@ -135,8 +135,8 @@ class Gate:
 
     def fails_on_data(self, cal: ArrayCalibration, ring: RingBuffer, in_use: ArrayCalibration | None = None) -> str:
         """"" where `cal` leaves on the ring's window a residual the gate accepts, or not far above what the calibration
-        in use leaves (DATA_JUMP times); else why, naming the probe: the data check of identity.judge_on_data, and of
-        the calibration a service starts from once it has the samples to judge it on."""
+        in use leaves (DATA_JUMP times); else the figures, naming the probe: the data check of identity.judge_on_data
+        (which refuses), and of the calibration a service starts from once it has the samples (which says it)."""
         window = self.window(ring)
         ref = reference_total(window, self.total_nT)
         for k, probe in enumerate(cal.probes):
@@ -147,8 +147,7 @@ class Gate:
                 used = f"the calibration in use leaves {now:.3g} nT, " if now is not None else ""
                 shown = f"{rms:,.0f}" if rms >= 1000 else f"{rms:.4g}"
                 return (f"{probe.name}: on this unit's last {span:.0f} s of data it leaves a residual of {shown} nT "
-                        f"rms ({used}the gate accepts at most {self.rms_nT:g} nT: estimator.gate_rms_nT): not this "
-                        f"unit's")
+                        f"rms ({used}the gate accepts at most {self.rms_nT:g} nT: estimator.gate_rms_nT)")
         return ""
 
 

@@ -86,5 +86,5 @@ def judge_on_data(cal: Any, pipeline: Any, cfg: FluxcalConfig) -> str:
         return f"not judged on data yet ({len(ring)} of the {cfg.estimator.min_samples} samples needed)"
     why = gate.fails_on_data(cal, ring, in_use)
     if why:
-        raise ImplausibleCalibration("data", why)
+        raise ImplausibleCalibration("data", f"{why}: not this unit's")
     return f"judged on the last {len(ring)} samples"

@@ -293,19 +293,21 @@ class Pipeline(_ChunkFeed):
 
 def _on_trial(pl: Pipeline, seq: int, t_s: float) -> PipelineEvent | None:
     """The calibration in use judged on the unit's data once, where it was not yet and now can be (Pipeline.on_trial):
-    the gate's event of its drop, or None (kept, or not yet judged). Dropped, the corrected output stops until the gate
-    accepts a candidate: another unit's calibration reloaded on a static platform corrected with errors of 5,000 nT
-    for a whole run, said usable (a field trial)."""
+    a "data check" event where it fails, else None. It stays in use: a residual against the total field also grows
+    where that field is off (a site's model, a field that changes), and on a platform that does not turn no
+    calibration can be learned to replace it; the event says which two things the figures cannot tell apart (another
+    unit's calibration reloaded on a static platform corrected with errors of 5,000 nT for a whole run, said usable,
+    with no word: a field trial)."""
     if not (pl.on_trial and pl.calibration is not None and len(pl.ring) >= pl.gate.min_samples):
         return None
     pl.on_trial = False
     why = pl.gate.fails_on_data(pl.calibration, pl.ring)
     if not why:
         return None
-    why = f"the calibration in use, not judged on this unit's data until now, fails the data check: {why}"
-    pl.calibration, pl.held = None, False
-    pl.last_gate = GateResult(False, [why], float("nan"), float("nan"), [])
-    return PipelineEvent("gate", seq, t_s, {"usable": False, "reasons": [why], "dropped": pl.cal_id})
+    why = (f"the calibration in use, not judged on this unit's data until now, fails the data check: {why}: it is "
+           f"another unit's or far off, or the total field it is judged against is; it stays in use ("
+           f"`fluxcal command reset` learns anew, `apply` gives another)")
+    return PipelineEvent("data check", seq, t_s, {"passed": False, "reasons": [why], "cal_id": pl.cal_id})
 
 
 def _state(pl: Pipeline) -> dict[str, Any]:

@@ -138,11 +138,13 @@ class Keeper:
         self.cfg, self.say = cfg, say
         self.calibrations_refused = 0       # by apply, or the persisted one at start
         self.persist_failures = 0
+        self.doubted = 0                    # calibrations in use that failed the data check once data came
         self._said = ""
         self._lock: Any = None              # calibration.file's lock while the service runs (claim)
 
     def counts(self) -> dict[str, int]:
-        return {"calibrations_refused": self.calibrations_refused, "persist_failures": self.persist_failures}
+        return {"calibrations_refused": self.calibrations_refused, "persist_failures": self.persist_failures,
+                "calibrations_doubted": self.doubted}
 
     def claim(self) -> None:
         """Hold calibration.file for this service while it runs (a lock beside it), or ConfigError where another
