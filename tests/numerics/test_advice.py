@@ -9,6 +9,7 @@ from __future__ import annotations
 import itertools
 import re
 
+import numpy as np
 import pytest
 
 from fluxcal.service.numerics.diagnose.signature import LOG_ASKS, Carried, describe
@@ -111,7 +112,7 @@ def test_a_band_is_no_cause_where_the_probe_turns_at_its_rates_or_a_logged_colum
     gyros = Carried(columns=("gyro_x", "gyro_y", "gyro_z"), probes=1)
     band = {**_follow("frequency", 0.31, band="0.0933-0.186 Hz"), "band_hz": [0.0933, 0.186]}
     _, advice = describe(_sig(follows=[{**band, "turning_share": 0.32}]), gyros)
-    assert advice.startswith("a misfit at the rates the probe turns (0.0933-0.186 Hz holds 32 % of the variation")
+    assert advice.startswith("a misfit at the rates the probe turns (0.0933-0.186 Hz holds 32 % of the turning")
     assert _asks(advice) == [], advice
     _, advice = describe(_sig(follows=[{**band, "turning_share": 0.05}]), gyros)
     assert advice.startswith("a narrow-band disturbance at 0.0933-0.186 Hz")
@@ -120,6 +121,24 @@ def test_a_band_is_no_cause_where_the_probe_turns_at_its_rates_or_a_logged_colum
         follows = [{**band, "strength": 0.48, "turning_share": 0.25}, _follow("servo_deg x field direction", strength)]
         _, advice = describe(_sig(follows=follows), servo)
         assert advice.startswith("a coupling of servo_deg seen through the field's direction") == named, advice
+
+
+def test_the_turning_share_is_of_the_fields_direction_not_of_a_disturbance_at_a_still_probe():
+    """A still probe's field varies only by what disturbs it: a pump's 1.5 Hz was 0.94 of the raw field's variation
+    and would have been read as the probe turning (review). The share is of the turning of the field's direction,
+    and nothing where it turns by less than TURN_MIN_RAD in the band."""
+    from fluxcal.service.numerics.diagnose.where import TURN_MIN_RAD, TURNING_SHARE, band_share
+
+    dt = 0.02
+    t = np.arange(6000) * dt
+    still = np.tile([20_000.0, 5_000.0, 45_000.0], (t.size, 1))
+    still[:, 0] += 40.0 * np.sin(2 * np.pi * 1.5 * t)                       # a pump's field, 40 nT at 1.5 Hz
+    assert band_share(still, dt, (1.0, 2.0)) == 0.0
+    a = 2 * np.pi * 0.12 * t                                                # turned about z at 0.12 Hz
+    turned = 48_000.0 * np.column_stack([0.6 * np.cos(a), 0.6 * np.sin(a), np.full(t.size, 0.8)])
+    share = band_share(turned, dt, (0.09, 0.19))
+    assert share > 0.95 and share >= TURNING_SHARE and TURN_MIN_RAD < 0.6
+    assert band_share(turned + still - still.mean(0), dt, (1.0, 2.0)) < 0.01     # turning, with the pump elsewhere
 
 
 def test_the_wrappers_of_diagnose_ask_for_no_log():

@@ -31,6 +31,7 @@ from fluxcal.service.numerics.effects.timebase import sample_grid
 from fluxcal.service.numerics.engine import FitResult
 
 from .harmonics import band_source, column_lines, harmonic_source
+from .where import TURNING_SHARE
 
 FLOOR_FACTOR = 1.3          # a residual within this factor of the noise floor is "at the floor"
 #: a channel is left above its own floor where its RMS exceeds the floor by this factor both held out and in the fit
@@ -393,11 +394,6 @@ _ADVICE = {
 }
 
 
-#: a residual band that holds at least this share of the variation of the field the probe reads is at the rates the
-#: probe turns (hand-turned real boards: 40-60 %), no disturbance near it (where.band_share)
-TURNING_SHARE = 0.3
-
-
 def _followed(col: str, follows: list[dict[str, Any]]) -> bool:
     """Whether the residual follows column `col` (where it fails: its correlation ratio over bins of the column, which
     any function of it shows, or the column times the field direction): a band that only holds combinations of the
@@ -423,7 +419,7 @@ def _follows_advice(top: dict[str, Any], carried: "Carried | None" = None,
             return _shape_advice(made[0], f"the band {top.get('band', '')} holds {made[1]}")
         if (top.get("turning_share") or 0.0) >= TURNING_SHARE:
             return (f"a misfit at the rates the probe turns ({top.get('band', 'one band')} holds "
-                    f"{100 * top['turning_share']:.0f} % of the variation of the field it reads): it follows the "
+                    f"{100 * top['turning_share']:.0f} % of the turning of the field it reads): it follows the "
                     f"direction the probe points, not something turning near it (an effect of the field's direction, "
                     f"as nonlinearity, crossfield and hysteresis are, or a shape the calibration's order cannot take); "
                     f"turn through the same directions at another rate to tell a direction from a rate")

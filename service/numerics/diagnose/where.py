@@ -235,17 +235,33 @@ def _band_excess(y: np.ndarray, dt: float, noise: float) -> tuple[float, str, tu
     return float(np.clip(ex.share, 0.0, 1.0)), ex.band, ex.band_hz
 
 
+#: a residual band that holds at least this share of the turning of the field's direction, where it turns by
+#: TURN_MIN_RAD or more within the band, is at the rates the probe turns (hand-turned real boards: the sphere 0.32),
+#: no disturbance near it (band_share; signature's advice)
+TURNING_SHARE = 0.3
+TURN_MIN_RAD = 0.05
+
+
 def band_share(x: np.ndarray, dt: float, band_hz: tuple[float, float]) -> float:
-    """The fraction of the variation of x (N, 3), about its mean, at frequencies within band_hz: the field a probe
-    reads changes at the rates the probe turns, so a residual band that holds much of it is the turning's."""
+    """The fraction of the turning of the field's direction x / |x| (x: (N, 3), its mean direction taken out) at
+    frequencies within band_hz, 0 where it turns by less than TURN_MIN_RAD (rms) there: the field a probe reads turns
+    at the rates the probe turns, so a residual band that holds much of that is the turning's. The direction, not the
+    field: a still probe's field varies only by what disturbs it (a pump at 1.5 Hz was 0.94 of the raw field's
+    variation, and read as a turning it was not)."""
     x = np.asarray(x, dtype=np.float64)
     x = x[np.all(np.isfinite(x), axis=1)]
+    mag = np.linalg.norm(x, axis=1)
+    x = x[mag > 0] / mag[mag > 0, None]
     if x.shape[0] < 8:
         return 0.0
-    power = (np.abs(np.fft.rfft(x - x.mean(0), axis=0)) ** 2).sum(1)
+    spec = np.abs(np.fft.rfft(x - x.mean(0), axis=0)) ** 2
+    power = spec.sum(1)
     f = np.fft.rfftfreq(x.shape[0], dt)
     total = float(power[1:].sum())
-    return float(power[(f >= band_hz[0]) & (f <= band_hz[1])].sum() / total) if total > 0 else 0.0
+    inside = (f >= band_hz[0]) & (f <= band_hz[1])
+    # the band's rms turning in radians: Parseval for the one-sided spectrum of a real signal
+    turned = float(np.sqrt(2.0 * power[inside].sum()) / x.shape[0])
+    return float(power[inside].sum() / total) if total > 0 and turned >= TURN_MIN_RAD else 0.0
 
 
 def where_it_fails(data: EffectData, fit: FitResult, noise_nT: np.ndarray, *, top: int = 30,
