@@ -442,6 +442,10 @@ def test_thermal_lag_found_from_zero_up_and_held_at_its_floor(seed, lag_s, pink)
         assert lag_s == 0.0 and tau.value == 0.0 and tau.stderr is None
         assert any("held at 0 s, the lowest value it can take" in w for w in fit.size_warnings())
         assert fit.calibration().effect_params["thermal"]["s1.thermal lag s"]["at_floor"].startswith("a core cannot")
+        from fluxcal.service.numerics.calib.param_table import effect_rows          # the report's table says it too
+
+        row = {r.name: r for r in effect_rows(fit.calibration().effect_params)}["s1.thermal lag s"]
+        assert row.warning == "" and row.note.startswith("at its floor: a core cannot"), row
     else:
         assert abs(tau.value - lag_s) < 3 * tau.stderr, tau
     for a, axis in enumerate("xyz"):

@@ -105,7 +105,8 @@ def probe_rows(p: ProbeCalibration, warnings: Iterable[str] = (), field_nT: floa
 
 def effect_rows(effect_params: dict[str, dict[str, dict[str, Any]]]) -> list[ParamRow]:
     """Rows of the effect terms' parameters {effect: {name: {"value", "se", "unit", "note"}}}; a term's fixed
-    reference ("fixed": true) is said to be fixed, never undetermined."""
+    reference ("fixed": true) is said to be fixed, a parameter held at its floor ("at_floor") to be there, never
+    undetermined."""
     out = []
     for eff, params in (effect_params or {}).items():
         for name, v in params.items():
@@ -114,6 +115,9 @@ def effect_rows(effect_params: dict[str, dict[str, dict[str, Any]]]) -> list[Par
             if v.get("fixed"):
                 out.append(ParamRow(eff, name, value, None, v.get("unit", ""), "",
                                     f"fixed: {note}" if note else "fixed: held at this value, not fitted"))
+                continue
+            if v.get("at_floor"):             # held at the lowest value its physics allows: said so, as fit says it
+                out.append(ParamRow(eff, name, value, None, v.get("unit", ""), "", f"at its floor: {v['at_floor']}"))
                 continue
             warn = "" if note or se is not None else "not determined by these data"
             if se is not None and se > abs(value):

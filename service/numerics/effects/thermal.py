@@ -49,11 +49,8 @@ def low_pass(t_s: np.ndarray, values: np.ndarray, tau_s: float) -> np.ndarray:
     uniform = grid.size == t_s.size and np.allclose(grid, t_s, rtol=0, atol=0.05 * dt)
     x = values if uniform else np.interp(grid, t_s, values)
     a = np.exp(-dt / tau_s)
-    # exact for an input that ramps between samples (ramp-invariant): continuous in tau, y = x at tau = 0 and
-    # y = x - tau dx/dt to first order, so the fit sees tau's effect from zero up (the trapezoidal rule gave
-    # (x[n] + x[n-1]) / 2 as tau -> 0: half a sample late, with no slope in tau there to leave zero by)
-    b0 = 1.0 - tau_s / dt * (1.0 - a)
-    y, _ = lfilter([b0, 1.0 - a - b0], [1.0, -a], x, zi=[(1.0 - b0) * x[0]])
+    # the trapezoidal input of a ramp between samples: y[n] = a y[n-1] + (1 - a) (x[n] + x[n-1]) / 2
+    y, _ = lfilter([0.5 * (1 - a), 0.5 * (1 - a)], [1.0, -a], x, zi=[a * x[0] + 0.5 * (1 - a) * x[0]])
     return y if uniform else np.interp(t_s, grid, y)
 
 
