@@ -180,6 +180,7 @@ class SerialTimeline:
         self._run_T = 0
         self._period_us: float | None = None
         self._rx_last: float | None = None   # host time the last accepted frame came
+        self._paced: tuple[float, int] | None = None   # (host time, unwrapped clock) of the first frame (_host_allows)
         self._stale = 0                      # stale frames in a row, following on from each other
         self._stale_st: tuple[int, int] | None = None
         self._held: list[_Held] = []         # ... held, each a one-row copy, in case they are a restart
@@ -232,6 +233,8 @@ class SerialTimeline:
         self._S0, self._T0 = S, T
         self._last = (frames.counts[i].tobytes(), frames.temp_raw[i].tobytes(), int(frames.flags[i]))
         self._rx_last = rx_time_s
+        if self._paced is None and rx_time_s is not None:
+            self._paced = (rx_time_s, T)
         self._stale, self._stale_st, self._held = 0, None, []
 
     def _restart(self, frames: RawFrames, i: int, s: int, rx_time_s: float | None) -> tuple[int, int]:
@@ -254,7 +257,13 @@ class SerialTimeline:
         run on further (a clock frozen 2 s in a unit's first minute was a restart with 2,400 samples missed, frames
         sent without a pause)."""
         p = self.period_us()
-        if rx_time_s is None or self._rx_last is None or not p:
+        if rx_time_s is None or self._rx_last is None or not p or self._paced is None:
+            return True
+        rx0, t0 = self._paced
+        unit_s = (self._T0 - t0) * 1e-6
+        # only while the host reads the unit in its own time: a unit replayed faster than it ran (a pty fed unpaced,
+        # a capture) says nothing by the host's clock (a restart's lost frames were not counted missed)
+        if unit_s < 2.0 or self._rx_last - rx0 < 0.5 * unit_s:
             return True
         return frames * p * 1e-6 <= rx_time_s - self._rx_last + self.RX_SLACK_S
 

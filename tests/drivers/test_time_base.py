@@ -136,6 +136,16 @@ def test_in_a_units_first_minute_a_clock_freeze_or_a_jump_back_is_no_restart_and
     assert "samples_missed" not in nonzero(c)
 
 
+def test_a_restart_whose_first_frames_were_lost_counts_them_missed_when_read_unpaced():
+    """The host's clock says nothing of a unit read faster than it ran (a pty fed unpaced, a capture): a restart whose
+    first 300 frames were lost counts them missed there, as before the host-time test (review)."""
+    i = np.arange(3000)
+    s, t = 100 + i, 500_000 + i * PERIOD_US
+    s[1500:], t[1500:] = i[:1500] + 300, (i[:1500] + 300) * PERIOD_US
+    seq, _, _, c = through(serial_wire(s, t)[0])
+    assert c.restarts == 1 and seq[-1] - seq[0] + 1 - seq.size == 300, nonzero(c)
+
+
 def test_a_restart_is_one_restart():
     i = np.arange(3000)
     s, t = 12_600 + i, 700_000_000 + i * PERIOD_US
