@@ -153,6 +153,8 @@ def fit_array(data: LabData, *, method: str = "ellipsoid", align: str | None = N
                       positions_m=positions_m)
         cal.total_nT = None if isinstance(total.values, np.ndarray) or total.values is None else float(total.values)
         _refuse_unphysical(cal, data)
+        if align == "regression":
+            _say_borrowed(cal.probes, judged, data, total)
         return cal, total
     probes = []
     for k in range(p):
@@ -167,11 +169,7 @@ def fit_array(data: LabData, *, method: str = "ellipsoid", align: str | None = N
         probes = align_probes([probes[0]] * p, b.field_nT, method="regression")
         for k, pr in enumerate(probes):
             pr.name = data.probe_names[k]
-        own = [None if j.fit is None else (j.fit.fit.calibration.offset_nT, j.fit.fit.calibration.matrix)
-               for j in judged]
-        per_sample = None if total.values is None else total.per_sample(b.n_samples)
-        for k, words in borrowed_errors(probes, own, b.field_nT, per_sample).items():
-            probes[k].warnings.append(words)
+        _say_borrowed(probes, judged, data, total)
     elif align == "rotation":
         probes = align_probes(probes, b.field_nT, method="rotation")
     elif align == "pca":
@@ -184,6 +182,16 @@ def fit_array(data: LabData, *, method: str = "ellipsoid", align: str | None = N
                            span=(float(b.t_s[0]), float(b.t_s[-1]), b.n_samples))
     _refuse_unphysical(cal, data)
     return cal, total
+
+
+def _say_borrowed(probes: list[ProbeCalibration], judged: list[Determinacy], data: LabData, total: TotalField) -> None:
+    """Each probe aligned by regression whose scalar residual its own ellipsoid (the determinacy judge's, as every
+    method is gated on) leaves BORROWED_RATIO times smaller: said among its warnings (alignment.borrowed_errors)."""
+    b = data.block
+    own = [None if j.fit is None else (j.fit.fit.calibration.offset_nT, j.fit.fit.calibration.matrix) for j in judged]
+    per_sample = None if total.values is None else total.per_sample(b.n_samples)
+    for k, words in borrowed_errors(probes, own, b.field_nT, per_sample).items():
+        probes[k].warnings.append(words)
 
 
 def _refuse_unphysical(cal: ArrayCalibration, data: LabData) -> None:

@@ -276,7 +276,9 @@ def test_a_probe_aligned_by_regression_is_told_what_it_took_from_the_reference(g
     said = [w for w in reg["warnings"] if "by regression, its scalar residual" in w]
     assert len(said) == 1 and said[0].startswith("s3: aligned to s1 by regression"), said
     s3 = {s["name"]: s["scalar_rms_nT"] for s in reg["sensors"]}["s3"]
-    assert f"its scalar residual is {s3:.3f} nT where its own fit leaves {rot['s3']:.3f}" in said[0]
+    assert f"its scalar residual is {s3:.3f} nT where its own ellipsoid leaves {rot['s3']:.3f}" in said[0]
     assert s3 / rot["s3"] > 1.2 and "--align rotation keeps s3's own calibration" in said[0]
+    rls = [w for w in _fit_json(capsys, flap, "--method", "rls")["warnings"] if "by regression, its scalar" in w]
+    assert len(rls) == 1 and rls[0].startswith("s3: aligned to s1 by regression"), rls       # every method alike
     grad = _fit_json(capsys, str(gradiometer[0]))
     assert not [w for w in grad["warnings"] if "by regression, its scalar residual" in w]

@@ -386,8 +386,9 @@ def borrowed_errors(aligned: list[ProbeCalibration], own: list[tuple[np.ndarray,
         now = scalar_rms(aligned[k].offset_nT, aligned[k].matrix, raw_nT[:, k], total_nT)
         if mine > 0 and now >= BORROWED_RATIO * mine:
             p, r = aligned[k].name, ref.name
-            out[k] = (f"{p}: aligned to {r} by regression, its scalar residual is {now:.3f} nT where its own fit "
-                       f"leaves {mine:.3f} ({now / mine:.2f} times): the regression makes {p} follow {r}, and what "
-                       f"{r}'s calibration lacks comes with it ({r}'s own scalar residual {ref_rms:.3f} nT); "
+            out[k] = (f"{p}: aligned to {r} by regression, its scalar residual is {now:.3f} nT where its own "
+                       f"ellipsoid leaves {mine:.3f} ({now / mine:.2f} times): the regression makes {p} follow "
+                       f"{r}, and what {r}'s calibration lacks comes with it ({r}'s own scalar residual "
+                       f"{ref_rms:.3f} nT); "
                        f"--align rotation keeps {p}'s own calibration and only turns it into {r}'s frame")
     return out
