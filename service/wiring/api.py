@@ -189,9 +189,11 @@ def _numbers(who: str, what: str, values: Any) -> np.ndarray:
     try:
         return np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError):
-        flat = np.asarray(values, dtype=object).ravel()
+        held = np.asarray(values, dtype=object)
+        flat = held.ravel()
         bad = next((i for i, v in enumerate(flat) if not _is_number(v)), 0)
-        raise DataError(f"{who}: {what}: {flat[bad]!r} (row {bad + 1}) is not a number; a table's columns are numbers "
+        row = int(np.unravel_index(bad, held.shape)[0]) + 1 if held.ndim else 1      # the sample, whatever its axes
+        raise DataError(f"{who}: {what}: {flat[bad]!r} (row {row}) is not a number; fluxcal reads numbers only "
                         f"(docs/csv.md): leave text out (DataFrame.select_dtypes('number')) or map it to numbers "
                         f"first") from None
 

@@ -111,6 +111,10 @@ def test_text_in_a_table_and_a_name_no_csv_holds_are_refused_and_named():
     assert fluxcal.read(frame.drop(columns="mode")).probe_names == ["s1"]
     with pytest.raises(DataError, match=r"^read_arrays: columns\['mode'\]: 'hover' \(row 4\) is not a number"):
         fluxcal.read_arrays(t, field, columns={"mode": mode})
+    text = field.astype(object)
+    text[5, 1] = "n/a"                                   # the sixth sample's y: row 6 (it said the flat index, 17)
+    with pytest.raises(DataError, match=r"^read_arrays: field_nT: 'n/a' \(row 6\) is not a number"):
+        fluxcal.read_arrays(t, text)
     with pytest.raises(DataError, match=r"column name 's1 x,y': a column's name is not empty and holds no comma"):
         fluxcal.read_arrays(t, field, columns={"s1 x,y": np.zeros(100)})
 
@@ -131,6 +135,12 @@ def test_a_calibration_with_effects_corrects_with_them_or_refuses():
     applies the effects, and gives the fit's own residual."""
     data = fluxcal.read(str(ROOT / "recordings" / "grad1-hidden-effect.mcap"))
     r = fluxcal.fit(data, effects=["temperature"])
+    # the table's effect rows carry their errors and units (they read the wrong key: every error NaN, the unit the
+    # effect's name; review)
+    eff = [x for x in r.rows() if x.get("effect") == "temperature"]
+    fitted, refs = [x for x in eff if x["unit"] != "degC"], [x for x in eff if x["unit"] == "degC"]
+    assert len(fitted) == 12 and all(x["unit"] in ("nT/degC", "ppm/degC") and x["stderr"] > 0 for x in fitted), eff
+    assert len(refs) == 2 and all(x["stderr"] is None for x in refs)            # the reference temperatures, fixed
     from fluxcal.drivers.errors import DataError
 
     with pytest.raises(DataError, match=r"holds effect terms \(temperature\)"):

@@ -41,9 +41,10 @@ requires both lz4 and zstandard, so they are installed with it). A chunk is writ
 a killed process loses at most the last second: the next write or `poll()` after the interval
 flushes. Files rotate by size (`rotate_mb`) or age (`rotate_s`) into
 
-    <dir>/<unit>-<YYYYmmddTHHMMSS, UTC at opening>-<NNNN>.mcap      (NNNN = 0001, 0002, ... per logger)
+    <dir>/<unit>-<YYYYmmddTHHMMSS, UTC>-<NNNN>.mcap      (NNNN = 0001, 0002, ... per logger)
 
-which sort by name in time order; given a file path instead of a directory, the logger writes
+the UTC time the run's first file was opened, in every file of the run, so that its files sort by name in their
+order whatever the host's clock does; given a file path instead of a directory, the logger writes
 that one file (no rotation; after a write error it resumes in <stem>_0002.mcap, ...).
 
 Write errors (a full disk: OSError ENOSPC; a pulled USB stick) are never raised: each is counted,

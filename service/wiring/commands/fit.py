@@ -146,8 +146,8 @@ class FitResult(Result):
                                 "value": s["matrix"][i][j], "stderr": se[i][j], "unit": ""})
         for effect, params in (self.contract.get("effect_params") or {}).items():
             for name, p in params.items():
-                out.append({"probe": None, "parameter": name, "value": p.get("value"), "stderr": p.get("stderr"),
-                            "unit": effect})
+                out.append({"probe": None, "parameter": name, "value": p.get("value"), "stderr": p.get("se"),
+                            "unit": p.get("unit", ""), "effect": effect})
         return out
 
 
