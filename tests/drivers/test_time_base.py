@@ -136,6 +136,19 @@ def test_in_a_units_first_minute_a_clock_freeze_or_a_jump_back_is_no_restart_and
     assert "samples_missed" not in nonzero(c)
 
 
+def test_a_counter_that_runs_on_further_than_the_host_time_allows_misses_nothing():
+    """Counter +1,000 and clock +3 s at once, read at the unit's pace: a clock jump with the counter run on by 1,000
+    counted 1,000 samples missed, where the host had read the frames without a pause (review); the host's time now
+    says they never existed."""
+    i = np.arange(3000)
+    s, t = 100 + i, 500_000 + i * PERIOD_US
+    s[1500:] += 1000
+    t[1500:] += 3_000_000
+    seq, t_s, _, c = through(serial_wire(s, t)[0], 2, paced=True)
+    assert "samples_missed" not in nonzero(c) and np.all(np.diff(seq) == 1) and seq.size == i.size, nonzero(c)
+    assert np.all(np.diff(t_s) > 0)
+
+
 def test_a_restart_whose_first_frames_were_lost_counts_them_missed_when_read_unpaced():
     """The host's clock says nothing of a unit read faster than it ran (a pty fed unpaced, a capture): a restart whose
     first 300 frames were lost counts them missed there, as before the host-time test (review)."""

@@ -54,24 +54,19 @@ def beyond_catalogue(ed: Any, model: Model, cur: Any, cur_ho: Any, cands: list[C
         found = _instead_of_column(ed, best, cur, cur_ho, reference, weights, n_blocks, noise_nT, tell) or found
     if not found.claimed:
         return found, told, cands
-    alone = None
-    while best is not None:
-        # each significant catalogue effect in turn, until one adds beside the groups found (the next one was
-        # kept unjudged: a board's heater found as a column's offset left `nonlinearity`'s 12 % over the bare
-        # model as the headline, beside a finding worth 57 %)
+    if best is not None:
         tell(0.97, f"{best.effect} beside what discovery found")
-        alone = alone or beside(found, ed, cur, cur_ho, reference, weights, n_blocks)
-        if not alone.claimed:
-            break
-        again = try_candidate(ed, alone.fit.model, alone.fit, heldout(alone.fit), best.effect, reference, weights,
-                              residual_hints(alone.fit), n_blocks)
-        if again.significant:
-            break
-        best.refuse("nothing beyond the discovered", f"nothing beyond what discovery found: beside it, {best.effect}'s "
-                                                     f"held-out gain is {100 * again.gain:.1f} %")
-        found = alone
-        cands = rank(cands)
-        best = next((c for c in cands if c.significant and c.fit is not None), None)
+        alone = beside(found, ed, cur, cur_ho, reference, weights, n_blocks)
+        if alone.claimed:
+            again = try_candidate(ed, alone.fit.model, alone.fit, heldout(alone.fit), best.effect, reference, weights,
+                                  residual_hints(alone.fit), n_blocks)
+            if not again.significant:
+                best.refuse("nothing beyond the discovered", f"nothing beyond what discovery found: beside it, "
+                                                             f"{best.effect}'s held-out gain is "
+                                                             f"{100 * again.gain:.1f} %")
+                found = alone
+                cands = rank(cands)
+                best = next((c for c in cands if c.significant and c.fit is not None), None)
     base = best.fit if best is not None else cur
     base_where = where_it_fails(ed, base, noise)
     sig0 = sig_cur if best is None else signature(base, noise, base_where)
