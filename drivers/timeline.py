@@ -5,7 +5,8 @@ Each frame is compared with the last frame accepted:
 
   duplicate  bit for bit that frame, or (stepping back) one of the last 4,096 frames accepted (FrameHistory:
              counter, clock and content): a frame sent again. Dropped, counted in `duplicates`.
-  forward    clock and counter advanced together: accepted. The counter's step is the one congruent to it mod
+  forward    clock and counter advanced together, by no more frames than the host's time since the last one holds
+             (where the host reads the unit in its own time): accepted. The counter's step is the one congruent to it mod
              2^16 that the clock supports at the unit's frame period (estimated from the frames since the start
              or the last restart), so a loss longer than 65,536 frames is counted right; a step > 1 is a gap.
   counter    the clock stepped a whole number k <= 16 of periods but the counter by something else: the counter
@@ -217,7 +218,8 @@ class SerialTimeline:
             # the common case: every frame steps forward, its clock and counter agreeing at the period
             if ds_lo >= 1 and ds_hi < 1 << 15 and dt_lo >= 1 and dt_hi < 16384 * p and (
                     max(abs(dt_lo - p), abs(dt_hi - p)) <= _tolerance(dt_lo, p) if ds_hi == 1
-                    else not (np.abs(d[1] - d[0] * p) > _tolerance(d[1], p)).any()):
+                    else not (np.abs(d[1] - d[0] * p) > _tolerance(d[1], p)).any()
+                    and self._host_allows(int(d[0].sum()), rx_time_s)):
                 np.cumsum(d, axis=1, out=d)
                 d[0] += self._S0
                 d[1] += self._T0
@@ -278,7 +280,7 @@ class SerialTimeline:
                 return ("forward", ds_f, dt_f) if 1 <= ds_f < 1 << 15 else ("stale", 0, 0)
             # the counter's step that the clock supports: d = ds_f + 65536 j nearest dt / p
             ds = ds_f + (1 << 16) * max(0, int(round((dt_f / p - ds_f) / (1 << 16))))
-            if ds >= 1 and abs(dt_f - ds * p) <= _tolerance(dt_f, p):
+            if ds >= 1 and abs(dt_f - ds * p) <= _tolerance(dt_f, p) and self._host_allows(ds, rx_time_s):
                 return "forward", ds, dt_f
             if 1 <= ds_f < 1 << 15 and self.jumps.on_clock_line(ti, self._T0 + int(round(ds_f * p)), p):
                 return "clock jump", ds_f, int(round(ds_f * p))          # the clock back on its line

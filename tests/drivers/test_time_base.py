@@ -149,6 +149,21 @@ def test_a_counter_that_runs_on_further_than_the_host_time_allows_misses_nothing
     assert np.all(np.diff(t_s) > 0)
 
 
+def test_another_units_frames_read_as_a_restart_cost_no_sample_and_no_time():
+    """Twenty valid frames of another unit just started (counter and clock near zero) among a unit's, read at its
+    pace: a restart, then the unit's own frames 'forward' by 5,579, counted missed, and every later sample 27.9 s late
+    (a field trial). Forward by more than the host's time holds, they are the line the unit left: taken back to."""
+    i = np.arange(8000)
+    s, t = 4000 + i, 20_000_000 + i * PERIOD_US
+    wire, _ = serial_wire(s, t)
+    fl = icd.frame_length(N)
+    other, _ = serial_wire(np.arange(20), np.arange(20) * PERIOD_US, seed=7)
+    seq, t_s, _, c = through(wire[:5000 * fl] + other + wire[5000 * fl:], 2, paced=True)
+    assert "samples_missed" not in nonzero(c) and np.all(np.diff(seq) == 1), nonzero(c)
+    assert seq.size == i.size + 20 and np.all(np.diff(t_s) > 0)
+    assert t_s[-1] - t_s[0] < (i.size + 20) * PERIOD_US * 1e-6 + 1.0             # not 27.9 s late
+
+
 def test_a_restart_whose_first_frames_were_lost_counts_them_missed_when_read_unpaced():
     """The host's clock says nothing of a unit read faster than it ran (a pty fed unpaced, a capture): a restart whose
     first 300 frames were lost counts them missed there, as before the host-time test (review)."""
