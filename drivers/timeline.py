@@ -254,17 +254,15 @@ class SerialTimeline:
         return S, T
 
     def _host_allows(self, frames: int, rx_time_s: float | None) -> bool:
-        """Whether the host time since the last accepted frame holds `frames` of the unit's periods (unknown: yes): a
-        unit restarted cannot have counted more frames than the time since it was last heard holds, nor a counter
-        run on further (a clock frozen 2 s in a unit's first minute was a restart with 2,400 samples missed, frames
-        sent without a pause)."""
+        """Whether the host time since the last accepted frame holds `frames` of the unit's periods: a unit restarted
+        cannot have counted more (a clock frozen 2 s was a restart with 2,400 missed), nor a counter run on further.
+        Yes where unknown, and while the host does not read the unit in its own time (a pty fed unpaced, a capture:
+        a restart's lost frames were not counted missed)."""
         p = self.period_us()
         if rx_time_s is None or self._rx_last is None or not p or self._paced is None:
             return True
         rx0, t0 = self._paced
         unit_s = (self._T0 - t0) * 1e-6
-        # only while the host reads the unit in its own time: a unit replayed faster than it ran (a pty fed unpaced,
-        # a capture) says nothing by the host's clock (a restart's lost frames were not counted missed)
         if unit_s < 2.0 or self._rx_last - rx0 < 0.5 * unit_s:
             return True
         return frames * p * 1e-6 <= rx_time_s - self._rx_last + self.RX_SLACK_S

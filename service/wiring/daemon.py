@@ -63,12 +63,15 @@ BUS_COUNTED = ("send_stalls", "duplicate_holders")
 
 
 def renamed(cfg: FluxcalConfig, name: str, note: Callable[[str], None], keeper: Keeper) -> Pipeline:
-    """Serve under the name the bus took (unit.duplicate = "suffix"): the calibration persists under it too when its
-    file was the default one (two services never share one state file), and the pipeline starts from that name's."""
+    """Serve under the name the bus took (unit.duplicate = "suffix"): the calibration persists under it too (two
+    services never share one state file: the second would be refused it), and the pipeline starts from that name's."""
     kind = cfg.source.kind
     default = Path(cfg.calibration.file)
     if default.name == f"{cfg.unit.name}-{kind}-cal.json":
         cfg.calibration.file = str(default.with_name(f"{name}-{kind}-cal.json"))
+    else:
+        cfg.calibration.file = str(default.with_name(f"{default.stem}-{name}{default.suffix}"))
+        note(f"the calibration persists in {cfg.calibration.file} (calibration.file with the name served under)")
     cfg.unit.name = name
     keeper.calibrations_refused = 0                 # what was refused was the other name's
     return build_pipeline(cfg, initial_calibration(cfg, note, refused=keeper.refused))
@@ -169,13 +172,13 @@ class Daemon:
         sinks = Sinks([], self.say)           # the recording first: a raw block is kept before anything else
         bus = None
         try:
-            self.keeper.claim()               # calibration.file is this service's while it runs
             bus = ServiceBus(cfg.zenoh, unit=cfg.unit.name, probe_names=cfg.probe_names,
                              state_fn=lambda: self._state(pipeline, source, sinks), duplicate=cfg.unit.duplicate,
                              config=cfg.path)
             if bus.unit != cfg.unit.name:                  # unit.duplicate = "suffix": another holds the name
                 notes = [bus.claim_note]
                 pipeline = renamed(cfg, bus.unit, notes.append, self.keeper)
+            self.keeper.claim()               # calibration.file (the name's, once it is known) is this service's
             open_outputs(sinks, cfg, pipeline.calibration, bus, notes.append, self.say, self.extra_sinks)
             for note in notes:
                 self.say(note)

@@ -10,7 +10,7 @@ import json
 
 import numpy as np
 import pytest
-from real_data import real
+from real_data import mend, real, real_nT
 
 from fluxcal.drivers.block import SampleBlock
 from fluxcal.drivers.sim.config import load_sim_config
@@ -33,7 +33,7 @@ def _serve(block: SampleBlock, *, spread: bool, total_nT: float | None = None, c
 
 def _published(name: str) -> np.ndarray:
     pub = json.loads(real(f"{name}.published.json").read_text())
-    scale = pub["data"]["scale_to_nT"]
+    scale = pub["data"]["scale_to_nT"] * mend(name)           # as real_nT gives the data
     if "A" in pub:                                       # m = A raw + B: the offset is -A^-1 B
         return -np.linalg.solve(np.asarray(pub["A"]), np.asarray(pub["B"])) * scale
     return np.asarray(pub["offset"]) * scale
@@ -43,7 +43,8 @@ def _published(name: str) -> np.ndarray:
 def test_the_services_offset_errors_cover_what_a_real_boards_authors_published(name):
     """The live offsets at the end of the recording were 3.4-7.4 of the estimator's own errors from the
     published ones; now within four of the stated errors, which rose several times."""
-    block = load_data(real(f"{name}.csv")).block
+    # in nT, as the service's gate judges a field (the QMC board's file reads 8,946 nT, refused as no Earth field)
+    block = load_data(real_nT(f"{name}.csv")).block
     white = _serve(block, spread=False).calibration.probes[0]
     live = _serve(block, spread=True).calibration.probes[0]
     assert np.array_equal(live.offset_nT, white.offset_nT)           # the estimate itself is untouched

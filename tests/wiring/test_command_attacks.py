@@ -226,7 +226,11 @@ def test_over_tls_no_payload_reads_a_file_hangs_or_stops_the_service(tmp_path):
             time.sleep(0.2)
         assert svc.thread.is_alive()
         refused = [m for m in svc.said if "command apply: refused" in m]
-        assert len(refused) == 7 + len(ABSURD) and max(len(m) for m in refused) < 700
+        from fluxcal.service.wiring.status import StatusLog
+
+        # said one by one up to ten between two status lines (the rest with the next one), every one counted
+        assert len(refused) == min(7 + len(ABSURD), StatusLog.COMMAND_LINES) and max(len(m) for m in refused) < 700
+        assert svc.daemon._status.refused == 7 + len(ABSURD)
     assert svc.result == [0], (svc.result, svc.said[-5:])
 
 
