@@ -265,9 +265,9 @@ class Pipeline(_ChunkFeed):
         self.set_calibration(self.live.add(name, self.ring.view(), self.calibration))
 
     def _check_candidate(self, seq: int, t_s: float) -> PipelineEvent | None:
-        dropped = _on_trial(self, seq, t_s)
-        if dropped is not None:
-            return dropped
+        doubted = _on_trial(self, seq, t_s)
+        if doubted is not None:
+            return doubted
         cand = self.candidate()
         if cand is None:
             if self.gate.refusal is None:

@@ -4,6 +4,7 @@ before the service uses it (apply, reload, calibration.initial)."""
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 from typing import Any, Callable
@@ -14,6 +15,20 @@ from fluxcal.service.numerics.calib.plausible import check_calibration
 
 from .config import FluxcalConfig
 from .identity import check_identity, judge_on_data, unit_identity
+
+
+def _open_lock(path: Path) -> Any:
+    """The lock file beside calibration.file, read and written without following a symbolic link: a link planted
+    there is removed, its target never truncated (drivers.outputs.open_output does the same for outputs)."""
+    flags = os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(path, flags, 0o666)
+    except OSError as e:
+        if e.errno != errno.ELOOP:
+            raise
+        os.unlink(path)
+        fd = os.open(path, flags | os.O_EXCL, 0o666)
+    return os.fdopen(fd, "r+")
 
 
 def learned_on(cfg: FluxcalConfig) -> dict[str, str]:
@@ -157,7 +172,7 @@ class Keeper:
         lock = path.with_name(path.name + ".lock")
         try:
             lock.parent.mkdir(parents=True, exist_ok=True)
-            fh = open(lock, "a+")
+            fh = _open_lock(lock)
         except OSError:
             return
         try:

@@ -177,6 +177,15 @@ def test_two_services_given_one_calibration_file_are_told_so_at_start(tmp_path):
     first.release()
     second.claim()
     second.release()
+    # a link planted where the lock goes: removed, its target never written through
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep me")
+    lock = Path(cfg.calibration.file + ".lock")
+    lock.unlink()
+    lock.symlink_to(victim)
+    first.claim()
+    assert victim.read_text() == "keep me" and not lock.is_symlink() and "unit grad1" in lock.read_text()
+    first.release()
 
 
 class Service:

@@ -357,8 +357,8 @@ def align_probes(probes: list[ProbeCalibration], raw_nT: np.ndarray, method: str
     return out
 
 
-#: a probe aligned by regression whose scalar residual is this many times its own fit's: the reference's errors came
-#: with it (clean simulated arrays: 1.000-1.006; a flap's magnet at the reference, 0.15 of it: 1.24)
+#: a probe aligned by regression whose scalar residual is this many times its own ellipsoid's: the reference's
+#: errors came with it (clean simulated arrays: 1.000-1.006; a flap's magnet at the reference, 0.15 of it: 1.24)
 BORROWED_RATIO = 1.1
 
 
@@ -372,10 +372,10 @@ def scalar_rms(offset_nT: np.ndarray, matrix: np.ndarray, raw_nT: np.ndarray, to
 
 def borrowed_errors(aligned: list[ProbeCalibration], own: list[tuple[np.ndarray, np.ndarray] | None],
                     raw_nT: np.ndarray, total_nT: np.ndarray | None) -> dict[int, str]:
-    """Per probe aligned by regression onto probe 1: where its scalar residual is BORROWED_RATIO times or more what its
-    own fit (offset, matrix in `own`) leaves, why and what keeps it. The regression makes the probe follow probe 1's
-    corrected vector, so what probe 1's calibration lacks (an effect at probe 1 only) comes with it: a simulated
-    servo's magnet at the reference gave a clean probe 10.7 nT where its own fit left 0.50."""
+    """Per probe aligned by regression onto probe 1: where its scalar residual is BORROWED_RATIO times or more what
+    its own ellipsoid (offset, matrix in `own`) leaves, why and what keeps it. The regression makes the probe follow
+    probe 1's corrected vector, so what probe 1's calibration lacks (an effect at probe 1 only) comes with it: a
+    simulated servo's magnet at the reference gave a clean probe 10.7 nT where its own fit left 0.50."""
     ref = aligned[0]
     ref_rms = scalar_rms(ref.offset_nT, ref.matrix, raw_nT[:, 0], total_nT)
     out = {}

@@ -293,9 +293,10 @@ def fit_problem(pr: Problem, start: State, *, max_iter: int = 8, tol_se: float =
             converged = True                                  # no descent left: at the minimum
             break
         delta, damping, trial, ev_t, rss_t = step
-        predicted = rss + float(g_b.sum(0) @ delta)           # rss - g^T A^+ g of the linearised problem
-        if room is not None:                                  # a step stopped at a floor is not A^+ g
-            predicted += float(g_b.sum(0) @ delta + delta @ a_b.sum(0) @ delta)
+        # the RSS the linearised problem predicts for this step: rss - g^T A^+ g for the Gauss-Newton step itself, the
+        # whole quadratic where a floor stopped it
+        g_all = g_b.sum(0)
+        predicted = rss + float(g_all @ delta if room is None else 2.0 * g_all @ delta + delta @ a_b.sum(0) @ delta)
         # the excess of the actual over the predicted RSS bounds how far the step is from the minimum:
         # excess = d^T A d for a parameter error d, i.e. sqrt(excess / s2) standard errors
         linear_enough = damping == 0 and abs(rss_t - predicted) <= LINEARITY_SE ** 2 * s2
